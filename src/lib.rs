@@ -1,0 +1,7 @@
+//! rtu2mqtt: Modbus RTU / Modbus TCP devices to MQTT, with Fast Modbus events.
+//!
+//! Layers, from the wire up (see `README.md` and the architecture notes):
+//! `protocol` (sans-IO codec, parser, timing) → `sim` (virtual bus) / transport → port scheduler
+//! → `device` (templates, value codecs) → MQTT.
+
+pub mod protocol;
