@@ -4,4 +4,5 @@
 //! `protocol` (sans-IO codec, parser, timing) → `sim` (virtual bus) / transport → port scheduler
 //! → `device` (templates, value codecs) → MQTT.
 
+pub mod cli;
 pub mod protocol;

@@ -9,11 +9,16 @@ struct Cli {
 }
 
 #[derive(Subcommand)]
-enum Command {}
+enum Command {
+    /// Explain a Modbus RTU or Fast Modbus frame given as hex (e.g. "FD 46 10 00 FF 00 00 C8 9A").
+    Decode(rtu2mqtt::cli::decode::Args),
+}
 
 fn main() -> std::process::ExitCode {
     let cli = Cli::parse();
-    let result: anyhow::Result<std::process::ExitCode> = match cli.command {};
+    let result = match cli.command {
+        Command::Decode(args) => rtu2mqtt::cli::decode::run(args),
+    };
     match result {
         Ok(code) => code,
         Err(err) => {

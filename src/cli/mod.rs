@@ -1,0 +1,3 @@
+//! The subcommands' entry points: each takes its clap arguments and returns the exit code.
+
+pub mod decode;

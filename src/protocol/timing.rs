@@ -1,0 +1,266 @@
+//! Wire timing: character times, frame silence, arbitration windows and reply timeouts, the event
+//! poll interval. Pure arithmetic on [`LineSettings`]; durations, never a clock.
+
+use std::fmt;
+use std::time::Duration;
+
+/// Parity of the serial line.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum Parity {
+    None,
+    Even,
+    Odd,
+}
+
+impl Parity {
+    /// The letter of the usual "8N1" notation.
+    pub fn letter(self) -> char {
+        match self {
+            Self::None => 'N',
+            Self::Even => 'E',
+            Self::Odd => 'O',
+        }
+    }
+}
+
+/// Baud rate and character framing of a serial line.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub struct LineSettings {
+    pub baud: u32,
+    pub data_bits: u8,
+    pub parity: Parity,
+    pub stop_bits: u8,
+}
+
+/// Baud rates a scan tries, slowest first.
+pub const STANDARD_BAUD_RATES: [u32; 8] = [1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200];
+
+const NANOS_PER_SECOND: u64 = 1_000_000_000;
+
+impl LineSettings {
+    /// 9600 8N2: what Wiren Board devices ship with.
+    pub const WIREN_BOARD_DEFAULT: Self = Self::new(9600, Parity::None, 2);
+
+    pub const fn new(baud: u32, parity: Parity, stop_bits: u8) -> Self {
+        Self {
+            baud,
+            data_bits: 8,
+            parity,
+            stop_bits,
+        }
+    }
+
+    /// Start bit + data bits + parity bit + stop bits.
+    pub fn bits_per_char(&self) -> u32 {
+        1 + u32::from(self.data_bits)
+            + u32::from(self.parity != Parity::None)
+            + u32::from(self.stop_bits)
+    }
+
+    /// Time of `bits` bit periods, rounded up to whole nanoseconds. A zero baud rate is read as 1
+    /// baud so that no input can divide by zero.
+    pub fn bits_time(&self, bits: u64) -> Duration {
+        let baud = u64::from(self.baud.max(1));
+        Duration::from_nanos(bits.saturating_mul(NANOS_PER_SECOND).div_ceil(baud))
+    }
+
+    pub fn bit_time(&self) -> Duration {
+        self.bits_time(1)
+    }
+
+    /// One character on the wire.
+    pub fn char_time(&self) -> Duration {
+        self.bits_time(u64::from(self.bits_per_char()))
+    }
+
+    /// Time `bytes` characters occupy the wire, sent back to back.
+    pub fn wire_time(&self, bytes: usize) -> Duration {
+        let bytes = u64::try_from(bytes).unwrap_or(u64::MAX);
+        self.bits_time(bytes.saturating_mul(u64::from(self.bits_per_char())))
+    }
+
+    /// The silence that ends an RTU frame: 3.5 characters, fixed at 1.75 ms above 19200 baud.
+    pub fn frame_silence(&self) -> Duration {
+        if self.baud > 19200 {
+            Duration::from_micros(1750)
+        } else {
+            self.bits_time(u64::from(self.bits_per_char()) * 7)
+                .div_f64(2.0)
+        }
+    }
+
+    /// Whole bits needed to cover `duration` (rounded up).
+    fn bits_covering(&self, duration: Duration) -> u64 {
+        let nanos = u64::try_from(duration.as_nanos()).unwrap_or(u64::MAX);
+        nanos
+            .saturating_mul(u64::from(self.baud.max(1)))
+            .div_ceil(NANOS_PER_SECOND)
+    }
+
+    /// Quiet time after a Fast Modbus broadcast request before the first arbitration window:
+    /// `max(3.5 characters, 12 bits + 800 µs)`.
+    pub fn arbitration_wait(&self) -> Duration {
+        let three_and_half_chars = self
+            .bits_time(u64::from(self.bits_per_char()) * 7)
+            .div_f64(2.0);
+        three_and_half_chars.max(self.bits_time(12) + Duration::from_micros(800))
+    }
+
+    /// One arbitration window: `max(13 bits, 12 bits + 50 µs rounded up to whole bits)`.
+    pub fn arbitration_window(&self) -> Duration {
+        let reserve_bits = self.bits_covering(Duration::from_micros(50));
+        self.bits_time(13.max(12 + reserve_bits))
+    }
+
+    /// Longest time from the end of a scan request to the first byte of the winner's frame:
+    /// wait + 32 windows (4-bit marker + 28-bit serial).
+    pub fn scan_reply_timeout(&self) -> Duration {
+        self.arbitration_wait() + self.arbitration_window() * ARBITRATION_WINDOWS_SCAN
+    }
+
+    /// Longest time from the end of an event request to the first byte of the winner's frame:
+    /// wait + 12 windows (4-bit marker + 8-bit address).
+    pub fn event_reply_timeout(&self) -> Duration {
+        self.arbitration_wait() + self.arbitration_window() * ARBITRATION_WINDOWS_EVENTS
+    }
+
+    /// When nothing at all has arrived by then after an event request, no device takes part:
+    /// every address 1..=247 has a 0 bit within its first 5 bits, so a contender sends a filler
+    /// byte by window 4 + 5 = 9.
+    pub fn event_first_byte_timeout(&self) -> Duration {
+        self.arbitration_wait() + self.arbitration_window() * EVENT_FIRST_DOMINANT_WINDOW
+    }
+
+    /// After a scan start every device is un-scanned, and the marker 0b0110 starts with a 0 bit:
+    /// if any device uses these settings, the first window already carries a filler byte.
+    pub fn scan_start_first_byte_timeout(&self) -> Duration {
+        self.arbitration_wait() + self.arbitration_window()
+    }
+
+    /// How often the master asks for events: every 50 ms at 115200 baud and above, 100 ms from
+    /// 38400, 200 ms below.
+    pub fn event_poll_interval(&self) -> Duration {
+        match self.baud {
+            115_200.. => Duration::from_millis(50),
+            38_400.. => Duration::from_millis(100),
+            _ => Duration::from_millis(200),
+        }
+    }
+
+    /// Wire time of one transaction: request, device turnaround, reply.
+    pub fn transaction_time(
+        &self,
+        request_len: usize,
+        turnaround: Duration,
+        reply_len: usize,
+    ) -> Duration {
+        self.wire_time(request_len) + turnaround + self.wire_time(reply_len)
+    }
+}
+
+/// Windows of a scan arbitration.
+pub const ARBITRATION_WINDOWS_SCAN: u32 = 32;
+/// Windows of an event arbitration.
+pub const ARBITRATION_WINDOWS_EVENTS: u32 = 12;
+/// The window by which any event contender has sent a filler byte.
+pub const EVENT_FIRST_DOMINANT_WINDOW: u32 = 9;
+
+impl fmt::Display for LineSettings {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(
+            f,
+            "{} {}{}{}",
+            self.baud,
+            self.data_bits,
+            self.parity.letter(),
+            self.stop_bits
+        )
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn micros(d: Duration) -> f64 {
+        d.as_secs_f64() * 1e6
+    }
+
+    #[test]
+    fn character_times() {
+        let fast = LineSettings::new(115_200, Parity::None, 2);
+        assert!((micros(fast.char_time()) - 95.486).abs() < 0.01);
+        let slow = LineSettings::new(9600, Parity::None, 2);
+        assert!((micros(slow.char_time()) - 1145.83).abs() < 0.01);
+        assert_eq!(LineSettings::new(9600, Parity::None, 1).bits_per_char(), 10);
+        assert_eq!(LineSettings::new(9600, Parity::Even, 1).bits_per_char(), 11);
+        assert_eq!(LineSettings::new(9600, Parity::Odd, 2).bits_per_char(), 12);
+        let seven_bits = LineSettings {
+            data_bits: 7,
+            ..LineSettings::new(9600, Parity::Even, 1)
+        };
+        assert_eq!(seven_bits.bits_per_char(), 10);
+    }
+
+    #[test]
+    fn frame_silence() {
+        assert_eq!(
+            LineSettings::new(115_200, Parity::None, 2).frame_silence(),
+            Duration::from_micros(1750)
+        );
+        let at_9600 = LineSettings::new(9600, Parity::None, 2).frame_silence();
+        assert!((micros(at_9600) - 4010.4).abs() < 0.1);
+    }
+
+    #[test]
+    fn arbitration_matches_the_article_at_115200() {
+        let line = LineSettings::new(115_200, Parity::None, 2);
+        // 12 bits + ceil(50 µs / 8.68 µs) = 6 bits → 18 bits = 156.25 µs.
+        assert!((micros(line.arbitration_window()) - 156.25).abs() < 0.01);
+        // 12 bits + 800 µs = 904.2 µs beats 3.5 chars (334 µs).
+        assert!((micros(line.arbitration_wait()) - 904.17).abs() < 0.01);
+        assert!((micros(line.scan_reply_timeout()) - (904.17 + 32.0 * 156.25)).abs() < 0.1);
+        assert!((micros(line.event_reply_timeout()) - (904.17 + 12.0 * 156.25)).abs() < 0.1);
+        assert!(line.event_first_byte_timeout() < line.event_reply_timeout());
+    }
+
+    #[test]
+    fn slow_lines_use_thirteen_bit_windows() {
+        let line = LineSettings::new(9600, Parity::None, 2);
+        // 50 µs is under one bit (104 µs): 12 + 1 = 13 bits.
+        assert_eq!(line.arbitration_window(), line.bits_time(13));
+        let line = LineSettings::new(1200, Parity::Even, 1);
+        assert_eq!(line.arbitration_window(), line.bits_time(13));
+        // 3.5 chars at 1200 8E1 = 32 ms, more than 12 bits + 800 µs.
+        assert!(line.arbitration_wait() > Duration::from_millis(30));
+    }
+
+    #[test]
+    fn event_poll_interval_by_baud() {
+        let at = |baud| LineSettings::new(baud, Parity::None, 2).event_poll_interval();
+        assert_eq!(at(230_400), Duration::from_millis(50));
+        assert_eq!(at(115_200), Duration::from_millis(50));
+        assert_eq!(at(57_600), Duration::from_millis(100));
+        assert_eq!(at(38_400), Duration::from_millis(100));
+        assert_eq!(at(19_200), Duration::from_millis(200));
+        assert_eq!(at(9600), Duration::from_millis(200));
+    }
+
+    #[test]
+    fn published_event_round_figure() {
+        // 42 characters (request, filler, 2-byte event reply...) = 4.01 ms at 115200 8N2.
+        let line = LineSettings::new(115_200, Parity::None, 2);
+        assert!((line.wire_time(42).as_secs_f64() * 1e3 - 4.01).abs() < 0.01);
+        let slow = LineSettings::new(9600, Parity::None, 2);
+        assert!((slow.wire_time(42).as_secs_f64() * 1e3 - 48.1).abs() < 0.1);
+        // A 100-byte reply at 115200 8N2 takes 9.55 ms.
+        assert!((line.wire_time(100).as_secs_f64() * 1e3 - 9.549).abs() < 0.01);
+    }
+
+    #[test]
+    fn zero_baud_does_not_divide_by_zero() {
+        let line = LineSettings::new(0, Parity::None, 1);
+        assert!(line.char_time() > Duration::ZERO);
+        assert!(line.arbitration_window() > Duration::ZERO);
+    }
+}
