@@ -5,4 +5,5 @@
 //! → `device` (templates, value codecs) → MQTT.
 
 pub mod cli;
+pub mod port;
 pub mod protocol;

@@ -1,0 +1,388 @@
+//! One device as its port's scheduler sees it: preparation (setup writes, event setup), which
+//! reads are due, which are replaced by events or unsupported, and its health.
+
+use std::time::Duration;
+
+use super::health::{DeviceHealth, HealthChange};
+use super::plan::{DevicePlan, EventMode};
+use super::read_plan::RegisterSpan;
+use crate::protocol::frame::MAX_FRAME_LEN;
+use crate::protocol::{EventPriority, EventRange, RegisterType};
+
+/// How often a device whose every channel comes by events is read anyway, so that a dead device
+/// is noticed.
+pub(super) const KEEPALIVE_PERIOD: Duration = Duration::from_secs(1);
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Preparation {
+    /// Setup write `next` is due.
+    Setup {
+        next: usize,
+    },
+    /// The 0x18 event setup is due.
+    Events,
+    Done,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Exclusion {
+    None,
+    /// Events enabled: polled only as the keep-alive, or once after (re)connecting.
+    EventsOnly,
+    /// The device said the register does not exist.
+    Unsupported,
+}
+
+#[derive(Debug, Clone)]
+struct ReadState {
+    next_due: Duration,
+    last_read: Option<Duration>,
+    exclusion: Exclusion,
+    /// Read once after (re)connecting even when events deliver it.
+    initial_pending: bool,
+    /// Never merged with others (a merged read including it was refused).
+    solo: bool,
+}
+
+/// The read a device would do now, and how urgent it is.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub(super) struct ReadChoice {
+    pub span: RegisterSpan,
+    /// Indices of the planned reads this request covers.
+    pub members: Vec<usize>,
+    /// Lower is more urgent: periodic reads first, then by due time, then least recently read.
+    pub urgency: (u8, Duration, Option<Duration>),
+}
+
+#[derive(Debug, Clone)]
+pub(super) struct DeviceState {
+    pub plan: DevicePlan,
+    pub health: DeviceHealth,
+    fast_modbus: bool,
+    preparation: Preparation,
+    reads: Vec<ReadState>,
+    events_active: bool,
+}
+
+impl DeviceState {
+    pub(super) fn new(plan: DevicePlan, fast_modbus: bool) -> Self {
+        let reads = plan
+            .reads
+            .iter()
+            .map(|_| ReadState {
+                next_due: Duration::ZERO,
+                last_read: None,
+                exclusion: Exclusion::None,
+                initial_pending: true,
+                solo: false,
+            })
+            .collect();
+        let health = DeviceHealth::new(plan.health);
+        let mut state = Self {
+            plan,
+            health,
+            fast_modbus,
+            preparation: Preparation::Done,
+            reads,
+            events_active: false,
+        };
+        state.preparation = state.first_preparation_step();
+        state
+    }
+
+    fn first_preparation_step(&self) -> Preparation {
+        if self.plan.setup.is_empty() {
+            self.after_setup()
+        } else {
+            Preparation::Setup { next: 0 }
+        }
+    }
+
+    fn after_setup(&self) -> Preparation {
+        if self.fast_modbus
+            && self
+                .plan
+                .reads
+                .iter()
+                .any(|r| r.events != EventMode::Polled)
+        {
+            Preparation::Events
+        } else {
+            Preparation::Done
+        }
+    }
+
+    pub(super) fn events_active(&self) -> bool {
+        self.events_active
+    }
+
+    pub(super) fn is_prepared(&self) -> bool {
+        self.preparation == Preparation::Done
+    }
+
+    pub(super) fn next_setup_write(&self) -> Option<usize> {
+        match self.preparation {
+            Preparation::Setup { next } => Some(next),
+            _ => None,
+        }
+    }
+
+    pub(super) fn wants_events(&self) -> bool {
+        self.preparation == Preparation::Events
+    }
+
+    pub(super) fn setup_write_done(&mut self, index: usize) {
+        if self.preparation == (Preparation::Setup { next: index }) {
+            self.preparation = if index + 1 < self.plan.setup.len() {
+                Preparation::Setup { next: index + 1 }
+            } else {
+                self.after_setup()
+            };
+        }
+    }
+
+    /// The 0x18 request's ranges (one per event channel, within one frame) and the planned reads
+    /// they cover. High priority for channels that also have a read period.
+    pub(super) fn event_ranges(&self) -> (Vec<EventRange>, Vec<usize>) {
+        let mut candidates: Vec<(usize, RegisterSpan, EventPriority)> = self
+            .plan
+            .reads
+            .iter()
+            .enumerate()
+            .filter(|(i, r)| {
+                r.events != EventMode::Polled && self.exclusion(*i) != Some(Exclusion::Unsupported)
+            })
+            .map(|(i, r)| {
+                let priority = if r.period.is_some() {
+                    EventPriority::High
+                } else {
+                    EventPriority::Low
+                };
+                (i, r.span, priority)
+            })
+            .collect();
+        candidates.sort_by_key(|(_, span, _)| (span.register_type, span.start));
+        // address, 0x46, 0x18, list_len, CRC: the rest of the frame is the list.
+        let mut room = MAX_FRAME_LEN - 6;
+        let mut ranges = Vec::new();
+        let mut members = Vec::new();
+        for (index, span, priority) in candidates {
+            let len = 4 + usize::from(span.count);
+            if span.count == 0 || span.count > 255 || len > room {
+                continue;
+            }
+            room -= len;
+            ranges.push(EventRange {
+                register_type: span.register_type,
+                start: span.start,
+                priorities: vec![priority; usize::from(span.count)],
+            });
+            members.push(index);
+        }
+        (ranges, members)
+    }
+
+    fn exclusion(&self, index: usize) -> Option<Exclusion> {
+        self.reads.get(index).map(|r| r.exclusion)
+    }
+
+    /// Applies a 0x18 reply: `enabled` lists every requested register with its bit.
+    pub(super) fn events_configured(
+        &mut self,
+        now: Duration,
+        members: &[usize],
+        enabled: &[(RegisterType, u16, bool)],
+    ) {
+        let is_enabled = |register_type: RegisterType, address: u16| {
+            enabled
+                .iter()
+                .any(|&(t, a, on)| on && t == register_type && a == address)
+        };
+        let mut any = false;
+        for &member in members {
+            let (Some(plan), Some(state)) =
+                (self.plan.reads.get(member), self.reads.get_mut(member))
+            else {
+                continue;
+            };
+            let span = plan.span;
+            let all_on =
+                (0..span.count).all(|i| is_enabled(span.register_type, span.start.wrapping_add(i)));
+            any |= all_on;
+            if all_on && plan.events == EventMode::Sporadic {
+                state.exclusion = Exclusion::EventsOnly;
+            }
+        }
+        self.events_active = any;
+        self.finish_preparation(now);
+    }
+
+    /// The device has no (working) event support: poll everything.
+    pub(super) fn events_refused(&mut self, now: Duration) {
+        self.events_active = false;
+        self.finish_preparation(now);
+    }
+
+    fn finish_preparation(&mut self, now: Duration) {
+        self.preparation = Preparation::Done;
+        for read in &mut self.reads {
+            read.next_due = now;
+            read.initial_pending = read.exclusion != Exclusion::Unsupported;
+        }
+    }
+
+    /// After a reboot or a reconnection: setup, event setup and first reads all over again.
+    pub(super) fn restart_preparation(&mut self) {
+        self.events_active = false;
+        self.preparation = self.first_preparation_step();
+        for read in &mut self.reads {
+            if read.exclusion == Exclusion::EventsOnly {
+                read.exclusion = Exclusion::None;
+            }
+            read.initial_pending = true;
+        }
+    }
+
+    /// True when the device came online.
+    pub(super) fn record_success(&mut self, now: Duration) -> bool {
+        self.health.record_success(now) == HealthChange::CameOnline
+    }
+
+    /// True when the device went offline (its preparation then starts over when it returns).
+    pub(super) fn record_failure(&mut self, now: Duration) -> bool {
+        let went_offline = self.health.record_failure(now) == HealthChange::WentOffline;
+        if went_offline {
+            self.restart_preparation();
+        }
+        went_offline
+    }
+
+    /// Whether nothing else keeps this device under watch, so one events-only read must.
+    fn keepalive_index(&self) -> Option<usize> {
+        let any_polled = self.reads.iter().any(|r| r.exclusion == Exclusion::None);
+        if any_polled {
+            return None;
+        }
+        self.reads
+            .iter()
+            .position(|r| r.exclusion == Exclusion::EventsOnly)
+    }
+
+    fn is_due(&self, index: usize, now: Duration) -> bool {
+        let Some(read) = self.reads.get(index) else {
+            return false;
+        };
+        match read.exclusion {
+            Exclusion::Unsupported => false,
+            _ if read.initial_pending => true,
+            Exclusion::None => read.next_due <= now,
+            Exclusion::EventsOnly => self.keepalive_index() == Some(index) && read.next_due <= now,
+        }
+    }
+
+    pub(super) fn choose_read(&self, now: Duration) -> Option<ReadChoice> {
+        let due: Vec<usize> = (0..self.reads.len())
+            .filter(|&i| self.is_due(i, now))
+            .collect();
+        let urgency = |i: usize| {
+            let plan = self.plan.reads.get(i);
+            let read = self.reads.get(i);
+            let class = u8::from(plan.is_none_or(|p| p.period.is_none()));
+            (
+                class,
+                read.map_or(Duration::ZERO, |r| r.next_due),
+                read.and_then(|r| r.last_read),
+            )
+        };
+        let first = *due.iter().min_by_key(|&&i| urgency(i))?;
+        let first_span = self.plan.reads.get(first)?.span;
+        let mut span = first_span;
+        let mut members = vec![first];
+        if !self.reads.get(first).is_some_and(|r| r.solo) {
+            let mut followers: Vec<(RegisterSpan, usize)> = due
+                .iter()
+                .filter(|&&i| i != first && !self.reads.get(i).is_some_and(|r| r.solo))
+                .filter_map(|&i| self.plan.reads.get(i).map(|p| (p.span, i)))
+                .filter(|(s, _)| s.register_type == span.register_type && s.start >= span.start)
+                .collect();
+            followers.sort();
+            for (next, index) in followers {
+                match self.plan.merge.extend(span, next) {
+                    Some(extended) => {
+                        span = extended;
+                        members.push(index);
+                    }
+                    None => break,
+                }
+            }
+        }
+        Some(ReadChoice {
+            span,
+            members,
+            urgency: urgency(first),
+        })
+    }
+
+    pub(super) fn read_span(&self, index: usize) -> Option<RegisterSpan> {
+        self.plan.reads.get(index).map(|r| r.span)
+    }
+
+    fn reschedule(&mut self, now: Duration, index: usize) {
+        let keepalive = self.keepalive_index() == Some(index);
+        let period = self.plan.reads.get(index).and_then(|p| p.period);
+        if let Some(read) = self.reads.get_mut(index) {
+            read.next_due = match (keepalive, period) {
+                (true, _) => now + KEEPALIVE_PERIOD,
+                (false, Some(period)) => now + period,
+                // Round-robin: due again at once, ordered by when it was last read.
+                (false, None) => now,
+            };
+        }
+    }
+
+    pub(super) fn read_done(&mut self, now: Duration, index: usize) {
+        if let Some(read) = self.reads.get_mut(index) {
+            read.last_read = Some(now);
+            read.initial_pending = false;
+        }
+        self.reschedule(now, index);
+    }
+
+    pub(super) fn read_failed(&mut self, now: Duration, index: usize, unsupported: bool) {
+        if let Some(read) = self.reads.get_mut(index) {
+            read.last_read = Some(now);
+            if unsupported {
+                read.exclusion = Exclusion::Unsupported;
+                read.initial_pending = false;
+            }
+        }
+        self.reschedule(now, index);
+    }
+
+    /// A merged read was refused: read each part on its own to find the unsupported one.
+    pub(super) fn split_reads(&mut self, now: Duration, members: &[usize]) {
+        for &member in members {
+            if let Some(read) = self.reads.get_mut(member) {
+                read.solo = true;
+                read.next_due = now;
+            }
+        }
+    }
+
+    /// When this device next has something to do (for an idle port's sleep).
+    pub(super) fn next_deadline(&self) -> Option<Duration> {
+        let retry = self.health.retry_at();
+        let reads = (0..self.reads.len())
+            .filter(|&i| match self.reads.get(i).map(|r| r.exclusion) {
+                Some(Exclusion::None) => true,
+                Some(Exclusion::EventsOnly) => self.keepalive_index() == Some(i),
+                _ => false,
+            })
+            .filter_map(|i| self.reads.get(i).map(|r| r.next_due))
+            .min();
+        match (reads, retry) {
+            (Some(read), Some(retry)) => Some(read.max(retry)),
+            (read, retry) => read.or(retry),
+        }
+    }
+}

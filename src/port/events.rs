@@ -1,0 +1,168 @@
+//! The state of a port's event polling: when the next 0x10 request is due, which packet it
+//! confirms, and the `min_address` rotation that keeps a chatty device from starving the others.
+
+use std::time::Duration;
+
+use super::plan::PortSettings;
+use crate::protocol::frame::MAX_DEVICE_ADDRESS;
+use crate::protocol::EventPoll;
+
+/// Event requests sent back to back after packets, before the interval applies again: enough to
+/// drain a burst from several devices, not enough to starve classic reads.
+const MAX_BURST: u32 = 8;
+
+/// Longest event data that keeps the 0x11 frame within 256 bytes.
+const MAX_EVENT_DATA: usize = 248;
+
+#[derive(Debug, Clone)]
+pub(super) struct EventPoller {
+    interval: Duration,
+    next_at: Duration,
+    min_address: u8,
+    ack: Option<(u8, u8)>,
+    max_data_len: u8,
+    burst: u32,
+}
+
+impl EventPoller {
+    pub(super) fn new(settings: &PortSettings) -> Self {
+        Self {
+            interval: settings.event_interval,
+            next_at: Duration::ZERO,
+            min_address: 0,
+            ack: None,
+            max_data_len: max_data_len(settings),
+            burst: 0,
+        }
+    }
+
+    pub(super) fn next_at(&self) -> Duration {
+        self.next_at
+    }
+
+    pub(super) fn max_data_len(&self) -> u8 {
+        self.max_data_len
+    }
+
+    pub(super) fn request(&self) -> EventPoll {
+        let (ack_address, ack_flag) = self.ack.unwrap_or((0, 0));
+        EventPoll {
+            min_address: self.min_address,
+            max_data_len: self.max_data_len,
+            ack_address,
+            ack_flag,
+        }
+    }
+
+    pub(super) fn started(&mut self, now: Duration) {
+        self.next_at = now + self.interval;
+    }
+
+    /// A device sent a packet: confirm it next time, let the devices above it speak first, and
+    /// ask again at once (more may be waiting), within the burst limit.
+    pub(super) fn packet_received(&mut self, now: Duration, address: u8, flag: u8) {
+        self.ack = Some((address, flag));
+        self.min_address = if address >= MAX_DEVICE_ADDRESS {
+            0
+        } else {
+            address + 1
+        };
+        if self.burst < MAX_BURST {
+            self.burst += 1;
+            self.next_at = now;
+        }
+    }
+
+    /// "No events" or silence. If part of the address range was excluded, ask the whole bus again
+    /// at once; otherwise wait for the next slot.
+    pub(super) fn nothing_pending(&mut self, started: Duration) {
+        self.ack = None;
+        self.burst = 0;
+        if self.min_address != 0 {
+            self.min_address = 0;
+            self.next_at = started;
+        }
+    }
+
+    /// An unreadable reply (noise, collision): confirm nothing, so the device sends its packet
+    /// again under the same flag.
+    pub(super) fn garbled(&mut self, _now: Duration) {
+        self.ack = None;
+    }
+}
+
+/// The most event data a reply may carry: what the line moves in one interval, less the frame
+/// overhead, within what one frame can hold.
+fn max_data_len(settings: &PortSettings) -> u8 {
+    let char_nanos = settings.line.char_time().as_nanos().max(1);
+    let chars = settings.event_interval.as_nanos() / char_nanos;
+    let data = usize::try_from(chars)
+        .unwrap_or(usize::MAX)
+        .saturating_sub(8)
+        .clamp(6, MAX_EVENT_DATA);
+    u8::try_from(data).unwrap_or(u8::MAX)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::protocol::{LineSettings, Parity};
+
+    fn poller(baud: u32) -> EventPoller {
+        EventPoller::new(&PortSettings::for_line(LineSettings::new(
+            baud,
+            Parity::None,
+            2,
+        )))
+    }
+
+    #[test]
+    fn data_budget_by_baud() {
+        assert_eq!(poller(115_200).max_data_len(), 248);
+        // 200 ms at 9600 8N2 = 174 characters, less 8.
+        assert_eq!(poller(9600).max_data_len(), 166);
+        assert_eq!(poller(1200).max_data_len(), 13);
+    }
+
+    #[test]
+    fn ack_and_rotation() {
+        let mut events = poller(115_200);
+        let ms = Duration::from_millis;
+        events.started(ms(0));
+        assert_eq!(events.next_at(), ms(50));
+        events.packet_received(ms(3), 20, 1);
+        assert_eq!(
+            events.request(),
+            EventPoll {
+                min_address: 21,
+                max_data_len: 248,
+                ack_address: 20,
+                ack_flag: 1
+            }
+        );
+        assert_eq!(events.next_at(), ms(3), "asks again at once");
+        events.started(ms(3));
+        events.nothing_pending(ms(3));
+        assert_eq!(events.request().min_address, 0, "the whole bus again");
+        assert_eq!(events.request().ack_address, 0);
+        assert_eq!(events.next_at(), ms(3));
+        events.started(ms(6));
+        events.nothing_pending(ms(6));
+        assert_eq!(events.next_at(), ms(56), "then the interval");
+    }
+
+    #[test]
+    fn bursts_are_bounded() {
+        let mut events = poller(115_200);
+        let mut now = Duration::ZERO;
+        for _ in 0..MAX_BURST {
+            events.started(now);
+            events.packet_received(now, 5, 0);
+            assert_eq!(events.next_at(), now);
+            now += Duration::from_millis(2);
+        }
+        events.started(now);
+        events.packet_received(now, 5, 1);
+        assert_eq!(events.next_at(), now + Duration::from_millis(50));
+    }
+}

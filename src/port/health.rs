@@ -1,0 +1,188 @@
+//! Whether a device answers: failures, disconnection, and the growing retry delay of a
+//! disconnected device (so that it never stalls the others on the bus).
+
+use std::time::Duration;
+
+/// When a device counts as disconnected, and how it is retried.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct HealthPolicy {
+    /// Consecutive failed transactions before a device may be disconnected.
+    pub max_fail_cycles: u32,
+    /// ... and the time since its last success must exceed this.
+    pub device_timeout: Duration,
+    /// Each retry of a disconnected device waits this much longer than the last ...
+    pub retry_step: Duration,
+    /// ... up to this.
+    pub max_retry_delay: Duration,
+}
+
+impl Default for HealthPolicy {
+    /// wb-mqtt-serial's defaults: 2 failures and 3 s; retries 0.5 s longer each time, up to 10 s.
+    fn default() -> Self {
+        Self {
+            max_fail_cycles: 2,
+            device_timeout: Duration::from_secs(3),
+            retry_step: Duration::from_millis(500),
+            max_retry_delay: Duration::from_secs(10),
+        }
+    }
+}
+
+/// What changed after a transaction.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum HealthChange {
+    None,
+    /// The device answered for the first time, or again after being disconnected.
+    CameOnline,
+    WentOffline,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum State {
+    /// Not heard from yet.
+    Unknown,
+    Online,
+    /// Retried no earlier than `retry_at`.
+    Offline {
+        retry_at: Duration,
+        delay: Duration,
+    },
+}
+
+#[derive(Debug, Clone)]
+pub struct DeviceHealth {
+    policy: HealthPolicy,
+    state: State,
+    failures: u32,
+    last_success: Option<Duration>,
+}
+
+impl DeviceHealth {
+    pub fn new(policy: HealthPolicy) -> Self {
+        Self {
+            policy,
+            state: State::Unknown,
+            failures: 0,
+            last_success: None,
+        }
+    }
+
+    pub fn is_online(&self) -> bool {
+        self.state == State::Online
+    }
+
+    pub fn is_offline(&self) -> bool {
+        matches!(self.state, State::Offline { .. })
+    }
+
+    /// A disconnected device gets one transaction per retry slot; others whenever they are due.
+    pub fn may_transact(&self, now: Duration) -> bool {
+        match self.state {
+            State::Offline { retry_at, .. } => now >= retry_at,
+            _ => true,
+        }
+    }
+
+    /// When a disconnected device may be tried again.
+    pub fn retry_at(&self) -> Option<Duration> {
+        match self.state {
+            State::Offline { retry_at, .. } => Some(retry_at),
+            _ => None,
+        }
+    }
+
+    pub fn record_success(&mut self, now: Duration) -> HealthChange {
+        self.failures = 0;
+        self.last_success = Some(now);
+        let was_online = self.is_online();
+        self.state = State::Online;
+        if was_online {
+            HealthChange::None
+        } else {
+            HealthChange::CameOnline
+        }
+    }
+
+    pub fn record_failure(&mut self, now: Duration) -> HealthChange {
+        self.failures = self.failures.saturating_add(1);
+        match self.state {
+            State::Offline { delay, .. } => {
+                let delay = (delay + self.policy.retry_step).min(self.policy.max_retry_delay);
+                self.state = State::Offline {
+                    retry_at: now + delay,
+                    delay,
+                };
+                HealthChange::None
+            }
+            // A device never heard from is disconnected on its first failure, as in wb-mqtt-serial.
+            _ if self.disconnect_due(now) => {
+                let delay = self.policy.retry_step.min(self.policy.max_retry_delay);
+                self.state = State::Offline {
+                    retry_at: now + delay,
+                    delay,
+                };
+                HealthChange::WentOffline
+            }
+            _ => HealthChange::None,
+        }
+    }
+
+    fn disconnect_due(&self, now: Duration) -> bool {
+        match self.last_success {
+            None => true,
+            Some(last) => {
+                self.failures >= self.policy.max_fail_cycles
+                    && now.saturating_sub(last) > self.policy.device_timeout
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn ms(ms: u64) -> Duration {
+        Duration::from_millis(ms)
+    }
+
+    #[test]
+    fn never_heard_from_goes_offline_at_once() {
+        let mut health = DeviceHealth::new(HealthPolicy::default());
+        assert_eq!(health.record_failure(ms(0)), HealthChange::WentOffline);
+        assert!(!health.may_transact(ms(499)));
+        assert!(health.may_transact(ms(500)));
+    }
+
+    #[test]
+    fn online_device_needs_failures_and_time() {
+        let mut health = DeviceHealth::new(HealthPolicy::default());
+        assert_eq!(health.record_success(ms(0)), HealthChange::CameOnline);
+        assert_eq!(health.record_failure(ms(100)), HealthChange::None);
+        assert_eq!(
+            health.record_failure(ms(200)),
+            HealthChange::None,
+            "2 failures but only 0.2 s"
+        );
+        assert_eq!(health.record_failure(ms(3001)), HealthChange::WentOffline);
+    }
+
+    #[test]
+    fn retry_delay_grows_to_ten_seconds_and_resets_on_success() {
+        let mut health = DeviceHealth::new(HealthPolicy::default());
+        health.record_failure(ms(0));
+        let mut now = ms(0);
+        let mut delays = Vec::new();
+        for _ in 0..25 {
+            let retry_at = health.retry_at().unwrap();
+            delays.push(retry_at - now);
+            now = retry_at;
+            health.record_failure(now);
+        }
+        assert_eq!(delays[0], ms(500));
+        assert_eq!(delays[1], ms(1000));
+        assert_eq!(*delays.last().unwrap(), ms(10_000));
+        assert_eq!(health.record_success(now), HealthChange::CameOnline);
+        assert!(health.may_transact(now));
+    }
+}

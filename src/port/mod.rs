@@ -1,0 +1,15 @@
+//! One bus: the sans-IO scheduler that decides what the bus does next (event requests, writes,
+//! device preparation, classic reads), device health, and the read plan. A port task drives it
+//! with a transport; tests drive it with a fake clock and scripted outcomes.
+
+mod device;
+mod events;
+pub mod health;
+pub mod plan;
+pub mod read_plan;
+pub mod scheduler;
+
+pub use health::HealthPolicy;
+pub use plan::{DevicePlan, EventMode, PlannedRead, PortSettings, RegisterWrite, SetupWrite};
+pub use read_plan::{MergeLimits, RegisterSpan};
+pub use scheduler::{Action, Outcome, PortEvent, PortScheduler, Transaction};

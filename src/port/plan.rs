@@ -1,0 +1,91 @@
+//! The inputs of a port's scheduler: the port's timing settings and, per device, what to read,
+//! what to write at start-up, and which registers may send events. Built from the config and
+//! device templates; expressed in registers so that the bus logic knows nothing of channels.
+
+use std::time::Duration;
+
+use super::health::HealthPolicy;
+use super::read_plan::{MergeLimits, RegisterSpan};
+use crate::protocol::{LineSettings, RegisterType};
+
+/// Timing of one bus.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PortSettings {
+    /// For wire-time estimates and arbitration timeouts. TCP gateways are modelled at their
+    /// serial side's settings (9600 8N2 when unknown, as wb-mqtt-serial does).
+    pub line: LineSettings,
+    /// The site-wide switch: when false, no 0xFD or 0x46 frame ever leaves the port.
+    pub fast_modbus: bool,
+    /// Longest time between two event requests.
+    pub event_interval: Duration,
+    /// How long a device may take to start its reply.
+    pub response_timeout: Duration,
+    /// Added to arbitration timeouts: USB adapters deliver bytes late.
+    pub latency_margin: Duration,
+    /// Expected device turnaround, for wire-time estimates.
+    pub turnaround: Duration,
+}
+
+impl PortSettings {
+    pub fn for_line(line: LineSettings) -> Self {
+        Self {
+            line,
+            fast_modbus: true,
+            event_interval: line.event_poll_interval(),
+            response_timeout: Duration::from_millis(500),
+            latency_margin: Duration::from_millis(5),
+            turnaround: Duration::from_millis(1),
+        }
+    }
+}
+
+/// How a channel's registers are kept up to date.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum EventMode {
+    /// Read periodically; no events.
+    Polled,
+    /// Events only, once enabled: not polled (one slow keep-alive read per device).
+    Sporadic,
+    /// Events and polling both.
+    SemiSporadic,
+}
+
+/// One channel's registers to keep up to date.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct PlannedRead {
+    pub span: RegisterSpan,
+    /// Read at this period with high priority; None: round-robin in the remaining time.
+    pub period: Option<Duration>,
+    pub events: EventMode,
+}
+
+/// Holding registers written whenever the device (re)connects or reboots.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct SetupWrite {
+    pub address: u16,
+    pub values: Vec<u16>,
+}
+
+/// One device on the bus.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DevicePlan {
+    /// For logs.
+    pub name: String,
+    pub address: u8,
+    pub merge: MergeLimits,
+    pub health: HealthPolicy,
+    pub reads: Vec<PlannedRead>,
+    pub setup: Vec<SetupWrite>,
+}
+
+/// A write requested from outside (MQTT, RPC). The latest value per register wins.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct RegisterWrite {
+    /// Index into the port's devices.
+    pub device: usize,
+    /// Coil or Holding.
+    pub register_type: RegisterType,
+    pub address: u16,
+    /// One value per register (0/1 for coils).
+    pub values: Vec<u16>,
+}

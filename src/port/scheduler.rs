@@ -1,0 +1,685 @@
+//! The bus scheduler of one port, sans IO: the driver asks [`PortScheduler::next`] what to send,
+//! sends it, and hands the outcome to [`PortScheduler::complete`], passing the time in each call.
+//!
+//! Order of precedence on the bus:
+//! 1. the Fast Modbus event request when its slot is due (every 50/100/200 ms by baud rate);
+//! 2. queued writes; 3. device preparation (setup writes, 0x18 event setup, first reads);
+//! 4. classic reads, periodic ones first, the rest round-robin.
+//!
+//! No transaction starts if its estimated wire time would make the next event request late:
+//! instead, the event request goes out early, which resets its slot. When nothing else is due,
+//! events are polled at once, so event latency falls to the wire time whenever the bus has slack.
+
+use std::time::Duration;
+
+use tracing::{debug, info, warn};
+
+use super::device::{DeviceState, ReadChoice};
+use super::events::EventPoller;
+use super::plan::{DevicePlan, PortSettings, RegisterWrite};
+use super::read_plan::RegisterSpan;
+use crate::protocol::fast::enabled_registers;
+use crate::protocol::{
+    EventRange, ExceptionCode, FastReply, RegisterType, Reply, ReplyBody, Request, RequestPdu,
+    ResponsePdu,
+};
+
+/// How long a failed write keeps being retried.
+const WRITE_RETRY_TIME: Duration = Duration::from_secs(600);
+
+/// What the driver does next.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Action {
+    Transmit(Transaction),
+    /// Nothing to do before this time (or before a write is queued).
+    Wait {
+        until: Duration,
+    },
+}
+
+/// One request and how long to wait for its reply.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Transaction {
+    pub request: Request,
+    /// From the end of the request to the end of the reply.
+    pub reply_timeout: Duration,
+    /// Give up early when not even one byte arrived by then (event requests: nobody takes part).
+    pub first_byte_timeout: Option<Duration>,
+    /// Expected bus time of the whole transaction.
+    pub estimated: Duration,
+}
+
+/// What came back for a transaction.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Outcome {
+    Reply(Reply),
+    /// Nothing, or nothing that answers the request, before the timeout.
+    NoReply,
+    /// Bytes arrived but no valid frame (CRC errors, a collision).
+    Garbled,
+}
+
+/// What the port tells the device model.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum PortEvent {
+    /// Values read (bits as 0/1), one per register of `span`.
+    Values {
+        device: usize,
+        span: RegisterSpan,
+        values: Vec<u16>,
+    },
+    /// A value reported by an event: the payload is little-endian.
+    EventValue {
+        device: usize,
+        register_type: RegisterType,
+        address: u16,
+        payload: Vec<u8>,
+    },
+    /// `unsupported`: the device says the register does not exist; it is no longer read.
+    ReadFailed {
+        device: usize,
+        span: RegisterSpan,
+        unsupported: bool,
+    },
+    WriteDone {
+        device: usize,
+        register_type: RegisterType,
+        address: u16,
+    },
+    WriteFailed {
+        device: usize,
+        register_type: RegisterType,
+        address: u16,
+        permanent: bool,
+    },
+    Online {
+        device: usize,
+    },
+    Offline {
+        device: usize,
+    },
+    Rebooted {
+        device: usize,
+    },
+}
+
+#[derive(Debug, Clone)]
+enum InFlight {
+    PollEvents {
+        started: Duration,
+    },
+    Setup {
+        device: usize,
+        index: usize,
+    },
+    EnableEvents {
+        device: usize,
+        ranges: Vec<EventRange>,
+        members: Vec<usize>,
+    },
+    Read {
+        device: usize,
+        span: RegisterSpan,
+        members: Vec<usize>,
+    },
+    Write {
+        write: PendingWrite,
+    },
+}
+
+#[derive(Debug, Clone)]
+struct PendingWrite {
+    write: RegisterWrite,
+    give_up_at: Duration,
+}
+
+/// The scheduler of one port.
+#[derive(Debug)]
+pub struct PortScheduler {
+    settings: PortSettings,
+    devices: Vec<DeviceState>,
+    events: EventPoller,
+    writes: Vec<PendingWrite>,
+    in_flight: Option<InFlight>,
+}
+
+impl PortScheduler {
+    pub fn new(settings: PortSettings, plans: Vec<DevicePlan>) -> Self {
+        let events = EventPoller::new(&settings);
+        let devices = plans
+            .into_iter()
+            .map(|plan| DeviceState::new(plan, settings.fast_modbus))
+            .collect();
+        Self {
+            settings,
+            devices,
+            events,
+            writes: Vec::new(),
+            in_flight: None,
+        }
+    }
+
+    pub fn device_count(&self) -> usize {
+        self.devices.len()
+    }
+
+    /// Queues a write; a queued write to the same register is replaced (the latest value wins).
+    pub fn queue_write(&mut self, now: Duration, write: RegisterWrite) {
+        let same_register = |p: &PendingWrite| {
+            p.write.device == write.device
+                && p.write.register_type == write.register_type
+                && p.write.address == write.address
+        };
+        self.writes.retain(|p| !same_register(p));
+        self.writes.push(PendingWrite {
+            write,
+            give_up_at: now + WRITE_RETRY_TIME,
+        });
+    }
+
+    fn events_active(&self) -> bool {
+        self.settings.fast_modbus && self.devices.iter().any(DeviceState::events_active)
+    }
+
+    /// What to do now. Call again after [`complete`](Self::complete) or when `until` has passed.
+    pub fn next(&mut self, now: Duration) -> Action {
+        if self.in_flight.is_some() {
+            return Action::Wait { until: now };
+        }
+        let events_active = self.events_active();
+        if events_active && now >= self.events.next_at() {
+            return self.start_event_poll(now);
+        }
+        match self.choose(now) {
+            Some((transaction, in_flight)) => {
+                let slot_left = self.events.next_at().saturating_sub(now);
+                let would_delay_events = events_active && transaction.estimated > slot_left;
+                // A transaction longer than a whole interval can never fit: let it make the next
+                // event request late rather than never run.
+                if would_delay_events && transaction.estimated <= self.settings.event_interval {
+                    return self.start_event_poll(now);
+                }
+                self.in_flight = Some(in_flight);
+                Action::Transmit(transaction)
+            }
+            None if events_active => self.start_event_poll(now),
+            None => Action::Wait {
+                until: self.earliest_deadline(now),
+            },
+        }
+    }
+
+    /// Takes the outcome of the transaction [`next`](Self::next) returned.
+    pub fn complete(&mut self, now: Duration, outcome: Outcome) -> Vec<PortEvent> {
+        let mut out = Vec::new();
+        match self.in_flight.take() {
+            None => warn!("a transaction outcome arrived with nothing in flight"),
+            Some(InFlight::PollEvents { started }) => {
+                self.complete_event_poll(now, started, outcome, &mut out)
+            }
+            Some(InFlight::Setup { device, index }) => {
+                self.complete_setup(now, device, index, outcome, &mut out)
+            }
+            Some(InFlight::EnableEvents {
+                device,
+                ranges,
+                members,
+            }) => self.complete_enable_events(now, device, &ranges, &members, outcome, &mut out),
+            Some(InFlight::Read {
+                device,
+                span,
+                members,
+            }) => self.complete_read(now, device, span, &members, outcome, &mut out),
+            Some(InFlight::Write { write }) => self.complete_write(now, write, outcome, &mut out),
+        }
+        out
+    }
+
+    fn start_event_poll(&mut self, now: Duration) -> Action {
+        let request = Request::poll_events(self.events.request());
+        let line = &self.settings.line;
+        let max_reply = 8 + usize::from(self.events.max_data_len());
+        let margin = self.settings.latency_margin;
+        let transaction = Transaction {
+            estimated: line.transaction_time(9, line.event_reply_timeout(), max_reply),
+            reply_timeout: line.event_reply_timeout() + line.wire_time(max_reply + 32) + margin,
+            first_byte_timeout: Some(line.event_first_byte_timeout() + margin),
+            request,
+        };
+        self.events.started(now);
+        self.in_flight = Some(InFlight::PollEvents { started: now });
+        Action::Transmit(transaction)
+    }
+
+    fn classic_transaction(&self, request: Request, reply_pdu_len: usize) -> Transaction {
+        let line = &self.settings.line;
+        let request_len = request.encode().map(|b| b.len()).unwrap_or(256);
+        let reply_len = reply_pdu_len + 3;
+        Transaction {
+            request,
+            reply_timeout: self.settings.response_timeout
+                + line.wire_time(reply_len)
+                + self.settings.latency_margin,
+            first_byte_timeout: None,
+            estimated: line.transaction_time(request_len, self.settings.turnaround, reply_len),
+        }
+    }
+
+    /// The most urgent non-event transaction, without committing to it.
+    fn choose(&self, now: Duration) -> Option<(Transaction, InFlight)> {
+        self.choose_write(now)
+            .or_else(|| self.choose_preparation(now))
+            .or_else(|| self.choose_read(now))
+    }
+
+    fn choose_write(&self, now: Duration) -> Option<(Transaction, InFlight)> {
+        let pending = self.writes.iter().find(|p| {
+            self.devices
+                .get(p.write.device)
+                .is_some_and(|d| d.health.may_transact(now))
+        })?;
+        let device = self.devices.get(pending.write.device)?;
+        let write = &pending.write;
+        let pdu = match (write.register_type, write.values.as_slice()) {
+            (RegisterType::Coil, [value]) => RequestPdu::WriteSingleCoil {
+                address: write.address,
+                value: *value != 0,
+            },
+            (RegisterType::Coil, values) => RequestPdu::WriteMultipleCoils {
+                start: write.address,
+                values: values.iter().map(|&v| v != 0).collect(),
+            },
+            (_, [value]) => RequestPdu::WriteSingleRegister {
+                address: write.address,
+                value: *value,
+            },
+            (_, values) => RequestPdu::WriteMultipleRegisters {
+                start: write.address,
+                values: values.to_vec(),
+            },
+        };
+        let transaction = self.classic_transaction(Request::classic(device.plan.address, pdu), 5);
+        Some((
+            transaction,
+            InFlight::Write {
+                write: pending.clone(),
+            },
+        ))
+    }
+
+    fn choose_preparation(&self, now: Duration) -> Option<(Transaction, InFlight)> {
+        for (index, device) in self.devices.iter().enumerate() {
+            if device.is_prepared() || !device.health.may_transact(now) {
+                continue;
+            }
+            if let Some(setup_index) = device.next_setup_write() {
+                let write = device.plan.setup.get(setup_index)?;
+                let pdu = match write.values.as_slice() {
+                    [value] => RequestPdu::WriteSingleRegister {
+                        address: write.address,
+                        value: *value,
+                    },
+                    values => RequestPdu::WriteMultipleRegisters {
+                        start: write.address,
+                        values: values.to_vec(),
+                    },
+                };
+                let transaction =
+                    self.classic_transaction(Request::classic(device.plan.address, pdu), 5);
+                return Some((
+                    transaction,
+                    InFlight::Setup {
+                        device: index,
+                        index: setup_index,
+                    },
+                ));
+            }
+            if self.settings.fast_modbus && device.wants_events() {
+                let (ranges, members) = device.event_ranges();
+                let mask_len: usize = ranges.iter().map(EventRange::mask_len).sum();
+                let request = Request::configure_events(device.plan.address, ranges.clone());
+                let transaction = self.classic_transaction(request, 3 + mask_len);
+                return Some((
+                    transaction,
+                    InFlight::EnableEvents {
+                        device: index,
+                        ranges,
+                        members,
+                    },
+                ));
+            }
+        }
+        None
+    }
+
+    fn choose_read(&self, now: Duration) -> Option<(Transaction, InFlight)> {
+        let best = self
+            .devices
+            .iter()
+            .enumerate()
+            .filter(|(_, d)| d.is_prepared() && d.health.may_transact(now))
+            .filter_map(|(index, d)| d.choose_read(now).map(|choice| (index, choice)))
+            .min_by_key(|(_, choice)| choice.urgency)?;
+        let (device, ReadChoice { span, members, .. }) = best;
+        let address = self.devices.get(device)?.plan.address;
+        let transaction = self.classic_transaction(
+            Request::classic(address, span.read_request()),
+            span.reply_pdu_len(),
+        );
+        Some((
+            transaction,
+            InFlight::Read {
+                device,
+                span,
+                members,
+            },
+        ))
+    }
+
+    fn earliest_deadline(&self, now: Duration) -> Duration {
+        let devices = self.devices.iter().filter_map(|d| d.next_deadline());
+        let writes = self.writes.iter().filter_map(|p| {
+            self.devices
+                .get(p.write.device)
+                .and_then(|d| d.health.retry_at())
+        });
+        devices
+            .chain(writes)
+            .min()
+            .unwrap_or(now + Duration::from_secs(1))
+            .max(now)
+    }
+
+    fn device_by_address(&self, address: u8) -> Option<usize> {
+        self.devices.iter().position(|d| d.plan.address == address)
+    }
+
+    fn complete_event_poll(
+        &mut self,
+        now: Duration,
+        started: Duration,
+        outcome: Outcome,
+        out: &mut Vec<PortEvent>,
+    ) {
+        match outcome {
+            Outcome::Reply(Reply {
+                address,
+                body:
+                    ReplyBody::Fast {
+                        reply: FastReply::Events(packet),
+                        ..
+                    },
+            }) => {
+                self.events.packet_received(now, address, packet.flag);
+                let Some(device) = self.device_by_address(address) else {
+                    debug!(address, "events from a device that is not in the config");
+                    return;
+                };
+                for event in packet.events {
+                    if event.is_reboot() {
+                        if let Some(state) = self.devices.get_mut(device) {
+                            info!(device = %state.plan.name, "device reports a restart: setting it up again");
+                            state.restart_preparation();
+                        }
+                        out.push(PortEvent::Rebooted { device });
+                        continue;
+                    }
+                    if let crate::protocol::EventSource::Register(register_type) = event.source {
+                        out.push(PortEvent::EventValue {
+                            device,
+                            register_type,
+                            address: event.id,
+                            payload: event.payload,
+                        });
+                    }
+                }
+            }
+            Outcome::Reply(_) | Outcome::NoReply => self.events.nothing_pending(started),
+            Outcome::Garbled => self.events.garbled(now),
+        }
+    }
+
+    fn complete_setup(
+        &mut self,
+        now: Duration,
+        device: usize,
+        index: usize,
+        outcome: Outcome,
+        out: &mut Vec<PortEvent>,
+    ) {
+        let Some(state) = self.devices.get_mut(device) else {
+            return;
+        };
+        match outcome {
+            Outcome::Reply(Reply {
+                body: ReplyBody::Classic(ResponsePdu::Exception { code, .. }),
+                ..
+            }) => {
+                warn!(device = %state.plan.name, index, %code, "setup write refused; skipping it");
+                Self::health_success(state, device, now, out);
+                state.setup_write_done(index);
+            }
+            Outcome::Reply(_) => {
+                Self::health_success(state, device, now, out);
+                state.setup_write_done(index);
+            }
+            Outcome::NoReply | Outcome::Garbled => Self::health_failure(state, device, now, out),
+        }
+    }
+
+    fn complete_enable_events(
+        &mut self,
+        now: Duration,
+        device: usize,
+        ranges: &[EventRange],
+        members: &[usize],
+        outcome: Outcome,
+        out: &mut Vec<PortEvent>,
+    ) {
+        let Some(state) = self.devices.get_mut(device) else {
+            return;
+        };
+        match outcome {
+            Outcome::Reply(Reply {
+                body:
+                    ReplyBody::Fast {
+                        reply: FastReply::EventsConfigured { masks },
+                        ..
+                    },
+                ..
+            }) => {
+                Self::health_success(state, device, now, out);
+                let enabled = enabled_registers(&masks, ranges).unwrap_or_default();
+                state.events_configured(now, members, &enabled);
+            }
+            Outcome::Reply(_) => {
+                info!(device = %state.plan.name, "device does not support Fast Modbus events: polling it");
+                Self::health_success(state, device, now, out);
+                state.events_refused(now);
+            }
+            Outcome::NoReply | Outcome::Garbled => {
+                warn!(device = %state.plan.name, "no answer to the event setup: polling it");
+                state.events_refused(now);
+            }
+        }
+    }
+
+    fn complete_read(
+        &mut self,
+        now: Duration,
+        device: usize,
+        span: RegisterSpan,
+        members: &[usize],
+        outcome: Outcome,
+        out: &mut Vec<PortEvent>,
+    ) {
+        let Some(state) = self.devices.get_mut(device) else {
+            return;
+        };
+        let values = match outcome {
+            Outcome::Reply(Reply {
+                body: ReplyBody::Classic(pdu),
+                ..
+            }) => match pdu {
+                ResponsePdu::ReadHoldingRegisters { values }
+                | ResponsePdu::ReadInputRegisters { values } => values,
+                ResponsePdu::ReadCoils { packed } | ResponsePdu::ReadDiscreteInputs { packed } => {
+                    crate::protocol::pdu::unpack_bits(&packed, usize::from(span.count))
+                        .into_iter()
+                        .map(u16::from)
+                        .collect()
+                }
+                ResponsePdu::Exception { code, .. } => {
+                    Self::health_success(state, device, now, out);
+                    let permanent = matches!(
+                        code,
+                        ExceptionCode::ILLEGAL_FUNCTION
+                            | ExceptionCode::ILLEGAL_DATA_ADDRESS
+                            | ExceptionCode::ILLEGAL_DATA_VALUE
+                    );
+                    if permanent && members.len() > 1 {
+                        debug!(device = %state.plan.name, ?span, %code, "merged read refused: reading its parts one by one");
+                        state.split_reads(now, members);
+                    } else {
+                        for &member in members {
+                            if let Some(member_span) = state.read_span(member) {
+                                out.push(PortEvent::ReadFailed {
+                                    device,
+                                    span: member_span,
+                                    unsupported: permanent,
+                                });
+                            }
+                            state.read_failed(now, member, permanent);
+                        }
+                    }
+                    return;
+                }
+                _ => Vec::new(),
+            },
+            _ => Vec::new(),
+        };
+        if values.len() != usize::from(span.count) {
+            for &member in members {
+                if let Some(member_span) = state.read_span(member) {
+                    out.push(PortEvent::ReadFailed {
+                        device,
+                        span: member_span,
+                        unsupported: false,
+                    });
+                }
+                state.read_failed(now, member, false);
+            }
+            Self::health_failure(state, device, now, out);
+            return;
+        }
+        Self::health_success(state, device, now, out);
+        for &member in members {
+            let Some(member_span) = state.read_span(member) else {
+                continue;
+            };
+            let offset = usize::from(member_span.start.saturating_sub(span.start));
+            if let Some(slice) = values.get(offset..offset + usize::from(member_span.count)) {
+                out.push(PortEvent::Values {
+                    device,
+                    span: member_span,
+                    values: slice.to_vec(),
+                });
+            }
+            state.read_done(now, member);
+        }
+    }
+
+    fn complete_write(
+        &mut self,
+        now: Duration,
+        pending: PendingWrite,
+        outcome: Outcome,
+        out: &mut Vec<PortEvent>,
+    ) {
+        let write = &pending.write;
+        let (device, register_type, address) = (write.device, write.register_type, write.address);
+        let Some(state) = self.devices.get_mut(device) else {
+            return;
+        };
+        let replaced = |writes: &[PendingWrite]| {
+            writes.iter().any(|p| {
+                p.write.device == device
+                    && p.write.register_type == register_type
+                    && p.write.address == address
+                    && p.write.values != pending.write.values
+            })
+        };
+        match outcome {
+            Outcome::Reply(Reply {
+                body: ReplyBody::Classic(ResponsePdu::Exception { code, .. }),
+                ..
+            }) => {
+                warn!(device = %state.plan.name, address, %code, "write refused by the device");
+                Self::health_success(state, device, now, out);
+                self.writes.retain(|p| !(p.write == pending.write));
+                out.push(PortEvent::WriteFailed {
+                    device,
+                    register_type,
+                    address,
+                    permanent: true,
+                });
+            }
+            Outcome::Reply(_) => {
+                Self::health_success(state, device, now, out);
+                self.writes.retain(|p| !(p.write == pending.write));
+                let span = RegisterSpan::new(
+                    register_type,
+                    address,
+                    u16::try_from(write.values.len()).unwrap_or(u16::MAX),
+                );
+                out.push(PortEvent::WriteDone {
+                    device,
+                    register_type,
+                    address,
+                });
+                out.push(PortEvent::Values {
+                    device,
+                    span,
+                    values: write.values.clone(),
+                });
+            }
+            Outcome::NoReply | Outcome::Garbled => {
+                Self::health_failure(state, device, now, out);
+                let give_up = now >= pending.give_up_at;
+                if give_up || replaced(&self.writes) {
+                    self.writes.retain(|p| !(p.write == pending.write));
+                }
+                out.push(PortEvent::WriteFailed {
+                    device,
+                    register_type,
+                    address,
+                    permanent: give_up,
+                });
+            }
+        }
+    }
+
+    fn health_success(
+        state: &mut DeviceState,
+        device: usize,
+        now: Duration,
+        out: &mut Vec<PortEvent>,
+    ) {
+        if state.record_success(now) {
+            info!(device = %state.plan.name, "device is online");
+            out.push(PortEvent::Online { device });
+        }
+    }
+
+    fn health_failure(
+        state: &mut DeviceState,
+        device: usize,
+        now: Duration,
+        out: &mut Vec<PortEvent>,
+    ) {
+        if state.record_failure(now) {
+            warn!(device = %state.plan.name, address = state.plan.address, "device does not answer: marked offline, retrying with growing delay");
+            out.push(PortEvent::Offline { device });
+        }
+    }
+}
