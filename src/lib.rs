@@ -4,4 +4,6 @@
 //! `protocol` (sans-IO codec, parser, timing) → `sim` (virtual bus) / transport → port scheduler
 //! → `device` (templates, value codecs) → MQTT.
 
+pub mod config;
+pub mod device;
 pub mod protocol;

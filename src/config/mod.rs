@@ -1,0 +1,9 @@
+//! Config file and device templates: serde types, JSON Schemas, loading with located errors.
+
+pub mod error;
+pub mod json_path;
+pub mod jsonc;
+pub mod values;
+
+pub use error::{ErrorList, LocatedError, Problem};
+pub use json_path::JsonPath;
