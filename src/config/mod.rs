@@ -7,3 +7,7 @@ pub mod values;
 
 pub use error::{ErrorList, LocatedError, Problem};
 pub use json_path::JsonPath;
+pub mod condition;
+pub mod config_file;
+pub mod parse;
+pub mod template;
