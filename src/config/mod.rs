@@ -9,5 +9,10 @@ pub use error::{ErrorList, LocatedError, Problem};
 pub use json_path::JsonPath;
 pub mod condition;
 pub mod config_file;
+pub mod library;
+pub mod load;
 pub mod parse;
 pub mod template;
+
+pub use library::{TemplateFile, TemplateLibrary};
+pub use load::{load_config, LoadedConfig};
