@@ -80,7 +80,7 @@ pub struct Template {
     pub device: TemplateDevice,
 }
 
-#[derive(Debug, Clone, Deserialize, Serialize, JsonSchema)]
+#[derive(Debug, Clone, PartialEq, Eq, Deserialize, Serialize, JsonSchema)]
 pub struct HardwareSignature {
     pub signature: String,
     pub fw: Option<String>,
@@ -138,6 +138,8 @@ pub enum RegisterKind {
 /// subdevice slot (`device_type`, `oneOf`, `shift`, `stride`).
 #[derive(Debug, Clone, Default, Deserialize, Serialize, JsonSchema)]
 pub struct ChannelSpec {
+    /// Required for channels; not used in `consists_of` entries.
+    #[serde(default)]
     pub name: String,
     /// MQTT control id (default: `name`). In subdevices an empty id drops the name prefix.
     pub id: Option<String>,
@@ -201,6 +203,10 @@ pub struct ChannelSpec {
     /// Config overrides of a subdevice slot: its channels and setup.
     pub channels: Option<Vec<ChannelSpec>>,
     pub setup: Option<Vec<SetupItemSpec>>,
+    /// Where the channel came from (set while merging, for located errors).
+    #[serde(rename = "__origin", default, skip_serializing_if = "Option::is_none")]
+    #[schemars(skip)]
+    pub origin: Option<String>,
 }
 
 /// A register written when the device connects.
@@ -219,6 +225,10 @@ pub struct SetupItemSpec {
     pub condition: Option<String>,
     pub id: Option<String>,
     pub fw: Option<String>,
+    /// Where the item came from (set while merging, for located errors).
+    #[serde(rename = "__origin", default, skip_serializing_if = "Option::is_none")]
+    #[schemars(skip)]
+    pub origin: Option<String>,
 }
 
 /// A setup value: a number, or an integer string (`"0x10"`).
