@@ -1,4 +1,5 @@
 use clap::{Parser, Subcommand};
+use rtu2mqtt::cli;
 
 /// Modbus RTU / Modbus TCP devices to MQTT, with Fast Modbus events.
 #[derive(Parser)]
@@ -9,11 +10,22 @@ struct Cli {
 }
 
 #[derive(Subcommand)]
-enum Command {}
+enum Command {
+    /// Check a config file and the templates its devices use; print "ok" or every error.
+    CheckConfig(cli::check::CheckConfigArgs),
+    /// Check template files (or directories of them); print "ok" or the errors per file.
+    CheckTemplates(cli::check::CheckTemplatesArgs),
+    /// Print the JSON Schema of the config file or of templates.
+    Schema(cli::schema::SchemaArgs),
+}
 
 fn main() -> std::process::ExitCode {
     let cli = Cli::parse();
-    let result: anyhow::Result<std::process::ExitCode> = match cli.command {};
+    let result: anyhow::Result<std::process::ExitCode> = match cli.command {
+        Command::CheckConfig(args) => cli::check::run_check_config(args),
+        Command::CheckTemplates(args) => cli::check::run_check_templates(args),
+        Command::Schema(args) => cli::schema::run(args),
+    };
     match result {
         Ok(code) => code,
         Err(err) => {
