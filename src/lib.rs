@@ -4,7 +4,7 @@
 //! `protocol` (sans-IO codec, parser, timing) → `sim` (virtual bus) / transport → port scheduler
 //! → `device` (templates, value codecs) → MQTT.
 
+pub mod cli;
 pub mod config;
 pub mod device;
 pub mod protocol;
-pub mod cli;

@@ -41,7 +41,11 @@ pub fn run_check_config(args: CheckConfigArgs) -> anyhow::Result<ExitCode> {
     match resolve_config(&loaded, &library) {
         Ok(ports) => {
             let devices: usize = ports.iter().map(|p| p.devices.len()).sum();
-            let channels: usize = ports.iter().flat_map(|p| &p.devices).map(|d| d.channels.len()).sum();
+            let channels: usize = ports
+                .iter()
+                .flat_map(|p| &p.devices)
+                .map(|d| d.channels.len())
+                .sum();
             println!(
                 "{}: ok ({} ports, {devices} devices, {channels} channels; {} templates)",
                 args.config.display(),
@@ -60,7 +64,11 @@ pub fn run_check_config(args: CheckConfigArgs) -> anyhow::Result<ExitCode> {
 }
 
 pub fn run_check_templates(args: CheckTemplatesArgs) -> anyhow::Result<ExitCode> {
-    let paths = if args.paths.is_empty() { TemplateLibrary::standard_dirs(&[]) } else { args.paths };
+    let paths = if args.paths.is_empty() {
+        TemplateLibrary::standard_dirs(&[])
+    } else {
+        args.paths
+    };
     let mut files = Vec::new();
     for path in &paths {
         if path.is_dir() {
@@ -88,13 +96,26 @@ pub fn run_check_templates(args: CheckTemplatesArgs) -> anyhow::Result<ExitCode>
         }
     }
     if files.is_empty() {
-        println!("no template files found in {}", paths.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(", "));
+        println!(
+            "no template files found in {}",
+            paths
+                .iter()
+                .map(|p| p.display().to_string())
+                .collect::<Vec<_>>()
+                .join(", ")
+        );
     }
-    Ok(if failed { ExitCode::FAILURE } else { ExitCode::SUCCESS })
+    Ok(if failed {
+        ExitCode::FAILURE
+    } else {
+        ExitCode::SUCCESS
+    })
 }
 
 fn args_is_default(path: &Path) -> bool {
-    TemplateLibrary::standard_dirs(&[]).iter().any(|d| d == path)
+    TemplateLibrary::standard_dirs(&[])
+        .iter()
+        .any(|d| d == path)
 }
 
 fn check_file(path: &Path) -> Vec<LocatedError> {

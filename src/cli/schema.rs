@@ -24,7 +24,9 @@ pub struct SchemaArgs {
 pub fn schema_json(kind: SchemaKind) -> serde_json::Value {
     match kind {
         SchemaKind::Config => crate::config::load::config_schema(),
-        SchemaKind::Template => serde_json::to_value(schemars::schema_for!(Template)).unwrap_or_default(),
+        SchemaKind::Template => {
+            serde_json::to_value(schemars::schema_for!(Template)).unwrap_or_default()
+        }
     }
 }
 

@@ -63,6 +63,9 @@ fn known_channel_keys() -> &'static Vec<String> {
     })
 }
 
+/// A config channel object that overrides a template channel, and its path in the config.
+type ConfigOverride = (Map<String, Value>, JsonPath);
+
 /// Subdevice bodies by `device_type`, from every nesting level, with their paths.
 type SubdeviceMap = BTreeMap<String, (Value, JsonPath)>;
 
@@ -358,7 +361,7 @@ fn merge_channels(
     errors: &mut Vec<MergeError>,
     depth: usize,
 ) -> Vec<Value> {
-    let mut channels: Vec<(Value, Option<(Map<String, Value>, JsonPath)>)> = Vec::new();
+    let mut channels: Vec<(Value, Option<ConfigOverride>)> = Vec::new();
     for (i, channel) in template_channels
         .and_then(Value::as_array)
         .into_iter()
@@ -491,7 +494,7 @@ fn override_channel(
 
 fn expand_subdevice(
     slot: Value,
-    config: Option<(Map<String, Value>, JsonPath)>,
+    config: Option<ConfigOverride>,
     subdevices: &SubdeviceMap,
     errors: &mut Vec<MergeError>,
     depth: usize,

@@ -272,7 +272,7 @@ impl Walker {
             id_prefix: join(&context.id_prefix, &id),
             title_prefix: context.title_prefix.clone(),
         };
-        if !(slot.id.as_deref() == Some("")) {
+        if slot.id.as_deref() != Some("") {
             for (lang, title) in self.titles(&slot.name, context) {
                 inner.title_prefix.insert(lang, title);
             }
