@@ -5,5 +5,7 @@
 //! → `device` (templates, value codecs) → MQTT.
 
 pub mod cli;
+pub mod config;
+pub mod device;
 pub mod port;
 pub mod protocol;

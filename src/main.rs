@@ -1,4 +1,5 @@
 use clap::{Parser, Subcommand};
+use rtu2mqtt::cli;
 
 /// Modbus RTU / Modbus TCP devices to MQTT, with Fast Modbus events.
 #[derive(Parser)]
@@ -10,14 +11,23 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
+    /// Check a config file and the templates its devices use; print "ok" or every error.
+    CheckConfig(cli::check::CheckConfigArgs),
+    /// Check template files (or directories of them); print "ok" or the errors per file.
+    CheckTemplates(cli::check::CheckTemplatesArgs),
+    /// Print the JSON Schema of the config file or of templates.
+    Schema(cli::schema::SchemaArgs),
     /// Explain a Modbus RTU or Fast Modbus frame given as hex (e.g. "FD 46 10 00 FF 00 00 C8 9A").
-    Decode(rtu2mqtt::cli::decode::Args),
+    Decode(cli::decode::Args),
 }
 
 fn main() -> std::process::ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
-        Command::Decode(args) => rtu2mqtt::cli::decode::run(args),
+        Command::CheckConfig(args) => cli::check::run_check_config(args),
+        Command::CheckTemplates(args) => cli::check::run_check_templates(args),
+        Command::Schema(args) => cli::schema::run(args),
+        Command::Decode(args) => cli::decode::run(args),
     };
     match result {
         Ok(code) => code,

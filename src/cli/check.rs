@@ -1,0 +1,126 @@
+//! `rtu2mqtt check-config` and `rtu2mqtt check-templates`: validate files before a restart,
+//! printing "ok" or each error with file, line:column and JSON path.
+
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+
+use crate::config::library::TemplateLibrary;
+use crate::config::load::{load_config, DEFAULT_CONFIG_PATH};
+use crate::config::{LocatedError, TemplateFile};
+use crate::device::{check_template, resolve_config};
+
+#[derive(Debug, clap::Args)]
+pub struct CheckConfigArgs {
+    /// Config file.
+    #[arg(short = 'c', long = "config", default_value = DEFAULT_CONFIG_PATH)]
+    pub config: PathBuf,
+    /// More template directories (searched after the system and user ones; later wins).
+    #[arg(long = "templates", value_name = "DIR")]
+    pub templates: Vec<PathBuf>,
+}
+
+#[derive(Debug, clap::Args)]
+pub struct CheckTemplatesArgs {
+    /// Template files or directories (default: the template search path).
+    pub paths: Vec<PathBuf>,
+}
+
+pub fn run_check_config(args: CheckConfigArgs) -> anyhow::Result<ExitCode> {
+    let loaded = match load_config(&args.config) {
+        Ok(loaded) => loaded,
+        Err(errors) => {
+            for error in &errors.0 {
+                println!("{error}");
+            }
+            return Ok(ExitCode::FAILURE);
+        }
+    };
+    let mut dirs = loaded.config.template_dirs.clone();
+    dirs.extend(args.templates.iter().cloned());
+    let library = TemplateLibrary::load_dirs(&TemplateLibrary::standard_dirs(&dirs));
+    match resolve_config(&loaded, &library) {
+        Ok(ports) => {
+            let devices: usize = ports.iter().map(|p| p.devices.len()).sum();
+            let channels: usize = ports
+                .iter()
+                .flat_map(|p| &p.devices)
+                .map(|d| d.channels.len())
+                .sum();
+            println!(
+                "{}: ok ({} ports, {devices} devices, {channels} channels; {} templates)",
+                args.config.display(),
+                ports.len(),
+                library.len()
+            );
+            Ok(ExitCode::SUCCESS)
+        }
+        Err(errors) => {
+            for error in &errors.0 {
+                println!("{error}");
+            }
+            Ok(ExitCode::FAILURE)
+        }
+    }
+}
+
+pub fn run_check_templates(args: CheckTemplatesArgs) -> anyhow::Result<ExitCode> {
+    let paths = if args.paths.is_empty() {
+        TemplateLibrary::standard_dirs(&[])
+    } else {
+        args.paths
+    };
+    let mut files = Vec::new();
+    for path in &paths {
+        if path.is_dir() {
+            let mut found: Vec<PathBuf> = std::fs::read_dir(path)?
+                .filter_map(Result::ok)
+                .map(|e| e.path())
+                .filter(|p| p.extension().is_some_and(|e| e == "json"))
+                .collect();
+            found.sort();
+            files.extend(found);
+        } else if path.exists() || !args_is_default(path) {
+            files.push(path.clone());
+        }
+    }
+    let mut failed = false;
+    for file in &files {
+        let errors = check_file(file);
+        if errors.is_empty() {
+            println!("{}: ok", file.display());
+        } else {
+            failed = true;
+            for error in errors {
+                println!("{error}");
+            }
+        }
+    }
+    if files.is_empty() {
+        println!(
+            "no template files found in {}",
+            paths
+                .iter()
+                .map(|p| p.display().to_string())
+                .collect::<Vec<_>>()
+                .join(", ")
+        );
+    }
+    Ok(if failed {
+        ExitCode::FAILURE
+    } else {
+        ExitCode::SUCCESS
+    })
+}
+
+fn args_is_default(path: &Path) -> bool {
+    TemplateLibrary::standard_dirs(&[])
+        .iter()
+        .any(|d| d == path)
+}
+
+fn check_file(path: &Path) -> Vec<LocatedError> {
+    match TemplateFile::load(path) {
+        Ok(template) => check_template(&template),
+        Err(error) => vec![error],
+    }
+}

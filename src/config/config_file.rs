@@ -1,0 +1,234 @@
+//! The rtu2mqtt config file: MQTT broker, global switches, and the ports with their devices.
+//!
+//! Port and device keys are those of wb-mqtt-serial (reference §1.1–1.3), so a `ports` section
+//! can be carried over from `/etc/wb-mqtt-serial.conf`. Unknown keys are errors (typos), except
+//! at device level, where a key may be the value of a template parameter.
+
+use std::path::PathBuf;
+
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+
+use super::template::{with_device_settings, ChannelSpec, SetupItemSpec};
+use super::values::SerialInt;
+
+/// The whole config file.
+#[derive(Debug, Clone, Deserialize, Serialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct Config {
+    #[serde(default)]
+    pub mqtt: MqttConfig,
+    /// -1: publish only changes; 0: publish every read; N > 0: republish unchanged values after
+    /// N s (values below 5 are raised to 5).
+    #[serde(default = "default_max_unchanged_interval")]
+    pub max_unchanged_interval: i64,
+    /// Use the Fast Modbus extension (events, scan) where devices support it. A site's
+    /// security policy may forbid it: then every register is polled.
+    #[serde(default = "yes")]
+    pub fast_modbus: bool,
+    /// Low-priority register reads per second, split across ports (default 800).
+    pub rate_limit: Option<u32>,
+    /// Verbose logs (the command line's log level wins).
+    #[serde(default)]
+    pub debug: bool,
+    /// More template directories, searched after the system and user ones (`--templates` wins).
+    #[serde(default)]
+    pub template_dirs: Vec<PathBuf>,
+    #[serde(default)]
+    pub ports: Vec<PortConfig>,
+}
+
+fn default_max_unchanged_interval() -> i64 {
+    -1
+}
+
+fn yes() -> bool {
+    true
+}
+
+/// MQTT broker connection.
+#[derive(Debug, Clone, Deserialize, Serialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct MqttConfig {
+    #[serde(default = "default_host")]
+    pub host: String,
+    #[serde(default = "default_mqtt_port")]
+    pub port: u16,
+    #[serde(default = "default_client_id")]
+    pub client_id: String,
+    pub user: Option<String>,
+    pub password: Option<String>,
+    /// TLS to the broker; absent = plain TCP.
+    pub tls: Option<TlsConfig>,
+    /// Keep-alive interval in s.
+    #[serde(default = "default_keepalive")]
+    pub keepalive_s: u16,
+    /// Prepended to every topic (`/devices/...` stays the WB layout after it). Empty by default.
+    #[serde(default)]
+    pub topic_prefix: String,
+}
+
+impl Default for MqttConfig {
+    fn default() -> Self {
+        Self {
+            host: default_host(),
+            port: default_mqtt_port(),
+            client_id: default_client_id(),
+            user: None,
+            password: None,
+            tls: None,
+            keepalive_s: default_keepalive(),
+            topic_prefix: String::new(),
+        }
+    }
+}
+
+fn default_host() -> String {
+    "localhost".to_string()
+}
+fn default_mqtt_port() -> u16 {
+    1883
+}
+fn default_client_id() -> String {
+    "rtu2mqtt".to_string()
+}
+fn default_keepalive() -> u16 {
+    60
+}
+
+/// PEM files for TLS to the broker.
+#[derive(Debug, Clone, Deserialize, Serialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct TlsConfig {
+    /// CA certificate(s) that signed the broker's certificate.
+    pub ca_file: Option<PathBuf>,
+    /// Client certificate and key, when the broker asks for one.
+    pub cert_file: Option<PathBuf>,
+    pub key_file: Option<PathBuf>,
+}
+
+/// How the port reaches the bus.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize, Serialize, JsonSchema)]
+pub enum PortType {
+    /// A local RS-485 serial port.
+    #[default]
+    #[serde(rename = "serial")]
+    Serial,
+    /// RTU frames over a TCP socket (a transparent serial gateway).
+    #[serde(rename = "tcp")]
+    Tcp,
+    /// Modbus TCP (MBAP header).
+    #[serde(rename = "modbus tcp")]
+    ModbusTcp,
+}
+
+/// Serial parity.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize, Serialize, JsonSchema)]
+pub enum Parity {
+    #[default]
+    N,
+    E,
+    O,
+}
+
+/// One bus.
+#[derive(Debug, Clone, Deserialize, Serialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct PortConfig {
+    #[serde(default)]
+    pub port_type: PortType,
+    #[serde(default = "yes")]
+    pub enabled: bool,
+    /// Serial: device path, e.g. `/dev/ttyRS485-1` or `/dev/serial/by-id/...`.
+    pub path: Option<String>,
+    #[serde(default = "default_baud_rate")]
+    pub baud_rate: u32,
+    #[serde(default)]
+    pub parity: Parity,
+    #[serde(default = "default_data_bits")]
+    pub data_bits: u8,
+    #[serde(default = "default_stop_bits")]
+    pub stop_bits: u8,
+    /// TCP and Modbus TCP: host name or IP address of the gateway …
+    pub address: Option<String>,
+    /// … and its TCP port.
+    pub port: Option<u16>,
+    /// Modbus TCP: the gateway is a WB-MGE v.3, which passes Fast Modbus through.
+    #[serde(default)]
+    pub connected_to_mge: bool,
+    /// Minimum response timeout for every device on this port, in ms (default 500).
+    pub response_timeout_ms: Option<i64>,
+    /// Default frame (inter-byte) timeout of this port's devices, in ms.
+    pub frame_timeout_ms: Option<i64>,
+    /// Default pause before each request, in µs.
+    pub guard_interval_us: Option<i64>,
+    /// Default minimum interval between reads of one register (deprecated upstream).
+    pub read_rate_limit_ms: Option<i64>,
+    pub poll_interval: Option<i64>,
+    /// TCP connect timeout in ms.
+    #[serde(default = "default_connect_timeout")]
+    pub connect_timeout_ms: u64,
+    /// Reopen the port after this long without a successful exchange (ms; -1 never) …
+    #[serde(default = "default_connection_timeout")]
+    pub connection_timeout_ms: i64,
+    /// … and this many failed poll cycles (-1 never).
+    #[serde(default = "default_connection_fail_cycles")]
+    pub connection_max_fail_cycles: i64,
+    #[serde(default)]
+    pub devices: Vec<DeviceConfig>,
+}
+
+fn default_baud_rate() -> u32 {
+    9600
+}
+fn default_data_bits() -> u8 {
+    8
+}
+fn default_stop_bits() -> u8 {
+    1
+}
+fn default_connect_timeout() -> u64 {
+    5000
+}
+fn default_connection_timeout() -> i64 {
+    5000
+}
+fn default_connection_fail_cycles() -> i64 {
+    2
+}
+
+impl PortConfig {
+    /// How the port is named in messages and duplicate checks: path, or address:port.
+    pub fn describe(&self) -> String {
+        match self.port_type {
+            PortType::Serial => self.path.clone().unwrap_or_default(),
+            _ => format!(
+                "{}:{}",
+                self.address.as_deref().unwrap_or(""),
+                self.port.unwrap_or(0)
+            ),
+        }
+    }
+}
+
+with_device_settings! {
+    /// A device on a port. Keys other than these are values of the template's parameters
+    /// (checked against the template when the config is resolved).
+    #[derive(Debug, Clone, Default, Deserialize, Serialize, JsonSchema)]
+    pub struct DeviceConfig {
+        /// Modbus address (unit id on Modbus TCP): a number, a decimal string or "0x..".
+        pub slave_id: Option<SerialInt>,
+        /// Template name (`device_type` in the template file).
+        pub device_type: Option<String>,
+        /// MQTT device id (default: template id + "_" + slave_id).
+        pub id: Option<String>,
+        /// Device title (default: template name + " " + slave_id).
+        pub name: Option<String>,
+        /// A disabled device is not loaded at all.
+        pub enabled: Option<bool>,
+        /// Setup registers written on connect, before the template's.
+        pub setup: Option<Vec<SetupItemSpec>>,
+        /// Overrides of template channels (matched by `name`), or extra channels.
+        pub channels: Option<Vec<ChannelSpec>>,
+    }
+}

@@ -1,0 +1,135 @@
+//! Errors in config files and templates, each located: file, JSON path, line and column.
+
+use std::fmt;
+use std::path::{Path, PathBuf};
+
+use super::json_path::{locate, JsonPath};
+use super::jsonc::line_column;
+
+/// What is wrong, independent of where.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum Problem {
+    #[error("cannot read the file: {0}")]
+    Io(String),
+    #[error("not valid JSON: {0}")]
+    Syntax(String),
+    #[error("unknown key `{key}`; valid keys: {}", valid.join(", "))]
+    UnknownKey { key: String, valid: Vec<String> },
+    #[error("{0}")]
+    Invalid(String),
+    #[error("no template for device_type `{device_type}`{}", similar_hint(similar))]
+    MissingTemplate {
+        device_type: String,
+        similar: Vec<String>,
+    },
+    #[error("slave_id {slave_id} is used twice on this port: also by the device at {other}")]
+    DuplicateSlaveId { slave_id: String, other: String },
+    #[error("device id `{id}` is used twice: also by the device at {other}; set a distinct `id`")]
+    DuplicateDeviceId { id: String, other: String },
+    #[error("port `{port}` is configured twice: also at {other}")]
+    DuplicatePort { port: String, other: String },
+    #[error("register address {address} is out of range: Modbus addresses are 0…65535{}", span_hint(*count))]
+    AddressOutOfRange { address: i64, count: u32 },
+    #[error("template `{device_type}` is defined twice, in {first} and {second}")]
+    DuplicateTemplate {
+        device_type: String,
+        first: String,
+        second: String,
+    },
+}
+
+fn similar_hint(similar: &[String]) -> String {
+    if similar.is_empty() {
+        "; check the name, or add the template file to a templates directory".to_string()
+    } else {
+        format!(
+            "; did you mean {}?",
+            similar
+                .iter()
+                .map(|s| format!("`{s}`"))
+                .collect::<Vec<_>>()
+                .join(" or ")
+        )
+    }
+}
+
+fn span_hint(count: u32) -> String {
+    if count > 1 {
+        format!(" (the value spans {count} registers from there)")
+    } else {
+        String::new()
+    }
+}
+
+/// A [`Problem`] with where it is: what an integrator on site needs to fix it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LocatedError {
+    pub file: PathBuf,
+    pub path: JsonPath,
+    /// 1-based line and column in `file`, when the path could be found in the text.
+    pub line_column: Option<(usize, usize)>,
+    pub problem: Problem,
+}
+
+impl LocatedError {
+    /// Locates `path` in `source` (the comment-blanked text of `file`).
+    pub fn new(file: &Path, source: Option<&str>, path: JsonPath, problem: Problem) -> Self {
+        let line_column =
+            source.and_then(|text| locate(text, &path).map(|offset| line_column(text, offset)));
+        Self {
+            file: file.to_path_buf(),
+            path,
+            line_column,
+            problem,
+        }
+    }
+
+    /// An error that belongs to a whole file (cannot read it, no path inside).
+    pub fn file_level(file: &Path, problem: Problem) -> Self {
+        Self {
+            file: file.to_path_buf(),
+            path: JsonPath::root(),
+            line_column: None,
+            problem,
+        }
+    }
+}
+
+impl fmt::Display for LocatedError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "{}", self.file.display())?;
+        if let Some((line, column)) = self.line_column {
+            write!(f, ":{line}:{column}")?;
+        }
+        if !self.path.is_root() {
+            write!(f, ": at {}", self.path)?;
+        }
+        write!(f, ": {}", self.problem)
+    }
+}
+
+impl std::error::Error for LocatedError {}
+
+/// All errors found in one pass, so the integrator can fix them in one go.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ErrorList(pub Vec<LocatedError>);
+
+impl fmt::Display for ErrorList {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        for (i, error) in self.0.iter().enumerate() {
+            if i > 0 {
+                writeln!(f)?;
+            }
+            write!(f, "{error}")?;
+        }
+        Ok(())
+    }
+}
+
+impl std::error::Error for ErrorList {}
+
+impl From<LocatedError> for ErrorList {
+    fn from(error: LocatedError) -> Self {
+        ErrorList(vec![error])
+    }
+}

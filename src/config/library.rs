@@ -1,0 +1,244 @@
+//! Template files found on the search path, by `device_type`.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use serde_json::Value;
+
+use super::error::{LocatedError, Problem};
+use super::json_path::JsonPath;
+use super::parse::{deserialize_at, SourceText};
+use super::template::Template;
+
+/// Templates shipped with the package.
+pub const SYSTEM_TEMPLATE_DIR: &str = "/usr/share/rtu2mqtt/templates";
+/// The site's own templates; they win over the system ones on equal `device_type`.
+pub const USER_TEMPLATE_DIR: &str = "/etc/rtu2mqtt/templates";
+
+/// One loaded template file: typed for inspection, raw for merging with config devices.
+#[derive(Debug, Clone)]
+pub struct TemplateFile {
+    pub source: SourceText,
+    pub template: Template,
+    pub raw: Value,
+    /// Keys no rtu2mqtt field reads (UI-only keys, or typos): reported, not fatal.
+    pub unknown_keys: Vec<JsonPath>,
+}
+
+impl TemplateFile {
+    pub fn load(path: &Path) -> Result<Self, LocatedError> {
+        let source = SourceText::read(path)?;
+        Self::from_source(source)
+    }
+
+    pub fn from_source(source: SourceText) -> Result<Self, LocatedError> {
+        let raw = source.parse_json()?;
+        let typed = deserialize_at::<Template>(&source, &raw, &JsonPath::root())?;
+        Ok(Self {
+            source,
+            template: typed.value,
+            raw,
+            unknown_keys: typed.ignored,
+        })
+    }
+
+    pub fn device_type(&self) -> &str {
+        &self.template.device_type
+    }
+}
+
+/// Every template of the search path, the later directories winning on equal `device_type`.
+#[derive(Debug, Clone, Default)]
+pub struct TemplateLibrary {
+    templates: BTreeMap<String, TemplateFile>,
+    /// Files that failed to load; fatal only for devices that use them.
+    pub errors: Vec<LocatedError>,
+    /// Directories searched, in order.
+    pub dirs: Vec<PathBuf>,
+}
+
+impl TemplateLibrary {
+    /// The search path: system dir, user dir, then `extra` (config `template_dirs`, then
+    /// `--templates` options), each later one winning.
+    pub fn standard_dirs(extra: &[PathBuf]) -> Vec<PathBuf> {
+        let mut dirs = vec![
+            PathBuf::from(SYSTEM_TEMPLATE_DIR),
+            PathBuf::from(USER_TEMPLATE_DIR),
+        ];
+        dirs.extend(extra.iter().cloned());
+        dirs
+    }
+
+    /// Loads every `*.json` file of the directories that exist (missing ones are skipped: a
+    /// fresh system has no user templates).
+    pub fn load_dirs(dirs: &[PathBuf]) -> Self {
+        let mut library = Self {
+            dirs: dirs.to_vec(),
+            ..Self::default()
+        };
+        for dir in dirs {
+            let Ok(entries) = std::fs::read_dir(dir) else {
+                continue;
+            };
+            let mut files: Vec<PathBuf> = entries
+                .filter_map(Result::ok)
+                .map(|e| e.path())
+                .filter(|p| p.is_file() && p.extension().is_some_and(|e| e == "json"))
+                .collect();
+            files.sort();
+            let mut in_this_dir: BTreeMap<String, PathBuf> = BTreeMap::new();
+            for file in files {
+                match TemplateFile::load(&file) {
+                    Ok(template) => {
+                        let device_type = template.device_type().to_string();
+                        if let Some(first) = in_this_dir.get(&device_type) {
+                            library.errors.push(LocatedError::file_level(
+                                &file,
+                                Problem::DuplicateTemplate {
+                                    device_type,
+                                    first: first.display().to_string(),
+                                    second: file.display().to_string(),
+                                },
+                            ));
+                            continue;
+                        }
+                        in_this_dir.insert(device_type.clone(), file.clone());
+                        library.templates.insert(device_type, template);
+                    }
+                    Err(err) => library.errors.push(err),
+                }
+            }
+        }
+        library
+    }
+
+    /// Adds one template (tests, `check-templates FILE`); replaces one of the same type.
+    pub fn insert(&mut self, template: TemplateFile) {
+        self.templates
+            .insert(template.device_type().to_string(), template);
+    }
+
+    pub fn get(&self, device_type: &str) -> Option<&TemplateFile> {
+        self.templates.get(device_type)
+    }
+
+    pub fn iter(&self) -> impl Iterator<Item = &TemplateFile> {
+        self.templates.values()
+    }
+
+    pub fn len(&self) -> usize {
+        self.templates.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.templates.is_empty()
+    }
+
+    /// Known device types close to `name` (case, punctuation, or a small typo), for hints.
+    pub fn similar(&self, name: &str) -> Vec<String> {
+        let wanted = normalize(name);
+        self.templates
+            .keys()
+            .filter(|known| {
+                let candidate = normalize(known);
+                candidate == wanted || edit_distance(&candidate, &wanted) <= 2
+            })
+            .take(3)
+            .cloned()
+            .collect()
+    }
+
+    /// Why `device_type` is missing: a file that failed to load may have been meant.
+    pub fn load_error_for(&self, device_type: &str) -> Option<&LocatedError> {
+        let wanted = normalize(device_type);
+        self.errors.iter().find(|e| {
+            e.file
+                .file_stem()
+                .and_then(|s| s.to_str())
+                .is_some_and(|stem| normalize(stem).contains(&wanted))
+        })
+    }
+}
+
+fn normalize(name: &str) -> String {
+    name.chars()
+        .filter(|c| c.is_alphanumeric())
+        .flat_map(char::to_lowercase)
+        .collect()
+}
+
+fn edit_distance(a: &str, b: &str) -> usize {
+    let a: Vec<char> = a.chars().collect();
+    let b: Vec<char> = b.chars().collect();
+    let mut previous: Vec<usize> = (0..=b.len()).collect();
+    for (i, ca) in a.iter().enumerate() {
+        let mut current = vec![i + 1];
+        for (j, cb) in b.iter().enumerate() {
+            let substitution = previous[j] + usize::from(ca != cb);
+            current.push(substitution.min(previous[j + 1] + 1).min(current[j] + 1));
+        }
+        previous = current;
+    }
+    previous.last().copied().unwrap_or(0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn write(dir: &Path, name: &str, device_type: &str, device_name: &str) {
+        let text = format!(
+            r#"{{"device_type": "{device_type}", "device": {{"name": "{device_name}", "channels": []}}}}"#
+        );
+        std::fs::write(dir.join(name), text).unwrap();
+    }
+
+    #[test]
+    fn later_directories_win_and_bad_files_are_reported() {
+        let system = tempfile::tempdir().unwrap();
+        let user = tempfile::tempdir().unwrap();
+        write(system.path(), "a.json", "A", "system");
+        write(system.path(), "b.json", "B", "system");
+        write(user.path(), "a.json", "A", "user");
+        std::fs::write(user.path().join("broken.json"), "{").unwrap();
+        std::fs::write(user.path().join("notes.txt"), "ignored").unwrap();
+        let library = TemplateLibrary::load_dirs(&[
+            system.path().to_path_buf(),
+            user.path().to_path_buf(),
+            PathBuf::from("/nonexistent/dir"),
+        ]);
+        assert_eq!(library.len(), 2);
+        assert_eq!(
+            library.get("A").unwrap().template.device.name.as_deref(),
+            Some("user")
+        );
+        assert_eq!(library.errors.len(), 1);
+        assert!(library.errors[0].file.ends_with("broken.json"));
+    }
+
+    #[test]
+    fn duplicate_device_type_in_one_dir_is_an_error() {
+        let dir = tempfile::tempdir().unwrap();
+        write(dir.path(), "a.json", "A", "one");
+        write(dir.path(), "b.json", "A", "two");
+        let library = TemplateLibrary::load_dirs(&[dir.path().to_path_buf()]);
+        assert_eq!(
+            library.get("A").unwrap().template.device.name.as_deref(),
+            Some("one")
+        );
+        assert!(matches!(
+            library.errors[0].problem,
+            Problem::DuplicateTemplate { .. }
+        ));
+    }
+
+    #[test]
+    fn similar_names() {
+        let dir = tempfile::tempdir().unwrap();
+        write(dir.path(), "a.json", "WB-MR6C", "x");
+        let library = TemplateLibrary::load_dirs(&[dir.path().to_path_buf()]);
+        assert_eq!(library.similar("wb-mr6c"), vec!["WB-MR6C"]);
+        assert_eq!(library.similar("WB-MR6"), vec!["WB-MR6C"]);
+        assert!(library.similar("SDM220").is_empty());
+    }
+}

@@ -1,0 +1,325 @@
+//! Loading the config file: JSON with comments, then `RTU2MQTT_*` environment overrides
+//! (figment), then the checks that need no templates.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use figment::providers::{Env, Serialized};
+use figment::Figment;
+use serde_json::Value;
+
+use super::config_file::{Config, PortType};
+use super::error::{ErrorList, LocatedError, Problem};
+use super::json_path::JsonPath;
+use super::parse::{deserialize_at, schema_keys_at, SourceText};
+
+/// Default config path of the Debian package.
+pub const DEFAULT_CONFIG_PATH: &str = "/etc/rtu2mqtt/config.json";
+/// Prefix of environment overrides: `RTU2MQTT_MQTT__HOST=broker` sets `mqtt.host`.
+pub const ENV_PREFIX: &str = "RTU2MQTT_";
+
+/// A parsed config and what is needed to report later errors in it.
+#[derive(Debug, Clone)]
+pub struct LoadedConfig {
+    pub config: Config,
+    pub source: SourceText,
+    pub raw: Value,
+    /// Device-level keys that are no device setting: values of template parameters, or typos
+    /// (decided against the template when devices are resolved).
+    pub device_extra_keys: Vec<JsonPath>,
+}
+
+impl LoadedConfig {
+    pub fn error(&self, path: JsonPath, problem: Problem) -> LocatedError {
+        self.source.error(path, problem)
+    }
+}
+
+/// Loads `path`, applies the process's `RTU2MQTT_*` environment, checks ports and devices.
+pub fn load_config(path: &Path) -> Result<LoadedConfig, ErrorList> {
+    let source = SourceText::read(path)?;
+    let env: Vec<(String, String)> = std::env::vars()
+        .filter(|(k, _)| k.starts_with(ENV_PREFIX))
+        .collect();
+    load_config_source(source, !env.is_empty())
+}
+
+/// Loads config text already read (tests; `apply_env` merges the process environment).
+pub fn load_config_source(source: SourceText, apply_env: bool) -> Result<LoadedConfig, ErrorList> {
+    let mut raw = source.parse_json()?;
+    // Validate the file on its own first, so its errors point into it.
+    let typed = deserialize_at::<Config>(&source, &raw, &JsonPath::root())?;
+    let mut config = typed.value;
+    let mut ignored = typed.ignored;
+    if apply_env {
+        raw = Figment::from(Serialized::defaults(&raw))
+            .merge(Env::prefixed(ENV_PREFIX).split("__"))
+            .extract::<Value>()
+            .map_err(|err| {
+                LocatedError::file_level(
+                    &source.path,
+                    Problem::Invalid(format!("environment override: {err}")),
+                )
+            })?;
+        let merged = deserialize_at::<Config>(&source, &raw, &JsonPath::root()).map_err(|err| {
+            LocatedError {
+                problem: Problem::Invalid(format!(
+                    "{} (set by an {ENV_PREFIX}* environment variable)",
+                    err.problem
+                )),
+                ..err
+            }
+        })?;
+        config = merged.value;
+        ignored = merged.ignored;
+    }
+    let loaded = LoadedConfig {
+        config,
+        source,
+        raw,
+        device_extra_keys: Vec::new(),
+    };
+    let (device_extra_keys, mut errors) = split_ignored(&loaded, ignored);
+    errors.extend(check_ports(&loaded));
+    if errors.is_empty() {
+        Ok(LoadedConfig {
+            device_extra_keys,
+            ..loaded
+        })
+    } else {
+        Err(ErrorList(errors))
+    }
+}
+
+/// Unknown keys: at device level (and in channel overrides) they may be parameter values;
+/// anywhere else they are typos.
+fn split_ignored(
+    loaded: &LoadedConfig,
+    ignored: Vec<JsonPath>,
+) -> (Vec<JsonPath>, Vec<LocatedError>) {
+    let schema = config_schema();
+    let mut device_keys = Vec::new();
+    let mut errors = Vec::new();
+    for path in ignored {
+        let segments = path.segments();
+        let is_device_level = segments.len() >= 5
+            && matches!(&segments[0], super::json_path::PathSegment::Key(k) if k == "ports")
+            && matches!(&segments[2], super::json_path::PathSegment::Key(k) if k == "devices");
+        if is_device_level {
+            device_keys.push(path);
+            continue;
+        }
+        let parent = JsonPath(segments[..segments.len().saturating_sub(1)].to_vec());
+        let key = match segments.last() {
+            Some(super::json_path::PathSegment::Key(k)) => k.clone(),
+            _ => continue,
+        };
+        errors.push(loaded.error(
+            path,
+            Problem::UnknownKey {
+                key,
+                valid: schema_keys_at(&schema, &parent),
+            },
+        ));
+    }
+    (device_keys, errors)
+}
+
+/// The config's JSON Schema as a value (also what `rtu2mqtt schema config` prints).
+pub fn config_schema() -> Value {
+    serde_json::to_value(schemars::schema_for!(Config)).unwrap_or(Value::Null)
+}
+
+/// Checks that need only the config: required port keys, ranges, duplicate ports and
+/// duplicate slave ids on one port.
+fn check_ports(loaded: &LoadedConfig) -> Vec<LocatedError> {
+    let mut errors = Vec::new();
+    let mut seen_ports: BTreeMap<String, JsonPath> = BTreeMap::new();
+    let ports_path = JsonPath::root().key("ports");
+    for (port_index, port) in loaded.config.ports.iter().enumerate() {
+        let at = ports_path.index(port_index);
+        let mut invalid = |key: &str, message: String| {
+            errors.push(loaded.error(at.key(key), Problem::Invalid(message)))
+        };
+        match port.port_type {
+            PortType::Serial => {
+                if port.path.as_deref().unwrap_or("").is_empty() {
+                    invalid(
+                        "path",
+                        "a serial port needs `path`, e.g. \"/dev/ttyRS485-1\"".into(),
+                    );
+                }
+                if !(5..=8).contains(&port.data_bits) {
+                    invalid(
+                        "data_bits",
+                        format!("data_bits {} is not 5, 6, 7 or 8", port.data_bits),
+                    );
+                }
+                if !(1..=2).contains(&port.stop_bits) {
+                    invalid(
+                        "stop_bits",
+                        format!("stop_bits {} is not 1 or 2", port.stop_bits),
+                    );
+                }
+                if !(110..=4_000_000).contains(&port.baud_rate) {
+                    invalid(
+                        "baud_rate",
+                        format!(
+                            "baud_rate {} is not a serial speed (110…115200 usual)",
+                            port.baud_rate
+                        ),
+                    );
+                }
+            }
+            PortType::Tcp | PortType::ModbusTcp => {
+                if port.address.as_deref().unwrap_or("").is_empty() {
+                    invalid(
+                        "address",
+                        "a TCP port needs `address` (host name or IP of the gateway)".into(),
+                    );
+                }
+                if port.port.is_none() {
+                    invalid(
+                        "port",
+                        "a TCP port needs `port` (TCP port of the gateway, e.g. 502)".into(),
+                    );
+                }
+            }
+        }
+        if !port.enabled {
+            continue;
+        }
+        let description = port.describe();
+        if let Some(other) = seen_ports.get(&description) {
+            errors.push(loaded.error(
+                at.clone(),
+                Problem::DuplicatePort {
+                    port: description.clone(),
+                    other: other.to_string(),
+                },
+            ));
+        } else {
+            seen_ports.insert(description, at.clone());
+        }
+        let mut slave_ids: BTreeMap<i128, JsonPath> = BTreeMap::new();
+        for (device_index, device) in port.devices.iter().enumerate() {
+            let device_at = at.key("devices").index(device_index);
+            if device.enabled == Some(false) {
+                continue;
+            }
+            let Some(slave_id) = device.slave_id else {
+                errors.push(loaded.error(
+                    device_at.key("slave_id"),
+                    Problem::Invalid(
+                        "a device needs `slave_id` (its Modbus address, 1…247)".into(),
+                    ),
+                ));
+                continue;
+            };
+            if !(0..=255).contains(&slave_id.value()) {
+                errors.push(loaded.error(
+                    device_at.key("slave_id"),
+                    Problem::Invalid(format!(
+                        "slave_id {slave_id} is out of range 0…255 (RTU devices use 1…247)"
+                    )),
+                ));
+                continue;
+            }
+            match slave_ids.get(&slave_id.value()) {
+                Some(other) => errors.push(loaded.error(
+                    device_at.key("slave_id"),
+                    Problem::DuplicateSlaveId {
+                        slave_id: slave_id.to_string(),
+                        other: other.to_string(),
+                    },
+                )),
+                None => {
+                    slave_ids.insert(slave_id.value(), device_at);
+                }
+            }
+        }
+    }
+    errors
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn load(text: &str) -> Result<LoadedConfig, ErrorList> {
+        load_config_source(SourceText::from_text(Path::new("c.json"), text), false)
+    }
+
+    #[test]
+    fn defaults_and_comments() {
+        let loaded =
+            load("// site config\n{\"ports\": [{\"path\": \"/dev/ttyRS485-1\"}]}").unwrap();
+        let config = loaded.config;
+        assert_eq!(config.mqtt.host, "localhost");
+        assert_eq!(config.mqtt.port, 1883);
+        assert!(config.fast_modbus);
+        assert_eq!(config.max_unchanged_interval, -1);
+        assert_eq!(config.ports[0].baud_rate, 9600);
+        assert_eq!(config.ports[0].stop_bits, 1);
+    }
+
+    #[test]
+    fn duplicate_slave_id_on_a_port() {
+        let text = r#"{"ports": [{"path": "/dev/x", "devices": [
+            {"slave_id": 5, "device_type": "A"},
+            {"slave_id": "0x05", "device_type": "B"}]}]}"#;
+        let errors = load(text).unwrap_err().0;
+        assert_eq!(errors.len(), 1);
+        assert!(matches!(
+            errors[0].problem,
+            Problem::DuplicateSlaveId { .. }
+        ));
+        assert_eq!(errors[0].path.to_string(), "ports[0].devices[1].slave_id");
+        assert_eq!(errors[0].line_column.map(|(l, _)| l), Some(3));
+        assert!(
+            errors[0].to_string().contains("ports[0].devices[0]"),
+            "{}",
+            errors[0]
+        );
+    }
+
+    #[test]
+    fn same_slave_id_on_two_ports_is_fine() {
+        let text = r#"{"ports": [{"path": "/dev/x", "devices": [{"slave_id": 5}]},
+                                  {"path": "/dev/y", "devices": [{"slave_id": 5}]}]}"#;
+        assert!(load(text).is_ok());
+    }
+
+    #[test]
+    fn port_problems() {
+        let text = r#"{"ports": [{"port_type": "tcp", "address": "10.0.0.2"},
+                                  {"path": "/dev/x", "stop_bits": 3},
+                                  {"path": "/dev/x"}]}"#;
+        let errors = load(text).unwrap_err().0;
+        let paths: Vec<String> = errors.iter().map(|e| e.path.to_string()).collect();
+        assert_eq!(
+            paths,
+            vec!["ports[0].port", "ports[1].stop_bits", "ports[2]"]
+        );
+    }
+
+    #[test]
+    fn unknown_port_type_lists_the_valid_ones() {
+        let err = load(r#"{"ports": [{"port_type": "rtu"}]}"#)
+            .unwrap_err()
+            .0
+            .remove(0);
+        assert!(err.to_string().contains("serial, tcp, modbus tcp"), "{err}");
+    }
+
+    #[test]
+    fn device_level_unknown_keys_are_kept_for_the_template_check() {
+        let loaded =
+            load(r#"{"ports": [{"path": "/dev/x", "devices": [{"slave_id": 1, "in1_mode": 2}]}]}"#)
+                .unwrap();
+        assert_eq!(
+            loaded.device_extra_keys[0].to_string(),
+            "ports[0].devices[0].in1_mode"
+        );
+    }
+}

@@ -1,0 +1,442 @@
+//! Raw register words ↔ the value string published on MQTT, for one register value of a channel.
+//!
+//! Reading follows wb-mqtt-serial: words are put in order (`word_order`, then `byte_order`
+//! inside each word), joined most significant first, the bit field is cut out
+//! (`>> shift & mask`), `error_value`/`unsupported_value`/`on_value`/`off_value` are compared on
+//! that raw field, and only then is it interpreted (sign, IEEE, BCD, text) and scaled.
+
+use super::format::{ByteOrder, RegisterFormat, WordOrder};
+use super::number_text::format_g;
+use crate::config::values::parse_int_text;
+
+/// Everything needed to turn the words of one register value into text and back.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ValueCodec {
+    pub format: RegisterFormat,
+    pub word_order: WordOrder,
+    pub byte_order: ByteOrder,
+    /// Bit offset of the field inside the joined words (0 for whole registers).
+    pub bit_shift: u32,
+    /// Width of the field in bits (the format's width unless the address gives one).
+    pub bit_width: u32,
+    /// Words the value spans: 16-bit registers, or single bits for coils and discrete inputs.
+    pub word_count: u32,
+    /// Coils and discrete inputs: every word is one bit (0 or 1).
+    pub is_bit: bool,
+    pub scale: f64,
+    pub offset: f64,
+    /// Rounding step of the published value; 0 = no rounding. Published as meta `precision`.
+    pub round_to: f64,
+    /// Raw field values that mean "read error" (`r`) and "register not supported".
+    pub error_value: Option<u64>,
+    pub unsupported_value: Option<u64>,
+    /// Raw field values published as "1" / "0" and written for "1" / "0".
+    pub on_value: Option<u64>,
+    pub off_value: Option<u64>,
+}
+
+/// What a read produced.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Reading {
+    /// The text to publish.
+    Value(String),
+    /// The device reported `error_value`: set the read error flag, keep the last value.
+    DeviceError,
+    /// The device reported `unsupported_value`: set `r` and stop polling this register.
+    Unsupported,
+}
+
+/// Why words could not be decoded or a text could not be encoded.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum CodecError {
+    #[error("expected {expected} register words, got {got}")]
+    WordCount { expected: usize, got: usize },
+    #[error("raw value {0:#x} is not valid BCD (a nibble is above 9)")]
+    InvalidBcd(u64),
+    #[error("`{0}` is not a number")]
+    NotANumber(String),
+    #[error("{value} is out of range for {format}: allowed {min} … {max}")]
+    OutOfRange {
+        value: String,
+        format: &'static str,
+        min: String,
+        max: String,
+    },
+    #[error("`{text}` is longer than the {capacity} characters the register holds")]
+    StringTooLong { text: String, capacity: u32 },
+    #[error("writing a bit field needs the current register contents to keep the other bits")]
+    NeedsCurrentWords,
+}
+
+impl ValueCodec {
+    /// A plain codec for `format`, whole registers, no scaling: a starting point for tests and
+    /// for setup items.
+    pub fn plain(format: RegisterFormat) -> Self {
+        Self {
+            format,
+            word_order: WordOrder::BigEndian,
+            byte_order: ByteOrder::BigEndian,
+            bit_shift: 0,
+            bit_width: format.value_bits(),
+            word_count: format.registers().max(1),
+            is_bit: false,
+            scale: 1.0,
+            offset: 0.0,
+            round_to: 0.0,
+            error_value: None,
+            unsupported_value: None,
+            on_value: None,
+            off_value: None,
+        }
+    }
+
+    /// A codec for one coil or discrete input.
+    pub fn bit() -> Self {
+        Self {
+            is_bit: true,
+            bit_width: 1,
+            word_count: 1,
+            ..Self::plain(RegisterFormat::U8)
+        }
+    }
+
+    /// True when the value shares its registers with other data, so a write must merge it
+    /// into the current contents (read-modify-write).
+    pub fn is_partial(&self) -> bool {
+        !self.is_bit
+            && !self.format.is_string()
+            && (self.bit_shift > 0 || self.bit_width < self.format.value_bits())
+    }
+
+    fn mask(&self) -> u128 {
+        if self.bit_width >= 128 {
+            u128::MAX
+        } else {
+            (1u128 << self.bit_width) - 1
+        }
+    }
+
+    fn check_len(&self, words: &[u16]) -> Result<(), CodecError> {
+        if words.len() != self.word_count as usize {
+            return Err(CodecError::WordCount {
+                expected: self.word_count as usize,
+                got: words.len(),
+            });
+        }
+        Ok(())
+    }
+
+    /// The raw field (before sign, IEEE or BCD interpretation), as compared with `error_value`.
+    pub fn raw_field(&self, words: &[u16]) -> Result<u64, CodecError> {
+        self.check_len(words)?;
+        if self.is_bit {
+            return Ok(words.first().map(|w| u64::from(*w != 0)).unwrap_or(0));
+        }
+        let joined = self
+            .ordered_words(words)
+            .fold(0u128, |acc, w| (acc << 16) | u128::from(w));
+        Ok(((joined >> self.bit_shift.min(127)) & self.mask()) as u64)
+    }
+
+    /// Words most significant first, bytes swapped where `byte_order` says so.
+    fn ordered_words<'a>(&self, words: &'a [u16]) -> impl Iterator<Item = u16> + 'a {
+        let swap = self.byte_order == ByteOrder::LittleEndian;
+        let reverse = self.word_order == WordOrder::LittleEndian;
+        let count = words.len();
+        (0..count).map(move |i| {
+            let index = if reverse { count - 1 - i } else { i };
+            let word = words.get(index).copied().unwrap_or(0);
+            if swap {
+                word.swap_bytes()
+            } else {
+                word
+            }
+        })
+    }
+
+    /// Decodes the words of one register value.
+    pub fn decode(&self, words: &[u16]) -> Result<Reading, CodecError> {
+        if self.format.is_string() && !self.is_bit {
+            self.check_len(words)?;
+            return Ok(Reading::Value(self.decode_string(words)));
+        }
+        let field = self.raw_field(words)?;
+        if self.unsupported_value == Some(field) {
+            return Ok(Reading::Unsupported);
+        }
+        if self.error_value == Some(field) {
+            return Ok(Reading::DeviceError);
+        }
+        if self.on_value == Some(field) {
+            return Ok(Reading::Value("1".to_string()));
+        }
+        if self.off_value == Some(field) {
+            return Ok(Reading::Value("0".to_string()));
+        }
+        self.field_text(field).map(Reading::Value)
+    }
+
+    fn has_transform(&self) -> bool {
+        self.scale != 1.0 || self.offset != 0.0 || self.round_to != 0.0
+    }
+
+    fn field_text(&self, field: u64) -> Result<String, CodecError> {
+        let format = self.format;
+        if self.is_bit {
+            return Ok(if self.has_transform() {
+                self.scaled_text(field as f64)
+            } else {
+                field.to_string()
+            });
+        }
+        match format {
+            RegisterFormat::Float => {
+                let value = f32::from_bits(field as u32);
+                if self.has_transform() {
+                    Ok(self.scaled_text(f64::from(value)))
+                } else {
+                    Ok(format_g(f64::from(value), 7))
+                }
+            }
+            RegisterFormat::Double => Ok(self.scaled_text(f64::from_bits(field))),
+            RegisterFormat::Char8 => Ok(char::from((field & 0xFF) as u8).to_string()),
+            _ if format.is_bcd() => {
+                let value =
+                    decode_bcd(field, format.value_bits()).ok_or(CodecError::InvalidBcd(field))?;
+                self.integer_text(i128::from(value))
+            }
+            _ if format.is_signed() => {
+                let bits = self.bit_width.clamp(1, 64);
+                let shift = 64 - bits;
+                let value = ((field << shift) as i64) >> shift;
+                self.integer_text(i128::from(value))
+            }
+            _ => self.integer_text(i128::from(field)),
+        }
+    }
+
+    fn integer_text(&self, value: i128) -> Result<String, CodecError> {
+        if self.has_transform() {
+            Ok(self.scaled_text(value as f64))
+        } else {
+            Ok(value.to_string())
+        }
+    }
+
+    fn scaled_text(&self, raw: f64) -> String {
+        let mut value = raw * self.scale + self.offset;
+        if self.round_to > 0.0 {
+            value = (value / self.round_to).round() * self.round_to;
+        }
+        format_g(value, 15)
+    }
+
+    fn decode_string(&self, words: &[u16]) -> String {
+        let mut bytes = Vec::new();
+        for &word in words {
+            let word = if self.byte_order == ByteOrder::LittleEndian {
+                word.swap_bytes()
+            } else {
+                word
+            };
+            match self.format {
+                RegisterFormat::String8 => bytes.extend_from_slice(&word.to_be_bytes()),
+                _ => bytes.push((word & 0xFF) as u8),
+            }
+        }
+        let end = bytes
+            .iter()
+            .position(|b| *b == 0 || *b == 0xFF)
+            .unwrap_or(bytes.len());
+        bytes.truncate(end);
+        String::from_utf8_lossy(&bytes).into_owned()
+    }
+
+    /// Encodes a value text for writing. `current` holds the register's present words; it is
+    /// needed (and only used) for bit fields, whose other bits must be kept.
+    pub fn encode(&self, text: &str, current: Option<&[u16]>) -> Result<Vec<u16>, CodecError> {
+        if self.format.is_string() && !self.is_bit {
+            return self.encode_string(text);
+        }
+        let field = self.text_to_field(text.trim())?;
+        if self.is_bit {
+            return Ok(vec![u16::from(field != 0)]);
+        }
+        let count = self.word_count as usize;
+        let base: u128 = if self.is_partial() {
+            let current = current.ok_or(CodecError::NeedsCurrentWords)?;
+            self.check_len(current)?;
+            self.ordered_words(current)
+                .fold(0u128, |acc, w| (acc << 16) | u128::from(w))
+        } else {
+            0
+        };
+        let shift = self.bit_shift.min(127);
+        let joined =
+            (base & !(self.mask() << shift)) | ((u128::from(field) & self.mask()) << shift);
+        let mut ordered: Vec<u16> = (0..count)
+            .map(|i| joined.checked_shr(16 * (count - 1 - i) as u32).unwrap_or(0) as u16)
+            .collect();
+        if self.byte_order == ByteOrder::LittleEndian {
+            ordered.iter_mut().for_each(|w| *w = w.swap_bytes());
+        }
+        if self.word_order == WordOrder::LittleEndian {
+            ordered.reverse();
+        }
+        Ok(ordered)
+    }
+
+    /// The raw field for a value text (inverse of scale/offset, then format range check).
+    pub fn text_to_field(&self, text: &str) -> Result<u64, CodecError> {
+        if text == "1" {
+            if let Some(on) = self.on_value {
+                return Ok(on);
+            }
+        }
+        if text == "0" {
+            if let Some(off) = self.off_value {
+                return Ok(off);
+            }
+        }
+        if self.is_bit {
+            return Ok(u64::from(parse_number(text)? != 0.0));
+        }
+        match self.format {
+            RegisterFormat::Char8 => Ok(u64::from(text.bytes().next().unwrap_or(0))),
+            RegisterFormat::Float => {
+                let value = self.unscale(parse_number(text)?);
+                if value.is_finite() && value.abs() > f64::from(f32::MAX) {
+                    return Err(self.out_of_range(
+                        text,
+                        f32::MIN.to_string(),
+                        f32::MAX.to_string(),
+                    ));
+                }
+                Ok(u64::from((value as f32).to_bits()))
+            }
+            RegisterFormat::Double => Ok(self.unscale(parse_number(text)?).to_bits()),
+            format if format.is_bcd() => {
+                let digits = format.value_bits() / 4;
+                let max = 10i128.pow(digits) - 1;
+                let value = self.integer_for(text)?;
+                if !(0..=max).contains(&value) {
+                    return Err(self.out_of_range(text, "0".to_string(), max.to_string()));
+                }
+                Ok(encode_bcd(value as u64))
+            }
+            format => {
+                let value = self.integer_for(text)?;
+                let bits = self.bit_width.clamp(1, 64);
+                let (min, max) = if format.is_signed() {
+                    (-(1i128 << (bits - 1)), (1i128 << (bits - 1)) - 1)
+                } else {
+                    (0, (1i128 << bits) - 1)
+                };
+                if !(min..=max).contains(&value) {
+                    return Err(self.out_of_range(text, min.to_string(), max.to_string()));
+                }
+                Ok((value as u64) & (self.mask() as u64))
+            }
+        }
+    }
+
+    fn unscale(&self, value: f64) -> f64 {
+        let scale = if self.scale == 0.0 { 1.0 } else { self.scale };
+        (value - self.offset) / scale
+    }
+
+    /// Integers are taken exactly when there is nothing to unscale (u64 counters would lose
+    /// digits through f64); otherwise unscaled and rounded to the nearest integer.
+    fn integer_for(&self, text: &str) -> Result<i128, CodecError> {
+        if self.scale == 1.0 && self.offset == 0.0 {
+            if let Some(value) = parse_int_text(text) {
+                return Ok(value);
+            }
+        }
+        let value = self.unscale(parse_number(text)?).round();
+        if !value.is_finite() || value.abs() > 1.8e19 {
+            return Err(self.out_of_range(
+                text,
+                "-9223372036854775808".into(),
+                "18446744073709551615".into(),
+            ));
+        }
+        Ok(value as i128)
+    }
+
+    fn out_of_range(&self, text: &str, min: String, max: String) -> CodecError {
+        CodecError::OutOfRange {
+            value: text.to_string(),
+            format: self.format.name(),
+            min,
+            max,
+        }
+    }
+
+    fn encode_string(&self, text: &str) -> Result<Vec<u16>, CodecError> {
+        let count = self.word_count as usize;
+        let per_word = if self.format == RegisterFormat::String8 {
+            2
+        } else {
+            1
+        };
+        let capacity = count * per_word;
+        let bytes = text.as_bytes();
+        if bytes.len() > capacity {
+            return Err(CodecError::StringTooLong {
+                text: text.to_string(),
+                capacity: capacity as u32,
+            });
+        }
+        let byte_at = |i: usize| u16::from(bytes.get(i).copied().unwrap_or(0));
+        let words = (0..count).map(|i| {
+            let word = if per_word == 2 {
+                (byte_at(2 * i) << 8) | byte_at(2 * i + 1)
+            } else {
+                byte_at(i)
+            };
+            if self.byte_order == ByteOrder::LittleEndian {
+                word.swap_bytes()
+            } else {
+                word
+            }
+        });
+        Ok(words.collect())
+    }
+}
+
+fn parse_number(text: &str) -> Result<f64, CodecError> {
+    if let Some(value) = parse_int_text(text) {
+        return Ok(value as f64);
+    }
+    text.parse::<f64>()
+        .map_err(|_| CodecError::NotANumber(text.to_string()))
+}
+
+/// Packed BCD (one decimal digit per nibble) to its value; None when a nibble is above 9.
+fn decode_bcd(raw: u64, bits: u32) -> Option<u64> {
+    let mut value = 0u64;
+    for nibble_index in (0..bits / 4).rev() {
+        let digit = (raw >> (nibble_index * 4)) & 0xF;
+        if digit > 9 {
+            return None;
+        }
+        value = value * 10 + digit;
+    }
+    Some(value)
+}
+
+fn encode_bcd(mut value: u64) -> u64 {
+    let mut raw = 0u64;
+    let mut shift = 0;
+    while value > 0 {
+        raw |= (value % 10) << shift;
+        value /= 10;
+        shift += 4;
+    }
+    raw
+}
+
+#[cfg(test)]
+#[path = "codec_tests.rs"]
+mod tests;

@@ -1,0 +1,418 @@
+use super::*;
+
+fn codec(format: RegisterFormat) -> ValueCodec {
+    ValueCodec::plain(format)
+}
+
+fn ordered(format: RegisterFormat, word_order: WordOrder, byte_order: ByteOrder) -> ValueCodec {
+    ValueCodec {
+        word_order,
+        byte_order,
+        ..codec(format)
+    }
+}
+
+fn value(reading: Reading) -> String {
+    match reading {
+        Reading::Value(text) => text,
+        other => panic!("expected a value, got {other:?}"),
+    }
+}
+
+/// Words as the device sends them, from the big-endian word list, for a word/byte order.
+fn arrange(be_words: &[u16], word_order: WordOrder, byte_order: ByteOrder) -> Vec<u16> {
+    let mut words: Vec<u16> = be_words.to_vec();
+    if byte_order == ByteOrder::LittleEndian {
+        words.iter_mut().for_each(|w| *w = w.swap_bytes());
+    }
+    if word_order == WordOrder::LittleEndian {
+        words.reverse();
+    }
+    words
+}
+
+/// (format, big-endian words, published text): one known pattern per numeric format.
+fn known_patterns() -> Vec<(RegisterFormat, Vec<u16>, &'static str)> {
+    use RegisterFormat::*;
+    vec![
+        (U8, vec![0x00FE], "254"),
+        (S8, vec![0x00FE], "-2"),
+        (U16, vec![0xFFFE], "65534"),
+        (S16, vec![0xFFFE], "-2"),
+        (U24, vec![0x0012, 0x3456], "1193046"),
+        (S24, vec![0x00FF, 0xFFFE], "-2"),
+        (U32, vec![0x1234, 0x5678], "305419896"),
+        (S32, vec![0xFFFF, 0xFFFF], "-1"),
+        (
+            U64,
+            vec![0xFFFF, 0xFFFF, 0xFFFF, 0xFFFE],
+            "18446744073709551614",
+        ),
+        (S64, vec![0xFFFF, 0xFFFF, 0xFFFF, 0xFF85], "-123"),
+        (Float, vec![0x4366, 0x8000], "230.5"),
+        (Double, vec![0x406C, 0xD000, 0x0000, 0x0000], "230.5"),
+        (Char8, vec![0x0041], "A"),
+        (Bcd8, vec![0x0042], "42"),
+        (Bcd16, vec![0x1234], "1234"),
+        (Bcd24, vec![0x0012, 0x3456], "123456"),
+        (Bcd32, vec![0x1234, 0x5678], "12345678"),
+    ]
+}
+
+#[test]
+fn every_numeric_format_in_every_word_and_byte_order() {
+    let orders = [
+        (WordOrder::BigEndian, ByteOrder::BigEndian),
+        (WordOrder::BigEndian, ByteOrder::LittleEndian),
+        (WordOrder::LittleEndian, ByteOrder::BigEndian),
+        (WordOrder::LittleEndian, ByteOrder::LittleEndian),
+    ];
+    for (format, be_words, text) in known_patterns() {
+        for (word_order, byte_order) in orders {
+            let codec = ordered(format, word_order, byte_order);
+            let wire = arrange(&be_words, word_order, byte_order);
+            let label = format!("{} {word_order:?} {byte_order:?}", format.name());
+            assert_eq!(value(codec.decode(&wire).unwrap()), text, "decode {label}");
+            let written = codec.encode(text, Some(&wire)).unwrap();
+            assert_eq!(
+                codec.decode(&written).unwrap(),
+                Reading::Value(text.to_string()),
+                "round trip {label}"
+            );
+            if !codec.is_partial() {
+                assert_eq!(written, wire, "encode {label}");
+            }
+        }
+    }
+}
+
+#[test]
+fn float_230_5_in_both_word_orders() {
+    let big = ordered(
+        RegisterFormat::Float,
+        WordOrder::BigEndian,
+        ByteOrder::BigEndian,
+    );
+    assert_eq!(value(big.decode(&[0x4366, 0x8000]).unwrap()), "230.5");
+    assert_eq!(big.encode("230.5", None).unwrap(), vec![0x4366, 0x8000]);
+    let little = ordered(
+        RegisterFormat::Float,
+        WordOrder::LittleEndian,
+        ByteOrder::BigEndian,
+    );
+    assert_eq!(value(little.decode(&[0x8000, 0x4366]).unwrap()), "230.5");
+    assert_eq!(little.encode("230.5", None).unwrap(), vec![0x8000, 0x4366]);
+    let swapped = ordered(
+        RegisterFormat::Float,
+        WordOrder::BigEndian,
+        ByteOrder::LittleEndian,
+    );
+    assert_eq!(swapped.encode("230.5", None).unwrap(), vec![0x6643, 0x0080]);
+}
+
+#[test]
+fn float_prints_seven_significant_digits() {
+    // 234.607 is not exact in float32; wb-mqtt-serial prints it with %.7g.
+    let bits = 234.607f32.to_bits();
+    let codec = codec(RegisterFormat::Float);
+    assert_eq!(
+        value(codec.decode(&[(bits >> 16) as u16, bits as u16]).unwrap()),
+        "234.607"
+    );
+}
+
+#[test]
+fn scale_offset_and_round_to() {
+    let temperature = ValueCodec {
+        scale: 0.01,
+        ..codec(RegisterFormat::S16)
+    };
+    assert_eq!(value(temperature.decode(&[2345]).unwrap()), "23.45");
+    assert_eq!(
+        value(temperature.decode(&[(-1234i16) as u16]).unwrap()),
+        "-12.34"
+    );
+    assert_eq!(
+        temperature.encode("-12.34", None).unwrap(),
+        vec![(-1234i16) as u16]
+    );
+
+    let rounded = ValueCodec {
+        scale: 1.52588e-07,
+        round_to: 0.001,
+        ..codec(RegisterFormat::U32)
+    };
+    // 230.123 V as the WB-MAP3E reports Urms.
+    let raw = (230.123f64 / 1.52588e-07).round() as u32;
+    assert_eq!(
+        value(rounded.decode(&[(raw >> 16) as u16, raw as u16]).unwrap()),
+        "230.123"
+    );
+
+    let offset = ValueCodec {
+        offset: -4261412864.0,
+        ..codec(RegisterFormat::U32)
+    };
+    assert_eq!(value(offset.decode(&[0xFE00, 0x1234]).unwrap()), "4660");
+
+    let step = ValueCodec {
+        round_to: 0.5,
+        ..codec(RegisterFormat::U16)
+    };
+    assert_eq!(value(step.decode(&[7]).unwrap()), "7");
+    let step = ValueCodec {
+        scale: 0.1,
+        round_to: 0.5,
+        ..codec(RegisterFormat::U16)
+    };
+    assert_eq!(value(step.decode(&[27]).unwrap()), "2.5");
+}
+
+#[test]
+fn integers_without_scale_print_exactly() {
+    let counter = codec(RegisterFormat::U64);
+    let words = [0x0123, 0x4567, 0x89AB, 0xCDEF];
+    assert_eq!(value(counter.decode(&words).unwrap()), "81985529216486895");
+    assert_eq!(
+        counter.encode("81985529216486895", None).unwrap(),
+        words.to_vec()
+    );
+}
+
+#[test]
+fn bit_fields_read_and_merge_on_write() {
+    let field = ValueCodec {
+        bit_shift: 4,
+        bit_width: 1,
+        ..codec(RegisterFormat::U8)
+    };
+    assert!(field.is_partial());
+    assert_eq!(value(field.decode(&[0b1_0000]).unwrap()), "1");
+    assert_eq!(value(field.decode(&[0b0_1111]).unwrap()), "0");
+    assert_eq!(field.encode("1", Some(&[0x0F0F])).unwrap(), vec![0x0F1F]);
+    assert_eq!(field.encode("0", Some(&[0xFFFF])).unwrap(), vec![0xFFEF]);
+    assert_eq!(field.encode("1", None), Err(CodecError::NeedsCurrentWords));
+    assert!(matches!(
+        field.encode("2", Some(&[0])),
+        Err(CodecError::OutOfRange { .. })
+    ));
+
+    let nibble = ValueCodec {
+        bit_shift: 8,
+        bit_width: 4,
+        ..codec(RegisterFormat::U16)
+    };
+    assert_eq!(value(nibble.decode(&[0x0A00]).unwrap()), "10");
+    let low_byte = codec(RegisterFormat::U8);
+    assert_eq!(value(low_byte.decode(&[0xAB12]).unwrap()), "18");
+}
+
+#[test]
+fn inverted_on_off_values_on_a_bit_field() {
+    // ONOKOM "Timer: Heater": 55:3:1 with on_value 0, off_value 1.
+    let heater = ValueCodec {
+        bit_shift: 3,
+        bit_width: 1,
+        on_value: Some(0),
+        off_value: Some(1),
+        ..codec(RegisterFormat::U8)
+    };
+    assert_eq!(value(heater.decode(&[0b1000]).unwrap()), "0");
+    assert_eq!(value(heater.decode(&[0]).unwrap()), "1");
+    assert_eq!(heater.encode("1", Some(&[0xFFFF])).unwrap(), vec![0xFFF7]);
+}
+
+#[test]
+fn on_off_values_on_whole_registers() {
+    let switch = ValueCodec {
+        on_value: Some(0xFF),
+        off_value: Some(0x10),
+        ..codec(RegisterFormat::U16)
+    };
+    assert_eq!(value(switch.decode(&[0xFF]).unwrap()), "1");
+    assert_eq!(value(switch.decode(&[0x10]).unwrap()), "0");
+    assert_eq!(value(switch.decode(&[5]).unwrap()), "5");
+    assert_eq!(switch.encode("1", None).unwrap(), vec![0xFF]);
+    assert_eq!(switch.encode("0", None).unwrap(), vec![0x10]);
+}
+
+#[test]
+fn error_and_unsupported_values_are_compared_raw() {
+    let temperature = ValueCodec {
+        scale: 0.01,
+        error_value: Some(0x7FFF),
+        ..codec(RegisterFormat::S16)
+    };
+    assert_eq!(temperature.decode(&[0x7FFF]).unwrap(), Reading::DeviceError);
+    let peak = ValueCodec {
+        word_order: WordOrder::LittleEndian,
+        unsupported_value: Some(0xFFFE_FFFE),
+        error_value: Some(0x7FFF_FFFF),
+        ..codec(RegisterFormat::S32)
+    };
+    assert_eq!(
+        peak.decode(&[0xFFFE, 0xFFFE]).unwrap(),
+        Reading::Unsupported
+    );
+    assert_eq!(
+        peak.decode(&[0xFFFF, 0x7FFF]).unwrap(),
+        Reading::DeviceError
+    );
+    assert_eq!(value(peak.decode(&[0xFFFF, 0xFFFF]).unwrap()), "-1");
+}
+
+#[test]
+fn bcd_rejects_bad_nibbles_and_out_of_range_writes() {
+    let bcd = codec(RegisterFormat::Bcd16);
+    assert_eq!(bcd.decode(&[0x12A4]), Err(CodecError::InvalidBcd(0x12A4)));
+    assert_eq!(bcd.encode("59", None).unwrap(), vec![0x0059]);
+    assert!(matches!(
+        bcd.encode("10000", None),
+        Err(CodecError::OutOfRange { .. })
+    ));
+    assert!(matches!(
+        bcd.encode("-1", None),
+        Err(CodecError::OutOfRange { .. })
+    ));
+}
+
+#[test]
+fn strings_one_and_two_characters_per_register() {
+    let one = ValueCodec {
+        word_count: 6,
+        ..codec(RegisterFormat::String)
+    };
+    let words = [0x0034, 0x002E, 0x0033, 0x0036, 0x0000, 0x0041];
+    assert_eq!(value(one.decode(&words).unwrap()), "4.36");
+    assert_eq!(
+        one.encode("4.36", None).unwrap(),
+        vec![0x34, 0x2E, 0x33, 0x36, 0, 0]
+    );
+
+    let two = ValueCodec {
+        word_count: 3,
+        ..codec(RegisterFormat::String8)
+    };
+    assert_eq!(
+        value(two.decode(&[0x5742, 0x2D4D, 0x5200]).unwrap()),
+        "WB-MR"
+    );
+    assert_eq!(value(two.decode(&[0x4142, 0xFFFF, 0x4344]).unwrap()), "AB");
+    assert_eq!(
+        two.encode("WB-MR", None).unwrap(),
+        vec![0x5742, 0x2D4D, 0x5200]
+    );
+    assert!(matches!(
+        two.encode("1234567", None),
+        Err(CodecError::StringTooLong { .. })
+    ));
+
+    let swapped = ValueCodec {
+        byte_order: ByteOrder::LittleEndian,
+        ..two
+    };
+    assert_eq!(
+        value(swapped.decode(&[0x4257, 0x4D2D, 0x0052]).unwrap()),
+        "WB-MR"
+    );
+}
+
+#[test]
+fn writes_check_the_format_range() {
+    let cases: &[(RegisterFormat, &str, bool)] = &[
+        (RegisterFormat::U16, "65535", true),
+        (RegisterFormat::U16, "65536", false),
+        (RegisterFormat::U16, "-1", false),
+        (RegisterFormat::S16, "-32768", true),
+        (RegisterFormat::S16, "32768", false),
+        (RegisterFormat::U8, "256", false),
+        (RegisterFormat::S8, "-128", true),
+        (RegisterFormat::U32, "4294967295", true),
+        (RegisterFormat::U32, "4294967296", false),
+        (RegisterFormat::S64, "-9223372036854775808", true),
+        (RegisterFormat::U64, "18446744073709551616", false),
+        (RegisterFormat::Float, "1e39", false),
+    ];
+    for (format, text, ok) in cases {
+        let result = codec(*format).encode(text, None);
+        assert_eq!(result.is_ok(), *ok, "{} {text}: {result:?}", format.name());
+    }
+    let err = codec(RegisterFormat::U16)
+        .encode("70000", None)
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("0 … 65535"), "{err}");
+    assert_eq!(
+        codec(RegisterFormat::U16).encode("abc", None),
+        Err(CodecError::NotANumber("abc".into()))
+    );
+}
+
+#[test]
+fn scaled_writes_round_to_the_nearest_raw_value() {
+    let power = ValueCodec {
+        scale: 0.1,
+        ..codec(RegisterFormat::U16)
+    };
+    assert_eq!(power.encode("12.34", None).unwrap(), vec![123]);
+    assert_eq!(power.encode("0x10", None).unwrap(), vec![160]);
+    let offset = ValueCodec {
+        offset: -40.0,
+        scale: 0.5,
+        ..codec(RegisterFormat::U8)
+    };
+    assert_eq!(offset.encode("-20", None).unwrap(), vec![40]);
+    assert!(offset.encode("200", None).is_err());
+}
+
+#[test]
+fn coils_are_single_bits() {
+    let coil = ValueCodec::bit();
+    assert_eq!(value(coil.decode(&[1]).unwrap()), "1");
+    assert_eq!(value(coil.decode(&[0]).unwrap()), "0");
+    assert_eq!(coil.encode("1", None).unwrap(), vec![1]);
+    assert_eq!(coil.encode("0", None).unwrap(), vec![0]);
+    assert_eq!(
+        coil.decode(&[]),
+        Err(CodecError::WordCount {
+            expected: 1,
+            got: 0
+        })
+    );
+}
+
+#[test]
+fn wrong_word_counts_are_errors_not_panics() {
+    for format in RegisterFormat::ALL {
+        let codec = codec(format);
+        let too_many = vec![0u16; codec.word_count as usize + 1];
+        assert!(codec.decode(&too_many).is_err(), "{}", format.name());
+        assert!(codec.decode(&[]).is_err(), "{}", format.name());
+    }
+}
+
+mod properties {
+    use super::*;
+    use proptest::prelude::*;
+
+    proptest! {
+        #[test]
+        fn decoding_never_panics(words in proptest::collection::vec(any::<u16>(), 0..6), shift in 0u32..70, width in 0u32..70, fmt in 0usize..19) {
+            let format = RegisterFormat::ALL[fmt];
+            let codec = ValueCodec { bit_shift: shift, bit_width: width, word_count: words.len() as u32, ..ValueCodec::plain(format) };
+            let _ = codec.decode(&words);
+            let _ = codec.encode("12", Some(&words));
+        }
+
+        #[test]
+        fn integer_round_trip(raw in any::<u32>(), little_words in any::<bool>(), little_bytes in any::<bool>()) {
+            let codec = ValueCodec {
+                word_order: if little_words { WordOrder::LittleEndian } else { WordOrder::BigEndian },
+                byte_order: if little_bytes { ByteOrder::LittleEndian } else { ByteOrder::BigEndian },
+                ..ValueCodec::plain(RegisterFormat::U32)
+            };
+            let words = codec.encode(&raw.to_string(), None).unwrap();
+            prop_assert_eq!(codec.decode(&words).unwrap(), Reading::Value(raw.to_string()));
+        }
+    }
+}

@@ -1,0 +1,292 @@
+//! The whole config resolved against the templates: every enabled device of every enabled port,
+//! with errors located in the config file or in the template file they come from.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use serde_json::{json, Map, Value};
+
+use super::merge::{merge_device, DeviceMergeInput, MergeError};
+use super::model::{ResolvedDevice, ResolvedPort};
+use super::resolve::{resolve_device, ResolveError, ResolveInput};
+use crate::config::config_file::PortConfig;
+use crate::config::error::{ErrorList, LocatedError, Problem};
+use crate::config::json_path::JsonPath;
+use crate::config::load::LoadedConfig;
+use crate::config::parse::{value_at, SourceText};
+use crate::config::{TemplateFile, TemplateLibrary};
+
+/// Resolves every enabled device; all errors are collected.
+pub fn resolve_config(
+    loaded: &LoadedConfig,
+    library: &TemplateLibrary,
+) -> Result<Vec<ResolvedPort>, ErrorList> {
+    let mut errors = Vec::new();
+    let mut ports = Vec::new();
+    let mut device_ids: BTreeMap<String, JsonPath> = BTreeMap::new();
+    for (port_index, port) in loaded.config.ports.iter().enumerate() {
+        if !port.enabled {
+            continue;
+        }
+        let mut devices = Vec::new();
+        for (device_index, device) in port.devices.iter().enumerate() {
+            if device.enabled == Some(false) {
+                continue;
+            }
+            let path = JsonPath::root()
+                .key("ports")
+                .index(port_index)
+                .key("devices")
+                .index(device_index);
+            let Some(object) = value_at(&loaded.raw, &path).and_then(Value::as_object) else {
+                continue;
+            };
+            let slave_id = device
+                .slave_id
+                .map(|s| s.value())
+                .unwrap_or(0)
+                .clamp(0, 255) as u8;
+            let template = match &device.device_type {
+                Some(device_type) => match library.get(device_type) {
+                    Some(template) => Some(template),
+                    None => {
+                        errors.push(loaded.error(
+                            path.key("device_type"),
+                            Problem::MissingTemplate {
+                                device_type: device_type.clone(),
+                                similar: library.similar(device_type),
+                            },
+                        ));
+                        if let Some(cause) = library.load_error_for(device_type) {
+                            errors.push(cause.clone());
+                        }
+                        continue;
+                    }
+                },
+                None => None,
+            };
+            match resolve_one(
+                loaded.source.clone(),
+                object,
+                &path,
+                template,
+                port,
+                slave_id,
+            ) {
+                Ok(mut resolved) => {
+                    if resolved.id.is_empty() {
+                        resolved.id = format!("wb-modbus-{port_index}-{device_index}");
+                    }
+                    match device_ids.get(&resolved.id) {
+                        Some(other) => errors.push(loaded.error(
+                            if device.id.is_some() {
+                                path.key("id")
+                            } else {
+                                path.clone()
+                            },
+                            Problem::DuplicateDeviceId {
+                                id: resolved.id.clone(),
+                                other: other.to_string(),
+                            },
+                        )),
+                        None => {
+                            device_ids.insert(resolved.id.clone(), path.clone());
+                        }
+                    }
+                    devices.push(resolved);
+                }
+                Err(mut more) => errors.append(&mut more),
+            }
+        }
+        ports.push(ResolvedPort {
+            index: port_index,
+            config: port.clone(),
+            devices,
+        });
+    }
+    if errors.is_empty() {
+        Ok(ports)
+    } else {
+        Err(ErrorList(errors))
+    }
+}
+
+fn resolve_one(
+    config_source: SourceText,
+    object: &Map<String, Value>,
+    path: &JsonPath,
+    template: Option<&TemplateFile>,
+    port: &PortConfig,
+    slave_id: u8,
+) -> Result<ResolvedDevice, Vec<LocatedError>> {
+    let locate = |origin: &str, problem: Problem| {
+        locate_origin(&config_source, template, path, origin, problem)
+    };
+    let slave_text = object.get("slave_id").map(|v| match v {
+        Value::String(s) => s.clone(),
+        other => other.to_string(),
+    });
+    let input = DeviceMergeInput {
+        template: template.map(|t| &t.raw),
+        device: object,
+        device_path: path.clone(),
+        slave_id: slave_text.unwrap_or_else(|| slave_id.to_string()),
+    };
+    let merged = merge_device(&input).map_err(|errors| {
+        errors
+            .into_iter()
+            .map(|MergeError { origin, problem }| locate(&origin, problem))
+            .collect::<Vec<_>>()
+    })?;
+    let resolve_input = ResolveInput {
+        merged: &merged,
+        port,
+        slave_id,
+        is_wb_template: template
+            .is_some_and(|t| t.template.hw.as_ref().is_some_and(|hw| !hw.is_empty())),
+        hw: template
+            .and_then(|t| t.template.hw.clone())
+            .unwrap_or_default(),
+        device_type: template.map(|t| t.device_type().to_string()),
+    };
+    resolve_device(&resolve_input).map_err(|errors| {
+        errors
+            .into_iter()
+            .map(|ResolveError { origin, problem }| locate(&origin, problem))
+            .collect::<Vec<_>>()
+    })
+}
+
+/// Turns an `__origin` (`t:` template path, `c:` config path) into a located error.
+fn locate_origin(
+    config: &SourceText,
+    template: Option<&TemplateFile>,
+    device_path: &JsonPath,
+    origin: &str,
+    problem: Problem,
+) -> LocatedError {
+    if let (Some(rest), Some(template)) = (origin.strip_prefix("t:"), template) {
+        let mut error = template.source.error(JsonPath::parse(rest), problem);
+        if let Problem::Invalid(message) = &mut error.problem {
+            *message = format!(
+                "{message} (template used by the device at {} in {})",
+                device_path,
+                config.path.display()
+            );
+        }
+        return error;
+    }
+    let path = origin
+        .strip_prefix("c:")
+        .map(JsonPath::parse)
+        .unwrap_or_else(|| device_path.clone());
+    config.error(path, problem)
+}
+
+/// Resolves a template on its own, as a device at slave 1 with default choices, and once for
+/// every choice of every subdevice slot: what `check-templates` runs to find errors that only
+/// show when the template is used.
+pub fn check_template(template: &TemplateFile) -> Vec<LocatedError> {
+    let port = default_port();
+    let mut errors = Vec::new();
+    let mut configs = vec![json!({"slave_id": 1, "device_type": template.device_type()})];
+    let slots = template
+        .raw
+        .pointer("/device/channels")
+        .and_then(Value::as_array)
+        .cloned()
+        .unwrap_or_default();
+    let mut tried = std::collections::BTreeSet::new();
+    for slot in &slots {
+        let (Some(name), Some(choices)) = (
+            slot.get("name"),
+            slot.get("oneOf").and_then(Value::as_array),
+        ) else {
+            continue;
+        };
+        // Each choice once, in the first slot that offers it: enough to load every subdevice.
+        for choice in choices.iter().filter(|c| tried.insert(c.to_string())) {
+            configs.push(json!({
+                "slave_id": 1,
+                "device_type": template.device_type(),
+                "channels": [{"name": name, "device_type": choice}],
+            }));
+        }
+    }
+    let config_source = SourceText::from_text(Path::new("(check)"), "{}");
+    for config in configs {
+        let Some(object) = config.as_object() else {
+            continue;
+        };
+        if let Err(mut more) = resolve_one(
+            config_source.clone(),
+            object,
+            &JsonPath::root(),
+            Some(template),
+            &port,
+            1,
+        ) {
+            for error in more.drain(..) {
+                if !errors.contains(&error) {
+                    errors.push(error);
+                }
+            }
+        }
+    }
+    errors
+}
+
+fn default_port() -> PortConfig {
+    serde_json::from_value(json!({"path": "/dev/null"})).unwrap_or_else(|_| PortConfig {
+        port_type: Default::default(),
+        enabled: true,
+        path: None,
+        baud_rate: 9600,
+        parity: Default::default(),
+        data_bits: 8,
+        stop_bits: 1,
+        address: None,
+        port: None,
+        connected_to_mge: false,
+        response_timeout_ms: None,
+        frame_timeout_ms: None,
+        guard_interval_us: None,
+        read_rate_limit_ms: None,
+        poll_interval: None,
+        connect_timeout_ms: 5000,
+        connection_timeout_ms: 5000,
+        connection_max_fail_cycles: 2,
+        devices: Vec::new(),
+    })
+}
+
+/// Resolves a single template as a device (tests, simulator): `device` is the config device
+/// object (at least `slave_id`), merged with the template as in a config file.
+pub fn resolve_template_device(
+    template: &TemplateFile,
+    device: &Value,
+) -> Result<ResolvedDevice, ErrorList> {
+    let object = device.as_object().cloned().unwrap_or_default();
+    let slave_id = object
+        .get("slave_id")
+        .and_then(|v| {
+            v.as_i64().or_else(|| {
+                v.as_str()
+                    .and_then(crate::config::values::parse_int_text)
+                    .map(|v| v as i64)
+            })
+        })
+        .unwrap_or(1)
+        .clamp(0, 255) as u8;
+    let text = serde_json::to_string_pretty(device).unwrap_or_default();
+    let source = SourceText::from_text(Path::new("(device)"), &text);
+    resolve_one(
+        source,
+        &object,
+        &JsonPath::root(),
+        Some(template),
+        &default_port(),
+        slave_id,
+    )
+    .map_err(ErrorList)
+}

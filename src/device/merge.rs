@@ -1,0 +1,581 @@
+//! Merging a config device with its template, as wb-mqtt-serial does (reference §2.5–2.7), on
+//! JSON values: config keys override template keys, channels merge by `name`, subdevice slots
+//! are replaced by the chosen subdevice, parameters become setup items, and channels whose
+//! `condition` is false are dropped.
+//!
+//! Every channel and setup item gets an `__origin` (`t:` template or `c:` config, and a JSON
+//! path), so that later errors can still point into the right file.
+
+use std::collections::BTreeMap;
+use std::sync::OnceLock;
+
+use serde_json::{Map, Value};
+
+use crate::config::condition::Condition;
+use crate::config::error::Problem;
+use crate::config::json_path::JsonPath;
+use crate::config::load::config_schema;
+use crate::config::parse::schema_keys_at;
+
+/// An error found while merging, before it is turned into a located error.
+#[derive(Debug, Clone)]
+pub struct MergeError {
+    /// `t:` or `c:` followed by a JSON path.
+    pub origin: String,
+    pub problem: Problem,
+}
+
+/// Channel keys a config override may not change (they define the register).
+const FORBIDDEN_CHANNEL_OVERRIDES: [&str; 16] = [
+    "id",
+    "type",
+    "reg_type",
+    "address",
+    "format",
+    "max",
+    "scale",
+    "offset",
+    "round_to",
+    "on_value",
+    "off_value",
+    "error_value",
+    "unsupported_value",
+    "word_order",
+    "byte_order",
+    "consists_of",
+];
+
+/// Device keys that are not copied from the config as plain overrides.
+const SPECIAL_DEVICE_KEYS: [&str; 4] = ["channels", "setup", "name", "protocol"];
+
+fn known_device_keys() -> &'static Vec<String> {
+    static KEYS: OnceLock<Vec<String>> = OnceLock::new();
+    KEYS.get_or_init(|| schema_keys_at(&config_schema(), &JsonPath::parse("ports[0].devices[0]")))
+}
+
+fn known_channel_keys() -> &'static Vec<String> {
+    static KEYS: OnceLock<Vec<String>> = OnceLock::new();
+    KEYS.get_or_init(|| {
+        schema_keys_at(
+            &config_schema(),
+            &JsonPath::parse("ports[0].devices[0].channels[0]"),
+        )
+    })
+}
+
+/// A config channel object that overrides a template channel, and its path in the config.
+type ConfigOverride = (Map<String, Value>, JsonPath);
+
+/// Subdevice bodies by `device_type`, from every nesting level, with their paths.
+type SubdeviceMap = BTreeMap<String, (Value, JsonPath)>;
+
+fn collect_subdevices(body: &Value, at: &JsonPath, out: &mut SubdeviceMap) {
+    let Some(list) = body.get("subdevices").and_then(Value::as_array) else {
+        return;
+    };
+    for (i, sub) in list.iter().enumerate() {
+        let sub_at = at.key("subdevices").index(i).key("device");
+        if let (Some(device_type), Some(device)) = (
+            sub.get("device_type").and_then(Value::as_str),
+            sub.get("device"),
+        ) {
+            out.entry(device_type.to_string())
+                .or_insert_with(|| (device.clone(), sub_at.clone()));
+            collect_subdevices(device, &sub_at, out);
+        }
+    }
+}
+
+/// Inputs of one device merge.
+pub struct DeviceMergeInput<'a> {
+    /// The template's raw JSON (None for a device defined entirely in the config).
+    pub template: Option<&'a Value>,
+    /// The config device object and its path in the config file.
+    pub device: &'a Map<String, Value>,
+    pub device_path: JsonPath,
+    pub slave_id: String,
+}
+
+/// Merges; returns the device object to resolve, or every problem found.
+pub fn merge_device(input: &DeviceMergeInput) -> Result<Value, Vec<MergeError>> {
+    let mut errors = Vec::new();
+    let empty = Value::Object(Map::new());
+    let template_device = input
+        .template
+        .and_then(|t| t.get("device"))
+        .unwrap_or(&empty);
+    let mut subdevices = SubdeviceMap::new();
+    collect_subdevices(
+        template_device,
+        &JsonPath::root().key("device"),
+        &mut subdevices,
+    );
+
+    let mut result = template_device.as_object().cloned().unwrap_or_default();
+    result.remove("subdevices");
+    result.remove("parameters");
+    let template_name = template_device
+        .get("name")
+        .and_then(Value::as_str)
+        .unwrap_or("");
+    let name = match input.device.get("name").and_then(Value::as_str) {
+        Some(name) => name.to_string(),
+        None => format!("{template_name} {}", input.slave_id)
+            .trim()
+            .to_string(),
+    };
+    result.insert("name".into(), Value::String(name));
+    if let Some(id) = template_device.get("id").and_then(Value::as_str) {
+        result.insert(
+            "id".into(),
+            Value::String(format!("{id}_{}", input.slave_id)),
+        );
+    }
+
+    // Config device keys: settings override, anything else must be a template parameter.
+    let parameters = template_device.get("parameters");
+    let mut values = BTreeMap::new();
+    for (key, value) in input.device {
+        if known_device_keys().contains(key) {
+            if !SPECIAL_DEVICE_KEYS.contains(&key.as_str()) {
+                result.insert(key.clone(), value.clone());
+            }
+            continue;
+        }
+        match parameter_spec(parameters, key) {
+            Some(_) => match value.as_f64() {
+                Some(number) => {
+                    values.insert(key.clone(), number);
+                }
+                None => errors.push(MergeError {
+                    origin: format!("c:{}", input.device_path.key(key)),
+                    problem: Problem::Invalid(format!(
+                        "parameter `{key}` needs a number, not {value}"
+                    )),
+                }),
+            },
+            None => {
+                let mut valid: Vec<String> = known_device_keys()
+                    .iter()
+                    .filter(|k| !SPECIAL_DEVICE_KEYS.contains(&k.as_str()))
+                    .cloned()
+                    .collect();
+                valid.extend(["channels", "setup", "name"].map(String::from));
+                valid.extend(
+                    parameter_ids(parameters)
+                        .into_iter()
+                        .map(|id| format!("{id} (parameter)")),
+                );
+                errors.push(MergeError {
+                    origin: format!("c:{}", input.device_path.key(key)),
+                    problem: Problem::UnknownKey {
+                        key: key.clone(),
+                        valid,
+                    },
+                });
+            }
+        }
+    }
+
+    let level = Level {
+        parameters,
+        values: &values,
+        config_setup: input.device.get("setup"),
+        config_setup_path: input.device_path.key("setup"),
+        value_path: input.device_path.clone(),
+        template_setup: template_device.get("setup"),
+        template_path: JsonPath::root().key("device"),
+    };
+    let setup = level.setup_items(&mut errors);
+    result.insert("setup".into(), Value::Array(setup));
+
+    let channels = merge_channels(
+        template_device.get("channels"),
+        &JsonPath::root().key("device").key("channels"),
+        input.device.get("channels"),
+        &input.device_path.key("channels"),
+        &subdevices,
+        &level.condition_values(),
+        &mut errors,
+        0,
+    );
+    result.insert("channels".into(), Value::Array(channels));
+    if errors.is_empty() {
+        Ok(Value::Object(result))
+    } else {
+        Err(errors)
+    }
+}
+
+fn parameter_spec<'a>(parameters: Option<&'a Value>, id: &str) -> Option<&'a Value> {
+    match parameters? {
+        Value::Object(map) => map.get(id),
+        Value::Array(list) => list
+            .iter()
+            .find(|p| p.get("id").and_then(Value::as_str) == Some(id)),
+        _ => None,
+    }
+}
+
+fn parameter_ids(parameters: Option<&Value>) -> Vec<String> {
+    match parameters {
+        Some(Value::Object(map)) => map.keys().cloned().collect(),
+        Some(Value::Array(list)) => list
+            .iter()
+            .filter_map(|p| p.get("id").and_then(Value::as_str))
+            .map(String::from)
+            .collect(),
+        _ => Vec::new(),
+    }
+}
+
+/// One level of parameters and setup: the device, or one subdevice slot.
+struct Level<'a> {
+    parameters: Option<&'a Value>,
+    /// Parameter values given in the config.
+    values: &'a BTreeMap<String, f64>,
+    config_setup: Option<&'a Value>,
+    config_setup_path: JsonPath,
+    /// Where the config gives parameter values (for errors on them).
+    value_path: JsonPath,
+    template_setup: Option<&'a Value>,
+    template_path: JsonPath,
+}
+
+impl Level<'_> {
+    /// Parameter values for conditions: defaults, then the config's values.
+    fn condition_values(&self) -> BTreeMap<String, f64> {
+        let mut out = BTreeMap::new();
+        for id in parameter_ids(self.parameters) {
+            if let Some(default) = parameter_spec(self.parameters, &id)
+                .and_then(|p| p.get("default"))
+                .and_then(Value::as_f64)
+            {
+                out.insert(id, default);
+            }
+        }
+        out.extend(self.values.iter().map(|(k, v)| (k.clone(), *v)));
+        out
+    }
+
+    /// Config setup, then parameters set in the config, then template setup whose condition holds.
+    fn setup_items(&self, errors: &mut Vec<MergeError>) -> Vec<Value> {
+        let conditions = self.condition_values();
+        let mut items = Vec::new();
+        for (i, item) in self
+            .config_setup
+            .and_then(Value::as_array)
+            .into_iter()
+            .flatten()
+            .enumerate()
+        {
+            items.push(with_origin(
+                item,
+                &format!("c:{}", self.config_setup_path.index(i)),
+            ));
+        }
+        for id in parameter_ids(self.parameters) {
+            let (Some(value), Some(spec)) =
+                (self.values.get(&id), parameter_spec(self.parameters, &id))
+            else {
+                continue;
+            };
+            let origin = format!("c:{}", self.value_path.key(&id));
+            if spec.get("readonly").and_then(Value::as_bool) == Some(true) {
+                continue;
+            }
+            if !condition_holds(spec, &conditions, &origin, errors) {
+                continue;
+            }
+            let mut item = with_origin(spec, &origin);
+            if let Some(object) = item.as_object_mut() {
+                object.insert("value".into(), serde_json::json!(value));
+                object.insert("id".into(), Value::String(id.clone()));
+                object
+                    .entry("title")
+                    .or_insert_with(|| Value::String(id.clone()));
+            }
+            items.push(item);
+        }
+        for (i, item) in self
+            .template_setup
+            .and_then(Value::as_array)
+            .into_iter()
+            .flatten()
+            .enumerate()
+        {
+            let origin = format!("t:{}", self.template_path.key("setup").index(i));
+            if condition_holds(item, &conditions, &origin, errors) {
+                items.push(with_origin(item, &origin));
+            }
+        }
+        items
+    }
+}
+
+fn with_origin(item: &Value, origin: &str) -> Value {
+    let mut item = item.clone();
+    if let Some(object) = item.as_object_mut() {
+        object
+            .entry("__origin")
+            .or_insert_with(|| Value::String(origin.to_string()));
+    }
+    item
+}
+
+fn condition_holds(
+    item: &Value,
+    values: &BTreeMap<String, f64>,
+    origin: &str,
+    errors: &mut Vec<MergeError>,
+) -> bool {
+    let Some(text) = item
+        .get("condition")
+        .and_then(Value::as_str)
+        .filter(|t| !t.trim().is_empty())
+    else {
+        return true;
+    };
+    match Condition::parse(text) {
+        Ok(condition) => condition.holds(values),
+        Err(err) => {
+            errors.push(MergeError {
+                origin: format!("{origin}.condition"),
+                problem: Problem::Invalid(err.to_string()),
+            });
+            false
+        }
+    }
+}
+
+/// Merges config channel overrides into template channels, expands subdevice slots and drops
+/// channels whose condition is false.
+#[allow(clippy::too_many_arguments)]
+fn merge_channels(
+    template_channels: Option<&Value>,
+    template_path: &JsonPath,
+    overrides: Option<&Value>,
+    overrides_path: &JsonPath,
+    subdevices: &SubdeviceMap,
+    conditions: &BTreeMap<String, f64>,
+    errors: &mut Vec<MergeError>,
+    depth: usize,
+) -> Vec<Value> {
+    let mut channels: Vec<(Value, Option<ConfigOverride>)> = Vec::new();
+    for (i, channel) in template_channels
+        .and_then(Value::as_array)
+        .into_iter()
+        .flatten()
+        .enumerate()
+    {
+        channels.push((
+            with_origin(channel, &format!("t:{}", template_path.index(i))),
+            None,
+        ));
+    }
+    for (i, item) in overrides
+        .and_then(Value::as_array)
+        .into_iter()
+        .flatten()
+        .enumerate()
+    {
+        let at = overrides_path.index(i);
+        let Some(object) = item.as_object() else {
+            continue;
+        };
+        let name = object.get("name").and_then(Value::as_str).unwrap_or("");
+        let found = channels
+            .iter()
+            .position(|(c, _)| c.get("name").and_then(Value::as_str) == Some(name));
+        match found {
+            Some(index) => {
+                if let Some((channel, slot)) = channels.get_mut(index) {
+                    override_channel(channel, object, &at, errors);
+                    *slot = Some((object.clone(), at));
+                }
+            }
+            None if object.contains_key("device_type") => errors.push(MergeError {
+                origin: format!("c:{}", at.key("device_type")),
+                problem: Problem::Invalid(format!(
+                    "there is no subdevice slot named `{name}` in the template, so this channel cannot set `device_type`"
+                )),
+            }),
+            None => channels.push((with_origin(item, &format!("c:{at}")), None)),
+        }
+    }
+    let mut out = Vec::new();
+    for (channel, config) in channels {
+        let origin = channel
+            .get("__origin")
+            .and_then(Value::as_str)
+            .unwrap_or("")
+            .to_string();
+        if !condition_holds(&channel, conditions, &origin, errors) {
+            continue;
+        }
+        if channel.get("device_type").is_some() {
+            if depth > 8 {
+                errors.push(MergeError {
+                    origin,
+                    problem: Problem::Invalid("subdevices nest too deep (a loop?)".into()),
+                });
+                continue;
+            }
+            if let Some(expanded) = expand_subdevice(channel, config, subdevices, errors, depth) {
+                out.push(expanded);
+            }
+        } else {
+            out.push(channel);
+        }
+    }
+    out
+}
+
+fn override_channel(
+    channel: &mut Value,
+    config: &Map<String, Value>,
+    at: &JsonPath,
+    errors: &mut Vec<MergeError>,
+) {
+    let is_slot = channel.get("device_type").is_some() || channel.get("oneOf").is_some();
+    let Some(target) = channel.as_object_mut() else {
+        return;
+    };
+    if let Some(chosen) = config.get("device_type") {
+        let allowed: Vec<&Value> = match (
+            target.get("oneOf").and_then(Value::as_array),
+            target.get("device_type"),
+        ) {
+            (Some(list), _) => list.iter().collect(),
+            (None, Some(only)) => vec![only],
+            (None, None) => Vec::new(),
+        };
+        if allowed.contains(&chosen) {
+            target.insert("device_type".into(), chosen.clone());
+        } else {
+            let names: Vec<String> = allowed
+                .iter()
+                .filter_map(|v| v.as_str())
+                .map(String::from)
+                .collect();
+            errors.push(MergeError {
+                origin: format!("c:{}", at.key("device_type")),
+                problem: Problem::Invalid(format!(
+                    "`{chosen}` is not a choice of this slot; valid: {}",
+                    names.join(", ")
+                )),
+            });
+        }
+    }
+    for (key, value) in config {
+        let forbidden = if is_slot {
+            ["id", "oneOf"].contains(&key.as_str())
+        } else {
+            FORBIDDEN_CHANNEL_OVERRIDES.contains(&key.as_str())
+        };
+        match key.as_str() {
+            "name" | "device_type" | "channels" | "setup" => {}
+            "readonly"
+                if target.get("readonly") == Some(&Value::Bool(true))
+                    && value != &Value::Bool(true) =>
+            {
+                tracing::warn!("{at}: `readonly` is already true in the template; ignored");
+            }
+            _ if forbidden => {
+                tracing::warn!("{at}: the template's `{key}` cannot be overridden; ignored")
+            }
+            _ if is_slot && !known_channel_keys().contains(key) => {} // a subdevice parameter value
+            _ => {
+                target.insert(key.clone(), value.clone());
+            }
+        }
+    }
+}
+
+fn expand_subdevice(
+    slot: Value,
+    config: Option<ConfigOverride>,
+    subdevices: &SubdeviceMap,
+    errors: &mut Vec<MergeError>,
+    depth: usize,
+) -> Option<Value> {
+    let origin = slot
+        .get("__origin")
+        .and_then(Value::as_str)
+        .unwrap_or("")
+        .to_string();
+    let device_type = slot
+        .get("device_type")
+        .and_then(Value::as_str)
+        .unwrap_or("")
+        .to_string();
+    let Some((body, body_path)) = subdevices.get(&device_type) else {
+        errors.push(MergeError {
+            origin: format!("{origin}.device_type"),
+            problem: Problem::Invalid(format!(
+                "subdevice type `{device_type}` is not in the template's `subdevices`"
+            )),
+        });
+        return None;
+    };
+    let (config_object, config_path) = match config {
+        Some((object, path)) => (object, path),
+        None => (Map::new(), JsonPath::root()),
+    };
+    let parameters = body.get("parameters");
+    let mut values = BTreeMap::new();
+    for (key, value) in &config_object {
+        if known_channel_keys().contains(key) {
+            continue;
+        }
+        match (parameter_spec(parameters, key), value.as_f64()) {
+            (Some(_), Some(number)) => {
+                values.insert(key.clone(), number);
+            }
+            (Some(_), None) => errors.push(MergeError {
+                origin: format!("c:{}", config_path.key(key)),
+                problem: Problem::Invalid(format!("parameter `{key}` needs a number, not {value}")),
+            }),
+            (None, _) => {
+                let mut valid = known_channel_keys().clone();
+                valid.extend(
+                    parameter_ids(parameters)
+                        .into_iter()
+                        .map(|id| format!("{id} (parameter)")),
+                );
+                errors.push(MergeError {
+                    origin: format!("c:{}", config_path.key(key)),
+                    problem: Problem::UnknownKey {
+                        key: key.clone(),
+                        valid,
+                    },
+                });
+            }
+        }
+    }
+    let level = Level {
+        parameters,
+        values: &values,
+        config_setup: config_object.get("setup"),
+        config_setup_path: config_path.key("setup"),
+        value_path: config_path.clone(),
+        template_setup: body.get("setup"),
+        template_path: body_path.clone(),
+    };
+    let setup = level.setup_items(errors);
+    let channels = merge_channels(
+        body.get("channels"),
+        &body_path.key("channels"),
+        config_object.get("channels"),
+        &config_path.key("channels"),
+        subdevices,
+        &level.condition_values(),
+        errors,
+        depth + 1,
+    );
+    let mut result = slot.as_object().cloned().unwrap_or_default();
+    result.remove("oneOf");
+    result.insert("setup".into(), Value::Array(setup));
+    result.insert("channels".into(), Value::Array(channels));
+    Some(Value::Object(result))
+}

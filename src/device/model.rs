@@ -1,0 +1,325 @@
+//! The resolved, flat view of a configured device: what the daemon polls and publishes, and what
+//! the simulator builds its virtual registers from. Templates, config overrides, subdevices,
+//! parameters and conditions are all applied; nothing here needs the JSON any more.
+
+use std::collections::BTreeMap;
+use std::time::Duration;
+
+use super::codec::{CodecError, Reading, ValueCodec};
+use crate::config::config_file::PortConfig;
+use crate::config::template::HardwareSignature;
+
+/// Modbus data table.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub enum RegisterType {
+    Coil,
+    Discrete,
+    Holding,
+    Input,
+}
+
+impl RegisterType {
+    /// One bit per address (coils, discrete inputs) rather than 16.
+    pub fn is_bit(self) -> bool {
+        matches!(self, Self::Coil | Self::Discrete)
+    }
+
+    /// Coils and holding registers can be written.
+    pub fn is_writable(self) -> bool {
+        matches!(self, Self::Coil | Self::Holding)
+    }
+
+    /// Register type byte of Fast Modbus events (0x18 records and 0x11 events).
+    pub fn event_type(self) -> u8 {
+        match self {
+            Self::Coil => 1,
+            Self::Discrete => 2,
+            Self::Holding => 3,
+            Self::Input => 4,
+        }
+    }
+
+    /// Read function code (01, 02, 03, 04).
+    pub fn read_function(self) -> u8 {
+        match self {
+            Self::Coil => 1,
+            Self::Discrete => 2,
+            Self::Holding => 3,
+            Self::Input => 4,
+        }
+    }
+}
+
+/// Which write function a holding register needs (`holding_single`, `holding_multi`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum WriteFunction {
+    /// 05 for a coil, 06 for one register, 16 for several.
+    #[default]
+    Auto,
+    /// Always 06; a multi-register value is written as separate 06 writes.
+    Single,
+    /// Always 16, even for one register.
+    Multiple,
+}
+
+/// A span of one data table: `count` registers (or bits) from `address`, with the value's bit
+/// field inside them.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub struct RegisterRef {
+    pub reg_type: RegisterType,
+    pub address: u16,
+    /// 16-bit registers, or bits for coils and discrete inputs.
+    pub count: u16,
+    pub bit_shift: u32,
+    pub bit_width: u32,
+}
+
+impl RegisterRef {
+    /// Last address covered (inclusive).
+    pub fn last_address(&self) -> u16 {
+        self.address.saturating_add(self.count.saturating_sub(1))
+    }
+}
+
+/// How a channel's register takes part in Fast Modbus events.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum EventMode {
+    /// Polled only.
+    #[default]
+    None,
+    /// Events only: polling stops once events are enabled for it (`sporadic`).
+    Sporadic,
+    /// Events and polling (`semi-sporadic`).
+    SemiSporadic,
+}
+
+/// Polling / event priority: channels with `read_period_ms` are high priority.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Default)]
+pub enum Priority {
+    #[default]
+    Low,
+    High,
+}
+
+/// One register value of a channel (most channels have one; `consists_of` gives several).
+#[derive(Debug, Clone, PartialEq)]
+pub struct ChannelRegister {
+    /// Where the value is read; None for write-only channels.
+    pub read: Option<RegisterRef>,
+    /// Where it is written; None when read-only.
+    pub write: Option<RegisterRef>,
+    pub write_function: WriteFunction,
+    pub codec: ValueCodec,
+    /// WB press counter: a 0 read right after a reboot is not published.
+    pub press_counter: bool,
+}
+
+/// Title of one enum value, per language.
+#[derive(Debug, Clone, PartialEq)]
+pub struct EnumTitle {
+    pub value: String,
+    pub title: BTreeMap<String, String>,
+}
+
+/// One MQTT control.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ResolvedChannel {
+    /// MQTT control id (`/devices/<dev>/controls/<id>`).
+    pub id: String,
+    /// Template name (with subdevice prefixes): what config overrides match.
+    pub name: String,
+    /// Title per language for the control meta.
+    pub title: BTreeMap<String, String>,
+    pub registers: Vec<ChannelRegister>,
+    /// WB control type (`value`, `switch`, `range`, `text`, `pushbutton`, `rgb`, deprecated
+    /// typed values …); `wo-switch` is already turned into a write-only `switch`.
+    pub control_type: String,
+    pub units: Option<String>,
+    pub min: Option<f64>,
+    pub max: Option<f64>,
+    /// `round_to`, published as meta `precision`.
+    pub precision: Option<f64>,
+    pub readonly: bool,
+    /// No register to read (pushbutton, wo-switch, only `write_address`).
+    pub write_only: bool,
+    /// 1-based position in the device, meta `order`.
+    pub order: u32,
+    pub enum_titles: Vec<EnumTitle>,
+    pub events: EventMode,
+    pub read_period: Option<Duration>,
+    pub read_rate_limit: Option<Duration>,
+    /// Minimum WB firmware; older devices get `r` for this channel and do not poll it.
+    pub fw: Option<String>,
+    pub hidden: bool,
+    pub group: Option<String>,
+}
+
+/// A decoded channel value.
+pub type ChannelReading = Reading;
+
+impl ResolvedChannel {
+    /// Priority of polling and of the 0x18 event enable record.
+    pub fn priority(&self) -> Priority {
+        if self.read_period.is_some() {
+            Priority::High
+        } else {
+            Priority::Low
+        }
+    }
+
+    /// Decodes the words of every register (in `registers` order) into the published text;
+    /// several registers are joined with `;`.
+    pub fn decode(&self, words: &[&[u16]]) -> Result<ChannelReading, CodecError> {
+        if words.len() != self.registers.len() {
+            return Err(CodecError::WordCount {
+                expected: self.registers.len(),
+                got: words.len(),
+            });
+        }
+        let mut parts = Vec::with_capacity(words.len());
+        for (register, part) in self.registers.iter().zip(words) {
+            match register.codec.decode(part)? {
+                Reading::Value(text) => parts.push(text),
+                other => return Ok(other),
+            }
+        }
+        Ok(Reading::Value(parts.join(";")))
+    }
+
+    /// Encodes an `/on` payload into the words to write, per register. `current` gives the
+    /// present words of registers that are bit fields (None where unknown). Values outside
+    /// the channel's `min`/`max` are refused.
+    pub fn encode(
+        &self,
+        text: &str,
+        current: &[Option<&[u16]>],
+    ) -> Result<Vec<Vec<u16>>, CodecError> {
+        let parts: Vec<&str> = if self.registers.len() > 1 {
+            text.split(';').collect()
+        } else {
+            vec![text]
+        };
+        if parts.len() != self.registers.len() {
+            return Err(CodecError::WordCount {
+                expected: self.registers.len(),
+                got: parts.len(),
+            });
+        }
+        let mut out = Vec::with_capacity(parts.len());
+        for (i, (register, part)) in self.registers.iter().zip(parts).enumerate() {
+            self.check_limits(part.trim())?;
+            out.push(
+                register
+                    .codec
+                    .encode(part, current.get(i).copied().flatten())?,
+            );
+        }
+        Ok(out)
+    }
+
+    fn check_limits(&self, text: &str) -> Result<(), CodecError> {
+        let Ok(value) = text.parse::<f64>() else {
+            return Ok(());
+        };
+        let below = self.min.is_some_and(|min| value < min);
+        let above = self.max.is_some_and(|max| value > max);
+        if below || above {
+            let show = |v: Option<f64>| {
+                v.map(|v| super::number_text::format_g(v, 15))
+                    .unwrap_or_else(|| "…".into())
+            };
+            return Err(CodecError::OutOfRange {
+                value: text.to_string(),
+                format: "this control",
+                min: show(self.min),
+                max: show(self.max),
+            });
+        }
+        Ok(())
+    }
+}
+
+/// A register written when the device (re)connects: setup items and parameter values.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SetupWrite {
+    pub title: String,
+    pub register: RegisterRef,
+    pub write_function: WriteFunction,
+    /// The value as configured (for logs).
+    pub value: String,
+    /// Encoded words; for a bit field (`codec.is_partial()`), merge into the current contents
+    /// with `codec.encode(&value, Some(current))`.
+    pub words: Vec<u16>,
+    pub codec: ValueCodec,
+    /// Set when the write comes from a template parameter.
+    pub parameter_id: Option<String>,
+}
+
+/// Link timings and limits of a device, with the port's values and the defaults applied.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DeviceTiming {
+    pub response_timeout: Duration,
+    pub frame_timeout: Duration,
+    pub force_frame_timeout: bool,
+    pub guard_interval: Duration,
+    pub min_request_interval: Duration,
+    /// None: never disconnect on time (-1).
+    pub device_timeout: Option<Duration>,
+    pub device_max_fail_cycles: Option<u32>,
+    pub max_write_fail_time: Duration,
+    /// 0 = protocol maximum.
+    pub max_read_registers: u16,
+    pub min_read_registers: u16,
+    pub max_write_registers: u16,
+    pub max_reg_hole: u16,
+    pub max_bit_hole: u16,
+    pub enable_wb_continuous_read: bool,
+    pub continue_polling_on_illegal_modbus_exception: bool,
+    pub read_rate_limit: Option<Duration>,
+}
+
+/// One configured device, ready to poll.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ResolvedDevice {
+    /// MQTT device id.
+    pub id: String,
+    /// Device title.
+    pub name: String,
+    pub device_type: Option<String>,
+    pub slave_id: u8,
+    /// WB device (template has `hw` or continuous read): WB-specific behaviour applies.
+    pub is_wb: bool,
+    pub hw: Vec<HardwareSignature>,
+    pub timing: DeviceTiming,
+    pub channels: Vec<ResolvedChannel>,
+    /// In write order.
+    pub setup: Vec<SetupWrite>,
+    /// Register of the serial number (channels `Serial`, `serial_number`, `Serial NO`), even
+    /// when that channel is disabled: used by scan and probe to match devices.
+    pub serial_number: Option<ChannelRegister>,
+}
+
+impl ResolvedDevice {
+    /// All enabled channels use events only (`sporadic`): one of them is kept in polling to
+    /// notice a lost device.
+    pub fn is_sporadic_only(&self) -> bool {
+        !self.channels.is_empty()
+            && self
+                .channels
+                .iter()
+                .all(|c| c.events == EventMode::Sporadic)
+    }
+
+    pub fn channel(&self, id: &str) -> Option<&ResolvedChannel> {
+        self.channels.iter().find(|c| c.id == id)
+    }
+}
+
+/// One port with its resolved devices.
+#[derive(Debug, Clone)]
+pub struct ResolvedPort {
+    /// Index in the config's `ports`.
+    pub index: usize,
+    pub config: PortConfig,
+    pub devices: Vec<ResolvedDevice>,
+}

@@ -1,0 +1,604 @@
+//! From a merged device (see `merge`) to the flat [`ResolvedDevice`]: register addresses with
+//! subdevice shift and stride, codecs, control meta, event flags and setup writes.
+
+use std::collections::BTreeMap;
+use std::time::Duration;
+
+use serde_json::Value;
+
+use super::codec::ValueCodec;
+use super::format::RegisterFormat;
+use super::model::*;
+use super::number_text::format_g;
+use crate::config::config_file::PortConfig;
+use crate::config::error::Problem;
+use crate::config::template::{
+    ChannelSpec, RegisterKind, SetupItemSpec, SetupValue, TemplateDevice,
+};
+use crate::config::values::AddressSpec;
+
+/// A resolve error with the `__origin` of the channel or setup item it concerns.
+#[derive(Debug, Clone)]
+pub struct ResolveError {
+    pub origin: String,
+    pub problem: Problem,
+}
+
+/// Channel names that also give the device's serial number register.
+const SERIAL_NUMBER_NAMES: [&str; 3] = ["Serial", "serial_number", "Serial NO"];
+
+/// Where addresses of the current (sub)device start, and how names are prefixed.
+#[derive(Clone, Default)]
+struct Context {
+    base: i64,
+    stride: u32,
+    /// MQTT id prefix (subdevice slot ids or names), joined with a space.
+    id_prefix: String,
+    /// Title prefix per language.
+    title_prefix: BTreeMap<String, String>,
+}
+
+/// Inputs besides the merged device.
+pub struct ResolveInput<'a> {
+    pub merged: &'a Value,
+    pub port: &'a PortConfig,
+    pub slave_id: u8,
+    pub is_wb_template: bool,
+    pub hw: Vec<crate::config::template::HardwareSignature>,
+    pub device_type: Option<String>,
+}
+
+pub fn resolve_device(input: &ResolveInput) -> Result<ResolvedDevice, Vec<ResolveError>> {
+    let device: TemplateDevice = serde_json::from_value(input.merged.clone()).map_err(|err| {
+        vec![ResolveError {
+            origin: String::new(),
+            problem: Problem::Invalid(format!("merged device: {err}")),
+        }]
+    })?;
+    let mut walker = Walker {
+        translations: device.translations.clone().unwrap_or_default(),
+        channels: Vec::new(),
+        setup: Vec::new(),
+        serial_number: None,
+        errors: Vec::new(),
+    };
+    let root = Context::default();
+    walker.setup_items(device.setup.as_deref().unwrap_or(&[]), &root);
+    walker.channels(device.channels.as_deref().unwrap_or(&[]), &root);
+    if !walker.errors.is_empty() {
+        return Err(walker.errors);
+    }
+    let is_wb = input.is_wb_template || device.enable_wb_continuous_read == Some(true);
+    let timing = timing(&device, input.port, is_wb);
+    let mut setup = walker.setup;
+    if device.preserve_setup_order != Some(true) {
+        setup.sort_by_key(|s| {
+            (
+                s.register.reg_type,
+                s.register.address,
+                s.register.bit_shift,
+            )
+        });
+    }
+    let mut seen = std::collections::BTreeSet::new();
+    setup.retain(|s| {
+        let fresh = seen.insert((
+            s.register.reg_type,
+            s.register.address,
+            s.register.bit_shift,
+        ));
+        if !fresh {
+            tracing::warn!(
+                "setup item `{}`: its register is already written by another item; skipped",
+                s.title
+            );
+        }
+        fresh
+    });
+    let mut channels = walker.channels;
+    for (i, channel) in channels.iter_mut().enumerate() {
+        channel.order = i as u32 + 1;
+    }
+    Ok(ResolvedDevice {
+        id: device.id.clone().unwrap_or_default(),
+        name: device.name.clone().unwrap_or_default(),
+        device_type: input.device_type.clone(),
+        slave_id: input.slave_id,
+        is_wb,
+        hw: input.hw.clone(),
+        timing,
+        channels,
+        setup,
+        serial_number: walker.serial_number,
+    })
+}
+
+fn ms(value: i64) -> Duration {
+    Duration::from_millis(value.max(0) as u64)
+}
+
+fn timing(device: &TemplateDevice, port: &PortConfig, is_wb: bool) -> DeviceTiming {
+    let response = match (port.response_timeout_ms, device.response_timeout_ms) {
+        (None, None) => 500,
+        (p, d) => p.unwrap_or(-1).max(d.unwrap_or(-1)).max(0),
+    };
+    let frame = device
+        .frame_timeout_ms
+        .or(port.frame_timeout_ms)
+        .filter(|v| *v >= 0)
+        .unwrap_or(20);
+    let guard = device
+        .guard_interval_us
+        .filter(|v| *v != 0)
+        .or(port.guard_interval_us)
+        .unwrap_or(0);
+    let optional = |v: Option<i64>, default: i64| match v.unwrap_or(default) {
+        n if n < 0 => None,
+        n => Some(n),
+    };
+    let small = |v: Option<i64>, default: u16| {
+        v.map(|n| n.clamp(0, i64::from(u16::MAX)) as u16)
+            .unwrap_or(default)
+    };
+    let rate_limit = device
+        .read_rate_limit_ms
+        .or(device.poll_interval)
+        .or(port.read_rate_limit_ms)
+        .or(port.poll_interval);
+    DeviceTiming {
+        response_timeout: ms(response),
+        frame_timeout: ms(frame),
+        force_frame_timeout: device.force_frame_timeout.unwrap_or(false),
+        guard_interval: Duration::from_micros(guard.max(0) as u64),
+        min_request_interval: ms(device.min_request_interval.unwrap_or(0)),
+        device_timeout: optional(device.device_timeout_ms, 3000).map(ms),
+        device_max_fail_cycles: optional(device.device_max_fail_cycles, 2)
+            .map(|n| n.min(i64::from(u32::MAX)) as u32),
+        max_write_fail_time: Duration::from_secs(
+            device.max_write_fail_time_s.unwrap_or(600).max(0) as u64,
+        ),
+        max_read_registers: small(device.max_read_registers, 1),
+        min_read_registers: small(device.min_read_registers, 1),
+        max_write_registers: small(device.max_write_registers, if is_wb { 123 } else { 1 }),
+        max_reg_hole: small(device.max_reg_hole, 0),
+        max_bit_hole: small(device.max_bit_hole, 0),
+        enable_wb_continuous_read: device.enable_wb_continuous_read.unwrap_or(false),
+        continue_polling_on_illegal_modbus_exception: device
+            .continue_polling_on_illegal_modbus_exception
+            .unwrap_or(false),
+        read_rate_limit: rate_limit.filter(|v| *v >= 0).map(ms),
+    }
+}
+
+struct Walker {
+    translations: BTreeMap<String, BTreeMap<String, String>>,
+    channels: Vec<ResolvedChannel>,
+    setup: Vec<SetupWrite>,
+    serial_number: Option<ChannelRegister>,
+    errors: Vec<ResolveError>,
+}
+
+/// The register-describing fields shared by channels, `consists_of` entries and setup items.
+struct RegisterFields<'a> {
+    reg_type: Option<RegisterKind>,
+    address: Option<AddressSpec>,
+    write_address: Option<AddressSpec>,
+    format: Option<RegisterFormat>,
+    word_order: Option<crate::device::format::WordOrder>,
+    byte_order: Option<crate::device::format::ByteOrder>,
+    string_data_size: Option<u32>,
+    scale: Option<f64>,
+    offset: Option<f64>,
+    round_to: Option<f64>,
+    spec: Option<&'a ChannelSpec>,
+}
+
+impl<'a> RegisterFields<'a> {
+    fn of_channel(spec: &'a ChannelSpec) -> Self {
+        Self {
+            reg_type: spec.reg_type,
+            address: spec.address,
+            write_address: spec.write_address,
+            format: spec.format,
+            word_order: spec.word_order,
+            byte_order: spec.byte_order,
+            string_data_size: spec.string_data_size,
+            scale: spec.scale,
+            offset: spec.offset,
+            round_to: spec.round_to,
+            spec: Some(spec),
+        }
+    }
+
+    fn of_setup(item: &SetupItemSpec) -> RegisterFields<'static> {
+        RegisterFields {
+            reg_type: item.reg_type,
+            address: item.address,
+            write_address: item.write_address,
+            format: item.format,
+            word_order: item.word_order,
+            byte_order: item.byte_order,
+            string_data_size: None,
+            scale: item.scale,
+            offset: item.offset,
+            round_to: None,
+            spec: None,
+        }
+    }
+}
+
+impl Walker {
+    fn error(&mut self, origin: &Option<String>, suffix: &str, problem: Problem) {
+        let origin = origin.clone().unwrap_or_default();
+        self.errors.push(ResolveError {
+            origin: format!("{origin}{suffix}"),
+            problem,
+        });
+    }
+
+    fn channels(&mut self, specs: &[ChannelSpec], context: &Context) {
+        for spec in specs {
+            if spec.name.is_empty() {
+                self.error(
+                    &spec.origin,
+                    "",
+                    Problem::Invalid("a channel needs a `name`".into()),
+                );
+                continue;
+            }
+            let enabled = spec.enabled.unwrap_or(true) || spec.hidden == Some(true);
+            if spec.device_type.is_some() {
+                if enabled {
+                    self.subdevice(spec, context);
+                }
+                continue;
+            }
+            if SERIAL_NUMBER_NAMES.contains(&spec.name.as_str()) {
+                if let Ok(register) = self.register(&RegisterFields::of_channel(spec), context) {
+                    self.serial_number = Some(register);
+                }
+            }
+            if enabled {
+                self.simple_channel(spec, context);
+            }
+        }
+    }
+
+    fn subdevice(&mut self, slot: &ChannelSpec, context: &Context) {
+        let id = slot.id.clone().unwrap_or_else(|| slot.name.clone());
+        let mut inner = Context {
+            base: context.base + slot.shift.map(|s| s.value() as i64).unwrap_or(0),
+            stride: slot.stride.unwrap_or(0),
+            id_prefix: join(&context.id_prefix, &id),
+            title_prefix: context.title_prefix.clone(),
+        };
+        if slot.id.as_deref() != Some("") {
+            for (lang, title) in self.titles(&slot.name, context) {
+                inner.title_prefix.insert(lang, title);
+            }
+        }
+        self.setup_items(slot.setup.as_deref().unwrap_or(&[]), &inner);
+        self.channels(slot.channels.as_deref().unwrap_or(&[]), &inner);
+    }
+
+    /// Title per language: the translation of `name` (English: the name itself), after the
+    /// translated subdevice prefix.
+    fn titles(&self, name: &str, context: &Context) -> BTreeMap<String, String> {
+        let mut out = BTreeMap::new();
+        out.insert("en".to_string(), name.to_string());
+        for (lang, table) in &self.translations {
+            if let Some(text) = table.get(name) {
+                out.insert(lang.clone(), text.clone());
+            }
+        }
+        for lang in context.title_prefix.keys() {
+            out.entry(lang.clone()).or_insert_with(|| name.to_string());
+        }
+        for (lang, title) in out.iter_mut() {
+            let prefix = context
+                .title_prefix
+                .get(lang)
+                .or_else(|| context.title_prefix.get("en"));
+            if let Some(prefix) = prefix {
+                *title = format!("{prefix} {title}");
+            }
+        }
+        out
+    }
+
+    fn simple_channel(&mut self, spec: &ChannelSpec, context: &Context) {
+        let mut registers = Vec::new();
+        match &spec.consists_of {
+            Some(parts) if !parts.is_empty() => {
+                for (i, part) in parts.iter().enumerate() {
+                    match self.register(&RegisterFields::of_channel(part), context) {
+                        Ok(register) => registers.push(register),
+                        Err(problem) => {
+                            self.error(&spec.origin, &format!(".consists_of[{i}]"), problem)
+                        }
+                    }
+                }
+            }
+            _ => match self.register(&RegisterFields::of_channel(spec), context) {
+                Ok(register) => registers.push(register),
+                Err(problem) => self.error(&spec.origin, "", problem),
+            },
+        }
+        let Some(first) = registers.first() else {
+            return;
+        };
+        let first_kind = spec
+            .consists_of
+            .as_ref()
+            .and_then(|p| p.first())
+            .and_then(|p| p.reg_type)
+            .or(spec.reg_type);
+        let default_type = match first_kind.unwrap_or(RegisterKind::Holding) {
+            RegisterKind::Coil | RegisterKind::Discrete => "switch",
+            _ => "value",
+        };
+        let mut control_type = spec
+            .control_type
+            .clone()
+            .unwrap_or_else(|| default_type.to_string());
+        let mut write_only = first.read.is_none();
+        if control_type == "wo-switch" || control_type == "pushbutton" {
+            write_only = true;
+            if control_type == "wo-switch" {
+                control_type = "switch".to_string();
+            }
+        }
+        if write_only {
+            for register in &mut registers {
+                register.read = None;
+            }
+        }
+        let readonly = registers.iter().any(|r| r.write.is_none());
+        let mut max = spec.max.map(|m| m.0);
+        if max.is_none() && (control_type == "range" || control_type == "dimmer") {
+            max = Some(65535.0);
+        }
+        let events = if spec.sporadic == Some(true) {
+            EventMode::Sporadic
+        } else if spec.semi_sporadic == Some(true) {
+            EventMode::SemiSporadic
+        } else {
+            EventMode::None
+        };
+        let enum_titles = self.enum_titles(spec, context);
+        let id = join(&context.id_prefix, spec.id.as_deref().unwrap_or(&spec.name));
+        let round_to = spec.round_to.filter(|r| *r > 0.0);
+        self.channels.push(ResolvedChannel {
+            title: self.titles(&spec.name, context),
+            id,
+            name: spec.name.clone(),
+            registers,
+            control_type,
+            units: spec.units.clone(),
+            min: spec.min.map(|m| m.0),
+            max,
+            precision: if spec.consists_of.is_some() {
+                None
+            } else {
+                round_to
+            },
+            readonly,
+            write_only,
+            order: 0,
+            enum_titles,
+            events,
+            read_period: spec.read_period_ms.filter(|v| *v >= 0).map(ms),
+            read_rate_limit: spec
+                .read_rate_limit_ms
+                .or(spec.poll_interval)
+                .filter(|v| *v >= 0)
+                .map(ms),
+            fw: spec.fw.clone(),
+            hidden: spec.hidden.unwrap_or(false),
+            group: spec.group.clone(),
+        });
+    }
+
+    fn enum_titles(&self, spec: &ChannelSpec, context: &Context) -> Vec<EnumTitle> {
+        let (Some(values), Some(titles)) = (&spec.enum_values, &spec.enum_titles) else {
+            return Vec::new();
+        };
+        let plain = Context {
+            title_prefix: BTreeMap::new(),
+            ..context.clone()
+        };
+        values
+            .iter()
+            .zip(titles)
+            .map(|(value, title)| EnumTitle {
+                value: match value {
+                    Value::String(text) => text.clone(),
+                    other => other.to_string(),
+                },
+                title: self.titles(title, &plain),
+            })
+            .collect()
+    }
+
+    fn setup_items(&mut self, items: &[SetupItemSpec], context: &Context) {
+        for item in items {
+            let fields = RegisterFields::of_setup(item);
+            let register = match self.register(&fields, context) {
+                Ok(register) => register,
+                Err(problem) => {
+                    self.error(&item.origin, "", problem);
+                    continue;
+                }
+            };
+            let Some(target) = register.write.or(register.read) else {
+                continue;
+            };
+            let value = match &item.value {
+                Some(SetupValue::Number(n)) => format_g(*n, 15),
+                Some(SetupValue::Text(text)) => text.clone(),
+                None => {
+                    self.error(
+                        &item.origin,
+                        "",
+                        Problem::Invalid("a setup item needs `value`".into()),
+                    );
+                    continue;
+                }
+            };
+            let current = vec![0u16; register.codec.word_count as usize];
+            match register.codec.encode(&value, Some(&current)) {
+                Ok(words) => self.setup.push(SetupWrite {
+                    title: join_title(
+                        &context.id_prefix,
+                        item.title.as_deref().unwrap_or("<unnamed>"),
+                    ),
+                    register: target,
+                    write_function: register.write_function,
+                    value,
+                    words,
+                    codec: register.codec,
+                    parameter_id: item.id.clone(),
+                }),
+                Err(err) => self.error(
+                    &item.origin,
+                    "",
+                    Problem::Invalid(format!("setup value: {err}")),
+                ),
+            }
+        }
+    }
+
+    /// Resolves one register value: table, addresses (with shift and stride), codec.
+    fn register(
+        &self,
+        fields: &RegisterFields,
+        context: &Context,
+    ) -> Result<ChannelRegister, Problem> {
+        let kind = fields.reg_type.unwrap_or(RegisterKind::Holding);
+        let reg_type = match kind {
+            RegisterKind::Coil => RegisterType::Coil,
+            RegisterKind::Discrete => RegisterType::Discrete,
+            RegisterKind::Input | RegisterKind::PressCounter => RegisterType::Input,
+            _ => RegisterType::Holding,
+        };
+        let format = fields.format.unwrap_or(if reg_type.is_bit() {
+            RegisterFormat::U8
+        } else {
+            RegisterFormat::U16
+        });
+        let read_address = fields.address.filter(|a| a.register.is_some());
+        let write_address = fields.write_address.filter(|a| a.register.is_some());
+        let Some(layout_address) = read_address.or(write_address) else {
+            return Err(Problem::Invalid(
+                "needs `address` (or `write_address` for a write-only channel)".into(),
+            ));
+        };
+        let mut codec = ValueCodec::plain(format);
+        codec.word_order = fields.word_order.unwrap_or_default();
+        codec.byte_order = fields.byte_order.unwrap_or_default();
+        codec.scale = fields.scale.unwrap_or(1.0);
+        codec.offset = fields.offset.unwrap_or(0.0);
+        codec.round_to = fields.round_to.unwrap_or(0.0);
+        if reg_type.is_bit() {
+            codec = ValueCodec {
+                scale: codec.scale,
+                offset: codec.offset,
+                round_to: codec.round_to,
+                ..ValueCodec::bit()
+            };
+        } else if format.is_string() {
+            let Some(size) = fields.string_data_size.filter(|s| *s > 0) else {
+                return Err(Problem::Invalid(format!(
+                    "format `{}` needs `string_data_size` (characters)",
+                    format.name()
+                )));
+            };
+            codec.word_count = format.string_registers(size);
+            codec.bit_width = size * 8;
+        } else {
+            codec.bit_shift = layout_address.bit_shift;
+            if let Some(width) = layout_address.bit_width {
+                codec.bit_width = width;
+            }
+            codec.word_count = format
+                .registers()
+                .max((codec.bit_shift + codec.bit_width).div_ceil(16))
+                .max(1);
+            if codec.word_count > 4 || codec.bit_shift + codec.bit_width > 64 {
+                return Err(Problem::Invalid(format!(
+                    "bit field {}:{} does not fit a 64-bit value",
+                    codec.bit_shift, codec.bit_width
+                )));
+            }
+        }
+        if let Some(spec) = fields.spec {
+            let mask = if codec.bit_width >= 64 {
+                u64::MAX
+            } else {
+                (1u64 << codec.bit_width) - 1
+            };
+            let raw =
+                |v: Option<crate::config::values::SerialInt>| v.map(|v| (v.value() as u64) & mask);
+            codec.error_value = raw(spec.error_value);
+            codec.unsupported_value = raw(spec.unsupported_value);
+            codec.on_value = raw(spec.on_value);
+            codec.off_value = raw(spec.off_value);
+        }
+        let byte_width = if format.is_string() {
+            2
+        } else {
+            format.registers().max(1) * 2
+        };
+        let stride_offset = i64::from((context.stride * byte_width).div_ceil(2));
+        let count = codec.word_count;
+        let place = |spec: AddressSpec| -> Result<RegisterRef, Problem> {
+            let address = context.base + spec.register.unwrap_or(0) + stride_offset;
+            if address < 0 || address + i64::from(count) - 1 > 65535 {
+                return Err(Problem::AddressOutOfRange { address, count });
+            }
+            Ok(RegisterRef {
+                reg_type,
+                address: address as u16,
+                count: count as u16,
+                bit_shift: codec.bit_shift,
+                bit_width: codec.bit_width,
+            })
+        };
+        let read = read_address.map(place).transpose()?;
+        let spec_readonly = fields
+            .spec
+            .is_some_and(|s| s.readonly == Some(true) || s.channel_readonly == Some(true));
+        let forced_readonly = matches!(
+            kind,
+            RegisterKind::Input | RegisterKind::Discrete | RegisterKind::PressCounter
+        );
+        let write = if forced_readonly || spec_readonly {
+            None
+        } else {
+            write_address.or(read_address).map(place).transpose()?
+        };
+        Ok(ChannelRegister {
+            read,
+            write,
+            write_function: match kind {
+                RegisterKind::HoldingSingle => WriteFunction::Single,
+                RegisterKind::HoldingMulti => WriteFunction::Multiple,
+                _ => WriteFunction::Auto,
+            },
+            codec,
+            press_counter: kind == RegisterKind::PressCounter,
+        })
+    }
+}
+
+fn join(prefix: &str, name: &str) -> String {
+    match (prefix.is_empty(), name.is_empty()) {
+        (true, _) => name.to_string(),
+        (false, true) => prefix.to_string(),
+        (false, false) => format!("{prefix} {name}"),
+    }
+}
+
+fn join_title(prefix: &str, title: &str) -> String {
+    join(prefix, title)
+}

@@ -1,0 +1,332 @@
+//! The twelve upstream templates of the compatibility corpus load unchanged and resolve to the
+//! right registers, formats and event flags.
+
+use std::path::{Path, PathBuf};
+
+use rtu2mqtt::config::TemplateFile;
+use rtu2mqtt::device::{
+    check_template, resolve_template_device, EventMode, Reading, RegisterFormat, RegisterType,
+    ResolvedDevice, WordOrder,
+};
+use serde_json::json;
+
+fn corpus() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/compat/wb-templates")
+}
+
+fn template(name: &str) -> TemplateFile {
+    TemplateFile::load(&corpus().join(name)).unwrap_or_else(|e| panic!("{e}"))
+}
+
+fn device(name: &str, config: serde_json::Value) -> ResolvedDevice {
+    resolve_template_device(&template(name), &config).unwrap_or_else(|e| panic!("{e}"))
+}
+
+#[test]
+fn all_twelve_load_and_resolve() {
+    let mut count = 0;
+    for entry in std::fs::read_dir(corpus()).unwrap() {
+        let path = entry.unwrap().path();
+        let file = TemplateFile::load(&path).unwrap_or_else(|e| panic!("{e}"));
+        let errors = check_template(&file);
+        assert!(
+            errors.is_empty(),
+            "{}: {}",
+            path.display(),
+            errors
+                .iter()
+                .map(|e| e.to_string())
+                .collect::<Vec<_>>()
+                .join("\n")
+        );
+        count += 1;
+    }
+    assert_eq!(count, 12);
+}
+
+/// Asserts a channel's first register: table, address, format and event mode.
+fn assert_channel(
+    device: &ResolvedDevice,
+    id: &str,
+    reg_type: RegisterType,
+    address: u16,
+    format: RegisterFormat,
+    events: EventMode,
+) {
+    let channel = device.channel(id).unwrap_or_else(|| {
+        panic!(
+            "{}: no channel `{id}`; have {:?}",
+            device.id,
+            device.channels.iter().map(|c| &c.id).collect::<Vec<_>>()
+        )
+    });
+    let register = &channel.registers[0];
+    let read = register.read.or(register.write).unwrap();
+    assert_eq!(
+        (
+            read.reg_type,
+            read.address,
+            register.codec.format,
+            channel.events
+        ),
+        (reg_type, address, format, events),
+        "{id}"
+    );
+}
+
+use EventMode::{None as Polled, SemiSporadic, Sporadic};
+use RegisterFormat::{Bcd16, Float, S16, S32, U16, U32, U64, U8};
+use RegisterType::*;
+
+#[test]
+fn sdm220_floats() {
+    let d = device("config-sdm220.json", json!({"slave_id": 3}));
+    assert_eq!(
+        (d.id.as_str(), d.name.as_str(), d.is_wb),
+        ("sdm220_3", "SDM220 3", false)
+    );
+    assert_channel(&d, "Voltage", Input, 0, Float, Polled);
+    assert_channel(&d, "Line Frequency", Input, 0x46, Float, Polled);
+    assert_eq!(
+        d.channel("Voltage").unwrap().registers[0].codec.word_count,
+        2
+    );
+    assert_eq!(d.timing.frame_timeout.as_millis(), 0);
+    assert_eq!(
+        d.channel("Voltage")
+            .unwrap()
+            .decode(&[&[0x4366, 0x8000]])
+            .unwrap(),
+        Reading::Value("230.5".into())
+    );
+}
+
+#[test]
+fn msw_v4_semi_sporadic_and_errors() {
+    let d = device("config-wb-msw_v4.json", json!({"slave_id": 22}));
+    assert!(d.is_wb);
+    assert_channel(&d, "Temperature", Input, 4, S16, Polled);
+    assert_channel(&d, "Max Motion", Input, 280, U16, SemiSporadic);
+    assert_channel(&d, "Current Motion", Input, 283, U16, SemiSporadic);
+    assert_channel(&d, "Illuminance", Input, 9, U32, Polled);
+    let temperature = d.channel("Temperature").unwrap();
+    assert_eq!(temperature.units.as_deref(), Some("deg C"));
+    assert_eq!(
+        temperature.decode(&[&[0x7FFF]]).unwrap(),
+        Reading::DeviceError
+    );
+    assert_eq!(
+        temperature.decode(&[&[2150]]).unwrap(),
+        Reading::Value("21.5".into())
+    );
+    assert!(
+        d.channel("Dew Point").is_none(),
+        "disabled channels are not created"
+    );
+}
+
+#[test]
+fn map3e_word_order_u64_and_offset() {
+    let d = device("config-map3e-fw2.json", json!({"slave_id": 1}));
+    assert_channel(&d, "Urms L1", Input, 0x1410, U32, SemiSporadic);
+    assert_channel(&d, "Total AP energy", Input, 0x1200, U64, Polled);
+    let energy = d.channel("Total AP energy").unwrap();
+    assert_eq!(
+        energy.registers[0].codec.word_order,
+        WordOrder::LittleEndian
+    );
+    assert_eq!(energy.precision, Some(1e-06));
+    let peak = d.channel("Upeak L1").unwrap();
+    assert_eq!(
+        peak.decode(&[&[0xFFFE, 0xFFFE]]).unwrap(),
+        Reading::Unsupported
+    );
+    let serial = d.serial_number.as_ref().unwrap();
+    assert_eq!(serial.read.unwrap().address, 270);
+    assert_eq!(
+        serial.codec.decode(&[0xFE00, 0x0102]).unwrap(),
+        Reading::Value("258".into())
+    );
+}
+
+#[test]
+fn onokom_conditions_bit_fields_and_sporadic() {
+    let d = device("config-onokom-air-tn-1-mb-b.json", json!({"slave_id": 1}));
+    // Show_modes_as_range is undefined: `==1` is false, `!=1` is true.
+    let mode = d.channel("Mode").unwrap();
+    assert_eq!(mode.control_type, "value");
+    assert_eq!(mode.enum_titles.len(), 3);
+    assert_channel(&d, "Mode", Holding, 1, U16, Sporadic);
+    assert_channel(&d, "Active", Coil, 1, U8, Sporadic);
+    assert_channel(&d, "Timer: Enabled", Holding, 55, U8, Polled);
+    let timer = d.channel("Timer: Enabled").unwrap();
+    assert_eq!(
+        (
+            timer.registers[0].codec.bit_shift,
+            timer.registers[0].codec.bit_width
+        ),
+        (4, 1)
+    );
+    assert!(
+        d.channel("Timer: Heater").is_none(),
+        "condition Show_timer_setup_menu==1 is false"
+    );
+
+    let d = device(
+        "config-onokom-air-tn-1-mb-b.json",
+        json!({"slave_id": 1, "Show_modes_as_range": 1, "Show_timer_setup_menu": 1}),
+    );
+    assert_eq!(d.channel("Mode").unwrap().control_type, "range");
+    let heater = d.channel("Timer: Heater").unwrap();
+    assert_eq!(
+        heater.decode(&[&[0b1000]]).unwrap(),
+        Reading::Value("0".into())
+    );
+    assert!(d
+        .setup
+        .iter()
+        .any(|s| s.register.reg_type == Coil && s.register.address == 95 && s.words == vec![1]));
+}
+
+#[test]
+fn ptex_write_only_pushbuttons() {
+    let d = device("config-ptex.json", json!({"slave_id": 1}));
+    assert_eq!(d.timing.guard_interval.as_micros(), 50_000);
+    let reset = d.channel("Reset Error").unwrap();
+    assert!(reset.write_only && reset.registers[0].read.is_none());
+    assert_eq!(reset.registers[0].write.unwrap().address, 1111);
+    assert_eq!(reset.encode("1", &[None]).unwrap(), vec![vec![0, 0]]);
+    assert_channel(&d, "Current Pressure", Holding, 1099, Float, Polled);
+    assert!(d.channel("Current Pressure").unwrap().readonly);
+}
+
+#[test]
+fn ridan_bcd_and_on_off() {
+    let d = device("config-ridan-greencon-r.json", json!({"slave_id": 1}));
+    assert_channel(&d, "Real time, hour", Holding, 6, Bcd16, Polled);
+    assert_eq!(
+        d.channel("Real time, hour")
+            .unwrap()
+            .decode(&[&[0x0023]])
+            .unwrap(),
+        Reading::Value("23".into())
+    );
+    let err = d
+        .channel("Real time, hour")
+        .unwrap()
+        .encode("24", &[None])
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("0 … 23"), "the channel max is checked: {err}");
+    assert_channel(&d, "Thermostat status", Holding, 3, U16, Polled);
+}
+
+#[test]
+fn m1w2_subdevices_and_parameters() {
+    let d = device(
+        "config-wb-m1w2.json",
+        json!({"slave_id": 7, "baud_rate": 192, "channels": [{"name": "Input 2", "device_type": "input2_discrete"}]}),
+    );
+    assert_channel(&d, "External Sensor 1", Input, 7, S16, Polled);
+    assert_channel(&d, "Discrete Input 2", Discrete, 1, U8, Polled);
+    assert_channel(&d, "Counter 2", Input, 278, U16, Polled);
+    let setup: Vec<(u16, Vec<u16>)> = d
+        .setup
+        .iter()
+        .map(|s| (s.register.address, s.words.clone()))
+        .collect();
+    assert_eq!(
+        setup,
+        vec![(110, vec![192]), (275, vec![0]), (276, vec![1])]
+    );
+    assert_eq!(
+        d.channel("External Sensor 1")
+            .unwrap()
+            .title
+            .get("ru")
+            .map(String::as_str),
+        Some("Датчик температуры 1")
+    );
+}
+
+#[test]
+fn mai11_shift_and_stride() {
+    let d = device(
+        "config-wb-mai11-deprecated.json",
+        json!({"slave_id": 7, "channels": [{"name": "Input 2", "device_type": "p_4_20ma"}]}),
+    );
+    // Input 2 is shifted by 0x2000; the N channel of the pair moves by its own width (stride 1).
+    assert_channel(&d, "IN 2 P Current", Input, 0x2500, S32, Polled);
+    assert_channel(&d, "IN 2 N Current", Input, 0x2502, S32, Polled);
+    assert_channel(&d, "IN 2 N Value", Input, 0x2505, S16, Polled);
+    assert!(d
+        .setup
+        .iter()
+        .any(|s| s.register.address == 0x2401 && s.words == vec![4866]));
+}
+
+#[test]
+fn mcm16_u64_counters() {
+    let d = device("config-wb-mcm16.json", json!({"slave_id": 1}));
+    assert_channel(&d, "Counter 1", Input, 20, U64, Polled);
+    assert_channel(&d, "Counter 16", Input, 80, U64, Polled);
+    assert_eq!(
+        d.channel("Counter 1").unwrap().registers[0]
+            .codec
+            .word_count,
+        4
+    );
+}
+
+#[test]
+fn mdm2_ranges() {
+    let d = device("config-wb-mdm2.json", json!({"slave_id": 1}));
+    assert_channel(&d, "Channel 1", Holding, 0, U16, Polled);
+    assert_eq!(d.channel("Channel 1").unwrap().max, Some(100.0));
+    assert!(d.channel("Button 1").unwrap().readonly);
+    assert_eq!(
+        d.channel("Input Voltage")
+            .unwrap()
+            .decode(&[&[12034]])
+            .unwrap(),
+        Reading::Value("12.034".into())
+    );
+}
+
+#[test]
+fn mr14_and_mrgbw_load() {
+    let d = device("config-wb-mr14.json", json!({"slave_id": 1}));
+    assert!(d
+        .channels
+        .iter()
+        .any(|c| c.registers[0].read.is_some_and(|r| r.reg_type == Coil)));
+    let d = device(
+        "config-wb-mrgbw-d-fw3-deprecated.json",
+        json!({"slave_id": 1}),
+    );
+    assert!(!d.channels.is_empty());
+}
+
+#[test]
+fn config_overrides_follow_merge_rules() {
+    let d = device(
+        "config-wb-msw_v4.json",
+        json!({"slave_id": 2, "id": "hall", "name": "Hall", "channels": [
+            {"name": "Temperature", "read_period_ms": 500, "address": 99, "readonly": false},
+            {"name": "Dew Point", "enabled": true},
+            {"name": "Extra", "reg_type": "holding", "address": 1000}
+        ]}),
+    );
+    assert_eq!((d.id.as_str(), d.name.as_str()), ("hall", "Hall"));
+    let temperature = d.channel("Temperature").unwrap();
+    assert_eq!(temperature.read_period.map(|p| p.as_millis()), Some(500));
+    assert_eq!(
+        temperature.registers[0].read.unwrap().address,
+        4,
+        "address cannot be overridden"
+    );
+    assert!(temperature.readonly);
+    assert!(d.channel("Dew Point").is_some());
+    assert_channel(&d, "Extra", Holding, 1000, U16, Polled);
+    assert_eq!(d.channels.last().unwrap().order as usize, d.channels.len());
+}
