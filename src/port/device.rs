@@ -167,15 +167,29 @@ impl DeviceState {
         let mut ranges = Vec::new();
         let mut members = Vec::new();
         for (index, span, priority) in candidates {
-            let len = 4 + usize::from(span.count);
-            if span.count == 0 || span.count > 255 || len > room {
+            let count = usize::from(span.count);
+            // Registers right after the previous range join it: one header for the lot.
+            if let Some(last) = ranges.last_mut().filter(|last: &&mut EventRange| {
+                last.register_type == span.register_type
+                    && u32::from(last.start) + last.priorities.len() as u32 == u32::from(span.start)
+                    && last.priorities.len() + count <= 255
+            }) {
+                if count <= room {
+                    room -= count;
+                    last.priorities.extend(std::iter::repeat_n(priority, count));
+                    members.push(index);
+                }
+                continue;
+            }
+            let len = 4 + count;
+            if count == 0 || count > 255 || len > room {
                 continue;
             }
             room -= len;
             ranges.push(EventRange {
                 register_type: span.register_type,
                 start: span.start,
-                priorities: vec![priority; usize::from(span.count)],
+                priorities: vec![priority; count],
             });
             members.push(index);
         }

@@ -193,14 +193,27 @@ impl PortScheduler {
         match self.choose(now) {
             Some((transaction, in_flight)) => {
                 let slot_left = self.events.next_at().saturating_sub(now);
-                let would_delay_events = events_active && transaction.estimated > slot_left;
-                // A transaction longer than a whole interval can never fit: let it make the next
-                // event request late rather than never run.
-                if would_delay_events && transaction.estimated <= self.settings.event_interval {
+                if !events_active {
+                    self.in_flight = Some(in_flight);
+                    return Action::Transmit(transaction);
+                }
+                // Read what fits before the event slot (all of it if possible) ...
+                if let Some((fitting, in_flight)) = self.fit(&transaction, &in_flight, slot_left) {
+                    self.in_flight = Some(in_flight);
+                    return Action::Transmit(fitting);
+                }
+                // ... or poll events early, which resets the slot. What can never fit a whole
+                // interval goes anyway, at its smallest: a late event request beats a read that
+                // never runs.
+                let interval = self.settings.event_interval;
+                if self.fit(&transaction, &in_flight, interval).is_some() {
                     return self.start_event_poll(now);
                 }
+                let (smallest, in_flight) = self
+                    .read_prefix(&in_flight, 1)
+                    .unwrap_or((transaction, in_flight));
                 self.in_flight = Some(in_flight);
-                Action::Transmit(transaction)
+                Action::Transmit(smallest)
             }
             None if events_active => self.start_event_poll(now),
             None => Action::Wait {
@@ -240,8 +253,11 @@ impl PortScheduler {
         let line = &self.settings.line;
         let max_reply = 8 + usize::from(self.events.max_data_len());
         let margin = self.settings.latency_margin;
+        // The usual answer is "no events" after a few arbitration windows; longer packets are
+        // rare and bounded by max_data_len.
+        let typical = line.arbitration_wait() + line.arbitration_window() * 6;
         let transaction = Transaction {
-            estimated: line.transaction_time(9, line.event_reply_timeout(), max_reply),
+            estimated: line.transaction_time(9, typical, 5),
             reply_timeout: line.event_reply_timeout() + line.wire_time(max_reply + 32) + margin,
             first_byte_timeout: Some(line.event_first_byte_timeout() + margin),
             request,
@@ -376,6 +392,54 @@ impl PortScheduler {
         ))
     }
 
+    /// The transaction, or the longest leading part of a merged read, that fits `budget`.
+    fn fit(
+        &self,
+        transaction: &Transaction,
+        in_flight: &InFlight,
+        budget: Duration,
+    ) -> Option<(Transaction, InFlight)> {
+        if transaction.estimated <= budget {
+            return Some((transaction.clone(), in_flight.clone()));
+        }
+        let InFlight::Read { members, .. } = in_flight else {
+            return None;
+        };
+        (1..members.len())
+            .rev()
+            .filter_map(|taken| self.read_prefix(in_flight, taken))
+            .find(|(shorter, _)| shorter.estimated <= budget)
+    }
+
+    /// The read of the first `taken` members of a merged read.
+    fn read_prefix(&self, in_flight: &InFlight, taken: usize) -> Option<(Transaction, InFlight)> {
+        let InFlight::Read {
+            device, members, ..
+        } = in_flight
+        else {
+            return None;
+        };
+        let state = self.devices.get(*device)?;
+        let part = members.get(..taken)?.to_vec();
+        let first = state.read_span(*part.first()?)?;
+        let mut span = first;
+        for &member in &part {
+            let member_span = state.read_span(member)?;
+            let end = span.end().max(member_span.end());
+            span.count = u16::try_from(end - u32::from(span.start)).ok()?;
+        }
+        let request = Request::classic(state.plan.address, span.read_request());
+        let transaction = self.classic_transaction(request, span.reply_pdu_len());
+        Some((
+            transaction,
+            InFlight::Read {
+                device: *device,
+                span,
+                members: part,
+            },
+        ))
+    }
+
     fn earliest_deadline(&self, now: Duration) -> Duration {
         let devices = self.devices.iter().filter_map(|d| d.next_deadline());
         let writes = self.writes.iter().filter_map(|p| {
@@ -435,6 +499,7 @@ impl PortScheduler {
                 }
             }
             Outcome::Reply(_) | Outcome::NoReply => self.events.nothing_pending(started),
+
             Outcome::Garbled => self.events.garbled(now),
         }
     }
@@ -683,3 +748,7 @@ impl PortScheduler {
         }
     }
 }
+
+#[cfg(test)]
+#[path = "scheduler_tests.rs"]
+mod tests;

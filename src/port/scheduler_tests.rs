@@ -1,0 +1,697 @@
+//! The scheduler on a fake clock against scripted devices: every request it sends is answered by
+//! a closure, and time advances by each transaction's estimated wire time.
+
+use std::time::Duration;
+
+use super::*;
+use crate::port::health::HealthPolicy;
+use crate::port::plan::{EventMode, PlannedRead, SetupWrite};
+use crate::port::read_plan::MergeLimits;
+use crate::protocol::{
+    Event, EventPacket, EventPoll, FastRequest, LineSettings, Parity, RequestBody,
+};
+
+fn ms(ms: u64) -> Duration {
+    Duration::from_millis(ms)
+}
+
+fn settings(baud: u32) -> PortSettings {
+    PortSettings::for_line(LineSettings::new(baud, Parity::None, 2))
+}
+
+fn read(register_type: RegisterType, start: u16, events: EventMode) -> PlannedRead {
+    PlannedRead {
+        span: RegisterSpan::new(register_type, start, 1),
+        period: None,
+        events,
+    }
+}
+
+fn device(address: u8, reads: Vec<PlannedRead>) -> DevicePlan {
+    DevicePlan {
+        name: format!("dev{address}"),
+        address,
+        merge: MergeLimits {
+            max_read_registers: 0,
+            max_register_hole: 0,
+            max_bit_hole: 0,
+        },
+        health: HealthPolicy::default(),
+        reads,
+        setup: Vec::new(),
+    }
+}
+
+/// What the fake bus saw and what the scheduler reported.
+#[derive(Default)]
+struct Log {
+    sent: Vec<(Duration, Request)>,
+    events: Vec<(Duration, PortEvent)>,
+}
+
+impl Log {
+    fn event_polls(&self) -> Vec<(Duration, EventPoll)> {
+        self.sent
+            .iter()
+            .filter_map(|(at, r)| match &r.body {
+                RequestBody::Fast(FastRequest::PollEvents(poll)) => Some((*at, *poll)),
+                _ => None,
+            })
+            .collect()
+    }
+
+    fn classic_to(&self, address: u8) -> Vec<(Duration, RequestPdu)> {
+        self.sent
+            .iter()
+            .filter_map(|(at, r)| match &r.body {
+                RequestBody::Classic(pdu) if r.address == address => Some((*at, pdu.clone())),
+                _ => None,
+            })
+            .collect()
+    }
+}
+
+/// Runs the scheduler until `end`; `respond` answers each request at the time it is sent.
+/// Time advances by the real wire time of request and reply (plus 1 ms turnaround, and the
+/// arbitration windows of an event request), or by the reply timeout when nothing answers.
+fn run(
+    scheduler: &mut PortScheduler,
+    log: &mut Log,
+    mut now: Duration,
+    end: Duration,
+    mut respond: impl FnMut(Duration, &Request) -> Outcome,
+) -> Duration {
+    let line = scheduler.settings.line;
+    while now < end {
+        match scheduler.next(now) {
+            Action::Transmit(transaction) => {
+                log.sent.push((now, transaction.request.clone()));
+                let outcome = respond(now, &transaction.request);
+                let request_len = transaction.request.encode().unwrap().len();
+                now += match &outcome {
+                    Outcome::Reply(reply) => {
+                        let arbitration = if transaction.first_byte_timeout.is_some() {
+                            line.arbitration_wait() + line.arbitration_window() * 12
+                        } else {
+                            Duration::ZERO
+                        };
+                        let reply_len = reply.encode().unwrap().len();
+                        line.transaction_time(request_len, ms(1) + arbitration, reply_len)
+                    }
+                    _ => line.wire_time(request_len) + transaction.reply_timeout,
+                };
+                for event in scheduler.complete(now, outcome) {
+                    log.events.push((now, event));
+                }
+            }
+            Action::Wait { until } => now = until.max(now + Duration::from_micros(1)),
+        }
+    }
+    now
+}
+
+/// A well-behaved device: reads return the register address as the value, writes are echoed,
+/// 0x18 enables every register, event requests find nothing.
+fn healthy(request: &Request) -> Outcome {
+    let address = request.address;
+    match &request.body {
+        RequestBody::Fast(FastRequest::PollEvents(_)) => {
+            Outcome::Reply(Reply::fast(0xFD, FastReply::NoEvents))
+        }
+        RequestBody::Fast(FastRequest::ConfigureEvents { ranges }) => {
+            let masks = ranges
+                .iter()
+                .flat_map(|r| crate::protocol::pdu::pack_bits(&vec![true; r.priorities.len()]))
+                .collect();
+            Outcome::Reply(Reply::fast(address, FastReply::EventsConfigured { masks }))
+        }
+        RequestBody::Fast(_) => Outcome::NoReply,
+        RequestBody::Classic(pdu) => Outcome::Reply(Reply::classic(address, classic_answer(pdu))),
+    }
+}
+
+fn classic_answer(pdu: &RequestPdu) -> ResponsePdu {
+    match pdu {
+        RequestPdu::ReadHoldingRegisters { start, count } => ResponsePdu::ReadHoldingRegisters {
+            values: (*start..start + count).collect(),
+        },
+        RequestPdu::ReadInputRegisters { start, count } => ResponsePdu::ReadInputRegisters {
+            values: (*start..start + count).collect(),
+        },
+        RequestPdu::ReadCoils { count, .. } => ResponsePdu::ReadCoils {
+            packed: vec![0; usize::from(*count).div_ceil(8)],
+        },
+        RequestPdu::ReadDiscreteInputs { count, .. } => ResponsePdu::ReadDiscreteInputs {
+            packed: vec![0; usize::from(*count).div_ceil(8)],
+        },
+        RequestPdu::WriteSingleCoil { address, value } => ResponsePdu::WriteSingleCoil {
+            address: *address,
+            value: *value,
+        },
+        RequestPdu::WriteSingleRegister { address, value } => ResponsePdu::WriteSingleRegister {
+            address: *address,
+            value: *value,
+        },
+        RequestPdu::WriteMultipleCoils { start, values } => ResponsePdu::WriteMultipleCoils {
+            start: *start,
+            count: values.len() as u16,
+        },
+        RequestPdu::WriteMultipleRegisters { start, values } => {
+            ResponsePdu::WriteMultipleRegisters {
+                start: *start,
+                count: values.len() as u16,
+            }
+        }
+    }
+}
+
+fn max_gap(times: &[Duration]) -> Duration {
+    times
+        .windows(2)
+        .map(|w| w[1] - w[0])
+        .max()
+        .unwrap_or_default()
+}
+
+#[test]
+fn event_requests_keep_their_rhythm_at_every_baud() {
+    for (baud, interval) in [(115_200, ms(50)), (57_600, ms(100)), (9600, ms(200))] {
+        let mut reads = vec![read(RegisterType::Coil, 0, EventMode::Sporadic)];
+        reads.extend((10..30).map(|a| read(RegisterType::Holding, a * 2, EventMode::Polled)));
+        let mut scheduler = PortScheduler::new(settings(baud), vec![device(20, reads)]);
+        let mut log = Log::default();
+        run(
+            &mut scheduler,
+            &mut log,
+            Duration::ZERO,
+            ms(5000),
+            |_, r| healthy(r),
+        );
+        let polls: Vec<Duration> = log.event_polls().into_iter().map(|(at, _)| at).collect();
+        assert!(
+            polls.len() >= 5000 / interval.as_millis() as usize,
+            "{baud}: {} polls",
+            polls.len()
+        );
+        assert!(
+            max_gap(&polls) <= interval,
+            "{baud}: gap {:?} > {interval:?}",
+            max_gap(&polls)
+        );
+        let reads = log.classic_to(20).len();
+        assert!(
+            reads > 100,
+            "{baud}: classic polling goes on between event requests ({reads} reads)"
+        );
+    }
+}
+
+#[test]
+fn a_long_read_is_shortened_so_the_event_slot_is_never_missed() {
+    // 100 holding registers at 9600 baud: one merged read would take ~220 ms, longer than 200 ms.
+    let mut reads = vec![read(RegisterType::Coil, 0, EventMode::Sporadic)];
+    reads.extend((0..100).map(|a| read(RegisterType::Holding, 1000 + a, EventMode::Polled)));
+    let mut scheduler = PortScheduler::new(settings(9600), vec![device(20, reads)]);
+    let mut log = Log::default();
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(10_000),
+        |_, r| healthy(r),
+    );
+    let polls: Vec<Duration> = log
+        .event_polls()
+        .into_iter()
+        .skip(1)
+        .map(|(at, _)| at)
+        .collect();
+    if max_gap(&polls) > ms(200) {
+        let at = polls
+            .windows(2)
+            .find(|w| w[1] - w[0] == max_gap(&polls))
+            .unwrap()[0];
+        let around: Vec<_> = log
+            .sent
+            .iter()
+            .filter(|(t, _)| *t >= at && *t <= at + ms(500))
+            .collect();
+        panic!("gap {:?} at {at:?}: {around:?}", max_gap(&polls));
+    }
+    let holding_reads: Vec<u16> = log
+        .classic_to(20)
+        .into_iter()
+        .filter_map(|(_, pdu)| match pdu {
+            RequestPdu::ReadHoldingRegisters { count, .. } => Some(count),
+            _ => None,
+        })
+        .collect();
+    assert!(
+        holding_reads.iter().all(|&count| count < 100),
+        "{holding_reads:?}"
+    );
+    let mut seen = [false; 100];
+    for (_, event) in &log.events {
+        if let PortEvent::Values { span, values, .. } = event {
+            if span.register_type == RegisterType::Holding {
+                seen[usize::from(span.start - 1000)] = true;
+                assert_eq!(values, &vec![span.start]);
+            }
+        }
+    }
+    assert!(seen.iter().all(|&s| s), "every register is read");
+}
+
+#[test]
+fn an_event_packet_is_acknowledged_in_the_next_request() {
+    let mut scheduler = PortScheduler::new(
+        settings(115_200),
+        vec![device(
+            20,
+            vec![read(RegisterType::Coil, 0, EventMode::Sporadic)],
+        )],
+    );
+    let mut log = Log::default();
+    let mut sent_packet = false;
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(300),
+        |_, request| match &request.body {
+            RequestBody::Fast(FastRequest::PollEvents(_)) if !sent_packet => {
+                sent_packet = true;
+                let event = Event {
+                    source: crate::protocol::EventSource::Register(RegisterType::Coil),
+                    id: 0,
+                    payload: vec![1],
+                };
+                Outcome::Reply(Reply::fast(
+                    20,
+                    FastReply::Events(EventPacket {
+                        flag: 1,
+                        event_count: 1,
+                        events: vec![event],
+                    }),
+                ))
+            }
+            _ => healthy(request),
+        },
+    );
+    let polls = log.event_polls();
+    assert_eq!(
+        polls[0].1,
+        EventPoll {
+            min_address: 0,
+            max_data_len: 248,
+            ack_address: 0,
+            ack_flag: 0
+        }
+    );
+    assert_eq!(
+        polls[1].1,
+        EventPoll {
+            min_address: 21,
+            max_data_len: 248,
+            ack_address: 20,
+            ack_flag: 1
+        }
+    );
+    assert_eq!(
+        polls[1].0,
+        polls[0].0 + (log.sent.iter().find(|(at, _)| *at > polls[0].0).unwrap().0 - polls[0].0)
+    );
+    assert_eq!(
+        polls[2].1.ack_address, 0,
+        "nothing more to confirm after 'no events'"
+    );
+    assert!(log.events.iter().any(|(_, e)| *e
+        == PortEvent::EventValue {
+            device: 0,
+            register_type: RegisterType::Coil,
+            address: 0,
+            payload: vec![1]
+        }));
+}
+
+#[test]
+fn a_reboot_event_brings_setup_event_setup_and_a_fresh_read() {
+    let mut plan = device(20, vec![read(RegisterType::Coil, 0, EventMode::Sporadic)]);
+    plan.setup = vec![SetupWrite {
+        address: 5,
+        values: vec![7],
+    }];
+    let mut scheduler = PortScheduler::new(settings(115_200), vec![plan]);
+    let mut log = Log::default();
+    let mut polls = 0;
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(500),
+        |_, request| match &request.body {
+            RequestBody::Fast(FastRequest::PollEvents(_)) => {
+                polls += 1;
+                if polls == 3 {
+                    let packet = EventPacket {
+                        flag: 0,
+                        event_count: 1,
+                        events: vec![Event::reboot()],
+                    };
+                    Outcome::Reply(Reply::fast(20, FastReply::Events(packet)))
+                } else {
+                    healthy(request)
+                }
+            }
+            _ => healthy(request),
+        },
+    );
+    let kinds: Vec<&str> = log
+        .sent
+        .iter()
+        .map(|(_, r)| match &r.body {
+            RequestBody::Classic(RequestPdu::WriteSingleRegister {
+                address: 5,
+                value: 7,
+            }) => "setup",
+            RequestBody::Fast(FastRequest::ConfigureEvents { .. }) => "0x18",
+            RequestBody::Classic(RequestPdu::ReadCoils { .. }) => "read",
+            RequestBody::Fast(FastRequest::PollEvents(_)) => "events",
+            _ => "other",
+        })
+        .collect();
+    // Start-up: setup, event setup, first read; the reboot (3rd event request) repeats them;
+    // otherwise only event requests: the coil comes by events.
+    let third_poll = kinds
+        .iter()
+        .enumerate()
+        .filter(|(_, k)| **k == "events")
+        .nth(2)
+        .unwrap()
+        .0;
+    let before: Vec<&str> = kinds[..third_poll]
+        .iter()
+        .copied()
+        .filter(|k| *k != "events")
+        .collect();
+    let after: Vec<&str> = kinds[third_poll..]
+        .iter()
+        .copied()
+        .filter(|k| *k != "events")
+        .collect();
+    assert_eq!(before, ["setup", "0x18", "read"], "{kinds:?}");
+    assert_eq!(after, ["setup", "0x18", "read"], "{kinds:?}");
+    assert!(log
+        .events
+        .iter()
+        .any(|(_, e)| *e == PortEvent::Rebooted { device: 0 }));
+}
+
+#[test]
+fn registers_and_devices_without_events_fall_back_to_polling() {
+    let a = device(
+        1,
+        vec![
+            read(RegisterType::Coil, 0, EventMode::Sporadic),
+            read(RegisterType::Coil, 1, EventMode::Sporadic),
+        ],
+    );
+    let b = device(2, vec![read(RegisterType::Coil, 0, EventMode::Sporadic)]);
+    let mut scheduler = PortScheduler::new(settings(115_200), vec![a, b]);
+    let mut log = Log::default();
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(2000),
+        |_, request| match (&request.body, request.address) {
+            (RequestBody::Fast(FastRequest::ConfigureEvents { .. }), 1) => {
+                // One range for both coils: coil 0 can send events, coil 1 cannot.
+                match &request.body {
+                    RequestBody::Fast(FastRequest::ConfigureEvents { ranges }) => {
+                        assert_eq!(ranges.len(), 1)
+                    }
+                    _ => unreachable!(),
+                }
+                Outcome::Reply(Reply::fast(
+                    1,
+                    FastReply::EventsConfigured { masks: vec![0b01] },
+                ))
+            }
+            (RequestBody::Fast(FastRequest::ConfigureEvents { .. }), 2) => {
+                Outcome::Reply(Reply::classic(
+                    2,
+                    ResponsePdu::Exception {
+                        function: 0x46,
+                        code: ExceptionCode::ILLEGAL_FUNCTION,
+                    },
+                ))
+            }
+            _ => healthy(request),
+        },
+    );
+    let coil_reads = |address, coil| {
+        log.classic_to(address)
+            .iter()
+            .filter(|(_, pdu)| {
+                matches!(pdu, RequestPdu::ReadCoils { start, count: 1 } if *start == coil)
+                    || matches!(pdu, RequestPdu::ReadCoils { start: 0, count: 2 })
+            })
+            .count()
+    };
+    assert_eq!(
+        coil_reads(1, 0),
+        1,
+        "coil 0 of device 1 is read once, then comes by events"
+    );
+    assert!(coil_reads(1, 1) > 20, "coil 1 of device 1 is polled");
+    assert!(coil_reads(2, 0) > 20, "device 2 is polled");
+}
+
+#[test]
+fn a_refused_merged_read_is_split_and_only_the_bad_register_dropped() {
+    let reads = (0..3)
+        .map(|a| read(RegisterType::Holding, a, EventMode::Polled))
+        .collect();
+    let mut scheduler = PortScheduler::new(settings(115_200), vec![device(7, reads)]);
+    let mut log = Log::default();
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(200),
+        |_, request| match &request.body {
+            RequestBody::Classic(RequestPdu::ReadHoldingRegisters { start, count })
+                if *start <= 1 && start + count > 1 =>
+            {
+                Outcome::Reply(Reply::classic(
+                    7,
+                    ResponsePdu::Exception {
+                        function: 3,
+                        code: ExceptionCode::ILLEGAL_DATA_ADDRESS,
+                    },
+                ))
+            }
+            _ => healthy(request),
+        },
+    );
+    let reads = log.classic_to(7);
+    assert_eq!(
+        reads[0].1,
+        RequestPdu::ReadHoldingRegisters { start: 0, count: 3 }
+    );
+    let unsupported: Vec<&PortEvent> = log
+        .events
+        .iter()
+        .map(|(_, e)| e)
+        .filter(|e| matches!(e, PortEvent::ReadFailed { .. }))
+        .collect();
+    assert_eq!(
+        unsupported,
+        vec![&PortEvent::ReadFailed {
+            device: 0,
+            span: RegisterSpan::new(RegisterType::Holding, 1, 1),
+            unsupported: true
+        }]
+    );
+    let after_split = &reads[4..];
+    assert!(after_split
+        .iter()
+        .all(|(_, pdu)| !matches!(pdu, RequestPdu::ReadHoldingRegisters { start: 1, .. })));
+    assert!(after_split
+        .iter()
+        .any(|(_, pdu)| *pdu == RequestPdu::ReadHoldingRegisters { start: 0, count: 1 }));
+    assert!(after_split
+        .iter()
+        .any(|(_, pdu)| *pdu == RequestPdu::ReadHoldingRegisters { start: 2, count: 1 }));
+}
+
+#[test]
+fn a_write_goes_before_the_next_read_and_the_latest_value_wins() {
+    let reads = (0..4)
+        .map(|a| read(RegisterType::Holding, a * 10, EventMode::Polled))
+        .collect();
+    let mut scheduler = PortScheduler::new(settings(115_200), vec![device(3, reads)]);
+    let mut log = Log::default();
+    let now = run(&mut scheduler, &mut log, Duration::ZERO, ms(50), |_, r| {
+        healthy(r)
+    });
+    let write = |value| RegisterWrite {
+        device: 0,
+        register_type: RegisterType::Holding,
+        address: 10,
+        values: vec![value],
+    };
+    scheduler.queue_write(now, write(1));
+    scheduler.queue_write(now, write(2));
+    let before = log.sent.len();
+    run(&mut scheduler, &mut log, now, now + ms(20), |_, r| {
+        healthy(r)
+    });
+    assert_eq!(
+        log.sent[before].1,
+        Request::classic(
+            3,
+            RequestPdu::WriteSingleRegister {
+                address: 10,
+                value: 2
+            }
+        )
+    );
+    let writes = log
+        .sent
+        .iter()
+        .filter(|(_, r)| {
+            matches!(
+                r.body,
+                RequestBody::Classic(RequestPdu::WriteSingleRegister { .. })
+            )
+        })
+        .count();
+    assert_eq!(writes, 1);
+    assert!(log.events.iter().any(|(_, e)| *e
+        == PortEvent::Values {
+            device: 0,
+            span: RegisterSpan::new(RegisterType::Holding, 10, 1),
+            values: vec![2]
+        }));
+}
+
+#[test]
+fn a_dead_device_backs_off_while_the_others_keep_their_rate() {
+    let alive = device(1, vec![read(RegisterType::Holding, 0, EventMode::Polled)]);
+    let dead = device(2, vec![read(RegisterType::Holding, 0, EventMode::Polled)]);
+    let mut scheduler = PortScheduler::new(settings(115_200), vec![alive, dead]);
+    let mut log = Log::default();
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(150_000),
+        |_, request| {
+            if request.address == 2 {
+                Outcome::NoReply
+            } else {
+                healthy(request)
+            }
+        },
+    );
+    let tries: Vec<Duration> = log.classic_to(2).into_iter().map(|(at, _)| at).collect();
+    let gaps: Vec<Duration> = tries.windows(2).map(|w| w[1] - w[0]).collect();
+    assert!(
+        gaps.windows(2).all(|w| w[1] >= w[0]),
+        "retry delays grow: {gaps:?}"
+    );
+    assert!(
+        gaps.last().unwrap() >= &ms(10_000) && gaps.last().unwrap() < &ms(11_000),
+        "{gaps:?}"
+    );
+    let alive_reads: Vec<Duration> = log.classic_to(1).into_iter().map(|(at, _)| at).collect();
+    // Each failed try costs the response timeout (~0.5 s), never more.
+    assert!(
+        max_gap(&alive_reads) < ms(600),
+        "{:?}",
+        max_gap(&alive_reads)
+    );
+    let offline = log
+        .events
+        .iter()
+        .filter(|(_, e)| *e == PortEvent::Offline { device: 1 })
+        .count();
+    assert_eq!(offline, 1);
+}
+
+#[test]
+fn an_unplugged_device_comes_back_with_its_setup() {
+    let mut plan = device(4, vec![read(RegisterType::Holding, 0, EventMode::Polled)]);
+    plan.setup = vec![SetupWrite {
+        address: 9,
+        values: vec![1],
+    }];
+    let mut scheduler = PortScheduler::new(settings(115_200), vec![plan]);
+    let mut log = Log::default();
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(20_000),
+        |at, request| {
+            if (ms(5000)..ms(10_000)).contains(&at) {
+                Outcome::NoReply
+            } else {
+                healthy(request)
+            }
+        },
+    );
+    let states: Vec<(Duration, &PortEvent)> = log
+        .events
+        .iter()
+        .filter(|(_, e)| matches!(e, PortEvent::Online { .. } | PortEvent::Offline { .. }))
+        .map(|(at, e)| (*at, e))
+        .collect();
+    assert_eq!(states.len(), 3, "{states:?}");
+    assert_eq!(states[1].1, &PortEvent::Offline { device: 0 });
+    assert!(
+        states[1].0 > ms(8000),
+        "offline after 2 failures and 3 s: {:?}",
+        states[1].0
+    );
+    assert_eq!(states[2].1, &PortEvent::Online { device: 0 });
+    let setups: Vec<Duration> = log
+        .classic_to(4)
+        .into_iter()
+        .filter(|(_, pdu)| matches!(pdu, RequestPdu::WriteSingleRegister { address: 9, .. }))
+        .map(|(at, _)| at)
+        .collect();
+    assert!(
+        setups.len() >= 2 && setups.last().unwrap() >= &ms(10_000),
+        "setup again on return: {setups:?}"
+    );
+}
+
+#[test]
+fn with_fast_modbus_off_no_fast_frame_leaves_the_port() {
+    let mut port = settings(115_200);
+    port.fast_modbus = false;
+    let plan = device(
+        20,
+        vec![
+            read(RegisterType::Coil, 0, EventMode::Sporadic),
+            read(RegisterType::Input, 3, EventMode::SemiSporadic),
+        ],
+    );
+    let mut scheduler = PortScheduler::new(port, vec![plan]);
+    let mut log = Log::default();
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(1000),
+        |_, r| healthy(r),
+    );
+    assert!(log
+        .sent
+        .iter()
+        .all(|(_, r)| !r.is_fast() && r.address != 0xFD));
+    assert!(log.classic_to(20).len() > 50, "everything is polled");
+}
