@@ -228,7 +228,7 @@ fn m1w2_subdevices_and_parameters() {
         json!({"slave_id": 7, "baud_rate": 192, "channels": [{"name": "Input 2", "device_type": "input2_discrete"}]}),
     );
     assert_channel(&d, "External Sensor 1", Input, 7, S16, Polled);
-    assert_channel(&d, "Discrete Input 2", Discrete, 1, U8, Polled);
+    assert_channel(&d, "Discrete Input 2", DiscreteInput, 1, U8, Polled);
     assert_channel(&d, "Counter 2", Input, 278, U16, Polled);
     let setup: Vec<(u16, Vec<u16>)> = d
         .setup

@@ -9,46 +9,8 @@ use super::codec::{CodecError, Reading, ValueCodec};
 use crate::config::config_file::PortConfig;
 use crate::config::template::HardwareSignature;
 
-/// Modbus data table.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
-pub enum RegisterType {
-    Coil,
-    Discrete,
-    Holding,
-    Input,
-}
-
-impl RegisterType {
-    /// One bit per address (coils, discrete inputs) rather than 16.
-    pub fn is_bit(self) -> bool {
-        matches!(self, Self::Coil | Self::Discrete)
-    }
-
-    /// Coils and holding registers can be written.
-    pub fn is_writable(self) -> bool {
-        matches!(self, Self::Coil | Self::Holding)
-    }
-
-    /// Register type byte of Fast Modbus events (0x18 records and 0x11 events).
-    pub fn event_type(self) -> u8 {
-        match self {
-            Self::Coil => 1,
-            Self::Discrete => 2,
-            Self::Holding => 3,
-            Self::Input => 4,
-        }
-    }
-
-    /// Read function code (01, 02, 03, 04).
-    pub fn read_function(self) -> u8 {
-        match self {
-            Self::Coil => 1,
-            Self::Discrete => 2,
-            Self::Holding => 3,
-            Self::Input => 4,
-        }
-    }
-}
+/// Modbus data table: the protocol core's type, so a channel's registers go to the bus as they are.
+pub use crate::protocol::RegisterType;
 
 /// Which write function a holding register needs (`holding_single`, `holding_multi`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]

@@ -477,7 +477,7 @@ impl Walker {
         let kind = fields.reg_type.unwrap_or(RegisterKind::Holding);
         let reg_type = match kind {
             RegisterKind::Coil => RegisterType::Coil,
-            RegisterKind::Discrete => RegisterType::Discrete,
+            RegisterKind::Discrete => RegisterType::DiscreteInput,
             RegisterKind::Input | RegisterKind::PressCounter => RegisterType::Input,
             _ => RegisterType::Holding,
         };

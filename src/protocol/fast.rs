@@ -73,6 +73,11 @@ impl RegisterType {
     pub fn is_bit(self) -> bool {
         matches!(self, Self::Coil | Self::DiscreteInput)
     }
+
+    /// Coils and holding registers can be written.
+    pub fn is_writable(self) -> bool {
+        matches!(self, Self::Coil | Self::Holding)
+    }
 }
 
 /// Per-register event priority in a 0x18 request.
