@@ -9,3 +9,4 @@ pub mod config;
 pub mod device;
 pub mod port;
 pub mod protocol;
+pub mod updates;

@@ -1,0 +1,74 @@
+//! What flows between the bus side (port tasks and the device model) and the MQTT side, so each
+//! is built and tested without the other.
+
+use std::fmt;
+use std::sync::Arc;
+
+use crate::device::ResolvedDevice;
+
+/// From the bus side to MQTT.
+#[derive(Debug, Clone)]
+pub enum DeviceUpdate {
+    /// A device is served: publish its meta and every control's meta (and its HA discovery).
+    Added(Arc<ResolvedDevice>),
+    /// What the device told about itself (scan, standard registers), for HA and device meta.
+    Identity { device_id: String, identity: DeviceIdentity },
+    /// Remove every retained topic of the device (clean shutdown, or dropped from the config).
+    Removed { device_id: String },
+    /// A control's value, formatted the Wiren Board way. `always_publish`: events and
+    /// pushbuttons are published even when the value did not change.
+    Value { device_id: String, control_id: String, value: String, always_publish: bool },
+    /// A control's error flags (the whole set, not a change).
+    ControlError { device_id: String, control_id: String, errors: ErrorFlags },
+    /// The device answers again (`true`) or stopped answering.
+    Online { device_id: String, online: bool },
+}
+
+/// Facts a device reports about itself.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct DeviceIdentity {
+    pub model: Option<String>,
+    pub serial_number: Option<String>,
+    pub firmware: Option<String>,
+}
+
+/// The error flags of a control's `meta/error`: `r` read failed, `w` write failed, `p` read
+/// period missed; published in that order, empty when none is set.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Hash)]
+pub struct ErrorFlags {
+    pub read: bool,
+    pub write: bool,
+    pub period_missed: bool,
+}
+
+impl fmt::Display for ErrorFlags {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        for (set, letter) in [(self.read, "r"), (self.write, "w"), (self.period_missed, "p")] {
+            if set {
+                f.write_str(letter)?;
+            }
+        }
+        Ok(())
+    }
+}
+
+/// From MQTT to the bus side: a client asked to set a control (`…/controls/<id>/on`).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ControlWrite {
+    pub device_id: String,
+    pub control_id: String,
+    pub payload: String,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn flags_print_in_order() {
+        assert_eq!(ErrorFlags::default().to_string(), "");
+        let all = ErrorFlags { read: true, write: true, period_missed: true };
+        assert_eq!(all.to_string(), "rwp");
+        assert_eq!(ErrorFlags { write: true, ..Default::default() }.to_string(), "w");
+    }
+}
