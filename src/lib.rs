@@ -6,7 +6,9 @@
 
 pub mod cli;
 pub mod config;
+pub mod daemon;
 pub mod device;
 pub mod port;
 pub mod protocol;
+pub mod transport;
 pub mod updates;

@@ -17,6 +17,8 @@ enum Command {
     CheckTemplates(cli::check::CheckTemplatesArgs),
     /// Print the JSON Schema of the config file or of templates.
     Schema(cli::schema::SchemaArgs),
+    /// Serve the buses of the config: poll devices, receive Fast Modbus events, publish values.
+    Run(cli::run::Args),
     /// Explain a Modbus RTU or Fast Modbus frame given as hex (e.g. "FD 46 10 00 FF 00 00 C8 9A").
     Decode(cli::decode::Args),
 }
@@ -27,6 +29,7 @@ fn main() -> std::process::ExitCode {
         Command::CheckConfig(args) => cli::check::run_check_config(args),
         Command::CheckTemplates(args) => cli::check::run_check_templates(args),
         Command::Schema(args) => cli::schema::run(args),
+        Command::Run(args) => cli::run::run(args),
         Command::Decode(args) => cli::decode::run(args),
     };
     match result {

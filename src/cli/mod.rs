@@ -5,4 +5,15 @@
 
 pub mod check;
 pub mod decode;
+pub mod run;
 pub mod schema;
+
+/// Logs to stderr; `RUST_LOG` (e.g. `debug`, `rtu2mqtt::transport=debug`) picks the detail.
+pub fn init_logging() {
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
+    let _ = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .try_init();
+}

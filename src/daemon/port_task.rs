@@ -1,0 +1,164 @@
+//! The task that owns one bus: it opens the transport (again, with a growing delay, when it
+//! fails), asks the scheduler what to do, does it, and turns what happened into device updates.
+
+use std::time::Duration;
+
+use tokio::sync::{mpsc, watch};
+use tokio::time::Instant;
+use tracing::{debug, info, warn};
+
+use super::device_model::DeviceModel;
+use super::port_plan::PortPlan;
+use crate::port::{Action, Outcome, PortEvent, PortScheduler};
+use crate::transport::{Transport, TransportError};
+use crate::updates::{ControlWrite, DeviceUpdate};
+
+const FIRST_REOPEN_DELAY: Duration = Duration::from_millis(500);
+const MAX_REOPEN_DELAY: Duration = Duration::from_secs(10);
+
+pub struct PortTask {
+    plan_name: String,
+    endpoint: crate::transport::Endpoint,
+    scheduler: PortScheduler,
+    models: Vec<DeviceModel>,
+    updates: mpsc::Sender<DeviceUpdate>,
+    writes: mpsc::Receiver<ControlWrite>,
+    epoch: Instant,
+}
+
+impl PortTask {
+    pub fn new(
+        plan: PortPlan,
+        models: Vec<DeviceModel>,
+        updates: mpsc::Sender<DeviceUpdate>,
+        writes: mpsc::Receiver<ControlWrite>,
+    ) -> Self {
+        Self {
+            plan_name: plan.name,
+            endpoint: plan.endpoint,
+            scheduler: PortScheduler::new(plan.settings, plan.devices),
+            models,
+            updates,
+            writes,
+            epoch: Instant::now(),
+        }
+    }
+
+    fn now(&self) -> Duration {
+        self.epoch.elapsed()
+    }
+
+    /// Serves the bus until `shutdown` turns true.
+    pub async fn run(mut self, mut shutdown: watch::Receiver<bool>) {
+        let mut delay = FIRST_REOPEN_DELAY;
+        loop {
+            match Transport::open(&self.endpoint).await {
+                Ok(transport) => {
+                    info!(port = %self.plan_name, "port open");
+                    delay = FIRST_REOPEN_DELAY;
+                    match self.serve(transport, &mut shutdown).await {
+                        Ok(()) => return,
+                        Err(err) => warn!(port = %self.plan_name, %err, "port failed; reopening"),
+                    }
+                }
+                Err(err) => {
+                    warn!(port = %self.plan_name, %err, retry_in = ?delay, "cannot open the port")
+                }
+            }
+            tokio::select! {
+                _ = tokio::time::sleep(delay) => {}
+                _ = shutdown.changed() => return,
+            }
+            delay = (delay * 2).min(MAX_REOPEN_DELAY);
+        }
+    }
+
+    async fn serve(
+        &mut self,
+        mut transport: Transport,
+        shutdown: &mut watch::Receiver<bool>,
+    ) -> Result<(), TransportError> {
+        loop {
+            if *shutdown.borrow() {
+                return Ok(());
+            }
+            while let Ok(write) = self.writes.try_recv() {
+                self.handle_write(write).await;
+            }
+            match self.scheduler.next(self.now()) {
+                Action::Transmit(transaction) => {
+                    let result = transport.transact(&transaction).await;
+                    let outcome = match &result {
+                        Ok(outcome) => outcome.clone(),
+                        Err(_) => Outcome::NoReply,
+                    };
+                    let events = self.scheduler.complete(self.now(), outcome);
+                    self.dispatch(events).await;
+                    result?;
+                }
+                Action::Wait { until } => {
+                    let wake = self.epoch + until;
+                    tokio::select! {
+                        _ = tokio::time::sleep_until(wake) => {}
+                        write = self.writes.recv() => match write {
+                            Some(write) => self.handle_write(write).await,
+                            None => return Ok(()),
+                        },
+                        _ = shutdown.changed() => return Ok(()),
+                    }
+                }
+            }
+        }
+    }
+
+    async fn handle_write(&mut self, write: ControlWrite) {
+        let now = self.now();
+        let Some(model) = self.models.iter_mut().find(|m| m.id() == write.device_id) else {
+            debug!(device = %write.device_id, "write for a device not on this port");
+            return;
+        };
+        match model.write(&write.control_id, &write.payload) {
+            Ok(register_writes) => {
+                for register_write in register_writes {
+                    self.scheduler.queue_write(now, register_write);
+                }
+            }
+            Err(reason) => {
+                warn!(device = %write.device_id, control = %write.control_id, payload = %write.payload, %reason, "write refused");
+                let mut updates = Vec::new();
+                model.write_rejected(&write.control_id, &mut updates);
+                self.send(updates).await;
+            }
+        }
+    }
+
+    async fn dispatch(&mut self, events: Vec<PortEvent>) {
+        let mut updates = Vec::new();
+        for event in events {
+            let device = match &event {
+                PortEvent::Values { device, .. }
+                | PortEvent::EventValue { device, .. }
+                | PortEvent::ReadFailed { device, .. }
+                | PortEvent::WriteDone { device, .. }
+                | PortEvent::WriteFailed { device, .. }
+                | PortEvent::Online { device }
+                | PortEvent::Offline { device }
+                | PortEvent::Rebooted { device } => *device,
+            };
+            if let Some(model) = self.models.get_mut(device) {
+                model.apply(event, &mut updates);
+            }
+        }
+        self.send(updates).await;
+    }
+
+    async fn send(&self, updates: Vec<DeviceUpdate>) {
+        for update in updates {
+            // The MQTT side drains this queue into its latest-value-per-topic state at once, so
+            // waiting here only happens if that task itself is stuck.
+            if self.updates.send(update).await.is_err() {
+                return;
+            }
+        }
+    }
+}

@@ -1,0 +1,92 @@
+//! Device updates as JSON lines on stdout, control writes as JSON lines on stdin: the bus side
+//! without a broker, for tests, debugging and scripting.
+//!
+//! Out: `{"added":"relay6_20"}`, `{"device":"relay6_20","control":"K1","value":"1"}`,
+//! `{"device":…,"control":…,"error":"r"}`, `{"device":…,"online":false}`, `{"removed":…}`.
+//! In: `{"device":"relay6_20","control":"K1","value":"1"}`.
+
+use serde_json::json;
+use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
+use tokio::sync::mpsc;
+use tracing::warn;
+
+use crate::updates::{ControlWrite, DeviceUpdate};
+
+pub fn update_line(update: &DeviceUpdate) -> serde_json::Value {
+    match update {
+        DeviceUpdate::Added(device) => json!({ "added": device.id }),
+        DeviceUpdate::Identity {
+            device_id,
+            identity,
+        } => json!({
+            "device": device_id,
+            "model": identity.model,
+            "serial_number": identity.serial_number,
+            "firmware": identity.firmware,
+        }),
+        DeviceUpdate::Removed { device_id } => json!({ "removed": device_id }),
+        DeviceUpdate::Value {
+            device_id,
+            control_id,
+            value,
+            always_publish,
+        } => {
+            json!({ "device": device_id, "control": control_id, "value": value, "event": always_publish })
+        }
+        DeviceUpdate::ControlError {
+            device_id,
+            control_id,
+            errors,
+        } => {
+            json!({ "device": device_id, "control": control_id, "error": errors.to_string() })
+        }
+        DeviceUpdate::Online { device_id, online } => {
+            json!({ "device": device_id, "online": online })
+        }
+    }
+}
+
+/// Prints every update until the queue closes.
+pub async fn print_updates(mut updates: mpsc::Receiver<DeviceUpdate>) {
+    let mut stdout = tokio::io::stdout();
+    while let Some(update) = updates.recv().await {
+        let line = format!("{}\n", update_line(&update));
+        if stdout.write_all(line.as_bytes()).await.is_err() || stdout.flush().await.is_err() {
+            return;
+        }
+    }
+}
+
+/// Reads control writes from stdin until it closes.
+pub async fn read_writes(writes: mpsc::Sender<ControlWrite>) {
+    let mut lines = BufReader::new(tokio::io::stdin()).lines();
+    while let Ok(Some(line)) = lines.next_line().await {
+        let parsed: Result<serde_json::Value, _> = serde_json::from_str(&line);
+        let field = |v: &serde_json::Value, key: &str| {
+            v.get(key).and_then(|f| f.as_str()).map(str::to_owned)
+        };
+        match parsed {
+            Ok(v) => match (
+                field(&v, "device"),
+                field(&v, "control"),
+                field(&v, "value"),
+            ) {
+                (Some(device_id), Some(control_id), Some(payload)) => {
+                    if writes
+                        .send(ControlWrite {
+                            device_id,
+                            control_id,
+                            payload,
+                        })
+                        .await
+                        .is_err()
+                    {
+                        return;
+                    }
+                }
+                _ => warn!(%line, "a write needs \"device\", \"control\" and \"value\" strings"),
+            },
+            Err(err) => warn!(%line, %err, "not a JSON line"),
+        }
+    }
+}
