@@ -341,3 +341,157 @@ fn writes_register(channel: &ResolvedChannel, register_type: RegisterType, addre
         .filter_map(|r| r.write.or(r.read))
         .any(|r| r.reg_type == register_type && r.address == address)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::TemplateFile;
+    use crate::device::resolve_template_device;
+
+    fn relay() -> DeviceModel {
+        let path =
+            std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("templates/rtu2mqtt-relay6.json");
+        let template = TemplateFile::load(&path).unwrap();
+        let device =
+            resolve_template_device(&template, &serde_json::json!({"slave_id": 20})).unwrap();
+        DeviceModel::new(Arc::new(device), 0)
+    }
+
+    fn values(out: &[DeviceUpdate]) -> Vec<(String, String, bool)> {
+        out.iter()
+            .filter_map(|u| match u {
+                DeviceUpdate::Value {
+                    control_id,
+                    value,
+                    always_publish,
+                    ..
+                } => Some((control_id.clone(), value.clone(), *always_publish)),
+                _ => None,
+            })
+            .collect()
+    }
+
+    #[test]
+    fn read_values_become_control_values() {
+        let mut model = relay();
+        let mut out = Vec::new();
+        let span = RegisterSpan::new(RegisterType::Coil, 0, 2);
+        model.apply(
+            PortEvent::Values {
+                device: 0,
+                span,
+                values: vec![1, 0],
+            },
+            &mut out,
+        );
+        assert_eq!(
+            values(&out),
+            vec![
+                ("K1".into(), "1".into(), false),
+                ("K2".into(), "0".into(), false)
+            ]
+        );
+        // u32 serial number, big-endian words.
+        let mut out = Vec::new();
+        let span = RegisterSpan::new(RegisterType::Input, 270, 2);
+        model.apply(
+            PortEvent::Values {
+                device: 0,
+                span,
+                values: vec![0xFE40, 0x00AC],
+            },
+            &mut out,
+        );
+        assert_eq!(
+            values(&out),
+            vec![("Serial".into(), "4265607340".into(), false)]
+        );
+    }
+
+    #[test]
+    fn event_values_are_always_published() {
+        let mut model = relay();
+        let mut out = Vec::new();
+        let event = PortEvent::EventValue {
+            device: 0,
+            register_type: RegisterType::Input,
+            address: 32,
+            payload: vec![0x2C, 0x01],
+        };
+        model.apply(event, &mut out);
+        assert_eq!(
+            values(&out),
+            vec![("Input 1 counter".into(), "300".into(), true)]
+        );
+    }
+
+    #[test]
+    fn read_error_is_cleared_before_the_next_value() {
+        let mut model = relay();
+        let span = RegisterSpan::new(RegisterType::Coil, 0, 1);
+        let mut out = Vec::new();
+        model.apply(
+            PortEvent::ReadFailed {
+                device: 0,
+                span,
+                unsupported: false,
+            },
+            &mut out,
+        );
+        model.apply(
+            PortEvent::ReadFailed {
+                device: 0,
+                span,
+                unsupported: false,
+            },
+            &mut out,
+        );
+        model.apply(
+            PortEvent::Values {
+                device: 0,
+                span,
+                values: vec![1],
+            },
+            &mut out,
+        );
+        let kinds: Vec<String> = out
+            .iter()
+            .map(|u| match u {
+                DeviceUpdate::ControlError {
+                    control_id, errors, ..
+                } => format!("{control_id} error '{errors}'"),
+                DeviceUpdate::Value {
+                    control_id, value, ..
+                } => format!("{control_id} = {value}"),
+                other => format!("{other:?}"),
+            })
+            .collect();
+        assert_eq!(kinds, ["K1 error 'r'", "K1 error ''", "K1 = 1"]);
+    }
+
+    #[test]
+    fn writes_are_encoded_and_checked() {
+        let model = relay();
+        assert_eq!(
+            model.write("K3", "1"),
+            Ok(vec![RegisterWrite {
+                device: 0,
+                register_type: RegisterType::Coil,
+                address: 2,
+                values: vec![1]
+            }])
+        );
+        assert!(matches!(
+            model.write("K3", "on"),
+            Err(WriteRejected::BadValue(_))
+        ));
+        assert_eq!(
+            model.write("Serial", "1"),
+            Err(WriteRejected::ReadOnly("Serial".into()))
+        );
+        assert_eq!(
+            model.write("nope", "1"),
+            Err(WriteRejected::UnknownControl("nope".into()))
+        );
+    }
+}
