@@ -30,3 +30,30 @@ pub use device::{DeviceSpec, ValueChange, VirtualDevice};
 pub use faults::Faults;
 pub use line::{MasterLine, ObservedParity, ReceivedRequest, RequestAssembler};
 pub use registers::RegisterMap;
+
+pub mod bus_file;
+pub mod template_map;
+
+/// Why the simulator could not be set up or a control command failed.
+#[derive(Debug, thiserror::Error)]
+pub enum SimError {
+    #[error("{path}: {source}")]
+    Io {
+        path: std::path::PathBuf,
+        source: std::io::Error,
+    },
+    #[error("{path}: {message}")]
+    Json {
+        path: std::path::PathBuf,
+        message: String,
+    },
+    #[error("no template with device_type {device_type:?} in {dir}")]
+    TemplateNotFound {
+        device_type: String,
+        dir: std::path::PathBuf,
+    },
+    #[error("bus file: {0}")]
+    BusFile(String),
+}
+pub mod control;
+pub mod runtime;
