@@ -56,4 +56,10 @@ pub enum SimError {
     BusFile(String),
 }
 pub mod control;
+pub mod control_socket;
+pub mod link;
+pub mod pacing;
+pub mod pty;
 pub mod runtime;
+pub mod script;
+pub mod tcp;
