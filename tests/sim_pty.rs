@@ -8,7 +8,6 @@ use std::time::Duration;
 use rtu2mqtt::protocol::{
     arbitrate, ArbitrationWord, EventPoll, EventPriority, EventRange, EventSource, EventUrgency,
     FastReply, LineSettings, Parity, RegisterType, Reply, ReplyBody, Request, RequestPdu,
-    ResponsePdu,
 };
 use serde_json::json;
 use sim_support::{ff, hex, with_crc, SimProcess, FAST};
@@ -179,7 +178,7 @@ fn scan_finds_five_devices_in_serial_order() {
     let sim = SimProcess::start("bus.json", &[]);
     let mut port = sim.master(FAST);
     // The five fast devices at 115200 8N2, by the low 28 bits of their serials.
-    let mut devices = vec![
+    let mut devices = [
         (0xFED2_A3A6u32, 241u8),
         (0xFE40_00AC, 20),
         (0xF000_0003, 30),
