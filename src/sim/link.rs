@@ -23,6 +23,7 @@ const IDLE_POLL: Duration = Duration::from_millis(50);
 
 /// Serves requests until the peer closes, the runtime stops, or reading fails.
 pub fn serve(reader: &mut dyn LinkReader, pacer: &Pacer, runtime: &SimRuntime) -> io::Result<()> {
+    super::pacing::raise_to_realtime();
     let mut assembler = RequestAssembler::new();
     let mut buf = [0u8; 512];
     while !runtime.stopped() {

@@ -11,10 +11,14 @@ use std::time::Duration;
 use super::bus::Transmission;
 use super::runtime::Clock;
 
-/// Below this much time left, spin instead of sleeping.
+/// Below this much time left, spin instead of sleeping (normal scheduling: sleeps overshoot).
 pub const SPIN_THRESHOLD: Duration = Duration::from_micros(250);
 /// How much earlier than due a sleep ends, to absorb its overshoot.
 const SLEEP_MARGIN: Duration = Duration::from_micros(150);
+/// With real-time priority a sleep wakes within a few µs: spin only the last stretch, leaving the
+/// CPU to the kernel's tty work and to the reader on the other side.
+const REALTIME_SPIN_THRESHOLD: Duration = Duration::from_micros(40);
+const REALTIME_SLEEP_MARGIN: Duration = Duration::from_micros(25);
 
 pub type ByteWriter = Box<dyn FnMut(&[u8]) -> io::Result<()> + Send>;
 
@@ -50,7 +54,14 @@ impl Pacer {
         let worker = Arc::clone(&pacer);
         let handle = std::thread::Builder::new()
             .name(format!("sim-pacer-{name}"))
-            .spawn(move || worker.run(writer))?;
+            .spawn(move || {
+                let timing = if raise_to_realtime() {
+                    (REALTIME_SPIN_THRESHOLD, REALTIME_SLEEP_MARGIN)
+                } else {
+                    (SPIN_THRESHOLD, SLEEP_MARGIN)
+                };
+                worker.run(writer, timing)
+            })?;
         Ok((pacer, handle))
     }
 
@@ -75,10 +86,10 @@ impl Pacer {
         lock(&self.queue).bytes.len()
     }
 
-    fn run(&self, mut writer: ByteWriter) {
+    fn run(&self, mut writer: ByteWriter, timing: (Duration, Duration)) {
         let mut due = Vec::with_capacity(256);
         loop {
-            let Some(next) = self.wait_for_next() else {
+            let Some(next) = self.wait_for_next(timing) else {
                 return;
             };
             // Spin the last stretch without the lock.
@@ -106,8 +117,11 @@ impl Pacer {
         }
     }
 
-    /// Sleeps until the next byte is less than [`SPIN_THRESHOLD`] away; None once closed.
-    fn wait_for_next(&self) -> Option<Duration> {
+    /// Sleeps until the next byte is less than the spin threshold away; None once closed.
+    fn wait_for_next(
+        &self,
+        (spin_threshold, sleep_margin): (Duration, Duration),
+    ) -> Option<Duration> {
         let mut queue = lock(&self.queue);
         loop {
             if queue.closed {
@@ -117,10 +131,10 @@ impl Pacer {
                 None => Duration::from_millis(100),
                 Some(&(at, _)) => {
                     let left = at.saturating_sub(self.clock.now());
-                    if left <= SPIN_THRESHOLD {
+                    if left <= spin_threshold {
                         return Some(at);
                     }
-                    left - SLEEP_MARGIN
+                    left - sleep_margin
                 }
             };
             queue = self
@@ -130,4 +144,24 @@ impl Pacer {
                 .unwrap_or_else(|poisoned| poisoned.into_inner().0);
         }
     }
+}
+
+/// Asks for SCHED_FIFO (priority 10) for the calling thread, so that compilers and other busy
+/// processes on the machine do not preempt a byte in the middle of a frame. Best effort: without
+/// the privilege (CAP_SYS_NICE) the thread keeps the normal policy. Its waits are sleeps except
+/// for the last [`SPIN_THRESHOLD`] before a byte, and the kernel's real-time throttling bounds it.
+pub fn raise_to_realtime() -> bool {
+    // SAFETY: prctl(PR_SET_TIMERSLACK, 1 ns) only changes the calling thread's timer slack.
+    unsafe { nix::libc::prctl(nix::libc::PR_SET_TIMERSLACK, 1, 0, 0, 0) };
+    let param = nix::libc::sched_param { sched_priority: 10 };
+    // SAFETY: plain FFI call on the calling thread (pid 0) with a valid, initialised parameter.
+    let result = unsafe { nix::libc::sched_setscheduler(0, nix::libc::SCHED_FIFO, &param) };
+    if result != 0 {
+        tracing::debug!(
+            "sim: no real-time priority for {:?}: {}",
+            std::thread::current().name(),
+            std::io::Error::last_os_error()
+        );
+    }
+    result == 0
 }
