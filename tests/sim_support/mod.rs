@@ -32,6 +32,7 @@ pub struct SimProcess {
     pub pty: PathBuf,
     pub control: PathBuf,
     pub stdout: Receiver<String>,
+    banner: Vec<String>,
 }
 
 impl SimProcess {
@@ -63,21 +64,27 @@ impl SimProcess {
                 }
             }
         });
-        let process = Self {
+        let mut process = Self {
             child,
             dir,
             pty,
             control,
             stdout,
+            banner: Vec::new(),
         };
         loop {
             match process.stdout.recv_timeout(Duration::from_secs(30)) {
                 Ok(line) if line == "ready" => break,
-                Ok(_) => {}
+                Ok(line) => process.banner.push(line),
                 Err(err) => panic!("the simulator did not get ready: {err}"),
             }
         }
         process
+    }
+
+    /// The lines printed before "ready".
+    pub fn banner(&self) -> &[String] {
+        &self.banner
     }
 
     /// Sends one control command, returns its reply.
