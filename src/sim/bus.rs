@@ -7,7 +7,6 @@
 
 use std::time::Duration;
 
-use crate::protocol::crc::crc_is_valid;
 use crate::protocol::fast::BROADCAST_ADDRESS;
 use crate::protocol::frame::{CLASSIC_BROADCAST, MAX_DEVICE_ADDRESS};
 use crate::protocol::parser::ARBITRATION_FILLER;
@@ -20,67 +19,8 @@ use crate::protocol::{
 use super::device::{ValueChange, VirtualDevice};
 use super::faults::{FaultAction, XorShift64};
 use super::line::{MasterLine, ReceivedRequest, RequestAssembler};
-
-/// Bytes sent back to back from `start`, one character time each.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct Burst {
-    /// When the start bit of the first byte goes on the wire.
-    pub start: Duration,
-    pub char_time: Duration,
-    pub bytes: Vec<u8>,
-}
-
-/// Everything the devices put on the wire in answer to one request.
-#[derive(Debug, Clone, Default, PartialEq, Eq)]
-pub struct Transmission {
-    /// In time order; they never overlap.
-    pub bursts: Vec<Burst>,
-}
-
-impl Transmission {
-    pub fn is_empty(&self) -> bool {
-        self.bursts.iter().all(|burst| burst.bytes.is_empty())
-    }
-
-    /// The bytes as the master reads them.
-    pub fn bytes(&self) -> Vec<u8> {
-        self.bursts
-            .iter()
-            .flat_map(|b| b.bytes.iter().copied())
-            .collect()
-    }
-
-    /// Each byte with the time its stop bit ends, which is when a UART hands it to the reader.
-    pub fn arrivals(&self) -> Vec<(Duration, u8)> {
-        self.bursts
-            .iter()
-            .flat_map(|burst| {
-                burst.bytes.iter().enumerate().map(move |(i, &byte)| {
-                    let index = u32::try_from(i + 1).unwrap_or(u32::MAX);
-                    (burst.start + burst.char_time * index, byte)
-                })
-            })
-            .collect()
-    }
-
-    /// When the last byte has arrived.
-    pub fn end(&self) -> Option<Duration> {
-        self.arrivals().last().map(|&(at, _)| at)
-    }
-
-    /// Leading 0xFF arbitration bytes.
-    pub fn filler_count(&self) -> usize {
-        self.bytes()
-            .iter()
-            .take_while(|&&b| b == ARBITRATION_FILLER)
-            .count()
-    }
-
-    fn append(&mut self, other: Transmission) {
-        self.bursts.extend(other.bursts);
-        self.bursts.sort_by_key(|burst| burst.start);
-    }
-}
+pub use super::transmission::Transmission;
+use super::transmission::{collide, Burst, TimedFrame};
 
 /// Who changed a register.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -543,7 +483,15 @@ impl Bus {
         }
         let mut bursts = fillers;
         if sent.len() > 1 {
-            bursts.extend(collide(&sent));
+            let frames: Vec<TimedFrame> = sent
+                .into_iter()
+                .map(|reply| TimedFrame {
+                    start: reply.start,
+                    char_time: reply.line.char_time(),
+                    frame: reply.frame,
+                })
+                .collect();
+            bursts.extend(collide(&frames));
         } else {
             bursts.extend(sent.into_iter().map(|reply| Burst {
                 start: reply.start,
@@ -564,43 +512,4 @@ fn illegal_function(address: u8, function: u8) -> Reply {
             code: ExceptionCode::ILLEGAL_FUNCTION,
         },
     )
-}
-
-/// Several devices talking at once. RS-485 receivers see roughly the wired AND of the drivers
-/// (a 0 bit from anyone pulls the line), so bytes that overlap in time merge by AND. Two devices
-/// are never exactly in step: if the merged bytes still carry a valid CRC (identical replies
-/// started together), the last byte is spoiled, as bit-level skew would on a real bus.
-fn collide(replies: &[PlannedReply]) -> Vec<Burst> {
-    let mut bytes: Vec<(Duration, Duration, u8)> = replies
-        .iter()
-        .flat_map(|reply| {
-            let char_time = reply.line.char_time();
-            reply.frame.iter().enumerate().map(move |(i, &byte)| {
-                let index = u32::try_from(i).unwrap_or(u32::MAX);
-                (reply.start + char_time * index, char_time, byte)
-            })
-        })
-        .collect();
-    bytes.sort_by_key(|&(start, _, _)| start);
-    let mut merged: Vec<(Duration, Duration, u8)> = Vec::with_capacity(bytes.len());
-    for (start, char_time, byte) in bytes {
-        match merged.last_mut() {
-            Some(last) if start < last.0 + last.1 => last.2 &= byte,
-            _ => merged.push((start, char_time, byte)),
-        }
-    }
-    let frame: Vec<u8> = merged.iter().map(|&(_, _, byte)| byte).collect();
-    if crc_is_valid(&frame) {
-        if let Some(last) = merged.last_mut() {
-            last.2 ^= 0xFF;
-        }
-    }
-    merged
-        .into_iter()
-        .map(|(start, char_time, byte)| Burst {
-            start,
-            char_time,
-            bytes: vec![byte],
-        })
-        .collect()
 }

@@ -21,15 +21,17 @@ pub mod events;
 pub mod faults;
 pub mod line;
 pub mod registers;
+pub mod transmission;
 
 #[cfg(test)]
 mod bus_tests;
 
-pub use bus::{Burst, Bus, ChangeOrigin, RegisterChange, Transmission};
+pub use bus::{Bus, ChangeOrigin, RegisterChange};
 pub use device::{DeviceSpec, ValueChange, VirtualDevice};
 pub use faults::Faults;
 pub use line::{MasterLine, ObservedParity, ReceivedRequest, RequestAssembler};
 pub use registers::RegisterMap;
+pub use transmission::{Burst, Transmission};
 
 pub mod bus_file;
 pub mod template_map;

@@ -156,7 +156,11 @@ impl RegisterMap {
                 .unwrap_or(0);
             (acc << 16) | u64::from(word)
         });
-        value.to_le_bytes()[..usize::from(width) * 2].to_vec()
+        let bytes = value.to_le_bytes();
+        bytes
+            .get(..usize::from(width) * 2)
+            .unwrap_or(&bytes)
+            .to_vec()
     }
 
     /// Registers of one table in address order.
