@@ -10,5 +10,6 @@ pub mod daemon;
 pub mod device;
 pub mod port;
 pub mod protocol;
+pub mod sim;
 pub mod transport;
 pub mod updates;

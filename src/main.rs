@@ -21,6 +21,8 @@ enum Command {
     Run(cli::run::Args),
     /// Explain a Modbus RTU or Fast Modbus frame given as hex (e.g. "FD 46 10 00 FF 00 00 C8 9A").
     Decode(cli::decode::Args),
+    /// Run a virtual RS-485 bus of classic and Fast Modbus devices on a pty or TCP port.
+    Sim(cli::sim::Args),
 }
 
 fn main() -> std::process::ExitCode {
@@ -31,6 +33,7 @@ fn main() -> std::process::ExitCode {
         Command::Schema(args) => cli::schema::run(args),
         Command::Run(args) => cli::run::run(args),
         Command::Decode(args) => cli::decode::run(args),
+        Command::Sim(args) => cli::sim::run(args),
     };
     match result {
         Ok(code) => code,

@@ -70,10 +70,8 @@ fn event_range() -> impl Strategy<Value = EventRange> {
         Just(EventPriority::High)
     ];
     (register_type(), any::<u16>(), vec(priority, 1..=40)).prop_map(
-        |(register_type, start, priorities)| EventRange {
-            register_type,
-            start,
-            priorities,
+        |(register_type, start, priorities)| {
+            EventRange::registers(register_type, start, priorities)
         },
     )
 }
@@ -340,11 +338,11 @@ fn bad_quantity_by_serial_is_rejected_inside_a_0x09_reply() {
 fn fast_exception_answers_a_configure_request() {
     let request = Request::configure_events(
         5,
-        vec![EventRange {
-            register_type: RegisterType::Coil,
-            start: 0,
-            priorities: vec![EventPriority::High],
-        }],
+        vec![EventRange::registers(
+            RegisterType::Coil,
+            0,
+            vec![EventPriority::High],
+        )],
     );
     let exception = Reply::classic(
         5,

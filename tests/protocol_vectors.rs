@@ -54,7 +54,7 @@ fn event_ranges(meaning: &Value) -> Vec<EventRange> {
         .unwrap()
         .iter()
         .map(|range| EventRange {
-            register_type: RegisterType::from_wire(num(range, "type") as u8).unwrap(),
+            source: EventSource::from_wire(num(range, "type") as u8),
             start: num(range, "start") as u16,
             priorities: range["priorities"]
                 .as_array()
@@ -356,10 +356,22 @@ fn multi_range_masks_split_by_request() {
         Some(vec![vec![5], vec![5, 0]])
     );
     let enabled = rtu2mqtt::protocol::fast::enabled_registers(&masks, &ranges).unwrap();
-    assert_eq!(enabled[0], (RegisterType::DiscreteInput, 4, true));
-    assert_eq!(enabled[1], (RegisterType::DiscreteInput, 5, false));
-    assert_eq!(enabled[5], (RegisterType::Input, 466, true));
-    assert_eq!(enabled[12], (RegisterType::Input, 473, false));
+    assert_eq!(
+        enabled[0],
+        (EventSource::Register(RegisterType::DiscreteInput), 4, true)
+    );
+    assert_eq!(
+        enabled[1],
+        (EventSource::Register(RegisterType::DiscreteInput), 5, false)
+    );
+    assert_eq!(
+        enabled[5],
+        (EventSource::Register(RegisterType::Input), 466, true)
+    );
+    assert_eq!(
+        enabled[12],
+        (EventSource::Register(RegisterType::Input), 473, false)
+    );
 }
 
 #[test]

@@ -9,7 +9,7 @@ use rtu2mqtt::protocol::{
 };
 
 fn request_for(selector: u8) -> Option<Request> {
-    let range = EventRange { register_type: RegisterType::Coil, start: 0, priorities: vec![EventPriority::High; 9] };
+    let range = EventRange::registers(RegisterType::Coil, 0, vec![EventPriority::High; 9]);
     Some(match selector % 9 {
         0 => return None,
         1 => Request::classic(20, RequestPdu::ReadHoldingRegisters { start: 128, count: 3 }),

@@ -7,6 +7,7 @@ pub mod check;
 pub mod decode;
 pub mod run;
 pub mod schema;
+pub mod sim;
 
 /// Logs to stderr; `RUST_LOG` (e.g. `debug`, `rtu2mqtt::transport=debug`) picks the detail.
 pub fn init_logging() {

@@ -7,7 +7,7 @@ use super::health::{DeviceHealth, HealthChange};
 use super::plan::{DevicePlan, EventMode};
 use super::read_plan::RegisterSpan;
 use crate::protocol::frame::MAX_FRAME_LEN;
-use crate::protocol::{EventPriority, EventRange, RegisterType};
+use crate::protocol::{EventPriority, EventRange, EventSource, RegisterType};
 
 /// How often a device whose every channel comes by events is read anyway, so that a dead device
 /// is noticed.
@@ -170,7 +170,7 @@ impl DeviceState {
             let count = usize::from(span.count);
             // Registers right after the previous range join it: one header for the lot.
             if let Some(last) = ranges.last_mut().filter(|last: &&mut EventRange| {
-                last.register_type == span.register_type
+                last.source == EventSource::Register(span.register_type)
                     && u32::from(last.start) + last.priorities.len() as u32 == u32::from(span.start)
                     && last.priorities.len() + count <= 255
             }) {
@@ -186,11 +186,11 @@ impl DeviceState {
                 continue;
             }
             room -= len;
-            ranges.push(EventRange {
-                register_type: span.register_type,
-                start: span.start,
-                priorities: vec![priority; count],
-            });
+            ranges.push(EventRange::registers(
+                span.register_type,
+                span.start,
+                vec![priority; count],
+            ));
             members.push(index);
         }
         (ranges, members)
@@ -205,12 +205,12 @@ impl DeviceState {
         &mut self,
         now: Duration,
         members: &[usize],
-        enabled: &[(RegisterType, u16, bool)],
+        enabled: &[(EventSource, u16, bool)],
     ) {
         let is_enabled = |register_type: RegisterType, address: u16| {
             enabled
                 .iter()
-                .any(|&(t, a, on)| on && t == register_type && a == address)
+                .any(|&(t, a, on)| on && t == EventSource::Register(register_type) && a == address)
         };
         let mut any = false;
         for &member in members {

@@ -100,15 +100,30 @@ impl EventPriority {
 }
 
 /// One range of a 0x18 request: consecutive registers of one type, a priority each.
+/// `source` is a register table, or [`EventSource::System`] for system events: wb-mqtt-serial
+/// appends `0F 0000 01 00` (the reboot event, disabled) to every enable request.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct EventRange {
-    pub register_type: RegisterType,
+    pub source: EventSource,
     pub start: u16,
     /// One per register, 1..=255 of them.
     pub priorities: Vec<EventPriority>,
 }
 
 impl EventRange {
+    /// A range of registers of one table.
+    pub fn registers(
+        register_type: RegisterType,
+        start: u16,
+        priorities: Vec<EventPriority>,
+    ) -> Self {
+        Self {
+            source: EventSource::Register(register_type),
+            start,
+            priorities,
+        }
+    }
+
     /// Bytes of this range's bitmask in the reply.
     pub fn mask_len(&self) -> usize {
         self.priorities.len().div_ceil(8)
@@ -284,7 +299,7 @@ impl FastRequest {
                             count: range.priorities.len(),
                             max: 255,
                         })?;
-                    out.push(range.register_type.to_wire());
+                    out.push(range.source.to_wire());
                     out.extend_from_slice(&range.start.to_be_bytes());
                     out.push(count);
                     out.extend(range.priorities.iter().map(|&p| p as u8));
@@ -359,8 +374,10 @@ fn decode_event_range(list: &mut Reader<'_>) -> Result<EventRange, DecodeError> 
         function: FUNCTION,
         what,
     };
-    let register_type = RegisterType::from_wire(list.u8()?)
-        .ok_or(invalid("unknown register type in an event range"))?;
+    let source = match EventSource::from_wire(list.u8()?) {
+        EventSource::Other(_) => return Err(invalid("unknown register type in an event range")),
+        known => known,
+    };
     let start = list.u16_be()?;
     let count = list.u8()?;
     if count == 0 {
@@ -374,7 +391,7 @@ fn decode_event_range(list: &mut Reader<'_>) -> Result<EventRange, DecodeError> 
         })
         .collect::<Result<_, _>>()?;
     Ok(EventRange {
-        register_type,
+        source,
         start,
         priorities,
     })
@@ -535,7 +552,7 @@ pub fn split_event_masks(masks: &[u8], ranges: &[EventRange]) -> Option<Vec<Vec<
 pub fn enabled_registers(
     masks: &[u8],
     ranges: &[EventRange],
-) -> Option<Vec<(RegisterType, u16, bool)>> {
+) -> Option<Vec<(EventSource, u16, bool)>> {
     let split = split_event_masks(masks, ranges)?;
     let mut enabled = Vec::new();
     for (range, mask) in ranges.iter().zip(split) {
@@ -544,8 +561,39 @@ pub fn enabled_registers(
                 .get(index / 8)
                 .is_some_and(|byte| byte & (1 << (index % 8)) != 0);
             let offset = u16::try_from(index).unwrap_or(u16::MAX);
-            enabled.push((range.register_type, range.start.wrapping_add(offset), bit));
+            enabled.push((range.source, range.start.wrapping_add(offset), bit));
         }
     }
     Some(enabled)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::protocol::{parse_hex, Request, RequestBody};
+
+    /// wb-mqtt-serial's enable request: holding 1 at low priority, then the reboot event disabled
+    /// (TPollTest.SingleDeviceSingleRegisterWithEvents).
+    #[test]
+    fn enable_request_with_the_reboot_record_decodes() {
+        let frame = parse_hex("01 46 18 0A 03 00 01 01 01 0F 00 00 01 00 28 7D").unwrap();
+        let request = Request::decode(&frame).unwrap();
+        let RequestBody::Fast(FastRequest::ConfigureEvents { ranges }) = &request.body else {
+            panic!("not a 0x18 request");
+        };
+        assert_eq!(
+            ranges,
+            &vec![
+                EventRange::registers(RegisterType::Holding, 1, vec![EventPriority::Low]),
+                EventRange {
+                    source: EventSource::System,
+                    start: 0,
+                    priorities: vec![EventPriority::Disabled],
+                },
+            ]
+        );
+        assert_eq!(request.encode().unwrap(), frame);
+        let unknown = parse_hex("01 46 18 05 07 00 01 01 01").unwrap();
+        assert!(FastRequest::decode(&unknown[2..]).is_err());
+    }
 }

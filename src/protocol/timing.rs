@@ -106,6 +106,18 @@ impl LineSettings {
         three_and_half_chars.max(self.bits_time(12) + Duration::from_micros(800))
     }
 
+    /// When a device opens the first arbitration window after the end of a broadcast request:
+    /// `max(3.5 characters, 800 µs rounded up to whole bits)`. This is the article's device-side
+    /// figure (807.3 µs at 115200), never later than [`Self::arbitration_wait`], which masters use
+    /// with its extra 12 bits as a margin.
+    pub fn device_arbitration_wait(&self) -> Duration {
+        let three_and_half_chars = self
+            .bits_time(u64::from(self.bits_per_char()) * 7)
+            .div_f64(2.0);
+        let floor = self.bits_time(self.bits_covering(Duration::from_micros(800)));
+        three_and_half_chars.max(floor)
+    }
+
     /// One arbitration window: `max(13 bits, 12 bits + 50 µs rounded up to whole bits)`.
     pub fn arbitration_window(&self) -> Duration {
         let reserve_bits = self.bits_covering(Duration::from_micros(50));
@@ -222,6 +234,14 @@ mod tests {
         assert!((micros(line.scan_reply_timeout()) - (904.17 + 32.0 * 156.25)).abs() < 0.1);
         assert!((micros(line.event_reply_timeout()) - (904.17 + 12.0 * 156.25)).abs() < 0.1);
         assert!(line.event_first_byte_timeout() < line.event_reply_timeout());
+        // The article: ceil(800 µs / 8.681 µs) = 93 bits = 807.3 µs.
+        assert!((micros(line.device_arbitration_wait()) - 807.29).abs() < 0.01);
+        for baud in STANDARD_BAUD_RATES {
+            for (parity, stop_bits) in [(Parity::None, 1), (Parity::Even, 1), (Parity::Odd, 2)] {
+                let line = LineSettings::new(baud, parity, stop_bits);
+                assert!(line.device_arbitration_wait() <= line.arbitration_wait());
+            }
+        }
     }
 
     #[test]

@@ -1,0 +1,515 @@
+//! The virtual RS-485 bus: every device hears every request sent with its port settings, and the
+//! bus works out what goes back on the wire and when: classic replies after the device's
+//! turnaround, arbitration filler bytes at the start of each window where a contender sends a 0
+//! bit, the winner's frame after the last window, and wired-AND garbage when several devices
+//! answer at once. Pure and deterministic: time comes in with each request, faults come from a
+//! seeded generator.
+
+use std::time::Duration;
+
+use crate::protocol::fast::BROADCAST_ADDRESS;
+use crate::protocol::frame::{CLASSIC_BROADCAST, MAX_DEVICE_ADDRESS};
+use crate::protocol::parser::ARBITRATION_FILLER;
+use crate::protocol::{
+    arbitrate, ArbitrationWord, EventPoll, EventUrgency, ExceptionCode, FastReply, FastRequest,
+    LineSettings, ParsedRequest, RegisterType, RejectedRequest, Reply, RequestBody, RequestPdu,
+    ResponsePdu,
+};
+
+use super::device::{ValueChange, VirtualDevice};
+use super::faults::{FaultAction, XorShift64};
+use super::line::{MasterLine, ReceivedRequest, RequestAssembler};
+pub use super::transmission::Transmission;
+use super::transmission::{collide, Burst, TimedFrame};
+
+/// Who changed a register.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ChangeOrigin {
+    /// A write request from the master.
+    Master,
+    /// The control interface or a script (the physical world).
+    Control,
+}
+
+/// One register change, for the change log.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct RegisterChange {
+    pub at: Duration,
+    pub device: String,
+    pub address: u8,
+    pub serial: u32,
+    pub change: ValueChange,
+    pub origin: ChangeOrigin,
+}
+
+/// A reply a device is about to send.
+struct PlannedReply {
+    device: usize,
+    frame: Vec<u8>,
+    start: Duration,
+    line: LineSettings,
+}
+
+pub struct Bus {
+    devices: Vec<VirtualDevice>,
+    rng: XorShift64,
+    changes: Vec<RegisterChange>,
+}
+
+impl Bus {
+    pub fn new(devices: Vec<VirtualDevice>, seed: u64) -> Self {
+        Self {
+            devices,
+            rng: XorShift64::new(seed),
+            changes: Vec::new(),
+        }
+    }
+
+    pub fn devices(&self) -> &[VirtualDevice] {
+        &self.devices
+    }
+
+    pub fn device_mut(&mut self, index: usize) -> Option<&mut VirtualDevice> {
+        self.devices.get_mut(index)
+    }
+
+    /// Register changes since the last call.
+    pub fn take_changes(&mut self) -> Vec<RegisterChange> {
+        std::mem::take(&mut self.changes)
+    }
+
+    /// Writes registers of device `index` from outside the bus (control interface, script).
+    pub fn write_register(
+        &mut self,
+        index: usize,
+        register_type: RegisterType,
+        start: u16,
+        values: &[u16],
+        at: Duration,
+    ) -> Result<(), ExceptionCode> {
+        let device = self
+            .devices
+            .get_mut(index)
+            .ok_or(ExceptionCode::GATEWAY_TARGET_FAILED)?;
+        let changes = device.write(register_type, start, values, false)?;
+        self.record(index, changes, at, ChangeOrigin::Control);
+        Ok(())
+    }
+
+    fn record(
+        &mut self,
+        index: usize,
+        changes: Vec<ValueChange>,
+        at: Duration,
+        origin: ChangeOrigin,
+    ) {
+        let Some(device) = self.devices.get(index) else {
+            return;
+        };
+        for change in changes {
+            self.changes.push(RegisterChange {
+                at,
+                device: device.name.clone(),
+                address: device.address(),
+                serial: device.serial,
+                change,
+                origin,
+            });
+        }
+    }
+
+    /// Convenience for tests and fuzzing: `frame` written at once at `at`, followed by silence.
+    pub fn exchange(&mut self, frame: &[u8], line: MasterLine, at: Duration) -> Transmission {
+        let mut assembler = RequestAssembler::new();
+        let mut requests = assembler.receive(frame, at, line);
+        requests.extend(assembler.on_silence());
+        let mut transmission = Transmission::default();
+        for request in &requests {
+            transmission.append(self.handle(request));
+        }
+        transmission
+    }
+
+    /// What goes back on the wire in answer to one request.
+    pub fn handle(&mut self, received: &ReceivedRequest) -> Transmission {
+        let listeners: Vec<usize> = (0..self.devices.len())
+            .filter(|&i| {
+                self.devices
+                    .get(i)
+                    .is_some_and(|d| d.plugged && received.line.matches(&d.line()))
+            })
+            .collect();
+        let mut replies = Vec::new();
+        let mut fillers = Vec::new();
+        match &received.request {
+            ParsedRequest::Rejected(rejected) => {
+                self.reject(rejected, &listeners, received, &mut replies);
+            }
+            ParsedRequest::Valid(request) => match &request.body {
+                RequestBody::Classic(pdu) => {
+                    self.classic(request.address, pdu, &listeners, received, &mut replies);
+                }
+                RequestBody::Fast(fast) if request.address == BROADCAST_ADDRESS => {
+                    let fast_listeners: Vec<usize> = listeners
+                        .iter()
+                        .copied()
+                        .filter(|&i| self.devices.get(i).is_some_and(|d| d.fast))
+                        .collect();
+                    self.fast_broadcast(
+                        fast,
+                        &fast_listeners,
+                        received,
+                        &mut replies,
+                        &mut fillers,
+                    );
+                }
+                RequestBody::Fast(fast) => {
+                    self.fast_addressed(request.address, fast, &listeners, received, &mut replies);
+                }
+            },
+        }
+        self.finish(fillers, replies)
+    }
+
+    fn at_address(&self, listeners: &[usize], address: u8) -> Vec<usize> {
+        listeners
+            .iter()
+            .copied()
+            .filter(|&i| self.devices.get(i).is_some_and(|d| d.address() == address))
+            .collect()
+    }
+
+    /// A reply after the device's turnaround, timed on its settings before the request ran.
+    fn plan(
+        &self,
+        index: usize,
+        reply: &Reply,
+        line: LineSettings,
+        received: &ReceivedRequest,
+    ) -> Option<PlannedReply> {
+        let device = self.devices.get(index)?;
+        let frame = match reply.encode() {
+            Ok(frame) => frame,
+            Err(err) => {
+                tracing::warn!("sim: {}: reply does not encode: {err}", device.name);
+                return None;
+            }
+        };
+        Some(PlannedReply {
+            device: index,
+            frame,
+            start: received.end_on_wire(&line) + device.turnaround,
+            line,
+        })
+    }
+
+    fn reject(
+        &mut self,
+        rejected: &RejectedRequest,
+        listeners: &[usize],
+        received: &ReceivedRequest,
+        replies: &mut Vec<PlannedReply>,
+    ) {
+        let targets: Vec<usize> = match (rejected.address, rejected.by_serial) {
+            (BROADCAST_ADDRESS, Some((serial, _))) => listeners
+                .iter()
+                .copied()
+                .filter(|&i| {
+                    self.devices
+                        .get(i)
+                        .is_some_and(|d| d.fast && d.serial == serial)
+                })
+                .collect(),
+            (address, _) if (1..=MAX_DEVICE_ADDRESS).contains(&address) => {
+                self.at_address(listeners, address)
+            }
+            _ => Vec::new(),
+        };
+        for index in targets {
+            let Some(device) = self.devices.get(index) else {
+                continue;
+            };
+            let reply = if rejected.function == crate::protocol::fast::FUNCTION && !device.fast {
+                illegal_function(rejected.address, rejected.function)
+            } else {
+                rejected.exception_reply()
+            };
+            replies.extend(self.plan(index, &reply, device.line(), received));
+        }
+    }
+
+    fn classic(
+        &mut self,
+        address: u8,
+        pdu: &RequestPdu,
+        listeners: &[usize],
+        received: &ReceivedRequest,
+        replies: &mut Vec<PlannedReply>,
+    ) {
+        let targets = if address == CLASSIC_BROADCAST {
+            listeners.to_vec()
+        } else {
+            self.at_address(listeners, address)
+        };
+        for index in targets {
+            let Some(device) = self.devices.get_mut(index) else {
+                continue;
+            };
+            let line = device.line();
+            let (response, changes) = device.execute(pdu);
+            let at = received.end_on_wire(&line);
+            self.record(index, changes, at, ChangeOrigin::Master);
+            if address != CLASSIC_BROADCAST {
+                replies.extend(self.plan(
+                    index,
+                    &Reply::classic(address, response),
+                    line,
+                    received,
+                ));
+            }
+        }
+    }
+
+    fn fast_addressed(
+        &mut self,
+        address: u8,
+        request: &FastRequest,
+        listeners: &[usize],
+        received: &ReceivedRequest,
+        replies: &mut Vec<PlannedReply>,
+    ) {
+        if !(1..=MAX_DEVICE_ADDRESS).contains(&address) {
+            return;
+        }
+        for index in self.at_address(listeners, address) {
+            let Some(device) = self.devices.get_mut(index) else {
+                continue;
+            };
+            let line = device.line();
+            let reply = match request {
+                FastRequest::ConfigureEvents { ranges } if device.fast => Reply::fast(
+                    address,
+                    FastReply::EventsConfigured {
+                        masks: device.configure_events(ranges),
+                    },
+                ),
+                _ => illegal_function(address, crate::protocol::fast::FUNCTION),
+            };
+            replies.extend(self.plan(index, &reply, line, received));
+        }
+    }
+
+    fn fast_broadcast(
+        &mut self,
+        request: &FastRequest,
+        listeners: &[usize],
+        received: &ReceivedRequest,
+        replies: &mut Vec<PlannedReply>,
+        fillers: &mut Vec<Burst>,
+    ) {
+        match request {
+            FastRequest::ScanStart | FastRequest::ScanContinue => {
+                if *request == FastRequest::ScanStart {
+                    for &i in listeners {
+                        if let Some(device) = self.devices.get_mut(i) {
+                            device.set_scanned(false);
+                        }
+                    }
+                }
+                let contenders: Vec<(usize, ArbitrationWord)> = listeners
+                    .iter()
+                    .filter_map(|&i| {
+                        let d = self.devices.get(i)?;
+                        Some((i, ArbitrationWord::scan(d.serial, d.is_scanned())))
+                    })
+                    .collect();
+                self.arbitration_round(&contenders, received, replies, fillers, |device| {
+                    if device.is_scanned() {
+                        Reply::fast(BROADCAST_ADDRESS, FastReply::ScanEnd)
+                    } else {
+                        device.set_scanned(true);
+                        Reply::fast(
+                            BROADCAST_ADDRESS,
+                            FastReply::ScanFound {
+                                serial: device.serial,
+                                modbus_address: device.address(),
+                            },
+                        )
+                    }
+                });
+            }
+            FastRequest::PollEvents(poll) => {
+                self.event_round(poll, listeners, received, replies, fillers)
+            }
+            FastRequest::BySerial { serial, pdu } => {
+                for &index in listeners {
+                    let Some(device) = self.devices.get_mut(index).filter(|d| d.serial == *serial)
+                    else {
+                        continue;
+                    };
+                    let line = device.line();
+                    let (response, changes) = device.execute(pdu);
+                    self.record(
+                        index,
+                        changes,
+                        received.end_on_wire(&line),
+                        ChangeOrigin::Master,
+                    );
+                    let reply = Reply::fast(
+                        BROADCAST_ADDRESS,
+                        FastReply::BySerial {
+                            serial: *serial,
+                            pdu: response,
+                        },
+                    );
+                    replies.extend(self.plan(index, &reply, line, received));
+                }
+            }
+            // Event settings go to a device's own address, never to 0xFD.
+            FastRequest::ConfigureEvents { .. } => {}
+        }
+    }
+
+    fn event_round(
+        &mut self,
+        poll: &EventPoll,
+        listeners: &[usize],
+        received: &ReceivedRequest,
+        replies: &mut Vec<PlannedReply>,
+        fillers: &mut Vec<Burst>,
+    ) {
+        for &i in listeners {
+            if let Some(device) = self.devices.get_mut(i) {
+                device.acknowledge_events(poll);
+            }
+        }
+        let contenders: Vec<(usize, ArbitrationWord)> = listeners
+            .iter()
+            .filter_map(|&i| {
+                let d = self.devices.get(i)?;
+                let address = d.address();
+                let takes_part =
+                    (1..=MAX_DEVICE_ADDRESS).contains(&address) && address >= poll.min_address;
+                takes_part.then(|| (i, ArbitrationWord::event(d.event_urgency(), address)))
+            })
+            .collect();
+        let max_data_len = poll.max_data_len;
+        self.arbitration_round(&contenders, received, replies, fillers, |device| {
+            if device.event_urgency() == EventUrgency::Nothing {
+                Reply::fast(BROADCAST_ADDRESS, FastReply::NoEvents)
+            } else {
+                let address = device.address();
+                Reply::fast(
+                    address,
+                    FastReply::Events(device.event_packet(max_data_len)),
+                )
+            }
+        });
+    }
+
+    /// Runs one arbitration among `contenders`: filler bytes for the dominant windows, then the
+    /// frame of the winner (of every winner when two words are equal, which collides).
+    fn arbitration_round(
+        &mut self,
+        contenders: &[(usize, ArbitrationWord)],
+        received: &ReceivedRequest,
+        replies: &mut Vec<PlannedReply>,
+        fillers: &mut Vec<Burst>,
+        mut winner_reply: impl FnMut(&mut VirtualDevice) -> Reply,
+    ) {
+        let words: Vec<ArbitrationWord> = contenders.iter().map(|&(_, word)| word).collect();
+        let Some(outcome) = arbitrate(&words) else {
+            return;
+        };
+        let Some(&winning_word) = words.get(outcome.winner) else {
+            return;
+        };
+        let winners: Vec<usize> = contenders
+            .iter()
+            .filter(|&&(_, word)| word == winning_word)
+            .map(|&(i, _)| i)
+            .collect();
+        let Some(line) = winners
+            .first()
+            .and_then(|&i| self.devices.get(i))
+            .map(VirtualDevice::line)
+        else {
+            return;
+        };
+        let first_window = received.end_on_wire(&line) + line.device_arbitration_wait();
+        let window = line.arbitration_window();
+        for (index, &dominant) in outcome.dominant_windows.iter().enumerate() {
+            if dominant {
+                fillers.push(Burst {
+                    start: first_window + window * u32::try_from(index).unwrap_or(u32::MAX),
+                    char_time: line.char_time(),
+                    bytes: vec![ARBITRATION_FILLER],
+                });
+            }
+        }
+        let frame_start = first_window + window * winning_word.windows;
+        for index in winners {
+            let Some(device) = self.devices.get_mut(index) else {
+                continue;
+            };
+            let device_line = device.line();
+            let reply = winner_reply(device);
+            if let Some(mut planned) = self.plan(index, &reply, device_line, received) {
+                planned.start = frame_start;
+                replies.push(planned);
+            }
+        }
+    }
+
+    /// Applies faults, merges colliding replies, orders everything in time.
+    fn finish(&mut self, fillers: Vec<Burst>, replies: Vec<PlannedReply>) -> Transmission {
+        let mut sent = Vec::new();
+        for mut reply in replies {
+            let action = self
+                .devices
+                .get(reply.device)
+                .map_or(FaultAction::None, |d| d.faults.draw(&mut self.rng));
+            match action {
+                FaultAction::None => {}
+                FaultAction::Drop => continue,
+                FaultAction::CorruptCrc => {
+                    if let Some(last) = reply.frame.last_mut() {
+                        *last ^= 0xFF;
+                    }
+                }
+                FaultAction::Delay(delay) => reply.start += delay,
+            }
+            sent.push(reply);
+        }
+        let mut bursts = fillers;
+        if sent.len() > 1 {
+            let frames: Vec<TimedFrame> = sent
+                .into_iter()
+                .map(|reply| TimedFrame {
+                    start: reply.start,
+                    char_time: reply.line.char_time(),
+                    frame: reply.frame,
+                })
+                .collect();
+            bursts.extend(collide(&frames));
+        } else {
+            bursts.extend(sent.into_iter().map(|reply| Burst {
+                start: reply.start,
+                char_time: reply.line.char_time(),
+                bytes: reply.frame,
+            }));
+        }
+        bursts.sort_by_key(|burst| burst.start);
+        Transmission { bursts }
+    }
+}
+
+fn illegal_function(address: u8, function: u8) -> Reply {
+    Reply::classic(
+        address,
+        ResponsePdu::Exception {
+            function,
+            code: ExceptionCode::ILLEGAL_FUNCTION,
+        },
+    )
+}

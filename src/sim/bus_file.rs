@@ -1,0 +1,305 @@
+//! The bus description file (JSON): which devices are on the virtual bus.
+//!
+//! ```json
+//! { "seed": 1,
+//!   "devices": [
+//!     { "name": "relay", "template": "wb-mr6c", "address": 20, "serial": "0xFED2A3A6",
+//!       "line": "115200 8N2", "fast": true, "turnaround_us": 500,
+//!       "model": "WBMR6C", "firmware": "1.26.0",
+//!       "registers": [{"type": "holding", "address": 0, "count": 4, "events": false}],
+//!       "values": {"coil:0": 1, "holding:0": [1, 2, 3]} } ] }
+//! ```
+//! `template` is a path (relative to the bus file) when it contains `/` or ends in `.json`, else a
+//! `device_type` looked up in the templates directory. See docs/sim.md.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use serde::Deserialize;
+
+use crate::protocol::{LineSettings, Parity, RegisterType};
+
+use super::device::{DeviceSpec, VirtualDevice};
+use super::registers::RegisterMap;
+use super::template_map::{find_template, load_template};
+use super::SimError;
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BusFile {
+    /// Seed of the fault generator.
+    #[serde(default)]
+    pub seed: u64,
+    pub devices: Vec<DeviceEntry>,
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DeviceEntry {
+    pub name: Option<String>,
+    pub template: Option<String>,
+    pub address: u8,
+    pub serial: SerialNumber,
+    /// `"9600 8N2"` (the default), `"115200 8E1"`, …
+    #[serde(default = "default_line")]
+    pub line: String,
+    #[serde(default = "default_true")]
+    pub fast: bool,
+    #[serde(default = "default_turnaround_us")]
+    pub turnaround_us: u64,
+    pub model: Option<String>,
+    pub firmware: Option<String>,
+    pub signature: Option<String>,
+    #[serde(default)]
+    pub registers: Vec<RegisterBlock>,
+    /// `"type:address"` → a value, or values for consecutive registers.
+    #[serde(default)]
+    pub values: BTreeMap<String, Values>,
+}
+
+/// Registers beyond the template's (or without a template).
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RegisterBlock {
+    #[serde(rename = "type")]
+    pub register_type: String,
+    pub address: u16,
+    #[serde(default = "default_count")]
+    pub count: u16,
+    /// Each register can send events (1-register values).
+    #[serde(default)]
+    pub events: bool,
+    #[serde(default = "default_true")]
+    pub writable: bool,
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(untagged)]
+pub enum Values {
+    One(u16),
+    Many(Vec<u16>),
+}
+
+/// A serial number as a JSON number or a string (`"0xFE4000AC"` or decimal).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(try_from = "serde_json::Value")]
+pub struct SerialNumber(pub u32);
+
+impl TryFrom<serde_json::Value> for SerialNumber {
+    type Error = String;
+
+    fn try_from(value: serde_json::Value) -> Result<Self, Self::Error> {
+        parse_serial(&value).map(SerialNumber)
+    }
+}
+
+pub fn parse_serial(value: &serde_json::Value) -> Result<u32, String> {
+    let parsed = match value {
+        serde_json::Value::Number(n) => n.as_u64().and_then(|n| u32::try_from(n).ok()),
+        serde_json::Value::String(text) => {
+            let text = text.trim();
+            match text.strip_prefix("0x").or_else(|| text.strip_prefix("0X")) {
+                Some(hex) => u32::from_str_radix(hex, 16).ok(),
+                None => text.parse().ok(),
+            }
+        }
+        _ => None,
+    };
+    parsed.ok_or_else(|| format!("not a 32-bit serial number: {value}"))
+}
+
+fn default_line() -> String {
+    "9600 8N2".into()
+}
+fn default_true() -> bool {
+    true
+}
+fn default_turnaround_us() -> u64 {
+    500
+}
+fn default_count() -> u16 {
+    1
+}
+
+/// `"9600 8N2"`, `"115200-8E1"`, `"19200 8O1"`.
+pub fn parse_line(text: &str) -> Result<LineSettings, String> {
+    let err = || format!("port settings {text:?}: expected e.g. \"9600 8N2\"");
+    let (baud, framing) = text.trim().split_once([' ', '-', ',']).ok_or_else(err)?;
+    let baud: u32 = baud.trim().parse().map_err(|_| err())?;
+    let framing: Vec<char> = framing.trim().chars().collect();
+    let [data, parity, stop] = framing.as_slice() else {
+        return Err(err());
+    };
+    let parity = match parity.to_ascii_uppercase() {
+        'N' => Parity::None,
+        'E' => Parity::Even,
+        'O' => Parity::Odd,
+        _ => return Err(err()),
+    };
+    let stop_bits = match stop {
+        '1' => 1,
+        '2' => 2,
+        _ => return Err(err()),
+    };
+    if *data != '8' || baud == 0 {
+        return Err(err());
+    }
+    Ok(LineSettings::new(baud, parity, stop_bits))
+}
+
+/// `"coil"`, `"discrete"`, `"holding"`, `"input"`.
+pub fn parse_register_type(text: &str) -> Result<RegisterType, String> {
+    match text {
+        "coil" | "coils" => Ok(RegisterType::Coil),
+        "discrete" | "discrete_input" => Ok(RegisterType::DiscreteInput),
+        "holding" => Ok(RegisterType::Holding),
+        "input" => Ok(RegisterType::Input),
+        other => Err(format!(
+            "unknown register type {other:?} (coil, discrete, holding, input)"
+        )),
+    }
+}
+
+/// `"holding:128"` → (Holding, 128).
+fn parse_register_key(key: &str) -> Result<(RegisterType, u16), String> {
+    let (kind, address) = key
+        .split_once(':')
+        .ok_or_else(|| format!("register {key:?}: expected \"type:address\""))?;
+    let address =
+        crate::sim::template_map::parse_address(&serde_json::Value::String(address.into()))
+            .ok_or_else(|| format!("register {key:?}: bad address"))?;
+    Ok((parse_register_type(kind)?, address))
+}
+
+/// Reads a bus file and builds its devices.
+pub fn load_bus(
+    path: &Path,
+    templates_dir: &Path,
+) -> Result<(BusFile, Vec<VirtualDevice>), SimError> {
+    let text = std::fs::read_to_string(path).map_err(|source| SimError::Io {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    let text = super::template_map::strip_comments(&text);
+    let file: BusFile = serde_json::from_str(&text).map_err(|err| SimError::Json {
+        path: path.to_path_buf(),
+        message: err.to_string(),
+    })?;
+    let base = path.parent().unwrap_or(Path::new("."));
+    let devices = file
+        .devices
+        .iter()
+        .map(|entry| build_device(entry, base, templates_dir))
+        .collect::<Result<_, _>>()?;
+    Ok((file, devices))
+}
+
+fn template_path(reference: &str, base: &Path, templates_dir: &Path) -> Result<PathBuf, SimError> {
+    if reference.contains('/') || reference.ends_with(".json") {
+        Ok(base.join(reference))
+    } else {
+        find_template(templates_dir, reference)
+    }
+}
+
+pub fn build_device(
+    entry: &DeviceEntry,
+    base: &Path,
+    templates_dir: &Path,
+) -> Result<VirtualDevice, SimError> {
+    let name = entry
+        .name
+        .clone()
+        .unwrap_or_else(|| format!("device{}", entry.address));
+    let bad = |message: String| SimError::BusFile(format!("device {name:?}: {message}"));
+    let (registers, template_name, signature) = match &entry.template {
+        Some(reference) => {
+            let template = load_template(&template_path(reference, base, templates_dir)?)?;
+            (template.registers, template.device_type, template.signature)
+        }
+        None => (RegisterMap::new(), "-".to_string(), None),
+    };
+    let mut registers = registers;
+    for block in &entry.registers {
+        let register_type = parse_register_type(&block.register_type).map_err(bad)?;
+        registers.define(register_type, block.address, block.count, block.writable);
+        if block.events {
+            for offset in 0..block.count {
+                if let Some(address) = block.address.checked_add(offset) {
+                    registers.mark_event_source(register_type, address, 1);
+                }
+            }
+        }
+    }
+    if !(1..=247).contains(&entry.address) {
+        return Err(bad(format!("address {} is not 1..=247", entry.address)));
+    }
+    let model = entry
+        .model
+        .clone()
+        .or(signature)
+        .unwrap_or_else(|| template_name.clone());
+    let mut device = VirtualDevice::new(DeviceSpec {
+        name: name.clone(),
+        template: template_name,
+        serial: entry.serial.0,
+        address: entry.address,
+        line: parse_line(&entry.line).map_err(bad)?,
+        fast: entry.fast,
+        turnaround: Duration::from_micros(entry.turnaround_us),
+        signature: entry.signature.clone().unwrap_or_else(|| model.clone()),
+        model,
+        firmware: entry.firmware.clone().unwrap_or_else(|| "1.0.0".into()),
+        registers,
+    });
+    for (key, values) in &entry.values {
+        let (register_type, address) = parse_register_key(key).map_err(bad)?;
+        let values = match values {
+            Values::One(value) => vec![*value],
+            Values::Many(values) => values.clone(),
+        };
+        device
+            .write(register_type, address, &values, false)
+            .map_err(|code| bad(format!("initial value of {key}: {code}")))?;
+    }
+    Ok(device)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn line_settings_parse() {
+        assert_eq!(
+            parse_line("9600 8N2"),
+            Ok(LineSettings::new(9600, Parity::None, 2))
+        );
+        assert_eq!(
+            parse_line("115200-8e1"),
+            Ok(LineSettings::new(115_200, Parity::Even, 1))
+        );
+        assert!(parse_line("9600 7N1").is_err());
+        assert!(parse_line("fast").is_err());
+    }
+
+    #[test]
+    fn a_device_without_template() {
+        let entry: DeviceEntry = serde_json::from_str(
+            r#"{"address": 7, "serial": "0x0D000007", "line": "19200 8O1",
+                "registers": [{"type": "coil", "address": 0, "count": 2, "events": true}],
+                "values": {"coil:1": 1, "holding:128": 9}}"#,
+        )
+        .unwrap();
+        let device = build_device(&entry, Path::new("."), Path::new(".")).unwrap();
+        assert_eq!(device.address(), 9);
+        assert_eq!(device.serial, 0x0D00_0007);
+        assert_eq!(device.registers().get(RegisterType::Coil, 1), Some(1));
+        assert_eq!(device.line(), LineSettings::new(19200, Parity::Odd, 1));
+        assert_eq!(
+            device.registers().event_width(RegisterType::Coil, 0),
+            Some(1)
+        );
+    }
+}

@@ -1,0 +1,820 @@
+//! The bus on virtual time, byte by byte: the seed's traces, every behaviour of issue 4.
+
+use std::time::Duration;
+
+use crate::protocol::{
+    parse_hex, EventPoll, EventPriority, EventRange, EventSource, LineSettings, Parity,
+    RegisterType, Reply, ReplyBody, Request, RequestPdu,
+};
+
+use super::bus::Bus;
+use super::device::{DeviceSpec, VirtualDevice};
+use super::faults::Faults;
+use super::line::MasterLine;
+use super::registers::RegisterMap;
+
+const MCM8_SERIAL: u32 = 0xFE40_00AC;
+const MR6C_SERIAL: u32 = 0xFED2_A3A6;
+const FAST_LINE: LineSettings = LineSettings::new(115_200, Parity::None, 2);
+
+fn registers() -> RegisterMap {
+    let mut map = RegisterMap::new();
+    map.define(RegisterType::Coil, 0, 8, true);
+    map.define(RegisterType::DiscreteInput, 0, 8, false);
+    map.define(RegisterType::Holding, 0, 10, true);
+    map.define(RegisterType::Input, 0, 10, false);
+    map.define(RegisterType::Input, 471, 1, false);
+    map.define(RegisterType::Input, 60, 2, false);
+    for coil in 0..6 {
+        map.mark_event_source(RegisterType::Coil, coil, 1);
+    }
+    map.mark_event_source(RegisterType::Input, 471, 1);
+    map.mark_event_source(RegisterType::Input, 60, 2);
+    map.mark_event_source(RegisterType::DiscreteInput, 0, 1);
+    map
+}
+
+fn spec(name: &str, address: u8, serial: u32) -> DeviceSpec {
+    DeviceSpec {
+        name: name.into(),
+        template: "test".into(),
+        serial,
+        address,
+        line: FAST_LINE,
+        fast: true,
+        turnaround: Duration::from_micros(500),
+        model: "WBMCM8".into(),
+        firmware: "1.2.3".into(),
+        signature: "mcm8".into(),
+        registers: registers(),
+    }
+}
+
+fn seed_bus() -> Bus {
+    Bus::new(
+        vec![
+            VirtualDevice::new(spec("mcm8", 20, MCM8_SERIAL)),
+            VirtualDevice::new(spec("mr6c", 241, MR6C_SERIAL)),
+        ],
+        1,
+    )
+}
+
+fn master() -> MasterLine {
+    MasterLine::exact(FAST_LINE)
+}
+
+fn send(bus: &mut Bus, request: &Request) -> Vec<u8> {
+    bus.exchange(&request.encode().unwrap(), master(), Duration::ZERO)
+        .bytes()
+}
+
+fn hex(text: &str) -> Vec<u8> {
+    parse_hex(text).unwrap()
+}
+
+fn with_crc(text: &str) -> Vec<u8> {
+    let mut frame = hex(text);
+    crate::protocol::crc::append_crc(&mut frame);
+    frame
+}
+
+fn ff(count: usize) -> Vec<u8> {
+    vec![0xFF; count]
+}
+
+fn cat(a: Vec<u8>, b: Vec<u8>) -> Vec<u8> {
+    [a, b].concat()
+}
+
+fn poll(min_address: u8, max_data_len: u8, ack_address: u8, ack_flag: u8) -> Request {
+    Request::poll_events(EventPoll {
+        min_address,
+        max_data_len,
+        ack_address,
+        ack_flag,
+    })
+}
+
+fn enable(
+    address: u8,
+    register_type: RegisterType,
+    start: u16,
+    priorities: Vec<EventPriority>,
+) -> Vec<u8> {
+    let mut bus_request = Request::configure_events(
+        address,
+        vec![EventRange::registers(register_type, start, priorities)],
+    );
+    bus_request.address = address;
+    bus_request.encode().unwrap()
+}
+
+#[test]
+fn classic_read_is_byte_exact_and_timed() {
+    let mut bus = seed_bus();
+    let request = hex("14 03 00 80 00 01 87 27");
+    let start = Duration::from_millis(3);
+    let reply = bus.exchange(&request, master(), start);
+    assert_eq!(reply.bytes(), hex("14 03 02 00 14 B5 88"));
+    let first = reply.bursts[0].start;
+    assert_eq!(
+        first,
+        start + FAST_LINE.wire_time(8) + Duration::from_micros(500)
+    );
+    let last = reply.end().unwrap() - first;
+    assert!(last.abs_diff(FAST_LINE.wire_time(7)) < Duration::from_micros(1));
+}
+
+#[test]
+fn classic_functions_and_exceptions() {
+    let mut bus = seed_bus();
+    let write_coil = Request::classic(
+        20,
+        RequestPdu::WriteSingleCoil {
+            address: 2,
+            value: true,
+        },
+    );
+    assert_eq!(send(&mut bus, &write_coil), write_coil.encode().unwrap());
+    let read_coils = Request::classic(20, RequestPdu::ReadCoils { start: 0, count: 8 });
+    assert_eq!(send(&mut bus, &read_coils), with_crc("14 01 01 04"));
+    let write_regs = Request::classic(
+        20,
+        RequestPdu::WriteMultipleRegisters {
+            start: 1,
+            values: vec![0x1234, 0x5678],
+        },
+    );
+    assert_eq!(send(&mut bus, &write_regs), with_crc("14 10 00 01 00 02"));
+    let read = Request::classic(20, RequestPdu::ReadHoldingRegisters { start: 0, count: 3 });
+    assert_eq!(
+        send(&mut bus, &read),
+        with_crc("14 03 06 00 00 12 34 56 78")
+    );
+    let coils = Request::classic(
+        20,
+        RequestPdu::WriteMultipleCoils {
+            start: 0,
+            values: vec![true, false, true],
+        },
+    );
+    assert_eq!(send(&mut bus, &coils), with_crc("14 0F 00 00 00 03"));
+    let inputs = Request::classic(20, RequestPdu::ReadDiscreteInputs { start: 0, count: 3 });
+    assert_eq!(send(&mut bus, &inputs), with_crc("14 02 01 00"));
+    let input = Request::classic(20, RequestPdu::ReadInputRegisters { start: 0, count: 1 });
+    assert_eq!(send(&mut bus, &input), with_crc("14 04 02 00 00"));
+    // Unknown register: illegal data address; read-only serial number: the same.
+    let unknown = Request::classic(
+        20,
+        RequestPdu::ReadHoldingRegisters {
+            start: 5000,
+            count: 1,
+        },
+    );
+    assert_eq!(send(&mut bus, &unknown), with_crc("14 83 02"));
+    let across_hole = Request::classic(20, RequestPdu::ReadInputRegisters { start: 8, count: 4 });
+    assert_eq!(send(&mut bus, &across_hole), with_crc("14 84 02"));
+    let serial = Request::classic(
+        20,
+        RequestPdu::WriteSingleRegister {
+            address: 270,
+            value: 1,
+        },
+    );
+    assert_eq!(send(&mut bus, &serial), with_crc("14 86 02"));
+    let bad_address = Request::classic(
+        20,
+        RequestPdu::WriteSingleRegister {
+            address: 128,
+            value: 0,
+        },
+    );
+    assert_eq!(send(&mut bus, &bad_address), with_crc("14 86 03"));
+    // Unknown function: illegal function; bad count: illegal data value.
+    assert_eq!(
+        bus.exchange(&with_crc("14 2B 0E 01 00"), master(), Duration::ZERO)
+            .bytes(),
+        with_crc("14 AB 01")
+    );
+    assert_eq!(
+        bus.exchange(&with_crc("14 03 00 00 00 00"), master(), Duration::ZERO)
+            .bytes(),
+        with_crc("14 83 03")
+    );
+    assert_eq!(
+        bus.exchange(&with_crc("14 03 00 00 00 7E"), master(), Duration::ZERO)
+            .bytes(),
+        with_crc("14 83 03")
+    );
+    assert_eq!(
+        bus.exchange(&with_crc("14 05 00 00 12 34"), master(), Duration::ZERO)
+            .bytes(),
+        with_crc("14 85 03")
+    );
+    // Other addresses and broadcasts: silence (a broadcast write still executes).
+    let other = Request::classic(21, RequestPdu::ReadCoils { start: 0, count: 1 });
+    assert!(send(&mut bus, &other).is_empty());
+    let broadcast = Request::classic(
+        0,
+        RequestPdu::WriteSingleCoil {
+            address: 7,
+            value: true,
+        },
+    );
+    assert!(send(&mut bus, &broadcast).is_empty());
+    let coil7 = Request::classic(241, RequestPdu::ReadCoils { start: 7, count: 1 });
+    assert_eq!(send(&mut bus, &coil7), with_crc("F1 01 01 01"));
+    // A bad CRC is noise.
+    assert!(bus
+        .exchange(&hex("14 03 00 80 00 01 87 28"), master(), Duration::ZERO)
+        .is_empty());
+}
+
+/// The scan rounds of seed 000: 22, 15 and 20 filler bytes.
+#[test]
+fn scan_reproduces_the_seed_trace() {
+    let mut bus = seed_bus();
+    let start = Request::scan_start();
+    assert_eq!(
+        send(&mut bus, &start),
+        cat(ff(22), with_crc("FD 46 03 FE 40 00 AC 14"))
+    );
+    let next = Request::scan_continue();
+    assert_eq!(
+        send(&mut bus, &next),
+        cat(ff(15), with_crc("FD 46 03 FE D2 A3 A6 F1"))
+    );
+    assert_eq!(send(&mut bus, &next), cat(ff(20), hex("FD 46 04 D3 93")));
+    // A new scan starts over.
+    assert_eq!(
+        send(&mut bus, &start),
+        cat(ff(22), with_crc("FD 46 03 FE 40 00 AC 14"))
+    );
+}
+
+#[test]
+fn arbitration_is_timed_window_by_window() {
+    let mut bus = seed_bus();
+    let at = Duration::from_millis(1);
+    let frame = Request::scan_start().encode().unwrap();
+    let reply = bus.exchange(&frame, master(), at);
+    let end = at + FAST_LINE.wire_time(frame.len());
+    let first_window = end + FAST_LINE.device_arbitration_wait();
+    let window = FAST_LINE.arbitration_window();
+    // Window 0: both markers 0b0110 start with a 0 bit.
+    assert_eq!(reply.bursts[0].start, first_window);
+    assert_eq!(reply.bursts[0].bytes, vec![0xFF]);
+    // Window 1 is recessive for both (marker bit 1): the next filler is in window 3.
+    assert_eq!(reply.bursts[1].start, first_window + window * 3);
+    let frame_burst = reply.bursts.last().unwrap();
+    assert_eq!(frame_burst.start, first_window + window * 32);
+    assert!(frame_burst.start <= end + FAST_LINE.scan_reply_timeout());
+}
+
+/// The three event rounds of seed 000, byte for byte.
+#[test]
+fn events_reproduce_the_seed_trace() {
+    let mut bus = seed_bus();
+    let relay_enable = enable(241, RegisterType::Coil, 0, vec![EventPriority::High]);
+    assert_eq!(
+        bus.exchange(&relay_enable, master(), Duration::ZERO)
+            .bytes(),
+        hex("F1 46 18 01 01 0C CA")
+    );
+    let counter_enable = enable(20, RegisterType::Input, 471, vec![EventPriority::Low]);
+    assert_eq!(
+        bus.exchange(&counter_enable, master(), Duration::ZERO)
+            .bytes(),
+        with_crc("14 46 18 01 01")
+    );
+    bus.write_register(1, RegisterType::Coil, 0, &[1], Duration::ZERO)
+        .unwrap();
+    bus.write_register(0, RegisterType::Input, 471, &[1], Duration::ZERO)
+        .unwrap();
+    let round1 = bus.exchange(&hex("FD 46 10 00 FF 00 00 C8 9A"), master(), Duration::ZERO);
+    assert_eq!(
+        round1.bytes(),
+        cat(
+            ff(6),
+            hex("F1 46 11 00 02 09 01 01 00 00 01 00 0F 00 00 10 64")
+        )
+    );
+    let round2 = bus.exchange(&hex("FD 46 10 00 FF F1 00 8D 0A"), master(), Duration::ZERO);
+    assert_eq!(
+        round2.bytes(),
+        cat(
+            ff(8),
+            with_crc("14 46 11 00 02 0A 02 04 01 D7 01 00 00 0F 00 00")
+        )
+    );
+    let round3 = bus.exchange(&hex("FD 46 10 00 FF 14 00 C7 9A"), master(), Duration::ZERO);
+    assert_eq!(round3.bytes(), cat(ff(6), hex("FD 46 12 52 5D")));
+    // The next packets of both devices carry flag 1.
+    bus.write_register(1, RegisterType::Coil, 0, &[0], Duration::ZERO)
+        .unwrap();
+    assert_eq!(
+        send(&mut bus, &poll(0, 0xFF, 0, 0)),
+        cat(ff(6), with_crc("F1 46 11 01 01 05 01 01 00 00 00"))
+    );
+}
+
+#[test]
+fn a_lost_ack_resends_under_the_same_flag() {
+    let mut bus = seed_bus();
+    bus.exchange(
+        &enable(20, RegisterType::Coil, 0, vec![EventPriority::Low; 2]),
+        master(),
+        Duration::ZERO,
+    );
+    // The reboot event first, confirmed.
+    let reboot = cat(ff(8), with_crc("14 46 11 00 01 04 00 0F 00 00"));
+    assert_eq!(send(&mut bus, &poll(0, 0xFF, 0, 0)), reboot);
+    bus.write_register(0, RegisterType::Coil, 0, &[1], Duration::ZERO)
+        .unwrap();
+    let packet = cat(ff(8), with_crc("14 46 11 01 01 05 01 01 00 00 01"));
+    assert_eq!(send(&mut bus, &poll(0, 0xFF, 20, 0)), packet);
+    // The master missed it: it confirms nothing (or the wrong flag). Same flag, new events added.
+    assert_eq!(send(&mut bus, &poll(0, 0xFF, 0, 0)), packet);
+    bus.write_register(0, RegisterType::Coil, 1, &[1], Duration::ZERO)
+        .unwrap();
+    let both = cat(
+        ff(8),
+        with_crc("14 46 11 01 02 0A 01 01 00 00 01 01 01 00 01 01"),
+    );
+    assert_eq!(send(&mut bus, &poll(0, 0xFF, 20, 0)), both);
+    // Confirmed: device 20 has nothing left, so 241's reboot event comes through; then silence.
+    assert_eq!(
+        send(&mut bus, &poll(0, 0xFF, 20, 1)),
+        cat(ff(5), with_crc("F1 46 11 00 01 04 00 0F 00 00"))
+    );
+    assert_eq!(
+        send(&mut bus, &poll(0, 0xFF, 241, 0)),
+        cat(ff(6), hex("FD 46 12 52 5D"))
+    );
+    // The flag of device 20 toggled for its next packet.
+    bus.write_register(0, RegisterType::Coil, 1, &[0], Duration::ZERO)
+        .unwrap();
+    assert_eq!(
+        send(&mut bus, &poll(0, 0xFF, 0, 0)),
+        cat(ff(8), with_crc("14 46 11 00 01 05 01 01 00 01 00"))
+    );
+}
+
+#[test]
+fn a_change_after_sending_survives_the_ack() {
+    let mut bus = seed_bus();
+    bus.exchange(
+        &enable(20, RegisterType::Coil, 0, vec![EventPriority::Low]),
+        master(),
+        Duration::ZERO,
+    );
+    send(&mut bus, &poll(0, 0xFF, 0, 0));
+    send(&mut bus, &poll(0, 0xFF, 20, 0));
+    bus.write_register(0, RegisterType::Coil, 0, &[1], Duration::ZERO)
+        .unwrap();
+    // Reboot of the other device confirmed first, so that only device 20 has events.
+    bus.exchange(
+        &enable(241, RegisterType::Coil, 0, vec![EventPriority::Low]),
+        master(),
+        Duration::ZERO,
+    );
+    let sent = send(&mut bus, &poll(0, 0xFF, 0, 0));
+    assert_eq!(
+        sent,
+        cat(ff(8), with_crc("14 46 11 01 01 05 01 01 00 00 01"))
+    );
+    bus.write_register(0, RegisterType::Coil, 0, &[0], Duration::ZERO)
+        .unwrap();
+    let again = send(&mut bus, &poll(0, 0xFF, 20, 1));
+    assert_eq!(
+        again,
+        cat(ff(8), with_crc("14 46 11 00 01 05 01 01 00 00 00"))
+    );
+}
+
+#[test]
+fn min_address_excludes_lower_devices() {
+    let mut bus = seed_bus();
+    // Both have their reboot event pending; 20 would win on address.
+    assert_eq!(
+        send(&mut bus, &poll(21, 0xFF, 0, 0)),
+        cat(ff(5), with_crc("F1 46 11 00 01 04 00 0F 00 00"))
+    );
+    // Nobody at or above 242: silence.
+    assert!(send(&mut bus, &poll(242, 0xFF, 0, 0)).is_empty());
+    assert_eq!(
+        send(&mut bus, &poll(0, 0xFF, 0, 0)),
+        cat(ff(8), with_crc("14 46 11 00 01 04 00 0F 00 00"))
+    );
+}
+
+#[test]
+fn max_data_len_truncates_packets() {
+    let mut bus = seed_bus();
+    bus.exchange(
+        &enable(20, RegisterType::Coil, 0, vec![EventPriority::High; 3]),
+        master(),
+        Duration::ZERO,
+    );
+    bus.exchange(
+        &enable(241, RegisterType::Coil, 0, vec![EventPriority::Disabled]),
+        master(),
+        Duration::ZERO,
+    );
+    bus.write_register(0, RegisterType::Coil, 0, &[1, 1, 1], Duration::ZERO)
+        .unwrap();
+    // 4 events of 5, 5, 5 and 4 bytes; 12 bytes fit two.
+    let first = send(&mut bus, &poll(0, 12, 0, 0));
+    assert_eq!(
+        first,
+        cat(
+            ff(9),
+            with_crc("14 46 11 00 02 0A 01 01 00 00 01 01 01 00 01 01")
+        )
+    );
+    let second = send(&mut bus, &poll(0, 12, 20, 0));
+    assert_eq!(
+        second,
+        cat(
+            ff(9),
+            with_crc("14 46 11 01 02 09 01 01 00 02 01 00 0F 00 00")
+        )
+    );
+    // Not even one fits: the count alone.
+    bus.write_register(0, RegisterType::Coil, 0, &[0], Duration::ZERO)
+        .unwrap();
+    let none = send(&mut bus, &poll(0, 3, 20, 1));
+    assert_eq!(none, cat(ff(9), with_crc("14 46 11 00 01 00")));
+}
+
+#[test]
+fn configure_events_replies_with_mixed_bitmasks() {
+    let mut bus = seed_bus();
+    let request = Request::configure_events(
+        20,
+        vec![
+            // Coils 0–5 can send events, 6–9 cannot (0 bits even when asked).
+            EventRange::registers(RegisterType::Coil, 0, vec![EventPriority::Low; 10]),
+            // Priority 0 disables.
+            EventRange::registers(RegisterType::Input, 471, vec![EventPriority::Disabled]),
+            // A 32-bit value: its base sends events, its second register does not.
+            EventRange::registers(RegisterType::Input, 60, vec![EventPriority::High; 2]),
+            EventRange::registers(RegisterType::Holding, 0, vec![EventPriority::High]),
+            EventRange {
+                source: EventSource::System,
+                start: 0,
+                priorities: vec![EventPriority::Disabled],
+            },
+        ],
+    );
+    assert_eq!(
+        send(&mut bus, &request),
+        with_crc("14 46 18 06 3F 00 00 01 00 00")
+    );
+    // The wb-mqtt-serial frame with the reboot record (§7.4 of the reference) answers alike.
+    let wb = hex("01 46 18 0A 03 00 01 01 01 0F 00 00 01 00 28 7D");
+    let mut one = Bus::new(vec![VirtualDevice::new(spec("one", 1, 1))], 1);
+    assert_eq!(
+        one.exchange(&wb, master(), Duration::ZERO).bytes(),
+        hex("01 46 18 02 00 00 2F 65")
+    );
+    // A bad priority is an illegal data value.
+    assert_eq!(
+        bus.exchange(
+            &with_crc("14 46 18 05 01 00 00 01 07"),
+            master(),
+            Duration::ZERO
+        )
+        .bytes(),
+        with_crc("14 C6 03")
+    );
+}
+
+#[test]
+fn reboot_event_after_every_restart() {
+    let mut bus = seed_bus();
+    bus.exchange(
+        &enable(241, RegisterType::Coil, 0, vec![EventPriority::High]),
+        master(),
+        Duration::ZERO,
+    );
+    send(&mut bus, &poll(0, 0xFF, 0, 0));
+    send(&mut bus, &poll(0, 0xFF, 20, 0));
+    send(&mut bus, &poll(0, 0xFF, 241, 0));
+    assert_eq!(
+        send(&mut bus, &poll(0, 0xFF, 0, 0)),
+        cat(ff(6), hex("FD 46 12 52 5D"))
+    );
+    bus.device_mut(1).unwrap().reboot();
+    // Flag back to 0, settings gone: a coil change sends nothing, the reboot event is pending.
+    bus.write_register(1, RegisterType::Coil, 0, &[1], Duration::ZERO)
+        .unwrap();
+    assert_eq!(
+        send(&mut bus, &poll(0, 0xFF, 0, 0)),
+        cat(ff(5), with_crc("F1 46 11 00 01 04 00 0F 00 00"))
+    );
+    assert_eq!(
+        send(&mut bus, &poll(0, 0xFF, 241, 0)),
+        cat(ff(6), hex("FD 46 12 52 5D"))
+    );
+}
+
+#[test]
+fn by_serial_access_and_address_change() {
+    let mut bus = seed_bus();
+    let model = bus.exchange(
+        &hex("FD 46 08 FE 40 00 AC 03 00 C8 00 14 91 BA"),
+        master(),
+        Duration::ZERO,
+    );
+    let reply = Reply::decode(&model.bytes()).unwrap();
+    let ReplyBody::Fast {
+        reply: crate::protocol::FastReply::BySerial { serial, pdu },
+        ..
+    } = reply.body
+    else {
+        panic!("not a 0x09 reply");
+    };
+    assert_eq!(serial, MCM8_SERIAL);
+    let crate::protocol::ResponsePdu::ReadHoldingRegisters { values } = pdu else {
+        panic!()
+    };
+    assert_eq!(&values[..7], &[0x57, 0x42, 0x4D, 0x43, 0x4D, 0x38, 0]);
+    let set = bus.exchange(
+        &hex("FD 46 08 FE 40 00 AC 06 00 80 00 C8 DC 35"),
+        master(),
+        Duration::ZERO,
+    );
+    assert_eq!(
+        set.bytes(),
+        hex("FD 46 09 FE 40 00 AC 06 00 80 00 C8 8D F0")
+    );
+    assert_eq!(bus.devices()[0].address(), 200);
+    let read = Request::classic(
+        200,
+        RequestPdu::ReadHoldingRegisters {
+            start: 270,
+            count: 2,
+        },
+    );
+    assert_eq!(send(&mut bus, &read), with_crc("C8 03 04 FE 40 00 AC"));
+    // Exceptions travel inside 0x09; an unknown serial is silence.
+    let bad = Request::by_serial(
+        MCM8_SERIAL,
+        RequestPdu::ReadHoldingRegisters {
+            start: 9999,
+            count: 1,
+        },
+    );
+    assert_eq!(send(&mut bus, &bad), with_crc("FD 46 09 FE 40 00 AC 83 02"));
+    assert_eq!(
+        bus.exchange(
+            &with_crc("FD 46 08 FE 40 00 AC 2B 0E 01 00"),
+            master(),
+            Duration::ZERO
+        )
+        .bytes(),
+        with_crc("FD 46 09 FE 40 00 AC AB 01")
+    );
+    let nobody = Request::by_serial(
+        0x0D00_0001,
+        RequestPdu::ReadHoldingRegisters {
+            start: 128,
+            count: 1,
+        },
+    );
+    assert!(send(&mut bus, &nobody).is_empty());
+}
+
+#[test]
+fn port_settings_change_after_the_reply() {
+    let mut bus = seed_bus();
+    let set_baud = Request::classic(
+        20,
+        RequestPdu::WriteSingleRegister {
+            address: 110,
+            value: 96,
+        },
+    );
+    let reply = bus.exchange(&set_baud.encode().unwrap(), master(), Duration::ZERO);
+    assert_eq!(reply.bytes(), set_baud.encode().unwrap());
+    // The echo still went out at 115200.
+    assert_eq!(reply.bursts[0].char_time, FAST_LINE.char_time());
+    let read = Request::classic(
+        20,
+        RequestPdu::ReadHoldingRegisters {
+            start: 110,
+            count: 3,
+        },
+    );
+    assert!(send(&mut bus, &read).is_empty());
+    let slow = MasterLine::exact(LineSettings::new(9600, Parity::None, 2));
+    let answer = bus.exchange(&read.encode().unwrap(), slow, Duration::ZERO);
+    assert_eq!(answer.bytes(), with_crc("14 03 06 00 60 00 00 00 02"));
+    let bad = Request::classic(
+        20,
+        RequestPdu::WriteSingleRegister {
+            address: 110,
+            value: 97,
+        },
+    );
+    assert_eq!(
+        bus.exchange(&bad.encode().unwrap(), slow, Duration::ZERO)
+            .bytes(),
+        with_crc("14 86 03")
+    );
+}
+
+#[test]
+fn classic_only_devices_ignore_the_extension() {
+    let mut classic = spec("classic", 30, 0x0D00_0030);
+    classic.fast = false;
+    let mut bus = Bus::new(vec![VirtualDevice::new(classic)], 1);
+    assert!(send(&mut bus, &Request::scan_start()).is_empty());
+    assert!(send(&mut bus, &poll(0, 0xFF, 0, 0)).is_empty());
+    let by_serial = Request::by_serial(
+        0x0D00_0030,
+        RequestPdu::ReadHoldingRegisters {
+            start: 128,
+            count: 1,
+        },
+    );
+    assert!(send(&mut bus, &by_serial).is_empty());
+    let request = enable(30, RegisterType::Coil, 0, vec![EventPriority::High]);
+    assert_eq!(
+        bus.exchange(&request, master(), Duration::ZERO).bytes(),
+        with_crc("1E C6 01")
+    );
+}
+
+#[test]
+fn shared_address_corrupts_classic_replies_but_scan_lists_both() {
+    let mut bus = Bus::new(
+        vec![
+            VirtualDevice::new(spec("a", 20, MCM8_SERIAL)),
+            VirtualDevice::new(spec("b", 20, MR6C_SERIAL)),
+        ],
+        1,
+    );
+    let read = Request::classic(
+        20,
+        RequestPdu::ReadHoldingRegisters {
+            start: 270,
+            count: 2,
+        },
+    );
+    let garbage = send(&mut bus, &read);
+    assert_eq!(garbage.len(), 9);
+    assert!(!crate::protocol::crc::crc_is_valid(&garbage));
+    // Identical replies at identical times are still spoiled.
+    let same = Request::classic(
+        20,
+        RequestPdu::ReadHoldingRegisters {
+            start: 128,
+            count: 1,
+        },
+    );
+    assert!(!crate::protocol::crc::crc_is_valid(&send(&mut bus, &same)));
+    assert_eq!(
+        send(&mut bus, &Request::scan_start()),
+        cat(ff(22), with_crc("FD 46 03 FE 40 00 AC 14"))
+    );
+    assert_eq!(
+        send(&mut bus, &Request::scan_continue()),
+        cat(ff(15), with_crc("FD 46 03 FE D2 A3 A6 14"))
+    );
+    assert_eq!(
+        send(&mut bus, &Request::scan_continue()),
+        cat(ff(20), hex("FD 46 04 D3 93"))
+    );
+}
+
+#[test]
+fn devices_at_other_settings_do_not_hear() {
+    let mut slow = spec("slow", 5, 0x0D00_0005);
+    slow.line = LineSettings::new(9600, Parity::Odd, 1);
+    let mut bus = Bus::new(
+        vec![
+            VirtualDevice::new(spec("fast", 20, MCM8_SERIAL)),
+            VirtualDevice::new(slow),
+        ],
+        1,
+    );
+    assert_eq!(
+        send(&mut bus, &Request::scan_start()),
+        cat(ff(22), with_crc("FD 46 03 FE 40 00 AC 14"))
+    );
+    assert_eq!(
+        send(&mut bus, &Request::scan_continue()),
+        cat(ff(20), hex("FD 46 04 D3 93"))
+    );
+    let read = Request::classic(
+        5,
+        RequestPdu::ReadHoldingRegisters {
+            start: 128,
+            count: 1,
+        },
+    );
+    assert!(send(&mut bus, &read).is_empty());
+    let odd = MasterLine::exact(LineSettings::new(9600, Parity::Odd, 1));
+    assert_eq!(
+        bus.exchange(&read.encode().unwrap(), odd, Duration::ZERO)
+            .bytes(),
+        with_crc("05 03 02 00 05")
+    );
+}
+
+#[test]
+fn faults_drop_corrupt_and_delay() {
+    let mut bus = seed_bus();
+    let read = Request::classic(
+        20,
+        RequestPdu::ReadHoldingRegisters {
+            start: 128,
+            count: 1,
+        },
+    );
+    bus.device_mut(0).unwrap().faults = Faults {
+        drop_reply: 1.0,
+        ..Faults::default()
+    };
+    assert!(send(&mut bus, &read).is_empty());
+    bus.device_mut(0).unwrap().faults = Faults {
+        corrupt_crc: 1.0,
+        ..Faults::default()
+    };
+    assert_eq!(send(&mut bus, &read), hex("14 03 02 00 14 B5 77"));
+    bus.device_mut(0).unwrap().faults = Faults {
+        delay_reply: 1.0,
+        ..Faults::default()
+    };
+    let late = bus.exchange(&read.encode().unwrap(), master(), Duration::ZERO);
+    assert!(late.bursts[0].start > Duration::from_secs(1));
+    // A lost event packet stays unconfirmed.
+    bus.device_mut(0).unwrap().faults = Faults {
+        drop_reply: 1.0,
+        ..Faults::default()
+    };
+    bus.device_mut(1).unwrap().plugged = false;
+    assert_eq!(send(&mut bus, &poll(0, 0xFF, 0, 0)), ff(8));
+    bus.device_mut(0).unwrap().faults = Faults::default();
+    assert_eq!(
+        send(&mut bus, &poll(0, 0xFF, 0, 0)),
+        cat(ff(8), with_crc("14 46 11 00 01 04 00 0F 00 00"))
+    );
+}
+
+#[test]
+fn unplugged_devices_are_silent() {
+    let mut bus = seed_bus();
+    bus.device_mut(0).unwrap().plugged = false;
+    let read = Request::classic(
+        20,
+        RequestPdu::ReadHoldingRegisters {
+            start: 128,
+            count: 1,
+        },
+    );
+    assert!(send(&mut bus, &read).is_empty());
+    bus.device_mut(0).unwrap().plugged = true;
+    assert_eq!(send(&mut bus, &read), hex("14 03 02 00 14 B5 88"));
+}
+
+#[test]
+fn register_changes_are_recorded() {
+    let mut bus = seed_bus();
+    let write = Request::classic(
+        20,
+        RequestPdu::WriteSingleCoil {
+            address: 0,
+            value: true,
+        },
+    );
+    send(&mut bus, &write);
+    send(&mut bus, &write);
+    bus.write_register(1, RegisterType::Input, 0, &[7], Duration::from_secs(2))
+        .unwrap();
+    let changes = bus.take_changes();
+    assert_eq!(changes.len(), 2);
+    assert_eq!(changes[0].origin, super::ChangeOrigin::Master);
+    assert_eq!((changes[1].address, changes[1].change.new), (241, 7));
+    assert!(bus.take_changes().is_empty());
+}
+
+#[test]
+fn garbage_never_panics() {
+    let mut bus = seed_bus();
+    let mut rng = super::faults::XorShift64::new(7);
+    for _ in 0..20_000 {
+        let len = (rng.next_u64() % 40) as usize;
+        let mut frame: Vec<u8> = (0..len).map(|_| rng.next_u64() as u8).collect();
+        if rng.chance(0.5) && frame.len() > 2 {
+            frame[0] = [0xFD, 20, 241, 0][(rng.next_u64() % 4) as usize];
+            frame[1] = [0x46, 3, 16, 15][(rng.next_u64() % 4) as usize];
+            frame.truncate(frame.len() - 2);
+            crate::protocol::crc::append_crc(&mut frame);
+        }
+        let _ = bus.exchange(&frame, master(), Duration::ZERO);
+    }
+}

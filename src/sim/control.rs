@@ -1,0 +1,401 @@
+//! The control protocol: one JSON object per line in, one JSON object per line out.
+//! Pure: commands run on a [`Bus`] at a given time. The socket and the script feed it.
+//!
+//! Every command names a device by `"device"` (its Modbus address, or its name) or `"serial"`.
+//! Replies are `{"ok": true, …}` or `{"ok": false, "error": "…"}`, echoing `"id"` when given.
+//! See docs/sim.md for the list of commands.
+
+use std::time::Duration;
+
+use serde::Deserialize;
+use serde_json::{json, Value};
+
+use crate::protocol::RegisterType;
+
+use super::bus::Bus;
+use super::bus_file::{parse_line, parse_register_type, parse_serial};
+use super::device::wb;
+use super::faults::Faults;
+
+/// The fields any command may carry; which ones matter depends on `cmd`.
+#[derive(Debug, Clone, Default, Deserialize)]
+pub struct ControlCommand {
+    pub cmd: String,
+    #[serde(default)]
+    pub id: Option<Value>,
+    #[serde(default)]
+    pub device: Option<Value>,
+    #[serde(default)]
+    pub serial: Option<Value>,
+    #[serde(default, rename = "type")]
+    pub register_type: Option<String>,
+    #[serde(default)]
+    pub address: Option<u16>,
+    #[serde(default)]
+    pub count: Option<u16>,
+    #[serde(default)]
+    pub value: Option<Value>,
+    #[serde(default)]
+    pub new_address: Option<u8>,
+    #[serde(default)]
+    pub line: Option<String>,
+    #[serde(default)]
+    pub drop: Option<f64>,
+    #[serde(default)]
+    pub corrupt_crc: Option<f64>,
+    #[serde(default)]
+    pub delay: Option<f64>,
+    #[serde(default)]
+    pub delay_ms: Option<u64>,
+}
+
+/// What the caller should do after replying.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ControlReply {
+    pub reply: Value,
+    /// The connection asked to receive the change log.
+    pub watch: bool,
+}
+
+pub fn register_type_name(register_type: RegisterType) -> &'static str {
+    match register_type {
+        RegisterType::Coil => "coil",
+        RegisterType::DiscreteInput => "discrete",
+        RegisterType::Holding => "holding",
+        RegisterType::Input => "input",
+    }
+}
+
+/// Parses and runs one line.
+pub fn execute_line(bus: &mut Bus, now: Duration, line: &str) -> ControlReply {
+    match serde_json::from_str::<ControlCommand>(line) {
+        Ok(command) => execute(bus, now, &command),
+        Err(err) => ControlReply {
+            reply: json!({"ok": false, "error": format!("bad command: {err}")}),
+            watch: false,
+        },
+    }
+}
+
+pub fn execute(bus: &mut Bus, now: Duration, command: &ControlCommand) -> ControlReply {
+    let watch = command.cmd == "watch";
+    let mut reply = match run(bus, now, command) {
+        Ok(Value::Object(mut fields)) => {
+            fields.insert("ok".into(), Value::Bool(true));
+            Value::Object(fields)
+        }
+        Ok(other) => json!({"ok": true, "result": other}),
+        Err(error) => json!({"ok": false, "error": error}),
+    };
+    if let (Some(id), Value::Object(fields)) = (&command.id, &mut reply) {
+        fields.insert("id".into(), id.clone());
+    }
+    ControlReply { reply, watch }
+}
+
+fn run(bus: &mut Bus, now: Duration, command: &ControlCommand) -> Result<Value, String> {
+    match command.cmd.as_str() {
+        "ping" | "watch" => Ok(json!({})),
+        "list" => Ok(json!({ "devices": list(bus) })),
+        "get" => {
+            let index = find_device(bus, command)?;
+            let (register_type, address) = register(command)?;
+            let count = command.count.unwrap_or(1);
+            let device = bus.devices().get(index).ok_or("no such device")?;
+            let values = device
+                .registers()
+                .read_range(register_type, address, count)
+                .ok_or_else(|| {
+                    format!(
+                        "no {} register {address} (x{count})",
+                        register_type_name(register_type)
+                    )
+                })?;
+            match values.as_slice() {
+                [one] if command.count.is_none() => Ok(json!({ "value": one })),
+                _ => Ok(json!({ "values": values })),
+            }
+        }
+        "set" => {
+            let index = find_device(bus, command)?;
+            let (register_type, address) = register(command)?;
+            let values = match &command.value {
+                Some(Value::Array(items)) => {
+                    items.iter().map(to_u16).collect::<Result<Vec<_>, _>>()?
+                }
+                Some(value) => vec![to_u16(value)?],
+                None => return Err("\"value\" missing".into()),
+            };
+            bus.write_register(index, register_type, address, &values, now)
+                .map_err(|code| code.to_string())?;
+            Ok(json!({}))
+        }
+        "toggle" => {
+            let index = find_device(bus, command)?;
+            let (register_type, address) = register(command)?;
+            let current = bus
+                .devices()
+                .get(index)
+                .and_then(|d| d.registers().get(register_type, address))
+                .ok_or("no such register")?;
+            let value = u16::from(current == 0);
+            bus.write_register(index, register_type, address, &[value], now)
+                .map_err(|code| code.to_string())?;
+            Ok(json!({ "value": value }))
+        }
+        "reboot" => with_device(bus, command, |d| d.reboot()),
+        "unplug" => with_device(bus, command, |d| d.plugged = false),
+        "replug" => with_device(bus, command, |d| d.plugged = true),
+        "set_address" => {
+            let index = find_device(bus, command)?;
+            let new_address = command.new_address.ok_or("\"new_address\" missing")?;
+            bus.write_register(
+                index,
+                RegisterType::Holding,
+                wb::ADDRESS,
+                &[u16::from(new_address)],
+                now,
+            )
+            .map_err(|code| code.to_string())?;
+            Ok(json!({}))
+        }
+        "set_line" => {
+            let index = find_device(bus, command)?;
+            let line = parse_line(command.line.as_deref().ok_or("\"line\" missing")?)?;
+            let values = [
+                u16::try_from(line.baud / 100).map_err(|_| "baud rate too high")?,
+                match line.parity {
+                    crate::protocol::Parity::None => 0,
+                    crate::protocol::Parity::Odd => 1,
+                    crate::protocol::Parity::Even => 2,
+                },
+                u16::from(line.stop_bits),
+            ];
+            bus.write_register(index, RegisterType::Holding, wb::BAUD, &values, now)
+                .map_err(|code| code.to_string())?;
+            Ok(json!({}))
+        }
+        "faults" => {
+            let index = find_device(bus, command)?;
+            let device = bus.device_mut(index).ok_or("no such device")?;
+            let defaults = Faults::default();
+            device.faults = Faults {
+                drop_reply: command.drop.unwrap_or(0.0),
+                corrupt_crc: command.corrupt_crc.unwrap_or(0.0),
+                delay_reply: command.delay.unwrap_or(0.0),
+                delay: command
+                    .delay_ms
+                    .map_or(defaults.delay, Duration::from_millis),
+            };
+            Ok(json!({}))
+        }
+        other => Err(format!(
+            "unknown command {other:?} (ping, list, get, set, toggle, reboot, unplug, replug, \
+             set_address, set_line, faults, watch)"
+        )),
+    }
+}
+
+fn to_u16(value: &Value) -> Result<u16, String> {
+    value
+        .as_u64()
+        .and_then(|v| u16::try_from(v).ok())
+        .ok_or_else(|| format!("not a 16-bit value: {value}"))
+}
+
+fn register(command: &ControlCommand) -> Result<(RegisterType, u16), String> {
+    let register_type =
+        parse_register_type(command.register_type.as_deref().ok_or("\"type\" missing")?)?;
+    Ok((register_type, command.address.ok_or("\"address\" missing")?))
+}
+
+fn with_device(
+    bus: &mut Bus,
+    command: &ControlCommand,
+    f: impl FnOnce(&mut super::VirtualDevice),
+) -> Result<Value, String> {
+    let index = find_device(bus, command)?;
+    f(bus.device_mut(index).ok_or("no such device")?);
+    Ok(json!({}))
+}
+
+/// The one device a command names.
+pub fn find_device(bus: &Bus, command: &ControlCommand) -> Result<usize, String> {
+    let matches: Vec<usize> = match (&command.serial, &command.device) {
+        (Some(serial), _) => {
+            let serial = parse_serial(serial)?;
+            indices(bus, |d| d.serial == serial)
+        }
+        (None, Some(Value::Number(n))) => {
+            let address = n
+                .as_u64()
+                .and_then(|a| u8::try_from(a).ok())
+                .ok_or("bad address")?;
+            indices(bus, |d| d.address() == address)
+        }
+        (None, Some(Value::String(name))) => indices(bus, |d| &d.name == name),
+        _ => return Err("name the device: \"device\": address or name, or \"serial\"".into()),
+    };
+    match matches.as_slice() {
+        [one] => Ok(*one),
+        [] => Err("no such device".into()),
+        _ => Err("several devices match (shared address?): use \"serial\"".into()),
+    }
+}
+
+fn indices(bus: &Bus, predicate: impl Fn(&super::VirtualDevice) -> bool) -> Vec<usize> {
+    bus.devices()
+        .iter()
+        .enumerate()
+        .filter(|(_, d)| predicate(d))
+        .map(|(i, _)| i)
+        .collect()
+}
+
+/// The devices as JSON, for `list` and the start-up banner.
+pub fn list(bus: &Bus) -> Vec<Value> {
+    bus.devices()
+        .iter()
+        .map(|d| {
+            json!({
+                "name": d.name,
+                "address": d.address(),
+                "serial": format!("0x{:08X}", d.serial),
+                "line": d.line().to_string(),
+                "fast": d.fast,
+                "plugged": d.plugged,
+                "template": d.template,
+                "starts": d.starts,
+                "pending_events": d.events().pending_count(),
+            })
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::protocol::{LineSettings, Parity};
+    use crate::sim::{DeviceSpec, RegisterMap, VirtualDevice};
+
+    fn bus() -> Bus {
+        let mut registers = RegisterMap::new();
+        registers.define(RegisterType::Coil, 0, 2, true);
+        let spec = |name: &str, address, serial| DeviceSpec {
+            name: name.into(),
+            template: "-".into(),
+            serial,
+            address,
+            line: LineSettings::new(9600, Parity::None, 2),
+            fast: true,
+            turnaround: Duration::ZERO,
+            model: "M".into(),
+            firmware: "1".into(),
+            signature: "s".into(),
+            registers: registers.clone(),
+        };
+        Bus::new(
+            vec![
+                VirtualDevice::new(spec("a", 20, 1)),
+                VirtualDevice::new(spec("b", 20, 2)),
+                VirtualDevice::new(spec("c", 30, 3)),
+            ],
+            1,
+        )
+    }
+
+    fn run_line(bus: &mut Bus, line: &str) -> Value {
+        execute_line(bus, Duration::ZERO, line).reply
+    }
+
+    #[test]
+    fn commands() {
+        let mut bus = bus();
+        assert_eq!(
+            run_line(
+                &mut bus,
+                r#"{"cmd":"set","device":30,"type":"coil","address":1,"value":1,"id":7}"#
+            ),
+            json!({"ok": true, "id": 7})
+        );
+        assert_eq!(
+            run_line(
+                &mut bus,
+                r#"{"cmd":"get","device":"c","type":"coil","address":1}"#
+            ),
+            json!({"ok": true, "value": 1})
+        );
+        assert_eq!(
+            run_line(
+                &mut bus,
+                r#"{"cmd":"toggle","device":30,"type":"coil","address":1}"#
+            ),
+            json!({"ok": true, "value": 0})
+        );
+        assert_eq!(
+            run_line(
+                &mut bus,
+                r#"{"cmd":"get","serial":"0x1","type":"holding","address":128,"count":1}"#
+            ),
+            json!({"ok": true, "values": [20]})
+        );
+        assert_eq!(
+            run_line(
+                &mut bus,
+                r#"{"cmd":"get","device":20,"type":"coil","address":0}"#
+            )["ok"],
+            json!(false)
+        );
+        assert_eq!(
+            run_line(
+                &mut bus,
+                r#"{"cmd":"set_address","serial":2,"new_address":21}"#
+            )["ok"],
+            json!(true)
+        );
+        assert_eq!(bus.devices()[1].address(), 21);
+        assert_eq!(
+            run_line(
+                &mut bus,
+                r#"{"cmd":"set_address","serial":2,"new_address":0}"#
+            )["ok"],
+            json!(false)
+        );
+        assert_eq!(
+            run_line(
+                &mut bus,
+                r#"{"cmd":"set_line","device":21,"line":"115200 8E1"}"#
+            )["ok"],
+            json!(true)
+        );
+        assert_eq!(
+            bus.devices()[1].line(),
+            LineSettings::new(115_200, Parity::Even, 1)
+        );
+        assert_eq!(
+            run_line(&mut bus, r#"{"cmd":"unplug","device":30}"#)["ok"],
+            json!(true)
+        );
+        assert!(!bus.devices()[2].plugged);
+        assert_eq!(
+            run_line(&mut bus, r#"{"cmd":"faults","device":30,"drop":0.5}"#)["ok"],
+            json!(true)
+        );
+        assert_eq!(bus.devices()[2].faults.drop_reply, 0.5);
+        assert_eq!(
+            run_line(&mut bus, r#"{"cmd":"reboot","device":30}"#)["ok"],
+            json!(true)
+        );
+        assert_eq!(bus.devices()[2].starts, 2);
+        assert_eq!(run_line(&mut bus, "not json")["ok"], json!(false));
+        assert_eq!(run_line(&mut bus, r#"{"cmd":"fly"}"#)["ok"], json!(false));
+        assert_eq!(
+            run_line(&mut bus, r#"{"cmd":"list"}"#)["devices"]
+                .as_array()
+                .map(Vec::len),
+            Some(3)
+        );
+        assert!(execute_line(&mut bus, Duration::ZERO, r#"{"cmd":"watch"}"#).watch);
+        assert_eq!(bus.take_changes().len(), 6);
+    }
+}
