@@ -267,6 +267,7 @@ pub fn list(bus: &Bus) -> Vec<Value> {
                 "template": d.template,
                 "starts": d.starts,
                 "pending_events": d.events().pending_count(),
+                "events_enabled": d.events().enabled().count(),
             })
         })
         .collect()

@@ -187,7 +187,7 @@ impl LinkReader for PtyReader<'_> {
                     ObservedParity::NoneOrEven
                 };
                 MasterLine {
-                    baud: baud_value(termios::cfgetospeed(&settings)),
+                    baud: master_baud(self.master),
                     stop_bits: if flags.contains(ControlFlags::CSTOPB) {
                         2
                     } else {
@@ -205,6 +205,29 @@ impl LinkReader for PtyReader<'_> {
                 }
             }
         }
+    }
+}
+
+/// The master's baud rate. Masters that set it with `termios2` (serialport, tokio-serial: any
+/// rate via BOTHER) leave a speed no `BaudRate` constant names, and `cfgetospeed` of nix panics
+/// on those; the kernel's `termios2` has the rate as a plain number whichever way it was set.
+fn master_baud(master: &File) -> u32 {
+    use std::os::fd::AsRawFd;
+    // SAFETY: TCGETS2 fills a `termios2` (zero-initialised, correctly sized) for a tty fd we own
+    // for the duration of the call; on failure the struct is left untouched and ignored.
+    let mut settings: nix::libc::termios2 = unsafe { std::mem::zeroed() };
+    let rc = unsafe { nix::libc::ioctl(master.as_raw_fd(), nix::libc::TCGETS2, &mut settings) };
+    if rc == 0 && settings.c_ospeed > 0 {
+        return settings.c_ospeed;
+    }
+    match termios::tcgetattr(master) {
+        Ok(attrs) => {
+            let raw = nix::libc::speed_t::from(
+                attrs.control_flags.bits() as nix::libc::speed_t & nix::libc::CBAUD,
+            );
+            BaudRate::try_from(raw).map_or(0, baud_value)
+        }
+        Err(_) => 0,
     }
 }
 

@@ -37,15 +37,20 @@ pub struct SimProcess {
 
 impl SimProcess {
     pub fn start(bus_file: &str, extra: &[&str]) -> Self {
+        Self::start_with(&data(bus_file), &data(""), extra)
+    }
+
+    /// A bus file and template directory anywhere.
+    pub fn start_with(bus_file: &Path, templates: &Path, extra: &[&str]) -> Self {
         let dir = tempfile::tempdir().unwrap();
         let pty = dir.path().join("ttyRS485-sim");
         let control = dir.path().join("control.sock");
         let mut child = Command::new(env!("CARGO_BIN_EXE_rtu2mqtt"))
             .arg("sim")
             .arg("--bus")
-            .arg(data(bus_file))
+            .arg(bus_file)
             .arg("--templates")
-            .arg(data(""))
+            .arg(templates)
             .arg("--pty")
             .arg(&pty)
             .arg("--control")

@@ -1,0 +1,305 @@
+//! `rtu2mqtt run` against `rtu2mqtt sim` over a pseudo-terminal, with updates read as JSON lines
+//! (`--stdio`, the daemon without a broker): values of several devices, a coil change arriving
+//! by event, events re-enabled after a reboot, a write reaching the device, a device unplugged
+//! and back.
+
+#[path = "sim_support/mod.rs"]
+mod sim_support;
+
+use std::io::{BufRead, BufReader, Write};
+use std::path::{Path, PathBuf};
+use std::process::{Child, ChildStdin, Command, Stdio};
+use std::sync::mpsc::{self, Receiver};
+use std::time::{Duration, Instant};
+
+use serde_json::{json, Value};
+use sim_support::SimProcess;
+
+fn repo(path: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join(path)
+}
+
+const BUS: &str = r#"{"devices": [
+  {"name": "relay", "template": "rtu2mqtt-relay6", "address": 20, "serial": "0xFE000020", "line": "115200 8N2"},
+  {"name": "climate", "template": "rtu2mqtt-climate", "address": 21, "serial": "0xFE000021", "line": "115200 8N2",
+   "values": {"input:4": 2150, "input:5": 4530, "input:8": 600}},
+  {"name": "counter", "template": "rtu2mqtt-counter8", "address": 22, "serial": "0xFE000022", "line": "115200 8N2"},
+  {"name": "meter", "template": "rtu2mqtt-energy-meter", "address": 30, "serial": "0x0D000030", "line": "115200 8N2",
+   "fast": false, "values": {"input:0": [32768, 17254]}}
+]}"#;
+
+/// The daemon with `--stdio`; killed on drop.
+struct Daemon {
+    child: Child,
+    stdin: ChildStdin,
+    lines: Receiver<Value>,
+    seen: Vec<Value>,
+    _dir: tempfile::TempDir,
+}
+
+impl Daemon {
+    fn start(pty: &Path) -> Self {
+        let dir = tempfile::tempdir().unwrap();
+        let config = dir.path().join("config.json");
+        let devices: Vec<Value> = [
+            ("rtu2mqtt-relay6", 20),
+            ("rtu2mqtt-climate", 21),
+            ("rtu2mqtt-counter8", 22),
+            ("rtu2mqtt-energy-meter", 30),
+        ]
+        .iter()
+        .map(|(template, address)| json!({"device_type": template, "slave_id": address}))
+        .collect();
+        let port = json!({"path": pty, "baud_rate": 115200, "stop_bits": 2, "devices": devices});
+        std::fs::write(&config, json!({"ports": [port]}).to_string()).unwrap();
+        let mut child = Command::new(env!("CARGO_BIN_EXE_rtu2mqtt"))
+            .args(["run", "--stdio", "--templates"])
+            .arg(repo("templates"))
+            .arg("-c")
+            .arg(&config)
+            .stdin(Stdio::piped())
+            .stdout(Stdio::piped())
+            .spawn()
+            .unwrap();
+        let stdin = child.stdin.take().unwrap();
+        let stdout = child.stdout.take().unwrap();
+        let (sender, lines) = mpsc::channel();
+        std::thread::spawn(move || {
+            for line in BufReader::new(stdout).lines().map_while(Result::ok) {
+                let value: Value =
+                    serde_json::from_str(&line).unwrap_or_else(|_| panic!("not JSON: {line}"));
+                if sender.send(value).is_err() {
+                    break;
+                }
+            }
+        });
+        Self {
+            child,
+            stdin,
+            lines,
+            seen: Vec::new(),
+            _dir: dir,
+        }
+    }
+
+    /// Reads updates until one matches; fails with the last ones seen.
+    fn wait_for(
+        &mut self,
+        what: &str,
+        timeout: Duration,
+        matches: impl Fn(&Value) -> bool,
+    ) -> Value {
+        let deadline = Instant::now() + timeout;
+        loop {
+            let left = deadline.saturating_duration_since(Instant::now());
+            match self.lines.recv_timeout(left) {
+                Ok(line) => {
+                    let found = matches(&line);
+                    self.seen.push(line.clone());
+                    if found {
+                        return line;
+                    }
+                }
+                Err(_) => {
+                    let tail: Vec<String> = self
+                        .seen
+                        .iter()
+                        .rev()
+                        .take(15)
+                        .map(Value::to_string)
+                        .collect();
+                    panic!(
+                        "no {what} within {timeout:?}; last updates (newest first):\n{}",
+                        tail.join("\n")
+                    );
+                }
+            }
+        }
+    }
+
+    /// A value published at any time so far, or from now on.
+    fn has_value(&mut self, device: &str, control: &str, value: &str) -> Value {
+        let matches = |line: &Value| {
+            line["device"] == device && line["control"] == control && line["value"] == value
+        };
+        if let Some(line) = self.seen.iter().find(|line| matches(line)) {
+            return line.clone();
+        }
+        self.wait_value(device, control, value)
+    }
+
+    /// A value published from now on.
+    fn wait_value(&mut self, device: &str, control: &str, value: &str) -> Value {
+        self.wait_for(
+            &format!("{device}/{control} = {value}"),
+            Duration::from_secs(10),
+            |line| line["device"] == device && line["control"] == control && line["value"] == value,
+        )
+    }
+
+    fn write(&mut self, device: &str, control: &str, value: &str) {
+        writeln!(
+            self.stdin,
+            "{}",
+            json!({"device": device, "control": control, "value": value})
+        )
+        .unwrap();
+        self.stdin.flush().unwrap();
+    }
+}
+
+impl Drop for Daemon {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn start() -> (SimProcess, Daemon) {
+    let dir = tempfile::tempdir().unwrap();
+    let bus = dir.path().join("bus.json");
+    std::fs::write(&bus, BUS).unwrap();
+    let sim = SimProcess::start_with(&bus, &repo("templates"), &[]);
+    let daemon = Daemon::start(&sim.pty);
+    // The bus file was read at start-up; its directory may go.
+    drop(dir);
+    (sim, daemon)
+}
+
+/// The simulator's change log, from the moment of the call.
+struct ChangeWatch {
+    lines: std::io::Lines<BufReader<std::os::unix::net::UnixStream>>,
+}
+
+impl ChangeWatch {
+    fn start(sim: &SimProcess) -> Self {
+        let mut stream = std::os::unix::net::UnixStream::connect(&sim.control).unwrap();
+        stream
+            .set_read_timeout(Some(Duration::from_secs(10)))
+            .unwrap();
+        writeln!(stream, "{}", json!({"cmd": "watch"})).unwrap();
+        let mut lines = BufReader::new(stream).lines();
+        let reply: Value = serde_json::from_str(&lines.next().unwrap().unwrap()).unwrap();
+        assert_eq!(reply["ok"], true, "{reply}");
+        Self { lines }
+    }
+
+    /// Waits (10 s at most) for a change of one register to `value`.
+    fn wait_change(&mut self, address: u8, kind: &str, register: u16, value: u64) -> Value {
+        loop {
+            let line = self
+                .lines
+                .next()
+                .unwrap_or_else(|| panic!("the change log closed"))
+                .unwrap_or_else(|err| {
+                    panic!("no change of device {address} {kind} {register} to {value}: {err}")
+                });
+            let change: Value = serde_json::from_str(&line).unwrap();
+            if change["address"] == address
+                && change["type"] == kind
+                && change["register"] == register
+                && change["value"] == value
+            {
+                return change;
+            }
+        }
+    }
+}
+
+/// Waits until the daemon has turned the device's events on and confirmed everything it had
+/// pending (the reboot event included): from then on every change travels by event.
+fn wait_events_ready(sim: &SimProcess, address: u8) {
+    let deadline = Instant::now() + Duration::from_secs(10);
+    loop {
+        let list = sim.control(json!({"cmd": "list"}));
+        let device = list["devices"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|d| d["address"] == address)
+            .unwrap()
+            .clone();
+        if device["events_enabled"].as_u64() > Some(0) && device["pending_events"] == 0 {
+            return;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "events of device {address} never got ready: {device}"
+        );
+        // A condition poll: each round asks the simulator again; the pause only paces it.
+        std::thread::sleep(Duration::from_millis(10));
+    }
+}
+
+#[test]
+fn values_events_writes_and_reboots() {
+    let (sim, mut daemon) = start();
+    // Values of every device, decoded by their templates.
+    daemon.has_value("climate_21", "Temperature", "21.5");
+    daemon.has_value("climate_21", "Humidity", "45.3");
+    daemon.has_value("climate_21", "CO2", "600");
+    daemon.has_value("energy_meter_30", "Voltage", "230.5");
+    daemon.has_value("counter8_22", "Input 1", "0");
+    daemon.has_value("relay6_20", "K1", "0");
+    wait_events_ready(&sim, 20);
+
+    // A coil changed on the device arrives by event (K1 is events-only once events are on).
+    sim.control(json!({"cmd": "toggle", "device": 20, "type": "coil", "address": 0}));
+    let update = daemon.wait_value("relay6_20", "K1", "1");
+    assert_eq!(
+        update["event"], true,
+        "K1 came by a Fast Modbus event: {update}"
+    );
+
+    // A write from the MQTT side changes the device's register and the published value.
+    let mut changes = ChangeWatch::start(&sim);
+    daemon.write("relay6_20", "K3", "1");
+    let change = changes.wait_change(20, "coil", 2, 1);
+    assert_eq!(change["origin"], "master", "{change}");
+    daemon.wait_value("relay6_20", "K3", "1");
+
+    // An invalid payload writes nothing and marks the control `w`.
+    daemon.write("relay6_20", "K4", "maybe");
+    daemon.wait_for("K4 error w", Duration::from_secs(5), |line| {
+        line["device"] == "relay6_20" && line["control"] == "K4" && line["error"] == "w"
+    });
+    assert_eq!(
+        sim.control(json!({"cmd": "get", "device": 20, "type": "coil", "address": 3}))["value"],
+        0
+    );
+
+    // After a reboot the device's event settings are gone; the daemon sets them up again, so a
+    // change of an events-only input still arrives by event.
+    sim.control(json!({"cmd": "reboot", "device": 21}));
+    sim.control(json!({"cmd": "reboot", "device": 20}));
+    wait_events_ready(&sim, 20);
+    sim.control(json!({"cmd": "set", "device": 20, "type": "discrete", "address": 1, "value": 1}));
+    let update = daemon.wait_value("relay6_20", "Input 2", "1");
+    assert_eq!(
+        update["event"], true,
+        "Input 2 came by event after the reboot: {update}"
+    );
+    sim.control(json!({"cmd": "set", "device": 21, "type": "input", "address": 4, "value": 2275}));
+    daemon.wait_value("climate_21", "Temperature", "22.75");
+}
+
+#[test]
+fn an_unplugged_device_goes_offline_and_comes_back() {
+    let (sim, mut daemon) = start();
+    daemon.wait_for("counter online", Duration::from_secs(10), |line| {
+        line["device"] == "counter8_22" && line["online"] == true
+    });
+    sim.control(json!({"cmd": "unplug", "device": 22}));
+    daemon.wait_for("counter offline", Duration::from_secs(15), |line| {
+        line["device"] == "counter8_22" && line["online"] == false
+    });
+    // The other devices keep being served meanwhile.
+    sim.control(json!({"cmd": "set", "device": 21, "type": "input", "address": 8, "value": 777}));
+    daemon.wait_value("climate_21", "CO2", "777");
+    sim.control(json!({"cmd": "replug", "device": 22}));
+    daemon.wait_for("counter online again", Duration::from_secs(20), |line| {
+        line["device"] == "counter8_22" && line["online"] == true
+    });
+    sim.control(json!({"cmd": "set", "device": 22, "type": "discrete", "address": 0, "value": 1}));
+    daemon.wait_value("counter8_22", "Input 1", "1");
+}
