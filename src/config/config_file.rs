@@ -164,6 +164,11 @@ pub struct PortConfig {
     pub guard_interval_us: Option<i64>,
     /// Default minimum interval between reads of one register (deprecated upstream).
     pub read_rate_limit_ms: Option<i64>,
+    /// Longest time between two Fast Modbus event requests, in ms. Default by baud rate: 50 ms
+    /// at 115200 and above, 100 ms from 38400, 200 ms below. Events are polled sooner whenever
+    /// the bus has nothing else to do.
+    #[schemars(range(min = 5, max = 10000))]
+    pub event_interval_ms: Option<u64>,
     pub poll_interval: Option<i64>,
     /// TCP connect timeout in ms.
     #[serde(default = "default_connect_timeout")]

@@ -74,6 +74,15 @@ pub fn port_plan(port: &ResolvedPort, fast_modbus: bool) -> PortPlan {
         .map(|d| d.timing.response_timeout)
         .max()
         .unwrap_or(Duration::from_millis(500));
+    if let Some(interval) = port.config.event_interval_ms {
+        settings.event_interval = Duration::from_millis(interval.clamp(5, 10_000));
+    }
+    settings.guard_interval = port
+        .devices
+        .iter()
+        .map(|d| d.timing.guard_interval)
+        .max()
+        .unwrap_or_default();
     let endpoint = endpoint(&port.config);
     PortPlan {
         name: endpoint.name(),

@@ -19,6 +19,7 @@ const MAX_REOPEN_DELAY: Duration = Duration::from_secs(10);
 pub struct PortTask {
     plan_name: String,
     endpoint: crate::transport::Endpoint,
+    guard_interval: Duration,
     scheduler: PortScheduler,
     models: Vec<DeviceModel>,
     updates: mpsc::Sender<DeviceUpdate>,
@@ -36,6 +37,7 @@ impl PortTask {
         Self {
             plan_name: plan.name,
             endpoint: plan.endpoint,
+            guard_interval: plan.settings.guard_interval,
             scheduler: PortScheduler::new(plan.settings, plan.devices),
             models,
             updates,
@@ -53,7 +55,8 @@ impl PortTask {
         let mut delay = FIRST_REOPEN_DELAY;
         loop {
             match Transport::open(&self.endpoint).await {
-                Ok(transport) => {
+                Ok(mut transport) => {
+                    transport.set_guard_interval(self.guard_interval);
                     info!(port = %self.plan_name, "port open");
                     delay = FIRST_REOPEN_DELAY;
                     match self.serve(transport, &mut shutdown).await {

@@ -252,6 +252,7 @@ fn default_port() -> PortConfig {
         frame_timeout_ms: None,
         guard_interval_us: None,
         read_rate_limit_ms: None,
+        event_interval_ms: None,
         poll_interval: None,
         connect_timeout_ms: 5000,
         connection_timeout_ms: 5000,

@@ -24,6 +24,8 @@ pub struct PortSettings {
     pub latency_margin: Duration,
     /// Expected device turnaround, for wire-time estimates.
     pub turnaround: Duration,
+    /// Silence kept on the bus before every request (slow or picky devices).
+    pub guard_interval: Duration,
 }
 
 impl PortSettings {
@@ -35,6 +37,7 @@ impl PortSettings {
             response_timeout: Duration::from_millis(500),
             latency_margin: Duration::from_millis(5),
             turnaround: Duration::from_millis(1),
+            guard_interval: Duration::ZERO,
         }
     }
 }

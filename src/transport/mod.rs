@@ -81,6 +81,10 @@ pub struct Transport {
     mbap: Option<MbapCodec>,
     /// Silence between bytes after which a started reply is given up.
     inter_byte_timeout: Duration,
+    /// Silence kept before every request.
+    guard_interval: Duration,
+    /// When the bus was last busy (end of the last reply or request).
+    last_activity: Instant,
 }
 
 impl Transport {
@@ -139,7 +143,14 @@ impl Transport {
             link,
             mbap,
             inter_byte_timeout,
+            guard_interval: Duration::ZERO,
+            last_activity: Instant::now(),
         })
+    }
+
+    /// Keeps this much silence on the bus before every request.
+    pub fn set_guard_interval(&mut self, guard_interval: Duration) {
+        self.guard_interval = guard_interval;
     }
 
     pub fn name(&self) -> &str {
@@ -155,8 +166,12 @@ impl Transport {
             Some(mbap) => mbap.wrap(&frame),
             None => frame.clone(),
         };
+        if !self.guard_interval.is_zero() {
+            tokio::time::sleep_until(self.last_activity + self.guard_interval).await;
+        }
         debug!(port = %self.name, tx = %protocol::hex(&frame), "request");
         self.write_all(&wire).await?;
+        self.last_activity = Instant::now();
         if !transaction.request.expects_reply() {
             return Ok(Outcome::NoReply);
         }
@@ -191,6 +206,7 @@ impl Transport {
             };
             let bytes = buffer.get(..count).unwrap_or(&[]);
             received_any = true;
+            self.last_activity = Instant::now();
             let unwrapped = match &mut self.mbap {
                 Some(mbap) => mbap.unwrap(bytes),
                 None => bytes.to_vec(),
