@@ -7,6 +7,7 @@
 pub mod cli;
 pub mod config;
 pub mod device;
+pub mod mqtt;
 pub mod port;
 pub mod protocol;
 pub mod updates;

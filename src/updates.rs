@@ -12,14 +12,26 @@ pub enum DeviceUpdate {
     /// A device is served: publish its meta and every control's meta (and its HA discovery).
     Added(Arc<ResolvedDevice>),
     /// What the device told about itself (scan, standard registers), for HA and device meta.
-    Identity { device_id: String, identity: DeviceIdentity },
+    Identity {
+        device_id: String,
+        identity: DeviceIdentity,
+    },
     /// Remove every retained topic of the device (clean shutdown, or dropped from the config).
     Removed { device_id: String },
     /// A control's value, formatted the Wiren Board way. `always_publish`: events and
     /// pushbuttons are published even when the value did not change.
-    Value { device_id: String, control_id: String, value: String, always_publish: bool },
+    Value {
+        device_id: String,
+        control_id: String,
+        value: String,
+        always_publish: bool,
+    },
     /// A control's error flags (the whole set, not a change).
-    ControlError { device_id: String, control_id: String, errors: ErrorFlags },
+    ControlError {
+        device_id: String,
+        control_id: String,
+        errors: ErrorFlags,
+    },
     /// The device answers again (`true`) or stopped answering.
     Online { device_id: String, online: bool },
 }
@@ -43,7 +55,11 @@ pub struct ErrorFlags {
 
 impl fmt::Display for ErrorFlags {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        for (set, letter) in [(self.read, "r"), (self.write, "w"), (self.period_missed, "p")] {
+        for (set, letter) in [
+            (self.read, "r"),
+            (self.write, "w"),
+            (self.period_missed, "p"),
+        ] {
             if set {
                 f.write_str(letter)?;
             }
@@ -67,8 +83,19 @@ mod tests {
     #[test]
     fn flags_print_in_order() {
         assert_eq!(ErrorFlags::default().to_string(), "");
-        let all = ErrorFlags { read: true, write: true, period_missed: true };
+        let all = ErrorFlags {
+            read: true,
+            write: true,
+            period_missed: true,
+        };
         assert_eq!(all.to_string(), "rwp");
-        assert_eq!(ErrorFlags { write: true, ..Default::default() }.to_string(), "w");
+        assert_eq!(
+            ErrorFlags {
+                write: true,
+                ..Default::default()
+            }
+            .to_string(),
+            "w"
+        );
     }
 }
