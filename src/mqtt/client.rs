@@ -287,7 +287,9 @@ async fn send(client: &AsyncClient, action: MqttAction) -> Result<(), ClientErro
 }
 
 /// Polls rumqttc's event loop for the whole run: reconnects with a growing delay, and reports
-/// connects and incoming messages. Ends after writing our DISCONNECT (or when aborted).
+/// connects and incoming messages. After writing our DISCONNECT it goes on reading until the
+/// broker closes the connection: closing a socket with unread data (our last PUBACKs) makes
+/// the kernel send a reset, and the broker then drops the publications it has not read yet.
 async fn drive_connection(
     mut eventloop: EventLoop,
     events: mpsc::Sender<ConnectionEvent>,
@@ -296,8 +298,13 @@ async fn drive_connection(
     let mut delay = FIRST_RECONNECT_DELAY;
     let mut connected = false;
     let mut failures: u32 = 0;
+    let mut disconnecting = false;
     loop {
-        match eventloop.poll().await {
+        let event = eventloop.poll().await;
+        if disconnecting && event.is_err() {
+            return;
+        }
+        match event {
             Ok(Event::Incoming(Packet::ConnAck(_))) => {
                 info!(%broker, "connected to the MQTT broker");
                 connected = true;
@@ -314,7 +321,7 @@ async fn drive_connection(
                     })
                     .await;
             }
-            Ok(Event::Outgoing(Outgoing::Disconnect)) => return,
+            Ok(Event::Outgoing(Outgoing::Disconnect)) => disconnecting = true,
             Ok(_) => {}
             Err(error) => {
                 if connected {
