@@ -391,3 +391,43 @@ fn tls_transport(_tls: &TlsConfig) -> Result<Transport, MqttError> {
     let _ = SYSTEM_CA_FILE;
     Err(MqttError::TlsNotBuilt)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn tls_settings_are_checked_up_front() {
+        let mut config = MqttConfig {
+            tls: Some(TlsConfig {
+                ca_file: Some(PathBuf::from("/nonexistent/ca.pem")),
+                cert_file: None,
+                key_file: None,
+            }),
+            ..MqttConfig::default()
+        };
+        let error = mqtt_options(&config, "s").err().map(|e| e.to_string());
+        #[cfg(feature = "tls")]
+        assert!(error.is_some_and(|e| e.contains("/nonexistent/ca.pem")));
+        #[cfg(not(feature = "tls"))]
+        assert!(error.is_some_and(|e| e.contains("no TLS")));
+        config.tls = None;
+        assert!(mqtt_options(&config, "s").is_ok());
+    }
+
+    #[test]
+    fn bad_prefixes_are_refused() {
+        let mut settings = MqttSettings {
+            broker: MqttConfig::default(),
+            max_unchanged_interval: -1,
+        };
+        assert!(settings.planner_settings().is_ok());
+        settings.broker.topic_prefix = "a/+".into();
+        assert!(settings.planner_settings().is_err());
+        settings.broker.topic_prefix = String::new();
+        settings.broker.homeassistant.prefix = "#".into();
+        assert!(settings.planner_settings().is_err());
+        settings.broker.homeassistant.enabled = false;
+        assert!(settings.planner_settings().is_ok());
+    }
+}
