@@ -59,6 +59,7 @@ impl Daemon {
             .arg(&config)
             .stdin(Stdio::piped())
             .stdout(Stdio::piped())
+            .stderr(std::fs::File::create(dir.path().join("daemon.log")).unwrap())
             .spawn()
             .unwrap();
         let stdin = child.stdin.take().unwrap();
@@ -152,6 +153,11 @@ impl Drop for Daemon {
     fn drop(&mut self) {
         let _ = self.child.kill();
         let _ = self.child.wait();
+        if std::thread::panicking() {
+            let log =
+                std::fs::read_to_string(self._dir.path().join("daemon.log")).unwrap_or_default();
+            eprintln!("--- daemon log ---\n{log}");
+        }
     }
 }
 

@@ -11,6 +11,7 @@ use crate::config::library::TemplateLibrary;
 use crate::config::load::{load_config, DEFAULT_CONFIG_PATH};
 use crate::daemon::{start_bus_side, stdio, termination_signal};
 use crate::device::resolve_config;
+use crate::mqtt::{run_mqtt, MqttSettings};
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -21,7 +22,7 @@ pub struct Args {
     #[arg(long = "templates", value_name = "DIR")]
     pub templates: Vec<PathBuf>,
     /// No broker: print device updates as JSON lines on stdout and take writes as JSON lines
-    /// on stdin ({"device":…,"control":…,"value":…}).
+    /// on stdin ({"device":…,"control":…,"value":…}) instead of MQTT.
     #[arg(long)]
     pub stdio: bool,
 }
@@ -49,28 +50,57 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             return Ok(ExitCode::FAILURE);
         }
     };
-    if !args.stdio {
-        anyhow::bail!(
-            "MQTT publishing is not built yet: run with --stdio to see device updates on stdout"
-        );
-    }
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()
         .build()
         .context("cannot start the async runtime")?;
-    runtime.block_on(async move {
+    let mqtt_settings = MqttSettings::from_config(&loaded.config);
+    let fast_modbus = loaded.config.fast_modbus;
+    let result = runtime.block_on(async move {
         let (shutdown_tx, shutdown_rx) = watch::channel(false);
-        let mut bus = start_bus_side(ports, loaded.config.fast_modbus, shutdown_rx);
-        let printer = tokio::spawn(stdio::print_updates(bus.updates));
-        tokio::spawn(stdio::read_writes(bus.writes.clone()));
+        let mut bus = start_bus_side(ports, fast_modbus, shutdown_rx.clone());
+        let mut sink = if args.stdio {
+            tokio::spawn(stdio::read_writes(bus.writes.clone()));
+            tokio::spawn(async move {
+                stdio::print_updates(bus.updates).await;
+                Ok(())
+            })
+        } else {
+            let mut stop = shutdown_rx.clone();
+            let stopped = async move {
+                let _ = stop.wait_for(|stop| *stop).await;
+            };
+            tokio::spawn(run_mqtt(
+                mqtt_settings,
+                bus.updates,
+                bus.writes.clone(),
+                stopped,
+            ))
+        };
         info!("running; stop with Ctrl-C or SIGTERM");
-        termination_signal().await;
+        let finished = tokio::select! {
+            _ = termination_signal() => None,
+            result = &mut sink => Some(result),
+        };
         info!("stopping");
         let _ = shutdown_tx.send(true);
-        bus.tasks.abort_all();
+        // Port tasks notice the shutdown between transactions; none outlives the runtime.
+        while bus.tasks.join_next().await.is_some() {}
         drop(bus.writes);
-        let _ = printer.await;
+        // The sink ends once the port tasks are gone; MQTT first clears its retained topics.
+        let finished = match finished {
+            Some(result) => Some(result),
+            None => Some(sink.await),
+        };
+        match finished {
+            Some(Ok(Err(err))) => Err(anyhow::Error::new(err).context("MQTT")),
+            Some(Err(join)) => Err(anyhow::anyhow!("the MQTT task failed: {join}")),
+            _ => Ok(()),
+        }
     });
+    // A blocked stdin read must not hold the exit.
+    runtime.shutdown_timeout(std::time::Duration::from_secs(1));
+    result?;
     Ok(ExitCode::SUCCESS)
 }

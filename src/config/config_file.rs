@@ -63,9 +63,48 @@ pub struct MqttConfig {
     /// Keep-alive interval in s.
     #[serde(default = "default_keepalive")]
     pub keepalive_s: u16,
-    /// Prepended to every topic (`/devices/...` stays the WB layout after it). Empty by default.
+    /// Prepended to every topic (`/devices/...` stays the WB layout after it), so several
+    /// controllers can share one broker: `site1` gives `site1/devices/...`. Empty by default.
     #[serde(default)]
     pub topic_prefix: String,
+    /// On a clean exit (SIGTERM), delete every retained topic of the devices, as
+    /// wb-mqtt-serial does. Default true.
+    #[serde(default = "yes")]
+    pub clear_on_exit: bool,
+    /// Home Assistant MQTT discovery.
+    #[serde(default)]
+    pub homeassistant: HomeAssistantConfig,
+}
+
+/// Home Assistant MQTT discovery: every device and control appears in HA without a bridge.
+#[derive(Debug, Clone, Deserialize, Serialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct HomeAssistantConfig {
+    /// Publish discovery configs (retained). Default true; turn off when a WB→HA bridge
+    /// already maps the devices, or they appear twice.
+    #[serde(default = "yes")]
+    pub enabled: bool,
+    /// HA's discovery prefix (HA's own default is `homeassistant`).
+    #[serde(default = "default_discovery_prefix")]
+    pub prefix: String,
+    /// Also delete the discovery configs on a clean exit. Default false: HA would forget the
+    /// entities (names, areas, dashboards) on every restart; they show as unavailable instead.
+    #[serde(default)]
+    pub clear_on_exit: bool,
+}
+
+impl Default for HomeAssistantConfig {
+    fn default() -> Self {
+        Self {
+            enabled: true,
+            prefix: default_discovery_prefix(),
+            clear_on_exit: false,
+        }
+    }
+}
+
+fn default_discovery_prefix() -> String {
+    "homeassistant".to_string()
 }
 
 impl Default for MqttConfig {
@@ -79,6 +118,8 @@ impl Default for MqttConfig {
             tls: None,
             keepalive_s: default_keepalive(),
             topic_prefix: String::new(),
+            clear_on_exit: true,
+            homeassistant: HomeAssistantConfig::default(),
         }
     }
 }

@@ -56,8 +56,14 @@ pub fn start_bus_side(
         let task = PortTask::new(plan, models, update_tx.clone(), port_write_rx);
         tasks.spawn(task.run(shutdown.clone()));
     }
+    let mut stop = shutdown;
     tasks.spawn(async move {
-        while let Some(write) = write_rx.recv().await {
+        loop {
+            let write = tokio::select! {
+                write = write_rx.recv() => write,
+                _ = stop.wait_for(|stop| *stop) => None,
+            };
+            let Some(write) = write else { return };
             match routes.get(&write.device_id) {
                 Some(port) => {
                     let _ = port.send(write).await;

@@ -1,0 +1,433 @@
+//! The MQTT client task: owns the broker connection (rumqttc), feeds it what the
+//! [`PublicationPlanner`] decides, and hands `/on` writes to the bus side.
+//!
+//! Never blocks the bus side: updates are taken as they come, and while the broker is away
+//! nothing queues up — the planner keeps the latest state, and after every (re)connect the
+//! whole retained state is published again (a restarted broker may have lost it). Between
+//! connects, an [`Outbox`] with one entry per topic absorbs bursts the client cannot take yet.
+
+use std::future::Future;
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+use rumqttc::{
+    AsyncClient, ClientError, Event, EventLoop, LastWill, MqttOptions, Outgoing, Packet, QoS,
+    Transport,
+};
+use tokio::sync::mpsc;
+use tracing::{debug, info, warn};
+
+use super::discovery::DiscoverySettings;
+use super::outbox::Outbox;
+use super::planner::{PlannerSettings, PublicationPlanner, UnchangedPolicy, WriteOutcome};
+use super::topics::{discovery_prefix, TopicError, TopicScheme};
+use super::{MqttAction, Publication};
+use crate::config::config_file::{Config, MqttConfig, TlsConfig};
+use crate::updates::{ControlWrite, DeviceUpdate};
+
+/// Requests rumqttc buffers between this task and its connection.
+const CLIENT_QUEUE: usize = 256;
+/// Events from the connection driver (incoming messages, connects).
+const EVENT_QUEUE: usize = 256;
+/// How long to wait before offering the client more when its queue was full.
+const RETRY_FULL_QUEUE: Duration = Duration::from_millis(10);
+const FIRST_RECONNECT_DELAY: Duration = Duration::from_millis(500);
+const MAX_RECONNECT_DELAY: Duration = Duration::from_secs(30);
+/// Longest wait on exit for the broker to take the last publications.
+const EXIT_FLUSH_TIMEOUT: Duration = Duration::from_secs(5);
+/// Largest packet accepted or sent (rumqttc's default of 10 KiB is too small for some configs).
+const MAX_PACKET: usize = 256 * 1024;
+/// Where Debian keeps the system CAs, used when TLS is on without `ca_file`.
+const SYSTEM_CA_FILE: &str = "/etc/ssl/certs/ca-certificates.crt";
+
+/// Why the MQTT task could not start.
+#[derive(Debug, thiserror::Error)]
+pub enum MqttError {
+    #[error(transparent)]
+    Topic(#[from] TopicError),
+    #[error("cannot read {what} `{path}`: {source}")]
+    ReadFile {
+        what: &'static str,
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("mqtt.tls: cert_file and key_file go together; set both or neither")]
+    IncompleteClientCert,
+    #[error("mqtt.tls is set, but this build of rtu2mqtt has no TLS (cargo feature `tls`)")]
+    TlsNotBuilt,
+}
+
+/// Everything the MQTT task takes from the config.
+#[derive(Debug, Clone)]
+pub struct MqttSettings {
+    pub broker: MqttConfig,
+    /// Top-level `max_unchanged_interval` (-1 changes only, 0 every read, N seconds).
+    pub max_unchanged_interval: i64,
+}
+
+impl MqttSettings {
+    pub fn from_config(config: &Config) -> Self {
+        Self {
+            broker: config.mqtt.clone(),
+            max_unchanged_interval: config.max_unchanged_interval,
+        }
+    }
+
+    /// The planner's settings (topic prefix and discovery prefix checked).
+    pub fn planner_settings(&self) -> Result<PlannerSettings, MqttError> {
+        let topics = TopicScheme::new(&self.broker.topic_prefix, &self.broker.client_id)?;
+        let ha = &self.broker.homeassistant;
+        let discovery = if ha.enabled {
+            Some(DiscoverySettings {
+                prefix: discovery_prefix(&ha.prefix)?,
+            })
+        } else {
+            None
+        };
+        Ok(PlannerSettings {
+            topics,
+            unchanged: UnchangedPolicy::from_config(self.max_unchanged_interval),
+            discovery,
+            clear_discovery_on_exit: ha.clear_on_exit,
+        })
+    }
+}
+
+/// What the connection driver reports.
+#[derive(Debug)]
+enum ConnectionEvent {
+    Connected,
+    Disconnected,
+    Message {
+        topic: String,
+        payload: Vec<u8>,
+        retain: bool,
+    },
+}
+
+/// Runs the MQTT side until `shutdown` completes or every `updates` sender is dropped.
+///
+/// `updates` come from the bus side (send `Added` for each device first); checked `/on`
+/// writes go out on `writes` (never awaited: a full queue drops the write and sets `w`). On
+/// exit, with `mqtt.clear_on_exit`, every retained topic of the devices is deleted; the
+/// driver status becomes `offline` either way.
+pub async fn run_mqtt(
+    settings: MqttSettings,
+    mut updates: mpsc::Receiver<DeviceUpdate>,
+    writes: mpsc::Sender<ControlWrite>,
+    shutdown: impl Future<Output = ()>,
+) -> Result<(), MqttError> {
+    let mut planner = PublicationPlanner::new(settings.planner_settings()?);
+    let status_topic = planner.topics().driver_status();
+    let options = mqtt_options(&settings.broker, &status_topic)?;
+    let broker = format!("{}:{}", settings.broker.host, settings.broker.port);
+    let (client, eventloop) = AsyncClient::new(options, CLIENT_QUEUE);
+    let (events_tx, mut events) = mpsc::channel(EVENT_QUEUE);
+    let connection = tokio::spawn(drive_connection(eventloop, events_tx, broker.clone()));
+    let ha_status = planner.discovery_status_topic();
+
+    let mut outbox = Outbox::default();
+    let mut connected = false;
+    tokio::pin!(shutdown);
+    loop {
+        tokio::select! {
+            biased;
+            () = &mut shutdown => break,
+            event = events.recv() => match event {
+                Some(ConnectionEvent::Connected) => {
+                    connected = true;
+                    outbox.clear();
+                    outbox.push(MqttAction::Publish(Publication::retained(&status_topic, "online")));
+                    if let Some(topic) = &ha_status {
+                        outbox.push(MqttAction::Subscribe(topic.clone()));
+                    }
+                    outbox.extend(planner.snapshot());
+                    debug!(actions = outbox.len(), "republishing the retained state");
+                }
+                Some(ConnectionEvent::Disconnected) => {
+                    connected = false;
+                    outbox.clear();
+                }
+                Some(ConnectionEvent::Message { topic, payload, retain }) => {
+                    let is_ha_status = ha_status.as_deref() == Some(topic.as_str());
+                    if is_ha_status {
+                        if payload == b"online" {
+                            info!("Home Assistant is online: sending discovery configs");
+                            outbox.extend(planner.discovery_snapshot());
+                        }
+                    } else {
+                        on_message(&mut planner, &writes, &mut outbox, &topic, &payload, retain);
+                    }
+                }
+                None => break,
+            },
+            update = updates.recv() => match update {
+                Some(update) => {
+                    let actions = planner.handle(update, Instant::now());
+                    if connected {
+                        outbox.extend(actions);
+                    }
+                }
+                None => {
+                    debug!("the bus side closed its update channel");
+                    break;
+                }
+            },
+            () = tokio::time::sleep(RETRY_FULL_QUEUE), if connected && !outbox.is_empty() => {}
+        }
+        if connected {
+            offer(&client, &mut outbox);
+        }
+    }
+
+    // Keep the connection driver running but stop listening to it: it must go on polling
+    // until our DISCONNECT is written.
+    drop(events);
+    if connected {
+        if settings.broker.clear_on_exit {
+            outbox.extend(planner.clear_all());
+        }
+        outbox.push(MqttAction::Publish(Publication::retained(
+            &status_topic,
+            "offline",
+        )));
+        let flush = async {
+            while let Some(action) = outbox.pop() {
+                if send(&client, action).await.is_err() {
+                    break;
+                }
+            }
+            let _ = client.disconnect().await;
+        };
+        let stop_connection = connection.abort_handle();
+        let flushed = tokio::time::timeout(EXIT_FLUSH_TIMEOUT, async {
+            flush.await;
+            let _ = connection.await;
+        })
+        .await;
+        stop_connection.abort();
+        if flushed.is_err() {
+            warn!(%broker, "the broker did not take the last publications in time");
+        } else {
+            info!(
+                clear_on_exit = settings.broker.clear_on_exit,
+                "MQTT: disconnected"
+            );
+        }
+    } else {
+        warn!(%broker, "not connected to the broker at exit: its retained topics stay as they are");
+        connection.abort();
+    }
+    Ok(())
+}
+
+fn on_message(
+    planner: &mut PublicationPlanner,
+    writes: &mpsc::Sender<ControlWrite>,
+    outbox: &mut Outbox,
+    topic: &str,
+    payload: &[u8],
+    retain: bool,
+) {
+    match planner.on_message(topic, payload, retain) {
+        WriteOutcome::NotOurs => debug!(topic, "message on a topic that is no write, ignored"),
+        WriteOutcome::IgnoredRetained => {
+            debug!(topic, "retained /on message (an old command), ignored")
+        }
+        WriteOutcome::Accepted { write, actions } => {
+            debug!(device_id = %write.device_id, control_id = %write.control_id, payload = %write.payload, "write");
+            let (device_id, control_id) = (write.device_id.clone(), write.control_id.clone());
+            outbox.extend(actions);
+            if writes.try_send(write).is_err() {
+                outbox.extend(planner.write_not_delivered(&device_id, &control_id));
+            }
+        }
+        WriteOutcome::Rejected {
+            device_id,
+            control_id,
+            reason,
+            actions,
+        } => {
+            warn!(%device_id, %control_id, %reason, "refused a write");
+            outbox.extend(actions);
+        }
+    }
+}
+
+/// Gives the client as many queued actions as it takes without waiting.
+fn offer(client: &AsyncClient, outbox: &mut Outbox) {
+    while let Some(action) = outbox.pop() {
+        let result = match &action {
+            MqttAction::Publish(p) => {
+                client.try_publish(p.topic.as_str(), p.qos, p.retain, p.payload.as_bytes())
+            }
+            MqttAction::Subscribe(topic) => client.try_subscribe(topic.as_str(), QoS::AtLeastOnce),
+            MqttAction::Unsubscribe(topic) => client.try_unsubscribe(topic.as_str()),
+        };
+        if let Err(error) = result {
+            if !matches!(error, ClientError::TryRequest(_)) {
+                debug!(%error, "MQTT client refused a request");
+            }
+            outbox.push_front(action);
+            return;
+        }
+    }
+}
+
+async fn send(client: &AsyncClient, action: MqttAction) -> Result<(), ClientError> {
+    match action {
+        MqttAction::Publish(p) => {
+            client
+                .publish(p.topic, p.qos, p.retain, p.payload.into_bytes())
+                .await
+        }
+        MqttAction::Subscribe(topic) => client.subscribe(topic, QoS::AtLeastOnce).await,
+        MqttAction::Unsubscribe(topic) => client.unsubscribe(topic).await,
+    }
+}
+
+/// Polls rumqttc's event loop for the whole run: reconnects with a growing delay, and reports
+/// connects and incoming messages. After writing our DISCONNECT it goes on reading until the
+/// broker closes the connection: closing a socket with unread data (our last PUBACKs) makes
+/// the kernel send a reset, and the broker then drops the publications it has not read yet.
+async fn drive_connection(
+    mut eventloop: EventLoop,
+    events: mpsc::Sender<ConnectionEvent>,
+    broker: String,
+) {
+    let mut delay = FIRST_RECONNECT_DELAY;
+    let mut connected = false;
+    let mut failures: u32 = 0;
+    let mut disconnecting = false;
+    loop {
+        let event = eventloop.poll().await;
+        if disconnecting && event.is_err() {
+            return;
+        }
+        match event {
+            Ok(Event::Incoming(Packet::ConnAck(_))) => {
+                info!(%broker, "connected to the MQTT broker");
+                connected = true;
+                failures = 0;
+                delay = FIRST_RECONNECT_DELAY;
+                let _ = events.send(ConnectionEvent::Connected).await;
+            }
+            Ok(Event::Incoming(Packet::Publish(publish))) => {
+                let _ = events
+                    .send(ConnectionEvent::Message {
+                        topic: publish.topic,
+                        payload: publish.payload.to_vec(),
+                        retain: publish.retain,
+                    })
+                    .await;
+            }
+            Ok(Event::Outgoing(Outgoing::Disconnect)) => disconnecting = true,
+            Ok(_) => {}
+            Err(error) => {
+                if connected {
+                    warn!(%broker, %error, "lost the MQTT broker; reconnecting");
+                    connected = false;
+                    let _ = events.send(ConnectionEvent::Disconnected).await;
+                } else if failures == 0 {
+                    warn!(%broker, %error, "cannot reach the MQTT broker; retrying");
+                } else {
+                    debug!(%broker, %error, failures, "MQTT broker still unreachable");
+                }
+                failures = failures.saturating_add(1);
+                tokio::time::sleep(delay).await;
+                delay = (delay * 2).min(MAX_RECONNECT_DELAY);
+            }
+        }
+    }
+}
+
+/// rumqttc options: client id, credentials, keep-alive, last will, TLS.
+fn mqtt_options(config: &MqttConfig, status_topic: &str) -> Result<MqttOptions, MqttError> {
+    let mut options = MqttOptions::new(&config.client_id, &config.host, config.port);
+    options.set_keep_alive(Duration::from_secs(u64::from(config.keepalive_s)));
+    options.set_clean_session(true);
+    options.set_max_packet_size(MAX_PACKET, MAX_PACKET);
+    options.set_last_will(LastWill::new(
+        status_topic,
+        "offline",
+        QoS::AtLeastOnce,
+        true,
+    ));
+    if let Some(user) = &config.user {
+        options.set_credentials(user, config.password.clone().unwrap_or_default());
+    }
+    if let Some(tls) = &config.tls {
+        options.set_transport(tls_transport(tls)?);
+    }
+    Ok(options)
+}
+
+#[cfg(feature = "tls")]
+fn tls_transport(tls: &TlsConfig) -> Result<Transport, MqttError> {
+    let read = |what: &'static str, path: &PathBuf| {
+        std::fs::read(path).map_err(|source| MqttError::ReadFile {
+            what,
+            path: path.clone(),
+            source,
+        })
+    };
+    let ca_path = tls
+        .ca_file
+        .clone()
+        .unwrap_or_else(|| PathBuf::from(SYSTEM_CA_FILE));
+    let ca = read("CA file", &ca_path)?;
+    let client_auth = match (&tls.cert_file, &tls.key_file) {
+        (Some(cert), Some(key)) => {
+            Some((read("client certificate", cert)?, read("client key", key)?))
+        }
+        (None, None) => None,
+        _ => return Err(MqttError::IncompleteClientCert),
+    };
+    Ok(Transport::tls(ca, client_auth, None))
+}
+
+#[cfg(not(feature = "tls"))]
+fn tls_transport(_tls: &TlsConfig) -> Result<Transport, MqttError> {
+    let _ = SYSTEM_CA_FILE;
+    Err(MqttError::TlsNotBuilt)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn tls_settings_are_checked_up_front() {
+        let mut config = MqttConfig {
+            tls: Some(TlsConfig {
+                ca_file: Some(PathBuf::from("/nonexistent/ca.pem")),
+                cert_file: None,
+                key_file: None,
+            }),
+            ..MqttConfig::default()
+        };
+        let error = mqtt_options(&config, "s").err().map(|e| e.to_string());
+        #[cfg(feature = "tls")]
+        assert!(error.is_some_and(|e| e.contains("/nonexistent/ca.pem")));
+        #[cfg(not(feature = "tls"))]
+        assert!(error.is_some_and(|e| e.contains("no TLS")));
+        config.tls = None;
+        assert!(mqtt_options(&config, "s").is_ok());
+    }
+
+    #[test]
+    fn bad_prefixes_are_refused() {
+        let mut settings = MqttSettings {
+            broker: MqttConfig::default(),
+            max_unchanged_interval: -1,
+        };
+        assert!(settings.planner_settings().is_ok());
+        settings.broker.topic_prefix = "a/+".into();
+        assert!(settings.planner_settings().is_err());
+        settings.broker.topic_prefix = String::new();
+        settings.broker.homeassistant.prefix = "#".into();
+        assert!(settings.planner_settings().is_err());
+        settings.broker.homeassistant.enabled = false;
+        assert!(settings.planner_settings().is_ok());
+    }
+}

@@ -1,0 +1,353 @@
+//! Home Assistant MQTT discovery: one HA device per bus device, one entity per control, in the
+//! per-component form `<prefix>/<component>/<node>_<device>/<control>/config`.
+//!
+//! WB values are "1"/"0" and plain numbers, so every entity spells out its payloads and number
+//! limits instead of relying on HA's defaults ("ON"/"OFF", "PRESS", min 1 max 100).
+
+use serde_json::{json, Map, Value};
+
+use super::topics::{topic_level, TopicScheme};
+use crate::device::{ResolvedChannel, ResolvedDevice};
+use crate::updates::DeviceIdentity;
+
+/// Where discovery configs go and how ids are made.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct DiscoverySettings {
+    /// `homeassistant` by default.
+    pub prefix: String,
+}
+
+impl DiscoverySettings {
+    /// Home Assistant's birth / last-will topic: `online` means "send your configs again".
+    pub fn status_topic(&self) -> String {
+        format!("{}/status", self.prefix)
+    }
+}
+
+/// One entity's discovery message.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DiscoveryConfig {
+    pub component: &'static str,
+    pub topic: String,
+    pub payload: Value,
+}
+
+/// HA device identifier: `<client id>_<device id>`, unique across controllers sharing a broker
+/// (their client ids differ).
+pub fn device_identifier(topics: &TopicScheme, device_id: &str) -> String {
+    format!("{}_{}", topics.driver_node(), topic_level(device_id))
+}
+
+/// The HA entity kind for a control, or None when it gets no entity.
+pub fn component_for(channel: &ResolvedChannel) -> Option<&'static str> {
+    let writable = !channel.readonly;
+    Some(match channel.control_type.as_str() {
+        "switch" if writable => "switch",
+        "switch" | "alarm" => "binary_sensor",
+        "pushbutton" if writable => "button",
+        "pushbutton" => return None,
+        "text" | "rgb" if writable => "text",
+        "text" | "rgb" | "unixtime" | "w1-id" => "sensor",
+        _ if writable => "number",
+        _ => "sensor",
+    })
+}
+
+/// Discovery configs of every control of `device`.
+pub fn device_configs(
+    settings: &DiscoverySettings,
+    topics: &TopicScheme,
+    device: &ResolvedDevice,
+    identity: &DeviceIdentity,
+) -> Vec<DiscoveryConfig> {
+    device
+        .channels
+        .iter()
+        .filter_map(|c| control_config(settings, topics, device, identity, c))
+        .collect()
+}
+
+/// The discovery config of one control.
+pub fn control_config(
+    settings: &DiscoverySettings,
+    topics: &TopicScheme,
+    device: &ResolvedDevice,
+    identity: &DeviceIdentity,
+    channel: &ResolvedChannel,
+) -> Option<DiscoveryConfig> {
+    let component = component_for(channel)?;
+    let device_uid = device_identifier(topics, &device.id);
+    let object = topic_level(&channel.id).to_lowercase();
+    let state_topic = topics.control(&device.id, &channel.id);
+    let command_topic = topics.control_on(&device.id, &channel.id);
+
+    let mut config = Map::new();
+    let name = channel
+        .title
+        .get("en")
+        .cloned()
+        .unwrap_or_else(|| channel.id.clone());
+    config.insert("name".into(), json!(name));
+    config.insert("unique_id".into(), json!(format!("{device_uid}_{object}")));
+    config.insert("device".into(), device_block(topics, device, identity));
+    config.insert(
+        "origin".into(),
+        json!({ "name": "rtu2mqtt", "sw_version": env!("CARGO_PKG_VERSION") }),
+    );
+    config.insert(
+        "availability".into(),
+        json!([
+            { "topic": topics.driver_status(), "payload_available": "online", "payload_not_available": "offline" },
+            { "topic": topics.device_availability(&device.id), "payload_available": "online", "payload_not_available": "offline" },
+        ]),
+    );
+    config.insert("availability_mode".into(), json!("all"));
+    config.insert("qos".into(), json!(1));
+    if channel.hidden {
+        config.insert("enabled_by_default".into(), json!(false));
+    }
+
+    match component {
+        "switch" => {
+            config.insert("state_topic".into(), json!(state_topic));
+            config.insert("command_topic".into(), json!(command_topic));
+            for (key, value) in [
+                ("payload_on", "1"),
+                ("payload_off", "0"),
+                ("state_on", "1"),
+                ("state_off", "0"),
+            ] {
+                config.insert(key.into(), json!(value));
+            }
+        }
+        "binary_sensor" => {
+            config.insert("state_topic".into(), json!(state_topic));
+            config.insert("payload_on".into(), json!("1"));
+            config.insert("payload_off".into(), json!("0"));
+            if channel.control_type == "alarm" {
+                config.insert("device_class".into(), json!("problem"));
+            }
+        }
+        "button" => {
+            config.insert("command_topic".into(), json!(command_topic));
+            config.insert("payload_press".into(), json!("1"));
+        }
+        "text" => {
+            config.insert("state_topic".into(), json!(state_topic));
+            config.insert("command_topic".into(), json!(command_topic));
+            if channel.control_type == "rgb" {
+                config.insert("pattern".into(), json!(r"^\d{1,3};\d{1,3};\d{1,3}$"));
+            }
+        }
+        "number" => {
+            config.insert("state_topic".into(), json!(state_topic));
+            config.insert("command_topic".into(), json!(command_topic));
+            number_limits(channel, &mut config);
+            if let Some(unit) = units_of(channel) {
+                config.insert(
+                    "unit_of_measurement".into(),
+                    json!(unit_class(unit).ha_unit),
+                );
+            }
+        }
+        _ => {
+            config.insert("state_topic".into(), json!(state_topic));
+            sensor_fields(channel, &mut config);
+        }
+    }
+    Some(DiscoveryConfig {
+        component,
+        topic: format!(
+            "{}/{component}/{device_uid}/{object}/config",
+            settings.prefix
+        ),
+        payload: Value::Object(config),
+    })
+}
+
+fn device_block(topics: &TopicScheme, device: &ResolvedDevice, identity: &DeviceIdentity) -> Value {
+    let mut block = Map::new();
+    block.insert(
+        "identifiers".into(),
+        json!([device_identifier(topics, &device.id)]),
+    );
+    block.insert("name".into(), json!(device.name));
+    let model = identity
+        .model
+        .clone()
+        .or_else(|| device.device_type.clone());
+    if let Some(model) = model {
+        block.insert("model".into(), json!(model));
+    }
+    if device.is_wb {
+        block.insert("manufacturer".into(), json!("Wiren Board"));
+    }
+    if let Some(serial) = &identity.serial_number {
+        block.insert("serial_number".into(), json!(serial));
+    }
+    if let Some(firmware) = &identity.firmware {
+        block.insert("sw_version".into(), json!(firmware));
+    }
+    Value::Object(block)
+}
+
+/// HA's number defaults (1…100, step 1) do not fit WB controls: always send min, max, step.
+fn number_limits(channel: &ResolvedChannel, config: &mut Map<String, Value>) {
+    let is_range = matches!(channel.control_type.as_str(), "range" | "dimmer");
+    let (default_min, default_max): (f64, f64) = if is_range {
+        (0.0, 65535.0)
+    } else {
+        (-1e9, 1e9)
+    };
+    let min = channel.min.filter(|v| v.is_finite()).unwrap_or(default_min);
+    let max = channel
+        .max
+        .filter(|v| v.is_finite() && *v > min)
+        .unwrap_or(default_max.max(min + 1.0));
+    let integer_codec = channel
+        .registers
+        .iter()
+        .all(|r| r.codec.format.is_integer() && r.codec.scale == 1.0 && r.codec.offset == 0.0);
+    let step = match channel.precision {
+        Some(p) if p.is_finite() && p > 0.0 => p.max(0.001),
+        _ if is_range || integer_codec => 1.0,
+        _ => 0.001,
+    };
+    config.insert("min".into(), json!(min));
+    config.insert("max".into(), json!(max));
+    config.insert("step".into(), json!(step));
+    config.insert(
+        "mode".into(),
+        json!(if is_range { "slider" } else { "box" }),
+    );
+}
+
+/// Unit, device class and state class of a read-only numeric control.
+fn sensor_fields(channel: &ResolvedChannel, config: &mut Map<String, Value>) {
+    let numeric = !matches!(
+        channel.control_type.as_str(),
+        "text" | "rgb" | "unixtime" | "w1-id" | "switch" | "alarm"
+    ) && channel.enum_titles.is_empty();
+    if !numeric {
+        return;
+    }
+    let class = units_of(channel).map(unit_class);
+    if let Some(class) = &class {
+        config.insert("unit_of_measurement".into(), json!(class.ha_unit));
+        if let Some(device_class) = class.device_class {
+            config.insert("device_class".into(), json!(device_class));
+        }
+    }
+    let total = class.as_ref().is_some_and(|c| c.total_increasing);
+    config.insert(
+        "state_class".into(),
+        json!(if total {
+            "total_increasing"
+        } else {
+            "measurement"
+        }),
+    );
+}
+
+/// The control's unit: `units`, else the unit a deprecated typed value implies.
+pub fn units_of(channel: &ResolvedChannel) -> Option<&str> {
+    if let Some(units) = channel.units.as_deref().filter(|u| !u.is_empty()) {
+        return Some(units);
+    }
+    Some(match channel.control_type.as_str() {
+        "temperature" => "deg C",
+        "rel_humidity" => "%, RH",
+        "atmospheric_pressure" => "mbar",
+        "rainfall" => "mm/h",
+        "wind_speed" => "m/s",
+        "power" => "W",
+        "power_consumption" => "kWh",
+        "voltage" => "V",
+        "water_flow" => "m^3/h",
+        "water_consumption" => "m^3",
+        "resistance" => "Ohm",
+        "concentration" => "ppm",
+        "heat_power" => "Gcal/h",
+        "heat_energy" => "Gcal",
+        "current" => "A",
+        "pressure" => "bar",
+        "lux" => "lx",
+        "sound_level" => "dB",
+        _ => return None,
+    })
+}
+
+/// How HA spells a WB unit, and the device class it implies.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct UnitClass {
+    pub ha_unit: String,
+    pub device_class: Option<&'static str>,
+    pub total_increasing: bool,
+}
+
+/// WB unit → HA unit and device class (the table of wb-home-assistant's `sensor.py`).
+pub fn unit_class(wb_unit: &str) -> UnitClass {
+    let (ha_unit, device_class, total_increasing) = match wb_unit {
+        "deg C" => ("°C", Some("temperature"), false),
+        "%, RH" => ("%", Some("humidity"), false),
+        "V" | "mV" => (wb_unit, Some("voltage"), false),
+        "A" | "mA" => (wb_unit, Some("current"), false),
+        "W" | "kW" => (wb_unit, Some("power"), false),
+        "Wh" | "kWh" => (wb_unit, Some("energy"), true),
+        "mbar" => ("mbar", Some("atmospheric_pressure"), false),
+        "Pa" | "kPa" | "hPa" | "bar" => (wb_unit, Some("pressure"), false),
+        "lx" => ("lx", Some("illuminance"), false),
+        "ppm" => ("ppm", Some("carbon_dioxide"), false),
+        "ppb" => ("ppb", Some("volatile_organic_compounds_parts"), false),
+        "dB" => ("dB", Some("sound_pressure"), false),
+        "Hz" => ("Hz", Some("frequency"), false),
+        "m^3" => ("m³", Some("water"), true),
+        "m^3/h" => ("m³/h", Some("volume_flow_rate"), false),
+        "m/s" => ("m/s", Some("wind_speed"), false),
+        "mm/h" => ("mm/h", Some("precipitation_intensity"), false),
+        "s" | "min" | "h" => (wb_unit, Some("duration"), false),
+        "var" => ("var", Some("reactive_power"), false),
+        "VA" => ("VA", Some("apparent_power"), false),
+        "kvarh" => ("kvarh", Some("reactive_energy"), true),
+        "Ohm" => ("Ω", None, false),
+        "mOhm" => ("mΩ", None, false),
+        "deg" => ("°", None, false),
+        other => (other, None, false),
+    };
+    UnitClass {
+        ha_unit: ha_unit.to_string(),
+        device_class,
+        total_increasing,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::mqtt::layout::tests::channel;
+
+    #[test]
+    fn mapping_follows_the_bridges() {
+        let mut ro_switch = channel("In", "switch");
+        ro_switch.readonly = true;
+        assert_eq!(component_for(&channel("K1", "switch")), Some("switch"));
+        assert_eq!(component_for(&ro_switch), Some("binary_sensor"));
+        assert_eq!(component_for(&channel("A", "alarm")), Some("binary_sensor"));
+        assert_eq!(component_for(&channel("B", "pushbutton")), Some("button"));
+        assert_eq!(component_for(&channel("R", "range")), Some("number"));
+        let mut ro_value = channel("T", "temperature");
+        ro_value.readonly = true;
+        assert_eq!(component_for(&ro_value), Some("sensor"));
+    }
+
+    #[test]
+    fn units_map_to_device_classes() {
+        assert_eq!(unit_class("deg C").ha_unit, "°C");
+        assert_eq!(unit_class("kWh").device_class, Some("energy"));
+        assert!(unit_class("kWh").total_increasing);
+        assert_eq!(unit_class("furlong").device_class, None);
+        let mut typed = channel("T", "temperature");
+        typed.readonly = true;
+        assert_eq!(units_of(&typed), Some("deg C"));
+    }
+}

@@ -1,0 +1,124 @@
+//! Actions waiting for the MQTT client: one entry per topic, the latest wins, and an updated
+//! entry moves to the back so the broker sees the last changes in the order they were made
+//! (an error cleared before the value that follows it). Its size is bounded by the number of
+//! topics the devices have.
+
+use std::collections::{BTreeMap, HashMap};
+
+use super::MqttAction;
+
+#[derive(Debug, Default)]
+pub struct Outbox {
+    next_seq: i64,
+    seq_of: HashMap<(u8, String), i64>,
+    queue: BTreeMap<i64, MqttAction>,
+}
+
+fn key(action: &MqttAction) -> (u8, String) {
+    match action {
+        MqttAction::Publish(p) => (0, p.topic.clone()),
+        // A subscribe and an unsubscribe of one topic replace each other.
+        MqttAction::Subscribe(t) | MqttAction::Unsubscribe(t) => (1, t.clone()),
+    }
+}
+
+impl Outbox {
+    pub fn push(&mut self, action: MqttAction) {
+        let key = key(&action);
+        if let Some(old) = self.seq_of.remove(&key) {
+            self.queue.remove(&old);
+        }
+        let seq = self.next_seq;
+        self.next_seq += 1;
+        self.seq_of.insert(key, seq);
+        self.queue.insert(seq, action);
+    }
+
+    pub fn extend(&mut self, actions: impl IntoIterator<Item = MqttAction>) {
+        for action in actions {
+            self.push(action);
+        }
+    }
+
+    pub fn pop(&mut self) -> Option<MqttAction> {
+        let (_, action) = self.queue.pop_first()?;
+        self.seq_of.remove(&key(&action));
+        Some(action)
+    }
+
+    /// Puts back an action the client could not take, ahead of everything else, unless a newer
+    /// one for its topic arrived meanwhile.
+    pub fn push_front(&mut self, action: MqttAction) {
+        let key = key(&action);
+        if self.seq_of.contains_key(&key) {
+            return;
+        }
+        // Below the first entry (sequence numbers may go negative), or just below the next one when empty.
+        let seq = self
+            .queue
+            .first_key_value()
+            .map_or(self.next_seq - 1, |(s, _)| s - 1);
+        self.seq_of.insert(key, seq);
+        self.queue.insert(seq, action);
+    }
+
+    pub fn clear(&mut self) {
+        self.seq_of.clear();
+        self.queue.clear();
+    }
+
+    pub fn len(&self) -> usize {
+        self.queue.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.queue.is_empty()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::mqtt::Publication;
+
+    fn publish(topic: &str, payload: &str) -> MqttAction {
+        MqttAction::Publish(Publication::retained(topic, payload))
+    }
+
+    #[test]
+    fn latest_wins_and_moves_back() {
+        let mut outbox = Outbox::default();
+        outbox.push(publish("v", "1"));
+        outbox.push(publish("e", "r"));
+        outbox.push(publish("e", ""));
+        outbox.push(publish("v", "2"));
+        assert_eq!(outbox.len(), 2);
+        assert_eq!(outbox.pop(), Some(publish("e", "")));
+        assert_eq!(outbox.pop(), Some(publish("v", "2")));
+        assert_eq!(outbox.pop(), None);
+    }
+
+    #[test]
+    fn push_front_goes_first_unless_superseded() {
+        let mut outbox = Outbox::default();
+        outbox.push(publish("a", "1"));
+        outbox.push(publish("b", "1"));
+        let first = outbox.pop().unwrap();
+        outbox.push_front(first.clone());
+        assert_eq!(outbox.pop(), Some(first));
+        let b = outbox.pop().unwrap();
+        outbox.push(publish("b", "2"));
+        outbox.push_front(b);
+        assert_eq!(outbox.pop(), Some(publish("b", "2")));
+        assert!(outbox.is_empty());
+    }
+
+    #[test]
+    fn bounded_by_topics() {
+        let mut outbox = Outbox::default();
+        for i in 0..10_000 {
+            outbox.push(publish(&format!("t{}", i % 7), &i.to_string()));
+        }
+        assert_eq!(outbox.len(), 7);
+    }
+}

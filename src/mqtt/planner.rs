@@ -1,0 +1,536 @@
+//! The publication planner: what to publish for each [`DeviceUpdate`], given everything
+//! published so far. Pure (the time comes in as an argument), so every rule of the layout —
+//! dedup, `max_unchanged_interval`, error ordering, removal, republishing after a reconnect —
+//! is tested without a broker.
+
+use std::collections::{BTreeMap, HashMap};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use tracing::{debug, warn};
+
+use super::discovery::{self, DiscoverySettings};
+use super::layout;
+use super::topics::TopicScheme;
+use super::writes::{check_write, WriteRejection};
+use super::{MqttAction, Publication};
+use crate::device::{ResolvedChannel, ResolvedDevice};
+use crate::updates::{ControlWrite, DeviceIdentity, DeviceUpdate, ErrorFlags};
+
+/// When an unchanged value is published again (config `max_unchanged_interval`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum UnchangedPolicy {
+    /// -1 (default): only changes.
+    OnChange,
+    /// 0: every read.
+    EveryRead,
+    /// N > 0: also after N s without a publish (at least 5 s, as in wb-mqtt-serial).
+    After(Duration),
+}
+
+impl UnchangedPolicy {
+    pub fn from_config(max_unchanged_interval: i64) -> Self {
+        match max_unchanged_interval {
+            i64::MIN..=-1 => Self::OnChange,
+            0 => Self::EveryRead,
+            n => Self::After(Duration::from_secs(n.max(5) as u64)),
+        }
+    }
+}
+
+/// What the planner needs to know.
+#[derive(Debug, Clone)]
+pub struct PlannerSettings {
+    pub topics: TopicScheme,
+    pub unchanged: UnchangedPolicy,
+    /// Home Assistant discovery; None when disabled.
+    pub discovery: Option<DiscoverySettings>,
+    /// Also delete the discovery configs on a clean exit (HA then forgets the entities).
+    pub clear_discovery_on_exit: bool,
+}
+
+/// The result of an `/on` message.
+#[derive(Debug, Clone, PartialEq)]
+pub enum WriteOutcome {
+    /// Not a topic of a writable control.
+    NotOurs,
+    /// A retained `/on` message (a client's mistake): replaying it on every start would repeat
+    /// an old command, so it is ignored.
+    IgnoredRetained,
+    /// Hand `write` to the bus side; `actions` clear an earlier rejection's `w`.
+    Accepted {
+        write: ControlWrite,
+        actions: Vec<MqttAction>,
+    },
+    /// Refused: nothing goes to the bus, `actions` set `w`.
+    Rejected {
+        device_id: String,
+        control_id: String,
+        reason: WriteRejection,
+        actions: Vec<MqttAction>,
+    },
+}
+
+#[derive(Debug, Default)]
+struct ControlState {
+    value: Option<String>,
+    last_published: Option<Instant>,
+    bus_errors: ErrorFlags,
+    /// Set by a refused `/on` payload; cleared by the next accepted one.
+    write_refused: bool,
+    published_errors: String,
+}
+
+impl ControlState {
+    fn errors(&self) -> ErrorFlags {
+        ErrorFlags {
+            write: self.bus_errors.write || self.write_refused,
+            ..self.bus_errors
+        }
+    }
+}
+
+#[derive(Debug)]
+struct DeviceState {
+    device: Arc<ResolvedDevice>,
+    identity: DeviceIdentity,
+    online: bool,
+    controls: HashMap<String, ControlState>,
+    /// Discovery topics published for this device (to delete exactly those).
+    discovery_topics: Vec<String>,
+}
+
+/// Turns [`DeviceUpdate`]s into broker actions and remembers the published state.
+#[derive(Debug)]
+pub struct PublicationPlanner {
+    settings: PlannerSettings,
+    devices: BTreeMap<String, DeviceState>,
+    /// `/on` topic → (device id, control id), for writable controls.
+    on_topics: HashMap<String, (String, String)>,
+}
+
+impl PublicationPlanner {
+    pub fn new(settings: PlannerSettings) -> Self {
+        Self {
+            settings,
+            devices: BTreeMap::new(),
+            on_topics: HashMap::new(),
+        }
+    }
+
+    pub fn topics(&self) -> &TopicScheme {
+        &self.settings.topics
+    }
+
+    /// Home Assistant's status topic, when discovery is on.
+    pub fn discovery_status_topic(&self) -> Option<String> {
+        self.settings.discovery.as_ref().map(|d| d.status_topic())
+    }
+
+    /// What to do on the broker for `update`, received at `now`.
+    pub fn handle(&mut self, update: DeviceUpdate, now: Instant) -> Vec<MqttAction> {
+        match update {
+            DeviceUpdate::Added(device) => self.add_device(device),
+            DeviceUpdate::Identity {
+                device_id,
+                identity,
+            } => self.set_identity(&device_id, identity),
+            DeviceUpdate::Removed { device_id } => self.remove_device(&device_id),
+            DeviceUpdate::Value {
+                device_id,
+                control_id,
+                value,
+                always_publish,
+            } => self.set_value(&device_id, &control_id, value, always_publish, now),
+            DeviceUpdate::ControlError {
+                device_id,
+                control_id,
+                errors,
+            } => self.set_errors(&device_id, &control_id, |state| state.bus_errors = errors),
+            DeviceUpdate::Online { device_id, online } => self.set_online(&device_id, online),
+        }
+    }
+
+    fn add_device(&mut self, device: Arc<ResolvedDevice>) -> Vec<MqttAction> {
+        let mut out = Vec::new();
+        let mut previous = self.devices.remove(&device.id);
+        if let Some(old) = &previous {
+            // A config change: delete what the new device no longer has.
+            let keep: std::collections::HashSet<String> =
+                self.device_topics(&device).into_iter().collect();
+            for topic in self.device_topics(&old.device) {
+                if !keep.contains(&topic) {
+                    out.push(MqttAction::Publish(Publication::removal(topic)));
+                }
+            }
+            let new_discovery = self.discovery_configs(&device, &old.identity);
+            for topic in &old.discovery_topics {
+                if !new_discovery.iter().any(|c| &c.topic == topic) {
+                    out.push(MqttAction::Publish(Publication::removal(topic)));
+                }
+            }
+            for channel in old
+                .device
+                .channels
+                .iter()
+                .filter(|c| layout::is_writable(c))
+            {
+                let still = device.channel(&channel.id).is_some_and(layout::is_writable);
+                if !still {
+                    let topic = self.settings.topics.control_on(&device.id, &channel.id);
+                    self.on_topics.remove(&topic);
+                    out.push(MqttAction::Unsubscribe(topic));
+                }
+            }
+        }
+        let mut controls = HashMap::new();
+        for channel in &device.channels {
+            let state = previous
+                .as_mut()
+                .and_then(|p| p.controls.remove(&channel.id))
+                .unwrap_or_default();
+            controls.insert(channel.id.clone(), state);
+        }
+        let (identity, online) = previous
+            .map(|p| (p.identity, p.online))
+            .unwrap_or((DeviceIdentity::default(), true));
+        let mut state = DeviceState {
+            device: device.clone(),
+            identity,
+            online,
+            controls,
+            discovery_topics: Vec::new(),
+        };
+        out.extend(self.device_actions(&mut state, false));
+        for channel in device.channels.iter().filter(|c| layout::is_writable(c)) {
+            let topic = self.settings.topics.control_on(&device.id, &channel.id);
+            self.on_topics
+                .insert(topic.clone(), (device.id.clone(), channel.id.clone()));
+        }
+        self.devices.insert(device.id.clone(), state);
+        out
+    }
+
+    /// Subscriptions, meta, errors, (with `values`) the last values, and discovery configs of
+    /// one device, in the order a reader should see them.
+    fn device_actions(&self, state: &mut DeviceState, values: bool) -> Vec<MqttAction> {
+        let topics = &self.settings.topics;
+        let device = state.device.clone();
+        let mut out = Vec::new();
+        for channel in device.channels.iter().filter(|c| layout::is_writable(c)) {
+            out.push(MqttAction::Subscribe(
+                topics.control_on(&device.id, &channel.id),
+            ));
+        }
+        let mut publications = layout::device_meta(topics, &device);
+        publications.push(layout::device_error(topics, &device.id, state.online));
+        if self.settings.discovery.is_some() {
+            publications.push(availability(topics, &device.id, state.online));
+        }
+        for channel in &device.channels {
+            publications.extend(layout::control_meta(topics, &device.id, channel));
+            let control = state.controls.entry(channel.id.clone()).or_default();
+            control.published_errors = control.errors().to_string();
+            publications.push(layout::control_error(
+                topics,
+                &device.id,
+                &channel.id,
+                &control.published_errors,
+            ));
+            if let (true, false, Some(value)) =
+                (values, layout::is_pushbutton(channel), &control.value)
+            {
+                publications.push(layout::control_value(topics, &device.id, channel, value));
+            }
+        }
+        let configs = self.discovery_configs(&device, &state.identity);
+        state.discovery_topics = configs.iter().map(|c| c.topic.clone()).collect();
+        publications.extend(configs);
+        out.extend(publications.into_iter().map(MqttAction::Publish));
+        out
+    }
+
+    fn discovery_configs(
+        &self,
+        device: &ResolvedDevice,
+        identity: &DeviceIdentity,
+    ) -> Vec<Publication> {
+        let Some(settings) = &self.settings.discovery else {
+            return Vec::new();
+        };
+        discovery::device_configs(settings, &self.settings.topics, device, identity)
+            .into_iter()
+            .map(|c| Publication::retained(c.topic, c.payload.to_string()))
+            .collect()
+    }
+
+    fn device_topics(&self, device: &ResolvedDevice) -> Vec<String> {
+        let mut topics = layout::device_topics(&self.settings.topics, device);
+        if self.settings.discovery.is_none() {
+            let availability = self.settings.topics.device_availability(&device.id);
+            topics.retain(|t| *t != availability);
+        }
+        topics
+    }
+
+    fn set_identity(&mut self, device_id: &str, identity: DeviceIdentity) -> Vec<MqttAction> {
+        let Some(state) = self.devices.get(device_id) else {
+            debug!(device_id, "identity of a device not announced yet, ignored");
+            return Vec::new();
+        };
+        if state.identity == identity {
+            return Vec::new();
+        }
+        let configs = self.discovery_configs(&state.device, &identity);
+        if let Some(state) = self.devices.get_mut(device_id) {
+            state.identity = identity;
+        }
+        configs.into_iter().map(MqttAction::Publish).collect()
+    }
+
+    fn remove_device(&mut self, device_id: &str) -> Vec<MqttAction> {
+        let Some(state) = self.devices.remove(device_id) else {
+            return Vec::new();
+        };
+        let mut out = Vec::new();
+        for channel in state
+            .device
+            .channels
+            .iter()
+            .filter(|c| layout::is_writable(c))
+        {
+            let topic = self.settings.topics.control_on(device_id, &channel.id);
+            self.on_topics.remove(&topic);
+            out.push(MqttAction::Unsubscribe(topic));
+        }
+        out.extend(self.removal(&state, true));
+        out
+    }
+
+    /// Empty retained payloads for every topic of a device (discovery configs included when
+    /// `with_discovery`).
+    fn removal(&self, state: &DeviceState, with_discovery: bool) -> Vec<MqttAction> {
+        let mut topics = Vec::new();
+        if with_discovery {
+            topics.extend(state.discovery_topics.iter().cloned());
+        }
+        topics.extend(self.device_topics(&state.device));
+        topics
+            .into_iter()
+            .map(|t| MqttAction::Publish(Publication::removal(t)))
+            .collect()
+    }
+
+    fn set_value(
+        &mut self,
+        device_id: &str,
+        control_id: &str,
+        value: String,
+        always_publish: bool,
+        now: Instant,
+    ) -> Vec<MqttAction> {
+        let topics = &self.settings.topics;
+        let unchanged_policy = self.settings.unchanged;
+        let Some((channel, control)) = lookup(&mut self.devices, device_id, control_id) else {
+            debug!(
+                device_id,
+                control_id, "value of an unknown control, ignored"
+            );
+            return Vec::new();
+        };
+        let mut out = Vec::new();
+        // A value means a good read: `r` is cleared first, then the value follows.
+        if control.bus_errors.read {
+            control.bus_errors.read = false;
+            out.extend(error_if_changed(topics, device_id, control_id, control));
+        }
+        let changed = control.value.as_deref() != Some(value.as_str());
+        let due = match unchanged_policy {
+            UnchangedPolicy::OnChange => false,
+            UnchangedPolicy::EveryRead => true,
+            UnchangedPolicy::After(interval) => control
+                .last_published
+                .is_none_or(|t| now.saturating_duration_since(t) >= interval),
+        };
+        if changed || always_publish || due || layout::is_pushbutton(channel) {
+            out.push(MqttAction::Publish(layout::control_value(
+                topics, device_id, channel, &value,
+            )));
+            control.last_published = Some(now);
+        }
+        control.value = Some(value);
+        out
+    }
+
+    fn set_errors(
+        &mut self,
+        device_id: &str,
+        control_id: &str,
+        change: impl FnOnce(&mut ControlState),
+    ) -> Vec<MqttAction> {
+        let topics = &self.settings.topics;
+        let Some((_, control)) = lookup(&mut self.devices, device_id, control_id) else {
+            debug!(
+                device_id,
+                control_id, "errors of an unknown control, ignored"
+            );
+            return Vec::new();
+        };
+        change(control);
+        error_if_changed(topics, device_id, control_id, control)
+            .into_iter()
+            .collect()
+    }
+
+    fn set_online(&mut self, device_id: &str, online: bool) -> Vec<MqttAction> {
+        let with_availability = self.settings.discovery.is_some();
+        let topics = &self.settings.topics;
+        let Some(state) = self.devices.get_mut(device_id) else {
+            debug!(device_id, "state of an unknown device, ignored");
+            return Vec::new();
+        };
+        if state.online == online {
+            return Vec::new();
+        }
+        state.online = online;
+        let mut out = vec![MqttAction::Publish(layout::device_error(
+            topics, device_id, online,
+        ))];
+        if with_availability {
+            out.push(MqttAction::Publish(availability(topics, device_id, online)));
+        }
+        out
+    }
+
+    /// An `/on` message: validated against the control, turned into a write or refused.
+    pub fn on_message(&mut self, topic: &str, payload: &[u8], retained: bool) -> WriteOutcome {
+        let Some((device_id, control_id)) = self.on_topics.get(topic).cloned() else {
+            return WriteOutcome::NotOurs;
+        };
+        if retained {
+            return WriteOutcome::IgnoredRetained;
+        }
+        let topics = &self.settings.topics;
+        let Some((channel, control)) = lookup(&mut self.devices, &device_id, &control_id) else {
+            return WriteOutcome::NotOurs;
+        };
+        match check_write(channel, payload) {
+            Ok(text) => {
+                control.write_refused = false;
+                let actions = error_if_changed(topics, &device_id, &control_id, control)
+                    .into_iter()
+                    .collect();
+                WriteOutcome::Accepted {
+                    write: ControlWrite {
+                        device_id,
+                        control_id,
+                        payload: text,
+                    },
+                    actions,
+                }
+            }
+            Err(reason) => {
+                control.write_refused = true;
+                let actions = error_if_changed(topics, &device_id, &control_id, control)
+                    .into_iter()
+                    .collect();
+                WriteOutcome::Rejected {
+                    device_id,
+                    control_id,
+                    reason,
+                    actions,
+                }
+            }
+        }
+    }
+
+    /// A checked write could not be handed to the bus side (its queue was full or gone): `w`.
+    pub fn write_not_delivered(&mut self, device_id: &str, control_id: &str) -> Vec<MqttAction> {
+        warn!(
+            device_id,
+            control_id, "write dropped: the bus side does not take writes"
+        );
+        self.set_errors(device_id, control_id, |state| state.write_refused = true)
+    }
+
+    /// Everything to (re)do after connecting: subscriptions, then every retained topic with
+    /// its current payload (a restarted broker may have lost them all).
+    pub fn snapshot(&mut self) -> Vec<MqttAction> {
+        let ids: Vec<String> = self.devices.keys().cloned().collect();
+        let mut out = Vec::new();
+        for id in ids {
+            if let Some(mut state) = self.devices.remove(&id) {
+                out.extend(self.device_actions(&mut state, true));
+                self.devices.insert(id, state);
+            }
+        }
+        out
+    }
+
+    /// Every discovery config again (Home Assistant announced itself `online`).
+    pub fn discovery_snapshot(&self) -> Vec<MqttAction> {
+        self.devices
+            .values()
+            .flat_map(|s| self.discovery_configs(&s.device, &s.identity))
+            .map(MqttAction::Publish)
+            .collect()
+    }
+
+    /// Clean exit: delete every retained topic of every device (discovery configs only when
+    /// `clear_discovery_on_exit`).
+    pub fn clear_all(&self) -> Vec<MqttAction> {
+        let with_discovery = self.settings.clear_discovery_on_exit;
+        self.devices
+            .values()
+            .flat_map(|s| self.removal(s, with_discovery))
+            .collect()
+    }
+
+    /// Writable controls' `/on` topics.
+    pub fn subscriptions(&self) -> Vec<String> {
+        let mut topics: Vec<String> = self.on_topics.keys().cloned().collect();
+        topics.sort();
+        topics
+    }
+}
+
+fn lookup<'a>(
+    devices: &'a mut BTreeMap<String, DeviceState>,
+    device_id: &str,
+    control_id: &str,
+) -> Option<(&'a ResolvedChannel, &'a mut ControlState)> {
+    let state = devices.get_mut(device_id)?;
+    let channel = state.device.channels.iter().find(|c| c.id == control_id)?;
+    let control = state.controls.get_mut(control_id)?;
+    Some((channel, control))
+}
+
+fn error_if_changed(
+    topics: &TopicScheme,
+    device_id: &str,
+    control_id: &str,
+    control: &mut ControlState,
+) -> Option<MqttAction> {
+    let letters = control.errors().to_string();
+    if letters == control.published_errors {
+        return None;
+    }
+    control.published_errors = letters;
+    Some(MqttAction::Publish(layout::control_error(
+        topics,
+        device_id,
+        control_id,
+        &control.published_errors,
+    )))
+}
+
+fn availability(topics: &TopicScheme, device_id: &str, online: bool) -> Publication {
+    Publication::retained(
+        topics.device_availability(device_id),
+        if online { "online" } else { "offline" },
+    )
+}
+
+#[cfg(test)]
+#[path = "planner_tests.rs"]
+mod tests;

@@ -1,0 +1,454 @@
+//! Planner tests: golden publications for the relay and climate templates, and every rule of
+//! the layout (dedup, intervals, error order, writes, removal, reconnect snapshot).
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use serde_json::json;
+
+use super::*;
+use crate::config::TemplateFile;
+use crate::device::resolve_template_device;
+
+fn repo(path: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join(path)
+}
+
+pub(crate) fn template_device(template: &str, slave_id: u8) -> Arc<ResolvedDevice> {
+    let file = TemplateFile::load(&repo(&format!("templates/{template}.json")))
+        .unwrap_or_else(|e| panic!("{e}"));
+    Arc::new(
+        resolve_template_device(&file, &json!({ "slave_id": slave_id }))
+            .unwrap_or_else(|e| panic!("{e}")),
+    )
+}
+
+fn settings(discovery: bool) -> PlannerSettings {
+    PlannerSettings {
+        topics: TopicScheme::new("", "rtu2mqtt").unwrap(),
+        unchanged: UnchangedPolicy::OnChange,
+        discovery: discovery.then(|| DiscoverySettings {
+            prefix: "homeassistant".into(),
+        }),
+        clear_discovery_on_exit: false,
+    }
+}
+
+/// One line per action: `publish <retain|transient> q<qos> <topic> <payload>` (tab-separated).
+pub(crate) fn render(actions: &[MqttAction]) -> String {
+    let mut text = String::new();
+    for action in actions {
+        let line = match action {
+            MqttAction::Publish(p) => format!(
+                "publish\t{}\tq{}\t{}\t{}",
+                if p.retain { "retain" } else { "transient" },
+                p.qos as u8,
+                p.topic,
+                p.payload
+            ),
+            MqttAction::Subscribe(t) => format!("subscribe\t{t}"),
+            MqttAction::Unsubscribe(t) => format!("unsubscribe\t{t}"),
+        };
+        text.push_str(&line);
+        text.push('\n');
+    }
+    text
+}
+
+/// Compares with `tests/golden/<name>`; `UPDATE_GOLDEN=1` rewrites the file.
+pub(crate) fn assert_golden(name: &str, actual: &str) {
+    let path = repo(&format!("tests/golden/{name}"));
+    if std::env::var_os("UPDATE_GOLDEN").is_some() {
+        std::fs::write(&path, actual).unwrap();
+    }
+    let expected = std::fs::read_to_string(&path)
+        .unwrap_or_else(|e| panic!("{}: {e} (run with UPDATE_GOLDEN=1)", path.display()));
+    if expected != actual {
+        for (i, (e, a)) in expected.lines().zip(actual.lines()).enumerate() {
+            assert_eq!(e, a, "{name}: first difference at line {}", i + 1);
+        }
+        assert_eq!(expected, actual, "{name}: line count differs");
+    }
+}
+
+fn publications(actions: &[MqttAction]) -> Vec<(String, String, bool)> {
+    actions
+        .iter()
+        .filter_map(|a| match a {
+            MqttAction::Publish(p) => Some((p.topic.clone(), p.payload.clone(), p.retain)),
+            _ => None,
+        })
+        .collect()
+}
+
+fn value(device: &str, control: &str, text: &str) -> DeviceUpdate {
+    DeviceUpdate::Value {
+        device_id: device.into(),
+        control_id: control.into(),
+        value: text.into(),
+        always_publish: false,
+    }
+}
+
+#[test]
+fn relay_module_added_golden() {
+    let mut planner = PublicationPlanner::new(settings(true));
+    let relay = template_device("rtu2mqtt-relay6", 1);
+    let actions = planner.handle(DeviceUpdate::Added(relay), Instant::now());
+    assert_golden("relay6-added.txt", &render(&actions));
+}
+
+#[test]
+fn climate_sensor_added_golden() {
+    let mut planner = PublicationPlanner::new(settings(true));
+    let climate = template_device("rtu2mqtt-climate", 2);
+    let actions = planner.handle(DeviceUpdate::Added(climate), Instant::now());
+    assert_golden("climate-added.txt", &render(&actions));
+}
+
+#[test]
+fn writable_controls_only_are_subscribed() {
+    let mut planner = PublicationPlanner::new(settings(false));
+    let relay = template_device("rtu2mqtt-relay6", 1);
+    let id = relay.id.clone();
+    planner.handle(DeviceUpdate::Added(relay), Instant::now());
+    let subscribed = planner.subscriptions();
+    assert!(subscribed.contains(&format!("/devices/{id}/controls/K1/on")));
+    assert!(!subscribed.iter().any(|t| t.contains("Input 0")));
+    assert_eq!(subscribed.len(), 6, "{subscribed:?}");
+}
+
+#[test]
+fn values_publish_on_change_only() {
+    let mut planner = PublicationPlanner::new(settings(false));
+    let relay = template_device("rtu2mqtt-relay6", 1);
+    let id = relay.id.clone();
+    let t0 = Instant::now();
+    planner.handle(DeviceUpdate::Added(relay), t0);
+    let first = planner.handle(value(&id, "K1", "1"), t0);
+    assert_eq!(
+        publications(&first),
+        [(format!("/devices/{id}/controls/K1"), "1".into(), true)]
+    );
+    assert!(planner.handle(value(&id, "K1", "1"), t0).is_empty());
+    assert_eq!(planner.handle(value(&id, "K1", "0"), t0).len(), 1);
+    let event = DeviceUpdate::Value {
+        device_id: id.clone(),
+        control_id: "K1".into(),
+        value: "0".into(),
+        always_publish: true,
+    };
+    assert_eq!(planner.handle(event, t0).len(), 1, "events always publish");
+    assert!(planner.handle(value("nope", "K1", "1"), t0).is_empty());
+    assert!(planner.handle(value(&id, "nope", "1"), t0).is_empty());
+}
+
+#[test]
+fn unchanged_values_come_back_after_the_interval() {
+    assert_eq!(UnchangedPolicy::from_config(-1), UnchangedPolicy::OnChange);
+    assert_eq!(UnchangedPolicy::from_config(0), UnchangedPolicy::EveryRead);
+    assert_eq!(
+        UnchangedPolicy::from_config(2),
+        UnchangedPolicy::After(Duration::from_secs(5))
+    );
+    let mut planner = PublicationPlanner::new(PlannerSettings {
+        unchanged: UnchangedPolicy::from_config(10),
+        ..settings(false)
+    });
+    let climate = template_device("rtu2mqtt-climate", 2);
+    let id = climate.id.clone();
+    let t0 = Instant::now();
+    planner.handle(DeviceUpdate::Added(climate), t0);
+    assert_eq!(
+        planner.handle(value(&id, "Temperature", "21.5"), t0).len(),
+        1
+    );
+    let at = |s| t0 + Duration::from_secs(s);
+    assert!(planner
+        .handle(value(&id, "Temperature", "21.5"), at(9))
+        .is_empty());
+    assert_eq!(
+        planner
+            .handle(value(&id, "Temperature", "21.5"), at(10))
+            .len(),
+        1
+    );
+    assert!(planner
+        .handle(value(&id, "Temperature", "21.5"), at(15))
+        .is_empty());
+}
+
+#[test]
+fn read_error_is_cleared_before_the_new_value() {
+    let mut planner = PublicationPlanner::new(settings(false));
+    let climate = template_device("rtu2mqtt-climate", 2);
+    let id = climate.id.clone();
+    let t0 = Instant::now();
+    planner.handle(DeviceUpdate::Added(climate), t0);
+    planner.handle(value(&id, "Temperature", "21.5"), t0);
+    let read_failed = DeviceUpdate::ControlError {
+        device_id: id.clone(),
+        control_id: "Temperature".into(),
+        errors: ErrorFlags {
+            read: true,
+            ..Default::default()
+        },
+    };
+    let error_topic = format!("/devices/{id}/controls/Temperature/meta/error");
+    let value_topic = format!("/devices/{id}/controls/Temperature");
+    assert_eq!(
+        publications(&planner.handle(read_failed.clone(), t0)),
+        [(error_topic.clone(), "r".into(), true)]
+    );
+    assert!(planner.handle(read_failed, t0).is_empty(), "unchanged");
+    // The same value after the error: clear `r` first, then (unchanged) nothing else.
+    assert_eq!(
+        publications(&planner.handle(value(&id, "Temperature", "21.5"), t0)),
+        [(error_topic.clone(), "".into(), true)]
+    );
+    planner.handle(
+        DeviceUpdate::ControlError {
+            device_id: id.clone(),
+            control_id: "Temperature".into(),
+            errors: ErrorFlags {
+                read: true,
+                period_missed: true,
+                ..Default::default()
+            },
+        },
+        t0,
+    );
+    assert_eq!(
+        publications(&planner.handle(value(&id, "Temperature", "22"), t0)),
+        [
+            (error_topic, "p".into(), true),
+            (value_topic, "22".into(), true)
+        ]
+    );
+}
+
+#[test]
+fn pushbutton_presses_always_publish_and_are_not_retained() {
+    let mut planner = PublicationPlanner::new(settings(false));
+    let mut device = (*template_device("rtu2mqtt-relay6", 1)).clone();
+    let mut button = device.channels[0].clone();
+    button.id = "Reset".into();
+    button.control_type = "pushbutton".into();
+    device.channels.push(button);
+    let id = device.id.clone();
+    planner.handle(DeviceUpdate::Added(Arc::new(device)), Instant::now());
+    for _ in 0..2 {
+        let out = planner.handle(value(&id, "Reset", "1"), Instant::now());
+        assert_eq!(
+            publications(&out),
+            [(format!("/devices/{id}/controls/Reset"), "1".into(), false)]
+        );
+    }
+    // Not part of the retained snapshot.
+    let snapshot = render(&planner.snapshot());
+    assert!(!snapshot.contains("controls/Reset\t1"), "{snapshot}");
+}
+
+#[test]
+fn offline_device_sets_r_and_availability() {
+    let mut planner = PublicationPlanner::new(settings(true));
+    let relay = template_device("rtu2mqtt-relay6", 1);
+    let id = relay.id.clone();
+    planner.handle(DeviceUpdate::Added(relay), Instant::now());
+    let offline = DeviceUpdate::Online {
+        device_id: id.clone(),
+        online: false,
+    };
+    assert_eq!(
+        publications(&planner.handle(offline.clone(), Instant::now())),
+        [
+            (format!("/devices/{id}/meta/error"), "r".into(), true),
+            (
+                format!("/rtu2mqtt/rtu2mqtt/availability/{id}"),
+                "offline".into(),
+                true
+            ),
+        ]
+    );
+    assert!(planner.handle(offline, Instant::now()).is_empty());
+    let back = planner.handle(
+        DeviceUpdate::Online {
+            device_id: id.clone(),
+            online: true,
+        },
+        Instant::now(),
+    );
+    assert_eq!(
+        publications(&back)[0],
+        (format!("/devices/{id}/meta/error"), "".into(), true)
+    );
+}
+
+#[test]
+fn bad_write_sets_w_and_good_write_clears_it() {
+    let mut planner = PublicationPlanner::new(settings(false));
+    let relay = template_device("rtu2mqtt-relay6", 1);
+    let id = relay.id.clone();
+    planner.handle(DeviceUpdate::Added(relay), Instant::now());
+    let on = format!("/devices/{id}/controls/K1/on");
+    let error_topic = format!("/devices/{id}/controls/K1/meta/error");
+    match planner.on_message(&on, b"2", false) {
+        WriteOutcome::Rejected {
+            control_id,
+            actions,
+            ..
+        } => {
+            assert_eq!(control_id, "K1");
+            assert_eq!(
+                publications(&actions),
+                [(error_topic.clone(), "w".into(), true)]
+            );
+        }
+        other => panic!("{other:?}"),
+    }
+    match planner.on_message(&on, b"1", false) {
+        WriteOutcome::Accepted { write, actions } => {
+            assert_eq!(
+                write,
+                ControlWrite {
+                    device_id: id.clone(),
+                    control_id: "K1".into(),
+                    payload: "1".into()
+                }
+            );
+            assert_eq!(publications(&actions), [(error_topic, "".into(), true)]);
+        }
+        other => panic!("{other:?}"),
+    }
+    assert_eq!(
+        planner.on_message(&on, b"1", true),
+        WriteOutcome::IgnoredRetained
+    );
+    let input_on = format!("/devices/{id}/controls/Input 0/on");
+    assert_eq!(
+        planner.on_message(&input_on, b"1", false),
+        WriteOutcome::NotOurs
+    );
+    let w = planner.write_not_delivered(&id, "K2");
+    assert_eq!(publications(&w)[0].1, "w");
+}
+
+#[test]
+fn removal_clears_every_topic_it_published() {
+    let mut planner = PublicationPlanner::new(settings(true));
+    let relay = template_device("rtu2mqtt-relay6", 1);
+    let id = relay.id.clone();
+    let added = planner.handle(DeviceUpdate::Added(relay), Instant::now());
+    planner.handle(value(&id, "K1", "1"), Instant::now());
+    let removed = planner.handle(
+        DeviceUpdate::Removed {
+            device_id: id.clone(),
+        },
+        Instant::now(),
+    );
+    let cleared: std::collections::BTreeSet<String> = publications(&removed)
+        .into_iter()
+        .map(|(topic, payload, retain)| {
+            assert!(payload.is_empty() && retain, "{topic}");
+            topic
+        })
+        .collect();
+    for (topic, _, _) in publications(&added) {
+        assert!(cleared.contains(&topic), "{topic} not cleared");
+    }
+    assert!(cleared.contains(&format!("/devices/{id}/controls/K1")));
+    let unsubscribed = removed
+        .iter()
+        .filter(|a| matches!(a, MqttAction::Unsubscribe(_)))
+        .count();
+    assert_eq!(unsubscribed, 6);
+    assert!(planner.snapshot().is_empty());
+    assert!(planner.subscriptions().is_empty());
+}
+
+#[test]
+fn config_change_drops_removed_controls() {
+    let mut planner = PublicationPlanner::new(settings(true));
+    let relay = template_device("rtu2mqtt-relay6", 1);
+    let id = relay.id.clone();
+    planner.handle(DeviceUpdate::Added(relay.clone()), Instant::now());
+    let mut smaller = (*relay).clone();
+    smaller.channels.retain(|c| c.id != "K6");
+    let out = planner.handle(DeviceUpdate::Added(Arc::new(smaller)), Instant::now());
+    let text = render(&out);
+    assert!(text.contains(&format!(
+        "publish\tretain\tq1\t/devices/{id}/controls/K6/meta\t\n"
+    )));
+    assert!(text.contains(&format!("unsubscribe\t/devices/{id}/controls/K6/on")));
+    assert!(text.contains(&format!(
+        "publish\tretain\tq1\thomeassistant/switch/rtu2mqtt_{id}/k6/config\t\n"
+    )));
+    assert!(!text.contains(&format!("/devices/{id}/controls/K5/meta\t\n")));
+}
+
+#[test]
+fn snapshot_republishes_state_with_errors_before_values() {
+    let mut planner = PublicationPlanner::new(settings(false));
+    let climate = template_device("rtu2mqtt-climate", 2);
+    let id = climate.id.clone();
+    planner.handle(DeviceUpdate::Added(climate), Instant::now());
+    planner.handle(value(&id, "Temperature", "21.5"), Instant::now());
+    planner.handle(
+        DeviceUpdate::ControlError {
+            device_id: id.clone(),
+            control_id: "Humidity".into(),
+            errors: ErrorFlags {
+                read: true,
+                ..Default::default()
+            },
+        },
+        Instant::now(),
+    );
+    let snapshot = publications(&planner.snapshot());
+    let position = |topic: String| snapshot.iter().position(|(t, _, _)| *t == topic);
+    let error = position(format!("/devices/{id}/controls/Temperature/meta/error")).unwrap();
+    let value = position(format!("/devices/{id}/controls/Temperature")).unwrap();
+    assert!(error < value);
+    assert_eq!(snapshot[value].1, "21.5");
+    let humidity = position(format!("/devices/{id}/controls/Humidity/meta/error")).unwrap();
+    assert_eq!(snapshot[humidity].1, "r");
+}
+
+#[test]
+fn clear_on_exit_keeps_discovery_unless_asked() {
+    let relay = template_device("rtu2mqtt-relay6", 1);
+    for clear_discovery in [false, true] {
+        let mut planner = PublicationPlanner::new(PlannerSettings {
+            clear_discovery_on_exit: clear_discovery,
+            ..settings(true)
+        });
+        planner.handle(DeviceUpdate::Added(relay.clone()), Instant::now());
+        let text = render(&planner.clear_all());
+        assert!(text.contains("/meta/error\t\n"));
+        assert_eq!(text.contains("homeassistant/"), clear_discovery);
+    }
+}
+
+#[test]
+fn identity_updates_discovery_device_block() {
+    let mut planner = PublicationPlanner::new(settings(true));
+    let relay = template_device("rtu2mqtt-relay6", 1);
+    let id = relay.id.clone();
+    planner.handle(DeviceUpdate::Added(relay), Instant::now());
+    let identity = DeviceIdentity {
+        model: Some("WBMR6C".into()),
+        serial_number: Some("4265607321".into()),
+        firmware: Some("1.17.3".into()),
+    };
+    let update = DeviceUpdate::Identity {
+        device_id: id,
+        identity,
+    };
+    let out = planner.handle(update.clone(), Instant::now());
+    assert!(!out.is_empty());
+    let text = render(&out);
+    assert!(text.contains(r#""serial_number":"4265607321""#), "{text}");
+    assert!(text.contains(r#""sw_version":"1.17.3""#));
+    assert!(planner.handle(update, Instant::now()).is_empty());
+}

@@ -1,0 +1,313 @@
+//! The MQTT task against a real mosquitto: exact retained topics and payloads, `/on` writes,
+//! offline devices, a broker restart, and the clean exit.
+
+mod mqtt_support;
+
+use std::collections::BTreeMap;
+use std::time::Duration;
+
+use mqtt_support::*;
+use rtu2mqtt::updates::{ControlWrite, DeviceUpdate};
+
+const RELAY: &str = "relay6_1";
+const CLIMATE: &str = "climate_2";
+
+/// A relay module and a climate sensor with a few values, as the bus side would report them.
+async fn feed_two_devices(mqtt: &MqttUnderTest) {
+    mqtt.send(DeviceUpdate::Added(template_device("rtu2mqtt-relay6", 1)))
+        .await;
+    mqtt.send(DeviceUpdate::Added(template_device("rtu2mqtt-climate", 2)))
+        .await;
+    for (device, control, text) in [
+        (RELAY, "K1", "1"),
+        (RELAY, "K2", "0"),
+        (RELAY, "Input 0", "0"),
+        (RELAY, "Input 0 counter", "17"),
+        (RELAY, "Serial", "4265607321"),
+        (CLIMATE, "Humidity", "41.23"),
+        (CLIMATE, "CO2", "612"),
+        (CLIMATE, "Sound Level", "38.5"),
+        (CLIMATE, "Temperature", "21.5"),
+    ] {
+        mqtt.send(value(device, control, text)).await;
+    }
+}
+
+async fn state_with(port: u16, topic: &str, payload: &str) -> BTreeMap<String, String> {
+    wait_for(&format!("{topic} = {payload:?} on the broker"), || async {
+        retained(port)
+            .await
+            .filter(|s| s.get(topic).map(String::as_str) == Some(payload))
+    })
+    .await
+}
+
+async fn state_without(port: u16, topic: &str) -> BTreeMap<String, String> {
+    wait_for(&format!("{topic} gone from the broker"), || async {
+        retained(port).await.filter(|s| !s.contains_key(topic))
+    })
+    .await
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn retained_layout_matches_golden() {
+    let broker = Mosquitto::start();
+    let mqtt = MqttUnderTest::start(settings(broker.port));
+    feed_two_devices(&mqtt).await;
+    let state = state_with(
+        broker.port,
+        &format!("/devices/{CLIMATE}/controls/Temperature"),
+        "21.5",
+    )
+    .await;
+    assert_golden("broker-relay-climate.txt", &render_state(&state));
+    assert!(mqtt.is_running());
+    mqtt.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn writes_go_to_the_bus_side_and_bad_payloads_set_w() {
+    let broker = Mosquitto::start();
+    // A retained `/on` left by some client is an old command: not replayed at start.
+    publish(
+        broker.port,
+        &format!("/devices/{RELAY}/controls/K4/on"),
+        "1",
+        true,
+    )
+    .await;
+    let mut mqtt = MqttUnderTest::start(settings(broker.port));
+    feed_two_devices(&mqtt).await;
+    let k3 = format!("/devices/{RELAY}/controls/K3");
+    state_with(broker.port, &format!("{k3}/meta/type"), "switch").await;
+
+    publish(broker.port, &format!("{k3}/on"), "1", false).await;
+    let write = tokio::time::timeout(TIMEOUT, mqtt.writes.recv())
+        .await
+        .expect("a write within the timeout")
+        .expect("writes channel open");
+    assert_eq!(
+        write,
+        ControlWrite {
+            device_id: RELAY.into(),
+            control_id: "K3".into(),
+            payload: "1".into()
+        }
+    );
+    // The bus side wrote it and reports the new value.
+    mqtt.send(value(RELAY, "K3", "1")).await;
+    state_with(broker.port, &k3, "1").await;
+
+    // Not a switch value: `w`, a reason in the log, nothing for the bus.
+    publish(broker.port, &format!("{k3}/on"), "7", false).await;
+    let state = state_with(broker.port, &format!("{k3}/meta/error"), "w").await;
+    assert_eq!(state.get(&k3).map(String::as_str), Some("1"));
+    // A read-only control has no `/on` subscription.
+    publish(
+        broker.port,
+        &format!("/devices/{RELAY}/controls/Input 0/on"),
+        "1",
+        false,
+    )
+    .await;
+    // A later good write goes through and clears `w`.
+    publish(broker.port, &format!("{k3}/on"), "0", false).await;
+    let write = tokio::time::timeout(TIMEOUT, mqtt.writes.recv())
+        .await
+        .expect("a write within the timeout")
+        .expect("writes channel open");
+    assert_eq!(
+        write.control_id, "K3",
+        "only the good write arrives: {write:?}"
+    );
+    assert_eq!(write.payload, "0");
+    state_without(broker.port, &format!("{k3}/meta/error")).await;
+    assert!(mqtt.writes.try_recv().is_err(), "nothing else was written");
+    mqtt.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn unplugged_device_sets_r_and_clears_it_on_return() {
+    let broker = Mosquitto::start();
+    let mqtt = MqttUnderTest::start(settings(broker.port));
+    feed_two_devices(&mqtt).await;
+    let error = format!("/devices/{CLIMATE}/meta/error");
+    let availability = format!("/rtu2mqtt/rtu2mqtt/availability/{CLIMATE}");
+    state_with(broker.port, &availability, "online").await;
+
+    mqtt.send(DeviceUpdate::Online {
+        device_id: CLIMATE.into(),
+        online: false,
+    })
+    .await;
+    let state = wait_for("device error r and availability offline", || async {
+        retained(broker.port).await.filter(|s| {
+            s.get(&error).map(String::as_str) == Some("r")
+                && s.get(&availability).map(String::as_str) == Some("offline")
+        })
+    })
+    .await;
+    assert_eq!(
+        state
+            .get(&format!("/devices/{CLIMATE}/controls/Temperature"))
+            .map(String::as_str),
+        Some("21.5"),
+        "the last good value stays"
+    );
+
+    mqtt.send(DeviceUpdate::Online {
+        device_id: CLIMATE.into(),
+        online: true,
+    })
+    .await;
+    wait_for("device error cleared and availability online", || async {
+        retained(broker.port).await.filter(|s| {
+            !s.contains_key(&error) && s.get(&availability).map(String::as_str) == Some("online")
+        })
+    })
+    .await;
+    mqtt.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn broker_restart_gets_everything_again() {
+    let mut broker = Mosquitto::start();
+    let mqtt = MqttUnderTest::start(settings(broker.port));
+    feed_two_devices(&mqtt).await;
+    let temperature = format!("/devices/{CLIMATE}/controls/Temperature");
+    let before = state_with(broker.port, &temperature, "21.5").await;
+
+    broker.kill();
+    // The bus side goes on while the broker is away: never blocked, the latest value wins.
+    for i in 0..2000 {
+        mqtt.send(value(CLIMATE, "Temperature", &format!("{}", 20 + i % 5)))
+            .await;
+    }
+    mqtt.send(value(CLIMATE, "Temperature", "22.25")).await;
+    broker.restart();
+
+    let mut expected = before;
+    expected.insert(temperature, "22.25".into());
+    wait_for("the whole retained state again", || async {
+        retained(broker.port).await.filter(|s| *s == expected)
+    })
+    .await;
+    assert!(mqtt.is_running());
+    mqtt.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn updates_flow_before_the_broker_exists() {
+    let port = free_port();
+    let mqtt = MqttUnderTest::start(settings(port));
+    let sending = async {
+        feed_two_devices(&mqtt).await;
+        for i in 0..5000 {
+            mqtt.send(value(RELAY, "Input 0 counter", &i.to_string()))
+                .await;
+        }
+    };
+    tokio::time::timeout(Duration::from_secs(10), sending)
+        .await
+        .expect("updates are taken while no broker is there");
+    let broker = Mosquitto::start_on(port);
+    state_with(
+        broker.port,
+        &format!("/devices/{RELAY}/controls/Input 0 counter"),
+        "4999",
+    )
+    .await;
+    mqtt.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn home_assistant_birth_gets_configs_again() {
+    let broker = Mosquitto::start();
+    let mqtt = MqttUnderTest::start(settings(broker.port));
+    feed_two_devices(&mqtt).await;
+    let configs = wait_for("discovery configs", || async {
+        retained(broker.port).await.and_then(|s| {
+            let n = s.keys().filter(|t| t.starts_with("homeassistant/")).count();
+            (n > 20).then_some(n)
+        })
+    })
+    .await;
+    let recorder = Recorder::start(broker.port, "homeassistant/+/+/+/config").await;
+    wait_for("retained configs delivered", || async {
+        (recorder.count("/config") >= configs).then_some(())
+    })
+    .await;
+    publish(broker.port, "homeassistant/status", "online", false).await;
+    wait_for("configs sent again", || async {
+        (recorder.count("/config") >= 2 * configs).then_some(())
+    })
+    .await;
+    mqtt.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn clean_exit_leaves_no_device_topics() {
+    let broker = Mosquitto::start();
+    let mqtt = MqttUnderTest::start(settings(broker.port));
+    feed_two_devices(&mqtt).await;
+    state_with(
+        broker.port,
+        &format!("/devices/{CLIMATE}/controls/Temperature"),
+        "21.5",
+    )
+    .await;
+    mqtt.stop().await;
+    let state = retained(broker.port).await.expect("broker reachable");
+    let left: Vec<&String> = state
+        .keys()
+        .filter(|t| !t.starts_with("homeassistant/"))
+        .collect();
+    assert_eq!(left, ["/rtu2mqtt/rtu2mqtt/status"], "{state:#?}");
+    assert_eq!(state["/rtu2mqtt/rtu2mqtt/status"], "offline");
+    assert!(
+        state.keys().any(|t| t.starts_with("homeassistant/")),
+        "discovery configs stay by default"
+    );
+
+    // With homeassistant.clear_on_exit the configs go too.
+    let mut settings = settings(broker.port);
+    settings.broker.homeassistant.clear_on_exit = true;
+    let mqtt = MqttUnderTest::start(settings);
+    feed_two_devices(&mqtt).await;
+    state_with(broker.port, "/rtu2mqtt/rtu2mqtt/status", "online").await;
+    state_with(
+        broker.port,
+        &format!("/devices/{CLIMATE}/controls/Temperature"),
+        "21.5",
+    )
+    .await;
+    mqtt.stop().await;
+    let state = retained(broker.port).await.expect("broker reachable");
+    assert_eq!(
+        state.into_iter().collect::<Vec<_>>(),
+        [(
+            "/rtu2mqtt/rtu2mqtt/status".to_string(),
+            "offline".to_string()
+        )]
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn clear_on_exit_off_keeps_the_state() {
+    let broker = Mosquitto::start();
+    let mut settings = settings(broker.port);
+    settings.broker.clear_on_exit = false;
+    settings.broker.topic_prefix = "site1".into();
+    let mqtt = MqttUnderTest::start(settings);
+    feed_two_devices(&mqtt).await;
+    let temperature = format!("site1/devices/{CLIMATE}/controls/Temperature");
+    state_with(broker.port, &temperature, "21.5").await;
+    mqtt.stop().await;
+    let state = retained(broker.port).await.expect("broker reachable");
+    assert_eq!(state.get(&temperature).map(String::as_str), Some("21.5"));
+    assert_eq!(state["site1/rtu2mqtt/rtu2mqtt/status"], "offline");
+    assert!(
+        !state.keys().any(|t| t.starts_with("/devices")),
+        "prefix applies to all"
+    );
+}

@@ -1,0 +1,380 @@
+//! Shared by the `mqtt_*` integration tests: a real mosquitto on a free loopback port, an
+//! in-process MQTT task fed through its channels, and helpers that read the broker's state.
+#![allow(dead_code)]
+
+use std::collections::BTreeMap;
+use std::future::Future;
+use std::net::{TcpListener, TcpStream};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::atomic::{AtomicU32, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use rtu2mqtt::config::config_file::MqttConfig;
+use rtu2mqtt::config::TemplateFile;
+use rtu2mqtt::device::{resolve_template_device, ResolvedDevice};
+use rtu2mqtt::mqtt::{run_mqtt, MqttError, MqttSettings};
+use rtu2mqtt::updates::{ControlWrite, DeviceUpdate};
+use rumqttc::{AsyncClient, Event, MqttOptions, Packet, QoS};
+use serde_json::json;
+use tokio::sync::{mpsc, oneshot};
+use tokio::task::JoinHandle;
+
+pub const MOSQUITTO: &str = "/usr/sbin/mosquitto";
+pub const TIMEOUT: Duration = Duration::from_secs(15);
+
+/// A mosquitto process for one test; killed when dropped.
+pub struct Mosquitto {
+    child: Option<Child>,
+    pub port: u16,
+    dir: tempfile::TempDir,
+}
+
+impl Mosquitto {
+    pub fn start() -> Self {
+        let port = free_port();
+        Self::start_on(port)
+    }
+
+    pub fn start_on(port: u16) -> Self {
+        assert!(
+            Path::new(MOSQUITTO).exists(),
+            "the MQTT integration tests need mosquitto at {MOSQUITTO} (apt-get install mosquitto)"
+        );
+        let dir = tempfile::tempdir().expect("temp dir");
+        let mut broker = Self {
+            child: None,
+            port,
+            dir,
+        };
+        broker.launch();
+        broker
+    }
+
+    fn launch(&mut self) {
+        let config = self.dir.path().join("mosquitto.conf");
+        std::fs::write(
+            &config,
+            format!(
+                "listener {} 127.0.0.1\nallow_anonymous true\npersistence false\n{}",
+                self.port,
+                std::env::var("MOSQUITTO_LOG")
+                    .map(|f| format!("log_type all\nlog_dest file {f}\n"))
+                    .unwrap_or_default()
+            ),
+        )
+        .expect("write mosquitto.conf");
+        let child = Command::new(MOSQUITTO)
+            .arg("-c")
+            .arg(&config)
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap_or_else(|e| panic!("cannot start {MOSQUITTO}: {e}"));
+        self.child = Some(child);
+        let deadline = Instant::now() + TIMEOUT;
+        while TcpStream::connect(("127.0.0.1", self.port)).is_err() {
+            if let Some(child) = self.child.as_mut() {
+                if let Ok(Some(status)) = child.try_wait() {
+                    panic!("mosquitto exited at start ({status}) on port {}", self.port);
+                }
+            }
+            assert!(
+                Instant::now() < deadline,
+                "mosquitto did not listen on {}",
+                self.port
+            );
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+
+    /// Kills the broker (its retained messages are lost: no persistence).
+    pub fn kill(&mut self) {
+        if let Some(mut child) = self.child.take() {
+            let _ = child.kill();
+            let _ = child.wait();
+        }
+    }
+
+    /// Starts it again on the same port.
+    pub fn restart(&mut self) {
+        self.kill();
+        self.launch();
+    }
+}
+
+impl Drop for Mosquitto {
+    fn drop(&mut self) {
+        self.kill();
+    }
+}
+
+pub fn free_port() -> u16 {
+    TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .map(|a| a.port())
+        .expect("free port")
+}
+
+/// Polls `check` until it returns Some, or panics after `TIMEOUT` naming `what`.
+pub async fn wait_for<T, F, Fut>(what: &str, mut check: F) -> T
+where
+    F: FnMut() -> Fut,
+    Fut: Future<Output = Option<T>>,
+{
+    let deadline = Instant::now() + TIMEOUT;
+    loop {
+        if let Some(found) = check().await {
+            return found;
+        }
+        assert!(Instant::now() < deadline, "timed out waiting for {what}");
+        tokio::time::sleep(Duration::from_millis(25)).await;
+    }
+}
+
+static CLIENTS: AtomicU32 = AtomicU32::new(0);
+
+fn test_client(port: u16) -> (AsyncClient, rumqttc::EventLoop) {
+    let id = format!(
+        "test-{}-{}",
+        std::process::id(),
+        CLIENTS.fetch_add(1, Ordering::Relaxed)
+    );
+    let mut options = MqttOptions::new(id, "127.0.0.1", port);
+    options.set_max_packet_size(1 << 20, 1 << 20);
+    AsyncClient::new(options, 64)
+}
+
+/// What the broker holds retained right now: a fresh client subscribes to `#` and reads the
+/// retained messages up to a marker it publishes itself. None when the broker is unreachable.
+pub async fn retained(port: u16) -> Option<BTreeMap<String, String>> {
+    let (client, mut eventloop) = test_client(port);
+    let marker = format!(
+        "rtu2mqtt-test/marker/{}",
+        CLIENTS.fetch_add(1, Ordering::Relaxed)
+    );
+    let read = async {
+        let mut state = BTreeMap::new();
+        loop {
+            match eventloop.poll().await.ok()? {
+                Event::Incoming(Packet::ConnAck(_)) => {
+                    client.subscribe("#", QoS::AtLeastOnce).await.ok()?;
+                }
+                Event::Incoming(Packet::SubAck(_)) => {
+                    client
+                        .publish(marker.as_str(), QoS::AtLeastOnce, false, "x")
+                        .await
+                        .ok()?;
+                }
+                Event::Incoming(Packet::Publish(p)) if p.topic == marker => break,
+                Event::Incoming(Packet::Publish(p)) if p.retain => {
+                    state.insert(p.topic, String::from_utf8_lossy(&p.payload).into_owned());
+                }
+                _ => {}
+            }
+        }
+        let _ = client.disconnect().await;
+        Some(state)
+    };
+    tokio::time::timeout(Duration::from_secs(5), read)
+        .await
+        .ok()
+        .flatten()
+}
+
+/// Publishes one message from a test client.
+pub async fn publish(port: u16, topic: &str, payload: &str, retain: bool) {
+    let (client, mut eventloop) = test_client(port);
+    client
+        .publish(topic, QoS::AtLeastOnce, retain, payload)
+        .await
+        .expect("queue publish");
+    let done = async {
+        loop {
+            match eventloop.poll().await {
+                Ok(Event::Incoming(Packet::PubAck(_))) => break,
+                Ok(_) => {}
+                Err(e) => panic!("test publisher: {e}"),
+            }
+        }
+        let _ = client.disconnect().await;
+        let _ = eventloop.poll().await;
+    };
+    tokio::time::timeout(TIMEOUT, done)
+        .await
+        .expect("publish acknowledged");
+}
+
+/// A live subscriber that records every message of `filter` with its retain flag.
+pub struct Recorder {
+    pub messages: Arc<std::sync::Mutex<Vec<(String, String, bool)>>>,
+    task: JoinHandle<()>,
+}
+
+impl Recorder {
+    pub async fn start(port: u16, filter: &str) -> Self {
+        let (client, mut eventloop) = test_client(port);
+        let messages = Arc::new(std::sync::Mutex::new(Vec::new()));
+        let sink = messages.clone();
+        let filter = filter.to_string();
+        let (subscribed_tx, subscribed) = oneshot::channel();
+        let task = tokio::spawn(async move {
+            let mut subscribed_tx = Some(subscribed_tx);
+            loop {
+                match eventloop.poll().await {
+                    Ok(Event::Incoming(Packet::ConnAck(_))) => {
+                        let _ = client.subscribe(filter.as_str(), QoS::AtLeastOnce).await;
+                    }
+                    Ok(Event::Incoming(Packet::SubAck(_))) => {
+                        if let Some(tx) = subscribed_tx.take() {
+                            let _ = tx.send(());
+                        }
+                    }
+                    Ok(Event::Incoming(Packet::Publish(p))) => {
+                        sink.lock().unwrap().push((
+                            p.topic,
+                            String::from_utf8_lossy(&p.payload).into_owned(),
+                            p.retain,
+                        ));
+                    }
+                    Ok(_) => {}
+                    Err(_) => tokio::time::sleep(Duration::from_millis(50)).await,
+                }
+            }
+        });
+        tokio::time::timeout(TIMEOUT, subscribed)
+            .await
+            .expect("recorder subscribed")
+            .expect("recorder task alive");
+        Self { messages, task }
+    }
+
+    pub fn count(&self, topic_part: &str) -> usize {
+        self.messages
+            .lock()
+            .unwrap()
+            .iter()
+            .filter(|(t, _, _)| t.contains(topic_part))
+            .count()
+    }
+}
+
+impl Drop for Recorder {
+    fn drop(&mut self) {
+        self.task.abort();
+    }
+}
+
+/// The MQTT task under test, driven like the daemon drives it.
+pub struct MqttUnderTest {
+    pub updates: mpsc::Sender<DeviceUpdate>,
+    pub writes: mpsc::Receiver<ControlWrite>,
+    shutdown: Option<oneshot::Sender<()>>,
+    task: Option<JoinHandle<Result<(), MqttError>>>,
+}
+
+pub fn settings(port: u16) -> MqttSettings {
+    MqttSettings {
+        broker: MqttConfig {
+            host: "127.0.0.1".into(),
+            port,
+            keepalive_s: 5,
+            ..MqttConfig::default()
+        },
+        max_unchanged_interval: -1,
+    }
+}
+
+impl MqttUnderTest {
+    pub fn start(settings: MqttSettings) -> Self {
+        let (updates, updates_rx) = mpsc::channel(64);
+        let (writes_tx, writes) = mpsc::channel(16);
+        let (shutdown, shutdown_rx) = oneshot::channel::<()>();
+        let task = tokio::spawn(run_mqtt(settings, updates_rx, writes_tx, async move {
+            let _ = shutdown_rx.await;
+        }));
+        Self {
+            updates,
+            writes,
+            shutdown: Some(shutdown),
+            task: Some(task),
+        }
+    }
+
+    pub async fn send(&self, update: DeviceUpdate) {
+        tokio::time::timeout(TIMEOUT, self.updates.send(update))
+            .await
+            .expect("the MQTT task takes updates")
+            .expect("the MQTT task is running");
+    }
+
+    pub fn is_running(&self) -> bool {
+        self.task.as_ref().is_some_and(|t| !t.is_finished())
+    }
+
+    /// Clean shutdown (what SIGTERM does in the daemon); waits for the task.
+    pub async fn stop(mut self) {
+        if let Some(tx) = self.shutdown.take() {
+            let _ = tx.send(());
+        }
+        if let Some(task) = self.task.take() {
+            tokio::time::timeout(TIMEOUT, task)
+                .await
+                .expect("the MQTT task stops in time")
+                .expect("the MQTT task did not panic")
+                .expect("the MQTT task ends cleanly");
+        }
+    }
+}
+
+impl Drop for MqttUnderTest {
+    fn drop(&mut self) {
+        if let Some(task) = self.task.take() {
+            task.abort();
+        }
+    }
+}
+
+pub fn repo(path: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join(path)
+}
+
+pub fn template_device(template: &str, slave_id: u8) -> Arc<ResolvedDevice> {
+    let file = TemplateFile::load(&repo(&format!("templates/{template}.json")))
+        .unwrap_or_else(|e| panic!("{e}"));
+    Arc::new(
+        resolve_template_device(&file, &json!({ "slave_id": slave_id }))
+            .unwrap_or_else(|e| panic!("{e}")),
+    )
+}
+
+pub fn value(device: &str, control: &str, text: &str) -> DeviceUpdate {
+    DeviceUpdate::Value {
+        device_id: device.into(),
+        control_id: control.into(),
+        value: text.into(),
+        always_publish: false,
+    }
+}
+
+/// `topic<TAB>payload` per line, sorted: the golden form of the broker's retained state.
+pub fn render_state(state: &BTreeMap<String, String>) -> String {
+    state.iter().map(|(t, p)| format!("{t}\t{p}\n")).collect()
+}
+
+/// Compares with `tests/golden/<name>`; `UPDATE_GOLDEN=1` rewrites the file.
+pub fn assert_golden(name: &str, actual: &str) {
+    let path = repo(&format!("tests/golden/{name}"));
+    if std::env::var_os("UPDATE_GOLDEN").is_some() {
+        std::fs::write(&path, actual).expect("write golden");
+    }
+    let expected = std::fs::read_to_string(&path)
+        .unwrap_or_else(|e| panic!("{}: {e} (run with UPDATE_GOLDEN=1)", path.display()));
+    if expected != actual {
+        for (i, (e, a)) in expected.lines().zip(actual.lines()).enumerate() {
+            assert_eq!(e, a, "{name}: first difference at line {}", i + 1);
+        }
+        assert_eq!(expected, actual, "{name}: line count differs");
+    }
+}

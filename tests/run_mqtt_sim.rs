@@ -1,0 +1,151 @@
+//! The whole chain with real processes: `rtu2mqtt sim` on a pty, `rtu2mqtt run`, and mosquitto.
+//! Writes on `/on` reach the device's register and come back as the published value; a bad
+//! payload sets `w` and writes nothing; an unplugged device gets device `meta/error` "r", cleared
+//! on return; SIGTERM leaves no retained device topic behind.
+
+#[path = "mqtt_support/mod.rs"]
+mod mqtt_support;
+#[path = "sim_support/mod.rs"]
+mod sim_support;
+
+use mqtt_support::{publish, repo, retained, wait_for, Mosquitto};
+use serde_json::json;
+use sim_support::SimProcess;
+use std::process::{Child, Command, Stdio};
+
+const BUS: &str = r#"{"devices": [
+  {"name": "relay", "template": "rtu2mqtt-relay6", "address": 20, "serial": "0xFE000020", "line": "115200 8N2"},
+  {"name": "climate", "template": "rtu2mqtt-climate", "address": 21, "serial": "0xFE000021", "line": "115200 8N2",
+   "values": {"input:4": 2150}}
+]}"#;
+
+struct Daemon {
+    child: Child,
+    _dir: tempfile::TempDir,
+}
+
+impl Daemon {
+    fn start(pty: &std::path::Path, mqtt_port: u16) -> Self {
+        let dir = tempfile::tempdir().unwrap();
+        let config = dir.path().join("config.json");
+        let devices = json!([
+            {"device_type": "rtu2mqtt-relay6", "slave_id": 20},
+            {"device_type": "rtu2mqtt-climate", "slave_id": 21}
+        ]);
+        let config_json = json!({
+            "mqtt": {"host": "127.0.0.1", "port": mqtt_port, "client_id": "rtu2mqtt-e2e"},
+            "ports": [{"path": pty, "baud_rate": 115200, "stop_bits": 2, "devices": devices}]
+        });
+        std::fs::write(&config, config_json.to_string()).unwrap();
+        let child = Command::new(env!("CARGO_BIN_EXE_rtu2mqtt"))
+            .args(["run", "--templates"])
+            .arg(repo("templates"))
+            .arg("-c")
+            .arg(&config)
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(std::fs::File::create(dir.path().join("daemon.log")).unwrap())
+            .spawn()
+            .unwrap();
+        Self { child, _dir: dir }
+    }
+
+    /// SIGTERM, as systemd stops the service; returns the exit status.
+    fn terminate(&mut self) -> std::process::ExitStatus {
+        let pid = nix::unistd::Pid::from_raw(self.child.id() as i32);
+        nix::sys::signal::kill(pid, nix::sys::signal::Signal::SIGTERM).unwrap();
+        self.child.wait().unwrap()
+    }
+}
+
+impl Drop for Daemon {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+        if std::thread::panicking() {
+            let log =
+                std::fs::read_to_string(self._dir.path().join("daemon.log")).unwrap_or_default();
+            eprintln!("--- daemon log ---\n{log}");
+        }
+    }
+}
+
+fn start() -> (Mosquitto, SimProcess, Daemon) {
+    let broker = Mosquitto::start();
+    let dir = tempfile::tempdir().unwrap();
+    let bus = dir.path().join("bus.json");
+    std::fs::write(&bus, BUS).unwrap();
+    let sim = SimProcess::start_with(&bus, &repo("templates"), &[]);
+    let daemon = Daemon::start(&sim.pty, broker.port);
+    (broker, sim, daemon)
+}
+
+async fn retained_value(port: u16, topic: &str) -> Option<String> {
+    retained(port)
+        .await
+        .and_then(|state| state.get(topic).cloned())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn writes_errors_and_clean_exit_through_a_real_broker() {
+    let (broker, sim, mut daemon) = start();
+    let port = broker.port;
+    wait_for("the temperature on the broker", || async {
+        (retained_value(port, "/devices/climate_21/controls/Temperature").await? == "21.5")
+            .then_some(())
+    })
+    .await;
+    wait_for("K3 off on the broker", || async {
+        (retained_value(port, "/devices/relay6_20/controls/K3").await? == "0").then_some(())
+    })
+    .await;
+
+    // A write on /on reaches the device, and the new value is published.
+    publish(port, "/devices/relay6_20/controls/K3/on", "1", false).await;
+    wait_for("K3 on in the simulator", || async {
+        let reply = sim.control(json!({"cmd": "get", "device": 20, "type": "coil", "address": 2}));
+        (reply["value"] == 1).then_some(())
+    })
+    .await;
+    wait_for("K3 on on the broker", || async {
+        (retained_value(port, "/devices/relay6_20/controls/K3").await? == "1").then_some(())
+    })
+    .await;
+
+    // A bad payload sets `w` and writes nothing.
+    publish(port, "/devices/relay6_20/controls/K4/on", "maybe", false).await;
+    wait_for("K4 meta/error w", || async {
+        (retained_value(port, "/devices/relay6_20/controls/K4/meta/error").await? == "w")
+            .then_some(())
+    })
+    .await;
+    let k4 = sim.control(json!({"cmd": "get", "device": 20, "type": "coil", "address": 3}));
+    assert_eq!(k4["value"], 0, "nothing was written");
+
+    // An unplugged device: device meta/error "r", cleared when it is back.
+    sim.control(json!({"cmd": "unplug", "device": 21}));
+    wait_for("climate meta/error r", || async {
+        (retained_value(port, "/devices/climate_21/meta/error").await? == "r").then_some(())
+    })
+    .await;
+    sim.control(json!({"cmd": "replug", "device": 21}));
+    wait_for("climate meta/error cleared", || async {
+        let state = retained(port).await?;
+        // An empty payload is not retained: a cleared error has no retained topic.
+        (!state.contains_key("/devices/climate_21/meta/error")).then_some(())
+    })
+    .await;
+
+    // SIGTERM: a clean exit that leaves no retained device topic.
+    let status = daemon.terminate();
+    assert!(status.success(), "exit status {status}");
+    let state = retained(port).await.expect("broker reachable");
+    let stale: Vec<&String> = state
+        .keys()
+        .filter(|topic| topic.starts_with("/devices/"))
+        .collect();
+    assert!(
+        stale.is_empty(),
+        "retained device topics after exit: {stale:?}"
+    );
+}
