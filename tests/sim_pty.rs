@@ -83,7 +83,8 @@ fn classic_reads_writes_and_exceptions() {
             count: 2,
         },
     );
-    assert_eq!(port.transact(&input).0, with_crc("14 04 04 00 00 00 00"));
+    // The template's "Serial" channel reads the serial number (0xFE4000AC).
+    assert_eq!(port.transact(&input).0, with_crc("14 04 04 FE 40 00 AC"));
     let model = Request::classic(
         20,
         RequestPdu::ReadHoldingRegisters {

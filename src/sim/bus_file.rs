@@ -20,9 +20,15 @@ use serde::Deserialize;
 
 use crate::protocol::{LineSettings, Parity, RegisterType};
 
+use crate::config::jsonc::strip_comments;
+use crate::config::values::parse_int_text;
+use crate::config::TemplateLibrary;
+
 use super::device::{DeviceSpec, VirtualDevice};
+use super::from_template::{
+    find_template, load_template_file, template_registers, TemplateRegisters,
+};
 use super::registers::RegisterMap;
-use super::template_map::{find_template, load_template};
 use super::SimError;
 
 #[derive(Debug, Clone, Deserialize)]
@@ -97,13 +103,7 @@ impl TryFrom<serde_json::Value> for SerialNumber {
 pub fn parse_serial(value: &serde_json::Value) -> Result<u32, String> {
     let parsed = match value {
         serde_json::Value::Number(n) => n.as_u64().and_then(|n| u32::try_from(n).ok()),
-        serde_json::Value::String(text) => {
-            let text = text.trim();
-            match text.strip_prefix("0x").or_else(|| text.strip_prefix("0X")) {
-                Some(hex) => u32::from_str_radix(hex, 16).ok(),
-                None => text.parse().ok(),
-            }
-        }
+        serde_json::Value::String(text) => parse_int_text(text).and_then(|n| u32::try_from(n).ok()),
         _ => None,
     };
     parsed.ok_or_else(|| format!("not a 32-bit serial number: {value}"))
@@ -161,15 +161,51 @@ pub fn parse_register_type(text: &str) -> Result<RegisterType, String> {
     }
 }
 
-/// `"holding:128"` → (Holding, 128).
+/// `"holding:128"`, `"coil:0x10"` → (type, address).
 fn parse_register_key(key: &str) -> Result<(RegisterType, u16), String> {
     let (kind, address) = key
         .split_once(':')
         .ok_or_else(|| format!("register {key:?}: expected \"type:address\""))?;
-    let address =
-        crate::sim::template_map::parse_address(&serde_json::Value::String(address.into()))
-            .ok_or_else(|| format!("register {key:?}: bad address"))?;
+    let address = parse_int_text(address)
+        .and_then(|a| u16::try_from(a).ok())
+        .ok_or_else(|| format!("register {key:?}: the address must be 0..=65535 (or \"0x..\")"))?;
     Ok((parse_register_type(kind)?, address))
+}
+
+/// Where the `template` of a device entry is found: a file relative to the bus file, or a
+/// `device_type` in the templates directory (loaded with the shared loader on first use).
+pub struct TemplateSource {
+    base: PathBuf,
+    dir: PathBuf,
+    library: Option<TemplateLibrary>,
+}
+
+impl TemplateSource {
+    /// `base`: the bus file's directory; `dir`: where `device_type` names are looked up.
+    pub fn new(base: &Path, dir: &Path) -> Self {
+        Self {
+            base: base.to_path_buf(),
+            dir: dir.to_path_buf(),
+            library: None,
+        }
+    }
+
+    /// The registers of the template `reference` for a device at `address`.
+    pub fn registers(
+        &mut self,
+        reference: &str,
+        address: u8,
+    ) -> Result<TemplateRegisters, SimError> {
+        if reference.contains('/') || reference.ends_with(".json") {
+            let template = load_template_file(&self.base.join(reference))?;
+            return template_registers(&template, address);
+        }
+        let dir = &self.dir;
+        let library = self
+            .library
+            .get_or_insert_with(|| TemplateLibrary::load_dirs(std::slice::from_ref(dir)));
+        template_registers(find_template(library, reference)?, address)
+    }
 }
 
 /// Reads a bus file and builds its devices.
@@ -181,41 +217,37 @@ pub fn load_bus(
         path: path.to_path_buf(),
         source,
     })?;
-    let text = super::template_map::strip_comments(&text);
-    let file: BusFile = serde_json::from_str(&text).map_err(|err| SimError::Json {
-        path: path.to_path_buf(),
-        message: err.to_string(),
-    })?;
-    let base = path.parent().unwrap_or(Path::new("."));
+    let file: BusFile =
+        serde_json::from_str(&strip_comments(&text)).map_err(|err| SimError::Json {
+            path: path.to_path_buf(),
+            message: err.to_string(),
+        })?;
+    let mut templates = TemplateSource::new(path.parent().unwrap_or(Path::new(".")), templates_dir);
     let devices = file
         .devices
         .iter()
-        .map(|entry| build_device(entry, base, templates_dir))
+        .map(|entry| build_device(entry, &mut templates))
         .collect::<Result<_, _>>()?;
     Ok((file, devices))
 }
 
-fn template_path(reference: &str, base: &Path, templates_dir: &Path) -> Result<PathBuf, SimError> {
-    if reference.contains('/') || reference.ends_with(".json") {
-        Ok(base.join(reference))
-    } else {
-        find_template(templates_dir, reference)
-    }
-}
-
 pub fn build_device(
     entry: &DeviceEntry,
-    base: &Path,
-    templates_dir: &Path,
+    templates: &mut TemplateSource,
 ) -> Result<VirtualDevice, SimError> {
     let name = entry
         .name
         .clone()
         .unwrap_or_else(|| format!("device{}", entry.address));
     let bad = |message: String| SimError::BusFile(format!("device {name:?}: {message}"));
+    if !(1..=247).contains(&entry.address) {
+        return Err(bad(format!("address {} is not 1..=247", entry.address)));
+    }
     let (registers, template_name, signature) = match &entry.template {
         Some(reference) => {
-            let template = load_template(&template_path(reference, base, templates_dir)?)?;
+            let template = templates
+                .registers(reference, entry.address)
+                .map_err(|err| bad(err.to_string()))?;
             (template.registers, template.device_type, template.signature)
         }
         None => (RegisterMap::new(), "-".to_string(), None),
@@ -231,9 +263,6 @@ pub fn build_device(
                 }
             }
         }
-    }
-    if !(1..=247).contains(&entry.address) {
-        return Err(bad(format!("address {} is not 1..=247", entry.address)));
     }
     let model = entry
         .model
@@ -292,7 +321,8 @@ mod tests {
                 "values": {"coil:1": 1, "holding:128": 9}}"#,
         )
         .unwrap();
-        let device = build_device(&entry, Path::new("."), Path::new(".")).unwrap();
+        let mut templates = TemplateSource::new(Path::new("."), Path::new("."));
+        let device = build_device(&entry, &mut templates).unwrap();
         assert_eq!(device.address(), 9);
         assert_eq!(device.serial, 0x0D00_0007);
         assert_eq!(device.registers().get(RegisterType::Coil, 1), Some(1));
@@ -300,6 +330,59 @@ mod tests {
         assert_eq!(
             device.registers().event_width(RegisterType::Coil, 0),
             Some(1)
+        );
+    }
+
+    #[test]
+    fn hex_keys_and_serials() {
+        assert_eq!(
+            parse_register_key("coil:0x10"),
+            Ok((RegisterType::Coil, 16))
+        );
+        assert!(parse_register_key("holding:70000").is_err());
+        assert!(parse_register_key("holding:-1").is_err());
+        assert!(parse_register_key("holding").is_err());
+        assert_eq!(
+            parse_serial(&serde_json::json!("0xFE4000AC")),
+            Ok(0xFE40_00AC)
+        );
+        assert_eq!(
+            parse_serial(&serde_json::json!("233000005")),
+            Ok(233_000_005)
+        );
+        assert!(parse_serial(&serde_json::json!("-1")).is_err());
+        assert!(parse_serial(&serde_json::json!("0x1FFFFFFFF")).is_err());
+    }
+
+    #[test]
+    fn template_errors_name_the_device() {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(dir.path().join("broken.json"), "{\"device_type\": 1}").unwrap();
+        std::fs::write(dir.path().join("my-relay.json"), "{").unwrap();
+        let mut templates = TemplateSource::new(dir.path(), dir.path());
+        let entry = |template: &str| -> DeviceEntry {
+            serde_json::from_value(serde_json::json!(
+                {"name": "d", "template": template, "address": 7, "serial": 7}
+            ))
+            .unwrap()
+        };
+        let err = build_device(&entry("missing.json"), &mut templates)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("\"d\"") && err.contains("missing.json"),
+            "{err}"
+        );
+        let err = build_device(&entry("broken.json"), &mut templates)
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("broken.json"), "{err}");
+        let err = build_device(&entry("my-relay"), &mut templates)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("my-relay") && err.contains("my-relay.json"),
+            "{err}"
         );
     }
 }

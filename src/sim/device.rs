@@ -108,6 +108,12 @@ impl VirtualDevice {
         let [hi, lo] = [(spec.serial >> 16) as u16, spec.serial as u16];
         registers.insert(holding, wb::SERIAL, hi, false);
         registers.insert(holding, wb::SERIAL + 1, lo, false);
+        // WB templates read the serial number from input 270..271 (channel "Serial"): when the
+        // template has that register, it holds the serial number too.
+        if registers.cell(RegisterType::Input, wb::SERIAL).is_some() {
+            registers.insert(RegisterType::Input, wb::SERIAL, hi, false);
+            registers.insert(RegisterType::Input, wb::SERIAL + 1, lo, false);
+        }
         Self {
             name: spec.name,
             template: spec.template,

@@ -12,8 +12,9 @@
 //! | [`line`]         | settings the master used; timestamped bytes → requests                 |
 //! | [`faults`]       | dropped / corrupted / late replies, seeded                             |
 //!
-//! Set-up and IO: [`bus_file`] and [`template_map`] build devices; [`control`] is the JSON-lines
-//! control protocol; [`pacing`] sends bytes on time; [`pty`] and [`tcp`] are the transports.
+//! Set-up and IO: [`bus_file`] and [`from_template`] (through the shared template loader) build
+//! devices; [`control`] is the JSON-lines control protocol; [`pacing`] sends bytes on time;
+//! [`pty`] and [`tcp`] are the transports.
 
 pub mod bus;
 pub mod device;
@@ -34,7 +35,7 @@ pub use registers::RegisterMap;
 pub use transmission::{Burst, Transmission};
 
 pub mod bus_file;
-pub mod template_map;
+pub mod from_template;
 
 /// Why the simulator could not be set up or a control command failed.
 #[derive(Debug, thiserror::Error)]
@@ -49,11 +50,16 @@ pub enum SimError {
         path: std::path::PathBuf,
         message: String,
     },
-    #[error("no template with device_type {device_type:?} in {dir}")]
+    #[error("no template with device_type {device_type:?} in {dirs}{hint}")]
     TemplateNotFound {
         device_type: String,
-        dir: std::path::PathBuf,
+        /// The directories searched.
+        dirs: String,
+        hint: String,
     },
+    /// A template the shared loader rejected (the message locates the problem).
+    #[error("{0}")]
+    Template(String),
     #[error("bus file: {0}")]
     BusFile(String),
 }
