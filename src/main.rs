@@ -17,6 +17,8 @@ enum Command {
     CheckTemplates(cli::check::CheckTemplatesArgs),
     /// Print the JSON Schema of the config file or of templates.
     Schema(cli::schema::SchemaArgs),
+    /// Zero set-up demo: simulated devices, a broker (mosquitto when installed) and the daemon.
+    Demo(cli::demo::Args),
     /// Serve the buses of the config: poll devices, receive Fast Modbus events, publish values.
     Run(cli::run::Args),
     /// Explain a Modbus RTU or Fast Modbus frame given as hex (e.g. "FD 46 10 00 FF 00 00 C8 9A").
@@ -32,6 +34,7 @@ fn main() -> std::process::ExitCode {
         Command::CheckTemplates(args) => cli::check::run_check_templates(args),
         Command::Schema(args) => cli::schema::run(args),
         Command::Run(args) => cli::run::run(args),
+        Command::Demo(args) => cli::demo::run(args),
         Command::Decode(args) => cli::decode::run(args),
         Command::Sim(args) => cli::sim::run(args),
     };

@@ -5,6 +5,7 @@
 
 pub mod check;
 pub mod decode;
+pub mod demo;
 pub mod run;
 pub mod schema;
 pub mod sim;

@@ -5,6 +5,8 @@
 //! `{"device":…,"control":…,"error":"r"}`, `{"device":…,"online":false}`, `{"removed":…}`.
 //! In: `{"device":"relay6_20","control":"K1","value":"1"}`.
 
+use std::collections::HashMap;
+
 use serde_json::json;
 use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
 use tokio::sync::mpsc;
@@ -46,10 +48,26 @@ pub fn update_line(update: &DeviceUpdate) -> serde_json::Value {
     }
 }
 
-/// Prints every update until the queue closes.
+/// Prints every update until the queue closes; like MQTT, a value read again unchanged is not
+/// printed again (event values always are).
 pub async fn print_updates(mut updates: mpsc::Receiver<DeviceUpdate>) {
     let mut stdout = tokio::io::stdout();
+    let mut last_values: HashMap<(String, String), String> = HashMap::new();
     while let Some(update) = updates.recv().await {
+        if let DeviceUpdate::Value {
+            device_id,
+            control_id,
+            value,
+            always_publish,
+        } = &update
+        {
+            let key = (device_id.clone(), control_id.clone());
+            let unchanged = last_values.get(&key) == Some(value);
+            if unchanged && !always_publish {
+                continue;
+            }
+            last_values.insert(key, value.clone());
+        }
         let line = format!("{}\n", update_line(&update));
         if stdout.write_all(line.as_bytes()).await.is_err() || stdout.flush().await.is_err() {
             return;
