@@ -606,16 +606,7 @@ impl PortScheduler {
                         debug!(device = %state.plan.name, ?span, %code, "merged read refused: reading its parts one by one");
                         state.split_reads(now, members);
                     } else {
-                        for &member in members {
-                            if let Some(member_span) = state.read_span(member) {
-                                out.push(PortEvent::ReadFailed {
-                                    device,
-                                    span: member_span,
-                                    unsupported: permanent,
-                                });
-                            }
-                            state.read_failed(now, member, permanent);
-                        }
+                        Self::reads_failed(state, device, now, members, permanent, out);
                     }
                     return;
                 }
@@ -624,16 +615,7 @@ impl PortScheduler {
             _ => Vec::new(),
         };
         if values.len() != usize::from(span.count) {
-            for &member in members {
-                if let Some(member_span) = state.read_span(member) {
-                    out.push(PortEvent::ReadFailed {
-                        device,
-                        span: member_span,
-                        unsupported: false,
-                    });
-                }
-                state.read_failed(now, member, false);
-            }
+            Self::reads_failed(state, device, now, members, false, out);
             Self::health_failure(state, device, now, out);
             return;
         }
@@ -721,6 +703,27 @@ impl PortScheduler {
                     permanent: give_up,
                 });
             }
+        }
+    }
+
+    /// Reports the failure of every planned read a request covered.
+    fn reads_failed(
+        state: &mut DeviceState,
+        device: usize,
+        now: Duration,
+        members: &[usize],
+        unsupported: bool,
+        out: &mut Vec<PortEvent>,
+    ) {
+        for &member in members {
+            if let Some(span) = state.read_span(member) {
+                out.push(PortEvent::ReadFailed {
+                    device,
+                    span,
+                    unsupported,
+                });
+            }
+            state.read_failed(now, member, unsupported);
         }
     }
 

@@ -116,13 +116,7 @@ impl ReplyParser {
         if self.buffer.is_empty() {
             return ParseStatus::NeedMore;
         }
-        let garbage = (0..self.buffer.len())
-            .take_while(|&at| {
-                self.buffer
-                    .get(at..)
-                    .is_some_and(|rest| !self.is_plausible_start(rest))
-            })
-            .count();
+        let garbage = leading_garbage(&self.buffer, |rest| self.is_plausible_start(rest));
         if garbage > 0 {
             self.buffer.drain(..garbage);
             return ParseStatus::Error(ParseError::Garbage { dropped: garbage });
@@ -193,6 +187,13 @@ impl ReplyParser {
             _ => false,
         }
     }
+}
+
+/// How many leading bytes cannot start a frame.
+fn leading_garbage(buffer: &[u8], plausible_start: impl Fn(&[u8]) -> bool) -> usize {
+    (0..buffer.len())
+        .take_while(|&at| buffer.get(at..).is_some_and(|rest| !plausible_start(rest)))
+        .count()
 }
 
 fn mask_len(ranges: &[EventRange]) -> usize {
@@ -345,13 +346,7 @@ impl RequestParser {
         if self.buffer.is_empty() {
             return ParseStatus::NeedMore;
         }
-        let garbage = (0..self.buffer.len())
-            .take_while(|&at| {
-                self.buffer
-                    .get(at..)
-                    .is_some_and(|rest| !is_plausible_request_start(rest))
-            })
-            .count();
+        let garbage = leading_garbage(&self.buffer, is_plausible_request_start);
         if garbage > 0 {
             self.buffer.drain(..garbage);
             return ParseStatus::Error(ParseError::Garbage { dropped: garbage });
