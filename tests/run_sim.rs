@@ -39,6 +39,11 @@ struct Daemon {
 
 impl Daemon {
     fn start(pty: &Path) -> Self {
+        Self::start_on(json!({"path": pty, "baud_rate": 115200, "stop_bits": 2}))
+    }
+
+    /// `port` is the config's port object without its devices.
+    fn start_on(mut port: Value) -> Self {
         let dir = tempfile::tempdir().unwrap();
         let config = dir.path().join("config.json");
         let devices: Vec<Value> = [
@@ -50,7 +55,7 @@ impl Daemon {
         .iter()
         .map(|(template, address)| json!({"device_type": template, "slave_id": address}))
         .collect();
-        let port = json!({"path": pty, "baud_rate": 115200, "stop_bits": 2, "devices": devices});
+        port["devices"] = Value::from(devices);
         std::fs::write(&config, json!({"ports": [port]}).to_string()).unwrap();
         let mut child = Command::new(env!("CARGO_BIN_EXE_rtu2mqtt"))
             .args(["run", "--stdio", "--templates"])
@@ -161,14 +166,17 @@ impl Drop for Daemon {
     }
 }
 
-fn start() -> (SimProcess, Daemon) {
+fn start_sim(extra: &[&str]) -> SimProcess {
     let dir = tempfile::tempdir().unwrap();
     let bus = dir.path().join("bus.json");
     std::fs::write(&bus, BUS).unwrap();
-    let sim = SimProcess::start_with(&bus, &repo("templates"), &[]);
+    // The bus file is read at start-up; its directory may go afterwards.
+    SimProcess::start_with(&bus, &repo("templates"), extra)
+}
+
+fn start() -> (SimProcess, Daemon) {
+    let sim = start_sim(&[]);
     let daemon = Daemon::start(&sim.pty);
-    // The bus file was read at start-up; its directory may go.
-    drop(dir);
     (sim, daemon)
 }
 
@@ -308,4 +316,29 @@ fn an_unplugged_device_goes_offline_and_comes_back() {
     });
     sim.control(json!({"cmd": "set", "device": 22, "type": "discrete", "address": 0, "value": 1}));
     daemon.wait_value("counter8_22", "Input 1", "1");
+}
+
+#[test]
+fn rtu_over_tcp_serves_the_same_devices() {
+    let sim = start_sim(&["--tcp", "127.0.0.1:0", "--tcp-line", "115200 8N2"]);
+    let banner = sim
+        .banner()
+        .iter()
+        .find(|line| line.starts_with("tcp "))
+        .expect("a tcp line in the banner")
+        .clone();
+    let address = banner.split_whitespace().nth(1).unwrap().to_owned();
+    let (host, port) = address.rsplit_once(':').unwrap();
+    let mut daemon = Daemon::start_on(
+        json!({"port_type": "tcp", "address": host, "port": port.parse::<u16>().unwrap()}),
+    );
+    daemon.has_value("climate_21", "Temperature", "21.5");
+    daemon.has_value("energy_meter_30", "Voltage", "230.5");
+    wait_events_ready(&sim, 20);
+    sim.control(json!({"cmd": "toggle", "device": 20, "type": "coil", "address": 5}));
+    let update = daemon.wait_value("relay6_20", "K6", "1");
+    assert_eq!(
+        update["event"], true,
+        "events travel over TCP too: {update}"
+    );
 }

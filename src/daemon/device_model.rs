@@ -99,6 +99,13 @@ impl DeviceModel {
                 }
                 self.set_flags(|c| reads_span(c, &span), |flags| flags.read = true, out);
             }
+            PortEvent::PeriodMissed { span, missed, .. } => {
+                self.set_flags(
+                    |c| reads_span(c, &span),
+                    |flags| flags.period_missed = missed,
+                    out,
+                );
+            }
             PortEvent::WriteDone {
                 register_type,
                 address,

@@ -142,6 +142,7 @@ impl PortTask {
                 PortEvent::Values { device, .. }
                 | PortEvent::EventValue { device, .. }
                 | PortEvent::ReadFailed { device, .. }
+                | PortEvent::PeriodMissed { device, .. }
                 | PortEvent::WriteDone { device, .. }
                 | PortEvent::WriteFailed { device, .. }
                 | PortEvent::Online { device }

@@ -42,6 +42,10 @@ struct ReadState {
     initial_pending: bool,
     /// Never merged with others (a merged read including it was refused).
     solo: bool,
+    /// Smoothed time between successful reads, for the `p` flag of periodic reads.
+    average_interval: Option<Duration>,
+    /// The actual period is more than 10 % over `read_period_ms`.
+    period_missed: bool,
 }
 
 /// The read a device would do now, and how urgent it is.
@@ -75,6 +79,8 @@ impl DeviceState {
                 exclusion: Exclusion::None,
                 initial_pending: true,
                 solo: false,
+                average_interval: None,
+                period_missed: false,
             })
             .collect();
         let health = DeviceHealth::new(plan.health);
@@ -354,12 +360,30 @@ impl DeviceState {
         }
     }
 
-    pub(super) fn read_done(&mut self, now: Duration, index: usize) {
-        if let Some(read) = self.reads.get_mut(index) {
-            read.last_read = Some(now);
-            read.initial_pending = false;
+    /// Records a good read. Returns the new state of the read's "period missed" flag when it
+    /// changed: a periodic read whose smoothed interval exceeds its period by more than 10 %.
+    pub(super) fn read_done(&mut self, now: Duration, index: usize) -> Option<bool> {
+        let period = self.plan.reads.get(index).and_then(|p| p.period);
+        let read = self.reads.get_mut(index)?;
+        let previous = read.last_read.replace(now);
+        let was_initial = std::mem::replace(&mut read.initial_pending, false);
+        let mut changed = None;
+        if let (Some(period), Some(previous), false) = (period, previous, was_initial) {
+            let interval = now.saturating_sub(previous);
+            // An exponential average over about ten reads, like wb-mqtt-serial's 10-period window.
+            let average = match read.average_interval {
+                Some(average) => (average * 9 + interval) / 10,
+                None => interval,
+            };
+            read.average_interval = Some(average);
+            let missed = average.as_secs_f64() > period.as_secs_f64() * 1.1;
+            if missed != read.period_missed {
+                read.period_missed = missed;
+                changed = Some(missed);
+            }
         }
         self.reschedule(now, index);
+        changed
     }
 
     pub(super) fn read_failed(&mut self, now: Duration, index: usize, unsupported: bool) {

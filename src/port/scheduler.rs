@@ -75,6 +75,12 @@ pub enum PortEvent {
         address: u16,
         payload: Vec<u8>,
     },
+    /// A periodic read is late on average (more than 10 % over its period), or on time again.
+    PeriodMissed {
+        device: usize,
+        span: RegisterSpan,
+        missed: bool,
+    },
     /// `unsupported`: the device says the register does not exist; it is no longer read.
     ReadFailed {
         device: usize,
@@ -632,7 +638,13 @@ impl PortScheduler {
                     values: slice.to_vec(),
                 });
             }
-            state.read_done(now, member);
+            if let Some(missed) = state.read_done(now, member) {
+                out.push(PortEvent::PeriodMissed {
+                    device,
+                    span: member_span,
+                    missed,
+                });
+            }
         }
     }
 

@@ -695,3 +695,30 @@ fn with_fast_modbus_off_no_fast_frame_leaves_the_port() {
         .all(|(_, r)| !r.is_fast() && r.address != 0xFD));
     assert!(log.classic_to(20).len() > 50, "everything is polled");
 }
+
+#[test]
+fn a_periodic_read_that_cannot_keep_its_period_is_flagged() {
+    // At 9600 baud one read takes ~17 ms: a 5 ms period cannot be kept, a 1 s period can.
+    let mut fast = read(RegisterType::Holding, 1, EventMode::Polled);
+    fast.period = Some(ms(5));
+    let mut slow = read(RegisterType::Holding, 9, EventMode::Polled);
+    slow.period = Some(ms(1000));
+    let mut scheduler = PortScheduler::new(settings(9600), vec![device(5, vec![fast, slow])]);
+    let mut log = Log::default();
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(10_000),
+        |_, r| healthy(r),
+    );
+    let flags: Vec<(u16, bool)> = log
+        .events
+        .iter()
+        .filter_map(|(_, e)| match e {
+            PortEvent::PeriodMissed { span, missed, .. } => Some((span.start, *missed)),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(flags, vec![(1, true)], "only the 5 ms read is late");
+}
