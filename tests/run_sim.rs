@@ -42,10 +42,8 @@ impl Daemon {
         Self::start_on(json!({"path": pty, "baud_rate": 115200, "stop_bits": 2}))
     }
 
-    /// `port` is the config's port object without its devices.
+    /// `port` is the config's port object without its devices: it gets all four.
     fn start_on(mut port: Value) -> Self {
-        let dir = tempfile::tempdir().unwrap();
-        let config = dir.path().join("config.json");
         let devices: Vec<Value> = [
             ("rtu2mqtt-relay6", 20),
             ("rtu2mqtt-climate", 21),
@@ -56,7 +54,13 @@ impl Daemon {
         .map(|(template, address)| json!({"device_type": template, "slave_id": address}))
         .collect();
         port["devices"] = Value::from(devices);
-        std::fs::write(&config, json!({"ports": [port]}).to_string()).unwrap();
+        Self::start_ports(json!([port]))
+    }
+
+    fn start_ports(ports: Value) -> Self {
+        let dir = tempfile::tempdir().unwrap();
+        let config = dir.path().join("config.json");
+        std::fs::write(&config, json!({ "ports": ports }).to_string()).unwrap();
         let mut child = Command::new(env!("CARGO_BIN_EXE_rtu2mqtt"))
             .args(["run", "--stdio", "--templates"])
             .arg(repo("templates"))
@@ -340,5 +344,59 @@ fn rtu_over_tcp_serves_the_same_devices() {
     assert_eq!(
         update["event"], true,
         "events travel over TCP too: {update}"
+    );
+}
+
+/// A bus file with one device of `BUS`.
+fn one_device_bus(dir: &Path, name: &str) -> PathBuf {
+    let bus: Value = serde_json::from_str(BUS).unwrap();
+    let device = bus["devices"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|d| d["name"] == name)
+        .unwrap()
+        .clone();
+    let path = dir.join(format!("{name}.json"));
+    std::fs::write(&path, json!({ "devices": [device] }).to_string()).unwrap();
+    path
+}
+
+#[test]
+fn a_failed_port_is_reopened_while_the_other_port_keeps_working() {
+    let dir = tempfile::tempdir().unwrap();
+    let relay_bus = one_device_bus(dir.path(), "relay");
+    let climate_bus = one_device_bus(dir.path(), "climate");
+    let relay_sim = SimProcess::start_with(&relay_bus, &repo("templates"), &[]);
+    let climate_sim = SimProcess::start_with(&climate_bus, &repo("templates"), &[]);
+    // The daemon's path for the relay bus, like a /dev/serial/by-id link: re-pointed when the
+    // "adapter" comes back.
+    let relay_port = dir.path().join("ttyUSB-relay");
+    std::os::unix::fs::symlink(&relay_sim.pty, &relay_port).unwrap();
+    let mut daemon = Daemon::start_ports(json!([
+        {"path": relay_port, "baud_rate": 115200, "stop_bits": 2,
+         "devices": [{"device_type": "rtu2mqtt-relay6", "slave_id": 20}]},
+        {"path": climate_sim.pty, "baud_rate": 115200, "stop_bits": 2,
+         "devices": [{"device_type": "rtu2mqtt-climate", "slave_id": 21}]}
+    ]));
+    daemon.has_value("relay6_20", "K1", "0");
+    daemon.has_value("climate_21", "Temperature", "21.5");
+
+    // The relay's adapter goes away: the other port is served all the while.
+    drop(relay_sim);
+    climate_sim
+        .control(json!({"cmd": "set", "device": 21, "type": "input", "address": 8, "value": 812}));
+    daemon.wait_value("climate_21", "CO2", "812");
+
+    // It comes back (a new simulator behind the same path): the port is reopened.
+    let relay_sim = SimProcess::start_with(&relay_bus, &repo("templates"), &[]);
+    std::fs::remove_file(&relay_port).unwrap();
+    std::os::unix::fs::symlink(&relay_sim.pty, &relay_port).unwrap();
+    relay_sim
+        .control(json!({"cmd": "set", "device": 20, "type": "coil", "address": 4, "value": 1}));
+    daemon.wait_for(
+        "K5 on after the port came back",
+        Duration::from_secs(20),
+        |line| line["device"] == "relay6_20" && line["control"] == "K5" && line["value"] == "1",
     );
 }
