@@ -307,6 +307,7 @@ impl DeviceModel {
                         register_type: target.reg_type,
                         address,
                         values: vec![value],
+                        force_multiple: false,
                     });
                 }
             } else {
@@ -315,6 +316,7 @@ impl DeviceModel {
                     register_type: target.reg_type,
                     address: target.address,
                     values,
+                    force_multiple: register.write_function == WriteFunction::Multiple,
                 });
             }
         }
@@ -485,7 +487,8 @@ mod tests {
                 device: 0,
                 register_type: RegisterType::Coil,
                 address: 2,
-                values: vec![1]
+                values: vec![1],
+                force_multiple: false,
             }])
         );
         assert!(matches!(

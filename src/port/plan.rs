@@ -91,4 +91,6 @@ pub struct RegisterWrite {
     pub address: u16,
     /// One value per register (0/1 for coils).
     pub values: Vec<u16>,
+    /// Use 0x0F/0x10 even for one value (`holding_multi`; some devices accept nothing else).
+    pub force_multiple: bool,
 }

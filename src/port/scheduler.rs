@@ -302,8 +302,9 @@ impl PortScheduler {
         })?;
         let device = self.devices.get(pending.write.device)?;
         let write = &pending.write;
+        let single = |values: &[u16]| values.len() == 1 && !write.force_multiple;
         let pdu = match (write.register_type, write.values.as_slice()) {
-            (RegisterType::Coil, [value]) => RequestPdu::WriteSingleCoil {
+            (RegisterType::Coil, [value]) if single(&write.values) => RequestPdu::WriteSingleCoil {
                 address: write.address,
                 value: *value != 0,
             },
@@ -311,7 +312,7 @@ impl PortScheduler {
                 start: write.address,
                 values: values.iter().map(|&v| v != 0).collect(),
             },
-            (_, [value]) => RequestPdu::WriteSingleRegister {
+            (_, [value]) if single(&write.values) => RequestPdu::WriteSingleRegister {
                 address: write.address,
                 value: *value,
             },

@@ -541,6 +541,7 @@ fn a_write_goes_before_the_next_read_and_the_latest_value_wins() {
         register_type: RegisterType::Holding,
         address: 10,
         values: vec![value],
+        force_multiple: false,
     };
     scheduler.queue_write(now, write(1));
     scheduler.queue_write(now, write(2));
@@ -721,4 +722,37 @@ fn a_periodic_read_that_cannot_keep_its_period_is_flagged() {
         })
         .collect();
     assert_eq!(flags, vec![(1, true)], "only the 5 ms read is late");
+}
+
+#[test]
+fn holding_multi_writes_one_register_with_function_16() {
+    let mut scheduler = PortScheduler::new(
+        settings(115_200),
+        vec![device(
+            3,
+            vec![read(RegisterType::Holding, 0, EventMode::Polled)],
+        )],
+    );
+    let write = RegisterWrite {
+        device: 0,
+        register_type: RegisterType::Holding,
+        address: 7,
+        values: vec![9],
+        force_multiple: true,
+    };
+    scheduler.queue_write(Duration::ZERO, write);
+    let mut log = Log::default();
+    run(&mut scheduler, &mut log, Duration::ZERO, ms(5), |_, r| {
+        healthy(r)
+    });
+    assert_eq!(
+        log.sent[0].1,
+        Request::classic(
+            3,
+            RequestPdu::WriteMultipleRegisters {
+                start: 7,
+                values: vec![9]
+            }
+        )
+    );
 }
