@@ -3,15 +3,18 @@
 //! payload sets `w` and writes nothing; an unplugged device gets device `meta/error` "r", cleared
 //! on return; SIGTERM leaves no retained device topic behind.
 
+#[path = "daemon_support/mod.rs"]
+mod daemon_support;
 #[path = "mqtt_support/mod.rs"]
 mod mqtt_support;
 #[path = "sim_support/mod.rs"]
 mod sim_support;
 
-use mqtt_support::{publish, repo, retained, wait_for, Mosquitto};
+use daemon_support::{repo, DaemonProcess};
+use mqtt_support::{publish, retained, wait_for, Mosquitto};
 use serde_json::json;
 use sim_support::SimProcess;
-use std::process::{Child, Command, Stdio};
+use std::process::Stdio;
 
 const BUS: &str = r#"{"devices": [
   {"name": "relay", "template": "rtu2mqtt-relay6", "address": 20, "serial": "0xFE000020", "line": "115200 8N2"},
@@ -19,64 +22,25 @@ const BUS: &str = r#"{"devices": [
    "values": {"input:4": 2150}}
 ]}"#;
 
-struct Daemon {
-    child: Child,
-    _dir: tempfile::TempDir,
+fn start_daemon(pty: &std::path::Path, mqtt_port: u16) -> DaemonProcess {
+    let devices = json!([
+        {"device_type": "rtu2mqtt-relay6", "slave_id": 20},
+        {"device_type": "rtu2mqtt-climate", "slave_id": 21}
+    ]);
+    let config = json!({
+        "mqtt": {"host": "127.0.0.1", "port": mqtt_port, "client_id": "rtu2mqtt-e2e"},
+        "ports": [{"path": pty, "baud_rate": 115200, "stop_bits": 2, "devices": devices}]
+    });
+    DaemonProcess::start(&config, &[], Stdio::null(), Stdio::null())
 }
 
-impl Daemon {
-    fn start(pty: &std::path::Path, mqtt_port: u16) -> Self {
-        let dir = tempfile::tempdir().unwrap();
-        let config = dir.path().join("config.json");
-        let devices = json!([
-            {"device_type": "rtu2mqtt-relay6", "slave_id": 20},
-            {"device_type": "rtu2mqtt-climate", "slave_id": 21}
-        ]);
-        let config_json = json!({
-            "mqtt": {"host": "127.0.0.1", "port": mqtt_port, "client_id": "rtu2mqtt-e2e"},
-            "ports": [{"path": pty, "baud_rate": 115200, "stop_bits": 2, "devices": devices}]
-        });
-        std::fs::write(&config, config_json.to_string()).unwrap();
-        let child = Command::new(env!("CARGO_BIN_EXE_rtu2mqtt"))
-            .args(["run", "--templates"])
-            .arg(repo("templates"))
-            .arg("-c")
-            .arg(&config)
-            .stdin(Stdio::null())
-            .stdout(Stdio::null())
-            .stderr(std::fs::File::create(dir.path().join("daemon.log")).unwrap())
-            .spawn()
-            .unwrap();
-        Self { child, _dir: dir }
-    }
-
-    /// SIGTERM, as systemd stops the service; returns the exit status.
-    fn terminate(&mut self) -> std::process::ExitStatus {
-        let pid = nix::unistd::Pid::from_raw(self.child.id() as i32);
-        nix::sys::signal::kill(pid, nix::sys::signal::Signal::SIGTERM).unwrap();
-        self.child.wait().unwrap()
-    }
-}
-
-impl Drop for Daemon {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-        if std::thread::panicking() {
-            let log =
-                std::fs::read_to_string(self._dir.path().join("daemon.log")).unwrap_or_default();
-            eprintln!("--- daemon log ---\n{log}");
-        }
-    }
-}
-
-fn start() -> (Mosquitto, SimProcess, Daemon) {
+fn start() -> (Mosquitto, SimProcess, DaemonProcess) {
     let broker = Mosquitto::start();
     let dir = tempfile::tempdir().unwrap();
     let bus = dir.path().join("bus.json");
     std::fs::write(&bus, BUS).unwrap();
     let sim = SimProcess::start_with(&bus, &repo("templates"), &[]);
-    let daemon = Daemon::start(&sim.pty, broker.port);
+    let daemon = start_daemon(&sim.pty, broker.port);
     (broker, sim, daemon)
 }
 

@@ -14,17 +14,18 @@ pub struct Args {
 
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let bytes = protocol::parse_hex(&args.hex.join(" ")).map_err(anyhow::Error::msg)?;
-    let text = describe(&bytes);
+    let (text, valid) = describe(&bytes);
     print!("{text}");
-    Ok(if text.contains("not a valid frame") {
-        ExitCode::FAILURE
-    } else {
+    Ok(if valid {
         ExitCode::SUCCESS
+    } else {
+        ExitCode::FAILURE
     })
 }
 
-/// What the bytes are, as a request (master → device) and as a reply (device → master).
-pub fn describe(bytes: &[u8]) -> String {
+/// What the bytes are, as a request (master → device) and as a reply (device → master), and
+/// whether they are a valid frame at all.
+pub fn describe(bytes: &[u8]) -> (String, bool) {
     let mut out = String::new();
     let _ = writeln!(
         out,
@@ -75,7 +76,7 @@ pub fn describe(bytes: &[u8]) -> String {
             protocol::hex(&crc.to_le_bytes())
         );
     }
-    out
+    (out, any)
 }
 
 /// Polls until a frame, skipping errors; at the end of input, `at_end` gets one last chance.

@@ -1,0 +1,58 @@
+//! Runs the real `rtu2mqtt run` for end-to-end tests: config in a temp dir, the repository's
+//! templates, stderr to a log that is printed when the test fails; killed when dropped.
+#![allow(dead_code)]
+
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, ExitStatus, Stdio};
+
+use serde_json::Value;
+
+pub fn repo(path: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join(path)
+}
+
+pub struct DaemonProcess {
+    pub child: Child,
+    dir: tempfile::TempDir,
+}
+
+impl DaemonProcess {
+    /// `extra` goes after `run` (e.g. `--stdio`); stdin and stdout are set by the caller.
+    pub fn start(config: &Value, extra: &[&str], stdin: Stdio, stdout: Stdio) -> Self {
+        let dir = tempfile::tempdir().unwrap();
+        let config_path = dir.path().join("config.json");
+        std::fs::write(&config_path, config.to_string()).unwrap();
+        let child = Command::new(env!("CARGO_BIN_EXE_rtu2mqtt"))
+            .arg("run")
+            .args(extra)
+            .arg("--templates")
+            .arg(repo("templates"))
+            .arg("-c")
+            .arg(&config_path)
+            .stdin(stdin)
+            .stdout(stdout)
+            .stderr(std::fs::File::create(dir.path().join("daemon.log")).unwrap())
+            .spawn()
+            .unwrap();
+        Self { child, dir }
+    }
+
+    /// SIGTERM, as systemd stops the service; returns the exit status.
+    pub fn terminate(&mut self) -> ExitStatus {
+        let pid = nix::unistd::Pid::from_raw(self.child.id() as i32);
+        nix::sys::signal::kill(pid, nix::sys::signal::Signal::SIGTERM).unwrap();
+        self.child.wait().unwrap()
+    }
+}
+
+impl Drop for DaemonProcess {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+        if std::thread::panicking() {
+            let log =
+                std::fs::read_to_string(self.dir.path().join("daemon.log")).unwrap_or_default();
+            eprintln!("--- daemon log ---\n{log}");
+        }
+    }
+}

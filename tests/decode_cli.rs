@@ -1,0 +1,35 @@
+//! `rtu2mqtt decode`: explains a frame and exits 0, or says what the CRC would be and exits 1.
+
+use std::process::Command;
+
+fn decode(hex: &str) -> (bool, String) {
+    let output = Command::new(env!("CARGO_BIN_EXE_rtu2mqtt"))
+        .arg("decode")
+        .args(hex.split(' '))
+        .output()
+        .unwrap();
+    (
+        output.status.success(),
+        String::from_utf8(output.stdout).unwrap(),
+    )
+}
+
+#[test]
+fn an_event_frame_with_filler_is_explained() {
+    let (ok, text) = decode("FF FF FF FF FF FF F1 46 11 00 02 09 01 01 00 00 01 00 0F 00 00 10 64");
+    assert!(ok, "{text}");
+    assert!(text.contains("address: 241"), "{text}");
+    assert!(text.contains("source: System"), "{text}");
+    assert!(
+        text.contains("after 6 arbitration filler byte(s)"),
+        "{text}"
+    );
+}
+
+#[test]
+fn a_bad_crc_fails_and_names_the_right_one() {
+    let (ok, text) = decode("14 03 00 80 00 01 87 28");
+    assert!(!ok, "{text}");
+    assert!(text.contains("not a valid frame"), "{text}");
+    assert!(text.contains("it would be 87 27"), "{text}");
+}
