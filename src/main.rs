@@ -1,4 +1,4 @@
-use clap::{Parser, Subcommand};
+use clap::{CommandFactory, Parser, Subcommand};
 use rtu2mqtt::cli;
 
 /// Modbus RTU / Modbus TCP devices to MQTT, with Fast Modbus events.
@@ -25,6 +25,11 @@ enum Command {
     Decode(cli::decode::Args),
     /// Run a virtual RS-485 bus of classic and Fast Modbus devices on a pty or TCP port.
     Sim(cli::sim::Args),
+    /// Print a shell completion script (e.g. `rtu2mqtt completions bash > /etc/bash_completion.d/rtu2mqtt`).
+    Completions(cli::generate::CompletionsArgs),
+    /// Write the man pages (rtu2mqtt.1 and one per subcommand) into a directory.
+    #[command(hide = true)]
+    Manpages(cli::generate::ManpagesArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -37,6 +42,8 @@ fn main() -> std::process::ExitCode {
         Command::Demo(args) => cli::demo::run(args),
         Command::Decode(args) => cli::decode::run(args),
         Command::Sim(args) => cli::sim::run(args),
+        Command::Completions(args) => cli::generate::completions(args, Cli::command()),
+        Command::Manpages(args) => cli::generate::manpages(args, Cli::command()),
     };
     match result {
         Ok(code) => code,

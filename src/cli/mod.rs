@@ -6,6 +6,7 @@
 pub mod check;
 pub mod decode;
 pub mod demo;
+pub mod generate;
 pub mod run;
 pub mod schema;
 pub mod sim;
