@@ -11,6 +11,7 @@ pub mod device;
 pub mod mqtt;
 pub mod port;
 pub mod protocol;
+pub mod service;
 pub mod sim;
 pub mod transport;
 pub mod updates;
