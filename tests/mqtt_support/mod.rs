@@ -363,6 +363,27 @@ pub fn render_state(state: &BTreeMap<String, String>) -> String {
     state.iter().map(|(t, p)| format!("{t}\t{p}\n")).collect()
 }
 
+/// Waits until the broker's retained state renders exactly as `tests/golden/<name>`; on timeout
+/// fails with the first differing line. Waiting for the whole state (not one topic) matters: a
+/// value published while a snapshot is being read reaches it live, without the retain flag, and
+/// shows only in the next snapshot.
+pub async fn assert_broker_matches_golden(port: u16, name: &str) {
+    let path = repo(&format!("tests/golden/{name}"));
+    let expected = std::fs::read_to_string(&path).unwrap_or_default();
+    let deadline = Instant::now() + TIMEOUT;
+    loop {
+        let actual = retained(port).await.map(|s| render_state(&s));
+        if let Some(actual) = actual {
+            if actual == expected || Instant::now() >= deadline {
+                assert_golden(name, &actual);
+                return;
+            }
+        }
+        assert!(Instant::now() < deadline, "timed out reading the broker's retained state");
+        tokio::time::sleep(Duration::from_millis(25)).await;
+    }
+}
+
 /// Compares with `tests/golden/<name>`; `UPDATE_GOLDEN=1` rewrites the file.
 pub fn assert_golden(name: &str, actual: &str) {
     let path = repo(&format!("tests/golden/{name}"));
