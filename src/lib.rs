@@ -8,6 +8,7 @@ pub mod cli;
 pub mod config;
 pub mod daemon;
 pub mod device;
+pub mod embedded_broker;
 pub mod mqtt;
 pub mod port;
 pub mod protocol;

@@ -1,19 +1,19 @@
-//! `rtu2mqtt demo`: a virtual bus of five devices (the simulator), a broker (mosquitto when
-//! installed) and the daemon, with nothing to set up. Everything it needs is built in; it runs
+//! `rtu2mqtt demo`: a virtual bus of five devices (the simulator), a broker (the one already
+//! listening on 127.0.0.1:1883, else a built-in one) and the daemon, with nothing to set up. Everything it needs is built in; it runs
 //! in a temporary directory and stops everything on Ctrl-C.
 
 use std::io::{BufRead, BufReader};
-use std::net::TcpListener;
 use std::os::unix::process::CommandExt;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::{Child, Command, ExitCode, Stdio};
 use std::sync::mpsc;
 use std::time::Duration;
 
-use anyhow::{bail, Context};
+use anyhow::Context;
 use serde_json::Value;
 
 use crate::config::jsonc::strip_comments;
+use crate::embedded_broker::EmbeddedBroker;
 
 const BUS: &str = include_str!("../../config/examples/sim-bus.json");
 const DAEMON_CONFIG: &str = include_str!("../../config/examples/sim-daemon.json");
@@ -50,31 +50,31 @@ pub struct Args {
     /// Don't start a broker: print device updates as JSON lines instead.
     #[arg(long)]
     pub no_broker: bool,
-    /// Port for the demo's broker (default 1883 if free, else any free port).
+    /// MQTT port on 127.0.0.1 (default 1883): a broker already listening there is used,
+    /// otherwise a built-in one is started on it.
     #[arg(long)]
     pub mqtt_port: Option<u16>,
 }
 
-/// The demo's scratch directory, removed at the end.
-struct DemoDir(PathBuf);
-
-impl DemoDir {
-    fn create() -> anyhow::Result<Self> {
-        let path = std::env::temp_dir().join(format!("rtu2mqtt-demo-{}", std::process::id()));
-        std::fs::create_dir_all(&path)
-            .with_context(|| format!("cannot create {}", path.display()))?;
-        Ok(Self(path))
-    }
-
-    fn path(&self) -> &Path {
-        &self.0
-    }
+/// The demo's scratch directory: private (0700), under a fresh random name, removed at the end.
+/// A predictable path would let another local user plant links the demo then writes through.
+fn create_demo_dir() -> anyhow::Result<tempfile::TempDir> {
+    tempfile::Builder::new()
+        .prefix("rtu2mqtt-demo-")
+        .tempdir()
+        .context("cannot create the demo's directory")
 }
 
-impl Drop for DemoDir {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.0);
-    }
+/// Writes a new file; never follows or replaces anything already there.
+fn write_new(path: &Path, text: &str) -> anyhow::Result<()> {
+    use std::io::Write;
+    let mut file = std::fs::OpenOptions::new()
+        .write(true)
+        .create_new(true)
+        .open(path)
+        .with_context(|| format!("cannot create {}", path.display()))?;
+    file.write_all(text.as_bytes())
+        .with_context(|| format!("cannot write {}", path.display()))
 }
 
 /// A child process that is killed when the demo ends.
@@ -88,23 +88,23 @@ impl Drop for Guard {
 }
 
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
-    let dir = DemoDir::create()?;
+    let dir = create_demo_dir()?;
     let templates = dir.path().join("templates");
     std::fs::create_dir(&templates)?;
     for (name, text) in TEMPLATES {
-        std::fs::write(templates.join(name), text)?;
+        write_new(&templates.join(name), text)?;
     }
     let bus = dir.path().join("bus.json");
-    std::fs::write(&bus, BUS)?;
+    write_new(&bus, BUS)?;
     let scenario = dir.path().join("scenario.script");
-    std::fs::write(&scenario, SCENARIO)?;
+    write_new(&scenario, SCENARIO)?;
     let pty = dir.path().join("ttyRS485-demo");
     let control = dir.path().join("sim.sock");
 
     let broker = if args.no_broker {
         None
     } else {
-        start_broker(dir.path(), args.mqtt_port)?
+        Some(choose_broker(args.mqtt_port)?)
     };
     let _sim = start_simulator(&bus, &templates, &pty, &control, &scenario)?;
 
@@ -114,10 +114,10 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     daemon_config["ports"][0]["path"] = Value::from(pty.display().to_string());
     daemon_config["mqtt"]["host"] = Value::from("127.0.0.1");
     daemon_config["mqtt"]["client_id"] = Value::from("rtu2mqtt-demo");
-    if let Some((_, port)) = &broker {
-        daemon_config["mqtt"]["port"] = Value::from(*port);
+    if let Some(broker) = &broker {
+        daemon_config["mqtt"]["port"] = Value::from(broker.port());
     }
-    std::fs::write(&config, serde_json::to_string_pretty(&daemon_config)?)?;
+    write_new(&config, &serde_json::to_string_pretty(&daemon_config)?)?;
 
     eprintln!("rtu2mqtt demo: five simulated devices on a virtual RS-485 bus at 115200 8N2 (Fast Modbus events on)");
     eprintln!(
@@ -125,15 +125,22 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         pty.display(),
         control.display()
     );
+    eprintln!("  files:      {}", dir.path().display());
     match &broker {
-        Some((_, port)) => {
-            eprintln!("  broker:     mosquitto on 127.0.0.1:{port}");
+        Some(broker) => {
+            let port = broker.port();
+            match broker {
+                DemoBroker::Embedded(_) => {
+                    eprintln!("  broker:     built-in MQTT broker on 127.0.0.1:{port}")
+                }
+                DemoBroker::Existing(_) => eprintln!(
+                    "  broker:     the broker already listening on 127.0.0.1:{port} (use --mqtt-port for another)"
+                ),
+            }
             eprintln!("  watch:      mosquitto_sub -h 127.0.0.1 -p {port} -t '/devices/#' -v");
             eprintln!("  switch K2:  mosquitto_pub -h 127.0.0.1 -p {port} -t /devices/relay6_20/controls/K2/on -m 1");
         }
-        None => eprintln!(
-            "  no broker:  device updates follow as JSON lines (install mosquitto for MQTT)"
-        ),
+        None => eprintln!("  no broker:  device updates follow as JSON lines"),
     }
     eprintln!("  Ctrl-C stops everything.");
     let run_args = super::run::Args {
@@ -141,6 +148,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         templates: vec![templates],
         stdio: broker.is_none(),
     };
+    let _live_view = broker.as_ref().map(|b| live_view(b.port()));
     let code = super::run::run(run_args)?;
     // Stop the simulator and the broker before the directory they use goes.
     drop(_sim);
@@ -149,57 +157,85 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     Ok(code)
 }
 
-fn find_mosquitto() -> Option<PathBuf> {
-    let from_path = std::env::var_os("PATH")
-        .into_iter()
-        .flat_map(|paths| std::env::split_paths(&paths).collect::<Vec<_>>())
-        .map(|dir| dir.join("mosquitto"));
-    from_path
-        .chain([PathBuf::from("/usr/sbin/mosquitto")])
-        .find(|path| path.is_file())
+/// Where the demo's daemon publishes.
+enum DemoBroker {
+    /// Nothing listened on the port: our own, stopped with the demo.
+    Embedded(EmbeddedBroker),
+    /// Something already listens there (say the machine's mosquitto): use it.
+    Existing(u16),
 }
 
-fn port_is_free(port: u16) -> bool {
-    TcpListener::bind(("127.0.0.1", port)).is_ok()
-}
-
-/// mosquitto on loopback, or None (with a note) when it is not installed.
-fn start_broker(dir: &Path, wanted: Option<u16>) -> anyhow::Result<Option<(Guard, u16)>> {
-    let Some(mosquitto) = find_mosquitto() else {
-        eprintln!("mosquitto is not installed (apt-get install mosquitto mosquitto-clients): running without a broker");
-        return Ok(None);
-    };
-    let port = match wanted {
-        Some(port) => port,
-        None if port_is_free(1883) => 1883,
-        None => TcpListener::bind("127.0.0.1:0")?.local_addr()?.port(),
-    };
-    let config = dir.join("mosquitto.conf");
-    std::fs::write(
-        &config,
-        format!("listener {port} 127.0.0.1\nallow_anonymous true\npersistence false\n"),
-    )?;
-    let child = Command::new(&mosquitto)
-        // Its own process group: Ctrl-C reaches the demo only, which stops the daemon first
-        // (it clears its retained topics) and then the broker.
-        .process_group(0)
-        .arg("-c")
-        .arg(&config)
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .spawn()
-        .with_context(|| format!("cannot start {}", mosquitto.display()))?;
-    let mut guard = Guard(child);
-    for _ in 0..100 {
-        if std::net::TcpStream::connect(("127.0.0.1", port)).is_ok() {
-            return Ok(Some((guard, port)));
+impl DemoBroker {
+    fn port(&self) -> u16 {
+        match self {
+            Self::Embedded(broker) => broker.port(),
+            Self::Existing(port) => *port,
         }
-        if let Ok(Some(status)) = guard.0.try_wait() {
-            bail!("mosquitto stopped at start ({status}); is port {port} taken? Try --mqtt-port");
-        }
-        std::thread::sleep(Duration::from_millis(50));
     }
-    bail!("mosquitto did not start listening on 127.0.0.1:{port}")
+}
+
+/// The broker on `wanted` (1883 by default) if one listens there, else the built-in one on that
+/// port (or on any free port when 1883 cannot be had).
+fn choose_broker(wanted: Option<u16>) -> anyhow::Result<DemoBroker> {
+    let port = wanted.unwrap_or(1883);
+    if std::net::TcpStream::connect_timeout(
+        &std::net::SocketAddr::from(([127, 0, 0, 1], port)),
+        Duration::from_millis(500),
+    )
+    .is_ok()
+    {
+        return Ok(DemoBroker::Existing(port));
+    }
+    match EmbeddedBroker::start(port) {
+        Ok(broker) => Ok(DemoBroker::Embedded(broker)),
+        Err(_) if wanted.is_none() => Ok(DemoBroker::Embedded(
+            EmbeddedBroker::start(0).context("cannot start the built-in MQTT broker")?,
+        )),
+        Err(err) => Err(err).with_context(|| format!("cannot listen on 127.0.0.1:{port} for MQTT")),
+    }
+}
+
+/// Prints each control value as it reaches the broker, one compact line per change, on stdout
+/// (the daemon's log goes to stderr). Runs on its own thread until the demo ends.
+fn live_view(port: u16) -> std::thread::JoinHandle<()> {
+    std::thread::spawn(move || {
+        let Ok(runtime) = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+        else {
+            return;
+        };
+        runtime.block_on(async move {
+            use rumqttc::{AsyncClient, Event, MqttOptions, Packet, QoS};
+            let options = MqttOptions::new(
+                format!("rtu2mqtt-demo-view-{}", std::process::id()),
+                "127.0.0.1",
+                port,
+            );
+            let (client, mut eventloop) = AsyncClient::new(options, 16);
+            let _ = client
+                .subscribe("/devices/+/controls/+", QoS::AtMostOnce)
+                .await;
+            let started = std::time::Instant::now();
+            loop {
+                match eventloop.poll().await {
+                    Ok(Event::Incoming(Packet::Publish(p))) if !p.retain => {
+                        let parts: Vec<&str> = p.topic.split('/').collect();
+                        if let [_, _, device, _, control] = parts.as_slice() {
+                            println!(
+                                "{:>9.3} s  {device:<14} {control:<24} {}",
+                                started.elapsed().as_secs_f64(),
+                                String::from_utf8_lossy(&p.payload)
+                            );
+                        }
+                    }
+                    Ok(_) => {}
+                    // The broker went away: the demo is ending.
+                    Err(_) => return,
+                }
+            }
+        });
+    })
 }
 
 /// `rtu2mqtt sim` as a child process; returns once it printed "ready".
