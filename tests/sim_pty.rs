@@ -3,6 +3,7 @@
 
 mod sim_support;
 
+use std::path::Path;
 use std::time::Duration;
 
 use rtu2mqtt::protocol::{
@@ -10,7 +11,7 @@ use rtu2mqtt::protocol::{
     FastReply, LineSettings, Parity, RegisterType, Reply, ReplyBody, Request, RequestPdu,
 };
 use serde_json::json;
-use sim_support::{ff, hex, with_crc, SimProcess, FAST};
+use sim_support::{data, ff, hex, with_crc, SimProcess, FAST};
 
 const SILENCE: Duration = Duration::from_millis(150);
 
@@ -592,4 +593,66 @@ fn shared_address_corrupts_classic_replies_and_scan_lists_both() {
         },
     );
     assert_eq!(port.transact(&other).0, with_crc("15 04 02 13 88"));
+}
+
+/// Runs `sim` with the given pty and control paths and returns its exit status and stderr; it
+/// must refuse at start, so it is expected to end by itself.
+fn sim_refusing(pty: &Path, control: &Path) -> (std::process::ExitStatus, String) {
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_rtu2mqtt"))
+        .arg("sim")
+        .arg("--bus")
+        .arg(data("bus.json"))
+        .arg("--templates")
+        .arg(data(""))
+        .arg("--pty")
+        .arg(pty)
+        .arg("--control")
+        .arg(control)
+        .stdin(std::process::Stdio::null())
+        .output()
+        .unwrap();
+    (
+        out.status,
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+#[test]
+fn sim_never_replaces_a_file_that_is_not_its_own() {
+    let dir = tempfile::tempdir().unwrap();
+    let victim = dir.path().join("victim.txt");
+    std::fs::write(&victim, "precious").unwrap();
+
+    // A planted link at the pty path, pointing at someone's file.
+    let pty = dir.path().join("ttyRS485-sim");
+    std::os::unix::fs::symlink(&victim, &pty).unwrap();
+    let (status, stderr) = sim_refusing(&pty, &dir.path().join("control.sock"));
+    assert!(!status.success(), "{stderr}");
+    assert!(stderr.contains("not a simulator's pty link"), "{stderr}");
+    assert_eq!(std::fs::read_link(&pty).unwrap(), victim);
+
+    // A regular file at the control socket path.
+    let control = dir.path().join("control.sock");
+    std::fs::write(&control, "not a socket").unwrap();
+    let (status, stderr) = sim_refusing(&dir.path().join("tty2"), &control);
+    assert!(!status.success(), "{stderr}");
+    assert!(stderr.contains("is not a socket"), "{stderr}");
+    assert_eq!(std::fs::read_to_string(&control).unwrap(), "not a socket");
+    assert_eq!(std::fs::read_to_string(&victim).unwrap(), "precious");
+}
+
+#[test]
+fn control_socket_is_private_to_its_owner() {
+    use std::os::unix::fs::PermissionsExt;
+    let sim = SimProcess::start("bus.json", &[]);
+    let mode = std::fs::metadata(&sim.control)
+        .unwrap()
+        .permissions()
+        .mode();
+    assert_eq!(
+        mode & 0o777,
+        0o600,
+        "control socket mode {:o}",
+        mode & 0o777
+    );
 }

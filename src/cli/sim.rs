@@ -181,7 +181,12 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         crate::sim::pty::remove_link(&link, &target);
     }
     if let Some(path) = &args.control {
-        let _ = std::fs::remove_file(path);
+        // Only the socket we bound: the path may have been replaced meanwhile.
+        if std::fs::symlink_metadata(path)
+            .is_ok_and(|m| std::os::unix::fs::FileTypeExt::is_socket(&m.file_type()))
+        {
+            let _ = std::fs::remove_file(path);
+        }
     }
     Ok(ExitCode::SUCCESS)
 }

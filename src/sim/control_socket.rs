@@ -3,6 +3,7 @@
 //! change log, one JSON line per register change, until it closes.
 
 use std::io::{self, BufRead, BufReader, Write};
+use std::os::unix::fs::FileTypeExt;
 use std::os::unix::net::{UnixListener, UnixStream};
 use std::path::Path;
 use std::sync::mpsc;
@@ -13,12 +14,27 @@ use std::time::Duration;
 use super::control::execute_line;
 use super::runtime::SimRuntime;
 
-/// Binds `path` (replacing a stale socket) and serves connections until the runtime stops.
+/// Binds `path` (replacing only a stale socket, never another kind of file) with mode 0600, and
+/// serves connections until the runtime stops. The socket can change registers and inject
+/// faults: only its owner may use it.
 pub fn spawn_control_socket(path: &Path, runtime: Arc<SimRuntime>) -> io::Result<JoinHandle<()>> {
-    if std::fs::symlink_metadata(path).is_ok() {
+    if let Ok(meta) = std::fs::symlink_metadata(path) {
+        if !meta.file_type().is_socket() {
+            return Err(io::Error::new(
+                io::ErrorKind::AlreadyExists,
+                format!(
+                    "{} already exists and is not a socket; remove it or choose another --control path",
+                    path.display()
+                ),
+            ));
+        }
         std::fs::remove_file(path)?;
     }
-    let listener = UnixListener::bind(path)?;
+    // The mode is set by the umask at bind time; a chmod afterwards would leave a window.
+    let previous = nix::sys::stat::umask(nix::sys::stat::Mode::from_bits_truncate(0o177));
+    let bound = UnixListener::bind(path);
+    nix::sys::stat::umask(previous);
+    let listener = bound?;
     listener.set_nonblocking(true)?;
     std::thread::Builder::new()
         .name("sim-control".into())

@@ -44,7 +44,7 @@ fn nix_err(err: nix::Error) -> io::Error {
 
 impl PtyLink {
     /// Opens a pty, sets its slave to raw `initial` settings, and points `link` at the slave
-    /// (replacing an existing symlink or file there, like `ln -sf`).
+    /// (replacing only a stale simulator link there; any other file is left alone, with an error).
     pub fn open(link: &Path, initial: LineSettings) -> io::Result<Self> {
         let pty = nix::pty::openpty(None, None).map_err(nix_err)?;
         let mut settings = termios::tcgetattr(&pty.slave).map_err(nix_err)?;
@@ -71,15 +71,21 @@ impl PtyLink {
             FcntlArg::F_SETFL(flags),
         )
         .map_err(nix_err)?;
-        match std::fs::symlink_metadata(link) {
-            Ok(meta) if meta.is_dir() => {
+        if std::fs::symlink_metadata(link).is_ok() {
+            // Only a stale link of an earlier simulator (into /dev/pts) is replaced; anything
+            // else there may be someone's file, which `ln -sf` semantics would destroy.
+            let stale_pty_link =
+                std::fs::read_link(link).is_ok_and(|target| target.starts_with("/dev/pts/"));
+            if !stale_pty_link {
                 return Err(io::Error::new(
                     io::ErrorKind::AlreadyExists,
-                    format!("{} is a directory", link.display()),
+                    format!(
+                        "{} already exists and is not a simulator's pty link; remove it or choose another --pty path",
+                        link.display()
+                    ),
                 ));
             }
-            Ok(_) => std::fs::remove_file(link)?,
-            Err(_) => {}
+            std::fs::remove_file(link)?;
         }
         std::os::unix::fs::symlink(&slave_path, link)?;
         Ok(Self {
