@@ -4,12 +4,14 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use anyhow::Context;
+use tokio::signal::unix::{signal, SignalKind};
 use tokio::sync::watch;
-use tracing::info;
+use tracing::{error, info, warn};
 
 use crate::config::library::TemplateLibrary;
-use crate::config::load::{load_config, DEFAULT_CONFIG_PATH};
-use crate::daemon::{start_bus_side, stdio, termination_signal};
+use crate::config::load::{load_config, LoadedConfig, DEFAULT_CONFIG_PATH};
+use crate::daemon::{start_bus_side, stdio, termination_signal, BusControl, BusSide};
+use crate::device::model::ResolvedPort;
 use crate::device::resolve_config;
 use crate::mqtt::{run_mqtt, MqttSettings};
 
@@ -27,24 +29,25 @@ pub struct Args {
     pub stdio: bool,
 }
 
-pub fn run(args: Args) -> anyhow::Result<ExitCode> {
-    super::init_logging();
-    let loaded = match load_config(&args.config) {
-        Ok(loaded) => loaded,
-        Err(errors) => {
-            for error in &errors.0 {
-                eprintln!("{error}");
-            }
-            return Ok(ExitCode::FAILURE);
-        }
-    };
+/// Loads the config and resolves its devices against the templates; the errors as the
+/// integrator reads them otherwise.
+fn load(args: &Args) -> Result<(LoadedConfig, Vec<ResolvedPort>), Vec<String>> {
+    let loaded = load_config(&args.config)
+        .map_err(|errors| errors.0.iter().map(ToString::to_string).collect::<Vec<_>>())?;
     let mut dirs = loaded.config.template_dirs.clone();
     dirs.extend(args.templates.iter().cloned());
     let library = TemplateLibrary::load_dirs(&TemplateLibrary::standard_dirs(&dirs));
-    let ports = match resolve_config(&loaded, &library) {
-        Ok(ports) => ports,
+    let ports = resolve_config(&loaded, &library)
+        .map_err(|errors| errors.0.iter().map(ToString::to_string).collect::<Vec<_>>())?;
+    Ok((loaded, ports))
+}
+
+pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+    super::init_logging();
+    let (loaded, ports) = match load(&args) {
+        Ok(loaded) => loaded,
         Err(errors) => {
-            for error in &errors.0 {
+            for error in &errors {
                 eprintln!("{error}");
             }
             return Ok(ExitCode::FAILURE);
@@ -57,13 +60,22 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         .context("cannot start the async runtime")?;
     let mqtt_settings = MqttSettings::from_config(&loaded.config);
     let fast_modbus = loaded.config.fast_modbus;
+    let running_mqtt = serde_json::to_value(&loaded.config.mqtt).unwrap_or_default();
     let result = runtime.block_on(async move {
+        // Installed first: from here on SIGHUP reloads instead of killing the process.
+        let mut hangups = signal(SignalKind::hangup()).context("cannot handle SIGHUP")?;
+        let terminate = termination_signal();
+        tokio::pin!(terminate);
         let (shutdown_tx, shutdown_rx) = watch::channel(false);
-        let mut bus = start_bus_side(ports, fast_modbus, shutdown_rx.clone());
+        let BusSide {
+            updates,
+            writes,
+            control: mut bus,
+        } = start_bus_side(ports, fast_modbus);
         let mut sink = if args.stdio {
-            tokio::spawn(stdio::read_writes(bus.writes.clone()));
+            tokio::spawn(stdio::read_writes(writes.clone()));
             tokio::spawn(async move {
-                stdio::print_updates(bus.updates).await;
+                stdio::print_updates(updates).await;
                 Ok(())
             })
         } else {
@@ -71,23 +83,21 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             let stopped = async move {
                 let _ = stop.wait_for(|stop| *stop).await;
             };
-            tokio::spawn(run_mqtt(
-                mqtt_settings,
-                bus.updates,
-                bus.writes.clone(),
-                stopped,
-            ))
+            tokio::spawn(run_mqtt(mqtt_settings, updates, writes.clone(), stopped))
         };
-        info!("running; stop with Ctrl-C or SIGTERM");
-        let finished = tokio::select! {
-            _ = termination_signal() => None,
-            result = &mut sink => Some(result),
+        info!("running; stop with Ctrl-C or SIGTERM, reload the config with SIGHUP");
+        let finished = loop {
+            tokio::select! {
+                () = &mut terminate => break None,
+                result = &mut sink => break Some(result),
+                _ = hangups.recv() => reload(&args, &mut bus, &running_mqtt).await,
+            }
         };
         info!("stopping");
         let _ = shutdown_tx.send(true);
-        // Port tasks notice the shutdown between transactions; none outlives the runtime.
-        while bus.tasks.join_next().await.is_some() {}
-        drop(bus.writes);
+        // Port tasks finish their transaction in flight; none outlives the runtime.
+        bus.stop().await;
+        drop(writes);
         // The sink ends once the port tasks are gone; MQTT first clears its retained topics.
         let finished = match finished {
             Some(result) => Some(result),
@@ -103,4 +113,33 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     runtime.shutdown_timeout(std::time::Duration::from_secs(1));
     result?;
     Ok(ExitCode::SUCCESS)
+}
+
+/// SIGHUP: re-reads the config and templates and applies the difference port by port. A config
+/// that does not load leaves everything running as it was.
+async fn reload(args: &Args, bus: &mut BusControl, running_mqtt: &serde_json::Value) {
+    info!(config = %args.config.display(), "SIGHUP: reloading the config and templates");
+    let (loaded, ports) = match load(args) {
+        Ok(loaded) => loaded,
+        Err(errors) => {
+            error!(
+                "reload failed; the running configuration stays in force:\n{}",
+                errors.join("\n")
+            );
+            return;
+        }
+    };
+    let mqtt = serde_json::to_value(&loaded.config.mqtt).unwrap_or_default();
+    if mqtt != *running_mqtt {
+        warn!("the mqtt section changed: it takes effect when the service restarts");
+    }
+    let summary = bus.reload(ports, loaded.config.fast_modbus).await;
+    info!(
+        started = ?summary.ports_started,
+        restarted = ?summary.ports_restarted,
+        stopped = ?summary.ports_stopped,
+        unchanged = summary.ports_unchanged.len(),
+        devices_removed = ?summary.devices_removed,
+        "reload applied"
+    );
 }

@@ -6,11 +6,11 @@ pub mod port_plan;
 pub mod port_task;
 pub mod stdio;
 
-use std::collections::HashMap;
-use std::sync::Arc;
+use std::collections::{BTreeMap, HashMap};
+use std::sync::{Arc, Mutex};
 
 use tokio::sync::{mpsc, watch};
-use tokio::task::JoinSet;
+use tokio::task::JoinHandle;
 use tracing::{info, warn};
 
 use crate::device::model::ResolvedPort;
@@ -23,48 +23,65 @@ use port_task::PortTask;
 const UPDATE_QUEUE: usize = 4096;
 const WRITE_QUEUE: usize = 256;
 
-/// The running bus side: send control writes in, get device updates out.
+/// The running bus side: send control writes in, get device updates out; [`BusControl`] stops
+/// it or swaps ports on a reload.
 pub struct BusSide {
     pub updates: mpsc::Receiver<DeviceUpdate>,
     pub writes: mpsc::Sender<ControlWrite>,
-    pub tasks: JoinSet<()>,
+    pub control: BusControl,
+}
+
+/// Which device ids route to which port task's write queue.
+type Routes = Arc<Mutex<HashMap<String, mpsc::Sender<ControlWrite>>>>;
+
+/// One running port task and what it was started from (to tell on a reload whether it changed).
+struct RunningPort {
+    resolved: ResolvedPort,
+    config: serde_json::Value,
+    stop: watch::Sender<bool>,
+    task: JoinHandle<()>,
+}
+
+/// Owns the port tasks: stops them all at shutdown, and on a reload stops, starts or restarts
+/// only the ports whose configuration changed.
+pub struct BusControl {
+    ports: BTreeMap<String, RunningPort>,
+    routes: Routes,
+    updates: mpsc::Sender<DeviceUpdate>,
+    fast_modbus: bool,
+    router: JoinHandle<()>,
+}
+
+/// What a reload did, for the log and the tests.
+#[derive(Debug, Default, PartialEq, Eq)]
+pub struct ReloadSummary {
+    pub ports_started: Vec<String>,
+    pub ports_stopped: Vec<String>,
+    pub ports_restarted: Vec<String>,
+    pub ports_unchanged: Vec<String>,
+    pub devices_removed: Vec<String>,
+}
+
+/// A port is the same port across reloads when it names the same device path or gateway.
+fn port_key(port: &ResolvedPort) -> String {
+    match (&port.config.path, &port.config.address) {
+        (Some(path), _) => path.clone(),
+        (None, Some(address)) => format!("{address}:{}", port.config.port.unwrap_or_default()),
+        (None, None) => format!("port {}", port.index),
+    }
 }
 
 /// Starts one task per port and a router for control writes. Every device is announced with
 /// [`DeviceUpdate::Added`] before any of its values.
-pub fn start_bus_side(
-    ports: Vec<ResolvedPort>,
-    fast_modbus: bool,
-    shutdown: watch::Receiver<bool>,
-) -> BusSide {
+pub fn start_bus_side(ports: Vec<ResolvedPort>, fast_modbus: bool) -> BusSide {
     let (update_tx, update_rx) = mpsc::channel(UPDATE_QUEUE);
     let (write_tx, mut write_rx) = mpsc::channel::<ControlWrite>(WRITE_QUEUE);
-    let mut routes: HashMap<String, mpsc::Sender<ControlWrite>> = HashMap::new();
-    let mut tasks = JoinSet::new();
-    for port in ports {
-        let plan = port_plan(&port, fast_modbus);
-        info!(port = %plan.name, devices = plan.devices.len(), fast_modbus = plan.settings.fast_modbus, "serving port");
-        let (port_write_tx, port_write_rx) = mpsc::channel(WRITE_QUEUE);
-        let mut models = Vec::new();
-        for (index, device) in port.devices.into_iter().enumerate() {
-            let device = Arc::new(device);
-            routes.insert(device.id.clone(), port_write_tx.clone());
-            // The queue is empty at this point: these never wait.
-            let _ = update_tx.try_send(DeviceUpdate::Added(Arc::clone(&device)));
-            models.push(DeviceModel::new(device, index));
-        }
-        let task = PortTask::new(plan, models, update_tx.clone(), port_write_rx);
-        tasks.spawn(task.run(shutdown.clone()));
-    }
-    let mut stop = shutdown;
-    tasks.spawn(async move {
-        loop {
-            let write = tokio::select! {
-                write = write_rx.recv() => write,
-                _ = stop.wait_for(|stop| *stop) => None,
-            };
-            let Some(write) = write else { return };
-            match routes.get(&write.device_id) {
+    let routes: Routes = Arc::default();
+    let router_routes = Arc::clone(&routes);
+    let router = tokio::spawn(async move {
+        while let Some(write) = write_rx.recv().await {
+            let port = lock(&router_routes).get(&write.device_id).cloned();
+            match port {
                 Some(port) => {
                     let _ = port.send(write).await;
                 }
@@ -72,10 +89,154 @@ pub fn start_bus_side(
             }
         }
     });
+    let mut control = BusControl {
+        ports: BTreeMap::new(),
+        routes,
+        updates: update_tx,
+        fast_modbus,
+        router,
+    };
+    for port in ports {
+        let (task, added) = control.prepare_port(&port);
+        for update in added {
+            // Nothing consumes yet and the queue is empty: these never wait.
+            let _ = control.updates.try_send(update);
+        }
+        control.spawn_port(port, task);
+    }
     BusSide {
         updates: update_rx,
         writes: write_tx,
-        tasks,
+        control,
+    }
+}
+
+fn lock<T>(mutex: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    mutex
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
+impl BusControl {
+    /// Sets up a port's device models and write route; returns the port task, not yet running,
+    /// and the `Added` announcements that must reach the sink before any of its values.
+    fn prepare_port(&mut self, port: &ResolvedPort) -> (PortTask, Vec<DeviceUpdate>) {
+        let plan = port_plan(port, self.fast_modbus);
+        info!(port = %plan.name, devices = plan.devices.len(), fast_modbus = plan.settings.fast_modbus, "serving port");
+        let (port_write_tx, port_write_rx) = mpsc::channel(WRITE_QUEUE);
+        let mut models = Vec::new();
+        let mut added = Vec::new();
+        let mut routes = lock(&self.routes);
+        for (index, device) in port.devices.iter().enumerate() {
+            let device = Arc::new(device.clone());
+            routes.insert(device.id.clone(), port_write_tx.clone());
+            added.push(DeviceUpdate::Added(Arc::clone(&device)));
+            models.push(DeviceModel::new(device, index));
+        }
+        let task = PortTask::new(plan, models, self.updates.clone(), port_write_rx);
+        (task, added)
+    }
+
+    fn spawn_port(&mut self, port: ResolvedPort, task: PortTask) {
+        let (stop, stopped) = watch::channel(false);
+        let task = tokio::spawn(task.run(stopped));
+        let config = serde_json::to_value(&port.config).unwrap_or_default();
+        self.ports.insert(
+            port_key(&port),
+            RunningPort {
+                resolved: port,
+                config,
+                stop,
+                task,
+            },
+        );
+    }
+
+    /// Stops a port task after its transaction in flight; its devices stop taking writes.
+    async fn stop_port(&mut self, key: &str) -> Option<ResolvedPort> {
+        let running = self.ports.remove(key)?;
+        let _ = running.stop.send(true);
+        let _ = running.task.await;
+        let mut routes = lock(&self.routes);
+        for device in &running.resolved.devices {
+            routes.remove(&device.id);
+        }
+        Some(running.resolved)
+    }
+
+    /// Applies a new configuration: unchanged ports keep running untouched; removed ports stop
+    /// and their devices' topics are cleared; new ports start; changed ports restart (their
+    /// devices are set up again), and devices no longer configured are cleared.
+    pub async fn reload(&mut self, ports: Vec<ResolvedPort>, fast_modbus: bool) -> ReloadSummary {
+        let mut summary = ReloadSummary::default();
+        let switch_changed = fast_modbus != self.fast_modbus;
+        self.fast_modbus = fast_modbus;
+        let mut new_ports: BTreeMap<String, ResolvedPort> =
+            ports.into_iter().map(|p| (port_key(&p), p)).collect();
+        let keys: Vec<String> = self.ports.keys().cloned().collect();
+        let mut restart = Vec::new();
+        for key in keys {
+            let unchanged = !switch_changed
+                && new_ports.get(&key).is_some_and(|new| {
+                    let old = &self.ports[&key];
+                    old.resolved.devices == new.devices
+                        && old.config == serde_json::to_value(&new.config).unwrap_or_default()
+                });
+            if unchanged {
+                // Same port, same devices: the running task stays as it is.
+                new_ports.remove(&key);
+                summary.ports_unchanged.push(key);
+                continue;
+            }
+            let Some(old) = self.stop_port(&key).await else {
+                continue;
+            };
+            let still_configured: Vec<&str> = new_ports
+                .values()
+                .flat_map(|p| p.devices.iter().map(|d| d.id.as_str()))
+                .collect();
+            for device in &old.devices {
+                if !still_configured.contains(&device.id.as_str()) {
+                    let _ = self
+                        .updates
+                        .send(DeviceUpdate::Removed {
+                            device_id: device.id.clone(),
+                        })
+                        .await;
+                    summary.devices_removed.push(device.id.clone());
+                }
+            }
+            if new_ports.contains_key(&key) {
+                restart.push(key);
+            } else {
+                summary.ports_stopped.push(key);
+            }
+        }
+        for (key, port) in new_ports {
+            if restart.contains(&key) {
+                summary.ports_restarted.push(key);
+            } else {
+                summary.ports_started.push(key);
+            }
+            let (task, added) = self.prepare_port(&port);
+            for update in added {
+                let _ = self.updates.send(update).await;
+            }
+            self.spawn_port(port, task);
+        }
+        summary
+    }
+
+    /// Stops every port task (each finishes its transaction in flight) and the write router.
+    pub async fn stop(mut self) {
+        for running in self.ports.values() {
+            let _ = running.stop.send(true);
+        }
+        let keys: Vec<String> = self.ports.keys().cloned().collect();
+        for key in keys {
+            self.stop_port(&key).await;
+        }
+        self.router.abort();
     }
 }
 

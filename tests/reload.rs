@@ -1,0 +1,176 @@
+//! SIGHUP reloads the config with real processes (two simulated buses, the daemon, mosquitto):
+//! a device removed from one port loses its retained topics, a device added there is set up and
+//! published, the other port keeps running untouched (its task is not restarted and still takes
+//! writes), and a config that does not load leaves everything running as it was.
+
+#[path = "daemon_support/mod.rs"]
+mod daemon_support;
+#[path = "mqtt_support/mod.rs"]
+mod mqtt_support;
+#[path = "sim_support/mod.rs"]
+mod sim_support;
+
+use std::path::Path;
+use std::process::{Child, Command, Stdio};
+
+use daemon_support::repo;
+use mqtt_support::{publish, retained, wait_for, Mosquitto};
+use serde_json::{json, Value};
+use sim_support::SimProcess;
+
+const BUS_A: &str = r#"{"devices": [
+  {"name": "relay", "template": "rtu2mqtt-relay6", "address": 20, "serial": "0xFE000020", "line": "115200 8N2"}
+]}"#;
+const BUS_B: &str = r#"{"devices": [
+  {"name": "climate", "template": "rtu2mqtt-climate", "address": 21, "serial": "0xFE000021", "line": "115200 8N2",
+   "values": {"input:4": 2150}},
+  {"name": "counter", "template": "rtu2mqtt-counter8", "address": 22, "serial": "0xFE000022", "line": "115200 8N2",
+   "values": {"input:60": [0, 1234]}}
+]}"#;
+
+fn sim(dir: &Path, name: &str, bus: &str) -> SimProcess {
+    let path = dir.join(name);
+    std::fs::write(&path, bus).unwrap();
+    SimProcess::start_with(&path, &repo("templates"), &[])
+}
+
+fn config(mqtt_port: u16, a: &Path, b: &Path, b_devices: Value) -> Value {
+    json!({
+        "mqtt": {"host": "127.0.0.1", "port": mqtt_port, "client_id": "rtu2mqtt-reload"},
+        "ports": [
+            {"path": a, "baud_rate": 115200, "stop_bits": 2,
+             "devices": [{"device_type": "rtu2mqtt-relay6", "slave_id": 20}]},
+            {"path": b, "baud_rate": 115200, "stop_bits": 2, "devices": b_devices}
+        ]
+    })
+}
+
+struct Daemon {
+    child: Child,
+    log: std::path::PathBuf,
+}
+
+impl Daemon {
+    fn log(&self) -> String {
+        std::fs::read_to_string(&self.log).unwrap_or_default()
+    }
+
+    fn signal(&self, signal: nix::sys::signal::Signal) {
+        nix::sys::signal::kill(nix::unistd::Pid::from_raw(self.child.id() as i32), signal).unwrap();
+    }
+}
+
+impl Drop for Daemon {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+        if std::thread::panicking() {
+            eprintln!("--- daemon log ---\n{}", self.log());
+        }
+    }
+}
+
+async fn topic_value(port: u16, topic: &str) -> Option<String> {
+    retained(port).await?.get(topic).cloned()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sighup_applies_the_new_config_port_by_port() {
+    let broker = Mosquitto::start();
+    let port = broker.port;
+    let dir = tempfile::tempdir().unwrap();
+    let sim_a = sim(dir.path(), "a.json", BUS_A);
+    let sim_b = sim(dir.path(), "b.json", BUS_B);
+    let config_path = dir.path().join("config.json");
+    let write_config = |b_devices: Value| {
+        let text = config(port, &sim_a.pty, &sim_b.pty, b_devices).to_string();
+        std::fs::write(&config_path, text).unwrap();
+    };
+    write_config(json!([{"device_type": "rtu2mqtt-climate", "slave_id": 21}]));
+    let log = dir.path().join("daemon.log");
+    let daemon = Daemon {
+        child: Command::new(env!("CARGO_BIN_EXE_rtu2mqtt"))
+            .arg("run")
+            .arg("--templates")
+            .arg(repo("templates"))
+            .arg("-c")
+            .arg(&config_path)
+            .env("RUST_LOG", "info")
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(std::fs::File::create(&log).unwrap())
+            .spawn()
+            .unwrap(),
+        log,
+    };
+    let temperature = "/devices/climate_21/controls/Temperature";
+    wait_for("the climate sensor's temperature", || async {
+        (topic_value(port, temperature).await? == "21.5").then_some(())
+    })
+    .await;
+    wait_for("the relay's K1", || async {
+        topic_value(port, "/devices/relay6_20/controls/K1").await
+    })
+    .await;
+
+    // Port B: the climate sensor goes, the counter comes.
+    write_config(json!([{"device_type": "rtu2mqtt-counter8", "slave_id": 22}]));
+    daemon.signal(nix::sys::signal::Signal::SIGHUP);
+    wait_for("the counter's value after the reload", || async {
+        (topic_value(port, "/devices/counter8_22/controls/Input 1 counter").await? == "1234")
+            .then_some(())
+    })
+    .await;
+    let state = wait_for("the climate sensor's topics cleared", || async {
+        retained(port).await.filter(|state| {
+            !state
+                .keys()
+                .any(|t| t.starts_with("/devices/climate_21/") || t.contains("climate_21/"))
+        })
+    })
+    .await;
+    assert!(
+        state.contains_key("/devices/relay6_20/controls/K1"),
+        "the relay's topics must stay"
+    );
+
+    // Port A was not restarted, and its task still serves writes.
+    publish(port, "/devices/relay6_20/controls/K3/on", "1", false).await;
+    wait_for("K3 switched on port A", || async {
+        let reply =
+            sim_a.control(json!({"cmd": "get", "device": 20, "type": "coil", "address": 2}));
+        (reply["value"] == 1).then_some(())
+    })
+    .await;
+    let log = daemon.log();
+    let a_name = sim_a.pty.display().to_string();
+    let opened_a = log
+        .lines()
+        .filter(|l| l.contains("port open") && l.contains(&a_name))
+        .count();
+    assert_eq!(
+        opened_a, 1,
+        "port A must not be reopened by the reload:\n{log}"
+    );
+    assert!(log.contains("reload applied"), "{log}");
+
+    // A broken config: the daemon says why and keeps serving the old one.
+    std::fs::write(&config_path, "{ \"ports\": [ ").unwrap();
+    daemon.signal(nix::sys::signal::Signal::SIGHUP);
+    wait_for("the reload failure in the log", || async {
+        daemon.log().contains("reload failed").then_some(())
+    })
+    .await;
+    publish(port, "/devices/relay6_20/controls/K3/on", "0", false).await;
+    wait_for("K3 switched off after the failed reload", || async {
+        let reply =
+            sim_a.control(json!({"cmd": "get", "device": 20, "type": "coil", "address": 2}));
+        (reply["value"] == 0).then_some(())
+    })
+    .await;
+
+    let mut daemon = daemon;
+    daemon.signal(nix::sys::signal::Signal::SIGTERM);
+    let status = daemon.child.wait().unwrap();
+    assert!(status.success(), "exit status {status}");
+}
