@@ -383,6 +383,9 @@ fn tls_transport(tls: &TlsConfig) -> Result<Transport, MqttError> {
         (None, None) => None,
         _ => return Err(MqttError::IncompleteClientCert),
     };
+    // rustls is built with ring only (see Cargo.toml); it must be the process default before
+    // rumqttc builds its client config. A second install is refused harmlessly.
+    let _ = rustls::crypto::ring::default_provider().install_default();
     Ok(Transport::tls(ca, client_auth, None))
 }
 
