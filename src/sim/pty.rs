@@ -60,17 +60,9 @@ impl PtyLink {
         termios::cfsetspeed(&mut settings, baud).map_err(nix_err)?;
         termios::tcsetattr(&pty.slave, SetArg::TCSANOW, &settings).map_err(nix_err)?;
         let slave_path = nix::unistd::ttyname(pty.slave.as_fd()).map_err(nix_err)?;
-        let flags = fcntl(
-            std::os::fd::AsRawFd::as_raw_fd(&pty.master),
-            FcntlArg::F_GETFL,
-        )
-        .map_err(nix_err)?;
+        let flags = fcntl(&pty.master, FcntlArg::F_GETFL).map_err(nix_err)?;
         let flags = OFlag::from_bits_truncate(flags) | OFlag::O_NONBLOCK;
-        fcntl(
-            std::os::fd::AsRawFd::as_raw_fd(&pty.master),
-            FcntlArg::F_SETFL(flags),
-        )
-        .map_err(nix_err)?;
+        fcntl(&pty.master, FcntlArg::F_SETFL(flags)).map_err(nix_err)?;
         if std::fs::symlink_metadata(link).is_ok() {
             // Only a stale link of an earlier simulator (into /dev/pts) is replaced; anything
             // else there may be someone's file, which `ln -sf` semantics would destroy.
