@@ -37,7 +37,7 @@ pub fn run_check_config(args: CheckConfigArgs) -> anyhow::Result<ExitCode> {
     };
     let mut dirs = loaded.config.template_dirs.clone();
     dirs.extend(args.templates.iter().cloned());
-    let library = TemplateLibrary::load_dirs(&TemplateLibrary::standard_dirs(&dirs));
+    let library = TemplateLibrary::load_standard(&dirs);
     match resolve_config(&loaded, &library) {
         Ok(ports) => {
             let devices: usize = ports.iter().map(|p| p.devices.len()).sum();
@@ -96,8 +96,10 @@ pub fn run_check_templates(args: CheckTemplatesArgs) -> anyhow::Result<ExitCode>
         }
     }
     if files.is_empty() {
+        // Nothing checked is not a success: a wrong path must not look like a clean library.
+        failed = true;
         println!(
-            "no template files found in {}",
+            "no template files (*.json) found in {}",
             paths
                 .iter()
                 .map(|p| p.display().to_string())

@@ -40,7 +40,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     };
     let mut dirs = loaded.config.template_dirs.clone();
     dirs.extend(args.templates.iter().cloned());
-    let library = TemplateLibrary::load_dirs(&TemplateLibrary::standard_dirs(&dirs));
+    let library = TemplateLibrary::load_standard(&dirs);
     let ports = match resolve_config(&loaded, &library) {
         Ok(ports) => ports,
         Err(errors) => {

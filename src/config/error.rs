@@ -17,10 +17,15 @@ pub enum Problem {
     UnknownKey { key: String, valid: Vec<String> },
     #[error("{0}")]
     Invalid(String),
-    #[error("no template for device_type `{device_type}`{}", similar_hint(similar))]
+    #[error(
+        "no template for device_type `{device_type}`{} (searched: {searched})",
+        similar_hint(similar)
+    )]
     MissingTemplate {
         device_type: String,
         similar: Vec<String>,
+        /// The template directories searched, in order.
+        searched: String,
     },
     #[error("slave_id {slave_id} is used twice on this port: also by the device at {other}")]
     DuplicateSlaveId { slave_id: String, other: String },
@@ -40,7 +45,7 @@ pub enum Problem {
 
 fn similar_hint(similar: &[String]) -> String {
     if similar.is_empty() {
-        "; check the name, or add the template file to a templates directory".to_string()
+        "; check the name, or add the template file to a templates directory (`--templates DIR` or `template_dirs`)".to_string()
     } else {
         format!(
             "; did you mean {}?",

@@ -14,6 +14,44 @@ use super::template::Template;
 pub const SYSTEM_TEMPLATE_DIR: &str = "/usr/share/rtu2mqtt/templates";
 /// The site's own templates; they win over the system ones on equal `device_type`.
 pub const USER_TEMPLATE_DIR: &str = "/etc/rtu2mqtt/templates";
+/// Where a Wiren Board controller keeps wb-mqtt-serial's template library, and the site's own
+/// wb-mqtt-serial templates: searched too (before rtu2mqtt's own directories, which win), so a
+/// `/etc/wb-mqtt-serial.conf` works as it is.
+pub const WB_SYSTEM_TEMPLATE_DIR: &str = "/usr/share/wb-mqtt-serial/templates";
+pub const WB_USER_TEMPLATE_DIR: &str = "/etc/wb-mqtt-serial.conf.d/templates";
+
+/// The templates shipped in `templates/`, built into the binary so that a config using them
+/// checks and runs from anywhere (a source checkout, a test) without `--templates`. Every
+/// directory of the search path wins over them.
+const BUILT_IN_TEMPLATES: [(&str, &str); 6] = [
+    (
+        "rtu2mqtt-climate.json",
+        include_str!("../../templates/rtu2mqtt-climate.json"),
+    ),
+    (
+        "rtu2mqtt-counter8.json",
+        include_str!("../../templates/rtu2mqtt-counter8.json"),
+    ),
+    (
+        "rtu2mqtt-dimmer.json",
+        include_str!("../../templates/rtu2mqtt-dimmer.json"),
+    ),
+    (
+        "rtu2mqtt-energy-meter.json",
+        include_str!("../../templates/rtu2mqtt-energy-meter.json"),
+    ),
+    (
+        "rtu2mqtt-generic.json",
+        include_str!("../../templates/rtu2mqtt-generic.json"),
+    ),
+    (
+        "rtu2mqtt-relay6.json",
+        include_str!("../../templates/rtu2mqtt-relay6.json"),
+    ),
+];
+
+/// The pseudo directory built-in templates are reported under.
+pub const BUILT_IN_DIR: &str = "(built into rtu2mqtt)";
 
 /// One loaded template file: typed for inspection, raw for merging with config devices.
 #[derive(Debug, Clone)]
@@ -58,15 +96,54 @@ pub struct TemplateLibrary {
 }
 
 impl TemplateLibrary {
-    /// The search path: system dir, user dir, then `extra` (config `template_dirs`, then
-    /// `--templates` options), each later one winning.
+    /// The search path: wb-mqtt-serial's system and user dirs, rtu2mqtt's system and user dirs,
+    /// then `extra` (config `template_dirs`, then `--templates` options), each later one winning.
     pub fn standard_dirs(extra: &[PathBuf]) -> Vec<PathBuf> {
         let mut dirs = vec![
+            PathBuf::from(WB_SYSTEM_TEMPLATE_DIR),
+            PathBuf::from(WB_USER_TEMPLATE_DIR),
             PathBuf::from(SYSTEM_TEMPLATE_DIR),
             PathBuf::from(USER_TEMPLATE_DIR),
         ];
         dirs.extend(extra.iter().cloned());
         dirs
+    }
+
+    /// What `run` and `check-config` use: the built-in templates, then every directory of
+    /// [`Self::standard_dirs`].
+    pub fn load_standard(extra: &[PathBuf]) -> Self {
+        let mut library = Self::built_in();
+        library.merge(Self::load_dirs(&Self::standard_dirs(extra)));
+        library
+    }
+
+    /// The templates compiled into the binary.
+    pub fn built_in() -> Self {
+        let mut library = Self::default();
+        for (name, text) in BUILT_IN_TEMPLATES {
+            let source = SourceText::from_text(&Path::new(BUILT_IN_DIR).join(name), text);
+            match TemplateFile::from_source(source) {
+                Ok(template) => library.insert(template),
+                Err(err) => library.errors.push(err),
+            }
+        }
+        library
+    }
+
+    /// Adds `later`'s templates, which win on equal `device_type`, its errors and its dirs.
+    fn merge(&mut self, later: Self) {
+        self.templates.extend(later.templates);
+        self.errors.extend(later.errors);
+        self.dirs.extend(later.dirs);
+    }
+
+    /// The directories searched, for messages ("searched: …").
+    pub fn searched(&self) -> String {
+        let mut names: Vec<String> = self.dirs.iter().map(|d| d.display().to_string()).collect();
+        if !self.templates.is_empty() || names.is_empty() {
+            names.insert(0, BUILT_IN_DIR.to_string());
+        }
+        names.join(", ")
     }
 
     /// Loads every `*.json` file of the directories that exist (missing ones are skipped: a

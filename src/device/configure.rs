@@ -55,6 +55,7 @@ pub fn resolve_config(
                             Problem::MissingTemplate {
                                 device_type: device_type.clone(),
                                 similar: library.similar(device_type),
+                                searched: library.searched(),
                             },
                         ));
                         if let Some(cause) = library.load_error_for(device_type) {
