@@ -312,3 +312,56 @@ fn config_overrides_follow_merge_rules() {
     assert_channel(&d, "Extra", Holding, 1000, U16, Polled);
     assert_eq!(d.channels.last().unwrap().order as usize, d.channels.len());
 }
+
+/// Same-named channels that differ only by condition: an override reaches every one of them
+/// (wb-mqtt-serial), so it also reaches the one in effect.
+#[test]
+fn override_reaches_every_channel_of_that_name() {
+    // in2_mode defaults to 1: the second "Input 2 counter" is in effect.
+    let d = device(
+        "config-test-wb-sensor.json",
+        json!({"slave_id": 1, "channels": [
+            {"name": "Input 2 counter", "read_period_ms": 500},
+            {"name": "Input 1 counter", "enabled": false}
+        ]}),
+    );
+    let counter = d.channel("Input 2 counter").unwrap();
+    assert_eq!(counter.read_period.map(|p| p.as_millis()), Some(500));
+    assert_eq!(counter.events, SemiSporadic);
+    assert!(d.channel("Input 1 counter").is_none());
+    let d = device(
+        "config-test-wb-sensor.json",
+        json!({"slave_id": 1, "in1_mode": 1, "channels": [{"name": "Input 1 counter", "enabled": false}]}),
+    );
+    assert!(d.channel("Input 1 counter").is_none());
+}
+
+fn rules_fixture(name: &str) -> TemplateFile {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/data/wb-rules")
+        .join(name);
+    TemplateFile::load(&path).unwrap_or_else(|e| panic!("{e}"))
+}
+
+/// WBIO modules: wb-mqtt-serial's shift ((module - 1) % 4 + 1) × stride + shift.
+#[test]
+fn modbus_io_module_shift() {
+    let template = rules_fixture("config-test-wbio.json");
+    for (slave_id, shift) in [("1:1", 1016), ("1:2", 1032), ("1:4", 1064), ("1:5", 1016)] {
+        let d = resolve_template_device(&template, &json!({"slave_id": slave_id}))
+            .unwrap_or_else(|e| panic!("{e}"));
+        assert_channel(&d, "K1", Coil, shift, U8, Polled);
+        assert_channel(&d, "A1", Input, shift + 2, U16, Polled);
+        assert_eq!(d.slave_id, 1);
+    }
+}
+
+/// `"127:8:0"`: a bit width of 0 means the format's own width.
+#[test]
+fn bit_width_zero_is_the_format_width() {
+    let template = rules_fixture("config-test-rules.json");
+    let d = resolve_template_device(&template, &json!({"slave_id": 1, "param1": 2}))
+        .unwrap_or_else(|e| panic!("{e}"));
+    let codec = &d.channel("Status high byte").unwrap().registers[0].codec;
+    assert_eq!((codec.bit_shift, codec.bit_width), (8, 16));
+}

@@ -84,14 +84,48 @@ pub fn run_check_templates(args: CheckTemplatesArgs) -> anyhow::Result<ExitCode>
         }
     }
     let mut failed = false;
+    // device_type → (file, deprecated) of the first template seen with it.
+    let mut seen: std::collections::BTreeMap<String, (PathBuf, bool)> = Default::default();
     for file in &files {
-        let errors = check_file(file);
+        let (template, errors) = check_file(file);
         if errors.is_empty() {
             println!("{}: ok", file.display());
         } else {
             failed = true;
             for error in errors {
                 println!("{error}");
+            }
+        }
+        let Some(template) = template else {
+            continue;
+        };
+        let device_type = template.device_type().to_string();
+        let deprecated = template.is_deprecated();
+        match seen.get(&device_type) {
+            None => {
+                seen.insert(device_type, (file.clone(), deprecated));
+            }
+            Some((first, first_deprecated)) if *first_deprecated != deprecated => {
+                let (used, unused) = if deprecated {
+                    (first, file)
+                } else {
+                    (file, first)
+                };
+                println!(
+                    "{}: note: device_type `{device_type}` is also defined in {}; the deprecated {} loses, {} is used",
+                    file.display(),
+                    first.display(),
+                    unused.display(),
+                    used.display()
+                );
+            }
+            Some((first, _)) => {
+                failed = true;
+                println!(
+                    "{}: device_type `{device_type}` is already defined in {}; only one is used (the later directory's, or the first file by name in one directory): remove or rename one",
+                    file.display(),
+                    first.display()
+                );
             }
         }
     }
@@ -120,9 +154,12 @@ fn args_is_default(path: &Path) -> bool {
         .any(|d| d == path)
 }
 
-fn check_file(path: &Path) -> Vec<LocatedError> {
+fn check_file(path: &Path) -> (Option<TemplateFile>, Vec<LocatedError>) {
     match TemplateFile::load(path) {
-        Ok(template) => check_template(&template),
-        Err(error) => vec![error],
+        Ok(template) => {
+            let errors = check_template(&template);
+            (Some(template), errors)
+        }
+        Err(error) => (None, vec![error]),
     }
 }

@@ -71,6 +71,22 @@ impl TemplateFile {
 
     pub fn from_source(source: SourceText) -> Result<Self, LocatedError> {
         let raw = source.parse_json()?;
+        if let Some(protocol) = raw
+            .pointer("/device/protocol")
+            .and_then(Value::as_str)
+            .filter(|p| !is_modbus_protocol(p))
+        {
+            // Said once for the whole file, instead of the first register type that only
+            // this protocol knows.
+            return Err(source.error(
+                JsonPath::root().key("device").key("protocol"),
+                Problem::Invalid(format!(
+                    "protocol `{protocol}` is not supported: rtu2mqtt speaks Modbus (RTU, TCP, \
+                     modbus_io) only, so devices of this template cannot be used; keep them on \
+                     wb-mqtt-serial"
+                )),
+            ));
+        }
         let typed = deserialize_at::<Template>(&source, &raw, &JsonPath::root())?;
         Ok(Self {
             source,
@@ -83,6 +99,18 @@ impl TemplateFile {
     pub fn device_type(&self) -> &str {
         &self.template.device_type
     }
+
+    pub fn is_deprecated(&self) -> bool {
+        self.template.deprecated == Some(true)
+    }
+}
+
+/// The protocols of wb-mqtt-serial that are Modbus: what rtu2mqtt can drive.
+pub fn is_modbus_protocol(protocol: &str) -> bool {
+    matches!(
+        protocol,
+        "modbus" | "modbus-tcp" | "modbus_tcp" | "modbus_io" | "modbus_io-tcp"
+    )
 }
 
 /// Every template of the search path, the later directories winning on equal `device_type`.
@@ -168,16 +196,32 @@ impl TemplateLibrary {
                 match TemplateFile::load(&file) {
                     Ok(template) => {
                         let device_type = template.device_type().to_string();
-                        if let Some(first) = in_this_dir.get(&device_type) {
-                            library.errors.push(LocatedError::file_level(
-                                &file,
-                                Problem::DuplicateTemplate {
-                                    device_type,
-                                    first: first.display().to_string(),
-                                    second: file.display().to_string(),
-                                },
-                            ));
-                            continue;
+                        let deprecated = template.is_deprecated();
+                        if let Some(current) = library.templates.get(&device_type) {
+                            // A current template wins over a deprecated one wherever they are
+                            // (wb ships `config-X.json` beside `config-X-deprecated.json`);
+                            // between equals, a later directory wins and, within one
+                            // directory, the first file by name, reported as a clash.
+                            let keep_current = match (current.is_deprecated(), deprecated) {
+                                (false, true) => true,
+                                (true, false) => false,
+                                _ => in_this_dir.contains_key(&device_type),
+                            };
+                            if let Some(first) = in_this_dir.get(&device_type) {
+                                if current.is_deprecated() == deprecated {
+                                    library.errors.push(LocatedError::file_level(
+                                        &file,
+                                        Problem::DuplicateTemplate {
+                                            device_type: device_type.clone(),
+                                            first: first.display().to_string(),
+                                            second: file.display().to_string(),
+                                        },
+                                    ));
+                                }
+                            }
+                            if keep_current {
+                                continue;
+                            }
                         }
                         in_this_dir.insert(device_type.clone(), file.clone());
                         library.templates.insert(device_type, template);
@@ -213,16 +257,7 @@ impl TemplateLibrary {
 
     /// Known device types close to `name` (case, punctuation, or a small typo), for hints.
     pub fn similar(&self, name: &str) -> Vec<String> {
-        let wanted = normalize(name);
-        self.templates
-            .keys()
-            .filter(|known| {
-                let candidate = normalize(known);
-                candidate == wanted || edit_distance(&candidate, &wanted) <= 2
-            })
-            .take(3)
-            .cloned()
-            .collect()
+        closest(name, self.templates.keys().map(String::as_str), 2, 3)
     }
 
     /// Why `device_type` is missing: a file that failed to load may have been meant.
@@ -235,6 +270,28 @@ impl TemplateLibrary {
                 .is_some_and(|stem| normalize(stem).contains(&wanted))
         })
     }
+}
+
+/// Up to `limit` of `candidates` within `max_distance` edits of `name` (ignoring case and
+/// punctuation), closest first: what "did you mean" offers.
+pub fn closest<'a>(
+    name: &str,
+    candidates: impl Iterator<Item = &'a str>,
+    max_distance: usize,
+    limit: usize,
+) -> Vec<String> {
+    let wanted = normalize(name);
+    let mut ranked: Vec<(usize, &str)> = candidates
+        .map(|candidate| (edit_distance(&normalize(candidate), &wanted), candidate))
+        .filter(|(distance, _)| *distance <= max_distance)
+        .collect();
+    ranked.sort();
+    ranked.dedup();
+    ranked
+        .into_iter()
+        .take(limit)
+        .map(|(_, c)| c.to_string())
+        .collect()
 }
 
 fn normalize(name: &str) -> String {
@@ -307,6 +364,50 @@ mod tests {
             library.errors[0].problem,
             Problem::DuplicateTemplate { .. }
         ));
+    }
+
+    #[test]
+    fn a_current_template_wins_over_a_deprecated_twin() {
+        let dir = tempfile::tempdir().unwrap();
+        // The deprecated file sorts first.
+        std::fs::write(
+            dir.path().join("config-x-deprecated.json"),
+            r#"{"device_type": "X", "deprecated": true, "device": {"name": "old", "channels": []}}"#,
+        )
+        .unwrap();
+        write(dir.path(), "config-x.json", "X", "current");
+        let library = TemplateLibrary::load_dirs(&[dir.path().to_path_buf()]);
+        assert_eq!(
+            library.get("X").unwrap().template.device.name.as_deref(),
+            Some("current")
+        );
+        assert!(library.errors.is_empty());
+        // Also across directories: a later deprecated one does not replace a current one.
+        let later = tempfile::tempdir().unwrap();
+        std::fs::write(
+            later.path().join("x.json"),
+            r#"{"device_type": "X", "deprecated": true, "device": {"name": "later old", "channels": []}}"#,
+        )
+        .unwrap();
+        let library =
+            TemplateLibrary::load_dirs(&[dir.path().to_path_buf(), later.path().to_path_buf()]);
+        assert_eq!(
+            library.get("X").unwrap().template.device.name.as_deref(),
+            Some("current")
+        );
+    }
+
+    #[test]
+    fn similar_names_closest_first() {
+        let dir = tempfile::tempdir().unwrap();
+        write(dir.path(), "a.json", "WB-MAI6", "x");
+        write(dir.path(), "b.json", "WB-MR6C", "x");
+        write(dir.path(), "c.json", "WB-MR6CU", "x");
+        let library = TemplateLibrary::load_dirs(&[dir.path().to_path_buf()]);
+        assert_eq!(
+            library.similar("WB-MR6"),
+            vec!["WB-MR6C", "WB-MAI6", "WB-MR6CU"]
+        );
     }
 
     #[test]

@@ -8,12 +8,13 @@ use serde_json::{json, Map, Value};
 
 use super::merge::{merge_device, DeviceMergeInput, MergeError};
 use super::model::{ResolvedDevice, ResolvedPort};
-use super::resolve::{resolve_device, ResolveError, ResolveInput};
+use super::resolve::{resolve_device, topic_level_problem, ResolveError, ResolveInput};
 use crate::config::config_file::PortConfig;
 use crate::config::error::{ErrorList, LocatedError, Problem};
 use crate::config::json_path::JsonPath;
 use crate::config::load::LoadedConfig;
 use crate::config::parse::{value_at, SourceText};
+use crate::config::values::SlaveId;
 use crate::config::{TemplateFile, TemplateLibrary};
 
 /// Resolves every enabled device; all errors are collected.
@@ -46,6 +47,7 @@ pub fn resolve_config(
                 .map(|s| s.value())
                 .unwrap_or(0)
                 .clamp(0, 255) as u8;
+            let module = device.slave_id.and_then(|s| s.module);
             let template = match &device.device_type {
                 Some(device_type) => match library.get(device_type) {
                     Some(template) => Some(template),
@@ -72,11 +74,23 @@ pub fn resolve_config(
                 &path,
                 template,
                 port,
-                slave_id,
+                (slave_id, module),
+                true,
             ) {
                 Ok(mut resolved) => {
                     if resolved.id.is_empty() {
                         resolved.id = format!("wb-modbus-{port_index}-{device_index}");
+                    }
+                    if let Some(message) = topic_level_problem("device id", &resolved.id) {
+                        errors.push(loaded.error(
+                            if device.id.is_some() {
+                                path.key("id")
+                            } else {
+                                path.clone()
+                            },
+                            Problem::Invalid(message),
+                        ));
+                        continue;
                     }
                     match device_ids.get(&resolved.id) {
                         Some(other) => errors.push(loaded.error(
@@ -118,7 +132,8 @@ fn resolve_one(
     path: &JsonPath,
     template: Option<&TemplateFile>,
     port: &PortConfig,
-    slave_id: u8,
+    (slave_id, module): (u8, Option<i128>),
+    check_required: bool,
 ) -> Result<ResolvedDevice, Vec<LocatedError>> {
     let locate = |origin: &str, problem: Problem| {
         locate_origin(&config_source, template, path, origin, problem)
@@ -132,6 +147,7 @@ fn resolve_one(
         device: object,
         device_path: path.clone(),
         slave_id: slave_text.unwrap_or_else(|| slave_id.to_string()),
+        check_required,
     };
     let merged = merge_device(&input).map_err(|errors| {
         errors
@@ -143,6 +159,7 @@ fn resolve_one(
         merged: &merged,
         port,
         slave_id,
+        module,
         is_wb_template: template
             .is_some_and(|t| t.template.hw.as_ref().is_some_and(|hw| !hw.is_empty())),
         hw: template
@@ -190,7 +207,18 @@ fn locate_origin(
 pub fn check_template(template: &TemplateFile) -> Vec<LocatedError> {
     let port = default_port();
     let mut errors = Vec::new();
-    let mut configs = vec![json!({"slave_id": 1, "device_type": template.device_type()})];
+    let is_modbus_io = template
+        .template
+        .device
+        .protocol
+        .as_deref()
+        .is_some_and(|p| p.starts_with("modbus_io"));
+    let (slave_id, module) = if is_modbus_io {
+        (json!("1:1"), Some(1))
+    } else {
+        (json!(1), None)
+    };
+    let mut configs = vec![json!({"slave_id": slave_id, "device_type": template.device_type()})];
     let slots = template
         .raw
         .pointer("/device/channels")
@@ -208,7 +236,7 @@ pub fn check_template(template: &TemplateFile) -> Vec<LocatedError> {
         // Each choice once, in the first slot that offers it: enough to load every subdevice.
         for choice in choices.iter().filter(|c| tried.insert(c.to_string())) {
             configs.push(json!({
-                "slave_id": 1,
+                "slave_id": slave_id,
                 "device_type": template.device_type(),
                 "channels": [{"name": name, "device_type": choice}],
             }));
@@ -225,7 +253,8 @@ pub fn check_template(template: &TemplateFile) -> Vec<LocatedError> {
             &JsonPath::root(),
             Some(template),
             &port,
-            1,
+            (1, module),
+            false,
         ) {
             for error in more.drain(..) {
                 if !errors.contains(&error) {
@@ -269,17 +298,11 @@ pub fn resolve_template_device(
     device: &Value,
 ) -> Result<ResolvedDevice, ErrorList> {
     let object = device.as_object().cloned().unwrap_or_default();
-    let slave_id = object
+    let parsed: Option<SlaveId> = object
         .get("slave_id")
-        .and_then(|v| {
-            v.as_i64().or_else(|| {
-                v.as_str()
-                    .and_then(crate::config::values::parse_int_text)
-                    .map(|v| v as i64)
-            })
-        })
-        .unwrap_or(1)
-        .clamp(0, 255) as u8;
+        .and_then(|v| serde_json::from_value(v.clone()).ok());
+    let slave_id = parsed.map(|s| s.value()).unwrap_or(1).clamp(0, 255) as u8;
+    let module = parsed.and_then(|s| s.module);
     let text = serde_json::to_string_pretty(device).unwrap_or_default();
     let source = SourceText::from_text(Path::new("(device)"), &text);
     resolve_one(
@@ -288,7 +311,8 @@ pub fn resolve_template_device(
         &JsonPath::root(),
         Some(template),
         &default_port(),
-        slave_id,
+        (slave_id, module),
+        true,
     )
     .map_err(ErrorList)
 }
