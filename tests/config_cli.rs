@@ -119,25 +119,56 @@ fn out_of_range_address() {
 }
 
 #[test]
-fn key_typos_list_valid_keys() {
+fn key_typos_suggest_the_closest_keys() {
     let (ok, text) = check_config(r#"{"ports": [{"path": "/dev/x", "baudrate": 9600}]}"#);
     assert!(!ok);
     assert!(
-        text.contains(":1:31: at ports[0].baudrate: unknown key `baudrate`; valid keys:"),
+        text.contains(":1:31: at ports[0].baudrate: unknown key `baudrate`; did you mean `baud_rate`? Valid keys:"),
         "{text}"
     );
-    assert!(text.contains("baud_rate"), "{text}");
 
+    // A device with a big template: the closest few, not every parameter name.
     let (ok, text) = check_config(
         r#"{"ports": [{"path": "/dev/x", "devices": [
         {"slave_id": 1, "device_type": "rtu2mqtt-relay6", "in1_mod": 3}]}]}"#,
     );
     assert!(!ok);
     assert!(
-        text.contains("at ports[0].devices[0].in1_mod: unknown key `in1_mod`; valid keys:"),
+        text.contains("at ports[0].devices[0].in1_mod: unknown key `in1_mod`; did you mean `in1_mode` (a parameter of the template)"),
         "{text}"
     );
-    assert!(text.contains("in1_mode (parameter)"), "{text}");
+    assert!(!text.contains("`in0_mode`"), "only the closest: {text}");
+
+    // A template with hundreds of parameters: no list of them all.
+    let dir = tempfile::tempdir().unwrap();
+    let parameters: Vec<String> = (0..400)
+        .map(|i| format!(r#""input{i}_mode": {{"address": {i}}}"#))
+        .collect();
+    std::fs::write(
+        dir.path().join("big.json"),
+        format!(
+            r#"{{"device_type": "big", "device": {{"parameters": {{{}}}, "channels": [{{"name": "a", "address": 1}}]}}}}"#,
+            parameters.join(", ")
+        ),
+    )
+    .unwrap();
+    let config = dir.path().join("config.json");
+    std::fs::write(
+        &config,
+        r#"{"ports": [{"path": "/dev/x", "devices": [{"slave_id": 1, "device_type": "big", "input7_mod": 1}]}]}"#,
+    )
+    .unwrap();
+    let out = bin()
+        .arg("check-config")
+        .arg("-c")
+        .arg(&config)
+        .arg("--templates")
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    let (ok, text) = report(out);
+    assert!(!ok && text.contains("did you mean `input7_mode`"), "{text}");
+    assert!(text.len() < 600, "{text}");
 }
 
 #[test]
@@ -607,4 +638,86 @@ fn check_templates_reports_deprecated_twins_and_foreign_protocols() {
         1,
         "{text}"
     );
+}
+
+#[test]
+fn misspelt_and_protected_keys_warn_and_fail_under_strict() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(
+        dir.path().join("typo.json"),
+        "{\"device_type\": \"typo\", \"device\": {\"channels\": [\n  {\"name\": \"a\", \"address\": 1, \"scal\": 0.1}]}}",
+    )
+    .unwrap();
+    let config = dir.path().join("config.json");
+    std::fs::write(
+        &config,
+        r#"{"ports": [{"path": "/dev/x", "devices": [{"slave_id": 1, "device_type": "typo", "channels": [
+            {"name": "a", "read_period": 500, "address": 7}]}]}]}"#,
+    )
+    .unwrap();
+    let run = |strict: bool| {
+        let mut command = bin();
+        command
+            .arg("check-config")
+            .arg("-c")
+            .arg(&config)
+            .arg("--templates")
+            .arg(dir.path());
+        if strict {
+            command.arg("--strict");
+        }
+        report(command.output().unwrap())
+    };
+    let (ok, text) = run(false);
+    assert!(ok, "warnings alone do not fail: {text}");
+    assert!(
+        text.contains("typo.json:2:31: at device.channels[0].scal: warning: unknown key `scal` does nothing; did you mean `scale`?"),
+        "{text}"
+    );
+    assert!(
+        text.contains("at ports[0].devices[0].channels[0].read_period: warning: unknown channel key `read_period` does nothing; did you mean `read_period_ms`?"),
+        "{text}"
+    );
+    assert!(
+        text.contains("at ports[0].devices[0].channels[0].address: warning: the template's `address` defines the register and cannot be overridden"),
+        "{text}"
+    );
+    let (ok, text) = run(true);
+    assert!(
+        !ok && text.contains("3 warning(s), which --strict counts as errors"),
+        "{text}"
+    );
+}
+
+#[test]
+fn template_errors_do_not_leak_internal_wording() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(
+        dir.path().join("bad.json"),
+        r#"{"device_type": "bad", "device": {"channels": [{"name": "a", "format": "u16"}]}}"#,
+    )
+    .unwrap();
+    let out = bin()
+        .arg("check-templates")
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    let (ok, text) = report(out);
+    assert!(!ok && text.contains("needs `address`"), "{text}");
+    assert!(
+        !text.contains("(check)")
+            && !text.contains("(top level)")
+            && !text.contains("template used by"),
+        "{text}"
+    );
+}
+
+#[test]
+fn a_foreign_protocol_is_named_in_check_config() {
+    let (ok, text) = check_config_with_fixtures(&one_device(
+        r#"{"slave_id": 1, "device_type": "TEST-NOT-MODBUS"}"#,
+    ));
+    assert!(!ok, "{text}");
+    assert!(text.contains("protocol `milur` is not supported"), "{text}");
+    assert!(!text.contains("reg_type"), "{text}");
 }

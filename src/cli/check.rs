@@ -7,7 +7,8 @@ use std::process::ExitCode;
 use crate::config::library::TemplateLibrary;
 use crate::config::load::{load_config, DEFAULT_CONFIG_PATH};
 use crate::config::{LocatedError, TemplateFile};
-use crate::device::{check_template, resolve_config};
+use crate::device::check_template;
+use crate::device::configure::{resolve_config_checked, template_key_warnings};
 
 #[derive(Debug, clap::Args)]
 pub struct CheckConfigArgs {
@@ -17,6 +18,9 @@ pub struct CheckConfigArgs {
     /// More template directories (searched after the system and user ones; later wins).
     #[arg(long = "templates", value_name = "DIR")]
     pub templates: Vec<PathBuf>,
+    /// Treat warnings (misspelt keys, overrides the template does not allow) as errors.
+    #[arg(long)]
+    pub strict: bool,
 }
 
 #[derive(Debug, clap::Args)]
@@ -38,7 +42,19 @@ pub fn run_check_config(args: CheckConfigArgs) -> anyhow::Result<ExitCode> {
     let mut dirs = loaded.config.template_dirs.clone();
     dirs.extend(args.templates.iter().cloned());
     let library = TemplateLibrary::load_standard(&dirs);
-    match resolve_config(&loaded, &library) {
+    let (result, warnings) = resolve_config_checked(&loaded, &library);
+    for warning in &warnings {
+        println!("{warning}");
+    }
+    if args.strict && !warnings.is_empty() && result.is_ok() {
+        println!(
+            "{}: {} warning(s), which --strict counts as errors",
+            args.config.display(),
+            warnings.len()
+        );
+        return Ok(ExitCode::FAILURE);
+    }
+    match result {
         Ok(ports) => {
             let devices: usize = ports.iter().map(|p| p.devices.len()).sum();
             let channels: usize = ports
@@ -157,7 +173,12 @@ fn args_is_default(path: &Path) -> bool {
 fn check_file(path: &Path) -> (Option<TemplateFile>, Vec<LocatedError>) {
     match TemplateFile::load(path) {
         Ok(template) => {
-            let errors = check_template(&template);
+            let mut errors = check_template(&template);
+            // Misspelt keys are reported, but do not fail the check (upstream files carry some).
+            for warning in template_key_warnings(&template) {
+                println!("{warning}");
+            }
+            errors.retain(|e| !matches!(e.problem, crate::config::error::Problem::Warning(_)));
             (Some(template), errors)
         }
         Err(error) => (None, vec![error]),

@@ -121,6 +121,8 @@ pub struct TemplateLibrary {
     pub errors: Vec<LocatedError>,
     /// Directories searched, in order.
     pub dirs: Vec<PathBuf>,
+    /// Files that failed to load, by the `device_type` they declare.
+    failed: BTreeMap<String, LocatedError>,
 }
 
 impl TemplateLibrary {
@@ -162,6 +164,7 @@ impl TemplateLibrary {
     fn merge(&mut self, later: Self) {
         self.templates.extend(later.templates);
         self.errors.extend(later.errors);
+        self.failed.extend(later.failed);
         self.dirs.extend(later.dirs);
     }
 
@@ -226,7 +229,18 @@ impl TemplateLibrary {
                         in_this_dir.insert(device_type.clone(), file.clone());
                         library.templates.insert(device_type, template);
                     }
-                    Err(err) => library.errors.push(err),
+                    Err(err) => {
+                        // Remember which device_type the broken file was for, so a device
+                        // using it is told why rather than only "no template".
+                        if let Some(device_type) = SourceText::read(&file)
+                            .ok()
+                            .and_then(|s| s.parse_json().ok())
+                            .and_then(|v| v.get("device_type")?.as_str().map(String::from))
+                        {
+                            library.failed.insert(device_type, err.clone());
+                        }
+                        library.errors.push(err)
+                    }
                 }
             }
         }
@@ -262,6 +276,9 @@ impl TemplateLibrary {
 
     /// Why `device_type` is missing: a file that failed to load may have been meant.
     pub fn load_error_for(&self, device_type: &str) -> Option<&LocatedError> {
+        if let Some(error) = self.failed.get(device_type) {
+            return Some(error);
+        }
         let wanted = normalize(device_type);
         self.errors.iter().find(|e| {
             e.file
@@ -290,6 +307,32 @@ pub fn closest<'a>(
     ranked
         .into_iter()
         .take(limit)
+        .map(|(_, c)| c.to_string())
+        .collect()
+}
+
+/// Keys close to a misspelt `key`, closest first: a small edit distance, or one is the other
+/// with something added (`read_period` → `read_period_ms`).
+pub fn suggest_keys<'a>(key: &str, candidates: impl Iterator<Item = &'a str>) -> Vec<String> {
+    let wanted = normalize(key);
+    let mut ranked: Vec<(usize, &str)> = candidates
+        .filter_map(|candidate| {
+            let normalized = normalize(candidate);
+            let distance = edit_distance(&normalized, &wanted);
+            let extends = wanted.len() >= 4
+                && normalized.len() >= 4
+                && (normalized.starts_with(&wanted) || wanted.starts_with(&normalized));
+            (distance <= 2 || extends).then_some((distance, candidate))
+        })
+        .collect();
+    ranked.sort();
+    ranked.dedup();
+    // Only the closest: `in1_mod` offers `in1_mode`, not every `inN_mode` one edit further.
+    let best = ranked.first().map(|(d, _)| *d).unwrap_or(0);
+    ranked
+        .into_iter()
+        .take_while(|(d, _)| *d == best)
+        .take(3)
         .map(|(_, c)| c.to_string())
         .collect()
 }

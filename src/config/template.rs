@@ -381,3 +381,8 @@ pub struct SubdeviceBody {
     pub groups: Option<Vec<GroupSpec>>,
     pub ui_options: Option<serde_json::Value>,
 }
+
+/// The template format's JSON Schema as a value (also what `rtu2mqtt schema template` prints).
+pub fn template_schema() -> serde_json::Value {
+    serde_json::to_value(schemars::schema_for!(Template)).unwrap_or_default()
+}

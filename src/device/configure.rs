@@ -17,11 +17,26 @@ use crate::config::parse::{value_at, SourceText};
 use crate::config::values::SlaveId;
 use crate::config::{TemplateFile, TemplateLibrary};
 
-/// Resolves every enabled device; all errors are collected.
+/// Resolves every enabled device; all errors are collected, warnings are logged.
 pub fn resolve_config(
     loaded: &LoadedConfig,
     library: &TemplateLibrary,
 ) -> Result<Vec<ResolvedPort>, ErrorList> {
+    let (result, warnings) = resolve_config_checked(loaded, library);
+    for warning in &warnings {
+        tracing::warn!("{warning}");
+    }
+    result
+}
+
+/// Resolves every enabled device, returning the warnings too (settings that do nothing: a
+/// misspelt key, an override of a protected field), for `check-config` to show.
+pub fn resolve_config_checked(
+    loaded: &LoadedConfig,
+    library: &TemplateLibrary,
+) -> (Result<Vec<ResolvedPort>, ErrorList>, Vec<LocatedError>) {
+    let mut warnings = Vec::new();
+    let mut used_templates: Vec<&TemplateFile> = Vec::new();
     let mut errors = Vec::new();
     let mut ports = Vec::new();
     let mut device_ids: BTreeMap<String, JsonPath> = BTreeMap::new();
@@ -50,7 +65,16 @@ pub fn resolve_config(
             let module = device.slave_id.and_then(|s| s.module);
             let template = match &device.device_type {
                 Some(device_type) => match library.get(device_type) {
-                    Some(template) => Some(template),
+                    Some(template) => {
+                        if !used_templates
+                            .iter()
+                            .any(|t| t.device_type() == template.device_type())
+                        {
+                            used_templates.push(template);
+                            warnings.extend(template_key_warnings(template));
+                        }
+                        Some(template)
+                    }
                     None => {
                         errors.push(loaded.error(
                             path.key("device_type"),
@@ -76,6 +100,7 @@ pub fn resolve_config(
                 port,
                 (slave_id, module),
                 true,
+                &mut warnings,
             ) {
                 Ok(mut resolved) => {
                     if resolved.id.is_empty() {
@@ -119,11 +144,44 @@ pub fn resolve_config(
             devices,
         });
     }
-    if errors.is_empty() {
+    let result = if errors.is_empty() {
         Ok(ports)
     } else {
         Err(ErrorList(errors))
+    };
+    (result, warnings)
+}
+
+/// Keys of a template that no setting reads and that look like a misspelt valid key (`scal`,
+/// `read_period`). Keys close to nothing are UI-only keys of the wb format: not reported.
+pub fn template_key_warnings(template: &TemplateFile) -> Vec<LocatedError> {
+    let schema = crate::config::template::template_schema();
+    let mut out = Vec::new();
+    for path in &template.unknown_keys {
+        let segments = path.segments();
+        let Some(crate::config::json_path::PathSegment::Key(key)) = segments.last() else {
+            continue;
+        };
+        let parent = JsonPath(segments[..segments.len() - 1].to_vec());
+        let valid = crate::config::parse::schema_keys_at(&schema, &parent);
+        let suggestions =
+            crate::config::library::suggest_keys(key, valid.iter().map(String::as_str));
+        if suggestions.is_empty() {
+            continue;
+        }
+        out.push(template.source.error(
+            path.clone(),
+            Problem::Warning(format!(
+                "unknown key `{key}` does nothing; did you mean {}?",
+                suggestions
+                    .iter()
+                    .map(|s| format!("`{s}`"))
+                    .collect::<Vec<_>>()
+                    .join(" or ")
+            )),
+        ));
     }
+    out
 }
 
 fn resolve_one(
@@ -134,6 +192,7 @@ fn resolve_one(
     port: &PortConfig,
     (slave_id, module): (u8, Option<i128>),
     check_required: bool,
+    warnings: &mut Vec<LocatedError>,
 ) -> Result<ResolvedDevice, Vec<LocatedError>> {
     let locate = |origin: &str, problem: Problem| {
         locate_origin(&config_source, template, path, origin, problem)
@@ -149,12 +208,17 @@ fn resolve_one(
         slave_id: slave_text.unwrap_or_else(|| slave_id.to_string()),
         check_required,
     };
-    let merged = merge_device(&input).map_err(|errors| {
+    let (merged, merge_warnings) = merge_device(&input).map_err(|errors| {
         errors
             .into_iter()
             .map(|MergeError { origin, problem }| locate(&origin, problem))
             .collect::<Vec<_>>()
     })?;
+    warnings.extend(
+        merge_warnings
+            .into_iter()
+            .map(|MergeError { origin, problem }| locate(&origin, problem)),
+    );
     let resolve_input = ResolveInput {
         merged: &merged,
         port,
@@ -185,12 +249,14 @@ fn locate_origin(
 ) -> LocatedError {
     if let (Some(rest), Some(template)) = (origin.strip_prefix("t:"), template) {
         let mut error = template.source.error(JsonPath::parse(rest), problem);
-        if let Problem::Invalid(message) = &mut error.problem {
-            *message = format!(
-                "{message} (template used by the device at {} in {})",
-                device_path,
-                config.path.display()
-            );
+        // Which device brought the template in, when there is one (not for `check-templates`).
+        if !device_path.is_root() {
+            if let Problem::Invalid(message) = &mut error.problem {
+                *message = format!(
+                    "{message} (in the template, as used by the device at {device_path} of {})",
+                    config.path.display()
+                );
+            }
         }
         return error;
     }
@@ -255,6 +321,7 @@ pub fn check_template(template: &TemplateFile) -> Vec<LocatedError> {
             &port,
             (1, module),
             false,
+            &mut Vec::new(),
         ) {
             for error in more.drain(..) {
                 if !errors.contains(&error) {
@@ -313,6 +380,7 @@ pub fn resolve_template_device(
         &default_port(),
         (slave_id, module),
         true,
+        &mut Vec::new(),
     )
     .map_err(ErrorList)
 }

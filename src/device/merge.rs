@@ -98,8 +98,9 @@ pub struct DeviceMergeInput<'a> {
     pub check_required: bool,
 }
 
-/// Merges; returns the device object to resolve, or every problem found.
-pub fn merge_device(input: &DeviceMergeInput) -> Result<Value, Vec<MergeError>> {
+/// Merges; returns the device object to resolve and the warnings (settings that do nothing),
+/// or every problem found.
+pub fn merge_device(input: &DeviceMergeInput) -> Result<(Value, Vec<MergeError>), Vec<MergeError>> {
     let mut errors = Vec::new();
     let empty = Value::Object(Map::new());
     let template_device = input
@@ -206,10 +207,54 @@ pub fn merge_device(input: &DeviceMergeInput) -> Result<Value, Vec<MergeError>> 
         0,
     );
     result.insert("channels".into(), Value::Array(channels));
+    let (warnings, errors): (Vec<MergeError>, Vec<MergeError>) = errors
+        .into_iter()
+        .partition(|e| matches!(e.problem, Problem::Warning(_)));
     if errors.is_empty() {
-        Ok(Value::Object(result))
+        Ok((Value::Object(result), warnings))
     } else {
         Err(errors)
+    }
+}
+
+fn warning(origin: String, message: String) -> MergeError {
+    MergeError {
+        origin,
+        problem: Problem::Warning(message),
+    }
+}
+
+/// A config channel's keys that no channel setting reads: a typo makes a setting silently do
+/// nothing, so say so (an error under `check-config --strict`).
+fn warn_unknown_channel_keys(
+    object: &Map<String, Value>,
+    at: &JsonPath,
+    errors: &mut Vec<MergeError>,
+) {
+    for key in object.keys() {
+        if known_channel_keys().contains(key) || key.starts_with("__") {
+            continue;
+        }
+        let suggestions = crate::config::library::suggest_keys(
+            key,
+            known_channel_keys().iter().map(String::as_str),
+        );
+        let hint = if suggestions.is_empty() {
+            String::new()
+        } else {
+            format!(
+                "; did you mean {}?",
+                suggestions
+                    .iter()
+                    .map(|s| format!("`{s}`"))
+                    .collect::<Vec<_>>()
+                    .join(" or ")
+            )
+        };
+        errors.push(warning(
+            format!("c:{}", at.key(key)),
+            format!("unknown channel key `{key}` does nothing{hint}"),
+        ));
     }
 }
 
@@ -562,6 +607,13 @@ fn merge_channels(
         // channel several times under conditions (one per input mode, firmware …), and an
         // override must reach whichever of them is in effect.
         let mut matched = false;
+        let overrides_a_slot = channels.iter().any(|(c, _)| {
+            c.get("name").and_then(Value::as_str) == Some(name)
+                && (c.get("device_type").is_some() || c.get("oneOf").is_some())
+        });
+        if !overrides_a_slot && !object.contains_key("device_type") {
+            warn_unknown_channel_keys(object, &at, errors);
+        }
         for (channel, slot) in channels
             .iter_mut()
             .filter(|(c, _)| c.get("name").and_then(Value::as_str) == Some(name))
@@ -669,11 +721,17 @@ fn override_channel(
                 if target.get("readonly") == Some(&Value::Bool(true))
                     && value != &Value::Bool(true) =>
             {
-                tracing::warn!("{at}: `readonly` is already true in the template; ignored");
+                errors.push(warning(
+                    format!("c:{}", at.key(key)),
+                    "the template makes this channel read-only; `readonly` cannot be turned off here (ignored)".into(),
+                ));
             }
-            _ if forbidden => {
-                tracing::warn!("{at}: the template's `{key}` cannot be overridden; ignored")
-            }
+            _ if forbidden => errors.push(warning(
+                format!("c:{}", at.key(key)),
+                format!(
+                    "the template's `{key}` defines the register and cannot be overridden in the config (ignored); for a different register, add a channel with another name"
+                ),
+            )),
             _ if is_slot && !known_channel_keys().contains(key) => {} // a subdevice parameter value
             _ => {
                 target.insert(key.clone(), value.clone());
