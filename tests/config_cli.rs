@@ -721,3 +721,68 @@ fn a_foreign_protocol_is_named_in_check_config() {
     assert!(text.contains("protocol `milur` is not supported"), "{text}");
     assert!(!text.contains("reg_type"), "{text}");
 }
+
+#[test]
+fn describe_shows_what_was_resolved() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = dir.path().join("config.json");
+    std::fs::write(
+        &config,
+        r#"{"ports": [{"path": "/dev/x", "devices": [
+            {"slave_id": 7, "device_type": "WB-TEST-INPUTS", "baud_rate": 192,
+             "channels": [{"name": "Input 1", "device_type": "in1_discrete"}]},
+            {"slave_id": 8, "device_type": "WB-TEST-SENSOR",
+             "channels": [{"name": "Input 2 counter", "read_period_ms": 250}]},
+            {"slave_id": "1:2", "device_type": "TEST-WBIO"}]}]}"#,
+    )
+    .unwrap();
+    let describe = |extra: &[&str]| {
+        let out = bin()
+            .arg("describe")
+            .arg("-c")
+            .arg(&config)
+            .arg("--templates")
+            .arg(repo("tests/data/wb-templates"))
+            .arg("--templates")
+            .arg(repo("tests/data/wb-rules"))
+            .args(extra)
+            .output()
+            .unwrap();
+        report(out)
+    };
+    let (ok, text) = describe(&[]);
+    assert!(ok, "{text}");
+    assert!(
+        text.contains("setup (written in this order on connect):"),
+        "{text}"
+    );
+    assert!(text.contains("1. holding 110 = 192  (Baud rate)"), "{text}");
+    assert!(text.contains("holding 55:4:1"), "{text}");
+
+    let (ok, text) = describe(&["--json", "wb-test-sensor_8"]);
+    assert!(ok, "{text}");
+    let json: serde_json::Value = serde_json::from_str(&text).unwrap();
+    let devices = json["devices"].as_array().unwrap();
+    assert_eq!(devices.len(), 1);
+    let counter = devices[0]["channels"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|c| c["name"] == "Input 2 counter")
+        .unwrap();
+    assert_eq!(counter["read_period_ms"], 250);
+    assert_eq!(counter["events"], "semi-sporadic");
+    assert_eq!(counter["registers"][0]["read"]["address"], 33);
+
+    let (ok, text) = describe(&["--json", "test_wbio_1:2"]);
+    assert!(ok, "{text}");
+    let json: serde_json::Value = serde_json::from_str(&text).unwrap();
+    assert_eq!(json["devices"][0]["slave_id"], 1);
+    assert_eq!(
+        json["devices"][0]["channels"][1]["registers"][0]["read"]["address"],
+        1034
+    );
+
+    let (ok, text) = describe(&["nonexistent"]);
+    assert!(!ok && text.contains("devices: wb-test-inputs_7"), "{text}");
+}
