@@ -691,16 +691,18 @@ impl Walker {
             };
             let raw =
                 |v: Option<crate::config::values::SerialInt>| v.map(|v| (v.value() as u64) & mask);
-            // wb-mqtt-serial rejects these unless they are the raw register content: not
-            // negative and within the register's width.
+            // wb-mqtt-serial rejects these unless they are raw register content: not negative
+            // and not wider than the value (at least 32 bits are accepted, as some library
+            // templates give 32-bit markers on narrower fields).
+            let widest = mask.max(u64::from(u32::MAX));
             for (key, value) in [
                 ("error_value", spec.error_value),
                 ("unsupported_value", spec.unsupported_value),
             ] {
                 if let Some(value) = value.map(|v| v.value()) {
-                    if value < 0 || value > i128::from(mask) {
+                    if value < 0 || value > i128::from(widest) {
                         return Err(Problem::Invalid(format!(
-                            "{key} {value} does not fit the channel's {}-bit register: give the raw register content, 0…{mask:#X}",
+                            "{key} {value} is not raw register content of this {}-bit value: give it as 0…{widest:#X}",
                             codec.bit_width
                         )));
                     }
