@@ -15,6 +15,9 @@ enum Command {
     CheckConfig(cli::check::CheckConfigArgs),
     /// Check template files (or directories of them); print "ok" or the errors per file.
     CheckTemplates(cli::check::CheckTemplatesArgs),
+    /// Show what rtu2mqtt resolved for the config's devices (or one): channels with register,
+    /// format, scale, period and event mode, and the setup writes in order.
+    Describe(cli::check::DescribeArgs),
     /// Print the JSON Schema of the config file or of templates.
     Schema(cli::schema::SchemaArgs),
     /// Zero set-up demo: simulated devices, a broker (mosquitto when installed) and the daemon.
@@ -37,6 +40,7 @@ fn main() -> std::process::ExitCode {
     let result = match cli.command {
         Command::CheckConfig(args) => cli::check::run_check_config(args),
         Command::CheckTemplates(args) => cli::check::run_check_templates(args),
+        Command::Describe(args) => cli::check::run_describe(args),
         Command::Schema(args) => cli::schema::run(args),
         Command::Run(args) => cli::run::run(args),
         Command::Demo(args) => cli::demo::run(args),

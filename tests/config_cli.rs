@@ -119,25 +119,56 @@ fn out_of_range_address() {
 }
 
 #[test]
-fn key_typos_list_valid_keys() {
+fn key_typos_suggest_the_closest_keys() {
     let (ok, text) = check_config(r#"{"ports": [{"path": "/dev/x", "baudrate": 9600}]}"#);
     assert!(!ok);
     assert!(
-        text.contains(":1:31: at ports[0].baudrate: unknown key `baudrate`; valid keys:"),
+        text.contains(":1:31: at ports[0].baudrate: unknown key `baudrate`; did you mean `baud_rate`? Valid keys:"),
         "{text}"
     );
-    assert!(text.contains("baud_rate"), "{text}");
 
+    // A device with a big template: the closest few, not every parameter name.
     let (ok, text) = check_config(
         r#"{"ports": [{"path": "/dev/x", "devices": [
         {"slave_id": 1, "device_type": "rtu2mqtt-relay6", "in1_mod": 3}]}]}"#,
     );
     assert!(!ok);
     assert!(
-        text.contains("at ports[0].devices[0].in1_mod: unknown key `in1_mod`; valid keys:"),
+        text.contains("at ports[0].devices[0].in1_mod: unknown key `in1_mod`; did you mean `in1_mode` (a parameter of the template)"),
         "{text}"
     );
-    assert!(text.contains("in1_mode (parameter)"), "{text}");
+    assert!(!text.contains("`in0_mode`"), "only the closest: {text}");
+
+    // A template with hundreds of parameters: no list of them all.
+    let dir = tempfile::tempdir().unwrap();
+    let parameters: Vec<String> = (0..400)
+        .map(|i| format!(r#""input{i}_mode": {{"address": {i}}}"#))
+        .collect();
+    std::fs::write(
+        dir.path().join("big.json"),
+        format!(
+            r#"{{"device_type": "big", "device": {{"parameters": {{{}}}, "channels": [{{"name": "a", "address": 1}}]}}}}"#,
+            parameters.join(", ")
+        ),
+    )
+    .unwrap();
+    let config = dir.path().join("config.json");
+    std::fs::write(
+        &config,
+        r#"{"ports": [{"path": "/dev/x", "devices": [{"slave_id": 1, "device_type": "big", "input7_mod": 1}]}]}"#,
+    )
+    .unwrap();
+    let out = bin()
+        .arg("check-config")
+        .arg("-c")
+        .arg(&config)
+        .arg("--templates")
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    let (ok, text) = report(out);
+    assert!(!ok && text.contains("did you mean `input7_mode`"), "{text}");
+    assert!(text.len() < 600, "{text}");
 }
 
 #[test]
@@ -216,12 +247,12 @@ fn check_templates_reports_per_file() {
     let out = bin()
         .arg("check-templates")
         .arg(repo("templates"))
-        .arg(repo("../shared/compat/wb-templates"))
+        .arg(repo("tests/data/wb-templates"))
         .output()
         .unwrap();
     let (ok, text) = report(out);
     assert!(ok, "{text}");
-    assert_eq!(text.matches(": ok").count(), 18, "{text}");
+    assert_eq!(text.matches(": ok").count(), 9, "{text}");
 }
 
 #[test]
@@ -232,4 +263,526 @@ fn schema_prints_json() {
         let schema: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
         assert!(schema.get("$schema").is_some(), "{kind}");
     }
+}
+
+/// As the README shows it: from the repository root, no `--templates` (the shipped templates are
+/// built in).
+#[test]
+fn readme_check_config_works_from_the_repository_root() {
+    let out = bin()
+        .args(["check-config", "-c", "config/examples/multi-port.json"])
+        .current_dir(repo(""))
+        .output()
+        .unwrap();
+    let (ok, text) = report(out);
+    assert!(ok && text.contains(": ok"), "{text}");
+}
+
+#[test]
+fn check_templates_with_nothing_to_check_fails() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = bin()
+        .arg("check-templates")
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    let (ok, text) = report(out);
+    assert!(!ok, "{text}");
+    assert!(text.contains("no template files"), "{text}");
+}
+
+#[test]
+fn missing_template_lists_the_directories_searched() {
+    let (ok, text) = check_config(
+        r#"{"ports": [{"path": "/dev/x", "devices": [{"slave_id": 1, "device_type": "NO-SUCH"}]}]}"#,
+    );
+    assert!(!ok);
+    assert!(
+        text.contains("searched:")
+            && text.contains("/usr/share/wb-mqtt-serial/templates")
+            && text.contains("/etc/wb-mqtt-serial.conf.d/templates")
+            && text.contains("/usr/share/rtu2mqtt/templates"),
+        "{text}"
+    );
+}
+
+/// `check-config` with the wb-format fixtures (tests/data/wb-templates, tests/data/wb-rules).
+fn check_config_with_fixtures(text: &str) -> (bool, String) {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("config.json");
+    std::fs::write(&file, text).unwrap();
+    let out = bin()
+        .arg("check-config")
+        .arg("-c")
+        .arg(&file)
+        .arg("--templates")
+        .arg(repo("tests/data/wb-templates"))
+        .arg("--templates")
+        .arg(repo("tests/data/wb-rules"))
+        .output()
+        .unwrap();
+    report(out)
+}
+
+fn one_device(device: &str) -> String {
+    format!(r#"{{"ports": [{{"path": "/dev/x", "devices": [{device}]}}]}}"#)
+}
+
+/// wb-mqtt-serial's `unsuccessful-*` test configs, rewritten against our own fixtures: each one
+/// is rejected, with a message that says why.
+#[test]
+fn wb_mqtt_serial_unsuccessful_cases_are_rejected() {
+    let cases = [
+        // 0–3: error_value that is negative, a negative string, not a number, too wide.
+        (
+            r#"{"slave_id": 1, "channels": [{"name": "x", "reg_type": "holding", "address": 0, "type": "switch", "error_value": -4}]}"#,
+            "error_value",
+        ),
+        (
+            r#"{"slave_id": 1, "channels": [{"name": "x", "reg_type": "holding", "address": 0, "type": "switch", "error_value": "-4"}]}"#,
+            "error_value",
+        ),
+        (
+            r#"{"slave_id": 1, "channels": [{"name": "x", "reg_type": "holding", "address": 0, "type": "switch", "error_value": "blah"}]}"#,
+            "error_value",
+        ),
+        (
+            r#"{"slave_id": 1, "channels": [{"name": "x", "reg_type": "holding", "address": 0, "type": "switch", "error_value": 4294967296}]}"#,
+            "error_value",
+        ),
+        // 4–5: a subdevice type the slot does not offer, or that does not exist.
+        (
+            r#"{"slave_id": 2, "device_type": "TEST-SUBDEVICE", "param1": 0, "channels": [{"name": "Sub1", "device_type": "subdevice2"}]}"#,
+            "not a choice of this slot",
+        ),
+        (
+            r#"{"slave_id": 2, "device_type": "TEST-SUBDEVICE", "channels": [{"name": "Sub2", "device_type": "subdevice9"}]}"#,
+            "not a choice of this slot",
+        ),
+        // 6–7: setup items without value or without address.
+        (
+            r#"{"slave_id": 2, "device_type": "TEST-SUBDEVICE", "channels": [{"name": "Sub1", "setup": [{"title": "bad", "address": 10}]}]}"#,
+            "value",
+        ),
+        (
+            r#"{"slave_id": 2, "device_type": "TEST-SUBDEVICE", "channels": [{"name": "Sub1", "setup": [{"title": "bad", "value": 10}]}]}"#,
+            "address",
+        ),
+        // 8: settings for a slot whose subdevice is not chosen.
+        (
+            r#"{"slave_id": 2, "device_type": "TEST-SUBDEVICE", "channels": [{"name": "Sub2", "setup": [{"title": "bad", "address": 1, "value": 10}]}]}"#,
+            "Sub2",
+        ),
+        // 9: a subdevice type on a channel that is no slot.
+        (
+            r#"{"slave_id": 2, "device_type": "TEST-SUBDEVICE", "channels": [{"name": "Sub1", "device_type": "subdevice1", "channels": [{"name": "c1", "device_type": "subdevice1"}]}]}"#,
+            "c1",
+        ),
+        // 10: a required subdevice parameter missing.
+        (
+            r#"{"slave_id": 2, "device_type": "TEST-SUBDEVICE", "channels": [{"name": "Sub2", "device_type": "subdevice3"}]}"#,
+            "requires parameter `mode`",
+        ),
+        // 11: required parameters missing (param1; param2 once param1 == 1).
+        (
+            r#"{"slave_id": 22, "device_type": "TEST-RULES"}"#,
+            "requires parameter `param1`",
+        ),
+        (
+            r#"{"slave_id": 23, "device_type": "TEST-RULES", "param1": 1}"#,
+            "requires parameter `param2`",
+        ),
+        // 12: a value the enum does not allow.
+        (
+            r#"{"slave_id": 22, "device_type": "TEST-RULES", "param1": 2, "param3": 11}"#,
+            "parameter `param3` cannot be 11; allowed: 1 (One), 2 (Two), 3 (Three)",
+        ),
+        // 13: two declarations of param4 in effect at once.
+        (
+            r#"{"slave_id": 22, "device_type": "TEST-RULES", "param1": 4}"#,
+            "parameter `param4` is declared 2 times",
+        ),
+        // min/max.
+        (
+            r#"{"slave_id": 22, "device_type": "TEST-RULES", "param1": 2, "param5": 11}"#,
+            "outside its range 0…10",
+        ),
+    ];
+    let mut failures = Vec::new();
+    for (i, (device, expected)) in cases.iter().enumerate() {
+        let (ok, text) = check_config_with_fixtures(&one_device(device));
+        if ok || !text.contains(expected) {
+            failures.push(format!("case {i} ({expected}): ok={ok}\n{text}"));
+        }
+    }
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
+}
+
+#[test]
+fn parameter_rules_accept_valid_values() {
+    for device in [
+        r#"{"slave_id": 22, "device_type": "TEST-RULES", "param1": 2, "param3": 3, "param5": 10}"#,
+        r#"{"slave_id": 23, "device_type": "TEST-RULES", "param1": 1, "param2": 0}"#,
+        r#"{"slave_id": 24, "device_type": "TEST-RULES", "param1": 3, "param4": 7}"#,
+        r#"{"slave_id": 2, "device_type": "TEST-SUBDEVICE", "channels": [{"name": "Sub2", "device_type": "subdevice3", "mode": 2}]}"#,
+    ] {
+        let (ok, text) = check_config_with_fixtures(&one_device(device));
+        assert!(ok, "{device}: {text}");
+    }
+}
+
+#[test]
+fn modbus_io_slave_ids() {
+    let (ok, text) = check_config_with_fixtures(&one_device(
+        r#"{"slave_id": "1:1", "device_type": "TEST-WBIO"}, {"slave_id": "1:2", "device_type": "TEST-WBIO"}"#,
+    ));
+    assert!(ok, "{text}");
+    let (ok, text) = check_config_with_fixtures(&one_device(
+        r#"{"slave_id": "1:1", "device_type": "TEST-WBIO"}, {"slave_id": "1:1", "device_type": "TEST-WBIO", "id": "other"}"#,
+    ));
+    assert!(!ok && text.contains("slave_id 1:1 is used twice"), "{text}");
+    let (ok, text) = check_config_with_fixtures(&one_device(
+        r#"{"slave_id": 1, "device_type": "TEST-WBIO"}"#,
+    ));
+    assert!(!ok && text.contains("\"address:module\""), "{text}");
+}
+
+#[test]
+fn broadcast_and_reserved_slave_ids_are_rejected() {
+    for slave_id in ["0", "248", "255", "\"0x00\""] {
+        let (ok, text) = check_config(&one_device(&format!(
+            r#"{{"slave_id": {slave_id}, "device_type": "rtu2mqtt-generic"}}"#
+        )));
+        assert!(!ok, "{slave_id}: {text}");
+        assert!(text.contains("slave_id"), "{text}");
+    }
+    let (ok, text) = check_config(&one_device(
+        r#"{"slave_id": 0, "device_type": "rtu2mqtt-generic"}"#,
+    ));
+    assert!(!ok && text.contains("broadcast"), "{text}");
+    // A Modbus TCP server's unit id 255 is fine.
+    let (ok, text) = check_config(
+        r#"{"ports": [{"port_type": "modbus tcp", "address": "10.0.0.2", "port": 502, "devices": [
+            {"slave_id": 255, "device_type": "rtu2mqtt-generic"}]}]}"#,
+    );
+    assert!(ok, "{text}");
+}
+
+#[test]
+fn huge_durations_are_rejected() {
+    let (ok, text) = check_config(&one_device(
+        r#"{"slave_id": 1, "device_type": "rtu2mqtt-generic", "response_timeout_ms": 9223372036854775807}"#,
+    ));
+    assert!(
+        !ok && text.contains("`response_timeout_ms` 9223372036854775807 is out of range"),
+        "{text}"
+    );
+    let (ok, text) = check_config(
+        r#"{"ports": [{"path": "/dev/x", "frame_timeout_ms": 99999999, "guard_interval_us": 99999999999, "devices": []}]}"#,
+    );
+    assert!(
+        !ok && text.contains("frame_timeout_ms") && text.contains("guard_interval_us"),
+        "{text}"
+    );
+    let (ok, text) = check_config(&one_device(
+        r#"{"slave_id": 1, "channels": [{"name": "x", "address": 1, "read_period_ms": 9223372036854775807}]}"#,
+    ));
+    assert!(!ok && text.contains("read_period_ms"), "{text}");
+    // In a template too.
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(
+        dir.path().join("slow.json"),
+        r#"{"device_type": "slow", "device": {"response_timeout_ms": 100000000, "channels": [{"name": "a", "address": 1}]}}"#,
+    )
+    .unwrap();
+    let out = bin()
+        .arg("check-templates")
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    let (ok, text) = report(out);
+    assert!(!ok && text.contains("response_timeout_ms"), "{text}");
+}
+
+#[test]
+fn tls_files_must_exist_and_pair() {
+    let (ok, text) = check_config(r#"{"mqtt": {"tls": {"ca_file": "/nonexistent/ca.pem"}}}"#);
+    assert!(
+        !ok && text.contains("mqtt.tls.ca_file") && text.contains("/nonexistent/ca.pem"),
+        "{text}"
+    );
+    let dir = tempfile::tempdir().unwrap();
+    let cert = dir.path().join("client.pem");
+    std::fs::write(&cert, "x").unwrap();
+    let (ok, text) = check_config(&format!(
+        r#"{{"mqtt": {{"tls": {{"cert_file": "{}"}}}}}}"#,
+        cert.display()
+    ));
+    assert!(!ok && text.contains("needs its private key"), "{text}");
+}
+
+#[test]
+fn names_that_cannot_be_topics_are_rejected() {
+    for (device, what) in [
+        (
+            r#"{"slave_id": 1, "device_type": "rtu2mqtt-generic", "id": "+"}"#,
+            "device id `+` contains `+`",
+        ),
+        (
+            r#"{"slave_id": 1, "device_type": "rtu2mqtt-generic", "id": "a/b"}"#,
+            "contains `/`",
+        ),
+        (
+            r#"{"slave_id": 1, "device_type": "rtu2mqtt-generic", "id": "a\u0000b"}"#,
+            "contains NUL",
+        ),
+        (
+            r#"{"slave_id": 1, "channels": [{"name": "Lvl#", "address": 1}]}"#,
+            "channel name `Lvl#` contains `#`",
+        ),
+        (
+            r#"{"slave_id": 1, "channels": [{"name": "K2/on", "address": 1}]}"#,
+            "channel name `K2/on` contains `/`",
+        ),
+    ] {
+        let (ok, text) = check_config(&one_device(device));
+        assert!(
+            !ok && text.contains(what) && text.contains("config.json"),
+            "{device}: {text}"
+        );
+    }
+    let long = "x".repeat(65_536);
+    let (ok, text) = check_config(&one_device(&format!(
+        r#"{{"slave_id": 1, "device_type": "rtu2mqtt-generic", "id": "{long}"}}"#
+    )));
+    assert!(
+        !ok && text.contains("at most 200 bytes"),
+        "{}",
+        &text[..text.len().min(500)]
+    );
+    // Wiren Board channel names with spaces and parentheses are fine.
+    let (ok, text) = check_config(&one_device(
+        r#"{"slave_id": 1, "channels": [{"name": "Input 1 (counter), Hz", "address": 1}]}"#,
+    ));
+    assert!(ok, "{text}");
+}
+
+#[test]
+fn hostile_numbers_are_errors() {
+    for device in [
+        r#"{"slave_id": 1, "channels": [{"name": "x", "format": "u32", "address": "9223372036854775807"}]}"#,
+        r#"{"slave_id": 1, "channels": [{"name": "x", "address": "0x-14"}]}"#,
+        r#"{"slave_id": "0x-1", "channels": [{"name": "x", "address": 1}]}"#,
+        r#"{"slave_id": 1, "channels": [{"name": "x", "address": "-0x80000000000000000000000000000000"}]}"#,
+    ] {
+        let (ok, text) = check_config(&one_device(device));
+        assert!(!ok, "{device}: {text}");
+    }
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(
+        dir.path().join("shifty.json"),
+        r#"{"device_type": "shifty", "device": {"channels": [
+            {"name": "slot", "device_type": "s", "shift": "0x7fffffffffffffffffff"}],
+            "subdevices": [{"device_type": "s", "device": {"channels": [{"name": "a", "address": 1}]}}]}}"#,
+    )
+    .unwrap();
+    let out = bin()
+        .arg("check-templates")
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    let (ok, text) = report(out);
+    assert!(!ok && text.contains("shift"), "{text}");
+}
+
+#[test]
+fn deep_conditions_are_an_error_not_a_crash() {
+    let deep = format!("{}a==1{}", "(".repeat(20_000), ")".repeat(20_000));
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(
+        dir.path().join("deep.json"),
+        format!(
+            r#"{{"device_type": "deep", "device": {{"channels": [{{"name": "a", "address": 1, "condition": "{deep}"}}]}}}}"#
+        ),
+    )
+    .unwrap();
+    let out = bin()
+        .arg("check-templates")
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    assert!(out.status.code().is_some(), "killed by a signal");
+    let (ok, text) = report(out);
+    assert!(
+        !ok && text.contains("condition"),
+        "{}",
+        &text[..text.len().min(500)]
+    );
+}
+
+#[test]
+fn check_templates_reports_deprecated_twins_and_foreign_protocols() {
+    let out = bin()
+        .arg("check-templates")
+        .arg(repo("tests/data/wb-rules"))
+        .output()
+        .unwrap();
+    let (_, text) = report(out);
+    assert!(
+        text.contains("device_type `TEST-PAIR` is also defined in")
+            && text.contains("config-test-pair.json is used"),
+        "{text}"
+    );
+    assert_eq!(
+        text.matches("protocol `milur` is not supported").count(),
+        1,
+        "{text}"
+    );
+}
+
+#[test]
+fn misspelt_and_protected_keys_warn_and_fail_under_strict() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(
+        dir.path().join("typo.json"),
+        "{\"device_type\": \"typo\", \"device\": {\"channels\": [\n  {\"name\": \"a\", \"address\": 1, \"scal\": 0.1}]}}",
+    )
+    .unwrap();
+    let config = dir.path().join("config.json");
+    std::fs::write(
+        &config,
+        r#"{"ports": [{"path": "/dev/x", "devices": [{"slave_id": 1, "device_type": "typo", "channels": [
+            {"name": "a", "read_period": 500, "address": 7}]}]}]}"#,
+    )
+    .unwrap();
+    let run = |strict: bool| {
+        let mut command = bin();
+        command
+            .arg("check-config")
+            .arg("-c")
+            .arg(&config)
+            .arg("--templates")
+            .arg(dir.path());
+        if strict {
+            command.arg("--strict");
+        }
+        report(command.output().unwrap())
+    };
+    let (ok, text) = run(false);
+    assert!(ok, "warnings alone do not fail: {text}");
+    assert!(
+        text.contains("typo.json:2:31: at device.channels[0].scal: warning: unknown key `scal` does nothing; did you mean `scale`?"),
+        "{text}"
+    );
+    assert!(
+        text.contains("at ports[0].devices[0].channels[0].read_period: warning: unknown channel key `read_period` does nothing; did you mean `read_period_ms`?"),
+        "{text}"
+    );
+    assert!(
+        text.contains("at ports[0].devices[0].channels[0].address: warning: the template's `address` defines the register and cannot be overridden"),
+        "{text}"
+    );
+    let (ok, text) = run(true);
+    assert!(
+        !ok && text.contains("3 warning(s), which --strict counts as errors"),
+        "{text}"
+    );
+}
+
+#[test]
+fn template_errors_do_not_leak_internal_wording() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(
+        dir.path().join("bad.json"),
+        r#"{"device_type": "bad", "device": {"channels": [{"name": "a", "format": "u16"}]}}"#,
+    )
+    .unwrap();
+    let out = bin()
+        .arg("check-templates")
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    let (ok, text) = report(out);
+    assert!(!ok && text.contains("needs `address`"), "{text}");
+    assert!(
+        !text.contains("(check)")
+            && !text.contains("(top level)")
+            && !text.contains("template used by"),
+        "{text}"
+    );
+}
+
+#[test]
+fn a_foreign_protocol_is_named_in_check_config() {
+    let (ok, text) = check_config_with_fixtures(&one_device(
+        r#"{"slave_id": 1, "device_type": "TEST-NOT-MODBUS"}"#,
+    ));
+    assert!(!ok, "{text}");
+    assert!(text.contains("protocol `milur` is not supported"), "{text}");
+    assert!(!text.contains("reg_type"), "{text}");
+}
+
+#[test]
+fn describe_shows_what_was_resolved() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = dir.path().join("config.json");
+    std::fs::write(
+        &config,
+        r#"{"ports": [{"path": "/dev/x", "devices": [
+            {"slave_id": 7, "device_type": "WB-TEST-INPUTS", "baud_rate": 192,
+             "channels": [{"name": "Input 1", "device_type": "in1_discrete"}]},
+            {"slave_id": 8, "device_type": "WB-TEST-SENSOR",
+             "channels": [{"name": "Input 2 counter", "read_period_ms": 250}]},
+            {"slave_id": "1:2", "device_type": "TEST-WBIO"}]}]}"#,
+    )
+    .unwrap();
+    let describe = |extra: &[&str]| {
+        let out = bin()
+            .arg("describe")
+            .arg("-c")
+            .arg(&config)
+            .arg("--templates")
+            .arg(repo("tests/data/wb-templates"))
+            .arg("--templates")
+            .arg(repo("tests/data/wb-rules"))
+            .args(extra)
+            .output()
+            .unwrap();
+        report(out)
+    };
+    let (ok, text) = describe(&[]);
+    assert!(ok, "{text}");
+    assert!(
+        text.contains("setup (written in this order on connect):"),
+        "{text}"
+    );
+    assert!(text.contains("1. holding 110 = 192  (Baud rate)"), "{text}");
+    assert!(text.contains("holding 55:4:1"), "{text}");
+
+    let (ok, text) = describe(&["--json", "wb-test-sensor_8"]);
+    assert!(ok, "{text}");
+    let json: serde_json::Value = serde_json::from_str(&text).unwrap();
+    let devices = json["devices"].as_array().unwrap();
+    assert_eq!(devices.len(), 1);
+    let counter = devices[0]["channels"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|c| c["name"] == "Input 2 counter")
+        .unwrap();
+    assert_eq!(counter["read_period_ms"], 250);
+    assert_eq!(counter["events"], "semi-sporadic");
+    assert_eq!(counter["registers"][0]["read"]["address"], 33);
+
+    let (ok, text) = describe(&["--json", "test_wbio_1:2"]);
+    assert!(ok, "{text}");
+    let json: serde_json::Value = serde_json::from_str(&text).unwrap();
+    assert_eq!(json["devices"][0]["slave_id"], 1);
+    assert_eq!(
+        json["devices"][0]["channels"][1]["registers"][0]["read"]["address"],
+        1034
+    );
+
+    let (ok, text) = describe(&["nonexistent"]);
+    assert!(!ok && text.contains("devices: wb-test-inputs_7"), "{text}");
 }

@@ -1,5 +1,5 @@
-//! The JSON Schemas validate the shipped config, the examples, our templates and the upstream
-//! corpus (an editor using the schema agrees with the loader).
+//! The JSON Schemas validate the shipped config, the examples, our templates and the wb-format
+//! fixtures (an editor using the schema agrees with the loader).
 
 use std::path::{Path, PathBuf};
 
@@ -56,7 +56,7 @@ fn config_schema_accepts_shipped_configs() {
 #[test]
 fn template_schema_accepts_all_templates() {
     let mut files = json_files(&repo("templates"));
-    files.extend(json_files(&repo("../shared/compat/wb-templates")));
+    files.extend(json_files(&repo("tests/data/wb-templates")));
     assert_valid(SchemaKind::Template, &files);
 }
 

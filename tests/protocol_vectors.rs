@@ -400,20 +400,3 @@ fn unused_fast_request_kinds_round_trip() {
         vec![0xFD, 0x46, 0x02, 0x53, 0x91]
     );
 }
-
-/// The copy in tests/data must stay the checked file from ../shared.
-#[test]
-fn vectors_copy_matches_shared() {
-    let shared =
-        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/protocol/vectors.json");
-    let shared = std::fs::read_to_string(&shared).unwrap_or_else(|err| {
-        panic!(
-            "{} is needed to check tests/data/vectors.json: {err}",
-            shared.display()
-        )
-    });
-    assert_eq!(
-        shared, VECTORS,
-        "tests/data/vectors.json differs from ../shared/protocol/vectors.json"
-    );
-}

@@ -1,4 +1,4 @@
-//! Every shipped template and every template of the compatibility corpus builds a simulated
+//! Every shipped template and every wb-format fixture (tests/data/wb-templates) builds a simulated
 //! device through the shared template loader, with the registers a master would use; the example
 //! bus file loads and matches the example daemon config.
 
@@ -71,9 +71,9 @@ fn assert_register(
 fn every_template_builds_a_device() {
     let mut files = json_files(&repo("templates"));
     let shipped = files.len();
-    files.extend(json_files(&repo("../shared/compat/wb-templates")));
+    files.extend(json_files(&repo("tests/data/wb-templates")));
     assert_eq!(shipped, 6);
-    assert_eq!(files.len(), 18);
+    assert_eq!(files.len(), 9);
     for file in &files {
         let template = TemplateFile::load(file).unwrap_or_else(|e| panic!("{e}"));
         let registers = template_registers(&template, 20).unwrap_or_else(|e| panic!("{e}"));
@@ -136,24 +136,22 @@ fn shipped_templates() {
 }
 
 #[test]
-fn corpus_templates() {
-    let corpus = |name: &str| device(&repo("../shared/compat/wb-templates").join(name));
-    let map3e = corpus("config-map3e-fw2.json");
-    assert_register(&map3e, INPUT, 0x1410, false, Some(2));
-    let sdm = corpus("config-sdm220.json");
-    assert_register(&sdm, INPUT, 0, false, None);
-    assert_register(&sdm, INPUT, 1, false, None);
-    let msw = corpus("config-wb-msw_v4.json");
-    assert_register(&msw, INPUT, 4, false, None);
-    assert_register(&msw, INPUT, 283, false, Some(1));
-    // A disabled channel (Absolute Humidity).
-    assert_register(&msw, INPUT, 366, false, None);
-    // A subdevice with its default choice: input1_1wire's sensor.
-    let m1w2 = corpus("config-wb-m1w2.json");
-    assert_register(&m1w2, INPUT, 7, false, None);
-    assert_register(&m1w2, DISCRETE, 16, false, None);
-    let mr14 = corpus("config-wb-mr14.json");
-    assert_register(&mr14, COIL, 13, true, None);
+fn wb_format_fixtures() {
+    let fixture = |name: &str| device(&repo("tests/data/wb-templates").join(name));
+    let meter = fixture("config-test-meter.json");
+    assert_register(&meter, INPUT, 0x1410, false, Some(2));
+    assert_register(&meter, INPUT, 0, false, None);
+    assert_register(&meter, INPUT, 1, false, None);
+    let sensor = fixture("config-test-wb-sensor.json");
+    assert_register(&sensor, INPUT, 4, false, None);
+    assert_register(&sensor, INPUT, 280, false, Some(1));
+    // A disabled channel (Dew Point).
+    assert_register(&sensor, INPUT, 367, false, None);
+    assert_register(&sensor, COIL, 0, true, None);
+    // A subdevice with its default choice: in1_sensor's channels.
+    let inputs = fixture("config-test-wb-inputs.json");
+    assert_register(&inputs, INPUT, 7, false, None);
+    assert_register(&inputs, DISCRETE, 16, false, None);
 }
 
 fn daemon_devices(config: &Path) -> Vec<(u8, String)> {

@@ -1,4 +1,5 @@
-//! The twelve upstream templates of the compatibility corpus load unchanged and resolve to the
+//! Templates in the wb-mqtt-serial format (small fixtures of our own in tests/data/wb-templates,
+//! written to exercise the features the real library uses) load unchanged and resolve to the
 //! right registers, formats and event flags.
 
 use std::path::{Path, PathBuf};
@@ -11,7 +12,7 @@ use rtu2mqtt::device::{
 use serde_json::json;
 
 fn corpus() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/compat/wb-templates")
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/wb-templates")
 }
 
 fn template(name: &str) -> TemplateFile {
@@ -23,7 +24,7 @@ fn device(name: &str, config: serde_json::Value) -> ResolvedDevice {
 }
 
 #[test]
-fn all_twelve_load_and_resolve() {
+fn all_fixtures_load_and_resolve() {
     let mut count = 0;
     for entry in std::fs::read_dir(corpus()).unwrap() {
         let path = entry.unwrap().path();
@@ -41,7 +42,7 @@ fn all_twelve_load_and_resolve() {
         );
         count += 1;
     }
-    assert_eq!(count, 12);
+    assert_eq!(count, 3);
 }
 
 /// Asserts a channel's first register: table, address, format and event mode.
@@ -79,19 +80,20 @@ use RegisterFormat::{Bcd16, Float, S16, S32, U16, U32, U64, U8};
 use RegisterType::*;
 
 #[test]
-fn sdm220_floats() {
-    let d = device("config-sdm220.json", json!({"slave_id": 3}));
+fn floats_and_timing() {
+    let d = device("config-test-meter.json", json!({"slave_id": 3}));
     assert_eq!(
         (d.id.as_str(), d.name.as_str(), d.is_wb),
-        ("sdm220_3", "SDM220 3", false)
+        ("test_meter_3", "Test Meter 3", false)
     );
     assert_channel(&d, "Voltage", Input, 0, Float, Polled);
-    assert_channel(&d, "Line Frequency", Input, 0x46, Float, Polled);
+    assert_channel(&d, "Frequency", Input, 0x46, Float, Polled);
     assert_eq!(
         d.channel("Voltage").unwrap().registers[0].codec.word_count,
         2
     );
     assert_eq!(d.timing.frame_timeout.as_millis(), 0);
+    assert_eq!(d.timing.guard_interval.as_micros(), 40_000);
     assert_eq!(
         d.channel("Voltage")
             .unwrap()
@@ -102,12 +104,11 @@ fn sdm220_floats() {
 }
 
 #[test]
-fn msw_v4_semi_sporadic_and_errors() {
-    let d = device("config-wb-msw_v4.json", json!({"slave_id": 22}));
+fn semi_sporadic_and_error_values() {
+    let d = device("config-test-wb-sensor.json", json!({"slave_id": 22}));
     assert!(d.is_wb);
     assert_channel(&d, "Temperature", Input, 4, S16, Polled);
     assert_channel(&d, "Max Motion", Input, 280, U16, SemiSporadic);
-    assert_channel(&d, "Current Motion", Input, 283, U16, SemiSporadic);
     assert_channel(&d, "Illuminance", Input, 9, U32, Polled);
     let temperature = d.channel("Temperature").unwrap();
     assert_eq!(temperature.units.as_deref(), Some("deg C"));
@@ -126,17 +127,17 @@ fn msw_v4_semi_sporadic_and_errors() {
 }
 
 #[test]
-fn map3e_word_order_u64_and_offset() {
-    let d = device("config-map3e-fw2.json", json!({"slave_id": 1}));
-    assert_channel(&d, "Urms L1", Input, 0x1410, U32, SemiSporadic);
-    assert_channel(&d, "Total AP energy", Input, 0x1200, U64, Polled);
-    let energy = d.channel("Total AP energy").unwrap();
+fn word_order_u64_offset_and_serial() {
+    let d = device("config-test-meter.json", json!({"slave_id": 1}));
+    assert_channel(&d, "Current", Input, 0x1410, U32, SemiSporadic);
+    assert_channel(&d, "Energy", Input, 0x1200, U64, Polled);
+    let energy = d.channel("Energy").unwrap();
     assert_eq!(
         energy.registers[0].codec.word_order,
         WordOrder::LittleEndian
     );
     assert_eq!(energy.precision, Some(1e-06));
-    let peak = d.channel("Upeak L1").unwrap();
+    let peak = d.channel("Peak").unwrap();
     assert_eq!(
         peak.decode(&[&[0xFFFE, 0xFFFE]]).unwrap(),
         Reading::Unsupported
@@ -150,9 +151,9 @@ fn map3e_word_order_u64_and_offset() {
 }
 
 #[test]
-fn onokom_conditions_bit_fields_and_sporadic() {
-    let d = device("config-onokom-air-tn-1-mb-b.json", json!({"slave_id": 1}));
-    // Show_modes_as_range is undefined: `==1` is false, `!=1` is true.
+fn conditions_bit_fields_and_sporadic() {
+    let d = device("config-test-wb-sensor.json", json!({"slave_id": 1}));
+    // show_mode_as_range defaults to 0: `==1` is false, `!=1` is true.
     let mode = d.channel("Mode").unwrap();
     assert_eq!(mode.control_type, "value");
     assert_eq!(mode.enum_titles.len(), 3);
@@ -169,12 +170,12 @@ fn onokom_conditions_bit_fields_and_sporadic() {
     );
     assert!(
         d.channel("Timer: Heater").is_none(),
-        "condition Show_timer_setup_menu==1 is false"
+        "condition show_timer==1 is false"
     );
 
     let d = device(
-        "config-onokom-air-tn-1-mb-b.json",
-        json!({"slave_id": 1, "Show_modes_as_range": 1, "Show_timer_setup_menu": 1}),
+        "config-test-wb-sensor.json",
+        json!({"slave_id": 1, "show_mode_as_range": 1, "show_timer": 1}),
     );
     assert_eq!(d.channel("Mode").unwrap().control_type, "range");
     let heater = d.channel("Timer: Heater").unwrap();
@@ -189,71 +190,73 @@ fn onokom_conditions_bit_fields_and_sporadic() {
 }
 
 #[test]
-fn ptex_write_only_pushbuttons() {
-    let d = device("config-ptex.json", json!({"slave_id": 1}));
-    assert_eq!(d.timing.guard_interval.as_micros(), 50_000);
-    let reset = d.channel("Reset Error").unwrap();
+fn write_only_pushbutton_and_readonly_float() {
+    let d = device("config-test-meter.json", json!({"slave_id": 1}));
+    let reset = d.channel("Reset").unwrap();
     assert!(reset.write_only && reset.registers[0].read.is_none());
     assert_eq!(reset.registers[0].write.unwrap().address, 1111);
     assert_eq!(reset.encode("1", &[None]).unwrap(), vec![vec![0, 0]]);
-    assert_channel(&d, "Current Pressure", Holding, 1099, Float, Polled);
-    assert!(d.channel("Current Pressure").unwrap().readonly);
+    assert_channel(&d, "Pressure", Holding, 1099, Float, Polled);
+    assert!(d.channel("Pressure").unwrap().readonly);
 }
 
 #[test]
-fn ridan_bcd_and_on_off() {
-    let d = device("config-ridan-greencon-r.json", json!({"slave_id": 1}));
-    assert_channel(&d, "Real time, hour", Holding, 6, Bcd16, Polled);
+fn bcd_and_on_off() {
+    let d = device("config-test-meter.json", json!({"slave_id": 1}));
+    assert_channel(&d, "Hour", Holding, 6, Bcd16, Polled);
     assert_eq!(
-        d.channel("Real time, hour")
-            .unwrap()
-            .decode(&[&[0x0023]])
-            .unwrap(),
+        d.channel("Hour").unwrap().decode(&[&[0x0023]]).unwrap(),
         Reading::Value("23".into())
     );
     let err = d
-        .channel("Real time, hour")
+        .channel("Hour")
         .unwrap()
         .encode("24", &[None])
         .unwrap_err()
         .to_string();
     assert!(err.contains("0 … 23"), "the channel max is checked: {err}");
-    assert_channel(&d, "Thermostat status", Holding, 3, U16, Polled);
+    assert_channel(&d, "Thermostat", Holding, 3, U16, Polled);
 }
 
 #[test]
-fn m1w2_subdevices_and_parameters() {
+fn subdevices_and_parameters() {
     let d = device(
-        "config-wb-m1w2.json",
-        json!({"slave_id": 7, "baud_rate": 192, "channels": [{"name": "Input 2", "device_type": "input2_discrete"}]}),
+        "config-test-wb-inputs.json",
+        json!({"slave_id": 7, "baud_rate": 192, "channels": [{"name": "Input 1", "device_type": "in1_discrete"}]}),
     );
-    assert_channel(&d, "External Sensor 1", Input, 7, S16, Polled);
-    assert_channel(&d, "Discrete Input 2", DiscreteInput, 1, U8, Polled);
-    assert_channel(&d, "Counter 2", Input, 278, U16, Polled);
+    assert_channel(&d, "Discrete Input 1", DiscreteInput, 1, U8, Polled);
+    assert_channel(&d, "Counter 1 pulses", Input, 278, U16, Polled);
+    assert!(d.channel("External Sensor 1").is_none());
     let setup: Vec<(u16, Vec<u16>)> = d
         .setup
         .iter()
         .map(|s| (s.register.address, s.words.clone()))
         .collect();
+    assert_eq!(setup, vec![(110, vec![192]), (275, vec![1])]);
+
+    let d = device("config-test-wb-inputs.json", json!({"slave_id": 7}));
+    assert_channel(&d, "External Sensor 1", Input, 7, S16, Polled);
+}
+
+#[test]
+fn translations() {
+    let d = device("config-test-wb-sensor.json", json!({"slave_id": 7}));
     assert_eq!(
-        setup,
-        vec![(110, vec![192]), (275, vec![0]), (276, vec![1])]
-    );
-    assert_eq!(
-        d.channel("External Sensor 1")
+        d.channel("Temperature")
             .unwrap()
             .title
             .get("ru")
             .map(String::as_str),
-        Some("Датчик температуры 1")
+        Some("Температура")
     );
 }
 
 #[test]
-fn mai11_shift_and_stride() {
+fn subdevice_shift_and_stride() {
     let d = device(
-        "config-wb-mai11-deprecated.json",
-        json!({"slave_id": 7, "channels": [{"name": "Input 2", "device_type": "p_4_20ma"}]}),
+        "config-test-wb-inputs.json",
+        json!({"slave_id": 7, "channels": [{"name": "Input 2", "device_type": "analog_pair", "channels": [
+            {"name": "IN_P", "data_rate": 20}, {"name": "IN_N", "data_rate": 45}]}]}),
     );
     // Input 2 is shifted by 0x2000; the N channel of the pair moves by its own width (stride 1).
     assert_channel(&d, "IN 2 P Current", Input, 0x2500, S32, Polled);
@@ -266,23 +269,16 @@ fn mai11_shift_and_stride() {
 }
 
 #[test]
-fn mcm16_u64_counters() {
-    let d = device("config-wb-mcm16.json", json!({"slave_id": 1}));
+fn u64_counters_ranges_and_readonly() {
+    let d = device("config-test-wb-inputs.json", json!({"slave_id": 1}));
     assert_channel(&d, "Counter 1", Input, 20, U64, Polled);
-    assert_channel(&d, "Counter 16", Input, 80, U64, Polled);
+    assert_channel(&d, "Counter 2", Input, 24, U64, Polled);
     assert_eq!(
         d.channel("Counter 1").unwrap().registers[0]
             .codec
             .word_count,
         4
     );
-}
-
-#[test]
-fn mdm2_ranges() {
-    let d = device("config-wb-mdm2.json", json!({"slave_id": 1}));
-    assert_channel(&d, "Channel 1", Holding, 0, U16, Polled);
-    assert_eq!(d.channel("Channel 1").unwrap().max, Some(100.0));
     assert!(d.channel("Button 1").unwrap().readonly);
     assert_eq!(
         d.channel("Input Voltage")
@@ -294,23 +290,9 @@ fn mdm2_ranges() {
 }
 
 #[test]
-fn mr14_and_mrgbw_load() {
-    let d = device("config-wb-mr14.json", json!({"slave_id": 1}));
-    assert!(d
-        .channels
-        .iter()
-        .any(|c| c.registers[0].read.is_some_and(|r| r.reg_type == Coil)));
-    let d = device(
-        "config-wb-mrgbw-d-fw3-deprecated.json",
-        json!({"slave_id": 1}),
-    );
-    assert!(!d.channels.is_empty());
-}
-
-#[test]
 fn config_overrides_follow_merge_rules() {
     let d = device(
-        "config-wb-msw_v4.json",
+        "config-test-wb-sensor.json",
         json!({"slave_id": 2, "id": "hall", "name": "Hall", "channels": [
             {"name": "Temperature", "read_period_ms": 500, "address": 99, "readonly": false},
             {"name": "Dew Point", "enabled": true},
@@ -329,4 +311,57 @@ fn config_overrides_follow_merge_rules() {
     assert!(d.channel("Dew Point").is_some());
     assert_channel(&d, "Extra", Holding, 1000, U16, Polled);
     assert_eq!(d.channels.last().unwrap().order as usize, d.channels.len());
+}
+
+/// Same-named channels that differ only by condition: an override reaches every one of them
+/// (wb-mqtt-serial), so it also reaches the one in effect.
+#[test]
+fn override_reaches_every_channel_of_that_name() {
+    // in2_mode defaults to 1: the second "Input 2 counter" is in effect.
+    let d = device(
+        "config-test-wb-sensor.json",
+        json!({"slave_id": 1, "channels": [
+            {"name": "Input 2 counter", "read_period_ms": 500},
+            {"name": "Input 1 counter", "enabled": false}
+        ]}),
+    );
+    let counter = d.channel("Input 2 counter").unwrap();
+    assert_eq!(counter.read_period.map(|p| p.as_millis()), Some(500));
+    assert_eq!(counter.events, SemiSporadic);
+    assert!(d.channel("Input 1 counter").is_none());
+    let d = device(
+        "config-test-wb-sensor.json",
+        json!({"slave_id": 1, "in1_mode": 1, "channels": [{"name": "Input 1 counter", "enabled": false}]}),
+    );
+    assert!(d.channel("Input 1 counter").is_none());
+}
+
+fn rules_fixture(name: &str) -> TemplateFile {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/data/wb-rules")
+        .join(name);
+    TemplateFile::load(&path).unwrap_or_else(|e| panic!("{e}"))
+}
+
+/// WBIO modules: wb-mqtt-serial's shift ((module - 1) % 4 + 1) × stride + shift.
+#[test]
+fn modbus_io_module_shift() {
+    let template = rules_fixture("config-test-wbio.json");
+    for (slave_id, shift) in [("1:1", 1016), ("1:2", 1032), ("1:4", 1064), ("1:5", 1016)] {
+        let d = resolve_template_device(&template, &json!({"slave_id": slave_id}))
+            .unwrap_or_else(|e| panic!("{e}"));
+        assert_channel(&d, "K1", Coil, shift, U8, Polled);
+        assert_channel(&d, "A1", Input, shift + 2, U16, Polled);
+        assert_eq!(d.slave_id, 1);
+    }
+}
+
+/// `"127:8:0"`: a bit width of 0 means the format's own width.
+#[test]
+fn bit_width_zero_is_the_format_width() {
+    let template = rules_fixture("config-test-rules.json");
+    let d = resolve_template_device(&template, &json!({"slave_id": 1, "param1": 2}))
+        .unwrap_or_else(|e| panic!("{e}"));
+    let codec = &d.channel("Status high byte").unwrap().registers[0].codec;
+    assert_eq!((codec.bit_shift, codec.bit_width), (8, 16));
 }

@@ -7,7 +7,10 @@ use std::process::ExitCode;
 use crate::config::library::TemplateLibrary;
 use crate::config::load::{load_config, DEFAULT_CONFIG_PATH};
 use crate::config::{LocatedError, TemplateFile};
-use crate::device::{check_template, resolve_config};
+use crate::device::check_template;
+use crate::device::configure::{resolve_config_checked, template_key_warnings};
+use crate::device::model::{EventMode, RegisterRef, RegisterType, ResolvedDevice, ResolvedPort};
+use crate::device::number_text::format_g;
 
 #[derive(Debug, clap::Args)]
 pub struct CheckConfigArgs {
@@ -17,6 +20,9 @@ pub struct CheckConfigArgs {
     /// More template directories (searched after the system and user ones; later wins).
     #[arg(long = "templates", value_name = "DIR")]
     pub templates: Vec<PathBuf>,
+    /// Treat warnings (misspelt keys, overrides the template does not allow) as errors.
+    #[arg(long)]
+    pub strict: bool,
 }
 
 #[derive(Debug, clap::Args)]
@@ -37,8 +43,20 @@ pub fn run_check_config(args: CheckConfigArgs) -> anyhow::Result<ExitCode> {
     };
     let mut dirs = loaded.config.template_dirs.clone();
     dirs.extend(args.templates.iter().cloned());
-    let library = TemplateLibrary::load_dirs(&TemplateLibrary::standard_dirs(&dirs));
-    match resolve_config(&loaded, &library) {
+    let library = TemplateLibrary::load_standard(&dirs);
+    let (result, warnings) = resolve_config_checked(&loaded, &library);
+    for warning in &warnings {
+        println!("{warning}");
+    }
+    if args.strict && !warnings.is_empty() && result.is_ok() {
+        println!(
+            "{}: {} warning(s), which --strict counts as errors",
+            args.config.display(),
+            warnings.len()
+        );
+        return Ok(ExitCode::FAILURE);
+    }
+    match result {
         Ok(ports) => {
             let devices: usize = ports.iter().map(|p| p.devices.len()).sum();
             let channels: usize = ports
@@ -84,8 +102,10 @@ pub fn run_check_templates(args: CheckTemplatesArgs) -> anyhow::Result<ExitCode>
         }
     }
     let mut failed = false;
+    // device_type → (file, deprecated) of the first template seen with it.
+    let mut seen: std::collections::BTreeMap<String, (PathBuf, bool)> = Default::default();
     for file in &files {
-        let errors = check_file(file);
+        let (template, errors) = check_file(file);
         if errors.is_empty() {
             println!("{}: ok", file.display());
         } else {
@@ -94,10 +114,44 @@ pub fn run_check_templates(args: CheckTemplatesArgs) -> anyhow::Result<ExitCode>
                 println!("{error}");
             }
         }
+        let Some(template) = template else {
+            continue;
+        };
+        let device_type = template.device_type().to_string();
+        let deprecated = template.is_deprecated();
+        match seen.get(&device_type) {
+            None => {
+                seen.insert(device_type, (file.clone(), deprecated));
+            }
+            Some((first, first_deprecated)) if *first_deprecated != deprecated => {
+                let (used, unused) = if deprecated {
+                    (first, file)
+                } else {
+                    (file, first)
+                };
+                println!(
+                    "{}: note: device_type `{device_type}` is also defined in {}; the deprecated {} loses, {} is used",
+                    file.display(),
+                    first.display(),
+                    unused.display(),
+                    used.display()
+                );
+            }
+            Some((first, _)) => {
+                failed = true;
+                println!(
+                    "{}: device_type `{device_type}` is already defined in {}; only one is used (the later directory's, or the first file by name in one directory): remove or rename one",
+                    file.display(),
+                    first.display()
+                );
+            }
+        }
     }
     if files.is_empty() {
+        // Nothing checked is not a success: a wrong path must not look like a clean library.
+        failed = true;
         println!(
-            "no template files found in {}",
+            "no template files (*.json) found in {}",
             paths
                 .iter()
                 .map(|p| p.display().to_string())
@@ -118,9 +172,280 @@ fn args_is_default(path: &Path) -> bool {
         .any(|d| d == path)
 }
 
-fn check_file(path: &Path) -> Vec<LocatedError> {
+fn check_file(path: &Path) -> (Option<TemplateFile>, Vec<LocatedError>) {
     match TemplateFile::load(path) {
-        Ok(template) => check_template(&template),
-        Err(error) => vec![error],
+        Ok(template) => {
+            let mut errors = check_template(&template);
+            // Misspelt keys are reported, but do not fail the check (upstream files carry some).
+            for warning in template_key_warnings(&template) {
+                println!("{warning}");
+            }
+            errors.retain(|e| !matches!(e.problem, crate::config::error::Problem::Warning(_)));
+            (Some(template), errors)
+        }
+        Err(error) => (None, vec![error]),
     }
+}
+
+#[derive(Debug, clap::Args)]
+pub struct DescribeArgs {
+    /// Config file.
+    #[arg(short = 'c', long = "config", default_value = DEFAULT_CONFIG_PATH)]
+    pub config: PathBuf,
+    /// Only this device: its MQTT id, its name or its slave_id.
+    pub device: Option<String>,
+    /// More template directories (searched after the system and user ones; later wins).
+    #[arg(long = "templates", value_name = "DIR")]
+    pub templates: Vec<PathBuf>,
+    /// Print JSON instead of a table.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// `rtu2mqtt describe`: what rtu2mqtt resolved for each device — its channels with register,
+/// format, scale, period and event mode, and its setup writes in the order they are written —
+/// so a user sees what a template and their overrides really do.
+pub fn run_describe(args: DescribeArgs) -> anyhow::Result<ExitCode> {
+    let loaded = match load_config(&args.config) {
+        Ok(loaded) => loaded,
+        Err(errors) => {
+            for error in &errors.0 {
+                println!("{error}");
+            }
+            return Ok(ExitCode::FAILURE);
+        }
+    };
+    let mut dirs = loaded.config.template_dirs.clone();
+    dirs.extend(args.templates.iter().cloned());
+    let library = TemplateLibrary::load_standard(&dirs);
+    let (result, warnings) = resolve_config_checked(&loaded, &library);
+    for warning in &warnings {
+        eprintln!("{warning}");
+    }
+    let ports = match result {
+        Ok(ports) => ports,
+        Err(errors) => {
+            for error in &errors.0 {
+                println!("{error}");
+            }
+            return Ok(ExitCode::FAILURE);
+        }
+    };
+    let devices: Vec<(&ResolvedPort, &ResolvedDevice)> = ports
+        .iter()
+        .flat_map(|port| port.devices.iter().map(move |device| (port, device)))
+        .filter(|(_, device)| {
+            args.device.as_deref().is_none_or(|wanted| {
+                device.id == wanted
+                    || device.name == wanted
+                    || device.slave_id.to_string() == wanted
+            })
+        })
+        .collect();
+    if devices.is_empty() {
+        println!(
+            "{}: no device {}; devices: {}",
+            args.config.display(),
+            args.device.as_deref().unwrap_or(""),
+            ports
+                .iter()
+                .flat_map(|p| &p.devices)
+                .map(|d| d.id.as_str())
+                .collect::<Vec<_>>()
+                .join(", ")
+        );
+        return Ok(ExitCode::FAILURE);
+    }
+    if args.json {
+        let json: Vec<serde_json::Value> = devices
+            .iter()
+            .map(|(port, device)| describe_json(port, device))
+            .collect();
+        println!(
+            "{}",
+            serde_json::to_string_pretty(&serde_json::json!({ "devices": json }))?
+        );
+    } else {
+        for (i, (port, device)) in devices.iter().enumerate() {
+            if i > 0 {
+                println!();
+            }
+            print!("{}", describe_table(port, device));
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+fn table_name(reg_type: RegisterType) -> &'static str {
+    match reg_type {
+        RegisterType::Coil => "coil",
+        RegisterType::DiscreteInput => "discrete",
+        RegisterType::Holding => "holding",
+        RegisterType::Input => "input",
+    }
+}
+
+fn events_name(events: EventMode) -> &'static str {
+    match events {
+        EventMode::None => "polled",
+        EventMode::Sporadic => "sporadic",
+        EventMode::SemiSporadic => "semi-sporadic",
+    }
+}
+
+/// `holding 16` / `input 9..10` / `holding 55:4:1`.
+fn register_text(register: &RegisterRef) -> String {
+    let mut text = format!("{} {}", table_name(register.reg_type), register.address);
+    if register.count > 1 && !register.reg_type.is_bit() {
+        text.push_str(&format!("..{}", register.last_address()));
+    }
+    let whole = register.bit_shift == 0 && register.bit_width >= u32::from(register.count) * 16;
+    if !register.reg_type.is_bit() && !whole {
+        text.push_str(&format!(":{}:{}", register.bit_shift, register.bit_width));
+    }
+    text
+}
+
+fn port_text(port: &ResolvedPort) -> String {
+    port.config.describe()
+}
+
+fn describe_table(port: &ResolvedPort, device: &ResolvedDevice) -> String {
+    let mut out = format!(
+        "{} \"{}\" (slave_id {}, template {}, {})\n",
+        device.id,
+        device.name,
+        device.slave_id,
+        device.device_type.as_deref().unwrap_or("none"),
+        port_text(port)
+    );
+    let mut rows = vec![[
+        "CHANNEL".to_string(),
+        "REGISTER".into(),
+        "FORMAT".into(),
+        "SCALE".into(),
+        "PERIOD".into(),
+        "EVENTS".into(),
+        "ACCESS".into(),
+    ]];
+    for channel in &device.channels {
+        for (i, register) in channel.registers.iter().enumerate() {
+            let Some(place) = register.read.as_ref().or(register.write.as_ref()) else {
+                continue;
+            };
+            let access = match (register.read.is_some(), register.write.is_some()) {
+                (true, true) => "read/write",
+                (true, false) => "read-only",
+                (false, true) => "write-only",
+                (false, false) => "-",
+            };
+            rows.push([
+                if i == 0 {
+                    channel.id.clone()
+                } else {
+                    format!("  + part {}", i + 1)
+                },
+                register_text(place),
+                register.codec.format.name().to_string(),
+                format_g(register.codec.scale, 6),
+                channel
+                    .read_period
+                    .map(|p| format!("{} ms", p.as_millis()))
+                    .unwrap_or_else(|| "-".into()),
+                events_name(channel.events).into(),
+                access.into(),
+            ]);
+        }
+    }
+    let widths: Vec<usize> = (0..7)
+        .map(|c| rows.iter().map(|r| r[c].chars().count()).max().unwrap_or(0))
+        .collect();
+    for row in &rows {
+        let line: Vec<String> = row
+            .iter()
+            .zip(&widths)
+            .map(|(cell, width)| format!("{cell:<width$}"))
+            .collect();
+        out.push_str(&format!("  {}\n", line.join("  ").trim_end()));
+    }
+    if device.setup.is_empty() {
+        out.push_str("  setup: none\n");
+    } else {
+        out.push_str("  setup (written in this order on connect):\n");
+        for (i, write) in device.setup.iter().enumerate() {
+            out.push_str(&format!(
+                "  {:>3}. {} = {}  ({})\n",
+                i + 1,
+                register_text(&write.register),
+                write.value,
+                write.title
+            ));
+        }
+    }
+    out
+}
+
+fn register_json(register: &RegisterRef) -> serde_json::Value {
+    serde_json::json!({
+        "type": table_name(register.reg_type),
+        "address": register.address,
+        "count": register.count,
+        "bit_shift": register.bit_shift,
+        "bit_width": register.bit_width,
+    })
+}
+
+fn describe_json(port: &ResolvedPort, device: &ResolvedDevice) -> serde_json::Value {
+    let channels: Vec<serde_json::Value> = device
+        .channels
+        .iter()
+        .map(|channel| {
+            let registers: Vec<serde_json::Value> = channel
+                .registers
+                .iter()
+                .map(|r| {
+                    serde_json::json!({
+                        "read": r.read.as_ref().map(register_json),
+                        "write": r.write.as_ref().map(register_json),
+                        "format": r.codec.format.name(),
+                        "scale": r.codec.scale,
+                        "offset": r.codec.offset,
+                    })
+                })
+                .collect();
+            serde_json::json!({
+                "id": channel.id,
+                "name": channel.name,
+                "type": channel.control_type,
+                "units": channel.units,
+                "registers": registers,
+                "read_period_ms": channel.read_period.map(|p| p.as_millis() as u64),
+                "events": events_name(channel.events),
+                "readonly": channel.readonly,
+                "write_only": channel.write_only,
+            })
+        })
+        .collect();
+    let setup: Vec<serde_json::Value> = device
+        .setup
+        .iter()
+        .map(|write| {
+            serde_json::json!({
+                "title": write.title,
+                "register": register_json(&write.register),
+                "value": write.value,
+                "words": write.words,
+            })
+        })
+        .collect();
+    serde_json::json!({
+        "id": device.id,
+        "name": device.name,
+        "device_type": device.device_type,
+        "slave_id": device.slave_id,
+        "port": port_text(port),
+        "response_timeout_ms": device.timing.response_timeout.as_millis() as u64,
+        "channels": channels,
+        "setup": setup,
+    })
 }

@@ -36,7 +36,7 @@ fn load(args: &Args) -> Result<(LoadedConfig, Vec<ResolvedPort>), Vec<String>> {
         .map_err(|errors| errors.0.iter().map(ToString::to_string).collect::<Vec<_>>())?;
     let mut dirs = loaded.config.template_dirs.clone();
     dirs.extend(args.templates.iter().cloned());
-    let library = TemplateLibrary::load_dirs(&TemplateLibrary::standard_dirs(&dirs));
+    let library = TemplateLibrary::load_standard(&dirs);
     let ports = resolve_config(&loaded, &library)
         .map_err(|errors| errors.0.iter().map(ToString::to_string).collect::<Vec<_>>())?;
     Ok((loaded, ports))

@@ -50,7 +50,18 @@ impl Condition {
             text,
             tokens,
             pos: 0,
+            depth: 0,
         };
+        if parser.tokens.len() > MAX_TOKENS {
+            return Err(ConditionError {
+                text: text.chars().take(40).collect::<String>() + "…",
+                message: format!(
+                    "the condition has {} parts; at most {MAX_TOKENS} are allowed",
+                    parser.tokens.len()
+                ),
+                position: 1,
+            });
+        }
         let condition = parser.or()?;
         if parser.pos < parser.tokens.len() {
             return Err(parser.error("unexpected text after the end of the expression"));
@@ -172,10 +183,17 @@ fn tokenize(text: &str) -> Result<Vec<(Token, usize)>, ConditionError> {
     Ok(tokens)
 }
 
+/// Limits that keep parsing and evaluating on a small stack whatever a file holds (real
+/// conditions have a few terms and one or two levels of parentheses).
+const MAX_DEPTH: usize = 32;
+const MAX_TOKENS: usize = 512;
+
 struct Parser<'a> {
     text: &'a str,
     tokens: Vec<(Token, usize)>,
     pos: usize,
+    /// Nesting of `(` and `!` at the current position.
+    depth: usize,
 }
 
 impl Parser<'_> {
@@ -234,6 +252,18 @@ impl Parser<'_> {
     }
 
     fn primary(&mut self) -> Result<Condition, ConditionError> {
+        if self.depth >= MAX_DEPTH {
+            return Err(self.error(&format!(
+                "parentheses or `!` nest more than {MAX_DEPTH} deep"
+            )));
+        }
+        self.depth += 1;
+        let result = self.primary_inner();
+        self.depth -= 1;
+        result
+    }
+
+    fn primary_inner(&mut self) -> Result<Condition, ConditionError> {
         let token = self.tokens.get(self.pos).map(|(t, _)| t.clone());
         match token {
             Some(Token::Number(v)) => {
@@ -307,6 +337,19 @@ mod tests {
         assert!(holds("isDefined(a)", &[("a", 0.0)]));
         assert!(!holds("isDefined(a)", &[]));
         assert!(holds("!isDefined(in1_mode) || in1_mode==3", &[]));
+    }
+
+    #[test]
+    fn deep_nesting_is_an_error_not_a_crash() {
+        let deep = format!("{}a==1{}", "(".repeat(20_000), ")".repeat(20_000));
+        let err = Condition::parse(&deep).unwrap_err().to_string();
+        assert!(err.contains("at most 512"), "{err}");
+        let nested = format!("{}a==1{}", "(".repeat(40), ")".repeat(40));
+        let err = Condition::parse(&nested).unwrap_err().to_string();
+        assert!(err.contains("nest more than 32"), "{err}");
+        let nots = format!("{}a", "!".repeat(100));
+        assert!(Condition::parse(&nots).is_err());
+        assert!(Condition::parse(&format!("{}a==1{}", "(".repeat(10), ")".repeat(10))).is_ok());
     }
 
     #[test]

@@ -10,7 +10,7 @@ use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
 use super::template::{with_device_settings, ChannelSpec, SetupItemSpec};
-use super::values::SerialInt;
+use super::values::{SerialInt, SlaveId};
 
 /// The whole config file.
 #[derive(Debug, Clone, Deserialize, Serialize, JsonSchema)]
@@ -198,24 +198,30 @@ pub struct PortConfig {
     #[serde(default)]
     pub connected_to_mge: bool,
     /// Minimum response timeout for every device on this port, in ms (default 500).
+    #[schemars(range(min = -1, max = 60000))]
     pub response_timeout_ms: Option<i64>,
     /// Default frame (inter-byte) timeout of this port's devices, in ms.
+    #[schemars(range(min = -1, max = 10000))]
     pub frame_timeout_ms: Option<i64>,
     /// Default pause before each request, in µs.
+    #[schemars(range(min = -1, max = 1000000))]
     pub guard_interval_us: Option<i64>,
     /// Default minimum interval between reads of one register (deprecated upstream).
+    #[schemars(range(min = -1, max = 86400000))]
     pub read_rate_limit_ms: Option<i64>,
     /// Longest time between two Fast Modbus event requests, in ms. Default by baud rate: 50 ms
     /// at 115200 and above, 100 ms from 38400, 200 ms below. Events are polled sooner whenever
     /// the bus has nothing else to do.
     #[schemars(range(min = 5, max = 10000))]
     pub event_interval_ms: Option<u64>,
+    #[schemars(range(min = -1, max = 86400000))]
     pub poll_interval: Option<i64>,
     /// TCP connect timeout in ms.
     #[serde(default = "default_connect_timeout")]
     pub connect_timeout_ms: u64,
     /// Reopen the port after this long without a successful exchange (ms; -1 never) …
     #[serde(default = "default_connection_timeout")]
+    #[schemars(range(min = -1, max = 3600000))]
     pub connection_timeout_ms: i64,
     /// … and this many failed poll cycles (-1 never).
     #[serde(default = "default_connection_fail_cycles")]
@@ -263,7 +269,7 @@ with_device_settings! {
     #[derive(Debug, Clone, Default, Deserialize, Serialize, JsonSchema)]
     pub struct DeviceConfig {
         /// Modbus address (unit id on Modbus TCP): a number, a decimal string or "0x..".
-        pub slave_id: Option<SerialInt>,
+        pub slave_id: Option<SlaveId>,
         /// Template name (`device_type` in the template file).
         pub device_type: Option<String>,
         /// MQTT device id (default: template id + "_" + slave_id).

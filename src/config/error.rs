@@ -13,14 +13,22 @@ pub enum Problem {
     Io(String),
     #[error("not valid JSON: {0}")]
     Syntax(String),
-    #[error("unknown key `{key}`; valid keys: {}", valid.join(", "))]
+    #[error("unknown key `{key}`{}", unknown_key_hint(key, valid))]
     UnknownKey { key: String, valid: Vec<String> },
     #[error("{0}")]
     Invalid(String),
-    #[error("no template for device_type `{device_type}`{}", similar_hint(similar))]
+    /// Not fatal (unless `check-config --strict`): a setting that does nothing.
+    #[error("warning: {0}")]
+    Warning(String),
+    #[error(
+        "no template for device_type `{device_type}`{} (searched: {searched})",
+        similar_hint(similar)
+    )]
     MissingTemplate {
         device_type: String,
         similar: Vec<String>,
+        /// The template directories searched, in order.
+        searched: String,
     },
     #[error("slave_id {slave_id} is used twice on this port: also by the device at {other}")]
     DuplicateSlaveId { slave_id: String, other: String },
@@ -38,9 +46,47 @@ pub enum Problem {
     },
 }
 
+/// Valid keys are listed when there are few (a port's); a device with a big template has
+/// hundreds of parameters, so only the closest few are offered.
+const LIST_VALID_KEYS_UP_TO: usize = 40;
+
+fn unknown_key_hint(key: &str, valid: &[String]) -> String {
+    // Parameters are listed as "id (parameter)": suggest on the id, show the label.
+    let bare = |label: &str| label.trim_end_matches(" (parameter)").to_string();
+    let bare_names: Vec<String> = valid.iter().map(|v| bare(v)).collect();
+    let suggestions = super::library::suggest_keys(key, bare_names.iter().map(String::as_str));
+    let mut out = String::new();
+    if !suggestions.is_empty() {
+        let labels: Vec<String> = suggestions
+            .iter()
+            .map(|name| {
+                let label = valid
+                    .iter()
+                    .find(|v| bare(v) == *name)
+                    .cloned()
+                    .unwrap_or_else(|| name.clone());
+                match label.strip_suffix(" (parameter)") {
+                    Some(id) => format!("`{id}` (a parameter of the template)"),
+                    None => format!("`{label}`"),
+                }
+            })
+            .collect();
+        out.push_str(&format!("; did you mean {}?", labels.join(" or ")));
+    }
+    if valid.len() <= LIST_VALID_KEYS_UP_TO {
+        out.push_str(&format!(" Valid keys: {}", valid.join(", ")));
+    } else if suggestions.is_empty() {
+        out.push_str(&format!(
+            " ({} settings and template parameters are valid here; `rtu2mqtt describe` and the template list them)",
+            valid.len()
+        ));
+    }
+    out
+}
+
 fn similar_hint(similar: &[String]) -> String {
     if similar.is_empty() {
-        "; check the name, or add the template file to a templates directory".to_string()
+        "; check the name, or add the template file to a templates directory (`--templates DIR` or `template_dirs`)".to_string()
     } else {
         format!(
             "; did you mean {}?",

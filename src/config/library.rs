@@ -14,6 +14,44 @@ use super::template::Template;
 pub const SYSTEM_TEMPLATE_DIR: &str = "/usr/share/rtu2mqtt/templates";
 /// The site's own templates; they win over the system ones on equal `device_type`.
 pub const USER_TEMPLATE_DIR: &str = "/etc/rtu2mqtt/templates";
+/// Where a Wiren Board controller keeps wb-mqtt-serial's template library, and the site's own
+/// wb-mqtt-serial templates: searched too (before rtu2mqtt's own directories, which win), so a
+/// `/etc/wb-mqtt-serial.conf` works as it is.
+pub const WB_SYSTEM_TEMPLATE_DIR: &str = "/usr/share/wb-mqtt-serial/templates";
+pub const WB_USER_TEMPLATE_DIR: &str = "/etc/wb-mqtt-serial.conf.d/templates";
+
+/// The templates shipped in `templates/`, built into the binary so that a config using them
+/// checks and runs from anywhere (a source checkout, a test) without `--templates`. Every
+/// directory of the search path wins over them.
+const BUILT_IN_TEMPLATES: [(&str, &str); 6] = [
+    (
+        "rtu2mqtt-climate.json",
+        include_str!("../../templates/rtu2mqtt-climate.json"),
+    ),
+    (
+        "rtu2mqtt-counter8.json",
+        include_str!("../../templates/rtu2mqtt-counter8.json"),
+    ),
+    (
+        "rtu2mqtt-dimmer.json",
+        include_str!("../../templates/rtu2mqtt-dimmer.json"),
+    ),
+    (
+        "rtu2mqtt-energy-meter.json",
+        include_str!("../../templates/rtu2mqtt-energy-meter.json"),
+    ),
+    (
+        "rtu2mqtt-generic.json",
+        include_str!("../../templates/rtu2mqtt-generic.json"),
+    ),
+    (
+        "rtu2mqtt-relay6.json",
+        include_str!("../../templates/rtu2mqtt-relay6.json"),
+    ),
+];
+
+/// The pseudo directory built-in templates are reported under.
+pub const BUILT_IN_DIR: &str = "(built into rtu2mqtt)";
 
 /// One loaded template file: typed for inspection, raw for merging with config devices.
 #[derive(Debug, Clone)]
@@ -33,6 +71,22 @@ impl TemplateFile {
 
     pub fn from_source(source: SourceText) -> Result<Self, LocatedError> {
         let raw = source.parse_json()?;
+        if let Some(protocol) = raw
+            .pointer("/device/protocol")
+            .and_then(Value::as_str)
+            .filter(|p| !is_modbus_protocol(p))
+        {
+            // Said once for the whole file, instead of the first register type that only
+            // this protocol knows.
+            return Err(source.error(
+                JsonPath::root().key("device").key("protocol"),
+                Problem::Invalid(format!(
+                    "protocol `{protocol}` is not supported: rtu2mqtt speaks Modbus (RTU, TCP, \
+                     modbus_io) only, so devices of this template cannot be used; keep them on \
+                     wb-mqtt-serial"
+                )),
+            ));
+        }
         let typed = deserialize_at::<Template>(&source, &raw, &JsonPath::root())?;
         Ok(Self {
             source,
@@ -45,6 +99,18 @@ impl TemplateFile {
     pub fn device_type(&self) -> &str {
         &self.template.device_type
     }
+
+    pub fn is_deprecated(&self) -> bool {
+        self.template.deprecated == Some(true)
+    }
+}
+
+/// The protocols of wb-mqtt-serial that are Modbus: what rtu2mqtt can drive.
+pub fn is_modbus_protocol(protocol: &str) -> bool {
+    matches!(
+        protocol,
+        "modbus" | "modbus-tcp" | "modbus_tcp" | "modbus_io" | "modbus_io-tcp"
+    )
 }
 
 /// Every template of the search path, the later directories winning on equal `device_type`.
@@ -55,18 +121,60 @@ pub struct TemplateLibrary {
     pub errors: Vec<LocatedError>,
     /// Directories searched, in order.
     pub dirs: Vec<PathBuf>,
+    /// Files that failed to load, by the `device_type` they declare.
+    failed: BTreeMap<String, LocatedError>,
 }
 
 impl TemplateLibrary {
-    /// The search path: system dir, user dir, then `extra` (config `template_dirs`, then
-    /// `--templates` options), each later one winning.
+    /// The search path: wb-mqtt-serial's system and user dirs, rtu2mqtt's system and user dirs,
+    /// then `extra` (config `template_dirs`, then `--templates` options), each later one winning.
     pub fn standard_dirs(extra: &[PathBuf]) -> Vec<PathBuf> {
         let mut dirs = vec![
+            PathBuf::from(WB_SYSTEM_TEMPLATE_DIR),
+            PathBuf::from(WB_USER_TEMPLATE_DIR),
             PathBuf::from(SYSTEM_TEMPLATE_DIR),
             PathBuf::from(USER_TEMPLATE_DIR),
         ];
         dirs.extend(extra.iter().cloned());
         dirs
+    }
+
+    /// What `run` and `check-config` use: the built-in templates, then every directory of
+    /// [`Self::standard_dirs`].
+    pub fn load_standard(extra: &[PathBuf]) -> Self {
+        let mut library = Self::built_in();
+        library.merge(Self::load_dirs(&Self::standard_dirs(extra)));
+        library
+    }
+
+    /// The templates compiled into the binary.
+    pub fn built_in() -> Self {
+        let mut library = Self::default();
+        for (name, text) in BUILT_IN_TEMPLATES {
+            let source = SourceText::from_text(&Path::new(BUILT_IN_DIR).join(name), text);
+            match TemplateFile::from_source(source) {
+                Ok(template) => library.insert(template),
+                Err(err) => library.errors.push(err),
+            }
+        }
+        library
+    }
+
+    /// Adds `later`'s templates, which win on equal `device_type`, its errors and its dirs.
+    fn merge(&mut self, later: Self) {
+        self.templates.extend(later.templates);
+        self.errors.extend(later.errors);
+        self.failed.extend(later.failed);
+        self.dirs.extend(later.dirs);
+    }
+
+    /// The directories searched, for messages ("searched: …").
+    pub fn searched(&self) -> String {
+        let mut names: Vec<String> = self.dirs.iter().map(|d| d.display().to_string()).collect();
+        if !self.templates.is_empty() || names.is_empty() {
+            names.insert(0, BUILT_IN_DIR.to_string());
+        }
+        names.join(", ")
     }
 
     /// Loads every `*.json` file of the directories that exist (missing ones are skipped: a
@@ -91,21 +199,48 @@ impl TemplateLibrary {
                 match TemplateFile::load(&file) {
                     Ok(template) => {
                         let device_type = template.device_type().to_string();
-                        if let Some(first) = in_this_dir.get(&device_type) {
-                            library.errors.push(LocatedError::file_level(
-                                &file,
-                                Problem::DuplicateTemplate {
-                                    device_type,
-                                    first: first.display().to_string(),
-                                    second: file.display().to_string(),
-                                },
-                            ));
-                            continue;
+                        let deprecated = template.is_deprecated();
+                        if let Some(current) = library.templates.get(&device_type) {
+                            // A current template wins over a deprecated one wherever they are
+                            // (wb ships `config-X.json` beside `config-X-deprecated.json`);
+                            // between equals, a later directory wins and, within one
+                            // directory, the first file by name, reported as a clash.
+                            let keep_current = match (current.is_deprecated(), deprecated) {
+                                (false, true) => true,
+                                (true, false) => false,
+                                _ => in_this_dir.contains_key(&device_type),
+                            };
+                            if let Some(first) = in_this_dir.get(&device_type) {
+                                if current.is_deprecated() == deprecated {
+                                    library.errors.push(LocatedError::file_level(
+                                        &file,
+                                        Problem::DuplicateTemplate {
+                                            device_type: device_type.clone(),
+                                            first: first.display().to_string(),
+                                            second: file.display().to_string(),
+                                        },
+                                    ));
+                                }
+                            }
+                            if keep_current {
+                                continue;
+                            }
                         }
                         in_this_dir.insert(device_type.clone(), file.clone());
                         library.templates.insert(device_type, template);
                     }
-                    Err(err) => library.errors.push(err),
+                    Err(err) => {
+                        // Remember which device_type the broken file was for, so a device
+                        // using it is told why rather than only "no template".
+                        if let Some(device_type) = SourceText::read(&file)
+                            .ok()
+                            .and_then(|s| s.parse_json().ok())
+                            .and_then(|v| v.get("device_type")?.as_str().map(String::from))
+                        {
+                            library.failed.insert(device_type, err.clone());
+                        }
+                        library.errors.push(err)
+                    }
                 }
             }
         }
@@ -136,20 +271,14 @@ impl TemplateLibrary {
 
     /// Known device types close to `name` (case, punctuation, or a small typo), for hints.
     pub fn similar(&self, name: &str) -> Vec<String> {
-        let wanted = normalize(name);
-        self.templates
-            .keys()
-            .filter(|known| {
-                let candidate = normalize(known);
-                candidate == wanted || edit_distance(&candidate, &wanted) <= 2
-            })
-            .take(3)
-            .cloned()
-            .collect()
+        closest(name, self.templates.keys().map(String::as_str), 2, 3)
     }
 
     /// Why `device_type` is missing: a file that failed to load may have been meant.
     pub fn load_error_for(&self, device_type: &str) -> Option<&LocatedError> {
+        if let Some(error) = self.failed.get(device_type) {
+            return Some(error);
+        }
         let wanted = normalize(device_type);
         self.errors.iter().find(|e| {
             e.file
@@ -158,6 +287,54 @@ impl TemplateLibrary {
                 .is_some_and(|stem| normalize(stem).contains(&wanted))
         })
     }
+}
+
+/// Up to `limit` of `candidates` within `max_distance` edits of `name` (ignoring case and
+/// punctuation), closest first: what "did you mean" offers.
+pub fn closest<'a>(
+    name: &str,
+    candidates: impl Iterator<Item = &'a str>,
+    max_distance: usize,
+    limit: usize,
+) -> Vec<String> {
+    let wanted = normalize(name);
+    let mut ranked: Vec<(usize, &str)> = candidates
+        .map(|candidate| (edit_distance(&normalize(candidate), &wanted), candidate))
+        .filter(|(distance, _)| *distance <= max_distance)
+        .collect();
+    ranked.sort();
+    ranked.dedup();
+    ranked
+        .into_iter()
+        .take(limit)
+        .map(|(_, c)| c.to_string())
+        .collect()
+}
+
+/// Keys close to a misspelt `key`, closest first: a small edit distance, or one is the other
+/// with something added (`read_period` → `read_period_ms`).
+pub fn suggest_keys<'a>(key: &str, candidates: impl Iterator<Item = &'a str>) -> Vec<String> {
+    let wanted = normalize(key);
+    let mut ranked: Vec<(usize, &str)> = candidates
+        .filter_map(|candidate| {
+            let normalized = normalize(candidate);
+            let distance = edit_distance(&normalized, &wanted);
+            let extends = wanted.len() >= 4
+                && normalized.len() >= 4
+                && (normalized.starts_with(&wanted) || wanted.starts_with(&normalized));
+            (distance <= 2 || extends).then_some((distance, candidate))
+        })
+        .collect();
+    ranked.sort();
+    ranked.dedup();
+    // Only the closest: `in1_mod` offers `in1_mode`, not every `inN_mode` one edit further.
+    let best = ranked.first().map(|(d, _)| *d).unwrap_or(0);
+    ranked
+        .into_iter()
+        .take_while(|(d, _)| *d == best)
+        .take(3)
+        .map(|(_, c)| c.to_string())
+        .collect()
 }
 
 fn normalize(name: &str) -> String {
@@ -230,6 +407,50 @@ mod tests {
             library.errors[0].problem,
             Problem::DuplicateTemplate { .. }
         ));
+    }
+
+    #[test]
+    fn a_current_template_wins_over_a_deprecated_twin() {
+        let dir = tempfile::tempdir().unwrap();
+        // The deprecated file sorts first.
+        std::fs::write(
+            dir.path().join("config-x-deprecated.json"),
+            r#"{"device_type": "X", "deprecated": true, "device": {"name": "old", "channels": []}}"#,
+        )
+        .unwrap();
+        write(dir.path(), "config-x.json", "X", "current");
+        let library = TemplateLibrary::load_dirs(&[dir.path().to_path_buf()]);
+        assert_eq!(
+            library.get("X").unwrap().template.device.name.as_deref(),
+            Some("current")
+        );
+        assert!(library.errors.is_empty());
+        // Also across directories: a later deprecated one does not replace a current one.
+        let later = tempfile::tempdir().unwrap();
+        std::fs::write(
+            later.path().join("x.json"),
+            r#"{"device_type": "X", "deprecated": true, "device": {"name": "later old", "channels": []}}"#,
+        )
+        .unwrap();
+        let library =
+            TemplateLibrary::load_dirs(&[dir.path().to_path_buf(), later.path().to_path_buf()]);
+        assert_eq!(
+            library.get("X").unwrap().template.device.name.as_deref(),
+            Some("current")
+        );
+    }
+
+    #[test]
+    fn similar_names_closest_first() {
+        let dir = tempfile::tempdir().unwrap();
+        write(dir.path(), "a.json", "WB-MAI6", "x");
+        write(dir.path(), "b.json", "WB-MR6C", "x");
+        write(dir.path(), "c.json", "WB-MR6CU", "x");
+        let library = TemplateLibrary::load_dirs(&[dir.path().to_path_buf()]);
+        assert_eq!(
+            library.similar("WB-MR6"),
+            vec!["WB-MR6C", "WB-MAI6", "WB-MR6CU"]
+        );
     }
 
     #[test]

@@ -12,6 +12,7 @@ use super::config_file::{Config, PortType};
 use super::error::{ErrorList, LocatedError, Problem};
 use super::json_path::JsonPath;
 use super::parse::{deserialize_at, schema_keys_at, SourceText};
+use super::values::SlaveId;
 
 /// Default config path of the Debian package.
 pub const DEFAULT_CONFIG_PATH: &str = "/etc/rtu2mqtt/config.json";
@@ -125,6 +126,149 @@ fn split_ignored(
     (device_keys, errors)
 }
 
+/// Why a `slave_id` cannot be used, if it cannot. 0 is the broadcast address (every device of
+/// the bus would carry out a write to it) and 248…255 are reserved on a serial line; a Modbus
+/// TCP server may use 248…255 as its unit id (255 is common), never 0.
+fn slave_id_problem(slave_id: SlaveId, port_type: PortType) -> Option<String> {
+    let highest = if port_type == PortType::ModbusTcp {
+        255
+    } else {
+        247
+    };
+    if slave_id.address == 0 {
+        return Some(
+            "slave_id 0 is the Modbus broadcast address: every device of the bus would carry out \
+             writes to it; use the device's own address (1…247)"
+                .to_string(),
+        );
+    }
+    if !(1..=highest).contains(&slave_id.address) {
+        return Some(format!(
+            "slave_id {} is out of range: devices on {} use 1…{highest}",
+            slave_id.address,
+            if port_type == PortType::ModbusTcp {
+                "Modbus TCP"
+            } else {
+                "a serial line (248…255 are reserved)"
+            }
+        ));
+    }
+    if let Some(module) = slave_id.module {
+        if !(1..=255).contains(&module) {
+            return Some(format!(
+                "the module number in slave_id `{slave_id}` must be 1…255 (its place behind the WB-MIO)"
+            ));
+        }
+    }
+    None
+}
+
+/// The longest value each duration key may have. A larger one is surely a mistake (a unit
+/// mix-up, a typo) and would make the daemon wait for hours or days on the bus.
+pub const DURATION_LIMITS: [(&str, i64, &str); 12] = [
+    ("response_timeout_ms", 60_000, "1 minute"),
+    ("frame_timeout_ms", 10_000, "10 s"),
+    ("guard_interval_us", 1_000_000, "1 s"),
+    ("min_request_interval", 3_600_000, "1 hour"),
+    ("device_timeout_ms", 3_600_000, "1 hour"),
+    ("max_write_fail_time_s", 86_400, "1 day"),
+    ("read_rate_limit_ms", 86_400_000, "1 day"),
+    ("poll_interval", 86_400_000, "1 day"),
+    ("read_period_ms", 86_400_000, "1 day"),
+    ("connection_timeout_ms", 3_600_000, "1 hour"),
+    ("event_interval_ms", 86_400_000, "1 day"),
+    ("connect_timeout_ms", 3_600_000, "1 hour"),
+];
+
+/// Whether a duration is out of bounds: -1 (or any negative, "not set" upstream) is allowed,
+/// and values up to the key's limit.
+pub fn duration_problem(key: &str, value: i64) -> Option<Problem> {
+    let (_, limit, words) = DURATION_LIMITS.iter().find(|(k, _, _)| *k == key)?;
+    (value > *limit || value < -1).then(|| {
+        Problem::Invalid(format!(
+            "`{key}` {value} is out of range: use -1 (unset) or 0…{limit} ({words} at most)"
+        ))
+    })
+}
+
+fn port_durations(port: &super::config_file::PortConfig) -> Vec<(&'static str, i64)> {
+    let mut out = vec![
+        ("connection_timeout_ms", port.connection_timeout_ms),
+        (
+            "connect_timeout_ms",
+            i64::try_from(port.connect_timeout_ms).unwrap_or(i64::MAX),
+        ),
+    ];
+    let optional = [
+        ("response_timeout_ms", port.response_timeout_ms),
+        ("frame_timeout_ms", port.frame_timeout_ms),
+        ("guard_interval_us", port.guard_interval_us),
+        ("read_rate_limit_ms", port.read_rate_limit_ms),
+        ("poll_interval", port.poll_interval),
+        (
+            "event_interval_ms",
+            port.event_interval_ms
+                .map(|v| i64::try_from(v).unwrap_or(i64::MAX)),
+        ),
+    ];
+    out.extend(optional.into_iter().filter_map(|(k, v)| v.map(|v| (k, v))));
+    out
+}
+
+fn device_durations(device: &super::config_file::DeviceConfig) -> Vec<(&'static str, i64)> {
+    [
+        ("response_timeout_ms", device.response_timeout_ms),
+        ("frame_timeout_ms", device.frame_timeout_ms),
+        ("guard_interval_us", device.guard_interval_us),
+        ("min_request_interval", device.min_request_interval),
+        ("device_timeout_ms", device.device_timeout_ms),
+        ("max_write_fail_time_s", device.max_write_fail_time_s),
+        ("read_rate_limit_ms", device.read_rate_limit_ms),
+        ("poll_interval", device.poll_interval),
+    ]
+    .into_iter()
+    .filter_map(|(k, v)| v.map(|v| (k, v)))
+    .collect()
+}
+
+/// TLS files must exist now, not fail at the first connection; a certificate needs its key.
+fn check_tls(loaded: &LoadedConfig) -> Vec<LocatedError> {
+    let mut errors = Vec::new();
+    let Some(tls) = &loaded.config.mqtt.tls else {
+        return errors;
+    };
+    let at = JsonPath::root().key("mqtt").key("tls");
+    for (key, file) in [
+        ("ca_file", &tls.ca_file),
+        ("cert_file", &tls.cert_file),
+        ("key_file", &tls.key_file),
+    ] {
+        if let Some(file) = file {
+            if let Err(err) = std::fs::File::open(file) {
+                errors.push(loaded.error(
+                    at.key(key),
+                    Problem::Invalid(format!(
+                        "cannot read {}: {err}; give the path of the PEM file on this machine",
+                        file.display()
+                    )),
+                ));
+            }
+        }
+    }
+    match (&tls.cert_file, &tls.key_file) {
+        (Some(_), None) => errors.push(loaded.error(
+            at.key("cert_file"),
+            Problem::Invalid("a client certificate needs its private key: add `key_file`".into()),
+        )),
+        (None, Some(_)) => errors.push(loaded.error(
+            at.key("key_file"),
+            Problem::Invalid("a private key needs its certificate: add `cert_file`".into()),
+        )),
+        _ => {}
+    }
+    errors
+}
+
 /// The config's JSON Schema as a value (also what `rtu2mqtt schema config` prints).
 pub fn config_schema() -> Value {
     serde_json::to_value(schemars::schema_for!(Config)).unwrap_or(Value::Null)
@@ -201,11 +345,21 @@ fn check_ports(loaded: &LoadedConfig) -> Vec<LocatedError> {
         } else {
             seen_ports.insert(description, at.clone());
         }
-        let mut slave_ids: BTreeMap<i128, JsonPath> = BTreeMap::new();
+        for (key, value) in port_durations(port) {
+            if let Some(problem) = duration_problem(key, value) {
+                errors.push(loaded.error(at.key(key), problem));
+            }
+        }
+        let mut slave_ids: BTreeMap<(i128, Option<i128>), JsonPath> = BTreeMap::new();
         for (device_index, device) in port.devices.iter().enumerate() {
             let device_at = at.key("devices").index(device_index);
             if device.enabled == Some(false) {
                 continue;
+            }
+            for (key, value) in device_durations(device) {
+                if let Some(problem) = duration_problem(key, value) {
+                    errors.push(loaded.error(device_at.key(key), problem));
+                }
             }
             let Some(slave_id) = device.slave_id else {
                 errors.push(loaded.error(
@@ -216,16 +370,11 @@ fn check_ports(loaded: &LoadedConfig) -> Vec<LocatedError> {
                 ));
                 continue;
             };
-            if !(0..=255).contains(&slave_id.value()) {
-                errors.push(loaded.error(
-                    device_at.key("slave_id"),
-                    Problem::Invalid(format!(
-                        "slave_id {slave_id} is out of range 0…255 (RTU devices use 1…247)"
-                    )),
-                ));
+            if let Some(message) = slave_id_problem(slave_id, port.port_type) {
+                errors.push(loaded.error(device_at.key("slave_id"), Problem::Invalid(message)));
                 continue;
             }
-            match slave_ids.get(&slave_id.value()) {
+            match slave_ids.get(&(slave_id.address, slave_id.module)) {
                 Some(other) => errors.push(loaded.error(
                     device_at.key("slave_id"),
                     Problem::DuplicateSlaveId {
@@ -234,11 +383,12 @@ fn check_ports(loaded: &LoadedConfig) -> Vec<LocatedError> {
                     },
                 )),
                 None => {
-                    slave_ids.insert(slave_id.value(), device_at);
+                    slave_ids.insert((slave_id.address, slave_id.module), device_at);
                 }
             }
         }
     }
+    errors.extend(check_tls(loaded));
     errors
 }
 

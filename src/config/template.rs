@@ -20,20 +20,26 @@ macro_rules! with_device_settings {
         pub struct $name {
             $($(#[$fmeta])* pub $field: $ty,)*
             /// Response timeout in ms (the port's value is the minimum). WB templates set 1.
+            #[schemars(range(min = -1, max = 60000))]
             pub response_timeout_ms: Option<i64>,
             /// Silence that ends a frame, in ms (default 20; raised to 3.5 characters).
+            #[schemars(range(min = -1, max = 10000))]
             pub frame_timeout_ms: Option<i64>,
             /// After a complete frame, also wait for silence and drop extra bytes.
             pub force_frame_timeout: Option<bool>,
             /// Pause before every request, from the last bus activity, in µs (default: port's).
+            #[schemars(range(min = -1, max = 1000000))]
             pub guard_interval_us: Option<i64>,
             /// Low-priority reads start no earlier than last read + this, in ms.
+            #[schemars(range(min = -1, max = 3600000))]
             pub min_request_interval: Option<i64>,
             /// Disconnect after this long without success (ms, default 3000) …
+            #[schemars(range(min = -1, max = 3600000))]
             pub device_timeout_ms: Option<i64>,
             /// … and this many failed cycles (default 2). -1 disables either.
             pub device_max_fail_cycles: Option<i64>,
             /// How long failed writes are retried, in s (default 600).
+            #[schemars(range(min = -1, max = 86400))]
             pub max_write_fail_time_s: Option<i64>,
             /// Registers per read request; 0 = protocol maximum (125 / 2000 bits).
             pub max_read_registers: Option<i64>,
@@ -51,8 +57,10 @@ macro_rules! with_device_settings {
             /// Write setup items in the given order instead of by register.
             pub preserve_setup_order: Option<bool>,
             /// Default minimum interval between reads of a register (deprecated upstream).
+            #[schemars(range(min = -1, max = 86400000))]
             pub read_rate_limit_ms: Option<i64>,
             /// Legacy name of `read_rate_limit_ms`.
+            #[schemars(range(min = -1, max = 86400000))]
             pub poll_interval: Option<i64>,
             /// Not used by Modbus devices (kept so upstream files load).
             pub password: Option<Vec<SerialInt>>,
@@ -173,8 +181,11 @@ pub struct ChannelSpec {
     #[serde(rename = "semi-sporadic")]
     pub semi_sporadic: Option<bool>,
     /// Fixed read period (high priority), in ms.
+    #[schemars(range(min = -1, max = 86400000))]
     pub read_period_ms: Option<i64>,
+    #[schemars(range(min = -1, max = 86400000))]
     pub read_rate_limit_ms: Option<i64>,
+    #[schemars(range(min = -1, max = 86400000))]
     pub poll_interval: Option<i64>,
     pub enabled: Option<bool>,
     pub hidden: Option<bool>,
@@ -369,4 +380,9 @@ pub struct SubdeviceBody {
     pub subdevices: Option<Vec<SubdeviceSpec>>,
     pub groups: Option<Vec<GroupSpec>>,
     pub ui_options: Option<serde_json::Value>,
+}
+
+/// The template format's JSON Schema as a value (also what `rtu2mqtt schema template` prints).
+pub fn template_schema() -> serde_json::Value {
+    serde_json::to_value(schemars::schema_for!(Template)).unwrap_or_default()
 }

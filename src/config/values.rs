@@ -9,6 +9,8 @@ use serde::de::{self, Deserializer, Visitor};
 use serde::{Deserialize, Serialize, Serializer};
 
 /// Parses `12`, `-3`, `0x1F` (the forms C's `stoi(…, 0)` accepts for decimal and hex).
+/// Only digits may follow the sign and the `0x` (`"0x-14"` and `"0x+1"` are not numbers), and a
+/// value that does not fit is `None`, never a wrapped or overflowing number.
 pub fn parse_int_text(text: &str) -> Option<i128> {
     let trimmed = text.trim();
     let (negative, digits) = match trimmed.strip_prefix('-') {
@@ -19,6 +21,9 @@ pub fn parse_int_text(text: &str) -> Option<i128> {
         .strip_prefix("0x")
         .or_else(|| digits.strip_prefix("0X"))
     {
+        if hex.is_empty() || !hex.bytes().all(|b| b.is_ascii_hexdigit()) {
+            return None;
+        }
         i128::from_str_radix(hex, 16).ok()?
     } else {
         if digits.is_empty() || !digits.bytes().all(|b| b.is_ascii_digit()) {
@@ -26,8 +31,94 @@ pub fn parse_int_text(text: &str) -> Option<i128> {
         }
         digits.parse::<i128>().ok()?
     };
-    Some(if negative { -magnitude } else { magnitude })
+    if negative {
+        magnitude.checked_neg()
+    } else {
+        Some(magnitude)
+    }
 }
+
+/// A device's `slave_id`: its Modbus address, and for `modbus_io` devices (WBIO modules behind a
+/// WB-MIO) the module's position after a colon, as in `"1:2"`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub struct SlaveId {
+    pub address: i128,
+    pub module: Option<i128>,
+}
+
+impl SlaveId {
+    /// The Modbus address.
+    pub fn value(self) -> i128 {
+        self.address
+    }
+
+    fn parse(text: &str) -> Option<Self> {
+        match text.split_once(':') {
+            Some((address, module)) => Some(Self {
+                address: parse_int_text(address)?,
+                module: Some(parse_int_text(module)?),
+            }),
+            None => Some(Self {
+                address: parse_int_text(text)?,
+                module: None,
+            }),
+        }
+    }
+}
+
+impl fmt::Display for SlaveId {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self.module {
+            Some(module) => write!(f, "{}:{module}", self.address),
+            None => write!(f, "{}", self.address),
+        }
+    }
+}
+
+impl<'de> Deserialize<'de> for SlaveId {
+    fn deserialize<D: Deserializer<'de>>(deserializer: D) -> Result<Self, D::Error> {
+        let value = serde_json::Value::deserialize(deserializer)?;
+        if let serde_json::Value::String(text) = &value {
+            return SlaveId::parse(text).ok_or_else(|| {
+                de::Error::custom(format!(
+                    "`{text}` is not a slave_id; write a number like 16, \"16\" or \"0x10\" (or \"1:2\" for a modbus_io module)"
+                ))
+            });
+        }
+        let int = SerialInt::deserialize(value).map_err(de::Error::custom)?;
+        Ok(SlaveId {
+            address: int.value(),
+            module: None,
+        })
+    }
+}
+
+impl Serialize for SlaveId {
+    fn serialize<S: Serializer>(&self, serializer: S) -> Result<S::Ok, S::Error> {
+        match (self.module, i64::try_from(self.address)) {
+            (None, Ok(v)) => serializer.serialize_i64(v),
+            _ => serializer.serialize_str(&self.to_string()),
+        }
+    }
+}
+
+impl JsonSchema for SlaveId {
+    fn schema_name() -> Cow<'static, str> {
+        "SlaveId".into()
+    }
+    fn json_schema(_: &mut SchemaGenerator) -> Schema {
+        json_schema!({
+            "description": "A Modbus address 1…247: a number, a decimal string or a \"0x..\" hex string; \"address:module\" for modbus_io modules.",
+            "anyOf": [
+                {"type": "integer", "minimum": 1, "maximum": 255},
+                {"type": "string", "pattern": SLAVE_ID_PATTERN}
+            ]
+        })
+    }
+}
+
+const SLAVE_ID_PATTERN: &str =
+    "^\\s*[-+]?(0[xX][0-9a-fA-F]+|[0-9]+)(\\s*:\\s*(0[xX][0-9a-fA-F]+|[0-9]+))?\\s*$";
 
 const INT_PATTERN: &str = "^\\s*[-+]?(0[xX][0-9a-fA-F]+|[0-9]+)\\s*$";
 
@@ -198,9 +289,11 @@ impl AddressSpec {
                     .trim()
                     .parse::<u32>()
                     .ok()
-                    .filter(|w| (1..=64).contains(w))
-                    .ok_or_else(|| format!("bit width in `{text}` must be a number 1…64"))?,
-            ),
+                    .filter(|w| *w <= 64)
+                    .ok_or_else(|| format!("bit width in `{text}` must be a number 0…64"))?,
+            )
+            // 0 means the format's own width, as in wb-mqtt-serial (`"127:8:0"`).
+            .filter(|w| *w > 0),
             None => None,
         };
         if parts.next().is_some() {

@@ -8,19 +8,35 @@ use serde_json::{json, Map, Value};
 
 use super::merge::{merge_device, DeviceMergeInput, MergeError};
 use super::model::{ResolvedDevice, ResolvedPort};
-use super::resolve::{resolve_device, ResolveError, ResolveInput};
+use super::resolve::{resolve_device, topic_level_problem, ResolveError, ResolveInput};
 use crate::config::config_file::PortConfig;
 use crate::config::error::{ErrorList, LocatedError, Problem};
 use crate::config::json_path::JsonPath;
 use crate::config::load::LoadedConfig;
 use crate::config::parse::{value_at, SourceText};
+use crate::config::values::SlaveId;
 use crate::config::{TemplateFile, TemplateLibrary};
 
-/// Resolves every enabled device; all errors are collected.
+/// Resolves every enabled device; all errors are collected, warnings are logged.
 pub fn resolve_config(
     loaded: &LoadedConfig,
     library: &TemplateLibrary,
 ) -> Result<Vec<ResolvedPort>, ErrorList> {
+    let (result, warnings) = resolve_config_checked(loaded, library);
+    for warning in &warnings {
+        tracing::warn!("{warning}");
+    }
+    result
+}
+
+/// Resolves every enabled device, returning the warnings too (settings that do nothing: a
+/// misspelt key, an override of a protected field), for `check-config` to show.
+pub fn resolve_config_checked(
+    loaded: &LoadedConfig,
+    library: &TemplateLibrary,
+) -> (Result<Vec<ResolvedPort>, ErrorList>, Vec<LocatedError>) {
+    let mut warnings = Vec::new();
+    let mut used_templates: Vec<&TemplateFile> = Vec::new();
     let mut errors = Vec::new();
     let mut ports = Vec::new();
     let mut device_ids: BTreeMap<String, JsonPath> = BTreeMap::new();
@@ -46,15 +62,26 @@ pub fn resolve_config(
                 .map(|s| s.value())
                 .unwrap_or(0)
                 .clamp(0, 255) as u8;
+            let module = device.slave_id.and_then(|s| s.module);
             let template = match &device.device_type {
                 Some(device_type) => match library.get(device_type) {
-                    Some(template) => Some(template),
+                    Some(template) => {
+                        if !used_templates
+                            .iter()
+                            .any(|t| t.device_type() == template.device_type())
+                        {
+                            used_templates.push(template);
+                            warnings.extend(template_key_warnings(template));
+                        }
+                        Some(template)
+                    }
                     None => {
                         errors.push(loaded.error(
                             path.key("device_type"),
                             Problem::MissingTemplate {
                                 device_type: device_type.clone(),
                                 similar: library.similar(device_type),
+                                searched: library.searched(),
                             },
                         ));
                         if let Some(cause) = library.load_error_for(device_type) {
@@ -71,11 +98,24 @@ pub fn resolve_config(
                 &path,
                 template,
                 port,
-                slave_id,
+                (slave_id, module),
+                true,
+                &mut warnings,
             ) {
                 Ok(mut resolved) => {
                     if resolved.id.is_empty() {
                         resolved.id = format!("wb-modbus-{port_index}-{device_index}");
+                    }
+                    if let Some(message) = topic_level_problem("device id", &resolved.id) {
+                        errors.push(loaded.error(
+                            if device.id.is_some() {
+                                path.key("id")
+                            } else {
+                                path.clone()
+                            },
+                            Problem::Invalid(message),
+                        ));
+                        continue;
                     }
                     match device_ids.get(&resolved.id) {
                         Some(other) => errors.push(loaded.error(
@@ -104,20 +144,57 @@ pub fn resolve_config(
             devices,
         });
     }
-    if errors.is_empty() {
+    let result = if errors.is_empty() {
         Ok(ports)
     } else {
         Err(ErrorList(errors))
-    }
+    };
+    (result, warnings)
 }
 
+/// Keys of a template that no setting reads and that look like a misspelt valid key (`scal`,
+/// `read_period`). Keys close to nothing are UI-only keys of the wb format: not reported.
+pub fn template_key_warnings(template: &TemplateFile) -> Vec<LocatedError> {
+    let schema = crate::config::template::template_schema();
+    let mut out = Vec::new();
+    for path in &template.unknown_keys {
+        let segments = path.segments();
+        let Some(crate::config::json_path::PathSegment::Key(key)) = segments.last() else {
+            continue;
+        };
+        let parent = JsonPath(segments[..segments.len() - 1].to_vec());
+        let valid = crate::config::parse::schema_keys_at(&schema, &parent);
+        let suggestions =
+            crate::config::library::suggest_keys(key, valid.iter().map(String::as_str));
+        if suggestions.is_empty() {
+            continue;
+        }
+        out.push(template.source.error(
+            path.clone(),
+            Problem::Warning(format!(
+                "unknown key `{key}` does nothing; did you mean {}?",
+                suggestions
+                    .iter()
+                    .map(|s| format!("`{s}`"))
+                    .collect::<Vec<_>>()
+                    .join(" or ")
+            )),
+        ));
+    }
+    out
+}
+
+// One call site per use (config, check-templates, single template): a struct would only rename them.
+#[allow(clippy::too_many_arguments)]
 fn resolve_one(
     config_source: SourceText,
     object: &Map<String, Value>,
     path: &JsonPath,
     template: Option<&TemplateFile>,
     port: &PortConfig,
-    slave_id: u8,
+    (slave_id, module): (u8, Option<i128>),
+    check_required: bool,
+    warnings: &mut Vec<LocatedError>,
 ) -> Result<ResolvedDevice, Vec<LocatedError>> {
     let locate = |origin: &str, problem: Problem| {
         locate_origin(&config_source, template, path, origin, problem)
@@ -131,17 +208,24 @@ fn resolve_one(
         device: object,
         device_path: path.clone(),
         slave_id: slave_text.unwrap_or_else(|| slave_id.to_string()),
+        check_required,
     };
-    let merged = merge_device(&input).map_err(|errors| {
+    let (merged, merge_warnings) = merge_device(&input).map_err(|errors| {
         errors
             .into_iter()
             .map(|MergeError { origin, problem }| locate(&origin, problem))
             .collect::<Vec<_>>()
     })?;
+    warnings.extend(
+        merge_warnings
+            .into_iter()
+            .map(|MergeError { origin, problem }| locate(&origin, problem)),
+    );
     let resolve_input = ResolveInput {
         merged: &merged,
         port,
         slave_id,
+        module,
         is_wb_template: template
             .is_some_and(|t| t.template.hw.as_ref().is_some_and(|hw| !hw.is_empty())),
         hw: template
@@ -167,12 +251,14 @@ fn locate_origin(
 ) -> LocatedError {
     if let (Some(rest), Some(template)) = (origin.strip_prefix("t:"), template) {
         let mut error = template.source.error(JsonPath::parse(rest), problem);
-        if let Problem::Invalid(message) = &mut error.problem {
-            *message = format!(
-                "{message} (template used by the device at {} in {})",
-                device_path,
-                config.path.display()
-            );
+        // Which device brought the template in, when there is one (not for `check-templates`).
+        if !device_path.is_root() {
+            if let Problem::Invalid(message) = &mut error.problem {
+                *message = format!(
+                    "{message} (in the template, as used by the device at {device_path} of {})",
+                    config.path.display()
+                );
+            }
         }
         return error;
     }
@@ -189,7 +275,18 @@ fn locate_origin(
 pub fn check_template(template: &TemplateFile) -> Vec<LocatedError> {
     let port = default_port();
     let mut errors = Vec::new();
-    let mut configs = vec![json!({"slave_id": 1, "device_type": template.device_type()})];
+    let is_modbus_io = template
+        .template
+        .device
+        .protocol
+        .as_deref()
+        .is_some_and(|p| p.starts_with("modbus_io"));
+    let (slave_id, module) = if is_modbus_io {
+        (json!("1:1"), Some(1))
+    } else {
+        (json!(1), None)
+    };
+    let mut configs = vec![json!({"slave_id": slave_id, "device_type": template.device_type()})];
     let slots = template
         .raw
         .pointer("/device/channels")
@@ -207,7 +304,7 @@ pub fn check_template(template: &TemplateFile) -> Vec<LocatedError> {
         // Each choice once, in the first slot that offers it: enough to load every subdevice.
         for choice in choices.iter().filter(|c| tried.insert(c.to_string())) {
             configs.push(json!({
-                "slave_id": 1,
+                "slave_id": slave_id,
                 "device_type": template.device_type(),
                 "channels": [{"name": name, "device_type": choice}],
             }));
@@ -224,7 +321,9 @@ pub fn check_template(template: &TemplateFile) -> Vec<LocatedError> {
             &JsonPath::root(),
             Some(template),
             &port,
-            1,
+            (1, module),
+            false,
+            &mut Vec::new(),
         ) {
             for error in more.drain(..) {
                 if !errors.contains(&error) {
@@ -268,17 +367,11 @@ pub fn resolve_template_device(
     device: &Value,
 ) -> Result<ResolvedDevice, ErrorList> {
     let object = device.as_object().cloned().unwrap_or_default();
-    let slave_id = object
+    let parsed: Option<SlaveId> = object
         .get("slave_id")
-        .and_then(|v| {
-            v.as_i64().or_else(|| {
-                v.as_str()
-                    .and_then(crate::config::values::parse_int_text)
-                    .map(|v| v as i64)
-            })
-        })
-        .unwrap_or(1)
-        .clamp(0, 255) as u8;
+        .and_then(|v| serde_json::from_value(v.clone()).ok());
+    let slave_id = parsed.map(|s| s.value()).unwrap_or(1).clamp(0, 255) as u8;
+    let module = parsed.and_then(|s| s.module);
     let text = serde_json::to_string_pretty(device).unwrap_or_default();
     let source = SourceText::from_text(Path::new("(device)"), &text);
     resolve_one(
@@ -287,7 +380,9 @@ pub fn resolve_template_device(
         &JsonPath::root(),
         Some(template),
         &default_port(),
-        slave_id,
+        (slave_id, module),
+        true,
+        &mut Vec::new(),
     )
     .map_err(ErrorList)
 }

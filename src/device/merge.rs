@@ -94,10 +94,13 @@ pub struct DeviceMergeInput<'a> {
     pub device: &'a Map<String, Value>,
     pub device_path: JsonPath,
     pub slave_id: String,
+    /// Enforce `required` parameters (off when `check-templates` tries a template on its own).
+    pub check_required: bool,
 }
 
-/// Merges; returns the device object to resolve, or every problem found.
-pub fn merge_device(input: &DeviceMergeInput) -> Result<Value, Vec<MergeError>> {
+/// Merges; returns the device object to resolve and the warnings (settings that do nothing),
+/// or every problem found.
+pub fn merge_device(input: &DeviceMergeInput) -> Result<(Value, Vec<MergeError>), Vec<MergeError>> {
     let mut errors = Vec::new();
     let empty = Value::Object(Map::new());
     let template_device = input
@@ -186,6 +189,7 @@ pub fn merge_device(input: &DeviceMergeInput) -> Result<Value, Vec<MergeError>> 
         template_setup: template_device.get("setup"),
         template_path: JsonPath::root().key("device"),
     };
+    level.check_rules(input.check_required, &mut errors);
     let setup = level.setup_items(&mut errors);
     result.insert("setup".into(), Value::Array(setup));
 
@@ -194,16 +198,63 @@ pub fn merge_device(input: &DeviceMergeInput) -> Result<Value, Vec<MergeError>> 
         &JsonPath::root().key("device").key("channels"),
         input.device.get("channels"),
         &input.device_path.key("channels"),
-        &subdevices,
+        &Scope {
+            subdevices: &subdevices,
+            check_required: input.check_required,
+        },
         &level.condition_values(),
         &mut errors,
         0,
     );
     result.insert("channels".into(), Value::Array(channels));
+    let (warnings, errors): (Vec<MergeError>, Vec<MergeError>) = errors
+        .into_iter()
+        .partition(|e| matches!(e.problem, Problem::Warning(_)));
     if errors.is_empty() {
-        Ok(Value::Object(result))
+        Ok((Value::Object(result), warnings))
     } else {
         Err(errors)
+    }
+}
+
+fn warning(origin: String, message: String) -> MergeError {
+    MergeError {
+        origin,
+        problem: Problem::Warning(message),
+    }
+}
+
+/// A config channel's keys that no channel setting reads: a typo makes a setting silently do
+/// nothing, so say so (an error under `check-config --strict`).
+fn warn_unknown_channel_keys(
+    object: &Map<String, Value>,
+    at: &JsonPath,
+    errors: &mut Vec<MergeError>,
+) {
+    for key in object.keys() {
+        if known_channel_keys().contains(key) || key.starts_with("__") {
+            continue;
+        }
+        let suggestions = crate::config::library::suggest_keys(
+            key,
+            known_channel_keys().iter().map(String::as_str),
+        );
+        let hint = if suggestions.is_empty() {
+            String::new()
+        } else {
+            format!(
+                "; did you mean {}?",
+                suggestions
+                    .iter()
+                    .map(|s| format!("`{s}`"))
+                    .collect::<Vec<_>>()
+                    .join(" or ")
+            )
+        };
+        errors.push(warning(
+            format!("c:{}", at.key(key)),
+            format!("unknown channel key `{key}` does nothing{hint}"),
+        ));
     }
 }
 
@@ -217,8 +268,11 @@ fn parameter_spec<'a>(parameters: Option<&'a Value>, id: &str) -> Option<&'a Val
     }
 }
 
+/// Parameter ids in template order, each once (an array may declare one id several times,
+/// under exclusive conditions).
 fn parameter_ids(parameters: Option<&Value>) -> Vec<String> {
-    match parameters {
+    let mut ids: Vec<String> = Vec::new();
+    let all: Vec<String> = match parameters {
         Some(Value::Object(map)) => map.keys().cloned().collect(),
         Some(Value::Array(list)) => list
             .iter()
@@ -226,7 +280,69 @@ fn parameter_ids(parameters: Option<&Value>) -> Vec<String> {
             .map(String::from)
             .collect(),
         _ => Vec::new(),
+    };
+    for id in all {
+        if !ids.contains(&id) {
+            ids.push(id);
+        }
     }
+    ids
+}
+
+/// Every declaration of parameter `id` with its index in an array (None in an object).
+fn parameter_declarations<'a>(
+    parameters: Option<&'a Value>,
+    id: &str,
+) -> Vec<(Option<usize>, &'a Value)> {
+    match parameters {
+        Some(Value::Object(map)) => map.get(id).map(|p| (None, p)).into_iter().collect(),
+        Some(Value::Array(list)) => list
+            .iter()
+            .enumerate()
+            .filter(|(_, p)| p.get("id").and_then(Value::as_str) == Some(id))
+            .map(|(i, p)| (Some(i), p))
+            .collect(),
+        _ => Vec::new(),
+    }
+}
+
+/// Whether an item's `condition` holds; an unparsable condition counts as false (it is
+/// reported where the item is used).
+fn condition_true(item: &Value, values: &BTreeMap<String, f64>) -> bool {
+    match item
+        .get("condition")
+        .and_then(Value::as_str)
+        .filter(|t| !t.trim().is_empty())
+    {
+        None => true,
+        Some(text) => Condition::parse(text).is_ok_and(|c| c.holds(values)),
+    }
+}
+
+/// The numbers an `enum` allows, if the parameter has one.
+fn allowed_values(spec: &Value) -> Option<Vec<f64>> {
+    let list = spec.get("enum")?.as_array()?;
+    Some(
+        list.iter()
+            .filter_map(|v| {
+                v.as_f64().or_else(|| {
+                    v.as_str()
+                        .and_then(crate::config::values::parse_int_text)
+                        .map(|i| i as f64)
+                })
+            })
+            .collect(),
+    )
+}
+
+fn number_of(spec: &Value, key: &str) -> Option<f64> {
+    let value = spec.get(key)?;
+    value.as_f64().or_else(|| {
+        value
+            .as_str()
+            .and_then(crate::config::values::parse_int_text)
+            .map(|i| i as f64)
+    })
 }
 
 /// One level of parameters and setup: the device, or one subdevice slot.
@@ -243,6 +359,93 @@ struct Level<'a> {
 }
 
 impl Level<'_> {
+    /// The declaration of `id` in effect: the one whose condition holds (reported when several
+    /// do), else the first.
+    fn active_spec(&self, id: &str, conditions: &BTreeMap<String, f64>) -> Option<&Value> {
+        let declarations = parameter_declarations(self.parameters, id);
+        declarations
+            .iter()
+            .find(|(_, p)| condition_true(p, conditions))
+            .or(declarations.first())
+            .map(|(_, p)| *p)
+    }
+
+    /// wb-mqtt-serial's parameter rules: one declaration in effect per id, values within
+    /// `enum` / `min`…`max`, and every `required` parameter in effect given (checked only where
+    /// the config chose this level: `check_required`).
+    fn check_rules(&self, check_required: bool, errors: &mut Vec<MergeError>) {
+        let conditions = self.condition_values();
+        for id in parameter_ids(self.parameters) {
+            let declarations = parameter_declarations(self.parameters, &id);
+            let active: Vec<&(Option<usize>, &Value)> = declarations
+                .iter()
+                .filter(|(_, p)| condition_true(p, &conditions))
+                .collect();
+            if active.len() > 1 {
+                let at = match active[1].0 {
+                    Some(i) => self.template_path.key("parameters").index(i),
+                    None => self.template_path.key("parameters").key(&id),
+                };
+                errors.push(MergeError {
+                    origin: format!("t:{at}"),
+                    problem: Problem::Invalid(format!(
+                        "parameter `{id}` is declared {} times and more than one applies; give each declaration a `condition` that excludes the others",
+                        declarations.len()
+                    )),
+                });
+                continue;
+            }
+            let Some(spec) = self.active_spec(&id, &conditions) else {
+                continue;
+            };
+            let origin = format!("c:{}", self.value_path.key(&id));
+            match self.values.get(&id) {
+                Some(value) => {
+                    if let Some(allowed) = allowed_values(spec) {
+                        if !allowed.is_empty() && !allowed.contains(value) {
+                            errors.push(MergeError {
+                                origin,
+                                problem: Problem::Invalid(format!(
+                                    "parameter `{id}` cannot be {value}; allowed: {}",
+                                    describe_choices(spec, &allowed)
+                                )),
+                            });
+                            continue;
+                        }
+                    }
+                    let min = number_of(spec, "min");
+                    let max = number_of(spec, "max");
+                    if min.is_some_and(|m| *value < m) || max.is_some_and(|m| *value > m) {
+                        errors.push(MergeError {
+                            origin,
+                            problem: Problem::Invalid(format!(
+                                "parameter `{id}` is {value}, outside its range {}…{}",
+                                min.map(|m| m.to_string()).unwrap_or_default(),
+                                max.map(|m| m.to_string()).unwrap_or_default()
+                            )),
+                        });
+                    }
+                }
+                None if check_required
+                    && spec.get("required").and_then(Value::as_bool) == Some(true)
+                    && condition_true(spec, &conditions) =>
+                {
+                    let choices = allowed_values(spec)
+                        .filter(|a| !a.is_empty())
+                        .map(|a| format!(" (one of {})", describe_choices(spec, &a)))
+                        .unwrap_or_default();
+                    errors.push(MergeError {
+                        origin: format!("c:{}", self.value_path),
+                        problem: Problem::Invalid(format!(
+                            "the template requires parameter `{id}`: add `\"{id}\": <value>`{choices}"
+                        )),
+                    });
+                }
+                None => {}
+            }
+        }
+    }
+
     /// Parameter values for conditions: defaults, then the config's values.
     fn condition_values(&self) -> BTreeMap<String, f64> {
         let mut out = BTreeMap::new();
@@ -276,7 +479,7 @@ impl Level<'_> {
         }
         for id in parameter_ids(self.parameters) {
             let (Some(value), Some(spec)) =
-                (self.values.get(&id), parameter_spec(self.parameters, &id))
+                (self.values.get(&id), self.active_spec(&id, &conditions))
             else {
                 continue;
             };
@@ -311,6 +514,22 @@ impl Level<'_> {
         }
         items
     }
+}
+
+/// `0 (Button), 1 (Counter)` from an `enum` and its `enum_titles`.
+fn describe_choices(spec: &Value, allowed: &[f64]) -> String {
+    let titles = spec.get("enum_titles").and_then(Value::as_array);
+    allowed
+        .iter()
+        .enumerate()
+        .map(
+            |(i, v)| match titles.and_then(|t| t.get(i)).and_then(Value::as_str) {
+                Some(title) => format!("{v} ({title})"),
+                None => v.to_string(),
+            },
+        )
+        .collect::<Vec<_>>()
+        .join(", ")
 }
 
 fn with_origin(item: &Value, origin: &str) -> Value {
@@ -356,7 +575,7 @@ fn merge_channels(
     template_path: &JsonPath,
     overrides: Option<&Value>,
     overrides_path: &JsonPath,
-    subdevices: &SubdeviceMap,
+    scope: &Scope,
     conditions: &BTreeMap<String, f64>,
     errors: &mut Vec<MergeError>,
     depth: usize,
@@ -384,23 +603,34 @@ fn merge_channels(
             continue;
         };
         let name = object.get("name").and_then(Value::as_str).unwrap_or("");
-        let found = channels
-            .iter()
-            .position(|(c, _)| c.get("name").and_then(Value::as_str) == Some(name));
-        match found {
-            Some(index) => {
-                if let Some((channel, slot)) = channels.get_mut(index) {
-                    override_channel(channel, object, &at, errors);
-                    *slot = Some((object.clone(), at));
-                }
-            }
-            None if object.contains_key("device_type") => errors.push(MergeError {
+        // Every template channel of that name, as wb-mqtt-serial does: templates declare one
+        // channel several times under conditions (one per input mode, firmware …), and an
+        // override must reach whichever of them is in effect.
+        let mut matched = false;
+        let overrides_a_slot = channels.iter().any(|(c, _)| {
+            c.get("name").and_then(Value::as_str) == Some(name)
+                && (c.get("device_type").is_some() || c.get("oneOf").is_some())
+        });
+        if !overrides_a_slot && !object.contains_key("device_type") {
+            warn_unknown_channel_keys(object, &at, errors);
+        }
+        for (channel, slot) in channels
+            .iter_mut()
+            .filter(|(c, _)| c.get("name").and_then(Value::as_str) == Some(name))
+        {
+            override_channel(channel, object, &at, errors);
+            *slot = Some((object.clone(), at.clone()));
+            matched = true;
+        }
+        match matched {
+            true => {}
+            false if object.contains_key("device_type") => errors.push(MergeError {
                 origin: format!("c:{}", at.key("device_type")),
                 problem: Problem::Invalid(format!(
                     "there is no subdevice slot named `{name}` in the template, so this channel cannot set `device_type`"
                 )),
             }),
-            None => channels.push((with_origin(item, &format!("c:{at}")), None)),
+            false => channels.push((with_origin(item, &format!("c:{at}")), None)),
         }
     }
     let mut out = Vec::new();
@@ -421,7 +651,7 @@ fn merge_channels(
                 });
                 continue;
             }
-            if let Some(expanded) = expand_subdevice(channel, config, subdevices, errors, depth) {
+            if let Some(expanded) = expand_subdevice(channel, config, scope, errors, depth) {
                 out.push(expanded);
             }
         } else {
@@ -450,7 +680,19 @@ fn override_channel(
             (None, Some(only)) => vec![only],
             (None, None) => Vec::new(),
         };
-        if allowed.contains(&chosen) {
+        let chosen_text = chosen
+            .as_str()
+            .map(String::from)
+            .unwrap_or_else(|| chosen.to_string());
+        if allowed.is_empty() {
+            errors.push(MergeError {
+                origin: format!("c:{}", at.key("device_type")),
+                problem: Problem::Invalid(format!(
+                    "the template's channel `{}` is not a subdevice slot, so it cannot take `device_type` `{chosen_text}`; remove `device_type` here",
+                    target.get("name").and_then(Value::as_str).unwrap_or("")
+                )),
+            });
+        } else if allowed.contains(&chosen) {
             target.insert("device_type".into(), chosen.clone());
         } else {
             let names: Vec<String> = allowed
@@ -461,7 +703,7 @@ fn override_channel(
             errors.push(MergeError {
                 origin: format!("c:{}", at.key("device_type")),
                 problem: Problem::Invalid(format!(
-                    "`{chosen}` is not a choice of this slot; valid: {}",
+                    "`{chosen_text}` is not a choice of this slot; valid: {}",
                     names.join(", ")
                 )),
             });
@@ -479,23 +721,55 @@ fn override_channel(
                 if target.get("readonly") == Some(&Value::Bool(true))
                     && value != &Value::Bool(true) =>
             {
-                tracing::warn!("{at}: `readonly` is already true in the template; ignored");
+                errors.push(warning(
+                    format!("c:{}", at.key(key)),
+                    "the template makes this channel read-only; `readonly` cannot be turned off here (ignored)".into(),
+                ));
             }
-            _ if forbidden => {
-                tracing::warn!("{at}: the template's `{key}` cannot be overridden; ignored")
-            }
+            _ if forbidden => errors.push(warning(
+                format!("c:{}", at.key(key)),
+                format!(
+                    "the template's `{key}` defines the register and cannot be overridden in the config (ignored); for a different register, add a channel with another name"
+                ),
+            )),
             _ if is_slot && !known_channel_keys().contains(key) => {} // a subdevice parameter value
             _ => {
                 target.insert(key.clone(), value.clone());
             }
         }
     }
+    if is_slot
+        && target.get("device_type").is_none()
+        && (config.contains_key("setup") || config.contains_key("channels"))
+    {
+        let choices: Vec<&str> = target
+            .get("oneOf")
+            .and_then(Value::as_array)
+            .into_iter()
+            .flatten()
+            .filter_map(Value::as_str)
+            .collect();
+        errors.push(MergeError {
+            origin: format!("c:{at}"),
+            problem: Problem::Invalid(format!(
+                "subdevice slot `{}` has no subdevice chosen, so its settings have nowhere to go; add \"device_type\": one of {}",
+                target.get("name").and_then(Value::as_str).unwrap_or(""),
+                choices.join(", ")
+            )),
+        });
+    }
+}
+
+/// What every level of one device merge shares.
+struct Scope<'a> {
+    subdevices: &'a SubdeviceMap,
+    check_required: bool,
 }
 
 fn expand_subdevice(
     slot: Value,
     config: Option<ConfigOverride>,
-    subdevices: &SubdeviceMap,
+    scope: &Scope,
     errors: &mut Vec<MergeError>,
     depth: usize,
 ) -> Option<Value> {
@@ -509,7 +783,7 @@ fn expand_subdevice(
         .and_then(Value::as_str)
         .unwrap_or("")
         .to_string();
-    let Some((body, body_path)) = subdevices.get(&device_type) else {
+    let Some((body, body_path)) = scope.subdevices.get(&device_type) else {
         errors.push(MergeError {
             origin: format!("{origin}.device_type"),
             problem: Problem::Invalid(format!(
@@ -518,6 +792,7 @@ fn expand_subdevice(
         });
         return None;
     };
+    let chosen_in_config = config.is_some();
     let (config_object, config_path) = match config {
         Some((object, path)) => (object, path),
         None => (Map::new(), JsonPath::root()),
@@ -562,13 +837,14 @@ fn expand_subdevice(
         template_setup: body.get("setup"),
         template_path: body_path.clone(),
     };
+    level.check_rules(chosen_in_config && scope.check_required, errors);
     let setup = level.setup_items(errors);
     let channels = merge_channels(
         body.get("channels"),
         &body_path.key("channels"),
         config_object.get("channels"),
         &config_path.key("channels"),
-        subdevices,
+        scope,
         &level.condition_values(),
         errors,
         depth + 1,

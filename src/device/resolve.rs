@@ -12,6 +12,7 @@ use super::model::*;
 use super::number_text::format_g;
 use crate::config::config_file::PortConfig;
 use crate::config::error::Problem;
+use crate::config::load::duration_problem;
 use crate::config::template::{
     ChannelSpec, RegisterKind, SetupItemSpec, SetupValue, TemplateDevice,
 };
@@ -22,6 +23,42 @@ use crate::config::values::AddressSpec;
 pub struct ResolveError {
     pub origin: String,
     pub problem: Problem,
+}
+
+/// The largest subdevice or module shift: more moves every register off the 0…65535 map.
+const MAX_SHIFT: u64 = 65_535;
+
+/// Longest device id or channel name: they become MQTT topic levels, which a broker limits
+/// (65,535 bytes per topic); real names are short.
+pub const MAX_NAME_BYTES: usize = 200;
+
+/// Why a device id or control id cannot be an MQTT topic level, if it cannot: `+` and `#` are
+/// wildcards (a publish to them fails), `/` would move the value to another topic (a
+/// read-only channel named `K2/on` would write K2), NUL is not allowed in topics.
+pub fn topic_level_problem(what: &str, name: &str) -> Option<String> {
+    let bad = name
+        .chars()
+        .find(|c| matches!(c, '+' | '#' | '/' | '\0'))
+        .map(|c| {
+            if c == '\0' {
+                "NUL".to_string()
+            } else {
+                format!("`{c}`")
+            }
+        });
+    if let Some(bad) = bad {
+        return Some(format!(
+            "{what} `{}` contains {bad}, which cannot be part of an MQTT topic; rename it (letters, digits, spaces, `-`, `_`, `(`, `)` are fine)",
+            name.escape_debug()
+        ));
+    }
+    if name.len() > MAX_NAME_BYTES {
+        return Some(format!(
+            "{what} is {} bytes long; at most {MAX_NAME_BYTES} bytes are allowed",
+            name.len()
+        ));
+    }
+    None
 }
 
 /// Channel names that also give the device's serial number register.
@@ -43,6 +80,8 @@ pub struct ResolveInput<'a> {
     pub merged: &'a Value,
     pub port: &'a PortConfig,
     pub slave_id: u8,
+    /// The module number of a `modbus_io` slave_id ("address:module").
+    pub module: Option<i128>,
     pub is_wb_template: bool,
     pub hw: Vec<crate::config::template::HardwareSignature>,
     pub device_type: Option<String>,
@@ -62,7 +101,29 @@ pub fn resolve_device(input: &ResolveInput) -> Result<ResolvedDevice, Vec<Resolv
         serial_number: None,
         errors: Vec::new(),
     };
-    let root = Context::default();
+    let mut duration_errors: Vec<ResolveError> = device_durations(&device)
+        .into_iter()
+        .filter_map(|(key, value)| duration_problem(key, value))
+        .map(|problem| ResolveError {
+            origin: String::new(),
+            problem,
+        })
+        .collect();
+    if !duration_errors.is_empty() {
+        return Err(std::mem::take(&mut duration_errors));
+    }
+    let root = Context {
+        base: match modbus_io_shift(&device, input.module) {
+            Ok(shift) => shift,
+            Err(problem) => {
+                return Err(vec![ResolveError {
+                    origin: String::new(),
+                    problem,
+                }])
+            }
+        },
+        ..Context::default()
+    };
     walker.setup_items(device.setup.as_deref().unwrap_or(&[]), &root);
     walker.channels(device.channels.as_deref().unwrap_or(&[]), &root);
     if !walker.errors.is_empty() {
@@ -115,6 +176,57 @@ pub fn resolve_device(input: &ResolveInput) -> Result<ResolvedDevice, Vec<Resolv
 
 fn ms(value: i64) -> Duration {
     Duration::from_millis(value.max(0) as u64)
+}
+
+/// The register shift of a `modbus_io` device (a WBIO module behind a WB-MIO, `slave_id`
+/// "address:module"), as wb-mqtt-serial computes it: modules 1…4, 5…8 … share the 4 register
+/// windows, so shift = ((module - 1) % 4 + 1) × the template's `stride` + its `shift`.
+fn modbus_io_shift(device: &TemplateDevice, module: Option<i128>) -> Result<i64, Problem> {
+    let is_modbus_io = device
+        .protocol
+        .as_deref()
+        .is_some_and(|p| p.starts_with("modbus_io"));
+    match (is_modbus_io, module) {
+        (false, None) => Ok(0),
+        (false, Some(_)) => Err(Problem::Invalid(
+            "slave_id \"address:module\" is only for modbus_io templates (WBIO modules behind a WB-MIO); give the device's plain address".into(),
+        )),
+        (true, None) => Err(Problem::Invalid(
+            "this is a modbus_io template (a WBIO module behind a WB-MIO): write slave_id as \"address:module\", e.g. \"1:2\" for the second module behind the WB-MIO at address 1".into(),
+        )),
+        (true, Some(module)) => {
+            let window = i64::try_from((module - 1).rem_euclid(4) + 1).unwrap_or(1);
+            let stride = device.stride.unwrap_or(0);
+            let shift = i64::try_from(device.shift.map(|s| s.value()).unwrap_or(0)).ok();
+            window
+                .checked_mul(stride)
+                .zip(shift)
+                .and_then(|(a, b)| a.checked_add(b))
+                .filter(|s| s.unsigned_abs() <= MAX_SHIFT)
+                .ok_or_else(|| {
+                    Problem::Invalid(format!(
+                        "the module shift (stride {stride}, shift {:?}) is out of range",
+                        device.shift.map(|s| s.value())
+                    ))
+                })
+        }
+    }
+}
+
+fn device_durations(device: &TemplateDevice) -> Vec<(&'static str, i64)> {
+    [
+        ("response_timeout_ms", device.response_timeout_ms),
+        ("frame_timeout_ms", device.frame_timeout_ms),
+        ("guard_interval_us", device.guard_interval_us),
+        ("min_request_interval", device.min_request_interval),
+        ("device_timeout_ms", device.device_timeout_ms),
+        ("max_write_fail_time_s", device.max_write_fail_time_s),
+        ("read_rate_limit_ms", device.read_rate_limit_ms),
+        ("poll_interval", device.poll_interval),
+    ]
+    .into_iter()
+    .filter_map(|(k, v)| v.map(|v| (k, v)))
+    .collect()
 }
 
 fn timing(device: &TemplateDevice, port: &PortConfig, is_wb: bool) -> DeviceTiming {
@@ -247,6 +359,20 @@ impl Walker {
                 continue;
             }
             let enabled = spec.enabled.unwrap_or(true) || spec.hidden == Some(true);
+            if spec.device_type.is_none() && spec.one_of.is_some() {
+                if spec.channels.is_some() || spec.setup.is_some() {
+                    self.error(
+                        &spec.origin,
+                        "",
+                        Problem::Invalid(format!(
+                            "subdevice slot `{}` has no subdevice chosen, so its settings have nowhere to go; add \"device_type\": one of {}",
+                            spec.name,
+                            spec.one_of.as_deref().unwrap_or(&[]).join(", ")
+                        )),
+                    );
+                }
+                continue;
+            }
             if spec.device_type.is_some() {
                 if enabled {
                     self.subdevice(spec, context);
@@ -266,8 +392,24 @@ impl Walker {
 
     fn subdevice(&mut self, slot: &ChannelSpec, context: &Context) {
         let id = slot.id.clone().unwrap_or_else(|| slot.name.clone());
+        let shift = slot.shift.map(|s| s.value()).unwrap_or(0);
+        // Checked: a huge `shift` must be an error, not a wrapped address.
+        let Some(base) = i64::try_from(shift)
+            .ok()
+            .filter(|s| s.unsigned_abs() <= MAX_SHIFT)
+            .and_then(|s| context.base.checked_add(s))
+        else {
+            self.error(
+                &slot.origin,
+                ".shift",
+                Problem::Invalid(format!(
+                    "shift {shift} is out of range: registers are 0…65535, so a shift is at most ±{MAX_SHIFT}"
+                )),
+            );
+            return;
+        };
         let mut inner = Context {
-            base: context.base + slot.shift.map(|s| s.value() as i64).unwrap_or(0),
+            base,
             stride: slot.stride.unwrap_or(0),
             id_prefix: join(&context.id_prefix, &id),
             title_prefix: context.title_prefix.clone(),
@@ -367,6 +509,16 @@ impl Walker {
         };
         let enum_titles = self.enum_titles(spec, context);
         let id = join(&context.id_prefix, spec.id.as_deref().unwrap_or(&spec.name));
+        if let Some(message) = topic_level_problem("channel name", &id) {
+            self.error(&spec.origin, "", Problem::Invalid(message));
+            return;
+        }
+        if let Some(period) = spec.read_period_ms {
+            if let Some(problem) = duration_problem("read_period_ms", period) {
+                self.error(&spec.origin, ".read_period_ms", problem);
+                return;
+            }
+        }
         let round_to = spec.round_to.filter(|r| *r > 0.0);
         self.channels.push(ResolvedChannel {
             title: self.titles(&spec.name, context),
@@ -539,6 +691,23 @@ impl Walker {
             };
             let raw =
                 |v: Option<crate::config::values::SerialInt>| v.map(|v| (v.value() as u64) & mask);
+            // wb-mqtt-serial rejects these unless they are raw register content: not negative
+            // and not wider than the value (at least 32 bits are accepted, as some library
+            // templates give 32-bit markers on narrower fields).
+            let widest = mask.max(u64::from(u32::MAX));
+            for (key, value) in [
+                ("error_value", spec.error_value),
+                ("unsupported_value", spec.unsupported_value),
+            ] {
+                if let Some(value) = value.map(|v| v.value()) {
+                    if value < 0 || value > i128::from(widest) {
+                        return Err(Problem::Invalid(format!(
+                            "{key} {value} is not raw register content of this {}-bit value: give it as 0…{widest:#X}",
+                            codec.bit_width
+                        )));
+                    }
+                }
+            }
             codec.error_value = raw(spec.error_value);
             codec.unsupported_value = raw(spec.unsupported_value);
             codec.on_value = raw(spec.on_value);
@@ -549,11 +718,28 @@ impl Walker {
         } else {
             format.registers().max(1) * 2
         };
-        let stride_offset = i64::from((context.stride * byte_width).div_ceil(2));
+        // Checked arithmetic throughout: a huge address, shift or stride in a config must be an
+        // error, never an address that wrapped around to a valid-looking register.
+        let stride_offset = context
+            .stride
+            .checked_mul(byte_width)
+            .map(|v| i64::from(v.div_ceil(2)))
+            .ok_or_else(|| {
+                Problem::Invalid(format!("stride {} is out of range", context.stride))
+            })?;
         let count = codec.word_count;
         let place = |spec: AddressSpec| -> Result<RegisterRef, Problem> {
-            let address = context.base + spec.register.unwrap_or(0) + stride_offset;
-            if address < 0 || address + i64::from(count) - 1 > 65535 {
+            let register = spec.register.unwrap_or(0);
+            let address = context
+                .base
+                .checked_add(register)
+                .and_then(|a| a.checked_add(stride_offset))
+                .ok_or(Problem::AddressOutOfRange {
+                    address: register,
+                    count,
+                })?;
+            let last = address.checked_add(i64::from(count) - 1);
+            if address < 0 || last.is_none_or(|last| last > 65535) {
                 return Err(Problem::AddressOutOfRange { address, count });
             }
             Ok(RegisterRef {
