@@ -140,8 +140,8 @@ impl PublicationPlanner {
                 device_id,
                 control_id,
                 value,
-                always_publish,
-            } => self.set_value(&device_id, &control_id, value, always_publish, now),
+                from_event,
+            } => self.set_value(&device_id, &control_id, value, from_event, now),
             DeviceUpdate::ControlError {
                 device_id,
                 control_id,
@@ -326,7 +326,7 @@ impl PublicationPlanner {
         device_id: &str,
         control_id: &str,
         value: String,
-        always_publish: bool,
+        _from_event: bool,
         now: Instant,
     ) -> Vec<MqttAction> {
         let topics = &self.settings.topics;
@@ -352,7 +352,7 @@ impl PublicationPlanner {
                 .last_published
                 .is_none_or(|t| now.saturating_duration_since(t) >= interval),
         };
-        if changed || always_publish || due || layout::is_pushbutton(channel) {
+        if changed || due || layout::is_pushbutton(channel) {
             out.push(MqttAction::Publish(layout::control_value(
                 topics, device_id, channel, &value,
             )));
