@@ -139,10 +139,19 @@ impl DeviceModel {
                 device_id: self.device.id.clone(),
                 online: true,
             }),
-            PortEvent::Offline { .. } => out.push(DeviceUpdate::Online {
-                device_id: self.device.id.clone(),
-                online: false,
-            }),
+            PortEvent::Offline { .. } => {
+                out.push(DeviceUpdate::Online {
+                    device_id: self.device.id.clone(),
+                    online: false,
+                });
+                // Every control of a dead device at once, as wb-mqtt-serial does, rather than
+                // one by one as each read fails in turn (seconds apart under back-off).
+                self.set_flags(
+                    |c| c.registers.iter().any(|r| r.read.is_some()),
+                    |flags| flags.read = true,
+                    out,
+                );
+            }
             PortEvent::Rebooted { .. } => {
                 // The device may hold other values now: an event for one word of a wider value
                 // must not be joined with words read before the restart. The reads that follow
@@ -679,6 +688,26 @@ mod tests {
             })
             .collect();
         assert_eq!(kinds, ["K1 error 'r'", "K1 error ''", "K1 = 1"]);
+    }
+
+    /// Issue 15 defect 9: a dead device sets `r` on every readable control at once.
+    #[test]
+    fn offline_sets_r_on_every_control_together() {
+        let mut model = relay();
+        let mut out = Vec::new();
+        model.apply(PortEvent::Offline { device: 0 }, &mut out);
+        let readable = model
+            .device
+            .channels
+            .iter()
+            .filter(|c| c.registers.iter().any(|r| r.read.is_some()))
+            .count();
+        let flagged = out
+            .iter()
+            .filter(|u| matches!(u, DeviceUpdate::ControlError { errors, .. } if errors.read))
+            .count();
+        assert!(readable > 5);
+        assert_eq!(flagged, readable);
     }
 
     #[test]

@@ -54,9 +54,14 @@ pub struct PlannerSettings {
 pub enum WriteOutcome {
     /// Not a topic of a writable control.
     NotOurs,
-    /// A retained `/on` message (a client's mistake): replaying it on every start would repeat
-    /// an old command, so it is ignored.
+    /// A retained `/on` message held by the broker, delivered when the driver subscribes (at
+    /// start or after a reconnect): replaying it would repeat an old command, so it is ignored.
+    /// (A retained `/on` published while the driver runs arrives live, without the retain flag
+    /// (MQTT 3.1.1 §3.3.1.3), and is carried out like any other write.)
     IgnoredRetained,
+    /// An empty payload: a client deleting a retained `/on` message. No command, and no bad
+    /// write either.
+    IgnoredEmpty,
     /// Hand `write` to the bus side; `actions` clear an earlier rejection's `w`.
     Accepted {
         write: ControlWrite,
@@ -407,6 +412,9 @@ impl PublicationPlanner {
         let Some((device_id, control_id)) = self.on_topics.get(topic).cloned() else {
             return WriteOutcome::NotOurs;
         };
+        if payload.is_empty() {
+            return WriteOutcome::IgnoredEmpty;
+        }
         if retained {
             return WriteOutcome::IgnoredRetained;
         }

@@ -337,6 +337,12 @@ fn bad_write_sets_w_and_good_write_clears_it() {
         planner.on_message(&on, b"1", true),
         WriteOutcome::IgnoredRetained
     );
+    // Issue 15 defect 9: a client clearing a retained `/on` (empty payload, delivered live) is
+    // no bad write: nothing for the bus, no `w`.
+    assert_eq!(
+        planner.on_message(&on, b"", false),
+        WriteOutcome::IgnoredEmpty
+    );
     let input_on = format!("/devices/{id}/controls/Input 0/on");
     assert_eq!(
         planner.on_message(&input_on, b"1", false),
