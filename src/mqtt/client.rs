@@ -20,9 +20,9 @@ use tracing::{debug, info, warn};
 use super::discovery::DiscoverySettings;
 use super::outbox::{unsendable, Outbox};
 use super::planner::{PlannerSettings, PublicationPlanner, UnchangedPolicy, WriteOutcome};
+use super::sweep::Sweeper;
 use super::throttle::{BirthCoalescer, LogBudget, LogDecision};
 use super::topics::{discovery_prefix, TopicError, TopicScheme};
-use super::writes::MAX_PAYLOAD;
 use super::{MqttAction, Publication};
 use crate::config::config_file::{Config, MqttConfig, TlsConfig};
 use crate::updates::{ControlWrite, DeviceUpdate};
@@ -47,6 +47,9 @@ const MAX_OUTGOING_PACKET: usize = 256 * 1024;
 /// Such a payload is held only while it is refused; `message_size_limit` in the broker's
 /// config keeps it off the network altogether.
 const MAX_INCOMING_PACKET: usize = 268_435_455 + 5;
+/// The most of an incoming payload kept: more than any `/on` payload accepted, enough for the
+/// device record of hundreds of devices.
+const MAX_KEPT_PAYLOAD: usize = 64 * 1024;
 /// Refused `/on` payloads logged per minute; the rest are counted.
 const REFUSED_WRITE_LOG_LINES: u32 = 10;
 /// Where Debian keeps the system CAs, used when TLS is on without `ca_file`.
@@ -110,8 +113,8 @@ impl MqttSettings {
 enum ConnectionEvent {
     Connected,
     Disconnected,
-    /// `payload` is cut after [`MAX_PAYLOAD`] + 1 bytes (anything that long is refused);
-    /// `size` is its real length.
+    /// `payload` is cut after [`MAX_KEPT_PAYLOAD`] bytes (an `/on` payload that long is
+    /// refused anyway); `size` is its real length.
     Message {
         topic: String,
         payload: Vec<u8>,
@@ -132,7 +135,15 @@ pub async fn run_mqtt(
     writes: mpsc::Sender<ControlWrite>,
     shutdown: impl Future<Output = ()>,
 ) -> Result<(), MqttError> {
-    let mut planner = PublicationPlanner::new(settings.planner_settings()?);
+    let planner_settings = settings.planner_settings()?;
+    let mut sweeper = Sweeper::new(
+        planner_settings.topics.clone(),
+        planner_settings
+            .discovery
+            .as_ref()
+            .map(|d| d.prefix.clone()),
+    );
+    let mut planner = PublicationPlanner::new(planner_settings);
     let status_topic = planner.topics().driver_status();
     let options = mqtt_options(&settings.broker, &status_topic)?;
     let broker = format!("{}:{}", settings.broker.host, settings.broker.port);
@@ -160,16 +171,20 @@ pub async fn run_mqtt(
                     if let Some(topic) = &ha_status {
                         outbox.push(MqttAction::Subscribe(topic.clone()));
                     }
+                    outbox.extend(sweeper.connected());
                     outbox.extend(planner.snapshot());
                     debug!(actions = outbox.len(), "republishing the retained state");
                 }
                 Some(ConnectionEvent::Disconnected) => {
                     connected = false;
+                    sweeper.disconnected();
                     outbox.clear();
                 }
                 Some(ConnectionEvent::Message { topic, payload, size, retain }) => {
                     let is_ha_status = ha_status.as_deref() == Some(topic.as_str());
-                    if is_ha_status {
+                    if let Some(actions) = sweeper.on_message(&topic, &payload, retain, &planner.device_ids()) {
+                        outbox.extend(actions);
+                    } else if is_ha_status {
                         // Any client may publish this: many births give one resend.
                         if payload == b"online" {
                             births.birth(Instant::now());
@@ -183,9 +198,13 @@ pub async fn run_mqtt(
             },
             update = updates.recv() => match update {
                 Some(update) => {
+                    let devices_changed = matches!(update, DeviceUpdate::Added(_) | DeviceUpdate::Removed { .. });
                     let actions = planner.handle(update, Instant::now());
                     if connected {
                         outbox.extend(actions);
+                        if devices_changed && sweeper.is_done() {
+                            outbox.push(MqttAction::Publish(sweeper.record(&planner.device_ids())));
+                        }
                     }
                 }
                 None => {
@@ -406,7 +425,7 @@ async fn drive_connection(
             }
             Ok(Event::Incoming(Packet::Publish(publish))) => {
                 let size = publish.payload.len();
-                let kept = size.min(MAX_PAYLOAD + 1);
+                let kept = size.min(MAX_KEPT_PAYLOAD);
                 let _ = events
                     .send(ConnectionEvent::Message {
                         topic: publish.topic,

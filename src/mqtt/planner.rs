@@ -494,6 +494,11 @@ impl PublicationPlanner {
             .collect()
     }
 
+    /// The ids of the devices served.
+    pub fn device_ids(&self) -> std::collections::BTreeSet<String> {
+        self.devices.keys().cloned().collect()
+    }
+
     /// Writable controls' `/on` topics.
     pub fn subscriptions(&self) -> Vec<String> {
         let mut topics: Vec<String> = self.on_topics.keys().cloned().collect();
