@@ -472,8 +472,9 @@ fn refusal_text(error: &rumqttc::ConnectionError) -> Option<&'static str> {
         Code::BadUserNamePassword => {
             "the MQTT broker refused the user name or password: check mqtt.user and mqtt.password"
         }
+        // What mosquitto 2 answers to a wrong password too.
         Code::NotAuthorized => {
-            "the MQTT broker does not authorise this client: check mqtt.user, mqtt.password and the broker's ACLs"
+            "the MQTT broker refused the user name or password (not authorised): check mqtt.user, mqtt.password and the broker's password file"
         }
         Code::BadClientId => "the MQTT broker refused the client id: check mqtt.client_id",
         Code::RefusedProtocolVersion => "the MQTT broker does not speak MQTT 3.1.1",
