@@ -425,3 +425,29 @@ async fn a_device_dropped_from_the_config_is_cleared_at_the_next_start() {
     );
     mqtt.stop().await;
 }
+
+/// Issue 15 defect 11: a publication the client refuses (here a channel named `Lvl#`, which
+/// the config loader should refuse too) is logged and dropped: it no longer blocks every later
+/// publication, and the exit flush still gets `offline` out.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_topic_the_client_refuses_does_not_block_the_others() {
+    let broker = Mosquitto::start();
+    let mqtt = MqttUnderTest::start(settings(broker.port));
+    let mut relay = (*template_device("rtu2mqtt-relay6", 1)).clone();
+    let mut level = relay.channels[0].clone();
+    level.id = "Lvl#".into();
+    level.readonly = true;
+    relay.channels.insert(0, level);
+    mqtt.send(DeviceUpdate::Added(std::sync::Arc::new(relay)))
+        .await;
+    mqtt.send(value(RELAY, "Lvl#", "1")).await;
+    mqtt.send(value(RELAY, "K1", "1")).await;
+    let k1 = format!("/devices/{RELAY}/controls/K1");
+    state_with(broker.port, &k1, "1").await;
+    mqtt.send(value(RELAY, "K1", "0")).await;
+    state_with(broker.port, &k1, "0").await;
+    mqtt.stop().await;
+    let state = retained(broker.port).await.expect("broker reachable");
+    assert_eq!(state["/rtu2mqtt/rtu2mqtt/status"], "offline");
+    assert!(!state.contains_key(&k1), "cleared on exit: {state:#?}");
+}
