@@ -54,7 +54,10 @@ impl DeviceModel {
     /// Applies one port event about this device. Values delivered by events are published by
     /// [`DeviceModel::flush_events`], once every event of the packet is in.
     pub fn apply(&mut self, event: PortEvent, out: &mut Vec<DeviceUpdate>) {
-        if !matches!(event, PortEvent::EventValue { .. }) {
+        if !matches!(
+            event,
+            PortEvent::EventValue { .. } | PortEvent::Rebooted { .. }
+        ) {
             // Keep the order in which things happened.
             self.flush_events(out);
         }
@@ -157,6 +160,9 @@ impl DeviceModel {
                 // must not be joined with words read before the restart. The reads that follow
                 // the new setup bring every word back.
                 self.words.clear();
+                // Events of the packet that reported the restart are not joined with those
+                // words either; the reads after the new setup publish them.
+                self.pending_events.clear();
             }
         }
     }
@@ -643,6 +649,20 @@ mod tests {
             feed_packet(&mut model, "14 46 11 00 01 06 02 04 003D 0700").is_empty(),
             "words from before the restart are not joined with new ones"
         );
+        // An event in the same packet as the restart report is not joined with them either.
+        let mut out = Vec::new();
+        model.apply(
+            PortEvent::EventValue {
+                device: 0,
+                register_type: RegisterType::Input,
+                address: 61,
+                payload: vec![8, 0],
+            },
+            &mut out,
+        );
+        model.apply(PortEvent::Rebooted { device: 0 }, &mut out);
+        model.flush_events(&mut out);
+        assert!(values(&out).is_empty(), "{out:?}");
         assert_eq!(poll(&mut model, 60, &[0, 7]), one("Input 1 counter", "7"));
     }
 
