@@ -18,13 +18,15 @@ pub enum DeviceUpdate {
     },
     /// Remove every retained topic of the device (clean shutdown, or dropped from the config).
     Removed { device_id: String },
-    /// A control's value, formatted the Wiren Board way. `always_publish`: events and
-    /// pushbuttons are published even when the value did not change.
+    /// A control's value, formatted the Wiren Board way. `from_event`: it came by a Fast Modbus
+    /// event (for logs and the stdout sink). MQTT publishes values on change either way, as
+    /// wb-mqtt-serial does: a device repeating an unconfirmed packet, or an event after the poll
+    /// that already read the value, must not publish it twice.
     Value {
         device_id: String,
         control_id: String,
         value: String,
-        always_publish: bool,
+        from_event: bool,
     },
     /// A control's error flags (the whole set, not a change).
     ControlError {

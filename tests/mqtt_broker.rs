@@ -256,7 +256,12 @@ async fn clean_exit_leaves_no_device_topics() {
         .keys()
         .filter(|t| !t.starts_with("homeassistant/"))
         .collect();
-    assert_eq!(left, ["/rtu2mqtt/rtu2mqtt/status"], "{state:#?}");
+    // The device record stays: it says what an earlier run may have left on the broker.
+    assert_eq!(
+        left,
+        ["/rtu2mqtt/rtu2mqtt/devices", "/rtu2mqtt/rtu2mqtt/status"],
+        "{state:#?}"
+    );
     assert_eq!(state["/rtu2mqtt/rtu2mqtt/status"], "offline");
     assert!(
         state.keys().any(|t| t.starts_with("homeassistant/")),
@@ -279,10 +284,16 @@ async fn clean_exit_leaves_no_device_topics() {
     let state = retained(broker.port).await.expect("broker reachable");
     assert_eq!(
         state.into_iter().collect::<Vec<_>>(),
-        [(
-            "/rtu2mqtt/rtu2mqtt/status".to_string(),
-            "offline".to_string()
-        )]
+        [
+            (
+                "/rtu2mqtt/rtu2mqtt/devices".to_string(),
+                r#"["climate_2","relay6_1"]"#.to_string()
+            ),
+            (
+                "/rtu2mqtt/rtu2mqtt/status".to_string(),
+                "offline".to_string()
+            )
+        ]
     );
 }
 
@@ -304,4 +315,139 @@ async fn clear_on_exit_off_keeps_the_state() {
         !state.keys().any(|t| t.starts_with("/devices")),
         "prefix applies to all"
     );
+}
+
+/// Issue 15 defect 5: an `/on` payload over the old 256 KiB packet limit, live or retained,
+/// is refused without dropping the connection (which made the broker publish the last will
+/// and, for a retained one, made the driver reconnect forever).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn huge_on_payloads_are_refused_without_disconnecting() {
+    let broker = Mosquitto::start();
+    let huge = "1".repeat(300 * 1024);
+    let k4_on = format!("/devices/{RELAY}/controls/K4/on");
+    publish(broker.port, &k4_on, &huge, true).await;
+    let mut mqtt = MqttUnderTest::start(settings(broker.port));
+    feed_two_devices(&mqtt).await;
+    let status = "/rtu2mqtt/rtu2mqtt/status";
+    state_with(broker.port, status, "online").await;
+    let recorder = Recorder::start(broker.port, status).await;
+
+    let k3 = format!("/devices/{RELAY}/controls/K3");
+    publish(broker.port, &format!("{k3}/on"), &huge, false).await;
+    state_with(broker.port, &format!("{k3}/meta/error"), "w").await;
+    publish(broker.port, &format!("{k3}/on"), "1", false).await;
+    let write = tokio::time::timeout(TIMEOUT, mqtt.writes.recv())
+        .await
+        .expect("a write within the timeout")
+        .expect("writes channel open");
+    assert_eq!(
+        (write.control_id.as_str(), write.payload.as_str()),
+        ("K3", "1")
+    );
+    // The bus side's answer goes out on the same connection.
+    mqtt.send(value(RELAY, "K3", "1")).await;
+    state_with(broker.port, &k3, "1").await;
+    let seen = recorder.messages.lock().unwrap().clone();
+    assert_eq!(
+        seen,
+        [(status.to_string(), "online".to_string(), true)],
+        "no last will, no reconnect"
+    );
+    mqtt.stop().await;
+}
+
+/// Issue 15 defect 9: a retained `/on` published while the driver runs reaches it live
+/// (mosquitto clears the retain flag on live delivery, as MQTT 3.1.1 says) and is carried out,
+/// as docs/mqtt.md says; clearing it (an empty retained payload) is no bad write.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn retained_on_while_running_is_a_write_and_clearing_it_is_nothing() {
+    let broker = Mosquitto::start();
+    let mut mqtt = MqttUnderTest::start(settings(broker.port));
+    feed_two_devices(&mqtt).await;
+    let k4 = format!("/devices/{RELAY}/controls/K4");
+    state_with(broker.port, &format!("{k4}/meta/type"), "switch").await;
+    publish(broker.port, &format!("{k4}/on"), "1", true).await;
+    let write = tokio::time::timeout(TIMEOUT, mqtt.writes.recv())
+        .await
+        .expect("a write within the timeout")
+        .expect("writes channel open");
+    assert_eq!(
+        (write.control_id.as_str(), write.payload.as_str()),
+        ("K4", "1")
+    );
+    publish(broker.port, &format!("{k4}/on"), "", true).await;
+    // Published after anything the empty payload could have caused, on the same connection.
+    mqtt.send(value(RELAY, "K4", "1")).await;
+    let state = state_with(broker.port, &k4, "1").await;
+    assert_eq!(state.get(&format!("{k4}/meta/error")), None, "{state:#?}");
+    assert!(mqtt.writes.try_recv().is_err(), "nothing else was written");
+    mqtt.stop().await;
+}
+
+/// Issue 15 defect 8: a device dropped from the config while the daemon was down (here: after
+/// a crash, which skips the clean exit) loses its retained topics and discovery configs at the
+/// next start; the configured device keeps its own.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_device_dropped_from_the_config_is_cleared_at_the_next_start() {
+    let broker = Mosquitto::start();
+    let mqtt = MqttUnderTest::start(settings(broker.port));
+    feed_two_devices(&mqtt).await;
+    let temperature = format!("/devices/{CLIMATE}/controls/Temperature");
+    let record = "/rtu2mqtt/rtu2mqtt/devices";
+    state_with(broker.port, &temperature, "21.5").await;
+    state_with(broker.port, record, r#"["climate_2","relay6_1"]"#).await;
+    drop(mqtt); // a crash: nothing is cleared
+
+    let stale = |topic: &str| topic.contains("/climate_2/") || topic.contains("rtu2mqtt_climate_2");
+    let before = retained(broker.port).await.expect("broker reachable");
+    assert!(before.keys().filter(|t| stale(t)).count() > 50);
+
+    let mqtt = MqttUnderTest::start(settings(broker.port));
+    mqtt.send(DeviceUpdate::Added(template_device("rtu2mqtt-relay6", 1)))
+        .await;
+    mqtt.send(value(RELAY, "K1", "1")).await;
+    let state = wait_for("the dropped device's topics gone", || async {
+        retained(broker.port).await.filter(|s| {
+            !s.keys().any(|t| stale(t))
+                && s.get(record).map(String::as_str) == Some(r#"["relay6_1"]"#)
+        })
+    })
+    .await;
+    assert_eq!(
+        state
+            .get(&format!("/devices/{RELAY}/controls/K1"))
+            .map(String::as_str),
+        Some("1")
+    );
+    assert!(
+        state.keys().any(|t| t.contains("rtu2mqtt_relay6_1")),
+        "the configured device keeps its discovery configs"
+    );
+    mqtt.stop().await;
+}
+
+/// Issue 15 defect 11: a publication the client refuses (here a channel named `Lvl#`, which
+/// the config loader should refuse too) is logged and dropped: it no longer blocks every later
+/// publication, and the exit flush still gets `offline` out.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_topic_the_client_refuses_does_not_block_the_others() {
+    let broker = Mosquitto::start();
+    let mqtt = MqttUnderTest::start(settings(broker.port));
+    let mut relay = (*template_device("rtu2mqtt-relay6", 1)).clone();
+    let mut level = relay.channels[0].clone();
+    level.id = "Lvl#".into();
+    level.readonly = true;
+    relay.channels.insert(0, level);
+    mqtt.send(DeviceUpdate::Added(std::sync::Arc::new(relay)))
+        .await;
+    mqtt.send(value(RELAY, "Lvl#", "1")).await;
+    mqtt.send(value(RELAY, "K1", "1")).await;
+    let k1 = format!("/devices/{RELAY}/controls/K1");
+    state_with(broker.port, &k1, "1").await;
+    mqtt.send(value(RELAY, "K1", "0")).await;
+    state_with(broker.port, &k1, "0").await;
+    mqtt.stop().await;
+    let state = retained(broker.port).await.expect("broker reachable");
+    assert_eq!(state["/rtu2mqtt/rtu2mqtt/status"], "offline");
+    assert!(!state.contains_key(&k1), "cleared on exit: {state:#?}");
 }

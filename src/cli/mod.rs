@@ -12,11 +12,15 @@ pub mod schema;
 pub mod sim;
 
 /// Logs to stderr; `RUST_LOG` (e.g. `debug`, `rtu2mqtt::transport=debug`) picks the detail.
+/// Colours only on a terminal: journald and log files would store the escape codes as text.
 pub fn init_logging() {
+    use std::io::IsTerminal;
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
+    let colour = std::io::stderr().is_terminal() && std::env::var_os("NO_COLOR").is_none();
     let _ = tracing_subscriber::fmt()
         .with_env_filter(filter)
+        .with_ansi(colour)
         .with_writer(std::io::stderr)
         .try_init();
 }

@@ -2,7 +2,7 @@
 //! control's error flags; port events in, [`DeviceUpdate`]s out; `/on` payloads in, register
 //! writes out.
 
-use std::collections::HashMap;
+use std::collections::{BTreeSet, HashMap};
 use std::sync::Arc;
 
 use tracing::{debug, warn};
@@ -20,6 +20,8 @@ pub struct DeviceModel {
     index: usize,
     words: HashMap<(RegisterType, u16), u16>,
     errors: Vec<ErrorFlags>,
+    /// Channels that events changed since the last [`DeviceModel::flush_events`].
+    pending_events: BTreeSet<usize>,
 }
 
 /// Why a `/on` payload was not written.
@@ -41,6 +43,7 @@ impl DeviceModel {
             index,
             words: HashMap::new(),
             errors,
+            pending_events: BTreeSet::new(),
         }
     }
 
@@ -48,8 +51,16 @@ impl DeviceModel {
         &self.device.id
     }
 
-    /// Applies one port event about this device.
+    /// Applies one port event about this device. Values delivered by events are published by
+    /// [`DeviceModel::flush_events`], once every event of the packet is in.
     pub fn apply(&mut self, event: PortEvent, out: &mut Vec<DeviceUpdate>) {
+        if !matches!(
+            event,
+            PortEvent::EventValue { .. } | PortEvent::Rebooted { .. }
+        ) {
+            // Keep the order in which things happened.
+            self.flush_events(out);
+        }
         match event {
             PortEvent::Values { span, values, .. } => {
                 for (offset, value) in values.iter().enumerate() {
@@ -58,7 +69,15 @@ impl DeviceModel {
                         .wrapping_add(u16::try_from(offset).unwrap_or(u16::MAX));
                     self.words.insert((span.register_type, address), *value);
                 }
-                self.publish_channels(|register| spans_overlap(register, &span), false, out);
+                let touched: Vec<usize> = (0..self.device.channels.len())
+                    .filter(|&index| {
+                        self.device
+                            .channels
+                            .get(index)
+                            .is_some_and(|channel| reads_span(channel, &span))
+                    })
+                    .collect();
+                self.publish_channels(touched, false, out);
             }
             PortEvent::EventValue {
                 register_type,
@@ -66,30 +85,21 @@ impl DeviceModel {
                 payload,
                 ..
             } => {
-                let value = payload
-                    .iter()
-                    .rev()
-                    .fold(0u64, |acc, &b| (acc << 8) | u64::from(b));
-                let width = self
-                    .device
-                    .channels
-                    .iter()
-                    .flat_map(|c| c.registers.iter().filter_map(|r| r.read))
-                    .find(|r| r.reg_type == register_type && r.address == address)
-                    .map_or(1, |r| r.count.max(1));
-                // Wider values arrive as one little-endian number; registers hold big-endian words.
-                for i in 0..width {
-                    let shift = 16 * u32::from(width - 1 - i);
-                    let word = if shift >= 64 {
-                        0
-                    } else {
-                        (value >> shift) as u16
-                    };
+                let width = self.event_width(register_type, address, payload.len());
+                for (offset, word) in event_words(&payload, width).into_iter().enumerate() {
+                    let offset = u16::try_from(offset).unwrap_or(u16::MAX);
                     self.words
-                        .insert((register_type, address.wrapping_add(i)), word);
+                        .insert((register_type, address.wrapping_add(offset)), word);
                 }
+                // Published once the whole packet is in (see `flush_events`): a packet may carry
+                // several words of one value, and a value made of old and new words is wrong.
                 let span = RegisterSpan::new(register_type, address, width);
-                self.publish_channels(|register| spans_overlap(register, &span), true, out);
+                let device = Arc::clone(&self.device);
+                for (index, channel) in device.channels.iter().enumerate() {
+                    if reads_span(channel, &span) {
+                        self.pending_events.insert(index);
+                    }
+                }
             }
             PortEvent::ReadFailed {
                 span, unsupported, ..
@@ -132,30 +142,72 @@ impl DeviceModel {
                 device_id: self.device.id.clone(),
                 online: true,
             }),
-            PortEvent::Offline { .. } => out.push(DeviceUpdate::Online {
-                device_id: self.device.id.clone(),
-                online: false,
-            }),
-            PortEvent::Rebooted { .. } => {}
+            PortEvent::Offline { .. } => {
+                out.push(DeviceUpdate::Online {
+                    device_id: self.device.id.clone(),
+                    online: false,
+                });
+                // Every control of a dead device at once, as wb-mqtt-serial does, rather than
+                // one by one as each read fails in turn (seconds apart under back-off).
+                self.set_flags(
+                    |c| c.registers.iter().any(|r| r.read.is_some()),
+                    |flags| flags.read = true,
+                    out,
+                );
+            }
+            PortEvent::Rebooted { .. } => {
+                // The device may hold other values now: an event for one word of a wider value
+                // must not be joined with words read before the restart. The reads that follow
+                // the new setup bring every word back.
+                self.words.clear();
+                // Events of the packet that reported the restart are not joined with those
+                // words either; the reads after the new setup publish them.
+                self.pending_events.clear();
+            }
         }
+    }
+
+    /// Publishes the channels that events changed, each once, made of the newest words. A
+    /// channel with a word never read yet waits for its read (done at once after the events
+    /// setup), rather than being published half-known.
+    pub fn flush_events(&mut self, out: &mut Vec<DeviceUpdate>) {
+        if self.pending_events.is_empty() {
+            return;
+        }
+        let touched: Vec<usize> = std::mem::take(&mut self.pending_events)
+            .into_iter()
+            .collect();
+        self.publish_channels(touched, true, out);
+    }
+
+    /// How many words an event payload holds for the value at `address`: what its bytes carry,
+    /// but no more than the channel's register there (a device may pad the payload).
+    fn event_width(&self, register_type: RegisterType, address: u16, payload_len: usize) -> u16 {
+        if register_type.is_bit() {
+            return 1;
+        }
+        let carried = u16::try_from(payload_len.div_ceil(2).max(1)).unwrap_or(u16::MAX);
+        let channel_width = self
+            .device
+            .channels
+            .iter()
+            .flat_map(|c| c.registers.iter().filter_map(|r| r.read))
+            .find(|r| r.reg_type == register_type && r.address == address)
+            .map(|r| r.count.max(1));
+        channel_width.map_or(carried, |width| width.min(carried))
     }
 
     fn publish_channels(
         &mut self,
-        touched: impl Fn(&crate::device::model::RegisterRef) -> bool,
-        always_publish: bool,
+        touched: Vec<usize>,
+        from_event: bool,
         out: &mut Vec<DeviceUpdate>,
     ) {
         let device = Arc::clone(&self.device);
-        for (index, channel) in device.channels.iter().enumerate() {
-            if !channel
-                .registers
-                .iter()
-                .filter_map(|r| r.read)
-                .any(|r| touched(&r))
-            {
+        for index in touched {
+            let Some(channel) = device.channels.get(index) else {
                 continue;
-            }
+            };
             let Some(words) = self.channel_words(channel) else {
                 continue;
             };
@@ -179,7 +231,7 @@ impl DeviceModel {
                         device_id: device.id.clone(),
                         control_id: channel.id.clone(),
                         value,
-                        always_publish,
+                        from_event,
                     });
                 }
                 Ok(Reading::DeviceError | Reading::Unsupported) => {
@@ -329,6 +381,26 @@ impl DeviceModel {
     }
 }
 
+/// The words of an event payload (a little-endian number) for `width` registers from the event's
+/// address, high word first as registers hold them; bits are 0 or 1.
+fn event_words(payload: &[u8], width: u16) -> Vec<u16> {
+    let value = payload
+        .iter()
+        .take(8)
+        .rev()
+        .fold(0u64, |acc, &b| (acc << 8) | u64::from(b));
+    (0..width)
+        .map(|i| {
+            let shift = 16 * u32::from(width - 1 - i);
+            if shift >= 64 {
+                0
+            } else {
+                (value >> shift) as u16
+            }
+        })
+        .collect()
+}
+
 fn spans_overlap(register: &crate::device::model::RegisterRef, span: &RegisterSpan) -> bool {
     let start = u32::from(register.address);
     let end = start + u32::from(register.count.max(1));
@@ -372,9 +444,9 @@ mod tests {
                 DeviceUpdate::Value {
                     control_id,
                     value,
-                    always_publish,
+                    from_event,
                     ..
-                } => Some((control_id.clone(), value.clone(), *always_publish)),
+                } => Some((control_id.clone(), value.clone(), *from_event)),
                 _ => None,
             })
             .collect()
@@ -418,7 +490,7 @@ mod tests {
     }
 
     #[test]
-    fn event_values_are_always_published() {
+    fn event_values_are_published_after_the_packet() {
         let mut model = relay();
         let mut out = Vec::new();
         let event = PortEvent::EventValue {
@@ -428,10 +500,170 @@ mod tests {
             payload: vec![0x2C, 0x01],
         };
         model.apply(event, &mut out);
+        assert!(out.is_empty(), "waits for the rest of the packet");
+        model.flush_events(&mut out);
         assert_eq!(
             values(&out),
             vec![("Input 1 counter".into(), "300".into(), true)]
         );
+    }
+
+    fn template_model(template: &str, slave_id: u8) -> DeviceModel {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join(format!("templates/{template}.json"));
+        let template = TemplateFile::load(&path).unwrap();
+        let device =
+            resolve_template_device(&template, &serde_json::json!({ "slave_id": slave_id }))
+                .unwrap();
+        DeviceModel::new(Arc::new(device), 0)
+    }
+
+    /// Feeds one 0x11 event packet, given as on the wire without its CRC, to the model the way
+    /// the port scheduler does, and returns the published values of the controls.
+    fn feed_packet(model: &mut DeviceModel, frame_hex: &str) -> Vec<(String, String)> {
+        let mut frame = crate::protocol::parse_hex(frame_hex).unwrap();
+        let crc = crate::protocol::crc16(&frame);
+        frame.extend(crc.to_le_bytes());
+        let reply = crate::protocol::Reply::decode(&frame).unwrap();
+        let crate::protocol::ReplyBody::Fast {
+            reply: crate::protocol::FastReply::Events(packet),
+            ..
+        } = reply.body
+        else {
+            panic!("not an event packet: {reply:?}");
+        };
+        let mut out = Vec::new();
+        for event in packet.events {
+            let crate::protocol::EventSource::Register(register_type) = event.source else {
+                continue;
+            };
+            model.apply(
+                PortEvent::EventValue {
+                    device: 0,
+                    register_type,
+                    address: event.id,
+                    payload: event.payload,
+                },
+                &mut out,
+            );
+        }
+        model.flush_events(&mut out);
+        values(&out)
+            .into_iter()
+            .map(|(control, value, _)| (control, value))
+            .collect()
+    }
+
+    fn poll(model: &mut DeviceModel, start: u16, words: &[u16]) -> Vec<(String, String)> {
+        let mut out = Vec::new();
+        let count = u16::try_from(words.len()).unwrap();
+        model.apply(
+            PortEvent::Values {
+                device: 0,
+                span: RegisterSpan::new(RegisterType::Input, start, count),
+                values: words.to_vec(),
+            },
+            &mut out,
+        );
+        values(&out)
+            .into_iter()
+            .map(|(control, value, _)| (control, value))
+            .collect()
+    }
+
+    fn one(control: &str, value: &str) -> Vec<(String, String)> {
+        vec![(control.to_owned(), value.to_owned())]
+    }
+
+    /// Issue 15 defect 1: a u32 counter at input 60/61 holds 0, 5 (= 5); the device reports
+    /// each register by its own event (2-byte payloads, little-endian as the protocol says).
+    #[test]
+    fn an_event_for_one_word_of_a_wide_value_keeps_the_other_word() {
+        let mut model = template_model("rtu2mqtt-counter8", 20);
+        assert_eq!(poll(&mut model, 60, &[0, 5]), one("Input 1 counter", "5"));
+        // 60 = 1: device 20, 0x11, flag 1, 1 event, 6 data bytes: len 2, input, id 60, value 1.
+        assert_eq!(
+            feed_packet(&mut model, "14 46 11 01 01 06 02 04 003C 0100"),
+            one("Input 1 counter", "65541")
+        );
+        // 61 = 7.
+        assert_eq!(
+            feed_packet(&mut model, "14 46 11 00 01 06 02 04 003D 0700"),
+            one("Input 1 counter", "65543")
+        );
+        // A device that reports the whole value at its first register (4 bytes) sets both.
+        assert_eq!(
+            feed_packet(&mut model, "14 46 11 01 01 08 04 04 003C 0900 0200"),
+            one("Input 1 counter", "131081")
+        );
+    }
+
+    /// Issue 15 defect 1: illuminance, u32 x 0.01 at input 9/10, polled as 655.36.
+    #[test]
+    fn an_event_for_the_first_word_of_a_scaled_value_keeps_the_second() {
+        let mut model = template_model("rtu2mqtt-climate", 20);
+        assert_eq!(poll(&mut model, 9, &[1, 0]), one("Illuminance", "655.36"));
+        // Register 9 reported unchanged (1): still 655.36, not 0.01.
+        assert_eq!(
+            feed_packet(&mut model, "14 46 11 01 01 06 02 04 0009 0100"),
+            one("Illuminance", "655.36")
+        );
+        // Register 10 becomes 1: 655.37, not 0.01.
+        assert_eq!(
+            feed_packet(&mut model, "14 46 11 00 01 06 02 04 000A 0100"),
+            one("Illuminance", "655.37")
+        );
+    }
+
+    /// Both words in one packet (a carry from 0x0000FFFF to 0x00010000): one publication, of
+    /// the new value, never the half-updated 0x0001FFFF.
+    #[test]
+    fn words_of_one_packet_are_published_together() {
+        let mut model = template_model("rtu2mqtt-counter8", 20);
+        assert_eq!(
+            poll(&mut model, 60, &[0, 0xFFFF]),
+            one("Input 1 counter", "65535")
+        );
+        assert_eq!(
+            feed_packet(
+                &mut model,
+                "14 46 11 01 02 0C 02 04 003C 0100 02 04 003D 0000"
+            ),
+            one("Input 1 counter", "65536")
+        );
+    }
+
+    /// A word never read (events before the first poll, or after a restart): nothing is
+    /// published until the read brings the other word.
+    #[test]
+    fn a_value_with_an_unknown_word_waits_for_its_read() {
+        let mut model = template_model("rtu2mqtt-counter8", 20);
+        assert!(feed_packet(&mut model, "14 46 11 01 01 06 02 04 003C 0100").is_empty());
+        assert_eq!(
+            poll(&mut model, 60, &[1, 5]),
+            one("Input 1 counter", "65541")
+        );
+        let mut out = Vec::new();
+        model.apply(PortEvent::Rebooted { device: 0 }, &mut out);
+        assert!(
+            feed_packet(&mut model, "14 46 11 00 01 06 02 04 003D 0700").is_empty(),
+            "words from before the restart are not joined with new ones"
+        );
+        // An event in the same packet as the restart report is not joined with them either.
+        let mut out = Vec::new();
+        model.apply(
+            PortEvent::EventValue {
+                device: 0,
+                register_type: RegisterType::Input,
+                address: 61,
+                payload: vec![8, 0],
+            },
+            &mut out,
+        );
+        model.apply(PortEvent::Rebooted { device: 0 }, &mut out);
+        model.flush_events(&mut out);
+        assert!(values(&out).is_empty(), "{out:?}");
+        assert_eq!(poll(&mut model, 60, &[0, 7]), one("Input 1 counter", "7"));
     }
 
     #[test]
@@ -476,6 +708,26 @@ mod tests {
             })
             .collect();
         assert_eq!(kinds, ["K1 error 'r'", "K1 error ''", "K1 = 1"]);
+    }
+
+    /// Issue 15 defect 9: a dead device sets `r` on every readable control at once.
+    #[test]
+    fn offline_sets_r_on_every_control_together() {
+        let mut model = relay();
+        let mut out = Vec::new();
+        model.apply(PortEvent::Offline { device: 0 }, &mut out);
+        let readable = model
+            .device
+            .channels
+            .iter()
+            .filter(|c| c.registers.iter().any(|r| r.read.is_some()))
+            .count();
+        let flagged = out
+            .iter()
+            .filter(|u| matches!(u, DeviceUpdate::ControlError { errors, .. } if errors.read))
+            .count();
+        assert!(readable > 5);
+        assert_eq!(flagged, readable);
     }
 
     #[test]

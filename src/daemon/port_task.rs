@@ -153,6 +153,10 @@ impl PortTask {
                 model.apply(event, &mut updates);
             }
         }
+        // Event values of one packet are published together, once all its words are in.
+        for model in &mut self.models {
+            model.flush_events(&mut updates);
+        }
         self.send(updates).await;
     }
 

@@ -31,9 +31,9 @@ pub fn update_line(update: &DeviceUpdate) -> serde_json::Value {
             device_id,
             control_id,
             value,
-            always_publish,
+            from_event,
         } => {
-            json!({ "device": device_id, "control": control_id, "value": value, "event": always_publish })
+            json!({ "device": device_id, "control": control_id, "value": value, "event": from_event })
         }
         DeviceUpdate::ControlError {
             device_id,
@@ -58,12 +58,12 @@ pub async fn print_updates(mut updates: mpsc::Receiver<DeviceUpdate>) {
             device_id,
             control_id,
             value,
-            always_publish,
+            from_event,
         } = &update
         {
             let key = (device_id.clone(), control_id.clone());
             let unchanged = last_values.get(&key) == Some(value);
-            if unchanged && !always_publish {
+            if unchanged && !from_event {
                 continue;
             }
             last_values.insert(key, value.clone());

@@ -18,8 +18,10 @@ use tokio::sync::mpsc;
 use tracing::{debug, info, warn};
 
 use super::discovery::DiscoverySettings;
-use super::outbox::Outbox;
+use super::outbox::{unsendable, Outbox};
 use super::planner::{PlannerSettings, PublicationPlanner, UnchangedPolicy, WriteOutcome};
+use super::sweep::Sweeper;
+use super::throttle::{BirthCoalescer, LogBudget, LogDecision};
 use super::topics::{discovery_prefix, TopicError, TopicScheme};
 use super::{MqttAction, Publication};
 use crate::config::config_file::{Config, MqttConfig, TlsConfig};
@@ -35,8 +37,21 @@ const FIRST_RECONNECT_DELAY: Duration = Duration::from_millis(500);
 const MAX_RECONNECT_DELAY: Duration = Duration::from_secs(30);
 /// Longest wait on exit for the broker to take the last publications.
 const EXIT_FLUSH_TIMEOUT: Duration = Duration::from_secs(5);
-/// Largest packet accepted or sent (rumqttc's default of 10 KiB is too small for some configs).
-const MAX_PACKET: usize = 256 * 1024;
+/// Largest packet sent (rumqttc's default of 10 KiB is too small for some configs); larger
+/// publications are refused by the outbox, not sent.
+const MAX_OUTGOING_PACKET: usize = 256 * 1024;
+/// Largest packet accepted: the largest MQTT 3.1.1 allows (remaining length 268,435,455 and a
+/// 5-byte fixed header). rumqttc drops the connection on a larger incoming packet, and MQTT
+/// 3.1.1 has no way to tell the broker a smaller limit, so any lower value lets any client
+/// disconnect the driver with one big `/on` message (or, retained, keep it reconnecting).
+/// Such a payload is held only while it is refused; `message_size_limit` in the broker's
+/// config keeps it off the network altogether.
+const MAX_INCOMING_PACKET: usize = 268_435_455 + 5;
+/// The most of an incoming payload kept: more than any `/on` payload accepted, enough for the
+/// device record of hundreds of devices.
+const MAX_KEPT_PAYLOAD: usize = 64 * 1024;
+/// Refused `/on` payloads logged per minute; the rest are counted.
+const REFUSED_WRITE_LOG_LINES: u32 = 10;
 /// Where Debian keeps the system CAs, used when TLS is on without `ca_file`.
 const SYSTEM_CA_FILE: &str = "/etc/ssl/certs/ca-certificates.crt";
 
@@ -98,9 +113,12 @@ impl MqttSettings {
 enum ConnectionEvent {
     Connected,
     Disconnected,
+    /// `payload` is cut after [`MAX_KEPT_PAYLOAD`] bytes (an `/on` payload that long is
+    /// refused anyway); `size` is its real length.
     Message {
         topic: String,
         payload: Vec<u8>,
+        size: usize,
         retain: bool,
     },
 }
@@ -117,7 +135,15 @@ pub async fn run_mqtt(
     writes: mpsc::Sender<ControlWrite>,
     shutdown: impl Future<Output = ()>,
 ) -> Result<(), MqttError> {
-    let mut planner = PublicationPlanner::new(settings.planner_settings()?);
+    let planner_settings = settings.planner_settings()?;
+    let mut sweeper = Sweeper::new(
+        planner_settings.topics.clone(),
+        planner_settings
+            .discovery
+            .as_ref()
+            .map(|d| d.prefix.clone()),
+    );
+    let mut planner = PublicationPlanner::new(planner_settings);
     let status_topic = planner.topics().driver_status();
     let options = mqtt_options(&settings.broker, &status_topic)?;
     let broker = format!("{}:{}", settings.broker.host, settings.broker.port);
@@ -128,44 +154,57 @@ pub async fn run_mqtt(
 
     let mut outbox = Outbox::default();
     let mut connected = false;
+    let mut births = BirthCoalescer::default();
+    let mut refused_log = LogBudget::new(REFUSED_WRITE_LOG_LINES);
     tokio::pin!(shutdown);
     loop {
+        let birth_due = births.due().map(tokio::time::Instant::from_std);
         tokio::select! {
             biased;
             () = &mut shutdown => break,
             event = events.recv() => match event {
                 Some(ConnectionEvent::Connected) => {
                     connected = true;
+                    births.resent_now(Instant::now());
                     outbox.clear();
                     outbox.push(MqttAction::Publish(Publication::retained(&status_topic, "online")));
                     if let Some(topic) = &ha_status {
                         outbox.push(MqttAction::Subscribe(topic.clone()));
                     }
+                    outbox.extend(sweeper.connected());
                     outbox.extend(planner.snapshot());
                     debug!(actions = outbox.len(), "republishing the retained state");
                 }
                 Some(ConnectionEvent::Disconnected) => {
                     connected = false;
+                    sweeper.disconnected();
                     outbox.clear();
                 }
-                Some(ConnectionEvent::Message { topic, payload, retain }) => {
+                Some(ConnectionEvent::Message { topic, payload, size, retain }) => {
                     let is_ha_status = ha_status.as_deref() == Some(topic.as_str());
-                    if is_ha_status {
+                    if let Some(actions) = sweeper.on_message(&topic, &payload, retain, &planner.device_ids()) {
+                        outbox.extend(actions);
+                    } else if is_ha_status {
+                        // Any client may publish this: many births give one resend.
                         if payload == b"online" {
-                            info!("Home Assistant is online: sending discovery configs");
-                            outbox.extend(planner.discovery_snapshot());
+                            births.birth(Instant::now());
                         }
                     } else {
-                        on_message(&mut planner, &writes, &mut outbox, &topic, &payload, retain);
+                        let message = OnMessage { topic: &topic, payload: &payload, size, retain };
+                        on_message(&mut planner, &writes, &mut outbox, &mut refused_log, message);
                     }
                 }
                 None => break,
             },
             update = updates.recv() => match update {
                 Some(update) => {
+                    let devices_changed = matches!(update, DeviceUpdate::Added(_) | DeviceUpdate::Removed { .. });
                     let actions = planner.handle(update, Instant::now());
                     if connected {
                         outbox.extend(actions);
+                        if devices_changed && sweeper.is_done() {
+                            outbox.push(MqttAction::Publish(sweeper.record(&planner.device_ids())));
+                        }
                     }
                 }
                 None => {
@@ -174,6 +213,12 @@ pub async fn run_mqtt(
                 }
             },
             () = tokio::time::sleep(RETRY_FULL_QUEUE), if connected && !outbox.is_empty() => {}
+            () = sleep_until_some(birth_due) => {
+                if births.take_due(Instant::now()) && connected {
+                    info!("Home Assistant is online: sending discovery configs");
+                    outbox.extend(planner.discovery_snapshot());
+                }
+            }
         }
         if connected {
             offer(&client, &mut outbox);
@@ -191,28 +236,40 @@ pub async fn run_mqtt(
             &status_topic,
             "offline",
         )));
+        // Every publication is tried: one the client refuses must not keep the others (the
+        // `offline` status last of all) from the broker.
         let flush = async {
+            let mut failed = 0usize;
             while let Some(action) = outbox.pop() {
-                if send(&client, action).await.is_err() {
-                    break;
+                if let Some(reason) = unsendable(&action, MAX_OUTGOING_PACKET) {
+                    log_unsendable(&action, reason);
+                    failed += 1;
+                } else if send(&client, action).await.is_err() {
+                    failed += 1;
                 }
             }
             let _ = client.disconnect().await;
+            failed
         };
         let stop_connection = connection.abort_handle();
         let flushed = tokio::time::timeout(EXIT_FLUSH_TIMEOUT, async {
-            flush.await;
+            let failed = flush.await;
             let _ = connection.await;
+            failed
         })
         .await;
         stop_connection.abort();
-        if flushed.is_err() {
-            warn!(%broker, "the broker did not take the last publications in time");
-        } else {
-            info!(
+        match flushed {
+            Err(_) => warn!(%broker, "the broker did not take the last publications in time"),
+            Ok(0) => info!(
                 clear_on_exit = settings.broker.clear_on_exit,
                 "MQTT: disconnected"
-            );
+            ),
+            Ok(failed) => warn!(
+                %broker,
+                failed,
+                "MQTT: disconnected, but some of the last publications could not be sent"
+            ),
         }
     } else {
         warn!(%broker, "not connected to the broker at exit: its retained topics stay as they are");
@@ -221,18 +278,45 @@ pub async fn run_mqtt(
     Ok(())
 }
 
+/// Sleeps until `deadline`; forever when there is none.
+async fn sleep_until_some(deadline: Option<tokio::time::Instant>) {
+    match deadline {
+        Some(deadline) => tokio::time::sleep_until(deadline).await,
+        None => std::future::pending().await,
+    }
+}
+
+/// A message on one of our subscriptions.
+struct OnMessage<'a> {
+    topic: &'a str,
+    payload: &'a [u8],
+    size: usize,
+    retain: bool,
+}
+
 fn on_message(
     planner: &mut PublicationPlanner,
     writes: &mpsc::Sender<ControlWrite>,
     outbox: &mut Outbox,
-    topic: &str,
-    payload: &[u8],
-    retain: bool,
+    refused_log: &mut LogBudget,
+    message: OnMessage<'_>,
 ) {
+    let OnMessage {
+        topic,
+        payload,
+        size,
+        retain,
+    } = message;
     match planner.on_message(topic, payload, retain) {
         WriteOutcome::NotOurs => debug!(topic, "message on a topic that is no write, ignored"),
         WriteOutcome::IgnoredRetained => {
             debug!(topic, "retained /on message (an old command), ignored")
+        }
+        WriteOutcome::IgnoredEmpty => {
+            debug!(
+                topic,
+                "empty /on message (a client clearing a retained command), ignored"
+            )
         }
         WriteOutcome::Accepted { write, actions } => {
             debug!(device_id = %write.device_id, control_id = %write.control_id, payload = %write.payload, "write");
@@ -248,15 +332,28 @@ fn on_message(
             reason,
             actions,
         } => {
-            warn!(%device_id, %control_id, %reason, "refused a write");
+            if let LogDecision::Log { suppressed_before } = refused_log.check(Instant::now()) {
+                if suppressed_before > 0 {
+                    warn!(
+                        count = suppressed_before,
+                        "more /on payloads were refused than logged"
+                    );
+                }
+                warn!(%device_id, %control_id, size, %reason, "refused a write");
+            }
             outbox.extend(actions);
         }
     }
 }
 
-/// Gives the client as many queued actions as it takes without waiting.
+/// Gives the client as many queued actions as it takes without waiting. What the client or
+/// broker would refuse whatever happens is logged and dropped, never retried.
 fn offer(client: &AsyncClient, outbox: &mut Outbox) {
     while let Some(action) = outbox.pop() {
+        if let Some(reason) = unsendable(&action, MAX_OUTGOING_PACKET) {
+            log_unsendable(&action, reason);
+            continue;
+        }
         let result = match &action {
             MqttAction::Publish(p) => {
                 client.try_publish(p.topic.as_str(), p.qos, p.retain, p.payload.as_bytes())
@@ -272,6 +369,20 @@ fn offer(client: &AsyncClient, outbox: &mut Outbox) {
             return;
         }
     }
+}
+
+fn log_unsendable(action: &MqttAction, reason: &str) {
+    let (what, topic) = match action {
+        MqttAction::Publish(p) => ("publication", p.topic.as_str()),
+        MqttAction::Subscribe(t) => ("subscription", t.as_str()),
+        MqttAction::Unsubscribe(t) => ("unsubscription", t.as_str()),
+    };
+    let shown: String = topic.escape_debug().take(200).collect();
+    warn!(
+        topic = %shown,
+        reason,
+        "dropped an MQTT {what}: check the device and channel names in the config and templates"
+    );
 }
 
 async fn send(client: &AsyncClient, action: MqttAction) -> Result<(), ClientError> {
@@ -313,10 +424,13 @@ async fn drive_connection(
                 let _ = events.send(ConnectionEvent::Connected).await;
             }
             Ok(Event::Incoming(Packet::Publish(publish))) => {
+                let size = publish.payload.len();
+                let kept = size.min(MAX_KEPT_PAYLOAD);
                 let _ = events
                     .send(ConnectionEvent::Message {
                         topic: publish.topic,
-                        payload: publish.payload.to_vec(),
+                        payload: publish.payload.get(..kept).unwrap_or_default().to_vec(),
+                        size,
                         retain: publish.retain,
                     })
                     .await;
@@ -328,6 +442,12 @@ async fn drive_connection(
                     warn!(%broker, %error, "lost the MQTT broker; reconnecting");
                     connected = false;
                     let _ = events.send(ConnectionEvent::Disconnected).await;
+                } else if let Some(refusal) = refusal_text(&error) {
+                    if failures == 0 {
+                        warn!(%broker, "{refusal}; retrying");
+                    } else {
+                        debug!(%broker, failures, "{refusal}");
+                    }
                 } else if failures == 0 {
                     warn!(%broker, %error, "cannot reach the MQTT broker; retrying");
                 } else {
@@ -341,12 +461,34 @@ async fn drive_connection(
     }
 }
 
+/// What to tell the integrator when the broker answered but refused the connection (the
+/// broker is reachable: the fix is in the config or the broker's ACLs, not the network).
+fn refusal_text(error: &rumqttc::ConnectionError) -> Option<&'static str> {
+    use rumqttc::ConnectReturnCode as Code;
+    let rumqttc::ConnectionError::ConnectionRefused(code) = error else {
+        return None;
+    };
+    Some(match code {
+        Code::BadUserNamePassword => {
+            "the MQTT broker refused the user name or password: check mqtt.user and mqtt.password"
+        }
+        // What mosquitto 2 answers to a wrong password too.
+        Code::NotAuthorized => {
+            "the MQTT broker refused the user name or password (not authorised): check mqtt.user, mqtt.password and the broker's password file"
+        }
+        Code::BadClientId => "the MQTT broker refused the client id: check mqtt.client_id",
+        Code::RefusedProtocolVersion => "the MQTT broker does not speak MQTT 3.1.1",
+        Code::ServiceUnavailable => "the MQTT broker is up but not accepting clients",
+        Code::Success => return None,
+    })
+}
+
 /// rumqttc options: client id, credentials, keep-alive, last will, TLS.
 fn mqtt_options(config: &MqttConfig, status_topic: &str) -> Result<MqttOptions, MqttError> {
     let mut options = MqttOptions::new(&config.client_id, &config.host, config.port);
     options.set_keep_alive(Duration::from_secs(u64::from(config.keepalive_s)));
     options.set_clean_session(true);
-    options.set_max_packet_size(MAX_PACKET, MAX_PACKET);
+    options.set_max_packet_size(MAX_INCOMING_PACKET, MAX_OUTGOING_PACKET);
     options.set_last_will(LastWill::new(
         status_topic,
         "offline",

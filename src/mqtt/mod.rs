@@ -13,6 +13,8 @@ pub mod discovery;
 pub mod layout;
 pub mod outbox;
 pub mod planner;
+pub mod sweep;
+pub mod throttle;
 pub mod topics;
 pub mod writes;
 

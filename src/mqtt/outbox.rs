@@ -76,6 +76,44 @@ impl Outbox {
     }
 }
 
+/// Longest topic MQTT can carry (a two-byte length).
+const MAX_TOPIC_LEN: usize = 65_535;
+
+/// Why the client or the broker would refuse `action`: a topic made from a name that is no
+/// valid topic, or a packet over `max_packet` bytes. The client refuses such a request every
+/// time (or the broker drops the connection for it), so it is logged and dropped, never
+/// retried. None when it can be sent.
+pub fn unsendable(action: &MqttAction, max_packet: usize) -> Option<&'static str> {
+    let (topic, filter, payload_len) = match action {
+        MqttAction::Publish(p) => (p.topic.as_str(), false, p.payload.len()),
+        MqttAction::Subscribe(t) | MqttAction::Unsubscribe(t) => (t.as_str(), true, 0),
+    };
+    if topic.is_empty() {
+        return Some("the topic is empty");
+    }
+    if topic.len() > MAX_TOPIC_LEN {
+        return Some("the topic is longer than MQTT allows (65535 bytes)");
+    }
+    // The broker closes the connection on these (MQTT 3.1.1 §1.5.3).
+    if topic
+        .chars()
+        .any(|c| c.is_control() || matches!(c, '\u{FFFE}' | '\u{FFFF}'))
+    {
+        return Some("the topic holds a NUL or another control character");
+    }
+    if !filter && topic.contains(['+', '#']) {
+        return Some("the topic holds a wildcard (`+` or `#`)");
+    }
+    if filter && !rumqttc::valid_filter(topic) {
+        return Some("the subscription is no valid topic filter");
+    }
+    // Fixed header (up to 5), topic length (2), packet id (2).
+    if topic.len() + payload_len + 9 > max_packet {
+        return Some("the message is larger than the client's packet limit");
+    }
+    None
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -111,6 +149,34 @@ mod tests {
         outbox.push_front(b);
         assert_eq!(outbox.pop(), Some(publish("b", "2")));
         assert!(outbox.is_empty());
+    }
+
+    #[test]
+    fn invalid_topics_and_oversized_packets_are_unsendable() {
+        let max = 1024;
+        assert_eq!(
+            unsendable(&publish("/devices/a/controls/b", "1"), max),
+            None
+        );
+        for topic in [
+            "",
+            "/devices/+/controls/b",
+            "/devices/a/controls/Lvl#",
+            "/devices/a\0b/controls/c",
+        ] {
+            assert!(
+                unsendable(&publish(topic, "1"), max).is_some(),
+                "{topic:?} must be refused"
+            );
+        }
+        let long = "x".repeat(70_000);
+        assert!(unsendable(&publish(&long, "1"), usize::MAX).is_some());
+        assert!(unsendable(&publish("t", &"x".repeat(2000)), max).is_some());
+        assert_eq!(
+            unsendable(&MqttAction::Subscribe("/devices/+/meta".into()), max),
+            None
+        );
+        assert!(unsendable(&MqttAction::Subscribe("/devices/#/x".into()), max).is_some());
     }
 
     #[test]

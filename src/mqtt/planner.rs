@@ -54,9 +54,14 @@ pub struct PlannerSettings {
 pub enum WriteOutcome {
     /// Not a topic of a writable control.
     NotOurs,
-    /// A retained `/on` message (a client's mistake): replaying it on every start would repeat
-    /// an old command, so it is ignored.
+    /// A retained `/on` message held by the broker, delivered when the driver subscribes (at
+    /// start or after a reconnect): replaying it would repeat an old command, so it is ignored.
+    /// (A retained `/on` published while the driver runs arrives live, without the retain flag
+    /// (MQTT 3.1.1 §3.3.1.3), and is carried out like any other write.)
     IgnoredRetained,
+    /// An empty payload: a client deleting a retained `/on` message. No command, and no bad
+    /// write either.
+    IgnoredEmpty,
     /// Hand `write` to the bus side; `actions` clear an earlier rejection's `w`.
     Accepted {
         write: ControlWrite,
@@ -140,8 +145,8 @@ impl PublicationPlanner {
                 device_id,
                 control_id,
                 value,
-                always_publish,
-            } => self.set_value(&device_id, &control_id, value, always_publish, now),
+                from_event,
+            } => self.set_value(&device_id, &control_id, value, from_event, now),
             DeviceUpdate::ControlError {
                 device_id,
                 control_id,
@@ -326,7 +331,7 @@ impl PublicationPlanner {
         device_id: &str,
         control_id: &str,
         value: String,
-        always_publish: bool,
+        _from_event: bool,
         now: Instant,
     ) -> Vec<MqttAction> {
         let topics = &self.settings.topics;
@@ -352,7 +357,7 @@ impl PublicationPlanner {
                 .last_published
                 .is_none_or(|t| now.saturating_duration_since(t) >= interval),
         };
-        if changed || always_publish || due || layout::is_pushbutton(channel) {
+        if changed || due || layout::is_pushbutton(channel) {
             out.push(MqttAction::Publish(layout::control_value(
                 topics, device_id, channel, &value,
             )));
@@ -407,6 +412,9 @@ impl PublicationPlanner {
         let Some((device_id, control_id)) = self.on_topics.get(topic).cloned() else {
             return WriteOutcome::NotOurs;
         };
+        if payload.is_empty() {
+            return WriteOutcome::IgnoredEmpty;
+        }
         if retained {
             return WriteOutcome::IgnoredRetained;
         }
@@ -484,6 +492,11 @@ impl PublicationPlanner {
             .values()
             .flat_map(|s| self.removal(s, with_discovery))
             .collect()
+    }
+
+    /// The ids of the devices served.
+    pub fn device_ids(&self) -> std::collections::BTreeSet<String> {
+        self.devices.keys().cloned().collect()
     }
 
     /// Writable controls' `/on` topics.

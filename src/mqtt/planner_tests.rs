@@ -87,7 +87,7 @@ fn value(device: &str, control: &str, text: &str) -> DeviceUpdate {
         device_id: device.into(),
         control_id: control.into(),
         value: text.into(),
-        always_publish: false,
+        from_event: false,
     }
 }
 
@@ -137,9 +137,21 @@ fn values_publish_on_change_only() {
         device_id: id.clone(),
         control_id: "K1".into(),
         value: "0".into(),
-        always_publish: true,
+        from_event: true,
     };
-    assert_eq!(planner.handle(event, t0).len(), 1, "events always publish");
+    // Issue 15 defect 9: a value read by the poll and then reported by an event (or an event
+    // repeated by the device) is published once, as wb-mqtt-serial publishes on change.
+    assert!(
+        planner.handle(event.clone(), t0).is_empty(),
+        "an event of the published value is no change"
+    );
+    let changed = DeviceUpdate::Value {
+        device_id: id.clone(),
+        control_id: "K1".into(),
+        value: "1".into(),
+        from_event: true,
+    };
+    assert_eq!(planner.handle(changed, t0).len(), 1, "a changed value is");
     assert!(planner.handle(value("nope", "K1", "1"), t0).is_empty());
     assert!(planner.handle(value(&id, "nope", "1"), t0).is_empty());
 }
@@ -324,6 +336,12 @@ fn bad_write_sets_w_and_good_write_clears_it() {
     assert_eq!(
         planner.on_message(&on, b"1", true),
         WriteOutcome::IgnoredRetained
+    );
+    // Issue 15 defect 9: a client clearing a retained `/on` (empty payload, delivered live) is
+    // no bad write: nothing for the bus, no `w`.
+    assert_eq!(
+        planner.on_message(&on, b"", false),
+        WriteOutcome::IgnoredEmpty
     );
     let input_on = format!("/devices/{id}/controls/Input 0/on");
     assert_eq!(

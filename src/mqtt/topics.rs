@@ -75,6 +75,18 @@ impl TopicScheme {
         )
     }
 
+    /// Retained list of the devices this driver publishes (JSON array of ids): read back at
+    /// start to clear what a device dropped from the config left on the broker.
+    pub fn driver_devices(&self) -> String {
+        format!("{}/rtu2mqtt/{}/devices", self.prefix, self.driver_node)
+    }
+
+    /// Non-retained markers the driver sends itself to know that the broker has delivered the
+    /// retained messages of its earlier subscriptions.
+    pub fn driver_sweep_marker(&self) -> String {
+        format!("{}/rtu2mqtt/{}/sweep", self.prefix, self.driver_node)
+    }
+
     /// The client id as it appears in topics and Home Assistant ids.
     pub fn driver_node(&self) -> &str {
         &self.driver_node

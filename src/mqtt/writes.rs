@@ -21,7 +21,7 @@ pub enum WriteRejection {
 }
 
 /// Longest payload looked at; anything longer is refused before parsing.
-const MAX_PAYLOAD: usize = 4096;
+pub const MAX_PAYLOAD: usize = 4096;
 
 /// Checks an `/on` payload for `channel`; returns the text to hand to the bus side (trimmed).
 pub fn check_write(channel: &ResolvedChannel, payload: &[u8]) -> Result<String, WriteRejection> {

@@ -13,6 +13,10 @@ use crate::protocol::{EventPriority, EventRange, EventSource, RegisterType};
 /// is noticed.
 pub(super) const KEEPALIVE_PERIOD: Duration = Duration::from_secs(1);
 
+/// Registers between two event values that are filled with disabled entries rather than
+/// starting a new record (wb-mqtt-serial's `DISABLE_EVENTS_IN_HOLES`: up to 5 registers).
+const MAX_EVENT_HOLE: u32 = 5;
+
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Preparation {
     /// Setup write `next` is due.
@@ -147,8 +151,11 @@ impl DeviceState {
         }
     }
 
-    /// The 0x18 request's ranges (one per event channel, within one frame) and the planned reads
-    /// they cover. High priority for channels that also have a read period.
+    /// The 0x18 request's ranges and the planned reads they cover. As wb-mqtt-serial does, a
+    /// value takes one entry, at its first register (a device reports a wide value there, and
+    /// an entry per word would make it report each word on its own); values close together
+    /// share a record, the registers between them disabled (priority 0), which costs less than
+    /// a new record's header. High priority for channels that also have a read period.
     pub(super) fn event_ranges(&self) -> (Vec<EventRange>, Vec<usize>) {
         let mut candidates: Vec<(usize, RegisterSpan, EventPriority)> = self
             .plan
@@ -170,32 +177,51 @@ impl DeviceState {
         candidates.sort_by_key(|(_, span, _)| (span.register_type, span.start));
         // address, 0x46, 0x18, list_len, CRC: the rest of the frame is the list.
         let mut room = MAX_FRAME_LEN - 6;
-        let mut ranges = Vec::new();
+        let mut ranges: Vec<EventRange> = Vec::new();
         let mut members = Vec::new();
         for (index, span, priority) in candidates {
-            let count = usize::from(span.count);
-            // Registers right after the previous range join it: one header for the lot.
-            if let Some(last) = ranges.last_mut().filter(|last: &&mut EventRange| {
-                last.source == EventSource::Register(span.register_type)
-                    && u32::from(last.start) + last.priorities.len() as u32 == u32::from(span.start)
-                    && last.priorities.len() + count <= 255
+            if span.count == 0 {
+                continue;
+            }
+            let source = EventSource::Register(span.register_type);
+            // The same first register as the previous value (bit fields of one register).
+            if let Some(last) = ranges.last_mut().filter(|last| {
+                last.source == source
+                    && u32::from(last.start) + last.priorities.len() as u32 > u32::from(span.start)
             }) {
-                if count <= room {
-                    room -= count;
-                    last.priorities.extend(std::iter::repeat_n(priority, count));
+                let offset = usize::from(span.start.wrapping_sub(last.start));
+                if let Some(slot) = last.priorities.get_mut(offset) {
+                    *slot = (*slot).max(priority);
+                }
+                members.push(index);
+                continue;
+            }
+            // Close after the previous value: extend its record over the hole.
+            if let Some(last) = ranges.last_mut().filter(|last| {
+                let end = u32::from(last.start) + last.priorities.len() as u32;
+                last.source == source
+                    && u32::from(span.start) - end <= MAX_EVENT_HOLE
+                    && (u32::from(span.start) - end) as usize + 1 + last.priorities.len() <= 255
+            }) {
+                let end = u32::from(last.start) + last.priorities.len() as u32;
+                let hole = (u32::from(span.start) - end) as usize;
+                if hole < room {
+                    room -= hole + 1;
+                    last.priorities
+                        .extend(std::iter::repeat_n(EventPriority::Disabled, hole));
+                    last.priorities.push(priority);
                     members.push(index);
                 }
                 continue;
             }
-            let len = 4 + count;
-            if count == 0 || count > 255 || len > room {
+            if 5 > room {
                 continue;
             }
-            room -= len;
+            room -= 5;
             ranges.push(EventRange::registers(
                 span.register_type,
                 span.start,
-                vec![priority; count],
+                vec![priority],
             ));
             members.push(index);
         }
@@ -225,11 +251,10 @@ impl DeviceState {
             else {
                 continue;
             };
-            let span = plan.span;
-            let all_on =
-                (0..span.count).all(|i| is_enabled(span.register_type, span.start.wrapping_add(i)));
-            any |= all_on;
-            if all_on && plan.events == EventMode::Sporadic {
+            // Events of a value are enabled at its first register (see `event_ranges`).
+            let on = is_enabled(plan.span.register_type, plan.span.start);
+            any |= on;
+            if on && plan.events == EventMode::Sporadic {
                 state.exclusion = Exclusion::EventsOnly;
             }
         }
@@ -422,5 +447,61 @@ impl DeviceState {
             (Some(read), Some(retry)) => Some(read.max(retry)),
             (read, retry) => read.or(retry),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::TemplateFile;
+    use crate::device::resolve_template_device;
+    use crate::protocol::{hex, Request};
+
+    fn counter8() -> DeviceState {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("templates/rtu2mqtt-counter8.json");
+        let template = TemplateFile::load(&path).unwrap();
+        let device =
+            resolve_template_device(&template, &serde_json::json!({"slave_id": 20})).unwrap();
+        DeviceState::new(crate::daemon::port_plan::device_plan(&device), true)
+    }
+
+    /// Issue 15 defect 1: one entry per value at its first register; the second words of the
+    /// u32 counters (61, 63, …) are holes filled with priority 0 inside one record.
+    #[test]
+    fn events_are_enabled_once_per_value() {
+        let device = counter8();
+        let (ranges, members) = device.event_ranges();
+        let request = Request::configure_events(20, ranges).encode().unwrap();
+        let list = "1F \
+             02 0000 08 01 01 01 01 01 01 01 01 \
+             04 003C 0F 01 00 01 00 01 00 01 00 01 00 01 00 01 00 01";
+        let expected = crate::protocol::parse_hex(&format!("14 46 18 {list}")).unwrap();
+        assert_eq!(
+            hex(request.get(..request.len() - 2).unwrap()),
+            hex(&expected)
+        );
+        assert_eq!(members.len(), 16);
+    }
+
+    /// A value counts as event-driven when its first register is enabled.
+    #[test]
+    fn a_value_is_evented_when_its_first_register_is() {
+        let mut device = counter8();
+        let (_, members) = device.event_ranges();
+        let counter = device
+            .plan
+            .reads
+            .iter()
+            .position(|r| r.span.register_type == RegisterType::Input && r.span.start == 60)
+            .unwrap();
+        let input = EventSource::Register(RegisterType::Input);
+        device.events_configured(
+            Duration::ZERO,
+            &members,
+            &[(input, 60, true), (input, 61, false)],
+        );
+        assert!(device.events_active());
+        assert_eq!(device.exclusion(counter), Some(Exclusion::EventsOnly));
     }
 }

@@ -22,6 +22,8 @@ use tokio::sync::{mpsc, oneshot};
 use tokio::task::JoinHandle;
 
 pub const MOSQUITTO: &str = "/usr/sbin/mosquitto";
+/// Makes the password file of a broker that refuses anonymous clients.
+pub const MOSQUITTO_PASSWD: &str = "/usr/bin/mosquitto_passwd";
 pub const TIMEOUT: Duration = Duration::from_secs(15);
 
 /// A mosquitto process for one test; killed when dropped.
@@ -29,6 +31,8 @@ pub struct Mosquitto {
     child: Option<Child>,
     pub port: u16,
     dir: tempfile::TempDir,
+    /// `user:password` when anonymous clients are refused.
+    credentials: Option<(String, String)>,
 }
 
 impl Mosquitto {
@@ -47,6 +51,20 @@ impl Mosquitto {
             child: None,
             port,
             dir,
+            credentials: None,
+        };
+        broker.launch();
+        broker
+    }
+
+    /// A broker that takes only `user` with `password`.
+    pub fn start_with_password(user: &str, password: &str) -> Self {
+        let dir = tempfile::tempdir().expect("temp dir");
+        let mut broker = Self {
+            child: None,
+            port: free_port(),
+            dir,
+            credentials: Some((user.into(), password.into())),
         };
         broker.launch();
         broker
@@ -54,10 +72,28 @@ impl Mosquitto {
 
     fn launch(&mut self) {
         let config = self.dir.path().join("mosquitto.conf");
+        let access = match &self.credentials {
+            None => "allow_anonymous true\n".to_string(),
+            Some((user, password)) => {
+                let file = self.dir.path().join("passwords");
+                let status = Command::new(MOSQUITTO_PASSWD)
+                    .arg("-b")
+                    .arg("-c")
+                    .arg(&file)
+                    .arg(user)
+                    .arg(password)
+                    .stdout(Stdio::null())
+                    .stderr(Stdio::null())
+                    .status()
+                    .unwrap_or_else(|e| panic!("cannot run {MOSQUITTO_PASSWD}: {e}"));
+                assert!(status.success(), "mosquitto_passwd failed: {status}");
+                format!("allow_anonymous false\npassword_file {}\n", file.display())
+            }
+        };
         std::fs::write(
             &config,
             format!(
-                "listener {} 127.0.0.1\nallow_anonymous true\npersistence false\n{}",
+                "listener {} 127.0.0.1\n{access}persistence false\n{}",
                 self.port,
                 std::env::var("MOSQUITTO_LOG")
                     .map(|f| format!("log_type all\nlog_dest file {f}\n"))
@@ -354,7 +390,7 @@ pub fn value(device: &str, control: &str, text: &str) -> DeviceUpdate {
         device_id: device.into(),
         control_id: control.into(),
         value: text.into(),
-        always_publish: false,
+        from_event: false,
     }
 }
 

@@ -1,0 +1,57 @@
+//! What the daemon's log tells an integrator about the broker, read as journald stores it
+//! (stderr not a terminal).
+
+#[path = "daemon_support/mod.rs"]
+mod daemon_support;
+#[path = "mqtt_support/mod.rs"]
+mod mqtt_support;
+
+use std::process::{Command, Stdio};
+
+use daemon_support::repo;
+use mqtt_support::{wait_for, Mosquitto};
+use serde_json::json;
+
+/// Issue 15 defect 9: wrong credentials are logged as refused credentials (the broker is
+/// reachable: "cannot reach the broker" sent integrators to check the network), and a log that
+/// is not a terminal carries no ANSI colour codes.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn wrong_credentials_are_named_and_logs_have_no_colour_codes() {
+    let broker = Mosquitto::start_with_password("gateway", "right");
+    let dir = tempfile::tempdir().unwrap();
+    let config_path = dir.path().join("config.json");
+    let log_path = dir.path().join("daemon.log");
+    let config = json!({
+        "mqtt": {"host": "127.0.0.1", "port": broker.port, "user": "gateway", "password": "wrong"},
+        "ports": [{"path": dir.path().join("no-such-tty"), "baud_rate": 9600, "stop_bits": 2,
+                   "devices": [{"device_type": "rtu2mqtt-relay6", "slave_id": 20}]}]
+    });
+    std::fs::write(&config_path, config.to_string()).unwrap();
+    let mut daemon = Command::new(env!("CARGO_BIN_EXE_rtu2mqtt"))
+        .arg("run")
+        .arg("--templates")
+        .arg(repo("templates"))
+        .arg("-c")
+        .arg(&config_path)
+        .env_remove("NO_COLOR")
+        .env_remove("RUST_LOG")
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(std::fs::File::create(&log_path).unwrap())
+        .spawn()
+        .unwrap();
+    let log = wait_for("the refusal in the log", || async {
+        let log = std::fs::read_to_string(&log_path).unwrap_or_default();
+        log.contains("refused the user name or password")
+            .then_some(log)
+    })
+    .await;
+    let _ = daemon.kill();
+    let _ = daemon.wait();
+    assert!(log.contains("check mqtt.user"), "{log}");
+    assert!(!log.contains("cannot reach the MQTT broker"), "{log}");
+    assert!(
+        !log.contains('\u{1b}'),
+        "ANSI escape codes in a non-terminal log:\n{log:?}"
+    );
+}
