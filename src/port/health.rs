@@ -195,10 +195,16 @@ mod tests {
     fn a_lost_port_marks_the_device_offline_after_its_timeout() {
         let mut health = DeviceHealth::new(HealthPolicy::default());
         health.record_success(ms(1000));
-        assert!(!health.port_lost(ms(3000), ms(1500)), "silent for 1.5 s only");
+        assert!(
+            !health.port_lost(ms(3000), ms(1500)),
+            "silent for 1.5 s only"
+        );
         assert!(health.port_lost(ms(4600), ms(1500)));
         assert!(health.is_offline());
-        assert!(health.may_transact(ms(4600)), "tried as soon as the port is back");
+        assert!(
+            health.may_transact(ms(4600)),
+            "tried as soon as the port is back"
+        );
         assert!(!health.port_lost(ms(9000), ms(1500)), "reported once");
         // A device never heard from, with no device timeout configured: the default applies.
         let mut never = DeviceHealth::new(HealthPolicy {

@@ -231,7 +231,9 @@ impl PortScheduler {
                     return self.commit(now, transaction, in_flight);
                 }
                 // Read what fits before the event slot (all of it if possible) ...
-                if let Some((fitting, in_flight)) = self.fit(now, &transaction, &in_flight, slot_left) {
+                if let Some((fitting, in_flight)) =
+                    self.fit(now, &transaction, &in_flight, slot_left)
+                {
                     return self.commit(now, fitting, in_flight);
                 }
                 // ... or poll events early, which resets the slot. What can never fit a whole

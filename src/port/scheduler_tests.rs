@@ -133,7 +133,8 @@ fn run_timed(
                             first_byte: Some(latency + arbitration),
                             late_byte: None,
                         };
-                        let took = line.transaction_time(request_len, latency + arbitration, reply_len);
+                        let took =
+                            line.transaction_time(request_len, latency + arbitration, reply_len);
                         (Outcome::Reply(reply), timing, took)
                     }
                     (other, _) => (other, ReplyTiming::default(), silence),

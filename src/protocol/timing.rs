@@ -264,8 +264,8 @@ impl ResponseTimer {
             .late
             .filter(|(_, until)| now < *until)
             .map_or(covering, |(timeout, _)| timeout.max(covering));
+        // Not a sample of the smoothed estimate: one straggler must not dominate it for long.
         self.late = Some((raised, now.saturating_add(LATE_REPLY_MEMORY)));
-        self.answered(latency);
     }
 }
 

@@ -25,7 +25,10 @@ enum Phase {
     /// Bytes may be the reply.
     Waiting,
     /// The reply failed; bytes are thrown away until `until` and a frame gap of silence.
-    Draining { until: Duration, cap: Duration },
+    Draining {
+        until: Duration,
+        cap: Duration,
+    },
     Finished,
 }
 
@@ -185,10 +188,7 @@ mod tests {
     /// A classic read at 9600 8N2 (8 bytes = 9.2 ms) with a WB template's timeout.
     fn read_at_9600(late_window: Duration) -> Transaction {
         Transaction {
-            request: Request::classic(
-                1,
-                RequestPdu::ReadHoldingRegisters { start: 0, count: 1 },
-            ),
+            request: Request::classic(1, RequestPdu::ReadHoldingRegisters { start: 0, count: 1 }),
             request_time: Duration::from_micros(9167),
             first_byte_timeout: Some(ms(26)),
             reply_timeout: ms(26 + 9 + 24),
@@ -245,7 +245,11 @@ mod tests {
         window.expire(deadline);
         let last = deadline + ms(29);
         window.receive(last);
-        assert_eq!(window.wake_at(), last + ms(20), "a frame gap after the last byte");
+        assert_eq!(
+            window.wake_at(),
+            last + ms(20),
+            "a frame gap after the last byte"
+        );
         assert!(!window.expire(deadline + ms(30)));
         assert!(window.expire(last + ms(20)));
     }
@@ -264,7 +268,10 @@ mod tests {
         assert_eq!(window.receive(at), Received::Reply);
         // The parser found no frame; the inter-byte gap passes.
         assert_eq!(window.wake_at(), at + ms(20));
-        assert!(window.expire(at + ms(20)), "no late window after bytes came in time");
+        assert!(
+            window.expire(at + ms(20)),
+            "no late window after bytes came in time"
+        );
     }
 
     #[test]
