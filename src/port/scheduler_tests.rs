@@ -797,3 +797,164 @@ fn holding_multi_writes_one_register_with_function_16() {
         )
     );
 }
+
+/// A Wiren Board template's `response_timeout_ms: 1`.
+fn wb_device(address: u8, reads: Vec<PlannedRead>) -> DevicePlan {
+    DevicePlan {
+        response_timeout: ms(1),
+        ..device(address, reads)
+    }
+}
+
+#[test]
+fn the_reply_clock_covers_the_request_and_a_wb_timeout_at_every_baud() {
+    for baud in crate::protocol::timing::STANDARD_BAUD_RATES {
+        let mut port = settings(baud);
+        port.fast_modbus = false;
+        let plan = wb_device(7, vec![read(RegisterType::Holding, 0, EventMode::Polled)]);
+        let mut scheduler = PortScheduler::new(port, vec![plan]);
+        let Action::Transmit(transaction) = scheduler.next(Duration::ZERO) else {
+            panic!("a read is due at {baud}");
+        };
+        let line = scheduler.settings.line;
+        let request_len = transaction.request.encode().unwrap().len();
+        assert_eq!(transaction.request_time, line.wire_time(request_len));
+        // wb-mqtt-serial: 1 ms + 24 ms + one character, to the first byte.
+        let floor = ms(25) + line.char_time();
+        assert_eq!(transaction.first_byte_timeout, Some(floor), "at {baud}");
+        // A correct reply: 0.5 ms turnaround, 7 bytes.
+        let reply = ms(1) / 2 + line.wire_time(7);
+        assert!(transaction.reply_timeout > reply + ms(24), "at {baud}");
+    }
+}
+
+#[test]
+fn a_device_answering_in_9_ms_never_misses_a_wb_timeout() {
+    let mut port = settings(115_200);
+    port.fast_modbus = false;
+    let plan = wb_device(7, vec![read(RegisterType::Holding, 0, EventMode::Polled)]);
+    let mut scheduler = PortScheduler::new(port, vec![plan]);
+    let mut log = Log::default();
+    run_timed(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(60_000),
+        |_, request| (healthy(request), Some(ms(9))),
+    );
+    let failures = log
+        .events
+        .iter()
+        .filter(|(_, e)| matches!(e, PortEvent::ReadFailed { .. } | PortEvent::Offline { .. }))
+        .count();
+    assert_eq!(failures, 0);
+    assert!(log.classic_to(7).len() > 1000);
+}
+
+#[test]
+fn a_device_that_answered_late_gets_a_longer_timeout() {
+    let mut port = settings(9600);
+    port.fast_modbus = false;
+    let plan = device(30, vec![read(RegisterType::Input, 0, EventMode::Polled)]);
+    let mut scheduler = PortScheduler::new(port, vec![plan]);
+    let mut log = Log::default();
+    // Every reply starts 600 ms after the request; the timeout is 500 ms + 24 ms + 1 character.
+    let end = run_timed(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(20_000),
+        |_, request| (healthy(request), Some(ms(600))),
+    );
+    let values = log
+        .events
+        .iter()
+        .filter(|(_, e)| matches!(e, PortEvent::Values { .. }))
+        .count();
+    let failures = log
+        .events
+        .iter()
+        .filter(|(_, e)| matches!(e, PortEvent::ReadFailed { .. }))
+        .count();
+    assert!(values >= 15, "read again and again once learned: {values}");
+    assert!(failures <= 1, "only the first reply was late: {failures}");
+    let Action::Transmit(transaction) = scheduler.next(end) else {
+        panic!("a read is due");
+    };
+    assert!(transaction.first_byte_timeout > Some(ms(600)));
+}
+
+/// Reads per device address over `end`, with `dead` addresses never answering.
+fn reads_per_device(fast_modbus: bool, dead: &[u8], end: Duration) -> (Vec<usize>, usize) {
+    let mut port = settings(115_200);
+    port.fast_modbus = fast_modbus;
+    let plans: Vec<DevicePlan> = (1..=3)
+        .chain(dead.iter().copied())
+        .map(|address| {
+            device(
+                address,
+                vec![
+                    read(RegisterType::Holding, 0, EventMode::Polled),
+                    read(RegisterType::Coil, 0, EventMode::SemiSporadic),
+                ],
+            )
+        })
+        .collect();
+    let mut scheduler = PortScheduler::new(port, plans);
+    let mut log = Log::default();
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        end,
+        |_, request| {
+            if dead.contains(&request.address) {
+                Outcome::NoReply
+            } else {
+                healthy(request)
+            }
+        },
+    );
+    let reads = (1..=3).map(|a| log.classic_to(a).len()).collect();
+    (reads, log.event_polls().len())
+}
+
+#[test]
+fn dead_devices_cost_the_healthy_ones_little() {
+    let end = ms(120_000);
+    for fast_modbus in [false, true] {
+        let (clean, clean_polls) = reads_per_device(fast_modbus, &[], end);
+        let (faulty, faulty_polls) = reads_per_device(fast_modbus, &[8, 9], end);
+        for (clean, faulty) in clean.iter().zip(&faulty) {
+            assert!(
+                *faulty as f64 >= *clean as f64 * 0.8,
+                "fast_modbus {fast_modbus}: {faulty} reads with two dead devices, {clean} without"
+            );
+        }
+        assert!(
+            faulty_polls as f64 >= clean_polls as f64 * 0.8,
+            "event polls: {faulty_polls} with two dead devices, {clean_polls} without"
+        );
+    }
+}
+
+#[test]
+fn a_port_that_stays_closed_marks_its_devices_offline() {
+    let plans = vec![
+        device(1, vec![read(RegisterType::Holding, 0, EventMode::Polled)]),
+        device(2, vec![read(RegisterType::Coil, 3, EventMode::Polled)]),
+    ];
+    let mut scheduler = PortScheduler::new(settings(9600), plans);
+    assert!(scheduler.port_unavailable(ms(2000), ms(0)).is_empty());
+    let events = scheduler.port_unavailable(ms(3000), ms(0));
+    assert!(events.contains(&PortEvent::Offline { device: 0 }));
+    assert!(events.contains(&PortEvent::Offline { device: 1 }));
+    assert!(events.contains(&PortEvent::ReadFailed {
+        device: 1,
+        span: RegisterSpan::new(RegisterType::Coil, 3, 1),
+        unsupported: false,
+    }));
+    assert!(scheduler.port_unavailable(ms(9000), ms(0)).is_empty());
+    // The port is back: the devices are tried at once.
+    assert!(matches!(scheduler.next(ms(9000)), Action::Transmit(_)));
+}
