@@ -19,6 +19,7 @@ use super::events::EventPoller;
 use super::plan::{DevicePlan, PortSettings, RegisterWrite};
 use super::read_plan::RegisterSpan;
 use crate::protocol::fast::enabled_registers;
+use crate::protocol::timing::ADAPTER_LATENCY_ALLOWANCE;
 use crate::protocol::{
     EventRange, ExceptionCode, FastReply, RegisterType, Reply, ReplyBody, Request, RequestPdu,
     ResponsePdu,
@@ -379,7 +380,11 @@ impl PortScheduler {
         let request = Request::poll_events(self.events.request());
         let line = &self.settings.line;
         let max_reply = 8 + usize::from(self.events.max_data_len());
-        let margin = self.settings.latency_margin;
+        // USB adapters deliver late, and a loaded machine reads late: a short first-byte timeout
+        // would end the poll while the arbitration is still going on, and its bytes would land
+        // in the next request's window. A bus with Fast Modbus devices always answers (someone
+        // wins with "no events"), so the allowance costs only when nobody takes part.
+        let margin = self.settings.latency_margin.max(ADAPTER_LATENCY_ALLOWANCE);
         // The usual answer is "no events" after a few arbitration windows; longer packets are
         // rare and bounded by max_data_len.
         let typical = line.arbitration_wait() + line.arbitration_window() * 6;
@@ -388,7 +393,7 @@ impl PortScheduler {
             request_time: line.wire_time(request.encode().map(|b| b.len()).unwrap_or(9)),
             reply_timeout: line.event_reply_timeout() + line.wire_time(max_reply + 32) + margin,
             first_byte_timeout: Some(line.event_first_byte_timeout() + margin),
-            late_window: Duration::ZERO,
+            late_window: margin,
             request,
         };
         self.events.started(now);
@@ -420,7 +425,7 @@ impl PortScheduler {
             request_time,
             reply_timeout: response_timeout
                 + line.wire_time(reply_len)
-                + crate::protocol::timing::ADAPTER_LATENCY_ALLOWANCE,
+                + ADAPTER_LATENCY_ALLOWANCE,
             first_byte_timeout: Some(response_timeout),
             late_window: response_timeout,
             estimated,

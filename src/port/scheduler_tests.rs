@@ -122,7 +122,10 @@ fn run_timed(
                         (Outcome::NoReply, timing, silence.max(reply_end))
                     }
                     (Outcome::Reply(reply), latency) => {
-                        let arbitration = if transaction.late_window.is_zero() {
+                        let arbitration = if matches!(
+                            transaction.request.body,
+                            RequestBody::Fast(FastRequest::PollEvents(_))
+                        ) {
                             line.arbitration_wait() + line.arbitration_window() * 12
                         } else {
                             Duration::ZERO

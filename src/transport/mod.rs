@@ -181,15 +181,16 @@ impl Transport {
             tokio::time::sleep_until(self.last_activity + self.guard_interval).await;
         }
         debug!(port = %self.name, tx = %protocol::hex(&frame), "request");
+        let write_started = self.epoch.elapsed();
         self.write_all(&wire).await?;
         let serial = matches!(self.link, Link::Serial(_));
         let mut window = ReplyWindow::new(
             transaction,
-            self.epoch.elapsed(),
+            (write_started, self.epoch.elapsed()),
             self.inter_byte_timeout,
             serial,
         );
-        self.last_activity = self.epoch + window.request_end();
+        self.last_activity = self.epoch + window.clock_start();
         if !transaction.request.expects_reply() {
             // A broadcast: nobody answers, but the line is busy until it has left.
             tokio::time::sleep_until(self.last_activity).await;

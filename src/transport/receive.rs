@@ -44,7 +44,11 @@ pub enum Received {
 /// The reply window of one transaction.
 #[derive(Debug, Clone)]
 pub struct ReplyWindow {
+    /// The earliest the request can have left the wire: bytes before cannot be its reply.
     request_end: Duration,
+    /// Where the reply clock starts: the request's end, or when `write` returned if later (the
+    /// task may have been preempted).
+    clock_start: Duration,
     discard_early: bool,
     first_byte_deadline: Option<Duration>,
     deadline: Duration,
@@ -57,22 +61,25 @@ pub struct ReplyWindow {
 }
 
 impl ReplyWindow {
-    /// `written_at`: when `write` returned. `quiet_gap`: the silence that ends a frame (and after
-    /// which the line counts as quiet). `discard_early`: a serial line, whose timing is known.
+    /// `write_started`/`write_returned`: around the `write` of the request. `quiet_gap`: the
+    /// silence that ends a frame (and after which the line counts as quiet). `discard_early`: a
+    /// serial line, whose timing is known.
     pub fn new(
         transaction: &Transaction,
-        written_at: Duration,
+        (write_started, write_returned): (Duration, Duration),
         quiet_gap: Duration,
         discard_early: bool,
     ) -> Self {
-        let request_end = written_at.saturating_add(transaction.request_time);
+        let request_end = write_started.saturating_add(transaction.request_time);
+        let clock_start = request_end.max(write_returned);
         Self {
             request_end,
+            clock_start,
             discard_early,
             first_byte_deadline: transaction
                 .first_byte_timeout
-                .map(|timeout| request_end.saturating_add(timeout)),
-            deadline: request_end.saturating_add(transaction.reply_timeout),
+                .map(|timeout| clock_start.saturating_add(timeout)),
+            deadline: clock_start.saturating_add(transaction.reply_timeout),
             late_window: transaction.late_window,
             quiet_gap,
             phase: Phase::Waiting,
@@ -82,9 +89,14 @@ impl ReplyWindow {
         }
     }
 
-    /// When the request has left the wire.
+    /// When the request has left the wire (at the earliest).
     pub fn request_end(&self) -> Duration {
         self.request_end
+    }
+
+    /// Where the reply clock starts.
+    pub fn clock_start(&self) -> Duration {
+        self.clock_start
     }
 
     pub fn is_finished(&self) -> bool {
@@ -168,7 +180,7 @@ impl ReplyWindow {
 
     /// What the scheduler learns from this transaction.
     pub fn timing(&self) -> ReplyTiming {
-        let since_end = |at: Duration| at.saturating_sub(self.request_end);
+        let since_end = |at: Duration| at.saturating_sub(self.clock_start);
         ReplyTiming {
             first_byte: self.first_byte_at.map(since_end),
             late_byte: self.late_byte_at.map(since_end),
@@ -199,7 +211,7 @@ mod tests {
 
     #[test]
     fn the_reply_clock_starts_when_the_request_has_left_the_wire() {
-        let mut window = ReplyWindow::new(&read_at_9600(ms(26)), ms(100), ms(20), true);
+        let mut window = ReplyWindow::new(&read_at_9600(ms(26)), (ms(100), ms(100)), ms(20), true);
         assert_eq!(window.request_end(), ms(100) + Duration::from_micros(9167));
         // A reply 0.5 ms after the request, 9.2 ms long: its first byte is at 109.7 ms, the
         // first-byte deadline at 135.2 ms.
@@ -211,18 +223,33 @@ mod tests {
     }
 
     #[test]
+    fn a_write_that_returns_late_does_not_shorten_the_timeout_nor_drop_the_reply() {
+        // `write` returned 3 ms after it started (the task was preempted); the device got the
+        // request at once and answers 0.5 ms after its end.
+        let mut window = ReplyWindow::new(&read_at_9600(ms(26)), (ms(100), ms(103)), ms(20), true);
+        let reply_at = ms(100) + Duration::from_micros(9167 + 500);
+        assert_eq!(window.receive(reply_at), Received::Reply);
+        let clock_start = ms(100) + Duration::from_micros(9167);
+        assert_eq!(window.clock_start(), clock_start);
+        // Preempted for longer than the request's wire time: the clock starts at the return.
+        let late_return = ReplyWindow::new(&read_at_9600(ms(26)), (ms(100), ms(120)), ms(20), true);
+        assert_eq!(late_return.clock_start(), ms(120));
+        assert_eq!(late_return.wake_at(), ms(120 + 26));
+    }
+
+    #[test]
     fn bytes_before_the_request_left_the_wire_are_not_its_reply() {
-        let mut window = ReplyWindow::new(&read_at_9600(ms(26)), ms(100), ms(20), true);
+        let mut window = ReplyWindow::new(&read_at_9600(ms(26)), (ms(100), ms(100)), ms(20), true);
         assert_eq!(window.receive(ms(105)), Received::Discard);
         assert_eq!(window.timing().first_byte, None);
         // Over TCP the serial side's timing is unknown: nothing is thrown away.
-        let mut tcp = ReplyWindow::new(&read_at_9600(ms(26)), ms(100), ms(20), false);
+        let mut tcp = ReplyWindow::new(&read_at_9600(ms(26)), (ms(100), ms(100)), ms(20), false);
         assert_eq!(tcp.receive(ms(105)), Received::Reply);
     }
 
     #[test]
     fn a_late_reply_is_thrown_away_and_reported() {
-        let mut window = ReplyWindow::new(&read_at_9600(ms(500)), ms(0), ms(20), true);
+        let mut window = ReplyWindow::new(&read_at_9600(ms(500)), (ms(0), ms(0)), ms(20), true);
         let first_deadline = window.wake_at();
         assert!(!window.expire(first_deadline), "the late window starts");
         assert!(!window.is_waiting());
@@ -240,7 +267,7 @@ mod tests {
 
     #[test]
     fn a_reply_that_keeps_coming_past_the_late_window_delays_the_next_request() {
-        let mut window = ReplyWindow::new(&read_at_9600(ms(30)), ms(0), ms(20), true);
+        let mut window = ReplyWindow::new(&read_at_9600(ms(30)), (ms(0), ms(0)), ms(20), true);
         let deadline = window.wake_at();
         window.expire(deadline);
         let last = deadline + ms(29);
@@ -256,14 +283,15 @@ mod tests {
 
     #[test]
     fn silence_without_a_late_window_finishes_at_the_timeout() {
-        let mut window = ReplyWindow::new(&read_at_9600(Duration::ZERO), ms(0), ms(20), true);
+        let mut window =
+            ReplyWindow::new(&read_at_9600(Duration::ZERO), (ms(0), ms(0)), ms(20), true);
         let deadline = window.wake_at();
         assert!(window.expire(deadline));
     }
 
     #[test]
     fn garbage_in_time_needs_only_a_quiet_line() {
-        let mut window = ReplyWindow::new(&read_at_9600(ms(500)), ms(0), ms(20), true);
+        let mut window = ReplyWindow::new(&read_at_9600(ms(500)), (ms(0), ms(0)), ms(20), true);
         let at = window.request_end() + ms(2);
         assert_eq!(window.receive(at), Received::Reply);
         // The parser found no frame; the inter-byte gap passes.
@@ -276,7 +304,7 @@ mod tests {
 
     #[test]
     fn a_babbling_line_is_drained_for_a_bounded_time() {
-        let mut window = ReplyWindow::new(&read_at_9600(ms(30)), ms(0), ms(20), true);
+        let mut window = ReplyWindow::new(&read_at_9600(ms(30)), (ms(0), ms(0)), ms(20), true);
         let mut now = window.wake_at();
         window.expire(now);
         let mut rounds = 0;
