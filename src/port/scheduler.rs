@@ -174,6 +174,8 @@ pub struct PortScheduler {
     in_flight_since: Duration,
     /// Offline devices are not retried before this (their share of the bus is spent).
     offline_retry_at: Duration,
+    /// When the last event poll ended and how long it took.
+    last_event_poll: (Duration, Duration),
 }
 
 impl PortScheduler {
@@ -191,6 +193,7 @@ impl PortScheduler {
             in_flight: None,
             in_flight_since: Duration::ZERO,
             offline_retry_at: Duration::ZERO,
+            last_event_poll: (Duration::ZERO, Duration::ZERO),
         }
     }
 
@@ -222,12 +225,12 @@ impl PortScheduler {
             return Action::Wait { until: now };
         }
         let events_active = self.events_active();
-        if events_active && now >= self.events.next_at() {
+        if events_active && now >= self.event_due_at() {
             return self.start_event_poll(now);
         }
         match self.choose(now) {
             Some((transaction, in_flight)) => {
-                let slot_left = self.events.next_at().saturating_sub(now);
+                let slot_left = self.event_due_at().saturating_sub(now);
                 if !events_active {
                     return self.commit(now, transaction, in_flight);
                 }
@@ -253,6 +256,19 @@ impl PortScheduler {
             None => Action::Wait {
                 until: self.earliest_deadline(now),
             },
+        }
+    }
+
+    /// When the next event poll is due: its slot, but on a line so slow that a poll takes more
+    /// than half the interval, never before the bus has had as much time for other requests as
+    /// the last poll took. At 1200 baud an event poll takes longer than the 200 ms interval;
+    /// without this, the bus would carry nothing else.
+    fn event_due_at(&self) -> Duration {
+        let (ended, took) = self.last_event_poll;
+        if took.saturating_mul(2) > self.settings.event_interval {
+            self.events.next_at().max(ended.saturating_add(took))
+        } else {
+            self.events.next_at()
         }
     }
 
@@ -292,6 +308,7 @@ impl PortScheduler {
         match self.in_flight.take() {
             None => warn!("a transaction outcome arrived with nothing in flight"),
             Some(InFlight::PollEvents { started }) => {
+                self.last_event_poll = (now, now.saturating_sub(started));
                 self.complete_event_poll(now, started, outcome, &mut out)
             }
             Some(InFlight::Setup { device, index }) => {

@@ -961,3 +961,25 @@ fn a_port_that_stays_closed_marks_its_devices_offline() {
     // The port is back: the devices are tried at once.
     assert!(matches!(scheduler.next(ms(9000)), Action::Transmit(_)));
 }
+
+#[test]
+fn at_1200_baud_event_polls_leave_room_for_reads() {
+    // An event poll at 1200 8N2 takes longer than the 200 ms event interval.
+    let plans = vec![
+        wb_device(20, vec![read(RegisterType::Coil, 0, EventMode::Sporadic)]),
+        wb_device(21, vec![read(RegisterType::Input, 4, EventMode::Polled)]),
+    ];
+    let mut scheduler = PortScheduler::new(settings(1200), plans);
+    let mut log = Log::default();
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(30_000),
+        |_, request| healthy(request),
+    );
+    let polls = log.event_polls().len();
+    let reads = log.classic_to(21).len();
+    assert!(polls > 20, "events are still polled: {polls}");
+    assert!(reads > 20, "the polled device is read too: {reads}");
+}
