@@ -63,8 +63,17 @@ impl Daemon {
     }
 
     fn start_config(config: Value) -> Self {
-        let mut process =
-            DaemonProcess::start(&config, &["--stdio"], Stdio::piped(), Stdio::piped());
+        Self::start_config_with_env(config, &[])
+    }
+
+    fn start_config_with_env(config: Value, env: &[(&str, &str)]) -> Self {
+        let mut process = DaemonProcess::start_with_env(
+            &config,
+            &["--stdio"],
+            Stdio::piped(),
+            Stdio::piped(),
+            env,
+        );
         let stdin = process.child.stdin.take().unwrap();
         let stdout = process.child.stdout.take().unwrap();
         let (sender, lines) = mpsc::channel();
@@ -521,4 +530,47 @@ fn replies_after_the_timeout_never_publish_a_wrong_value() {
         })
         .collect();
     assert!(wrong.is_empty(), "wrong values published: {wrong:?}");
+}
+
+/// SIGTERM while the daemon waits on a device with a one-minute response timeout that never
+/// answers: the daemon exits at once instead of finishing the wait.
+#[test]
+fn shutdown_does_not_wait_for_a_long_response_timeout() {
+    let sim = start_sim(&[]);
+    sim.control(json!({"cmd": "unplug", "device": 30}));
+    let devices: Vec<Value> = [("rtu2mqtt-relay6", 20), ("rtu2mqtt-energy-meter", 30)]
+        .iter()
+        .map(|(template, address)| json!({"device_type": template, "slave_id": address}))
+        .collect();
+    let mut daemon = Daemon::start_config_with_env(
+        json!({
+            "ports": [{"path": sim.pty, "baud_rate": 115200, "stop_bits": 2,
+                       "response_timeout_ms": 60000, "devices": devices}]
+        }),
+        &[("RUST_LOG", "rtu2mqtt::transport=debug")],
+    );
+    // The request to the meter (address 30 = 0x1E) has gone out: the port now waits a minute.
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while !daemon._process.log().contains("1E 04 00") {
+        assert!(Instant::now() < deadline, "no request to the meter");
+        // A condition poll on the daemon's log; the pause only paces it.
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let process = &mut daemon._process;
+    let pid = nix::unistd::Pid::from_raw(process.child.id() as i32);
+    nix::sys::signal::kill(pid, nix::sys::signal::Signal::SIGTERM).unwrap();
+    // Every request now waits a minute for its reply; the daemon must not.
+    let deadline = Instant::now() + Duration::from_secs(20);
+    loop {
+        if let Some(status) = process.child.try_wait().unwrap() {
+            assert!(status.success(), "exit status {status}");
+            break;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "still running 20 s after SIGTERM"
+        );
+        // A condition poll on the child's exit; the pause only paces it.
+        std::thread::sleep(Duration::from_millis(50));
+    }
 }
