@@ -385,8 +385,12 @@ fn a_failed_port_is_reopened_while_the_other_port_keeps_working() {
     daemon.has_value("relay6_20", "K1", "0");
     daemon.has_value("climate_21", "Temperature", "21.5");
 
-    // The relay's adapter goes away: the other port is served all the while.
+    // The relay's adapter goes away: its device is marked offline after its device timeout,
+    // and the other port is served all the while.
     drop(relay_sim);
+    daemon.wait_for("relay offline", Duration::from_secs(15), |line| {
+        line["device"] == "relay6_20" && line["online"] == false
+    });
     climate_sim
         .control(json!({"cmd": "set", "device": 21, "type": "input", "address": 8, "value": 812}));
     daemon.wait_value("climate_21", "CO2", "812");
