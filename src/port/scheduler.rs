@@ -176,6 +176,8 @@ pub struct PortScheduler {
     offline_retry_at: Duration,
     /// When the last event poll ended and how long it took.
     last_event_poll: (Duration, Duration),
+    /// Whether anything but an event poll went out since the last event poll.
+    sent_since_event_poll: bool,
 }
 
 impl PortScheduler {
@@ -194,6 +196,7 @@ impl PortScheduler {
             in_flight_since: Duration::ZERO,
             offline_retry_at: Duration::ZERO,
             last_event_poll: (Duration::ZERO, Duration::ZERO),
+            sent_since_event_poll: false,
         }
     }
 
@@ -243,8 +246,12 @@ impl PortScheduler {
                 // ... or poll events early, which resets the slot. What can never fit a whole
                 // interval goes anyway, at its smallest: a late event request beats a read that
                 // never runs.
+                // Never twice in a row, though: right after a poll the slot is as long as it gets,
+                // and polling again would starve the read for good.
                 let interval = self.settings.event_interval;
-                if self.fit(now, &transaction, &in_flight, interval).is_some() {
+                if self.sent_since_event_poll
+                    && self.fit(now, &transaction, &in_flight, interval).is_some()
+                {
                     return self.start_event_poll(now);
                 }
                 let (smallest, in_flight) = self
@@ -273,6 +280,7 @@ impl PortScheduler {
     }
 
     fn commit(&mut self, now: Duration, transaction: Transaction, in_flight: InFlight) -> Action {
+        self.sent_since_event_poll = !matches!(in_flight, InFlight::PollEvents { .. });
         self.in_flight = Some(in_flight);
         self.in_flight_since = now;
         Action::Transmit(transaction)
@@ -440,9 +448,7 @@ impl PortScheduler {
         Transaction {
             request,
             request_time,
-            reply_timeout: response_timeout
-                + line.wire_time(reply_len)
-                + ADAPTER_LATENCY_ALLOWANCE,
+            reply_timeout: response_timeout + line.wire_time(reply_len) + ADAPTER_LATENCY_ALLOWANCE,
             first_byte_timeout: Some(response_timeout),
             late_window: response_timeout,
             estimated,

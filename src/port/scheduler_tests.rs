@@ -983,3 +983,36 @@ fn at_1200_baud_event_polls_leave_room_for_reads() {
     assert!(polls > 20, "events are still polled: {polls}");
     assert!(reads > 20, "the polled device is read too: {reads}");
 }
+
+#[test]
+fn a_read_that_just_misses_the_slot_after_a_poll_still_goes() {
+    // 110 holding registers at 115200 8N2: about 23 ms of wire time, more than the slot left
+    // after an event poll when the interval is 25 ms, less than the interval.
+    let mut port = settings(115_200);
+    port.event_interval = ms(25);
+    let plans = vec![
+        device(20, vec![read(RegisterType::Coil, 0, EventMode::Sporadic)]),
+        device(
+            21,
+            vec![PlannedRead {
+                span: RegisterSpan::new(RegisterType::Holding, 0, 110),
+                period: None,
+                events: EventMode::Polled,
+            }],
+        ),
+    ];
+    let mut scheduler = PortScheduler::new(port, plans);
+    let mut log = Log::default();
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(2000),
+        |_, request| healthy(request),
+    );
+    assert!(
+        log.classic_to(21).len() > 10,
+        "{}",
+        log.classic_to(21).len()
+    );
+}
