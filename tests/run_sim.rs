@@ -1,7 +1,8 @@
 //! `rtu2mqtt run` against `rtu2mqtt sim` over a pseudo-terminal, with updates read as JSON lines
 //! (`--stdio`, the daemon without a broker): values of several devices, a coil change arriving
 //! by event, events re-enabled after a reboot, a write reaching the device, a device unplugged
-//! and back.
+//! and back; the same with the Wiren Board templates' `response_timeout_ms: 1` at 9600 and 1200
+//! baud, Fast Modbus and classic; no wrong value when every reply comes after the timeout.
 
 #[path = "daemon_support/mod.rs"]
 mod daemon_support;
@@ -33,6 +34,8 @@ struct Daemon {
     stdin: ChildStdin,
     lines: Receiver<Value>,
     seen: Vec<Value>,
+    /// How long a value may take to show up (longer on slow lines).
+    patience: Duration,
 }
 
 impl Daemon {
@@ -56,11 +59,20 @@ impl Daemon {
     }
 
     fn start_ports(ports: Value) -> Self {
-        let mut process = DaemonProcess::start(
-            &json!({ "ports": ports }),
+        Self::start_config(json!({ "ports": ports }))
+    }
+
+    fn start_config(config: Value) -> Self {
+        Self::start_config_with_env(config, &[])
+    }
+
+    fn start_config_with_env(config: Value, env: &[(&str, &str)]) -> Self {
+        let mut process = DaemonProcess::start_with_env(
+            &config,
             &["--stdio"],
             Stdio::piped(),
             Stdio::piped(),
+            env,
         );
         let stdin = process.child.stdin.take().unwrap();
         let stdout = process.child.stdout.take().unwrap();
@@ -79,6 +91,7 @@ impl Daemon {
             stdin,
             lines,
             seen: Vec::new(),
+            patience: Duration::from_secs(10),
         }
     }
 
@@ -134,7 +147,7 @@ impl Daemon {
     fn wait_event(&mut self, device: &str, control: &str, value: &str) -> Value {
         self.wait_for(
             &format!("event {device}/{control} = {value}"),
-            Duration::from_secs(10),
+            self.patience,
             |line| {
                 line["device"] == device
                     && line["control"] == control
@@ -148,7 +161,7 @@ impl Daemon {
     fn wait_value(&mut self, device: &str, control: &str, value: &str) -> Value {
         self.wait_for(
             &format!("{device}/{control} = {value}"),
-            Duration::from_secs(10),
+            self.patience,
             |line| line["device"] == device && line["control"] == control && line["value"] == value,
         )
     }
@@ -165,9 +178,13 @@ impl Daemon {
 }
 
 fn start_sim(extra: &[&str]) -> SimProcess {
+    start_sim_bus(BUS, extra)
+}
+
+fn start_sim_bus(bus_json: &str, extra: &[&str]) -> SimProcess {
     let dir = tempfile::tempdir().unwrap();
     let bus = dir.path().join("bus.json");
-    std::fs::write(&bus, BUS).unwrap();
+    std::fs::write(&bus, bus_json).unwrap();
     // The bus file is read at start-up; its directory may go afterwards.
     SimProcess::start_with(&bus, &repo("templates"), extra)
 }
@@ -221,7 +238,11 @@ impl ChangeWatch {
 /// Waits until the daemon has turned the device's events on and confirmed everything it had
 /// pending (the reboot event included): from then on every change travels by event.
 fn wait_events_ready(sim: &SimProcess, address: u8) {
-    let deadline = Instant::now() + Duration::from_secs(10);
+    wait_events_ready_within(sim, address, Duration::from_secs(10))
+}
+
+fn wait_events_ready_within(sim: &SimProcess, address: u8, patience: Duration) {
+    let deadline = Instant::now() + patience;
     loop {
         let list = sim.control(json!({"cmd": "list"}));
         let device = list["devices"]
@@ -364,8 +385,12 @@ fn a_failed_port_is_reopened_while_the_other_port_keeps_working() {
     daemon.has_value("relay6_20", "K1", "0");
     daemon.has_value("climate_21", "Temperature", "21.5");
 
-    // The relay's adapter goes away: the other port is served all the while.
+    // The relay's adapter goes away: its device is marked offline after its device timeout,
+    // and the other port is served all the while.
     drop(relay_sim);
+    daemon.wait_for("relay offline", Duration::from_secs(15), |line| {
+        line["device"] == "relay6_20" && line["online"] == false
+    });
     climate_sim
         .control(json!({"cmd": "set", "device": 21, "type": "input", "address": 8, "value": 812}));
     daemon.wait_value("climate_21", "CO2", "812");
@@ -381,4 +406,175 @@ fn a_failed_port_is_reopened_while_the_other_port_keeps_working() {
         Duration::from_secs(20),
         |line| line["device"] == "relay6_20" && line["control"] == "K5" && line["value"] == "1",
     );
+}
+
+/// `BUS` with every device on `line` ("9600 8N2").
+fn bus_on_line(line: &str) -> String {
+    BUS.replace("115200 8N2", line)
+}
+
+/// The repository's templates are Wiren Board style (`response_timeout_ms: 1`, the allowance is
+/// added by the master): values, a change and a write at a slow baud rate, with Fast Modbus
+/// events and without.
+fn wb_templates_at(baud: u32, fast_modbus: bool, patience: Duration) {
+    let sim = start_sim_bus(&bus_on_line(&format!("{baud} 8N2")), &[]);
+    // Only Wiren Board devices: a third-party meter (500 ms) would lend its timeout to the rest.
+    let devices: Vec<Value> = [
+        ("rtu2mqtt-relay6", 20),
+        ("rtu2mqtt-climate", 21),
+        ("rtu2mqtt-counter8", 22),
+    ]
+    .iter()
+    .map(|(template, address)| json!({"device_type": template, "slave_id": address}))
+    .collect();
+    let mut daemon = Daemon::start_config(json!({
+        "fast_modbus": fast_modbus,
+        "ports": [{"path": sim.pty, "baud_rate": baud, "stop_bits": 2, "devices": devices}]
+    }));
+    daemon.patience = patience;
+    daemon.has_value("climate_21", "Temperature", "21.5");
+    daemon.has_value("climate_21", "Humidity", "45.3");
+    daemon.has_value("counter8_22", "Input 1", "0");
+    daemon.has_value("relay6_20", "K1", "0");
+    if fast_modbus {
+        wait_events_ready_within(&sim, 20, patience);
+        sim.control(json!({"cmd": "toggle", "device": 20, "type": "coil", "address": 0}));
+        daemon.wait_event("relay6_20", "K1", "1");
+    } else {
+        sim.control(json!({"cmd": "toggle", "device": 20, "type": "coil", "address": 0}));
+        daemon.wait_value("relay6_20", "K1", "1");
+    }
+    sim.control(json!({"cmd": "set", "device": 21, "type": "input", "address": 4, "value": 2275}));
+    daemon.wait_value("climate_21", "Temperature", "22.75");
+    daemon.write("relay6_20", "K3", "1");
+    daemon.wait_value("relay6_20", "K3", "1");
+    assert_eq!(
+        sim.control(json!({"cmd": "get", "device": 20, "type": "coil", "address": 2}))["value"],
+        1
+    );
+    // A loaded test machine may deliver a reply late now and then (it is then thrown away and
+    // the device may be flagged for a moment): what counts is that every device ends up online.
+    for device in ["relay6_20", "climate_21", "counter8_22"] {
+        let last = daemon
+            .seen
+            .iter()
+            .rev()
+            .find(|line| line["device"] == device && line["online"].is_boolean());
+        assert_eq!(
+            last.map(|line| line["online"].clone()),
+            Some(Value::Bool(true)),
+            "{device} at {baud}"
+        );
+    }
+}
+
+#[test]
+fn wb_templates_at_9600_with_fast_modbus() {
+    wb_templates_at(9600, true, Duration::from_secs(15));
+}
+
+#[test]
+fn wb_templates_at_9600_classic() {
+    wb_templates_at(9600, false, Duration::from_secs(15));
+}
+
+#[test]
+fn wb_templates_at_1200_with_fast_modbus() {
+    wb_templates_at(1200, true, Duration::from_secs(60));
+}
+
+#[test]
+fn wb_templates_at_1200_classic() {
+    wb_templates_at(1200, false, Duration::from_secs(60));
+}
+
+/// A meter whose every reply starts 600 ms after the request, with the default 500 ms response
+/// timeout: its channels are read one by one (same function, same length), so a late reply
+/// credited to the next request would publish one channel's value under another's name.
+#[test]
+fn replies_after_the_timeout_never_publish_a_wrong_value() {
+    // Floats with swapped words: 230.5 V, 5 A, 1000 W, 50 Hz.
+    let bus = r#"{"devices": [
+      {"name": "meter", "template": "rtu2mqtt-energy-meter", "address": 30, "serial": "0x0D000030",
+       "line": "9600 8N2", "fast": false,
+       "values": {"input:0": [32768, 17254], "input:6": [0, 16544], "input:12": [0, 17530]}}
+    ]}"#;
+    let sim = start_sim_bus(bus, &[]);
+    sim.control(json!({"cmd": "faults", "device": 30, "delay": 1.0, "delay_ms": 600}));
+    let mut daemon = Daemon::start_config(json!({
+        "fast_modbus": false,
+        "ports": [{"path": sim.pty, "baud_rate": 9600, "stop_bits": 2, "devices": [
+            {"device_type": "rtu2mqtt-energy-meter", "slave_id": 30, "max_read_registers": 2}
+        ]}]
+    }));
+    daemon.patience = Duration::from_secs(20);
+    daemon.has_value("energy_meter_30", "Voltage", "230.5");
+    daemon.has_value("energy_meter_30", "Current", "5");
+    daemon.has_value("energy_meter_30", "Active Power", "1000");
+    // Keep reading a while: every value the meter's channels get must be theirs.
+    let until = Instant::now() + Duration::from_secs(8);
+    while let Some(left) = until.checked_duration_since(Instant::now()) {
+        if let Ok(line) = daemon.lines.recv_timeout(left) {
+            daemon.seen.push(line);
+        }
+    }
+    let expected = [
+        ("Voltage", "230.5"),
+        ("Current", "5"),
+        ("Active Power", "1000"),
+    ];
+    let wrong: Vec<&Value> = daemon
+        .seen
+        .iter()
+        .filter(|line| line["value"].is_string())
+        .filter(|line| {
+            expected
+                .iter()
+                .any(|(control, value)| line["control"] == *control && line["value"] != *value)
+        })
+        .collect();
+    assert!(wrong.is_empty(), "wrong values published: {wrong:?}");
+}
+
+/// SIGTERM while the daemon waits on a device with a one-minute response timeout that never
+/// answers: the daemon exits at once instead of finishing the wait.
+#[test]
+fn shutdown_does_not_wait_for_a_long_response_timeout() {
+    let sim = start_sim(&[]);
+    sim.control(json!({"cmd": "unplug", "device": 30}));
+    let devices: Vec<Value> = [("rtu2mqtt-relay6", 20), ("rtu2mqtt-energy-meter", 30)]
+        .iter()
+        .map(|(template, address)| json!({"device_type": template, "slave_id": address}))
+        .collect();
+    let mut daemon = Daemon::start_config_with_env(
+        json!({
+            "ports": [{"path": sim.pty, "baud_rate": 115200, "stop_bits": 2,
+                       "response_timeout_ms": 60000, "devices": devices}]
+        }),
+        &[("RUST_LOG", "rtu2mqtt::transport=debug")],
+    );
+    // The request to the meter (address 30 = 0x1E) has gone out: the port now waits a minute.
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while !daemon._process.log().contains("1E 04 00") {
+        assert!(Instant::now() < deadline, "no request to the meter");
+        // A condition poll on the daemon's log; the pause only paces it.
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let process = &mut daemon._process;
+    let pid = nix::unistd::Pid::from_raw(process.child.id() as i32);
+    nix::sys::signal::kill(pid, nix::sys::signal::Signal::SIGTERM).unwrap();
+    // Every request now waits a minute for its reply; the daemon must not.
+    let deadline = Instant::now() + Duration::from_secs(20);
+    loop {
+        if let Some(status) = process.child.try_wait().unwrap() {
+            assert!(status.success(), "exit status {status}");
+            break;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "still running 20 s after SIGTERM"
+        );
+        // A condition poll on the child's exit; the pause only paces it.
+        std::thread::sleep(Duration::from_millis(50));
+    }
 }

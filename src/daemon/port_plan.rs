@@ -68,12 +68,6 @@ pub fn port_plan(port: &ResolvedPort, fast_modbus: bool) -> PortPlan {
     let mut settings = PortSettings::for_line(line);
     settings.fast_modbus = fast_modbus
         && (port.config.port_type != PortType::ModbusTcp || port.config.connected_to_mge);
-    settings.response_timeout = port
-        .devices
-        .iter()
-        .map(|d| d.timing.response_timeout)
-        .max()
-        .unwrap_or(Duration::from_millis(500));
     if let Some(interval) = port.config.event_interval_ms {
         settings.event_interval = Duration::from_millis(interval.clamp(5, 10_000));
     }
@@ -125,6 +119,7 @@ pub fn device_plan(device: &ResolvedDevice) -> DevicePlan {
     DevicePlan {
         name: device.id.clone(),
         address: device.slave_id,
+        response_timeout: device.timing.response_timeout,
         merge: MergeLimits {
             max_read_registers: device.timing.max_read_registers,
             max_register_hole: device.timing.max_reg_hole,

@@ -9,7 +9,7 @@ use tracing::{debug, info, warn};
 
 use super::device_model::DeviceModel;
 use super::port_plan::PortPlan;
-use crate::port::{Action, Outcome, PortEvent, PortScheduler};
+use crate::port::{Action, Outcome, PortEvent, PortScheduler, ReplyTiming};
 use crate::transport::{Transport, TransportError};
 use crate::updates::{ControlWrite, DeviceUpdate};
 
@@ -53,8 +53,14 @@ impl PortTask {
     /// Serves the bus until `shutdown` turns true.
     pub async fn run(mut self, mut shutdown: watch::Receiver<bool>) {
         let mut delay = FIRST_REOPEN_DELAY;
+        // Since when the port has been unusable: its devices go offline after their timeout.
+        let mut closed_since = self.now();
         loop {
-            match Transport::open(&self.endpoint).await {
+            let opened = tokio::select! {
+                opened = Transport::open(&self.endpoint) => opened,
+                _ = shutdown.changed() => return,
+            };
+            match opened {
                 Ok(mut transport) => {
                     transport.set_guard_interval(self.guard_interval);
                     info!(port = %self.plan_name, "port open");
@@ -63,14 +69,26 @@ impl PortTask {
                         Ok(()) => return,
                         Err(err) => warn!(port = %self.plan_name, %err, "port failed; reopening"),
                     }
+                    closed_since = self.now();
                 }
                 Err(err) => {
                     warn!(port = %self.plan_name, %err, retry_in = ?delay, "cannot open the port")
                 }
             }
-            tokio::select! {
-                _ = tokio::time::sleep(delay) => {}
-                _ = shutdown.changed() => return,
+            // Wake at least every FIRST_REOPEN_DELAY meanwhile, so that devices go offline on
+            // time even while the reopen delay is long.
+            let reopen_at = Instant::now() + delay;
+            loop {
+                let events = self.scheduler.port_unavailable(self.now(), closed_since);
+                self.dispatch(events).await;
+                let wake = reopen_at.min(Instant::now() + FIRST_REOPEN_DELAY);
+                tokio::select! {
+                    _ = tokio::time::sleep_until(wake) => {}
+                    _ = shutdown.changed() => return,
+                }
+                if Instant::now() >= reopen_at {
+                    break;
+                }
             }
             delay = (delay * 2).min(MAX_REOPEN_DELAY);
         }
@@ -90,12 +108,17 @@ impl PortTask {
             }
             match self.scheduler.next(self.now()) {
                 Action::Transmit(transaction) => {
-                    let result = transport.transact(&transaction).await;
-                    let outcome = match &result {
-                        Ok(outcome) => outcome.clone(),
-                        Err(_) => Outcome::NoReply,
+                    // Shutdown never waits for the bus: a transaction may take seconds (long
+                    // timeouts, a guard interval, a babbling line).
+                    let result = tokio::select! {
+                        result = transport.transact(&transaction) => result,
+                        _ = shutdown.changed() => return Ok(()),
                     };
-                    let events = self.scheduler.complete(self.now(), outcome);
+                    let (outcome, timing) = match &result {
+                        Ok((outcome, timing)) => (outcome.clone(), *timing),
+                        Err(_) => (Outcome::NoReply, ReplyTiming::default()),
+                    };
+                    let events = self.scheduler.complete_timed(self.now(), outcome, timing);
                     self.dispatch(events).await;
                     result?;
                 }

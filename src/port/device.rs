@@ -7,7 +7,8 @@ use super::health::{DeviceHealth, HealthChange};
 use super::plan::{DevicePlan, EventMode};
 use super::read_plan::RegisterSpan;
 use crate::protocol::frame::MAX_FRAME_LEN;
-use crate::protocol::{EventPriority, EventRange, EventSource, RegisterType};
+use crate::protocol::timing::ResponseTimer;
+use crate::protocol::{EventPriority, EventRange, EventSource, LineSettings, RegisterType};
 
 /// How often a device whose every channel comes by events is read anyway, so that a dead device
 /// is noticed.
@@ -66,6 +67,8 @@ pub(super) struct ReadChoice {
 pub(super) struct DeviceState {
     pub plan: DevicePlan,
     pub health: DeviceHealth,
+    /// How long to wait for this device's replies: the configured floor, raised by what it does.
+    pub response: ResponseTimer,
     fast_modbus: bool,
     preparation: Preparation,
     reads: Vec<ReadState>,
@@ -73,7 +76,7 @@ pub(super) struct DeviceState {
 }
 
 impl DeviceState {
-    pub(super) fn new(plan: DevicePlan, fast_modbus: bool) -> Self {
+    pub(super) fn new(plan: DevicePlan, fast_modbus: bool, line: &LineSettings) -> Self {
         let reads = plan
             .reads
             .iter()
@@ -88,9 +91,11 @@ impl DeviceState {
             })
             .collect();
         let health = DeviceHealth::new(plan.health);
+        let response = ResponseTimer::new(line.response_timeout_floor(plan.response_timeout));
         let mut state = Self {
             plan,
             health,
+            response,
             fast_modbus,
             preparation: Preparation::Done,
             reads,

@@ -127,6 +127,30 @@ impl DeviceHealth {
         }
     }
 
+    /// The port is gone since `since`: true when the device is now marked offline because it
+    /// has not been heard from for its device timeout (the default one when it has none: a
+    /// closed port answers for no device). Retried as soon as the port is back.
+    pub fn port_lost(&mut self, now: Duration, since: Duration) -> bool {
+        if self.is_offline() {
+            return false;
+        }
+        let timeout = if self.policy.device_timeout == Duration::MAX {
+            HealthPolicy::default().device_timeout
+        } else {
+            self.policy.device_timeout
+        };
+        let silent_since = self.last_success.map_or(since, |last| last.max(since));
+        if now.saturating_sub(silent_since) < timeout {
+            return false;
+        }
+        self.failures = self.failures.saturating_add(1);
+        self.state = State::Offline {
+            retry_at: now,
+            delay: Duration::ZERO,
+        };
+        true
+    }
+
     fn disconnect_due(&self, now: Duration) -> bool {
         match self.last_success {
             None => true,
@@ -165,6 +189,30 @@ mod tests {
             "2 failures but only 0.2 s"
         );
         assert_eq!(health.record_failure(ms(3001)), HealthChange::WentOffline);
+    }
+
+    #[test]
+    fn a_lost_port_marks_the_device_offline_after_its_timeout() {
+        let mut health = DeviceHealth::new(HealthPolicy::default());
+        health.record_success(ms(1000));
+        assert!(
+            !health.port_lost(ms(3000), ms(1500)),
+            "silent for 1.5 s only"
+        );
+        assert!(health.port_lost(ms(4600), ms(1500)));
+        assert!(health.is_offline());
+        assert!(
+            health.may_transact(ms(4600)),
+            "tried as soon as the port is back"
+        );
+        assert!(!health.port_lost(ms(9000), ms(1500)), "reported once");
+        // A device never heard from, with no device timeout configured: the default applies.
+        let mut never = DeviceHealth::new(HealthPolicy {
+            device_timeout: Duration::MAX,
+            ..HealthPolicy::default()
+        });
+        assert!(!never.port_lost(ms(2000), ms(0)));
+        assert!(never.port_lost(ms(3000), ms(0)));
     }
 
     #[test]

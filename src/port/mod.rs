@@ -12,4 +12,4 @@ pub mod scheduler;
 pub use health::HealthPolicy;
 pub use plan::{DevicePlan, EventMode, PlannedRead, PortSettings, RegisterWrite, SetupWrite};
 pub use read_plan::{MergeLimits, RegisterSpan};
-pub use scheduler::{Action, Outcome, PortEvent, PortScheduler, Transaction};
+pub use scheduler::{Action, Outcome, PortEvent, PortScheduler, ReplyTiming, Transaction};

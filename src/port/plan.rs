@@ -18,8 +18,6 @@ pub struct PortSettings {
     pub fast_modbus: bool,
     /// Longest time between two event requests.
     pub event_interval: Duration,
-    /// How long a device may take to start its reply.
-    pub response_timeout: Duration,
     /// Added to arbitration timeouts: USB adapters deliver bytes late.
     pub latency_margin: Duration,
     /// Expected device turnaround, for wire-time estimates.
@@ -34,7 +32,6 @@ impl PortSettings {
             line,
             fast_modbus: true,
             event_interval: line.event_poll_interval(),
-            response_timeout: Duration::from_millis(500),
             latency_margin: Duration::from_millis(5),
             turnaround: Duration::from_millis(1),
             guard_interval: Duration::ZERO,
@@ -75,6 +72,9 @@ pub struct DevicePlan {
     /// For logs.
     pub name: String,
     pub address: u8,
+    /// The configured response timeout (the larger of port and device, 500 ms when neither sets
+    /// one); the line's allowance is added on top and the learned response time may raise it.
+    pub response_timeout: Duration,
     pub merge: MergeLimits,
     pub health: HealthPolicy,
     pub reads: Vec<PlannedRead>,

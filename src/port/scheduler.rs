@@ -19,6 +19,7 @@ use super::events::EventPoller;
 use super::plan::{DevicePlan, PortSettings, RegisterWrite};
 use super::read_plan::RegisterSpan;
 use crate::protocol::fast::enabled_registers;
+use crate::protocol::timing::ADAPTER_LATENCY_ALLOWANCE;
 use crate::protocol::{
     EventRange, ExceptionCode, FastReply, RegisterType, Reply, ReplyBody, Request, RequestPdu,
     ResponsePdu,
@@ -26,6 +27,11 @@ use crate::protocol::{
 
 /// How long a failed write keeps being retried.
 const WRITE_RETRY_TIME: Duration = Duration::from_secs(600);
+
+/// The share of bus time that devices already marked offline may take with their retries (all
+/// together): the healthy devices keep the rest. Each failed retry of an offline device holds the
+/// next one back until its cost is this share of the time since.
+const OFFLINE_SHARE_PERCENT: u32 = 10;
 
 /// What the driver does next.
 #[derive(Debug, Clone, PartialEq)]
@@ -37,16 +43,33 @@ pub enum Action {
     },
 }
 
-/// One request and how long to wait for its reply.
+/// One request and how long to wait for its reply. Every timeout counts from the end of the
+/// request on the wire: `request_time` after the transport handed it over.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Transaction {
     pub request: Request,
+    /// Wire time of the request itself: the reply clock starts after it.
+    pub request_time: Duration,
     /// From the end of the request to the end of the reply.
     pub reply_timeout: Duration,
-    /// Give up early when not even one byte arrived by then (event requests: nobody takes part).
+    /// Give up when not even one byte arrived by then (the device's response timeout; event
+    /// requests: nobody takes part).
     pub first_byte_timeout: Option<Duration>,
+    /// After a timeout, how long to keep watching the line and throw away what comes (a late
+    /// reply must not pass for the reply to the next request).
+    pub late_window: Duration,
     /// Expected bus time of the whole transaction.
     pub estimated: Duration,
+}
+
+/// What the transport saw of a reply's timing, counted from the end of the request.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct ReplyTiming {
+    /// The first byte of the reply arrived this long after the request.
+    pub first_byte: Option<Duration>,
+    /// Nothing came in time, but bytes came this long after the request, after the timeout: a
+    /// late reply, thrown away.
+    pub late_byte: Option<Duration>,
 }
 
 /// What came back for a transaction.
@@ -147,6 +170,14 @@ pub struct PortScheduler {
     events: EventPoller,
     writes: Vec<PendingWrite>,
     in_flight: Option<InFlight>,
+    /// When the transaction in flight started.
+    in_flight_since: Duration,
+    /// Offline devices are not retried before this (their share of the bus is spent).
+    offline_retry_at: Duration,
+    /// When the last event poll ended and how long it took.
+    last_event_poll: (Duration, Duration),
+    /// Whether anything but an event poll went out since the last event poll.
+    sent_since_event_poll: bool,
 }
 
 impl PortScheduler {
@@ -154,7 +185,7 @@ impl PortScheduler {
         let events = EventPoller::new(&settings);
         let devices = plans
             .into_iter()
-            .map(|plan| DeviceState::new(plan, settings.fast_modbus))
+            .map(|plan| DeviceState::new(plan, settings.fast_modbus, &settings.line))
             .collect();
         Self {
             settings,
@@ -162,6 +193,10 @@ impl PortScheduler {
             events,
             writes: Vec::new(),
             in_flight: None,
+            in_flight_since: Duration::ZERO,
+            offline_retry_at: Duration::ZERO,
+            last_event_poll: (Duration::ZERO, Duration::ZERO),
+            sent_since_event_poll: false,
         }
     }
 
@@ -193,33 +228,36 @@ impl PortScheduler {
             return Action::Wait { until: now };
         }
         let events_active = self.events_active();
-        if events_active && now >= self.events.next_at() {
+        if events_active && now >= self.event_due_at() {
             return self.start_event_poll(now);
         }
         match self.choose(now) {
             Some((transaction, in_flight)) => {
-                let slot_left = self.events.next_at().saturating_sub(now);
+                let slot_left = self.event_due_at().saturating_sub(now);
                 if !events_active {
-                    self.in_flight = Some(in_flight);
-                    return Action::Transmit(transaction);
+                    return self.commit(now, transaction, in_flight);
                 }
                 // Read what fits before the event slot (all of it if possible) ...
-                if let Some((fitting, in_flight)) = self.fit(&transaction, &in_flight, slot_left) {
-                    self.in_flight = Some(in_flight);
-                    return Action::Transmit(fitting);
+                if let Some((fitting, in_flight)) =
+                    self.fit(now, &transaction, &in_flight, slot_left)
+                {
+                    return self.commit(now, fitting, in_flight);
                 }
                 // ... or poll events early, which resets the slot. What can never fit a whole
                 // interval goes anyway, at its smallest: a late event request beats a read that
                 // never runs.
+                // Never twice in a row, though: right after a poll the slot is as long as it gets,
+                // and polling again would starve the read for good.
                 let interval = self.settings.event_interval;
-                if self.fit(&transaction, &in_flight, interval).is_some() {
+                if self.sent_since_event_poll
+                    && self.fit(now, &transaction, &in_flight, interval).is_some()
+                {
                     return self.start_event_poll(now);
                 }
                 let (smallest, in_flight) = self
-                    .read_prefix(&in_flight, 1)
+                    .read_prefix(now, &in_flight, 1)
                     .unwrap_or((transaction, in_flight));
-                self.in_flight = Some(in_flight);
-                Action::Transmit(smallest)
+                self.commit(now, smallest, in_flight)
             }
             None if events_active => self.start_event_poll(now),
             None => Action::Wait {
@@ -228,12 +266,57 @@ impl PortScheduler {
         }
     }
 
+    /// When the next event poll is due: its slot, but on a line so slow that a poll takes more
+    /// than half the interval, never before the bus has had as much time for other requests as
+    /// the last poll took. At 1200 baud an event poll takes longer than the 200 ms interval;
+    /// without this, the bus would carry nothing else.
+    fn event_due_at(&self) -> Duration {
+        let (ended, took) = self.last_event_poll;
+        if took.saturating_mul(2) > self.settings.event_interval {
+            self.events.next_at().max(ended.saturating_add(took))
+        } else {
+            self.events.next_at()
+        }
+    }
+
+    fn commit(&mut self, now: Duration, transaction: Transaction, in_flight: InFlight) -> Action {
+        self.sent_since_event_poll = !matches!(in_flight, InFlight::PollEvents { .. });
+        self.in_flight = Some(in_flight);
+        self.in_flight_since = now;
+        Action::Transmit(transaction)
+    }
+
     /// Takes the outcome of the transaction [`next`](Self::next) returned.
     pub fn complete(&mut self, now: Duration, outcome: Outcome) -> Vec<PortEvent> {
+        self.complete_timed(now, outcome, ReplyTiming::default())
+    }
+
+    /// Takes the outcome of the transaction [`next`](Self::next) returned, with what the
+    /// transport saw of its timing: the device's response time is learned from it.
+    pub fn complete_timed(
+        &mut self,
+        now: Duration,
+        outcome: Outcome,
+        timing: ReplyTiming,
+    ) -> Vec<PortEvent> {
         let mut out = Vec::new();
+        let device = match &self.in_flight {
+            Some(InFlight::Setup { device, .. })
+            | Some(InFlight::EnableEvents { device, .. })
+            | Some(InFlight::Read { device, .. }) => Some(*device),
+            Some(InFlight::Write { write }) => Some(write.write.device),
+            Some(InFlight::PollEvents { .. }) | None => None,
+        };
+        if let Some(device) = device {
+            self.learn_response_time(now, device, &outcome, timing);
+        }
+        let was_offline = device
+            .and_then(|d| self.devices.get(d))
+            .is_some_and(|d| d.health.is_offline());
         match self.in_flight.take() {
             None => warn!("a transaction outcome arrived with nothing in flight"),
             Some(InFlight::PollEvents { started }) => {
+                self.last_event_poll = (now, now.saturating_sub(started));
                 self.complete_event_poll(now, started, outcome, &mut out)
             }
             Some(InFlight::Setup { device, index }) => {
@@ -251,6 +334,70 @@ impl PortScheduler {
             }) => self.complete_read(now, device, span, &members, outcome, &mut out),
             Some(InFlight::Write { write }) => self.complete_write(now, write, outcome, &mut out),
         }
+        let still_offline = device
+            .and_then(|d| self.devices.get(d))
+            .is_some_and(|d| d.health.is_offline());
+        if was_offline && still_offline {
+            // A retry of a dead device: the next one waits until this one's cost is a small share
+            // of the bus time, however many dead devices there are.
+            let cost = now.saturating_sub(self.in_flight_since);
+            let hold = cost.saturating_mul(100 / OFFLINE_SHARE_PERCENT - 1);
+            self.offline_retry_at = self.offline_retry_at.max(now.saturating_add(hold));
+        }
+        out
+    }
+
+    fn learn_response_time(
+        &mut self,
+        now: Duration,
+        device: usize,
+        outcome: &Outcome,
+        timing: ReplyTiming,
+    ) {
+        let Some(state) = self.devices.get_mut(device) else {
+            return;
+        };
+        if let Some(late) = timing.late_byte {
+            let before = state.response.timeout(now);
+            state.response.answered_late(now, late);
+            info!(
+                device = %state.plan.name,
+                late_ms = late.as_millis() as u64,
+                timeout_ms = before.as_millis() as u64,
+                new_timeout_ms = state.response.timeout(now).as_millis() as u64,
+                "reply came after the response timeout: thrown away, waiting longer from now on"
+            );
+        } else if let (Outcome::Reply(_), Some(first_byte)) = (outcome, timing.first_byte) {
+            state.response.answered(first_byte);
+        }
+    }
+
+    /// Whether a device may be sent a request now: offline devices only in their retry slot, and
+    /// only while the offline devices' share of the bus is not spent.
+    fn may_transact(&self, device: &DeviceState, now: Duration) -> bool {
+        device.health.may_transact(now)
+            && (!device.health.is_offline() || now >= self.offline_retry_at)
+    }
+
+    /// The port cannot be opened (or was lost) since `since`: devices not heard from for their
+    /// device timeout are marked offline and their values as not read.
+    pub fn port_unavailable(&mut self, now: Duration, since: Duration) -> Vec<PortEvent> {
+        let mut out = Vec::new();
+        for (index, state) in self.devices.iter_mut().enumerate() {
+            if !state.health.port_lost(now, since) {
+                continue;
+            }
+            warn!(device = %state.plan.name, "port unavailable: device marked offline");
+            state.restart_preparation();
+            out.push(PortEvent::Offline { device: index });
+            for span in state.plan.reads.iter().map(|r| r.span) {
+                out.push(PortEvent::ReadFailed {
+                    device: index,
+                    span,
+                    unsupported: false,
+                });
+            }
+        }
         out
     }
 
@@ -258,32 +405,53 @@ impl PortScheduler {
         let request = Request::poll_events(self.events.request());
         let line = &self.settings.line;
         let max_reply = 8 + usize::from(self.events.max_data_len());
-        let margin = self.settings.latency_margin;
+        // USB adapters deliver late, and a loaded machine reads late: a short first-byte timeout
+        // would end the poll while the arbitration is still going on, and its bytes would land
+        // in the next request's window. A bus with Fast Modbus devices always answers (someone
+        // wins with "no events"), so the allowance costs only when nobody takes part.
+        let margin = self.settings.latency_margin.max(ADAPTER_LATENCY_ALLOWANCE);
         // The usual answer is "no events" after a few arbitration windows; longer packets are
         // rare and bounded by max_data_len.
         let typical = line.arbitration_wait() + line.arbitration_window() * 6;
         let transaction = Transaction {
             estimated: line.transaction_time(9, typical, 5),
+            request_time: line.wire_time(request.encode().map(|b| b.len()).unwrap_or(9)),
             reply_timeout: line.event_reply_timeout() + line.wire_time(max_reply + 32) + margin,
             first_byte_timeout: Some(line.event_first_byte_timeout() + margin),
+            late_window: margin,
             request,
         };
         self.events.started(now);
-        self.in_flight = Some(InFlight::PollEvents { started: now });
-        Action::Transmit(transaction)
+        self.commit(now, transaction, InFlight::PollEvents { started: now })
     }
 
-    fn classic_transaction(&self, request: Request, reply_pdu_len: usize) -> Transaction {
+    /// A request to one device: its response timeout (wb-mqtt-serial's rule as the floor, the
+    /// learned response time above it) to the first byte, then the reply's wire time.
+    fn classic_transaction(
+        &self,
+        now: Duration,
+        device: &DeviceState,
+        request: Request,
+        reply_pdu_len: usize,
+    ) -> Transaction {
         let line = &self.settings.line;
         let request_len = request.encode().map(|b| b.len()).unwrap_or(256);
         let reply_len = reply_pdu_len + 3;
+        let response_timeout = device.response.timeout(now);
+        let request_time = line.wire_time(request_len);
+        let estimated = if device.health.is_offline() {
+            // A dead device costs its whole timeout and the late window after it.
+            request_time + response_timeout * 2
+        } else {
+            line.transaction_time(request_len, self.settings.turnaround, reply_len)
+        };
         Transaction {
             request,
-            reply_timeout: self.settings.response_timeout
-                + line.wire_time(reply_len)
-                + self.settings.latency_margin,
-            first_byte_timeout: None,
-            estimated: line.transaction_time(request_len, self.settings.turnaround, reply_len),
+            request_time,
+            reply_timeout: response_timeout + line.wire_time(reply_len) + ADAPTER_LATENCY_ALLOWANCE,
+            first_byte_timeout: Some(response_timeout),
+            late_window: response_timeout,
+            estimated,
         }
     }
 
@@ -298,7 +466,7 @@ impl PortScheduler {
         let pending = self.writes.iter().find(|p| {
             self.devices
                 .get(p.write.device)
-                .is_some_and(|d| d.health.may_transact(now))
+                .is_some_and(|d| self.may_transact(d, now))
         })?;
         let device = self.devices.get(pending.write.device)?;
         let write = &pending.write;
@@ -321,7 +489,8 @@ impl PortScheduler {
                 values: values.to_vec(),
             },
         };
-        let transaction = self.classic_transaction(Request::classic(device.plan.address, pdu), 5);
+        let transaction =
+            self.classic_transaction(now, device, Request::classic(device.plan.address, pdu), 5);
         Some((
             transaction,
             InFlight::Write {
@@ -332,7 +501,7 @@ impl PortScheduler {
 
     fn choose_preparation(&self, now: Duration) -> Option<(Transaction, InFlight)> {
         for (index, device) in self.devices.iter().enumerate() {
-            if device.is_prepared() || !device.health.may_transact(now) {
+            if device.is_prepared() || !self.may_transact(device, now) {
                 continue;
             }
             if let Some(setup_index) = device.next_setup_write() {
@@ -347,8 +516,12 @@ impl PortScheduler {
                         values: values.to_vec(),
                     },
                 };
-                let transaction =
-                    self.classic_transaction(Request::classic(device.plan.address, pdu), 5);
+                let transaction = self.classic_transaction(
+                    now,
+                    device,
+                    Request::classic(device.plan.address, pdu),
+                    5,
+                );
                 return Some((
                     transaction,
                     InFlight::Setup {
@@ -361,7 +534,7 @@ impl PortScheduler {
                 let (ranges, members) = device.event_ranges();
                 let mask_len: usize = ranges.iter().map(EventRange::mask_len).sum();
                 let request = Request::configure_events(device.plan.address, ranges.clone());
-                let transaction = self.classic_transaction(request, 3 + mask_len);
+                let transaction = self.classic_transaction(now, device, request, 3 + mask_len);
                 return Some((
                     transaction,
                     InFlight::EnableEvents {
@@ -380,13 +553,15 @@ impl PortScheduler {
             .devices
             .iter()
             .enumerate()
-            .filter(|(_, d)| d.is_prepared() && d.health.may_transact(now))
+            .filter(|(_, d)| d.is_prepared() && self.may_transact(d, now))
             .filter_map(|(index, d)| d.choose_read(now).map(|choice| (index, choice)))
             .min_by_key(|(_, choice)| choice.urgency)?;
         let (device, ReadChoice { span, members, .. }) = best;
-        let address = self.devices.get(device)?.plan.address;
+        let state = self.devices.get(device)?;
         let transaction = self.classic_transaction(
-            Request::classic(address, span.read_request()),
+            now,
+            state,
+            Request::classic(state.plan.address, span.read_request()),
             span.reply_pdu_len(),
         );
         Some((
@@ -402,6 +577,7 @@ impl PortScheduler {
     /// The transaction, or the longest leading part of a merged read, that fits `budget`.
     fn fit(
         &self,
+        now: Duration,
         transaction: &Transaction,
         in_flight: &InFlight,
         budget: Duration,
@@ -414,12 +590,17 @@ impl PortScheduler {
         };
         (1..members.len())
             .rev()
-            .filter_map(|taken| self.read_prefix(in_flight, taken))
+            .filter_map(|taken| self.read_prefix(now, in_flight, taken))
             .find(|(shorter, _)| shorter.estimated <= budget)
     }
 
     /// The read of the first `taken` members of a merged read.
-    fn read_prefix(&self, in_flight: &InFlight, taken: usize) -> Option<(Transaction, InFlight)> {
+    fn read_prefix(
+        &self,
+        now: Duration,
+        in_flight: &InFlight,
+        taken: usize,
+    ) -> Option<(Transaction, InFlight)> {
         let InFlight::Read {
             device, members, ..
         } = in_flight
@@ -436,7 +617,7 @@ impl PortScheduler {
             span.count = u16::try_from(end - u32::from(span.start)).ok()?;
         }
         let request = Request::classic(state.plan.address, span.read_request());
-        let transaction = self.classic_transaction(request, span.reply_pdu_len());
+        let transaction = self.classic_transaction(now, state, request, span.reply_pdu_len());
         Some((
             transaction,
             InFlight::Read {
@@ -448,11 +629,21 @@ impl PortScheduler {
     }
 
     fn earliest_deadline(&self, now: Duration) -> Duration {
-        let devices = self.devices.iter().filter_map(|d| d.next_deadline());
+        let offline_gate = |d: &DeviceState, at: Duration| {
+            if d.health.is_offline() {
+                at.max(self.offline_retry_at)
+            } else {
+                at
+            }
+        };
+        let devices = self
+            .devices
+            .iter()
+            .filter_map(|d| d.next_deadline().map(|at| offline_gate(d, at)));
         let writes = self.writes.iter().filter_map(|p| {
             self.devices
                 .get(p.write.device)
-                .and_then(|d| d.health.retry_at())
+                .and_then(|d| d.health.retry_at().map(|at| offline_gate(d, at)))
         });
         devices
             .chain(writes)

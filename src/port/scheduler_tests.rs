@@ -31,6 +31,7 @@ fn device(address: u8, reads: Vec<PlannedRead>) -> DevicePlan {
     DevicePlan {
         name: format!("dev{address}"),
         address,
+        response_timeout: crate::protocol::timing::DEFAULT_RESPONSE_TIMEOUT,
         merge: MergeLimits {
             max_read_registers: 0,
             max_register_hole: 0,
@@ -77,30 +78,72 @@ impl Log {
 fn run(
     scheduler: &mut PortScheduler,
     log: &mut Log,
-    mut now: Duration,
+    now: Duration,
     end: Duration,
     mut respond: impl FnMut(Duration, &Request) -> Outcome,
+) -> Duration {
+    run_timed(scheduler, log, now, end, |at, request| {
+        (respond(at, request), None)
+    })
+}
+
+/// [`run`] where `respond` may also say that the device answers after `Some(latency)` (from the
+/// end of the request): the reply counts if it starts within the transaction's response timeout,
+/// and is reported as late (thrown away) if it comes within the late window after it.
+fn run_timed(
+    scheduler: &mut PortScheduler,
+    log: &mut Log,
+    mut now: Duration,
+    end: Duration,
+    mut respond: impl FnMut(Duration, &Request) -> (Outcome, Option<Duration>),
 ) -> Duration {
     let line = scheduler.settings.line;
     while now < end {
         match scheduler.next(now) {
             Action::Transmit(transaction) => {
                 log.sent.push((now, transaction.request.clone()));
-                let outcome = respond(now, &transaction.request);
+                let (outcome, latency) = respond(now, &transaction.request);
                 let request_len = transaction.request.encode().unwrap().len();
-                now += match &outcome {
-                    Outcome::Reply(reply) => {
-                        let arbitration = if transaction.first_byte_timeout.is_some() {
+                assert_eq!(transaction.request_time, line.wire_time(request_len));
+                let response_timeout = transaction
+                    .first_byte_timeout
+                    .unwrap_or(transaction.reply_timeout);
+                let silence = transaction.request_time + response_timeout + transaction.late_window;
+                let (outcome, timing, took) = match (outcome, latency) {
+                    (Outcome::Reply(reply), Some(latency)) if latency > response_timeout => {
+                        let timing = ReplyTiming {
+                            first_byte: None,
+                            late_byte: (latency <= response_timeout + transaction.late_window)
+                                .then_some(latency),
+                        };
+                        let reply_end = transaction.request_time
+                            + latency
+                            + line.wire_time(reply.encode().unwrap().len());
+                        (Outcome::NoReply, timing, silence.max(reply_end))
+                    }
+                    (Outcome::Reply(reply), latency) => {
+                        let arbitration = if matches!(
+                            transaction.request.body,
+                            RequestBody::Fast(FastRequest::PollEvents(_))
+                        ) {
                             line.arbitration_wait() + line.arbitration_window() * 12
                         } else {
                             Duration::ZERO
                         };
+                        let latency = latency.unwrap_or(ms(1));
                         let reply_len = reply.encode().unwrap().len();
-                        line.transaction_time(request_len, ms(1) + arbitration, reply_len)
+                        let timing = ReplyTiming {
+                            first_byte: Some(latency + arbitration),
+                            late_byte: None,
+                        };
+                        let took =
+                            line.transaction_time(request_len, latency + arbitration, reply_len);
+                        (Outcome::Reply(reply), timing, took)
                     }
-                    _ => line.wire_time(request_len) + transaction.reply_timeout,
+                    (other, _) => (other, ReplyTiming::default(), silence),
                 };
-                for event in scheduler.complete(now, outcome) {
+                now += took;
+                for event in scheduler.complete_timed(now, outcome, timing) {
                     log.events.push((now, event));
                 }
             }
@@ -608,9 +651,10 @@ fn a_dead_device_backs_off_while_the_others_keep_their_rate() {
         "{gaps:?}"
     );
     let alive_reads: Vec<Duration> = log.classic_to(1).into_iter().map(|(at, _)| at).collect();
-    // Each failed try costs the response timeout (~0.5 s), never more.
+    // Each failed try costs the response timeout (~0.5 s) and the late window after it, never
+    // more.
     assert!(
-        max_gap(&alive_reads) < ms(600),
+        max_gap(&alive_reads) < ms(1100),
         "{:?}",
         max_gap(&alive_reads)
     );
@@ -754,5 +798,221 @@ fn holding_multi_writes_one_register_with_function_16() {
                 values: vec![9]
             }
         )
+    );
+}
+
+/// A Wiren Board template's `response_timeout_ms: 1`.
+fn wb_device(address: u8, reads: Vec<PlannedRead>) -> DevicePlan {
+    DevicePlan {
+        response_timeout: ms(1),
+        ..device(address, reads)
+    }
+}
+
+#[test]
+fn the_reply_clock_covers_the_request_and_a_wb_timeout_at_every_baud() {
+    for baud in crate::protocol::timing::STANDARD_BAUD_RATES {
+        let mut port = settings(baud);
+        port.fast_modbus = false;
+        let plan = wb_device(7, vec![read(RegisterType::Holding, 0, EventMode::Polled)]);
+        let mut scheduler = PortScheduler::new(port, vec![plan]);
+        let Action::Transmit(transaction) = scheduler.next(Duration::ZERO) else {
+            panic!("a read is due at {baud}");
+        };
+        let line = scheduler.settings.line;
+        let request_len = transaction.request.encode().unwrap().len();
+        assert_eq!(transaction.request_time, line.wire_time(request_len));
+        // wb-mqtt-serial: 1 ms + 24 ms + one character, to the first byte.
+        let floor = ms(25) + line.char_time();
+        assert_eq!(transaction.first_byte_timeout, Some(floor), "at {baud}");
+        // A correct reply: 0.5 ms turnaround, 7 bytes.
+        let reply = ms(1) / 2 + line.wire_time(7);
+        assert!(transaction.reply_timeout > reply + ms(24), "at {baud}");
+    }
+}
+
+#[test]
+fn a_device_answering_in_9_ms_never_misses_a_wb_timeout() {
+    let mut port = settings(115_200);
+    port.fast_modbus = false;
+    let plan = wb_device(7, vec![read(RegisterType::Holding, 0, EventMode::Polled)]);
+    let mut scheduler = PortScheduler::new(port, vec![plan]);
+    let mut log = Log::default();
+    run_timed(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(60_000),
+        |_, request| (healthy(request), Some(ms(9))),
+    );
+    let failures = log
+        .events
+        .iter()
+        .filter(|(_, e)| matches!(e, PortEvent::ReadFailed { .. } | PortEvent::Offline { .. }))
+        .count();
+    assert_eq!(failures, 0);
+    assert!(log.classic_to(7).len() > 1000);
+}
+
+#[test]
+fn a_device_that_answered_late_gets_a_longer_timeout() {
+    let mut port = settings(9600);
+    port.fast_modbus = false;
+    let plan = device(30, vec![read(RegisterType::Input, 0, EventMode::Polled)]);
+    let mut scheduler = PortScheduler::new(port, vec![plan]);
+    let mut log = Log::default();
+    // Every reply starts 600 ms after the request; the timeout is 500 ms + 24 ms + 1 character.
+    let end = run_timed(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(20_000),
+        |_, request| (healthy(request), Some(ms(600))),
+    );
+    let values = log
+        .events
+        .iter()
+        .filter(|(_, e)| matches!(e, PortEvent::Values { .. }))
+        .count();
+    let failures = log
+        .events
+        .iter()
+        .filter(|(_, e)| matches!(e, PortEvent::ReadFailed { .. }))
+        .count();
+    assert!(values >= 15, "read again and again once learned: {values}");
+    assert!(failures <= 1, "only the first reply was late: {failures}");
+    let Action::Transmit(transaction) = scheduler.next(end) else {
+        panic!("a read is due");
+    };
+    assert!(transaction.first_byte_timeout > Some(ms(600)));
+}
+
+/// Reads per device address over `end`, with `dead` addresses never answering.
+fn reads_per_device(fast_modbus: bool, dead: &[u8], end: Duration) -> (Vec<usize>, usize) {
+    let mut port = settings(115_200);
+    port.fast_modbus = fast_modbus;
+    let plans: Vec<DevicePlan> = (1..=3)
+        .chain(dead.iter().copied())
+        .map(|address| {
+            device(
+                address,
+                vec![
+                    read(RegisterType::Holding, 0, EventMode::Polled),
+                    read(RegisterType::Coil, 0, EventMode::SemiSporadic),
+                ],
+            )
+        })
+        .collect();
+    let mut scheduler = PortScheduler::new(port, plans);
+    let mut log = Log::default();
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        end,
+        |_, request| {
+            if dead.contains(&request.address) {
+                Outcome::NoReply
+            } else {
+                healthy(request)
+            }
+        },
+    );
+    let reads = (1..=3).map(|a| log.classic_to(a).len()).collect();
+    (reads, log.event_polls().len())
+}
+
+#[test]
+fn dead_devices_cost_the_healthy_ones_little() {
+    let end = ms(120_000);
+    for fast_modbus in [false, true] {
+        let (clean, clean_polls) = reads_per_device(fast_modbus, &[], end);
+        let (faulty, faulty_polls) = reads_per_device(fast_modbus, &[8, 9], end);
+        for (clean, faulty) in clean.iter().zip(&faulty) {
+            assert!(
+                *faulty as f64 >= *clean as f64 * 0.8,
+                "fast_modbus {fast_modbus}: {faulty} reads with two dead devices, {clean} without"
+            );
+        }
+        assert!(
+            faulty_polls as f64 >= clean_polls as f64 * 0.8,
+            "event polls: {faulty_polls} with two dead devices, {clean_polls} without"
+        );
+    }
+}
+
+#[test]
+fn a_port_that_stays_closed_marks_its_devices_offline() {
+    let plans = vec![
+        device(1, vec![read(RegisterType::Holding, 0, EventMode::Polled)]),
+        device(2, vec![read(RegisterType::Coil, 3, EventMode::Polled)]),
+    ];
+    let mut scheduler = PortScheduler::new(settings(9600), plans);
+    assert!(scheduler.port_unavailable(ms(2000), ms(0)).is_empty());
+    let events = scheduler.port_unavailable(ms(3000), ms(0));
+    assert!(events.contains(&PortEvent::Offline { device: 0 }));
+    assert!(events.contains(&PortEvent::Offline { device: 1 }));
+    assert!(events.contains(&PortEvent::ReadFailed {
+        device: 1,
+        span: RegisterSpan::new(RegisterType::Coil, 3, 1),
+        unsupported: false,
+    }));
+    assert!(scheduler.port_unavailable(ms(9000), ms(0)).is_empty());
+    // The port is back: the devices are tried at once.
+    assert!(matches!(scheduler.next(ms(9000)), Action::Transmit(_)));
+}
+
+#[test]
+fn at_1200_baud_event_polls_leave_room_for_reads() {
+    // An event poll at 1200 8N2 takes longer than the 200 ms event interval.
+    let plans = vec![
+        wb_device(20, vec![read(RegisterType::Coil, 0, EventMode::Sporadic)]),
+        wb_device(21, vec![read(RegisterType::Input, 4, EventMode::Polled)]),
+    ];
+    let mut scheduler = PortScheduler::new(settings(1200), plans);
+    let mut log = Log::default();
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(30_000),
+        |_, request| healthy(request),
+    );
+    let polls = log.event_polls().len();
+    let reads = log.classic_to(21).len();
+    assert!(polls > 20, "events are still polled: {polls}");
+    assert!(reads > 20, "the polled device is read too: {reads}");
+}
+
+#[test]
+fn a_read_that_just_misses_the_slot_after_a_poll_still_goes() {
+    // 110 holding registers at 115200 8N2: about 23 ms of wire time, more than the slot left
+    // after an event poll when the interval is 25 ms, less than the interval.
+    let mut port = settings(115_200);
+    port.event_interval = ms(25);
+    let plans = vec![
+        device(20, vec![read(RegisterType::Coil, 0, EventMode::Sporadic)]),
+        device(
+            21,
+            vec![PlannedRead {
+                span: RegisterSpan::new(RegisterType::Holding, 0, 110),
+                period: None,
+                events: EventMode::Polled,
+            }],
+        ),
+    ];
+    let mut scheduler = PortScheduler::new(port, plans);
+    let mut log = Log::default();
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(2000),
+        |_, request| healthy(request),
+    );
+    assert!(
+        log.classic_to(21).len() > 10,
+        "{}",
+        log.classic_to(21).len()
     );
 }

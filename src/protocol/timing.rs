@@ -170,6 +170,105 @@ impl LineSettings {
     }
 }
 
+/// What USB-RS485 adapters and the kernel add to a reply's arrival: wb-mqtt-serial's allowance on
+/// serial lines, added to every response timeout.
+pub const ADAPTER_LATENCY_ALLOWANCE: Duration = Duration::from_millis(24);
+
+/// The response timeout when neither the port nor the device sets one (wb-mqtt-serial's default).
+pub const DEFAULT_RESPONSE_TIMEOUT: Duration = Duration::from_millis(500);
+
+/// The longest a learned response time may grow: a device slower than this is broken, and a
+/// longer wait would stall the bus (and shutdown) for nothing.
+pub const MAX_LEARNED_RESPONSE_TIMEOUT: Duration = Duration::from_secs(3);
+
+/// How long a late reply keeps its device's response timeout raised before the smoothed
+/// estimate alone decides again.
+pub const LATE_REPLY_MEMORY: Duration = Duration::from_secs(300);
+
+impl LineSettings {
+    /// wb-mqtt-serial's response timeout on a serial line: the configured one (the larger of port
+    /// and device, 500 ms when neither sets it) plus 24 ms of adapter latency and one character.
+    /// Counted from the end of the request to the first byte of the reply. Templates say 1 ms
+    /// because the allowance is always added.
+    pub fn response_timeout_floor(&self, configured: Duration) -> Duration {
+        configured
+            .saturating_add(ADAPTER_LATENCY_ALLOWANCE)
+            .saturating_add(self.char_time())
+    }
+}
+
+/// One device's response time, learned as TCP learns its retransmission timeout (RFC 6298): a
+/// smoothed time to the first byte and its variation. The timeout never falls below the
+/// configured floor; a late reply (bytes after the timeout) raises it for
+/// [`LATE_REPLY_MEMORY`], so that the device's next answers arrive in time instead of landing in
+/// the window of the next request.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ResponseTimer {
+    floor: Duration,
+    smoothed: Option<Duration>,
+    variation: Duration,
+    /// A timeout that covers the latest late reply, and until when it holds.
+    late: Option<(Duration, Duration)>,
+}
+
+impl ResponseTimer {
+    pub fn new(floor: Duration) -> Self {
+        Self {
+            floor,
+            smoothed: None,
+            variation: Duration::ZERO,
+            late: None,
+        }
+    }
+
+    pub fn floor(&self) -> Duration {
+        self.floor
+    }
+
+    /// How long to wait for the first byte of a reply, from the end of the request.
+    pub fn timeout(&self, now: Duration) -> Duration {
+        let learned = self
+            .smoothed
+            .map(|smoothed| smoothed.saturating_mul(3) / 2 + self.variation.saturating_mul(4))
+            .unwrap_or_default();
+        let late = self
+            .late
+            .filter(|(_, until)| now < *until)
+            .map(|(timeout, _)| timeout)
+            .unwrap_or_default();
+        let ceiling = MAX_LEARNED_RESPONSE_TIMEOUT.max(self.floor);
+        learned.max(late).min(ceiling).max(self.floor)
+    }
+
+    /// A reply started `latency` after the end of its request.
+    pub fn answered(&mut self, latency: Duration) {
+        match self.smoothed {
+            None => {
+                self.smoothed = Some(latency);
+                self.variation = latency / 2;
+            }
+            Some(smoothed) => {
+                let deviation = smoothed.abs_diff(latency);
+                self.variation = (self.variation * 3 + deviation) / 4;
+                self.smoothed = Some((smoothed * 7 + latency) / 8);
+            }
+        }
+    }
+
+    /// Bytes came `latency` after the end of a request whose timeout had passed: wait half as long
+    /// again for a while (and at least twice the timeout that was too short).
+    pub fn answered_late(&mut self, now: Duration, latency: Duration) {
+        let covering = (latency.saturating_mul(3) / 2).max(self.timeout(now).saturating_mul(2));
+        let covering = covering.min(MAX_LEARNED_RESPONSE_TIMEOUT.max(self.floor));
+        let raised = self
+            .late
+            .filter(|(_, until)| now < *until)
+            .map_or(covering, |(timeout, _)| timeout.max(covering));
+        // Not a sample of the smoothed estimate: one straggler must not dominate it for long.
+        self.late = Some((raised, now.saturating_add(LATE_REPLY_MEMORY)));
+    }
+}
+
 /// Windows of a scan arbitration.
 pub const ARBITRATION_WINDOWS_SCAN: u32 = 32;
 /// Windows of an event arbitration.
@@ -275,6 +374,70 @@ mod tests {
         assert!((slow.wire_time(42).as_secs_f64() * 1e3 - 48.1).abs() < 0.1);
         // A 100-byte reply at 115200 8N2 takes 9.55 ms.
         assert!((line.wire_time(100).as_secs_f64() * 1e3 - 9.549).abs() < 0.01);
+    }
+
+    #[test]
+    fn wiren_board_response_timeout_floor() {
+        // A WB template's 1 ms at 9600 8N2: 1 + 24 + 1.146 ms.
+        let slow = LineSettings::new(9600, Parity::None, 2);
+        let floor = slow.response_timeout_floor(Duration::from_millis(1));
+        assert!((micros(floor) - 26_145.8).abs() < 0.1, "{floor:?}");
+        let fast = LineSettings::new(115_200, Parity::None, 2);
+        let floor = fast.response_timeout_floor(DEFAULT_RESPONSE_TIMEOUT);
+        assert!((micros(floor) - 524_095.5).abs() < 0.1, "{floor:?}");
+        // At 1200 8N2 one character is 9.2 ms.
+        let slowest = LineSettings::new(1200, Parity::None, 2);
+        let floor = slowest.response_timeout_floor(Duration::from_millis(1));
+        assert!((micros(floor) - 34_166.7).abs() < 0.1, "{floor:?}");
+    }
+
+    #[test]
+    fn response_timer_never_goes_below_its_floor() {
+        let floor = Duration::from_millis(26);
+        let mut timer = ResponseTimer::new(floor);
+        assert_eq!(timer.timeout(Duration::ZERO), floor);
+        for _ in 0..50 {
+            timer.answered(Duration::from_millis(1));
+        }
+        assert_eq!(timer.timeout(Duration::ZERO), floor);
+    }
+
+    #[test]
+    fn a_slow_device_gets_a_timeout_above_its_answers() {
+        let mut timer = ResponseTimer::new(Duration::from_millis(26));
+        for latency in [40, 45, 38, 42, 44, 39, 41, 43] {
+            timer.answered(Duration::from_millis(latency));
+        }
+        let timeout = timer.timeout(Duration::ZERO);
+        assert!(timeout > Duration::from_millis(60), "{timeout:?}");
+        assert!(timeout < Duration::from_millis(200), "{timeout:?}");
+    }
+
+    #[test]
+    fn a_late_reply_raises_the_timeout_for_a_while() {
+        let floor = Duration::from_millis(524);
+        let mut timer = ResponseTimer::new(floor);
+        let now = Duration::from_secs(10);
+        timer.answered_late(now, Duration::from_millis(600));
+        let raised = timer.timeout(now);
+        assert!(raised >= Duration::from_millis(900), "{raised:?}");
+        assert!(raised <= MAX_LEARNED_RESPONSE_TIMEOUT);
+        // Still raised a minute later, back to what the answers justify after the memory ends.
+        assert_eq!(timer.timeout(now + Duration::from_secs(60)), raised);
+        let later = timer.timeout(now + LATE_REPLY_MEMORY);
+        assert!(later < raised, "{later:?}");
+        assert!(later >= floor);
+    }
+
+    #[test]
+    fn learned_timeouts_are_bounded() {
+        let mut timer = ResponseTimer::new(Duration::from_millis(26));
+        timer.answered_late(Duration::ZERO, Duration::from_secs(3600));
+        assert_eq!(timer.timeout(Duration::ZERO), MAX_LEARNED_RESPONSE_TIMEOUT);
+        // A configured floor above the bound still wins.
+        let mut patient = ResponseTimer::new(Duration::from_secs(5));
+        patient.answered_late(Duration::ZERO, Duration::from_secs(3600));
+        assert_eq!(patient.timeout(Duration::ZERO), Duration::from_secs(5));
     }
 
     #[test]

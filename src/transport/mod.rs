@@ -1,9 +1,11 @@
 //! Getting frames on and off a bus: a serial port (real RS-485 adapter or the simulator's
 //! pseudo-terminal), raw RTU frames over TCP, or Modbus TCP (MBAP). Every reply is found by the
-//! protocol's [`ReplyParser`], with a reply timeout, an optional first-byte timeout and an
-//! inter-byte timeout. Stale input is flushed before each request.
+//! protocol's [`ReplyParser`], within the reply window of [`receive`]: timeouts counted from the
+//! end of the request on the wire, a late window after a timeout, a quiet line before the next
+//! request. Stale input is flushed before each request.
 
 mod mbap;
+pub mod receive;
 
 use std::io;
 use std::time::Duration;
@@ -12,10 +14,12 @@ use thiserror::Error;
 use tokio::io::{AsyncRead, AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
 use tokio::time::{timeout_at, Instant};
+
+use receive::{Received, ReplyWindow};
 use tokio_serial::{SerialPort, SerialPortBuilderExt, SerialStream};
 use tracing::debug;
 
-use crate::port::{Outcome, Transaction};
+use crate::port::{Outcome, ReplyTiming, Transaction};
 use crate::protocol::{self, LineSettings, ParseStatus, ReplyParser};
 
 pub use mbap::MbapCodec;
@@ -85,6 +89,8 @@ pub struct Transport {
     guard_interval: Duration,
     /// When the bus was last busy (end of the last reply or request).
     last_activity: Instant,
+    /// The clock of reply windows.
+    epoch: Instant,
 }
 
 impl Transport {
@@ -145,6 +151,7 @@ impl Transport {
             inter_byte_timeout,
             guard_interval: Duration::ZERO,
             last_activity: Instant::now(),
+            epoch: Instant::now(),
         })
     }
 
@@ -158,8 +165,12 @@ impl Transport {
     }
 
     /// Sends the request and waits for its reply. Bus-level failures (silence, garbage) are
-    /// outcomes; only a broken port or connection is an error.
-    pub async fn transact(&mut self, transaction: &Transaction) -> Result<Outcome, TransportError> {
+    /// outcomes; only a broken port or connection is an error. The timing tells the scheduler
+    /// when the reply started, or that it came too late.
+    pub async fn transact(
+        &mut self,
+        transaction: &Transaction,
+    ) -> Result<(Outcome, ReplyTiming), TransportError> {
         self.flush_input()?;
         let frame = transaction.request.encode()?;
         let wire = match &mut self.mbap {
@@ -170,27 +181,31 @@ impl Transport {
             tokio::time::sleep_until(self.last_activity + self.guard_interval).await;
         }
         debug!(port = %self.name, tx = %protocol::hex(&frame), "request");
+        let write_started = self.epoch.elapsed();
         self.write_all(&wire).await?;
-        self.last_activity = Instant::now();
+        let serial = matches!(self.link, Link::Serial(_));
+        let mut window = ReplyWindow::new(
+            transaction,
+            (write_started, self.epoch.elapsed()),
+            self.inter_byte_timeout,
+            serial,
+        );
+        self.last_activity = self.epoch + window.clock_start();
         if !transaction.request.expects_reply() {
-            return Ok(Outcome::NoReply);
+            // A broadcast: nobody answers, but the line is busy until it has left.
+            tokio::time::sleep_until(self.last_activity).await;
+            return Ok((Outcome::NoReply, ReplyTiming::default()));
         }
         let mut parser = ReplyParser::for_request(&transaction.request);
-        let started = Instant::now();
-        let deadline = started + transaction.reply_timeout;
-        let first_byte_deadline = transaction.first_byte_timeout.map(|t| started + t);
-        let mut received_any = false;
         let mut garbled = false;
         let mut buffer = [0u8; 512];
-        loop {
-            let wait_until = match (received_any, first_byte_deadline) {
-                (false, Some(first)) => first.min(deadline),
-                (true, _) => (Instant::now() + self.inter_byte_timeout).min(deadline),
-                (false, None) => deadline,
-            };
-            let read = timeout_at(wait_until, self.read(&mut buffer)).await;
-            let count = match read {
-                Err(_elapsed) => break,
+        while !window.is_finished() {
+            let wake = self.epoch + window.wake_at();
+            let count = match timeout_at(wake, self.read(&mut buffer)).await {
+                Err(_elapsed) => {
+                    window.expire(self.epoch.elapsed());
+                    continue;
+                }
                 Ok(Ok(0)) => {
                     return Err(TransportError::Closed {
                         name: self.name.clone(),
@@ -205,18 +220,23 @@ impl Transport {
                 }
             };
             let bytes = buffer.get(..count).unwrap_or(&[]);
-            received_any = true;
             self.last_activity = Instant::now();
             let unwrapped = match &mut self.mbap {
                 Some(mbap) => mbap.unwrap(bytes),
                 None => bytes.to_vec(),
             };
+            if window.receive(self.epoch.elapsed()) == Received::Discard {
+                debug!(port = %self.name, rx = %protocol::hex(bytes), "bytes outside the reply window dropped");
+                continue;
+            }
             debug!(port = %self.name, rx = %protocol::hex(bytes), "reply bytes");
             parser.push(&unwrapped);
             loop {
                 match parser.poll() {
                     ParseStatus::NeedMore => break,
-                    ParseStatus::Frame(parsed) => return Ok(Outcome::Reply(parsed.reply)),
+                    ParseStatus::Frame(parsed) => {
+                        return Ok((Outcome::Reply(parsed.reply), window.timing()))
+                    }
                     ParseStatus::Error(err) => {
                         debug!(port = %self.name, %err, "dropped reply bytes");
                         garbled = true;
@@ -224,11 +244,12 @@ impl Transport {
                 }
             }
         }
-        Ok(if garbled || !parser.buffered().is_empty() {
+        let outcome = if garbled || !parser.buffered().is_empty() {
             Outcome::Garbled
         } else {
             Outcome::NoReply
-        })
+        };
+        Ok((outcome, window.timing()))
     }
 
     /// Drops whatever arrived unasked (late replies, noise) so it cannot pass for the next reply.

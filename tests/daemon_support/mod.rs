@@ -19,6 +19,17 @@ pub struct DaemonProcess {
 impl DaemonProcess {
     /// `extra` goes after `run` (e.g. `--stdio`); stdin and stdout are set by the caller.
     pub fn start(config: &Value, extra: &[&str], stdin: Stdio, stdout: Stdio) -> Self {
+        Self::start_with_env(config, extra, stdin, stdout, &[])
+    }
+
+    /// [`start`](Self::start) with extra environment variables (e.g. `RUST_LOG`).
+    pub fn start_with_env(
+        config: &Value,
+        extra: &[&str],
+        stdin: Stdio,
+        stdout: Stdio,
+        env: &[(&str, &str)],
+    ) -> Self {
         let dir = tempfile::tempdir().unwrap();
         let config_path = dir.path().join("config.json");
         std::fs::write(&config_path, config.to_string()).unwrap();
@@ -29,12 +40,18 @@ impl DaemonProcess {
             .arg(repo("templates"))
             .arg("-c")
             .arg(&config_path)
+            .envs(env.iter().copied())
             .stdin(stdin)
             .stdout(stdout)
             .stderr(std::fs::File::create(dir.path().join("daemon.log")).unwrap())
             .spawn()
             .unwrap();
         Self { child, dir }
+    }
+
+    /// What the daemon has logged so far (stderr).
+    pub fn log(&self) -> String {
+        std::fs::read_to_string(self.dir.path().join("daemon.log")).unwrap_or_default()
     }
 
     /// SIGTERM, as systemd stops the service; returns the exit status.
