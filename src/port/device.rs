@@ -468,7 +468,11 @@ mod tests {
         let template = TemplateFile::load(&path).unwrap();
         let device =
             resolve_template_device(&template, &serde_json::json!({"slave_id": 20})).unwrap();
-        DeviceState::new(crate::daemon::port_plan::device_plan(&device), true)
+        DeviceState::new(
+            crate::daemon::port_plan::device_plan(&device),
+            true,
+            &LineSettings::WIREN_BOARD_DEFAULT,
+        )
     }
 
     /// Issue 15 defect 1: one entry per value at its first register; the second words of the
