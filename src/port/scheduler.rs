@@ -337,9 +337,10 @@ impl PortScheduler {
         let still_offline = device
             .and_then(|d| self.devices.get(d))
             .is_some_and(|d| d.health.is_offline());
-        if was_offline && still_offline {
+        if was_offline && still_offline && timing.late_byte.is_none() {
             // A retry of a dead device: the next one waits until this one's cost is a small share
-            // of the bus time, however many dead devices there are.
+            // of the bus time, however many dead devices there are. (One that answered late is
+            // alive: it is retried on its own schedule, with the longer timeout it has learned.)
             let cost = now.saturating_sub(self.in_flight_since);
             let hold = cost.saturating_mul(100 / OFFLINE_SHARE_PERCENT - 1);
             self.offline_retry_at = self.offline_retry_at.max(now.saturating_add(hold));

@@ -881,6 +881,14 @@ fn a_device_that_answered_late_gets_a_longer_timeout() {
         .count();
     assert!(values >= 15, "read again and again once learned: {values}");
     assert!(failures <= 1, "only the first reply was late: {failures}");
+    // A device that answers late is alive: retried at once with the longer timeout, not held
+    // back like a dead one.
+    let first_value = log
+        .events
+        .iter()
+        .find(|(_, e)| matches!(e, PortEvent::Values { .. }))
+        .map(|(at, _)| *at);
+    assert!(first_value < Some(ms(3000)), "{first_value:?}");
     let Action::Transmit(transaction) = scheduler.next(end) else {
         panic!("a read is due");
     };
@@ -1015,4 +1023,39 @@ fn a_read_that_just_misses_the_slot_after_a_poll_still_goes() {
         "{}",
         log.classic_to(21).len()
     );
+}
+
+#[test]
+fn an_offline_device_that_answers_late_is_not_held_back_like_a_dead_one() {
+    let mut port = settings(9600);
+    port.fast_modbus = false;
+    let plan = device(30, vec![read(RegisterType::Input, 0, EventMode::Polled)]);
+    let mut scheduler = PortScheduler::new(port, vec![plan]);
+    let mut log = Log::default();
+    // Silent for 5 s (marked offline, retries held back), then every reply 600 ms late.
+    run_timed(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(40_000),
+        |at, request| {
+            if at < ms(5000) {
+                (Outcome::NoReply, None)
+            } else {
+                (healthy(request), Some(ms(600)))
+            }
+        },
+    );
+    let tries: Vec<Duration> = log.classic_to(30).into_iter().map(|(at, _)| at).collect();
+    let first_late = tries.iter().position(|at| *at >= ms(5000)).unwrap();
+    let first_value = log
+        .events
+        .iter()
+        .find(|(_, e)| matches!(e, PortEvent::Values { .. }))
+        .map(|(at, _)| *at)
+        .unwrap();
+    // The late answer proves the device alive: the next try follows on the health schedule (a
+    // few seconds at most), not after a dead device's share of the bus.
+    let retry_gap = first_value - tries[first_late];
+    assert!(retry_gap < ms(5000), "{retry_gap:?} after the late answer");
 }
