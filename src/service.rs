@@ -7,7 +7,7 @@
 //! decisions (ready, alive, the status line) are pure functions of it, tested without systemd.
 
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicU8, AtomicUsize, Ordering};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
 use std::time::{Duration, Instant};
 
 use sd_notify::NotifyState;
@@ -66,7 +66,8 @@ pub enum BrokerState {
 #[derive(Debug)]
 pub struct ServiceHealth {
     epoch: Instant,
-    ports: Vec<Arc<PortVitals>>,
+    /// Changes on a reload (SIGHUP).
+    ports: Mutex<Vec<Arc<PortVitals>>>,
     broker: AtomicU8,
     broker_tried: AtomicBool,
 }
@@ -75,14 +76,14 @@ impl ServiceHealth {
     pub fn new(broker: BrokerState) -> Self {
         Self {
             epoch: Instant::now(),
-            ports: Vec::new(),
+            ports: Mutex::new(Vec::new()),
             broker: AtomicU8::new(broker as u8),
             broker_tried: AtomicBool::new(broker == BrokerState::NotUsed),
         }
     }
 
     /// Registers a port with `devices` devices; its task reports through the returned handle.
-    pub fn add_port(&mut self, name: &str, devices: usize) -> Arc<PortVitals> {
+    pub fn add_port(&self, name: &str, devices: usize) -> Arc<PortVitals> {
         let vitals = Arc::new(PortVitals {
             name: name.to_owned(),
             devices,
@@ -92,8 +93,17 @@ impl ServiceHealth {
             last_beat_ms: AtomicU64::new(0),
             epoch: self.epoch,
         });
-        self.ports.push(Arc::clone(&vitals));
+        self.ports().push(Arc::clone(&vitals));
         vitals
+    }
+
+    /// The port's task has ended (reload or shutdown): it no longer counts.
+    pub fn remove_port(&self, vitals: &Arc<PortVitals>) {
+        self.ports().retain(|p| !Arc::ptr_eq(p, vitals));
+    }
+
+    fn ports(&self) -> MutexGuard<'_, Vec<Arc<PortVitals>>> {
+        self.ports.lock().unwrap_or_else(PoisonError::into_inner)
     }
 
     pub fn set_broker(&self, state: BrokerState) {
@@ -115,14 +125,14 @@ impl ServiceHealth {
     /// Every port has tried to open and the broker has answered or failed once.
     pub fn is_ready(&self) -> bool {
         self.broker_tried.load(Ordering::Relaxed)
-            && self.ports.iter().all(|p| p.tried.load(Ordering::Relaxed))
+            && self.ports().iter().all(|p| p.tried.load(Ordering::Relaxed))
     }
 
     /// Every port task reported within `limit` of `now` (time since this struct was made).
     pub fn ports_alive(&self, now: Duration, limit: Duration) -> bool {
         let now_ms = u64::try_from(now.as_millis()).unwrap_or(u64::MAX);
         let limit_ms = u64::try_from(limit.as_millis()).unwrap_or(u64::MAX);
-        self.ports
+        self.ports()
             .iter()
             .all(|p| now_ms.saturating_sub(p.last_beat_ms.load(Ordering::Relaxed)) <= limit_ms)
     }
@@ -131,7 +141,7 @@ impl ServiceHealth {
     pub fn stalled_ports(&self, now: Duration, limit: Duration) -> Vec<String> {
         let now_ms = u64::try_from(now.as_millis()).unwrap_or(u64::MAX);
         let limit_ms = u64::try_from(limit.as_millis()).unwrap_or(u64::MAX);
-        self.ports
+        self.ports()
             .iter()
             .filter(|p| now_ms.saturating_sub(p.last_beat_ms.load(Ordering::Relaxed)) > limit_ms)
             .map(|p| p.name.clone())
@@ -140,19 +150,17 @@ impl ServiceHealth {
 
     /// One line for `systemctl status`, e.g. "2/2 ports open, 7/8 devices online, MQTT connected".
     pub fn status_line(&self) -> String {
-        let open = self
-            .ports
+        let ports = self.ports();
+        let open = ports
             .iter()
             .filter(|p| p.open.load(Ordering::Relaxed))
             .count();
-        let devices: usize = self.ports.iter().map(|p| p.devices).sum();
-        let online: usize = self
-            .ports
+        let devices: usize = ports.iter().map(|p| p.devices).sum();
+        let online: usize = ports
             .iter()
             .map(|p| p.online.load(Ordering::Relaxed).min(p.devices))
             .sum();
-        let closed: Vec<&str> = self
-            .ports
+        let closed: Vec<&str> = ports
             .iter()
             .filter(|p| p.tried.load(Ordering::Relaxed) && !p.open.load(Ordering::Relaxed))
             .map(|p| p.name.as_str())
@@ -165,7 +173,7 @@ impl ServiceHealth {
         };
         let mut line = format!(
             "{open}/{} ports open, {online}/{devices} devices online, {broker}",
-            self.ports.len()
+            ports.len()
         );
         if !closed.is_empty() {
             line.push_str("; closed: ");
@@ -238,7 +246,7 @@ mod tests {
 
     #[test]
     fn ready_needs_every_port_tried_and_the_broker_answered() {
-        let mut health = ServiceHealth::new(BrokerState::Connecting);
+        let health = ServiceHealth::new(BrokerState::Connecting);
         let a = health.add_port("/dev/ttyRS485-1", 3);
         let b = health.add_port("/dev/ttyRS485-2", 1);
         assert!(!health.is_ready());
@@ -251,7 +259,7 @@ mod tests {
 
     #[test]
     fn stdio_mode_is_ready_when_the_ports_are() {
-        let mut health = ServiceHealth::new(BrokerState::NotUsed);
+        let health = ServiceHealth::new(BrokerState::NotUsed);
         let a = health.add_port("a", 1);
         assert!(!health.is_ready());
         a.set_open(true);
@@ -260,7 +268,7 @@ mod tests {
 
     #[test]
     fn status_line_counts_ports_devices_and_names_closed_ports() {
-        let mut health = ServiceHealth::new(BrokerState::Connecting);
+        let health = ServiceHealth::new(BrokerState::Connecting);
         let a = health.add_port("/dev/ttyRS485-1", 3);
         let b = health.add_port("/dev/ttyRS485-2", 2);
         a.set_open(true);
@@ -275,7 +283,7 @@ mod tests {
 
     #[test]
     fn a_port_that_stops_beating_is_stalled() {
-        let mut health = ServiceHealth::new(BrokerState::NotUsed);
+        let health = ServiceHealth::new(BrokerState::NotUsed);
         let a = health.add_port("a", 1);
         let b = health.add_port("b", 1);
         a.beat();

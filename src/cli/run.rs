@@ -2,6 +2,7 @@
 
 use std::path::PathBuf;
 use std::process::ExitCode;
+use std::sync::Arc;
 
 use anyhow::Context;
 use tokio::signal::unix::{signal, SignalKind};
@@ -13,7 +14,8 @@ use crate::config::load::{load_config, LoadedConfig, DEFAULT_CONFIG_PATH};
 use crate::daemon::{start_bus_side, stdio, termination_signal, BusControl, BusSide};
 use crate::device::model::ResolvedPort;
 use crate::device::resolve_config;
-use crate::mqtt::{run_mqtt, MqttSettings};
+use crate::mqtt::{run_mqtt_reporting, MqttSettings};
+use crate::service::{notify_systemd, BrokerState, ServiceHealth};
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -67,11 +69,17 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         let terminate = termination_signal();
         tokio::pin!(terminate);
         let (shutdown_tx, shutdown_rx) = watch::channel(false);
+        let health = Arc::new(ServiceHealth::new(if args.stdio {
+            BrokerState::NotUsed
+        } else {
+            BrokerState::Connecting
+        }));
+        let notifier = tokio::spawn(notify_systemd(Arc::clone(&health), shutdown_rx.clone()));
         let BusSide {
             updates,
             writes,
             control: mut bus,
-        } = start_bus_side(ports, fast_modbus);
+        } = start_bus_side(ports, fast_modbus, Arc::clone(&health));
         let mut sink = if args.stdio {
             tokio::spawn(stdio::read_writes(writes.clone()));
             tokio::spawn(async move {
@@ -83,7 +91,13 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             let stopped = async move {
                 let _ = stop.wait_for(|stop| *stop).await;
             };
-            tokio::spawn(run_mqtt(mqtt_settings, updates, writes.clone(), stopped))
+            tokio::spawn(run_mqtt_reporting(
+                mqtt_settings,
+                updates,
+                writes.clone(),
+                stopped,
+                Some(Arc::clone(&health)),
+            ))
         };
         info!("running; stop with Ctrl-C or SIGTERM, reload the config with SIGHUP");
         let finished = loop {
@@ -103,6 +117,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             Some(result) => Some(result),
             None => Some(sink.await),
         };
+        let _ = notifier.await;
         match finished {
             Some(Ok(Err(err))) => Err(anyhow::Error::new(err).context("MQTT")),
             Some(Err(join)) => Err(anyhow::anyhow!("the MQTT task failed: {join}")),

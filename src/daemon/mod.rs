@@ -14,6 +14,7 @@ use tokio::task::JoinHandle;
 use tracing::{info, warn};
 
 use crate::device::model::ResolvedPort;
+use crate::service::{PortVitals, ServiceHealth};
 use crate::updates::{ControlWrite, DeviceUpdate};
 use device_model::DeviceModel;
 use port_plan::port_plan;
@@ -40,6 +41,7 @@ struct RunningPort {
     config: serde_json::Value,
     stop: watch::Sender<bool>,
     task: JoinHandle<()>,
+    vitals: Arc<PortVitals>,
 }
 
 /// Owns the port tasks: stops them all at shutdown, and on a reload stops, starts or restarts
@@ -50,6 +52,7 @@ pub struct BusControl {
     updates: mpsc::Sender<DeviceUpdate>,
     fast_modbus: bool,
     router: JoinHandle<()>,
+    health: Arc<ServiceHealth>,
 }
 
 /// What a reload did, for the log and the tests.
@@ -73,7 +76,11 @@ fn port_key(port: &ResolvedPort) -> String {
 
 /// Starts one task per port and a router for control writes. Every device is announced with
 /// [`DeviceUpdate::Added`] before any of its values.
-pub fn start_bus_side(ports: Vec<ResolvedPort>, fast_modbus: bool) -> BusSide {
+pub fn start_bus_side(
+    ports: Vec<ResolvedPort>,
+    fast_modbus: bool,
+    health: Arc<ServiceHealth>,
+) -> BusSide {
     let (update_tx, update_rx) = mpsc::channel(UPDATE_QUEUE);
     let (write_tx, mut write_rx) = mpsc::channel::<ControlWrite>(WRITE_QUEUE);
     let routes: Routes = Arc::default();
@@ -95,6 +102,7 @@ pub fn start_bus_side(ports: Vec<ResolvedPort>, fast_modbus: bool) -> BusSide {
         updates: update_tx,
         fast_modbus,
         router,
+        health,
     };
     for port in ports {
         let (task, added) = control.prepare_port(&port);
@@ -122,6 +130,7 @@ impl BusControl {
     /// and the `Added` announcements that must reach the sink before any of its values.
     fn prepare_port(&mut self, port: &ResolvedPort) -> (PortTask, Vec<DeviceUpdate>) {
         let plan = port_plan(port, self.fast_modbus);
+        let vitals = self.health.add_port(&plan.name, port.devices.len());
         info!(port = %plan.name, devices = plan.devices.len(), fast_modbus = plan.settings.fast_modbus, "serving port");
         let (port_write_tx, port_write_rx) = mpsc::channel(WRITE_QUEUE);
         let mut models = Vec::new();
@@ -133,11 +142,13 @@ impl BusControl {
             added.push(DeviceUpdate::Added(Arc::clone(&device)));
             models.push(DeviceModel::new(device, index));
         }
-        let task = PortTask::new(plan, models, self.updates.clone(), port_write_rx);
+        let task =
+            PortTask::new(plan, models, self.updates.clone(), port_write_rx).with_vitals(vitals);
         (task, added)
     }
 
     fn spawn_port(&mut self, port: ResolvedPort, task: PortTask) {
+        let vitals = task.vitals();
         let (stop, stopped) = watch::channel(false);
         let task = tokio::spawn(task.run(stopped));
         let config = serde_json::to_value(&port.config).unwrap_or_default();
@@ -148,6 +159,7 @@ impl BusControl {
                 config,
                 stop,
                 task,
+                vitals,
             },
         );
     }
@@ -157,6 +169,7 @@ impl BusControl {
         let running = self.ports.remove(key)?;
         let _ = running.stop.send(true);
         let _ = running.task.await;
+        self.health.remove_port(&running.vitals);
         let mut routes = lock(&self.routes);
         for device in &running.resolved.devices {
             routes.remove(&device.id);

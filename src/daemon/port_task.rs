@@ -1,6 +1,7 @@
 //! The task that owns one bus: it opens the transport (again, with a growing delay, when it
 //! fails), asks the scheduler what to do, does it, and turns what happened into device updates.
 
+use std::sync::Arc;
 use std::time::Duration;
 
 use tokio::sync::{mpsc, watch};
@@ -10,6 +11,7 @@ use tracing::{debug, info, warn};
 use super::device_model::DeviceModel;
 use super::port_plan::PortPlan;
 use crate::port::{Action, Outcome, PortEvent, PortScheduler, ReplyTiming};
+use crate::service::{BrokerState, PortVitals, ServiceHealth};
 use crate::transport::{Transport, TransportError};
 use crate::updates::{ControlWrite, DeviceUpdate};
 
@@ -25,7 +27,13 @@ pub struct PortTask {
     updates: mpsc::Sender<DeviceUpdate>,
     writes: mpsc::Receiver<ControlWrite>,
     epoch: Instant,
+    /// What systemd's watchdog and status line learn from this task.
+    vitals: Option<Arc<PortVitals>>,
+    online: Vec<bool>,
 }
+
+/// The task reports progress at least this often, even with nothing to do on the bus.
+const HEARTBEAT: Duration = Duration::from_secs(1);
 
 impl PortTask {
     pub fn new(
@@ -43,6 +51,33 @@ impl PortTask {
             updates,
             writes,
             epoch: Instant::now(),
+            vitals: None,
+            online: Vec::new(),
+        }
+    }
+
+    /// Reports open/closed, progress and devices online into `vitals`.
+    pub fn with_vitals(mut self, vitals: Arc<PortVitals>) -> Self {
+        self.vitals = Some(vitals);
+        self
+    }
+
+    /// The handle given to [`Self::with_vitals`] (a detached one if none was).
+    pub fn vitals(&self) -> Arc<PortVitals> {
+        self.vitals
+            .clone()
+            .unwrap_or_else(|| ServiceHealth::new(BrokerState::NotUsed).add_port("", 0))
+    }
+
+    fn beat(&self) {
+        if let Some(vitals) = &self.vitals {
+            vitals.beat();
+        }
+    }
+
+    fn set_open(&self, open: bool) {
+        if let Some(vitals) = &self.vitals {
+            vitals.set_open(open);
         }
     }
 
@@ -64,21 +99,25 @@ impl PortTask {
                 Ok(mut transport) => {
                     transport.set_guard_interval(self.guard_interval);
                     info!(port = %self.plan_name, "port open");
+                    self.set_open(true);
                     delay = FIRST_REOPEN_DELAY;
                     match self.serve(transport, &mut shutdown).await {
                         Ok(()) => return,
                         Err(err) => warn!(port = %self.plan_name, %err, "port failed; reopening"),
                     }
+                    self.set_open(false);
                     closed_since = self.now();
                 }
                 Err(err) => {
-                    warn!(port = %self.plan_name, %err, retry_in = ?delay, "cannot open the port")
+                    warn!(port = %self.plan_name, %err, retry_in = ?delay, "cannot open the port");
+                    self.set_open(false);
                 }
             }
             // Wake at least every FIRST_REOPEN_DELAY meanwhile, so that devices go offline on
             // time even while the reopen delay is long.
             let reopen_at = Instant::now() + delay;
             loop {
+                self.beat();
                 let events = self.scheduler.port_unavailable(self.now(), closed_since);
                 self.dispatch(events).await;
                 let wake = reopen_at.min(Instant::now() + FIRST_REOPEN_DELAY);
@@ -103,6 +142,7 @@ impl PortTask {
             if *shutdown.borrow() {
                 return Ok(());
             }
+            self.beat();
             while let Ok(write) = self.writes.try_recv() {
                 self.handle_write(write).await;
             }
@@ -123,7 +163,7 @@ impl PortTask {
                     result?;
                 }
                 Action::Wait { until } => {
-                    let wake = self.epoch + until;
+                    let wake = (self.epoch + until).min(Instant::now() + HEARTBEAT);
                     tokio::select! {
                         _ = tokio::time::sleep_until(wake) => {}
                         write = self.writes.recv() => match write {
@@ -159,6 +199,23 @@ impl PortTask {
     }
 
     async fn dispatch(&mut self, events: Vec<PortEvent>) {
+        if let Some(vitals) = &self.vitals {
+            if self.online.len() != self.models.len() {
+                self.online = vec![false; self.models.len()];
+            }
+            let mut changed = false;
+            for event in &events {
+                if let PortEvent::Online { device } | PortEvent::Offline { device } = event {
+                    if let Some(slot) = self.online.get_mut(*device) {
+                        *slot = matches!(event, PortEvent::Online { .. });
+                        changed = true;
+                    }
+                }
+            }
+            if changed {
+                vitals.set_devices_online(self.online.iter().filter(|o| **o).count());
+            }
+        }
         let mut updates = Vec::new();
         for event in events {
             let device = match &event {

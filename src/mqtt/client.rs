@@ -8,6 +8,7 @@
 
 use std::future::Future;
 use std::path::PathBuf;
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use rumqttc::{
@@ -25,6 +26,7 @@ use super::throttle::{BirthCoalescer, LogBudget, LogDecision};
 use super::topics::{discovery_prefix, TopicError, TopicScheme};
 use super::{MqttAction, Publication};
 use crate::config::config_file::{Config, MqttConfig, TlsConfig};
+use crate::service::{BrokerState, ServiceHealth};
 use crate::updates::{ControlWrite, DeviceUpdate};
 
 /// Requests rumqttc buffers between this task and its connection.
@@ -131,9 +133,21 @@ enum ConnectionEvent {
 /// driver status becomes `offline` either way.
 pub async fn run_mqtt(
     settings: MqttSettings,
+    updates: mpsc::Receiver<DeviceUpdate>,
+    writes: mpsc::Sender<ControlWrite>,
+    shutdown: impl Future<Output = ()>,
+) -> Result<(), MqttError> {
+    run_mqtt_reporting(settings, updates, writes, shutdown, None).await
+}
+
+/// [`run_mqtt`] that also reports the broker's state (connected or not) into `health`, for
+/// systemd's readiness and status line.
+pub async fn run_mqtt_reporting(
+    settings: MqttSettings,
     mut updates: mpsc::Receiver<DeviceUpdate>,
     writes: mpsc::Sender<ControlWrite>,
     shutdown: impl Future<Output = ()>,
+    health: Option<Arc<ServiceHealth>>,
 ) -> Result<(), MqttError> {
     let planner_settings = settings.planner_settings()?;
     let mut sweeper = Sweeper::new(
@@ -149,7 +163,12 @@ pub async fn run_mqtt(
     let broker = format!("{}:{}", settings.broker.host, settings.broker.port);
     let (client, eventloop) = AsyncClient::new(options, CLIENT_QUEUE);
     let (events_tx, mut events) = mpsc::channel(EVENT_QUEUE);
-    let connection = tokio::spawn(drive_connection(eventloop, events_tx, broker.clone()));
+    let connection = tokio::spawn(drive_connection(
+        eventloop,
+        events_tx,
+        broker.clone(),
+        health,
+    ));
     let ha_status = planner.discovery_status_topic();
 
     let mut outbox = Outbox::default();
@@ -405,7 +424,13 @@ async fn drive_connection(
     mut eventloop: EventLoop,
     events: mpsc::Sender<ConnectionEvent>,
     broker: String,
+    health: Option<Arc<ServiceHealth>>,
 ) {
+    let report = |state: BrokerState| {
+        if let Some(health) = &health {
+            health.set_broker(state);
+        }
+    };
     let mut delay = FIRST_RECONNECT_DELAY;
     let mut connected = false;
     let mut failures: u32 = 0;
@@ -418,6 +443,7 @@ async fn drive_connection(
         match event {
             Ok(Event::Incoming(Packet::ConnAck(_))) => {
                 info!(%broker, "connected to the MQTT broker");
+                report(BrokerState::Connected);
                 connected = true;
                 failures = 0;
                 delay = FIRST_RECONNECT_DELAY;
@@ -438,6 +464,7 @@ async fn drive_connection(
             Ok(Event::Outgoing(Outgoing::Disconnect)) => disconnecting = true,
             Ok(_) => {}
             Err(error) => {
+                report(BrokerState::Unreachable);
                 if connected {
                     warn!(%broker, %error, "lost the MQTT broker; reconnecting");
                     connected = false;

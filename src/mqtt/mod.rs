@@ -18,7 +18,7 @@ pub mod throttle;
 pub mod topics;
 pub mod writes;
 
-pub use client::{run_mqtt, MqttError, MqttSettings};
+pub use client::{run_mqtt, run_mqtt_reporting, MqttError, MqttSettings};
 pub use planner::{PlannerSettings, PublicationPlanner, UnchangedPolicy, WriteOutcome};
 pub use topics::TopicScheme;
 
