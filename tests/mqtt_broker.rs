@@ -33,13 +33,26 @@ async fn feed_two_devices(mqtt: &MqttUnderTest) {
     }
 }
 
+/// The broker's retained state once `topic` holds `payload` and the state has settled (two
+/// snapshots in a row agree): a snapshot taken while the client is still publishing misses what
+/// arrives live, and a test comparing against it later would wait forever.
 async fn state_with(port: u16, topic: &str, payload: &str) -> BTreeMap<String, String> {
-    wait_for(&format!("{topic} = {payload:?} on the broker"), || async {
-        retained(port)
+    let deadline = std::time::Instant::now() + TIMEOUT;
+    let mut previous = None;
+    loop {
+        let state = retained(port)
             .await
-            .filter(|s| s.get(topic).map(String::as_str) == Some(payload))
-    })
-    .await
+            .filter(|s| s.get(topic).map(String::as_str) == Some(payload));
+        if state.is_some() && state == previous {
+            return state.unwrap_or_default();
+        }
+        assert!(
+            std::time::Instant::now() < deadline,
+            "timed out waiting for {topic} = {payload:?} on the broker (settled)"
+        );
+        previous = state;
+        tokio::time::sleep(Duration::from_millis(25)).await;
+    }
 }
 
 async fn state_without(port: u16, topic: &str) -> BTreeMap<String, String> {
