@@ -7,15 +7,19 @@ use std::net::TcpListener;
 use std::path::PathBuf;
 use std::process::{Child, Command, Stdio};
 use std::sync::mpsc;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use rumqttc::{Client, Event, MqttOptions, Packet, QoS};
 use serde_json::Value;
+
+/// However many lines come, a demo test gives up after this long in all.
+const OVERALL: Duration = Duration::from_secs(60);
 
 struct Demo {
     child: Child,
     stdout: mpsc::Receiver<String>,
     stderr: mpsc::Receiver<String>,
+    deadline: Instant,
 }
 
 fn lines(source: impl Read + Send + 'static) -> mpsc::Receiver<String> {
@@ -46,15 +50,23 @@ impl Demo {
             child,
             stdout,
             stderr,
+            deadline: Instant::now() + OVERALL,
         }
+    }
+
+    /// The next stdout line, or None once the overall deadline has passed.
+    fn next_stdout(&self) -> Option<String> {
+        let left = self.deadline.checked_duration_since(Instant::now())?;
+        self.stdout.recv_timeout(left).ok()
     }
 
     /// The demo's scratch directory, from its banner.
     fn files_dir(&self) -> PathBuf {
         loop {
+            let left = self.deadline.saturating_duration_since(Instant::now());
             let line = self
                 .stderr
-                .recv_timeout(Duration::from_secs(20))
+                .recv_timeout(left)
                 .expect("the demo's banner names its files directory");
             if let Some(dir) = line.trim().strip_prefix("files:") {
                 return PathBuf::from(dir.trim());
@@ -90,9 +102,8 @@ fn demo_without_a_broker_shows_events_and_stops_cleanly() {
     let mut seen = Vec::new();
     let clicked = loop {
         let line = demo
-            .stdout
-            .recv_timeout(Duration::from_secs(20))
-            .unwrap_or_else(|_| panic!("no event from the demo's scenario; got: {seen:?}"));
+            .next_stdout()
+            .unwrap_or_else(|| panic!("no event from the demo's scenario; got: {seen:?}"));
         let Ok(line) = serde_json::from_str::<Value>(&line) else {
             continue;
         };
@@ -118,6 +129,7 @@ fn demo_speaks_mqtt_through_its_built_in_broker() {
         .port();
     let demo = Demo::start(&["--mqtt-port", &port.to_string()]);
     let dir = demo.files_dir();
+    assert!(dir.is_dir(), "{}", dir.display());
 
     // A client of the demo's broker, as mosquitto_sub or Home Assistant would be.
     let mut options = MqttOptions::new("demo-test", "127.0.0.1", port);
@@ -127,11 +139,10 @@ fn demo_speaks_mqtt_through_its_built_in_broker() {
         .subscribe("/devices/climate_21/controls/Temperature", QoS::AtMostOnce)
         .unwrap();
     let mut temperature = None;
-    let deadline = std::time::Instant::now() + Duration::from_secs(30);
     for event in connection.iter() {
         assert!(
-            std::time::Instant::now() < deadline,
-            "no Temperature over MQTT within 30 s"
+            Instant::now() < demo.deadline,
+            "no Temperature over MQTT in time"
         );
         match event {
             Ok(Event::Incoming(Packet::Publish(p))) => {
@@ -152,8 +163,7 @@ fn demo_speaks_mqtt_through_its_built_in_broker() {
     // The live view shows values as they reach the broker.
     let shown = loop {
         let line = demo
-            .stdout
-            .recv_timeout(Duration::from_secs(20))
+            .next_stdout()
             .expect("the live view prints value lines");
         if line.contains("climate_21") {
             break line;
