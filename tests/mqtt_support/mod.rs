@@ -379,7 +379,10 @@ pub async fn assert_broker_matches_golden(port: u16, name: &str) {
                 return;
             }
         }
-        assert!(Instant::now() < deadline, "timed out reading the broker's retained state");
+        assert!(
+            Instant::now() < deadline,
+            "timed out reading the broker's retained state"
+        );
         tokio::time::sleep(Duration::from_millis(25)).await;
     }
 }
