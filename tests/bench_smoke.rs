@@ -94,3 +94,8 @@ fn run_one_change(baud: u32) {
 fn harness_matches_a_change_with_its_publication_at_115200() {
     run_one_change(115_200);
 }
+
+#[test]
+fn harness_matches_a_change_with_its_publication_at_9600() {
+    run_one_change(9600);
+}

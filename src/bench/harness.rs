@@ -112,7 +112,10 @@ pub fn process_stats(pid: u32) -> Option<ProcessStats> {
 fn ticks_to_duration(ticks: u64) -> Duration {
     // SAFETY: sysconf only reads a system constant.
     let per_second = unsafe { nix::libc::sysconf(nix::libc::_SC_CLK_TCK) };
-    let per_second = u64::try_from(per_second).ok().filter(|&t| t > 0).unwrap_or(100);
+    let per_second = u64::try_from(per_second)
+        .ok()
+        .filter(|&t| t > 0)
+        .unwrap_or(100);
     Duration::from_nanos(ticks.saturating_mul(1_000_000_000) / per_second)
 }
 
@@ -247,7 +250,10 @@ impl Harness {
         let templates = dir.0.join("templates");
         std::fs::create_dir_all(&templates)?;
         for (name, template) in &options.templates {
-            std::fs::write(templates.join(name), serde_json::to_string_pretty(template)?)?;
+            std::fs::write(
+                templates.join(name),
+                serde_json::to_string_pretty(template)?,
+            )?;
         }
         let bus_path = dir.0.join("bus.json");
         std::fs::write(&bus_path, serde_json::to_string_pretty(&options.bus)?)?;
@@ -383,7 +389,9 @@ impl Harness {
 
     /// Has the daemon exited (and with what)?
     pub fn daemon_exit(&mut self) -> Option<std::process::ExitStatus> {
-        self.daemon.as_mut().and_then(|c| c.try_wait().ok().flatten())
+        self.daemon
+            .as_mut()
+            .and_then(|c| c.try_wait().ok().flatten())
     }
 
     pub fn sim_pid(&self) -> u32 {

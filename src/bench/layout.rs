@@ -98,7 +98,13 @@ impl BenchLayout {
     }
 
     /// Where a register change must be published, and the payload.
-    pub fn topic_of(&self, address: u8, register_type: &str, register: u16, value: u16) -> Option<(String, String)> {
+    pub fn topic_of(
+        &self,
+        address: u8,
+        register_type: &str,
+        register: u16,
+        value: u16,
+    ) -> Option<(String, String)> {
         if address == 0 || address > self.devices {
             return None;
         }
@@ -150,7 +156,10 @@ mod tests {
         assert_eq!(layout.topic_of(3, "input", 0, 1), None);
         assert_eq!(layout.value_topics().len(), 2 * 68);
         let (_, template) = layout.template();
-        assert_eq!(template["device"]["channels"].as_array().map(Vec::len), Some(68));
+        assert_eq!(
+            template["device"]["channels"].as_array().map(Vec::len),
+            Some(68)
+        );
         assert_eq!(layout.bus()["devices"][1]["address"], 2);
     }
 }

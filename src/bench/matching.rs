@@ -4,7 +4,8 @@
 //! before it whose value it carries; changes pending before that one were never published on
 //! their own (lost: a short pulse a poll cycle did not see, or an event overwritten). A
 //! publication that carries no pending change's value is a duplicate when it repeats the last
-//! published value, else a wrong value. Changes still pending at the end are lost.
+//! published value, else a wrong value (a topic's very first publication is its initial value,
+//! neither). Changes still pending at the end are lost.
 
 use std::collections::{BTreeMap, VecDeque};
 
@@ -25,6 +26,9 @@ pub struct MatchReport {
     pub duplicates: usize,
     /// Changes with no topic (registers outside the layout).
     pub unmapped: usize,
+    /// A topic's first publication, with no change to report: its initial value (the daemon's
+    /// first read finished after the run started).
+    pub initial: usize,
 }
 
 /// Matches `changes` with the `publications` received at or after `since_ns`. `topic_of` names
@@ -99,6 +103,9 @@ pub fn match_changes(
             None if last_value.get(topic) == Some(&publication.payload.as_str()) => {
                 report.duplicates += 1;
             }
+            None if waiting.is_empty() && !last_value.contains_key(topic) => {
+                report.initial += 1;
+            }
             None => report.wrong += 1,
         }
         last_value.insert(topic, publication.payload.as_str());
@@ -114,7 +121,9 @@ pub fn percentile(sorted: &[u64], p: f64) -> Option<u64> {
         return None;
     }
     let rank = (p.clamp(0.0, 1.0) * sorted.len() as f64).ceil() as usize;
-    sorted.get(rank.saturating_sub(1).min(sorted.len() - 1)).copied()
+    sorted
+        .get(rank.saturating_sub(1).min(sorted.len() - 1))
+        .copied()
 }
 
 #[cfg(test)]
@@ -173,6 +182,8 @@ mod tests {
             publication(350, 0, "0"),
             publication(420, 1, "7"),
             publication(450, 1, "1"),
+            // E2's initial value, read after the run started.
+            publication(460, 2, "0"),
         ];
         let report = match_changes(&changes, &publications, 100_000_000, topic);
         assert_eq!(report.changes, 6);
@@ -186,6 +197,7 @@ mod tests {
         assert_eq!(report.lost, 2);
         assert_eq!(report.duplicates, 1);
         assert_eq!(report.wrong, 1);
+        assert_eq!(report.initial, 1);
     }
 
     #[test]

@@ -24,7 +24,12 @@ pub struct Args {
     #[arg(long, value_delimiter = ',', value_name = "N,…")]
     pub only: Vec<u8>,
     /// Line speeds to run at (8N2).
-    #[arg(long, value_delimiter = ',', value_name = "BAUD,…", default_value = "115200,9600")]
+    #[arg(
+        long,
+        value_delimiter = ',',
+        value_name = "BAUD,…",
+        default_value = "115200,9600"
+    )]
     pub baud: Vec<u32>,
     /// The mosquitto binary.
     #[arg(long, value_name = "PATH", default_value = crate::bench::harness::DEFAULT_MOSQUITTO)]
