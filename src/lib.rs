@@ -4,6 +4,7 @@
 //! `protocol` (sans-IO codec, parser, timing) → `sim` (virtual bus) / transport → port scheduler
 //! → `device` (templates, value codecs) → MQTT.
 
+pub mod bench;
 pub mod cli;
 pub mod config;
 pub mod daemon;

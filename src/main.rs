@@ -28,6 +28,9 @@ enum Command {
     Decode(cli::decode::Args),
     /// Run a virtual RS-485 bus of classic and Fast Modbus devices on a pty or TCP port.
     Sim(cli::sim::Args),
+    /// Run the benchmarks and write bench/results/latest.md with PNG plots (docs/bench.md).
+    #[cfg(feature = "bench")]
+    Bench(cli::bench::Args),
     /// Print a shell completion script (e.g. `rtu2mqtt completions bash > /etc/bash_completion.d/rtu2mqtt`).
     Completions(cli::generate::CompletionsArgs),
     /// Write the man pages (rtu2mqtt.1 and one per subcommand) into a directory.
@@ -46,6 +49,8 @@ fn main() -> std::process::ExitCode {
         Command::Demo(args) => cli::demo::run(args),
         Command::Decode(args) => cli::decode::run(args),
         Command::Sim(args) => cli::sim::run(args),
+        #[cfg(feature = "bench")]
+        Command::Bench(args) => cli::bench::run_bench(args),
         Command::Completions(args) => cli::generate::completions(args, Cli::command()),
         Command::Manpages(args) => cli::generate::manpages(args, Cli::command()),
     };

@@ -54,6 +54,25 @@ pub struct Bus {
     devices: Vec<VirtualDevice>,
     rng: XorShift64,
     changes: Vec<RegisterChange>,
+    stats: BusStats,
+}
+
+/// What the bus has served since it started (the `stats` control command; benchmarks count
+/// transactions with it).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct BusStats {
+    /// Requests heard (valid or not), whoever they were for.
+    pub requests: u64,
+    /// Classic Modbus requests (functions 1..16).
+    pub classic_requests: u64,
+    /// Registers (or coils, inputs) that classic read requests asked for.
+    pub registers_read: u64,
+    /// Fast Modbus requests (0x46), broadcast or addressed.
+    pub fast_requests: u64,
+    /// Requests that got bytes back (a reply, arbitration fillers).
+    pub answered: u64,
+    /// Bytes sent back, arbitration fillers included.
+    pub reply_bytes: u64,
 }
 
 impl Bus {
@@ -62,7 +81,12 @@ impl Bus {
             devices,
             rng: XorShift64::new(seed),
             changes: Vec::new(),
+            stats: BusStats::default(),
         }
+    }
+
+    pub fn stats(&self) -> BusStats {
+        self.stats
     }
 
     pub fn devices(&self) -> &[VirtualDevice] {
@@ -141,6 +165,7 @@ impl Bus {
             .collect();
         let mut replies = Vec::new();
         let mut fillers = Vec::new();
+        self.count_request(&received.request);
         match &received.request {
             ParsedRequest::Rejected(rejected) => {
                 self.reject(rejected, &listeners, received, &mut replies);
@@ -168,7 +193,33 @@ impl Bus {
                 }
             },
         }
-        self.finish(fillers, replies)
+        let transmission = self.finish(fillers, replies);
+        let reply_bytes = transmission.bytes().len() as u64;
+        if reply_bytes > 0 {
+            self.stats.answered += 1;
+            self.stats.reply_bytes += reply_bytes;
+        }
+        transmission
+    }
+
+    fn count_request(&mut self, request: &ParsedRequest) {
+        self.stats.requests += 1;
+        let ParsedRequest::Valid(request) = request else {
+            return;
+        };
+        match &request.body {
+            RequestBody::Classic(pdu) => {
+                self.stats.classic_requests += 1;
+                if let RequestPdu::ReadCoils { count, .. }
+                | RequestPdu::ReadDiscreteInputs { count, .. }
+                | RequestPdu::ReadHoldingRegisters { count, .. }
+                | RequestPdu::ReadInputRegisters { count, .. } = pdu
+                {
+                    self.stats.registers_read += u64::from(*count);
+                }
+            }
+            RequestBody::Fast(_) => self.stats.fast_requests += 1,
+        }
     }
 
     fn at_address(&self, listeners: &[usize], address: u8) -> Vec<usize> {

@@ -96,6 +96,18 @@ pub fn execute(bus: &mut Bus, now: Duration, command: &ControlCommand) -> Contro
 fn run(bus: &mut Bus, now: Duration, command: &ControlCommand) -> Result<Value, String> {
     match command.cmd.as_str() {
         "ping" | "watch" => Ok(json!({})),
+        "stats" => {
+            let stats = bus.stats();
+            Ok(json!({
+                "t_us": u64::try_from(now.as_micros()).unwrap_or(u64::MAX),
+                "requests": stats.requests,
+                "classic_requests": stats.classic_requests,
+                "registers_read": stats.registers_read,
+                "fast_requests": stats.fast_requests,
+                "answered": stats.answered,
+                "reply_bytes": stats.reply_bytes,
+            }))
+        }
         "list" => Ok(json!({ "devices": list(bus) })),
         "get" => {
             let index = find_device(bus, command)?;
@@ -191,7 +203,7 @@ fn run(bus: &mut Bus, now: Duration, command: &ControlCommand) -> Result<Value, 
         }
         other => Err(format!(
             "unknown command {other:?} (ping, list, get, set, toggle, reboot, unplug, replug, \
-             set_address, set_line, faults, watch)"
+             set_address, set_line, faults, stats, watch)"
         )),
     }
 }
@@ -398,5 +410,24 @@ mod tests {
         );
         assert!(execute_line(&mut bus, Duration::ZERO, r#"{"cmd":"watch"}"#).watch);
         assert_eq!(bus.take_changes().len(), 6);
+    }
+
+    #[test]
+    fn stats_count_requests_and_registers_read() {
+        use crate::protocol::{Request, RequestPdu};
+        let mut bus = bus();
+        let line = crate::sim::MasterLine::exact(LineSettings::new(9600, Parity::None, 2));
+        let read = Request::classic(30, RequestPdu::ReadCoils { start: 0, count: 2 });
+        bus.exchange(&read.encode().unwrap(), line, Duration::ZERO);
+        let nobody = Request::classic(99, RequestPdu::ReadCoils { start: 0, count: 1 });
+        bus.exchange(&nobody.encode().unwrap(), line, Duration::from_secs(1));
+        let reply = run_line(&mut bus, r#"{"cmd":"stats"}"#);
+        assert_eq!(reply["requests"], 2);
+        assert_eq!(reply["classic_requests"], 2);
+        assert_eq!(reply["registers_read"], 3);
+        assert_eq!(reply["fast_requests"], 0);
+        assert_eq!(reply["answered"], 1);
+        // 30 01 01 <bits> CRC CRC
+        assert_eq!(reply["reply_bytes"], 6);
     }
 }

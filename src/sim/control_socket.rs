@@ -87,7 +87,13 @@ pub fn serve_lines(
         if line.trim().is_empty() {
             continue;
         }
-        let outcome = runtime.with_bus(|bus, now| execute_line(bus, now, &line));
+        let mut outcome = runtime.with_bus(|bus, now| execute_line(bus, now, &line));
+        // `stats` also reports the pacers' timing error, which lives outside the bus.
+        if let Some(fields) = outcome.reply.as_object_mut() {
+            if fields.contains_key("reply_bytes") {
+                fields.insert("pacing".into(), super::runtime::PACING_ERROR.to_json());
+            }
+        }
         writeln!(writer, "{}", outcome.reply)?;
         writer.flush()?;
         if outcome.watch {

@@ -98,6 +98,7 @@ impl Pacer {
             }
             let now = self.clock.now();
             let mut queue = lock(&self.queue);
+            let first_due = queue.bytes.front().map(|&(at, _)| at);
             while let Some(&(at, byte)) = queue.bytes.front() {
                 if at > now {
                     break;
@@ -106,7 +107,12 @@ impl Pacer {
                 queue.bytes.pop_front();
             }
             drop(queue);
-            if let Err(err) = writer(&due) {
+            let written = writer(&due);
+            // The simulator's own timing error (`stats`): how late the first due byte left.
+            if let Some(at) = first_due.filter(|_| !due.is_empty()) {
+                super::runtime::PACING_ERROR.record(self.clock.now().saturating_sub(at));
+            }
+            if let Err(err) = written {
                 tracing::debug!("sim: pacer write failed: {err}");
                 if err.kind() != io::ErrorKind::WouldBlock {
                     self.close();

@@ -2,7 +2,7 @@
 //! the clock, the change log, the stop flag.
 
 use std::io::Write;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::mpsc::Sender;
 use std::sync::{Mutex, MutexGuard, PoisonError};
 use std::time::{Duration, Instant};
@@ -103,6 +103,69 @@ pub fn change_line(change: &RegisterChange, clock: &Clock) -> String {
         },
     })
     .to_string()
+}
+
+/// How late the pacers hand bytes to the master (the simulator's own timing error), for the
+/// `stats` control command. Process-wide: a simulator process runs one bus.
+pub static PACING_ERROR: PacingError = PacingError::new();
+
+/// Upper bounds (µs) of the lateness buckets; the last bucket takes the rest.
+pub const PACING_BUCKETS_US: [u64; 8] = [10, 50, 100, 250, 500, 1_000, 5_000, u64::MAX];
+
+pub struct PacingError {
+    writes: AtomicU64,
+    late_sum_ns: AtomicU64,
+    late_max_ns: AtomicU64,
+    buckets: [AtomicU64; PACING_BUCKETS_US.len()],
+}
+
+impl PacingError {
+    const fn new() -> Self {
+        Self {
+            writes: AtomicU64::new(0),
+            late_sum_ns: AtomicU64::new(0),
+            late_max_ns: AtomicU64::new(0),
+            buckets: [const { AtomicU64::new(0) }; PACING_BUCKETS_US.len()],
+        }
+    }
+
+    /// One write of due bytes, `late` after the first of them was due.
+    pub fn record(&self, late: Duration) {
+        let ns = u64::try_from(late.as_nanos()).unwrap_or(u64::MAX);
+        self.writes.fetch_add(1, Ordering::Relaxed);
+        self.late_sum_ns.fetch_add(ns, Ordering::Relaxed);
+        self.late_max_ns.fetch_max(ns, Ordering::Relaxed);
+        let us = ns / 1_000;
+        let bucket = PACING_BUCKETS_US
+            .iter()
+            .position(|&bound| us < bound)
+            .unwrap_or(PACING_BUCKETS_US.len() - 1);
+        if let Some(counter) = self.buckets.get(bucket) {
+            counter.fetch_add(1, Ordering::Relaxed);
+        }
+    }
+
+    /// `{"writes", "late_mean_us", "late_max_us", "late_buckets_us": [[bound, count]…]}`.
+    pub fn to_json(&self) -> serde_json::Value {
+        let writes = self.writes.load(Ordering::Relaxed);
+        let sum = self.late_sum_ns.load(Ordering::Relaxed);
+        let buckets: Vec<serde_json::Value> = PACING_BUCKETS_US
+            .iter()
+            .zip(&self.buckets)
+            .map(|(&bound, count)| {
+                json!([
+                    (bound != u64::MAX).then_some(bound),
+                    count.load(Ordering::Relaxed)
+                ])
+            })
+            .collect();
+        json!({
+            "writes": writes,
+            "late_mean_us": if writes == 0 { 0.0 } else { sum as f64 / writes as f64 / 1_000.0 },
+            "late_max_us": self.late_max_ns.load(Ordering::Relaxed) as f64 / 1_000.0,
+            "late_buckets_us": buckets,
+        })
+    }
 }
 
 pub struct SimRuntime {
