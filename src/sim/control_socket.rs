@@ -70,18 +70,19 @@ fn serve_connection(stream: UnixStream, runtime: &SimRuntime) -> io::Result<()> 
     stream.set_nonblocking(false)?;
     let mut writer = stream.try_clone()?;
     let reader = BufReader::new(stream);
-    if serve_lines(reader, &mut writer, runtime)? {
-        stream_changes(&mut writer, runtime)?;
+    if let Some(changes) = serve_lines(reader, &mut writer, runtime)? {
+        stream_changes(&mut writer, runtime, &changes)?;
     }
     Ok(())
 }
 
-/// Answers command lines; returns true when the peer asked to `watch`.
+/// Answers command lines; when the peer asks to `watch`, returns the change log's receiver,
+/// registered before the reply went out so that no change made after the reply is missed.
 pub fn serve_lines(
     reader: impl BufRead,
     writer: &mut dyn Write,
     runtime: &SimRuntime,
-) -> io::Result<bool> {
+) -> io::Result<Option<mpsc::Receiver<String>>> {
     for line in reader.lines() {
         let line = line?;
         if line.trim().is_empty() {
@@ -94,18 +95,25 @@ pub fn serve_lines(
                 fields.insert("pacing".into(), super::runtime::PACING_ERROR.to_json());
             }
         }
+        let changes = outcome.watch.then(|| {
+            let (sender, receiver) = mpsc::channel();
+            runtime.log.watch(sender);
+            receiver
+        });
         writeln!(writer, "{}", outcome.reply)?;
         writer.flush()?;
-        if outcome.watch {
-            return Ok(true);
+        if changes.is_some() {
+            return Ok(changes);
         }
     }
-    Ok(false)
+    Ok(None)
 }
 
-fn stream_changes(writer: &mut dyn Write, runtime: &SimRuntime) -> io::Result<()> {
-    let (sender, receiver) = mpsc::channel();
-    runtime.log.watch(sender);
+fn stream_changes(
+    writer: &mut dyn Write,
+    runtime: &SimRuntime,
+    receiver: &mpsc::Receiver<String>,
+) -> io::Result<()> {
     while !runtime.stopped() {
         match receiver.recv_timeout(Duration::from_millis(200)) {
             Ok(line) => {
@@ -127,13 +135,74 @@ pub fn spawn_stdin_control(runtime: Arc<SimRuntime>) -> io::Result<JoinHandle<()
             let stdin = io::stdin();
             let mut stdout = io::stdout();
             match serve_lines(stdin.lock(), &mut stdout, &runtime) {
-                Ok(true) => {
-                    if let Err(err) = stream_changes(&mut stdout, &runtime) {
+                Ok(Some(changes)) => {
+                    if let Err(err) = stream_changes(&mut stdout, &runtime, &changes) {
                         tracing::debug!("sim: stdin control: {err}");
                     }
                 }
-                Ok(false) => {}
+                Ok(None) => {}
                 Err(err) => tracing::debug!("sim: stdin control: {err}"),
             }
         })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::protocol::{LineSettings, Parity, RegisterType};
+    use crate::sim::runtime::ChangeLog;
+    use crate::sim::{Bus, DeviceSpec, RegisterMap, VirtualDevice};
+
+    /// Makes a change the moment the `watch` reply is written, as a peer acting on the reply
+    /// (or a script, or the master) may.
+    struct ChangeOnReply<'a> {
+        runtime: &'a SimRuntime,
+        written: Vec<u8>,
+    }
+
+    impl Write for ChangeOnReply<'_> {
+        fn write(&mut self, buf: &[u8]) -> io::Result<usize> {
+            self.written.extend_from_slice(buf);
+            Ok(buf.len())
+        }
+
+        fn flush(&mut self) -> io::Result<()> {
+            self.runtime.with_bus(|bus, now| {
+                bus.write_register(0, RegisterType::Coil, 0, &[1], now)
+                    .map_err(|code| io::Error::other(code.to_string()))
+            })
+        }
+    }
+
+    #[test]
+    fn a_change_right_after_the_watch_reply_is_streamed() {
+        let mut registers = RegisterMap::new();
+        registers.define(RegisterType::Coil, 0, 1, true);
+        let device = VirtualDevice::new(DeviceSpec {
+            name: "a".into(),
+            template: "-".into(),
+            serial: 1,
+            address: 20,
+            line: LineSettings::new(9600, Parity::None, 2),
+            fast: true,
+            turnaround: Duration::ZERO,
+            model: "M".into(),
+            firmware: "1".into(),
+            signature: "s".into(),
+            registers,
+        });
+        let runtime = SimRuntime::new(Bus::new(vec![device], 1), ChangeLog::new(None));
+        let mut writer = ChangeOnReply {
+            runtime: &runtime,
+            written: Vec::new(),
+        };
+        let changes = serve_lines(&b"{\"cmd\":\"watch\"}\n"[..], &mut writer, &runtime)
+            .unwrap()
+            .expect("watching");
+        assert!(String::from_utf8_lossy(&writer.written).contains("\"ok\":true"));
+        let line = changes
+            .try_recv()
+            .expect("the change made right after the reply");
+        assert!(line.contains("\"origin\":\"control\""), "{line}");
+    }
 }
