@@ -7,7 +7,7 @@ use crate::config::config_file::{Parity as ConfigParity, PortConfig, PortType};
 use crate::device::model::{EventMode as ChannelEvents, ResolvedDevice, ResolvedPort};
 use crate::port::{
     DevicePlan, EventMode, HealthPolicy, MergeLimits, PlannedRead, PortSettings, RegisterSpan,
-    SetupWrite,
+    SetupWrite, MIN_LATE_REPLY_HOLDOFF,
 };
 use crate::protocol::{LineSettings, Parity, RegisterType};
 use crate::transport::Endpoint;
@@ -129,6 +129,7 @@ pub fn device_plan(device: &ResolvedDevice) -> DevicePlan {
         health: HealthPolicy {
             max_fail_cycles: device.timing.device_max_fail_cycles.unwrap_or(u32::MAX),
             device_timeout: device.timing.device_timeout.unwrap_or(Duration::MAX),
+            late_reply_holdoff: (device.timing.response_timeout * 2).max(MIN_LATE_REPLY_HOLDOFF),
             ..defaults
         },
         reads,

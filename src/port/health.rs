@@ -14,7 +14,17 @@ pub struct HealthPolicy {
     pub retry_step: Duration,
     /// ... up to this.
     pub max_retry_delay: Duration,
+    /// After a failed transaction the device is left alone this long. An RTU reply carries no
+    /// transaction number: had the next request gone to the same device sooner, the reply to the
+    /// failed one could still be on its way and be taken as the new one's (a wrong value).
+    /// Meanwhile its bytes can only land in another device's window, where the address gives
+    /// them away.
+    pub late_reply_holdoff: Duration,
 }
+
+/// The least [`HealthPolicy::late_reply_holdoff`]: late replies seen in the field come a few
+/// hundred milliseconds after the timeout.
+pub const MIN_LATE_REPLY_HOLDOFF: Duration = Duration::from_secs(1);
 
 impl Default for HealthPolicy {
     /// wb-mqtt-serial's defaults: 2 failures and 3 s; retries 0.5 s longer each time, up to 10 s.
@@ -24,6 +34,7 @@ impl Default for HealthPolicy {
             device_timeout: Duration::from_secs(3),
             retry_step: Duration::from_millis(500),
             max_retry_delay: Duration::from_secs(10),
+            late_reply_holdoff: MIN_LATE_REPLY_HOLDOFF,
         }
     }
 }
@@ -55,6 +66,8 @@ pub struct DeviceHealth {
     state: State,
     failures: u32,
     last_success: Option<Duration>,
+    /// No transaction before this (see [`HealthPolicy::late_reply_holdoff`]).
+    quiet_until: Duration,
 }
 
 impl DeviceHealth {
@@ -64,6 +77,7 @@ impl DeviceHealth {
             state: State::Unknown,
             failures: 0,
             last_success: None,
+            quiet_until: Duration::ZERO,
         }
     }
 
@@ -77,22 +91,24 @@ impl DeviceHealth {
 
     /// A disconnected device gets one transaction per retry slot; others whenever they are due.
     pub fn may_transact(&self, now: Duration) -> bool {
-        match self.state {
-            State::Offline { retry_at, .. } => now >= retry_at,
-            _ => true,
-        }
+        now >= self.quiet_until
+            && match self.state {
+                State::Offline { retry_at, .. } => now >= retry_at,
+                _ => true,
+            }
     }
 
     /// When a disconnected device may be tried again.
     pub fn retry_at(&self) -> Option<Duration> {
         match self.state {
-            State::Offline { retry_at, .. } => Some(retry_at),
+            State::Offline { retry_at, .. } => Some(retry_at.max(self.quiet_until)),
             _ => None,
         }
     }
 
     pub fn record_success(&mut self, now: Duration) -> HealthChange {
         self.failures = 0;
+        self.quiet_until = Duration::ZERO;
         self.last_success = Some(now);
         let was_online = self.is_online();
         self.state = State::Online;
@@ -105,6 +121,7 @@ impl DeviceHealth {
 
     pub fn record_failure(&mut self, now: Duration) -> HealthChange {
         self.failures = self.failures.saturating_add(1);
+        self.quiet_until = now.saturating_add(self.policy.late_reply_holdoff);
         match self.state {
             State::Offline { delay, .. } => {
                 let delay = (delay + self.policy.retry_step).min(self.policy.max_retry_delay);
@@ -174,8 +191,24 @@ mod tests {
     fn never_heard_from_goes_offline_at_once() {
         let mut health = DeviceHealth::new(HealthPolicy::default());
         assert_eq!(health.record_failure(ms(0)), HealthChange::WentOffline);
-        assert!(!health.may_transact(ms(499)));
-        assert!(health.may_transact(ms(500)));
+        // The retry step is 0.5 s, but a late reply may still be on its way for 1 s.
+        assert!(!health.may_transact(ms(999)));
+        assert!(health.may_transact(ms(1000)));
+    }
+
+    #[test]
+    fn after_a_failure_the_device_is_left_alone_until_a_late_reply_has_passed() {
+        let mut health = DeviceHealth::new(HealthPolicy {
+            late_reply_holdoff: ms(1200),
+            ..HealthPolicy::default()
+        });
+        health.record_success(ms(0));
+        assert_eq!(health.record_failure(ms(100)), HealthChange::None);
+        assert!(health.is_online(), "one failure does not disconnect");
+        assert!(!health.may_transact(ms(1299)));
+        assert!(health.may_transact(ms(1300)));
+        health.record_success(ms(1310));
+        assert!(health.may_transact(ms(1311)));
     }
 
     #[test]
@@ -227,8 +260,10 @@ mod tests {
             now = retry_at;
             health.record_failure(now);
         }
-        assert_eq!(delays[0], ms(500));
+        // The first retries wait for the late-reply hold-off (1 s), then the growing delay rules.
+        assert_eq!(delays[0], ms(1000));
         assert_eq!(delays[1], ms(1000));
+        assert_eq!(delays[2], ms(1500));
         assert_eq!(*delays.last().unwrap(), ms(10_000));
         assert_eq!(health.record_success(now), HealthChange::CameOnline);
         assert!(health.may_transact(now));

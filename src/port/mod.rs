@@ -9,7 +9,7 @@ pub mod plan;
 pub mod read_plan;
 pub mod scheduler;
 
-pub use health::HealthPolicy;
+pub use health::{HealthPolicy, MIN_LATE_REPLY_HOLDOFF};
 pub use plan::{DevicePlan, EventMode, PlannedRead, PortSettings, RegisterWrite, SetupWrite};
 pub use read_plan::{MergeLimits, RegisterSpan};
 pub use scheduler::{Action, Outcome, PortEvent, PortScheduler, ReplyTiming, Transaction};
