@@ -22,6 +22,8 @@ use serde_json::{json, Value};
 
 /// Where Debian and Ubuntu install the broker.
 pub const DEFAULT_MOSQUITTO: &str = "/usr/sbin/mosquitto";
+/// The broker's password file tool, for brokers that refuse anonymous clients.
+pub const DEFAULT_MOSQUITTO_PASSWD: &str = "/usr/bin/mosquitto_passwd";
 /// How long a process may take to come up (broker listening, simulator `ready`).
 const START_TIMEOUT: Duration = Duration::from_secs(30);
 /// How long a process may take to exit after SIGTERM before it is killed.
@@ -227,6 +229,7 @@ struct ControlConnection {
 /// Broker, simulator, subscriber and (after [`Harness::start_daemon`]) the daemon.
 pub struct Harness {
     binary: PathBuf,
+    mosquitto: PathBuf,
     dir: ScratchDir,
     broker: Child,
     mqtt_port: u16,
@@ -298,6 +301,7 @@ impl Harness {
 
         Ok(Self {
             binary: options.binary.clone(),
+            mosquitto: options.mosquitto.clone(),
             dir,
             broker,
             mqtt_port,
@@ -433,6 +437,130 @@ impl Harness {
         self.control(&json!({"cmd": "stats"}))
     }
 
+    /// Registers of one device as the simulator holds them now (`get` with `count`).
+    pub fn registers(
+        &self,
+        device: u8,
+        register_type: &str,
+        address: u16,
+        count: u16,
+    ) -> anyhow::Result<Vec<u16>> {
+        let reply = self.control(&json!({
+            "cmd": "get", "device": device, "type": register_type, "address": address,
+            "count": count,
+        }))?;
+        reply["values"]
+            .as_array()
+            .context("`get` without values")?
+            .iter()
+            .map(|v| {
+                v.as_u64()
+                    .and_then(|v| u16::try_from(v).ok())
+                    .context("not a register value")
+            })
+            .collect()
+    }
+
+    /// Kills the broker (SIGKILL, as a crash: no persistence, its retained state is gone).
+    pub fn kill_broker(&mut self) {
+        let _ = self.broker.kill();
+        let _ = self.broker.wait();
+    }
+
+    /// Starts a fresh broker on the same port (after [`Harness::kill_broker`]); the harness's
+    /// subscriber reconnects and subscribes again by itself.
+    pub fn restart_broker(&mut self) -> anyhow::Result<()> {
+        self.kill_broker();
+        self.broker = launch_broker(
+            &self.mosquitto,
+            &self.dir.0,
+            self.mqtt_port,
+            "allow_anonymous true\n",
+        )?;
+        Ok(())
+    }
+
+    /// Starts a fresh broker on the same port that takes only `user` with `password` (the
+    /// harness's own subscriber is anonymous and stays out).
+    pub fn restart_broker_with_password(
+        &mut self,
+        user: &str,
+        password: &str,
+    ) -> anyhow::Result<()> {
+        self.kill_broker();
+        let file = self.dir.0.join("mosquitto.passwords");
+        let status = Command::new(DEFAULT_MOSQUITTO_PASSWD)
+            .arg("-b")
+            .arg("-c")
+            .arg(&file)
+            .arg(user)
+            .arg(password)
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .status()
+            .with_context(|| format!("running {DEFAULT_MOSQUITTO_PASSWD}"))?;
+        if !status.success() {
+            bail!("{DEFAULT_MOSQUITTO_PASSWD} failed: {status}");
+        }
+        let access = format!("allow_anonymous false\npassword_file {}\n", file.display());
+        self.broker = launch_broker(&self.mosquitto, &self.dir.0, self.mqtt_port, &access)?;
+        Ok(())
+    }
+
+    /// The broker's retained state (topic → payload) as a new subscriber receives it: collected
+    /// until no message came for `quiet`.
+    pub fn retained_snapshot(
+        &self,
+        quiet: Duration,
+    ) -> anyhow::Result<std::collections::BTreeMap<String, String>> {
+        static COUNTER: AtomicU64 = AtomicU64::new(0);
+        let mut options = rumqttc::MqttOptions::new(
+            format!(
+                "rtu2mqtt-harness-snapshot-{}-{}",
+                std::process::id(),
+                COUNTER.fetch_add(1, Ordering::Relaxed)
+            ),
+            "127.0.0.1",
+            self.mqtt_port,
+        );
+        options.set_max_packet_size(1 << 20, 1 << 20);
+        let (client, mut connection) = rumqttc::Client::new(options, 64);
+        client.subscribe("#", rumqttc::QoS::AtMostOnce)?;
+        let mut state = std::collections::BTreeMap::new();
+        let mut subscribed = false;
+        let deadline = Instant::now() + START_TIMEOUT;
+        loop {
+            match connection.recv_timeout(quiet) {
+                Ok(Ok(rumqttc::Event::Incoming(rumqttc::Packet::Publish(message)))) => {
+                    if message.retain {
+                        let payload = String::from_utf8_lossy(&message.payload).into_owned();
+                        if payload.is_empty() {
+                            state.remove(&message.topic);
+                        } else {
+                            state.insert(message.topic, payload);
+                        }
+                    }
+                }
+                Ok(Ok(rumqttc::Event::Incoming(rumqttc::Packet::SubAck(_)))) => subscribed = true,
+                Ok(Ok(_)) => {}
+                Ok(Err(err)) => bail!("snapshot subscriber: {err}"),
+                Err(_) if subscribed => break,
+                Err(_) => {}
+            }
+            if Instant::now() > deadline {
+                bail!("the broker did not send its retained state");
+            }
+        }
+        let _ = client.disconnect();
+        Ok(state)
+    }
+
+    /// Open file descriptors of the daemon (/proc/<pid>/fd); None when it is not running.
+    pub fn daemon_open_fds(&self) -> Option<usize> {
+        let pid = self.daemon_pid()?;
+        Some(std::fs::read_dir(format!("/proc/{pid}/fd")).ok()?.count())
+    }
+
     /// Every change logged so far.
     pub fn changes(&self) -> Vec<Change> {
         lock(&self.changes).clone()
@@ -472,10 +600,17 @@ fn start_broker(mosquitto: &Path, dir: &Path) -> anyhow::Result<(Child, u16)> {
         );
     }
     let port = free_port()?;
+    let child = launch_broker(mosquitto, dir, port, "allow_anonymous true\n")?;
+    Ok((child, port))
+}
+
+/// Starts mosquitto on `port` without persistence, with `access` lines (anonymous or a password
+/// file), and waits until it listens.
+fn launch_broker(mosquitto: &Path, dir: &Path, port: u16, access: &str) -> anyhow::Result<Child> {
     let config = dir.join("mosquitto.conf");
     std::fs::write(
         &config,
-        format!("listener {port} 127.0.0.1\nallow_anonymous true\npersistence false\n"),
+        format!("listener {port} 127.0.0.1\n{access}persistence false\n"),
     )?;
     let mut child = Command::new(mosquitto)
         .arg("-c")
@@ -496,7 +631,7 @@ fn start_broker(mosquitto: &Path, dir: &Path) -> anyhow::Result<(Child, u16)> {
         }
         std::thread::sleep(Duration::from_millis(10));
     }
-    Ok((child, port))
+    Ok(child)
 }
 
 /// Reads the simulator's banner up to `ready`; keeps draining its stdout afterwards.
@@ -575,6 +710,10 @@ fn subscribe(
     client
         .subscribe("#", rumqttc::QoS::AtMostOnce)
         .context("subscribing")?;
+    // A clean session forgets the subscription when the broker restarts: subscribe again on
+    // every connection after the first (not on the first: the retained state would come twice).
+    let resubscriber = client.clone();
+    let mut connections = 0_u32;
     let (subscribed, acknowledged) = mpsc::channel();
     std::thread::Builder::new()
         .name("harness-mqtt".into())
@@ -592,6 +731,12 @@ fn subscribe(
                     }
                     Ok(rumqttc::Event::Incoming(rumqttc::Packet::SubAck(_))) => {
                         let _ = subscribed.send(());
+                    }
+                    Ok(rumqttc::Event::Incoming(rumqttc::Packet::ConnAck(_))) => {
+                        connections += 1;
+                        if connections > 1 {
+                            let _ = resubscriber.try_subscribe("#", rumqttc::QoS::AtMostOnce);
+                        }
                     }
                     Ok(_) => {}
                     Err(_) if stopping.load(Ordering::SeqCst) => break,

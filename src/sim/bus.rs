@@ -17,7 +17,7 @@ use crate::protocol::{
 };
 
 use super::device::{ValueChange, VirtualDevice};
-use super::faults::{FaultAction, XorShift64};
+use super::faults::{busy_exception, garbage, FaultAction, XorShift64};
 use super::line::{MasterLine, ReceivedRequest, RequestAssembler};
 pub use super::transmission::Transmission;
 use super::transmission::{collide, Burst, TimedFrame};
@@ -529,6 +529,12 @@ impl Bus {
                     }
                 }
                 FaultAction::Delay(delay) => reply.start += delay,
+                FaultAction::Exception => {
+                    if let Some(exception) = busy_exception(&reply.frame) {
+                        reply.frame = exception;
+                    }
+                }
+                FaultAction::Garbage(seed) => reply.frame = garbage(seed, reply.frame.len()),
             }
             sent.push(reply);
         }

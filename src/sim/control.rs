@@ -47,6 +47,10 @@ pub struct ControlCommand {
     pub delay: Option<f64>,
     #[serde(default)]
     pub delay_ms: Option<u64>,
+    #[serde(default)]
+    pub exception: Option<f64>,
+    #[serde(default)]
+    pub garbage: Option<f64>,
 }
 
 /// What the caller should do after replying.
@@ -198,6 +202,8 @@ fn run(bus: &mut Bus, now: Duration, command: &ControlCommand) -> Result<Value, 
                 delay: command
                     .delay_ms
                     .map_or(defaults.delay, Duration::from_millis),
+                exception: command.exception.unwrap_or(0.0),
+                garbage: command.garbage.unwrap_or(0.0),
             };
             Ok(json!({}))
         }

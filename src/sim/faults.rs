@@ -1,4 +1,5 @@
-//! Injected faults: lost replies, corrupted CRCs, late replies. Decided by a tiny seeded
+//! Injected faults: lost replies, corrupted CRCs, late replies, busy exceptions, line noise
+//! (garbage in place of a reply). Decided by a tiny seeded
 //! xorshift generator so that a run is reproducible.
 
 use std::time::Duration;
@@ -13,6 +14,11 @@ pub struct Faults {
     /// The reply starts `delay` later than it should (beyond the master's timeout).
     pub delay_reply: f64,
     pub delay: Duration,
+    /// A classic reply is replaced by exception 6 (slave device busy), as a device that is
+    /// momentarily unable to serve the request answers.
+    pub exception: f64,
+    /// The reply is replaced by as many random bytes (noise on the line).
+    pub garbage: f64,
 }
 
 impl Default for Faults {
@@ -22,6 +28,8 @@ impl Default for Faults {
             corrupt_crc: 0.0,
             delay_reply: 0.0,
             delay: Duration::from_secs(1),
+            exception: 0.0,
+            garbage: 0.0,
         }
     }
 }
@@ -33,11 +41,18 @@ pub enum FaultAction {
     Drop,
     CorruptCrc,
     Delay(Duration),
+    Exception,
+    /// Replace the reply by random bytes drawn from this seed.
+    Garbage(u64),
 }
 
 impl Faults {
     pub fn is_none(&self) -> bool {
-        self.drop_reply <= 0.0 && self.corrupt_crc <= 0.0 && self.delay_reply <= 0.0
+        self.drop_reply <= 0.0
+            && self.corrupt_crc <= 0.0
+            && self.delay_reply <= 0.0
+            && self.exception <= 0.0
+            && self.garbage <= 0.0
     }
 
     /// Draws the fate of one reply (at most one fault at a time, in this order).
@@ -50,6 +65,10 @@ impl Faults {
             FaultAction::CorruptCrc
         } else if rng.chance(self.delay_reply) {
             FaultAction::Delay(self.delay)
+        } else if rng.chance(self.exception) {
+            FaultAction::Exception
+        } else if rng.chance(self.garbage) {
+            FaultAction::Garbage(rng.next_u64())
         } else {
             FaultAction::None
         }
@@ -91,6 +110,26 @@ impl XorShift64 {
     }
 }
 
+/// The busy exception (code 6) a classic reply `frame` (address, function, …) is replaced by;
+/// None for Fast Modbus frames (broadcast 0xFD, function 0x46), which keep their reply.
+pub fn busy_exception(frame: &[u8]) -> Option<Vec<u8>> {
+    const SLAVE_DEVICE_BUSY: u8 = 6;
+    match frame {
+        [address, function, ..] if *address != 0xFD && *function < 0x80 && *function != 0x46 => {
+            let mut reply = vec![*address, function | 0x80, SLAVE_DEVICE_BUSY];
+            crate::protocol::crc::append_crc(&mut reply);
+            Some(reply)
+        }
+        _ => None,
+    }
+}
+
+/// `length` random bytes: noise where a reply should have been.
+pub fn garbage(seed: u64, length: usize) -> Vec<u8> {
+    let mut rng = XorShift64::new(seed);
+    (0..length.max(1)).map(|_| rng.next_u64() as u8).collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -102,5 +141,17 @@ mod tests {
         assert!((2200..2800).contains(&hits), "{hits}");
         assert!(!XorShift64::new(0).chance(0.0));
         assert!(XorShift64::new(0).chance(1.0));
+    }
+
+    #[test]
+    fn busy_exception_of_a_classic_reply_only() {
+        assert_eq!(
+            busy_exception(&[0x14, 0x03, 0x02, 0x00, 0x14, 0xB5, 0x76]),
+            Some(vec![0x14, 0x83, 0x06, 0xD0, 0xF6])
+        );
+        assert_eq!(busy_exception(&[0xFD, 0x46, 0x09, 0, 0]), None);
+        assert_eq!(busy_exception(&[0x14, 0x46, 0x11, 0, 0]), None);
+        assert_eq!(garbage(7, 5).len(), 5);
+        assert_eq!(garbage(7, 5), garbage(7, 5));
     }
 }

@@ -1,0 +1,753 @@
+//! The fault suite (issue 15): the real daemon against the simulator on a pty and a real
+//! mosquitto, each a separate process (src/bench/harness.rs), under injected faults. It asserts
+//! values, bytes and topics, never timings: every published value is one the simulator really
+//! held at that time (its change log, src/bench/history.rs), no event change is lost, and once
+//! the faults end the broker converges on the simulator's values. Waits are bounded by a
+//! generous patience, never by a latency threshold.
+//!
+//! Each scenario runs 20–40 s of faults. `FAULT_SUITE_LONG=1 cargo test --test fault_suite --
+//! --nocapture` runs the long variants (5 minutes of noise, a 30-minute soak) and prints the
+//! figures docs/reliability.md records.
+
+use std::collections::BTreeMap;
+use std::time::{Duration, Instant};
+
+use rtu2mqtt::bench::harness::{
+    monotonic_ns, wait_until, Change, Harness, HarnessOptions, Publication,
+};
+use rtu2mqtt::bench::history::{check_held_values, HistoryReport, RegisterKey};
+use rtu2mqtt::bench::layout::BenchLayout;
+use rtu2mqtt::bench::matching::{match_changes, MatchReport};
+use serde_json::{json, Value};
+
+/// How long anything may take to show up (a deadline against hanging, not a latency bound).
+const PATIENCE: Duration = Duration::from_secs(90);
+const EVERY: Duration = Duration::from_millis(50);
+/// Pace of the simulated world: one register change per tick.
+const TICK: Duration = Duration::from_millis(10);
+const EVENTS: u16 = 2;
+const REGISTERS: u16 = 4;
+/// A holding register the template's `setup` writes (to see it rewritten after a reboot).
+const SETUP_REGISTER: u16 = 100;
+const SETUP_VALUE: u16 = 7;
+
+/// The serial number the benchmark layout gives the device at `address` (control commands name
+/// devices by serial, so that they still work while two devices share an address).
+fn serial(address: u8) -> u32 {
+    0xFE00_0000 + u32::from(address)
+}
+
+fn long_variant() -> bool {
+    std::env::var_os("FAULT_SUITE_LONG").is_some_and(|v| !v.is_empty() && v != "0")
+}
+
+/// The noise a bad cable makes: lost and corrupted replies, replies later than any timeout,
+/// busy exceptions, garbage where a reply should be.
+fn noise() -> Value {
+    json!({"drop": 0.05, "corrupt_crc": 0.05, "delay": 0.03, "delay_ms": 700,
+           "exception": 0.02, "garbage": 0.02})
+}
+
+/// One run: the harness, the bus layout and what the test knows of the simulated world.
+struct Run {
+    harness: Harness,
+    layout: BenchLayout,
+    /// Every value topic → its register.
+    topics: BTreeMap<String, RegisterKey>,
+    /// Each register's value before any change.
+    initial: BTreeMap<RegisterKey, u16>,
+    /// Values a register may take: register slot × span + sequence (no two registers share one).
+    span: u16,
+    sequence: BTreeMap<RegisterKey, u16>,
+    next_slot: usize,
+    /// Last payload per topic, from the publications read so far.
+    last_payload: BTreeMap<String, String>,
+    publications_read: usize,
+    /// Event inputs toggled whose new value is not yet published: topic → value.
+    awaiting: BTreeMap<String, u16>,
+    toggles: usize,
+}
+
+impl Run {
+    /// `devices` at `baud`; odd addresses speak Fast Modbus, even ones are classic.
+    fn start(devices: u8, baud: u32) -> Self {
+        let layout = BenchLayout {
+            devices,
+            events: EVENTS,
+            registers: REGISTERS,
+            baud,
+            fast_devices: true,
+        };
+        let mut bus = layout.bus();
+        if let Some(list) = bus["devices"].as_array_mut() {
+            for device in list {
+                let address = device["address"].as_u64().unwrap_or(0);
+                device["fast"] = json!(address % 2 == 1);
+            }
+        }
+        let (name, mut template) = layout.template();
+        template["device"]["setup"] =
+            json!([{"title": "Mode", "address": SETUP_REGISTER, "value": SETUP_VALUE}]);
+        let options =
+            HarnessOptions::new(env!("CARGO_BIN_EXE_rtu2mqtt"), bus, vec![(name, template)]);
+        let harness = Harness::start(&options).expect("harness starts");
+        let mut topics = BTreeMap::new();
+        let mut initial = BTreeMap::new();
+        for address in 1..=devices {
+            let discrete = harness
+                .registers(address, "discrete", 0, EVENTS)
+                .expect("discrete inputs");
+            let inputs = harness
+                .registers(address, "input", 0, REGISTERS)
+                .expect("input registers");
+            for (register_type, values) in [("discrete", discrete), ("input", inputs)] {
+                for (register, value) in (0..).zip(values) {
+                    let key = RegisterKey::new(address, register_type, register);
+                    let (topic, _) = layout
+                        .topic_of(address, register_type, register, value)
+                        .expect("a register of the layout");
+                    topics.insert(topic, key.clone());
+                    initial.insert(key, value);
+                }
+            }
+        }
+        let slots = usize::from(devices) * usize::from(REGISTERS);
+        let span = u16::try_from(65_536 / slots).unwrap_or(u16::MAX);
+        let mut run = Self {
+            harness,
+            layout,
+            topics,
+            initial,
+            span,
+            sequence: BTreeMap::new(),
+            next_slot: 0,
+            last_payload: BTreeMap::new(),
+            publications_read: 0,
+            awaiting: BTreeMap::new(),
+            toggles: 0,
+        };
+        // Give every register a value of its own before the daemon reads anything.
+        for _ in 0..slots {
+            run.change_next_register();
+        }
+        let config = run
+            .harness
+            .daemon_config(run.layout.ports(run.harness.pty(), &json!({})), json!({}));
+        run.harness.start_daemon(&config).expect("daemon starts");
+        run.wait_converged("the first values");
+        run
+    }
+
+    fn devices(&self) -> u8 {
+        self.layout.devices
+    }
+
+    fn payload(key: &RegisterKey, value: u16) -> String {
+        let _ = key;
+        value.to_string()
+    }
+
+    /// Sets the next register (round robin) to its next value of its own.
+    fn change_next_register(&mut self) {
+        let slots = usize::from(self.devices()) * usize::from(REGISTERS);
+        let slot = self.next_slot % slots;
+        self.next_slot += 1;
+        let address = u8::try_from(slot / usize::from(REGISTERS) + 1).unwrap_or(1);
+        let register = u16::try_from(slot % usize::from(REGISTERS)).unwrap_or(0);
+        let key = RegisterKey::new(address, "input", register);
+        let sequence = self.sequence.entry(key).or_insert(0);
+        if *sequence + 1 >= self.span {
+            // This register has used up its values: leave it (a run never gets here).
+            return;
+        }
+        *sequence += 1;
+        let value = u16::try_from(slot).unwrap_or(0) * self.span + *sequence;
+        self.set(address, "input", register, value);
+    }
+
+    fn set(&self, address: u8, register_type: &str, register: u16, value: u16) {
+        self.harness
+            .control(
+                &json!({"cmd": "set", "serial": serial(address), "type": register_type,
+                             "address": register, "value": value}),
+            )
+            .expect("set");
+    }
+
+    /// Reads the publications that arrived since the last call.
+    fn read_publications(&mut self) {
+        let fresh: Vec<Publication> = self
+            .harness
+            .with_publications(|seen| seen.get(self.publications_read..).unwrap_or(&[]).to_vec());
+        self.publications_read += fresh.len();
+        for publication in fresh {
+            self.last_payload
+                .insert(publication.topic, publication.payload);
+        }
+    }
+
+    /// Toggles every event input whose last toggle has been published (so that no change can
+    /// be legitimately overwritten by the next one: each must be published).
+    fn toggle_published_events(&mut self) {
+        self.read_publications();
+        let published: Vec<String> = self
+            .awaiting
+            .iter()
+            .filter(|(topic, value)| {
+                self.last_payload.get(*topic).map(String::as_str)
+                    == Some(value.to_string().as_str())
+            })
+            .map(|(topic, _)| topic.clone())
+            .collect();
+        for topic in published {
+            self.awaiting.remove(&topic);
+        }
+        for address in 1..=self.devices() {
+            for event in 0..EVENTS {
+                let (topic, _) = self
+                    .layout
+                    .topic_of(address, "discrete", event, 0)
+                    .expect("an event input");
+                if self.awaiting.contains_key(&topic) {
+                    continue;
+                }
+                let reply = self
+                    .harness
+                    .control(
+                        &json!({"cmd": "toggle", "serial": serial(address), "type": "discrete",
+                                     "address": event}),
+                    )
+                    .expect("toggle");
+                let value = u16::try_from(reply["value"].as_u64().unwrap_or(0)).unwrap_or(0);
+                self.awaiting.insert(topic, value);
+                self.toggles += 1;
+            }
+        }
+    }
+
+    /// The simulated world changes for `length`: one register per tick, event inputs toggled
+    /// as soon as their last change was published.
+    fn drive(&mut self, length: Duration) {
+        let end = Instant::now() + length;
+        let mut tick = 0_u32;
+        while Instant::now() < end {
+            self.change_next_register();
+            if tick % 10 == 0 {
+                self.toggle_published_events();
+            }
+            tick += 1;
+            // Pacing of the simulated world, not a wait for the daemon.
+            std::thread::sleep(TICK);
+        }
+    }
+
+    fn faults_on_all(&self, faults: &Value) {
+        for address in 1..=self.devices() {
+            self.faults(address, faults);
+        }
+    }
+
+    fn faults(&self, address: u8, faults: &Value) {
+        let mut command = json!({"cmd": "faults", "device": address});
+        if let (Some(fields), Some(extra)) = (command.as_object_mut(), faults.as_object()) {
+            fields.extend(extra.clone());
+        }
+        self.harness.control(&command).expect("faults");
+    }
+
+    /// What the broker should show now: topic → payload, from the simulator's registers.
+    fn expected(&self) -> BTreeMap<String, String> {
+        let mut expected = BTreeMap::new();
+        for address in 1..=self.devices() {
+            for (register_type, count) in [("discrete", EVENTS), ("input", REGISTERS)] {
+                let values = self
+                    .harness
+                    .registers(address, register_type, 0, count)
+                    .expect("registers");
+                for (register, value) in (0..).zip(values) {
+                    if let Some((topic, payload)) =
+                        self.layout
+                            .topic_of(address, register_type, register, value)
+                    {
+                        expected.insert(topic, payload);
+                    }
+                }
+            }
+        }
+        expected
+    }
+
+    /// The last published value of every topic and the simulator's disagree, or an error flag
+    /// is still set, or a toggled event is not yet published: what (for the failure message).
+    fn disagreement(&mut self) -> Option<String> {
+        self.read_publications();
+        for (topic, payload) in self.expected() {
+            let published = self.last_payload.get(&topic);
+            if published != Some(&payload) {
+                return Some(format!(
+                    "{topic}: published {published:?}, simulator {payload}"
+                ));
+            }
+        }
+        for (topic, payload) in &self.last_payload {
+            if topic.ends_with("/meta/error") && !payload.is_empty() {
+                return Some(format!("{topic} is still {payload:?}"));
+            }
+            if topic.contains("/availability/") && payload != "online" {
+                return Some(format!("{topic} is still {payload:?}"));
+            }
+        }
+        None
+    }
+
+    /// Waits until the broker shows the simulator's values with no error flag; how long that
+    /// took (a figure for the report, never asserted).
+    fn wait_converged(&mut self, what: &str) -> Duration {
+        let started = Instant::now();
+        let mut last = String::new();
+        let converged = wait_until(PATIENCE, EVERY, || match self.disagreement() {
+            None => Some(()),
+            Some(why) => {
+                last = why;
+                None
+            }
+        });
+        assert!(
+            converged.is_some(),
+            "{what}: the broker never showed the simulator's values ({last})\n{}",
+            self.log_tail()
+        );
+        started.elapsed()
+    }
+
+    fn log_tail(&self) -> String {
+        let log = self.harness.daemon_log();
+        let lines: Vec<&str> = log.lines().collect();
+        lines[lines.len().saturating_sub(40)..].join("\n")
+    }
+
+    fn changes(&self) -> Vec<Change> {
+        self.harness.changes()
+    }
+
+    /// Every publication since `since_ns` checked against the registers' histories.
+    fn history(&self, since_ns: u64) -> HistoryReport {
+        check_held_values(
+            &self.initial,
+            &self.changes(),
+            &self.harness.publications(),
+            since_ns,
+            &self.topics,
+            Self::payload,
+        )
+    }
+
+    /// The event inputs' changes matched with their publications.
+    fn event_matching(&self, since_ns: u64) -> MatchReport {
+        let changes: Vec<Change> = self
+            .changes()
+            .into_iter()
+            .filter(|c| c.register_type == "discrete" && c.mono_ns >= since_ns)
+            .collect();
+        match_changes(&changes, &self.harness.publications(), since_ns, |c| {
+            self.layout
+                .topic_of(c.address, &c.register_type, c.register, c.value)
+        })
+    }
+
+    /// All value changes matched with publications (for the figures: lost counts registers
+    /// that changed twice between two reads, which no poller can see).
+    fn value_matching(&self, since_ns: u64) -> MatchReport {
+        let changes: Vec<Change> = self
+            .changes()
+            .into_iter()
+            .filter(|c| c.mono_ns >= since_ns && c.origin == "control")
+            .collect();
+        match_changes(&changes, &self.harness.publications(), since_ns, |c| {
+            self.layout
+                .topic_of(c.address, &c.register_type, c.register, c.value)
+        })
+    }
+
+    fn assert_no_bad_value(&self, since_ns: u64, what: &str) -> usize {
+        let report = self.history(since_ns);
+        assert!(
+            report.checked > 0,
+            "{what}: no publication was checked (the check cannot fail)"
+        );
+        let shown: Vec<String> = report
+            .bad
+            .iter()
+            .take(10)
+            .map(|bad| {
+                format!(
+                    "{} = {:?} at +{} ms ({}; held {:?})",
+                    bad.publication.topic,
+                    bad.publication.payload,
+                    bad.publication.mono_ns.saturating_sub(since_ns) / 1_000_000,
+                    bad.reason,
+                    bad.held
+                )
+            })
+            .collect();
+        assert!(
+            report.bad.is_empty(),
+            "{what}: {} of {} publications carried a value the simulator did not hold:\n{}\n{}",
+            report.bad.len(),
+            report.checked,
+            shown.join("\n"),
+            self.log_tail()
+        );
+        report.checked
+    }
+}
+
+/// Scenario 1: noise on a bus of fast and classic devices whose values change all the time.
+fn noise_scenario(devices: u8, baud: u32) {
+    let fault_time = if long_variant() {
+        Duration::from_secs(300)
+    } else {
+        Duration::from_secs(25)
+    };
+    let mut run = Run::start(devices, baud);
+    let since = monotonic_ns();
+    let requests_before = run.harness.bus_stats().expect("stats")["requests"]
+        .as_u64()
+        .unwrap_or(0);
+    run.faults_on_all(&noise());
+    run.drive(fault_time);
+    run.faults_on_all(&json!({}));
+    let faults_ended = Instant::now();
+    // Convergence includes every toggled event input: each must come through.
+    let recovery = run.wait_converged("after the faults");
+    let recovery_from_end = faults_ended.elapsed();
+
+    let checked = run.assert_no_bad_value(since, &format!("noise at {baud}"));
+    let events = run.event_matching(since);
+    assert!(events.changes > 0, "no event input changed");
+    assert_eq!(
+        (events.lost, events.wrong, events.duplicates),
+        (0, 0, 0),
+        "noise at {baud}: event changes lost, wrong or published twice: {events:?}\n{}",
+        run.log_tail()
+    );
+    let values = run.value_matching(since);
+    assert_eq!(values.wrong, 0, "{values:?}");
+    let stats = run.harness.bus_stats().expect("stats");
+    let requests = stats["requests"].as_u64().unwrap_or(0) - requests_before;
+    eprintln!(
+        "FIGURES noise devices={devices} baud={baud} faults_s={} requests={requests} \
+         register_changes={} publications_checked={checked} wrong_values=0 \
+         event_changes={} events_lost={} event_duplicates={} value_duplicates={} \
+         value_changes_unseen_between_reads={} recovery_after_faults_ms={} (converged {} ms)",
+        fault_time.as_secs(),
+        values.changes,
+        events.changes,
+        events.lost,
+        events.duplicates,
+        values.duplicates,
+        values.lost,
+        recovery_from_end.as_millis(),
+        recovery.as_millis(),
+    );
+}
+
+#[test]
+fn noise_at_115200_publishes_only_held_values_and_every_event() {
+    noise_scenario(8, 115_200);
+}
+
+#[test]
+fn noise_at_9600_publishes_only_held_values_and_every_event() {
+    noise_scenario(32, 9600);
+}
+
+fn control_error(run: &mut Run, address: u8, control: &str) -> Option<String> {
+    run.read_publications();
+    run.last_payload
+        .get(&format!(
+            "{}{control}/meta/error",
+            BenchLayout::topic_prefix(address)
+        ))
+        .cloned()
+}
+
+fn device_error(run: &mut Run, address: u8) -> Option<String> {
+    run.read_publications();
+    run.last_payload
+        .get(&format!("/devices/bench_{address}/meta/error"))
+        .cloned()
+}
+
+fn wait_for(run: &mut Run, what: &str, mut check: impl FnMut(&mut Run) -> bool) {
+    let found = wait_until(PATIENCE, EVERY, || check(run).then_some(()));
+    assert!(found.is_some(), "{what}\n{}", run.log_tail());
+}
+
+/// Scenario 2: a device unplugged and replugged, rebooted, answering late, answering with
+/// exceptions; no wrong value at any point, and the right values after each.
+#[test]
+fn device_faults_unplug_reboot_late_answers_exceptions() {
+    let mut run = Run::start(4, 115_200);
+    let since = monotonic_ns();
+
+    // Unplugged: `r` on the device and its controls; values changed meanwhile come after.
+    run.harness
+        .control(&json!({"cmd": "unplug", "device": 2}))
+        .expect("unplug");
+    wait_for(&mut run, "unplugged device 2 flagged r", |run| {
+        device_error(run, 2).as_deref() == Some("r")
+            && control_error(run, 2, "R0").is_some_and(|e| e.contains('r'))
+    });
+    run.drive(Duration::from_secs(3));
+    run.harness
+        .control(&json!({"cmd": "replug", "device": 2}))
+        .expect("replug");
+    let unplug_recovery = run.wait_converged("after the replug");
+    assert_eq!(device_error(&mut run, 2).as_deref(), Some(""));
+
+    // Reboot of a Fast Modbus device that forgot its setup: setup written again, events
+    // enabled again, values right after.
+    run.set(1, "holding", SETUP_REGISTER, 0);
+    let starts_before = device_listing(&run, 1)["starts"].as_u64().unwrap_or(0);
+    run.harness
+        .control(&json!({"cmd": "reboot", "device": 1}))
+        .expect("reboot");
+    wait_for(&mut run, "setup rewritten after the reboot", |run| {
+        run.harness
+            .registers(1, "holding", SETUP_REGISTER, 1)
+            .is_ok_and(|v| v == [SETUP_VALUE])
+    });
+    wait_for(&mut run, "events enabled again after the reboot", |run| {
+        device_listing(run, 1)["events_enabled"]
+            .as_u64()
+            .unwrap_or(0)
+            > 0
+    });
+    assert_eq!(
+        device_listing(&run, 1)["starts"].as_u64(),
+        Some(starts_before + 1)
+    );
+    run.drive(Duration::from_secs(3));
+    let reboot_recovery = run.wait_converged("after the reboot");
+
+    // A device whose every answer comes late (past the configured timeout): its replies are
+    // never credited to the next request.
+    run.faults(3, &json!({"delay": 1.0, "delay_ms": 700}));
+    run.drive(Duration::from_secs(8));
+    run.faults(3, &json!({}));
+    let late_recovery = run.wait_converged("after the late answers");
+
+    // Exceptions (device busy): `r`, then cleared and the values right.
+    run.faults(4, &json!({"exception": 1.0}));
+    wait_for(&mut run, "device 4 answering exceptions flagged r", |run| {
+        control_error(run, 4, "R0").is_some_and(|e| e.contains('r'))
+    });
+    run.drive(Duration::from_secs(3));
+    run.faults(4, &json!({}));
+    let exception_recovery = run.wait_converged("after the exceptions");
+
+    let checked = run.assert_no_bad_value(since, "device faults");
+    let events = run.event_matching(since);
+    assert_eq!(
+        (events.lost, events.wrong),
+        (0, 0),
+        "device faults: events {events:?}\n{}",
+        run.log_tail()
+    );
+    eprintln!(
+        "FIGURES device_faults publications_checked={checked} wrong_values=0 event_changes={} \
+         events_lost={} event_duplicates={} recovery_ms: replug={} reboot={} late={} \
+         exceptions={}",
+        events.changes,
+        events.lost,
+        events.duplicates,
+        unplug_recovery.as_millis(),
+        reboot_recovery.as_millis(),
+        late_recovery.as_millis(),
+        exception_recovery.as_millis(),
+    );
+}
+
+/// Scenario 2c: an address collision appears at runtime (device 4 is readdressed to 2, so two
+/// devices answer at once), then goes away. The devices not involved never get a wrong value,
+/// and once the collision is gone every value is right again.
+#[test]
+fn address_collision_at_runtime_spares_the_others_and_recovers() {
+    let mut run = Run::start(4, 115_200);
+    let since = monotonic_ns();
+    let serial_of_4 = serial(4);
+    run.harness
+        .control(&json!({"cmd": "set_address", "serial": serial_of_4, "new_address": 2}))
+        .expect("readdress device 4 to 2");
+    // The two devices at 2 answer together: their replies collide on the line.
+    run.drive(Duration::from_secs(8));
+    run.harness
+        .control(&json!({"cmd": "set_address", "serial": serial_of_4, "new_address": 4}))
+        .expect("device 4 back at 4");
+    let recovery = run.wait_converged("after the collision");
+    // Devices 2 and 4 answered for each other: only the others are held to their history.
+    run.topics
+        .retain(|_, key| key.address != 2 && key.address != 4);
+    let checked = run.assert_no_bad_value(since, "address collision");
+    eprintln!(
+        "FIGURES collision publications_checked_on_other_devices={checked} wrong_values=0 \
+         recovery_ms={}",
+        recovery.as_millis()
+    );
+}
+
+fn device_listing(run: &Run, address: u8) -> Value {
+    let list = run.harness.control(&json!({"cmd": "list"})).expect("list");
+    list["devices"]
+        .as_array()
+        .and_then(|devices| {
+            devices
+                .iter()
+                .find(|d| d["address"].as_u64() == Some(u64::from(address)))
+        })
+        .cloned()
+        .unwrap_or(Value::Null)
+}
+
+/// A retained snapshot of the broker once two in a row agree (the daemon may be mid-publish).
+fn settled_snapshot(run: &Run) -> BTreeMap<String, String> {
+    let mut previous = BTreeMap::new();
+    wait_until(PATIENCE, EVERY, || {
+        let snapshot = run
+            .harness
+            .retained_snapshot(Duration::from_millis(300))
+            .ok()?;
+        let same = snapshot == previous && !snapshot.is_empty();
+        previous = snapshot;
+        same.then(|| previous.clone())
+    })
+    .expect("a settled retained state")
+}
+
+/// Scenario 3: the broker is killed and restarted without persistence: the whole retained state
+/// comes back, with what changed while it was down.
+#[test]
+fn broker_killed_and_restarted_gets_the_whole_retained_state_back() {
+    let mut run = Run::start(4, 115_200);
+    let before = settled_snapshot(&run);
+    assert!(
+        before.len() > run.topics.len(),
+        "retained state: {before:?}"
+    );
+
+    run.harness.kill_broker();
+    // While the broker is away, a value changes on the bus.
+    run.set(2, "input", 1, 60_000);
+    let restarted = Instant::now();
+    run.harness.restart_broker().expect("broker restarts");
+    let mut expected = before.clone();
+    expected.insert("/devices/bench_2/controls/R1".into(), "60000".into());
+    let mut last = BTreeMap::new();
+    let back = wait_until(PATIENCE, EVERY, || {
+        last = settled_snapshot(&run);
+        (last == expected).then_some(())
+    });
+    let missing: Vec<&String> = expected.keys().filter(|t| !last.contains_key(*t)).collect();
+    let differing: Vec<(&String, &String, Option<&String>)> = expected
+        .iter()
+        .filter(|(t, p)| last.get(*t).is_some_and(|q| q != *p))
+        .map(|(t, p)| (t, p, last.get(t)))
+        .collect();
+    let extra: Vec<&String> = last.keys().filter(|t| !expected.contains_key(*t)).collect();
+    assert!(
+        back.is_some(),
+        "retained state after the restart differs: missing {missing:?}, differing \
+         {differing:?}, extra {extra:?}\n{}",
+        run.log_tail()
+    );
+    let restore = restarted.elapsed();
+
+    eprintln!(
+        "FIGURES broker retained_topics={} restored_after_restart_ms={}",
+        expected.len(),
+        restore.as_millis()
+    );
+}
+
+/// Scenario 3b: a broker the daemon was connected to comes back asking for a password the daemon
+/// does not have: the refusal must be named in the log (as it is when the first connection is
+/// refused, tests/mqtt_logs.rs).
+#[test]
+#[ignore = "defect: after a lost connection, refusals are logged at debug only (src/mqtt/client.rs: \
+            the `lost the MQTT broker` branch counts as the first failure, so the refusal that \
+            follows is never a warning); see docs/reliability.md"]
+fn broker_back_with_a_password_names_the_refused_credentials() {
+    let mut run = Run::start(2, 115_200);
+    run.harness
+        .restart_broker_with_password("gateway", "secret")
+        .expect("broker with a password");
+    wait_for(&mut run, "refused credentials named in the log", |run| {
+        run.harness
+            .daemon_log()
+            .contains("refused the user name or password")
+    });
+    assert!(run.harness.daemon_exit().is_none(), "the daemon gave up");
+}
+
+/// Scenario 2b: a device that answers half of its requests 600 ms late (past the timeout) and
+/// the others at once. No value older than one already published may be published.
+#[test]
+#[ignore = "defect (intermittent, 2 of 4 runs): a late reply lands in a later request's reply \
+            window and its older values are published over newer ones; see docs/reliability.md"]
+fn device_answering_sometimes_late_never_publishes_an_older_value() {
+    let mut run = Run::start(4, 115_200);
+    let since = monotonic_ns();
+    run.faults(3, &json!({"delay": 0.5, "delay_ms": 600}));
+    run.drive(Duration::from_secs(20));
+    run.faults(3, &json!({}));
+    run.wait_converged("after the late answers");
+    run.assert_no_bad_value(since, "sometimes late answers");
+}
+
+/// Scenario 4: a short soak under noise, sampling the daemon's RSS, CPU and open file
+/// descriptors every 10 s: no descriptor growth, bounded memory growth.
+#[test]
+fn soak_under_faults_keeps_descriptors_and_memory_flat() {
+    let length = if long_variant() {
+        Duration::from_secs(30 * 60)
+    } else {
+        Duration::from_secs(70)
+    };
+    let mut run = Run::start(8, 115_200);
+    let since = monotonic_ns();
+    run.faults_on_all(&noise());
+    let mut samples = Vec::new();
+    let started = Instant::now();
+    while started.elapsed() < length {
+        let stats = run.harness.daemon_stats().expect("daemon running");
+        let fds = run.harness.daemon_open_fds().expect("daemon fds");
+        samples.push((started.elapsed().as_secs(), stats.rss_kib, stats.cpu, fds));
+        run.drive(Duration::from_secs(10));
+    }
+    let stats = run.harness.daemon_stats().expect("daemon running");
+    let fds = run.harness.daemon_open_fds().expect("daemon fds");
+    samples.push((started.elapsed().as_secs(), stats.rss_kib, stats.cpu, fds));
+    run.faults_on_all(&json!({}));
+    run.wait_converged("after the soak");
+    let checked = run.assert_no_bad_value(since, "soak");
+
+    for (at, rss, cpu, fds) in &samples {
+        eprintln!(
+            "FIGURES soak t={at}s rss_kib={rss} cpu_ms={} fds={fds}",
+            cpu.as_millis()
+        );
+    }
+    eprintln!("FIGURES soak publications_checked={checked} wrong_values=0");
+    // The first sample is taken once the daemon has published everything (warm); after it,
+    // descriptors must not grow and memory may grow only a little.
+    let (_, first_rss, _, first_fds) = samples[0];
+    let (_, last_rss, _, last_fds) = samples[samples.len() - 1];
+    let max_fds = samples.iter().map(|s| s.3).max().unwrap_or(0);
+    assert!(max_fds <= first_fds, "open descriptors grew: {samples:?}");
+    assert!(last_fds <= first_fds, "{samples:?}");
+    assert!(
+        last_rss <= first_rss + first_rss / 2 + 4096,
+        "RSS grew from {first_rss} KiB to {last_rss} KiB: {samples:?}"
+    );
+}
