@@ -674,9 +674,6 @@ fn broker_killed_and_restarted_gets_the_whole_retained_state_back() {
 /// does not have: the refusal must be named in the log (as it is when the first connection is
 /// refused, tests/mqtt_logs.rs).
 #[test]
-#[ignore = "defect: after a lost connection, refusals are logged at debug only (src/mqtt/client.rs: \
-            the `lost the MQTT broker` branch counts as the first failure, so the refusal that \
-            follows is never a warning); see docs/reliability.md"]
 fn broker_back_with_a_password_names_the_refused_credentials() {
     let mut run = Run::start(2, 115_200);
     run.harness
@@ -693,8 +690,6 @@ fn broker_back_with_a_password_names_the_refused_credentials() {
 /// Scenario 2b: a device that answers half of its requests 600 ms late (past the timeout) and
 /// the others at once. No value older than one already published may be published.
 #[test]
-#[ignore = "defect (intermittent, 2 of 4 runs): a late reply lands in a later request's reply \
-            window and its older values are published over newer ones; see docs/reliability.md"]
 fn device_answering_sometimes_late_never_publishes_an_older_value() {
     let mut run = Run::start(4, 115_200);
     let since = monotonic_ns();

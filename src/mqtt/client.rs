@@ -469,6 +469,12 @@ async fn drive_connection(
                     warn!(%broker, %error, "lost the MQTT broker; reconnecting");
                     connected = false;
                     let _ = events.send(ConnectionEvent::Disconnected).await;
+                    // The reconnects that follow start a new series: their first failure (a
+                    // refusal of our credentials, say) is told at warning level again.
+                    failures = 0;
+                    tokio::time::sleep(delay).await;
+                    delay = (delay * 2).min(MAX_RECONNECT_DELAY);
+                    continue;
                 } else if let Some(refusal) = refusal_text(&error) {
                     if failures == 0 {
                         warn!(%broker, "{refusal}; retrying");
