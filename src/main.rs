@@ -26,6 +26,9 @@ enum Command {
     Run(cli::run::Args),
     /// Explain a Modbus RTU or Fast Modbus frame given as hex (e.g. "FD 46 10 00 FF 00 00 C8 9A").
     Decode(cli::decode::Args),
+    /// Find the devices on a port: Fast Modbus scan at every port setting (and, with --classic,
+    /// address by address); serial, address, settings, model, firmware; duplicates flagged.
+    Scan(cli::scan::Args),
     /// Run a virtual RS-485 bus of classic and Fast Modbus devices on a pty or TCP port.
     Sim(cli::sim::Args),
     /// Print a shell completion script (e.g. `rtu2mqtt completions bash > /etc/bash_completion.d/rtu2mqtt`).
@@ -46,6 +49,7 @@ fn main() -> std::process::ExitCode {
         Command::Demo(args) => cli::demo::run(args),
         Command::Decode(args) => cli::decode::run(args),
         Command::Sim(args) => cli::sim::run(args),
+        Command::Scan(args) => cli::scan::run(args),
         Command::Completions(args) => cli::generate::completions(args, Cli::command()),
         Command::Manpages(args) => cli::generate::manpages(args, Cli::command()),
     };

@@ -8,6 +8,7 @@ pub mod decode;
 pub mod demo;
 pub mod generate;
 pub mod run;
+pub mod scan;
 pub mod schema;
 pub mod sim;
 

@@ -389,7 +389,9 @@ fn scan_transaction(
         request_time,
         reply_timeout: reply_timeout + latency,
         first_byte_timeout: Some(first_byte + latency),
-        late_window: latency,
+        // Silence after a scan start means nobody at this setting, and the next request goes out
+        // at another setting (after an input flush): no late reply to wait for.
+        late_window: if start { Duration::ZERO } else { latency },
         request,
     }
 }

@@ -1,0 +1,273 @@
+//! Site tools against the simulator on a pty: `scan`, `set-address`, `fix-addresses`, `read`,
+//! `write`, `events`. The bus (tests/data/sim/site-bus.json) has six devices at three port
+//! settings: two Fast Modbus devices share address 10 at 9600 8N2, one at 115200 8N2, two at
+//! 19200 8O1, and a classic-only device at address 40, 115200 8N2.
+//!
+//! A pseudo-terminal cannot tell parity N from E, so devices at 8N2 also answer at 8E2 here; the
+//! scan reports the first setting in its order (8N2) and the other one as "also at".
+
+mod sim_support;
+
+use std::process::Command;
+
+use nix::sys::termios::{self, BaudRate, ControlFlags, SetArg};
+use serde_json::{json, Value};
+use sim_support::SimProcess;
+
+/// Generous for a loaded test machine; values are asserted, never timings.
+const LATENCY_MS: &str = "100";
+
+struct Run {
+    code: i32,
+    stdout: String,
+    stderr: String,
+}
+
+fn tool(args: &[&str]) -> Run {
+    let output = Command::new(env!("CARGO_BIN_EXE_rtu2mqtt"))
+        .args(args)
+        .output()
+        .unwrap();
+    Run {
+        code: output.status.code().unwrap_or(-1),
+        stdout: String::from_utf8_lossy(&output.stdout).into_owned(),
+        stderr: String::from_utf8_lossy(&output.stderr).into_owned(),
+    }
+}
+
+fn sim() -> SimProcess {
+    SimProcess::start("site-bus.json", &[])
+}
+
+fn port(sim: &SimProcess) -> String {
+    sim.pty.to_str().unwrap().to_owned()
+}
+
+fn scan_json(sim: &SimProcess, extra: &[&str]) -> Value {
+    let port = port(sim);
+    let mut args = vec!["scan", "--port", &port, "--json", "--latency", LATENCY_MS];
+    args.extend_from_slice(extra);
+    let run = tool(&args);
+    assert!(
+        run.code == 0 || run.code == 1,
+        "{}{}",
+        run.stdout,
+        run.stderr
+    );
+    serde_json::from_str(&run.stdout).unwrap_or_else(|e| panic!("{e}: {}", run.stdout))
+}
+
+/// The devices of a scan as (serial, address, settings), sorted by serial.
+fn found(report: &Value) -> Vec<(u64, u64, String)> {
+    let mut devices: Vec<(u64, u64, String)> = report["devices"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|d| {
+            (
+                d["serial"].as_u64().unwrap_or(0),
+                d["address"].as_u64().unwrap(),
+                d["settings"].as_str().unwrap().to_owned(),
+            )
+        })
+        .collect();
+    devices.sort();
+    devices
+}
+
+fn device(report: &Value, serial: u64) -> &Value {
+    report["devices"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|d| d["serial"].as_u64() == Some(serial))
+        .unwrap_or_else(|| panic!("serial {serial:#X} not found in {report}"))
+}
+
+#[test]
+fn scan_finds_every_fast_device_at_its_settings_and_flags_the_duplicate() {
+    let sim = sim();
+    // Whatever the port was set to before the scan, it is set to again after.
+    let before = std::fs::OpenOptions::new()
+        .read(true)
+        .write(true)
+        .open(&sim.pty)
+        .unwrap();
+    let mut settings = termios::tcgetattr(&before).unwrap();
+    termios::cfmakeraw(&mut settings);
+    settings
+        .control_flags
+        .insert(ControlFlags::PARENB | ControlFlags::PARODD);
+    settings.control_flags.remove(ControlFlags::CSTOPB);
+    termios::cfsetspeed(&mut settings, BaudRate::B57600).unwrap();
+    termios::tcsetattr(&before, SetArg::TCSANOW, &settings).unwrap();
+    let report = scan_json(&sim, &[]);
+    assert_eq!(report["port_settings_scanned"], 48);
+    assert_eq!(
+        found(&report),
+        vec![
+            (0xFE00_0010, 10, "9600 8N2".into()),
+            (0xFE00_0011, 10, "9600 8N2".into()),
+            (0xFE00_0020, 20, "115200 8N2".into()),
+            (0xFE00_0030, 30, "19200 8O1".into()),
+            (0xFE00_0031, 31, "19200 8O1".into()),
+        ],
+        "{report:#}"
+    );
+    let relay = device(&report, 0xFE00_0011);
+    assert_eq!(relay["model"], "WBMR6C");
+    assert_eq!(relay["firmware"], "1.26.1");
+    assert_eq!(relay["fast_modbus"], true);
+    assert_eq!(relay["also_at"], json!(["9600 8E2"]));
+    assert_eq!(device(&report, 0xFE00_0030)["also_at"], json!([]));
+    assert_eq!(
+        report["duplicates"],
+        json!([{"settings": "9600 8N2", "address": 10, "serials": [0xFE00_0010u32, 0xFE00_0011u32]}])
+    );
+    let settings = termios::tcgetattr(&before).unwrap();
+    assert_eq!(termios::cfgetospeed(&settings), BaudRate::B57600);
+    assert!(settings.control_flags.contains(ControlFlags::PARODD));
+    assert!(!settings.control_flags.contains(ControlFlags::CSTOPB));
+}
+
+#[test]
+fn scan_table_names_the_duplicate_and_how_to_fix_it() {
+    let sim = sim();
+    let port = port(&sim);
+    let run = tool(&[
+        "scan",
+        "--port",
+        &port,
+        "--baud",
+        "9600",
+        "--parity",
+        "N",
+        "--latency",
+        LATENCY_MS,
+    ]);
+    assert_eq!(run.code, 0, "{}{}", run.stdout, run.stderr);
+    assert!(
+        run.stdout
+            .contains("duplicate: address 10 at 9600 8N2 is used by 2 devices"),
+        "{}",
+        run.stdout
+    );
+    assert!(run.stdout.contains("fix-addresses"), "{}", run.stdout);
+    assert_eq!(
+        run.stdout.matches("DUPLICATE ADDRESS").count(),
+        2,
+        "{}",
+        run.stdout
+    );
+}
+
+#[test]
+fn classic_scan_finds_the_device_without_fast_modbus() {
+    let sim = sim();
+    let fast_only = scan_json(
+        &sim,
+        &["--baud", "115200", "--parity", "N", "--stop-bits", "2"],
+    );
+    assert_eq!(
+        found(&fast_only),
+        vec![(0xFE00_0020, 20, "115200 8N2".into())]
+    );
+    let report = scan_json(
+        &sim,
+        &[
+            "--baud",
+            "115200",
+            "--parity",
+            "N",
+            "--stop-bits",
+            "2",
+            "--classic",
+            "--range",
+            "15-45",
+            "--timeout",
+            "150",
+        ],
+    );
+    assert_eq!(
+        found(&report),
+        vec![
+            (0xFE00_0020, 20, "115200 8N2".into()),
+            (0xFE00_0040, 40, "115200 8N2".into()),
+        ],
+        "{report:#}"
+    );
+    let classic = device(&report, 0xFE00_0040);
+    assert_eq!(classic["fast_modbus"], false);
+    assert_eq!(classic["model"], "OLDBOX");
+}
+
+#[test]
+fn scan_config_snippet_picks_the_template_by_model() {
+    let sim = sim();
+    let port = port(&sim);
+    let templates = sim_support::data("");
+    let run = tool(&[
+        "scan",
+        "--port",
+        &port,
+        "--baud",
+        "19200",
+        "--parity",
+        "O",
+        "--config",
+        "--latency",
+        LATENCY_MS,
+        "--templates",
+        templates.to_str().unwrap(),
+    ]);
+    assert_eq!(run.code, 0, "{}{}", run.stdout, run.stderr);
+    let snippet: Value = serde_json::from_str(&run.stdout).unwrap();
+    assert_eq!(
+        snippet["ports"][0]["devices"],
+        json!([{"slave_id": 30, "device_type": "sim-relay"}, {"slave_id": 31, "device_type": "sim-relay"}])
+    );
+    assert_eq!(snippet["ports"][0]["baud_rate"], 19200);
+    assert_eq!(snippet["ports"][0]["parity"], "O");
+    assert_eq!(snippet["ports"][0]["stop_bits"], 1);
+}
+
+#[test]
+fn scan_errors_say_what_is_wrong_with_the_port() {
+    let missing = tool(&["scan", "--port", "/dev/ttyNOSUCH-rtu2mqtt"]);
+    assert_eq!(missing.code, 3, "{}", missing.stderr);
+    assert!(
+        missing.stderr.contains("does not exist"),
+        "{}",
+        missing.stderr
+    );
+
+    let sim = sim();
+    let port = port(&sim);
+    let holder = std::fs::OpenOptions::new()
+        .read(true)
+        .write(true)
+        .open(&sim.pty)
+        .unwrap();
+    let lock =
+        nix::fcntl::Flock::lock(holder, nix::fcntl::FlockArg::LockExclusiveNonblock).unwrap();
+    let busy = tool(&["scan", "--port", &port]);
+    assert_eq!(busy.code, 3, "{}", busy.stderr);
+    assert!(busy.stderr.contains("is busy"), "{}", busy.stderr);
+    drop(lock);
+
+    let nobody = tool(&[
+        "scan",
+        "--port",
+        &port,
+        "--baud",
+        "38400",
+        "--latency",
+        LATENCY_MS,
+    ]);
+    assert_eq!(nobody.code, 1, "{}{}", nobody.stdout, nobody.stderr);
+    assert!(
+        nobody.stderr.contains("no device answered"),
+        "{}",
+        nobody.stderr
+    );
+}
