@@ -29,6 +29,11 @@ enum Command {
     /// Find the devices on a port: Fast Modbus scan at every port setting (and, with --classic,
     /// address by address); serial, address, settings, model, firmware; duplicates flagged.
     Scan(cli::scan::Args),
+    /// Change a device's Modbus address by its serial number (Fast Modbus), and verify it.
+    SetAddress(cli::address::SetAddressArgs),
+    /// Find devices that share an address and give them free ones by serial number (dry run
+    /// unless --apply); verified by a new scan.
+    FixAddresses(cli::address::FixAddressesArgs),
     /// Run a virtual RS-485 bus of classic and Fast Modbus devices on a pty or TCP port.
     Sim(cli::sim::Args),
     /// Print a shell completion script (e.g. `rtu2mqtt completions bash > /etc/bash_completion.d/rtu2mqtt`).
@@ -50,6 +55,8 @@ fn main() -> std::process::ExitCode {
         Command::Decode(args) => cli::decode::run(args),
         Command::Sim(args) => cli::sim::run(args),
         Command::Scan(args) => cli::scan::run(args),
+        Command::SetAddress(args) => cli::address::run_set_address(args),
+        Command::FixAddresses(args) => cli::address::run_fix_addresses(args),
         Command::Completions(args) => cli::generate::completions(args, Cli::command()),
         Command::Manpages(args) => cli::generate::manpages(args, Cli::command()),
     };

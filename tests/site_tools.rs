@@ -271,3 +271,133 @@ fn scan_errors_say_what_is_wrong_with_the_port() {
         nobody.stderr
     );
 }
+
+#[test]
+fn fix_addresses_plans_then_applies_and_a_second_scan_confirms() {
+    let sim = sim();
+    let port = port(&sim);
+    let only_9600 = [
+        "--baud",
+        "9600,115200",
+        "--parity",
+        "N",
+        "--latency",
+        LATENCY_MS,
+    ];
+    let mut dry = vec!["fix-addresses", "--port", &port, "--range", "10-30"];
+    dry.extend_from_slice(&only_9600);
+    let run = tool(&dry);
+    assert_eq!(run.code, 1, "duplicates left: {}{}", run.stdout, run.stderr);
+    assert!(
+        run.stdout
+            .contains("serial 4261412881 (0xFE000011) at 9600 8N2: address 10 -> 11 (planned)"),
+        "{}",
+        run.stdout
+    );
+    // The dry run wrote nothing.
+    let control = sim
+        .control(json!({"cmd": "get", "serial": "0xFE000011", "type": "holding", "address": 128}));
+    assert_eq!(control["value"], 10);
+
+    let mut apply = dry.clone();
+    apply.push("--apply");
+    let run = tool(&apply);
+    assert_eq!(run.code, 0, "{}{}", run.stdout, run.stderr);
+    assert!(
+        run.stdout
+            .contains("address 10 -> 11 (confirmed by a new scan)"),
+        "{}",
+        run.stdout
+    );
+    let control = sim
+        .control(json!({"cmd": "get", "serial": "0xFE000011", "type": "holding", "address": 128}));
+    assert_eq!(control["value"], 11);
+
+    let report = scan_json(&sim, &["--baud", "9600", "--parity", "N"]);
+    assert_eq!(
+        found(&report),
+        vec![
+            (0xFE00_0010, 10, "9600 8N2".into()),
+            (0xFE00_0011, 11, "9600 8N2".into())
+        ]
+    );
+    assert_eq!(report["duplicates"], json!([]));
+    let mut again = vec!["fix-addresses", "--port", &port];
+    again.extend_from_slice(&only_9600);
+    assert_eq!(tool(&again).code, 0);
+}
+
+#[test]
+fn set_address_by_serial_is_verified_and_refuses_a_taken_address() {
+    let sim = sim();
+    let port = port(&sim);
+    let odd = [
+        "--baud",
+        "19200",
+        "--parity",
+        "O",
+        "--stop-bits",
+        "1",
+        "--latency",
+        LATENCY_MS,
+    ];
+    let mut taken = vec![
+        "set-address",
+        "--port",
+        &port,
+        "--serial",
+        "0xFE000031",
+        "--address",
+        "30",
+    ];
+    taken.extend_from_slice(&odd);
+    let run = tool(&taken);
+    assert_eq!(run.code, 1, "{}{}", run.stdout, run.stderr);
+    assert!(
+        run.stderr.contains("already used at 19200 8O1"),
+        "{}",
+        run.stderr
+    );
+
+    // Decimal serial, settings found by the scan (no --baud).
+    let run = tool(&[
+        "set-address",
+        "--port",
+        &port,
+        "--serial",
+        "4261412913",
+        "--address",
+        "77",
+        "--latency",
+        LATENCY_MS,
+    ]);
+    assert_eq!(run.code, 0, "{}{}", run.stdout, run.stderr);
+    assert!(
+        run.stdout
+            .contains("address 31 -> 77 (read back and confirmed by a scan)"),
+        "{}",
+        run.stdout
+    );
+    let control = sim
+        .control(json!({"cmd": "get", "serial": "0xFE000031", "type": "holding", "address": 128}));
+    assert_eq!(control["value"], 77);
+
+    let mut missing = vec![
+        "set-address",
+        "--port",
+        &port,
+        "--serial",
+        "0x12345678",
+        "--address",
+        "5",
+    ];
+    missing.extend_from_slice(&odd);
+    let run = tool(&missing);
+    assert_eq!(run.code, 1);
+    assert!(
+        run.stderr
+            .contains("no device with serial 305419896 (0x12345678)"),
+        "{}",
+        run.stderr
+    );
+}
