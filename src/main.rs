@@ -34,6 +34,10 @@ enum Command {
     /// Find devices that share an address and give them free ones by serial number (dry run
     /// unless --apply); verified by a new scan.
     FixAddresses(cli::address::FixAddressesArgs),
+    /// Read registers or bits of one device (by address or serial number): raw words and values.
+    Read(cli::access::ReadArgs),
+    /// Write holding registers or coils of one device, then read them back.
+    Write(cli::access::WriteArgs),
     /// Run a virtual RS-485 bus of classic and Fast Modbus devices on a pty or TCP port.
     Sim(cli::sim::Args),
     /// Print a shell completion script (e.g. `rtu2mqtt completions bash > /etc/bash_completion.d/rtu2mqtt`).
@@ -55,6 +59,8 @@ fn main() -> std::process::ExitCode {
         Command::Decode(args) => cli::decode::run(args),
         Command::Sim(args) => cli::sim::run(args),
         Command::Scan(args) => cli::scan::run(args),
+        Command::Read(args) => cli::access::run_read(args),
+        Command::Write(args) => cli::access::run_write(args),
         Command::SetAddress(args) => cli::address::run_set_address(args),
         Command::FixAddresses(args) => cli::address::run_fix_addresses(args),
         Command::Completions(args) => cli::generate::completions(args, Cli::command()),

@@ -401,3 +401,205 @@ fn set_address_by_serial_is_verified_and_refuses_a_taken_address() {
         run.stderr
     );
 }
+
+const AT_115200: [&str; 8] = [
+    "--baud",
+    "115200",
+    "--parity",
+    "N",
+    "--stop-bits",
+    "2",
+    "--latency",
+    LATENCY_MS,
+];
+
+fn access(sim: &SimProcess, args: &[&str]) -> Run {
+    let port = port(sim);
+    let mut all = vec![args[0], "--port", &port];
+    all.extend_from_slice(&args[1..]);
+    tool(&all)
+}
+
+#[test]
+fn read_prints_raw_and_decoded_values_by_address_and_by_serial() {
+    let sim = sim();
+    sim.control(json!({"cmd": "set", "device": "fast-relay", "type": "holding", "address": 1000, "value": [0xFFFF, 0xFFFB]}));
+    let mut args = vec![
+        "read",
+        "--address",
+        "20",
+        "--type",
+        "holding",
+        "--reg",
+        "1000",
+        "--format",
+        "s32",
+    ];
+    args.extend_from_slice(&AT_115200);
+    let run = access(&sim, &args);
+    assert_eq!(run.code, 0, "{}{}", run.stdout, run.stderr);
+    assert!(
+        run.stdout.contains("[1000]: 0xFFFF  65535"),
+        "{}",
+        run.stdout
+    );
+    assert!(
+        run.stdout.contains("[1001]: 0xFFFB  65531"),
+        "{}",
+        run.stdout
+    );
+    assert!(run.stdout.contains("s32: -5"), "{}", run.stdout);
+
+    // By serial: the two devices at address 10 are told apart; the setting is found by a scan.
+    for (serial, value) in [("0xFE000010", 3300), ("0xFE000011", 5000)] {
+        let run = access(
+            &sim,
+            &[
+                "read",
+                "--serial",
+                serial,
+                "--type",
+                "input",
+                "--reg",
+                "123",
+                "--json",
+                "--latency",
+                LATENCY_MS,
+            ],
+        );
+        assert_eq!(run.code, 0, "{}{}", run.stdout, run.stderr);
+        let body: Value = serde_json::from_str(&run.stdout).unwrap();
+        assert_eq!(body["registers"], json!([value]));
+        assert_eq!(body["settings"], "9600 8N2");
+    }
+
+    // Classic-only device, its settings given.
+    let mut args = vec![
+        "read",
+        "--address",
+        "40",
+        "--type",
+        "holding",
+        "--reg",
+        "128",
+        "--json",
+    ];
+    args.extend_from_slice(&AT_115200);
+    let run = access(&sim, &args);
+    assert_eq!(run.code, 0, "{}{}", run.stdout, run.stderr);
+    assert_eq!(
+        serde_json::from_str::<Value>(&run.stdout).unwrap()["values"],
+        json!(["40"])
+    );
+}
+
+#[test]
+fn read_failures_are_explained() {
+    let sim = sim();
+    let mut args = vec![
+        "read",
+        "--address",
+        "20",
+        "--type",
+        "holding",
+        "--reg",
+        "5000",
+    ];
+    args.extend_from_slice(&AT_115200);
+    let run = access(&sim, &args);
+    assert_eq!(run.code, 1);
+    assert!(
+        run.stderr
+            .contains("refused: exception 2 (illegal data address)"),
+        "{}",
+        run.stderr
+    );
+
+    let mut args = vec![
+        "read",
+        "--address",
+        "99",
+        "--type",
+        "holding",
+        "--reg",
+        "0",
+        "--timeout",
+        "100",
+    ];
+    args.extend_from_slice(&AT_115200);
+    let run = access(&sim, &args);
+    assert_eq!(run.code, 1);
+    assert!(
+        run.stderr
+            .contains("no reply from address 99 at 115200 8N2"),
+        "{}",
+        run.stderr
+    );
+
+    // Both devices at address 10 answer a classic request: the reply is unreadable.
+    let run = access(
+        &sim,
+        &[
+            "read",
+            "--address",
+            "10",
+            "--type",
+            "holding",
+            "--reg",
+            "128",
+            "--baud",
+            "9600",
+            "--parity",
+            "N",
+            "--stop-bits",
+            "2",
+            "--latency",
+            LATENCY_MS,
+        ],
+    );
+    assert_eq!(run.code, 1);
+    assert!(
+        run.stderr.contains("a duplicate address?"),
+        "{}",
+        run.stderr
+    );
+}
+
+#[test]
+fn write_sets_registers_and_coils_and_reads_them_back() {
+    let sim = sim();
+    let mut args = vec![
+        "write",
+        "--serial",
+        "0xFE000020",
+        "--type",
+        "holding",
+        "--reg",
+        "1000",
+        "--format",
+        "s32",
+    ];
+    args.extend_from_slice(&AT_115200);
+    args.extend_from_slice(&["--", "-5", "70000"]);
+    let run = access(&sim, &args);
+    assert_eq!(run.code, 0, "{}{}", run.stdout, run.stderr);
+    assert!(run.stdout.contains("s32: -5 70000"), "{}", run.stdout);
+    let control = sim.control(json!({"cmd": "get", "device": "fast-relay", "type": "holding", "address": 1000, "count": 4}));
+    assert_eq!(control["values"], json!([0xFFFF, 0xFFFB, 0x0001, 0x1170]));
+
+    let mut args = vec!["write", "--address", "20", "--type", "coil", "--reg", "2"];
+    args.extend_from_slice(&AT_115200);
+    args.push("1");
+    let run = access(&sim, &args);
+    assert_eq!(run.code, 0, "{}{}", run.stdout, run.stderr);
+    let control =
+        sim.control(json!({"cmd": "get", "device": "fast-relay", "type": "coil", "address": 2}));
+    assert_eq!(control["value"], 1);
+
+    let mut args = vec!["write", "--address", "20", "--type", "input", "--reg", "2"];
+    args.extend_from_slice(&AT_115200);
+    args.push("1");
+    let run = access(&sim, &args);
+    assert_eq!(run.code, 2);
+    assert!(run.stderr.contains("read-only"), "{}", run.stderr);
+}

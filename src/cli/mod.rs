@@ -3,6 +3,7 @@
 // boxing them would only make every `match` on `problem` noisier.
 #![allow(clippy::result_large_err)]
 
+pub mod access;
 pub mod address;
 pub mod check;
 pub mod decode;
