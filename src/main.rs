@@ -38,6 +38,9 @@ enum Command {
     Read(cli::access::ReadArgs),
     /// Write holding registers or coils of one device, then read them back.
     Write(cli::access::WriteArgs),
+    /// Show the Fast Modbus events of a port as they come (acknowledged), with channel names
+    /// from a config.
+    Events(cli::events::Args),
     /// Run a virtual RS-485 bus of classic and Fast Modbus devices on a pty or TCP port.
     Sim(cli::sim::Args),
     /// Print a shell completion script (e.g. `rtu2mqtt completions bash > /etc/bash_completion.d/rtu2mqtt`).
@@ -59,6 +62,7 @@ fn main() -> std::process::ExitCode {
         Command::Decode(args) => cli::decode::run(args),
         Command::Sim(args) => cli::sim::run(args),
         Command::Scan(args) => cli::scan::run(args),
+        Command::Events(args) => cli::events::run(args),
         Command::Read(args) => cli::access::run_read(args),
         Command::Write(args) => cli::access::run_write(args),
         Command::SetAddress(args) => cli::address::run_set_address(args),

@@ -603,3 +603,143 @@ fn write_sets_registers_and_coils_and_reads_them_back() {
     assert_eq!(run.code, 2);
     assert!(run.stderr.contains("read-only"), "{}", run.stderr);
 }
+
+/// Runs `rtu2mqtt events` in the background; its stdout lines arrive on the channel.
+fn spawn_events(args: &[&str]) -> (std::process::Child, std::sync::mpsc::Receiver<String>) {
+    use std::io::BufRead;
+    let mut child = Command::new(env!("CARGO_BIN_EXE_rtu2mqtt"))
+        .args(args)
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let stdout = child.stdout.take().unwrap();
+    let (sender, receiver) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for line in std::io::BufReader::new(stdout)
+            .lines()
+            .map_while(Result::ok)
+        {
+            if sender.send(line).is_err() {
+                break;
+            }
+        }
+    });
+    (child, receiver)
+}
+
+fn next_json(lines: &std::sync::mpsc::Receiver<String>) -> Value {
+    let line = lines
+        .recv_timeout(std::time::Duration::from_secs(30))
+        .expect("events printed nothing more");
+    serde_json::from_str(&line).unwrap_or_else(|e| panic!("{e}: {line}"))
+}
+
+#[test]
+fn events_are_decoded_named_from_the_config_and_acknowledged() {
+    let sim = sim();
+    let port = port(&sim);
+    let config = sim.dir.path().join("config.json");
+    std::fs::write(
+        &config,
+        json!({
+            "ports": [{"path": port, "baud_rate": 115200, "parity": "N", "data_bits": 8, "stop_bits": 2,
+                       "devices": [{"device_type": "sim-relay", "slave_id": 20}]}]
+        })
+        .to_string(),
+    )
+    .unwrap();
+    let templates = sim_support::data("");
+    let (mut child, lines) = spawn_events(&[
+        "events",
+        "--port",
+        &port,
+        "--config",
+        config.to_str().unwrap(),
+        "--templates",
+        templates.to_str().unwrap(),
+        "--json",
+        "--count",
+        "2",
+        "--latency",
+        LATENCY_MS,
+    ]);
+    // The config's channels with events are enabled (K1..K3, the inputs, the counter); then the
+    // device reports its start-up, and they are enabled again.
+    let mut enabled = Vec::new();
+    let mut reboot_seen = false;
+    while !(reboot_seen && enabled.len() == 12) {
+        let line = next_json(&lines);
+        if line["reboot"] == true {
+            reboot_seen = true;
+        } else if line.get("enabled").is_some() {
+            assert_eq!(line["enabled"], true, "{line}");
+            enabled.push((
+                line["type"].as_str().unwrap().to_owned(),
+                line["register"].as_u64().unwrap(),
+            ));
+        } else {
+            panic!("unexpected line before the values changed: {line}");
+        }
+    }
+    assert!(enabled.contains(&("coil".into(), 0)), "{enabled:?}");
+    assert!(enabled.contains(&("input".into(), 32)), "{enabled:?}");
+
+    sim.control(
+        json!({"cmd": "set", "device": "fast-relay", "type": "coil", "address": 0, "value": 1}),
+    );
+    let first = next_json(&lines);
+    assert_eq!(
+        (
+            &first["address"],
+            &first["type"],
+            &first["register"],
+            &first["value"],
+            &first["channel"]
+        ),
+        (
+            &json!(20),
+            &json!("coil"),
+            &json!(0),
+            &json!(1),
+            &json!("K1")
+        ),
+        "{first}"
+    );
+    assert!(
+        first["device"].as_str().unwrap().contains("relay"),
+        "{first}"
+    );
+    sim.control(
+        json!({"cmd": "set", "device": "fast-relay", "type": "input", "address": 32, "value": 7}),
+    );
+    let second = next_json(&lines);
+    assert_eq!(
+        (&second["type"], &second["register"], &second["value"]),
+        (&json!("input"), &json!(32), &json!(7)),
+        "{second}"
+    );
+    assert_eq!(second["text"], "7", "{second}");
+    // --count 2: the tool confirms the last packet and ends by itself.
+    let status = child.wait().unwrap();
+    assert!(status.success(), "{status}");
+    // Confirmed: the device has nothing more to send.
+    let after = tool(&[
+        "events",
+        "--port",
+        &port,
+        "--baud",
+        "115200",
+        "--parity",
+        "N",
+        "--stop-bits",
+        "2",
+        "--json",
+        "--duration",
+        "0.3",
+        "--latency",
+        LATENCY_MS,
+    ]);
+    assert_eq!(after.code, 0, "{}", after.stderr);
+    assert_eq!(after.stdout, "", "the acknowledged events came again");
+}

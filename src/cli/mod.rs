@@ -8,6 +8,7 @@ pub mod address;
 pub mod check;
 pub mod decode;
 pub mod demo;
+pub mod events;
 pub mod generate;
 pub mod run;
 pub mod scan;
