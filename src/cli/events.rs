@@ -116,7 +116,11 @@ struct ConfigView {
     enable: Vec<EnableSpec>,
 }
 
-fn load_view(path: &PathBuf, templates: &[PathBuf], port: &str) -> Result<ConfigView, String> {
+fn load_view(
+    path: &std::path::Path,
+    templates: &[PathBuf],
+    port: &str,
+) -> Result<ConfigView, String> {
     let loaded = load_config(path).map_err(|errors| {
         errors
             .0
