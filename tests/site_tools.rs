@@ -743,3 +743,67 @@ fn events_are_decoded_named_from_the_config_and_acknowledged() {
     assert_eq!(after.code, 0, "{}", after.stderr);
     assert_eq!(after.stdout, "", "the acknowledged events came again");
 }
+
+#[test]
+fn events_at_19200_8o1_with_enable_options() {
+    let sim = sim();
+    let port = port(&sim);
+    let (mut child, lines) = spawn_events(&[
+        "events",
+        "--port",
+        &port,
+        "--baud",
+        "19200",
+        "--parity",
+        "O",
+        "--stop-bits",
+        "1",
+        "--enable",
+        "30:coil:2",
+        "--enable",
+        "31:discrete:1:low",
+        "--json",
+        "--count",
+        "2",
+        "--latency",
+        LATENCY_MS,
+    ]);
+    // Enabled, then each device reports its start-up and is enabled again.
+    let mut reboots = 0;
+    let mut enabled = 0;
+    while !(reboots == 2 && enabled == 4) {
+        let line = next_json(&lines);
+        if line["reboot"] == true {
+            reboots += 1;
+        } else {
+            assert_eq!(line["enabled"], true, "{line}");
+            enabled += 1;
+        }
+    }
+    sim.control(json!({"cmd": "set", "device": "odd-a", "type": "coil", "address": 2, "value": 1}));
+    let first = next_json(&lines);
+    assert_eq!(
+        (
+            &first["address"],
+            &first["type"],
+            &first["register"],
+            &first["value"]
+        ),
+        (&json!(30), &json!("coil"), &json!(2), &json!(1))
+    );
+    assert_eq!(first["channel"], Value::Null);
+    sim.control(
+        json!({"cmd": "set", "device": "odd-b", "type": "discrete", "address": 1, "value": 1}),
+    );
+    let second = next_json(&lines);
+    assert_eq!(
+        (
+            &second["address"],
+            &second["type"],
+            &second["register"],
+            &second["value"]
+        ),
+        (&json!(31), &json!("discrete"), &json!(1), &json!(1))
+    );
+    assert!(child.wait().unwrap().success());
+}
