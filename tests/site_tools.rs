@@ -807,3 +807,45 @@ fn events_at_19200_8o1_with_enable_options() {
     );
     assert!(child.wait().unwrap().success());
 }
+
+#[test]
+fn ctrl_c_ends_events_with_130_and_restores_the_port_settings() {
+    let sim = sim();
+    let port = port(&sim);
+    let before = std::fs::OpenOptions::new()
+        .read(true)
+        .write(true)
+        .open(&sim.pty)
+        .unwrap();
+    let mut settings = termios::tcgetattr(&before).unwrap();
+    termios::cfmakeraw(&mut settings);
+    termios::cfsetspeed(&mut settings, BaudRate::B4800).unwrap();
+    termios::tcsetattr(&before, SetArg::TCSANOW, &settings).unwrap();
+    let (child, lines) = spawn_events(&[
+        "events",
+        "--port",
+        &port,
+        "--baud",
+        "115200",
+        "--parity",
+        "N",
+        "--stop-bits",
+        "2",
+        "--enable",
+        "20:coil:0",
+        "--json",
+        "--latency",
+        LATENCY_MS,
+    ]);
+    // Running: it has enabled the events (and is now polling).
+    assert_eq!(next_json(&lines)["enabled"], true);
+    nix::sys::signal::kill(
+        nix::unistd::Pid::from_raw(i32::try_from(child.id()).unwrap()),
+        nix::sys::signal::Signal::SIGINT,
+    )
+    .unwrap();
+    let output = child.wait_with_output().unwrap();
+    assert_eq!(output.status.code(), Some(130));
+    let after = termios::tcgetattr(&before).unwrap();
+    assert_eq!(termios::cfgetospeed(&after), BaudRate::B4800);
+}
