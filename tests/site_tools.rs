@@ -849,3 +849,24 @@ fn ctrl_c_ends_events_with_130_and_restores_the_port_settings() {
     let after = termios::tcgetattr(&before).unwrap();
     assert_eq!(termios::cfgetospeed(&after), BaudRate::B4800);
 }
+
+#[test]
+fn bad_crc_at_one_setting_is_reported_and_the_scan_goes_on() {
+    let sim = sim();
+    sim.control(json!({"cmd": "faults", "device": "odd-a", "corrupt_crc": 1.0}));
+    let report = scan_json(&sim, &["--baud", "19200,115200"]);
+    let problems = report["problems"].as_array().unwrap();
+    assert!(
+        problems
+            .iter()
+            .any(|p| p["settings"] == "19200 8O1"
+                && p["problem"].as_str().unwrap().contains("bad CRC")),
+        "{report:#}"
+    );
+    // Every setting is still scanned, and the devices elsewhere found.
+    assert!(
+        found(&report).contains(&(0xFE00_0020, 20, "115200 8N2".into())),
+        "{report:#}"
+    );
+    assert_eq!(report["port_settings_scanned"], 12);
+}
