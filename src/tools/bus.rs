@@ -413,3 +413,42 @@ fn request_transaction(
         request,
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::protocol::Parity;
+
+    #[test]
+    fn open_errors_become_what_to_do() {
+        let missing = classify("/dev/x", io::Error::from_raw_os_error(nix::libc::ENOENT));
+        assert!(matches!(missing, PortError::Missing { .. }));
+        let denied = classify("/dev/x", io::Error::from_raw_os_error(nix::libc::EACCES));
+        assert!(denied.to_string().contains("dialout"), "{denied}");
+        let busy = classify("/dev/x", io::Error::from_raw_os_error(nix::libc::EBUSY));
+        assert!(busy.to_string().contains("systemctl stop"), "{busy}");
+        let other = classify("/dev/x", io::Error::from_raw_os_error(nix::libc::EIO));
+        assert!(matches!(other, PortError::Other { .. }));
+    }
+
+    #[test]
+    fn an_empty_setting_costs_the_first_window_and_no_late_window() {
+        let latency = Duration::from_millis(24);
+        for baud in [9600, 115_200] {
+            let line = LineSettings::new(baud, Parity::None, 2);
+            let start = scan_transaction(&line, Request::scan_start(), true, latency);
+            assert_eq!(
+                start.first_byte_timeout,
+                Some(line.scan_start_first_byte_timeout() + latency)
+            );
+            assert_eq!(start.late_window, Duration::ZERO);
+            let next = scan_transaction(&line, Request::scan_continue(), false, latency);
+            assert_eq!(
+                next.first_byte_timeout,
+                Some(line.scan_reply_timeout() + latency)
+            );
+            assert_eq!(next.late_window, latency);
+            assert!(next.reply_timeout > line.scan_reply_timeout());
+        }
+    }
+}
