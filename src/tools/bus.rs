@@ -158,6 +158,7 @@ impl ToolPort {
     ) -> Result<Vec<(u32, u8)>, PortError> {
         let mut seen = Vec::new();
         let mut garbled_in_a_row = 0;
+        let mut retried_silence = false;
         let mut request = Request::scan_start();
         for round in 0..MAX_SCAN_ROUNDS {
             let transaction = scan_transaction(&line, request.clone(), round == 0, self.latency);
@@ -171,6 +172,7 @@ impl ToolPort {
                         modbus_address,
                     } => {
                         garbled_in_a_row = 0;
+                        retried_silence = false;
                         debug!(%line, serial, modbus_address, "scan reply");
                         if !seen.iter().any(|(s, _)| *s == serial) {
                             seen.push((serial, modbus_address));
@@ -198,6 +200,12 @@ impl ToolPort {
                     return Ok(seen);
                 }
                 Outcome::NoReply if round == 0 => return Ok(seen),
+                // Devices answered before, so someone must answer (a device or "end of scan"):
+                // a late reply was lost to a busy adapter or machine. Ask once more.
+                Outcome::NoReply if !retried_silence => {
+                    retried_silence = true;
+                    request = Request::scan_continue();
+                }
                 Outcome::NoReply => {
                     report.problems.push(SettingProblem {
                         line,
