@@ -15,5 +15,6 @@ pub mod port;
 pub mod protocol;
 pub mod service;
 pub mod sim;
+pub mod tools;
 pub mod transport;
 pub mod updates;

@@ -26,6 +26,21 @@ enum Command {
     Run(cli::run::Args),
     /// Explain a Modbus RTU or Fast Modbus frame given as hex (e.g. "FD 46 10 00 FF 00 00 C8 9A").
     Decode(cli::decode::Args),
+    /// Find the devices on a port: Fast Modbus scan at every port setting (and, with --classic,
+    /// address by address); serial, address, settings, model, firmware; duplicates flagged.
+    Scan(cli::scan::Args),
+    /// Change a device's Modbus address by its serial number (Fast Modbus), and verify it.
+    SetAddress(cli::address::SetAddressArgs),
+    /// Find devices that share an address and give them free ones by serial number (dry run
+    /// unless --apply); verified by a new scan.
+    FixAddresses(cli::address::FixAddressesArgs),
+    /// Read registers or bits of one device (by address or serial number): raw words and values.
+    Read(cli::access::ReadArgs),
+    /// Write holding registers or coils of one device, then read them back.
+    Write(cli::access::WriteArgs),
+    /// Show the Fast Modbus events of a port as they come (acknowledged), with channel names
+    /// from a config.
+    Events(cli::events::Args),
     /// Run a virtual RS-485 bus of classic and Fast Modbus devices on a pty or TCP port.
     Sim(cli::sim::Args),
     /// Run the benchmarks and write bench/results/latest.md with PNG plots (docs/bench.md).
@@ -51,6 +66,12 @@ fn main() -> std::process::ExitCode {
         Command::Sim(args) => cli::sim::run(args),
         #[cfg(feature = "bench")]
         Command::Bench(args) => cli::bench::run_bench(args),
+        Command::Scan(args) => cli::scan::run(args),
+        Command::Events(args) => cli::events::run(args),
+        Command::Read(args) => cli::access::run_read(args),
+        Command::Write(args) => cli::access::run_write(args),
+        Command::SetAddress(args) => cli::address::run_set_address(args),
+        Command::FixAddresses(args) => cli::address::run_fix_addresses(args),
         Command::Completions(args) => cli::generate::completions(args, Cli::command()),
         Command::Manpages(args) => cli::generate::manpages(args, Cli::command()),
     };

@@ -18,8 +18,11 @@ fn decode(hex: &str) -> (bool, String) {
 fn an_event_frame_with_filler_is_explained() {
     let (ok, text) = decode("FF FF FF FF FF FF F1 46 11 00 02 09 01 01 00 00 01 00 0F 00 00 10 64");
     assert!(ok, "{text}");
-    assert!(text.contains("address: 241"), "{text}");
-    assert!(text.contains("source: System"), "{text}");
+    assert!(text.contains("events of address 241: 2 event(s)"), "{text}");
+    assert!(text.contains("coil 0 = 1"), "{text}");
+    assert!(text.contains("the device restarted"), "{text}");
+    // Read as a request it would be rejected; the reply reading is the one that makes sense.
+    assert!(!text.contains("rejects it"), "{text}");
     assert!(
         text.contains("after 6 arbitration filler byte(s)"),
         "{text}"

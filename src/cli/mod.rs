@@ -5,11 +5,15 @@
 
 #[cfg(feature = "bench")]
 pub mod bench;
+pub mod access;
+pub mod address;
 pub mod check;
 pub mod decode;
 pub mod demo;
+pub mod events;
 pub mod generate;
 pub mod run;
+pub mod scan;
 pub mod schema;
 pub mod sim;
 

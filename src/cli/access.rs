@@ -1,0 +1,462 @@
+//! `rtu2mqtt read` and `rtu2mqtt write`: one-off register access by address or by serial number,
+//! printing raw words and decoded values (mbpoll habits: register numbers as on the wire, from 0).
+
+use std::process::ExitCode;
+use std::time::Duration;
+
+use serde_json::json;
+
+use crate::config::values::parse_int_text;
+use crate::device::format::{RegisterFormat, WordOrder};
+use crate::protocol::{pdu, LineSettings, RegisterType, RequestPdu, ResponsePdu};
+use crate::tools::bus::{Answer, PortError, ToolPort};
+use crate::tools::exit;
+use crate::tools::report::{serial_text, ScanReport};
+use crate::tools::values::{decode_words, encode_value, parse_format, value_width};
+
+use super::address::{locate, parse_serial};
+use super::scan::{block_on_tool, port_failure, PortArgs};
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum TypeArg {
+    Holding,
+    Input,
+    Coil,
+    Discrete,
+}
+
+impl TypeArg {
+    pub fn register_type(self) -> RegisterType {
+        match self {
+            Self::Holding => RegisterType::Holding,
+            Self::Input => RegisterType::Input,
+            Self::Coil => RegisterType::Coil,
+            Self::Discrete => RegisterType::DiscreteInput,
+        }
+    }
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum WordOrderArg {
+    /// Most significant word first (the Modbus habit).
+    Big,
+    /// Least significant word first.
+    Little,
+}
+
+fn parse_register(text: &str) -> Result<u16, String> {
+    parse_int_text(text)
+        .and_then(|n| u16::try_from(n).ok())
+        .ok_or_else(|| format!("register {text:?}: expected 0..65535 (decimal or 0x hex)"))
+}
+
+/// Which device, how, and which registers.
+#[derive(clap::Args, Debug)]
+#[command(group(clap::ArgGroup::new("target").required(true).args(["address", "serial"])))]
+pub struct TargetArgs {
+    #[command(flatten)]
+    pub port: PortArgs,
+    /// The device's Modbus address (classic request).
+    #[arg(long, value_parser = clap::value_parser!(u8).range(1..=247))]
+    pub address: Option<u8>,
+    /// The device's serial number (Fast Modbus request by serial number; works at any address,
+    /// duplicates included).
+    #[arg(long, value_parser = parse_serial)]
+    pub serial: Option<u32>,
+    /// Register table.
+    #[arg(long = "type", value_enum)]
+    pub register_type: TypeArg,
+    /// First register (decimal or 0x hex), as on the wire.
+    #[arg(long, value_parser = parse_register)]
+    pub reg: u16,
+    /// How to decode the words: u16, s16, u32, s32, u64, s64, float, double, bcd16, string, ...
+    #[arg(long, default_value = "u16", value_parser = parse_format)]
+    pub format: RegisterFormat,
+    /// Word order of values wider than one register.
+    #[arg(long, value_enum, default_value = "big")]
+    pub word_order: WordOrderArg,
+    /// Reply timeout, in ms.
+    #[arg(long, default_value_t = 500, value_name = "MS")]
+    pub timeout: u64,
+    /// Print JSON.
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(clap::Args, Debug)]
+pub struct ReadArgs {
+    #[command(flatten)]
+    pub target: TargetArgs,
+    /// Registers (or bits) to read; default: one value of --format.
+    #[arg(long)]
+    pub count: Option<u16>,
+}
+
+#[derive(clap::Args, Debug)]
+pub struct WriteArgs {
+    #[command(flatten)]
+    pub target: TargetArgs,
+    /// Value(s) to write: numbers in --format (consecutive values go to consecutive registers);
+    /// for coils 0/1 (or on/off).
+    #[arg(required = true, num_args = 1.., allow_negative_numbers = true)]
+    pub values: Vec<String>,
+}
+
+/// The device a request goes to, at its port setting.
+#[derive(Debug, Clone, Copy)]
+pub struct Target {
+    pub line: LineSettings,
+    pub address: Option<u8>,
+    pub serial: Option<u32>,
+}
+
+impl Target {
+    fn name(&self) -> String {
+        match (self.serial, self.address) {
+            (Some(serial), _) => format!("serial {}", serial_text(serial)),
+            (None, Some(address)) => format!("address {address}"),
+            (None, None) => "the device".into(),
+        }
+    }
+}
+
+/// Finds the port setting: the one the options name, else a scan for the serial number or a Fast
+/// Modbus device with the address.
+async fn resolve(
+    port: &mut ToolPort,
+    args: &TargetArgs,
+) -> Result<Result<Target, String>, PortError> {
+    let plan = args.port.plan();
+    if let Some(line) = args.port.single_line() {
+        return Ok(Ok(Target {
+            line,
+            address: args.address,
+            serial: args.serial,
+        }));
+    }
+    if let Some(serial) = args.serial {
+        return Ok(match locate(port, &plan, serial).await? {
+            Some((line, _, _)) => Ok(Target {
+                line,
+                address: None,
+                serial: Some(serial),
+            }),
+            None => Err(format!(
+                "no device with serial {} answered a scan at {} port setting(s)",
+                serial_text(serial),
+                plan.len()
+            )),
+        });
+    }
+    let address = args.address.unwrap_or(0);
+    for &line in &plan {
+        let mut report = ScanReport::default();
+        let seen = port.scan_setting(line, &mut report).await?;
+        if seen.iter().any(|(_, a)| *a == address) {
+            return Ok(Ok(Target {
+                line,
+                address: Some(address),
+                serial: None,
+            }));
+        }
+    }
+    Ok(Err(format!(
+        "no Fast Modbus device with address {address} answered a scan at {} port setting(s); for \
+         a classic device give --baud, --parity and --stop-bits",
+        plan.len()
+    )))
+}
+
+async fn request(
+    port: &mut ToolPort,
+    target: &Target,
+    pdu: RequestPdu,
+    timeout: Duration,
+) -> Result<Answer, PortError> {
+    match (target.serial, target.address) {
+        (Some(serial), _) => port.by_serial(target.line, serial, pdu, timeout).await,
+        (None, Some(address)) => port.classic(target.line, address, pdu, timeout).await,
+        (None, None) => Ok(Answer::NoReply),
+    }
+}
+
+/// What failed, for the integrator.
+fn failure(target: &Target, answer: &Answer, timeout: Duration) -> String {
+    match answer {
+        Answer::NoReply => format!(
+            "no reply from {} at {} within {} ms: check the address/serial, the port settings and \
+             the wiring",
+            target.name(),
+            target.line,
+            timeout.as_millis()
+        ),
+        Answer::Garbled => format!(
+            "unreadable reply from {} at {} (bad CRC or two devices answering: a duplicate address?)",
+            target.name(),
+            target.line
+        ),
+        Answer::Pdu(ResponsePdu::Exception { code, .. }) => format!(
+            "{} at {} refused: {code}",
+            target.name(),
+            target.line
+        ),
+        Answer::Pdu(other) => format!("unexpected reply from {}: {other:?}", target.name()),
+    }
+}
+
+fn read_pdu(register_type: RegisterType, start: u16, count: u16) -> RequestPdu {
+    match register_type {
+        RegisterType::Coil => RequestPdu::ReadCoils { start, count },
+        RegisterType::DiscreteInput => RequestPdu::ReadDiscreteInputs { start, count },
+        RegisterType::Holding => RequestPdu::ReadHoldingRegisters { start, count },
+        RegisterType::Input => RequestPdu::ReadInputRegisters { start, count },
+    }
+}
+
+/// The words (bits as 0/1) of a read reply.
+fn words_of(answer: &Answer, count: u16) -> Option<Vec<u16>> {
+    match answer {
+        Answer::Pdu(ResponsePdu::ReadHoldingRegisters { values })
+        | Answer::Pdu(ResponsePdu::ReadInputRegisters { values }) => Some(values.clone()),
+        Answer::Pdu(ResponsePdu::ReadCoils { packed })
+        | Answer::Pdu(ResponsePdu::ReadDiscreteInputs { packed }) => Some(
+            pdu::unpack_bits(packed, usize::from(count))
+                .into_iter()
+                .map(u16::from)
+                .collect(),
+        ),
+        _ => None,
+    }
+}
+
+fn word_order(args: &TargetArgs) -> WordOrder {
+    match args.word_order {
+        WordOrderArg::Big => WordOrder::BigEndian,
+        WordOrderArg::Little => WordOrder::LittleEndian,
+    }
+}
+
+/// Prints what was read: each register raw, then the decoded values.
+fn print_values(args: &TargetArgs, target: &Target, words: &[u16]) -> Result<(), String> {
+    let register_type = args.register_type.register_type();
+    let bits = register_type.is_bit();
+    let decoded = if bits {
+        words.iter().map(u16::to_string).collect()
+    } else {
+        decode_words(args.format, word_order(args), words)?
+    };
+    let type_name = crate::sim::control::register_type_name(register_type);
+    if args.json {
+        let body = json!({
+            "settings": target.line.to_string(),
+            "address": target.address,
+            "serial": target.serial,
+            "type": type_name,
+            "start": args.reg,
+            "registers": words,
+            "format": if bits { "bit" } else { args.format.name() },
+            "values": decoded,
+        });
+        println!("{body}");
+        return Ok(());
+    }
+    println!(
+        "{} at {}, {type_name} {}:",
+        target.name(),
+        target.line,
+        args.reg
+    );
+    for (offset, word) in words.iter().enumerate() {
+        let register = usize::from(args.reg) + offset;
+        if bits {
+            println!("[{register}]: {word}");
+        } else {
+            println!("[{register}]: 0x{word:04X}  {word}");
+        }
+    }
+    if !bits && (args.format != RegisterFormat::U16) {
+        println!("{}: {}", args.format.name(), decoded.join(" "));
+    }
+    Ok(())
+}
+
+pub fn run_read(args: ReadArgs) -> anyhow::Result<ExitCode> {
+    block_on_tool(async move {
+        match read(&args).await {
+            Ok(code) => Ok(code),
+            Err(err) => Ok(port_failure(&err)),
+        }
+    })
+}
+
+async fn read(args: &ReadArgs) -> Result<ExitCode, PortError> {
+    let target_args = &args.target;
+    let register_type = target_args.register_type.register_type();
+    let count = args.count.unwrap_or_else(|| {
+        if register_type.is_bit() {
+            1
+        } else {
+            value_width(target_args.format, 1)
+        }
+    });
+    let mut port = target_args.port.open()?;
+    let target = match resolve(&mut port, target_args).await? {
+        Ok(target) => target,
+        Err(message) => {
+            eprintln!("{message}");
+            return Ok(ExitCode::from(exit::NOT_FOUND));
+        }
+    };
+    let timeout = Duration::from_millis(target_args.timeout);
+    let answer = request(
+        &mut port,
+        &target,
+        read_pdu(register_type, target_args.reg, count),
+        timeout,
+    )
+    .await?;
+    port.restore();
+    let Some(words) = words_of(&answer, count) else {
+        eprintln!("{}", failure(&target, &answer, timeout));
+        return Ok(ExitCode::from(exit::NOT_FOUND));
+    };
+    if let Err(message) = print_values(target_args, &target, &words) {
+        eprintln!("{message}");
+        return Ok(ExitCode::from(exit::USAGE));
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+pub fn run_write(args: WriteArgs) -> anyhow::Result<ExitCode> {
+    block_on_tool(async move {
+        match write(&args).await {
+            Ok(code) => Ok(code),
+            Err(err) => Ok(port_failure(&err)),
+        }
+    })
+}
+
+/// The words `values` encode to in `args`' type and format.
+fn encode_all(args: &WriteArgs) -> Result<Vec<u16>, String> {
+    let target = &args.target;
+    if target.register_type.register_type().is_bit() {
+        return args
+            .values
+            .iter()
+            .map(|v| match v.to_ascii_lowercase().as_str() {
+                "1" | "on" | "true" => Ok(1),
+                "0" | "off" | "false" => Ok(0),
+                _ => Err(format!("coil value {v:?}: use 0 or 1")),
+            })
+            .collect();
+    }
+    let width = value_width(target.format, 1);
+    let mut words = Vec::new();
+    for value in &args.values {
+        words.extend(encode_value(
+            target.format,
+            word_order(target),
+            value,
+            width,
+        )?);
+    }
+    Ok(words)
+}
+
+fn write_pdu(register_type: RegisterType, start: u16, words: &[u16]) -> Option<RequestPdu> {
+    Some(match (register_type, words) {
+        (RegisterType::Coil, [one]) => RequestPdu::WriteSingleCoil {
+            address: start,
+            value: *one != 0,
+        },
+        (RegisterType::Coil, _) => RequestPdu::WriteMultipleCoils {
+            start,
+            values: words.iter().map(|w| *w != 0).collect(),
+        },
+        (RegisterType::Holding, [one]) => RequestPdu::WriteSingleRegister {
+            address: start,
+            value: *one,
+        },
+        (RegisterType::Holding, _) => RequestPdu::WriteMultipleRegisters {
+            start,
+            values: words.to_vec(),
+        },
+        _ => return None,
+    })
+}
+
+async fn write(args: &WriteArgs) -> Result<ExitCode, PortError> {
+    let target_args = &args.target;
+    let register_type = target_args.register_type.register_type();
+    let words = match encode_all(args) {
+        Ok(words) => words,
+        Err(message) => {
+            eprintln!("{message}");
+            return Ok(ExitCode::from(exit::USAGE));
+        }
+    };
+    let Some(pdu) = write_pdu(register_type, target_args.reg, &words) else {
+        eprintln!(
+            "input registers and discrete inputs are read-only: write holding registers or coils"
+        );
+        return Ok(ExitCode::from(exit::USAGE));
+    };
+    let mut port = target_args.port.open()?;
+    let target = match resolve(&mut port, target_args).await? {
+        Ok(target) => target,
+        Err(message) => {
+            eprintln!("{message}");
+            return Ok(ExitCode::from(exit::NOT_FOUND));
+        }
+    };
+    let timeout = Duration::from_millis(target_args.timeout);
+    let answer = request(&mut port, &target, pdu, timeout).await?;
+    let written = matches!(
+        answer,
+        Answer::Pdu(
+            ResponsePdu::WriteSingleCoil { .. }
+                | ResponsePdu::WriteSingleRegister { .. }
+                | ResponsePdu::WriteMultipleCoils { .. }
+                | ResponsePdu::WriteMultipleRegisters { .. }
+        )
+    );
+    if !written {
+        eprintln!("{}", failure(&target, &answer, timeout));
+        return Ok(ExitCode::from(exit::NOT_FOUND));
+    }
+    // Read back: what the device holds now (a device may clamp or refuse silently).
+    let count = u16::try_from(words.len()).unwrap_or(u16::MAX);
+    let back = request(
+        &mut port,
+        &target,
+        read_pdu(register_type, target_args.reg, count),
+        timeout,
+    )
+    .await?;
+    port.restore();
+    match words_of(&back, count) {
+        Some(now) => {
+            if !target_args.json {
+                println!("written; read back:");
+            }
+            if let Err(message) = print_values(target_args, &target, &now) {
+                eprintln!("{message}");
+            }
+            if now != words {
+                eprintln!(
+                    "the device holds {now:?} after writing {words:?}: it may clamp or ignore \
+                     this value"
+                );
+                return Ok(ExitCode::from(exit::NOT_FOUND));
+            }
+            Ok(ExitCode::SUCCESS)
+        }
+        None => {
+            eprintln!(
+                "written, but reading back failed: {}",
+                failure(&target, &back, timeout)
+            );
+            Ok(ExitCode::SUCCESS)
+        }
+    }
+}

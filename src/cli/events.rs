@@ -1,0 +1,450 @@
+//! `rtu2mqtt events`: the live Fast Modbus event stream of a port, decoded and acknowledged, with
+//! channel names when a config is given. Ends with Ctrl-C, after --count events or --duration.
+
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::time::Duration;
+
+use serde_json::json;
+
+use crate::config::load::load_config;
+use crate::config::TemplateLibrary;
+use crate::device::codec::{Reading, ValueCodec};
+use crate::device::configure::resolve_config_checked;
+use crate::device::model::EventMode;
+use crate::port::Outcome;
+use crate::protocol::fast::{split_event_masks, FastReply};
+use crate::protocol::{
+    Event, EventPoll, EventPriority, EventRange, EventSource, LineSettings, RegisterType, Reply,
+    ReplyBody, Request,
+};
+use crate::sim::control::register_type_name;
+use crate::tools::bus::{PortError, ToolPort};
+use crate::tools::exit;
+
+use super::scan::{block_on_tool, port_failure, PortArgs};
+
+/// Most event data a device may put in one reply (wb-mqtt-serial asks for as much).
+const MAX_EVENT_DATA: u8 = 100;
+
+/// One `--enable ADDR:TYPE:REG[:PRIO]`.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct EnableSpec {
+    pub address: u8,
+    pub register_type: RegisterType,
+    pub register: u16,
+    pub priority: EventPriority,
+}
+
+pub fn parse_enable(text: &str) -> Result<EnableSpec, String> {
+    let err = |what: &str| {
+        format!("--enable {text:?}: {what}; expected ADDR:TYPE:REG[:PRIO], e.g. 20:coil:0:high")
+    };
+    let parts: Vec<&str> = text.split(':').collect();
+    let (address, kind, register, priority) = match parts.as_slice() {
+        [a, t, r] => (a, t, r, "high"),
+        [a, t, r, p] => (a, t, r, *p),
+        _ => return Err(err("wrong number of fields")),
+    };
+    let address = address
+        .parse::<u8>()
+        .ok()
+        .filter(|a| (1..=247).contains(a))
+        .ok_or_else(|| err("the address is 1..247"))?;
+    let register_type = match kind.to_ascii_lowercase().as_str() {
+        "coil" => RegisterType::Coil,
+        "discrete" => RegisterType::DiscreteInput,
+        "holding" => RegisterType::Holding,
+        "input" => RegisterType::Input,
+        _ => return Err(err("the type is coil, discrete, holding or input")),
+    };
+    let register = crate::config::values::parse_int_text(register)
+        .and_then(|n| u16::try_from(n).ok())
+        .ok_or_else(|| err("the register is 0..65535"))?;
+    let priority = match priority.to_ascii_lowercase().as_str() {
+        "high" | "2" => EventPriority::High,
+        "low" | "1" => EventPriority::Low,
+        "off" | "0" => EventPriority::Disabled,
+        _ => return Err(err("the priority is high, low or off")),
+    };
+    Ok(EnableSpec {
+        address,
+        register_type,
+        register,
+        priority,
+    })
+}
+
+#[derive(clap::Args, Debug)]
+pub struct Args {
+    #[command(flatten)]
+    pub port: PortArgs,
+    /// Config file: channel names in the output; its port (by path) gives the port settings, and
+    /// without --enable its channels with events are enabled.
+    #[arg(long, short = 'c')]
+    pub config: Option<PathBuf>,
+    /// Extra template directories for --config.
+    #[arg(long = "templates", value_name = "DIR")]
+    pub templates: Vec<PathBuf>,
+    /// Enable events of one register: ADDR:TYPE:REG[:PRIO] (type coil, discrete, holding,
+    /// input; priority high (default), low or off). Repeat for more.
+    #[arg(long, value_parser = parse_enable)]
+    pub enable: Vec<EnableSpec>,
+    /// Stop after this many register events.
+    #[arg(long)]
+    pub count: Option<u64>,
+    /// Stop after this many seconds.
+    #[arg(long, value_name = "S")]
+    pub duration: Option<f64>,
+    /// One JSON object per line.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// What a config says about a register: its channel, and how to read its value.
+struct ChannelName {
+    device: String,
+    channel: String,
+    codec: Option<ValueCodec>,
+}
+
+/// Names, the port's settings and the event registers of the config's port with this path.
+struct ConfigView {
+    names: BTreeMap<(u8, RegisterType, u16), ChannelName>,
+    line: Option<LineSettings>,
+    enable: Vec<EnableSpec>,
+}
+
+fn load_view(
+    path: &std::path::Path,
+    templates: &[PathBuf],
+    port: &str,
+) -> Result<ConfigView, String> {
+    let loaded = load_config(path).map_err(|errors| {
+        errors
+            .0
+            .iter()
+            .map(|e| e.to_string())
+            .collect::<Vec<_>>()
+            .join("\n")
+    })?;
+    let mut dirs = loaded.config.template_dirs.clone();
+    dirs.extend(templates.iter().cloned());
+    let library = TemplateLibrary::load_standard(&dirs);
+    let (result, _warnings) = resolve_config_checked(&loaded, &library);
+    let ports = result.map_err(|errors| {
+        errors
+            .0
+            .iter()
+            .map(|e| e.to_string())
+            .collect::<Vec<_>>()
+            .join("\n")
+    })?;
+    let mut view = ConfigView {
+        names: BTreeMap::new(),
+        line: None,
+        enable: Vec::new(),
+    };
+    let Some(resolved) = ports
+        .iter()
+        .find(|p| p.config.path.as_deref() == Some(port))
+    else {
+        return Err(format!(
+            "{} has no port with path {port}: names are looked up by the port's path",
+            path.display()
+        ));
+    };
+    view.line = Some(crate::daemon::port_plan::line_settings(&resolved.config));
+    for device in &resolved.devices {
+        for channel in &device.channels {
+            for register in &channel.registers {
+                let Some(read) = &register.read else {
+                    continue;
+                };
+                let single = read.count == 1 || read.reg_type.is_bit();
+                view.names.insert(
+                    (device.slave_id, read.reg_type, read.address),
+                    ChannelName {
+                        device: device.id.clone(),
+                        channel: channel.id.clone(),
+                        codec: single.then(|| register.codec.clone()),
+                    },
+                );
+                if channel.events != EventMode::None && single {
+                    view.enable.push(EnableSpec {
+                        address: device.slave_id,
+                        register_type: read.reg_type,
+                        register: read.address,
+                        priority: EventPriority::High,
+                    });
+                }
+            }
+        }
+    }
+    Ok(view)
+}
+
+pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+    let view = match &args.config {
+        Some(path) => match load_view(path, &args.templates, &args.port.port) {
+            Ok(view) => Some(view),
+            Err(message) => {
+                eprintln!("{message}");
+                return Ok(ExitCode::from(exit::USAGE));
+            }
+        },
+        None => None,
+    };
+    let Some(line) = args
+        .port
+        .single_line()
+        .or_else(|| view.as_ref().and_then(|v| v.line))
+    else {
+        eprintln!(
+            "events need the port's settings: give --baud, --parity and --stop-bits (or --config)"
+        );
+        return Ok(ExitCode::from(exit::USAGE));
+    };
+    block_on_tool(async move {
+        match stream(&args, view.as_ref(), line).await {
+            Ok(code) => Ok(code),
+            Err(err) => Ok(port_failure(&err)),
+        }
+    })
+}
+
+/// Sends the 0x18 request for one device's registers; prints which were enabled.
+async fn enable(
+    port: &mut ToolPort,
+    line: LineSettings,
+    address: u8,
+    specs: &[&EnableSpec],
+    json_output: bool,
+) -> Result<bool, PortError> {
+    let ranges: Vec<EventRange> = specs
+        .iter()
+        .map(|s| EventRange::registers(s.register_type, s.register, vec![s.priority]))
+        .collect();
+    let request = Request::configure_events(address, ranges.clone());
+    let outcome = port
+        .fast(
+            line,
+            request,
+            Duration::from_millis(500),
+            Duration::from_millis(600),
+        )
+        .await?;
+    let masks = match &outcome {
+        Outcome::Reply(Reply {
+            body:
+                ReplyBody::Fast {
+                    reply: FastReply::EventsConfigured { masks },
+                    ..
+                },
+            ..
+        }) => split_event_masks(masks, &ranges),
+        _ => None,
+    };
+    let Some(masks) = masks else {
+        let why = match outcome {
+            Outcome::NoReply => "no reply".to_owned(),
+            Outcome::Garbled => "unreadable reply".to_owned(),
+            Outcome::Reply(reply) => format!("{:?}", reply.body),
+        };
+        eprintln!("address {address} at {line}: enabling events failed ({why})");
+        return Ok(false);
+    };
+    for (spec, mask) in specs.iter().zip(masks) {
+        let on = mask.first().is_some_and(|b| b & 1 == 1);
+        let kind = register_type_name(spec.register_type);
+        if json_output {
+            println!(
+                "{}",
+                json!({"enabled": on, "address": address, "type": kind, "register": spec.register})
+            );
+        } else {
+            println!(
+                "address {address}: events of {kind} {} {}",
+                spec.register,
+                if on {
+                    "enabled"
+                } else {
+                    "NOT enabled (the device does not support events there)"
+                }
+            );
+        }
+    }
+    Ok(true)
+}
+
+async fn enable_all(
+    port: &mut ToolPort,
+    line: LineSettings,
+    specs: &[EnableSpec],
+    only: Option<u8>,
+    json_output: bool,
+) -> Result<bool, PortError> {
+    let mut by_address: BTreeMap<u8, Vec<&EnableSpec>> = BTreeMap::new();
+    for spec in specs.iter().filter(|s| only.is_none_or(|a| a == s.address)) {
+        by_address.entry(spec.address).or_default().push(spec);
+    }
+    let mut all = true;
+    for (address, specs) in by_address {
+        all &= enable(port, line, address, &specs, json_output).await?;
+    }
+    Ok(all)
+}
+
+fn print_event(address: u8, event: &Event, view: Option<&ConfigView>, json_output: bool) {
+    let raw = event.value();
+    let (kind, register_type) = match event.source {
+        EventSource::Register(t) => (register_type_name(t).to_owned(), Some(t)),
+        EventSource::System => ("system".to_owned(), None),
+        EventSource::Other(byte) => (format!("type {byte}"), None),
+    };
+    let name = register_type.and_then(|t| view.and_then(|v| v.names.get(&(address, t, event.id))));
+    let decoded = name.and_then(|n| n.codec.as_ref()).and_then(|codec| {
+        let words: Vec<u16> = raw.map(|v| vec![v as u16]).unwrap_or_default();
+        match codec.decode(&words) {
+            Ok(Reading::Value(text)) => Some(text),
+            _ => None,
+        }
+    });
+    if json_output {
+        println!(
+            "{}",
+            json!({
+                "address": address,
+                "type": kind,
+                "register": event.id,
+                "value": raw,
+                "reboot": event.is_reboot(),
+                "device": name.map(|n| n.device.clone()),
+                "channel": name.map(|n| n.channel.clone()),
+                "text": decoded,
+            })
+        );
+        return;
+    }
+    if event.is_reboot() {
+        println!("address {address}: restarted (event settings lost; enabled again where asked)");
+        return;
+    }
+    let value = raw.map_or_else(|| crate::protocol::hex(&event.payload), |v| v.to_string());
+    let channel = name.map_or(String::new(), |n| {
+        format!(
+            "  {}/{}{}",
+            n.device,
+            n.channel,
+            decoded.map_or(String::new(), |d| format!(" = {d}"))
+        )
+    });
+    println!("address {address}: {kind} {} = {value}{channel}", event.id);
+}
+
+async fn stream(
+    args: &Args,
+    view: Option<&ConfigView>,
+    line: LineSettings,
+) -> Result<ExitCode, PortError> {
+    let mut port = args.port.open()?;
+    let specs: Vec<EnableSpec> = if args.enable.is_empty() {
+        view.map(|v| v.enable.clone()).unwrap_or_default()
+    } else {
+        args.enable.clone()
+    };
+    if !specs.is_empty() && !enable_all(&mut port, line, &specs, None, args.json).await? {
+        return Ok(ExitCode::from(exit::NOT_FOUND));
+    }
+    if !args.json {
+        eprintln!("listening for events at {line} (Ctrl-C to stop)");
+    }
+    let deadline = args
+        .duration
+        .filter(|d| d.is_finite() && *d >= 0.0)
+        .map(|d| tokio::time::Instant::now() + Duration::from_secs_f64(d.min(1e9)));
+    let mut poll = EventPoll {
+        min_address: 0,
+        max_data_len: MAX_EVENT_DATA,
+        ack_address: 0,
+        ack_flag: 0,
+    };
+    let mut events_seen = 0u64;
+    let mut closing_polls = 0;
+    let first_byte = line.event_first_byte_timeout();
+    let reply = line.event_reply_timeout() + line.wire_time(usize::from(MAX_EVENT_DATA) + 40);
+    loop {
+        let done = args.count.is_some_and(|c| events_seen >= c)
+            || deadline.is_some_and(|d| tokio::time::Instant::now() >= d);
+        // After the end, polls only confirm the last packet; a few at most, however busy the bus.
+        if done {
+            closing_polls += 1;
+            if poll.ack_address == 0 || closing_polls > 3 {
+                break;
+            }
+        }
+        let outcome = port
+            .fast(line, Request::poll_events(poll), first_byte, reply)
+            .await?;
+        // Only what this poll confirmed is confirmed.
+        poll.ack_address = 0;
+        poll.ack_flag = 0;
+        match outcome {
+            Outcome::Reply(Reply {
+                address,
+                body:
+                    ReplyBody::Fast {
+                        reply: FastReply::Events(packet),
+                        ..
+                    },
+            }) => {
+                poll.ack_address = address;
+                poll.ack_flag = packet.flag;
+                for event in &packet.events {
+                    print_event(address, event, view, args.json);
+                    if event.is_reboot() {
+                        enable_all(&mut port, line, &specs, Some(address), args.json).await?;
+                    } else if !done {
+                        events_seen += 1;
+                    }
+                }
+                continue;
+            }
+            Outcome::Garbled => tracing::debug!("unreadable reply to an event poll"),
+            _ => {}
+        }
+        if done {
+            break;
+        }
+        tokio::time::sleep(line.event_poll_interval()).await;
+    }
+    port.restore();
+    Ok(ExitCode::SUCCESS)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn enable_specs_parse() {
+        assert_eq!(
+            parse_enable("20:coil:0"),
+            Ok(EnableSpec {
+                address: 20,
+                register_type: RegisterType::Coil,
+                register: 0,
+                priority: EventPriority::High
+            })
+        );
+        assert_eq!(
+            parse_enable("7:input:0x20:low").map(|s| (s.register, s.priority)),
+            Ok((32, EventPriority::Low))
+        );
+        assert!(parse_enable("0:coil:0").is_err());
+        assert!(parse_enable("20:relay:0").is_err());
+        assert!(parse_enable("20:coil").is_err());
+        assert!(parse_enable("20:coil:0:urgent").is_err());
+    }
+}

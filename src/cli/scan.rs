@@ -1,0 +1,545 @@
+//! `rtu2mqtt scan`: every Fast Modbus device on a port, at every port setting, with model and
+//! firmware; optionally the slow classic scan for devices without the extension. Also the port
+//! options and the runtime shared by the other site tools.
+
+use std::io::IsTerminal;
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::time::{Duration, Instant};
+
+use serde_json::{json, Value};
+
+use crate::config::TemplateLibrary;
+use crate::protocol::{LineSettings, Parity, RequestPdu, ResponsePdu};
+use crate::tools::bus::{Answer, PortError, ToolPort, KNOWN_DEVICE_TIMEOUT};
+use crate::tools::exit;
+use crate::tools::plan::{parse_parity, parse_range, scan_plan, PlanFilter};
+use crate::tools::report::{serial_text, FoundDevice, Identity, ScanReport};
+use crate::tools::values::standard_text;
+
+/// The port and the settings to try, shared by every site tool.
+#[derive(clap::Args, Debug, Clone)]
+pub struct PortArgs {
+    /// The serial port, e.g. /dev/ttyRS485-1 or /dev/ttyUSB0.
+    #[arg(long)]
+    pub port: String,
+    /// Baud rate(s) to try (comma-separated); default: all eight standard rates.
+    #[arg(long, value_delimiter = ',')]
+    pub baud: Vec<u32>,
+    /// Parity (N, E, O; comma-separated); default: all three.
+    #[arg(long, value_delimiter = ',', value_parser = parse_parity)]
+    pub parity: Vec<Parity>,
+    /// Stop bits (1, 2; comma-separated); default: both.
+    #[arg(long, value_delimiter = ',', value_parser = clap::value_parser!(u8).range(1..=2))]
+    pub stop_bits: Vec<u8>,
+    /// Added to every reply timeout, in ms: what a USB adapter and a busy machine add.
+    #[arg(long, default_value_t = 24, value_name = "MS")]
+    pub latency: u64,
+}
+
+impl PortArgs {
+    pub fn plan(&self) -> Vec<LineSettings> {
+        scan_plan(&PlanFilter {
+            bauds: self.baud.clone(),
+            parities: self.parity.clone(),
+            stop_bits: self.stop_bits.clone(),
+        })
+    }
+
+    /// The one setting the options name, when they name exactly one.
+    pub fn single_line(&self) -> Option<LineSettings> {
+        match self.plan().as_slice() {
+            [one] => Some(*one),
+            _ => None,
+        }
+    }
+
+    pub fn open(&self) -> Result<ToolPort, PortError> {
+        ToolPort::open(&self.port, Duration::from_millis(self.latency))
+    }
+}
+
+#[derive(clap::Args, Debug)]
+pub struct Args {
+    #[command(flatten)]
+    pub port: PortArgs,
+    /// Also probe addresses one by one with classic Modbus (slow: up to --timeout per address
+    /// and setting) for devices without Fast Modbus.
+    #[arg(long)]
+    pub classic: bool,
+    /// Addresses the classic scan probes.
+    #[arg(long, default_value = "1-247", value_parser = parse_range)]
+    pub range: (u8, u8),
+    /// Reply timeout of a classic probe, in ms.
+    #[arg(long, default_value_t = 100, value_name = "MS")]
+    pub timeout: u64,
+    /// Print JSON instead of a table.
+    #[arg(long, conflicts_with = "config")]
+    pub json: bool,
+    /// Print a config snippet (a port per setting, a device per address) instead of a table.
+    #[arg(long)]
+    pub config: bool,
+    /// Extra template directories for choosing `device_type` in --config.
+    #[arg(long = "templates", value_name = "DIR")]
+    pub templates: Vec<PathBuf>,
+}
+
+/// A single-threaded runtime for a tool; Ctrl-C ends `work` (its port is restored on drop) and
+/// the command with exit code 130.
+pub fn block_on_tool<F>(work: F) -> anyhow::Result<ExitCode>
+where
+    F: std::future::Future<Output = anyhow::Result<ExitCode>>,
+{
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()?;
+    runtime.block_on(async {
+        tokio::select! {
+            result = work => result,
+            _ = tokio::signal::ctrl_c() => {
+                eprintln!("interrupted; the port's settings are restored");
+                Ok(ExitCode::from(exit::INTERRUPTED))
+            }
+        }
+    })
+}
+
+/// Port errors end a tool with exit code 3 and the integrator's explanation.
+pub fn port_failure(err: &PortError) -> ExitCode {
+    eprintln!("error: {err}");
+    ExitCode::from(exit::PORT)
+}
+
+pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+    let mut report = ScanReport::default();
+    let started = Instant::now();
+    let mut interrupted = false;
+    let result = {
+        let runtime = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()?;
+        runtime.block_on(async {
+            tokio::select! {
+                result = scan(&args, &mut report) => result,
+                _ = tokio::signal::ctrl_c() => { interrupted = true; Ok(()) }
+            }
+        })
+    };
+    if let Err(err) = result {
+        return Ok(port_failure(&err));
+    }
+    let elapsed = started.elapsed();
+    if args.json {
+        println!(
+            "{}",
+            serde_json::to_string_pretty(&report_json(&report, elapsed))?
+        );
+    } else if args.config {
+        let library = TemplateLibrary::load_standard(&args.templates);
+        println!(
+            "{}",
+            config_snippet(&report, &args.port.port, &library, &args.templates)
+        );
+    } else {
+        print!("{}", table(&report, elapsed));
+    }
+    if interrupted {
+        eprintln!(
+            "interrupted: the results above are incomplete; the port's settings are restored"
+        );
+        return Ok(ExitCode::from(exit::INTERRUPTED));
+    }
+    Ok(if report.devices.is_empty() {
+        eprintln!(
+            "no device answered at {} setting(s) of {}: check wiring (A/B swapped?), power, and \
+             that the devices speak Fast Modbus (else add --classic)",
+            report.settings_tried.len(),
+            args.port.port
+        );
+        ExitCode::from(exit::NOT_FOUND)
+    } else {
+        ExitCode::SUCCESS
+    })
+}
+
+/// The scan itself, filling `report` as it goes (an interrupted scan keeps what it found).
+pub async fn scan(args: &Args, report: &mut ScanReport) -> Result<(), PortError> {
+    let mut port = args.port.open()?;
+    let plan = args.port.plan();
+    fast_scan(&mut port, &plan, report).await?;
+    if args.classic {
+        classic_scan(
+            &mut port,
+            &plan,
+            args.range,
+            Duration::from_millis(args.timeout),
+            report,
+        )
+        .await?;
+    }
+    port.restore();
+    Ok(())
+}
+
+/// Fast Modbus scan over `plan`, then model and firmware of each new device.
+pub async fn fast_scan(
+    port: &mut ToolPort,
+    plan: &[LineSettings],
+    report: &mut ScanReport,
+) -> Result<(), PortError> {
+    for &line in plan {
+        report.settings_tried.push(line);
+        let seen = port.scan_setting(line, report).await?;
+        if !seen.is_empty() {
+            tracing::info!("{line}: {} Fast Modbus device(s)", seen.len());
+        }
+    }
+    for index in 0..report.devices.len() {
+        let Some(device) = report.devices.get(index) else {
+            continue;
+        };
+        if let (Some(serial), true, None) = (device.serial, device.fast, &device.identity.model) {
+            let identity = port.identity(device.line, serial).await?;
+            if let Some(device) = report.devices.get_mut(index) {
+                device.identity = identity;
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Classic probes of every address in `range` at every setting of `plan` (addresses with a
+/// known device at that setting skipped), with progress and time left on stderr.
+async fn classic_scan(
+    port: &mut ToolPort,
+    plan: &[LineSettings],
+    range: (u8, u8),
+    timeout: Duration,
+    report: &mut ScanReport,
+) -> Result<(), PortError> {
+    let terminal = std::io::stderr().is_terminal();
+    let total = plan.len() * usize::from(range.1 - range.0 + 1);
+    let started = Instant::now();
+    let mut done = 0usize;
+    for &line in plan {
+        for address in range.0..=range.1 {
+            done += 1;
+            let known = report
+                .devices
+                .iter()
+                .any(|d| d.address == address && (d.line == line || d.also_at.contains(&line)));
+            if known {
+                continue;
+            }
+            progress(terminal, line, address, done, total, started);
+            let probe = RequestPdu::ReadHoldingRegisters {
+                start: 128,
+                count: 1,
+            };
+            match port.classic(line, address, probe, timeout).await? {
+                Answer::Pdu(_) => {
+                    let identity = classic_identity(port, line, address).await?;
+                    let serial = identity.1;
+                    if report.add_classic(line, address, serial) {
+                        if let Some(device) = report.devices.last_mut() {
+                            device.identity = identity.0;
+                        }
+                        eprintln!(
+                            "{}classic device at address {address}, {line}",
+                            clear(terminal)
+                        );
+                    }
+                }
+                Answer::Garbled => report.problems.push(crate::tools::report::SettingProblem {
+                    line,
+                    what: format!("address {address}: unreadable reply (bad CRC or a collision)"),
+                }),
+                Answer::NoReply => {}
+            }
+        }
+    }
+    if terminal {
+        eprint!("{}", clear(true));
+    }
+    Ok(())
+}
+
+fn clear(terminal: bool) -> &'static str {
+    if terminal {
+        "\r\x1b[K"
+    } else {
+        ""
+    }
+}
+
+fn progress(
+    terminal: bool,
+    line: LineSettings,
+    address: u8,
+    done: usize,
+    total: usize,
+    started: Instant,
+) {
+    let per_probe = started.elapsed().as_secs_f64() / done.max(1) as f64;
+    let left = per_probe * (total.saturating_sub(done)) as f64;
+    let text = format!(
+        "classic scan {line}, address {address}: {done}/{total} ({}%), about {left:.0} s left",
+        done * 100 / total.max(1)
+    );
+    if terminal {
+        eprint!("{}{text}", clear(true));
+    } else if done == 1 || done % 50 == 0 {
+        eprintln!("{text}");
+    }
+}
+
+/// Model, firmware and serial of a classic device from the standard registers, if it has them.
+async fn classic_identity(
+    port: &mut ToolPort,
+    line: LineSettings,
+    address: u8,
+) -> Result<(Identity, Option<u32>), PortError> {
+    let mut texts = Vec::new();
+    for (start, count) in [(200, 20), (250, 16), (290, 12)] {
+        let pdu = RequestPdu::ReadHoldingRegisters { start, count };
+        texts.push(
+            match port
+                .classic(line, address, pdu, KNOWN_DEVICE_TIMEOUT)
+                .await?
+            {
+                Answer::Pdu(ResponsePdu::ReadHoldingRegisters { values }) => standard_text(&values),
+                _ => None,
+            },
+        );
+    }
+    let pdu = RequestPdu::ReadHoldingRegisters {
+        start: 270,
+        count: 2,
+    };
+    let serial = match port
+        .classic(line, address, pdu, KNOWN_DEVICE_TIMEOUT)
+        .await?
+    {
+        Answer::Pdu(ResponsePdu::ReadHoldingRegisters { values }) => match values.as_slice() {
+            [hi, lo] => Some(u32::from(*hi) << 16 | u32::from(*lo)),
+            _ => None,
+        },
+        _ => None,
+    };
+    let mut texts = texts.into_iter();
+    Ok((
+        Identity {
+            model: texts.next().flatten(),
+            firmware: texts.next().flatten(),
+            signature: texts.next().flatten(),
+        },
+        serial,
+    ))
+}
+
+fn serial_cell(device: &FoundDevice) -> String {
+    device.serial.map_or_else(|| "-".into(), serial_text)
+}
+
+/// The table an integrator reads, with what needs attention below it.
+pub fn table(report: &ScanReport, elapsed: Duration) -> String {
+    use std::fmt::Write as _;
+    let duplicates = report.duplicates();
+    let mut out = String::new();
+    let _ = writeln!(
+        out,
+        "{:<24} {:>4}  {:<12} {:<5} {:<14} {:<10} NOTES",
+        "SERIAL", "ADDR", "SETTINGS", "FAST", "MODEL", "FIRMWARE"
+    );
+    for (index, device) in report.devices.iter().enumerate() {
+        let mut notes = Vec::new();
+        if duplicates.iter().any(|d| d.devices.contains(&index)) {
+            notes.push("DUPLICATE ADDRESS".to_owned());
+        }
+        if !device.also_at.is_empty() {
+            let others: Vec<String> = device.also_at.iter().map(|l| l.to_string()).collect();
+            notes.push(format!("also answers at {}", others.join(", ")));
+        }
+        let _ = writeln!(
+            out,
+            "{:<24} {:>4}  {:<12} {:<5} {:<14} {:<10} {}",
+            serial_cell(device),
+            device.address,
+            device.line.to_string(),
+            if device.fast { "yes" } else { "no" },
+            device.identity.model.as_deref().unwrap_or("-"),
+            device.identity.firmware.as_deref().unwrap_or("-"),
+            notes.join("; ")
+        );
+    }
+    let _ = writeln!(
+        out,
+        "{} device(s); {} setting(s) scanned in {:.2} s",
+        report.devices.len(),
+        report.settings_tried.len(),
+        elapsed.as_secs_f64()
+    );
+    for duplicate in &duplicates {
+        let serials: Vec<String> = duplicate
+            .devices
+            .iter()
+            .filter_map(|&i| report.devices.get(i))
+            .map(serial_cell)
+            .collect();
+        let _ = writeln!(
+            out,
+            "duplicate: address {} at {} is used by {} devices ({}); fix with rtu2mqtt \
+             fix-addresses --port PORT --apply",
+            duplicate.address,
+            duplicate.line,
+            duplicate.devices.len(),
+            serials.join(", ")
+        );
+    }
+    if report.multi_setting().next().is_some() {
+        let _ = writeln!(
+            out,
+            "note: devices that answer at several settings: on a pseudo-terminal parity N and E \
+             cannot be told apart; on a real bus check the device's settings"
+        );
+    }
+    for problem in &report.problems {
+        let _ = writeln!(out, "problem at {}: {}", problem.line, problem.what);
+    }
+    out
+}
+
+pub fn device_json(device: &FoundDevice) -> Value {
+    json!({
+        "serial": device.serial,
+        "serial_hex": device.serial.map(|s| format!("0x{s:08X}")),
+        "address": device.address,
+        "settings": device.line.to_string(),
+        "baud_rate": device.line.baud,
+        "parity": device.line.parity.letter().to_string(),
+        "data_bits": device.line.data_bits,
+        "stop_bits": device.line.stop_bits,
+        "also_at": device.also_at.iter().map(|l| l.to_string()).collect::<Vec<_>>(),
+        "fast_modbus": device.fast,
+        "model": device.identity.model,
+        "firmware": device.identity.firmware,
+        "signature": device.identity.signature,
+    })
+}
+
+pub fn report_json(report: &ScanReport, elapsed: Duration) -> Value {
+    let duplicates: Vec<Value> = report
+        .duplicates()
+        .iter()
+        .map(|d| {
+            json!({
+                "settings": d.line.to_string(),
+                "address": d.address,
+                "serials": d.devices.iter().filter_map(|&i| report.devices.get(i)).map(|x| x.serial).collect::<Vec<_>>(),
+            })
+        })
+        .collect();
+    json!({
+        "port_settings_scanned": report.settings_tried.len(),
+        "elapsed_ms": u64::try_from(elapsed.as_millis()).unwrap_or(u64::MAX),
+        "devices": report.devices.iter().map(device_json).collect::<Vec<_>>(),
+        "duplicates": duplicates,
+        "problems": report.problems.iter().map(|p| json!({"settings": p.line.to_string(), "problem": p.what})).collect::<Vec<_>>(),
+    })
+}
+
+/// The template whose `hw` signature is the device's signature (or model); one from the
+/// directories given with --templates wins over the built-in and system ones.
+fn matching_template(
+    library: &TemplateLibrary,
+    preferred_dirs: &[PathBuf],
+    identity: &Identity,
+) -> Option<String> {
+    let wanted: Vec<&str> = [identity.signature.as_deref(), identity.model.as_deref()]
+        .into_iter()
+        .flatten()
+        .collect();
+    let matches: Vec<&crate::config::TemplateFile> = library
+        .iter()
+        .filter(|t| !t.is_deprecated())
+        .filter(|t| {
+            t.template.hw.as_ref().is_some_and(|hw| {
+                hw.iter()
+                    .any(|h| wanted.iter().any(|w| w.eq_ignore_ascii_case(&h.signature)))
+            })
+        })
+        .collect();
+    matches
+        .iter()
+        .find(|t| preferred_dirs.iter().any(|d| t.source.path.starts_with(d)))
+        .or(matches.first())
+        .map(|t| t.device_type().to_owned())
+}
+
+/// A config snippet: one port per setting devices were found at, one device per address (a
+/// duplicate address is listed once, with a comment: fix it first).
+pub fn config_snippet(
+    report: &ScanReport,
+    path: &str,
+    library: &TemplateLibrary,
+    preferred_dirs: &[PathBuf],
+) -> String {
+    let mut lines: Vec<LineSettings> = Vec::new();
+    for device in &report.devices {
+        if !lines.contains(&device.line) {
+            lines.push(device.line);
+        }
+    }
+    let mut ports = Vec::new();
+    let mut comments = Vec::new();
+    for line in &lines {
+        let mut devices = Vec::new();
+        let mut addresses = Vec::new();
+        for device in report.devices.iter().filter(|d| d.line == *line) {
+            if addresses.contains(&device.address) {
+                comments.push(format!(
+                    "// address {} at {line} is used by more than one device: run \
+                     rtu2mqtt fix-addresses first",
+                    device.address
+                ));
+                continue;
+            }
+            addresses.push(device.address);
+            let device_type = matching_template(library, preferred_dirs, &device.identity);
+            if device_type.is_none() {
+                comments.push(format!(
+                    "// no template matches address {} at {line} (model {}): set device_type \
+                     by hand",
+                    device.address,
+                    device.identity.model.as_deref().unwrap_or("unknown")
+                ));
+            }
+            devices.push(json!({
+                "slave_id": device.address,
+                "device_type": device_type.unwrap_or_else(|| "FIXME".into()),
+            }));
+        }
+        ports.push(json!({
+            "path": path,
+            "baud_rate": line.baud,
+            "parity": line.parity.letter().to_string(),
+            "data_bits": line.data_bits,
+            "stop_bits": line.stop_bits,
+            "devices": devices,
+        }));
+    }
+    if lines.len() > 1 {
+        comments.push(format!(
+            "// devices use {} different port settings on one port: the daemon talks one \
+             setting per port, so set them all alike (keep one \"ports\" entry)",
+            lines.len()
+        ));
+    }
+    let body = serde_json::to_string_pretty(&json!({ "ports": ports })).unwrap_or_default();
+    let mut out = comments.join("\n");
+    if !out.is_empty() {
+        out.push('\n');
+    }
+    out.push_str(&body);
+    out
+}

@@ -1,0 +1,462 @@
+//! The site tools' one IO layer: a serial port switched between port settings, the original
+//! settings put back at the end, and the few exchanges the tools need (Fast Modbus scan of one
+//! setting, requests by serial number, classic requests), each bounded by its timeouts. Frames
+//! and reply windows come from the protocol core and the transport.
+
+use std::fs::File;
+use std::io;
+use std::os::unix::fs::OpenOptionsExt;
+use std::time::Duration;
+
+use nix::fcntl::{Flock, FlockArg};
+use nix::sys::termios::{self, SetArg, Termios};
+use thiserror::Error;
+use tracing::debug;
+
+use crate::port::{Outcome, Transaction};
+use crate::protocol::{
+    fast::FastReply, LineSettings, Reply, ReplyBody, Request, RequestPdu, ResponsePdu,
+};
+use crate::transport::{Endpoint, Transport, TransportError};
+
+use super::report::{Identity, ScanReport, SettingProblem};
+use super::values::standard_text;
+
+/// Why the port cannot be used at all (exit code 3).
+#[derive(Debug, Error)]
+pub enum PortError {
+    #[error(
+        "{path} does not exist: check that the USB-RS485 adapter is plugged in and the name is \
+         right (ls /dev/ttyUSB* /dev/ttyACM* /dev/ttyRS485*)"
+    )]
+    Missing { path: String },
+    #[error(
+        "no permission to open {path}: run as root or add your user to the group that owns it \
+         (usually dialout: sudo usermod -aG dialout $USER, then log in again)"
+    )]
+    PermissionDenied { path: String },
+    #[error(
+        "{path} is busy: another program has it open (the rtu2mqtt or wb-mqtt-serial service?). \
+         Stop it first (systemctl stop rtu2mqtt) and try again"
+    )]
+    Busy { path: String },
+    #[error("{path} is not a serial port: {source}")]
+    NotSerial { path: String, source: nix::Error },
+    #[error("cannot use {path}: {source}")]
+    Other { path: String, source: io::Error },
+    #[error("{0}")]
+    Transport(#[from] TransportError),
+}
+
+/// What came back for one request.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Answer {
+    /// A reply PDU (an exception too).
+    Pdu(ResponsePdu),
+    NoReply,
+    /// Bytes, but no valid frame (bad CRC, collision, wrong port settings on the other side).
+    Garbled,
+}
+
+/// How many scan rounds one setting may take: more than the 247 addresses a bus can hold, so a
+/// device that keeps answering cannot keep the scan going forever.
+const MAX_SCAN_ROUNDS: usize = 300;
+/// Garbled scan replies in a row after which a setting is given up.
+const MAX_GARBLED_IN_A_ROW: usize = 3;
+/// Response timeout of requests to devices a scan has just found.
+pub const KNOWN_DEVICE_TIMEOUT: Duration = Duration::from_millis(500);
+
+/// The serial port, the settings it had before, and the transport at the current setting.
+pub struct ToolPort {
+    path: String,
+    /// Kept open so the original settings can be put back, even after a failed open.
+    saved: Option<(File, Termios)>,
+    current: Option<(LineSettings, Transport)>,
+    /// Added to every timeout: what a USB adapter and a loaded machine add to a reply's arrival.
+    pub latency: Duration,
+}
+
+impl ToolPort {
+    /// Checks that the port exists, may be opened, is a serial port and is not in use, and
+    /// remembers its settings.
+    pub fn open(path: &str, latency: Duration) -> Result<Self, PortError> {
+        let file = std::fs::OpenOptions::new()
+            .read(true)
+            .write(true)
+            .custom_flags(nix::libc::O_NOCTTY | nix::libc::O_NONBLOCK)
+            .open(path)
+            .map_err(|source| classify(path, source))?;
+        // The daemon (and anything built on serialport) holds an exclusive flock on its port;
+        // that also catches a busy port when running as root, which TIOCEXCL does not stop.
+        let file = match Flock::lock(file, FlockArg::LockExclusiveNonblock) {
+            Ok(locked) => locked.unlock().map_err(|(_, errno)| PortError::Other {
+                path: path.to_owned(),
+                source: errno.into(),
+            })?,
+            Err((_, nix::Error::EWOULDBLOCK)) => {
+                return Err(PortError::Busy {
+                    path: path.to_owned(),
+                })
+            }
+            Err((file, _)) => file,
+        };
+        let original = termios::tcgetattr(&file).map_err(|source| PortError::NotSerial {
+            path: path.to_owned(),
+            source,
+        })?;
+        Ok(Self {
+            path: path.to_owned(),
+            saved: Some((file, original)),
+            current: None,
+            latency,
+        })
+    }
+
+    pub fn path(&self) -> &str {
+        &self.path
+    }
+
+    /// The transport at `line`, reopened when the setting changes.
+    async fn at(&mut self, line: LineSettings) -> Result<&mut Transport, PortError> {
+        if self.current.as_ref().map(|(l, _)| *l) != Some(line) {
+            self.current = None;
+            let endpoint = Endpoint::Serial {
+                path: self.path.clone(),
+                line,
+            };
+            let transport = Transport::open(&endpoint).await.map_err(|err| match err {
+                TransportError::Open { source, .. } => {
+                    let io: io::Error = source.into();
+                    classify(&self.path, io)
+                }
+                other => PortError::Transport(other),
+            })?;
+            self.current = Some((line, transport));
+        }
+        match &mut self.current {
+            Some((_, transport)) => Ok(transport),
+            None => unreachable_port(&self.path),
+        }
+    }
+
+    async fn transact(
+        &mut self,
+        line: LineSettings,
+        transaction: Transaction,
+    ) -> Result<Outcome, PortError> {
+        let transport = self.at(line).await?;
+        Ok(transport.transact(&transaction).await?.0)
+    }
+
+    /// The Fast Modbus scan at one setting: scan start, then continue until a device says the
+    /// scan is over. New devices go into `report`; trouble becomes a problem of this setting.
+    /// Returns the (serial, address) pairs seen at this setting.
+    pub async fn scan_setting(
+        &mut self,
+        line: LineSettings,
+        report: &mut ScanReport,
+    ) -> Result<Vec<(u32, u8)>, PortError> {
+        let mut seen = Vec::new();
+        let mut garbled_in_a_row = 0;
+        let mut retried_silence = false;
+        let mut request = Request::scan_start();
+        for round in 0..MAX_SCAN_ROUNDS {
+            let transaction = scan_transaction(&line, request.clone(), round == 0, self.latency);
+            match self.transact(line, transaction).await? {
+                Outcome::Reply(Reply {
+                    body: ReplyBody::Fast { reply, .. },
+                    ..
+                }) => match reply {
+                    FastReply::ScanFound {
+                        serial,
+                        modbus_address,
+                    } => {
+                        garbled_in_a_row = 0;
+                        retried_silence = false;
+                        debug!(%line, serial, modbus_address, "scan reply");
+                        if !seen.iter().any(|(s, _)| *s == serial) {
+                            seen.push((serial, modbus_address));
+                            report.add_fast(line, serial, modbus_address);
+                        }
+                        request = Request::scan_continue();
+                    }
+                    FastReply::ScanEnd => return Ok(seen),
+                    other => {
+                        report.problems.push(SettingProblem {
+                            line,
+                            what: format!("unexpected reply to a scan request: {other:?}"),
+                        });
+                        return Ok(seen);
+                    }
+                },
+                Outcome::Reply(other) => {
+                    report.problems.push(SettingProblem {
+                        line,
+                        what: format!(
+                            "a device answered the scan with a classic frame from address {}",
+                            other.address
+                        ),
+                    });
+                    return Ok(seen);
+                }
+                Outcome::NoReply if round == 0 => return Ok(seen),
+                // Devices answered before, so someone must answer (a device or "end of scan"):
+                // a late reply was lost to a busy adapter or machine. Ask once more.
+                Outcome::NoReply if !retried_silence => {
+                    retried_silence = true;
+                    request = Request::scan_continue();
+                }
+                Outcome::NoReply => {
+                    report.problems.push(SettingProblem {
+                        line,
+                        what: format!(
+                            "the scan stopped getting answers after {} device(s); devices may be \
+                             missing (noise, a collision, or a device with old firmware)",
+                            seen.len()
+                        ),
+                    });
+                    return Ok(seen);
+                }
+                Outcome::Garbled => {
+                    garbled_in_a_row += 1;
+                    if garbled_in_a_row >= MAX_GARBLED_IN_A_ROW {
+                        report.problems.push(SettingProblem {
+                            line,
+                            what: format!(
+                                "bad CRC / unreadable replies {garbled_in_a_row} times in a row: \
+                                 noise on the line, a missing terminator, or devices at other \
+                                 settings; skipped the rest of this setting"
+                            ),
+                        });
+                        return Ok(seen);
+                    }
+                    request = Request::scan_continue();
+                }
+            }
+        }
+        report.problems.push(SettingProblem {
+            line,
+            what: format!("the scan did not end after {MAX_SCAN_ROUNDS} replies; stopped"),
+        });
+        Ok(seen)
+    }
+
+    /// A classic request carried by serial number (0x46 0x08): only the device with that serial
+    /// answers, whatever its address.
+    pub async fn by_serial(
+        &mut self,
+        line: LineSettings,
+        serial: u32,
+        pdu: RequestPdu,
+        timeout: Duration,
+    ) -> Result<Answer, PortError> {
+        let request = Request::by_serial(serial, pdu);
+        let transaction = request_transaction(&line, request, 12 + 256, timeout + self.latency);
+        Ok(match self.transact(line, transaction).await? {
+            Outcome::Reply(Reply {
+                body:
+                    ReplyBody::Fast {
+                        reply: FastReply::BySerial { serial: from, pdu },
+                        ..
+                    },
+                ..
+            }) if from == serial => Answer::Pdu(pdu),
+            Outcome::Reply(Reply {
+                body: ReplyBody::Classic(pdu @ ResponsePdu::Exception { .. }),
+                ..
+            }) => Answer::Pdu(pdu),
+            Outcome::Reply(_) | Outcome::Garbled => Answer::Garbled,
+            Outcome::NoReply => Answer::NoReply,
+        })
+    }
+
+    /// A classic request to one address.
+    pub async fn classic(
+        &mut self,
+        line: LineSettings,
+        address: u8,
+        pdu: RequestPdu,
+        timeout: Duration,
+    ) -> Result<Answer, PortError> {
+        let request = Request::classic(address, pdu);
+        let transaction = request_transaction(&line, request, 8 + 256, timeout + self.latency);
+        Ok(match self.transact(line, transaction).await? {
+            Outcome::Reply(Reply {
+                body: ReplyBody::Classic(pdu),
+                address: from,
+            }) if from == address => Answer::Pdu(pdu),
+            Outcome::Reply(_) | Outcome::Garbled => Answer::Garbled,
+            Outcome::NoReply => Answer::NoReply,
+        })
+    }
+
+    /// Any Fast Modbus request; the reply as it came.
+    pub async fn fast(
+        &mut self,
+        line: LineSettings,
+        request: Request,
+        first_byte_timeout: Duration,
+        reply_timeout: Duration,
+    ) -> Result<Outcome, PortError> {
+        let request_time = line.wire_time(request.encode().map(|b| b.len()).unwrap_or(16));
+        let transaction = Transaction {
+            estimated: request_time + reply_timeout,
+            request_time,
+            reply_timeout: reply_timeout + self.latency,
+            first_byte_timeout: Some(first_byte_timeout + self.latency),
+            late_window: self.latency,
+            request,
+        };
+        self.transact(line, transaction).await
+    }
+
+    /// Model, firmware and signature from the standard registers, by serial number; what a
+    /// device does not have stays empty.
+    pub async fn identity(
+        &mut self,
+        line: LineSettings,
+        serial: u32,
+    ) -> Result<Identity, PortError> {
+        let mut texts = Vec::new();
+        for (start, count) in [(200, 20), (250, 16), (290, 12)] {
+            let pdu = RequestPdu::ReadHoldingRegisters { start, count };
+            let answer = self
+                .by_serial(line, serial, pdu, KNOWN_DEVICE_TIMEOUT)
+                .await?;
+            texts.push(match answer {
+                Answer::Pdu(ResponsePdu::ReadHoldingRegisters { values }) => standard_text(&values),
+                _ => None,
+            });
+        }
+        let mut texts = texts.into_iter();
+        Ok(Identity {
+            model: texts.next().flatten(),
+            firmware: texts.next().flatten(),
+            signature: texts.next().flatten(),
+        })
+    }
+
+    /// Closes the transport and puts the port's original settings back.
+    pub fn restore(&mut self) {
+        self.current = None;
+        if let Some((file, original)) = self.saved.take() {
+            if let Err(err) = termios::tcsetattr(&file, SetArg::TCSANOW, &original) {
+                debug!(port = %self.path, %err, "could not restore the port settings");
+            }
+        }
+    }
+}
+
+impl Drop for ToolPort {
+    fn drop(&mut self) {
+        self.restore();
+    }
+}
+
+fn unreachable_port<T>(path: &str) -> Result<T, PortError> {
+    Err(PortError::Other {
+        path: path.to_owned(),
+        source: io::Error::other("the port closed unexpectedly"),
+    })
+}
+
+/// Turns an open error into what the integrator should do about it.
+fn classify(path: &str, source: io::Error) -> PortError {
+    let path = path.to_owned();
+    match (source.kind(), source.raw_os_error()) {
+        (io::ErrorKind::NotFound, _) | (_, Some(nix::libc::ENOENT | nix::libc::ENODEV)) => {
+            PortError::Missing { path }
+        }
+        (io::ErrorKind::PermissionDenied, _) | (_, Some(nix::libc::EACCES)) => {
+            PortError::PermissionDenied { path }
+        }
+        (_, Some(nix::libc::EBUSY)) => PortError::Busy { path },
+        _ => PortError::Other { path, source },
+    }
+}
+
+/// Timeouts of a scan request: after a scan start every device takes part, so the first window
+/// already carries a byte when anyone uses this setting (an empty setting costs a few ms); after
+/// a continue the winner may need every window.
+fn scan_transaction(
+    line: &LineSettings,
+    request: Request,
+    start: bool,
+    latency: Duration,
+) -> Transaction {
+    let request_time = line.wire_time(request.encode().map(|b| b.len()).unwrap_or(5));
+    let first_byte = if start {
+        line.scan_start_first_byte_timeout()
+    } else {
+        line.scan_reply_timeout()
+    };
+    // 32 windows of filler bytes at most, then the 10-byte scan reply.
+    let reply_timeout = line.scan_reply_timeout() + line.wire_time(32 + 10);
+    Transaction {
+        estimated: request_time + reply_timeout,
+        request_time,
+        reply_timeout: reply_timeout + latency,
+        first_byte_timeout: Some(first_byte + latency),
+        // Silence after a scan start means nobody at this setting, and the next request goes out
+        // at another setting (after an input flush): no late reply to wait for.
+        late_window: if start { Duration::ZERO } else { latency },
+        request,
+    }
+}
+
+/// Timeouts of a request to one device: `timeout` to the first byte, then the longest reply.
+fn request_transaction(
+    line: &LineSettings,
+    request: Request,
+    max_reply_len: usize,
+    timeout: Duration,
+) -> Transaction {
+    let request_time = line.wire_time(request.encode().map(|b| b.len()).unwrap_or(256));
+    Transaction {
+        estimated: request_time + timeout,
+        request_time,
+        reply_timeout: timeout + line.wire_time(max_reply_len + 32),
+        first_byte_timeout: Some(timeout),
+        late_window: timeout.min(Duration::from_millis(100)),
+        request,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::protocol::Parity;
+
+    #[test]
+    fn open_errors_become_what_to_do() {
+        let missing = classify("/dev/x", io::Error::from_raw_os_error(nix::libc::ENOENT));
+        assert!(matches!(missing, PortError::Missing { .. }));
+        let denied = classify("/dev/x", io::Error::from_raw_os_error(nix::libc::EACCES));
+        assert!(denied.to_string().contains("dialout"), "{denied}");
+        let busy = classify("/dev/x", io::Error::from_raw_os_error(nix::libc::EBUSY));
+        assert!(busy.to_string().contains("systemctl stop"), "{busy}");
+        let other = classify("/dev/x", io::Error::from_raw_os_error(nix::libc::EIO));
+        assert!(matches!(other, PortError::Other { .. }));
+    }
+
+    #[test]
+    fn an_empty_setting_costs_the_first_window_and_no_late_window() {
+        let latency = Duration::from_millis(24);
+        for baud in [9600, 115_200] {
+            let line = LineSettings::new(baud, Parity::None, 2);
+            let start = scan_transaction(&line, Request::scan_start(), true, latency);
+            assert_eq!(
+                start.first_byte_timeout,
+                Some(line.scan_start_first_byte_timeout() + latency)
+            );
+            assert_eq!(start.late_window, Duration::ZERO);
+            let next = scan_transaction(&line, Request::scan_continue(), false, latency);
+            assert_eq!(
+                next.first_byte_timeout,
+                Some(line.scan_reply_timeout() + latency)
+            );
+            assert_eq!(next.late_window, latency);
+            assert!(next.reply_timeout > line.scan_reply_timeout());
+        }
+    }
+}

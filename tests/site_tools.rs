@@ -1,0 +1,872 @@
+//! Site tools against the simulator on a pty: `scan`, `set-address`, `fix-addresses`, `read`,
+//! `write`, `events`. The bus (tests/data/sim/site-bus.json) has six devices at three port
+//! settings: two Fast Modbus devices share address 10 at 9600 8N2, one at 115200 8N2, two at
+//! 19200 8O1, and a classic-only device at address 40, 115200 8N2.
+//!
+//! A pseudo-terminal cannot tell parity N from E, so devices at 8N2 also answer at 8E2 here; the
+//! scan reports the first setting in its order (8N2) and the other one as "also at".
+
+mod sim_support;
+
+use std::process::Command;
+
+use nix::sys::termios::{self, BaudRate, ControlFlags, SetArg};
+use serde_json::{json, Value};
+use sim_support::SimProcess;
+
+/// Generous for a loaded test machine; values are asserted, never timings.
+const LATENCY_MS: &str = "100";
+
+struct Run {
+    code: i32,
+    stdout: String,
+    stderr: String,
+}
+
+fn tool(args: &[&str]) -> Run {
+    let output = Command::new(env!("CARGO_BIN_EXE_rtu2mqtt"))
+        .args(args)
+        .output()
+        .unwrap();
+    Run {
+        code: output.status.code().unwrap_or(-1),
+        stdout: String::from_utf8_lossy(&output.stdout).into_owned(),
+        stderr: String::from_utf8_lossy(&output.stderr).into_owned(),
+    }
+}
+
+fn sim() -> SimProcess {
+    SimProcess::start("site-bus.json", &[])
+}
+
+fn port(sim: &SimProcess) -> String {
+    sim.pty.to_str().unwrap().to_owned()
+}
+
+fn scan_json(sim: &SimProcess, extra: &[&str]) -> Value {
+    let port = port(sim);
+    let mut args = vec!["scan", "--port", &port, "--json", "--latency", LATENCY_MS];
+    args.extend_from_slice(extra);
+    let run = tool(&args);
+    assert!(
+        run.code == 0 || run.code == 1,
+        "{}{}",
+        run.stdout,
+        run.stderr
+    );
+    serde_json::from_str(&run.stdout).unwrap_or_else(|e| panic!("{e}: {}", run.stdout))
+}
+
+/// The devices of a scan as (serial, address, settings), sorted by serial.
+fn found(report: &Value) -> Vec<(u64, u64, String)> {
+    let mut devices: Vec<(u64, u64, String)> = report["devices"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|d| {
+            (
+                d["serial"].as_u64().unwrap_or(0),
+                d["address"].as_u64().unwrap(),
+                d["settings"].as_str().unwrap().to_owned(),
+            )
+        })
+        .collect();
+    devices.sort();
+    devices
+}
+
+fn device(report: &Value, serial: u64) -> &Value {
+    report["devices"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|d| d["serial"].as_u64() == Some(serial))
+        .unwrap_or_else(|| panic!("serial {serial:#X} not found in {report}"))
+}
+
+#[test]
+fn scan_finds_every_fast_device_at_its_settings_and_flags_the_duplicate() {
+    let sim = sim();
+    // Whatever the port was set to before the scan, it is set to again after.
+    let before = std::fs::OpenOptions::new()
+        .read(true)
+        .write(true)
+        .open(&sim.pty)
+        .unwrap();
+    let mut settings = termios::tcgetattr(&before).unwrap();
+    termios::cfmakeraw(&mut settings);
+    settings
+        .control_flags
+        .insert(ControlFlags::PARENB | ControlFlags::PARODD);
+    settings.control_flags.remove(ControlFlags::CSTOPB);
+    termios::cfsetspeed(&mut settings, BaudRate::B57600).unwrap();
+    termios::tcsetattr(&before, SetArg::TCSANOW, &settings).unwrap();
+    let report = scan_json(&sim, &[]);
+    assert_eq!(report["port_settings_scanned"], 48);
+    assert_eq!(
+        found(&report),
+        vec![
+            (0xFE00_0010, 10, "9600 8N2".into()),
+            (0xFE00_0011, 10, "9600 8N2".into()),
+            (0xFE00_0020, 20, "115200 8N2".into()),
+            (0xFE00_0030, 30, "19200 8O1".into()),
+            (0xFE00_0031, 31, "19200 8O1".into()),
+        ],
+        "{report:#}"
+    );
+    let relay = device(&report, 0xFE00_0011);
+    assert_eq!(relay["model"], "WBMR6C");
+    assert_eq!(relay["firmware"], "1.26.1");
+    assert_eq!(relay["fast_modbus"], true);
+    assert_eq!(relay["also_at"], json!(["9600 8E2"]));
+    assert_eq!(device(&report, 0xFE00_0030)["also_at"], json!([]));
+    assert_eq!(
+        report["duplicates"],
+        json!([{"settings": "9600 8N2", "address": 10, "serials": [0xFE00_0010u32, 0xFE00_0011u32]}])
+    );
+    let settings = termios::tcgetattr(&before).unwrap();
+    assert_eq!(termios::cfgetospeed(&settings), BaudRate::B57600);
+    assert!(settings.control_flags.contains(ControlFlags::PARODD));
+    assert!(!settings.control_flags.contains(ControlFlags::CSTOPB));
+}
+
+#[test]
+fn scan_table_names_the_duplicate_and_how_to_fix_it() {
+    let sim = sim();
+    let port = port(&sim);
+    let run = tool(&[
+        "scan",
+        "--port",
+        &port,
+        "--baud",
+        "9600",
+        "--parity",
+        "N",
+        "--latency",
+        LATENCY_MS,
+    ]);
+    assert_eq!(run.code, 0, "{}{}", run.stdout, run.stderr);
+    assert!(
+        run.stdout
+            .contains("duplicate: address 10 at 9600 8N2 is used by 2 devices"),
+        "{}",
+        run.stdout
+    );
+    assert!(run.stdout.contains("fix-addresses"), "{}", run.stdout);
+    assert_eq!(
+        run.stdout.matches("DUPLICATE ADDRESS").count(),
+        2,
+        "{}",
+        run.stdout
+    );
+}
+
+#[test]
+fn classic_scan_finds_the_device_without_fast_modbus() {
+    let sim = sim();
+    let fast_only = scan_json(
+        &sim,
+        &["--baud", "115200", "--parity", "N", "--stop-bits", "2"],
+    );
+    assert_eq!(
+        found(&fast_only),
+        vec![(0xFE00_0020, 20, "115200 8N2".into())]
+    );
+    let report = scan_json(
+        &sim,
+        &[
+            "--baud",
+            "115200",
+            "--parity",
+            "N",
+            "--stop-bits",
+            "2",
+            "--classic",
+            "--range",
+            "15-45",
+            "--timeout",
+            "150",
+        ],
+    );
+    assert_eq!(
+        found(&report),
+        vec![
+            (0xFE00_0020, 20, "115200 8N2".into()),
+            (0xFE00_0040, 40, "115200 8N2".into()),
+        ],
+        "{report:#}"
+    );
+    let classic = device(&report, 0xFE00_0040);
+    assert_eq!(classic["fast_modbus"], false);
+    assert_eq!(classic["model"], "OLDBOX");
+}
+
+#[test]
+fn scan_config_snippet_picks_the_template_by_model() {
+    let sim = sim();
+    let port = port(&sim);
+    let templates = sim_support::data("");
+    let run = tool(&[
+        "scan",
+        "--port",
+        &port,
+        "--baud",
+        "19200",
+        "--parity",
+        "O",
+        "--config",
+        "--latency",
+        LATENCY_MS,
+        "--templates",
+        templates.to_str().unwrap(),
+    ]);
+    assert_eq!(run.code, 0, "{}{}", run.stdout, run.stderr);
+    let snippet: Value = serde_json::from_str(&run.stdout).unwrap();
+    assert_eq!(
+        snippet["ports"][0]["devices"],
+        json!([{"slave_id": 30, "device_type": "sim-relay"}, {"slave_id": 31, "device_type": "sim-relay"}])
+    );
+    assert_eq!(snippet["ports"][0]["baud_rate"], 19200);
+    assert_eq!(snippet["ports"][0]["parity"], "O");
+    assert_eq!(snippet["ports"][0]["stop_bits"], 1);
+}
+
+#[test]
+fn scan_errors_say_what_is_wrong_with_the_port() {
+    let missing = tool(&["scan", "--port", "/dev/ttyNOSUCH-rtu2mqtt"]);
+    assert_eq!(missing.code, 3, "{}", missing.stderr);
+    assert!(
+        missing.stderr.contains("does not exist"),
+        "{}",
+        missing.stderr
+    );
+
+    let sim = sim();
+    let port = port(&sim);
+    let holder = std::fs::OpenOptions::new()
+        .read(true)
+        .write(true)
+        .open(&sim.pty)
+        .unwrap();
+    let lock =
+        nix::fcntl::Flock::lock(holder, nix::fcntl::FlockArg::LockExclusiveNonblock).unwrap();
+    let busy = tool(&["scan", "--port", &port]);
+    assert_eq!(busy.code, 3, "{}", busy.stderr);
+    assert!(busy.stderr.contains("is busy"), "{}", busy.stderr);
+    drop(lock);
+
+    let nobody = tool(&[
+        "scan",
+        "--port",
+        &port,
+        "--baud",
+        "38400",
+        "--latency",
+        LATENCY_MS,
+    ]);
+    assert_eq!(nobody.code, 1, "{}{}", nobody.stdout, nobody.stderr);
+    assert!(
+        nobody.stderr.contains("no device answered"),
+        "{}",
+        nobody.stderr
+    );
+}
+
+#[test]
+fn fix_addresses_plans_then_applies_and_a_second_scan_confirms() {
+    let sim = sim();
+    let port = port(&sim);
+    let only_9600 = [
+        "--baud",
+        "9600,115200",
+        "--parity",
+        "N",
+        "--latency",
+        LATENCY_MS,
+    ];
+    let mut dry = vec!["fix-addresses", "--port", &port, "--range", "10-30"];
+    dry.extend_from_slice(&only_9600);
+    let run = tool(&dry);
+    assert_eq!(run.code, 1, "duplicates left: {}{}", run.stdout, run.stderr);
+    assert!(
+        run.stdout
+            .contains("serial 4261412881 (0xFE000011) at 9600 8N2: address 10 -> 11 (planned)"),
+        "{}",
+        run.stdout
+    );
+    // The dry run wrote nothing.
+    let control = sim
+        .control(json!({"cmd": "get", "serial": "0xFE000011", "type": "holding", "address": 128}));
+    assert_eq!(control["value"], 10);
+
+    let mut apply = dry.clone();
+    apply.push("--apply");
+    let run = tool(&apply);
+    assert_eq!(run.code, 0, "{}{}", run.stdout, run.stderr);
+    assert!(
+        run.stdout
+            .contains("address 10 -> 11 (confirmed by a new scan)"),
+        "{}",
+        run.stdout
+    );
+    let control = sim
+        .control(json!({"cmd": "get", "serial": "0xFE000011", "type": "holding", "address": 128}));
+    assert_eq!(control["value"], 11);
+
+    let report = scan_json(&sim, &["--baud", "9600", "--parity", "N"]);
+    assert_eq!(
+        found(&report),
+        vec![
+            (0xFE00_0010, 10, "9600 8N2".into()),
+            (0xFE00_0011, 11, "9600 8N2".into())
+        ]
+    );
+    assert_eq!(report["duplicates"], json!([]));
+    let mut again = vec!["fix-addresses", "--port", &port];
+    again.extend_from_slice(&only_9600);
+    assert_eq!(tool(&again).code, 0);
+}
+
+#[test]
+fn set_address_by_serial_is_verified_and_refuses_a_taken_address() {
+    let sim = sim();
+    let port = port(&sim);
+    let odd = [
+        "--baud",
+        "19200",
+        "--parity",
+        "O",
+        "--stop-bits",
+        "1",
+        "--latency",
+        LATENCY_MS,
+    ];
+    let mut taken = vec![
+        "set-address",
+        "--port",
+        &port,
+        "--serial",
+        "0xFE000031",
+        "--address",
+        "30",
+    ];
+    taken.extend_from_slice(&odd);
+    let run = tool(&taken);
+    assert_eq!(run.code, 1, "{}{}", run.stdout, run.stderr);
+    assert!(
+        run.stderr.contains("already used at 19200 8O1"),
+        "{}",
+        run.stderr
+    );
+
+    // Decimal serial, settings found by the scan (no --baud).
+    let run = tool(&[
+        "set-address",
+        "--port",
+        &port,
+        "--serial",
+        "4261412913",
+        "--address",
+        "77",
+        "--latency",
+        LATENCY_MS,
+    ]);
+    assert_eq!(run.code, 0, "{}{}", run.stdout, run.stderr);
+    assert!(
+        run.stdout
+            .contains("address 31 -> 77 (read back and confirmed by a scan)"),
+        "{}",
+        run.stdout
+    );
+    let control = sim
+        .control(json!({"cmd": "get", "serial": "0xFE000031", "type": "holding", "address": 128}));
+    assert_eq!(control["value"], 77);
+
+    let mut missing = vec![
+        "set-address",
+        "--port",
+        &port,
+        "--serial",
+        "0x12345678",
+        "--address",
+        "5",
+    ];
+    missing.extend_from_slice(&odd);
+    let run = tool(&missing);
+    assert_eq!(run.code, 1);
+    assert!(
+        run.stderr
+            .contains("no device with serial 305419896 (0x12345678)"),
+        "{}",
+        run.stderr
+    );
+}
+
+const AT_115200: [&str; 8] = [
+    "--baud",
+    "115200",
+    "--parity",
+    "N",
+    "--stop-bits",
+    "2",
+    "--latency",
+    LATENCY_MS,
+];
+
+fn access(sim: &SimProcess, args: &[&str]) -> Run {
+    let port = port(sim);
+    let mut all = vec![args[0], "--port", &port];
+    all.extend_from_slice(&args[1..]);
+    tool(&all)
+}
+
+#[test]
+fn read_prints_raw_and_decoded_values_by_address_and_by_serial() {
+    let sim = sim();
+    sim.control(json!({"cmd": "set", "device": "fast-relay", "type": "holding", "address": 1000, "value": [0xFFFF, 0xFFFB]}));
+    let mut args = vec![
+        "read",
+        "--address",
+        "20",
+        "--type",
+        "holding",
+        "--reg",
+        "1000",
+        "--format",
+        "s32",
+    ];
+    args.extend_from_slice(&AT_115200);
+    let run = access(&sim, &args);
+    assert_eq!(run.code, 0, "{}{}", run.stdout, run.stderr);
+    assert!(
+        run.stdout.contains("[1000]: 0xFFFF  65535"),
+        "{}",
+        run.stdout
+    );
+    assert!(
+        run.stdout.contains("[1001]: 0xFFFB  65531"),
+        "{}",
+        run.stdout
+    );
+    assert!(run.stdout.contains("s32: -5"), "{}", run.stdout);
+
+    // By serial: the two devices at address 10 are told apart; the setting is found by a scan.
+    for (serial, value) in [("0xFE000010", 3300), ("0xFE000011", 5000)] {
+        let run = access(
+            &sim,
+            &[
+                "read",
+                "--serial",
+                serial,
+                "--type",
+                "input",
+                "--reg",
+                "123",
+                "--json",
+                "--latency",
+                LATENCY_MS,
+            ],
+        );
+        assert_eq!(run.code, 0, "{}{}", run.stdout, run.stderr);
+        let body: Value = serde_json::from_str(&run.stdout).unwrap();
+        assert_eq!(body["registers"], json!([value]));
+        assert_eq!(body["settings"], "9600 8N2");
+    }
+
+    // Classic-only device, its settings given.
+    let mut args = vec![
+        "read",
+        "--address",
+        "40",
+        "--type",
+        "holding",
+        "--reg",
+        "128",
+        "--json",
+    ];
+    args.extend_from_slice(&AT_115200);
+    let run = access(&sim, &args);
+    assert_eq!(run.code, 0, "{}{}", run.stdout, run.stderr);
+    assert_eq!(
+        serde_json::from_str::<Value>(&run.stdout).unwrap()["values"],
+        json!(["40"])
+    );
+}
+
+#[test]
+fn read_failures_are_explained() {
+    let sim = sim();
+    let mut args = vec![
+        "read",
+        "--address",
+        "20",
+        "--type",
+        "holding",
+        "--reg",
+        "5000",
+    ];
+    args.extend_from_slice(&AT_115200);
+    let run = access(&sim, &args);
+    assert_eq!(run.code, 1);
+    assert!(
+        run.stderr
+            .contains("refused: exception 2 (illegal data address)"),
+        "{}",
+        run.stderr
+    );
+
+    let mut args = vec![
+        "read",
+        "--address",
+        "99",
+        "--type",
+        "holding",
+        "--reg",
+        "0",
+        "--timeout",
+        "100",
+    ];
+    args.extend_from_slice(&AT_115200);
+    let run = access(&sim, &args);
+    assert_eq!(run.code, 1);
+    assert!(
+        run.stderr
+            .contains("no reply from address 99 at 115200 8N2"),
+        "{}",
+        run.stderr
+    );
+
+    // Both devices at address 10 answer a classic request: the reply is unreadable.
+    let run = access(
+        &sim,
+        &[
+            "read",
+            "--address",
+            "10",
+            "--type",
+            "holding",
+            "--reg",
+            "128",
+            "--baud",
+            "9600",
+            "--parity",
+            "N",
+            "--stop-bits",
+            "2",
+            "--latency",
+            LATENCY_MS,
+        ],
+    );
+    assert_eq!(run.code, 1);
+    assert!(
+        run.stderr.contains("a duplicate address?"),
+        "{}",
+        run.stderr
+    );
+}
+
+#[test]
+fn write_sets_registers_and_coils_and_reads_them_back() {
+    let sim = sim();
+    let mut args = vec![
+        "write",
+        "--serial",
+        "0xFE000020",
+        "--type",
+        "holding",
+        "--reg",
+        "1000",
+        "--format",
+        "s32",
+    ];
+    args.extend_from_slice(&AT_115200);
+    args.extend_from_slice(&["--", "-5", "70000"]);
+    let run = access(&sim, &args);
+    assert_eq!(run.code, 0, "{}{}", run.stdout, run.stderr);
+    assert!(run.stdout.contains("s32: -5 70000"), "{}", run.stdout);
+    let control = sim.control(json!({"cmd": "get", "device": "fast-relay", "type": "holding", "address": 1000, "count": 4}));
+    assert_eq!(control["values"], json!([0xFFFF, 0xFFFB, 0x0001, 0x1170]));
+
+    let mut args = vec!["write", "--address", "20", "--type", "coil", "--reg", "2"];
+    args.extend_from_slice(&AT_115200);
+    args.push("1");
+    let run = access(&sim, &args);
+    assert_eq!(run.code, 0, "{}{}", run.stdout, run.stderr);
+    let control =
+        sim.control(json!({"cmd": "get", "device": "fast-relay", "type": "coil", "address": 2}));
+    assert_eq!(control["value"], 1);
+
+    let mut args = vec!["write", "--address", "20", "--type", "input", "--reg", "2"];
+    args.extend_from_slice(&AT_115200);
+    args.push("1");
+    let run = access(&sim, &args);
+    assert_eq!(run.code, 2);
+    assert!(run.stderr.contains("read-only"), "{}", run.stderr);
+}
+
+/// Runs `rtu2mqtt events` in the background; its stdout lines arrive on the channel.
+fn spawn_events(args: &[&str]) -> (std::process::Child, std::sync::mpsc::Receiver<String>) {
+    use std::io::BufRead;
+    let mut child = Command::new(env!("CARGO_BIN_EXE_rtu2mqtt"))
+        .args(args)
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let stdout = child.stdout.take().unwrap();
+    let (sender, receiver) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for line in std::io::BufReader::new(stdout)
+            .lines()
+            .map_while(Result::ok)
+        {
+            if sender.send(line).is_err() {
+                break;
+            }
+        }
+    });
+    (child, receiver)
+}
+
+fn next_json(lines: &std::sync::mpsc::Receiver<String>) -> Value {
+    let line = lines
+        .recv_timeout(std::time::Duration::from_secs(30))
+        .expect("events printed nothing more");
+    serde_json::from_str(&line).unwrap_or_else(|e| panic!("{e}: {line}"))
+}
+
+#[test]
+fn events_are_decoded_named_from_the_config_and_acknowledged() {
+    let sim = sim();
+    let port = port(&sim);
+    let config = sim.dir.path().join("config.json");
+    std::fs::write(
+        &config,
+        json!({
+            "ports": [{"path": port, "baud_rate": 115200, "parity": "N", "data_bits": 8, "stop_bits": 2,
+                       "devices": [{"device_type": "sim-relay", "slave_id": 20}]}]
+        })
+        .to_string(),
+    )
+    .unwrap();
+    let templates = sim_support::data("");
+    let (mut child, lines) = spawn_events(&[
+        "events",
+        "--port",
+        &port,
+        "--config",
+        config.to_str().unwrap(),
+        "--templates",
+        templates.to_str().unwrap(),
+        "--json",
+        "--count",
+        "2",
+        "--latency",
+        LATENCY_MS,
+    ]);
+    // The config's channels with events are enabled (K1..K3, the inputs, the counter); then the
+    // device reports its start-up, and they are enabled again.
+    let mut enabled = Vec::new();
+    let mut reboot_seen = false;
+    while !(reboot_seen && enabled.len() == 12) {
+        let line = next_json(&lines);
+        if line["reboot"] == true {
+            reboot_seen = true;
+        } else if line.get("enabled").is_some() {
+            assert_eq!(line["enabled"], true, "{line}");
+            enabled.push((
+                line["type"].as_str().unwrap().to_owned(),
+                line["register"].as_u64().unwrap(),
+            ));
+        } else {
+            panic!("unexpected line before the values changed: {line}");
+        }
+    }
+    assert!(enabled.contains(&("coil".into(), 0)), "{enabled:?}");
+    assert!(enabled.contains(&("input".into(), 32)), "{enabled:?}");
+
+    sim.control(
+        json!({"cmd": "set", "device": "fast-relay", "type": "coil", "address": 0, "value": 1}),
+    );
+    let first = next_json(&lines);
+    assert_eq!(
+        (
+            &first["address"],
+            &first["type"],
+            &first["register"],
+            &first["value"],
+            &first["channel"]
+        ),
+        (
+            &json!(20),
+            &json!("coil"),
+            &json!(0),
+            &json!(1),
+            &json!("K1")
+        ),
+        "{first}"
+    );
+    assert!(
+        first["device"].as_str().unwrap().contains("relay"),
+        "{first}"
+    );
+    sim.control(
+        json!({"cmd": "set", "device": "fast-relay", "type": "input", "address": 32, "value": 7}),
+    );
+    let second = next_json(&lines);
+    assert_eq!(
+        (&second["type"], &second["register"], &second["value"]),
+        (&json!("input"), &json!(32), &json!(7)),
+        "{second}"
+    );
+    assert_eq!(second["text"], "7", "{second}");
+    // --count 2: the tool confirms the last packet and ends by itself.
+    let status = child.wait().unwrap();
+    assert!(status.success(), "{status}");
+    // Confirmed: the device has nothing more to send.
+    let after = tool(&[
+        "events",
+        "--port",
+        &port,
+        "--baud",
+        "115200",
+        "--parity",
+        "N",
+        "--stop-bits",
+        "2",
+        "--json",
+        "--duration",
+        "0.3",
+        "--latency",
+        LATENCY_MS,
+    ]);
+    assert_eq!(after.code, 0, "{}", after.stderr);
+    assert_eq!(after.stdout, "", "the acknowledged events came again");
+}
+
+#[test]
+fn events_at_19200_8o1_with_enable_options() {
+    let sim = sim();
+    let port = port(&sim);
+    let (mut child, lines) = spawn_events(&[
+        "events",
+        "--port",
+        &port,
+        "--baud",
+        "19200",
+        "--parity",
+        "O",
+        "--stop-bits",
+        "1",
+        "--enable",
+        "30:coil:2",
+        "--enable",
+        "31:discrete:1:low",
+        "--json",
+        "--count",
+        "2",
+        "--latency",
+        LATENCY_MS,
+    ]);
+    // Enabled, then each device reports its start-up and is enabled again.
+    let mut reboots = 0;
+    let mut enabled = 0;
+    while !(reboots == 2 && enabled == 4) {
+        let line = next_json(&lines);
+        if line["reboot"] == true {
+            reboots += 1;
+        } else {
+            assert_eq!(line["enabled"], true, "{line}");
+            enabled += 1;
+        }
+    }
+    sim.control(json!({"cmd": "set", "device": "odd-a", "type": "coil", "address": 2, "value": 1}));
+    let first = next_json(&lines);
+    assert_eq!(
+        (
+            &first["address"],
+            &first["type"],
+            &first["register"],
+            &first["value"]
+        ),
+        (&json!(30), &json!("coil"), &json!(2), &json!(1))
+    );
+    assert_eq!(first["channel"], Value::Null);
+    sim.control(
+        json!({"cmd": "set", "device": "odd-b", "type": "discrete", "address": 1, "value": 1}),
+    );
+    let second = next_json(&lines);
+    assert_eq!(
+        (
+            &second["address"],
+            &second["type"],
+            &second["register"],
+            &second["value"]
+        ),
+        (&json!(31), &json!("discrete"), &json!(1), &json!(1))
+    );
+    assert!(child.wait().unwrap().success());
+}
+
+#[test]
+fn ctrl_c_ends_events_with_130_and_restores_the_port_settings() {
+    let sim = sim();
+    let port = port(&sim);
+    let before = std::fs::OpenOptions::new()
+        .read(true)
+        .write(true)
+        .open(&sim.pty)
+        .unwrap();
+    let mut settings = termios::tcgetattr(&before).unwrap();
+    termios::cfmakeraw(&mut settings);
+    termios::cfsetspeed(&mut settings, BaudRate::B4800).unwrap();
+    termios::tcsetattr(&before, SetArg::TCSANOW, &settings).unwrap();
+    let (child, lines) = spawn_events(&[
+        "events",
+        "--port",
+        &port,
+        "--baud",
+        "115200",
+        "--parity",
+        "N",
+        "--stop-bits",
+        "2",
+        "--enable",
+        "20:coil:0",
+        "--json",
+        "--latency",
+        LATENCY_MS,
+    ]);
+    // Running: it has enabled the events (and is now polling).
+    assert_eq!(next_json(&lines)["enabled"], true);
+    nix::sys::signal::kill(
+        nix::unistd::Pid::from_raw(i32::try_from(child.id()).unwrap()),
+        nix::sys::signal::Signal::SIGINT,
+    )
+    .unwrap();
+    let output = child.wait_with_output().unwrap();
+    assert_eq!(output.status.code(), Some(130));
+    let after = termios::tcgetattr(&before).unwrap();
+    assert_eq!(termios::cfgetospeed(&after), BaudRate::B4800);
+}
+
+#[test]
+fn bad_crc_at_one_setting_is_reported_and_the_scan_goes_on() {
+    let sim = sim();
+    sim.control(json!({"cmd": "faults", "device": "odd-a", "corrupt_crc": 1.0}));
+    let report = scan_json(&sim, &["--baud", "19200,115200"]);
+    let problems = report["problems"].as_array().unwrap();
+    assert!(
+        problems
+            .iter()
+            .any(|p| p["settings"] == "19200 8O1"
+                && p["problem"].as_str().unwrap().contains("bad CRC")),
+        "{report:#}"
+    );
+    // Every setting is still scanned, and the devices elsewhere found.
+    assert!(
+        found(&report).contains(&(0xFE00_0020, 20, "115200 8N2".into())),
+        "{report:#}"
+    );
+    assert_eq!(report["port_settings_scanned"], 12);
+}
