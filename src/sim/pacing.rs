@@ -26,6 +26,8 @@ pub type ByteWriter = Box<dyn FnMut(&[u8]) -> io::Result<()> + Send>;
 struct Queue {
     /// (when the byte has arrived at the master, byte), in time order.
     bytes: VecDeque<(Duration, u8)>,
+    /// Arrival time of the last byte taken for writing.
+    sent_through: Option<Duration>,
     closed: bool,
 }
 
@@ -76,6 +78,23 @@ impl Pacer {
         self.wake.notify_all();
     }
 
+    /// Replaces everything queued by `arrivals` (in time order): the wire's whole pending
+    /// schedule, changed by a new reply or a collision. Bytes at or before the last one already
+    /// written are not sent again.
+    pub fn replace(&self, arrivals: &[(Duration, u8)]) {
+        let mut queue = lock(&self.queue);
+        let sent_through = queue.sent_through;
+        queue.bytes.clear();
+        queue.bytes.extend(
+            arrivals
+                .iter()
+                .copied()
+                .filter(|&(at, _)| sent_through.is_none_or(|sent| at > sent)),
+        );
+        drop(queue);
+        self.wake.notify_all();
+    }
+
     pub fn close(&self) {
         lock(&self.queue).closed = true;
         self.wake.notify_all();
@@ -104,6 +123,7 @@ impl Pacer {
                 }
                 due.push(byte);
                 queue.bytes.pop_front();
+                queue.sent_through = Some(at);
             }
             drop(queue);
             if let Err(err) = writer(&due) {
