@@ -15,7 +15,7 @@
 //!
 //! Set-up and IO: [`bus_file`] and [`from_template`] (through the shared template loader) build
 //! devices; [`control`] is the JSON-lines control protocol; [`pacing`] sends bytes on time;
-//! [`pty`] and [`tcp`] are the transports.
+//! [`pty`] and [`tcp`] are the transports ([`mbap`]: the Modbus TCP gateway's framing).
 
 pub mod bus;
 pub mod device;
@@ -69,6 +69,7 @@ pub enum SimError {
 pub mod control;
 pub mod control_socket;
 pub mod link;
+pub mod mbap;
 pub mod pacing;
 pub mod pty;
 pub mod runtime;
