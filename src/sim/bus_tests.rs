@@ -586,6 +586,45 @@ fn by_serial_access_and_address_change() {
         },
     );
     assert!(send(&mut bus, &nobody).is_empty());
+    // The old address is free now.
+    assert!(send(
+        &mut bus,
+        &Request::classic(
+            20,
+            RequestPdu::ReadHoldingRegisters {
+                start: 128,
+                count: 1
+            }
+        )
+    )
+    .is_empty());
+}
+
+/// Silence, proved on virtual time rather than by listening: no address, no settings, nobody.
+#[test]
+fn nobody_answers_an_absent_address_or_unused_settings() {
+    let mut bus = seed_bus();
+    let read = |address| {
+        Request::classic(address, RequestPdu::ReadCoils { start: 0, count: 1 })
+            .encode()
+            .unwrap()
+    };
+    assert!(bus.exchange(&read(99), master(), Duration::ZERO).is_empty());
+    assert!(!bus.exchange(&read(20), master(), Duration::ZERO).is_empty());
+    // Nothing on the bus uses 19200 8N1: a scan start there gets not even a filler.
+    let unused = MasterLine::exact(LineSettings::new(19200, Parity::None, 1));
+    let scan = Request::scan_start().encode().unwrap();
+    assert!(bus.exchange(&scan, unused, Duration::ZERO).is_empty());
+    assert!(bus.exchange(&read(20), unused, Duration::ZERO).is_empty());
+    // A pty cannot tell parity none from even: such a master is heard by both, not by odd.
+    let pty = MasterLine {
+        baud: 115_200,
+        stop_bits: 2,
+        parity: super::line::ObservedParity::NoneOrEven,
+    };
+    assert!(!bus.exchange(&read(20), pty, Duration::ZERO).is_empty());
+    let odd = MasterLine::exact(LineSettings::new(115_200, Parity::Odd, 2));
+    assert!(bus.exchange(&read(20), odd, Duration::ZERO).is_empty());
 }
 
 #[test]
