@@ -136,11 +136,22 @@ impl Bus {
 
     /// What goes back on the wire in answer to one request.
     pub fn handle(&mut self, received: &ReceivedRequest) -> Transmission {
+        // Only the addressed devices can answer a classic or addressed request: skip reading
+        // every device's port settings for it (most of the work per request on a large bus).
+        let addressed = match &received.request {
+            ParsedRequest::Valid(request) => request.address,
+            ParsedRequest::Rejected(rejected) => rejected.address,
+        };
+        let only = (1..=MAX_DEVICE_ADDRESS)
+            .contains(&addressed)
+            .then_some(addressed);
         let listeners: Vec<usize> = (0..self.devices.len())
             .filter(|&i| {
-                self.devices
-                    .get(i)
-                    .is_some_and(|d| d.plugged && received.line.matches(&d.line()))
+                self.devices.get(i).is_some_and(|d| {
+                    d.plugged
+                        && only.is_none_or(|address| d.address() == address)
+                        && received.line.matches(&d.line())
+                })
             })
             .collect();
         let mut replies = Vec::new();
