@@ -43,20 +43,9 @@ fn rtu_over_tcp_uses_the_listener_settings() {
             break;
         }
     }
+    // 241 runs at 115200 8N2: it answered, so the listener's line has --tcp-line's settings.
+    // (Devices at other settings stay silent: src/sim/bus_tests.rs proves it on virtual time.)
     assert_eq!(bytes, with_crc("F1 03 02 00 F1"));
-    // The 9600 device does not hear a 115200 line.
-    let slow = Request::classic(
-        50,
-        RequestPdu::ReadHoldingRegisters {
-            start: 128,
-            count: 1,
-        },
-    );
-    stream.write_all(&slow.encode().unwrap()).unwrap();
-    stream
-        .set_read_timeout(Some(Duration::from_millis(150)))
-        .unwrap();
-    assert!(stream.read(&mut buf).is_err());
 }
 
 fn banner_tcp_address(sim: &SimProcess) -> String {
@@ -115,7 +104,7 @@ fn watch_streams_register_changes_from_master_and_script() {
 }
 
 #[test]
-fn faults_drop_and_corrupt_replies() {
+fn faults_corrupt_replies() {
     let sim = SimProcess::start("bus.json", &[]);
     let mut port = sim.master(FAST);
     let read = Request::classic(
@@ -125,12 +114,15 @@ fn faults_drop_and_corrupt_replies() {
             count: 1,
         },
     );
-    sim.control(json!({"cmd": "faults", "device": 30, "drop": 1.0}));
-    assert!(port
-        .send_and_listen(&read.encode().unwrap(), Duration::from_millis(150))
-        .is_empty());
+    // A dropped reply is silence, proved on virtual time in src/sim/bus_tests.rs; here the
+    // control command's effect shows in a corrupted reply.
     sim.control(json!({"cmd": "faults", "device": 30, "corrupt_crc": 1.0}));
-    let bytes = port.send_and_listen(&read.encode().unwrap(), Duration::from_millis(150));
+    port.send(&read.encode().unwrap());
+    let bytes: Vec<u8> = port
+        .read_until(Duration::from_secs(2), |all| all.len() >= 7)
+        .into_iter()
+        .flat_map(|(_, bytes)| bytes)
+        .collect();
     let good = with_crc("1E 03 02 00 1E");
     assert_eq!(bytes.len(), good.len());
     assert_eq!(bytes[..6], good[..6]);

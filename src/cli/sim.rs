@@ -17,6 +17,7 @@ use crate::sim::control_socket::{spawn_control_socket, spawn_stdin_control};
 use crate::sim::pty::PtyLink;
 use crate::sim::runtime::{ChangeLog, SimRuntime};
 use crate::sim::script::{parse_script, spawn_script};
+use crate::sim::tcp::TcpMode;
 use crate::sim::Bus;
 
 /// Run a virtual RS-485 bus of classic and Fast Modbus devices (see docs/sim.md).
@@ -31,7 +32,11 @@ pub struct Args {
     /// Listen for RTU-over-TCP connections (e.g. 127.0.0.1:5020; port 0 picks a free one).
     #[arg(long, value_name = "ADDR")]
     pub tcp: Option<String>,
-    /// Port settings of the TCP listener's virtual line.
+    /// Listen for Modbus TCP (MBAP) connections: a gateway in front of the bus, unit id = slave
+    /// address (e.g. 127.0.0.1:5502; port 0 picks a free one).
+    #[arg(long, value_name = "ADDR")]
+    pub modbus_tcp: Option<String>,
+    /// Port settings of the TCP listeners' virtual line (RTU over TCP and Modbus TCP).
     #[arg(long, value_name = "SETTINGS", default_value = "9600 8N2")]
     pub tcp_line: String,
     /// Unix socket for JSON-lines control commands.
@@ -89,8 +94,8 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         .with_env_filter(tracing_subscriber::EnvFilter::from_default_env())
         .with_writer(std::io::stderr)
         .try_init();
-    if args.pty.is_none() && args.tcp.is_none() {
-        bail!("nothing to serve: give --pty PATH and/or --tcp ADDR");
+    if args.pty.is_none() && args.tcp.is_none() && args.modbus_tcp.is_none() {
+        bail!("nothing to serve: give --pty PATH, --tcp ADDR and/or --modbus-tcp ADDR");
     }
     let (bus_file, devices) = load_bus(&args.bus, &templates_dir(&args))?;
     let sink: Option<Box<dyn Write + Send>> = match args.log_changes.as_deref() {
@@ -129,6 +134,14 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         let (local, handle) = crate::sim::tcp::spawn_listener(address, line, Arc::clone(&runtime))
             .with_context(|| format!("listening on {address}"))?;
         writeln!(out, "tcp {local} ({line})")?;
+        threads.push(handle);
+    }
+    if let Some(address) = &args.modbus_tcp {
+        let line = parse_line(&args.tcp_line).map_err(anyhow::Error::msg)?;
+        let (local, handle) =
+            crate::sim::tcp::spawn(address, line, Arc::clone(&runtime), TcpMode::ModbusTcp)
+                .with_context(|| format!("listening on {address}"))?;
+        writeln!(out, "modbus-tcp {local} ({line})")?;
         threads.push(handle);
     }
     if let Some(path) = &args.control {

@@ -18,9 +18,10 @@ use crate::protocol::{
 
 use super::device::{ValueChange, VirtualDevice};
 use super::faults::{busy_exception, garbage, FaultAction, XorShift64};
-use super::line::{MasterLine, ReceivedRequest, RequestAssembler};
+use super::line::{MasterLine, ReceivedRequest};
 pub use super::transmission::Transmission;
 use super::transmission::{collide, Burst, TimedFrame};
+use super::wire::{frame_gap, Wire};
 
 /// Who changed a register.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -142,25 +143,39 @@ impl Bus {
         }
     }
 
-    /// Convenience for tests and fuzzing: `frame` written at once at `at`, followed by silence.
+    /// Convenience for tests and fuzzing: `frame` written at once at `at` on an idle wire,
+    /// followed by silence. Bytes that are not exactly one frame get no answer (see [`Wire`]).
     pub fn exchange(&mut self, frame: &[u8], line: MasterLine, at: Duration) -> Transmission {
-        let mut assembler = RequestAssembler::new();
-        let mut requests = assembler.receive(frame, at, line);
-        requests.extend(assembler.on_silence());
         let mut transmission = Transmission::default();
-        for request in &requests {
-            transmission.append(self.handle(request));
-        }
+        let mut wire = Wire::new();
+        let mut respond = |request: &ReceivedRequest| {
+            let answer = self.handle(request);
+            transmission.append(answer.clone());
+            answer
+        };
+        wire.master_writes(frame, at, line, &mut respond);
+        wire.on_silence(Duration::MAX, &mut respond);
         transmission
     }
 
     /// What goes back on the wire in answer to one request.
     pub fn handle(&mut self, received: &ReceivedRequest) -> Transmission {
+        // Only the addressed devices can answer a classic or addressed request: skip reading
+        // every device's port settings for it (most of the work per request on a large bus).
+        let addressed = match &received.request {
+            ParsedRequest::Valid(request) => request.address,
+            ParsedRequest::Rejected(rejected) => rejected.address,
+        };
+        let only = (1..=MAX_DEVICE_ADDRESS)
+            .contains(&addressed)
+            .then_some(addressed);
         let listeners: Vec<usize> = (0..self.devices.len())
             .filter(|&i| {
-                self.devices
-                    .get(i)
-                    .is_some_and(|d| d.plugged && received.line.matches(&d.line()))
+                self.devices.get(i).is_some_and(|d| {
+                    d.plugged
+                        && only.is_none_or(|address| d.address() == address)
+                        && received.line.matches(&d.line())
+                })
             })
             .collect();
         let mut replies = Vec::new();
@@ -230,7 +245,8 @@ impl Bus {
             .collect()
     }
 
-    /// A reply after the device's turnaround, timed on its settings before the request ran.
+    /// A reply after the device's turnaround, timed on its settings before the request ran. A
+    /// device knows the request has ended only after a frame gap of silence: never sooner.
     fn plan(
         &self,
         index: usize,
@@ -249,7 +265,7 @@ impl Bus {
         Some(PlannedReply {
             device: index,
             frame,
-            start: received.end_on_wire(&line) + device.turnaround,
+            start: received.end_on_wire(&line) + device.turnaround.max(frame_gap(&line)),
             line,
         })
     }

@@ -12,6 +12,7 @@ use super::device::{DeviceSpec, VirtualDevice};
 use super::faults::Faults;
 use super::line::MasterLine;
 use super::registers::RegisterMap;
+use super::wire::Wire;
 
 const MCM8_SERIAL: u32 = 0xFE40_00AC;
 const MR6C_SERIAL: u32 = 0xFED2_A3A6;
@@ -585,6 +586,45 @@ fn by_serial_access_and_address_change() {
         },
     );
     assert!(send(&mut bus, &nobody).is_empty());
+    // The old address is free now.
+    assert!(send(
+        &mut bus,
+        &Request::classic(
+            20,
+            RequestPdu::ReadHoldingRegisters {
+                start: 128,
+                count: 1
+            }
+        )
+    )
+    .is_empty());
+}
+
+/// Silence, proved on virtual time rather than by listening: no address, no settings, nobody.
+#[test]
+fn nobody_answers_an_absent_address_or_unused_settings() {
+    let mut bus = seed_bus();
+    let read = |address| {
+        Request::classic(address, RequestPdu::ReadCoils { start: 0, count: 1 })
+            .encode()
+            .unwrap()
+    };
+    assert!(bus.exchange(&read(99), master(), Duration::ZERO).is_empty());
+    assert!(!bus.exchange(&read(20), master(), Duration::ZERO).is_empty());
+    // Nothing on the bus uses 19200 8N1: a scan start there gets not even a filler.
+    let unused = MasterLine::exact(LineSettings::new(19200, Parity::None, 1));
+    let scan = Request::scan_start().encode().unwrap();
+    assert!(bus.exchange(&scan, unused, Duration::ZERO).is_empty());
+    assert!(bus.exchange(&read(20), unused, Duration::ZERO).is_empty());
+    // A pty cannot tell parity none from even: such a master is heard by both, not by odd.
+    let pty = MasterLine {
+        baud: 115_200,
+        stop_bits: 2,
+        parity: super::line::ObservedParity::NoneOrEven,
+    };
+    assert!(!bus.exchange(&read(20), pty, Duration::ZERO).is_empty());
+    let odd = MasterLine::exact(LineSettings::new(115_200, Parity::Odd, 2));
+    assert!(bus.exchange(&read(20), odd, Duration::ZERO).is_empty());
 }
 
 #[test]
@@ -817,4 +857,191 @@ fn garbage_never_panics() {
         }
         let _ = bus.exchange(&frame, master(), Duration::ZERO);
     }
+}
+
+// The half-duplex wire (issue 15, defect 10): frame gaps, requests colliding with replies, and
+// replies colliding with each other, byte for byte on virtual time.
+
+fn read_holding(address: u8, start: u16, count: u16) -> Vec<u8> {
+    Request::classic(address, RequestPdu::ReadHoldingRegisters { start, count })
+        .encode()
+        .unwrap()
+}
+
+/// Each byte of `frame` sent back to back from `start`, with its arrival time.
+fn arrivals_from(start: Duration, line: LineSettings, frame: &[u8]) -> Vec<(Duration, u8)> {
+    frame
+        .iter()
+        .enumerate()
+        .map(|(i, &byte)| (start + line.char_time() * (i as u32 + 1), byte))
+        .collect()
+}
+
+fn and(a: &[u8], b: &[u8]) -> Vec<u8> {
+    a.iter().zip(b).map(|(x, y)| x & y).collect()
+}
+
+/// Writes `frame` at `at`, then lets the line fall silent; returns whether it collided.
+fn write(wire: &mut Wire, bus: &mut Bus, frame: &[u8], at: Duration) -> bool {
+    let mut respond = |request: &super::line::ReceivedRequest| bus.handle(request);
+    let collided = wire
+        .master_writes(frame, at, master(), &mut respond)
+        .collided;
+    let deadline = wire.silence_deadline().unwrap();
+    wire.on_silence(deadline, &mut respond);
+    collided
+}
+
+#[test]
+fn requests_written_together_are_one_run_that_nobody_answers() {
+    let first = read_holding(20, 128, 1);
+    let second = read_holding(241, 128, 1);
+    let mut bus = seed_bus();
+    // Written at once: the master's UART sends them back to back, with no frame gap between.
+    let together = [first.clone(), second.clone()].concat();
+    assert!(bus.exchange(&together, master(), Duration::ZERO).is_empty());
+    // 0.3 ms apart: the second waits for the first to leave the UART, still no gap.
+    let mut wire = Wire::new();
+    let mut respond = |request: &super::line::ReceivedRequest| bus.handle(request);
+    wire.master_writes(&first, Duration::ZERO, master(), &mut respond);
+    let gap_deadline = wire.silence_deadline().unwrap();
+    wire.master_writes(&second, Duration::from_micros(300), master(), &mut respond);
+    assert!(wire.silence_deadline().unwrap() > gap_deadline);
+    assert!(!wire.on_silence(Duration::MAX, &mut respond));
+    assert!(wire.arrivals().is_empty());
+    // Either alone is answered.
+    assert_eq!(
+        bus.exchange(&first, master(), Duration::ZERO).bytes(),
+        hex("14 03 02 00 14 B5 88")
+    );
+}
+
+#[test]
+fn a_reply_starts_a_frame_gap_after_the_request_at_least() {
+    let slow_line = LineSettings::new(9600, Parity::None, 2);
+    let mut slow = spec("slow", 5, 0x0D00_0005);
+    slow.line = slow_line;
+    let mut bus = Bus::new(vec![VirtualDevice::new(slow)], 1);
+    let request = read_holding(5, 128, 1);
+    let reply = bus.exchange(&request, MasterLine::exact(slow_line), Duration::ZERO);
+    // 500 µs turnaround, but 3.5 characters at 9600 8N2 are 4.01 ms.
+    let end = slow_line.wire_time(request.len());
+    assert_eq!(reply.bursts[0].start, end + slow_line.char_time() * 7 / 2);
+}
+
+#[test]
+fn a_request_after_the_reply_is_answered_after_it() {
+    let mut bus = seed_bus();
+    let mut wire = Wire::new();
+    let first = read_holding(20, 128, 1);
+    assert!(!write(&mut wire, &mut bus, &first, Duration::ZERO));
+    let turnaround = Duration::from_micros(500);
+    let first_reply_start = FAST_LINE.wire_time(8) + turnaround;
+    let first_reply = arrivals_from(first_reply_start, FAST_LINE, &hex("14 03 02 00 14 B5 88"));
+    assert_eq!(wire.arrivals(), first_reply);
+    // Written the moment the last reply byte arrived.
+    let second_at = first_reply.last().unwrap().0;
+    let second = read_holding(241, 128, 1);
+    assert!(!write(&mut wire, &mut bus, &second, second_at));
+    let second_reply = arrivals_from(
+        second_at + FAST_LINE.wire_time(8) + turnaround,
+        FAST_LINE,
+        &with_crc("F1 03 02 00 F1"),
+    );
+    assert_eq!(wire.arrivals(), second_reply);
+}
+
+#[test]
+fn a_request_written_during_a_reply_collides_with_it() {
+    let mut bus = seed_bus();
+    let mut wire = Wire::new();
+    assert!(!write(
+        &mut wire,
+        &mut bus,
+        &read_holding(20, 128, 1),
+        Duration::ZERO
+    ));
+    let char_time = FAST_LINE.char_time();
+    let reply_start = FAST_LINE.wire_time(8) + Duration::from_micros(500);
+    let reply = hex("14 03 02 00 14 B5 88");
+    // The second request's first byte goes out with the reply's third.
+    let second = read_holding(241, 128, 1);
+    let at = reply_start + char_time * 2;
+    assert!(write(&mut wire, &mut bus, &second, at));
+    // The master reads the wired AND of both where they overlap; devices hear garbage and stay
+    // silent (no reply to 241 follows).
+    let merged = and(&reply[2..], &second[..5]);
+    assert_eq!(
+        wire.arrivals(),
+        arrivals_from(reply_start + char_time * 2, FAST_LINE, &merged)
+    );
+    assert!(!crate::protocol::crc::crc_is_valid(
+        &[reply[..2].to_vec(), merged].concat()
+    ));
+}
+
+#[test]
+fn a_request_after_the_frame_gap_but_before_the_reply_collides() {
+    let mut bus = seed_bus();
+    let mut wire = Wire::new();
+    assert!(!write(
+        &mut wire,
+        &mut bus,
+        &read_holding(20, 128, 1),
+        Duration::ZERO
+    ));
+    // 400 µs after the request: past its frame gap (334 µs), 100 µs before the reply starts.
+    let at = FAST_LINE.wire_time(8) + Duration::from_micros(400);
+    assert!(write(&mut wire, &mut bus, &read_holding(241, 128, 1), at));
+    let bytes: Vec<u8> = wire.arrivals().iter().map(|&(_, byte)| byte).collect();
+    assert_eq!(bytes.len(), 7);
+    assert_ne!(bytes, hex("14 03 02 00 14 B5 88"));
+}
+
+#[test]
+fn two_devices_at_one_address_merge_by_wired_and() {
+    let mut bus = Bus::new(
+        vec![
+            VirtualDevice::new(spec("a", 20, MCM8_SERIAL)),
+            VirtualDevice::new(spec("b", 20, MR6C_SERIAL)),
+        ],
+        1,
+    );
+    let request = read_holding(20, 270, 2);
+    let reply = bus.exchange(&request, master(), Duration::ZERO);
+    let from_a = with_crc("14 03 04 FE 40 00 AC");
+    let from_b = with_crc("14 03 04 FE D2 A3 A6");
+    let start = FAST_LINE.wire_time(8) + Duration::from_micros(500);
+    assert_eq!(
+        reply.arrivals(),
+        arrivals_from(start, FAST_LINE, &and(&from_a, &from_b))
+    );
+}
+
+#[test]
+fn a_late_reply_merges_with_the_next_reply_by_wired_and() {
+    let mut bus = seed_bus();
+    let late = Duration::from_millis(20);
+    bus.device_mut(0).unwrap().faults = Faults {
+        delay_reply: 1.0,
+        delay: late,
+        ..Faults::default()
+    };
+    let mut wire = Wire::new();
+    assert!(!write(
+        &mut wire,
+        &mut bus,
+        &read_holding(20, 128, 1),
+        Duration::ZERO
+    ));
+    // The second request goes out `late` after the first: both replies start together.
+    assert!(!write(
+        &mut wire,
+        &mut bus,
+        &read_holding(241, 128, 1),
+        late
+    ));
+    let start = late + FAST_LINE.wire_time(8) + Duration::from_micros(500);
+    let merged = and(&hex("14 03 02 00 14 B5 88"), &with_crc("F1 03 02 00 F1"));
+    assert_eq!(wire.arrivals(), arrivals_from(start, FAST_LINE, &merged));
 }

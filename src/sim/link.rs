@@ -1,14 +1,16 @@
 //! The receive loop shared by the transports: read bytes with timestamps and the master's port
-//! settings, cut them into requests, let the bus answer, hand the answer to the pacer.
+//! settings, put them on the wire, let the bus answer the frames that end in silence, hand what
+//! the devices put on the wire to the pacer (again whenever a collision changes it).
 
 use std::io;
 use std::time::Duration;
 
 use crate::protocol::hex;
 
-use super::line::{MasterLine, RequestAssembler};
+use super::line::{MasterLine, ReceivedRequest};
 use super::pacing::Pacer;
 use super::runtime::SimRuntime;
+use super::wire::Wire;
 
 /// The master's side of a link, as the simulator reads it.
 pub trait LinkReader {
@@ -24,33 +26,37 @@ const IDLE_POLL: Duration = Duration::from_millis(50);
 /// Serves requests until the peer closes, the runtime stops, or reading fails.
 pub fn serve(reader: &mut dyn LinkReader, pacer: &Pacer, runtime: &SimRuntime) -> io::Result<()> {
     super::pacing::raise_to_realtime();
-    let mut assembler = RequestAssembler::new();
+    let mut wire = Wire::new();
     let mut buf = [0u8; 512];
+    let respond = |request: &ReceivedRequest| {
+        let transmission = runtime.with_bus(|bus, _| bus.handle(request));
+        if !transmission.is_empty() {
+            tracing::debug!("sim: -> {}", hex(&transmission.bytes()));
+        }
+        transmission
+    };
     while !runtime.stopped() {
         let now = runtime.clock.now();
-        let timeout = assembler.silence_deadline().map_or(IDLE_POLL, |deadline| {
+        let timeout = wire.silence_deadline().map_or(IDLE_POLL, |deadline| {
             deadline.saturating_sub(now).min(IDLE_POLL)
         });
-        let requests = match reader.read_timeout(&mut buf, timeout)? {
+        let changed = match reader.read_timeout(&mut buf, timeout)? {
             Some(0) => return Ok(()),
             Some(len) => {
                 let at = runtime.clock.now();
                 let line = reader.master_line();
                 let bytes = buf.get(..len).unwrap_or(&[]);
                 tracing::debug!("sim: <- {} ({:?} at {:?})", hex(bytes), line, at);
-                assembler.receive(bytes, at, line)
+                let write = wire.master_writes(bytes, at, line, respond);
+                if write.collided {
+                    tracing::debug!("sim: request collided with a reply on the wire");
+                }
+                write.collided || write.answered
             }
-            None => match assembler.silence_deadline() {
-                Some(deadline) if runtime.clock.now() >= deadline => assembler.on_silence(),
-                _ => Vec::new(),
-            },
+            None => wire.on_silence(runtime.clock.now(), respond),
         };
-        for request in requests {
-            let transmission = runtime.with_bus(|bus, _| bus.handle(&request));
-            if !transmission.is_empty() {
-                tracing::debug!("sim: -> {}", hex(&transmission.bytes()));
-                pacer.schedule(&transmission);
-            }
+        if changed {
+            pacer.replace(&wire.arrivals());
         }
     }
     Ok(())

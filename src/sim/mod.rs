@@ -10,11 +10,12 @@
 //! | [`events`]       | Fast Modbus event state: enabled registers, flag, acks, reboot event   |
 //! | [`bus`]          | all devices: who hears a request, arbitration, collisions, timing      |
 //! | [`line`]         | settings the master used; timestamped bytes → requests                 |
+//! | [`wire`]         | the half-duplex timeline: frame gaps, request/reply collisions          |
 //! | [`faults`]       | dropped / corrupted / late replies, seeded                             |
 //!
 //! Set-up and IO: [`bus_file`] and [`from_template`] (through the shared template loader) build
 //! devices; [`control`] is the JSON-lines control protocol; [`pacing`] sends bytes on time;
-//! [`pty`] and [`tcp`] are the transports.
+//! [`pty`] and [`tcp`] are the transports ([`mbap`]: the Modbus TCP gateway's framing).
 
 pub mod bus;
 pub mod device;
@@ -23,6 +24,7 @@ pub mod faults;
 pub mod line;
 pub mod registers;
 pub mod transmission;
+pub mod wire;
 
 #[cfg(test)]
 mod bus_tests;
@@ -33,6 +35,7 @@ pub use faults::Faults;
 pub use line::{MasterLine, ObservedParity, ReceivedRequest, RequestAssembler};
 pub use registers::RegisterMap;
 pub use transmission::{Burst, Transmission};
+pub use wire::Wire;
 
 pub mod bus_file;
 pub mod from_template;
@@ -66,6 +69,7 @@ pub enum SimError {
 pub mod control;
 pub mod control_socket;
 pub mod link;
+pub mod mbap;
 pub mod pacing;
 pub mod pty;
 pub mod runtime;

@@ -1,6 +1,9 @@
-//! Sends scheduled bytes at their time, on a dedicated thread: each byte is written when its stop
-//! bit would end on a real wire. Sleeps while more than [`SPIN_THRESHOLD`] remains, then spins:
-//! OS sleeps alone overshoot by 50–100 µs, more than a character at 115200 baud.
+//! Sends scheduled bytes at their time, on a dedicated thread: a byte is handed to the master
+//! when its stop bit would end on a real wire, or up to [`RX_HOLD`] later together with the bytes
+//! that followed it, as a UART's receive FIFO hands bytes over in batches. Waking once per byte
+//! cost a context switch per byte (most of the simulator's CPU, see docs/sim.md). Without
+//! real-time priority it sleeps while more than [`SPIN_THRESHOLD`] remains, then spins: ordinary
+//! sleeps overshoot by 50–100 µs. With it, sleeps wake within a few µs and it never spins.
 
 use std::collections::VecDeque;
 use std::io;
@@ -15,10 +18,13 @@ use super::runtime::Clock;
 pub const SPIN_THRESHOLD: Duration = Duration::from_micros(250);
 /// How much earlier than due a sleep ends, to absorb its overshoot.
 const SLEEP_MARGIN: Duration = Duration::from_micros(150);
-/// With real-time priority a sleep wakes within a few µs: spin only the last stretch, leaving the
-/// CPU to the kernel's tty work and to the reader on the other side.
-const REALTIME_SPIN_THRESHOLD: Duration = Duration::from_micros(40);
-const REALTIME_SLEEP_MARGIN: Duration = Duration::from_micros(25);
+/// With real-time priority a sleep wakes within a few µs: no spinning, leaving the CPU to the
+/// kernel's tty work and to the reader on the other side.
+const REALTIME_SPIN_THRESHOLD: Duration = Duration::ZERO;
+const REALTIME_SLEEP_MARGIN: Duration = Duration::ZERO;
+/// How long a byte may wait for the next ones before it is handed over (2.6 characters at
+/// 115200, a quarter of one at 9600): one wake-up then delivers several bytes at high rates.
+pub const RX_HOLD: Duration = Duration::from_micros(250);
 
 pub type ByteWriter = Box<dyn FnMut(&[u8]) -> io::Result<()> + Send>;
 
@@ -26,6 +32,8 @@ pub type ByteWriter = Box<dyn FnMut(&[u8]) -> io::Result<()> + Send>;
 struct Queue {
     /// (when the byte has arrived at the master, byte), in time order.
     bytes: VecDeque<(Duration, u8)>,
+    /// Arrival time of the last byte taken for writing.
+    sent_through: Option<Duration>,
     closed: bool,
 }
 
@@ -76,6 +84,23 @@ impl Pacer {
         self.wake.notify_all();
     }
 
+    /// Replaces everything queued by `arrivals` (in time order): the wire's whole pending
+    /// schedule, changed by a new reply or a collision. Bytes at or before the last one already
+    /// written are not sent again.
+    pub fn replace(&self, arrivals: &[(Duration, u8)]) {
+        let mut queue = lock(&self.queue);
+        let sent_through = queue.sent_through;
+        queue.bytes.clear();
+        queue.bytes.extend(
+            arrivals
+                .iter()
+                .copied()
+                .filter(|&(at, _)| sent_through.is_none_or(|sent| at > sent)),
+        );
+        drop(queue);
+        self.wake.notify_all();
+    }
+
     pub fn close(&self) {
         lock(&self.queue).closed = true;
         self.wake.notify_all();
@@ -105,6 +130,7 @@ impl Pacer {
                 }
                 due.push(byte);
                 queue.bytes.pop_front();
+                queue.sent_through = Some(at);
             }
             drop(queue);
             let written = writer(&due);
@@ -136,9 +162,10 @@ impl Pacer {
             let timeout = match queue.bytes.front() {
                 None => Duration::from_millis(100),
                 Some(&(at, _)) => {
-                    let left = at.saturating_sub(self.clock.now());
+                    let hand_over = at + RX_HOLD;
+                    let left = hand_over.saturating_sub(self.clock.now());
                     if left <= spin_threshold {
-                        return Some(at);
+                        return Some(hand_over);
                     }
                     left - sleep_margin
                 }

@@ -231,15 +231,6 @@ impl MasterPort {
             reply,
         )
     }
-
-    /// Sends a frame and returns whatever arrives within `window` (for silence and garbage).
-    pub fn send_and_listen(&mut self, frame: &[u8], window: Duration) -> Vec<u8> {
-        self.send(frame);
-        self.read_until(window, |_| false)
-            .into_iter()
-            .flat_map(|(_, bytes)| bytes)
-            .collect()
-    }
 }
 
 pub fn hex(text: &str) -> Vec<u8> {

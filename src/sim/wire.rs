@@ -1,0 +1,265 @@
+//! The shared half-duplex wire of one link: the master's bytes and the devices' bytes on one
+//! timeline, as an RS-485 pair carries them.
+//!
+//! - The master's UART sends what it is given back to back: bytes written while earlier ones are
+//!   still on the wire follow them without a gap.
+//! - Devices see a frame only after 3.5 characters of silence on the line ([`frame_gap`]). Master
+//!   bytes that follow sooner belong to the same frame, so two requests written at once (or before
+//!   the first has ended) are one run of bytes that is not a frame: noise, nobody answers (as a
+//!   Modbus RTU slave that delimits frames by silence).
+//! - Whatever overlaps in time merges by wired AND (a 0 bit from any driver wins): device replies
+//!   with each other, and a master request with a reply still on the wire. Both are garbled then:
+//!   the master reads the merged reply bytes, and no device answers the collided request (bit skew
+//!   spoils it even where the AND left the bytes intact).
+//!
+//! Pure and deterministic: time comes in with every call.
+
+use std::time::Duration;
+
+use crate::protocol::frame::MAX_FRAME_LEN;
+use crate::protocol::{LineSettings, ParseStatus, RequestParser};
+
+use super::line::{MasterLine, ReceivedRequest};
+use super::transmission::Transmission;
+
+/// The silence after which a device takes the bytes before it as a frame: 3.5 characters.
+pub fn frame_gap(line: &LineSettings) -> Duration {
+    line.char_time() * 7 / 2
+}
+
+/// Byte times are whole nanoseconds computed two ways (per character, per frame): bytes that
+/// touch within this much are back to back, not overlapping. A bit lasts 1 µs at 1 Mbaud.
+const ROUNDING: Duration = Duration::from_nanos(100);
+
+/// One device byte on the wire.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct Slot {
+    start: Duration,
+    char_time: Duration,
+    byte: u8,
+}
+
+impl Slot {
+    /// When its stop bit ends, i.e. when the master's UART hands it over.
+    fn end(&self) -> Duration {
+        self.start + self.char_time
+    }
+
+    /// Shares more than [`ROUNDING`] with `start..end`.
+    fn overlaps(&self, start: Duration, end: Duration) -> bool {
+        let shared = self.end().min(end).saturating_sub(self.start.max(start));
+        shared > ROUNDING
+    }
+}
+
+/// Master bytes not yet followed by a frame gap.
+#[derive(Debug, Clone)]
+struct Run {
+    /// The bytes as devices hear them (merged with any device byte they overlapped).
+    bytes: Vec<u8>,
+    start: Duration,
+    end: Duration,
+    line: MasterLine,
+    /// Overlapped a device's transmission, or outgrew any frame: noise whatever it holds.
+    spoiled: bool,
+}
+
+/// What the wire did with bytes the master wrote.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct MasterWrite {
+    /// The request collided with device bytes still on the wire (which are now merged).
+    pub collided: bool,
+    /// A request ended by the silence before these bytes, and was answered.
+    pub answered: bool,
+}
+
+/// The wire's timeline: device bytes the master has not read yet, the master's run.
+#[derive(Debug, Clone, Default)]
+pub struct Wire {
+    /// Device bytes not yet handed to the master, in time order, never overlapping.
+    pending: Vec<Slot>,
+    /// When the master's UART has sent everything it was given.
+    master_free_at: Duration,
+    run: Option<Run>,
+}
+
+impl Wire {
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Bytes the master wrote, read by the simulator at `at`. A run that had already ended by
+    /// silence before them is answered first (`respond` gets it), so that these bytes collide
+    /// with its reply if they land on it.
+    pub fn master_writes(
+        &mut self,
+        bytes: &[u8],
+        at: Duration,
+        line: MasterLine,
+        respond: impl FnMut(&ReceivedRequest) -> Transmission,
+    ) -> MasterWrite {
+        let mut outcome = MasterWrite::default();
+        if bytes.is_empty() {
+            return outcome;
+        }
+        let settings = line.settings();
+        let start = at.max(self.master_free_at);
+        if self
+            .silence_deadline()
+            .is_some_and(|deadline| start >= deadline)
+        {
+            outcome.answered = self.end_run(respond);
+        }
+        self.forget_delivered(at);
+        let mut run = match self.run.take() {
+            // New settings in the middle of a run: what came before is noise to everyone.
+            Some(run) if run.line == line => run,
+            _ => Run {
+                bytes: Vec::new(),
+                start,
+                end: start,
+                line,
+                spoiled: false,
+            },
+        };
+        for (index, &byte) in bytes.iter().enumerate() {
+            // Wire time from the frame's start, not a sum of rounded character times.
+            let byte_start = start + settings.wire_time(index);
+            let byte_end = start + settings.wire_time(index + 1);
+            let mut heard = byte;
+            for slot in self
+                .pending
+                .iter_mut()
+                .filter(|slot| slot.overlaps(byte_start, byte_end))
+            {
+                slot.byte &= byte;
+                heard &= slot.byte;
+                outcome.collided = true;
+            }
+            if run.bytes.len() < 2 * MAX_FRAME_LEN {
+                run.bytes.push(heard);
+            } else {
+                run.spoiled = true;
+            }
+            run.end = byte_end;
+        }
+        run.spoiled |= outcome.collided;
+        self.master_free_at = run.end;
+        self.run = Some(run);
+        outcome
+    }
+
+    /// When the master's current run will have been followed by a frame gap.
+    pub fn silence_deadline(&self) -> Option<Duration> {
+        let run = self.run.as_ref()?;
+        Some(run.end + frame_gap(&run.line.settings()))
+    }
+
+    /// Time has reached `now`: ends the master's run if its frame gap has passed and answers it.
+    /// True if it was a request that got an answer on the wire.
+    pub fn on_silence(
+        &mut self,
+        now: Duration,
+        respond: impl FnMut(&ReceivedRequest) -> Transmission,
+    ) -> bool {
+        match self.silence_deadline() {
+            Some(deadline) if now >= deadline => self.end_run(respond),
+            _ => false,
+        }
+    }
+
+    fn end_run(&mut self, mut respond: impl FnMut(&ReceivedRequest) -> Transmission) -> bool {
+        let Some(run) = self.run.take() else {
+            return false;
+        };
+        let Some(request) = run_as_request(&run) else {
+            return false;
+        };
+        let transmission = respond(&request);
+        let answered = !transmission.is_empty();
+        self.transmit(&transmission);
+        answered
+    }
+
+    /// Puts device bytes on the wire; bytes overlapping others already there merge by AND.
+    pub fn transmit(&mut self, transmission: &Transmission) {
+        for burst in &transmission.bursts {
+            for (index, &byte) in burst.bytes.iter().enumerate() {
+                let slot = Slot {
+                    start: burst.start + burst.char_time * u32::try_from(index).unwrap_or(u32::MAX),
+                    char_time: burst.char_time,
+                    byte,
+                };
+                let mut merged = false;
+                for other in self
+                    .pending
+                    .iter_mut()
+                    .filter(|other| other.overlaps(slot.start, slot.end()))
+                {
+                    other.byte &= byte;
+                    merged = true;
+                }
+                if !merged {
+                    let position = self
+                        .pending
+                        .partition_point(|other| other.start <= slot.start);
+                    self.pending.insert(position, slot);
+                }
+            }
+        }
+    }
+
+    /// Device bytes still to be handed to the master, with the time each arrives.
+    pub fn arrivals(&self) -> Vec<(Duration, u8)> {
+        self.pending
+            .iter()
+            .map(|slot| (slot.end(), slot.byte))
+            .collect()
+    }
+
+    /// Device bytes still to come after `now` (those before have reached the master).
+    pub fn forget_delivered(&mut self, now: Duration) {
+        self.pending.retain(|slot| slot.end() > now);
+    }
+
+    /// No device byte pending and no master run open.
+    pub fn is_idle(&self) -> bool {
+        self.pending.is_empty() && self.run.is_none()
+    }
+}
+
+/// A run is a request only if it is exactly one frame: anything before, after or inside it
+/// (another request, noise) makes it noise, as a slave checks the CRC of all it got.
+fn run_as_request(run: &Run) -> Option<ReceivedRequest> {
+    if run.spoiled {
+        tracing::debug!("sim: request collided with a reply on the wire: nobody answers");
+        return None;
+    }
+    let mut parser = RequestParser::new();
+    parser.push(&run.bytes);
+    let status = match parser.poll() {
+        ParseStatus::NeedMore => parser.silence(),
+        status => status,
+    };
+    match status {
+        ParseStatus::Frame(request) if parser.buffered().is_empty() => Some(ReceivedRequest {
+            request,
+            frame_len: run.bytes.len(),
+            first_byte_at: run.start,
+            last_byte_at: run.end,
+            line: run.line,
+        }),
+        ParseStatus::Frame(_) => {
+            tracing::debug!(
+                "sim: {} bytes without a frame gap are not one frame: nobody answers",
+                run.bytes.len()
+            );
+            None
+        }
+        ParseStatus::Error(err) => {
+            tracing::debug!("sim: line noise: {err}");
+            None
+        }
+        ParseStatus::NeedMore => None,
+    }
+}
