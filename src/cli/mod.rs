@@ -3,10 +3,10 @@
 // boxing them would only make every `match` on `problem` noisier.
 #![allow(clippy::result_large_err)]
 
-#[cfg(feature = "bench")]
-pub mod bench;
 pub mod access;
 pub mod address;
+#[cfg(feature = "bench")]
+pub mod bench;
 pub mod check;
 pub mod decode;
 pub mod demo;

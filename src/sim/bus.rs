@@ -49,6 +49,8 @@ struct PlannedReply {
     frame: Vec<u8>,
     start: Duration,
     line: LineSettings,
+    /// The reply of an arbitration winner: it starts right after the arbitration or not at all.
+    after_arbitration: bool,
 }
 
 pub struct Bus {
@@ -267,6 +269,7 @@ impl Bus {
             frame,
             start: received.end_on_wire(&line) + device.turnaround.max(frame_gap(&line)),
             line,
+            after_arbitration: false,
         })
     }
 
@@ -523,6 +526,7 @@ impl Bus {
             let reply = winner_reply(device);
             if let Some(mut planned) = self.plan(index, &reply, device_line, received) {
                 planned.start = frame_start;
+                planned.after_arbitration = true;
                 replies.push(planned);
             }
         }
@@ -544,6 +548,10 @@ impl Bus {
                         *last ^= 0xFF;
                     }
                 }
+                // A device that won the arbitration sends at once: the windows are timed, and a
+                // late start would lose the bus to the next round. Only addressed replies can
+                // come late.
+                FaultAction::Delay(_) if reply.after_arbitration => {}
                 FaultAction::Delay(delay) => reply.start += delay,
                 FaultAction::Exception => {
                     if let Some(exception) = busy_exception(&reply.frame) {
