@@ -15,6 +15,9 @@
 use std::time::Duration;
 
 use crate::port::{ReplyTiming, Transaction};
+use crate::protocol::pdu::FrameLength;
+use crate::protocol::timing::{ARBITRATION_WINDOWS_EVENTS, ARBITRATION_WINDOWS_SCAN};
+use crate::protocol::{FastRequest, LineSettings, Reply, Request, RequestBody};
 
 /// Longest a babbling line may keep the transport draining after a failed transaction, so that a
 /// stuck transmitter cannot stall the port forever.
@@ -188,6 +191,71 @@ impl ReplyWindow {
     }
 }
 
+/// The frame length the reply to `request` has when all goes well (the shortest one for event
+/// polls: "no events"; a longer packet announces itself in its header).
+fn usual_reply_len(request: &Request) -> usize {
+    // Address and CRC around a PDU; Fast Modbus replies also carry their function code.
+    let frame = |pdu_len: usize| pdu_len + 3;
+    match &request.body {
+        RequestBody::Classic(pdu) => frame(pdu.expected_reply_len()),
+        // 0x09, serial number, then the classic reply PDU.
+        RequestBody::Fast(FastRequest::BySerial { pdu, .. }) => {
+            frame(1 + 5 + pdu.expected_reply_len())
+        }
+        // 0x03, serial number, Modbus address.
+        RequestBody::Fast(FastRequest::ScanStart | FastRequest::ScanContinue) => frame(1 + 6),
+        // 0x12.
+        RequestBody::Fast(FastRequest::PollEvents(_)) => frame(1 + 1),
+        // 0x18, mask length, masks.
+        RequestBody::Fast(FastRequest::ConfigureEvents { ranges }) => {
+            frame(1 + 2 + ranges.iter().map(|r| r.mask_len()).sum::<usize>())
+        }
+    }
+}
+
+/// How many more bytes the reply to `request` needs at the least, with `buffered` of it in the
+/// reply parser (arbitration filler already dropped): from the frame's header once it is in,
+/// else from the request. Never zero: the caller has no complete frame.
+pub fn bytes_still_expected(request: &Request, buffered: &[u8]) -> usize {
+    let total = match Reply::length_from_header(buffered) {
+        FrameLength::Known(len) => len,
+        FrameLength::NeedMore => usual_reply_len(request),
+        // Not a frame the parser can measure: it drops it; expect one more byte.
+        FrameLength::Unknown => 0,
+    };
+    total.saturating_sub(buffered.len()).max(1)
+}
+
+/// When the reply to `request` should have arrived whole, judged at `now` with `buffered` bytes
+/// of its frame in the parser: after the frame's missing bytes' wire time, and for requests
+/// answered after an arbitration (event polls, scans) not before the winner's frame can have
+/// started. `clock_start` is the end of the request. The caller reads once then, instead of once
+/// for every few bytes; the timeouts of [`ReplyWindow`] still bound the wait.
+pub fn expected_reply_end(
+    request: &Request,
+    buffered: &[u8],
+    line: &LineSettings,
+    clock_start: Duration,
+    now: Duration,
+) -> Duration {
+    let arbitration_windows = match &request.body {
+        RequestBody::Fast(FastRequest::PollEvents(_)) => Some(ARBITRATION_WINDOWS_EVENTS),
+        RequestBody::Fast(FastRequest::ScanStart | FastRequest::ScanContinue) => {
+            Some(ARBITRATION_WINDOWS_SCAN)
+        }
+        _ => None,
+    };
+    let frame_start = match arbitration_windows {
+        // The frame follows the last arbitration window (filler bytes come before it).
+        Some(windows) if buffered.is_empty() => clock_start
+            .saturating_add(line.device_arbitration_wait())
+            .saturating_add(line.arbitration_window().saturating_mul(windows))
+            .max(now),
+        _ => now,
+    };
+    frame_start.saturating_add(line.wire_time(bytes_still_expected(request, buffered)))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -318,5 +386,118 @@ mod tests {
             assert!(rounds < 1000, "never finished");
         }
         assert!(now <= ms(30 + 26 + 59 + 1000 + 10), "{now:?}");
+    }
+
+    fn line_115200() -> LineSettings {
+        LineSettings::new(115_200, crate::protocol::Parity::None, 2)
+    }
+
+    fn read_inputs(address: u8, count: u16) -> Request {
+        Request::classic(
+            address,
+            RequestPdu::ReadInputRegisters { start: 0x1E, count },
+        )
+    }
+
+    fn poll_events() -> Request {
+        Request::poll_events(crate::protocol::EventPoll {
+            min_address: 0,
+            max_data_len: 0xF8,
+            ack_address: 0,
+            ack_flag: 0,
+        })
+    }
+
+    #[test]
+    fn a_classic_reply_is_measured_from_the_request_then_from_its_header() {
+        let request = read_inputs(0x1E, 2);
+        // 1E 04 04 xx xx xx xx CRC CRC: nine bytes.
+        assert_eq!(bytes_still_expected(&request, &[]), 9);
+        assert_eq!(bytes_still_expected(&request, &[0x1E]), 8);
+        assert_eq!(bytes_still_expected(&request, &[0x1E, 0x04, 0x04, 0x00]), 5);
+        assert_eq!(
+            bytes_still_expected(&request, &[0x1E, 0x04, 0x04, 0, 0, 0, 0, 0x15]),
+            1
+        );
+        // An exception is shorter than the reply asked for: 1E 84 02 CRC CRC.
+        assert_eq!(bytes_still_expected(&request, &[0x1E, 0x84]), 3);
+        // A write's echo: eight bytes.
+        let write = Request::classic(
+            0x15,
+            RequestPdu::WriteSingleRegister {
+                address: 0,
+                value: 1,
+            },
+        );
+        assert_eq!(bytes_still_expected(&write, &[0x15]), 7);
+    }
+
+    #[test]
+    fn bytes_still_expected_is_never_zero() {
+        let request = read_inputs(0x1E, 2);
+        // A header no parser can measure (unknown function): one more byte, then the parser
+        // decides.
+        assert_eq!(bytes_still_expected(&request, &[0x1E, 0x77, 0x01]), 1);
+        // More bytes than the header says (the parser holds a frame it is about to give out).
+        let whole = [0x1E, 0x04, 0x04, 0, 0, 0, 0, 0x15, 0x45, 0x00];
+        assert_eq!(bytes_still_expected(&request, &whole), 1);
+    }
+
+    #[test]
+    fn an_event_reply_is_measured_from_its_header() {
+        let request = poll_events();
+        // Only arbitration filler so far: at least "no events" (FD 46 12 CRC CRC).
+        assert_eq!(bytes_still_expected(&request, &[]), 5);
+        assert_eq!(bytes_still_expected(&request, &[0xFD, 0x46, 0x12]), 2);
+        // 16 46 11 flag count len=0x0A, then 10 bytes of events and the CRC: 18 bytes.
+        let header = [0x16, 0x46, 0x11, 0x01, 0x02, 0x0A];
+        assert_eq!(bytes_still_expected(&request, &header), 12);
+        assert_eq!(bytes_still_expected(&request, &header[..2]), 3);
+    }
+
+    #[test]
+    fn a_reply_is_expected_whole_after_its_missing_bytes_wire_time() {
+        let line = line_115200();
+        let request = read_inputs(0x1E, 2);
+        let now = ms(10);
+        assert_eq!(
+            expected_reply_end(&request, &[0x1E], &line, ms(9), now),
+            now + line.wire_time(8)
+        );
+        // 8 characters of 11 bits at 115200: 763.9 us.
+        assert_eq!(line.wire_time(8), Duration::from_nanos(763_889));
+    }
+
+    #[test]
+    fn an_event_reply_is_expected_after_the_arbitration() {
+        let line = line_115200();
+        let request = poll_events();
+        let clock_start = ms(100);
+        // A filler byte came in the first window: the frame starts after the twelfth.
+        let frame_start = clock_start
+            + line.device_arbitration_wait()
+            + line.arbitration_window() * ARBITRATION_WINDOWS_EVENTS;
+        let now = clock_start + ms(1);
+        assert_eq!(
+            expected_reply_end(&request, &[], &line, clock_start, now),
+            frame_start + line.wire_time(5)
+        );
+        // 807.3 us + 12 x 156.25 us at 115200 (the article's figures).
+        assert_eq!(
+            frame_start - clock_start,
+            Duration::from_nanos(807_292) + Duration::from_nanos(156_250) * 12
+        );
+        // Read late, after the arbitration: from now.
+        let late = frame_start + ms(2);
+        assert_eq!(
+            expected_reply_end(&request, &[], &line, clock_start, late),
+            late + line.wire_time(5)
+        );
+        // Once the frame has begun, its header rules.
+        let header = [0x16, 0x46, 0x11, 0x01, 0x02, 0x0A];
+        assert_eq!(
+            expected_reply_end(&request, &header, &line, clock_start, now),
+            now + line.wire_time(12)
+        );
     }
 }
