@@ -125,10 +125,7 @@ impl ToolPort {
                 line,
             };
             let transport = Transport::open(&endpoint).await.map_err(|err| match err {
-                TransportError::Open { source, .. } => {
-                    let io: io::Error = source.into();
-                    classify(&self.path, io)
-                }
+                TransportError::Open { source, .. } => classify(&self.path, source),
                 other => PortError::Transport(other),
             })?;
             self.current = Some((line, transport));
