@@ -59,18 +59,10 @@ impl EventPoller {
     }
 
     /// A device sent a packet: confirm it next time, let the devices above it speak first, and
-    /// ask again at once (more may be waiting), within the burst limit. `highest_listener`: the
-    /// highest address with events enabled. Above it nobody would answer, not even "no events",
-    /// and the poll would cost a whole first-byte timeout of silence: the whole bus is asked then.
-    pub(super) fn packet_received(
-        &mut self,
-        now: Duration,
-        address: u8,
-        flag: u8,
-        highest_listener: u8,
-    ) {
+    /// ask again at once (more may be waiting), within the burst limit.
+    pub(super) fn packet_received(&mut self, now: Duration, address: u8, flag: u8) {
         self.ack = Some((address, flag));
-        self.min_address = if address >= MAX_DEVICE_ADDRESS || address >= highest_listener {
+        self.min_address = if address >= MAX_DEVICE_ADDRESS {
             0
         } else {
             address + 1
@@ -138,7 +130,7 @@ mod tests {
         let ms = Duration::from_millis;
         events.started(ms(0));
         assert_eq!(events.next_at(), ms(50));
-        events.packet_received(ms(3), 20, 1, 30);
+        events.packet_received(ms(3), 20, 1);
         assert_eq!(
             events.request(),
             EventPoll {
@@ -160,31 +152,17 @@ mod tests {
     }
 
     #[test]
-    fn the_highest_listener_is_followed_by_the_whole_bus() {
-        let mut events = poller(115_200);
-        events.started(Duration::ZERO);
-        events.packet_received(Duration::from_millis(3), 30, 1, 30);
-        let poll = events.request();
-        assert_eq!(poll.min_address, 0, "nobody above 30 could answer");
-        assert_eq!(
-            (poll.ack_address, poll.ack_flag),
-            (30, 1),
-            "the packet is still confirmed"
-        );
-    }
-
-    #[test]
     fn bursts_are_bounded() {
         let mut events = poller(115_200);
         let mut now = Duration::ZERO;
         for _ in 0..MAX_BURST {
             events.started(now);
-            events.packet_received(now, 5, 0, 30);
+            events.packet_received(now, 5, 0);
             assert_eq!(events.next_at(), now);
             now += Duration::from_millis(2);
         }
         events.started(now);
-        events.packet_received(now, 5, 1, 30);
+        events.packet_received(now, 5, 1);
         assert_eq!(events.next_at(), now + Duration::from_millis(50));
     }
 }

@@ -351,12 +351,10 @@ fn an_event_packet_is_acknowledged_in_the_next_request() {
             ack_flag: 0
         }
     );
-    // Confirmed in the next request; the whole bus is asked again (min_address 0), since no
-    // device above 20 could answer.
     assert_eq!(
         polls[1].1,
         EventPoll {
-            min_address: 0,
+            min_address: 21,
             max_data_len: 248,
             ack_address: 20,
             ack_flag: 1
