@@ -125,7 +125,9 @@ impl ToolPort {
                 line,
             };
             let transport = Transport::open(&endpoint).await.map_err(|err| match err {
-                TransportError::Open { source, .. } => classify(&self.path, source),
+                TransportError::Open { source, .. } => {
+                    classify(&self.path, std::io::Error::from(source))
+                }
                 other => PortError::Transport(other),
             })?;
             self.current = Some((line, transport));

@@ -6,9 +6,7 @@
 
 mod mbap;
 pub mod receive;
-mod serial;
 
-use std::borrow::Cow;
 use std::io;
 use std::time::Duration;
 
@@ -17,8 +15,8 @@ use tokio::io::{AsyncRead, AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
 use tokio::time::{timeout_at, Instant};
 
-use receive::{expected_reply_end, Received, ReplyWindow};
-use serial::SerialLink;
+use receive::{Received, ReplyWindow};
+use tokio_serial::{SerialPort, SerialPortBuilderExt, SerialStream};
 use tracing::debug;
 
 use crate::port::{Outcome, ReplyTiming, Transaction};
@@ -30,7 +28,10 @@ pub use mbap::MbapCodec;
 #[derive(Debug, Error)]
 pub enum TransportError {
     #[error("cannot open {path}: {source}")]
-    Open { path: String, source: io::Error },
+    Open {
+        path: String,
+        source: tokio_serial::Error,
+    },
     #[error("cannot connect to {address}: {source}")]
     Connect { address: String, source: io::Error },
     #[error("connecting to {address} timed out")]
@@ -73,18 +74,9 @@ impl Endpoint {
 }
 
 enum Link {
-    Serial(SerialLink),
+    Serial(SerialStream),
     Tcp(TcpStream),
 }
-
-/// How often, at most, one reply is read after a sleep until its expected end before the line is
-/// watched byte by byte again (a device or adapter slower than the wire; garbage).
-const MAX_PACED_READS: u32 = 3;
-
-/// Added to a reply's expected end before reading it: the kernel hands received bytes to the
-/// reader a little after they arrived (measured: 100 µs cost 3 % of the bus's transactions at
-/// 115200 for no saving in CPU; docs/performance.md).
-const PACING_SLACK: Duration = Duration::from_micros(20);
 
 /// An open bus.
 pub struct Transport {
@@ -106,14 +98,34 @@ impl Transport {
         let name = endpoint.name();
         let (link, mbap, inter_byte_timeout) = match endpoint {
             Endpoint::Serial { path, line } => {
-                let link = SerialLink::open(path, line).map_err(|source| TransportError::Open {
-                    path: path.clone(),
-                    source,
-                })?;
+                let builder = tokio_serial::new(path, line.baud)
+                    .data_bits(match line.data_bits {
+                        5 => tokio_serial::DataBits::Five,
+                        6 => tokio_serial::DataBits::Six,
+                        7 => tokio_serial::DataBits::Seven,
+                        _ => tokio_serial::DataBits::Eight,
+                    })
+                    .parity(match line.parity {
+                        protocol::Parity::None => tokio_serial::Parity::None,
+                        protocol::Parity::Even => tokio_serial::Parity::Even,
+                        protocol::Parity::Odd => tokio_serial::Parity::Odd,
+                    })
+                    .stop_bits(if line.stop_bits == 2 {
+                        tokio_serial::StopBits::Two
+                    } else {
+                        tokio_serial::StopBits::One
+                    });
+                let stream =
+                    builder
+                        .open_native_async()
+                        .map_err(|source| TransportError::Open {
+                            path: path.clone(),
+                            source,
+                        })?;
                 // USB adapters deliver in bursts: allow several characters of silence, at least 20 ms
                 // (wb-mqtt-serial's default frame timeout).
                 let gap = (line.char_time() * 8).max(Duration::from_millis(20));
-                (Link::Serial(link), None, gap)
+                (Link::Serial(stream), None, gap)
             }
             Endpoint::RtuOverTcp {
                 address,
@@ -162,8 +174,8 @@ impl Transport {
         self.flush_input()?;
         let frame = transaction.request.encode()?;
         let wire = match &mut self.mbap {
-            Some(mbap) => Cow::Owned(mbap.wrap(&frame)),
-            None => Cow::Borrowed(frame.as_slice()),
+            Some(mbap) => mbap.wrap(&frame),
+            None => frame.clone(),
         };
         if !self.guard_interval.is_zero() {
             tokio::time::sleep_until(self.last_activity + self.guard_interval).await;
@@ -187,20 +199,31 @@ impl Transport {
         let mut parser = ReplyParser::for_request(&transaction.request);
         let mut garbled = false;
         let mut buffer = [0u8; 512];
-        let mut paced_reads = 0;
         while !window.is_finished() {
-            let read = self
-                .next_bytes(transaction, &window, &parser, &mut paced_reads, &mut buffer)
-                .await?;
-            let Some(count) = read else {
-                window.expire(self.epoch.elapsed());
-                continue;
+            let wake = self.epoch + window.wake_at();
+            let count = match timeout_at(wake, self.read(&mut buffer)).await {
+                Err(_elapsed) => {
+                    window.expire(self.epoch.elapsed());
+                    continue;
+                }
+                Ok(Ok(0)) => {
+                    return Err(TransportError::Closed {
+                        name: self.name.clone(),
+                    })
+                }
+                Ok(Ok(count)) => count,
+                Ok(Err(source)) => {
+                    return Err(TransportError::Io {
+                        name: self.name.clone(),
+                        source,
+                    })
+                }
             };
             let bytes = buffer.get(..count).unwrap_or(&[]);
             self.last_activity = Instant::now();
             let unwrapped = match &mut self.mbap {
-                Some(mbap) => Cow::Owned(mbap.unwrap(bytes)),
-                None => Cow::Borrowed(bytes),
+                Some(mbap) => mbap.unwrap(bytes),
+                None => bytes.to_vec(),
             };
             if window.receive(self.epoch.elapsed()) == Received::Discard {
                 debug!(port = %self.name, rx = %protocol::hex(bytes), "bytes outside the reply window dropped");
@@ -229,76 +252,17 @@ impl Transport {
         Ok((outcome, window.timing()))
     }
 
-    /// The next bytes on the line, or `None` when the window's wake time came first. On a serial
-    /// line, once a reply has started, the transport sleeps until the reply should be complete
-    /// and reads it in one go (bounded by the window's wake time, so no timeout changes); if
-    /// nothing more came by then, or after a few such reads, it watches the line again.
-    async fn next_bytes(
-        &mut self,
-        transaction: &Transaction,
-        window: &ReplyWindow,
-        parser: &ReplyParser,
-        paced_reads: &mut u32,
-        buffer: &mut [u8],
-    ) -> Result<Option<usize>, TransportError> {
-        let wake = self.epoch + window.wake_at();
-        let reply_started = window.is_waiting() && window.timing().first_byte.is_some();
-        if let (Link::Serial(link), true) = (&mut self.link, reply_started) {
-            if *paced_reads < MAX_PACED_READS {
-                let end = expected_reply_end(
-                    &transaction.request,
-                    parser.buffered(),
-                    link.line(),
-                    window.clock_start(),
-                    self.epoch.elapsed(),
-                );
-                let at = self.epoch + end + PACING_SLACK;
-                if at < wake {
-                    *paced_reads += 1;
-                    link.unwatch();
-                    let read = match link.sleep_until(at).await {
-                        Ok(()) => link.read_now(buffer),
-                        Err(err) => Err(err),
-                    };
-                    match read {
-                        Ok(Some(0)) => {
-                            return Err(TransportError::Closed {
-                                name: self.name.clone(),
-                            })
-                        }
-                        Ok(Some(count)) => return Ok(Some(count)),
-                        // Nothing more came: the line's own timing rules from here.
-                        Ok(None) => *paced_reads = MAX_PACED_READS,
-                        Err(source) => {
-                            return Err(TransportError::Io {
-                                name: self.name.clone(),
-                                source,
-                            })
-                        }
-                    }
-                }
-            }
-        }
-        match timeout_at(wake, self.read(buffer)).await {
-            Err(_elapsed) => Ok(None),
-            Ok(Ok(0)) => Err(TransportError::Closed {
-                name: self.name.clone(),
-            }),
-            Ok(Ok(count)) => Ok(Some(count)),
-            Ok(Err(source)) => Err(TransportError::Io {
-                name: self.name.clone(),
-                source,
-            }),
-        }
-    }
-
     /// Drops whatever arrived unasked (late replies, noise) so it cannot pass for the next reply.
     fn flush_input(&mut self) -> Result<(), TransportError> {
         match &mut self.link {
-            Link::Serial(link) => link.flush_input().map_err(|source| TransportError::Io {
-                name: self.name.clone(),
-                source,
-            }),
+            Link::Serial(stream) => {
+                stream
+                    .clear(tokio_serial::ClearBuffer::Input)
+                    .map_err(|source| TransportError::Io {
+                        name: self.name.clone(),
+                        source: source.into(),
+                    })
+            }
             Link::Tcp(stream) => {
                 let mut scratch = [0u8; 256];
                 loop {
@@ -324,7 +288,7 @@ impl Transport {
 
     async fn write_all(&mut self, bytes: &[u8]) -> Result<(), TransportError> {
         let result = match &mut self.link {
-            Link::Serial(link) => link.write_all(bytes).await,
+            Link::Serial(stream) => AsyncWriteExt::write_all(stream, bytes).await,
             Link::Tcp(stream) => AsyncWriteExt::write_all(stream, bytes).await,
         };
         result.map_err(|source| TransportError::Io {
@@ -335,7 +299,7 @@ impl Transport {
 
     async fn read(&mut self, buffer: &mut [u8]) -> io::Result<usize> {
         match &mut self.link {
-            Link::Serial(link) => link.read(buffer).await,
+            Link::Serial(stream) => read_some(stream, buffer).await,
             Link::Tcp(stream) => read_some(stream, buffer).await,
         }
     }
