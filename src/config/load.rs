@@ -215,22 +215,6 @@ fn port_durations(port: &super::config_file::PortConfig) -> Vec<(&'static str, i
     out
 }
 
-fn device_durations(device: &super::config_file::DeviceConfig) -> Vec<(&'static str, i64)> {
-    [
-        ("response_timeout_ms", device.response_timeout_ms),
-        ("frame_timeout_ms", device.frame_timeout_ms),
-        ("guard_interval_us", device.guard_interval_us),
-        ("min_request_interval", device.min_request_interval),
-        ("device_timeout_ms", device.device_timeout_ms),
-        ("max_write_fail_time_s", device.max_write_fail_time_s),
-        ("read_rate_limit_ms", device.read_rate_limit_ms),
-        ("poll_interval", device.poll_interval),
-    ]
-    .into_iter()
-    .filter_map(|(k, v)| v.map(|v| (k, v)))
-    .collect()
-}
-
 /// TLS files must exist now, not fail at the first connection; a certificate needs its key.
 fn check_tls(loaded: &LoadedConfig) -> Vec<LocatedError> {
     let mut errors = Vec::new();
@@ -356,7 +340,7 @@ fn check_ports(loaded: &LoadedConfig) -> Vec<LocatedError> {
             if device.enabled == Some(false) {
                 continue;
             }
-            for (key, value) in device_durations(device) {
+            for (key, value) in crate::config::device_durations!(device) {
                 if let Some(problem) = duration_problem(key, value) {
                     errors.push(loaded.error(device_at.key(key), problem));
                 }

@@ -101,7 +101,7 @@ pub fn resolve_device(input: &ResolveInput) -> Result<ResolvedDevice, Vec<Resolv
         serial_number: None,
         errors: Vec::new(),
     };
-    let mut duration_errors: Vec<ResolveError> = device_durations(&device)
+    let mut duration_errors: Vec<ResolveError> = crate::config::device_durations!(&device)
         .into_iter()
         .filter_map(|(key, value)| duration_problem(key, value))
         .map(|problem| ResolveError {
@@ -211,22 +211,6 @@ fn modbus_io_shift(device: &TemplateDevice, module: Option<i128>) -> Result<i64,
                 })
         }
     }
-}
-
-fn device_durations(device: &TemplateDevice) -> Vec<(&'static str, i64)> {
-    [
-        ("response_timeout_ms", device.response_timeout_ms),
-        ("frame_timeout_ms", device.frame_timeout_ms),
-        ("guard_interval_us", device.guard_interval_us),
-        ("min_request_interval", device.min_request_interval),
-        ("device_timeout_ms", device.device_timeout_ms),
-        ("max_write_fail_time_s", device.max_write_fail_time_s),
-        ("read_rate_limit_ms", device.read_rate_limit_ms),
-        ("poll_interval", device.poll_interval),
-    ]
-    .into_iter()
-    .filter_map(|(k, v)| v.map(|v| (k, v)))
-    .collect()
 }
 
 fn timing(device: &TemplateDevice, port: &PortConfig, is_wb: bool) -> DeviceTiming {
