@@ -10,6 +10,7 @@ pub mod config;
 pub mod daemon;
 pub mod device;
 pub mod embedded_broker;
+pub mod gateway;
 pub mod mqtt;
 pub mod port;
 pub mod protocol;

@@ -10,7 +10,7 @@ use std::time::Instant;
 
 use libfuzzer_sys::fuzz_target;
 use rtu2mqtt::config::TemplateFile;
-use rtu2mqtt::daemon::device_model::DeviceModel;
+use rtu2mqtt::gateway::device_model::DeviceModel;
 use rtu2mqtt::device::{resolve_template_device, ResolvedDevice};
 use rtu2mqtt::mqtt::{
     PlannerSettings, PublicationPlanner, TopicScheme, UnchangedPolicy, WriteOutcome,

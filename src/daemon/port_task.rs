@@ -8,8 +8,8 @@ use tokio::sync::{mpsc, watch};
 use tokio::time::Instant;
 use tracing::{debug, info, warn};
 
-use super::device_model::DeviceModel;
-use super::port_plan::PortPlan;
+use crate::gateway::device_model::DeviceModel;
+use crate::gateway::port_plan::PortPlan;
 use crate::port::{Action, Outcome, PortEvent, PortScheduler, ReplyTiming};
 use crate::service::{BrokerState, PortVitals, ServiceHealth};
 use crate::transport::{Transport, TransportError};

@@ -7,11 +7,11 @@ use std::time::Duration;
 use serde_json::Value;
 
 use super::codec::ValueCodec;
-use super::format::RegisterFormat;
 use super::model::*;
 use super::number_text::format_g;
 use crate::config::config_file::PortConfig;
 use crate::config::error::Problem;
+use crate::config::format::RegisterFormat;
 use crate::config::load::duration_problem;
 use crate::config::template::{
     ChannelSpec, RegisterKind, SetupItemSpec, SetupValue, TemplateDevice,
@@ -280,8 +280,8 @@ struct RegisterFields<'a> {
     address: Option<AddressSpec>,
     write_address: Option<AddressSpec>,
     format: Option<RegisterFormat>,
-    word_order: Option<crate::device::format::WordOrder>,
-    byte_order: Option<crate::device::format::ByteOrder>,
+    word_order: Option<crate::config::format::WordOrder>,
+    byte_order: Option<crate::config::format::ByteOrder>,
     string_data_size: Option<u32>,
     scale: Option<f64>,
     offset: Option<f64>,
