@@ -10,6 +10,7 @@ use tracing::{debug, info, warn};
 
 use crate::gateway::device_model::DeviceModel;
 use crate::gateway::port_plan::PortPlan;
+use crate::mqtt::throttle::{LogBudget, LogDecision};
 use crate::port::{Action, Outcome, PortEvent, PortScheduler, ReplyTiming};
 use crate::service::{BrokerState, PortVitals, ServiceHealth};
 use crate::transport::{Transport, TransportError};
@@ -30,7 +31,12 @@ pub struct PortTask {
     /// What systemd's watchdog and status line learn from this task.
     vitals: Option<Arc<PortVitals>>,
     online: Vec<bool>,
+    /// Refused `/on` payloads are logged a few per minute: any MQTT client can send them.
+    refused_log: LogBudget,
 }
+
+/// Refused writes logged per minute on one port; the rest are counted.
+const REFUSED_WRITE_LOG_LINES: u32 = 10;
 
 /// The task reports progress at least this often, even with nothing to do on the bus.
 const HEARTBEAT: Duration = Duration::from_secs(1);
@@ -53,6 +59,7 @@ impl PortTask {
             epoch: Instant::now(),
             vitals: None,
             online: Vec::new(),
+            refused_log: LogBudget::new(REFUSED_WRITE_LOG_LINES),
         }
     }
 
@@ -190,7 +197,10 @@ impl PortTask {
                 }
             }
             Err(reason) => {
-                warn!(device = %write.device_id, control = %write.control_id, payload = %write.payload, %reason, "write refused");
+                let decision = self.refused_log.check(std::time::Instant::now());
+                if let LogDecision::Log { suppressed_before } = decision {
+                    warn!(device = %write.device_id, control = %write.control_id, %reason, suppressed_before, "write refused");
+                }
                 let mut updates = Vec::new();
                 model.write_rejected(&write.control_id, &mut updates);
                 self.send(updates).await;

@@ -1,18 +1,18 @@
 //! The publication planner: what to publish for each [`DeviceUpdate`], given everything
 //! published so far. Pure (the time comes in as an argument), so every rule of the layout —
-//! dedup, `max_unchanged_interval`, error ordering, removal, republishing after a reconnect —
-//! is tested without a broker.
+//! `max_unchanged_interval`, removal, republishing after a reconnect — is tested without a
+//! broker. Values, their changes and the error flags are the device model's
+//! (`gateway::device_model`); this side only maps them to topics.
 
 use std::collections::{BTreeMap, HashMap};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use tracing::{debug, warn};
+use tracing::debug;
 
 use super::discovery::{self, DiscoverySettings};
 use super::layout;
 use super::topics::TopicScheme;
-use super::writes::{check_write, WriteRejection};
 use super::{MqttAction, Publication};
 use crate::device::{ResolvedChannel, ResolvedDevice};
 use crate::updates::{ControlWrite, DeviceIdentity, DeviceUpdate, ErrorFlags};
@@ -62,37 +62,18 @@ pub enum WriteOutcome {
     /// An empty payload: a client deleting a retained `/on` message. No command, and no bad
     /// write either.
     IgnoredEmpty,
-    /// Hand `write` to the bus side; `actions` clear an earlier rejection's `w`.
-    Accepted {
-        write: ControlWrite,
-        actions: Vec<MqttAction>,
-    },
-    /// Refused: nothing goes to the bus, `actions` set `w`.
-    Rejected {
-        device_id: String,
-        control_id: String,
-        reason: WriteRejection,
-        actions: Vec<MqttAction>,
-    },
+    /// Hand `write` to the bus side, whose device model checks the payload (and sets `w` when
+    /// it refuses it). Bytes that are not UTF-8 arrive there as U+FFFD, which it refuses.
+    Accepted(ControlWrite),
 }
 
+/// What is published for one control (republished after a reconnect).
 #[derive(Debug, Default)]
 struct ControlState {
     value: Option<String>,
     last_published: Option<Instant>,
-    bus_errors: ErrorFlags,
-    /// Set by a refused `/on` payload; cleared by the next accepted one.
-    write_refused: bool,
+    errors: ErrorFlags,
     published_errors: String,
-}
-
-impl ControlState {
-    fn errors(&self) -> ErrorFlags {
-        ErrorFlags {
-            write: self.bus_errors.write || self.write_refused,
-            ..self.bus_errors
-        }
-    }
 }
 
 #[derive(Debug)]
@@ -145,13 +126,14 @@ impl PublicationPlanner {
                 device_id,
                 control_id,
                 value,
-                from_event,
-            } => self.set_value(&device_id, &control_id, value, from_event, now),
+                from_event: _,
+                changed,
+            } => self.set_value(&device_id, &control_id, value, changed, now),
             DeviceUpdate::ControlError {
                 device_id,
                 control_id,
                 errors,
-            } => self.set_errors(&device_id, &control_id, |state| state.bus_errors = errors),
+            } => self.set_errors(&device_id, &control_id, errors),
             DeviceUpdate::Online { device_id, online } => self.set_online(&device_id, online),
         }
     }
@@ -235,7 +217,7 @@ impl PublicationPlanner {
         for channel in &device.channels {
             publications.extend(layout::control_meta(topics, &device.id, channel));
             let control = state.controls.entry(channel.id.clone()).or_default();
-            control.published_errors = control.errors().to_string();
+            control.published_errors = control.errors.to_string();
             publications.push(layout::control_error(
                 topics,
                 &device.id,
@@ -331,7 +313,7 @@ impl PublicationPlanner {
         device_id: &str,
         control_id: &str,
         value: String,
-        _from_event: bool,
+        changed: bool,
         now: Instant,
     ) -> Vec<MqttAction> {
         let topics = &self.settings.topics;
@@ -344,12 +326,6 @@ impl PublicationPlanner {
             return Vec::new();
         };
         let mut out = Vec::new();
-        // A value means a good read: `r` is cleared first, then the value follows.
-        if control.bus_errors.read {
-            control.bus_errors.read = false;
-            out.extend(error_if_changed(topics, device_id, control_id, control));
-        }
-        let changed = control.value.as_deref() != Some(value.as_str());
         let due = match unchanged_policy {
             UnchangedPolicy::OnChange => false,
             UnchangedPolicy::EveryRead => true,
@@ -371,7 +347,7 @@ impl PublicationPlanner {
         &mut self,
         device_id: &str,
         control_id: &str,
-        change: impl FnOnce(&mut ControlState),
+        errors: ErrorFlags,
     ) -> Vec<MqttAction> {
         let topics = &self.settings.topics;
         let Some((_, control)) = lookup(&mut self.devices, device_id, control_id) else {
@@ -381,7 +357,7 @@ impl PublicationPlanner {
             );
             return Vec::new();
         };
-        change(control);
+        control.errors = errors;
         error_if_changed(topics, device_id, control_id, control)
             .into_iter()
             .collect()
@@ -407,8 +383,8 @@ impl PublicationPlanner {
         out
     }
 
-    /// An `/on` message: validated against the control, turned into a write or refused.
-    pub fn on_message(&mut self, topic: &str, payload: &[u8], retained: bool) -> WriteOutcome {
+    /// An `/on` message: mapped to the control's write, or ignored.
+    pub fn on_message(&self, topic: &str, payload: &[u8], retained: bool) -> WriteOutcome {
         let Some((device_id, control_id)) = self.on_topics.get(topic).cloned() else {
             return WriteOutcome::NotOurs;
         };
@@ -418,47 +394,11 @@ impl PublicationPlanner {
         if retained {
             return WriteOutcome::IgnoredRetained;
         }
-        let topics = &self.settings.topics;
-        let Some((channel, control)) = lookup(&mut self.devices, &device_id, &control_id) else {
-            return WriteOutcome::NotOurs;
-        };
-        match check_write(channel, payload) {
-            Ok(text) => {
-                control.write_refused = false;
-                let actions = error_if_changed(topics, &device_id, &control_id, control)
-                    .into_iter()
-                    .collect();
-                WriteOutcome::Accepted {
-                    write: ControlWrite {
-                        device_id,
-                        control_id,
-                        payload: text,
-                    },
-                    actions,
-                }
-            }
-            Err(reason) => {
-                control.write_refused = true;
-                let actions = error_if_changed(topics, &device_id, &control_id, control)
-                    .into_iter()
-                    .collect();
-                WriteOutcome::Rejected {
-                    device_id,
-                    control_id,
-                    reason,
-                    actions,
-                }
-            }
-        }
-    }
-
-    /// A checked write could not be handed to the bus side (its queue was full or gone): `w`.
-    pub fn write_not_delivered(&mut self, device_id: &str, control_id: &str) -> Vec<MqttAction> {
-        warn!(
+        WriteOutcome::Accepted(ControlWrite {
             device_id,
-            control_id, "write dropped: the bus side does not take writes"
-        );
-        self.set_errors(device_id, control_id, |state| state.write_refused = true)
+            control_id,
+            payload: String::from_utf8_lossy(payload).into_owned(),
+        })
     }
 
     /// Everything to (re)do after connecting: subscriptions, then every retained topic with
@@ -524,7 +464,7 @@ fn error_if_changed(
     control_id: &str,
     control: &mut ControlState,
 ) -> Option<MqttAction> {
-    let letters = control.errors().to_string();
+    let letters = control.errors.to_string();
     if letters == control.published_errors {
         return None;
     }

@@ -376,6 +376,40 @@ pub fn repo(path: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join(path)
 }
 
+/// Plays the bus side for one write: the device model checks and encodes it (as the port task
+/// does); a refused payload sets `w`, an accepted one is "written" and clears it. Returns
+/// whether it was accepted.
+pub async fn bus_side_takes(
+    mqtt: &MqttUnderTest,
+    model: &mut rtu2mqtt::gateway::device_model::DeviceModel,
+    write: &ControlWrite,
+) -> bool {
+    let mut out = Vec::new();
+    let accepted = match model.write(&write.control_id, &write.payload) {
+        Ok(register_writes) => {
+            for register_write in register_writes {
+                model.apply(
+                    rtu2mqtt::port::PortEvent::WriteDone {
+                        device: register_write.device,
+                        register_type: register_write.register_type,
+                        address: register_write.address,
+                    },
+                    &mut out,
+                );
+            }
+            true
+        }
+        Err(_) => {
+            model.write_rejected(&write.control_id, &mut out);
+            false
+        }
+    };
+    for update in out {
+        mqtt.send(update).await;
+    }
+    accepted
+}
+
 pub fn template_device(template: &str, slave_id: u8) -> Arc<ResolvedDevice> {
     let file = TemplateFile::load(&repo(&format!("templates/{template}.json")))
         .unwrap_or_else(|e| panic!("{e}"));
@@ -391,6 +425,7 @@ pub fn value(device: &str, control: &str, text: &str) -> DeviceUpdate {
         control_id: control.into(),
         value: text.into(),
         from_event: false,
+        changed: true,
     }
 }
 
