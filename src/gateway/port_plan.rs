@@ -3,7 +3,7 @@
 
 use std::time::Duration;
 
-use crate::config::config_file::{Parity as ConfigParity, PortConfig, PortType};
+use crate::config::config_file::{PortConfig, PortType};
 use crate::device::model::{EventMode as ChannelEvents, ResolvedDevice, ResolvedPort};
 use crate::port::{
     DevicePlan, EventMode, HealthPolicy, MergeLimits, PlannedRead, PortSettings, RegisterSpan,
@@ -27,11 +27,7 @@ pub fn line_settings(port: &PortConfig) -> LineSettings {
         PortType::Serial => LineSettings {
             baud: port.baud_rate,
             data_bits: port.data_bits,
-            parity: match port.parity {
-                ConfigParity::N => Parity::None,
-                ConfigParity::E => Parity::Even,
-                ConfigParity::O => Parity::Odd,
-            },
+            parity: port.parity,
             stop_bits: port.stop_bits,
         },
         PortType::Tcp | PortType::ModbusTcp => LineSettings::new(9600, Parity::None, 2),
