@@ -171,7 +171,7 @@ fn load_view(
                         codec: single.then(|| register.codec.clone()),
                     },
                 );
-                if channel.events != EventMode::None && single {
+                if channel.events != EventMode::Polled && single {
                     view.enable.push(EnableSpec {
                         address: device.slave_id,
                         register_type: read.reg_type,

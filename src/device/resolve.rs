@@ -269,7 +269,7 @@ fn timing(device: &TemplateDevice, port: &PortConfig, is_wb: bool) -> DeviceTimi
 struct Walker {
     translations: BTreeMap<String, BTreeMap<String, String>>,
     channels: Vec<ResolvedChannel>,
-    setup: Vec<SetupWrite>,
+    setup: Vec<SetupItem>,
     serial_number: Option<ChannelRegister>,
     errors: Vec<ResolveError>,
 }
@@ -489,7 +489,7 @@ impl Walker {
         } else if spec.semi_sporadic == Some(true) {
             EventMode::SemiSporadic
         } else {
-            EventMode::None
+            EventMode::Polled
         };
         let enum_titles = self.enum_titles(spec, context);
         let id = join(&context.id_prefix, spec.id.as_deref().unwrap_or(&spec.name));
@@ -583,7 +583,7 @@ impl Walker {
             };
             let current = vec![0u16; register.codec.word_count as usize];
             match register.codec.encode(&value, Some(&current)) {
-                Ok(words) => self.setup.push(SetupWrite {
+                Ok(words) => self.setup.push(SetupItem {
                     title: join_title(
                         &context.id_prefix,
                         item.title.as_deref().unwrap_or("<unnamed>"),

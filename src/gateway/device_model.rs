@@ -480,9 +480,10 @@ fn bad_format(channel: &ResolvedChannel, expected: &'static str, payload: &str) 
 }
 
 fn spans_overlap(register: &crate::device::model::RegisterRef, span: &RegisterSpan) -> bool {
-    let start = u32::from(register.address);
-    let end = start + u32::from(register.count.max(1));
-    register.reg_type == span.register_type && start < span.end() && u32::from(span.start) < end
+    let register = register.span();
+    register.register_type == span.register_type
+        && u32::from(register.start) < span.end()
+        && u32::from(span.start) < register.end()
 }
 
 fn reads_span(channel: &ResolvedChannel, span: &RegisterSpan) -> bool {

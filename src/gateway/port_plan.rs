@@ -4,10 +4,10 @@
 use std::time::Duration;
 
 use crate::config::config_file::{PortConfig, PortType};
-use crate::device::model::{EventMode as ChannelEvents, ResolvedDevice, ResolvedPort};
+use crate::device::model::{ResolvedDevice, ResolvedPort};
 use crate::port::{
-    DevicePlan, EventMode, HealthPolicy, MergeLimits, PlannedRead, PortSettings, RegisterSpan,
-    SetupWrite, MIN_LATE_REPLY_HOLDOFF,
+    DevicePlan, HealthPolicy, MergeLimits, PlannedRead, PortSettings, SetupWrite,
+    MIN_LATE_REPLY_HOLDOFF,
 };
 use crate::protocol::{LineSettings, Parity, RegisterType};
 use crate::transport::Endpoint;
@@ -85,14 +85,10 @@ pub fn port_plan(port: &ResolvedPort, fast_modbus: bool) -> PortPlan {
 pub fn device_plan(device: &ResolvedDevice) -> DevicePlan {
     let mut reads: Vec<PlannedRead> = Vec::new();
     for channel in &device.channels {
-        let events = match channel.events {
-            ChannelEvents::None => EventMode::Polled,
-            ChannelEvents::Sporadic => EventMode::Sporadic,
-            ChannelEvents::SemiSporadic => EventMode::SemiSporadic,
-        };
+        let events = channel.events;
         for register in channel.registers.iter().filter_map(|r| r.read) {
             let read = PlannedRead {
-                span: RegisterSpan::new(register.reg_type, register.address, register.count.max(1)),
+                span: register.span(),
                 period: channel.read_period,
                 events,
             };

@@ -69,7 +69,7 @@ pub enum WriteOutcome {
 
 /// What is published for one control (republished after a reconnect).
 #[derive(Debug, Default)]
-struct ControlState {
+struct PublishedControl {
     value: Option<String>,
     last_published: Option<Instant>,
     errors: ErrorFlags,
@@ -77,11 +77,11 @@ struct ControlState {
 }
 
 #[derive(Debug)]
-struct DeviceState {
+struct PublishedDevice {
     device: Arc<ResolvedDevice>,
     identity: DeviceIdentity,
     online: bool,
-    controls: HashMap<String, ControlState>,
+    controls: HashMap<String, PublishedControl>,
     /// Discovery topics published for this device (to delete exactly those).
     discovery_topics: Vec<String>,
 }
@@ -90,7 +90,7 @@ struct DeviceState {
 #[derive(Debug)]
 pub struct PublicationPlanner {
     settings: PlannerSettings,
-    devices: BTreeMap<String, DeviceState>,
+    devices: BTreeMap<String, PublishedDevice>,
     /// `/on` topic → (device id, control id), for writable controls.
     on_topics: HashMap<String, (String, String)>,
 }
@@ -181,7 +181,7 @@ impl PublicationPlanner {
         let (identity, online) = previous
             .map(|p| (p.identity, p.online))
             .unwrap_or((DeviceIdentity::default(), true));
-        let mut state = DeviceState {
+        let mut state = PublishedDevice {
             device: device.clone(),
             identity,
             online,
@@ -200,7 +200,7 @@ impl PublicationPlanner {
 
     /// Subscriptions, meta, errors, (with `values`) the last values, and discovery configs of
     /// one device, in the order a reader should see them.
-    fn device_actions(&self, state: &mut DeviceState, values: bool) -> Vec<MqttAction> {
+    fn device_actions(&self, state: &mut PublishedDevice, values: bool) -> Vec<MqttAction> {
         let topics = &self.settings.topics;
         let device = state.device.clone();
         let mut out = Vec::new();
@@ -296,7 +296,7 @@ impl PublicationPlanner {
 
     /// Empty retained payloads for every topic of a device (discovery configs included when
     /// `with_discovery`).
-    fn removal(&self, state: &DeviceState, with_discovery: bool) -> Vec<MqttAction> {
+    fn removal(&self, state: &PublishedDevice, with_discovery: bool) -> Vec<MqttAction> {
         let mut topics = Vec::new();
         if with_discovery {
             topics.extend(state.discovery_topics.iter().cloned());
@@ -448,10 +448,10 @@ impl PublicationPlanner {
 }
 
 fn lookup<'a>(
-    devices: &'a mut BTreeMap<String, DeviceState>,
+    devices: &'a mut BTreeMap<String, PublishedDevice>,
     device_id: &str,
     control_id: &str,
-) -> Option<(&'a ResolvedChannel, &'a mut ControlState)> {
+) -> Option<(&'a ResolvedChannel, &'a mut PublishedControl)> {
     let state = devices.get_mut(device_id)?;
     let channel = state.device.channels.iter().find(|c| c.id == control_id)?;
     let control = state.controls.get_mut(control_id)?;
@@ -462,7 +462,7 @@ fn error_if_changed(
     topics: &TopicScheme,
     device_id: &str,
     control_id: &str,
-    control: &mut ControlState,
+    control: &mut PublishedControl,
 ) -> Option<MqttAction> {
     let letters = control.errors.to_string();
     if letters == control.published_errors {
