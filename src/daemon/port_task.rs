@@ -8,7 +8,7 @@ use tokio::sync::{mpsc, watch};
 use tokio::time::Instant;
 use tracing::{debug, info, warn};
 
-use crate::gateway::device_model::DeviceModel;
+use crate::gateway::device_model::{apply_port_events, DeviceModel};
 use crate::gateway::port_plan::PortPlan;
 use crate::mqtt::throttle::{LogBudget, LogDecision};
 use crate::port::{Action, Outcome, PortEvent, PortScheduler, ReplyTiming};
@@ -227,26 +227,7 @@ impl PortTask {
             }
         }
         let mut updates = Vec::new();
-        for event in events {
-            let device = match &event {
-                PortEvent::Values { device, .. }
-                | PortEvent::EventValue { device, .. }
-                | PortEvent::ReadFailed { device, .. }
-                | PortEvent::PeriodMissed { device, .. }
-                | PortEvent::WriteDone { device, .. }
-                | PortEvent::WriteFailed { device, .. }
-                | PortEvent::Online { device }
-                | PortEvent::Offline { device }
-                | PortEvent::Rebooted { device } => *device,
-            };
-            if let Some(model) = self.models.get_mut(device) {
-                model.apply(event, &mut updates);
-            }
-        }
-        // Event values of one packet are published together, once all its words are in.
-        for model in &mut self.models {
-            model.flush_events(&mut updates);
-        }
+        apply_port_events(&mut self.models, events, &mut updates);
         self.send(updates).await;
     }
 

@@ -414,6 +414,35 @@ impl DeviceModel {
     }
 }
 
+/// Hands the port events of one transaction to the models of their devices, in order, then
+/// publishes the event values of the packet once all its words are in. `models` are the port's
+/// devices in the scheduler's order.
+pub fn apply_port_events(
+    models: &mut [DeviceModel],
+    events: Vec<PortEvent>,
+    out: &mut Vec<DeviceUpdate>,
+) {
+    for event in events {
+        let device = match &event {
+            PortEvent::Values { device, .. }
+            | PortEvent::EventValue { device, .. }
+            | PortEvent::ReadFailed { device, .. }
+            | PortEvent::PeriodMissed { device, .. }
+            | PortEvent::WriteDone { device, .. }
+            | PortEvent::WriteFailed { device, .. }
+            | PortEvent::Online { device }
+            | PortEvent::Offline { device }
+            | PortEvent::Rebooted { device } => *device,
+        };
+        if let Some(model) = models.get_mut(device) {
+            model.apply(event, out);
+        }
+    }
+    for model in models {
+        model.flush_events(out);
+    }
+}
+
 /// Checks an `/on` payload against the control type (what wb-mqtt-serial accepts for it);
 /// returns it trimmed. Limits and format ranges are the codec's to check.
 fn check_payload<'a>(
