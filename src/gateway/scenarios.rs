@@ -261,3 +261,62 @@ fn a_port_that_cannot_be_opened_takes_its_devices_offline_and_back() {
         }
     }
 }
+
+/// The repository's templates are Wiren Board style (`response_timeout_ms: 1`, the allowance is
+/// added by the master): values, a change and a write on slow lines, with Fast Modbus events
+/// and without.
+#[test]
+fn slow_lines_with_and_without_fast_modbus() {
+    for line in ["1200 8N2", "9600 8N2"] {
+        for fast_modbus in [true, false] {
+            let case = format!("{line}, fast_modbus {fast_modbus}");
+            let mut gateway = VirtualGateway::with_fast_modbus(
+                line,
+                &[
+                    ("rtu2mqtt-relay6", 20),
+                    ("rtu2mqtt-climate", 21),
+                    ("rtu2mqtt-counter8", 22),
+                ],
+                fast_modbus,
+            );
+            gateway.run_for(Duration::from_secs(20));
+            let k1 = control("relay6_20", "K1");
+            assert_eq!(
+                gateway.retained.get(&k1).map(String::as_str),
+                Some("0"),
+                "{case}"
+            );
+            let since = gateway.now;
+            gateway.change(20, RegisterType::Coil, 0, &[1]);
+            gateway
+                .run_until(&k1, "1", Duration::from_secs(20))
+                .unwrap_or_else(|| panic!("{case}: K1 never became 1"));
+            assert_eq!(
+                reported(&gateway, "relay6_20", "K1", since),
+                [("1".to_string(), fast_modbus)],
+                "{case}: by event exactly when Fast Modbus is on"
+            );
+            gateway.change(21, RegisterType::Input, 4, &[2275]);
+            gateway
+                .run_until(
+                    &control("climate_21", "Temperature"),
+                    "22.75",
+                    Duration::from_secs(20),
+                )
+                .unwrap_or_else(|| panic!("{case}: no new temperature"));
+            gateway.publish_on("relay6_20", "K3", b"1");
+            gateway
+                .run_until(&control("relay6_20", "K3"), "1", Duration::from_secs(20))
+                .unwrap_or_else(|| panic!("{case}: K3 never became 1"));
+            assert_eq!(
+                gateway.register(20, RegisterType::Coil, 2),
+                Some(1),
+                "{case}"
+            );
+            for device in ["relay6_20", "climate_21", "counter8_22"] {
+                let topic = format!("/devices/{device}/meta/error");
+                assert_eq!(gateway.retained.get(&topic), None, "{case}: {device}");
+            }
+        }
+    }
+}

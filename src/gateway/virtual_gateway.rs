@@ -65,6 +65,11 @@ impl VirtualGateway {
     /// A port at `line` ("115200 8N2") with the shipped templates `devices` (template, slave
     /// id) on it, configured and simulated alike; Fast Modbus on.
     pub fn new(line: &str, devices: &[(&str, u8)]) -> Self {
+        Self::with_fast_modbus(line, devices, true)
+    }
+
+    /// [`Self::new`] with the site-wide Fast Modbus switch (`fast_modbus` in the config).
+    pub fn with_fast_modbus(line: &str, devices: &[(&str, u8)], fast_modbus: bool) -> Self {
         let settings = parse_line(line).expect("a line like 115200 8N2");
         let mut templates = TemplateSource::new(&repo("templates"), &repo("templates"));
         let simulated = devices
@@ -102,7 +107,7 @@ impl VirtualGateway {
         let port = crate::device::resolve_config(&loaded, &library)
             .expect("the config resolves")
             .remove(0);
-        let plan = port_plan(&port, true);
+        let plan = port_plan(&port, fast_modbus);
         let mut gateway = Self {
             now: Duration::ZERO,
             epoch: Instant::now(),
