@@ -67,7 +67,7 @@ async fn retained_layout_matches_golden() {
     let broker = Mosquitto::start();
     let mqtt = MqttUnderTest::start(settings(broker.port));
     feed_two_devices(&mqtt).await;
-    assert_broker_matches_golden(broker.port, "broker-relay-climate.txt").await;
+    assert_broker_matches_golden(broker.port, "broker-relay-climate").await;
     assert!(mqtt.is_running());
     mqtt.stop().await;
 }

@@ -56,20 +56,16 @@ pub(crate) fn render(actions: &[MqttAction]) -> String {
     text
 }
 
-/// Compares with `tests/golden/<name>`; `UPDATE_GOLDEN=1` rewrites the file.
+/// Compares with the snapshot `tests/golden/<name>.snap`. A change is reviewed, never written
+/// by the test: `cargo insta review` (or `INSTA_UPDATE=new`, then compare the `.snap.new` file).
 pub(crate) fn assert_golden(name: &str, actual: &str) {
-    let path = repo(&format!("tests/golden/{name}"));
-    if std::env::var_os("UPDATE_GOLDEN").is_some() {
-        std::fs::write(&path, actual).unwrap();
-    }
-    let expected = std::fs::read_to_string(&path)
-        .unwrap_or_else(|e| panic!("{}: {e} (run with UPDATE_GOLDEN=1)", path.display()));
-    if expected != actual {
-        for (i, (e, a)) in expected.lines().zip(actual.lines()).enumerate() {
-            assert_eq!(e, a, "{name}: first difference at line {}", i + 1);
-        }
-        assert_eq!(expected, actual, "{name}: line count differs");
-    }
+    insta::with_settings!({
+        snapshot_path => repo("tests/golden"),
+        prepend_module_to_snapshot => false,
+        omit_expression => true,
+    }, {
+        insta::assert_snapshot!(name, actual);
+    });
 }
 
 fn publications(actions: &[MqttAction]) -> Vec<(String, String, bool)> {
@@ -109,7 +105,7 @@ fn relay_module_added_golden() {
     let mut planner = PublicationPlanner::new(settings(true));
     let relay = template_device("rtu2mqtt-relay6", 1);
     let actions = planner.handle(DeviceUpdate::Added(relay), Instant::now());
-    assert_golden("relay6-added.txt", &render(&actions));
+    assert_golden("relay6-added", &render(&actions));
 }
 
 #[test]
@@ -117,7 +113,7 @@ fn climate_sensor_added_golden() {
     let mut planner = PublicationPlanner::new(settings(true));
     let climate = template_device("rtu2mqtt-climate", 2);
     let actions = planner.handle(DeviceUpdate::Added(climate), Instant::now());
-    assert_golden("climate-added.txt", &render(&actions));
+    assert_golden("climate-added", &render(&actions));
 }
 
 #[test]

@@ -439,8 +439,14 @@ pub fn render_state(state: &BTreeMap<String, String>) -> String {
 /// value published while a snapshot is being read reaches it live, without the retain flag, and
 /// shows only in the next snapshot.
 pub async fn assert_broker_matches_golden(port: u16, name: &str) {
-    let path = repo(&format!("tests/golden/{name}"));
-    let expected = std::fs::read_to_string(&path).unwrap_or_default();
+    // What to wait for: the snapshot's body (after its `---` header).
+    let path = repo(&format!("tests/golden/{name}.snap"));
+    let snapshot = std::fs::read_to_string(&path).unwrap_or_default();
+    let expected = snapshot
+        .splitn(3, "---\n")
+        .nth(2)
+        .unwrap_or_default()
+        .to_string();
     let deadline = Instant::now() + TIMEOUT;
     loop {
         let actual = retained(port).await.map(|s| render_state(&s));
@@ -458,18 +464,14 @@ pub async fn assert_broker_matches_golden(port: u16, name: &str) {
     }
 }
 
-/// Compares with `tests/golden/<name>`; `UPDATE_GOLDEN=1` rewrites the file.
+/// Compares with the snapshot `tests/golden/<name>.snap`. A change is reviewed, never written
+/// by the test: `cargo insta review` (or `INSTA_UPDATE=new`, then compare the `.snap.new` file).
 pub fn assert_golden(name: &str, actual: &str) {
-    let path = repo(&format!("tests/golden/{name}"));
-    if std::env::var_os("UPDATE_GOLDEN").is_some() {
-        std::fs::write(&path, actual).expect("write golden");
-    }
-    let expected = std::fs::read_to_string(&path)
-        .unwrap_or_else(|e| panic!("{}: {e} (run with UPDATE_GOLDEN=1)", path.display()));
-    if expected != actual {
-        for (i, (e, a)) in expected.lines().zip(actual.lines()).enumerate() {
-            assert_eq!(e, a, "{name}: first difference at line {}", i + 1);
-        }
-        assert_eq!(expected, actual, "{name}: line count differs");
-    }
+    insta::with_settings!({
+        snapshot_path => repo("tests/golden"),
+        prepend_module_to_snapshot => false,
+        omit_expression => true,
+    }, {
+        insta::assert_snapshot!(name, actual);
+    });
 }
