@@ -1,12 +1,10 @@
 //! The MQTT task against a real mosquitto: exact retained topics and payloads, `/on` writes,
 //! offline devices, a broker restart, and the clean exit.
 
-mod mqtt_support;
-
 use std::collections::BTreeMap;
 use std::time::Duration;
 
-use mqtt_support::*;
+use crate::mqtt_support::*;
 use rtu2mqtt::updates::{ControlWrite, DeviceUpdate};
 
 const RELAY: &str = "relay6_1";
