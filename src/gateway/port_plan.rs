@@ -128,3 +128,102 @@ pub fn device_plan(device: &ResolvedDevice) -> DevicePlan {
         setup,
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use std::path::Path;
+
+    use serde_json::{json, Value};
+
+    use super::*;
+    use crate::config::parse::SourceText;
+    use crate::config::TemplateLibrary;
+    use crate::port::EventMode;
+    use crate::protocol::Parity;
+
+    /// The first port of a config with `port` (a relay module at 20 added to its devices).
+    fn resolved(mut port: Value) -> ResolvedPort {
+        port["devices"] = json!([{"device_type": "rtu2mqtt-relay6", "slave_id": 20}]);
+        let config = json!({ "ports": [port] });
+        let loaded = crate::config::load::load_config_source(
+            SourceText::from_text(Path::new("c.json"), &config.to_string()),
+            false,
+        )
+        .unwrap();
+        let templates = Path::new(env!("CARGO_MANIFEST_DIR")).join("templates");
+        let library = TemplateLibrary::load_dirs(&[templates]);
+        crate::device::resolve_config(&loaded, &library)
+            .unwrap()
+            .remove(0)
+    }
+
+    #[test]
+    fn a_serial_port_keeps_its_line_settings() {
+        let port = resolved(json!({
+            "path": "/dev/ttyRS485-1", "baud_rate": 19200, "parity": "E", "stop_bits": 1
+        }));
+        let plan = port_plan(&port, true);
+        assert_eq!(
+            plan.settings.line,
+            LineSettings::new(19200, Parity::Even, 1)
+        );
+        assert!(plan.settings.fast_modbus);
+        assert_eq!(plan.name, "/dev/ttyRS485-1 (19200 8E1)");
+    }
+
+    /// TCP gateways are modelled at 9600 8N2 as wb-mqtt-serial does; Modbus TCP passes Fast
+    /// Modbus only when the gateway says it does (`connected_to_mge`).
+    #[test]
+    fn gateways_are_modelled_at_9600_and_fast_modbus_needs_mge() {
+        let tcp = resolved(json!({"port_type": "tcp", "address": "10.0.0.5", "port": 23}));
+        let plan = port_plan(&tcp, true);
+        assert_eq!(plan.settings.line, LineSettings::new(9600, Parity::None, 2));
+        assert!(plan.settings.fast_modbus);
+        let modbus_tcp = json!({"port_type": "modbus tcp", "address": "10.0.0.5", "port": 502});
+        assert!(
+            !port_plan(&resolved(modbus_tcp.clone()), true)
+                .settings
+                .fast_modbus
+        );
+        let mut mge = modbus_tcp;
+        mge["connected_to_mge"] = json!(true);
+        assert!(port_plan(&resolved(mge.clone()), true).settings.fast_modbus);
+        assert!(
+            !port_plan(&resolved(mge), false).settings.fast_modbus,
+            "the site-wide switch wins"
+        );
+    }
+
+    #[test]
+    fn the_event_interval_is_bounded() {
+        let port = |ms: u64| resolved(json!({"path": "/dev/x", "event_interval_ms": ms}));
+        assert_eq!(
+            port_plan(&port(1), true).settings.event_interval,
+            Duration::from_millis(5)
+        );
+        assert_eq!(
+            port_plan(&port(60_000), true).settings.event_interval,
+            Duration::from_secs(10)
+        );
+    }
+
+    #[test]
+    fn a_device_plan_reads_each_register_once_with_its_event_mode() {
+        let port = resolved(json!({"path": "/dev/x"}));
+        let plan = port_plan(&port, true);
+        let device = &plan.devices[0];
+        assert_eq!((device.name.as_str(), device.address), ("relay6_20", 20));
+        let k1 = device
+            .reads
+            .iter()
+            .find(|r| r.span == crate::port::RegisterSpan::new(RegisterType::Coil, 0, 1))
+            .expect("K1 is read");
+        assert_eq!(k1.events, EventMode::Sporadic);
+        let mut spans: Vec<_> = device.reads.iter().map(|r| r.span).collect();
+        let count = spans.len();
+        spans.sort();
+        spans.dedup();
+        assert_eq!(spans.len(), count, "no register read twice");
+        assert!(device.setup.iter().all(|s| !s.values.is_empty()));
+    }
+}
