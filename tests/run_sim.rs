@@ -2,7 +2,7 @@
 //! (`--stdio`, the daemon without a broker): the proof that the real processes are wired as the
 //! virtual-time scenarios (`src/gateway/scenarios.rs`) assume. Values of several devices, a
 //! coil change arriving by event, events re-enabled after a reboot, a write reaching the device;
-//! RTU over TCP; a failed port reopened; the Wiren Board templates at 9600; no wrong value when
+//! RTU over TCP; a failed port reopened; the Wiren Board templates at 9600 8O1; no wrong value when
 //! every reply comes after the timeout; a quick shutdown. Unplugged devices, slow lines (1200)
 //! and classic polling are scenarios on virtual time.
 
@@ -398,7 +398,9 @@ fn bus_on_line(line: &str) -> String {
 /// added by the master): values, a change and a write at a slow baud rate, with Fast Modbus
 /// events and without.
 fn wb_templates_at(baud: u32, fast_modbus: bool, patience: Duration) {
-    let sim = start_sim_bus(&bus_on_line(&format!("{baud} 8N2")), &[]);
+    // Odd parity and one stop bit: the simulator hears only a master whose serial port was set
+    // so (a pty passes both on), which proves the config's line settings reach the port.
+    let sim = start_sim_bus(&bus_on_line(&format!("{baud} 8O1")), &[]);
     // Only Wiren Board devices: a third-party meter (500 ms) would lend its timeout to the rest.
     let devices: Vec<Value> = [
         ("rtu2mqtt-relay6", 20),
@@ -410,7 +412,7 @@ fn wb_templates_at(baud: u32, fast_modbus: bool, patience: Duration) {
     .collect();
     let mut daemon = Daemon::start_config(json!({
         "fast_modbus": fast_modbus,
-        "ports": [{"path": sim.pty, "baud_rate": baud, "stop_bits": 2, "devices": devices}]
+        "ports": [{"path": sim.pty, "baud_rate": baud, "parity": "O", "stop_bits": 1, "devices": devices}]
     }));
     daemon.patience = patience;
     daemon.has_value("climate_21", "Temperature", "21.5");
@@ -450,7 +452,7 @@ fn wb_templates_at(baud: u32, fast_modbus: bool, patience: Duration) {
 }
 
 #[test]
-fn wb_templates_at_9600_with_fast_modbus() {
+fn wb_templates_at_9600_8o1_with_fast_modbus() {
     wb_templates_at(9600, true, Duration::from_secs(15));
 }
 
