@@ -2,9 +2,9 @@
 //! (`--stdio`, the daemon without a broker): the proof that the real processes are wired as the
 //! virtual-time scenarios (`src/gateway/scenarios.rs`) assume. Values of several devices, a
 //! coil change arriving by event, events re-enabled after a reboot, a write reaching the device;
-//! RTU over TCP; a failed port reopened; the Wiren Board templates at 9600 8O1; no wrong value when
-//! every reply comes after the timeout; a quick shutdown. Unplugged devices, slow lines (1200)
-//! and classic polling are scenarios on virtual time.
+//! RTU over TCP; a failed port reopened; the Wiren Board templates at 9600 8O1; no wrong value
+//! when every reply comes after the timeout; a quick shutdown. Unplugged devices, slow lines
+//! (1200) and classic polling are scenarios on virtual time.
 
 #[path = "daemon_support/mod.rs"]
 mod daemon_support;

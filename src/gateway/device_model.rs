@@ -254,7 +254,8 @@ impl DeviceModel {
                         .reported
                         .get(index)
                         .is_none_or(|last| last.as_deref() != Some(value.as_str()));
-                    if let Some(last) = self.reported.get_mut(index) {
+                    // Most reads repeat the value: copy it only when it changed.
+                    if let (true, Some(last)) = (changed, self.reported.get_mut(index)) {
                         *last = Some(value.clone());
                     }
                     out.push(DeviceUpdate::Value {
