@@ -190,7 +190,8 @@ impl PortTask {
             debug!(device = %write.device_id, "write for a device not on this port");
             return;
         };
-        match model.write(&write.control_id, &write.payload) {
+        let mut updates = Vec::new();
+        match model.take_write(&write.control_id, &write.payload, &mut updates) {
             Ok(register_writes) => {
                 for register_write in register_writes {
                     self.scheduler.queue_write(now, register_write);
@@ -201,11 +202,9 @@ impl PortTask {
                 if let LogDecision::Log { suppressed_before } = decision {
                     warn!(device = %write.device_id, control = %write.control_id, %reason, suppressed_before, "write refused");
                 }
-                let mut updates = Vec::new();
-                model.write_rejected(&write.control_id, &mut updates);
-                self.send(updates).await;
             }
         }
+        self.send(updates).await;
     }
 
     async fn dispatch(&mut self, events: Vec<PortEvent>) {

@@ -409,9 +409,19 @@ impl DeviceModel {
         Ok(writes)
     }
 
-    /// Marks `w` on a control after a rejected `/on` payload.
-    pub fn write_rejected(&mut self, control_id: &str, out: &mut Vec<DeviceUpdate>) {
-        self.set_flags(|c| c.id == control_id, |flags| flags.write = true, out);
+    /// A `/on` payload to carry out: its register writes, or `w` on the control (in `out`) and
+    /// the reason it was refused.
+    pub fn take_write(
+        &mut self,
+        control_id: &str,
+        payload: &str,
+        out: &mut Vec<DeviceUpdate>,
+    ) -> Result<Vec<RegisterWrite>, WriteRejected> {
+        let result = self.write(control_id, payload);
+        if result.is_err() {
+            self.set_flags(|c| c.id == control_id, |flags| flags.write = true, out);
+        }
+        result
     }
 }
 
@@ -921,9 +931,8 @@ mod tests {
     fn a_refused_write_sets_w_until_a_write_succeeds() {
         let mut model = relay();
         let mut out = Vec::new();
-        assert!(model.write("K1", "2").is_err());
-        model.write_rejected("K1", &mut out);
-        model.write_rejected("K1", &mut out);
+        assert!(model.take_write("K1", "2", &mut out).is_err());
+        assert!(model.take_write("K1", "on", &mut out).is_err());
         model.apply(
             PortEvent::WriteDone {
                 device: 0,

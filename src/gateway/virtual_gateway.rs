@@ -192,13 +192,12 @@ impl VirtualGateway {
             return;
         };
         let mut updates = Vec::new();
-        match model.write(&write.control_id, &write.payload) {
-            Ok(register_writes) => {
-                for register_write in register_writes {
-                    self.scheduler.queue_write(self.now, register_write);
-                }
+        if let Ok(register_writes) =
+            model.take_write(&write.control_id, &write.payload, &mut updates)
+        {
+            for register_write in register_writes {
+                self.scheduler.queue_write(self.now, register_write);
             }
-            Err(_) => model.write_rejected(&write.control_id, &mut updates),
         }
         self.sink(updates);
     }

@@ -421,7 +421,7 @@ pub async fn bus_side_takes(
     write: &ControlWrite,
 ) -> bool {
     let mut out = Vec::new();
-    let accepted = match model.write(&write.control_id, &write.payload) {
+    let accepted = match model.take_write(&write.control_id, &write.payload, &mut out) {
         Ok(register_writes) => {
             for register_write in register_writes {
                 model.apply(
@@ -435,10 +435,7 @@ pub async fn bus_side_takes(
             }
             true
         }
-        Err(_) => {
-            model.write_rejected(&write.control_id, &mut out);
-            false
-        }
+        Err(_) => false,
     };
     for update in out {
         mqtt.send(update).await;
