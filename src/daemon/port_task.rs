@@ -27,12 +27,12 @@ pub struct PortTask {
     models: Vec<DeviceModel>,
     updates: mpsc::Sender<DeviceUpdate>,
     writes: mpsc::Receiver<ControlWrite>,
+    /// Refused `/on` payloads are logged a few per minute: any MQTT client can send them.
+    refused_log: LogBudget,
     epoch: Instant,
     /// What systemd's watchdog and status line learn from this task.
     vitals: Option<Arc<PortVitals>>,
     online: Vec<bool>,
-    /// Refused `/on` payloads are logged a few per minute: any MQTT client can send them.
-    refused_log: LogBudget,
 }
 
 /// Refused writes logged per minute on one port; the rest are counted.
@@ -56,10 +56,10 @@ impl PortTask {
             models,
             updates,
             writes,
+            refused_log: LogBudget::new(REFUSED_WRITE_LOG_LINES),
             epoch: Instant::now(),
             vitals: None,
             online: Vec::new(),
-            refused_log: LogBudget::new(REFUSED_WRITE_LOG_LINES),
         }
     }
 
