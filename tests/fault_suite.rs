@@ -462,6 +462,11 @@ fn noise_at_9600_publishes_only_held_values_and_every_event() {
     noise_scenario(32, 9600);
 }
 
+#[test]
+fn noise_at_115200_with_32_devices_publishes_only_held_values_and_every_event() {
+    noise_scenario(32, 115_200);
+}
+
 fn control_error(run: &mut Run, address: u8, control: &str) -> Option<String> {
     run.read_publications();
     run.last_payload
