@@ -158,6 +158,9 @@ pub struct HarnessOptions {
     /// `RUST_LOG` of the daemon and the simulator (their stderr goes to files in the scratch
     /// directory); None keeps their defaults.
     pub log_filter: Option<String>,
+    /// More arguments for `rtu2mqtt sim` (e.g. `--tcp 127.0.0.1:0`); what it then listens on
+    /// is in its banner ([`Harness::sim_listening`]).
+    pub sim_args: Vec<String>,
 }
 
 impl HarnessOptions {
@@ -168,6 +171,7 @@ impl HarnessOptions {
             bus,
             templates,
             log_filter: None,
+            sim_args: Vec::new(),
         }
     }
 }
@@ -234,6 +238,8 @@ pub struct Harness {
     broker: Child,
     mqtt_port: u16,
     sim: Child,
+    /// The simulator's banner, up to `ready`.
+    sim_banner: Vec<String>,
     pty: PathBuf,
     control_path: PathBuf,
     control: Mutex<ControlConnection>,
@@ -276,6 +282,7 @@ impl Harness {
             .arg(&pty)
             .arg("--control")
             .arg(&control_path)
+            .args(&options.sim_args)
             .stdin(Stdio::null())
             .stdout(Stdio::piped())
             .stderr(std::fs::File::create(dir.0.join("sim.log"))?);
@@ -285,13 +292,16 @@ impl Harness {
         let mut sim = sim_command
             .spawn()
             .with_context(|| format!("starting {} sim", options.binary.display()))?;
-        if let Err(err) = wait_for_ready(&mut sim) {
-            stop_child(&mut sim);
-            let mut broker = broker;
-            stop_child(&mut broker);
-            let log = std::fs::read_to_string(dir.0.join("sim.log")).unwrap_or_default();
-            bail!("{err}\n--- simulator log ---\n{log}");
-        }
+        let sim_banner = match wait_for_ready(&mut sim) {
+            Ok(banner) => banner,
+            Err(err) => {
+                stop_child(&mut sim);
+                let mut broker = broker;
+                stop_child(&mut broker);
+                let log = std::fs::read_to_string(dir.0.join("sim.log")).unwrap_or_default();
+                bail!("{err}\n--- simulator log ---\n{log}");
+            }
+        };
 
         let changes = Arc::new(Mutex::new(Vec::new()));
         let control = connect_control(&control_path)?;
@@ -306,6 +316,7 @@ impl Harness {
             broker,
             mqtt_port,
             sim,
+            sim_banner,
             pty,
             control_path,
             control: Mutex::new(control),
@@ -325,6 +336,15 @@ impl Harness {
     /// The pty symlink the daemon's port opens.
     pub fn pty(&self) -> &Path {
         &self.pty
+    }
+
+    /// Where the simulator listens for `kind` (`tcp`, `modbus-tcp`: the banner's
+    /// `tcp 127.0.0.1:40123 (115200 8N2)` line gives `127.0.0.1:40123`).
+    pub fn sim_listening(&self, kind: &str) -> Option<String> {
+        self.sim_banner.iter().find_map(|line| {
+            let rest = line.strip_prefix(kind)?.strip_prefix(' ')?;
+            rest.split_whitespace().next().map(str::to_string)
+        })
     }
 
     pub fn control_socket(&self) -> &Path {
@@ -634,16 +654,19 @@ fn launch_broker(mosquitto: &Path, dir: &Path, port: u16, access: &str) -> anyho
     Ok(child)
 }
 
-/// Reads the simulator's banner up to `ready`; keeps draining its stdout afterwards.
-fn wait_for_ready(sim: &mut Child) -> anyhow::Result<()> {
+/// Reads the simulator's banner up to `ready` (returned); keeps draining its stdout afterwards.
+fn wait_for_ready(sim: &mut Child) -> anyhow::Result<Vec<String>> {
     let stdout = sim.stdout.take().context("simulator stdout")?;
     let (sender, receiver) = mpsc::channel();
     std::thread::Builder::new()
         .name("harness-sim-stdout".into())
         .spawn(move || {
+            let mut banner = Vec::new();
             for line in BufReader::new(stdout).lines().map_while(Result::ok) {
                 if line == "ready" {
-                    let _ = sender.send(());
+                    let _ = sender.send(std::mem::take(&mut banner));
+                } else if banner.len() < 1000 {
+                    banner.push(line);
                 }
             }
         })?;
