@@ -158,6 +158,9 @@ pub struct HarnessOptions {
     /// `RUST_LOG` of the daemon and the simulator (their stderr goes to files in the scratch
     /// directory); None keeps their defaults.
     pub log_filter: Option<String>,
+    /// A TLS listener on the broker beside the plain one (which the harness's own subscriber
+    /// keeps using); its port is [`Harness::mqtt_tls_port`].
+    pub broker_tls: Option<BrokerTls>,
     /// More arguments for `rtu2mqtt sim` (e.g. `--tcp 127.0.0.1:0`); what it then listens on
     /// is in its banner ([`Harness::sim_listening`]).
     pub sim_args: Vec<String>,
@@ -171,9 +174,19 @@ impl HarnessOptions {
             bus,
             templates,
             log_filter: None,
+            broker_tls: None,
             sim_args: Vec::new(),
         }
     }
+}
+
+/// The broker's side of a TLS listener (PEM files).
+#[derive(Debug, Clone)]
+pub struct BrokerTls {
+    /// The CA that signed the client certificates the broker asks for.
+    pub ca_file: PathBuf,
+    pub cert_file: PathBuf,
+    pub key_file: PathBuf,
 }
 
 /// A scratch directory removed on drop (the library has no tempfile).
@@ -237,6 +250,8 @@ pub struct Harness {
     dir: ScratchDir,
     broker: Child,
     mqtt_port: u16,
+    /// The TLS listener's port and its lines of mosquitto.conf (kept for restarts).
+    mqtt_tls: Option<(u16, String)>,
     sim: Child,
     /// The simulator's banner, up to `ready`.
     sim_banner: Vec<String>,
@@ -267,7 +282,15 @@ impl Harness {
         let bus_path = dir.0.join("bus.json");
         std::fs::write(&bus_path, serde_json::to_string_pretty(&options.bus)?)?;
 
-        let (broker, mqtt_port) = start_broker(&options.mosquitto, &dir.0)?;
+        let mqtt_tls = match &options.broker_tls {
+            Some(tls) => {
+                let port = free_port()?;
+                Some((port, tls_listener(port, tls)))
+            }
+            None => None,
+        };
+        let extra = mqtt_tls.as_ref().map_or("", |(_, lines)| lines.as_str());
+        let (broker, mqtt_port) = start_broker(&options.mosquitto, &dir.0, extra)?;
         let stopping = Arc::new(AtomicBool::new(false));
         let pty = dir.0.join("ttyRS485-sim");
         let control_path = dir.0.join("control.sock");
@@ -315,6 +338,7 @@ impl Harness {
             dir,
             broker,
             mqtt_port,
+            mqtt_tls,
             sim,
             sim_banner,
             pty,
@@ -331,6 +355,17 @@ impl Harness {
 
     pub fn mqtt_port(&self) -> u16 {
         self.mqtt_port
+    }
+
+    /// The broker's TLS listener ([`HarnessOptions::broker_tls`]).
+    pub fn mqtt_tls_port(&self) -> Option<u16> {
+        self.mqtt_tls.as_ref().map(|(port, _)| *port)
+    }
+
+    fn broker_extra(&self) -> String {
+        self.mqtt_tls
+            .as_ref()
+            .map_or_else(String::new, |(_, lines)| lines.clone())
     }
 
     /// The pty symlink the daemon's port opens.
@@ -491,12 +526,8 @@ impl Harness {
     /// subscriber reconnects and subscribes again by itself.
     pub fn restart_broker(&mut self) -> anyhow::Result<()> {
         self.kill_broker();
-        self.broker = launch_broker(
-            &self.mosquitto,
-            &self.dir.0,
-            self.mqtt_port,
-            "allow_anonymous true\n",
-        )?;
+        let access = format!("allow_anonymous true\n{}", self.broker_extra());
+        self.broker = launch_broker(&self.mosquitto, &self.dir.0, self.mqtt_port, &access)?;
         Ok(())
     }
 
@@ -522,7 +553,11 @@ impl Harness {
         if !status.success() {
             bail!("{DEFAULT_MOSQUITTO_PASSWD} failed: {status}");
         }
-        let access = format!("allow_anonymous false\npassword_file {}\n", file.display());
+        let access = format!(
+            "allow_anonymous false\npassword_file {}\n{}",
+            file.display(),
+            self.broker_extra()
+        );
         self.broker = launch_broker(&self.mosquitto, &self.dir.0, self.mqtt_port, &access)?;
         Ok(())
     }
@@ -612,7 +647,24 @@ impl Drop for Harness {
     }
 }
 
-fn start_broker(mosquitto: &Path, dir: &Path) -> anyhow::Result<(Child, u16)> {
+/// mosquitto.conf lines of a TLS listener on `port` that requires a client certificate.
+fn tls_listener(port: u16, tls: &BrokerTls) -> String {
+    // Started as root, mosquitto would drop to its own user, which cannot read 0600 keys (ours:
+    // the key file's owner is who made it).
+    let made_by_root = std::fs::metadata(&tls.key_file)
+        .is_ok_and(|meta| std::os::unix::fs::MetadataExt::uid(&meta) == 0);
+    let user = if made_by_root { "user root\n" } else { "" };
+    format!(
+        "{user}listener {port} 127.0.0.1\ncafile {}\ncertfile {}\nkeyfile {}\n\
+         require_certificate true\n",
+        tls.ca_file.display(),
+        tls.cert_file.display(),
+        tls.key_file.display()
+    )
+}
+
+/// `extra`: more mosquitto.conf lines (listeners) after the plain listener's.
+fn start_broker(mosquitto: &Path, dir: &Path, extra: &str) -> anyhow::Result<(Child, u16)> {
     if !mosquitto.exists() {
         bail!(
             "{} not found: the harness needs a real MQTT broker (apt-get install mosquitto)",
@@ -620,7 +672,8 @@ fn start_broker(mosquitto: &Path, dir: &Path) -> anyhow::Result<(Child, u16)> {
         );
     }
     let port = free_port()?;
-    let child = launch_broker(mosquitto, dir, port, "allow_anonymous true\n")?;
+    let access = format!("allow_anonymous true\n{extra}");
+    let child = launch_broker(mosquitto, dir, port, &access)?;
     Ok((child, port))
 }
 
