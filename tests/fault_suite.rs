@@ -1085,7 +1085,7 @@ fn link_outage(run: &mut Run) -> Duration {
     drive_until(
         run,
         "every device flagged r while the link is away",
-        |run| all_devices_flagged(run),
+        all_devices_flagged,
     );
     run.drive(Duration::from_secs(1));
     run.harness
