@@ -958,13 +958,16 @@ fn reboot_storm_rewrites_the_setup_every_time_and_publishes_nothing_wrong() {
     // Per device, its rounds of reboots (one or two reboots each) in order.
     let mut reboots: BTreeMap<u8, Vec<Vec<u64>>> = BTreeMap::new();
     let mut reboot = |run: &mut Run, address: u8, new_round: bool| {
+        // Stamped before the setup is lost: a write after the stamp that the loss overwrites
+        // cannot pass for the rewrite, since the wait below wants the register back at 7.
+        let at = monotonic_ns();
         run.set(address, "holding", SETUP_REGISTER, 0);
         let rounds = reboots.entry(address).or_default();
         if new_round || rounds.is_empty() {
             rounds.push(Vec::new());
         }
         if let Some(round) = rounds.last_mut() {
-            round.push(monotonic_ns());
+            round.push(at);
         }
         run.harness
             .control(&json!({"cmd": "reboot", "serial": serial(address)}))
