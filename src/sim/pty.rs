@@ -123,16 +123,21 @@ impl PtyLink {
                     if runtime.stopped() {
                         return;
                     }
-                    match PtyLink::open(&link, initial) {
-                        Ok(reopened) => {
-                            tracing::info!(
-                                "sim: pty {} back -> {}",
-                                link.display(),
-                                reopened.slave_path.display()
-                            );
-                            pty = Some(reopened);
+                    while pty.is_none() && !runtime.stopped() {
+                        match PtyLink::open(&link, initial) {
+                            Ok(reopened) => {
+                                tracing::info!(
+                                    "sim: pty {} back -> {}",
+                                    link.display(),
+                                    reopened.slave_path.display()
+                                );
+                                pty = Some(reopened);
+                            }
+                            Err(err) => {
+                                tracing::error!("sim: pty {}: {err}; trying again", link.display());
+                                std::thread::sleep(LINK_POLL * 25);
+                            }
                         }
-                        Err(err) => tracing::error!("sim: pty {}: {err}", link.display()),
                     }
                 }
             })
