@@ -33,6 +33,10 @@ pub struct PortTask {
     /// What systemd's watchdog and status line learn from this task.
     vitals: Option<Arc<PortVitals>>,
     online: Vec<bool>,
+    /// A transaction went through the transport since the port was last opened: a port that
+    /// opens and fails at once (a gateway that accepts connections and drops them) is still
+    /// unusable, its devices go offline and the reopen delay keeps growing.
+    transacted: bool,
 }
 
 /// Refused writes logged per minute on one port; the rest are counted.
@@ -60,6 +64,7 @@ impl PortTask {
             epoch: Instant::now(),
             vitals: None,
             online: Vec::new(),
+            transacted: false,
         }
     }
 
@@ -107,13 +112,16 @@ impl PortTask {
                     transport.set_guard_interval(self.guard_interval);
                     info!(port = %self.plan_name, "port open");
                     self.set_open(true);
-                    delay = FIRST_REOPEN_DELAY;
+                    self.transacted = false;
                     match self.serve(transport, &mut shutdown).await {
                         Ok(()) => return,
                         Err(err) => warn!(port = %self.plan_name, %err, "port failed; reopening"),
                     }
                     self.set_open(false);
-                    closed_since = self.now();
+                    if self.transacted {
+                        delay = FIRST_REOPEN_DELAY;
+                        closed_since = self.now();
+                    }
                 }
                 Err(err) => {
                     warn!(port = %self.plan_name, %err, retry_in = ?delay, "cannot open the port");
@@ -161,6 +169,7 @@ impl PortTask {
                         result = transport.transact(&transaction) => result,
                         _ = shutdown.changed() => return Ok(()),
                     };
+                    self.transacted |= result.is_ok();
                     let (outcome, timing) = match &result {
                         Ok((outcome, timing)) => (outcome.clone(), *timing),
                         Err(_) => (Outcome::NoReply, ReplyTiming::default()),

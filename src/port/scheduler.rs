@@ -307,6 +307,11 @@ impl PortScheduler {
             Some(InFlight::Write { write }) => Some(write.write.device),
             Some(InFlight::PollEvents { .. }) | None => None,
         };
+        // The late window this transaction went without (see `classic_transaction`).
+        let skipped_late_window = device
+            .and_then(|d| self.devices.get(d))
+            .filter(|d| d.health.answered_last())
+            .map(|d| d.response.timeout(now));
         if let Some(device) = device {
             self.learn_response_time(now, device, &outcome, timing);
         }
@@ -333,6 +338,15 @@ impl PortScheduler {
                 members,
             }) => self.complete_read(now, device, span, &members, outcome, &mut out),
             Some(InFlight::Write { write }) => self.complete_write(now, write, outcome, &mut out),
+        }
+        if let (Some(window), Some(state)) = (
+            skipped_late_window,
+            device.and_then(|d| self.devices.get_mut(d)),
+        ) {
+            if !state.health.answered_last() {
+                // It failed: its next request waits as long as if the window had been watched.
+                state.health.hold_off_longer(window);
+            }
         }
         let still_offline = device
             .and_then(|d| self.devices.get(d))
@@ -439,6 +453,19 @@ impl PortScheduler {
         let request_len = request.encode().map(|b| b.len()).unwrap_or(256);
         let reply_len = reply_pdu_len + 3;
         let response_timeout = device.response.timeout(now);
+        // After a timeout the line is watched a while longer for the late reply, to learn a
+        // longer response time from it; meanwhile the bus carries nothing. A device that
+        // answered its last request (an isolated loss, the usual case on a noisy line) skips
+        // that watch and the bus goes on with the others at once: its own next request waits
+        // as long as before (its holdoff grows by the window skipped, see `complete_timed`), and
+        // its late reply can only land in another device's window, where its address gives it
+        // away. A second failure in a row gets the window back, so a device that became slow is
+        // learned at its next request.
+        let late_window = if device.health.answered_last() {
+            Duration::ZERO
+        } else {
+            response_timeout
+        };
         let request_time = line.wire_time(request_len);
         let estimated = if device.health.is_offline() {
             // A dead device costs its whole timeout and the late window after it.
@@ -451,7 +478,7 @@ impl PortScheduler {
             request_time,
             reply_timeout: response_timeout + line.wire_time(reply_len) + ADAPTER_LATENCY_ALLOWANCE,
             first_byte_timeout: Some(response_timeout),
-            late_window: response_timeout,
+            late_window,
             estimated,
         }
     }
