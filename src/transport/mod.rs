@@ -1,9 +1,10 @@
 //! Getting frames on and off a bus: a serial port (real RS-485 adapter or the simulator's
-//! pseudo-terminal), raw RTU frames over TCP, or Modbus TCP (MBAP). Every reply is found by the
-//! protocol's [`ReplyParser`], within the reply window of [`receive`]: timeouts counted from the
-//! end of the request on the wire, a late window after a timeout, a quiet line before the next
-//! request. Stale input is flushed before each request.
+//! pseudo-terminal), raw RTU frames over TCP, or Modbus TCP (MBAP). [`Transport`] only reads,
+//! writes and sleeps; what the bytes mean and when, every timeout, the guard interval and the
+//! flush of stale input are decided by the pure [`exchange::Exchange`], which uses the reply
+//! window of [`receive`] and the protocol's [`ReplyParser`](crate::protocol::ReplyParser).
 
+pub mod exchange;
 mod mbap;
 pub mod receive;
 
@@ -15,12 +16,12 @@ use tokio::io::{AsyncRead, AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
 use tokio::time::{timeout_at, Instant};
 
-use receive::{Received, ReplyWindow};
+use exchange::{Exchange, Framing, LinkConfig};
 use tokio_serial::{SerialPort, SerialPortBuilderExt, SerialStream};
 use tracing::debug;
 
 use crate::port::{Outcome, ReplyTiming, Transaction};
-use crate::protocol::{self, LineSettings, ParseStatus, ReplyParser};
+use crate::protocol::{self, LineSettings};
 
 pub use mbap::MbapCodec;
 
@@ -78,25 +79,19 @@ enum Link {
     Tcp(TcpStream),
 }
 
-/// An open bus.
+/// An open bus: plain reads, writes and timers around the pure [`Exchange`].
 pub struct Transport {
     name: String,
     link: Link,
-    mbap: Option<MbapCodec>,
-    /// Silence between bytes after which a started reply is given up.
-    inter_byte_timeout: Duration,
-    /// Silence kept before every request.
-    guard_interval: Duration,
-    /// When the bus was last busy (end of the last reply or request).
-    last_activity: Instant,
-    /// The clock of reply windows.
+    exchange: Exchange,
+    /// The clock of the exchange: its times are durations since this instant.
     epoch: Instant,
 }
 
 impl Transport {
     pub async fn open(endpoint: &Endpoint) -> Result<Self, TransportError> {
         let name = endpoint.name();
-        let (link, mbap, inter_byte_timeout) = match endpoint {
+        let (link, config) = match endpoint {
             Endpoint::Serial { path, line } => {
                 let builder = tokio_serial::new(path, line.baud)
                     .data_bits(match line.data_bits {
@@ -125,131 +120,98 @@ impl Transport {
                 // USB adapters deliver in bursts: allow several characters of silence, at least 20 ms
                 // (wb-mqtt-serial's default frame timeout).
                 let gap = (line.char_time() * 8).max(Duration::from_millis(20));
-                (Link::Serial(stream), None, gap)
+                let config = LinkConfig {
+                    framing: Framing::Rtu,
+                    serial: Some(*line),
+                    quiet_gap: gap,
+                    guard_interval: Duration::ZERO,
+                };
+                (Link::Serial(stream), config)
             }
             Endpoint::RtuOverTcp {
                 address,
                 connect_timeout,
             } => (
                 Link::Tcp(connect(address, *connect_timeout).await?),
-                None,
-                Duration::from_millis(50),
+                tcp_config(Framing::Rtu),
             ),
             Endpoint::ModbusTcp {
                 address,
                 connect_timeout,
             } => (
                 Link::Tcp(connect(address, *connect_timeout).await?),
-                Some(MbapCodec::default()),
-                Duration::from_millis(50),
+                tcp_config(Framing::ModbusTcp),
             ),
         };
         Ok(Self {
             name,
             link,
-            mbap,
-            inter_byte_timeout,
-            guard_interval: Duration::ZERO,
-            last_activity: Instant::now(),
+            exchange: Exchange::new(config),
             epoch: Instant::now(),
         })
     }
 
     /// Keeps this much silence on the bus before every request.
     pub fn set_guard_interval(&mut self, guard_interval: Duration) {
-        self.guard_interval = guard_interval;
+        self.exchange.set_guard_interval(guard_interval);
     }
 
     pub fn name(&self) -> &str {
         &self.name
     }
 
+    /// The time on the exchange's clock.
+    fn now(&self) -> Duration {
+        self.epoch.elapsed()
+    }
+
     /// Sends the request and waits for its reply. Bus-level failures (silence, garbage) are
     /// outcomes; only a broken port or connection is an error. The timing tells the scheduler
-    /// when the reply started, or that it came too late.
+    /// when the reply started, or that it came too late. Every decision is the [`Exchange`]'s;
+    /// this only moves bytes and sleeps.
     pub async fn transact(
         &mut self,
         transaction: &Transaction,
     ) -> Result<(Outcome, ReplyTiming), TransportError> {
-        self.flush_input()?;
-        let frame = transaction.request.encode()?;
-        let wire = match &mut self.mbap {
-            Some(mbap) => mbap.wrap(&frame),
-            None => frame.clone(),
-        };
-        if !self.guard_interval.is_zero() {
-            tokio::time::sleep_until(self.last_activity + self.guard_interval).await;
-        }
-        debug!(port = %self.name, tx = %protocol::hex(&frame), "request");
-        let write_started = self.epoch.elapsed();
-        self.write_all(&wire).await?;
-        let serial = matches!(self.link, Link::Serial(_));
-        let mut window = ReplyWindow::new(
-            transaction,
-            (write_started, self.epoch.elapsed()),
-            self.inter_byte_timeout,
-            serial,
-        );
-        self.last_activity = self.epoch + window.clock_start();
-        if !transaction.request.expects_reply() {
-            // A broadcast: nobody answers, but the line is busy until it has left.
-            tokio::time::sleep_until(self.last_activity).await;
-            return Ok((Outcome::NoReply, ReplyTiming::default()));
-        }
-        let mut parser = ReplyParser::for_request(&transaction.request);
-        let mut garbled = false;
+        self.exchange.start(transaction)?;
         let mut buffer = [0u8; 512];
-        while !window.is_finished() {
-            let wake = self.epoch + window.wake_at();
-            let count = match timeout_at(wake, self.read(&mut buffer)).await {
-                Err(_elapsed) => {
-                    window.expire(self.epoch.elapsed());
-                    continue;
+        loop {
+            if let Some(transmit) = self.exchange.poll_transmit(self.now()) {
+                if transmit.flush_input {
+                    self.flush_input()?;
                 }
+                debug!(port = %self.name, tx = %protocol::hex(&transmit.bytes), "request");
+                self.write_all(&transmit.bytes).await?;
+                self.exchange.handle_sent(self.now());
+            }
+            if let Some(result) = self.exchange.poll_outcome() {
+                return Ok(result);
+            }
+            let Some(timeout) = self.exchange.poll_timeout() else {
+                // Never after `handle_sent`; a guard against spinning.
+                return Ok((Outcome::NoReply, ReplyTiming::default()));
+            };
+            let wake = self.epoch + timeout;
+            match timeout_at(wake, self.read(&mut buffer)).await {
+                Err(_elapsed) => self.exchange.handle_timeout(self.now()),
                 Ok(Ok(0)) => {
                     return Err(TransportError::Closed {
                         name: self.name.clone(),
                     })
                 }
-                Ok(Ok(count)) => count,
+                Ok(Ok(count)) => {
+                    let bytes = buffer.get(..count).unwrap_or(&[]);
+                    debug!(port = %self.name, rx = %protocol::hex(bytes), "bytes");
+                    self.exchange.handle_bytes(self.now(), bytes);
+                }
                 Ok(Err(source)) => {
                     return Err(TransportError::Io {
                         name: self.name.clone(),
                         source,
                     })
                 }
-            };
-            let bytes = buffer.get(..count).unwrap_or(&[]);
-            self.last_activity = Instant::now();
-            let unwrapped = match &mut self.mbap {
-                Some(mbap) => mbap.unwrap(bytes),
-                None => bytes.to_vec(),
-            };
-            if window.receive(self.epoch.elapsed()) == Received::Discard {
-                debug!(port = %self.name, rx = %protocol::hex(bytes), "bytes outside the reply window dropped");
-                continue;
-            }
-            debug!(port = %self.name, rx = %protocol::hex(bytes), "reply bytes");
-            parser.push(&unwrapped);
-            loop {
-                match parser.poll() {
-                    ParseStatus::NeedMore => break,
-                    ParseStatus::Frame(parsed) => {
-                        return Ok((Outcome::Reply(parsed.reply), window.timing()))
-                    }
-                    ParseStatus::Error(err) => {
-                        debug!(port = %self.name, %err, "dropped reply bytes");
-                        garbled = true;
-                    }
-                }
             }
         }
-        let outcome = if garbled || !parser.buffered().is_empty() {
-            Outcome::Garbled
-        } else {
-            Outcome::NoReply
-        };
-        Ok((outcome, window.timing()))
     }
 
     /// Drops whatever arrived unasked (late replies, noise) so it cannot pass for the next reply.
@@ -307,6 +269,17 @@ impl Transport {
 
 async fn read_some<R: AsyncRead + Unpin>(reader: &mut R, buffer: &mut [u8]) -> io::Result<usize> {
     AsyncReadExt::read(reader, buffer).await
+}
+
+/// A TCP link: the far side's serial timing is unknown, so no early bytes are thrown away and a
+/// frame may pause for a network's delay.
+fn tcp_config(framing: Framing) -> LinkConfig {
+    LinkConfig {
+        framing,
+        serial: None,
+        quiet_gap: Duration::from_millis(50),
+        guard_interval: Duration::ZERO,
+    }
 }
 
 async fn connect(address: &str, connect_timeout: Duration) -> Result<TcpStream, TransportError> {
