@@ -7,17 +7,18 @@
 pub mod exchange;
 mod mbap;
 pub mod receive;
+mod serial;
 
 use std::io;
 use std::time::Duration;
 
 use thiserror::Error;
-use tokio::io::{AsyncRead, AsyncReadExt, AsyncWriteExt};
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
 use tokio::time::{timeout_at, Instant};
 
 use exchange::{Exchange, Framing, LinkConfig};
-use tokio_serial::{SerialPort, SerialPortBuilderExt, SerialStream};
+use serial::SerialLink;
 use tracing::debug;
 
 use crate::port::{Outcome, ReplyTiming, Transaction};
@@ -29,10 +30,7 @@ pub use mbap::MbapCodec;
 #[derive(Debug, Error)]
 pub enum TransportError {
     #[error("cannot open {path}: {source}")]
-    Open {
-        path: String,
-        source: tokio_serial::Error,
-    },
+    Open { path: String, source: io::Error },
     #[error("cannot connect to {address}: {source}")]
     Connect { address: String, source: io::Error },
     #[error("connecting to {address} timed out")]
@@ -75,9 +73,18 @@ impl Endpoint {
 }
 
 enum Link {
-    Serial(SerialStream),
+    Serial(SerialLink),
     Tcp(TcpStream),
 }
+
+/// How often, at most, one reply is read after a sleep until its expected end before the line is
+/// watched byte by byte again (a device or adapter slower than the wire; garbage).
+const MAX_PACED_READS: u32 = 3;
+
+/// Added to a reply's expected end before reading it: the kernel hands received bytes to the
+/// reader a little after they arrived (100 µs cost 3 % of the bus's transactions at 115200 for
+/// no saving in CPU; docs/performance.md).
+const PACING_SLACK: Duration = Duration::from_micros(20);
 
 /// An open bus: plain reads, writes and timers around the pure [`Exchange`].
 pub struct Transport {
@@ -93,30 +100,10 @@ impl Transport {
         let name = endpoint.name();
         let (link, config) = match endpoint {
             Endpoint::Serial { path, line } => {
-                let builder = tokio_serial::new(path, line.baud)
-                    .data_bits(match line.data_bits {
-                        5 => tokio_serial::DataBits::Five,
-                        6 => tokio_serial::DataBits::Six,
-                        7 => tokio_serial::DataBits::Seven,
-                        _ => tokio_serial::DataBits::Eight,
-                    })
-                    .parity(match line.parity {
-                        protocol::Parity::None => tokio_serial::Parity::None,
-                        protocol::Parity::Even => tokio_serial::Parity::Even,
-                        protocol::Parity::Odd => tokio_serial::Parity::Odd,
-                    })
-                    .stop_bits(if line.stop_bits == 2 {
-                        tokio_serial::StopBits::Two
-                    } else {
-                        tokio_serial::StopBits::One
-                    });
-                let stream =
-                    builder
-                        .open_native_async()
-                        .map_err(|source| TransportError::Open {
-                            path: path.clone(),
-                            source,
-                        })?;
+                let link = SerialLink::open(path, line).map_err(|source| TransportError::Open {
+                    path: path.clone(),
+                    source,
+                })?;
                 // USB adapters deliver in bursts: allow several characters of silence, at least 20 ms
                 // (wb-mqtt-serial's default frame timeout).
                 let gap = (line.char_time() * 8).max(Duration::from_millis(20));
@@ -126,7 +113,7 @@ impl Transport {
                     quiet_gap: gap,
                     guard_interval: Duration::ZERO,
                 };
-                (Link::Serial(stream), config)
+                (Link::Serial(link), config)
             }
             Endpoint::RtuOverTcp {
                 address,
@@ -175,6 +162,7 @@ impl Transport {
     ) -> Result<(Outcome, ReplyTiming), TransportError> {
         self.exchange.start(transaction)?;
         let mut buffer = [0u8; 512];
+        let mut paced_reads = 0;
         loop {
             if let Some(transmit) = self.exchange.poll_transmit(self.now()) {
                 if transmit.flush_input {
@@ -192,39 +180,76 @@ impl Transport {
                 return Ok((Outcome::NoReply, ReplyTiming::default()));
             };
             let wake = self.epoch + timeout;
-            match timeout_at(wake, self.read(&mut buffer)).await {
-                Err(_elapsed) => self.exchange.handle_timeout(self.now()),
-                Ok(Ok(0)) => {
+            match self.next_bytes(wake, &mut paced_reads, &mut buffer).await? {
+                None => self.exchange.handle_timeout(self.now()),
+                Some(0) => {
                     return Err(TransportError::Closed {
                         name: self.name.clone(),
                     })
                 }
-                Ok(Ok(count)) => {
+                Some(count) => {
                     let bytes = buffer.get(..count).unwrap_or(&[]);
                     debug!(port = %self.name, rx = %protocol::hex(bytes), "bytes");
                     self.exchange.handle_bytes(self.now(), bytes);
                 }
-                Ok(Err(source)) => {
-                    return Err(TransportError::Io {
-                        name: self.name.clone(),
-                        source,
-                    })
+            }
+        }
+    }
+
+    /// The next bytes on the line (`Some(0)`: the connection closed), or `None` when `wake` came
+    /// first. On a serial line, once a reply of known length has begun, the transport sleeps
+    /// until it should be complete and reads it in one go (never past `wake`, so no timeout
+    /// changes); if nothing more came by then, or after a few such reads, it watches the line.
+    async fn next_bytes(
+        &mut self,
+        wake: Instant,
+        paced_reads: &mut u32,
+        buffer: &mut [u8],
+    ) -> Result<Option<usize>, TransportError> {
+        let io_error = |name: &str, source| TransportError::Io {
+            name: name.to_owned(),
+            source,
+        };
+        let complete_at = self.exchange.reply_complete_at();
+        match &mut self.link {
+            Link::Serial(link) => {
+                if let Some(complete_at) = complete_at.filter(|_| *paced_reads < MAX_PACED_READS) {
+                    let at = self.epoch + complete_at + PACING_SLACK;
+                    if at < wake {
+                        *paced_reads += 1;
+                        link.unwatch();
+                        link.sleep_until(at)
+                            .await
+                            .map_err(|source| io_error(&self.name, source))?;
+                        match link.read_now(buffer) {
+                            Ok(Some(count)) => return Ok(Some(count)),
+                            // Nothing more came: the line's own timing rules from here.
+                            Ok(None) => *paced_reads = MAX_PACED_READS,
+                            Err(source) => return Err(io_error(&self.name, source)),
+                        }
+                    }
+                }
+                match timeout_at(wake, link.read(buffer)).await {
+                    Err(_elapsed) => Ok(None),
+                    Ok(Ok(count)) => Ok(Some(count)),
+                    Ok(Err(source)) => Err(io_error(&self.name, source)),
                 }
             }
+            Link::Tcp(stream) => match timeout_at(wake, AsyncReadExt::read(stream, buffer)).await {
+                Err(_elapsed) => Ok(None),
+                Ok(Ok(count)) => Ok(Some(count)),
+                Ok(Err(source)) => Err(io_error(&self.name, source)),
+            },
         }
     }
 
     /// Drops whatever arrived unasked (late replies, noise) so it cannot pass for the next reply.
     fn flush_input(&mut self) -> Result<(), TransportError> {
         match &mut self.link {
-            Link::Serial(stream) => {
-                stream
-                    .clear(tokio_serial::ClearBuffer::Input)
-                    .map_err(|source| TransportError::Io {
-                        name: self.name.clone(),
-                        source: source.into(),
-                    })
-            }
+            Link::Serial(link) => link.flush_input().map_err(|source| TransportError::Io {
+                name: self.name.clone(),
+                source,
+            }),
             Link::Tcp(stream) => {
                 let mut scratch = [0u8; 256];
                 loop {
@@ -250,7 +275,7 @@ impl Transport {
 
     async fn write_all(&mut self, bytes: &[u8]) -> Result<(), TransportError> {
         let result = match &mut self.link {
-            Link::Serial(stream) => AsyncWriteExt::write_all(stream, bytes).await,
+            Link::Serial(link) => link.write_all(bytes).await,
             Link::Tcp(stream) => AsyncWriteExt::write_all(stream, bytes).await,
         };
         result.map_err(|source| TransportError::Io {
@@ -258,17 +283,6 @@ impl Transport {
             source,
         })
     }
-
-    async fn read(&mut self, buffer: &mut [u8]) -> io::Result<usize> {
-        match &mut self.link {
-            Link::Serial(stream) => read_some(stream, buffer).await,
-            Link::Tcp(stream) => read_some(stream, buffer).await,
-        }
-    }
-}
-
-async fn read_some<R: AsyncRead + Unpin>(reader: &mut R, buffer: &mut [u8]) -> io::Result<usize> {
-    AsyncReadExt::read(reader, buffer).await
 }
 
 /// A TCP link: the far side's serial timing is unknown, so no early bytes are thrown away and a
