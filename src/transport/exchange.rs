@@ -299,20 +299,24 @@ impl Exchange {
     /// its header once that is in, else from the request). A driver may sleep until then (or
     /// [`Self::poll_timeout`] if earlier) and read the rest at once instead of waking for every
     /// few bytes; timeouts are unchanged. `None` when the reply has not begun (the first byte's
-    /// time is what the scheduler learns from) or its end cannot be known: replies that follow
-    /// an arbitration (event polls, scans) vary in length and start.
+    /// time is what the scheduler learns from) or its end cannot be known yet: a reply that
+    /// follows an arbitration (event polls, scans) varies in start and length until its frame's
+    /// header is in.
     pub fn reply_complete_at(&self) -> Option<Duration> {
         let line = self.config.serial?;
         let State::Receiving(receiving) = &self.state else {
             return None;
         };
-        if !receiving.window.is_waiting() || follows_arbitration(&receiving.request) {
+        if !receiving.window.is_waiting() {
             return None;
         }
         let last_byte_at = receiving.window.last_byte_at()?;
         let buffered = receiving.parser.buffered();
         let total = match Reply::length_from_header(buffered) {
             FrameLength::Known(len) => len,
+            // After an arbitration, who answers and how much is known only from the frame's
+            // header: read byte by byte until then.
+            FrameLength::NeedMore if follows_arbitration(&receiving.request) => return None,
             FrameLength::NeedMore => receiving.request.expected_reply_len(),
             FrameLength::Unknown => return None,
         };
@@ -699,6 +703,31 @@ mod tests {
         let mut exchange = Exchange::new(serial(line));
         let finished = run(&mut exchange, &transaction, ms(0), &arrivals);
         assert_eq!(finished.outcome, Outcome::Reply(no_events));
+    }
+
+    #[test]
+    fn an_event_packet_is_predicted_once_its_header_is_in() {
+        let line = line(115_200);
+        let poll = Request::poll_events(EventPoll {
+            min_address: 0,
+            max_data_len: 100,
+            ack_address: 0,
+            ack_flag: 0,
+        });
+        let transaction = transaction(&line, poll);
+        let mut exchange = Exchange::new(serial(line));
+        exchange.start(&transaction).expect("encodes");
+        exchange.poll_transmit(ms(0));
+        exchange.handle_sent(ms(0));
+        // Filler, then the winner's address and function: the length is not known yet.
+        exchange.handle_bytes(ms(1), &[0xFF, 0x16, 0x46, 0x11]);
+        assert_eq!(exchange.reply_complete_at(), None);
+        // 16 46 11 flag count len=0x0A: 10 bytes of events and the CRC still to come.
+        exchange.handle_bytes(ms(2), &[0x01, 0x02, 0x0A]);
+        assert_eq!(
+            exchange.reply_complete_at(),
+            Some(ms(2) + line.wire_time(12))
+        );
     }
 
     #[test]
