@@ -82,7 +82,7 @@ enum Link {
 }
 
 /// A test CA, the broker's certificate for 127.0.0.1 and a client certificate (openssl), as in
-/// tests/mqtt_tls.rs.
+/// tests/mqtt/tls.rs.
 fn make_pki(dir: &std::path::Path) {
     let openssl = |args: &[&str]| {
         let out = std::process::Command::new("openssl")
@@ -819,7 +819,7 @@ fn broker_killed_and_restarted_gets_the_whole_retained_state_back() {
 
 /// Scenario 3b: a broker the daemon was connected to comes back asking for a password the daemon
 /// does not have: the refusal must be named in the log (as it is when the first connection is
-/// refused, tests/mqtt_logs.rs).
+/// refused, tests/mqtt/logs.rs).
 #[test]
 fn broker_back_with_a_password_names_the_refused_credentials() {
     let mut run = Run::start(2, 115_200);

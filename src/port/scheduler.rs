@@ -419,19 +419,21 @@ impl PortScheduler {
     fn start_event_poll(&mut self, now: Duration) -> Action {
         let request = Request::poll_events(self.events.request());
         let line = &self.settings.line;
-        let max_reply = 8 + usize::from(self.events.max_data_len());
         // USB adapters deliver late, and a loaded machine reads late: a short first-byte timeout
         // would end the poll while the arbitration is still going on, and its bytes would land
         // in the next request's window. A bus with Fast Modbus devices always answers (someone
         // wins with "no events"), so the allowance costs only when nobody takes part.
         let margin = self.settings.latency_margin.max(ADAPTER_LATENCY_ALLOWANCE);
         // The usual answer is "no events" after a few arbitration windows; longer packets are
-        // rare and bounded by max_data_len.
+        // rare and bounded by the poll's max_data_len.
         let typical = line.arbitration_wait() + line.arbitration_window() * 6;
+        let request_len = request.encoded_len();
         let transaction = Transaction {
-            estimated: line.transaction_time(9, typical, 5),
-            request_time: line.wire_time(request.encode().map(|b| b.len()).unwrap_or(9)),
-            reply_timeout: line.event_reply_timeout() + line.wire_time(max_reply + 32) + margin,
+            estimated: line.transaction_time(request_len, typical, request.expected_reply_len()),
+            request_time: line.wire_time(request_len),
+            reply_timeout: line.event_reply_timeout()
+                + line.wire_time(request.max_reply_len() + 32)
+                + margin,
             first_byte_timeout: Some(line.event_first_byte_timeout() + margin),
             late_window: margin,
             request,
@@ -447,11 +449,10 @@ impl PortScheduler {
         now: Duration,
         device: &DeviceState,
         request: Request,
-        reply_pdu_len: usize,
     ) -> Transaction {
         let line = &self.settings.line;
-        let request_len = request.encode().map(|b| b.len()).unwrap_or(256);
-        let reply_len = reply_pdu_len + 3;
+        let request_len = request.encoded_len();
+        let reply_len = request.expected_reply_len();
         let response_timeout = device.response.timeout(now);
         // After a timeout the line is watched a while longer for the late reply, to learn a
         // longer response time from it; meanwhile the bus carries nothing. A device that
@@ -518,7 +519,7 @@ impl PortScheduler {
             },
         };
         let transaction =
-            self.classic_transaction(now, device, Request::classic(device.plan.address, pdu), 5);
+            self.classic_transaction(now, device, Request::classic(device.plan.address, pdu));
         Some((
             transaction,
             InFlight::Write {
@@ -548,7 +549,6 @@ impl PortScheduler {
                     now,
                     device,
                     Request::classic(device.plan.address, pdu),
-                    5,
                 );
                 return Some((
                     transaction,
@@ -560,9 +560,8 @@ impl PortScheduler {
             }
             if self.settings.fast_modbus && device.wants_events() {
                 let (ranges, members) = device.event_ranges();
-                let mask_len: usize = ranges.iter().map(EventRange::mask_len).sum();
                 let request = Request::configure_events(device.plan.address, ranges.clone());
-                let transaction = self.classic_transaction(now, device, request, 3 + mask_len);
+                let transaction = self.classic_transaction(now, device, request);
                 return Some((
                     transaction,
                     InFlight::EnableEvents {
@@ -590,7 +589,6 @@ impl PortScheduler {
             now,
             state,
             Request::classic(state.plan.address, span.read_request()),
-            span.reply_pdu_len(),
         );
         Some((
             transaction,
@@ -645,7 +643,7 @@ impl PortScheduler {
             span.count = u16::try_from(end - u32::from(span.start)).ok()?;
         }
         let request = Request::classic(state.plan.address, span.read_request());
-        let transaction = self.classic_transaction(now, state, request, span.reply_pdu_len());
+        let transaction = self.classic_transaction(now, state, request);
         Some((
             transaction,
             InFlight::Read {
