@@ -1,6 +1,7 @@
 //! `rtu2mqtt run`: one task per port, the device models, and the sink of device updates (MQTT,
 //! or JSON lines on stdout for tests and debugging).
 
+pub mod bus_queue;
 pub mod device_model;
 pub mod port_plan;
 pub mod port_task;
@@ -14,8 +15,10 @@ use tokio::task::JoinHandle;
 use tracing::{info, warn};
 
 use crate::device::model::ResolvedPort;
+use crate::protocol::LineSettings;
 use crate::service::{PortVitals, ServiceHealth};
 use crate::updates::{ControlWrite, DeviceUpdate};
+use bus_queue::BusQueue;
 use device_model::DeviceModel;
 use port_plan::port_plan;
 use port_task::PortTask;
@@ -35,6 +38,22 @@ pub struct BusSide {
 /// Which device ids route to which port task's write queue.
 type Routes = Arc<Mutex<HashMap<String, mpsc::Sender<ControlWrite>>>>;
 
+/// What users outside the port tasks (MQTT RPC, the status page) may know and use of a running
+/// port: its configuration and the queue of its bus.
+#[derive(Clone, Debug)]
+pub struct PortAccess {
+    /// As in the logs (`/dev/ttyRS485-1 (9600 8N2)`, `tcp://…`).
+    pub name: String,
+    pub resolved: Arc<ResolvedPort>,
+    /// Its serial settings (none for TCP gateways).
+    pub line: Option<LineSettings>,
+    pub queue: BusQueue,
+}
+
+/// The running ports, by [`port_key`] (the device path, or `address:port`); kept up to date
+/// across reloads.
+pub type PortDirectory = Arc<Mutex<BTreeMap<String, PortAccess>>>;
+
 /// One running port task and what it was started from (to tell on a reload whether it changed).
 struct RunningPort {
     resolved: ResolvedPort,
@@ -53,6 +72,7 @@ pub struct BusControl {
     fast_modbus: bool,
     router: JoinHandle<()>,
     health: Arc<ServiceHealth>,
+    directory: PortDirectory,
 }
 
 /// What a reload did, for the log and the tests.
@@ -103,6 +123,7 @@ pub fn start_bus_side(
         fast_modbus,
         router,
         health,
+        directory: PortDirectory::default(),
     };
     for port in ports {
         let (task, added) = control.prepare_port(&port);
@@ -142,9 +163,29 @@ impl BusControl {
             added.push(DeviceUpdate::Added(Arc::clone(&device)));
             models.push(DeviceModel::new(device, index));
         }
-        let task =
-            PortTask::new(plan, models, self.updates.clone(), port_write_rx).with_vitals(vitals);
+        let (queue, queued) = BusQueue::new();
+        let line = match &plan.endpoint {
+            crate::transport::Endpoint::Serial { line, .. } => Some(*line),
+            _ => None,
+        };
+        lock(&self.directory).insert(
+            port_key(port),
+            PortAccess {
+                name: plan.name.clone(),
+                resolved: Arc::new(port.clone()),
+                line,
+                queue,
+            },
+        );
+        let task = PortTask::new(plan, models, self.updates.clone(), port_write_rx)
+            .with_vitals(vitals)
+            .with_bus_queue(queued);
         (task, added)
+    }
+
+    /// The running ports and their bus queues, for MQTT RPC and the status page.
+    pub fn port_directory(&self) -> PortDirectory {
+        Arc::clone(&self.directory)
     }
 
     fn spawn_port(&mut self, port: ResolvedPort, task: PortTask) {
@@ -167,6 +208,7 @@ impl BusControl {
     /// Stops a port task after its transaction in flight; its devices stop taking writes.
     async fn stop_port(&mut self, key: &str) -> Option<ResolvedPort> {
         let running = self.ports.remove(key)?;
+        lock(&self.directory).remove(key);
         let _ = running.stop.send(true);
         let _ = running.task.await;
         self.health.remove_port(&running.vitals);

@@ -8,11 +8,13 @@ use tokio::sync::{mpsc, watch};
 use tokio::time::Instant;
 use tracing::{debug, info, warn};
 
+use super::bus_queue::{BusQueueError, BusQueueReceiver, QueuedTransaction};
 use super::device_model::DeviceModel;
 use super::port_plan::PortPlan;
 use crate::port::{Action, Outcome, PortEvent, PortScheduler, ReplyTiming};
+use crate::protocol::LineSettings;
 use crate::service::{BrokerState, PortVitals, ServiceHealth};
-use crate::transport::{Transport, TransportError};
+use crate::transport::{Endpoint, Transport, TransportError};
 use crate::updates::{ControlWrite, DeviceUpdate};
 
 const FIRST_REOPEN_DELAY: Duration = Duration::from_millis(500);
@@ -30,6 +32,15 @@ pub struct PortTask {
     /// What systemd's watchdog and status line learn from this task.
     vitals: Option<Arc<PortVitals>>,
     online: Vec<bool>,
+    /// Transactions asked from outside the scheduler (RPC), served between its own.
+    queued: Option<BusQueueReceiver>,
+}
+
+/// The open bus, and the settings it was switched to for queued transactions (a serial port
+/// only; `None` while it is at the port's own settings).
+struct OpenBus {
+    transport: Option<Transport>,
+    away: Option<LineSettings>,
 }
 
 /// The task reports progress at least this often, even with nothing to do on the bus.
@@ -53,7 +64,14 @@ impl PortTask {
             epoch: Instant::now(),
             vitals: None,
             online: Vec::new(),
+            queued: None,
         }
+    }
+
+    /// Serves the transactions sent through the matching [`super::bus_queue::BusQueue`].
+    pub fn with_bus_queue(mut self, queued: BusQueueReceiver) -> Self {
+        self.queued = Some(queued);
+        self
     }
 
     /// Reports open/closed, progress and devices online into `vitals`.
@@ -120,6 +138,7 @@ impl PortTask {
                 self.beat();
                 let events = self.scheduler.port_unavailable(self.now(), closed_since);
                 self.dispatch(events).await;
+                self.refuse_queued("it failed and is being reopened");
                 let wake = reopen_at.min(Instant::now() + FIRST_REOPEN_DELAY);
                 tokio::select! {
                     _ = tokio::time::sleep_until(wake) => {}
@@ -135,9 +154,16 @@ impl PortTask {
 
     async fn serve(
         &mut self,
-        mut transport: Transport,
+        transport: Transport,
         shutdown: &mut watch::Receiver<bool>,
     ) -> Result<(), TransportError> {
+        let mut bus = OpenBus {
+            transport: Some(transport),
+            away: None,
+        };
+        // A queued transaction may go before the scheduler's next one, never two in a row while
+        // the scheduler has something to send: event polls keep their slots.
+        let mut queued_turn = true;
         loop {
             if *shutdown.borrow() {
                 return Ok(());
@@ -146,8 +172,25 @@ impl PortTask {
             while let Ok(write) = self.writes.try_recv() {
                 self.handle_write(write).await;
             }
+            if queued_turn {
+                if let Some(job) = self.queued.as_mut().and_then(|q| q.try_recv().ok()) {
+                    queued_turn = false;
+                    tokio::select! {
+                        result = self.serve_queued(&mut bus, job) => result?,
+                        _ = shutdown.changed() => return Ok(()),
+                    }
+                    continue;
+                }
+            }
             match self.scheduler.next(self.now()) {
                 Action::Transmit(transaction) => {
+                    queued_turn = true;
+                    if bus.away.is_some() {
+                        self.switch_line(&mut bus, None).await?;
+                    }
+                    let Some(transport) = bus.transport.as_mut() else {
+                        return Err(self.lost_port());
+                    };
                     // Shutdown never waits for the bus: a transaction may take seconds (long
                     // timeouts, a guard interval, a babbling line).
                     let result = tokio::select! {
@@ -170,9 +213,115 @@ impl PortTask {
                             Some(write) => self.handle_write(write).await,
                             None => return Ok(()),
                         },
+                        job = next_queued(&mut self.queued) => match job {
+                            Some(job) => {
+                                queued_turn = false;
+                                tokio::select! {
+                                    result = self.serve_queued(&mut bus, job) => result?,
+                                    _ = shutdown.changed() => return Ok(()),
+                                }
+                            }
+                            // Nobody can queue any more: stop listening.
+                            None => self.queued = None,
+                        },
                         _ = shutdown.changed() => return Ok(()),
                     }
                 }
+            }
+        }
+    }
+
+    /// One queued transaction, at the settings it asks for. Its caller gets the outcome; only a
+    /// broken port is an error here (the port task reopens it).
+    async fn serve_queued(
+        &mut self,
+        bus: &mut OpenBus,
+        job: QueuedTransaction,
+    ) -> Result<(), TransportError> {
+        if job.reply.is_closed() {
+            // Withdrawn (its caller timed out) before its turn.
+            return Ok(());
+        }
+        let home = self.home_line();
+        let wanted = match (job.line, home) {
+            (Some(line), Some(home)) if line != home => Some(line),
+            _ => None,
+        };
+        if wanted != bus.away {
+            if let Err(err) = self.switch_line(bus, wanted).await {
+                let line = wanted.or(home).map(|l| l.to_string()).unwrap_or_default();
+                let _ = job.reply.send(Err(BusQueueError::Settings {
+                    line,
+                    reason: err.to_string(),
+                }));
+                // Back at the port's own settings, or the port task reopens the port.
+                return self.switch_line(bus, None).await;
+            }
+        }
+        let Some(transport) = bus.transport.as_mut() else {
+            let _ = job.reply.send(Err(BusQueueError::Stopped));
+            return Err(self.lost_port());
+        };
+        debug!(port = %self.plan_name, away = ?bus.away, "queued transaction");
+        match transport.transact(&job.transaction).await {
+            Ok((outcome, _timing)) => {
+                let _ = job.reply.send(Ok(outcome));
+                Ok(())
+            }
+            Err(err) => {
+                let _ = job
+                    .reply
+                    .send(Err(BusQueueError::PortClosed(err.to_string())));
+                Err(err)
+            }
+        }
+    }
+
+    /// The serial settings of the port (none for TCP gateways).
+    fn home_line(&self) -> Option<LineSettings> {
+        match &self.endpoint {
+            Endpoint::Serial { line, .. } => Some(*line),
+            _ => None,
+        }
+    }
+
+    /// Reopens the serial port at `away` (its own settings when `None`). The old handle is
+    /// closed first: the port is opened exclusively.
+    async fn switch_line(
+        &self,
+        bus: &mut OpenBus,
+        away: Option<LineSettings>,
+    ) -> Result<(), TransportError> {
+        let Endpoint::Serial { path, line } = &self.endpoint else {
+            return Ok(());
+        };
+        bus.transport = None;
+        bus.away = None;
+        let endpoint = Endpoint::Serial {
+            path: path.clone(),
+            line: away.unwrap_or(*line),
+        };
+        let mut transport = Transport::open(&endpoint).await?;
+        transport.set_guard_interval(self.guard_interval);
+        debug!(port = %self.plan_name, settings = %endpoint.name(), "port settings switched");
+        bus.transport = Some(transport);
+        bus.away = away;
+        Ok(())
+    }
+
+    fn lost_port(&self) -> TransportError {
+        TransportError::Closed {
+            name: self.plan_name.clone(),
+        }
+    }
+
+    /// Answers every queued transaction with "port closed" (the port is being reopened).
+    fn refuse_queued(&mut self, why: &str) {
+        if let Some(queued) = self.queued.as_mut() {
+            while let Ok(job) = queued.try_recv() {
+                let _ = job
+                    .reply
+                    .send(Err(BusQueueError::PortClosed(why.to_owned())));
             }
         }
     }
@@ -248,5 +397,13 @@ impl PortTask {
                 return;
             }
         }
+    }
+}
+
+/// The next queued transaction; never resolves when there is no queue.
+async fn next_queued(queued: &mut Option<BusQueueReceiver>) -> Option<QueuedTransaction> {
+    match queued {
+        Some(queued) => queued.recv().await,
+        None => std::future::pending().await,
     }
 }
