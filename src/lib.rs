@@ -13,6 +13,7 @@ pub mod embedded_broker;
 pub mod mqtt;
 pub mod port;
 pub mod protocol;
+pub mod rpc;
 pub mod service;
 pub mod sim;
 pub mod tools;

@@ -9,7 +9,7 @@ use serde_json::json;
 use crate::config::values::parse_int_text;
 use crate::device::format::{RegisterFormat, WordOrder};
 use crate::protocol::{pdu, LineSettings, RegisterType, RequestPdu, ResponsePdu};
-use crate::tools::bus::{Answer, PortError, ToolPort};
+use crate::tools::bus::{Answer, PortError, ToolBus, ToolPort};
 use crate::tools::exit;
 use crate::tools::report::{serial_text, ScanReport};
 use crate::tools::values::{decode_words, encode_value, parse_format, value_width};

@@ -11,7 +11,7 @@ use serde_json::{json, Value};
 
 use crate::config::TemplateLibrary;
 use crate::protocol::{LineSettings, Parity, RequestPdu, ResponsePdu};
-use crate::tools::bus::{Answer, PortError, ToolPort, KNOWN_DEVICE_TIMEOUT};
+use crate::tools::bus::{Answer, PortError, ToolBus, ToolPort, KNOWN_DEVICE_TIMEOUT};
 use crate::tools::exit;
 use crate::tools::plan::{parse_parity, parse_range, scan_plan, PlanFilter};
 use crate::tools::report::{serial_text, FoundDevice, Identity, ScanReport};
