@@ -3,6 +3,7 @@
 
 pub mod bus_queue;
 pub mod device_model;
+pub mod identity;
 pub mod port_plan;
 pub mod port_task;
 pub mod stdio;
@@ -174,12 +175,14 @@ impl BusControl {
                 name: plan.name.clone(),
                 resolved: Arc::new(port.clone()),
                 line,
-                queue,
+                queue: queue.clone(),
             },
         );
+        let identity_plans = port.devices.iter().map(identity::identity_plan).collect();
         let task = PortTask::new(plan, models, self.updates.clone(), port_write_rx)
             .with_vitals(vitals)
-            .with_bus_queue(queued);
+            .with_bus_queue(queue.clone(), queued)
+            .with_identity(identity_plans);
         (task, added)
     }
 

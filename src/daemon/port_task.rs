@@ -8,8 +8,9 @@ use tokio::sync::{mpsc, watch};
 use tokio::time::Instant;
 use tracing::{debug, info, warn};
 
-use super::bus_queue::{BusQueueError, BusQueueReceiver, QueuedTransaction};
+use super::bus_queue::{BusQueue, BusQueueError, BusQueueReceiver, QueuedTransaction};
 use super::device_model::DeviceModel;
+use super::identity::{read_identity, IdentityPlan, IdentityRead};
 use super::port_plan::PortPlan;
 use crate::port::{Action, Outcome, PortEvent, PortScheduler, ReplyTiming};
 use crate::protocol::LineSettings;
@@ -34,6 +35,23 @@ pub struct PortTask {
     online: Vec<bool>,
     /// Transactions asked from outside the scheduler (RPC), served between its own.
     queued: Option<BusQueueReceiver>,
+    /// The sending side of that queue, for this port's identity reads.
+    queue: Option<BusQueue>,
+    identity: IdentityState,
+}
+
+/// Who each device is (model, serial number, firmware), read when it comes online or restarts,
+/// by a worker task through the bus queue, one device at a time.
+#[derive(Default)]
+struct IdentityState {
+    /// Per device: what to read (none when the device cannot say).
+    plans: Vec<Option<IdentityPlan>>,
+    /// Per device: the serial number last read.
+    serials: Vec<Option<u32>>,
+    /// Per device: a read is asked for or running.
+    reading: Vec<bool>,
+    requests: Option<mpsc::UnboundedSender<usize>>,
+    results: Option<mpsc::Receiver<(usize, IdentityRead)>>,
 }
 
 /// The open bus, and the settings it was switched to for queued transactions (a serial port
@@ -65,13 +83,114 @@ impl PortTask {
             vitals: None,
             online: Vec::new(),
             queued: None,
+            queue: None,
+            identity: IdentityState::default(),
         }
     }
 
-    /// Serves the transactions sent through the matching [`super::bus_queue::BusQueue`].
-    pub fn with_bus_queue(mut self, queued: BusQueueReceiver) -> Self {
+    /// Serves the transactions sent through `queue` (RPC, the status page), between its own.
+    pub fn with_bus_queue(mut self, queue: BusQueue, queued: BusQueueReceiver) -> Self {
+        self.queue = Some(queue);
         self.queued = Some(queued);
         self
+    }
+
+    /// Reads who each device is when it comes online or restarts (through the bus queue: give
+    /// one with [`Self::with_bus_queue`]); one plan per device, in model order.
+    pub fn with_identity(mut self, plans: Vec<Option<IdentityPlan>>) -> Self {
+        let count = plans.len();
+        self.identity.plans = plans;
+        self.identity.serials = vec![None; count];
+        self.identity.reading = vec![false; count];
+        self
+    }
+
+    /// Starts the worker that reads identities one device at a time.
+    fn start_identity_worker(&mut self) {
+        let Some(queue) = self.queue.clone() else {
+            return;
+        };
+        if self.identity.plans.iter().all(Option::is_none) {
+            return;
+        }
+        let (requests, mut pending) = mpsc::unbounded_channel::<usize>();
+        let (results_tx, results) = mpsc::channel(self.identity.plans.len().max(1));
+        let plans = self.identity.plans.clone();
+        let line = self
+            .home_line()
+            .unwrap_or(LineSettings::WIREN_BOARD_DEFAULT);
+        tokio::spawn(async move {
+            while let Some(device) = pending.recv().await {
+                let Some(Some(plan)) = plans.get(device) else {
+                    continue;
+                };
+                let read = read_identity(&queue, line, plan).await;
+                if results_tx.send((device, read)).await.is_err() {
+                    return;
+                }
+            }
+        });
+        self.identity.requests = Some(requests);
+        self.identity.results = Some(results);
+    }
+
+    fn ask_identity(&mut self, device: usize) {
+        let (Some(requests), Some(Some(_)), Some(reading)) = (
+            &self.identity.requests,
+            self.identity.plans.get(device),
+            self.identity.reading.get_mut(device),
+        ) else {
+            return;
+        };
+        if !*reading && requests.send(device).is_ok() {
+            *reading = true;
+        }
+    }
+
+    /// A device's identity came: published; a serial number other than the last one means
+    /// another device took its place, which is set up afresh.
+    async fn identity_read(&mut self, device: usize, read: IdentityRead) {
+        if let Some(reading) = self.identity.reading.get_mut(device) {
+            *reading = false;
+        }
+        let Some(model) = self.models.get(device) else {
+            return;
+        };
+        let device_id = model.id().to_owned();
+        if read.is_empty() {
+            debug!(port = %self.plan_name, device = %device_id, "identity not readable now");
+            return;
+        }
+        let previous = self.identity.serials.get(device).copied().flatten();
+        match (previous, read.serial) {
+            (Some(old), Some(new)) if old != new => {
+                warn!(
+                    port = %self.plan_name,
+                    device = %device_id,
+                    old_serial = old,
+                    new_serial = new,
+                    "another device answers at this address (serial number changed): a replaced \
+                     device? setting it up afresh"
+                );
+                self.scheduler.set_up_again(device);
+            }
+            _ => debug!(
+                port = %self.plan_name,
+                device = %device_id,
+                model = ?read.identity.model,
+                serial = ?read.identity.serial_number,
+                firmware = ?read.identity.firmware,
+                "device identified"
+            ),
+        }
+        if let (Some(slot), Some(serial)) = (self.identity.serials.get_mut(device), read.serial) {
+            *slot = Some(serial);
+        }
+        self.send(vec![DeviceUpdate::Identity {
+            device_id,
+            identity: read.identity,
+        }])
+        .await;
     }
 
     /// Reports open/closed, progress and devices online into `vitals`.
@@ -105,6 +224,7 @@ impl PortTask {
 
     /// Serves the bus until `shutdown` turns true.
     pub async fn run(mut self, mut shutdown: watch::Receiver<bool>) {
+        self.start_identity_worker();
         let mut delay = FIRST_REOPEN_DELAY;
         // Since when the port has been unusable: its devices go offline after their timeout.
         let mut closed_since = self.now();
@@ -172,6 +292,11 @@ impl PortTask {
             while let Ok(write) = self.writes.try_recv() {
                 self.handle_write(write).await;
             }
+            while let Some(Ok((device, read))) =
+                self.identity.results.as_mut().map(mpsc::Receiver::try_recv)
+            {
+                self.identity_read(device, read).await;
+            }
             if queued_turn {
                 if let Some(job) = self.queued.as_mut().and_then(|q| q.try_recv().ok()) {
                     queued_turn = false;
@@ -213,6 +338,9 @@ impl PortTask {
                             Some(write) => self.handle_write(write).await,
                             None => return Ok(()),
                         },
+                        Some((device, read)) = next_identity(&mut self.identity.results) => {
+                            self.identity_read(device, read).await;
+                        }
                         job = next_queued(&mut self.queued) => match job {
                             Some(job) => {
                                 queued_turn = false;
@@ -365,6 +493,11 @@ impl PortTask {
                 vitals.set_devices_online(self.online.iter().filter(|o| **o).count());
             }
         }
+        for event in &events {
+            if let PortEvent::Online { device } | PortEvent::Rebooted { device } = event {
+                self.ask_identity(*device);
+            }
+        }
         let mut updates = Vec::new();
         for event in events {
             let device = match &event {
@@ -404,6 +537,16 @@ impl PortTask {
 async fn next_queued(queued: &mut Option<BusQueueReceiver>) -> Option<QueuedTransaction> {
     match queued {
         Some(queued) => queued.recv().await,
+        None => std::future::pending().await,
+    }
+}
+
+/// The next identity read; never resolves without a worker.
+async fn next_identity(
+    results: &mut Option<mpsc::Receiver<(usize, IdentityRead)>>,
+) -> Option<(usize, IdentityRead)> {
+    match results {
+        Some(results) => results.recv().await,
         None => std::future::pending().await,
     }
 }
