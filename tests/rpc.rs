@@ -161,10 +161,8 @@ async fn reads_scans_and_errors(bench: &Bench, baud: u32) {
     // A write through port/Load reaches the device.
     let write = json!({"path": path, "protocol": "modbus", "slave_id": 20, "function": 5,
                        "address": 2, "count": 1, "format": "HEX", "msg": "ff00"});
-    assert_eq!(
-        rpc(port, "port", "Load", write).await["result"],
-        json!({"response": ""})
-    );
+    let written = rpc(port, "port", "Load", write).await;
+    assert_eq!(written["result"], json!({"response": ""}), "{written}");
     let k3 = bench
         .sim
         .control(json!({"cmd": "get", "device": 20, "type": "coil", "address": 2}));

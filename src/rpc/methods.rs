@@ -37,9 +37,13 @@ impl QueuedBus {
     }
 }
 
+/// Added to the timeouts of RPC requests: the USB adapter's allowance, and more for a
+/// controller busy with the daemon's own work (an RPC is never in a hurry).
+const RPC_LATENCY: Duration = Duration::from_millis(50);
+
 impl ToolBus for QueuedBus {
     fn latency(&self) -> Duration {
-        ADAPTER_LATENCY_ALLOWANCE
+        RPC_LATENCY.max(ADAPTER_LATENCY_ALLOWANCE)
     }
 
     async fn transact(
@@ -228,10 +232,18 @@ async fn port_scan(ports: &PortDirectory, scan: PortScan) -> Result<Value, RpcEr
     let found = match scan.mode {
         ScanMode::All => {
             let mut report = ScanReport::default();
-            let seen = bus
+            let mut seen = bus
                 .scan_setting(line, &mut report)
                 .await
                 .map_err(io_error)?;
+            if seen.is_empty() && report.problems.is_empty() {
+                // Silence after a scan start means nobody at this setting, unless the reply was
+                // late (a loaded machine): a second start costs one more short timeout.
+                seen = bus
+                    .scan_setting(line, &mut report)
+                    .await
+                    .map_err(io_error)?;
+            }
             if let Some(problem) = report.problems.first() {
                 error = Some(problem.what.clone());
             }
