@@ -235,6 +235,44 @@ async fn reads_scans_and_errors(bench: &Bench, baud: u32) {
     assert_eq!(code, 0, "stdout {stdout} stderr {stderr}");
     assert!(stderr.contains("busy"), "{stderr}");
     assert!(stdout.contains("2210"), "{stdout}");
+
+    // `scan` on the busy port: through the service, at the settings asked for.
+    let mut command = Command::new(env!("CARGO_BIN_EXE_rtu2mqtt"));
+    command
+        .args([
+            "scan",
+            "--port",
+            &path,
+            "--json",
+            "--parity",
+            "N",
+            "--stop-bits",
+            "2",
+        ])
+        .args(["--baud", &format!("{baud},19200")])
+        .args(["--broker", &format!("127.0.0.1:{port}")]);
+    let output = tokio::task::spawn_blocking(move || command.output().unwrap())
+        .await
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert_eq!(output.status.code(), Some(0), "{stdout} {stderr}");
+    assert!(
+        stderr.contains("through the running rtu2mqtt service"),
+        "{stderr}"
+    );
+    let report: Value = serde_json::from_str(&stdout).unwrap();
+    assert_eq!(report["port_settings_scanned"], 2, "{report}");
+    let mut serials: Vec<u64> = report["devices"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|d| d["serial"].as_u64().unwrap())
+        .collect();
+    serials.sort_unstable();
+    assert_eq!(serials, [0xFE00_0020, 0xFE00_0021], "{report}");
+    let relay = &report["devices"][0];
+    assert_eq!(relay["baud_rate"], baud, "{report}");
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

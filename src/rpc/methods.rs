@@ -169,17 +169,26 @@ async fn port_load(ports: &PortDirectory, load: PortLoad) -> Result<Value, RpcEr
     let line = request_line(&access, &load.line);
     let mut bus = QueuedBus::new(&access);
     let slave_id = load.slave_id.or(device_slave_id);
-    let answer = match (load.serial, slave_id) {
-        (Some(serial), _) => bus
-            .by_serial(line, serial, load.pdu.clone(), load.response_timeout)
-            .await
-            .map_err(io_error)?,
-        (None, Some(address)) => bus
-            .classic(line, address, load.pdu.clone(), load.response_timeout)
-            .await
-            .map_err(io_error)?,
-        (None, None) => return Err(RpcError::server("bad \"slave_id\": missing")),
-    };
+    // A garbled reply or silence is tried once more (Modbus reads and register writes are
+    // idempotent): between the port's own transactions, a late reply to one of them can spoil
+    // the first try on a loaded line.
+    let mut answer = Answer::NoReply;
+    for _ in 0..2 {
+        answer = match (load.serial, slave_id) {
+            (Some(serial), _) => bus
+                .by_serial(line, serial, load.pdu.clone(), load.response_timeout)
+                .await
+                .map_err(io_error)?,
+            (None, Some(address)) => bus
+                .classic(line, address, load.pdu.clone(), load.response_timeout)
+                .await
+                .map_err(io_error)?,
+            (None, None) => return Err(RpcError::server("bad \"slave_id\": missing")),
+        };
+        if matches!(answer, Answer::Pdu(_)) {
+            break;
+        }
+    }
     let target = match (load.serial, slave_id) {
         (Some(serial), _) => format!("serial {serial}"),
         (None, Some(address)) => format!("slave {address}"),
@@ -187,7 +196,7 @@ async fn port_load(ports: &PortDirectory, load: PortLoad) -> Result<Value, RpcEr
     };
     load_result(&answer, load.format).map_err(|why| {
         RpcError::server(format!(
-            "Port IO error: {why} from {target} on {} at {line} (response_timeout {} ms)",
+            "Port IO error: {why} from {target} on {} at {line} (response_timeout {} ms, tried twice)",
             access.name,
             load.response_timeout.as_millis()
         ))

@@ -37,7 +37,8 @@ pub enum PortError {
     PermissionDenied { path: String },
     #[error(
         "{path} is busy: another program has it open (the rtu2mqtt or wb-mqtt-serial service?). \
-         Stop it first (systemctl stop rtu2mqtt) and try again"
+         Stop it first (systemctl stop rtu2mqtt) and try again, or go through the service: \
+         --via-mqtt --broker HOST (read, write, scan)"
     )]
     Busy { path: String },
     #[error("{path} is not a serial port: {source}")]
@@ -49,6 +50,9 @@ pub enum PortError {
     /// Through a running daemon's bus queue (MQTT RPC).
     #[error("{0}")]
     Queued(#[from] crate::daemon::bus_queue::BusQueueError),
+    /// The running service could not be asked (broker, no reply, refused).
+    #[error("{0}")]
+    Service(String),
 }
 
 /// What came back for one request.
