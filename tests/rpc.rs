@@ -273,6 +273,32 @@ async fn reads_scans_and_errors(bench: &Bench, baud: u32) {
     assert_eq!(serials, [0xFE00_0020, 0xFE00_0021], "{report}");
     let relay = &report["devices"][0];
     assert_eq!(relay["baud_rate"], baud, "{report}");
+
+    // port/Setup: a new address by serial number, and back by address.
+    let address_of_climate = || {
+        bench.sim.control(
+            json!({"cmd": "get", "serial": "0xFE000021", "type": "holding", "address": 128}),
+        )["value"]
+            .clone()
+    };
+    let moved = rpc(
+        port,
+        "port",
+        "Setup",
+        json!({"path": path, "items": [{"slave_id": 21, "sn": 0xFE00_0021u32, "cfg": {"slave_id": 31}}]}),
+    )
+    .await;
+    assert_eq!(moved, json!({"id": 1, "result": null, "error": null}));
+    assert_eq!(address_of_climate(), 31);
+    let back = rpc(
+        port,
+        "port",
+        "Setup",
+        json!({"path": path, "items": [{"slave_id": 31, "cfg": {"slave_id": 21}}]}),
+    )
+    .await;
+    assert_eq!(back["error"], Value::Null, "{back}");
+    assert_eq!(address_of_climate(), 21);
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -7,7 +7,7 @@ use serde_json::{json, Map, Value};
 
 use super::message::RpcError;
 use super::params::{
-    DeviceProbe, MessageFormat, Method, PortLoad, PortScan, PortSelector, ScanMode,
+    DeviceProbe, MessageFormat, Method, PortLoad, PortScan, PortSelector, PortSetup, ScanMode,
 };
 use crate::config::config_file::PortType;
 use crate::daemon::bus_queue::BusQueue;
@@ -63,6 +63,7 @@ pub async fn execute(ports: &PortDirectory, method: Method) -> Result<Value, Rpc
         Method::PortLoad(load) => port_load(ports, load).await,
         Method::PortScan(scan) => port_scan(ports, scan).await,
         Method::DeviceProbe(probe) => device_probe(ports, probe).await,
+        Method::PortSetup(setup) => port_setup(ports, setup).await,
     }
 }
 
@@ -350,9 +351,110 @@ async fn device_probe(ports: &PortDirectory, probe: DeviceProbe) -> Result<Value
     Ok(Value::Object(details))
 }
 
+/// `port/Setup`: new address and port settings of Wiren Board devices, by address or serial
+/// number. The result is `null`, as wb-mqtt-serial's.
+async fn port_setup(ports: &PortDirectory, setup: PortSetup) -> Result<Value, RpcError> {
+    let (access, _) = find_port(ports, &setup.port)?;
+    let mut bus = QueuedBus::new(&access);
+    for item in &setup.items {
+        let line = request_line(&access, &item.line);
+        let mut target = match item.serial {
+            Some(serial) => Reader::BySerial(serial),
+            None => Reader::Address(item.slave_id),
+        };
+        // The address first: by serial number it does not matter, by address the following
+        // writes go to the new one.
+        if let Some(new_address) = item.cfg.slave_id {
+            setup_write(
+                &mut bus,
+                line,
+                &target,
+                wb_register::ADDRESS,
+                &[u16::from(new_address)],
+            )
+            .await?;
+            if let Reader::Address(address) = &mut target {
+                *address = new_address;
+            }
+        }
+        // The port settings last and in one write where they are contiguous: the device takes
+        // them at once and would not hear a second write at its old settings.
+        let mut registers: Vec<(u16, u16)> = Vec::new();
+        if let Some(baud) = item.cfg.baud_rate {
+            registers.push((
+                wb_register::BAUD,
+                u16::try_from(baud / 100).unwrap_or(u16::MAX),
+            ));
+        }
+        if let Some(parity) = item.cfg.parity {
+            let value = match parity {
+                crate::protocol::Parity::None => 0,
+                crate::protocol::Parity::Odd => 1,
+                crate::protocol::Parity::Even => 2,
+            };
+            registers.push((wb_register::PARITY, value));
+        }
+        if let Some(stop_bits) = item.cfg.stop_bits {
+            registers.push((wb_register::STOP_BITS, u16::from(stop_bits)));
+        }
+        let contiguous = registers.windows(2).all(|pair| pair[1].0 == pair[0].0 + 1);
+        if contiguous && !registers.is_empty() {
+            let values: Vec<u16> = registers.iter().map(|(_, v)| *v).collect();
+            setup_write(&mut bus, line, &target, registers[0].0, &values).await?;
+        } else {
+            for (register, value) in registers {
+                setup_write(&mut bus, line, &target, register, &[value]).await?;
+            }
+        }
+    }
+    Ok(Value::Null)
+}
+
+async fn setup_write(
+    bus: &mut QueuedBus,
+    line: LineSettings,
+    target: &Reader,
+    start: u16,
+    values: &[u16],
+) -> Result<(), RpcError> {
+    let pdu = match values {
+        [value] => RequestPdu::WriteSingleRegister {
+            address: start,
+            value: *value,
+        },
+        _ => RequestPdu::WriteMultipleRegisters {
+            start,
+            values: values.to_vec(),
+        },
+    };
+    let timeout = crate::tools::bus::KNOWN_DEVICE_TIMEOUT;
+    let (answer, who) = match target {
+        Reader::BySerial(serial) => (
+            bus.by_serial(line, *serial, pdu, timeout).await,
+            format!("serial {serial}"),
+        ),
+        Reader::Address(address) => (
+            bus.classic(line, *address, pdu, timeout).await,
+            format!("slave {address}"),
+        ),
+    };
+    match answer.map_err(io_error)? {
+        Answer::Pdu(
+            ResponsePdu::WriteSingleRegister { .. } | ResponsePdu::WriteMultipleRegisters { .. },
+        ) => Ok(()),
+        other => Err(RpcError::server(format!(
+            "Port IO error: writing holding {start} of {who} at {line}: {}",
+            describe(&other)
+        ))),
+    }
+}
+
 /// Wiren Board's standard registers (holding).
 mod wb_register {
     pub const BAUD: u16 = 110;
+    pub const PARITY: u16 = 111;
+    pub const STOP_BITS: u16 = 112;
+    pub const ADDRESS: u16 = 128;
     /// 20 characters, or 6 on older devices.
     pub const MODEL: u16 = 200;
     pub const FIRMWARE: u16 = 250;

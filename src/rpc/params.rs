@@ -21,9 +21,9 @@ pub const SERVED: &[(&str, &str)] = &[
     ("port", "Load"),
     ("port", "Scan"),
     ("device", "Probe"),
+    ("port", "Setup"),
 ];
 pub const NOT_SERVED: &[(&str, &str)] = &[
-    ("port", "Setup"),
     ("device", "LoadConfig"),
     ("device", "Load"),
     ("device", "Set"),
@@ -112,6 +112,33 @@ pub struct DeviceProbe {
     pub total_timeout: Duration,
 }
 
+/// New port settings and address of one Wiren Board device (`port/Setup`'s `cfg`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct DeviceSettings {
+    pub slave_id: Option<u8>,
+    /// In bit/s (the register holds it / 100).
+    pub baud_rate: Option<u32>,
+    pub parity: Option<Parity>,
+    pub stop_bits: Option<u8>,
+}
+
+/// One device of `port/Setup`: where it is now (address or serial number, port settings) and
+/// what to set.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SetupItem {
+    pub slave_id: u8,
+    pub serial: Option<u32>,
+    pub line: LineOverride,
+    pub cfg: DeviceSettings,
+}
+
+#[derive(Debug, Clone, PartialEq)]
+pub struct PortSetup {
+    pub port: PortSelector,
+    pub items: Vec<SetupItem>,
+    pub total_timeout: Duration,
+}
+
 /// A request, read.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Method {
@@ -119,6 +146,7 @@ pub enum Method {
     PortLoad(PortLoad),
     PortScan(PortScan),
     DeviceProbe(DeviceProbe),
+    PortSetup(PortSetup),
 }
 
 impl Method {
@@ -129,6 +157,7 @@ impl Method {
             Self::PortLoad(p) => p.total_timeout,
             Self::PortScan(p) => p.total_timeout,
             Self::DeviceProbe(p) => p.total_timeout,
+            Self::PortSetup(p) => p.total_timeout,
         }
     }
 }
@@ -166,6 +195,11 @@ pub fn parse_method(service: &str, method: &str, params: &Value) -> Result<Metho
             slave_id: slave_id(fields)?.ok_or_else(|| bad("slave_id", "missing"))?,
             total_timeout: total_timeout(fields)?,
         })),
+        ("port", "Setup") => Ok(Method::PortSetup(PortSetup {
+            port: port_selector(fields)?,
+            items: setup_items(fields)?,
+            total_timeout: total_timeout(fields)?,
+        })),
         _ if NOT_SERVED.contains(&(service, method)) => Err(RpcError::server(format!(
             "{service}/{method} is not served by rtu2mqtt yet; served: {}",
             served_list()
@@ -175,6 +209,55 @@ pub fn parse_method(service: &str, method: &str, params: &Value) -> Result<Metho
             served_list()
         ))),
     }
+}
+
+fn setup_items(fields: &Map<String, Value>) -> Result<Vec<SetupItem>, RpcError> {
+    let Some(Value::Array(items)) = fields.get("items") else {
+        return Err(bad("items", "missing: a list of {slave_id, sn?, cfg: {…}}"));
+    };
+    items
+        .iter()
+        .map(|item| {
+            let item = item
+                .as_object()
+                .ok_or_else(|| bad("items", "each item is an object"))?;
+            let cfg = match item.get("cfg") {
+                None | Some(Value::Null) => Map::new(),
+                Some(Value::Object(cfg)) => cfg.clone(),
+                Some(_) => return Err(bad("cfg", "an object")),
+            };
+            let mut cfg_line = cfg.clone();
+            if cfg.get("parity").is_some_and(Value::is_number) {
+                cfg_line.remove("parity");
+            }
+            let settings = line_override(&cfg_line)?;
+            let cfg_parity = match cfg.get("parity") {
+                // The register's own numbers are taken too: 0 N, 1 O, 2 E.
+                Some(Value::Number(n)) => match n.as_u64() {
+                    Some(0) => Some(Parity::None),
+                    Some(1) => Some(Parity::Odd),
+                    Some(2) => Some(Parity::Even),
+                    _ => return Err(bad("parity", format!("{n}: use N, E, O (or 0, 2, 1)"))),
+                },
+                _ => settings.parity,
+            };
+            let serial = match optional_uint(item, "sn")? {
+                None => None,
+                Some(sn) => Some(u32::try_from(sn).map_err(|_| bad("sn", "above 4294967295"))?),
+            };
+            Ok(SetupItem {
+                slave_id: slave_id(item)?.ok_or_else(|| bad("slave_id", "missing"))?,
+                serial,
+                line: line_override(item)?,
+                cfg: DeviceSettings {
+                    slave_id: slave_id(&cfg)?,
+                    baud_rate: settings.baud_rate,
+                    parity: cfg_parity,
+                    stop_bits: settings.stop_bits,
+                },
+            })
+        })
+        .collect()
 }
 
 fn served_list() -> String {
@@ -617,6 +700,47 @@ mod tests {
         assert!(unknown.message.contains("port/Scan"));
         let later = parse("device", "LoadConfig", json!({})).unwrap_err();
         assert!(later.message.contains("not served"), "{}", later.message);
+    }
+
+    #[test]
+    fn setup_items() {
+        let setup = parse(
+            "port",
+            "Setup",
+            json!({"path": "/dev/x", "items": [
+                {"slave_id": 21, "sn": 4261412897u64, "baud_rate": 9600,
+                 "cfg": {"slave_id": 31, "baud_rate": 115200, "parity": "N", "stop_bits": 2}},
+                {"slave_id": 5, "cfg": {"parity": 2}}
+            ]}),
+        )
+        .unwrap();
+        let Method::PortSetup(setup) = setup else {
+            panic!()
+        };
+        assert_eq!(setup.items.len(), 2);
+        assert_eq!(setup.items[0].serial, Some(4_261_412_897));
+        assert_eq!(setup.items[0].line.baud_rate, Some(9600));
+        assert_eq!(
+            setup.items[0].cfg,
+            DeviceSettings {
+                slave_id: Some(31),
+                baud_rate: Some(115_200),
+                parity: Some(Parity::None),
+                stop_bits: Some(2)
+            }
+        );
+        assert_eq!(setup.items[1].cfg.parity, Some(Parity::Even));
+        for bad_items in [
+            json!({"path": "/dev/x"}),
+            json!({"path": "/dev/x", "items": [{"cfg": {}}]}),
+            json!({"path": "/dev/x", "items": [{"slave_id": 1, "cfg": {"slave_id": 300}}]}),
+            json!({"path": "/dev/x", "items": [{"slave_id": 1, "cfg": {"parity": 7}}]}),
+        ] {
+            assert!(
+                parse("port", "Setup", bad_items.clone()).is_err(),
+                "{bad_items}"
+            );
+        }
     }
 
     #[test]
