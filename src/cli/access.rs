@@ -16,7 +16,10 @@ use crate::tools::values::{decode_words, encode_value, parse_format, value_width
 
 use super::address::{locate, parse_serial};
 use super::scan::{block_on_tool, port_failure, PortArgs};
-use super::via_mqtt::{line_params, response_words, served_line, service_call, ViaMqttArgs};
+use super::via_mqtt::{
+    connect_service, line_params, response_words, served_line, service_call, ViaMqttArgs,
+};
+use crate::rpc::client::RpcSession;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum TypeArg {
@@ -486,13 +489,10 @@ fn open_or_service(args: &TargetArgs) -> Result<Option<ToolPort>, PortError> {
 
 /// The device and settings a request through the service goes to: the settings the options
 /// name, else the ones the service runs the port at.
-async fn service_target(
-    args: &TargetArgs,
-    broker: &crate::config::config_file::MqttConfig,
-) -> Result<Target, ExitCode> {
+async fn service_target(args: &TargetArgs, session: &mut RpcSession) -> Result<Target, ExitCode> {
     let line = match args.port.single_line() {
         Some(line) => line,
-        None => served_line(broker, &args.port.port).await?,
+        None => served_line(session, &args.port.port).await?,
     };
     Ok(Target {
         line,
@@ -504,7 +504,7 @@ async fn service_target(
 /// One Modbus request through the service's `port/Load`; the data words of the reply.
 async fn load_via_service(
     args: &TargetArgs,
-    broker: &crate::config::config_file::MqttConfig,
+    session: &mut RpcSession,
     target: &Target,
     pdu: &RequestPdu,
     count: u16,
@@ -524,7 +524,7 @@ async fn load_via_service(
         (Some(serial), _) => params["sn"] = json!(serial),
         (None, address) => params["slave_id"] = json!(address),
     }
-    let result = service_call(broker, "port", "Load", params, timeout + SERVICE_MARGIN).await?;
+    let result = service_call(session, "port", "Load", params, timeout + SERVICE_MARGIN).await?;
     if let Some(exception) = result.get("exception") {
         eprintln!(
             "{} at {} refused: {} (exception {})",
@@ -545,19 +545,16 @@ async fn load_via_service(
 const SERVICE_MARGIN: Duration = Duration::from_secs(5);
 
 async fn read_via_service(args: &TargetArgs, count: u16) -> ExitCode {
-    let broker = match args.service.broker_config() {
-        Ok(broker) => broker,
-        Err(message) => {
-            eprintln!("{message}");
-            return ExitCode::from(exit::USAGE);
-        }
+    let mut session = match connect_service(&args.service).await {
+        Ok(session) => session,
+        Err(code) => return code,
     };
-    let target = match service_target(args, &broker).await {
+    let target = match service_target(args, &mut session).await {
         Ok(target) => target,
         Err(code) => return code,
     };
     let pdu = read_pdu(args.register_type.register_type(), args.reg, count);
-    let words = match load_via_service(args, &broker, &target, &pdu, count, &[]).await {
+    let words = match load_via_service(args, &mut session, &target, &pdu, count, &[]).await {
         Ok(Some(words)) => words,
         Ok(None) => {
             eprintln!("the service's reply holds no register data");
@@ -573,14 +570,11 @@ async fn read_via_service(args: &TargetArgs, count: u16) -> ExitCode {
 }
 
 async fn write_via_service(args: &TargetArgs, pdu: &RequestPdu, words: &[u16]) -> ExitCode {
-    let broker = match args.service.broker_config() {
-        Ok(broker) => broker,
-        Err(message) => {
-            eprintln!("{message}");
-            return ExitCode::from(exit::USAGE);
-        }
+    let mut session = match connect_service(&args.service).await {
+        Ok(session) => session,
+        Err(code) => return code,
     };
-    let target = match service_target(args, &broker).await {
+    let target = match service_target(args, &mut session).await {
         Ok(target) => target,
         Err(code) => return code,
     };
@@ -600,11 +594,11 @@ async fn write_via_service(args: &TargetArgs, pdu: &RequestPdu, words: &[u16]) -
         }
         _ => words.iter().flat_map(|w| w.to_be_bytes()).collect(),
     };
-    if let Err(code) = load_via_service(args, &broker, &target, pdu, count, &message).await {
+    if let Err(code) = load_via_service(args, &mut session, &target, pdu, count, &message).await {
         return code;
     }
     let read = read_pdu(args.register_type.register_type(), args.reg, count);
-    match load_via_service(args, &broker, &target, &read, count, &[]).await {
+    match load_via_service(args, &mut session, &target, &read, count, &[]).await {
         Ok(Some(now)) => {
             if !args.json {
                 println!("written; read back:");

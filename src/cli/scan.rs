@@ -562,9 +562,12 @@ pub fn config_snippet(
 /// reads each device's details by serial number).
 async fn scan_via_service(args: &Args, report: &mut ScanReport) -> Result<(), PortError> {
     use super::via_mqtt::line_params;
-    use crate::rpc::client::call;
+    use crate::rpc::client::RpcSession;
     use crate::tools::report::SettingProblem;
     let broker = args.service.broker_config().map_err(PortError::Service)?;
+    let mut session = RpcSession::connect(&broker)
+        .await
+        .map_err(|err| PortError::Service(err.to_string()))?;
     if args.classic {
         eprintln!("--classic is not available through the service: Fast Modbus scan only");
     }
@@ -572,7 +575,8 @@ async fn scan_via_service(args: &Args, report: &mut ScanReport) -> Result<(), Po
         report.settings_tried.push(line);
         let mut params = line_params(&line);
         params["path"] = json!(args.port.port);
-        let result = call(&broker, "port", "Scan", params, Duration::from_secs(10))
+        let result = session
+            .call("port", "Scan", params, Duration::from_secs(10))
             .await
             .map_err(|err| PortError::Service(err.to_string()))?;
         if let Some(error) = result["error"].as_str() {

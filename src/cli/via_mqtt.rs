@@ -11,7 +11,7 @@ use serde_json::{json, Value};
 use crate::config::config_file::MqttConfig;
 use crate::config::load::{load_config, DEFAULT_CONFIG_PATH};
 use crate::protocol::{LineSettings, Parity};
-use crate::rpc::client::{call, CallError};
+use crate::rpc::client::{CallError, RpcSession};
 use crate::tools::exit;
 
 /// How to reach the running service.
@@ -69,32 +69,48 @@ impl ViaMqttArgs {
     }
 }
 
+/// Why the service could not be asked, for the integrator; the exit code.
+fn call_failure(err: &CallError) -> ExitCode {
+    match err {
+        CallError::Refused(_) => {
+            eprintln!("{err}");
+            ExitCode::from(exit::NOT_FOUND)
+        }
+        _ => {
+            eprintln!("error: {err}");
+            ExitCode::from(exit::PORT)
+        }
+    }
+}
+
+/// Connects to the service's broker; `Err` is the exit code (the reason printed).
+pub async fn connect_service(args: &ViaMqttArgs) -> Result<RpcSession, ExitCode> {
+    let broker = args.broker_config().map_err(|message| {
+        eprintln!("{message}");
+        ExitCode::from(exit::USAGE)
+    })?;
+    RpcSession::connect(&broker)
+        .await
+        .map_err(|err| call_failure(&err))
+}
+
 /// A call to the service, errors printed for the integrator; `Err` is the exit code.
 pub async fn service_call(
-    broker: &MqttConfig,
+    session: &mut RpcSession,
     service: &str,
     method: &str,
     params: Value,
     total_timeout: Duration,
 ) -> Result<Value, ExitCode> {
-    match call(broker, service, method, params, total_timeout).await {
-        Ok(result) => Ok(result),
-        Err(
-            err @ (CallError::Broker { .. } | CallError::NoReply { .. } | CallError::Settings(_)),
-        ) => {
-            eprintln!("error: {err}");
-            Err(ExitCode::from(exit::PORT))
-        }
-        Err(err @ CallError::Refused(_)) => {
-            eprintln!("{err}");
-            Err(ExitCode::from(exit::NOT_FOUND))
-        }
-    }
+    session
+        .call(service, method, params, total_timeout)
+        .await
+        .map_err(|err| call_failure(&err))
 }
 
 /// The settings the service runs `path` at (its `ports/Load` entry).
-pub async fn served_line(broker: &MqttConfig, path: &str) -> Result<LineSettings, ExitCode> {
-    let ports = service_call(broker, "ports", "Load", json!({}), Duration::from_secs(5)).await?;
+pub async fn served_line(session: &mut RpcSession, path: &str) -> Result<LineSettings, ExitCode> {
+    let ports = service_call(session, "ports", "Load", json!({}), Duration::from_secs(5)).await?;
     let entry = ports
         .as_array()
         .and_then(|ports| ports.iter().find(|p| p["path"] == path));

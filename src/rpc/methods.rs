@@ -26,6 +26,7 @@ pub struct QueuedBus {
     queue: BusQueue,
     /// The port's own settings; `None` for TCP gateways (settings do not apply).
     home: Option<LineSettings>,
+    latency: Duration,
 }
 
 impl QueuedBus {
@@ -33,17 +34,28 @@ impl QueuedBus {
         Self {
             queue: access.queue.clone(),
             home: access.line,
+            latency: RPC_LATENCY,
         }
+    }
+
+    /// Timeouts for requests at `line`: at other settings than the port's own (a client
+    /// scanning all 48) the USB adapter's allowance only, as the site tools use it.
+    fn for_line(mut self, line: LineSettings) -> Self {
+        if self.home.is_some_and(|home| home != line) {
+            self.latency = ADAPTER_LATENCY_ALLOWANCE;
+        }
+        self
     }
 }
 
-/// Added to the timeouts of RPC requests: the USB adapter's allowance, and more for a
-/// controller busy with the daemon's own work (an RPC is never in a hurry).
+/// Added to the timeouts of RPC requests at the port's own settings: the USB adapter's
+/// allowance, and more for a controller busy with the daemon's own work (an RPC is never in a
+/// hurry, and a reply taken for silence would be a wrong answer).
 const RPC_LATENCY: Duration = Duration::from_millis(50);
 
 impl ToolBus for QueuedBus {
     fn latency(&self) -> Duration {
-        RPC_LATENCY.max(ADAPTER_LATENCY_ALLOWANCE)
+        self.latency
     }
 
     async fn transact(
@@ -237,7 +249,7 @@ async fn port_scan(ports: &PortDirectory, scan: PortScan) -> Result<Value, RpcEr
         return Ok(json!({ "devices": [] }));
     }
     let line = request_line(&access, &scan.line);
-    let mut bus = QueuedBus::new(&access);
+    let mut bus = QueuedBus::new(&access).for_line(line);
     let mut error = None;
     let found = match scan.mode {
         ScanMode::All => {
@@ -246,9 +258,11 @@ async fn port_scan(ports: &PortDirectory, scan: PortScan) -> Result<Value, RpcEr
                 .scan_setting(line, &mut report)
                 .await
                 .map_err(io_error)?;
-            if seen.is_empty() && report.problems.is_empty() {
-                // Silence after a scan start means nobody at this setting, unless the reply was
-                // late (a loaded machine): a second start costs one more short timeout.
+            if seen.is_empty() && report.problems.is_empty() && access.line == Some(line) {
+                // Silence after a scan start at the port's own settings means nobody there,
+                // unless the reply was late (a loaded machine): a second start costs one more
+                // short timeout. Other settings are usually empty; a client scanning all of
+                // them would pay it 47 times.
                 seen = bus
                     .scan_setting(line, &mut report)
                     .await
