@@ -236,6 +236,31 @@ async fn reads_scans_and_errors(bench: &Bench, baud: u32) {
     assert!(stderr.contains("busy"), "{stderr}");
     assert!(stdout.contains("2210"), "{stdout}");
 
+    // `write` on the busy port: through the service, then read back.
+    let mut command = Command::new(env!("CARGO_BIN_EXE_rtu2mqtt"));
+    command
+        .args([
+            "write",
+            "--port",
+            &path,
+            "--address",
+            "20",
+            "--type",
+            "coil",
+            "--reg",
+            "3",
+        ])
+        .args(["--broker", &format!("127.0.0.1:{port}"), "1"]);
+    let output = tokio::task::spawn_blocking(move || command.output().unwrap())
+        .await
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert_eq!(output.status.code(), Some(0), "{stderr}");
+    let k4 = bench
+        .sim
+        .control(json!({"cmd": "get", "device": 20, "type": "coil", "address": 3}));
+    assert_eq!(k4["value"], 1, "{stderr}");
+
     // `scan` on the busy port: through the service, at the settings asked for.
     let mut command = Command::new(env!("CARGO_BIN_EXE_rtu2mqtt"));
     command
