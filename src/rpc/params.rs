@@ -703,6 +703,63 @@ mod tests {
     }
 
     #[test]
+    fn odd_values_in_any_field_are_refused_without_panic() {
+        let odd = [
+            json!(null),
+            json!(-1),
+            json!(1.5),
+            json!(u64::MAX),
+            json!("0x"),
+            json!("ffffffffffffffffffffff"),
+            json!([1, [2]]),
+            json!({"a": {}}),
+            json!(""),
+            json!(true),
+        ];
+        let fields = [
+            "path",
+            "ip",
+            "port",
+            "device_id",
+            "protocol",
+            "slave_id",
+            "sn",
+            "function",
+            "address",
+            "count",
+            "format",
+            "msg",
+            "response_timeout",
+            "total_timeout",
+            "baud_rate",
+            "parity",
+            "data_bits",
+            "stop_bits",
+            "mode",
+            "command",
+            "items",
+        ];
+        let base = json!({"path": "/dev/x", "protocol": "modbus", "slave_id": 1, "function": 3,
+                          "items": [{"slave_id": 1, "cfg": {"slave_id": 2}}]});
+        for (service, method) in SERVED.iter().chain(NOT_SERVED) {
+            for field in fields {
+                for value in &odd {
+                    let mut params = base.clone();
+                    params[field] = value.clone();
+                    // Whatever the outcome, it is a value or an error: no panic.
+                    let _ = parse_method(service, method, &params);
+                    let mut item = base.clone();
+                    item["items"][0]["cfg"][field] = value.clone();
+                    let _ = parse_method(service, method, &item);
+                }
+            }
+            for params in &odd {
+                let _ = parse_method(service, method, params);
+            }
+        }
+    }
+
+    #[test]
     fn setup_items() {
         let setup = parse(
             "port",
