@@ -15,6 +15,7 @@ pub mod port;
 pub mod protocol;
 pub mod service;
 pub mod sim;
+pub mod status;
 pub mod tools;
 pub mod transport;
 pub mod updates;

@@ -82,6 +82,7 @@ pub fn load_config_source(source: SourceText, apply_env: bool) -> Result<LoadedC
     };
     let (device_extra_keys, mut errors) = split_ignored(&loaded, ignored);
     errors.extend(check_ports(&loaded));
+    errors.extend(check_http(&loaded));
     if errors.is_empty() {
         Ok(LoadedConfig {
             device_extra_keys,
@@ -251,6 +252,18 @@ fn check_tls(loaded: &LoadedConfig) -> Vec<LocatedError> {
         _ => {}
     }
     errors
+}
+
+/// The status page may only be reachable from other machines behind a password.
+fn check_http(loaded: &LoadedConfig) -> Vec<LocatedError> {
+    let Some(http) = &loaded.config.http else {
+        return Vec::new();
+    };
+    let at = JsonPath::root().key("http");
+    http.problems()
+        .into_iter()
+        .map(|(key, message)| loaded.error(at.key(key), Problem::Invalid(message)))
+        .collect()
 }
 
 /// The config's JSON Schema as a value (also what `rtu2mqtt schema config` prints).

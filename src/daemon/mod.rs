@@ -15,6 +15,7 @@ use tracing::{info, warn};
 
 use crate::device::model::ResolvedPort;
 use crate::service::{PortVitals, ServiceHealth};
+use crate::status::{PortStatus, StatusHub};
 use crate::updates::{ControlWrite, DeviceUpdate};
 use device_model::DeviceModel;
 use port_plan::port_plan;
@@ -42,6 +43,7 @@ struct RunningPort {
     stop: watch::Sender<bool>,
     task: JoinHandle<()>,
     vitals: Arc<PortVitals>,
+    status: Option<Arc<PortStatus>>,
 }
 
 /// Owns the port tasks: stops them all at shutdown, and on a reload stops, starts or restarts
@@ -53,6 +55,8 @@ pub struct BusControl {
     fast_modbus: bool,
     router: JoinHandle<()>,
     health: Arc<ServiceHealth>,
+    /// The status page's registry of ports, when the page is on.
+    status: Option<Arc<StatusHub>>,
 }
 
 /// What a reload did, for the log and the tests.
@@ -81,6 +85,16 @@ pub fn start_bus_side(
     fast_modbus: bool,
     health: Arc<ServiceHealth>,
 ) -> BusSide {
+    start_bus_side_with_status(ports, fast_modbus, health, None)
+}
+
+/// [`start_bus_side`], with every port counted for the status page in `status`.
+pub fn start_bus_side_with_status(
+    ports: Vec<ResolvedPort>,
+    fast_modbus: bool,
+    health: Arc<ServiceHealth>,
+    status: Option<Arc<StatusHub>>,
+) -> BusSide {
     let (update_tx, update_rx) = mpsc::channel(UPDATE_QUEUE);
     let (write_tx, mut write_rx) = mpsc::channel::<ControlWrite>(WRITE_QUEUE);
     let routes: Routes = Arc::default();
@@ -103,6 +117,7 @@ pub fn start_bus_side(
         fast_modbus,
         router,
         health,
+        status,
     };
     for port in ports {
         let (task, added) = control.prepare_port(&port);
@@ -136,19 +151,34 @@ impl BusControl {
         let mut models = Vec::new();
         let mut added = Vec::new();
         let mut routes = lock(&self.routes);
+        let mut devices = Vec::new();
         for (index, device) in port.devices.iter().enumerate() {
             let device = Arc::new(device.clone());
             routes.insert(device.id.clone(), port_write_tx.clone());
             added.push(DeviceUpdate::Added(Arc::clone(&device)));
+            devices.push(Arc::clone(&device));
             models.push(DeviceModel::new(device, index));
         }
-        let task =
+        let status = self.status.as_ref().map(|hub| {
+            let mut settings = serde_json::to_value(&port.config).unwrap_or_default();
+            if let Some(settings) = settings.as_object_mut() {
+                settings.remove("devices");
+            }
+            let status = Arc::new(PortStatus::new(&plan.name, settings, devices));
+            hub.add_port(Arc::clone(&status));
+            status
+        });
+        let mut task =
             PortTask::new(plan, models, self.updates.clone(), port_write_rx).with_vitals(vitals);
+        if let Some(status) = status {
+            task = task.with_status(status);
+        }
         (task, added)
     }
 
     fn spawn_port(&mut self, port: ResolvedPort, task: PortTask) {
         let vitals = task.vitals();
+        let status = task.status();
         let (stop, stopped) = watch::channel(false);
         let task = tokio::spawn(task.run(stopped));
         let config = serde_json::to_value(&port.config).unwrap_or_default();
@@ -160,6 +190,7 @@ impl BusControl {
                 stop,
                 task,
                 vitals,
+                status,
             },
         );
     }
@@ -170,6 +201,9 @@ impl BusControl {
         let _ = running.stop.send(true);
         let _ = running.task.await;
         self.health.remove_port(&running.vitals);
+        if let (Some(hub), Some(status)) = (&self.status, &running.status) {
+            hub.remove_port(status);
+        }
         let mut routes = lock(&self.routes);
         for device in &running.resolved.devices {
             routes.remove(&device.id);

@@ -10,8 +10,9 @@ use tracing::{debug, info, warn};
 
 use super::device_model::DeviceModel;
 use super::port_plan::PortPlan;
-use crate::port::{Action, Outcome, PortEvent, PortScheduler, ReplyTiming};
+use crate::port::{Action, Outcome, PortEvent, PortScheduler, ReplyTiming, Transaction};
 use crate::service::{BrokerState, PortVitals, ServiceHealth};
+use crate::status::PortStatus;
 use crate::transport::{Transport, TransportError};
 use crate::updates::{ControlWrite, DeviceUpdate};
 
@@ -30,6 +31,8 @@ pub struct PortTask {
     /// What systemd's watchdog and status line learn from this task.
     vitals: Option<Arc<PortVitals>>,
     online: Vec<bool>,
+    /// The status page's counters of this port; none while the status server is off.
+    status: Option<Arc<PortStatus>>,
 }
 
 /// The task reports progress at least this often, even with nothing to do on the bus.
@@ -53,7 +56,40 @@ impl PortTask {
             epoch: Instant::now(),
             vitals: None,
             online: Vec::new(),
+            status: None,
         }
+    }
+
+    /// Counts transactions, errors and values for the status page into `status`.
+    pub fn with_status(mut self, status: Arc<PortStatus>) -> Self {
+        // The counters' times are on this task's clock.
+        self.epoch = status.epoch;
+        self.status = Some(status);
+        self
+    }
+
+    /// The handle given to [`Self::with_status`].
+    pub fn status(&self) -> Option<Arc<PortStatus>> {
+        self.status.clone()
+    }
+
+    /// The status page's one hook into a transaction: counted after its updates went out (an
+    /// event round trip ends at the hand-over to MQTT).
+    fn record_transaction(&self, started: Duration, transaction: &Transaction, outcome: &Outcome) {
+        let Some(status) = &self.status else {
+            return;
+        };
+        let now = self.now();
+        status.record(|stats| {
+            if let Some(device) = stats.transaction_done(started, now, transaction, outcome) {
+                stats.events_published(device, now);
+            }
+            if stats.schedule_due(now) {
+                for device in 0..self.scheduler.device_count() {
+                    stats.set_schedule(device, self.scheduler.device_report(device, now));
+                }
+            }
+        });
     }
 
     /// Reports open/closed, progress and devices online into `vitals`.
@@ -78,6 +114,9 @@ impl PortTask {
     fn set_open(&self, open: bool) {
         if let Some(vitals) = &self.vitals {
             vitals.set_open(open);
+        }
+        if let Some(status) = &self.status {
+            status.record(|stats| stats.set_open(open));
         }
     }
 
@@ -148,6 +187,7 @@ impl PortTask {
             }
             match self.scheduler.next(self.now()) {
                 Action::Transmit(transaction) => {
+                    let started = self.now();
                     // Shutdown never waits for the bus: a transaction may take seconds (long
                     // timeouts, a guard interval, a babbling line).
                     let result = tokio::select! {
@@ -158,8 +198,12 @@ impl PortTask {
                         Ok((outcome, timing)) => (outcome.clone(), *timing),
                         Err(_) => (Outcome::NoReply, ReplyTiming::default()),
                     };
+                    let recorded = self.status.as_ref().map(|_| outcome.clone());
                     let events = self.scheduler.complete_timed(self.now(), outcome, timing);
                     self.dispatch(events).await;
+                    if let Some(outcome) = recorded {
+                        self.record_transaction(started, &transaction, &outcome);
+                    }
                     result?;
                 }
                 Action::Wait { until } => {
@@ -241,6 +285,14 @@ impl PortTask {
     }
 
     async fn send(&self, updates: Vec<DeviceUpdate>) {
+        if let Some(status) = &self.status {
+            let now = self.now();
+            status.record(|stats| {
+                for update in &updates {
+                    stats.observe_update(update, now);
+                }
+            });
+        }
         for update in updates {
             // The MQTT side drains this queue into its latest-value-per-topic state at once, so
             // waiting here only happens if that task itself is stuck.

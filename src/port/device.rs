@@ -131,6 +131,15 @@ impl DeviceState {
         self.events_active
     }
 
+    /// Where the device's preparation stands, in words (status page).
+    pub(super) fn setup_state(&self) -> &'static str {
+        match self.preparation {
+            Preparation::Setup { .. } => "setup writes",
+            Preparation::Events => "event setup",
+            Preparation::Done => "ready",
+        }
+    }
+
     pub(super) fn is_prepared(&self) -> bool {
         self.preparation == Preparation::Done
     }

@@ -72,6 +72,18 @@ pub struct ReplyTiming {
     pub late_byte: Option<Duration>,
 }
 
+/// What the scheduler knows of one device, for the status page.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct DeviceReport {
+    /// The smoothed time to the first byte of its replies (none before the first reply).
+    pub learned_response_time: Option<Duration>,
+    /// How long a request to it waits for the first byte now.
+    pub response_timeout: Duration,
+    pub events_active: bool,
+    /// "setup writes", "event setup" or "ready".
+    pub setup: &'static str,
+}
+
 /// What came back for a transaction.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Outcome {
@@ -202,6 +214,17 @@ impl PortScheduler {
 
     pub fn device_count(&self) -> usize {
         self.devices.len()
+    }
+
+    /// What the status page shows of a device's schedule.
+    pub fn device_report(&self, device: usize, now: Duration) -> Option<DeviceReport> {
+        let state = self.devices.get(device)?;
+        Some(DeviceReport {
+            learned_response_time: state.response.learned(),
+            response_timeout: state.response.timeout(now),
+            events_active: state.events_active(),
+            setup: state.setup_state(),
+        })
     }
 
     /// Queues a write; a queued write to the same register is replaced (the latest value wins).
