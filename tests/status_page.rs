@@ -736,3 +736,59 @@ fn without_a_password_only_loopback_names_are_served() {
     .unwrap();
     assert_eq!(code, 403);
 }
+
+#[test]
+fn suspend_holds_a_devices_polling_and_resume_brings_it_back() {
+    let setup = start(115_200, false, json!({}));
+    let port = setup.http_port;
+    let transactions = |samples: &[Sample], device: &str| {
+        metric(
+            samples,
+            "rtu2mqtt_device_transactions_total",
+            &[("device", device)],
+        )
+    };
+    wait_for("both devices polled", &setup.daemon, || {
+        let samples = metrics(port)?;
+        (transactions(&samples, "relay6_20")? > 0.0 && transactions(&samples, "climate_21")? > 0.0)
+            .then_some(())
+    });
+    let hold = |suspended: bool| {
+        let body = json!({"device": "relay6_20", "suspended": suspended}).to_string();
+        let (code, _, answer) =
+            http(port, "POST", "/api/suspend", &[("x-rtu2mqtt", "1")], &body).unwrap();
+        assert_eq!(code, 202, "{answer}");
+    };
+    let relay_suspended = || {
+        status(port)?["ports"][0]["devices"]
+            .as_array()?
+            .iter()
+            .find(|d| d["id"] == "relay6_20")?["suspended"]
+            .as_bool()
+    };
+    hold(true);
+    wait_for("the relay held", &setup.daemon, || {
+        relay_suspended()?.then_some(())
+    });
+    let held = metrics(port).unwrap();
+    // The climate sensor is polled on and on; the relay not once more.
+    let after = wait_for(
+        "30 more requests to the climate sensor",
+        &setup.daemon,
+        || {
+            let samples = metrics(port)?;
+            (transactions(&samples, "climate_21")? >= transactions(&held, "climate_21")? + 30.0)
+                .then_some(samples)
+        },
+    );
+    assert_eq!(
+        transactions(&after, "relay6_20"),
+        transactions(&held, "relay6_20")
+    );
+    hold(false);
+    wait_for("the relay polled again", &setup.daemon, || {
+        let samples = metrics(port)?;
+        (transactions(&samples, "relay6_20")? > transactions(&held, "relay6_20")?).then_some(())
+    });
+    assert_eq!(relay_suspended(), Some(false));
+}

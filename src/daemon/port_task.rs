@@ -12,6 +12,7 @@ use super::device_model::DeviceModel;
 use super::port_plan::PortPlan;
 use crate::port::{Action, Outcome, PortEvent, PortScheduler, ReplyTiming, Transaction};
 use crate::service::{BrokerState, PortVitals, ServiceHealth};
+use crate::status::hub::PortCommand;
 use crate::status::PortStatus;
 use crate::transport::{Transport, TransportError};
 use crate::updates::{ControlWrite, DeviceUpdate};
@@ -71,6 +72,23 @@ impl PortTask {
     /// The handle given to [`Self::with_status`].
     pub fn status(&self) -> Option<Arc<PortStatus>> {
         self.status.clone()
+    }
+
+    /// What the status page asked for (hold or resume a device's polling).
+    fn apply_status_commands(&mut self) {
+        let Some(status) = &self.status else {
+            return;
+        };
+        let now = self.now();
+        for command in status.take_commands() {
+            match command {
+                PortCommand::Suspend { device, suspended } => {
+                    self.scheduler.set_suspended(device, suspended);
+                    let report = self.scheduler.device_report(device, now);
+                    status.record(|stats| stats.set_schedule(device, report));
+                }
+            }
+        }
     }
 
     /// The status page's one hook into a transaction: counted after its updates went out (an
@@ -185,6 +203,7 @@ impl PortTask {
             while let Ok(write) = self.writes.try_recv() {
                 self.handle_write(write).await;
             }
+            self.apply_status_commands();
             match self.scheduler.next(self.now()) {
                 Action::Transmit(transaction) => {
                     let started = self.now();

@@ -2,6 +2,7 @@
 //! JSON of `/api/status`, the Prometheus text of `/metrics`, a device's decoded frames.
 
 use std::fmt::Write as _;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
 use std::time::Duration;
 
@@ -18,6 +19,13 @@ fn lock<T>(mutex: &Mutex<T>) -> MutexGuard<'_, T> {
     mutex.lock().unwrap_or_else(PoisonError::into_inner)
 }
 
+/// What the page asks a port task to do (taken between transactions).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PortCommand {
+    /// Hold or resume the polling of the port's `device`-th device.
+    Suspend { device: usize, suspended: bool },
+}
+
 /// One port as the status page shows it: what it was configured with, and its counters, which
 /// its port task updates.
 #[derive(Debug)]
@@ -29,6 +37,9 @@ pub struct PortStatus {
     /// The port task's clock starts here: the stats' times count from it.
     pub epoch: Instant,
     pub stats: Mutex<PortStats>,
+    commands: Mutex<Vec<PortCommand>>,
+    /// Commands are waiting: the port task looks at the lock only then.
+    commands_pending: AtomicBool,
 }
 
 impl PortStatus {
@@ -43,7 +54,22 @@ impl PortStatus {
             devices,
             epoch: Instant::now(),
             stats: Mutex::new(PortStats::new(&ids)),
+            commands: Mutex::new(Vec::new()),
+            commands_pending: AtomicBool::new(false),
         }
+    }
+
+    fn push_command(&self, command: PortCommand) {
+        lock(&self.commands).push(command);
+        self.commands_pending.store(true, Ordering::Release);
+    }
+
+    /// The commands since the last call (the port task's side).
+    pub fn take_commands(&self) -> Vec<PortCommand> {
+        if !self.commands_pending.swap(false, Ordering::Acquire) {
+            return Vec::new();
+        }
+        std::mem::take(&mut *lock(&self.commands))
     }
 
     /// Runs `change` on the counters (the port task's one way in).
@@ -125,6 +151,20 @@ impl StatusHub {
                 payload: value.to_string(),
             })
             .map_err(|_| WriteRefused::NotRunning)
+    }
+
+    /// Holds or resumes the polling of a device; false for an unknown device.
+    pub fn suspend(&self, device: &str, suspended: bool) -> bool {
+        for port in self.ports() {
+            if let Some(index) = port.devices.iter().position(|d| d.id == device) {
+                port.push_command(PortCommand::Suspend {
+                    device: index,
+                    suspended,
+                });
+                return true;
+            }
+        }
+        false
     }
 
     /// The JSON the page shows (`/api/status`).
@@ -480,6 +520,7 @@ fn port_json(port: &PortStatus) -> Value {
                 "response_timeout_ms": schedule.map(|s| millis(s.response_timeout)),
                 "events_enabled": schedule.is_some_and(|s| s.events_active),
                 "setup": schedule.map(|s| s.setup),
+                "suspended": schedule.is_some_and(|s| s.suspended),
                 "transactions": stats.transactions,
                 "errors": errors_json(&stats.errors),
                 "controls": controls,

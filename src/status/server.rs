@@ -102,6 +102,7 @@ impl StatusServer {
             .route("/api/events", get(live))
             .route("/api/frames", get(frames))
             .route("/api/write", post(write))
+            .route("/api/suspend", post(suspend))
             .route("/metrics", get(metrics))
             .layer(middleware::from_fn_with_state(state.clone(), guard))
             .with_state(state);
@@ -233,17 +234,51 @@ async fn frames(State(state): State<AppState>, uri: Uri) -> Response {
     }
 }
 
-/// `{"device": …, "control": …, "value": …}`: queued as an MQTT `/on` write would be.
-async fn write(State(state): State<AppState>, headers: HeaderMap, body: Bytes) -> Response {
+/// The JSON body of a POST from the page; refused without [`WRITE_HEADER`].
+fn page_post(headers: &HeaderMap, body: &[u8]) -> Result<serde_json::Value, Response> {
     if !headers.contains_key(WRITE_HEADER) {
-        return (
+        return Err((
             StatusCode::FORBIDDEN,
             format!("a write needs the `{WRITE_HEADER}` header (the page sends it)\n"),
         )
-            .into_response();
+            .into_response());
     }
-    let Ok(request) = serde_json::from_slice::<serde_json::Value>(&body) else {
-        return (StatusCode::BAD_REQUEST, "the body must be JSON\n").into_response();
+    serde_json::from_slice::<serde_json::Value>(body)
+        .map_err(|_| (StatusCode::BAD_REQUEST, "the body must be JSON\n").into_response())
+}
+
+/// `{"device": …, "suspended": true|false}`: holds or resumes the device's polling.
+async fn suspend(State(state): State<AppState>, headers: HeaderMap, body: Bytes) -> Response {
+    let request = match page_post(&headers, &body) {
+        Ok(request) => request,
+        Err(refused) => return refused,
+    };
+    let (Some(device), Some(suspended)) =
+        (request["device"].as_str(), request["suspended"].as_bool())
+    else {
+        return (
+            StatusCode::BAD_REQUEST,
+            "give device and suspended (true or false)\n",
+        )
+            .into_response();
+    };
+    if state.hub.suspend(device, suspended) {
+        info!(%device, suspended, "polling hold from the status page");
+        (StatusCode::ACCEPTED, "queued\n").into_response()
+    } else {
+        (
+            StatusCode::NOT_FOUND,
+            format!("no device `{device}` on any port\n"),
+        )
+            .into_response()
+    }
+}
+
+/// `{"device": …, "control": …, "value": …}`: queued as an MQTT `/on` write would be.
+async fn write(State(state): State<AppState>, headers: HeaderMap, body: Bytes) -> Response {
+    let request = match page_post(&headers, &body) {
+        Ok(request) => request,
+        Err(refused) => return refused,
     };
     let field = |name: &str| match &request[name] {
         serde_json::Value::String(text) => Some(text.clone()),
