@@ -231,7 +231,10 @@ impl StatusHub {
         let mut out = String::new();
         let views: Vec<(Arc<PortStatus>, PortStats, Duration)> = ports
             .iter()
-            .map(|port| (Arc::clone(port), port.record(|s| s.clone()), port.now()))
+            .map(|port| {
+                let stats = port.record(|s| s.copy_without_frames());
+                (Arc::clone(port), stats, port.now())
+            })
             .collect();
         let mut family =
             |name: &str, kind: &str, help: &str, samples: &mut dyn FnMut(&mut String)| {
@@ -477,15 +480,14 @@ fn millis(duration: Duration) -> f64 {
 fn port_json(port: &PortStatus) -> Value {
     let now = port.now();
     // The lock is held only to copy what the page shows.
-    let (open, totals, rates, latency, devices) = port.record(|stats| {
-        (
-            stats.open,
-            stats.totals,
-            stats.rates(now),
-            stats.event_latency.clone(),
-            stats.devices.clone(),
-        )
-    });
+    let stats = port.record(|stats| stats.copy_without_frames());
+    let (open, totals, rates, latency, devices) = (
+        stats.open,
+        stats.totals,
+        stats.rates(now),
+        stats.event_latency,
+        stats.devices,
+    );
     let devices: Vec<Value> = port
         .devices
         .iter()
@@ -531,7 +533,7 @@ fn port_json(port: &PortStatus) -> Value {
     let mut per_bucket = Vec::with_capacity(latency.counts.len());
     let mut below = 0;
     for count in latency.counts {
-        per_bucket.push(count - below);
+        per_bucket.push(count.saturating_sub(below));
         below = count;
     }
     json!({
@@ -547,7 +549,11 @@ fn port_json(port: &PortStatus) -> Value {
         "event_latency": {
             "buckets": per_bucket,
             "count": latency.count,
-            "mean_ms": if latency.count > 0 { millis(latency.sum / latency.count as u32) } else { 0.0 },
+            "mean_ms": if latency.count > 0 {
+                (latency.sum.as_secs_f64() * 1000.0 / latency.count as f64 * 10.0).round() / 10.0
+            } else {
+                0.0
+            },
         },
         "devices": devices,
     })

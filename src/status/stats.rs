@@ -200,6 +200,33 @@ impl PortStats {
         }
     }
 
+    /// A copy for a view: everything but the frames logs (which only their own view reads).
+    pub fn copy_without_frames(&self) -> Self {
+        Self {
+            open: self.open,
+            totals: self.totals,
+            buckets: self.buckets,
+            event_latency: self.event_latency.clone(),
+            devices: self
+                .devices
+                .iter()
+                .map(|device| DeviceStats {
+                    address: device.address,
+                    online: device.online,
+                    last_seen: device.last_seen,
+                    transactions: device.transactions,
+                    errors: device.errors,
+                    schedule: device.schedule.clone(),
+                    controls: device.controls.clone(),
+                    frames: VecDeque::new(),
+                    event_pending_since: device.event_pending_since,
+                })
+                .collect(),
+            device_ids: Vec::new(),
+            schedule_second: self.schedule_second,
+        }
+    }
+
     pub fn device_ids(&self) -> &[String] {
         &self.device_ids
     }
