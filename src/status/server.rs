@@ -346,6 +346,16 @@ mod tests {
     use super::*;
 
     #[test]
+    fn the_page_loads_nothing_from_elsewhere() {
+        // Works on a site without internet: no scripts, styles, fonts or images by URL.
+        for needle in ["http://", "https://", "//cdn", "src=", "@import", "url("] {
+            assert!(!PAGE.contains(needle), "the page refers to {needle}");
+        }
+        // Its own requests are relative, so it also works behind a reverse proxy's sub-path.
+        assert!(PAGE.contains(r#"new EventSource("api/events")"#));
+    }
+
+    #[test]
     fn query_parameters_are_decoded() {
         let uri: Uri = "/api/frames?x=1&device=wb%2Dmr6c_12&y".parse().unwrap();
         assert_eq!(query_param(&uri, "device").as_deref(), Some("wb-mr6c_12"));
