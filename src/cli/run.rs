@@ -142,7 +142,9 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         };
         let _ = notifier.await;
         if let Some(server) = status_server {
-            let _ = server.await;
+            // Open pages are told to close; a client that holds its connection does not hold
+            // the exit.
+            let _ = tokio::time::timeout(std::time::Duration::from_secs(2), server).await;
         }
         match finished {
             Some(Ok(Err(err))) => Err(anyhow::Error::new(err).context("MQTT")),
