@@ -792,3 +792,33 @@ fn suspend_holds_a_devices_polling_and_resume_brings_it_back() {
     });
     assert_eq!(relay_suspended(), Some(false));
 }
+
+#[test]
+fn an_open_page_does_not_hold_the_daemons_exit() {
+    let mut setup = start(115_200, false, json!({}));
+    let port = setup.http_port;
+    wait_for("the status server", &setup.daemon, || get(port, "/metrics"));
+    // An open page: the live stream, its first snapshot read.
+    let mut stream = TcpStream::connect(("127.0.0.1", port)).unwrap();
+    stream.set_read_timeout(Some(DEADLINE)).unwrap();
+    write!(
+        stream,
+        "GET /api/events HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nAccept: text/event-stream\r\n\r\n"
+    )
+    .unwrap();
+    let mut seen = Vec::new();
+    let mut buf = [0u8; 4096];
+    while !String::from_utf8_lossy(&seen).contains("event: status") {
+        let len = stream.read(&mut buf).expect("the live stream sends");
+        assert!(len > 0, "the live stream ended early");
+        seen.extend_from_slice(&buf[..len]);
+    }
+    let exit = setup.daemon.terminate();
+    assert!(exit.success(), "{exit:?}\n{}", setup.daemon.log());
+    // The stream ended with the daemon.
+    while let Ok(len) = stream.read(&mut buf) {
+        if len == 0 {
+            break;
+        }
+    }
+}
