@@ -200,12 +200,22 @@ impl StatusHub {
                     let request_hex = frame.request.encode().map(|b| hex(&b)).unwrap_or_default();
                     let (reply, reply_hex) = match &frame.outcome {
                         Outcome::Reply(reply) => (
-                            crate::cli::decode::explain_reply(reply).summary,
+                            crate::cli::decode::explain_reply(reply),
                             reply.encode().map(|b| hex(&b)).unwrap_or_default(),
                         ),
-                        Outcome::NoReply => ("no reply (timeout)".to_string(), String::new()),
+                        Outcome::NoReply => (
+                            crate::cli::decode::Reading {
+                                summary: "no reply (timeout)".to_string(),
+                                details: Vec::new(),
+                            },
+                            String::new(),
+                        ),
                         Outcome::Garbled => (
-                            "bytes without a valid frame (bad CRC or collision)".to_string(),
+                            crate::cli::decode::Reading {
+                                summary: "bytes without a valid frame (bad CRC or collision)"
+                                    .to_string(),
+                                details: Vec::new(),
+                            },
                             String::new(),
                         ),
                     };
@@ -215,7 +225,8 @@ impl StatusHub {
                         "request": request.summary,
                         "request_details": request.details,
                         "request_hex": request_hex,
-                        "reply": reply,
+                        "reply": reply.summary,
+                        "reply_details": reply.details,
                         "reply_hex": reply_hex,
                     })
                 })
