@@ -235,23 +235,26 @@ async fn frames(State(state): State<AppState>, uri: Uri) -> Response {
 }
 
 /// The JSON body of a POST from the page; refused without [`WRITE_HEADER`].
-fn page_post(headers: &HeaderMap, body: &[u8]) -> Result<serde_json::Value, Response> {
+fn page_post(headers: &HeaderMap, body: &[u8]) -> Result<serde_json::Value, (StatusCode, String)> {
     if !headers.contains_key(WRITE_HEADER) {
         return Err((
             StatusCode::FORBIDDEN,
             format!("a write needs the `{WRITE_HEADER}` header (the page sends it)\n"),
-        )
-            .into_response());
+        ));
     }
-    serde_json::from_slice::<serde_json::Value>(body)
-        .map_err(|_| (StatusCode::BAD_REQUEST, "the body must be JSON\n").into_response())
+    serde_json::from_slice::<serde_json::Value>(body).map_err(|_| {
+        (
+            StatusCode::BAD_REQUEST,
+            "the body must be JSON\n".to_string(),
+        )
+    })
 }
 
 /// `{"device": …, "suspended": true|false}`: holds or resumes the device's polling.
 async fn suspend(State(state): State<AppState>, headers: HeaderMap, body: Bytes) -> Response {
     let request = match page_post(&headers, &body) {
         Ok(request) => request,
-        Err(refused) => return refused,
+        Err(refused) => return refused.into_response(),
     };
     let (Some(device), Some(suspended)) =
         (request["device"].as_str(), request["suspended"].as_bool())
@@ -278,7 +281,7 @@ async fn suspend(State(state): State<AppState>, headers: HeaderMap, body: Bytes)
 async fn write(State(state): State<AppState>, headers: HeaderMap, body: Bytes) -> Response {
     let request = match page_post(&headers, &body) {
         Ok(request) => request,
-        Err(refused) => return refused,
+        Err(refused) => return refused.into_response(),
     };
     let field = |name: &str| match &request[name] {
         serde_json::Value::String(text) => Some(text.clone()),
