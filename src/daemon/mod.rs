@@ -1,8 +1,6 @@
 //! `rtu2mqtt run`: one task per port, the device models, and the sink of device updates (MQTT,
 //! or JSON lines on stdout for tests and debugging).
 
-pub mod device_model;
-pub mod port_plan;
 pub mod port_task;
 pub mod stdio;
 
@@ -14,11 +12,11 @@ use tokio::task::JoinHandle;
 use tracing::{info, warn};
 
 use crate::device::model::ResolvedPort;
+use crate::gateway::device_model::DeviceModel;
+use crate::gateway::port_plan::port_plan;
 use crate::service::{PortVitals, ServiceHealth};
 use crate::status::{PortStatus, StatusHub};
 use crate::updates::{ControlWrite, DeviceUpdate};
-use device_model::DeviceModel;
-use port_plan::port_plan;
 use port_task::PortTask;
 
 /// Room for bursts between the port tasks and the sink.
