@@ -822,3 +822,54 @@ fn an_open_page_does_not_hold_the_daemons_exit() {
         }
     }
 }
+
+/// `rtu2mqtt demo` serves the page and prints where.
+#[test]
+fn the_demo_prints_the_status_page_url_and_serves_it() {
+    use std::io::BufRead;
+    let mut demo = Command::new(env!("CARGO_BIN_EXE_rtu2mqtt"))
+        .args(["demo", "--no-broker"])
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let stderr = std::io::BufReader::new(demo.stderr.take().unwrap());
+    let (sender, lines) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for line in stderr.lines().map_while(Result::ok) {
+            if sender.send(line).is_err() {
+                break;
+            }
+        }
+    });
+    let deadline = Instant::now() + DEADLINE;
+    let url = loop {
+        let line = lines
+            .recv_timeout(deadline.saturating_duration_since(Instant::now()))
+            .expect("the demo prints the status page's URL");
+        if let Some(rest) = line.trim_start().strip_prefix("status:") {
+            break rest.split_whitespace().next().unwrap().to_string();
+        }
+    };
+    let port: u16 = url
+        .strip_prefix("http://127.0.0.1:")
+        .and_then(|rest| rest.trim_end_matches('/').parse().ok())
+        .unwrap_or_else(|| panic!("{url}"));
+    let started = Instant::now();
+    let devices = loop {
+        let count = status(port).and_then(|s| s["ports"][0]["devices"].as_array().map(Vec::len));
+        if let Some(count) = count {
+            break count;
+        }
+        assert!(
+            started.elapsed() < DEADLINE,
+            "the demo's page did not answer at {url}"
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    };
+    assert_eq!(devices, 5);
+    let pid = nix::unistd::Pid::from_raw(demo.id() as i32);
+    nix::sys::signal::kill(pid, nix::sys::signal::Signal::SIGINT).unwrap();
+    let _ = demo.wait();
+}

@@ -54,7 +54,7 @@ pub struct Args {
     /// otherwise a built-in one is started on it.
     #[arg(long)]
     pub mqtt_port: Option<u16>,
-    /// Port of the status page on 127.0.0.1 (default 8080, or a free one when 8080 is taken).
+    /// Port of the status page on 127.0.0.1 (default: a free one, printed at start).
     #[arg(long)]
     pub http_port: Option<u16>,
 }
@@ -163,15 +163,14 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     Ok(code)
 }
 
-/// The status page's port: the one asked for, else 8080 when free, else any free one.
+/// The status page's port: the one asked for, else a free one. Not a fixed default: two demos
+/// (or a demo and another local server) would race for it, and the second daemon would stop.
 fn choose_http_port(wanted: Option<u16>) -> anyhow::Result<u16> {
     if let Some(port) = wanted {
         return Ok(port);
     }
-    let free = |port: u16| std::net::TcpListener::bind(("127.0.0.1", port)).ok();
     // The listener is dropped at once and the daemon binds the port moments later.
-    let listener = free(8080)
-        .or_else(|| free(0))
+    let listener = std::net::TcpListener::bind(("127.0.0.1", 0))
         .context("no free TCP port on 127.0.0.1 for the status page")?;
     Ok(listener.local_addr()?.port())
 }
