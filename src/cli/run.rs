@@ -16,6 +16,7 @@ use crate::daemon::{start_bus_side_with_status, stdio, termination_signal, BusCo
 use crate::device::model::ResolvedPort;
 use crate::device::resolve_config;
 use crate::mqtt::{run_mqtt_reporting, MqttSettings};
+use crate::rpc::run_rpc_server;
 use crate::service::{notify_systemd, BrokerState, ServiceHealth};
 use crate::status::{StatusHub, StatusServer};
 
@@ -103,6 +104,8 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             hub.set_writes(writes.clone());
             tokio::spawn(server.serve())
         });
+        // wb-mqtt-serial's MQTT RPC, on its own broker connection (not with --stdio).
+        let mut rpc_task = None;
         let mut sink = if args.stdio {
             tokio::spawn(stdio::read_writes(writes.clone()));
             tokio::spawn(async move {
@@ -114,6 +117,14 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             let stopped = async move {
                 let _ = stop.wait_for(|stop| *stop).await;
             };
+            let mut rpc_stop = shutdown_rx.clone();
+            rpc_task = Some(tokio::spawn(run_rpc_server(
+                mqtt_settings.broker.clone(),
+                bus.port_directory(),
+                async move {
+                    let _ = rpc_stop.wait_for(|stop| *stop).await;
+                },
+            )));
             tokio::spawn(run_mqtt_reporting(
                 mqtt_settings,
                 updates,
@@ -141,6 +152,9 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             None => Some(sink.await),
         };
         let _ = notifier.await;
+        if let Some(rpc_task) = rpc_task {
+            let _ = rpc_task.await;
+        }
         if let Some(server) = status_server {
             // Open pages are told to close; a client that holds its connection does not hold
             // the exit.

@@ -214,6 +214,14 @@ impl PortScheduler {
         }
     }
 
+    /// Another device took this one's place (same address, other serial number): setup,
+    /// event setup and first reads all over again.
+    pub fn set_up_again(&mut self, device: usize) {
+        if let Some(state) = self.devices.get_mut(device) {
+            state.restart_preparation();
+        }
+    }
+
     pub fn device_count(&self) -> usize {
         self.devices.len()
     }

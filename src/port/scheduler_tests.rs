@@ -1062,49 +1062,6 @@ fn an_offline_device_that_answers_late_is_not_held_back_like_a_dead_one() {
     assert!(retry_gap < ms(5000), "{retry_gap:?} after the late answer");
 }
 
-#[test]
-fn a_suspended_device_is_not_polled_and_the_scheduler_does_not_spin() {
-    let reads = |address| {
-        device(
-            address,
-            vec![read(RegisterType::Holding, 1, EventMode::Polled)],
-        )
-    };
-    let mut scheduler = PortScheduler::new(settings(115_200), vec![reads(1), reads(2)]);
-    assert!(scheduler.set_suspended(1, true));
-    assert!(!scheduler.set_suspended(7, true));
-    let mut log = Log::default();
-    let now = run(&mut scheduler, &mut log, ms(0), ms(2000), |_, r| healthy(r));
-    assert!(!log.classic_to(1).is_empty());
-    assert!(log.classic_to(2).is_empty());
-    assert!(scheduler.device_report(1, now).unwrap().suspended);
-    // Only the held device would be due: the scheduler waits instead of returning "now".
-    let mut only_held = PortScheduler::new(settings(115_200), vec![reads(2)]);
-    only_held.set_suspended(0, true);
-    match only_held.next(ms(10)) {
-        Action::Wait { until } => assert!(until > ms(10), "{until:?}"),
-        other => panic!("{other:?}"),
-    }
-    // A write still goes.
-    only_held.queue_write(
-        ms(10),
-        RegisterWrite {
-            device: 0,
-            register_type: RegisterType::Holding,
-            address: 5,
-            values: vec![1],
-            force_multiple: false,
-        },
-    );
-    assert!(matches!(only_held.next(ms(10)), Action::Transmit(_)));
-    scheduler.set_suspended(1, false);
-    let mut log = Log::default();
-    run(&mut scheduler, &mut log, now, now + ms(500), |_, r| {
-        healthy(r)
-    });
-    assert!(!log.classic_to(2).is_empty());
-}
-
 /// The classic request the scheduler sends next (time moves on over waits), with its
 /// transaction; events of other kinds are answered as a healthy device would.
 fn next_classic(scheduler: &mut PortScheduler, now: &mut Duration) -> Transaction {
@@ -1224,4 +1181,47 @@ fn a_device_that_becomes_slow_is_learned_at_its_second_failure() {
         panic!("a read is due");
     };
     assert!(transaction.first_byte_timeout > Some(ms(600)));
+}
+
+#[test]
+fn a_suspended_device_is_not_polled_and_the_scheduler_does_not_spin() {
+    let reads = |address| {
+        device(
+            address,
+            vec![read(RegisterType::Holding, 1, EventMode::Polled)],
+        )
+    };
+    let mut scheduler = PortScheduler::new(settings(115_200), vec![reads(1), reads(2)]);
+    assert!(scheduler.set_suspended(1, true));
+    assert!(!scheduler.set_suspended(7, true));
+    let mut log = Log::default();
+    let now = run(&mut scheduler, &mut log, ms(0), ms(2000), |_, r| healthy(r));
+    assert!(!log.classic_to(1).is_empty());
+    assert!(log.classic_to(2).is_empty());
+    assert!(scheduler.device_report(1, now).unwrap().suspended);
+    // Only the held device would be due: the scheduler waits instead of returning "now".
+    let mut only_held = PortScheduler::new(settings(115_200), vec![reads(2)]);
+    only_held.set_suspended(0, true);
+    match only_held.next(ms(10)) {
+        Action::Wait { until } => assert!(until > ms(10), "{until:?}"),
+        other => panic!("{other:?}"),
+    }
+    // A write still goes.
+    only_held.queue_write(
+        ms(10),
+        RegisterWrite {
+            device: 0,
+            register_type: RegisterType::Holding,
+            address: 5,
+            values: vec![1],
+            force_multiple: false,
+        },
+    );
+    assert!(matches!(only_held.next(ms(10)), Action::Transmit(_)));
+    scheduler.set_suspended(1, false);
+    let mut log = Log::default();
+    run(&mut scheduler, &mut log, now, now + ms(500), |_, r| {
+        healthy(r)
+    });
+    assert!(!log.classic_to(2).is_empty());
 }
