@@ -873,3 +873,39 @@ fn the_demo_prints_the_status_page_url_and_serves_it() {
     nix::sys::signal::kill(pid, nix::sys::signal::Signal::SIGINT).unwrap();
     let _ = demo.wait();
 }
+
+/// The page's scan button: a Fast Modbus scan through the running port's bus queue (the RPC
+/// `port/Scan`), while the daemon keeps serving the bus.
+#[test]
+fn a_scan_from_the_page_finds_the_devices_through_the_running_port() {
+    let setup = start(115_200, false, json!({}));
+    let port = setup.http_port;
+    let port_name = wait_for("the port open", &setup.daemon, || {
+        let status = status(port)?;
+        let first = &status["ports"][0];
+        (first["open"] == true).then(|| first["name"].as_str().map(str::to_string))?
+    });
+    let body = json!({"port": port_name}).to_string();
+    let (code, _, answer) = http(port, "POST", "/api/scan", &[("x-rtu2mqtt", "1")], &body).unwrap();
+    assert_eq!(code, 200, "{answer}");
+    let report: Value = serde_json::from_str(&answer).unwrap();
+    let serials: Vec<&str> = report["devices"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter_map(|d| d["sn"].as_str())
+        .collect();
+    // 0xFE000020 and 0xFE000021, the simulator's serial numbers.
+    assert_eq!(serials, ["4261412896", "4261412897"], "{report}");
+    // Another name is refused in words.
+    let (code, _, answer) = http(
+        port,
+        "POST",
+        "/api/scan",
+        &[("x-rtu2mqtt", "1")],
+        r#"{"port": "/dev/nothing"}"#,
+    )
+    .unwrap();
+    assert_eq!(code, 502);
+    assert!(answer.contains("no running port"), "{answer}");
+}
