@@ -54,7 +54,7 @@ pub struct Args {
     /// otherwise a built-in one is started on it.
     #[arg(long)]
     pub mqtt_port: Option<u16>,
-    /// Port of the status page on 127.0.0.1 (default: a free one, printed at start).
+    /// Port of the status page on 127.0.0.1 (default 8080, or a free one when 8080 is taken).
     #[arg(long)]
     pub http_port: Option<u16>,
 }
@@ -120,7 +120,8 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     if let Some(broker) = &broker {
         daemon_config["mqtt"]["port"] = Value::from(broker.port());
     }
-    let http_port = choose_http_port(args.http_port)?;
+    let http_listener = bind_http_port(args.http_port)?;
+    let http_port = http_listener.local_addr()?.port();
     daemon_config["http"] = serde_json::json!({"listen": format!("127.0.0.1:{http_port}")});
     write_new(&config, &serde_json::to_string_pretty(&daemon_config)?)?;
 
@@ -153,6 +154,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         config,
         templates: vec![templates],
         stdio: broker.is_none(),
+        http_listener: Some(std::sync::Arc::new(http_listener)),
     };
     let _live_view = broker.as_ref().map(|b| live_view(b.port()));
     let code = super::run::run(run_args)?;
@@ -163,16 +165,18 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     Ok(code)
 }
 
-/// The status page's port: the one asked for, else a free one. Not a fixed default: two demos
-/// (or a demo and another local server) would race for it, and the second daemon would stop.
-fn choose_http_port(wanted: Option<u16>) -> anyhow::Result<u16> {
+/// The status page's socket: on the port asked for, else 8080 when free, else any free one.
+/// Bound here and handed to the daemon, so the URL printed is the one served.
+fn bind_http_port(wanted: Option<u16>) -> anyhow::Result<std::net::TcpListener> {
+    let bind = |port: u16| std::net::TcpListener::bind(("127.0.0.1", port));
     if let Some(port) = wanted {
-        return Ok(port);
+        return bind(port).with_context(|| {
+            format!("the status page cannot listen on 127.0.0.1:{port}: is another program using the port? Pick another with --http-port")
+        });
     }
-    // The listener is dropped at once and the daemon binds the port moments later.
-    let listener = std::net::TcpListener::bind(("127.0.0.1", 0))
-        .context("no free TCP port on 127.0.0.1 for the status page")?;
-    Ok(listener.local_addr()?.port())
+    bind(8080)
+        .or_else(|_| bind(0))
+        .context("no free TCP port on 127.0.0.1 for the status page")
 }
 
 /// Where the demo's daemon publishes.

@@ -32,6 +32,10 @@ pub struct Args {
     /// on stdin ({"device":…,"control":…,"value":…}) instead of MQTT.
     #[arg(long)]
     pub stdio: bool,
+    /// The status page's socket, already bound (the demo binds it before printing its URL, so
+    /// two demos cannot race for the same port); `http.listen` must name the same address.
+    #[arg(skip)]
+    pub http_listener: Option<std::sync::Arc<std::net::TcpListener>>,
 }
 
 /// Loads the config and resolves its devices against the templates; the errors as the
@@ -84,8 +88,14 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         let status = match &http {
             Some(http) => {
                 let hub = Arc::new(StatusHub::new());
+                let prebound = args
+                    .http_listener
+                    .as_ref()
+                    .map(|listener| listener.try_clone())
+                    .transpose()?;
                 let server =
-                    StatusServer::bind(http, Arc::clone(&hub), shutdown_rx.clone()).await?;
+                    StatusServer::bind(http, prebound, Arc::clone(&hub), shutdown_rx.clone())
+                        .await?;
                 Some((hub, server))
             }
             None => None,

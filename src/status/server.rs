@@ -49,9 +49,10 @@ pub struct StatusServer {
 
 impl StatusServer {
     /// Binds the configured address (checked by the config loader: a non-loopback address has
-    /// a password).
+    /// a password), or takes `prebound`, a socket already bound to it.
     pub async fn bind(
         config: &HttpConfig,
+        prebound: Option<std::net::TcpListener>,
         hub: Arc<StatusHub>,
         shutdown: watch::Receiver<bool>,
     ) -> anyhow::Result<Self> {
@@ -61,9 +62,15 @@ impl StatusServer {
                 config.listen
             )
         })?;
-        let listener = TcpListener::bind(address).await.with_context(|| {
-            format!("the status page cannot listen on {address}: is another program using the port? Change http.listen")
-        })?;
+        let listener = match prebound {
+            Some(listener) => {
+                listener.set_nonblocking(true)?;
+                TcpListener::from_std(listener)?
+            }
+            None => TcpListener::bind(address).await.with_context(|| {
+                format!("the status page cannot listen on {address}: is another program using the port? Change http.listen")
+            })?,
+        };
         let port = listener
             .local_addr()
             .map(|a| a.port())
