@@ -897,6 +897,33 @@ fn a_scan_from_the_page_finds_the_devices_through_the_running_port() {
         .collect();
     // 0xFE000020 and 0xFE000021, the simulator's serial numbers.
     assert_eq!(serials, ["4261412896", "4261412897"], "{report}");
+
+    // The scan's requests count with the scheduler's own. With both devices' polling held,
+    // only event requests go out besides them.
+    for device in ["relay6_20", "climate_21"] {
+        let body = json!({"device": device, "suspended": true}).to_string();
+        let (code, _, _) =
+            http(port, "POST", "/api/suspend", &[("x-rtu2mqtt", "1")], &body).unwrap();
+        assert_eq!(code, 202);
+    }
+    wait_for("both devices held", &setup.daemon, || {
+        let status = status(port)?;
+        status["ports"][0]["devices"]
+            .as_array()?
+            .iter()
+            .all(|d| d["suspended"] == true)
+            .then_some(())
+    });
+    let not_event_rounds = || {
+        let samples = metrics(port).unwrap();
+        metric(&samples, "rtu2mqtt_transactions_total", &[]).unwrap()
+            - metric(&samples, "rtu2mqtt_event_rounds_total", &[]).unwrap()
+    };
+    let before = not_event_rounds();
+    let (code, _, answer) = http(port, "POST", "/api/scan", &[("x-rtu2mqtt", "1")], &body).unwrap();
+    assert_eq!(code, 200, "{answer}");
+    // Scan start, a continue per device, the end: four at least.
+    assert!(not_event_rounds() >= before + 4.0);
     // Another name is refused in words.
     let (code, _, answer) = http(
         port,
