@@ -15,6 +15,7 @@ pub mod gateway;
 pub mod mqtt;
 pub mod port;
 pub mod protocol;
+pub mod rpc;
 pub mod service;
 pub mod sim;
 pub mod tools;

@@ -15,6 +15,7 @@ use crate::daemon::{start_bus_side, stdio, termination_signal, BusControl, BusSi
 use crate::device::model::ResolvedPort;
 use crate::device::resolve_config;
 use crate::mqtt::{run_mqtt_reporting, MqttSettings};
+use crate::rpc::run_rpc_server;
 use crate::service::{notify_systemd, BrokerState, ServiceHealth};
 
 #[derive(Debug, clap::Args)]
@@ -80,6 +81,8 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             writes,
             control: mut bus,
         } = start_bus_side(ports, fast_modbus, Arc::clone(&health));
+        // wb-mqtt-serial's MQTT RPC, on its own broker connection (not with --stdio).
+        let mut rpc_task = None;
         let mut sink = if args.stdio {
             tokio::spawn(stdio::read_writes(writes.clone()));
             tokio::spawn(async move {
@@ -91,6 +94,14 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             let stopped = async move {
                 let _ = stop.wait_for(|stop| *stop).await;
             };
+            let mut rpc_stop = shutdown_rx.clone();
+            rpc_task = Some(tokio::spawn(run_rpc_server(
+                mqtt_settings.broker.clone(),
+                bus.port_directory(),
+                async move {
+                    let _ = rpc_stop.wait_for(|stop| *stop).await;
+                },
+            )));
             tokio::spawn(run_mqtt_reporting(
                 mqtt_settings,
                 updates,
@@ -118,6 +129,9 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             None => Some(sink.await),
         };
         let _ = notifier.await;
+        if let Some(rpc_task) = rpc_task {
+            let _ = rpc_task.await;
+        }
         match finished {
             Some(Ok(Err(err))) => Err(anyhow::Error::new(err).context("MQTT")),
             Some(Err(join)) => Err(anyhow::anyhow!("the MQTT task failed: {join}")),

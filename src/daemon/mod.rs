@@ -1,6 +1,8 @@
 //! `rtu2mqtt run`: one task per port, the device models, and the sink of device updates (MQTT,
 //! or JSON lines on stdout for tests and debugging).
 
+pub mod bus_queue;
+pub mod identity;
 pub mod port_task;
 pub mod stdio;
 
@@ -14,8 +16,10 @@ use tracing::{info, warn};
 use crate::device::model::ResolvedPort;
 use crate::gateway::device_model::DeviceModel;
 use crate::gateway::port_plan::port_plan;
+use crate::protocol::LineSettings;
 use crate::service::{PortVitals, ServiceHealth};
 use crate::updates::{ControlWrite, DeviceUpdate};
+use bus_queue::BusQueue;
 use port_task::PortTask;
 
 /// Room for bursts between the port tasks and the sink.
@@ -32,6 +36,22 @@ pub struct BusSide {
 
 /// Which device ids route to which port task's write queue.
 type Routes = Arc<Mutex<HashMap<String, mpsc::Sender<ControlWrite>>>>;
+
+/// What users outside the port tasks (MQTT RPC, the status page) may know and use of a running
+/// port: its configuration and the queue of its bus.
+#[derive(Clone, Debug)]
+pub struct PortAccess {
+    /// As in the logs (`/dev/ttyRS485-1 (9600 8N2)`, `tcp://…`).
+    pub name: String,
+    pub resolved: Arc<ResolvedPort>,
+    /// Its serial settings (none for TCP gateways).
+    pub line: Option<LineSettings>,
+    pub queue: BusQueue,
+}
+
+/// The running ports, by [`port_key`] (the device path, or `address:port`); kept up to date
+/// across reloads.
+pub type PortDirectory = Arc<Mutex<BTreeMap<String, PortAccess>>>;
 
 /// One running port task and what it was started from (to tell on a reload whether it changed).
 struct RunningPort {
@@ -51,6 +71,7 @@ pub struct BusControl {
     fast_modbus: bool,
     router: JoinHandle<()>,
     health: Arc<ServiceHealth>,
+    directory: PortDirectory,
 }
 
 /// What a reload did, for the log and the tests.
@@ -101,6 +122,7 @@ pub fn start_bus_side(
         fast_modbus,
         router,
         health,
+        directory: PortDirectory::default(),
     };
     for port in ports {
         let (task, added) = control.prepare_port(&port);
@@ -140,9 +162,31 @@ impl BusControl {
             added.push(DeviceUpdate::Added(Arc::clone(&device)));
             models.push(DeviceModel::new(device, index));
         }
-        let task =
-            PortTask::new(plan, models, self.updates.clone(), port_write_rx).with_vitals(vitals);
+        let (queue, queued) = BusQueue::new();
+        let line = match &plan.endpoint {
+            crate::transport::Endpoint::Serial { line, .. } => Some(*line),
+            _ => None,
+        };
+        lock(&self.directory).insert(
+            port_key(port),
+            PortAccess {
+                name: plan.name.clone(),
+                resolved: Arc::new(port.clone()),
+                line,
+                queue: queue.clone(),
+            },
+        );
+        let identity_plans = port.devices.iter().map(identity::identity_plan).collect();
+        let task = PortTask::new(plan, models, self.updates.clone(), port_write_rx)
+            .with_vitals(vitals)
+            .with_bus_queue(queue.clone(), queued)
+            .with_identity(identity_plans);
         (task, added)
+    }
+
+    /// The running ports and their bus queues, for MQTT RPC and the status page.
+    pub fn port_directory(&self) -> PortDirectory {
+        Arc::clone(&self.directory)
     }
 
     fn spawn_port(&mut self, port: ResolvedPort, task: PortTask) {
@@ -165,6 +209,7 @@ impl BusControl {
     /// Stops a port task after its transaction in flight; its devices stop taking writes.
     async fn stop_port(&mut self, key: &str) -> Option<ResolvedPort> {
         let running = self.ports.remove(key)?;
+        lock(&self.directory).remove(key);
         let _ = running.stop.send(true);
         let _ = running.task.await;
         self.health.remove_port(&running.vitals);

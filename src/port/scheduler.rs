@@ -200,6 +200,14 @@ impl PortScheduler {
         }
     }
 
+    /// Another device took this one's place (same address, other serial number): setup,
+    /// event setup and first reads all over again.
+    pub fn set_up_again(&mut self, device: usize) {
+        if let Some(state) = self.devices.get_mut(device) {
+            state.restart_preparation();
+        }
+    }
+
     pub fn device_count(&self) -> usize {
         self.devices.len()
     }
@@ -307,6 +315,11 @@ impl PortScheduler {
             Some(InFlight::Write { write }) => Some(write.write.device),
             Some(InFlight::PollEvents { .. }) | None => None,
         };
+        // The late window this transaction went without (see `classic_transaction`).
+        let skipped_late_window = device
+            .and_then(|d| self.devices.get(d))
+            .filter(|d| d.health.answered_last())
+            .map(|d| d.response.timeout(now));
         if let Some(device) = device {
             self.learn_response_time(now, device, &outcome, timing);
         }
@@ -333,6 +346,15 @@ impl PortScheduler {
                 members,
             }) => self.complete_read(now, device, span, &members, outcome, &mut out),
             Some(InFlight::Write { write }) => self.complete_write(now, write, outcome, &mut out),
+        }
+        if let (Some(window), Some(state)) = (
+            skipped_late_window,
+            device.and_then(|d| self.devices.get_mut(d)),
+        ) {
+            if !state.health.answered_last() {
+                // It failed: its next request waits as long as if the window had been watched.
+                state.health.hold_off_longer(window);
+            }
         }
         let still_offline = device
             .and_then(|d| self.devices.get(d))
@@ -405,19 +427,21 @@ impl PortScheduler {
     fn start_event_poll(&mut self, now: Duration) -> Action {
         let request = Request::poll_events(self.events.request());
         let line = &self.settings.line;
-        let max_reply = 8 + usize::from(self.events.max_data_len());
         // USB adapters deliver late, and a loaded machine reads late: a short first-byte timeout
         // would end the poll while the arbitration is still going on, and its bytes would land
         // in the next request's window. A bus with Fast Modbus devices always answers (someone
         // wins with "no events"), so the allowance costs only when nobody takes part.
         let margin = self.settings.latency_margin.max(ADAPTER_LATENCY_ALLOWANCE);
         // The usual answer is "no events" after a few arbitration windows; longer packets are
-        // rare and bounded by max_data_len.
+        // rare and bounded by the poll's max_data_len.
         let typical = line.arbitration_wait() + line.arbitration_window() * 6;
+        let request_len = request.encoded_len();
         let transaction = Transaction {
-            estimated: line.transaction_time(9, typical, 5),
-            request_time: line.wire_time(request.encode().map(|b| b.len()).unwrap_or(9)),
-            reply_timeout: line.event_reply_timeout() + line.wire_time(max_reply + 32) + margin,
+            estimated: line.transaction_time(request_len, typical, request.expected_reply_len()),
+            request_time: line.wire_time(request_len),
+            reply_timeout: line.event_reply_timeout()
+                + line.wire_time(request.max_reply_len() + 32)
+                + margin,
             first_byte_timeout: Some(line.event_first_byte_timeout() + margin),
             late_window: margin,
             request,
@@ -433,12 +457,24 @@ impl PortScheduler {
         now: Duration,
         device: &DeviceState,
         request: Request,
-        reply_pdu_len: usize,
     ) -> Transaction {
         let line = &self.settings.line;
-        let request_len = request.encode().map(|b| b.len()).unwrap_or(256);
-        let reply_len = reply_pdu_len + 3;
+        let request_len = request.encoded_len();
+        let reply_len = request.expected_reply_len();
         let response_timeout = device.response.timeout(now);
+        // After a timeout the line is watched a while longer for the late reply, to learn a
+        // longer response time from it; meanwhile the bus carries nothing. A device that
+        // answered its last request (an isolated loss, the usual case on a noisy line) skips
+        // that watch and the bus goes on with the others at once: its own next request waits
+        // as long as before (its holdoff grows by the window skipped, see `complete_timed`), and
+        // its late reply can only land in another device's window, where its address gives it
+        // away. A second failure in a row gets the window back, so a device that became slow is
+        // learned at its next request.
+        let late_window = if device.health.answered_last() {
+            Duration::ZERO
+        } else {
+            response_timeout
+        };
         let request_time = line.wire_time(request_len);
         let estimated = if device.health.is_offline() {
             // A dead device costs its whole timeout and the late window after it.
@@ -451,7 +487,7 @@ impl PortScheduler {
             request_time,
             reply_timeout: response_timeout + line.wire_time(reply_len) + ADAPTER_LATENCY_ALLOWANCE,
             first_byte_timeout: Some(response_timeout),
-            late_window: response_timeout,
+            late_window,
             estimated,
         }
     }
@@ -491,7 +527,7 @@ impl PortScheduler {
             },
         };
         let transaction =
-            self.classic_transaction(now, device, Request::classic(device.plan.address, pdu), 5);
+            self.classic_transaction(now, device, Request::classic(device.plan.address, pdu));
         Some((
             transaction,
             InFlight::Write {
@@ -521,7 +557,6 @@ impl PortScheduler {
                     now,
                     device,
                     Request::classic(device.plan.address, pdu),
-                    5,
                 );
                 return Some((
                     transaction,
@@ -533,9 +568,8 @@ impl PortScheduler {
             }
             if self.settings.fast_modbus && device.wants_events() {
                 let (ranges, members) = device.event_ranges();
-                let mask_len: usize = ranges.iter().map(EventRange::mask_len).sum();
                 let request = Request::configure_events(device.plan.address, ranges.clone());
-                let transaction = self.classic_transaction(now, device, request, 3 + mask_len);
+                let transaction = self.classic_transaction(now, device, request);
                 return Some((
                     transaction,
                     InFlight::EnableEvents {
@@ -563,7 +597,6 @@ impl PortScheduler {
             now,
             state,
             Request::classic(state.plan.address, span.read_request()),
-            span.reply_pdu_len(),
         );
         Some((
             transaction,
@@ -618,7 +651,7 @@ impl PortScheduler {
             span.count = u16::try_from(end - u32::from(span.start)).ok()?;
         }
         let request = Request::classic(state.plan.address, span.read_request());
-        let transaction = self.classic_transaction(now, state, request, span.reply_pdu_len());
+        let transaction = self.classic_transaction(now, state, request);
         Some((
             transaction,
             InFlight::Read {
@@ -673,7 +706,15 @@ impl PortScheduler {
                         ..
                     },
             }) => {
-                self.events.packet_received(now, address, packet.flag);
+                let highest_listener = self
+                    .devices
+                    .iter()
+                    .filter(|d| d.events_active())
+                    .map(|d| d.plan.address)
+                    .max()
+                    .unwrap_or(0);
+                self.events
+                    .packet_received(now, address, packet.flag, highest_listener);
                 let Some(device) = self.device_by_address(address) else {
                     debug!(address, "events from a device that is not in the config");
                     return;
