@@ -9,13 +9,17 @@ use serde_json::json;
 use crate::config::format::{RegisterFormat, WordOrder};
 use crate::config::values::parse_int_text;
 use crate::protocol::{pdu, LineSettings, RegisterType, RequestPdu, ResponsePdu};
-use crate::tools::bus::{Answer, PortError, ToolPort};
+use crate::tools::bus::{Answer, PortError, ToolBus, ToolPort};
 use crate::tools::exit;
 use crate::tools::report::{serial_text, ScanReport};
 use crate::tools::values::{decode_words, encode_value, parse_format, value_width};
 
 use super::address::{locate, parse_serial};
 use super::scan::{block_on_tool, port_failure, PortArgs};
+use super::via_mqtt::{
+    connect_service, line_params, response_words, served_line, service_call, ViaMqttArgs,
+};
+use crate::rpc::client::RpcSession;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum TypeArg {
@@ -81,6 +85,8 @@ pub struct TargetArgs {
     /// Print JSON.
     #[arg(long)]
     pub json: bool,
+    #[command(flatten)]
+    pub service: ViaMqttArgs,
 }
 
 #[derive(clap::Args, Debug)]
@@ -299,7 +305,9 @@ async fn read(args: &ReadArgs) -> Result<ExitCode, PortError> {
             value_width(target_args.format, 1)
         }
     });
-    let mut port = target_args.port.open()?;
+    let Some(mut port) = open_or_service(target_args)? else {
+        return Ok(read_via_service(target_args, count).await);
+    };
     let target = match resolve(&mut port, target_args).await? {
         Ok(target) => target,
         Err(message) => {
@@ -401,7 +409,9 @@ async fn write(args: &WriteArgs) -> Result<ExitCode, PortError> {
         );
         return Ok(ExitCode::from(exit::USAGE));
     };
-    let mut port = target_args.port.open()?;
+    let Some(mut port) = open_or_service(target_args)? else {
+        return Ok(write_via_service(target_args, &pdu, &words).await);
+    };
     let target = match resolve(&mut port, target_args).await? {
         Ok(target) => target,
         Err(message) => {
@@ -457,6 +467,157 @@ async fn write(args: &WriteArgs) -> Result<ExitCode, PortError> {
                 failure(&target, &back, timeout)
             );
             Ok(ExitCode::SUCCESS)
+        }
+    }
+}
+
+/// The port, or `None` when the request goes through the running service: asked for with
+/// `--via-mqtt`, or the port is busy and the broker is known.
+fn open_or_service(args: &TargetArgs) -> Result<Option<ToolPort>, PortError> {
+    if args.service.via_mqtt {
+        return Ok(None);
+    }
+    match args.port.open() {
+        Ok(port) => Ok(Some(port)),
+        Err(PortError::Busy { path }) if args.service.can_reach_service() => {
+            eprintln!("{path} is busy: asking the running rtu2mqtt service over MQTT");
+            Ok(None)
+        }
+        Err(err) => Err(err),
+    }
+}
+
+/// The device and settings a request through the service goes to: the settings the options
+/// name, else the ones the service runs the port at.
+async fn service_target(args: &TargetArgs, session: &mut RpcSession) -> Result<Target, ExitCode> {
+    let line = match args.port.single_line() {
+        Some(line) => line,
+        None => served_line(session, &args.port.port).await?,
+    };
+    Ok(Target {
+        line,
+        address: args.address,
+        serial: args.serial,
+    })
+}
+
+/// One Modbus request through the service's `port/Load`; the data words of the reply.
+async fn load_via_service(
+    args: &TargetArgs,
+    session: &mut RpcSession,
+    target: &Target,
+    pdu: &RequestPdu,
+    count: u16,
+    message: &[u8],
+) -> Result<Option<Vec<u16>>, ExitCode> {
+    let timeout = Duration::from_millis(args.timeout);
+    let mut params = line_params(&target.line);
+    params["path"] = json!(args.port.port);
+    params["protocol"] = json!("modbus");
+    params["function"] = json!(pdu.function());
+    params["address"] = json!(args.reg);
+    params["count"] = json!(count);
+    params["format"] = json!("HEX");
+    params["msg"] = json!(crate::protocol::hex(message).replace(' ', ""));
+    params["response_timeout"] = json!(args.timeout);
+    match (target.serial, target.address) {
+        (Some(serial), _) => params["sn"] = json!(serial),
+        (None, address) => params["slave_id"] = json!(address),
+    }
+    let result = service_call(session, "port", "Load", params, timeout + SERVICE_MARGIN).await?;
+    if let Some(exception) = result.get("exception") {
+        eprintln!(
+            "{} at {} refused: {} (exception {})",
+            target.name(),
+            target.line,
+            exception["msg"].as_str().unwrap_or("?"),
+            exception["code"]
+        );
+        return Err(ExitCode::from(exit::NOT_FOUND));
+    }
+    let bits = args.register_type.register_type().is_bit();
+    Ok(result["response"]
+        .as_str()
+        .and_then(|response| response_words(response, bits, count)))
+}
+
+/// Time a request through the service may take beyond its reply timeout: its turn on the bus.
+const SERVICE_MARGIN: Duration = Duration::from_secs(5);
+
+async fn read_via_service(args: &TargetArgs, count: u16) -> ExitCode {
+    let mut session = match connect_service(&args.service).await {
+        Ok(session) => session,
+        Err(code) => return code,
+    };
+    let target = match service_target(args, &mut session).await {
+        Ok(target) => target,
+        Err(code) => return code,
+    };
+    let pdu = read_pdu(args.register_type.register_type(), args.reg, count);
+    let words = match load_via_service(args, &mut session, &target, &pdu, count, &[]).await {
+        Ok(Some(words)) => words,
+        Ok(None) => {
+            eprintln!("the service's reply holds no register data");
+            return ExitCode::from(exit::NOT_FOUND);
+        }
+        Err(code) => return code,
+    };
+    if let Err(message) = print_values(args, &target, &words) {
+        eprintln!("{message}");
+        return ExitCode::from(exit::USAGE);
+    }
+    ExitCode::SUCCESS
+}
+
+async fn write_via_service(args: &TargetArgs, pdu: &RequestPdu, words: &[u16]) -> ExitCode {
+    let mut session = match connect_service(&args.service).await {
+        Ok(session) => session,
+        Err(code) => return code,
+    };
+    let target = match service_target(args, &mut session).await {
+        Ok(target) => target,
+        Err(code) => return code,
+    };
+    let count = u16::try_from(words.len()).unwrap_or(u16::MAX);
+    let message: Vec<u8> = match pdu {
+        RequestPdu::WriteSingleCoil { value, .. } => vec![if *value { 0xFF } else { 0 }, 0],
+        RequestPdu::WriteMultipleCoils { values, .. } => {
+            let mut packed = vec![0u8; values.len().div_ceil(8)];
+            for (i, on) in values.iter().enumerate() {
+                if *on {
+                    if let Some(byte) = packed.get_mut(i / 8) {
+                        *byte |= 1 << (i % 8);
+                    }
+                }
+            }
+            packed
+        }
+        _ => words.iter().flat_map(|w| w.to_be_bytes()).collect(),
+    };
+    if let Err(code) = load_via_service(args, &mut session, &target, pdu, count, &message).await {
+        return code;
+    }
+    let read = read_pdu(args.register_type.register_type(), args.reg, count);
+    match load_via_service(args, &mut session, &target, &read, count, &[]).await {
+        Ok(Some(now)) => {
+            if !args.json {
+                println!("written; read back:");
+            }
+            if let Err(message) = print_values(args, &target, &now) {
+                eprintln!("{message}");
+            }
+            if now != words {
+                eprintln!(
+                    "the device holds {now:?} after writing {words:?}: it may clamp or ignore \
+                     this value"
+                );
+                return ExitCode::from(exit::NOT_FOUND);
+            }
+            ExitCode::SUCCESS
+        }
+        Ok(None) | Err(_) => {
+            eprintln!("written, but reading back through the service failed");
+            ExitCode::SUCCESS
         }
     }
 }

@@ -8,7 +8,7 @@ use anyhow::Context as _;
 
 use crate::config::values::parse_int_text;
 use crate::protocol::{LineSettings, RequestPdu, ResponsePdu};
-use crate::tools::bus::{Answer, PortError, ToolPort, KNOWN_DEVICE_TIMEOUT};
+use crate::tools::bus::{Answer, PortError, ToolBus, ToolPort, KNOWN_DEVICE_TIMEOUT};
 use crate::tools::exit;
 use crate::tools::plan::parse_range;
 use crate::tools::report::{serial_text, AddressChange, ScanReport};

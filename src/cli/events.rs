@@ -20,7 +20,7 @@ use crate::protocol::{
     ReplyBody, Request,
 };
 use crate::sim::control::register_type_name;
-use crate::tools::bus::{PortError, ToolPort};
+use crate::tools::bus::{PortError, ToolBus, ToolPort};
 use crate::tools::exit;
 
 use super::scan::{block_on_tool, port_failure, PortArgs};

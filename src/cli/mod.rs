@@ -12,10 +12,12 @@ pub mod decode;
 pub mod demo;
 pub mod events;
 pub mod generate;
+pub mod hash_password;
 pub mod run;
 pub mod scan;
 pub mod schema;
 pub mod sim;
+pub mod via_mqtt;
 
 /// Logs to stderr; `RUST_LOG` (e.g. `debug`, `rtu2mqtt::transport=debug`) picks the detail.
 /// Colours only on a terminal: journald and log files would store the escape codes as text.

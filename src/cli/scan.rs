@@ -11,7 +11,7 @@ use serde_json::{json, Value};
 
 use crate::config::TemplateLibrary;
 use crate::protocol::{LineSettings, Parity, RequestPdu, ResponsePdu};
-use crate::tools::bus::{Answer, PortError, ToolPort, KNOWN_DEVICE_TIMEOUT};
+use crate::tools::bus::{Answer, PortError, ToolBus, ToolPort, KNOWN_DEVICE_TIMEOUT};
 use crate::tools::exit;
 use crate::tools::plan::{parse_parity, parse_range, scan_plan, PlanFilter};
 use crate::tools::report::{serial_text, FoundDevice, Identity, ScanReport};
@@ -82,6 +82,8 @@ pub struct Args {
     /// Extra template directories for choosing `device_type` in --config.
     #[arg(long = "templates", value_name = "DIR")]
     pub templates: Vec<PathBuf>,
+    #[command(flatten)]
+    pub service: super::via_mqtt::ViaMqttArgs,
 }
 
 /// A single-threaded runtime for a tool; Ctrl-C ends `work` (its port is restored on drop) and
@@ -164,7 +166,19 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
 
 /// The scan itself, filling `report` as it goes (an interrupted scan keeps what it found).
 pub async fn scan(args: &Args, report: &mut ScanReport) -> Result<(), PortError> {
-    let mut port = args.port.open()?;
+    let mut port = if args.service.via_mqtt {
+        return scan_via_service(args, report).await;
+    } else {
+        match args.port.open() {
+            Err(PortError::Busy { path }) if args.service.can_reach_service() => {
+                eprintln!(
+                    "{path} is busy: scanning through the running rtu2mqtt service (MQTT RPC)"
+                );
+                return scan_via_service(args, report).await;
+            }
+            other => other?,
+        }
+    };
     let plan = args.port.plan();
     fast_scan(&mut port, &plan, report).await?;
     if args.classic {
@@ -542,4 +556,55 @@ pub fn config_snippet(
     }
     out.push_str(&body);
     out
+}
+
+/// The scan through the running service: `port/Scan` at each setting of the plan (the service
+/// reads each device's details by serial number).
+async fn scan_via_service(args: &Args, report: &mut ScanReport) -> Result<(), PortError> {
+    use super::via_mqtt::line_params;
+    use crate::rpc::client::RpcSession;
+    use crate::tools::report::SettingProblem;
+    let broker = args.service.broker_config().map_err(PortError::Service)?;
+    let mut session = RpcSession::connect(&broker)
+        .await
+        .map_err(|err| PortError::Service(err.to_string()))?;
+    if args.classic {
+        eprintln!("--classic is not available through the service: Fast Modbus scan only");
+    }
+    for line in args.port.plan() {
+        report.settings_tried.push(line);
+        let mut params = line_params(&line);
+        params["path"] = json!(args.port.port);
+        let result = session
+            .call("port", "Scan", params, Duration::from_secs(10))
+            .await
+            .map_err(|err| PortError::Service(err.to_string()))?;
+        if let Some(error) = result["error"].as_str() {
+            report.problems.push(SettingProblem {
+                line,
+                what: error.to_owned(),
+            });
+        }
+        for device in result["devices"].as_array().into_iter().flatten() {
+            let serial = device["sn"].as_str().and_then(|sn| sn.parse::<u32>().ok());
+            let address = device["cfg"]["slave_id"]
+                .as_u64()
+                .and_then(|a| u8::try_from(a).ok());
+            let (Some(serial), Some(address)) = (serial, address) else {
+                continue;
+            };
+            if report.add_fast(line, serial, address) {
+                if let Some(found) = report.devices.last_mut() {
+                    let text =
+                        |value: &Value| value.as_str().filter(|t| !t.is_empty()).map(str::to_owned);
+                    found.identity = Identity {
+                        model: text(&device["device_signature"]),
+                        firmware: text(&device["fw"]["version"]),
+                        signature: text(&device["fw_signature"]),
+                    };
+                }
+            }
+        }
+    }
+    Ok(())
 }

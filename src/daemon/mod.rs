@@ -1,6 +1,8 @@
 //! `rtu2mqtt run`: one task per port, the device models, and the sink of device updates (MQTT,
 //! or JSON lines on stdout for tests and debugging).
 
+pub mod bus_queue;
+pub mod identity;
 pub mod port_task;
 pub mod stdio;
 
@@ -14,8 +16,11 @@ use tracing::{info, warn};
 use crate::device::model::ResolvedPort;
 use crate::gateway::device_model::DeviceModel;
 use crate::gateway::port_plan::port_plan;
+use crate::protocol::LineSettings;
 use crate::service::{PortVitals, ServiceHealth};
+use crate::status::{PortStatus, StatusHub};
 use crate::updates::{ControlWrite, DeviceUpdate};
+use bus_queue::BusQueue;
 use port_task::PortTask;
 
 /// Room for bursts between the port tasks and the sink.
@@ -33,6 +38,22 @@ pub struct BusSide {
 /// Which device ids route to which port task's write queue.
 type Routes = Arc<Mutex<HashMap<String, mpsc::Sender<ControlWrite>>>>;
 
+/// What users outside the port tasks (MQTT RPC, the status page) may know and use of a running
+/// port: its configuration and the queue of its bus.
+#[derive(Clone, Debug)]
+pub struct PortAccess {
+    /// As in the logs (`/dev/ttyRS485-1 (9600 8N2)`, `tcp://…`).
+    pub name: String,
+    pub resolved: Arc<ResolvedPort>,
+    /// Its serial settings (none for TCP gateways).
+    pub line: Option<LineSettings>,
+    pub queue: BusQueue,
+}
+
+/// The running ports, by [`port_key`] (the device path, or `address:port`); kept up to date
+/// across reloads.
+pub type PortDirectory = Arc<Mutex<BTreeMap<String, PortAccess>>>;
+
 /// One running port task and what it was started from (to tell on a reload whether it changed).
 struct RunningPort {
     resolved: ResolvedPort,
@@ -40,6 +61,7 @@ struct RunningPort {
     stop: watch::Sender<bool>,
     task: JoinHandle<()>,
     vitals: Arc<PortVitals>,
+    status: Option<Arc<PortStatus>>,
 }
 
 /// Owns the port tasks: stops them all at shutdown, and on a reload stops, starts or restarts
@@ -51,6 +73,9 @@ pub struct BusControl {
     fast_modbus: bool,
     router: JoinHandle<()>,
     health: Arc<ServiceHealth>,
+    directory: PortDirectory,
+    /// The status page's registry of ports, when the page is on.
+    status: Option<Arc<StatusHub>>,
 }
 
 /// What a reload did, for the log and the tests.
@@ -79,6 +104,16 @@ pub fn start_bus_side(
     fast_modbus: bool,
     health: Arc<ServiceHealth>,
 ) -> BusSide {
+    start_bus_side_with_status(ports, fast_modbus, health, None)
+}
+
+/// [`start_bus_side`], with every port counted for the status page in `status`.
+pub fn start_bus_side_with_status(
+    ports: Vec<ResolvedPort>,
+    fast_modbus: bool,
+    health: Arc<ServiceHealth>,
+    status: Option<Arc<StatusHub>>,
+) -> BusSide {
     let (update_tx, update_rx) = mpsc::channel(UPDATE_QUEUE);
     let (write_tx, mut write_rx) = mpsc::channel::<ControlWrite>(WRITE_QUEUE);
     let routes: Routes = Arc::default();
@@ -101,6 +136,8 @@ pub fn start_bus_side(
         fast_modbus,
         router,
         health,
+        directory: PortDirectory::default(),
+        status,
     };
     for port in ports {
         let (task, added) = control.prepare_port(&port);
@@ -134,19 +171,56 @@ impl BusControl {
         let mut models = Vec::new();
         let mut added = Vec::new();
         let mut routes = lock(&self.routes);
+        let mut devices = Vec::new();
         for (index, device) in port.devices.iter().enumerate() {
             let device = Arc::new(device.clone());
             routes.insert(device.id.clone(), port_write_tx.clone());
             added.push(DeviceUpdate::Added(Arc::clone(&device)));
+            devices.push(Arc::clone(&device));
             models.push(DeviceModel::new(device, index));
         }
-        let task =
-            PortTask::new(plan, models, self.updates.clone(), port_write_rx).with_vitals(vitals);
+        let (queue, queued) = BusQueue::new();
+        let line = match &plan.endpoint {
+            crate::transport::Endpoint::Serial { line, .. } => Some(*line),
+            _ => None,
+        };
+        lock(&self.directory).insert(
+            port_key(port),
+            PortAccess {
+                name: plan.name.clone(),
+                resolved: Arc::new(port.clone()),
+                line,
+                queue: queue.clone(),
+            },
+        );
+        let identity_plans = port.devices.iter().map(identity::identity_plan).collect();
+        let status = self.status.as_ref().map(|hub| {
+            let mut settings = serde_json::to_value(&port.config).unwrap_or_default();
+            if let Some(settings) = settings.as_object_mut() {
+                settings.remove("devices");
+            }
+            let status = Arc::new(PortStatus::new(&plan.name, settings, devices));
+            hub.add_port(Arc::clone(&status));
+            status
+        });
+        let mut task = PortTask::new(plan, models, self.updates.clone(), port_write_rx)
+            .with_vitals(vitals)
+            .with_bus_queue(queue.clone(), queued)
+            .with_identity(identity_plans);
+        if let Some(status) = status {
+            task = task.with_status(status);
+        }
         (task, added)
+    }
+
+    /// The running ports and their bus queues, for MQTT RPC and the status page.
+    pub fn port_directory(&self) -> PortDirectory {
+        Arc::clone(&self.directory)
     }
 
     fn spawn_port(&mut self, port: ResolvedPort, task: PortTask) {
         let vitals = task.vitals();
+        let status = task.status();
         let (stop, stopped) = watch::channel(false);
         let task = tokio::spawn(task.run(stopped));
         let config = serde_json::to_value(&port.config).unwrap_or_default();
@@ -158,6 +232,7 @@ impl BusControl {
                 stop,
                 task,
                 vitals,
+                status,
             },
         );
     }
@@ -165,9 +240,13 @@ impl BusControl {
     /// Stops a port task after its transaction in flight; its devices stop taking writes.
     async fn stop_port(&mut self, key: &str) -> Option<ResolvedPort> {
         let running = self.ports.remove(key)?;
+        lock(&self.directory).remove(key);
         let _ = running.stop.send(true);
         let _ = running.task.await;
         self.health.remove_port(&running.vitals);
+        if let (Some(hub), Some(status)) = (&self.status, &running.status) {
+            hub.remove_port(status);
+        }
         let mut routes = lock(&self.routes);
         for device in &running.resolved.devices {
             routes.remove(&device.id);

@@ -8,12 +8,17 @@ use tokio::sync::{mpsc, watch};
 use tokio::time::Instant;
 use tracing::{debug, info, warn};
 
+use super::bus_queue::{BusQueue, BusQueueError, BusQueueReceiver, QueuedTransaction};
+use super::identity::{read_identity, IdentityPlan, IdentityRead};
 use crate::gateway::device_model::{apply_port_events, DeviceModel};
 use crate::gateway::port_plan::PortPlan;
 use crate::mqtt::throttle::{LogBudget, LogDecision};
-use crate::port::{Action, Outcome, PortEvent, PortScheduler, ReplyTiming};
+use crate::port::{Action, Outcome, PortEvent, PortScheduler, ReplyTiming, Transaction};
+use crate::protocol::LineSettings;
 use crate::service::{BrokerState, PortVitals, ServiceHealth};
-use crate::transport::{Transport, TransportError};
+use crate::status::hub::PortCommand;
+use crate::status::PortStatus;
+use crate::transport::{Endpoint, Transport, TransportError};
 use crate::updates::{ControlWrite, DeviceUpdate};
 
 const FIRST_REOPEN_DELAY: Duration = Duration::from_millis(500);
@@ -37,6 +42,34 @@ pub struct PortTask {
     /// opens and fails at once (a gateway that accepts connections and drops them) is still
     /// unusable, its devices go offline and the reopen delay keeps growing.
     transacted: bool,
+    /// Transactions asked from outside the scheduler (RPC), served between its own.
+    queued: Option<BusQueueReceiver>,
+    /// The sending side of that queue, for this port's identity reads.
+    queue: Option<BusQueue>,
+    identity: IdentityState,
+    /// The status page's counters of this port; none while the status server is off.
+    status: Option<Arc<PortStatus>>,
+}
+
+/// Who each device is (model, serial number, firmware), read when it comes online or restarts,
+/// by a worker task through the bus queue, one device at a time.
+#[derive(Default)]
+struct IdentityState {
+    /// Per device: what to read (none when the device cannot say).
+    plans: Vec<Option<IdentityPlan>>,
+    /// Per device: the serial number last read.
+    serials: Vec<Option<u32>>,
+    /// Per device: a read is asked for or running.
+    reading: Vec<bool>,
+    requests: Option<mpsc::UnboundedSender<usize>>,
+    results: Option<mpsc::Receiver<(usize, IdentityRead)>>,
+}
+
+/// The open bus, and the settings it was switched to for queued transactions (a serial port
+/// only; `None` while it is at the port's own settings).
+struct OpenBus {
+    transport: Option<Transport>,
+    away: Option<LineSettings>,
 }
 
 /// Refused writes logged per minute on one port; the rest are counted.
@@ -65,7 +98,165 @@ impl PortTask {
             vitals: None,
             online: Vec::new(),
             transacted: false,
+            queued: None,
+            queue: None,
+            identity: IdentityState::default(),
+            status: None,
         }
+    }
+
+    /// Serves the transactions sent through `queue` (RPC, the status page), between its own.
+    pub fn with_bus_queue(mut self, queue: BusQueue, queued: BusQueueReceiver) -> Self {
+        self.queue = Some(queue);
+        self.queued = Some(queued);
+        self
+    }
+
+    /// Reads who each device is when it comes online or restarts (through the bus queue: give
+    /// one with [`Self::with_bus_queue`]); one plan per device, in model order.
+    pub fn with_identity(mut self, plans: Vec<Option<IdentityPlan>>) -> Self {
+        let count = plans.len();
+        self.identity.plans = plans;
+        self.identity.serials = vec![None; count];
+        self.identity.reading = vec![false; count];
+        self
+    }
+
+    /// Starts the worker that reads identities one device at a time.
+    fn start_identity_worker(&mut self) {
+        let Some(queue) = self.queue.clone() else {
+            return;
+        };
+        if self.identity.plans.iter().all(Option::is_none) {
+            return;
+        }
+        let (requests, mut pending) = mpsc::unbounded_channel::<usize>();
+        let (results_tx, results) = mpsc::channel(self.identity.plans.len().max(1));
+        let plans = self.identity.plans.clone();
+        let line = self
+            .home_line()
+            .unwrap_or(LineSettings::WIREN_BOARD_DEFAULT);
+        tokio::spawn(async move {
+            while let Some(device) = pending.recv().await {
+                let Some(Some(plan)) = plans.get(device) else {
+                    continue;
+                };
+                let read = read_identity(&queue, line, plan).await;
+                if results_tx.send((device, read)).await.is_err() {
+                    return;
+                }
+            }
+        });
+        self.identity.requests = Some(requests);
+        self.identity.results = Some(results);
+    }
+
+    fn ask_identity(&mut self, device: usize) {
+        let (Some(requests), Some(Some(_)), Some(reading)) = (
+            &self.identity.requests,
+            self.identity.plans.get(device),
+            self.identity.reading.get_mut(device),
+        ) else {
+            return;
+        };
+        if !*reading && requests.send(device).is_ok() {
+            *reading = true;
+        }
+    }
+
+    /// A device's identity came: published; a serial number other than the last one means
+    /// another device took its place, which is set up afresh.
+    async fn identity_read(&mut self, device: usize, read: IdentityRead) {
+        if let Some(reading) = self.identity.reading.get_mut(device) {
+            *reading = false;
+        }
+        let Some(model) = self.models.get(device) else {
+            return;
+        };
+        let device_id = model.id().to_owned();
+        if read.is_empty() {
+            debug!(port = %self.plan_name, device = %device_id, "identity not readable now");
+            return;
+        }
+        let previous = self.identity.serials.get(device).copied().flatten();
+        match (previous, read.serial) {
+            (Some(old), Some(new)) if old != new => {
+                warn!(
+                    port = %self.plan_name,
+                    device = %device_id,
+                    old_serial = old,
+                    new_serial = new,
+                    "another device answers at this address (serial number changed): a replaced \
+                     device? setting it up afresh"
+                );
+                self.scheduler.set_up_again(device);
+            }
+            _ => debug!(
+                port = %self.plan_name,
+                device = %device_id,
+                model = ?read.identity.model,
+                serial = ?read.identity.serial_number,
+                firmware = ?read.identity.firmware,
+                "device identified"
+            ),
+        }
+        if let (Some(slot), Some(serial)) = (self.identity.serials.get_mut(device), read.serial) {
+            *slot = Some(serial);
+        }
+        self.send(vec![DeviceUpdate::Identity {
+            device_id,
+            identity: read.identity,
+        }])
+        .await;
+    }
+
+    /// Counts transactions, errors and values for the status page into `status`.
+    pub fn with_status(mut self, status: Arc<PortStatus>) -> Self {
+        // The counters' times are on this task's clock.
+        self.epoch = status.epoch;
+        self.status = Some(status);
+        self
+    }
+
+    /// The handle given to [`Self::with_status`].
+    pub fn status(&self) -> Option<Arc<PortStatus>> {
+        self.status.clone()
+    }
+
+    /// What the status page asked for (hold or resume a device's polling).
+    fn apply_status_commands(&mut self) {
+        let Some(status) = &self.status else {
+            return;
+        };
+        let now = self.now();
+        for command in status.take_commands() {
+            match command {
+                PortCommand::Suspend { device, suspended } => {
+                    self.scheduler.set_suspended(device, suspended);
+                    let report = self.scheduler.device_report(device, now);
+                    status.record(|stats| stats.set_schedule(device, report));
+                }
+            }
+        }
+    }
+
+    /// The status page's one hook into a transaction: counted after its updates went out (an
+    /// event round trip ends at the hand-over to MQTT).
+    fn record_transaction(&self, started: Duration, transaction: &Transaction, outcome: &Outcome) {
+        let Some(status) = &self.status else {
+            return;
+        };
+        let now = self.now();
+        status.record(|stats| {
+            if let Some(device) = stats.transaction_done(started, now, transaction, outcome) {
+                stats.events_published(device, now);
+            }
+            if stats.schedule_due(now) {
+                for device in 0..self.scheduler.device_count() {
+                    stats.set_schedule(device, self.scheduler.device_report(device, now));
+                }
+            }
+        });
     }
 
     /// Reports open/closed, progress and devices online into `vitals`.
@@ -91,6 +282,9 @@ impl PortTask {
         if let Some(vitals) = &self.vitals {
             vitals.set_open(open);
         }
+        if let Some(status) = &self.status {
+            status.record(|stats| stats.set_open(open));
+        }
     }
 
     fn now(&self) -> Duration {
@@ -99,6 +293,7 @@ impl PortTask {
 
     /// Serves the bus until `shutdown` turns true.
     pub async fn run(mut self, mut shutdown: watch::Receiver<bool>) {
+        self.start_identity_worker();
         let mut delay = FIRST_REOPEN_DELAY;
         // Since when the port has been unusable: its devices go offline after their timeout.
         let mut closed_since = self.now();
@@ -135,6 +330,7 @@ impl PortTask {
                 self.beat();
                 let events = self.scheduler.port_unavailable(self.now(), closed_since);
                 self.dispatch(events).await;
+                self.refuse_queued("it failed and is being reopened");
                 let wake = reopen_at.min(Instant::now() + FIRST_REOPEN_DELAY);
                 tokio::select! {
                     _ = tokio::time::sleep_until(wake) => {}
@@ -150,9 +346,16 @@ impl PortTask {
 
     async fn serve(
         &mut self,
-        mut transport: Transport,
+        transport: Transport,
         shutdown: &mut watch::Receiver<bool>,
     ) -> Result<(), TransportError> {
+        let mut bus = OpenBus {
+            transport: Some(transport),
+            away: None,
+        };
+        // A queued transaction may go before the scheduler's next one, never two in a row while
+        // the scheduler has something to send: event polls keep their slots.
+        let mut queued_turn = true;
         loop {
             if *shutdown.borrow() {
                 return Ok(());
@@ -161,8 +364,32 @@ impl PortTask {
             while let Ok(write) = self.writes.try_recv() {
                 self.handle_write(write).await;
             }
+            while let Some(Ok((device, read))) =
+                self.identity.results.as_mut().map(mpsc::Receiver::try_recv)
+            {
+                self.identity_read(device, read).await;
+            }
+            if queued_turn {
+                if let Some(job) = self.queued.as_mut().and_then(|q| q.try_recv().ok()) {
+                    queued_turn = false;
+                    tokio::select! {
+                        result = self.serve_queued(&mut bus, job) => result?,
+                        _ = shutdown.changed() => return Ok(()),
+                    }
+                    continue;
+                }
+            }
+            self.apply_status_commands();
             match self.scheduler.next(self.now()) {
                 Action::Transmit(transaction) => {
+                    let started = self.now();
+                    queued_turn = true;
+                    if bus.away.is_some() {
+                        self.switch_line(&mut bus, None).await?;
+                    }
+                    let Some(transport) = bus.transport.as_mut() else {
+                        return Err(self.lost_port());
+                    };
                     // Shutdown never waits for the bus: a transaction may take seconds (long
                     // timeouts, a guard interval, a babbling line).
                     let result = tokio::select! {
@@ -174,8 +401,12 @@ impl PortTask {
                         Ok((outcome, timing)) => (outcome.clone(), *timing),
                         Err(_) => (Outcome::NoReply, ReplyTiming::default()),
                     };
+                    let recorded = self.status.as_ref().map(|_| outcome.clone());
                     let events = self.scheduler.complete_timed(self.now(), outcome, timing);
                     self.dispatch(events).await;
+                    if let Some(outcome) = recorded {
+                        self.record_transaction(started, &transaction, &outcome);
+                    }
                     result?;
                 }
                 Action::Wait { until } => {
@@ -186,9 +417,118 @@ impl PortTask {
                             Some(write) => self.handle_write(write).await,
                             None => return Ok(()),
                         },
+                        Some((device, read)) = next_identity(&mut self.identity.results) => {
+                            self.identity_read(device, read).await;
+                        }
+                        job = next_queued(&mut self.queued) => match job {
+                            Some(job) => {
+                                queued_turn = false;
+                                tokio::select! {
+                                    result = self.serve_queued(&mut bus, job) => result?,
+                                    _ = shutdown.changed() => return Ok(()),
+                                }
+                            }
+                            // Nobody can queue any more: stop listening.
+                            None => self.queued = None,
+                        },
                         _ = shutdown.changed() => return Ok(()),
                     }
                 }
+            }
+        }
+    }
+
+    /// One queued transaction, at the settings it asks for. Its caller gets the outcome; only a
+    /// broken port is an error here (the port task reopens it).
+    async fn serve_queued(
+        &mut self,
+        bus: &mut OpenBus,
+        job: QueuedTransaction,
+    ) -> Result<(), TransportError> {
+        if job.reply.is_closed() {
+            // Withdrawn (its caller timed out) before its turn.
+            return Ok(());
+        }
+        let home = self.home_line();
+        let wanted = match (job.line, home) {
+            (Some(line), Some(home)) if line != home => Some(line),
+            _ => None,
+        };
+        if wanted != bus.away {
+            if let Err(err) = self.switch_line(bus, wanted).await {
+                let line = wanted.or(home).map(|l| l.to_string()).unwrap_or_default();
+                let _ = job.reply.send(Err(BusQueueError::Settings {
+                    line,
+                    reason: err.to_string(),
+                }));
+                // Back at the port's own settings, or the port task reopens the port.
+                return self.switch_line(bus, None).await;
+            }
+        }
+        let Some(transport) = bus.transport.as_mut() else {
+            let _ = job.reply.send(Err(BusQueueError::Stopped));
+            return Err(self.lost_port());
+        };
+        debug!(port = %self.plan_name, away = ?bus.away, "queued transaction");
+        match transport.transact(&job.transaction).await {
+            Ok((outcome, _timing)) => {
+                let _ = job.reply.send(Ok(outcome));
+                Ok(())
+            }
+            Err(err) => {
+                let _ = job
+                    .reply
+                    .send(Err(BusQueueError::PortClosed(err.to_string())));
+                Err(err)
+            }
+        }
+    }
+
+    /// The serial settings of the port (none for TCP gateways).
+    fn home_line(&self) -> Option<LineSettings> {
+        match &self.endpoint {
+            Endpoint::Serial { line, .. } => Some(*line),
+            _ => None,
+        }
+    }
+
+    /// Reopens the serial port at `away` (its own settings when `None`). The old handle is
+    /// closed first: the port is opened exclusively.
+    async fn switch_line(
+        &self,
+        bus: &mut OpenBus,
+        away: Option<LineSettings>,
+    ) -> Result<(), TransportError> {
+        let Endpoint::Serial { path, line } = &self.endpoint else {
+            return Ok(());
+        };
+        bus.transport = None;
+        bus.away = None;
+        let endpoint = Endpoint::Serial {
+            path: path.clone(),
+            line: away.unwrap_or(*line),
+        };
+        let mut transport = Transport::open(&endpoint).await?;
+        transport.set_guard_interval(self.guard_interval);
+        debug!(port = %self.plan_name, settings = %endpoint.name(), "port settings switched");
+        bus.transport = Some(transport);
+        bus.away = away;
+        Ok(())
+    }
+
+    fn lost_port(&self) -> TransportError {
+        TransportError::Closed {
+            name: self.plan_name.clone(),
+        }
+    }
+
+    /// Answers every queued transaction with "port closed" (the port is being reopened).
+    fn refuse_queued(&mut self, why: &str) {
+        if let Some(queued) = self.queued.as_mut() {
+            while let Ok(job) = queued.try_recv() {
+                let _ = job
+                    .reply
+                    .send(Err(BusQueueError::PortClosed(why.to_owned())));
             }
         }
     }
@@ -234,12 +574,25 @@ impl PortTask {
                 vitals.set_devices_online(self.online.iter().filter(|o| **o).count());
             }
         }
+        for event in &events {
+            if let PortEvent::Online { device } | PortEvent::Rebooted { device } = event {
+                self.ask_identity(*device);
+            }
+        }
         let mut updates = Vec::new();
         apply_port_events(&mut self.models, events, &mut updates);
         self.send(updates).await;
     }
 
     async fn send(&self, updates: Vec<DeviceUpdate>) {
+        if let Some(status) = &self.status {
+            let now = self.now();
+            status.record(|stats| {
+                for update in &updates {
+                    stats.observe_update(update, now);
+                }
+            });
+        }
         for update in updates {
             // The MQTT side drains this queue into its latest-value-per-topic state at once, so
             // waiting here only happens if that task itself is stuck.
@@ -247,5 +600,23 @@ impl PortTask {
                 return;
             }
         }
+    }
+}
+
+/// The next queued transaction; never resolves when there is no queue.
+async fn next_queued(queued: &mut Option<BusQueueReceiver>) -> Option<QueuedTransaction> {
+    match queued {
+        Some(queued) => queued.recv().await,
+        None => std::future::pending().await,
+    }
+}
+
+/// The next identity read; never resolves without a worker.
+async fn next_identity(
+    results: &mut Option<mpsc::Receiver<(usize, IdentityRead)>>,
+) -> Option<(usize, IdentityRead)> {
+    match results {
+        Some(results) => results.recv().await,
+        None => std::future::pending().await,
     }
 }

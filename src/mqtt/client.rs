@@ -506,16 +506,23 @@ fn refusal_text(error: &rumqttc::ConnectionError) -> Option<&'static str> {
 
 /// rumqttc options: client id, credentials, keep-alive, last will, TLS.
 fn mqtt_options(config: &MqttConfig, status_topic: &str) -> Result<MqttOptions, MqttError> {
-    let mut options = MqttOptions::new(&config.client_id, &config.host, config.port);
-    options.set_keep_alive(Duration::from_secs(u64::from(config.keepalive_s)));
-    options.set_clean_session(true);
-    options.set_max_packet_size(MAX_INCOMING_PACKET, MAX_OUTGOING_PACKET);
+    let mut options = connection_options(config, &config.client_id)?;
     options.set_last_will(LastWill::new(
         status_topic,
         "offline",
         QoS::AtLeastOnce,
         true,
     ));
+    Ok(options)
+}
+
+/// Broker, credentials, keep-alive and TLS of `config`, under `client_id`, without a last will
+/// (also used by the MQTT RPC server's connection and the CLI's RPC client).
+pub fn connection_options(config: &MqttConfig, client_id: &str) -> Result<MqttOptions, MqttError> {
+    let mut options = MqttOptions::new(client_id, &config.host, config.port);
+    options.set_keep_alive(Duration::from_secs(u64::from(config.keepalive_s)));
+    options.set_clean_session(true);
+    options.set_max_packet_size(MAX_INCOMING_PACKET, MAX_OUTGOING_PACKET);
     if let Some(user) = &config.user {
         options.set_credentials(user, config.password.clone().unwrap_or_default());
     }

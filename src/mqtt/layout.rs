@@ -9,13 +9,29 @@ use super::topics::TopicScheme;
 use super::Publication;
 use crate::device::number_text::format_g;
 use crate::device::{ResolvedChannel, ResolvedDevice};
+use crate::updates::DeviceIdentity;
 
 /// `driver` in device meta.
 pub const DRIVER_NAME: &str = "rtu2mqtt";
 
-/// Device meta JSON, `meta/name`, `meta/driver` (no `meta/error`: that is state).
-pub fn device_meta(topics: &TopicScheme, device: &ResolvedDevice) -> Vec<Publication> {
-    let meta = json!({ "driver": DRIVER_NAME, "title": { "en": device.name } });
+/// Device meta JSON, `meta/name`, `meta/driver` (no `meta/error`: that is state). What the
+/// device told about itself goes into the JSON as `model`, `serial_number` and `firmware`
+/// once known (Wiren Board clients ignore keys they do not know).
+pub fn device_meta(
+    topics: &TopicScheme,
+    device: &ResolvedDevice,
+    identity: &DeviceIdentity,
+) -> Vec<Publication> {
+    let mut meta = json!({ "driver": DRIVER_NAME, "title": { "en": device.name } });
+    for (key, value) in [
+        ("model", &identity.model),
+        ("serial_number", &identity.serial_number),
+        ("firmware", &identity.firmware),
+    ] {
+        if let Some(value) = value {
+            meta[key] = json!(value);
+        }
+    }
     vec![
         Publication::retained(topics.device_meta(&device.id, None), meta.to_string()),
         Publication::retained(topics.device_meta(&device.id, Some("name")), &device.name),
@@ -171,7 +187,11 @@ pub fn device_topics(topics: &TopicScheme, device: &ResolvedDevice) -> Vec<Strin
         .collect();
     out.push(topics.device_availability(&device.id));
     out.push(topics.device_meta(&device.id, Some("error")));
-    out.extend(device_meta(topics, device).into_iter().map(|p| p.topic));
+    out.extend(
+        device_meta(topics, device, &DeviceIdentity::default())
+            .into_iter()
+            .map(|p| p.topic),
+    );
     out
 }
 

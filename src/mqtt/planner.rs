@@ -209,7 +209,7 @@ impl PublicationPlanner {
                 topics.control_on(&device.id, &channel.id),
             ));
         }
-        let mut publications = layout::device_meta(topics, &device);
+        let mut publications = layout::device_meta(topics, &device, &state.identity);
         publications.push(layout::device_error(topics, &device.id, state.online));
         if self.settings.discovery.is_some() {
             publications.push(availability(topics, &device.id, state.online));
@@ -268,11 +268,12 @@ impl PublicationPlanner {
         if state.identity == identity {
             return Vec::new();
         }
-        let configs = self.discovery_configs(&state.device, &identity);
+        let mut publications = layout::device_meta(&self.settings.topics, &state.device, &identity);
+        publications.extend(self.discovery_configs(&state.device, &identity));
         if let Some(state) = self.devices.get_mut(device_id) {
             state.identity = identity;
         }
-        configs.into_iter().map(MqttAction::Publish).collect()
+        publications.into_iter().map(MqttAction::Publish).collect()
     }
 
     fn remove_device(&mut self, device_id: &str) -> Vec<MqttAction> {

@@ -443,5 +443,14 @@ fn identity_updates_discovery_device_block() {
     let text = render(&out);
     assert!(text.contains(r#""serial_number":"4265607321""#), "{text}");
     assert!(text.contains(r#""sw_version":"1.17.3""#));
+    // The device meta JSON carries it too, and keeps it after a reconnect.
+    let meta = "/devices/relay6_1/meta\t{\"driver\":\"rtu2mqtt\",\"title\":{\"en\":\"Relay 6 1\"},\
+                \"model\":\"WBMR6C\",\"serial_number\":\"4265607321\",\"firmware\":\"1.17.3\"}\n";
+    assert!(text.contains(meta), "{text}");
+    let snapshot = render(&planner.snapshot());
+    assert!(
+        snapshot.contains(r#""serial_number":"4265607321","firmware""#),
+        "{snapshot}"
+    );
     assert!(planner.handle(update, Instant::now()).is_empty());
 }

@@ -37,6 +37,8 @@ pub struct ControlCommand {
     pub value: Option<Value>,
     #[serde(default)]
     pub new_address: Option<u8>,
+    /// `replace`: the serial number of the device put in its place.
+    pub new_serial: Option<Value>,
     #[serde(default)]
     pub line: Option<String>,
     #[serde(default)]
@@ -160,6 +162,19 @@ fn run(bus: &mut Bus, now: Duration, command: &ControlCommand) -> Result<Value, 
             Ok(json!({ "value": value }))
         }
         "reboot" => with_device(bus, command, |d| d.reboot()),
+        // A replaced device: another serial number, freshly powered on.
+        "replace" => {
+            let new_serial = parse_serial(
+                command
+                    .new_serial
+                    .as_ref()
+                    .ok_or("\"new_serial\" missing")?,
+            )?;
+            with_device(bus, command, |d| {
+                d.set_serial(new_serial);
+                d.reboot();
+            })
+        }
         "unplug" => with_device(bus, command, |d| d.plugged = false),
         "replug" => with_device(bus, command, |d| d.plugged = true),
         "set_address" => {
@@ -221,7 +236,7 @@ fn run(bus: &mut Bus, now: Duration, command: &ControlCommand) -> Result<Value, 
         }
         other => Err(format!(
             "unknown command {other:?} (ping, list, get, set, toggle, reboot, unplug, replug, \
-             set_address, set_line, faults, link_down, link_up, link_drop, stats, watch)"
+             set_address, set_line, replace, faults, link_down, link_up, link_drop, stats, watch)"
         )),
     }
 }
@@ -385,6 +400,24 @@ mod tests {
             json!(true)
         );
         assert_eq!(bus.devices()[1].address(), 21);
+        // A replaced device: another serial number, in the registers too, and a fresh start.
+        let starts = bus.devices()[1].starts;
+        assert_eq!(
+            run_line(
+                &mut bus,
+                r#"{"cmd":"replace","serial":2,"new_serial":"0x00010002"}"#
+            )["ok"],
+            json!(true)
+        );
+        assert_eq!(bus.devices()[1].serial, 0x0001_0002);
+        assert_eq!(bus.devices()[1].starts, starts + 1);
+        assert_eq!(
+            run_line(
+                &mut bus,
+                r#"{"cmd":"get","serial":"0x00010002","type":"holding","address":270,"count":2}"#
+            ),
+            json!({"ok": true, "values": [1, 2]})
+        );
         assert_eq!(
             run_line(
                 &mut bus,

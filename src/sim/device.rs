@@ -161,6 +161,20 @@ impl VirtualDevice {
         &self.events
     }
 
+    /// Another unit of the same model takes this one's place (a replaced device): its serial
+    /// number changes, in the scan and in the serial number registers.
+    pub fn set_serial(&mut self, serial: u32) {
+        self.serial = serial;
+        let [hi, lo] = [(serial >> 16) as u16, serial as u16];
+        for register_type in [RegisterType::Holding, RegisterType::Input] {
+            if self.registers.cell(register_type, wb::SERIAL).is_some() {
+                self.registers.insert(register_type, wb::SERIAL, hi, false);
+                self.registers
+                    .insert(register_type, wb::SERIAL + 1, lo, false);
+            }
+        }
+    }
+
     /// A power cycle: event settings back at their defaults, the reboot event pending, the flag 0.
     /// Register values and port settings survive (they live in the device's flash or are inputs).
     pub fn reboot(&mut self) {

@@ -37,7 +37,8 @@ pub enum PortError {
     PermissionDenied { path: String },
     #[error(
         "{path} is busy: another program has it open (the rtu2mqtt or wb-mqtt-serial service?). \
-         Stop it first (systemctl stop rtu2mqtt) and try again"
+         Stop it first (systemctl stop rtu2mqtt) and try again, or go through the service: \
+         --via-mqtt --broker HOST (read, write, scan)"
     )]
     Busy { path: String },
     #[error("{path} is not a serial port: {source}")]
@@ -46,6 +47,12 @@ pub enum PortError {
     Other { path: String, source: io::Error },
     #[error("{0}")]
     Transport(#[from] TransportError),
+    /// Through a running daemon's bus queue (MQTT RPC).
+    #[error("{0}")]
+    Queued(#[from] crate::daemon::bus_queue::BusQueueError),
+    /// The running service could not be asked (broker, no reply, refused).
+    #[error("{0}")]
+    Service(String),
 }
 
 /// What came back for one request.
@@ -136,19 +143,36 @@ impl ToolPort {
         }
     }
 
+    /// Closes the transport and puts the port's original settings back.
+    pub fn restore(&mut self) {
+        self.current = None;
+        if let Some((file, original)) = self.saved.take() {
+            if let Err(err) = termios::tcsetattr(&file, SetArg::TCSANOW, &original) {
+                debug!(port = %self.path, %err, "could not restore the port settings");
+            }
+        }
+    }
+}
+
+/// A line the site tools talk through: their own serial port ([`ToolPort`]), or a running
+/// daemon's port through its bus queue (MQTT RPC). The exchanges below are built on `transact`.
+// The futures are Send for the two implementations (checked where the daemon spawns them).
+#[allow(async_fn_in_trait)]
+pub trait ToolBus {
+    /// Added to every timeout: what a USB adapter and a loaded machine add.
+    fn latency(&self) -> Duration;
+
+    /// One transaction at `line`.
     async fn transact(
         &mut self,
         line: LineSettings,
         transaction: Transaction,
-    ) -> Result<Outcome, PortError> {
-        let transport = self.at(line).await?;
-        Ok(transport.transact(&transaction).await?.0)
-    }
+    ) -> Result<Outcome, PortError>;
 
     /// The Fast Modbus scan at one setting: scan start, then continue until a device says the
     /// scan is over. New devices go into `report`; trouble becomes a problem of this setting.
     /// Returns the (serial, address) pairs seen at this setting.
-    pub async fn scan_setting(
+    async fn scan_setting(
         &mut self,
         line: LineSettings,
         report: &mut ScanReport,
@@ -158,7 +182,7 @@ impl ToolPort {
         let mut retried_silence = false;
         let mut request = Request::scan_start();
         for round in 0..MAX_SCAN_ROUNDS {
-            let transaction = scan_transaction(&line, request.clone(), round == 0, self.latency);
+            let transaction = scan_transaction(&line, request.clone(), round == 0, self.latency());
             match self.transact(line, transaction).await? {
                 Outcome::Reply(Reply {
                     body: ReplyBody::Fast { reply, .. },
@@ -240,7 +264,7 @@ impl ToolPort {
 
     /// A classic request carried by serial number (0x46 0x08): only the device with that serial
     /// answers, whatever its address.
-    pub async fn by_serial(
+    async fn by_serial(
         &mut self,
         line: LineSettings,
         serial: u32,
@@ -248,7 +272,7 @@ impl ToolPort {
         timeout: Duration,
     ) -> Result<Answer, PortError> {
         let request = Request::by_serial(serial, pdu);
-        let transaction = request_transaction(&line, request, 12 + 256, timeout + self.latency);
+        let transaction = request_transaction(&line, request, 12 + 256, timeout + self.latency());
         Ok(match self.transact(line, transaction).await? {
             Outcome::Reply(Reply {
                 body:
@@ -268,7 +292,7 @@ impl ToolPort {
     }
 
     /// A classic request to one address.
-    pub async fn classic(
+    async fn classic(
         &mut self,
         line: LineSettings,
         address: u8,
@@ -276,7 +300,7 @@ impl ToolPort {
         timeout: Duration,
     ) -> Result<Answer, PortError> {
         let request = Request::classic(address, pdu);
-        let transaction = request_transaction(&line, request, 8 + 256, timeout + self.latency);
+        let transaction = request_transaction(&line, request, 8 + 256, timeout + self.latency());
         Ok(match self.transact(line, transaction).await? {
             Outcome::Reply(Reply {
                 body: ReplyBody::Classic(pdu),
@@ -288,7 +312,7 @@ impl ToolPort {
     }
 
     /// Any Fast Modbus request; the reply as it came.
-    pub async fn fast(
+    async fn fast(
         &mut self,
         line: LineSettings,
         request: Request,
@@ -299,9 +323,9 @@ impl ToolPort {
         let transaction = Transaction {
             estimated: request_time + reply_timeout,
             request_time,
-            reply_timeout: reply_timeout + self.latency,
-            first_byte_timeout: Some(first_byte_timeout + self.latency),
-            late_window: self.latency,
+            reply_timeout: reply_timeout + self.latency(),
+            first_byte_timeout: Some(first_byte_timeout + self.latency()),
+            late_window: self.latency(),
             request,
         };
         self.transact(line, transaction).await
@@ -309,11 +333,7 @@ impl ToolPort {
 
     /// Model, firmware and signature from the standard registers, by serial number; what a
     /// device does not have stays empty.
-    pub async fn identity(
-        &mut self,
-        line: LineSettings,
-        serial: u32,
-    ) -> Result<Identity, PortError> {
+    async fn identity(&mut self, line: LineSettings, serial: u32) -> Result<Identity, PortError> {
         let mut texts = Vec::new();
         for (start, count) in [(200, 20), (250, 16), (290, 12)] {
             let pdu = RequestPdu::ReadHoldingRegisters { start, count };
@@ -332,15 +352,20 @@ impl ToolPort {
             signature: texts.next().flatten(),
         })
     }
+}
 
-    /// Closes the transport and puts the port's original settings back.
-    pub fn restore(&mut self) {
-        self.current = None;
-        if let Some((file, original)) = self.saved.take() {
-            if let Err(err) = termios::tcsetattr(&file, SetArg::TCSANOW, &original) {
-                debug!(port = %self.path, %err, "could not restore the port settings");
-            }
-        }
+impl ToolBus for ToolPort {
+    fn latency(&self) -> Duration {
+        self.latency
+    }
+
+    async fn transact(
+        &mut self,
+        line: LineSettings,
+        transaction: Transaction,
+    ) -> Result<Outcome, PortError> {
+        let transport = self.at(line).await?;
+        Ok(transport.transact(&transaction).await?.0)
     }
 }
 
@@ -375,7 +400,7 @@ fn classify(path: &str, source: io::Error) -> PortError {
 /// Timeouts of a scan request: after a scan start every device takes part, so the first window
 /// already carries a byte when anyone uses this setting (an empty setting costs a few ms); after
 /// a continue the winner may need every window.
-fn scan_transaction(
+pub fn scan_transaction(
     line: &LineSettings,
     request: Request,
     start: bool,

@@ -1,0 +1,204 @@
+//! The site tools through the running service: when the port is busy (the service holds it) or
+//! with `--via-mqtt`, `read`, `write` and `scan` send wb-mqtt-serial RPC requests to the
+//! service over the broker instead of opening the port. See `docs/rpc.md`.
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::time::Duration;
+
+use serde_json::{json, Value};
+
+use crate::config::config_file::MqttConfig;
+use crate::config::load::{load_config, DEFAULT_CONFIG_PATH};
+use crate::protocol::{LineSettings, Parity};
+use crate::rpc::client::{CallError, RpcSession};
+use crate::tools::exit;
+
+/// How to reach the running service.
+#[derive(clap::Args, Debug, Clone)]
+pub struct ViaMqttArgs {
+    /// Go through the running rtu2mqtt service (MQTT RPC) instead of opening the port. Done
+    /// automatically when the port is busy and the broker is known.
+    #[arg(long)]
+    pub via_mqtt: bool,
+    /// The service's config file: its `mqtt` section names the broker.
+    #[arg(long = "service-config", value_name = "FILE", default_value = DEFAULT_CONFIG_PATH)]
+    pub service_config: PathBuf,
+    /// The broker (HOST or HOST:PORT), instead of the one in --service-config.
+    #[arg(long, value_name = "HOST[:PORT]")]
+    pub broker: Option<String>,
+}
+
+impl ViaMqttArgs {
+    /// The broker settings: `--broker`, else the service's config file.
+    pub fn broker_config(&self) -> Result<MqttConfig, String> {
+        if let Some(broker) = &self.broker {
+            let (host, port) = match broker.rsplit_once(':') {
+                Some((host, port)) => (
+                    host,
+                    port.parse::<u16>()
+                        .map_err(|_| format!("--broker {broker:?}: the port is not a number"))?,
+                ),
+                None => (broker.as_str(), 1883),
+            };
+            return Ok(MqttConfig {
+                host: host.to_owned(),
+                port,
+                ..MqttConfig::default()
+            });
+        }
+        load_config(&self.service_config)
+            .map(|loaded| loaded.config.mqtt)
+            .map_err(|errors| {
+                format!(
+                    "cannot read the broker settings from {} (give --broker HOST:PORT or \
+                     --service-config FILE): {}",
+                    self.service_config.display(),
+                    errors
+                        .0
+                        .first()
+                        .map(ToString::to_string)
+                        .unwrap_or_default()
+                )
+            })
+    }
+
+    /// Whether a busy port should be reached through the service: the broker is known.
+    pub fn can_reach_service(&self) -> bool {
+        self.via_mqtt || self.broker.is_some() || self.service_config.exists()
+    }
+}
+
+/// Why the service could not be asked, for the integrator; the exit code.
+fn call_failure(err: &CallError) -> ExitCode {
+    match err {
+        CallError::Refused(_) => {
+            eprintln!("{err}");
+            ExitCode::from(exit::NOT_FOUND)
+        }
+        _ => {
+            eprintln!("error: {err}");
+            ExitCode::from(exit::PORT)
+        }
+    }
+}
+
+/// Connects to the service's broker; `Err` is the exit code (the reason printed).
+pub async fn connect_service(args: &ViaMqttArgs) -> Result<RpcSession, ExitCode> {
+    let broker = args.broker_config().map_err(|message| {
+        eprintln!("{message}");
+        ExitCode::from(exit::USAGE)
+    })?;
+    RpcSession::connect(&broker)
+        .await
+        .map_err(|err| call_failure(&err))
+}
+
+/// A call to the service, errors printed for the integrator; `Err` is the exit code.
+pub async fn service_call(
+    session: &mut RpcSession,
+    service: &str,
+    method: &str,
+    params: Value,
+    total_timeout: Duration,
+) -> Result<Value, ExitCode> {
+    session
+        .call(service, method, params, total_timeout)
+        .await
+        .map_err(|err| call_failure(&err))
+}
+
+/// The settings the service runs `path` at (its `ports/Load` entry).
+pub async fn served_line(session: &mut RpcSession, path: &str) -> Result<LineSettings, ExitCode> {
+    let ports = service_call(session, "ports", "Load", json!({}), Duration::from_secs(5)).await?;
+    let entry = ports
+        .as_array()
+        .and_then(|ports| ports.iter().find(|p| p["path"] == path));
+    let Some(entry) = entry else {
+        eprintln!(
+            "the rtu2mqtt service does not serve {path} (it serves: {}): check the port name",
+            ports
+                .as_array()
+                .map(|ports| ports
+                    .iter()
+                    .map(|p| p["path"].as_str().unwrap_or("(tcp)").to_owned())
+                    .collect::<Vec<_>>()
+                    .join(", "))
+                .unwrap_or_default()
+        );
+        return Err(ExitCode::from(exit::NOT_FOUND));
+    };
+    let parity = match entry["parity"].as_str() {
+        Some("E") => Parity::Even,
+        Some("O") => Parity::Odd,
+        _ => Parity::None,
+    };
+    let baud = entry["baud_rate"]
+        .as_u64()
+        .and_then(|b| u32::try_from(b).ok())
+        .unwrap_or(9600);
+    let stop_bits = entry["stop_bits"]
+        .as_u64()
+        .and_then(|b| u8::try_from(b).ok())
+        .unwrap_or(1);
+    Ok(LineSettings::new(baud, parity, stop_bits))
+}
+
+/// The params that put a request at `line`.
+pub fn line_params(line: &LineSettings) -> Value {
+    json!({
+        "baud_rate": line.baud,
+        "parity": line.parity.letter().to_string(),
+        "data_bits": line.data_bits,
+        "stop_bits": line.stop_bits,
+    })
+}
+
+/// Words from a `port/Load` hex response (bits as 0/1 for coils and discrete inputs).
+pub fn response_words(response: &str, bits: bool, count: u16) -> Option<Vec<u16>> {
+    let bytes = crate::protocol::parse_hex(response).ok()?;
+    if bits {
+        return Some(
+            crate::protocol::pdu::unpack_bits(&bytes, usize::from(count))
+                .into_iter()
+                .map(u16::from)
+                .collect(),
+        );
+    }
+    if bytes.len() % 2 != 0 {
+        return None;
+    }
+    Some(
+        bytes
+            .chunks_exact(2)
+            .map(|pair| u16::from_be_bytes([pair[0], pair[1]]))
+            .collect(),
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn broker_option_and_hex_responses() {
+        let args = ViaMqttArgs {
+            via_mqtt: true,
+            service_config: PathBuf::from("/nonexistent"),
+            broker: Some("10.0.0.2:1884".into()),
+        };
+        let broker = args.broker_config().unwrap();
+        assert_eq!((broker.host.as_str(), broker.port), ("10.0.0.2", 1884));
+        let args = ViaMqttArgs {
+            broker: None,
+            ..args
+        };
+        assert!(args.broker_config().unwrap_err().contains("--broker"));
+        assert_eq!(
+            response_words("0866abcd", false, 2),
+            Some(vec![0x0866, 0xABCD])
+        );
+        assert_eq!(response_words("05", true, 3), Some(vec![1, 0, 1]));
+        assert_eq!(response_words("086", false, 1), None);
+    }
+}

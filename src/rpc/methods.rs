@@ -1,0 +1,648 @@
+//! What each method does on a running port: every bus exchange goes through the port's
+//! [`BusQueue`], one transaction at a time, between the port's own transactions.
+
+use std::time::Duration;
+
+use serde_json::{json, Map, Value};
+
+use super::message::RpcError;
+use super::params::{
+    DeviceProbe, MessageFormat, Method, PortLoad, PortScan, PortSelector, PortSetup, ScanMode,
+};
+use crate::config::config_file::PortType;
+use crate::daemon::bus_queue::BusQueue;
+use crate::daemon::{PortAccess, PortDirectory};
+use crate::gateway::port_plan::line_settings;
+use crate::port::{Outcome, Transaction};
+use crate::protocol::fast::FastReply;
+use crate::protocol::timing::ADAPTER_LATENCY_ALLOWANCE;
+use crate::protocol::{LineSettings, Reply, ReplyBody, Request, RequestPdu, ResponsePdu};
+use crate::tools::bus::{scan_transaction, Answer, PortError, ToolBus};
+use crate::tools::report::ScanReport;
+use crate::tools::values::standard_text;
+
+/// A running port's bus as the site tools' exchanges see it.
+pub struct QueuedBus {
+    queue: BusQueue,
+    /// The port's own settings; `None` for TCP gateways (settings do not apply).
+    home: Option<LineSettings>,
+    latency: Duration,
+}
+
+impl QueuedBus {
+    pub fn new(access: &PortAccess) -> Self {
+        Self {
+            queue: access.queue.clone(),
+            home: access.line,
+            latency: RPC_LATENCY,
+        }
+    }
+
+    /// Timeouts for requests at `line`: at other settings than the port's own (a client
+    /// scanning all 48) the USB adapter's allowance only, as the site tools use it.
+    fn for_line(mut self, line: LineSettings) -> Self {
+        if self.home.is_some_and(|home| home != line) {
+            self.latency = ADAPTER_LATENCY_ALLOWANCE;
+        }
+        self
+    }
+}
+
+/// Added to the timeouts of RPC requests at the port's own settings: the USB adapter's
+/// allowance, and more for a controller busy with the daemon's own work (an RPC is never in a
+/// hurry, and a reply taken for silence would be a wrong answer).
+const RPC_LATENCY: Duration = Duration::from_millis(50);
+
+impl ToolBus for QueuedBus {
+    fn latency(&self) -> Duration {
+        self.latency
+    }
+
+    async fn transact(
+        &mut self,
+        line: LineSettings,
+        transaction: Transaction,
+    ) -> Result<Outcome, PortError> {
+        let line = self.home.map(|_| line);
+        Ok(self.queue.transact(line, transaction).await?)
+    }
+}
+
+/// Runs a request; `Err` is the JSON-RPC error to send back.
+pub async fn execute(ports: &PortDirectory, method: Method) -> Result<Value, RpcError> {
+    match method {
+        Method::PortsLoad => Ok(ports_load(ports)),
+        Method::PortLoad(load) => port_load(ports, load).await,
+        Method::PortScan(scan) => port_scan(ports, scan).await,
+        Method::DeviceProbe(probe) => device_probe(ports, probe).await,
+        Method::PortSetup(setup) => port_setup(ports, setup).await,
+    }
+}
+
+fn snapshot(ports: &PortDirectory) -> Vec<PortAccess> {
+    ports
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner)
+        .values()
+        .cloned()
+        .collect()
+}
+
+/// `ports/Load`: the configured ports, as wb-mqtt-serial lists them.
+fn ports_load(ports: &PortDirectory) -> Value {
+    let list: Vec<Value> = snapshot(ports)
+        .iter()
+        .map(|access| {
+            let config = &access.resolved.config;
+            match config.port_type {
+                PortType::Serial => {
+                    let line = line_settings(config);
+                    json!({
+                        "path": config.path,
+                        "baud_rate": line.baud,
+                        "data_bits": line.data_bits,
+                        "parity": line.parity.letter().to_string(),
+                        "stop_bits": line.stop_bits,
+                    })
+                }
+                PortType::Tcp => json!({ "address": config.address, "port": config.port }),
+                PortType::ModbusTcp => json!({
+                    "address": config.address,
+                    "port": config.port,
+                    "protocol": "modbus-tcp",
+                }),
+            }
+        })
+        .collect();
+    Value::Array(list)
+}
+
+/// The running port a request names, and the slave id of the device it names (if it names
+/// one by `device_id`).
+fn find_port(
+    ports: &PortDirectory,
+    selector: &PortSelector,
+) -> Result<(PortAccess, Option<u8>), RpcError> {
+    let running = snapshot(ports);
+    let found = running.iter().find_map(|access| {
+        let config = &access.resolved.config;
+        match selector {
+            PortSelector::Path(path) => {
+                (config.path.as_deref() == Some(path.as_str())).then(|| (access.clone(), None))
+            }
+            PortSelector::Tcp { ip, port } => (config.address.as_deref() == Some(ip.as_str())
+                && config.port == Some(*port))
+            .then(|| (access.clone(), None)),
+            PortSelector::Device(id) => access
+                .resolved
+                .devices
+                .iter()
+                .find(|d| d.id == *id)
+                .map(|d| (access.clone(), Some(d.slave_id))),
+        }
+    });
+    found.ok_or_else(|| {
+        let served: Vec<&str> = running.iter().map(|a| a.name.as_str()).collect();
+        let what = match selector {
+            PortSelector::Path(path) => format!("port {path}"),
+            PortSelector::Tcp { ip, port } => format!("port {ip}:{port}"),
+            PortSelector::Device(id) => format!("device {id:?}"),
+        };
+        RpcError::server(format!(
+            "{what} is not served by this rtu2mqtt (it serves: {}); add it to the config, or use \
+             the site tools directly on a port the service does not hold",
+            if served.is_empty() {
+                "no port".to_owned()
+            } else {
+                served.join(", ")
+            }
+        ))
+    })
+}
+
+/// The settings a request runs at: the port's own with what the request changes. TCP gateways
+/// are timed as 9600 8N2, as wb-mqtt-serial does.
+fn request_line(access: &PortAccess, line: &super::params::LineOverride) -> LineSettings {
+    let home = access
+        .line
+        .unwrap_or_else(|| line_settings(&access.resolved.config));
+    match access.line {
+        Some(_) => line.apply(home),
+        None => home,
+    }
+}
+
+fn io_error(err: PortError) -> RpcError {
+    RpcError::server(format!("Port IO error: {err}"))
+}
+
+/// `port/Load` with a Modbus protocol: one request, the reply's data as wb-mqtt-serial gives it.
+async fn port_load(ports: &PortDirectory, load: PortLoad) -> Result<Value, RpcError> {
+    let (access, device_slave_id) = find_port(ports, &load.port)?;
+    let line = request_line(&access, &load.line);
+    let mut bus = QueuedBus::new(&access);
+    let slave_id = load.slave_id.or(device_slave_id);
+    // A garbled reply or silence is tried once more (Modbus reads and register writes are
+    // idempotent): between the port's own transactions, a late reply to one of them can spoil
+    // the first try on a loaded line.
+    let mut answer = Answer::NoReply;
+    for _ in 0..2 {
+        answer = match (load.serial, slave_id) {
+            (Some(serial), _) => bus
+                .by_serial(line, serial, load.pdu.clone(), load.response_timeout)
+                .await
+                .map_err(io_error)?,
+            (None, Some(address)) => bus
+                .classic(line, address, load.pdu.clone(), load.response_timeout)
+                .await
+                .map_err(io_error)?,
+            (None, None) => return Err(RpcError::server("bad \"slave_id\": missing")),
+        };
+        if matches!(answer, Answer::Pdu(_)) {
+            break;
+        }
+    }
+    let target = match (load.serial, slave_id) {
+        (Some(serial), _) => format!("serial {serial}"),
+        (None, Some(address)) => format!("slave {address}"),
+        (None, None) => String::new(),
+    };
+    load_result(&answer, load.format).map_err(|why| {
+        RpcError::server(format!(
+            "Port IO error: {why} from {target} on {} at {line} (response_timeout {} ms, tried twice)",
+            access.name,
+            load.response_timeout.as_millis()
+        ))
+    })
+}
+
+/// The result of `port/Load` for a reply: `{"response": data}` or `{"exception": …}`.
+pub fn load_result(answer: &Answer, format: MessageFormat) -> Result<Value, &'static str> {
+    let data: Vec<u8> = match answer {
+        Answer::NoReply => return Err("no reply"),
+        Answer::Garbled => return Err("unreadable reply (bad CRC, or two devices answering)"),
+        Answer::Pdu(ResponsePdu::Exception { code, .. }) => {
+            return Ok(json!({
+                "exception": { "code": code.0, "msg": code.description() }
+            }))
+        }
+        Answer::Pdu(ResponsePdu::ReadHoldingRegisters { values })
+        | Answer::Pdu(ResponsePdu::ReadInputRegisters { values }) => {
+            values.iter().flat_map(|w| w.to_be_bytes()).collect()
+        }
+        Answer::Pdu(ResponsePdu::ReadCoils { packed })
+        | Answer::Pdu(ResponsePdu::ReadDiscreteInputs { packed }) => packed.clone(),
+        Answer::Pdu(_) => Vec::new(),
+    };
+    let response = match format {
+        MessageFormat::Hex => data.iter().map(|b| format!("{b:02x}")).collect(),
+        MessageFormat::Str => String::from_utf8_lossy(&data).into_owned(),
+    };
+    Ok(json!({ "response": response }))
+}
+
+/// `port/Scan`: the Fast Modbus scan at one setting, then each device's details.
+async fn port_scan(ports: &PortDirectory, scan: PortScan) -> Result<Value, RpcError> {
+    let (access, _) = find_port(ports, &scan.port)?;
+    if !access_has_fast_modbus(&access) {
+        // wb-mqtt-serial: Modbus TCP without a WB-MGE gateway finds nothing.
+        return Ok(json!({ "devices": [] }));
+    }
+    let line = request_line(&access, &scan.line);
+    let mut bus = QueuedBus::new(&access).for_line(line);
+    let mut error = None;
+    let found = match scan.mode {
+        ScanMode::All => {
+            let mut report = ScanReport::default();
+            let mut seen = bus
+                .scan_setting(line, &mut report)
+                .await
+                .map_err(io_error)?;
+            if seen.is_empty() && report.problems.is_empty() && access.line == Some(line) {
+                // Silence after a scan start at the port's own settings means nobody there,
+                // unless the reply was late (a loaded machine): a second start costs one more
+                // short timeout. Other settings are usually empty; a client scanning all of
+                // them would pay it 47 times.
+                seen = bus
+                    .scan_setting(line, &mut report)
+                    .await
+                    .map_err(io_error)?;
+            }
+            if let Some(problem) = report.problems.first() {
+                error = Some(problem.what.clone());
+            }
+            seen
+        }
+        ScanMode::Start | ScanMode::Next => {
+            let start = scan.mode == ScanMode::Start;
+            let request = if start {
+                Request::scan_start()
+            } else {
+                Request::scan_continue()
+            };
+            let transaction = scan_transaction(&line, request, start, bus.latency());
+            match bus.transact(line, transaction).await.map_err(io_error)? {
+                Outcome::Reply(Reply {
+                    body:
+                        ReplyBody::Fast {
+                            reply:
+                                FastReply::ScanFound {
+                                    serial,
+                                    modbus_address,
+                                },
+                            ..
+                        },
+                    ..
+                }) => vec![(serial, modbus_address)],
+                Outcome::Reply(Reply {
+                    body:
+                        ReplyBody::Fast {
+                            reply: FastReply::ScanEnd,
+                            ..
+                        },
+                    ..
+                })
+                | Outcome::NoReply => Vec::new(),
+                Outcome::Reply(_) | Outcome::Garbled => {
+                    error = Some("unreadable reply to the scan (bad CRC or a collision)".into());
+                    Vec::new()
+                }
+            }
+        }
+    };
+    let mut devices = Vec::new();
+    for (serial, address) in found {
+        let mut reader = Reader::BySerial(serial);
+        let mut details = device_details(&mut bus, line, &mut reader, address, serial).await?;
+        if let Some(device_type) = configured_device_type(&access, address) {
+            details.insert("configured_device_type".into(), json!(device_type));
+        }
+        devices.push(Value::Object(details));
+    }
+    let mut result = json!({ "devices": devices });
+    if let Some(error) = error {
+        result["error"] = json!(error);
+    }
+    Ok(result)
+}
+
+fn access_has_fast_modbus(access: &PortAccess) -> bool {
+    let config = &access.resolved.config;
+    config.port_type != PortType::ModbusTcp || config.connected_to_mge
+}
+
+fn configured_device_type(access: &PortAccess, address: u8) -> Option<String> {
+    access
+        .resolved
+        .devices
+        .iter()
+        .find(|d| d.slave_id == address)
+        .and_then(|d| d.device_type.clone())
+}
+
+/// `device/Probe`: a Wiren Board device at a given address (classic requests): its serial
+/// number first; silence means "nobody there" (`{}`).
+async fn device_probe(ports: &PortDirectory, probe: DeviceProbe) -> Result<Value, RpcError> {
+    let (access, _) = find_port(ports, &probe.port)?;
+    let line = request_line(&access, &probe.line);
+    let mut bus = QueuedBus::new(&access);
+    let mut reader = Reader::Address(probe.slave_id);
+    let serial = match reader
+        .read(&mut bus, line, wb_register::SERIAL, 2)
+        .await
+        .map_err(io_error)?
+    {
+        Ok(words) => (u32::from(words[0]) << 16) | u32::from(words[1]),
+        Err(Answer::NoReply) => return Ok(json!({})),
+        Err(answer) => {
+            return Ok(json!({ "errors": [error_entry("read_sn", &describe(&answer))] }));
+        }
+    };
+    let mut details = device_details(&mut bus, line, &mut reader, probe.slave_id, serial).await?;
+    if let Some(device_type) = configured_device_type(&access, probe.slave_id) {
+        details.insert("configured_device_type".into(), json!(device_type));
+    }
+    Ok(Value::Object(details))
+}
+
+/// `port/Setup`: new address and port settings of Wiren Board devices, by address or serial
+/// number. The result is `null`, as wb-mqtt-serial's.
+async fn port_setup(ports: &PortDirectory, setup: PortSetup) -> Result<Value, RpcError> {
+    let (access, _) = find_port(ports, &setup.port)?;
+    let mut bus = QueuedBus::new(&access);
+    for item in &setup.items {
+        let line = request_line(&access, &item.line);
+        let mut target = match item.serial {
+            Some(serial) => Reader::BySerial(serial),
+            None => Reader::Address(item.slave_id),
+        };
+        // The address first: by serial number it does not matter, by address the following
+        // writes go to the new one.
+        if let Some(new_address) = item.cfg.slave_id {
+            setup_write(
+                &mut bus,
+                line,
+                &target,
+                wb_register::ADDRESS,
+                &[u16::from(new_address)],
+            )
+            .await?;
+            if let Reader::Address(address) = &mut target {
+                *address = new_address;
+            }
+        }
+        // The port settings last and in one write where they are contiguous: the device takes
+        // them at once and would not hear a second write at its old settings.
+        let mut registers: Vec<(u16, u16)> = Vec::new();
+        if let Some(baud) = item.cfg.baud_rate {
+            registers.push((
+                wb_register::BAUD,
+                u16::try_from(baud / 100).unwrap_or(u16::MAX),
+            ));
+        }
+        if let Some(parity) = item.cfg.parity {
+            let value = match parity {
+                crate::protocol::Parity::None => 0,
+                crate::protocol::Parity::Odd => 1,
+                crate::protocol::Parity::Even => 2,
+            };
+            registers.push((wb_register::PARITY, value));
+        }
+        if let Some(stop_bits) = item.cfg.stop_bits {
+            registers.push((wb_register::STOP_BITS, u16::from(stop_bits)));
+        }
+        let contiguous = registers.windows(2).all(|pair| pair[1].0 == pair[0].0 + 1);
+        if contiguous && !registers.is_empty() {
+            let values: Vec<u16> = registers.iter().map(|(_, v)| *v).collect();
+            setup_write(&mut bus, line, &target, registers[0].0, &values).await?;
+        } else {
+            for (register, value) in registers {
+                setup_write(&mut bus, line, &target, register, &[value]).await?;
+            }
+        }
+    }
+    Ok(Value::Null)
+}
+
+async fn setup_write(
+    bus: &mut QueuedBus,
+    line: LineSettings,
+    target: &Reader,
+    start: u16,
+    values: &[u16],
+) -> Result<(), RpcError> {
+    let pdu = match values {
+        [value] => RequestPdu::WriteSingleRegister {
+            address: start,
+            value: *value,
+        },
+        _ => RequestPdu::WriteMultipleRegisters {
+            start,
+            values: values.to_vec(),
+        },
+    };
+    let timeout = crate::tools::bus::KNOWN_DEVICE_TIMEOUT;
+    let (answer, who) = match target {
+        Reader::BySerial(serial) => (
+            bus.by_serial(line, *serial, pdu, timeout).await,
+            format!("serial {serial}"),
+        ),
+        Reader::Address(address) => (
+            bus.classic(line, *address, pdu, timeout).await,
+            format!("slave {address}"),
+        ),
+    };
+    match answer.map_err(io_error)? {
+        Answer::Pdu(
+            ResponsePdu::WriteSingleRegister { .. } | ResponsePdu::WriteMultipleRegisters { .. },
+        ) => Ok(()),
+        other => Err(RpcError::server(format!(
+            "Port IO error: writing holding {start} of {who} at {line}: {}",
+            describe(&other)
+        ))),
+    }
+}
+
+/// Wiren Board's standard registers (holding).
+mod wb_register {
+    pub const BAUD: u16 = 110;
+    pub const PARITY: u16 = 111;
+    pub const STOP_BITS: u16 = 112;
+    pub const ADDRESS: u16 = 128;
+    /// 20 characters, or 6 on older devices.
+    pub const MODEL: u16 = 200;
+    pub const FIRMWARE: u16 = 250;
+    pub const SERIAL: u16 = 270;
+    pub const SIGNATURE: u16 = 290;
+}
+
+/// How a device's registers are read: by serial number (found by a scan) or by address.
+enum Reader {
+    BySerial(u32),
+    Address(u8),
+}
+
+impl Reader {
+    /// Holding registers; `Err` is what came instead of them.
+    async fn read(
+        &mut self,
+        bus: &mut QueuedBus,
+        line: LineSettings,
+        start: u16,
+        count: u16,
+    ) -> Result<Result<Vec<u16>, Answer>, PortError> {
+        let pdu = RequestPdu::ReadHoldingRegisters { start, count };
+        // wb-mqtt-serial waits 3.5 characters and retries; a queued read of a device that just
+        // answered gets the tools' timeout once.
+        let timeout = crate::tools::bus::KNOWN_DEVICE_TIMEOUT;
+        let answer = match self {
+            Self::BySerial(serial) => bus.by_serial(line, *serial, pdu, timeout).await?,
+            Self::Address(address) => bus.classic(line, *address, pdu, timeout).await?,
+        };
+        Ok(match answer {
+            Answer::Pdu(ResponsePdu::ReadHoldingRegisters { values })
+                if values.len() == usize::from(count) =>
+            {
+                Ok(values)
+            }
+            other => Err(other),
+        })
+    }
+}
+
+fn describe(answer: &Answer) -> String {
+    match answer {
+        Answer::NoReply => "request timed out".into(),
+        Answer::Garbled => "unreadable reply (bad CRC)".into(),
+        Answer::Pdu(ResponsePdu::Exception { code, .. }) => {
+            format!("the device refused: {}", code.description())
+        }
+        Answer::Pdu(other) => format!("unexpected reply {other:?}"),
+    }
+}
+
+fn error_entry(what: &str, message: &str) -> Value {
+    json!({ "id": format!("com.wb.device_manager.device.{what}_error"), "message": message })
+}
+
+/// What wb-mqtt-serial reports of a found device: `sn`, `device_signature`, `fw_signature`,
+/// `cfg` (address and port settings), `fw.version`, and `errors` for what could not be read.
+async fn device_details(
+    bus: &mut QueuedBus,
+    line: LineSettings,
+    reader: &mut Reader,
+    address: u8,
+    serial: u32,
+) -> Result<Map<String, Value>, RpcError> {
+    let mut details = Map::new();
+    let mut errors = Vec::new();
+    let text = |words: Result<Vec<u16>, Answer>| match words {
+        Ok(words) => Ok(standard_text(&words).unwrap_or_default()),
+        Err(answer) => Err(describe(&answer)),
+    };
+    let model = match reader
+        .read(bus, line, wb_register::MODEL, 20)
+        .await
+        .map_err(io_error)?
+    {
+        Ok(words) => text(Ok(words)),
+        Err(_) => text(
+            reader
+                .read(bus, line, wb_register::MODEL, 6)
+                .await
+                .map_err(io_error)?,
+        ),
+    };
+    match model {
+        Ok(model) => {
+            details.insert("device_signature".into(), json!(model));
+        }
+        Err(why) => errors.push(error_entry("read_device_signature", &why)),
+    }
+    details.insert("sn".into(), json!(serial.to_string()));
+    match text(
+        reader
+            .read(bus, line, wb_register::SIGNATURE, 12)
+            .await
+            .map_err(io_error)?,
+    ) {
+        Ok(signature) => {
+            details.insert("fw_signature".into(), json!(signature));
+        }
+        Err(why) => errors.push(error_entry("read_fw_signature", &why)),
+    }
+    let mut cfg = json!({ "slave_id": address, "data_bits": 8 });
+    match reader
+        .read(bus, line, wb_register::BAUD, 3)
+        .await
+        .map_err(io_error)?
+    {
+        Ok(words) => {
+            cfg["baud_rate"] = json!(u32::from(words[0]) * 100);
+            cfg["parity"] = json!(match words[1] {
+                0 => "N",
+                1 => "O",
+                2 => "E",
+                _ => "U",
+            });
+            cfg["stop_bits"] = json!(words[2]);
+        }
+        Err(answer) => errors.push(error_entry("read_serial_params", &describe(&answer))),
+    }
+    details.insert("cfg".into(), cfg);
+    match text(
+        reader
+            .read(bus, line, wb_register::FIRMWARE, 16)
+            .await
+            .map_err(io_error)?,
+    ) {
+        Ok(version) => {
+            details.insert("fw".into(), json!({ "version": version }));
+        }
+        Err(why) => errors.push(error_entry("read_fw_version", &why)),
+    }
+    if !errors.is_empty() {
+        details.insert("errors".into(), Value::Array(errors));
+    }
+    Ok(details)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::protocol::ExceptionCode;
+
+    #[test]
+    fn load_results_as_wb_mqtt_serial_gives_them() {
+        let read = Answer::Pdu(ResponsePdu::ReadHoldingRegisters {
+            values: vec![0x0102, 0xABCD],
+        });
+        assert_eq!(
+            load_result(&read, MessageFormat::Hex),
+            Ok(json!({"response": "0102abcd"}))
+        );
+        let coils = Answer::Pdu(ResponsePdu::ReadCoils { packed: vec![0x05] });
+        assert_eq!(
+            load_result(&coils, MessageFormat::Hex),
+            Ok(json!({"response": "05"}))
+        );
+        let written = Answer::Pdu(ResponsePdu::WriteSingleRegister {
+            address: 1,
+            value: 2,
+        });
+        assert_eq!(
+            load_result(&written, MessageFormat::Hex),
+            Ok(json!({"response": ""}))
+        );
+        let refused = Answer::Pdu(ResponsePdu::Exception {
+            function: 3,
+            code: ExceptionCode::ILLEGAL_DATA_ADDRESS,
+        });
+        assert_eq!(
+            load_result(&refused, MessageFormat::Hex),
+            Ok(json!({"exception": {"code": 2, "msg": "illegal data address"}}))
+        );
+        assert!(load_result(&Answer::NoReply, MessageFormat::Hex).is_err());
+        assert!(load_result(&Answer::Garbled, MessageFormat::Str).is_err());
+    }
+}

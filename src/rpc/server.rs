@@ -1,0 +1,187 @@
+//! The MQTT side of the RPC server: its own broker connection (so the device publications and
+//! RPC never wait for each other), the advertised method topics, one task per request, bounded
+//! by the request's `total_timeout` and by [`MAX_REQUESTS_AT_ONCE`].
+
+use std::future::Future;
+use std::sync::Arc;
+use std::time::Duration;
+
+use rumqttc::{AsyncClient, Event, Packet, QoS};
+use tokio::sync::Semaphore;
+use tracing::{debug, info, warn};
+
+use super::message::{
+    advertised_topic, parse_request, reply_payload, RequestTopic, RpcError, REQUEST_FILTER,
+};
+use super::methods::execute;
+use super::params::{parse_method, SERVED};
+use crate::config::config_file::MqttConfig;
+use crate::daemon::PortDirectory;
+use crate::mqtt::client::connection_options;
+use crate::mqtt::MqttError;
+
+/// Requests served at the same time; more get an error at once. Each holds a task and, while
+/// it waits for the bus, a slot of a port's queue.
+pub const MAX_REQUESTS_AT_ONCE: usize = 8;
+/// The most of a request payload read (a request is a few hundred bytes).
+const MAX_REQUEST_BYTES: usize = 64 * 1024;
+const RECONNECT_DELAY: Duration = Duration::from_secs(2);
+const EXIT_FLUSH_TIMEOUT: Duration = Duration::from_secs(2);
+
+/// Serves wb-mqtt-serial's RPC for the ports in `ports` until `shutdown` completes.
+pub async fn run_rpc_server(
+    broker: MqttConfig,
+    ports: PortDirectory,
+    shutdown: impl Future<Output = ()>,
+) -> Result<(), MqttError> {
+    let client_id = format!("{}-rpc", broker.client_id);
+    let options = connection_options(&broker, &client_id)?;
+    let (client, mut eventloop) = AsyncClient::new(options, 64);
+    // A reply is one small packet that a caller waits for: Nagle's algorithm with the peer's
+    // delayed ACK would hold it some 40 ms.
+    eventloop.network_options.set_tcp_nodelay(true);
+    let slots = Arc::new(Semaphore::new(MAX_REQUESTS_AT_ONCE));
+    let address = format!("{}:{}", broker.host, broker.port);
+    let mut unreachable_told = false;
+    tokio::pin!(shutdown);
+    loop {
+        let event = tokio::select! {
+            () = &mut shutdown => break,
+            event = eventloop.poll() => event,
+        };
+        match event {
+            Ok(Event::Incoming(Packet::ConnAck(_))) => {
+                unreachable_told = false;
+                info!(broker = %address, "MQTT RPC: serving /rpc/v1/wb-mqtt-serial/…");
+                let _ = client.try_subscribe(REQUEST_FILTER, QoS::AtLeastOnce);
+                for (service, method) in SERVED {
+                    let _ = client.try_publish(
+                        advertised_topic(service, method),
+                        QoS::AtLeastOnce,
+                        true,
+                        "1",
+                    );
+                }
+            }
+            Ok(Event::Incoming(Packet::Publish(publish))) => {
+                if publish.retain {
+                    // A request left retained on the broker is old: nobody waits for its reply.
+                    continue;
+                }
+                let Some(topic) = RequestTopic::parse(&publish.topic) else {
+                    continue;
+                };
+                let payload = publish.payload;
+                let client = client.clone();
+                let ports = Arc::clone(&ports);
+                match Arc::clone(&slots).try_acquire_owned() {
+                    Ok(slot) => {
+                        tokio::spawn(async move {
+                            let (id, outcome) = serve(&ports, &topic, &payload).await;
+                            send_reply(&client, &topic, &id, &outcome).await;
+                            drop(slot);
+                        });
+                    }
+                    Err(_) => {
+                        let id = parse_request(&payload).map(|r| r.id).unwrap_or_default();
+                        let busy = Err(RpcError::server(format!(
+                            "{MAX_REQUESTS_AT_ONCE} RPC requests are running already; try again \
+                             when one is done"
+                        )));
+                        tokio::spawn(async move { send_reply(&client, &topic, &id, &busy).await });
+                    }
+                }
+            }
+            Ok(_) => {}
+            Err(error) => {
+                if !unreachable_told {
+                    warn!(broker = %address, %error, "MQTT RPC: lost the broker; reconnecting");
+                    unreachable_told = true;
+                }
+                tokio::select! {
+                    () = &mut shutdown => break,
+                    () = tokio::time::sleep(RECONNECT_DELAY) => {}
+                }
+            }
+        }
+    }
+    if broker.clear_on_exit {
+        // As the device topics: a clean exit leaves nothing retained behind.
+        for (service, method) in SERVED {
+            let _ = client.try_publish(
+                advertised_topic(service, method),
+                QoS::AtLeastOnce,
+                true,
+                "",
+            );
+        }
+    }
+    let _ = client.try_disconnect();
+    // Let the connection write what is queued (until the broker closes it, or 2 s).
+    let _ = tokio::time::timeout(EXIT_FLUSH_TIMEOUT, async {
+        while eventloop.poll().await.is_ok() {}
+    })
+    .await;
+    Ok(())
+}
+
+/// One request, from its payload to the outcome (never panics, whatever the payload).
+pub async fn serve(
+    ports: &PortDirectory,
+    topic: &RequestTopic,
+    payload: &[u8],
+) -> (serde_json::Value, Result<serde_json::Value, RpcError>) {
+    if payload.len() > MAX_REQUEST_BYTES {
+        return (
+            serde_json::Value::Null,
+            Err(RpcError::parse(format!(
+                "the request is {} bytes; at most {MAX_REQUEST_BYTES} are read",
+                payload.len()
+            ))),
+        );
+    }
+    let request = match parse_request(payload) {
+        Ok(request) => request,
+        Err((id, error)) => return (id, Err(error)),
+    };
+    let method = match parse_method(&topic.service, &topic.method, &request.params) {
+        Ok(method) => method,
+        Err(error) => {
+            debug!(method = %topic.name(), client = %topic.client, %error, "RPC request refused");
+            return (request.id, Err(error));
+        }
+    };
+    let total_timeout = method.total_timeout();
+    debug!(method = %topic.name(), client = %topic.client, params = %request.params, "RPC request");
+    let outcome = match tokio::time::timeout(total_timeout, execute(ports, method)).await {
+        Ok(outcome) => outcome,
+        Err(_) => Err(RpcError::timeout(format!(
+            "RPC request timeout: {} took longer than total_timeout ({} ms)",
+            topic.name(),
+            total_timeout.as_millis()
+        ))),
+    };
+    if let Err(error) = &outcome {
+        debug!(method = %topic.name(), %error, "RPC request failed");
+    }
+    (request.id, outcome)
+}
+
+async fn send_reply(
+    client: &AsyncClient,
+    topic: &RequestTopic,
+    id: &serde_json::Value,
+    outcome: &Result<serde_json::Value, RpcError>,
+) {
+    let payload = reply_payload(id, outcome);
+    // QoS 0: with QoS 1 the broker's PUBACK would be the last packet to us before the next
+    // request, and a broker without TCP_NODELAY (mosquitto's default) holds that request
+    // until our delayed ACK (some 40 ms a call). A reply is lost only with the connection,
+    // which the caller's timeout covers.
+    if let Err(error) = client
+        .publish(topic.reply_topic(), QoS::AtMostOnce, false, payload)
+        .await
+    {
+        debug!(%error, topic = %topic.reply_topic(), "RPC reply not sent");
+    }
+}

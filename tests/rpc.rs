@@ -1,0 +1,405 @@
+//! wb-mqtt-serial's MQTT RPC served by the running daemon, end to end: `rtu2mqtt sim` on a pty,
+//! `rtu2mqtt run`, a real mosquitto, and requests published as Wiren Board's tools publish
+//! them. Also the CLI's `read --via-mqtt` and its automatic use when the port is busy. At 115200
+//! and at 9600.
+
+#[path = "daemon_support/mod.rs"]
+mod daemon_support;
+#[path = "mqtt_support/mod.rs"]
+mod mqtt_support;
+#[path = "sim_support/mod.rs"]
+mod sim_support;
+
+use std::process::{Command, Stdio};
+use std::sync::atomic::{AtomicU32, Ordering};
+
+use daemon_support::{repo, DaemonProcess};
+use mqtt_support::{retained, wait_for, Mosquitto, TIMEOUT};
+use rumqttc::{AsyncClient, Event, MqttOptions, Packet, QoS};
+use serde_json::{json, Value};
+use sim_support::SimProcess;
+
+static CALLS: AtomicU32 = AtomicU32::new(0);
+
+/// Publishes `payload` on `/rpc/v1/wb-mqtt-serial/<service>/<method>/<client>` and returns the
+/// reply payload, as a Wiren Board RPC client does.
+async fn rpc_raw(port: u16, service: &str, method: &str, payload: &str) -> String {
+    let client_id = format!(
+        "rpc-test-{}-{}",
+        std::process::id(),
+        CALLS.fetch_add(1, Ordering::Relaxed)
+    );
+    let request_topic = format!("/rpc/v1/wb-mqtt-serial/{service}/{method}/{client_id}");
+    let reply_topic = format!("{request_topic}/reply");
+    let (client, mut eventloop) =
+        AsyncClient::new(MqttOptions::new(&client_id, "127.0.0.1", port), 16);
+    let exchange = async {
+        loop {
+            match eventloop.poll().await.expect("test RPC client connection") {
+                Event::Incoming(Packet::ConnAck(_)) => {
+                    client
+                        .subscribe(reply_topic.as_str(), QoS::AtLeastOnce)
+                        .await
+                        .unwrap();
+                }
+                Event::Incoming(Packet::SubAck(_)) => {
+                    client
+                        .publish(request_topic.as_str(), QoS::AtLeastOnce, false, payload)
+                        .await
+                        .unwrap();
+                }
+                Event::Incoming(Packet::Publish(reply)) if reply.topic == reply_topic => {
+                    return String::from_utf8(reply.payload.to_vec()).unwrap();
+                }
+                _ => {}
+            }
+        }
+    };
+    let reply = tokio::time::timeout(TIMEOUT, exchange)
+        .await
+        .unwrap_or_else(|_| panic!("no reply to {service}/{method} {payload}"));
+    let _ = client.disconnect().await;
+    reply
+}
+
+async fn rpc(port: u16, service: &str, method: &str, params: Value) -> Value {
+    let payload = json!({"id": 1, "params": params}).to_string();
+    let reply = rpc_raw(port, service, method, &payload).await;
+    serde_json::from_str(&reply).unwrap_or_else(|e| panic!("reply {reply:?}: {e}"))
+}
+
+struct Bench {
+    broker: Mosquitto,
+    sim: SimProcess,
+    daemon: DaemonProcess,
+    _dir: tempfile::TempDir,
+}
+
+fn start(line: &str, baud: u32) -> Bench {
+    let broker = Mosquitto::start();
+    let dir = tempfile::tempdir().unwrap();
+    let bus = dir.path().join("bus.json");
+    let devices = json!({"devices": [
+        {"name": "relay", "template": "rtu2mqtt-relay6", "address": 20, "serial": "0xFE000020",
+         "line": line, "model": "WBMR6C", "firmware": "1.26.0"},
+        {"name": "climate", "template": "rtu2mqtt-climate", "address": 21, "serial": "0xFE000021",
+         "line": line, "values": {"input:4": 2150}}
+    ]});
+    std::fs::write(&bus, devices.to_string()).unwrap();
+    let sim = SimProcess::start_with(&bus, &repo("templates"), &[]);
+    let config = json!({
+        "mqtt": {"host": "127.0.0.1", "port": broker.port, "client_id": "rtu2mqtt-rpc-test"},
+        "ports": [{"path": sim.pty, "baud_rate": baud, "stop_bits": 2, "devices": [
+            {"device_type": "rtu2mqtt-relay6", "slave_id": 20},
+            {"device_type": "rtu2mqtt-climate", "slave_id": 21}
+        ]}]
+    });
+    let daemon = DaemonProcess::start(&config, &[], Stdio::null(), Stdio::null());
+    Bench {
+        broker,
+        sim,
+        daemon,
+        _dir: dir,
+    }
+}
+
+async fn wait_until_served(port: u16) {
+    wait_for("the advertised port/Load method", || async {
+        let state = retained(port).await?;
+        (state.get("/rpc/v1/wb-mqtt-serial/port/Load")? == "1").then_some(())
+    })
+    .await;
+}
+
+/// `rtu2mqtt read …` against the running daemon; (exit code, stdout, stderr).
+async fn cli_read(bench: &Bench, extra: &[&str]) -> (i32, String, String) {
+    let mut command = Command::new(env!("CARGO_BIN_EXE_rtu2mqtt"));
+    command
+        .args(["read", "--port"])
+        .arg(&bench.sim.pty)
+        .args(["--address", "21", "--type", "input", "--reg", "4", "--json"])
+        .args(["--broker", &format!("127.0.0.1:{}", bench.broker.port)])
+        .args(extra);
+    let output = tokio::task::spawn_blocking(move || command.output().unwrap())
+        .await
+        .unwrap();
+    (
+        output.status.code().unwrap_or(-1),
+        String::from_utf8_lossy(&output.stdout).into_owned(),
+        String::from_utf8_lossy(&output.stderr).into_owned(),
+    )
+}
+
+async fn reads_scans_and_errors(bench: &Bench, baud: u32) {
+    let port = bench.broker.port;
+    let path = bench.sim.pty.to_str().unwrap().to_owned();
+    wait_until_served(port).await;
+
+    // ports/Load: the configured port with its settings.
+    let ports = rpc(port, "ports", "Load", json!({})).await;
+    assert_eq!(
+        ports["result"],
+        json!([{"path": path, "baud_rate": baud, "data_bits": 8, "parity": "N", "stop_bits": 2}])
+    );
+
+    // port/Load: a Modbus read of input 4 of the climate sensor (2150 = 0x0866), byte for byte
+    // the reply wb-mqtt-serial gives.
+    let params = json!({"path": path, "protocol": "modbus", "slave_id": 21, "function": 4,
+                        "address": 4, "count": 1, "format": "HEX", "msg": ""});
+    let reply = rpc_raw(
+        port,
+        "port",
+        "Load",
+        &json!({"id": 7, "params": params}).to_string(),
+    )
+    .await;
+    assert_eq!(
+        reply,
+        r#"{"id":7,"result":{"response":"0866"},"error":null}"#
+    );
+
+    // A write through port/Load reaches the device.
+    let write = json!({"path": path, "protocol": "modbus", "slave_id": 20, "function": 5,
+                       "address": 2, "count": 1, "format": "HEX", "msg": "ff00"});
+    let written = rpc(port, "port", "Load", write).await;
+    assert_eq!(written["result"], json!({"response": ""}), "{written}");
+    let k3 = bench
+        .sim
+        .control(json!({"cmd": "get", "device": 20, "type": "coil", "address": 2}));
+    assert_eq!(k3["value"], 1);
+
+    // A register the device does not have: the Modbus exception, as a result.
+    let missing = json!({"path": path, "protocol": "modbus", "slave_id": 21, "function": 3,
+                         "address": 9000, "count": 1, "format": "HEX"});
+    let refused = rpc(port, "port", "Load", missing).await;
+    assert_eq!(refused["result"]["exception"]["code"], 2, "{refused}");
+
+    // port/Scan: both devices, with serial numbers, settings and identity.
+    let scan = rpc(port, "port", "Scan", json!({"path": path})).await;
+    let devices = scan["result"]["devices"].as_array().expect("devices");
+    assert_eq!(devices.len(), 2, "{scan}");
+    let relay = devices
+        .iter()
+        .find(|d| d["sn"] == "4261412896")
+        .unwrap_or_else(|| panic!("relay (0xFE000020) in {scan}"));
+    assert_eq!(
+        relay["cfg"],
+        json!({"slave_id": 20, "data_bits": 8, "baud_rate": baud, "parity": "N", "stop_bits": 2})
+    );
+    assert_eq!(relay["device_signature"], "WBMR6C");
+    assert_eq!(relay["fw"]["version"], "1.26.0");
+    assert_eq!(relay["configured_device_type"], "rtu2mqtt-relay6");
+    assert!(relay.get("errors").is_none(), "{relay}");
+    assert!(devices.iter().any(|d| d["sn"] == "4261412897"), "{scan}");
+
+    // device/Probe by address.
+    let probe = rpc(
+        port,
+        "device",
+        "Probe",
+        json!({"path": path, "slave_id": 21}),
+    )
+    .await;
+    assert_eq!(probe["result"]["sn"], "4261412897", "{probe}");
+    assert_eq!(probe["result"]["cfg"]["slave_id"], 21);
+
+    // Nobody at address 99: a server error that says so, well before total_timeout.
+    let silent = json!({"path": path, "protocol": "modbus", "slave_id": 99, "function": 3,
+                        "address": 0, "count": 1, "format": "HEX", "response_timeout": 100});
+    let silence = rpc(port, "port", "Load", silent).await;
+    assert_eq!(silence["error"]["code"], -32000, "{silence}");
+    assert!(
+        silence["error"]["message"]
+            .as_str()
+            .unwrap()
+            .contains("no reply from slave 99"),
+        "{silence}"
+    );
+
+    // The daemon keeps polling between the RPC requests: a new value is published.
+    bench
+        .sim
+        .control(json!({"cmd": "set", "device": 21, "type": "input", "address": 4, "value": 2210}));
+    wait_for("the new temperature on the broker", || async {
+        let state = retained(port).await?;
+        (state.get("/devices/climate_21/controls/Temperature")? == "22.1").then_some(())
+    })
+    .await;
+
+    // The CLI through the daemon: with --via-mqtt, and on its own because the port is busy.
+    let (code, stdout, stderr) = cli_read(bench, &["--via-mqtt"]).await;
+    assert_eq!(code, 0, "stdout {stdout} stderr {stderr}");
+    let read: Value = serde_json::from_str(stdout.trim()).unwrap();
+    assert_eq!(read["registers"], json!([2210]), "{stdout}");
+    let (code, stdout, stderr) = cli_read(bench, &[]).await;
+    assert_eq!(code, 0, "stdout {stdout} stderr {stderr}");
+    assert!(stderr.contains("busy"), "{stderr}");
+    assert!(stdout.contains("2210"), "{stdout}");
+
+    // `write` on the busy port: through the service, then read back.
+    let mut command = Command::new(env!("CARGO_BIN_EXE_rtu2mqtt"));
+    command
+        .args([
+            "write",
+            "--port",
+            &path,
+            "--address",
+            "20",
+            "--type",
+            "coil",
+            "--reg",
+            "3",
+        ])
+        .args(["--broker", &format!("127.0.0.1:{port}"), "1"]);
+    let output = tokio::task::spawn_blocking(move || command.output().unwrap())
+        .await
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert_eq!(output.status.code(), Some(0), "{stderr}");
+    let k4 = bench
+        .sim
+        .control(json!({"cmd": "get", "device": 20, "type": "coil", "address": 3}));
+    assert_eq!(k4["value"], 1, "{stderr}");
+
+    // `scan` on the busy port: through the service, at the settings asked for.
+    let mut command = Command::new(env!("CARGO_BIN_EXE_rtu2mqtt"));
+    command
+        .args([
+            "scan",
+            "--port",
+            &path,
+            "--json",
+            "--parity",
+            "N",
+            "--stop-bits",
+            "2",
+        ])
+        .args(["--baud", &format!("{baud},19200")])
+        .args(["--broker", &format!("127.0.0.1:{port}")]);
+    let output = tokio::task::spawn_blocking(move || command.output().unwrap())
+        .await
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert_eq!(output.status.code(), Some(0), "{stdout} {stderr}");
+    assert!(
+        stderr.contains("through the running rtu2mqtt service"),
+        "{stderr}"
+    );
+    let report: Value = serde_json::from_str(&stdout).unwrap();
+    assert_eq!(report["port_settings_scanned"], 2, "{report}");
+    let mut serials: Vec<u64> = report["devices"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|d| d["serial"].as_u64().unwrap())
+        .collect();
+    serials.sort_unstable();
+    assert_eq!(serials, [0xFE00_0020, 0xFE00_0021], "{report}");
+    let relay = &report["devices"][0];
+    assert_eq!(relay["baud_rate"], baud, "{report}");
+
+    // port/Setup: a new address by serial number, and back by address.
+    let address_of_climate = || {
+        bench.sim.control(
+            json!({"cmd": "get", "serial": "0xFE000021", "type": "holding", "address": 128}),
+        )["value"]
+            .clone()
+    };
+    let moved = rpc(
+        port,
+        "port",
+        "Setup",
+        json!({"path": path, "items": [{"slave_id": 21, "sn": 0xFE00_0021u32, "cfg": {"slave_id": 31}}]}),
+    )
+    .await;
+    assert_eq!(moved, json!({"id": 1, "result": null, "error": null}));
+    assert_eq!(address_of_climate(), 31);
+    let back = rpc(
+        port,
+        "port",
+        "Setup",
+        json!({"path": path, "items": [{"slave_id": 31, "cfg": {"slave_id": 21}}]}),
+    )
+    .await;
+    assert_eq!(back["error"], Value::Null, "{back}");
+    assert_eq!(address_of_climate(), 21);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn rpc_through_the_daemon_at_115200() {
+    let bench = start("115200 8N2", 115_200);
+    reads_scans_and_errors(&bench, 115_200).await;
+    drop(bench.daemon);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn rpc_through_the_daemon_at_9600() {
+    let bench = start("9600 8N2", 9600);
+    reads_scans_and_errors(&bench, 9600).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn bad_requests_get_json_rpc_errors_and_the_daemon_lives_on() {
+    let bench = start("115200 8N2", 115_200);
+    let port = bench.broker.port;
+    wait_until_served(port).await;
+
+    let not_json: Value =
+        serde_json::from_str(&rpc_raw(port, "port", "Load", "not json {").await).unwrap();
+    assert_eq!(not_json["id"], Value::Null);
+    assert_eq!(not_json["result"], Value::Null);
+    assert_eq!(not_json["error"]["code"], -32700, "{not_json}");
+
+    let unknown = rpc(port, "port", "Explode", json!({})).await;
+    assert_eq!(unknown["error"]["code"], -32000);
+    assert!(unknown["error"]["message"]
+        .as_str()
+        .unwrap()
+        .contains("unknown method port/Explode"));
+
+    let path = bench.sim.pty.to_str().unwrap().to_owned();
+    let bad_function = rpc(
+        port,
+        "port",
+        "Load",
+        json!({"path": path, "protocol": "modbus", "slave_id": 21, "function": 7}),
+    )
+    .await;
+    assert_eq!(bad_function["error"]["code"], -32000);
+    assert!(bad_function["error"]["message"]
+        .as_str()
+        .unwrap()
+        .contains("\"function\""));
+
+    let other_port = rpc(
+        port,
+        "port",
+        "Load",
+        json!({"path": "/dev/ttyNOPE", "protocol": "modbus", "slave_id": 1, "function": 3}),
+    )
+    .await;
+    assert!(other_port["error"]["message"]
+        .as_str()
+        .unwrap()
+        .contains("not served"));
+
+    // A scan that cannot end within its total_timeout: the timeout error.
+    let hurried = rpc(
+        port,
+        "port",
+        "Scan",
+        json!({"path": path, "baud_rate": 1200, "total_timeout": 1}),
+    )
+    .await;
+    assert_eq!(hurried["error"]["code"], -32600, "{hurried}");
+
+    // Still serving.
+    let ports = rpc(port, "ports", "Load", json!({})).await;
+    assert_eq!(ports["result"][0]["path"], path.as_str());
+    assert!(
+        !bench.daemon.log().contains("panicked"),
+        "{}",
+        bench.daemon.log()
+    );
+}
