@@ -577,8 +577,11 @@ fn noise_scenario(devices: u8, baud: u32) {
     assert_eq!(values.wrong, 0, "{values:?}");
     let stats = run.harness.bus_stats().expect("stats");
     let requests = stats["requests"].as_u64().unwrap_or(0) - requests_before;
+    // Devices the noise made look dead for a while (their back-off is most of the recovery).
+    let marked_offline = run.harness.daemon_log().matches("marked offline").count();
     eprintln!(
         "FIGURES noise devices={devices} baud={baud} faults_s={} requests={requests} \
+         devices_marked_offline={marked_offline} \
          register_changes={} publications_checked={checked} wrong_values=0 \
          event_changes={} events_lost={} event_duplicates={} value_duplicates={} \
          value_changes_unseen_between_reads={} recovery_after_faults_ms={} (converged {} ms)",
