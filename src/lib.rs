@@ -1,8 +1,9 @@
 //! rtu2mqtt: Modbus RTU / Modbus TCP devices to MQTT, with Fast Modbus events.
 //!
-//! Layers, from the wire up (see `README.md` and the architecture notes):
-//! `protocol` (sans-IO codec, parser, timing) → `sim` (virtual bus) / transport → port scheduler
-//! → `device` (templates, value codecs) → MQTT.
+//! Layers, from the wire up (see `docs/architecture.md`): `protocol` (sans-IO codec, parser,
+//! timing) → `transport` → `port` (scheduler) → `config`/`device` (templates, value codecs) →
+//! `gateway` (port plan, device model) → `mqtt`; `daemon` wires them with tokio, `sim` is the
+//! virtual bus.
 
 pub mod bench;
 pub mod cli;
@@ -10,6 +11,7 @@ pub mod config;
 pub mod daemon;
 pub mod device;
 pub mod embedded_broker;
+pub mod gateway;
 pub mod mqtt;
 pub mod port;
 pub mod protocol;

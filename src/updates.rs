@@ -18,15 +18,18 @@ pub enum DeviceUpdate {
     },
     /// Remove every retained topic of the device (clean shutdown, or dropped from the config).
     Removed { device_id: String },
-    /// A control's value, formatted the Wiren Board way. `from_event`: it came by a Fast Modbus
-    /// event (for logs and the stdout sink). MQTT publishes values on change either way, as
-    /// wb-mqtt-serial does: a device repeating an unconfirmed packet, or an event after the poll
-    /// that already read the value, must not publish it twice.
+    /// A control's value, formatted the Wiren Board way, after every good read or event.
+    /// `from_event`: it came by a Fast Modbus event (for logs and the stdout sink). `changed`:
+    /// it differs from the value the device model reported before (always true for the first).
+    /// MQTT publishes on change either way, as wb-mqtt-serial does: a device repeating an
+    /// unconfirmed packet, or an event after the poll that already read the value, must not
+    /// publish it twice.
     Value {
         device_id: String,
         control_id: String,
         value: String,
         from_event: bool,
+        changed: bool,
     },
     /// A control's error flags (the whole set, not a change).
     ControlError {

@@ -75,7 +75,7 @@ fn assert_channel(
     );
 }
 
-use EventMode::{None as Polled, SemiSporadic, Sporadic};
+use EventMode::{Polled, SemiSporadic, Sporadic};
 use RegisterFormat::{Bcd16, Float, S16, S32, U16, U32, U64, U8};
 use RegisterType::*;
 

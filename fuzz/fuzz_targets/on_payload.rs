@@ -1,6 +1,6 @@
 //! `/on` payload handling on arbitrary bytes, for every writable control of the shipped
-//! templates: the planner's check (type, limits, size, UTF-8), then the device model's
-//! encoding into register writes. Never a panic; an accepted payload is short, and its writes
+//! templates: the planner's mapping to a write, then the device model's check (type, limits,
+//! size, UTF-8) and encoding into register writes. Never a panic; an accepted payload is short, and its writes
 //! stay inside the control's registers with coil values 0 or 1.
 #![no_main]
 
@@ -10,7 +10,7 @@ use std::time::Instant;
 
 use libfuzzer_sys::fuzz_target;
 use rtu2mqtt::config::TemplateFile;
-use rtu2mqtt::daemon::device_model::DeviceModel;
+use rtu2mqtt::gateway::device_model::DeviceModel;
 use rtu2mqtt::device::{resolve_template_device, ResolvedDevice};
 use rtu2mqtt::mqtt::{
     PlannerSettings, PublicationPlanner, TopicScheme, UnchangedPolicy, WriteOutcome,
@@ -86,15 +86,15 @@ fuzz_target!(|data: &[u8]| {
         Instant::now(),
     );
     let write = match planner.on_message(on_topic, payload, false) {
-        WriteOutcome::Accepted { write, .. } => write,
+        WriteOutcome::Accepted(write) => write,
         _ => return,
     };
-    assert!(write.payload.len() <= 4096, "accepted a long payload");
     assert_eq!(&write.control_id, control_id);
     let model = DeviceModel::new(Arc::clone(&target.device), 0);
     let Ok(writes) = model.write(&write.control_id, &write.payload) else {
         return;
     };
+    assert!(write.payload.len() <= 4096, "accepted a long payload");
     let channel = target
         .device
         .channel(control_id)

@@ -167,7 +167,8 @@ impl HarnessOptions {
             mosquitto: PathBuf::from(DEFAULT_MOSQUITTO),
             bus,
             templates,
-            log_filter: None,
+            // For looking into a run: BENCH_LOG=rtu2mqtt=debug logs every frame.
+            log_filter: std::env::var("BENCH_LOG").ok(),
         }
     }
 }
@@ -190,6 +191,11 @@ impl ScratchDir {
 
 impl Drop for ScratchDir {
     fn drop(&mut self) {
+        // BENCH_KEEP_SCRATCH=1 leaves the logs, configs and bus file for a post-mortem.
+        if std::env::var_os("BENCH_KEEP_SCRATCH").is_some() {
+            eprintln!("kept {}", self.0.display());
+            return;
+        }
         let _ = std::fs::remove_dir_all(&self.0);
     }
 }
@@ -239,6 +245,8 @@ pub struct Harness {
     control: Mutex<ControlConnection>,
     daemon: Option<Child>,
     daemon_started_ns: u64,
+    /// `RUST_LOG` of the daemon (see [`HarnessOptions::log_filter`]).
+    log_filter: Option<String>,
     changes: Arc<Mutex<Vec<Change>>>,
     publications: Arc<Mutex<Vec<Publication>>>,
     subscriber: rumqttc::Client,
@@ -301,6 +309,7 @@ impl Harness {
 
         Ok(Self {
             binary: options.binary.clone(),
+            log_filter: options.log_filter.clone(),
             mosquitto: options.mosquitto.clone(),
             dir,
             broker,
@@ -360,7 +369,11 @@ impl Harness {
         let config_path = self.dir.0.join("config.json");
         std::fs::write(&config_path, serde_json::to_string_pretty(config)?)?;
         self.daemon_started_ns = monotonic_ns();
-        let child = Command::new(&self.binary)
+        let mut command = Command::new(&self.binary);
+        if let Some(filter) = &self.log_filter {
+            command.env("RUST_LOG", filter);
+        }
+        let child = command
             .arg("run")
             .arg("--templates")
             .arg(self.templates_dir())

@@ -6,8 +6,8 @@ use std::time::Duration;
 
 use serde_json::json;
 
+use crate::config::format::{RegisterFormat, WordOrder};
 use crate::config::values::parse_int_text;
-use crate::device::format::{RegisterFormat, WordOrder};
 use crate::protocol::{pdu, LineSettings, RegisterType, RequestPdu, ResponsePdu};
 use crate::tools::bus::{Answer, PortError, ToolBus, ToolPort};
 use crate::tools::exit;

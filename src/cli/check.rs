@@ -287,7 +287,7 @@ fn table_name(reg_type: RegisterType) -> &'static str {
 
 fn events_name(events: EventMode) -> &'static str {
     match events {
-        EventMode::None => "polled",
+        EventMode::Polled => "polled",
         EventMode::Sporadic => "sporadic",
         EventMode::SemiSporadic => "semi-sporadic",
     }

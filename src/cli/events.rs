@@ -155,7 +155,7 @@ fn load_view(
             path.display()
         ));
     };
-    view.line = Some(crate::daemon::port_plan::line_settings(&resolved.config));
+    view.line = Some(crate::gateway::port_plan::line_settings(&resolved.config));
     for device in &resolved.devices {
         for channel in &device.channels {
             for register in &channel.registers {
@@ -171,7 +171,7 @@ fn load_view(
                         codec: single.then(|| register.codec.clone()),
                     },
                 );
-                if channel.events != EventMode::None && single {
+                if channel.events != EventMode::Polled && single {
                     view.enable.push(EnableSpec {
                         address: device.slave_id,
                         register_type: read.reg_type,

@@ -163,13 +163,38 @@ pub enum PortType {
     ModbusTcp,
 }
 
-/// Serial parity.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize, Serialize, JsonSchema)]
-pub enum Parity {
-    #[default]
-    N,
-    E,
-    O,
+/// Serial parity: the protocol's type, written `N`, `E` or `O` in the config.
+pub use crate::protocol::Parity;
+
+/// `parity` as the config writes it (`N`, `E`, `O`, as wb-mqtt-serial does).
+mod parity_letter {
+    use super::Parity;
+    use serde::{Deserialize, Deserializer, Serializer};
+
+    pub fn serialize<S: Serializer>(parity: &Parity, serializer: S) -> Result<S::Ok, S::Error> {
+        serializer.serialize_str(match parity {
+            Parity::None => "N",
+            Parity::Even => "E",
+            Parity::Odd => "O",
+        })
+    }
+
+    pub fn deserialize<'de, D: Deserializer<'de>>(deserializer: D) -> Result<Parity, D::Error> {
+        match String::deserialize(deserializer)?.as_str() {
+            "N" => Ok(Parity::None),
+            "E" => Ok(Parity::Even),
+            "O" => Ok(Parity::Odd),
+            other => Err(serde::de::Error::unknown_variant(other, &["N", "E", "O"])),
+        }
+    }
+
+    pub fn schema(_: &mut schemars::SchemaGenerator) -> schemars::Schema {
+        schemars::json_schema!({ "type": "string", "enum": ["N", "E", "O"] })
+    }
+
+    pub fn none() -> Parity {
+        Parity::None
+    }
 }
 
 /// One bus.
@@ -184,7 +209,8 @@ pub struct PortConfig {
     pub path: Option<String>,
     #[serde(default = "default_baud_rate")]
     pub baud_rate: u32,
-    #[serde(default)]
+    #[serde(default = "parity_letter::none", with = "parity_letter")]
+    #[schemars(schema_with = "parity_letter::schema")]
     pub parity: Parity,
     #[serde(default = "default_data_bits")]
     pub data_bits: u8,

@@ -4,6 +4,7 @@
 #![allow(clippy::result_large_err)]
 
 pub mod error;
+pub mod format;
 pub mod json_path;
 pub mod jsonc;
 pub mod values;

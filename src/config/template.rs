@@ -9,7 +9,7 @@ use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
 use super::values::{AddressSpec, SerialInt, SerialNumber};
-use crate::device::format::{ByteOrder, RegisterFormat, WordOrder};
+use crate::config::format::{ByteOrder, RegisterFormat, WordOrder};
 
 /// Defines a struct with the device keys that both templates and config devices may set
 /// (reference §1.3), so the two stay in step without `#[serde(flatten)]`, which would hide

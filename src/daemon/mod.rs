@@ -2,9 +2,7 @@
 //! or JSON lines on stdout for tests and debugging).
 
 pub mod bus_queue;
-pub mod device_model;
 pub mod identity;
-pub mod port_plan;
 pub mod port_task;
 pub mod stdio;
 
@@ -16,12 +14,12 @@ use tokio::task::JoinHandle;
 use tracing::{info, warn};
 
 use crate::device::model::ResolvedPort;
+use crate::gateway::device_model::DeviceModel;
+use crate::gateway::port_plan::port_plan;
 use crate::protocol::LineSettings;
 use crate::service::{PortVitals, ServiceHealth};
 use crate::updates::{ControlWrite, DeviceUpdate};
 use bus_queue::BusQueue;
-use device_model::DeviceModel;
-use port_plan::port_plan;
 use port_task::PortTask;
 
 /// Room for bursts between the port tasks and the sink.

@@ -9,9 +9,10 @@ use tokio::time::Instant;
 use tracing::{debug, info, warn};
 
 use super::bus_queue::{BusQueue, BusQueueError, BusQueueReceiver, QueuedTransaction};
-use super::device_model::DeviceModel;
 use super::identity::{read_identity, IdentityPlan, IdentityRead};
-use super::port_plan::PortPlan;
+use crate::gateway::device_model::{apply_port_events, DeviceModel};
+use crate::gateway::port_plan::PortPlan;
+use crate::mqtt::throttle::{LogBudget, LogDecision};
 use crate::port::{Action, Outcome, PortEvent, PortScheduler, ReplyTiming};
 use crate::protocol::LineSettings;
 use crate::service::{BrokerState, PortVitals, ServiceHealth};
@@ -29,6 +30,8 @@ pub struct PortTask {
     models: Vec<DeviceModel>,
     updates: mpsc::Sender<DeviceUpdate>,
     writes: mpsc::Receiver<ControlWrite>,
+    /// Refused `/on` payloads are logged a few per minute: any MQTT client can send them.
+    refused_log: LogBudget,
     epoch: Instant,
     /// What systemd's watchdog and status line learn from this task.
     vitals: Option<Arc<PortVitals>>,
@@ -61,6 +64,9 @@ struct OpenBus {
     away: Option<LineSettings>,
 }
 
+/// Refused writes logged per minute on one port; the rest are counted.
+const REFUSED_WRITE_LOG_LINES: u32 = 10;
+
 /// The task reports progress at least this often, even with nothing to do on the bus.
 const HEARTBEAT: Duration = Duration::from_secs(1);
 
@@ -79,6 +85,7 @@ impl PortTask {
             models,
             updates,
             writes,
+            refused_log: LogBudget::new(REFUSED_WRITE_LOG_LINES),
             epoch: Instant::now(),
             vitals: None,
             online: Vec::new(),
@@ -460,19 +467,21 @@ impl PortTask {
             debug!(device = %write.device_id, "write for a device not on this port");
             return;
         };
-        match model.write(&write.control_id, &write.payload) {
+        let mut updates = Vec::new();
+        match model.take_write(&write.control_id, &write.payload, &mut updates) {
             Ok(register_writes) => {
                 for register_write in register_writes {
                     self.scheduler.queue_write(now, register_write);
                 }
             }
             Err(reason) => {
-                warn!(device = %write.device_id, control = %write.control_id, payload = %write.payload, %reason, "write refused");
-                let mut updates = Vec::new();
-                model.write_rejected(&write.control_id, &mut updates);
-                self.send(updates).await;
+                let decision = self.refused_log.check(std::time::Instant::now());
+                if let LogDecision::Log { suppressed_before } = decision {
+                    warn!(device = %write.device_id, control = %write.control_id, %reason, suppressed_before, "write refused");
+                }
             }
         }
+        self.send(updates).await;
     }
 
     async fn dispatch(&mut self, events: Vec<PortEvent>) {
@@ -499,26 +508,7 @@ impl PortTask {
             }
         }
         let mut updates = Vec::new();
-        for event in events {
-            let device = match &event {
-                PortEvent::Values { device, .. }
-                | PortEvent::EventValue { device, .. }
-                | PortEvent::ReadFailed { device, .. }
-                | PortEvent::PeriodMissed { device, .. }
-                | PortEvent::WriteDone { device, .. }
-                | PortEvent::WriteFailed { device, .. }
-                | PortEvent::Online { device }
-                | PortEvent::Offline { device }
-                | PortEvent::Rebooted { device } => *device,
-            };
-            if let Some(model) = self.models.get_mut(device) {
-                model.apply(event, &mut updates);
-            }
-        }
-        // Event values of one packet are published together, once all its words are in.
-        for model in &mut self.models {
-            model.flush_events(&mut updates);
-        }
+        apply_port_events(&mut self.models, events, &mut updates);
         self.send(updates).await;
     }
 

@@ -5,8 +5,6 @@
 //! `{"device":…,"control":…,"error":"r"}`, `{"device":…,"online":false}`, `{"removed":…}`.
 //! In: `{"device":"relay6_20","control":"K1","value":"1"}`.
 
-use std::collections::HashMap;
-
 use serde_json::json;
 use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
 use tokio::sync::mpsc;
@@ -32,6 +30,7 @@ pub fn update_line(update: &DeviceUpdate) -> serde_json::Value {
             control_id,
             value,
             from_event,
+            ..
         } => {
             json!({ "device": device_id, "control": control_id, "value": value, "event": from_event })
         }
@@ -52,21 +51,14 @@ pub fn update_line(update: &DeviceUpdate) -> serde_json::Value {
 /// printed again (event values always are).
 pub async fn print_updates(mut updates: mpsc::Receiver<DeviceUpdate>) {
     let mut stdout = tokio::io::stdout();
-    let mut last_values: HashMap<(String, String), String> = HashMap::new();
     while let Some(update) = updates.recv().await {
         if let DeviceUpdate::Value {
-            device_id,
-            control_id,
-            value,
-            from_event,
+            from_event: false,
+            changed: false,
+            ..
         } = &update
         {
-            let key = (device_id.clone(), control_id.clone());
-            let unchanged = last_values.get(&key) == Some(value);
-            if unchanged && !from_event {
-                continue;
-            }
-            last_values.insert(key, value.clone());
+            continue;
         }
         let line = format!("{}\n", update_line(&update));
         if stdout.write_all(line.as_bytes()).await.is_err() || stdout.flush().await.is_err() {

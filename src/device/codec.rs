@@ -5,8 +5,8 @@
 //! (`>> shift & mask`), `error_value`/`unsupported_value`/`on_value`/`off_value` are compared on
 //! that raw field, and only then is it interpreted (sign, IEEE, BCD, text) and scaled.
 
-use super::format::{ByteOrder, RegisterFormat, WordOrder};
 use super::number_text::format_g;
+use crate::config::format::{ByteOrder, RegisterFormat, WordOrder};
 use crate::config::values::parse_int_text;
 
 /// Everything needed to turn the words of one register value into text and back.

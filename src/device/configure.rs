@@ -341,7 +341,7 @@ fn default_port() -> PortConfig {
         enabled: true,
         path: None,
         baud_rate: 9600,
-        parity: Default::default(),
+        parity: crate::protocol::Parity::None,
         data_bits: 8,
         stop_bits: 1,
         address: None,

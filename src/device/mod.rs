@@ -6,16 +6,15 @@
 
 pub mod codec;
 pub mod configure;
-pub mod format;
 pub mod merge;
 pub mod model;
 pub mod number_text;
 pub mod resolve;
 
+pub use crate::config::format::{ByteOrder, RegisterFormat, WordOrder};
 pub use codec::{CodecError, Reading, ValueCodec};
 pub use configure::{check_template, resolve_config, resolve_template_device};
-pub use format::{ByteOrder, RegisterFormat, WordOrder};
 pub use model::{
     ChannelRegister, DeviceTiming, EnumTitle, EventMode, Priority, RegisterRef, RegisterType,
-    ResolvedChannel, ResolvedDevice, ResolvedPort, SetupWrite, WriteFunction,
+    ResolvedChannel, ResolvedDevice, ResolvedPort, SetupItem, WriteFunction,
 };

@@ -37,23 +37,21 @@ pub struct RegisterRef {
 }
 
 impl RegisterRef {
+    /// The registers (or bits) it covers, as the port scheduler reads them; the bit field
+    /// inside them is the codec's business.
+    pub fn span(&self) -> crate::port::RegisterSpan {
+        crate::port::RegisterSpan::new(self.reg_type, self.address, self.count.max(1))
+    }
+
     /// Last address covered (inclusive).
     pub fn last_address(&self) -> u16 {
         self.address.saturating_add(self.count.saturating_sub(1))
     }
 }
 
-/// How a channel's register takes part in Fast Modbus events.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-pub enum EventMode {
-    /// Polled only.
-    #[default]
-    None,
-    /// Events only: polling stops once events are enabled for it (`sporadic`).
-    Sporadic,
-    /// Events and polling (`semi-sporadic`).
-    SemiSporadic,
-}
+/// How a channel's registers are kept up to date (template `sporadic`, `semi-sporadic`): the
+/// port scheduler's type, so a channel's mode goes to the bus as it is.
+pub use crate::port::EventMode;
 
 /// Polling / event priority: channels with `read_period_ms` are high priority.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Default)]
@@ -201,9 +199,10 @@ impl ResolvedChannel {
     }
 }
 
-/// A register written when the device (re)connects: setup items and parameter values.
+/// A setup item of the template or a parameter value: written when the device (re)connects, as
+/// the port scheduler's [`crate::port::SetupWrite`] (its holding-register words).
 #[derive(Debug, Clone, PartialEq)]
-pub struct SetupWrite {
+pub struct SetupItem {
     pub title: String,
     pub register: RegisterRef,
     pub write_function: WriteFunction,
@@ -255,7 +254,7 @@ pub struct ResolvedDevice {
     pub timing: DeviceTiming,
     pub channels: Vec<ResolvedChannel>,
     /// In write order.
-    pub setup: Vec<SetupWrite>,
+    pub setup: Vec<SetupItem>,
     /// Register of the serial number (channels `Serial`, `serial_number`, `Serial NO`), even
     /// when that channel is disabled: used by scan and probe to match devices.
     pub serial_number: Option<ChannelRegister>,

@@ -7,11 +7,11 @@ use std::time::Duration;
 use serde_json::Value;
 
 use super::codec::ValueCodec;
-use super::format::RegisterFormat;
 use super::model::*;
 use super::number_text::format_g;
 use crate::config::config_file::PortConfig;
 use crate::config::error::Problem;
+use crate::config::format::RegisterFormat;
 use crate::config::load::duration_problem;
 use crate::config::template::{
     ChannelSpec, RegisterKind, SetupItemSpec, SetupValue, TemplateDevice,
@@ -269,7 +269,7 @@ fn timing(device: &TemplateDevice, port: &PortConfig, is_wb: bool) -> DeviceTimi
 struct Walker {
     translations: BTreeMap<String, BTreeMap<String, String>>,
     channels: Vec<ResolvedChannel>,
-    setup: Vec<SetupWrite>,
+    setup: Vec<SetupItem>,
     serial_number: Option<ChannelRegister>,
     errors: Vec<ResolveError>,
 }
@@ -280,8 +280,8 @@ struct RegisterFields<'a> {
     address: Option<AddressSpec>,
     write_address: Option<AddressSpec>,
     format: Option<RegisterFormat>,
-    word_order: Option<crate::device::format::WordOrder>,
-    byte_order: Option<crate::device::format::ByteOrder>,
+    word_order: Option<crate::config::format::WordOrder>,
+    byte_order: Option<crate::config::format::ByteOrder>,
     string_data_size: Option<u32>,
     scale: Option<f64>,
     offset: Option<f64>,
@@ -489,7 +489,7 @@ impl Walker {
         } else if spec.semi_sporadic == Some(true) {
             EventMode::SemiSporadic
         } else {
-            EventMode::None
+            EventMode::Polled
         };
         let enum_titles = self.enum_titles(spec, context);
         let id = join(&context.id_prefix, spec.id.as_deref().unwrap_or(&spec.name));
@@ -583,7 +583,7 @@ impl Walker {
             };
             let current = vec![0u16; register.codec.word_count as usize];
             match register.codec.encode(&value, Some(&current)) {
-                Ok(words) => self.setup.push(SetupWrite {
+                Ok(words) => self.setup.push(SetupItem {
                     title: join_title(
                         &context.id_prefix,
                         item.title.as_deref().unwrap_or("<unnamed>"),

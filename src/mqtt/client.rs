@@ -52,8 +52,8 @@ const MAX_INCOMING_PACKET: usize = 268_435_455 + 5;
 /// The most of an incoming payload kept: more than any `/on` payload accepted, enough for the
 /// device record of hundreds of devices.
 const MAX_KEPT_PAYLOAD: usize = 64 * 1024;
-/// Refused `/on` payloads logged per minute; the rest are counted.
-const REFUSED_WRITE_LOG_LINES: u32 = 10;
+/// Dropped `/on` writes logged per minute; the rest are counted.
+const DROPPED_WRITE_LOG_LINES: u32 = 10;
 /// Where Debian keeps the system CAs, used when TLS is on without `ca_file`.
 const SYSTEM_CA_FILE: &str = "/etc/ssl/certs/ca-certificates.crt";
 
@@ -174,7 +174,7 @@ pub async fn run_mqtt_reporting(
     let mut outbox = Outbox::default();
     let mut connected = false;
     let mut births = BirthCoalescer::default();
-    let mut refused_log = LogBudget::new(REFUSED_WRITE_LOG_LINES);
+    let mut dropped_log = LogBudget::new(DROPPED_WRITE_LOG_LINES);
     tokio::pin!(shutdown);
     loop {
         let birth_due = births.due().map(tokio::time::Instant::from_std);
@@ -210,7 +210,7 @@ pub async fn run_mqtt_reporting(
                         }
                     } else {
                         let message = OnMessage { topic: &topic, payload: &payload, size, retain };
-                        on_message(&mut planner, &writes, &mut outbox, &mut refused_log, message);
+                        on_message(&mut planner, &writes, &mut dropped_log, message);
                     }
                 }
                 None => break,
@@ -316,8 +316,7 @@ struct OnMessage<'a> {
 fn on_message(
     planner: &mut PublicationPlanner,
     writes: &mpsc::Sender<ControlWrite>,
-    outbox: &mut Outbox,
-    refused_log: &mut LogBudget,
+    dropped_log: &mut LogBudget,
     message: OnMessage<'_>,
 ) {
     let OnMessage {
@@ -337,30 +336,19 @@ fn on_message(
                 "empty /on message (a client clearing a retained command), ignored"
             )
         }
-        WriteOutcome::Accepted { write, actions } => {
-            debug!(device_id = %write.device_id, control_id = %write.control_id, payload = %write.payload, "write");
-            let (device_id, control_id) = (write.device_id.clone(), write.control_id.clone());
-            outbox.extend(actions);
-            if writes.try_send(write).is_err() {
-                outbox.extend(planner.write_not_delivered(&device_id, &control_id));
-            }
-        }
-        WriteOutcome::Rejected {
-            device_id,
-            control_id,
-            reason,
-            actions,
-        } => {
-            if let LogDecision::Log { suppressed_before } = refused_log.check(Instant::now()) {
-                if suppressed_before > 0 {
+        WriteOutcome::Accepted(write) => {
+            debug!(device_id = %write.device_id, control_id = %write.control_id, size, "write");
+            if let Err(err) = writes.try_send(write) {
+                let write = err.into_inner();
+                if let LogDecision::Log { suppressed_before } = dropped_log.check(Instant::now()) {
                     warn!(
-                        count = suppressed_before,
-                        "more /on payloads were refused than logged"
+                        device_id = %write.device_id,
+                        control_id = %write.control_id,
+                        suppressed_before,
+                        "write dropped: the bus side takes no more writes (queue full or stopped)"
                     );
                 }
-                warn!(%device_id, %control_id, size, %reason, "refused a write");
             }
-            outbox.extend(actions);
         }
     }
 }

@@ -221,7 +221,7 @@ pub(crate) mod tests {
             write_only: false,
             order: 1,
             enum_titles: Vec::new(),
-            events: EventMode::None,
+            events: EventMode::Polled,
             read_period: None,
             read_rate_limit: None,
             fw: None,

@@ -16,7 +16,6 @@ pub mod planner;
 pub mod sweep;
 pub mod throttle;
 pub mod topics;
-pub mod writes;
 
 pub use client::{run_mqtt, run_mqtt_reporting, MqttError, MqttSettings};
 pub use planner::{PlannerSettings, PublicationPlanner, UnchangedPolicy, WriteOutcome};

@@ -1,18 +1,18 @@
 //! The publication planner: what to publish for each [`DeviceUpdate`], given everything
 //! published so far. Pure (the time comes in as an argument), so every rule of the layout —
-//! dedup, `max_unchanged_interval`, error ordering, removal, republishing after a reconnect —
-//! is tested without a broker.
+//! `max_unchanged_interval`, removal, republishing after a reconnect — is tested without a
+//! broker. Values, their changes and the error flags are the device model's
+//! (`gateway::device_model`); this side only maps them to topics.
 
 use std::collections::{BTreeMap, HashMap};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use tracing::{debug, warn};
+use tracing::debug;
 
 use super::discovery::{self, DiscoverySettings};
 use super::layout;
 use super::topics::TopicScheme;
-use super::writes::{check_write, WriteRejection};
 use super::{MqttAction, Publication};
 use crate::device::{ResolvedChannel, ResolvedDevice};
 use crate::updates::{ControlWrite, DeviceIdentity, DeviceUpdate, ErrorFlags};
@@ -62,45 +62,26 @@ pub enum WriteOutcome {
     /// An empty payload: a client deleting a retained `/on` message. No command, and no bad
     /// write either.
     IgnoredEmpty,
-    /// Hand `write` to the bus side; `actions` clear an earlier rejection's `w`.
-    Accepted {
-        write: ControlWrite,
-        actions: Vec<MqttAction>,
-    },
-    /// Refused: nothing goes to the bus, `actions` set `w`.
-    Rejected {
-        device_id: String,
-        control_id: String,
-        reason: WriteRejection,
-        actions: Vec<MqttAction>,
-    },
+    /// Hand `write` to the bus side, whose device model checks the payload (and sets `w` when
+    /// it refuses it). Bytes that are not UTF-8 arrive there as U+FFFD, which it refuses.
+    Accepted(ControlWrite),
 }
 
+/// What is published for one control (republished after a reconnect).
 #[derive(Debug, Default)]
-struct ControlState {
+struct PublishedControl {
     value: Option<String>,
     last_published: Option<Instant>,
-    bus_errors: ErrorFlags,
-    /// Set by a refused `/on` payload; cleared by the next accepted one.
-    write_refused: bool,
+    errors: ErrorFlags,
     published_errors: String,
 }
 
-impl ControlState {
-    fn errors(&self) -> ErrorFlags {
-        ErrorFlags {
-            write: self.bus_errors.write || self.write_refused,
-            ..self.bus_errors
-        }
-    }
-}
-
 #[derive(Debug)]
-struct DeviceState {
+struct PublishedDevice {
     device: Arc<ResolvedDevice>,
     identity: DeviceIdentity,
     online: bool,
-    controls: HashMap<String, ControlState>,
+    controls: HashMap<String, PublishedControl>,
     /// Discovery topics published for this device (to delete exactly those).
     discovery_topics: Vec<String>,
 }
@@ -109,7 +90,7 @@ struct DeviceState {
 #[derive(Debug)]
 pub struct PublicationPlanner {
     settings: PlannerSettings,
-    devices: BTreeMap<String, DeviceState>,
+    devices: BTreeMap<String, PublishedDevice>,
     /// `/on` topic → (device id, control id), for writable controls.
     on_topics: HashMap<String, (String, String)>,
 }
@@ -145,13 +126,14 @@ impl PublicationPlanner {
                 device_id,
                 control_id,
                 value,
-                from_event,
-            } => self.set_value(&device_id, &control_id, value, from_event, now),
+                from_event: _,
+                changed,
+            } => self.set_value(&device_id, &control_id, value, changed, now),
             DeviceUpdate::ControlError {
                 device_id,
                 control_id,
                 errors,
-            } => self.set_errors(&device_id, &control_id, |state| state.bus_errors = errors),
+            } => self.set_errors(&device_id, &control_id, errors),
             DeviceUpdate::Online { device_id, online } => self.set_online(&device_id, online),
         }
     }
@@ -199,7 +181,7 @@ impl PublicationPlanner {
         let (identity, online) = previous
             .map(|p| (p.identity, p.online))
             .unwrap_or((DeviceIdentity::default(), true));
-        let mut state = DeviceState {
+        let mut state = PublishedDevice {
             device: device.clone(),
             identity,
             online,
@@ -218,7 +200,7 @@ impl PublicationPlanner {
 
     /// Subscriptions, meta, errors, (with `values`) the last values, and discovery configs of
     /// one device, in the order a reader should see them.
-    fn device_actions(&self, state: &mut DeviceState, values: bool) -> Vec<MqttAction> {
+    fn device_actions(&self, state: &mut PublishedDevice, values: bool) -> Vec<MqttAction> {
         let topics = &self.settings.topics;
         let device = state.device.clone();
         let mut out = Vec::new();
@@ -235,7 +217,7 @@ impl PublicationPlanner {
         for channel in &device.channels {
             publications.extend(layout::control_meta(topics, &device.id, channel));
             let control = state.controls.entry(channel.id.clone()).or_default();
-            control.published_errors = control.errors().to_string();
+            control.published_errors = control.errors.to_string();
             publications.push(layout::control_error(
                 topics,
                 &device.id,
@@ -315,7 +297,7 @@ impl PublicationPlanner {
 
     /// Empty retained payloads for every topic of a device (discovery configs included when
     /// `with_discovery`).
-    fn removal(&self, state: &DeviceState, with_discovery: bool) -> Vec<MqttAction> {
+    fn removal(&self, state: &PublishedDevice, with_discovery: bool) -> Vec<MqttAction> {
         let mut topics = Vec::new();
         if with_discovery {
             topics.extend(state.discovery_topics.iter().cloned());
@@ -332,7 +314,7 @@ impl PublicationPlanner {
         device_id: &str,
         control_id: &str,
         value: String,
-        _from_event: bool,
+        changed: bool,
         now: Instant,
     ) -> Vec<MqttAction> {
         let topics = &self.settings.topics;
@@ -345,12 +327,6 @@ impl PublicationPlanner {
             return Vec::new();
         };
         let mut out = Vec::new();
-        // A value means a good read: `r` is cleared first, then the value follows.
-        if control.bus_errors.read {
-            control.bus_errors.read = false;
-            out.extend(error_if_changed(topics, device_id, control_id, control));
-        }
-        let changed = control.value.as_deref() != Some(value.as_str());
         let due = match unchanged_policy {
             UnchangedPolicy::OnChange => false,
             UnchangedPolicy::EveryRead => true,
@@ -372,7 +348,7 @@ impl PublicationPlanner {
         &mut self,
         device_id: &str,
         control_id: &str,
-        change: impl FnOnce(&mut ControlState),
+        errors: ErrorFlags,
     ) -> Vec<MqttAction> {
         let topics = &self.settings.topics;
         let Some((_, control)) = lookup(&mut self.devices, device_id, control_id) else {
@@ -382,7 +358,7 @@ impl PublicationPlanner {
             );
             return Vec::new();
         };
-        change(control);
+        control.errors = errors;
         error_if_changed(topics, device_id, control_id, control)
             .into_iter()
             .collect()
@@ -408,8 +384,8 @@ impl PublicationPlanner {
         out
     }
 
-    /// An `/on` message: validated against the control, turned into a write or refused.
-    pub fn on_message(&mut self, topic: &str, payload: &[u8], retained: bool) -> WriteOutcome {
+    /// An `/on` message: mapped to the control's write, or ignored.
+    pub fn on_message(&self, topic: &str, payload: &[u8], retained: bool) -> WriteOutcome {
         let Some((device_id, control_id)) = self.on_topics.get(topic).cloned() else {
             return WriteOutcome::NotOurs;
         };
@@ -419,47 +395,11 @@ impl PublicationPlanner {
         if retained {
             return WriteOutcome::IgnoredRetained;
         }
-        let topics = &self.settings.topics;
-        let Some((channel, control)) = lookup(&mut self.devices, &device_id, &control_id) else {
-            return WriteOutcome::NotOurs;
-        };
-        match check_write(channel, payload) {
-            Ok(text) => {
-                control.write_refused = false;
-                let actions = error_if_changed(topics, &device_id, &control_id, control)
-                    .into_iter()
-                    .collect();
-                WriteOutcome::Accepted {
-                    write: ControlWrite {
-                        device_id,
-                        control_id,
-                        payload: text,
-                    },
-                    actions,
-                }
-            }
-            Err(reason) => {
-                control.write_refused = true;
-                let actions = error_if_changed(topics, &device_id, &control_id, control)
-                    .into_iter()
-                    .collect();
-                WriteOutcome::Rejected {
-                    device_id,
-                    control_id,
-                    reason,
-                    actions,
-                }
-            }
-        }
-    }
-
-    /// A checked write could not be handed to the bus side (its queue was full or gone): `w`.
-    pub fn write_not_delivered(&mut self, device_id: &str, control_id: &str) -> Vec<MqttAction> {
-        warn!(
+        WriteOutcome::Accepted(ControlWrite {
             device_id,
-            control_id, "write dropped: the bus side does not take writes"
-        );
-        self.set_errors(device_id, control_id, |state| state.write_refused = true)
+            control_id,
+            payload: String::from_utf8_lossy(payload).into_owned(),
+        })
     }
 
     /// Everything to (re)do after connecting: subscriptions, then every retained topic with
@@ -509,10 +449,10 @@ impl PublicationPlanner {
 }
 
 fn lookup<'a>(
-    devices: &'a mut BTreeMap<String, DeviceState>,
+    devices: &'a mut BTreeMap<String, PublishedDevice>,
     device_id: &str,
     control_id: &str,
-) -> Option<(&'a ResolvedChannel, &'a mut ControlState)> {
+) -> Option<(&'a ResolvedChannel, &'a mut PublishedControl)> {
     let state = devices.get_mut(device_id)?;
     let channel = state.device.channels.iter().find(|c| c.id == control_id)?;
     let control = state.controls.get_mut(control_id)?;
@@ -523,9 +463,9 @@ fn error_if_changed(
     topics: &TopicScheme,
     device_id: &str,
     control_id: &str,
-    control: &mut ControlState,
+    control: &mut PublishedControl,
 ) -> Option<MqttAction> {
-    let letters = control.errors().to_string();
+    let letters = control.errors.to_string();
     if letters == control.published_errors {
         return None;
     }

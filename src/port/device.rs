@@ -469,7 +469,7 @@ mod tests {
         let device =
             resolve_template_device(&template, &serde_json::json!({"slave_id": 20})).unwrap();
         DeviceState::new(
-            crate::daemon::port_plan::device_plan(&device),
+            crate::gateway::port_plan::device_plan(&device),
             true,
             &LineSettings::WIREN_BOARD_DEFAULT,
         )

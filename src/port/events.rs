@@ -59,10 +59,21 @@ impl EventPoller {
     }
 
     /// A device sent a packet: confirm it next time, let the devices above it speak first, and
-    /// ask again at once (more may be waiting), within the burst limit.
-    pub(super) fn packet_received(&mut self, now: Duration, address: u8, flag: u8) {
+    /// ask again at once (more may be waiting), up to [`MAX_BURST`] requests in a row; the
+    /// request after that waits for the next slot and starts a new burst.
+    ///
+    /// `highest_listener` is the highest address with events enabled: after a packet from it
+    /// the rotation starts again from the bottom of the bus, since a request above every device
+    /// would be answered by nobody and cost a whole first-byte timeout.
+    pub(super) fn packet_received(
+        &mut self,
+        now: Duration,
+        address: u8,
+        flag: u8,
+        highest_listener: u8,
+    ) {
         self.ack = Some((address, flag));
-        self.min_address = if address >= MAX_DEVICE_ADDRESS {
+        self.min_address = if address >= highest_listener.min(MAX_DEVICE_ADDRESS) {
             0
         } else {
             address + 1
@@ -70,6 +81,11 @@ impl EventPoller {
         if self.burst < MAX_BURST {
             self.burst += 1;
             self.next_at = now;
+        } else {
+            // The burst is over; the next slot starts a new one. Without this, a bus that never
+            // runs out of events (no "no events" reply to end the burst) would get one packet
+            // per interval for good, and events would queue up in the devices.
+            self.burst = 0;
         }
     }
 
@@ -130,7 +146,7 @@ mod tests {
         let ms = Duration::from_millis;
         events.started(ms(0));
         assert_eq!(events.next_at(), ms(50));
-        events.packet_received(ms(3), 20, 1);
+        events.packet_received(ms(3), 20, 1, 30);
         assert_eq!(
             events.request(),
             EventPoll {
@@ -152,17 +168,45 @@ mod tests {
     }
 
     #[test]
-    fn bursts_are_bounded() {
+    fn bursts_are_bounded_and_each_slot_starts_a_new_one() {
         let mut events = poller(115_200);
         let mut now = Duration::ZERO;
-        for _ in 0..MAX_BURST {
+        // A bus that never runs out of events: every request brings a packet.
+        for round in 0..3 {
+            for _ in 0..MAX_BURST {
+                events.started(now);
+                events.packet_received(now, 5, 0, 30);
+                assert_eq!(events.next_at(), now, "round {round}: asks again at once");
+                now += Duration::from_millis(2);
+            }
             events.started(now);
-            events.packet_received(now, 5, 0);
-            assert_eq!(events.next_at(), now);
-            now += Duration::from_millis(2);
+            events.packet_received(now, 5, 1, 30);
+            assert_eq!(
+                events.next_at(),
+                now + Duration::from_millis(50),
+                "round {round}: the burst ends at the slot"
+            );
+            now = events.next_at();
         }
-        events.started(now);
-        events.packet_received(now, 5, 1);
-        assert_eq!(events.next_at(), now + Duration::from_millis(50));
+    }
+
+    #[test]
+    fn after_the_highest_listener_the_rotation_starts_from_the_bottom() {
+        let mut events = poller(115_200);
+        events.started(Duration::ZERO);
+        events.packet_received(Duration::ZERO, 29, 0, 32);
+        assert_eq!(events.request().min_address, 30);
+        events.packet_received(Duration::ZERO, 32, 1, 32);
+        assert_eq!(events.request().min_address, 0, "nobody above 32 listens");
+        assert_eq!(
+            events.request().ack_address,
+            32,
+            "still confirms the packet"
+        );
+        // A device above the highest listener (not configured, or its events not enabled yet)
+        events.packet_received(Duration::ZERO, 40, 0, 32);
+        assert_eq!(events.request().min_address, 0);
+        events.packet_received(Duration::ZERO, MAX_DEVICE_ADDRESS, 0, 0);
+        assert_eq!(events.request().min_address, 0);
     }
 }

@@ -681,7 +681,15 @@ impl PortScheduler {
                         ..
                     },
             }) => {
-                self.events.packet_received(now, address, packet.flag);
+                let highest_listener = self
+                    .devices
+                    .iter()
+                    .filter(|d| d.events_active())
+                    .map(|d| d.plan.address)
+                    .max()
+                    .unwrap_or(0);
+                self.events
+                    .packet_received(now, address, packet.flag, highest_listener);
                 let Some(device) = self.device_by_address(address) else {
                     debug!(address, "events from a device that is not in the config");
                     return;

@@ -354,7 +354,9 @@ fn an_event_packet_is_acknowledged_in_the_next_request() {
     assert_eq!(
         polls[1].1,
         EventPoll {
-            min_address: 21,
+            // 20 is the only (so the highest) device with events: the rotation starts again
+            // from the bottom rather than ask an empty range above it.
+            min_address: 0,
             max_data_len: 248,
             ack_address: 20,
             ack_flag: 1

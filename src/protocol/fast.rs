@@ -175,6 +175,17 @@ impl EventSource {
     }
 }
 
+/// An event payload (a little-endian number) as the 16-bit registers that hold it, high word
+/// first as registers hold them: `[0x2C, 0x01]` is `[0x012C]`, `[1, 0, 2, 0]` is `[2, 1]`. A bit
+/// (one byte) is one word. Empty for an empty payload.
+pub fn event_payload_words(payload: &[u8]) -> Vec<u16> {
+    payload
+        .chunks(2)
+        .rev()
+        .map(|pair| u16::from_le_bytes([pair[0], pair.get(1).copied().unwrap_or(0)]))
+        .collect()
+}
+
 /// One event of a 0x11 packet.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Event {
@@ -571,6 +582,15 @@ pub fn enabled_registers(
 mod tests {
     use super::*;
     use crate::protocol::{parse_hex, Request, RequestBody};
+
+    #[test]
+    fn event_payloads_become_register_words_high_word_first() {
+        assert_eq!(event_payload_words(&[0x2C, 0x01]), [0x012C]);
+        assert_eq!(event_payload_words(&[1, 0, 2, 0]), [2, 1]);
+        assert_eq!(event_payload_words(&[1]), [1]);
+        assert_eq!(event_payload_words(&[0x34, 0x12, 0x56]), [0x0056, 0x1234]);
+        assert!(event_payload_words(&[]).is_empty());
+    }
 
     /// wb-mqtt-serial's enable request: holding 1 at low priority, then the reboot event disabled
     /// (TPollTest.SingleDeviceSingleRegisterWithEvents).

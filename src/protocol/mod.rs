@@ -27,8 +27,8 @@ mod wire;
 pub use arbitration::{arbitrate, Arbitration, ArbitrationWord, EventUrgency};
 pub use crc::crc16;
 pub use fast::{
-    Event, EventPacket, EventPoll, EventPriority, EventRange, EventSource, FastReply, FastRequest,
-    RegisterType,
+    event_payload_words, Event, EventPacket, EventPoll, EventPriority, EventRange, EventSource,
+    FastReply, FastRequest, RegisterType,
 };
 pub use frame::{Reply, ReplyBody, Request, RequestBody};
 pub use parser::{

@@ -132,7 +132,7 @@ pub fn add_device(registers: &mut RegisterMap, device: &ResolvedDevice) {
     for channel in device
         .channels
         .iter()
-        .filter(|c| c.events != EventMode::None)
+        .filter(|c| c.events != EventMode::Polled)
     {
         for read in channel.registers.iter().filter_map(|r| r.read.as_ref()) {
             let width = u8::try_from(read.count).unwrap_or(u8::MAX);

@@ -2,8 +2,8 @@
 //! daemon's codec, so a value reads the same here as on MQTT), and the Wiren Board standard text
 //! registers (model, firmware, signature).
 
+use crate::config::format::{RegisterFormat, WordOrder};
 use crate::device::codec::{Reading, ValueCodec};
-use crate::device::format::{RegisterFormat, WordOrder};
 
 /// A format by its template name (`u16`, `s32`, `float`, ...).
 pub fn parse_format(text: &str) -> Result<RegisterFormat, String> {

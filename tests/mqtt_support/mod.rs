@@ -21,9 +21,23 @@ use serde_json::json;
 use tokio::sync::{mpsc, oneshot};
 use tokio::task::JoinHandle;
 
-pub const MOSQUITTO: &str = "/usr/sbin/mosquitto";
-/// Makes the password file of a broker that refuses anonymous clients.
-pub const MOSQUITTO_PASSWD: &str = "/usr/bin/mosquitto_passwd";
+/// A program of the mosquitto packages, wherever `PATH` has it (as `scripts/test` accepts it),
+/// or in /usr/sbin where Debian puts the broker (not on a user's PATH). Missing: the test
+/// fails loudly, saying what to install.
+pub fn mosquitto_program(name: &str) -> PathBuf {
+    std::env::var_os("PATH")
+        .into_iter()
+        .flat_map(|p| std::env::split_paths(&p).collect::<Vec<_>>())
+        .chain([PathBuf::from("/usr/sbin"), PathBuf::from("/usr/bin")])
+        .map(|dir| dir.join(name))
+        .find(|path| path.is_file())
+        .unwrap_or_else(|| {
+            panic!("the MQTT integration tests need {name} (apt-get install mosquitto mosquitto-clients)")
+        })
+}
+
+/// Ports tried before a broker start is given up (another process may take a free port first).
+const PORT_ATTEMPTS: usize = 5;
 pub const TIMEOUT: Duration = Duration::from_secs(15);
 
 /// A mosquitto process for one test; killed when dropped.
@@ -36,47 +50,60 @@ pub struct Mosquitto {
 }
 
 impl Mosquitto {
+    /// A broker on a free port. The port is free when asked for, but is released before
+    /// mosquitto binds it: if another process takes it meanwhile, mosquitto exits and another
+    /// port is tried.
     pub fn start() -> Self {
-        let port = free_port();
-        Self::start_on(port)
+        Self::start_on_a_free_port(None)
     }
 
+    /// A broker on `port` (a test that needs the port before the broker exists).
     pub fn start_on(port: u16) -> Self {
-        assert!(
-            Path::new(MOSQUITTO).exists(),
-            "the MQTT integration tests need mosquitto at {MOSQUITTO} (apt-get install mosquitto)"
-        );
-        let dir = tempfile::tempdir().expect("temp dir");
-        let mut broker = Self {
-            child: None,
-            port,
-            dir,
-            credentials: None,
-        };
+        let mut broker = Self::new(port, None);
         broker.launch();
         broker
     }
 
     /// A broker that takes only `user` with `password`.
     pub fn start_with_password(user: &str, password: &str) -> Self {
-        let dir = tempfile::tempdir().expect("temp dir");
-        let mut broker = Self {
+        Self::start_on_a_free_port(Some((user.into(), password.into())))
+    }
+
+    fn new(port: u16, credentials: Option<(String, String)>) -> Self {
+        Self {
             child: None,
-            port: free_port(),
-            dir,
-            credentials: Some((user.into(), password.into())),
-        };
+            port,
+            dir: tempfile::tempdir().expect("temp dir"),
+            credentials,
+        }
+    }
+
+    fn start_on_a_free_port(credentials: Option<(String, String)>) -> Self {
+        for _ in 1..PORT_ATTEMPTS {
+            let mut broker = Self::new(free_port(), credentials.clone());
+            if broker.try_launch().is_ok() {
+                return broker;
+            }
+        }
+        let mut broker = Self::new(free_port(), credentials);
         broker.launch();
         broker
     }
 
     fn launch(&mut self) {
+        if let Err(status) = self.try_launch() {
+            panic!("mosquitto exited at start ({status}) on port {}", self.port);
+        }
+    }
+
+    /// Starts mosquitto and waits until it listens; Err: it exited at start (its port taken).
+    fn try_launch(&mut self) -> Result<(), std::process::ExitStatus> {
         let config = self.dir.path().join("mosquitto.conf");
         let access = match &self.credentials {
             None => "allow_anonymous true\n".to_string(),
             Some((user, password)) => {
                 let file = self.dir.path().join("passwords");
-                let status = Command::new(MOSQUITTO_PASSWD)
+                let status = Command::new(mosquitto_program("mosquitto_passwd"))
                     .arg("-b")
                     .arg("-c")
                     .arg(&file)
@@ -85,7 +112,7 @@ impl Mosquitto {
                     .stdout(Stdio::null())
                     .stderr(Stdio::null())
                     .status()
-                    .unwrap_or_else(|e| panic!("cannot run {MOSQUITTO_PASSWD}: {e}"));
+                    .unwrap_or_else(|e| panic!("cannot run mosquitto_passwd: {e}"));
                 assert!(status.success(), "mosquitto_passwd failed: {status}");
                 format!("allow_anonymous false\npassword_file {}\n", file.display())
             }
@@ -101,26 +128,35 @@ impl Mosquitto {
             ),
         )
         .expect("write mosquitto.conf");
-        let child = Command::new(MOSQUITTO)
+        let mosquitto = mosquitto_program("mosquitto");
+        let child = Command::new(&mosquitto)
             .arg("-c")
             .arg(&config)
             .stdout(Stdio::null())
             .stderr(Stdio::null())
             .spawn()
-            .unwrap_or_else(|e| panic!("cannot start {MOSQUITTO}: {e}"));
+            .unwrap_or_else(|e| panic!("cannot start {}: {e}", mosquitto.display()));
         self.child = Some(child);
         let deadline = Instant::now() + TIMEOUT;
-        while TcpStream::connect(("127.0.0.1", self.port)).is_err() {
-            if let Some(child) = self.child.as_mut() {
-                if let Ok(Some(status)) = child.try_wait() {
-                    panic!("mosquitto exited at start ({status}) on port {}", self.port);
-                }
+        loop {
+            let exited = self
+                .child
+                .as_mut()
+                .and_then(|child| child.try_wait().ok().flatten());
+            if let Some(status) = exited {
+                self.child = None;
+                return Err(status);
+            }
+            // Listening, and it is ours: the process is still there.
+            if TcpStream::connect(("127.0.0.1", self.port)).is_ok() {
+                return Ok(());
             }
             assert!(
                 Instant::now() < deadline,
                 "mosquitto did not listen on {}",
                 self.port
             );
+            // A condition poll: each round asks again; the pause only paces it.
             std::thread::sleep(Duration::from_millis(20));
         }
     }
@@ -376,6 +412,37 @@ pub fn repo(path: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join(path)
 }
 
+/// Plays the bus side for one write: the device model checks and encodes it (as the port task
+/// does); a refused payload sets `w`, an accepted one is "written" and clears it. Returns
+/// whether it was accepted.
+pub async fn bus_side_takes(
+    mqtt: &MqttUnderTest,
+    model: &mut rtu2mqtt::gateway::device_model::DeviceModel,
+    write: &ControlWrite,
+) -> bool {
+    let mut out = Vec::new();
+    let accepted = match model.take_write(&write.control_id, &write.payload, &mut out) {
+        Ok(register_writes) => {
+            for register_write in register_writes {
+                model.apply(
+                    rtu2mqtt::port::PortEvent::WriteDone {
+                        device: register_write.device,
+                        register_type: register_write.register_type,
+                        address: register_write.address,
+                    },
+                    &mut out,
+                );
+            }
+            true
+        }
+        Err(_) => false,
+    };
+    for update in out {
+        mqtt.send(update).await;
+    }
+    accepted
+}
+
 pub fn template_device(template: &str, slave_id: u8) -> Arc<ResolvedDevice> {
     let file = TemplateFile::load(&repo(&format!("templates/{template}.json")))
         .unwrap_or_else(|e| panic!("{e}"));
@@ -391,6 +458,7 @@ pub fn value(device: &str, control: &str, text: &str) -> DeviceUpdate {
         control_id: control.into(),
         value: text.into(),
         from_event: false,
+        changed: true,
     }
 }
 
@@ -404,8 +472,14 @@ pub fn render_state(state: &BTreeMap<String, String>) -> String {
 /// value published while a snapshot is being read reaches it live, without the retain flag, and
 /// shows only in the next snapshot.
 pub async fn assert_broker_matches_golden(port: u16, name: &str) {
-    let path = repo(&format!("tests/golden/{name}"));
-    let expected = std::fs::read_to_string(&path).unwrap_or_default();
+    // What to wait for: the snapshot's body (after its `---` header).
+    let path = repo(&format!("tests/golden/{name}.snap"));
+    let snapshot = std::fs::read_to_string(&path).unwrap_or_default();
+    let expected = snapshot
+        .splitn(3, "---\n")
+        .nth(2)
+        .unwrap_or_default()
+        .to_string();
     let deadline = Instant::now() + TIMEOUT;
     loop {
         let actual = retained(port).await.map(|s| render_state(&s));
@@ -423,18 +497,14 @@ pub async fn assert_broker_matches_golden(port: u16, name: &str) {
     }
 }
 
-/// Compares with `tests/golden/<name>`; `UPDATE_GOLDEN=1` rewrites the file.
+/// Compares with the snapshot `tests/golden/<name>.snap`. A change is reviewed, never written
+/// by the test: `cargo insta review` (or `INSTA_UPDATE=new`, then compare the `.snap.new` file).
 pub fn assert_golden(name: &str, actual: &str) {
-    let path = repo(&format!("tests/golden/{name}"));
-    if std::env::var_os("UPDATE_GOLDEN").is_some() {
-        std::fs::write(&path, actual).expect("write golden");
-    }
-    let expected = std::fs::read_to_string(&path)
-        .unwrap_or_else(|e| panic!("{}: {e} (run with UPDATE_GOLDEN=1)", path.display()));
-    if expected != actual {
-        for (i, (e, a)) in expected.lines().zip(actual.lines()).enumerate() {
-            assert_eq!(e, a, "{name}: first difference at line {}", i + 1);
-        }
-        assert_eq!(expected, actual, "{name}: line count differs");
-    }
+    insta::with_settings!({
+        snapshot_path => repo("tests/golden"),
+        prepend_module_to_snapshot => false,
+        omit_expression => true,
+    }, {
+        insta::assert_snapshot!(name, actual);
+    });
 }

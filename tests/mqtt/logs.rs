@@ -1,15 +1,10 @@
 //! What the daemon's log tells an integrator about the broker, read as journald stores it
 //! (stderr not a terminal).
 
-#[path = "daemon_support/mod.rs"]
-mod daemon_support;
-#[path = "mqtt_support/mod.rs"]
-mod mqtt_support;
-
 use std::process::{Command, Stdio};
 
-use daemon_support::repo;
-use mqtt_support::{wait_for, Mosquitto};
+use crate::daemon_support::repo;
+use crate::mqtt_support::{wait_for, Mosquitto};
 use serde_json::json;
 
 /// Issue 15 defect 9: wrong credentials are logged as refused credentials (the broker is

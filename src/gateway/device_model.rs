@@ -1,6 +1,10 @@
-//! A served device between its port and MQTT: the last word of every register read, each
-//! control's error flags; port events in, [`DeviceUpdate`]s out; `/on` payloads in, register
-//! writes out.
+//! A served device between its port and its sinks: the last word of every register read, each
+//! control's value and error flags; port events in, [`DeviceUpdate`]s out; `/on` payloads in,
+//! checked, register writes out.
+//!
+//! The one home of these rules: how a value is made from register words (event words joined with
+//! the others of the same value), whether it changed, when `r`, `w` and `p` are set and cleared,
+//! and which payloads a control accepts. The sinks (MQTT, stdout) only map the updates.
 
 use std::collections::{BTreeSet, HashMap};
 use std::sync::Arc;
@@ -20,9 +24,14 @@ pub struct DeviceModel {
     index: usize,
     words: HashMap<(RegisterType, u16), u16>,
     errors: Vec<ErrorFlags>,
+    /// The last value reported per channel, to tell a change from a repeat.
+    reported: Vec<Option<String>>,
     /// Channels that events changed since the last [`DeviceModel::flush_events`].
     pending_events: BTreeSet<usize>,
 }
+
+/// Longest `/on` payload looked at; anything longer is refused before parsing.
+pub const MAX_PAYLOAD: usize = 4096;
 
 /// Why a `/on` payload was not written.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
@@ -31,6 +40,16 @@ pub enum WriteRejected {
     UnknownControl(String),
     #[error("control `{0}` is read-only")]
     ReadOnly(String),
+    /// The MQTT side hands non-UTF-8 payloads over with U+FFFD in place of the bad bytes.
+    #[error("the payload is not UTF-8 text")]
+    NotText,
+    #[error("a {control_type} takes {expected}, got `{payload}`")]
+    BadFormat {
+        control_type: String,
+        expected: &'static str,
+        payload: String,
+    },
+    /// Out of the control's limits or the register format's range (the codec's reason).
     #[error("{0}")]
     BadValue(String),
 }
@@ -39,6 +58,7 @@ impl DeviceModel {
     pub fn new(device: Arc<ResolvedDevice>, index: usize) -> Self {
         let errors = vec![ErrorFlags::default(); device.channels.len()];
         Self {
+            reported: vec![None; device.channels.len()],
             device,
             index,
             words: HashMap::new(),
@@ -85,8 +105,11 @@ impl DeviceModel {
                 payload,
                 ..
             } => {
-                let width = self.event_width(register_type, address, payload.len());
-                for (offset, word) in event_words(&payload, width).into_iter().enumerate() {
+                let carried = crate::protocol::event_payload_words(&payload);
+                let width = self.event_width(register_type, address, carried.len());
+                // The value's low words: a device may pad the payload beyond the register.
+                let skip = carried.len().saturating_sub(usize::from(width));
+                for (offset, &word) in carried.iter().skip(skip).enumerate() {
                     let offset = u16::try_from(offset).unwrap_or(u16::MAX);
                     self.words
                         .insert((register_type, address.wrapping_add(offset)), word);
@@ -182,11 +205,11 @@ impl DeviceModel {
 
     /// How many words an event payload holds for the value at `address`: what its bytes carry,
     /// but no more than the channel's register there (a device may pad the payload).
-    fn event_width(&self, register_type: RegisterType, address: u16, payload_len: usize) -> u16 {
+    fn event_width(&self, register_type: RegisterType, address: u16, carried: usize) -> u16 {
         if register_type.is_bit() {
             return 1;
         }
-        let carried = u16::try_from(payload_len.div_ceil(2).max(1)).unwrap_or(u16::MAX);
+        let carried = u16::try_from(carried.max(1)).unwrap_or(u16::MAX);
         let channel_width = self
             .device
             .channels
@@ -227,11 +250,20 @@ impl DeviceModel {
                             out,
                         );
                     }
+                    let changed = self
+                        .reported
+                        .get(index)
+                        .is_none_or(|last| last.as_deref() != Some(value.as_str()));
+                    // Most reads repeat the value: copy it only when it changed.
+                    if let (true, Some(last)) = (changed, self.reported.get_mut(index)) {
+                        *last = Some(value.clone());
+                    }
                     out.push(DeviceUpdate::Value {
                         device_id: device.id.clone(),
                         control_id: channel.id.clone(),
                         value,
                         from_event,
+                        changed,
                     });
                 }
                 Ok(Reading::DeviceError | Reading::Unsupported) => {
@@ -310,7 +342,8 @@ impl DeviceModel {
         }
     }
 
-    /// The register writes for a `/on` payload, checked against the control's limits.
+    /// The register writes for a `/on` payload, checked against the control type, its limits
+    /// and its register format. The payload is trimmed first.
     pub fn write(
         &self,
         control_id: &str,
@@ -323,6 +356,7 @@ impl DeviceModel {
         if channel.readonly {
             return Err(WriteRejected::ReadOnly(control_id.to_owned()));
         }
+        let payload = check_payload(channel, payload)?;
         let current: Vec<Option<Vec<u16>>> = channel
             .registers
             .iter()
@@ -375,36 +409,121 @@ impl DeviceModel {
         Ok(writes)
     }
 
-    /// Marks `w` on a control after a rejected `/on` payload.
-    pub fn write_rejected(&mut self, control_id: &str, out: &mut Vec<DeviceUpdate>) {
-        self.set_flags(|c| c.id == control_id, |flags| flags.write = true, out);
+    /// A `/on` payload to carry out: its register writes, or `w` on the control (in `out`) and
+    /// the reason it was refused.
+    pub fn take_write(
+        &mut self,
+        control_id: &str,
+        payload: &str,
+        out: &mut Vec<DeviceUpdate>,
+    ) -> Result<Vec<RegisterWrite>, WriteRejected> {
+        let result = self.write(control_id, payload);
+        if result.is_err() {
+            self.set_flags(|c| c.id == control_id, |flags| flags.write = true, out);
+        }
+        result
     }
 }
 
-/// The words of an event payload (a little-endian number) for `width` registers from the event's
-/// address, high word first as registers hold them; bits are 0 or 1.
-fn event_words(payload: &[u8], width: u16) -> Vec<u16> {
-    let value = payload
-        .iter()
-        .take(8)
-        .rev()
-        .fold(0u64, |acc, &b| (acc << 8) | u64::from(b));
-    (0..width)
-        .map(|i| {
-            let shift = 16 * u32::from(width - 1 - i);
-            if shift >= 64 {
-                0
-            } else {
-                (value >> shift) as u16
+/// Hands the port events of one transaction to the models of their devices, in order, then
+/// publishes the event values of the packet once all its words are in. `models` are the port's
+/// devices in the scheduler's order.
+pub fn apply_port_events(
+    models: &mut [DeviceModel],
+    events: Vec<PortEvent>,
+    out: &mut Vec<DeviceUpdate>,
+) {
+    for event in events {
+        let device = match &event {
+            PortEvent::Values { device, .. }
+            | PortEvent::EventValue { device, .. }
+            | PortEvent::ReadFailed { device, .. }
+            | PortEvent::PeriodMissed { device, .. }
+            | PortEvent::WriteDone { device, .. }
+            | PortEvent::WriteFailed { device, .. }
+            | PortEvent::Online { device }
+            | PortEvent::Offline { device }
+            | PortEvent::Rebooted { device } => *device,
+        };
+        if let Some(model) = models.get_mut(device) {
+            model.apply(event, out);
+        }
+    }
+    for model in models {
+        model.flush_events(out);
+    }
+}
+
+/// Checks an `/on` payload against the control type (what wb-mqtt-serial accepts for it);
+/// returns it trimmed. Limits and format ranges are the codec's to check.
+fn check_payload<'a>(
+    channel: &ResolvedChannel,
+    payload: &'a str,
+) -> Result<&'a str, WriteRejected> {
+    if payload.len() > MAX_PAYLOAD {
+        return Err(bad_format(channel, "a short text", "(too long)"));
+    }
+    if payload.contains(char::REPLACEMENT_CHARACTER) {
+        return Err(WriteRejected::NotText);
+    }
+    let text = payload.trim();
+    match channel.control_type.as_str() {
+        "switch" | "alarm" => {
+            if text != "0" && text != "1" {
+                return Err(bad_format(channel, "0 or 1", text));
             }
-        })
-        .collect()
+        }
+        "pushbutton" => {
+            if text != "1" {
+                return Err(bad_format(channel, "1", text));
+            }
+        }
+        "range" | "dimmer" => {
+            let integral = text
+                .parse::<f64>()
+                .is_ok_and(|v| v.is_finite() && v.fract() == 0.0);
+            if !integral {
+                return Err(bad_format(channel, "an integer", text));
+            }
+        }
+        "rgb" => {
+            let parts: Vec<&str> = text.split(';').collect();
+            let colour = parts.len() == 3 && parts.iter().all(|p| p.trim().parse::<u8>().is_ok());
+            if !colour {
+                return Err(bad_format(channel, "R;G;B with each part 0…255", text));
+            }
+        }
+        "text" | "w1-id" => {}
+        // `value`, `unixtime` and the deprecated typed values are numbers.
+        _ => {
+            let parts_are_numbers = text
+                .split(';')
+                .all(|p| p.trim().parse::<f64>().is_ok_and(f64::is_finite));
+            if !parts_are_numbers {
+                return Err(bad_format(channel, "a number", text));
+            }
+        }
+    }
+    Ok(text)
+}
+
+fn bad_format(channel: &ResolvedChannel, expected: &'static str, payload: &str) -> WriteRejected {
+    let mut shown: String = payload.chars().take(64).collect();
+    if shown.len() < payload.len() {
+        shown.push('…');
+    }
+    WriteRejected::BadFormat {
+        control_type: channel.control_type.clone(),
+        expected,
+        payload: shown,
+    }
 }
 
 fn spans_overlap(register: &crate::device::model::RegisterRef, span: &RegisterSpan) -> bool {
-    let start = u32::from(register.address);
-    let end = start + u32::from(register.count.max(1));
-    register.reg_type == span.register_type && start < span.end() && u32::from(span.start) < end
+    let register = register.span();
+    register.register_type == span.register_type
+        && u32::from(register.start) < span.end()
+        && u32::from(span.start) < register.end()
 }
 
 fn reads_span(channel: &ResolvedChannel, span: &RegisterSpan) -> bool {
@@ -730,6 +849,132 @@ mod tests {
         assert_eq!(flagged, readable);
     }
 
+    /// A model of one device with `channel` only, writing holding register 0.
+    fn model_of(mut channel: ResolvedChannel) -> DeviceModel {
+        let holding = crate::device::RegisterRef {
+            reg_type: RegisterType::Holding,
+            address: 0,
+            count: 1,
+            bit_shift: 0,
+            bit_width: 0,
+        };
+        for register in &mut channel.registers {
+            register.write = Some(holding);
+        }
+        let mut device = (*relay().device).clone();
+        device.channels = vec![channel];
+        DeviceModel::new(Arc::new(device), 0)
+    }
+
+    fn accepts(channel: &ResolvedChannel, payload: &str) -> bool {
+        model_of(channel.clone())
+            .write(&channel.id, payload)
+            .is_ok()
+    }
+
+    #[test]
+    fn switch_takes_only_0_and_1() {
+        let k1 = crate::mqtt::layout::tests::channel("K1", "switch");
+        let model = model_of(k1);
+        assert_eq!(model.write("K1", " 0\n").unwrap()[0].values, [0]);
+        for bad in ["2", "on", "", "\u{FFFD}"] {
+            assert!(model.write("K1", bad).is_err(), "{bad:?}");
+        }
+        assert_eq!(model.write("K1", "1\u{FFFD}"), Err(WriteRejected::NotText));
+    }
+
+    #[test]
+    fn range_respects_limits_and_integers() {
+        let mut level = crate::mqtt::layout::tests::channel("Level", "range");
+        level.min = Some(0.0);
+        level.max = Some(100.0);
+        assert!(accepts(&level, "42"));
+        assert!(!accepts(&level, "101"));
+        assert!(!accepts(&level, "4.5"));
+        assert!(!accepts(&level, "-1"));
+    }
+
+    #[test]
+    fn value_must_be_a_number_in_format_range() {
+        let setpoint = crate::mqtt::layout::tests::channel("Setpoint", "value");
+        assert!(accepts(&setpoint, "12"));
+        assert!(!accepts(&setpoint, "abc"));
+        assert!(!accepts(&setpoint, "NaN"));
+        // u16 cannot hold it.
+        assert!(matches!(
+            model_of(setpoint).write("Setpoint", "70000"),
+            Err(WriteRejected::BadValue(_))
+        ));
+    }
+
+    #[test]
+    fn rgb_needs_three_parts() {
+        let mut rgb = crate::mqtt::layout::tests::channel("RGB", "rgb");
+        let register = rgb.registers[0].clone();
+        rgb.registers = vec![register.clone(), register.clone(), register];
+        assert!(accepts(&rgb, "255;0;10"));
+        assert!(!accepts(&rgb, "255;0"));
+        assert!(!accepts(&rgb, "256;0;0"));
+    }
+
+    #[test]
+    fn huge_payloads_are_refused() {
+        let text = crate::mqtt::layout::tests::channel("Text", "text");
+        assert!(matches!(
+            model_of(text).write("Text", &"a".repeat(MAX_PAYLOAD + 1)),
+            Err(WriteRejected::BadFormat { .. })
+        ));
+    }
+
+    /// A refused payload sets `w` once; the next successful write clears it.
+    #[test]
+    fn a_refused_write_sets_w_until_a_write_succeeds() {
+        let mut model = relay();
+        let mut out = Vec::new();
+        assert!(model.take_write("K1", "2", &mut out).is_err());
+        assert!(model.take_write("K1", "on", &mut out).is_err());
+        model.apply(
+            PortEvent::WriteDone {
+                device: 0,
+                register_type: RegisterType::Coil,
+                address: 0,
+            },
+            &mut out,
+        );
+        let flags: Vec<String> = out
+            .iter()
+            .filter_map(|u| match u {
+                DeviceUpdate::ControlError { errors, .. } => Some(errors.to_string()),
+                _ => None,
+            })
+            .collect();
+        assert_eq!(flags, ["w", ""]);
+    }
+
+    /// Issue 16: the model tells a change from a repeat, for every sink.
+    #[test]
+    fn values_say_whether_they_changed() {
+        let mut model = relay();
+        let span = RegisterSpan::new(RegisterType::Coil, 0, 1);
+        let mut changes = Vec::new();
+        for word in [1, 1, 0] {
+            let mut out = Vec::new();
+            model.apply(
+                PortEvent::Values {
+                    device: 0,
+                    span,
+                    values: vec![word],
+                },
+                &mut out,
+            );
+            changes.extend(out.iter().filter_map(|u| match u {
+                DeviceUpdate::Value { changed, .. } => Some(*changed),
+                _ => None,
+            }));
+        }
+        assert_eq!(changes, [true, false, true]);
+    }
+
     #[test]
     fn writes_are_encoded_and_checked() {
         let model = relay();
@@ -745,7 +990,7 @@ mod tests {
         );
         assert!(matches!(
             model.write("K3", "on"),
-            Err(WriteRejected::BadValue(_))
+            Err(WriteRejected::BadFormat { .. })
         ));
         assert_eq!(
             model.write("Serial", "1"),

@@ -3,11 +3,11 @@
 
 use std::time::Duration;
 
-use crate::config::config_file::{Parity as ConfigParity, PortConfig, PortType};
-use crate::device::model::{EventMode as ChannelEvents, ResolvedDevice, ResolvedPort};
+use crate::config::config_file::{PortConfig, PortType};
+use crate::device::model::{ResolvedDevice, ResolvedPort};
 use crate::port::{
-    DevicePlan, EventMode, HealthPolicy, MergeLimits, PlannedRead, PortSettings, RegisterSpan,
-    SetupWrite, MIN_LATE_REPLY_HOLDOFF,
+    DevicePlan, HealthPolicy, MergeLimits, PlannedRead, PortSettings, SetupWrite,
+    MIN_LATE_REPLY_HOLDOFF,
 };
 use crate::protocol::{LineSettings, Parity, RegisterType};
 use crate::transport::Endpoint;
@@ -27,11 +27,7 @@ pub fn line_settings(port: &PortConfig) -> LineSettings {
         PortType::Serial => LineSettings {
             baud: port.baud_rate,
             data_bits: port.data_bits,
-            parity: match port.parity {
-                ConfigParity::N => Parity::None,
-                ConfigParity::E => Parity::Even,
-                ConfigParity::O => Parity::Odd,
-            },
+            parity: port.parity,
             stop_bits: port.stop_bits,
         },
         PortType::Tcp | PortType::ModbusTcp => LineSettings::new(9600, Parity::None, 2),
@@ -89,14 +85,10 @@ pub fn port_plan(port: &ResolvedPort, fast_modbus: bool) -> PortPlan {
 pub fn device_plan(device: &ResolvedDevice) -> DevicePlan {
     let mut reads: Vec<PlannedRead> = Vec::new();
     for channel in &device.channels {
-        let events = match channel.events {
-            ChannelEvents::None => EventMode::Polled,
-            ChannelEvents::Sporadic => EventMode::Sporadic,
-            ChannelEvents::SemiSporadic => EventMode::SemiSporadic,
-        };
+        let events = channel.events;
         for register in channel.registers.iter().filter_map(|r| r.read) {
             let read = PlannedRead {
-                span: RegisterSpan::new(register.reg_type, register.address, register.count.max(1)),
+                span: register.span(),
                 period: channel.read_period,
                 events,
             };
@@ -134,5 +126,104 @@ pub fn device_plan(device: &ResolvedDevice) -> DevicePlan {
         },
         reads,
         setup,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::path::Path;
+
+    use serde_json::{json, Value};
+
+    use super::*;
+    use crate::config::parse::SourceText;
+    use crate::config::TemplateLibrary;
+    use crate::port::EventMode;
+    use crate::protocol::Parity;
+
+    /// The first port of a config with `port` (a relay module at 20 added to its devices).
+    fn resolved(mut port: Value) -> ResolvedPort {
+        port["devices"] = json!([{"device_type": "rtu2mqtt-relay6", "slave_id": 20}]);
+        let config = json!({ "ports": [port] });
+        let loaded = crate::config::load::load_config_source(
+            SourceText::from_text(Path::new("c.json"), &config.to_string()),
+            false,
+        )
+        .unwrap();
+        let templates = Path::new(env!("CARGO_MANIFEST_DIR")).join("templates");
+        let library = TemplateLibrary::load_dirs(&[templates]);
+        crate::device::resolve_config(&loaded, &library)
+            .unwrap()
+            .remove(0)
+    }
+
+    #[test]
+    fn a_serial_port_keeps_its_line_settings() {
+        let port = resolved(json!({
+            "path": "/dev/ttyRS485-1", "baud_rate": 19200, "parity": "E", "stop_bits": 1
+        }));
+        let plan = port_plan(&port, true);
+        assert_eq!(
+            plan.settings.line,
+            LineSettings::new(19200, Parity::Even, 1)
+        );
+        assert!(plan.settings.fast_modbus);
+        assert_eq!(plan.name, "/dev/ttyRS485-1 (19200 8E1)");
+    }
+
+    /// TCP gateways are modelled at 9600 8N2 as wb-mqtt-serial does; Modbus TCP passes Fast
+    /// Modbus only when the gateway says it does (`connected_to_mge`).
+    #[test]
+    fn gateways_are_modelled_at_9600_and_fast_modbus_needs_mge() {
+        let tcp = resolved(json!({"port_type": "tcp", "address": "10.0.0.5", "port": 23}));
+        let plan = port_plan(&tcp, true);
+        assert_eq!(plan.settings.line, LineSettings::new(9600, Parity::None, 2));
+        assert!(plan.settings.fast_modbus);
+        let modbus_tcp = json!({"port_type": "modbus tcp", "address": "10.0.0.5", "port": 502});
+        assert!(
+            !port_plan(&resolved(modbus_tcp.clone()), true)
+                .settings
+                .fast_modbus
+        );
+        let mut mge = modbus_tcp;
+        mge["connected_to_mge"] = json!(true);
+        assert!(port_plan(&resolved(mge.clone()), true).settings.fast_modbus);
+        assert!(
+            !port_plan(&resolved(mge), false).settings.fast_modbus,
+            "the site-wide switch wins"
+        );
+    }
+
+    #[test]
+    fn the_event_interval_is_bounded() {
+        let port = |ms: u64| resolved(json!({"path": "/dev/x", "event_interval_ms": ms}));
+        assert_eq!(
+            port_plan(&port(1), true).settings.event_interval,
+            Duration::from_millis(5)
+        );
+        assert_eq!(
+            port_plan(&port(60_000), true).settings.event_interval,
+            Duration::from_secs(10)
+        );
+    }
+
+    #[test]
+    fn a_device_plan_reads_each_register_once_with_its_event_mode() {
+        let port = resolved(json!({"path": "/dev/x"}));
+        let plan = port_plan(&port, true);
+        let device = &plan.devices[0];
+        assert_eq!((device.name.as_str(), device.address), ("relay6_20", 20));
+        let k1 = device
+            .reads
+            .iter()
+            .find(|r| r.span == crate::port::RegisterSpan::new(RegisterType::Coil, 0, 1))
+            .expect("K1 is read");
+        assert_eq!(k1.events, EventMode::Sporadic);
+        let mut spans: Vec<_> = device.reads.iter().map(|r| r.span).collect();
+        let count = spans.len();
+        spans.sort();
+        spans.dedup();
+        assert_eq!(spans.len(), count, "no register read twice");
+        assert!(device.setup.iter().all(|s| !s.values.is_empty()));
     }
 }

@@ -2,12 +2,10 @@
 //! arrives complete and byte-exact. How well it is timed is measured by the benchmarks, not
 //! asserted here: the machines that run the tests are shared and noisy.
 
-mod sim_support;
-
 use std::time::Duration;
 
+use crate::sim_support::{SimProcess, FAST};
 use rtu2mqtt::protocol::{Request, RequestPdu};
-use sim_support::{SimProcess, FAST};
 
 #[test]
 fn a_100_byte_reply_at_115200_8n2_arrives_byte_exact() {

@@ -2,13 +2,10 @@
 //! (openssl): server verified by our CA, client certificate required by the broker. Proves the
 //! ring-only rustls build connects, and that values arrive.
 
-#[path = "mqtt_support/mod.rs"]
-mod mqtt_support;
-
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::{Child, Command, Stdio};
 
-use mqtt_support::{
+use crate::mqtt_support::{
     free_port, retained, settings, template_device, value, wait_for, MqttUnderTest,
 };
 use rtu2mqtt::config::config_file::TlsConfig;
@@ -87,16 +84,6 @@ fn make_pki(dir: &Path) {
     }
 }
 
-fn mosquitto_path() -> PathBuf {
-    std::env::var_os("PATH")
-        .into_iter()
-        .flat_map(|p| std::env::split_paths(&p).collect::<Vec<_>>())
-        .chain([PathBuf::from("/usr/sbin")])
-        .map(|d| d.join("mosquitto"))
-        .find(|p| p.is_file())
-        .expect("this test needs mosquitto (apt-get install mosquitto; scripts/test does it)")
-}
-
 struct TlsBroker(Child);
 
 impl Drop for TlsBroker {
@@ -131,7 +118,7 @@ async fn publishes_through_a_tls_listener_with_a_client_certificate() {
     )
     .unwrap();
     let _broker = TlsBroker(
-        Command::new(mosquitto_path())
+        Command::new(crate::mqtt_support::mosquitto_program("mosquitto"))
             .arg("-c")
             .arg(dir.path().join("mosquitto.conf"))
             .stdout(Stdio::null())

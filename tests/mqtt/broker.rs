@@ -1,12 +1,10 @@
 //! The MQTT task against a real mosquitto: exact retained topics and payloads, `/on` writes,
 //! offline devices, a broker restart, and the clean exit.
 
-mod mqtt_support;
-
 use std::collections::BTreeMap;
 use std::time::Duration;
 
-use mqtt_support::*;
+use crate::mqtt_support::*;
 use rtu2mqtt::updates::{ControlWrite, DeviceUpdate};
 
 const RELAY: &str = "relay6_1";
@@ -67,7 +65,7 @@ async fn retained_layout_matches_golden() {
     let broker = Mosquitto::start();
     let mqtt = MqttUnderTest::start(settings(broker.port));
     feed_two_devices(&mqtt).await;
-    assert_broker_matches_golden(broker.port, "broker-relay-climate.txt").await;
+    assert_broker_matches_golden(broker.port, "broker-relay-climate").await;
     assert!(mqtt.is_running());
     mqtt.stop().await;
 }
@@ -105,8 +103,17 @@ async fn writes_go_to_the_bus_side_and_bad_payloads_set_w() {
     mqtt.send(value(RELAY, "K3", "1")).await;
     state_with(broker.port, &k3, "1").await;
 
-    // Not a switch value: `w`, a reason in the log, nothing for the bus.
+    let mut model =
+        rtu2mqtt::gateway::device_model::DeviceModel::new(template_device("rtu2mqtt-relay6", 1), 0);
+    assert!(bus_side_takes(&mqtt, &mut model, &write).await);
+    // Not a switch value: the device model refuses it, `w`, nothing written.
     publish(broker.port, &format!("{k3}/on"), "7", false).await;
+    let write = tokio::time::timeout(TIMEOUT, mqtt.writes.recv())
+        .await
+        .expect("a write within the timeout")
+        .expect("writes channel open");
+    assert_eq!(write.payload, "7");
+    assert!(!bus_side_takes(&mqtt, &mut model, &write).await);
     let state = state_with(broker.port, &format!("{k3}/meta/error"), "w").await;
     assert_eq!(state.get(&k3).map(String::as_str), Some("1"));
     // A read-only control has no `/on` subscription.
@@ -125,9 +132,10 @@ async fn writes_go_to_the_bus_side_and_bad_payloads_set_w() {
         .expect("writes channel open");
     assert_eq!(
         write.control_id, "K3",
-        "only the good write arrives: {write:?}"
+        "nothing for the read-only control: {write:?}"
     );
     assert_eq!(write.payload, "0");
+    assert!(bus_side_takes(&mqtt, &mut model, &write).await);
     state_without(broker.port, &format!("{k3}/meta/error")).await;
     assert!(mqtt.writes.try_recv().is_err(), "nothing else was written");
     mqtt.stop().await;
@@ -346,7 +354,14 @@ async fn huge_on_payloads_are_refused_without_disconnecting() {
     let recorder = Recorder::start(broker.port, status).await;
 
     let k3 = format!("/devices/{RELAY}/controls/K3");
+    let mut model =
+        rtu2mqtt::gateway::device_model::DeviceModel::new(template_device("rtu2mqtt-relay6", 1), 0);
     publish(broker.port, &format!("{k3}/on"), &huge, false).await;
+    let write = tokio::time::timeout(TIMEOUT, mqtt.writes.recv())
+        .await
+        .expect("a write within the timeout")
+        .expect("writes channel open");
+    assert!(!bus_side_takes(&mqtt, &mut model, &write).await);
     state_with(broker.port, &format!("{k3}/meta/error"), "w").await;
     publish(broker.port, &format!("{k3}/on"), "1", false).await;
     let write = tokio::time::timeout(TIMEOUT, mqtt.writes.recv())

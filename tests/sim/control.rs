@@ -1,15 +1,13 @@
 //! The simulator's other faces: RTU over TCP, the control socket's change stream, scripts, faults.
 
-mod sim_support;
-
 use std::io::{BufRead, BufReader, Read, Write};
 use std::net::TcpStream;
 use std::os::unix::net::UnixStream;
 use std::time::Duration;
 
+use crate::sim_support::{with_crc, SimProcess, FAST};
 use rtu2mqtt::protocol::{ParseStatus, ReplyParser, Request, RequestPdu};
 use serde_json::{json, Value};
-use sim_support::{with_crc, SimProcess, FAST};
 
 #[test]
 fn rtu_over_tcp_uses_the_listener_settings() {
@@ -62,7 +60,7 @@ fn banner_tcp_address(sim: &SimProcess) -> String {
 
 #[test]
 fn watch_streams_register_changes_from_master_and_script() {
-    let script = sim_support::data("toggle.script");
+    let script = crate::sim_support::data("toggle.script");
     let sim = SimProcess::start("bus.json", &["--script", script.to_str().unwrap()]);
     let mut watcher = UnixStream::connect(&sim.control).unwrap();
     writeln!(watcher, "{}", json!({"cmd": "watch"})).unwrap();

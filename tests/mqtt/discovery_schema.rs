@@ -1,11 +1,9 @@
 //! Home Assistant discovery configs of every WB control type validate against a JSON Schema of
 //! the fields HA requires (`tests/data/ha-discovery.schema.json`, written from HA's docs).
 
-mod mqtt_support;
-
 use std::collections::BTreeSet;
 
-use mqtt_support::{repo, template_device};
+use crate::mqtt_support::{repo, template_device};
 use rtu2mqtt::device::ResolvedDevice;
 use rtu2mqtt::mqtt::discovery::{device_configs, DiscoverySettings};
 use rtu2mqtt::mqtt::TopicScheme;

@@ -1,17 +1,15 @@
 //! End-to-end: the real simulator on a pseudo-terminal, the protocol core as master, byte-exact
-//! replies. Timing is not asserted here (except in `sim_pacing.rs`): the machine is shared.
-
-mod sim_support;
+//! replies. Timing is not asserted here (not even in `pacing.rs`): the machine is shared.
 
 use std::path::Path;
 use std::time::Duration;
 
+use crate::sim_support::{data, ff, hex, with_crc, SimProcess, FAST};
 use rtu2mqtt::protocol::{
     arbitrate, ArbitrationWord, EventPoll, EventPriority, EventRange, EventSource, EventUrgency,
     FastReply, LineSettings, Parity, RegisterType, Reply, ReplyBody, Request, RequestPdu,
 };
 use serde_json::json;
-use sim_support::{data, ff, hex, with_crc, SimProcess, FAST};
 
 /// The filler bytes of a round among these words.
 fn fillers(words: &[ArbitrationWord]) -> Vec<u8> {
@@ -320,7 +318,7 @@ fn poll(min_address: u8, max_data_len: u8, ack_address: u8, ack_flag: u8) -> Req
 }
 
 /// Confirms every pending packet (the reboot events after start-up) until "no events".
-fn drain_events(port: &mut sim_support::MasterPort) {
+fn drain_events(port: &mut crate::sim_support::MasterPort) {
     let mut ack = (0, 0);
     for _ in 0..20 {
         let (_, reply) = port.transact(&poll(0, 0xFF, ack.0, ack.1));

@@ -1,0 +1,322 @@
+//! The gateway's scenarios on virtual time (see [`VirtualGateway`]): events, writes, reboots,
+//! unplugged devices and a failed port, each at 9600 and 115200 baud and at a line setting
+//! other than 8N2. Deterministic and exact (a bound on virtual time is a fact of the simulated
+//! wire, not of a busy machine); milliseconds each. The real-process tests (`tests/run_*.rs`)
+//! keep proving the wiring.
+
+use std::time::Duration;
+
+use super::virtual_gateway::VirtualGateway;
+use crate::protocol::RegisterType;
+use crate::updates::DeviceUpdate;
+
+const LINES: [&str; 3] = ["9600 8N2", "115200 8N2", "19200 8E1"];
+
+/// Long enough for every device to be read and its events set up, at 9600.
+const WARM_UP: Duration = Duration::from_secs(3);
+
+fn ms(ms: u64) -> Duration {
+    Duration::from_millis(ms)
+}
+
+fn control(device: &str, control: &str) -> String {
+    format!("/devices/{device}/controls/{control}")
+}
+
+fn gateway(line: &str) -> VirtualGateway {
+    let mut gateway = VirtualGateway::new(
+        line,
+        &[
+            ("rtu2mqtt-relay6", 20),
+            ("rtu2mqtt-climate", 21),
+            ("rtu2mqtt-counter8", 22),
+        ],
+    );
+    gateway.run_for(WARM_UP);
+    gateway
+}
+
+/// The values the device models reported for a control since `since`: (value, from_event).
+fn reported(
+    gateway: &VirtualGateway,
+    device: &str,
+    control: &str,
+    since: Duration,
+) -> Vec<(String, bool)> {
+    gateway
+        .updates
+        .iter()
+        .filter(|(at, _)| *at >= since)
+        .filter_map(|(_, update)| match update {
+            DeviceUpdate::Value {
+                device_id,
+                control_id,
+                value,
+                from_event,
+                ..
+            } if device_id == device && control_id == control => Some((value.clone(), *from_event)),
+            _ => None,
+        })
+        .collect()
+}
+
+#[test]
+fn first_reads_publish_every_value_once() {
+    for line in LINES {
+        let mut gateway = gateway(line);
+        let temperature = control("climate_21", "Temperature");
+        assert_eq!(
+            gateway.retained.get(&temperature).map(String::as_str),
+            Some("0"),
+            "{line}"
+        );
+        assert_eq!(
+            gateway
+                .retained
+                .get(&control("relay6_20", "Serial"))
+                .map(String::as_str),
+            Some("4261412884"),
+            "{line}"
+        );
+        // Read again and again, unchanged: published once.
+        gateway.run_for(ms(5000));
+        assert_eq!(
+            gateway.published_on(&temperature, Duration::ZERO),
+            ["0"],
+            "{line}"
+        );
+        let reads = reported(&gateway, "climate_21", "Temperature", Duration::ZERO).len();
+        assert!(reads > 2, "{line}: read {reads} times");
+    }
+}
+
+#[test]
+fn a_change_on_the_device_arrives_by_event() {
+    for line in LINES {
+        let mut gateway = gateway(line);
+        let k1 = control("relay6_20", "K1");
+        assert_eq!(
+            gateway.retained.get(&k1).map(String::as_str),
+            Some("0"),
+            "{line}"
+        );
+        let changed_at = gateway.now;
+        gateway.change(20, RegisterType::Coil, 0, &[1]);
+        let published = gateway
+            .run_until(&k1, "1", ms(1000))
+            .unwrap_or_else(|| panic!("{line}: K1 never became 1"));
+        assert_eq!(
+            reported(&gateway, "relay6_20", "K1", changed_at),
+            [("1".to_string(), true)],
+            "{line}: by event, once"
+        );
+        // Events are polled every few tens of ms: the change is on MQTT well within 200 ms.
+        assert!(
+            published - changed_at < ms(200),
+            "{line}: {:?}",
+            published - changed_at
+        );
+    }
+}
+
+/// Issue 15 defect 1 through the whole gateway: a u32 counter whose two registers change in
+/// one step (0x0000FFFF → 0x00010000) never shows a torn value.
+#[test]
+fn a_wide_value_changed_by_events_is_never_torn() {
+    for line in LINES {
+        let mut gateway = gateway(line);
+        let counter = control("counter8_22", "Input 1 counter");
+        gateway.change(22, RegisterType::Input, 60, &[0, 0xFFFF]);
+        gateway
+            .run_until(&counter, "65535", ms(1000))
+            .unwrap_or_else(|| panic!("{line}: 65535 never published"));
+        let since = gateway.now + Duration::from_nanos(1);
+        gateway.change(22, RegisterType::Input, 60, &[1, 0]);
+        gateway
+            .run_until(&counter, "65536", ms(1000))
+            .unwrap_or_else(|| panic!("{line}: 65536 never published"));
+        gateway.run_for(ms(500));
+        assert_eq!(gateway.published_on(&counter, since), ["65536"], "{line}");
+    }
+}
+
+#[test]
+fn after_a_reboot_events_are_set_up_again() {
+    for line in LINES {
+        let mut gateway = gateway(line);
+        gateway.reboot(20);
+        gateway.run_for(ms(1000));
+        let since = gateway.now;
+        gateway.change(20, RegisterType::Coil, 1, &[1]);
+        gateway
+            .run_until(&control("relay6_20", "K2"), "1", ms(1000))
+            .unwrap_or_else(|| panic!("{line}: K2 never became 1 after the reboot"));
+        assert_eq!(
+            reported(&gateway, "relay6_20", "K2", since),
+            [("1".to_string(), true)],
+            "{line}: by event"
+        );
+    }
+}
+
+#[test]
+fn writes_reach_the_device_and_bad_payloads_set_w() {
+    for line in LINES {
+        let mut gateway = gateway(line);
+        let k3 = control("relay6_20", "K3");
+        gateway.publish_on("relay6_20", "K3", b"1");
+        gateway
+            .run_until(&k3, "1", ms(1000))
+            .unwrap_or_else(|| panic!("{line}: K3 never became 1"));
+        assert_eq!(
+            gateway.register(20, RegisterType::Coil, 2),
+            Some(1),
+            "{line}"
+        );
+
+        let k4_error = format!("{}/meta/error", control("relay6_20", "K4"));
+        for bad in [&b"maybe"[..], b"2", b"1\xff"] {
+            gateway.publish_on("relay6_20", "K4", bad);
+            assert_eq!(
+                gateway.retained.get(&k4_error).map(String::as_str),
+                Some("w"),
+                "{line}"
+            );
+            gateway.run_for(ms(200));
+            assert_eq!(
+                gateway.register(20, RegisterType::Coil, 3),
+                Some(0),
+                "{line}: {bad:?}"
+            );
+        }
+        // The next good write clears `w` once it is done.
+        gateway.publish_on("relay6_20", "K4", b"1");
+        gateway.run_for(ms(500));
+        assert_eq!(
+            gateway.register(20, RegisterType::Coil, 3),
+            Some(1),
+            "{line}"
+        );
+        assert_eq!(gateway.retained.get(&k4_error), None, "{line}");
+        assert_eq!(
+            gateway.published_on(&k4_error, Duration::ZERO),
+            ["", "w", ""],
+            "{line}"
+        );
+    }
+}
+
+#[test]
+fn an_unplugged_device_sets_r_and_clears_it_when_back() {
+    for line in LINES {
+        let mut gateway = gateway(line);
+        let device_error = "/devices/climate_21/meta/error";
+        let temperature_error = format!("{}/meta/error", control("climate_21", "Temperature"));
+        gateway.set_plugged(21, false);
+        gateway
+            .run_until(device_error, "r", Duration::from_secs(60))
+            .unwrap_or_else(|| panic!("{line}: the device never went offline"));
+        assert_eq!(
+            gateway.retained.get(&temperature_error).map(String::as_str),
+            Some("r")
+        );
+        // The other devices keep working meanwhile.
+        gateway.change(20, RegisterType::Coil, 4, &[1]);
+        gateway
+            .run_until(&control("relay6_20", "K5"), "1", ms(2000))
+            .unwrap_or_else(|| panic!("{line}: the relay stopped while the climate was away"));
+
+        gateway.set_plugged(21, true);
+        gateway.change(21, RegisterType::Input, 4, &[2150]);
+        gateway
+            .run_until(
+                &control("climate_21", "Temperature"),
+                "21.5",
+                Duration::from_secs(30),
+            )
+            .unwrap_or_else(|| panic!("{line}: no value after the device came back"));
+        // The device counts as back once it is set up again (a second later).
+        gateway.run_for(Duration::from_secs(2));
+        assert_eq!(gateway.retained.get(device_error), None, "{line}");
+        assert_eq!(gateway.retained.get(&temperature_error), None, "{line}");
+    }
+}
+
+#[test]
+fn a_port_that_cannot_be_opened_takes_its_devices_offline_and_back() {
+    for line in LINES {
+        let mut gateway = gateway(line);
+        gateway.set_port_usable(false);
+        for device in ["relay6_20", "climate_21", "counter8_22"] {
+            let topic = format!("/devices/{device}/meta/error");
+            gateway
+                .run_until(&topic, "r", Duration::from_secs(60))
+                .unwrap_or_else(|| panic!("{line}: {device} never went offline"));
+        }
+        gateway.set_port_usable(true);
+        gateway.run_for(Duration::from_secs(10));
+        for device in ["relay6_20", "climate_21", "counter8_22"] {
+            let topic = format!("/devices/{device}/meta/error");
+            assert_eq!(gateway.retained.get(&topic), None, "{line}: {device}");
+        }
+    }
+}
+
+/// The repository's templates are Wiren Board style (`response_timeout_ms: 1`, the allowance is
+/// added by the master): values, a change and a write on slow lines, with Fast Modbus events
+/// and without.
+#[test]
+fn slow_lines_with_and_without_fast_modbus() {
+    for line in ["1200 8N2", "9600 8N2"] {
+        for fast_modbus in [true, false] {
+            let case = format!("{line}, fast_modbus {fast_modbus}");
+            let mut gateway = VirtualGateway::with_fast_modbus(
+                line,
+                &[
+                    ("rtu2mqtt-relay6", 20),
+                    ("rtu2mqtt-climate", 21),
+                    ("rtu2mqtt-counter8", 22),
+                ],
+                fast_modbus,
+            );
+            gateway.run_for(Duration::from_secs(20));
+            let k1 = control("relay6_20", "K1");
+            assert_eq!(
+                gateway.retained.get(&k1).map(String::as_str),
+                Some("0"),
+                "{case}"
+            );
+            let since = gateway.now;
+            gateway.change(20, RegisterType::Coil, 0, &[1]);
+            gateway
+                .run_until(&k1, "1", Duration::from_secs(20))
+                .unwrap_or_else(|| panic!("{case}: K1 never became 1"));
+            assert_eq!(
+                reported(&gateway, "relay6_20", "K1", since),
+                [("1".to_string(), fast_modbus)],
+                "{case}: by event exactly when Fast Modbus is on"
+            );
+            gateway.change(21, RegisterType::Input, 4, &[2275]);
+            gateway
+                .run_until(
+                    &control("climate_21", "Temperature"),
+                    "22.75",
+                    Duration::from_secs(20),
+                )
+                .unwrap_or_else(|| panic!("{case}: no new temperature"));
+            gateway.publish_on("relay6_20", "K3", b"1");
+            gateway
+                .run_until(&control("relay6_20", "K3"), "1", Duration::from_secs(20))
+                .unwrap_or_else(|| panic!("{case}: K3 never became 1"));
+            assert_eq!(
+                gateway.register(20, RegisterType::Coil, 2),
+                Some(1),
+                "{case}"
+            );
+            for device in ["relay6_20", "climate_21", "counter8_22"] {
+                let topic = format!("/devices/{device}/meta/error");
+                assert_eq!(gateway.retained.get(&topic), None, "{case}: {device}");
+            }
+        }
+    }
+}
