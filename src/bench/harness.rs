@@ -158,6 +158,12 @@ pub struct HarnessOptions {
     /// `RUST_LOG` of the daemon and the simulator (their stderr goes to files in the scratch
     /// directory); None keeps their defaults.
     pub log_filter: Option<String>,
+    /// A TLS listener on the broker beside the plain one (which the harness's own subscriber
+    /// keeps using); its port is [`Harness::mqtt_tls_port`].
+    pub broker_tls: Option<BrokerTls>,
+    /// More arguments for `rtu2mqtt sim` (e.g. `--tcp 127.0.0.1:0`); what it then listens on
+    /// is in its banner ([`Harness::sim_listening`]).
+    pub sim_args: Vec<String>,
 }
 
 impl HarnessOptions {
@@ -169,8 +175,19 @@ impl HarnessOptions {
             templates,
             // For looking into a run: BENCH_LOG=rtu2mqtt=debug logs every frame.
             log_filter: std::env::var("BENCH_LOG").ok(),
+            broker_tls: None,
+            sim_args: Vec::new(),
         }
     }
+}
+
+/// The broker's side of a TLS listener (PEM files).
+#[derive(Debug, Clone)]
+pub struct BrokerTls {
+    /// The CA that signed the client certificates the broker asks for.
+    pub ca_file: PathBuf,
+    pub cert_file: PathBuf,
+    pub key_file: PathBuf,
 }
 
 /// A scratch directory removed on drop (the library has no tempfile).
@@ -239,7 +256,11 @@ pub struct Harness {
     dir: ScratchDir,
     broker: Child,
     mqtt_port: u16,
+    /// The TLS listener's port and its lines of mosquitto.conf (kept for restarts).
+    mqtt_tls: Option<(u16, String)>,
     sim: Child,
+    /// The simulator's banner, up to `ready`.
+    sim_banner: Vec<String>,
     pty: PathBuf,
     control_path: PathBuf,
     control: Mutex<ControlConnection>,
@@ -269,7 +290,15 @@ impl Harness {
         let bus_path = dir.0.join("bus.json");
         std::fs::write(&bus_path, serde_json::to_string_pretty(&options.bus)?)?;
 
-        let (broker, mqtt_port) = start_broker(&options.mosquitto, &dir.0)?;
+        let mqtt_tls = match &options.broker_tls {
+            Some(tls) => {
+                let port = free_port()?;
+                Some((port, tls_listener(port, tls)))
+            }
+            None => None,
+        };
+        let extra = mqtt_tls.as_ref().map_or("", |(_, lines)| lines.as_str());
+        let (broker, mqtt_port) = start_broker(&options.mosquitto, &dir.0, extra)?;
         let stopping = Arc::new(AtomicBool::new(false));
         let pty = dir.0.join("ttyRS485-sim");
         let control_path = dir.0.join("control.sock");
@@ -284,6 +313,7 @@ impl Harness {
             .arg(&pty)
             .arg("--control")
             .arg(&control_path)
+            .args(&options.sim_args)
             .stdin(Stdio::null())
             .stdout(Stdio::piped())
             .stderr(std::fs::File::create(dir.0.join("sim.log"))?);
@@ -293,13 +323,16 @@ impl Harness {
         let mut sim = sim_command
             .spawn()
             .with_context(|| format!("starting {} sim", options.binary.display()))?;
-        if let Err(err) = wait_for_ready(&mut sim) {
-            stop_child(&mut sim);
-            let mut broker = broker;
-            stop_child(&mut broker);
-            let log = std::fs::read_to_string(dir.0.join("sim.log")).unwrap_or_default();
-            bail!("{err}\n--- simulator log ---\n{log}");
-        }
+        let sim_banner = match wait_for_ready(&mut sim) {
+            Ok(banner) => banner,
+            Err(err) => {
+                stop_child(&mut sim);
+                let mut broker = broker;
+                stop_child(&mut broker);
+                let log = std::fs::read_to_string(dir.0.join("sim.log")).unwrap_or_default();
+                bail!("{err}\n--- simulator log ---\n{log}");
+            }
+        };
 
         let changes = Arc::new(Mutex::new(Vec::new()));
         let control = connect_control(&control_path)?;
@@ -314,7 +347,9 @@ impl Harness {
             dir,
             broker,
             mqtt_port,
+            mqtt_tls,
             sim,
+            sim_banner,
             pty,
             control_path,
             control: Mutex::new(control),
@@ -331,9 +366,29 @@ impl Harness {
         self.mqtt_port
     }
 
+    /// The broker's TLS listener ([`HarnessOptions::broker_tls`]).
+    pub fn mqtt_tls_port(&self) -> Option<u16> {
+        self.mqtt_tls.as_ref().map(|(port, _)| *port)
+    }
+
+    fn broker_extra(&self) -> String {
+        self.mqtt_tls
+            .as_ref()
+            .map_or_else(String::new, |(_, lines)| lines.clone())
+    }
+
     /// The pty symlink the daemon's port opens.
     pub fn pty(&self) -> &Path {
         &self.pty
+    }
+
+    /// Where the simulator listens for `kind` (`tcp`, `modbus-tcp`: the banner's
+    /// `tcp 127.0.0.1:40123 (115200 8N2)` line gives `127.0.0.1:40123`).
+    pub fn sim_listening(&self, kind: &str) -> Option<String> {
+        self.sim_banner.iter().find_map(|line| {
+            let rest = line.strip_prefix(kind)?.strip_prefix(' ')?;
+            rest.split_whitespace().next().map(str::to_string)
+        })
     }
 
     pub fn control_socket(&self) -> &Path {
@@ -484,12 +539,8 @@ impl Harness {
     /// subscriber reconnects and subscribes again by itself.
     pub fn restart_broker(&mut self) -> anyhow::Result<()> {
         self.kill_broker();
-        self.broker = launch_broker(
-            &self.mosquitto,
-            &self.dir.0,
-            self.mqtt_port,
-            "allow_anonymous true\n",
-        )?;
+        let access = format!("allow_anonymous true\n{}", self.broker_extra());
+        self.broker = launch_broker(&self.mosquitto, &self.dir.0, self.mqtt_port, &access)?;
         Ok(())
     }
 
@@ -515,7 +566,11 @@ impl Harness {
         if !status.success() {
             bail!("{DEFAULT_MOSQUITTO_PASSWD} failed: {status}");
         }
-        let access = format!("allow_anonymous false\npassword_file {}\n", file.display());
+        let access = format!(
+            "allow_anonymous false\npassword_file {}\n{}",
+            file.display(),
+            self.broker_extra()
+        );
         self.broker = launch_broker(&self.mosquitto, &self.dir.0, self.mqtt_port, &access)?;
         Ok(())
     }
@@ -605,7 +660,24 @@ impl Drop for Harness {
     }
 }
 
-fn start_broker(mosquitto: &Path, dir: &Path) -> anyhow::Result<(Child, u16)> {
+/// mosquitto.conf lines of a TLS listener on `port` that requires a client certificate.
+fn tls_listener(port: u16, tls: &BrokerTls) -> String {
+    // Started as root, mosquitto would drop to its own user, which cannot read 0600 keys (ours:
+    // the key file's owner is who made it).
+    let made_by_root = std::fs::metadata(&tls.key_file)
+        .is_ok_and(|meta| std::os::unix::fs::MetadataExt::uid(&meta) == 0);
+    let user = if made_by_root { "user root\n" } else { "" };
+    format!(
+        "{user}listener {port} 127.0.0.1\ncafile {}\ncertfile {}\nkeyfile {}\n\
+         require_certificate true\n",
+        tls.ca_file.display(),
+        tls.cert_file.display(),
+        tls.key_file.display()
+    )
+}
+
+/// `extra`: more mosquitto.conf lines (listeners) after the plain listener's.
+fn start_broker(mosquitto: &Path, dir: &Path, extra: &str) -> anyhow::Result<(Child, u16)> {
     if !mosquitto.exists() {
         bail!(
             "{} not found: the harness needs a real MQTT broker (apt-get install mosquitto)",
@@ -613,7 +685,8 @@ fn start_broker(mosquitto: &Path, dir: &Path) -> anyhow::Result<(Child, u16)> {
         );
     }
     let port = free_port()?;
-    let child = launch_broker(mosquitto, dir, port, "allow_anonymous true\n")?;
+    let access = format!("allow_anonymous true\n{extra}");
+    let child = launch_broker(mosquitto, dir, port, &access)?;
     Ok((child, port))
 }
 
@@ -647,16 +720,19 @@ fn launch_broker(mosquitto: &Path, dir: &Path, port: u16, access: &str) -> anyho
     Ok(child)
 }
 
-/// Reads the simulator's banner up to `ready`; keeps draining its stdout afterwards.
-fn wait_for_ready(sim: &mut Child) -> anyhow::Result<()> {
+/// Reads the simulator's banner up to `ready` (returned); keeps draining its stdout afterwards.
+fn wait_for_ready(sim: &mut Child) -> anyhow::Result<Vec<String>> {
     let stdout = sim.stdout.take().context("simulator stdout")?;
     let (sender, receiver) = mpsc::channel();
     std::thread::Builder::new()
         .name("harness-sim-stdout".into())
         .spawn(move || {
+            let mut banner = Vec::new();
             for line in BufReader::new(stdout).lines().map_while(Result::ok) {
                 if line == "ready" {
-                    let _ = sender.send(());
+                    let _ = sender.send(std::mem::take(&mut banner));
+                } else if banner.len() < 1000 {
+                    banner.push(line);
                 }
             }
         })?;

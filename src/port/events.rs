@@ -40,10 +40,6 @@ impl EventPoller {
         self.next_at
     }
 
-    pub(super) fn max_data_len(&self) -> u8 {
-        self.max_data_len
-    }
-
     pub(super) fn request(&self) -> EventPoll {
         let (ack_address, ack_flag) = self.ack.unwrap_or((0, 0));
         EventPoll {
@@ -134,10 +130,10 @@ mod tests {
 
     #[test]
     fn data_budget_by_baud() {
-        assert_eq!(poller(115_200).max_data_len(), 248);
+        assert_eq!(poller(115_200).request().max_data_len, 248);
         // 200 ms at 9600 8N2 = 174 characters, less 8.
-        assert_eq!(poller(9600).max_data_len(), 166);
-        assert_eq!(poller(1200).max_data_len(), 13);
+        assert_eq!(poller(9600).request().max_data_len, 166);
+        assert_eq!(poller(1200).request().max_data_len, 13);
     }
 
     #[test]

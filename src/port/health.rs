@@ -98,6 +98,19 @@ impl DeviceHealth {
             }
     }
 
+    /// The device is online and answered its last transaction: a failure now is an isolated
+    /// loss (the common case on a noisy line), not a device that became slow or died.
+    pub fn answered_last(&self) -> bool {
+        self.state == State::Online && self.failures == 0
+    }
+
+    /// Keeps a device that just failed quiet `by` longer: what its transaction saved by not
+    /// watching the line for its late reply (src/port/scheduler.rs), so that its next request
+    /// still cannot come before a late reply to the failed one could.
+    pub fn hold_off_longer(&mut self, by: Duration) {
+        self.quiet_until = self.quiet_until.saturating_add(by);
+    }
+
     /// When a disconnected device may be tried again.
     pub fn retry_at(&self) -> Option<Duration> {
         match self.state {
@@ -185,6 +198,24 @@ mod tests {
 
     fn ms(ms: u64) -> Duration {
         Duration::from_millis(ms)
+    }
+
+    #[test]
+    fn an_isolated_failure_of_a_device_that_answered_is_told_apart() {
+        let mut health = DeviceHealth::new(HealthPolicy::default());
+        assert!(!health.answered_last(), "never heard from");
+        health.record_success(ms(0));
+        assert!(health.answered_last());
+        health.record_failure(ms(100));
+        assert!(
+            !health.answered_last(),
+            "a second failure in a row is not isolated"
+        );
+        health.hold_off_longer(ms(500));
+        assert!(!health.may_transact(ms(100 + 1000 + 499)));
+        assert!(health.may_transact(ms(100 + 1000 + 500)));
+        health.record_success(ms(2000));
+        assert!(health.answered_last());
     }
 
     #[test]

@@ -41,15 +41,6 @@ impl RegisterSpan {
             RegisterType::Input => RequestPdu::ReadInputRegisters { start, count },
         }
     }
-
-    /// Bytes of the reply PDU (function code + byte count + data).
-    pub fn reply_pdu_len(&self) -> usize {
-        if self.register_type.is_bit() {
-            2 + usize::from(self.count).div_ceil(8)
-        } else {
-            2 + 2 * usize::from(self.count)
-        }
-    }
 }
 
 /// How far a device lets reads be merged.
@@ -164,12 +155,7 @@ mod tests {
     }
 
     #[test]
-    fn reply_lengths() {
-        assert_eq!(holding(0, 3).reply_pdu_len(), 8);
-        assert_eq!(
-            RegisterSpan::new(RegisterType::Coil, 0, 9).reply_pdu_len(),
-            4
-        );
+    fn a_span_may_end_at_the_last_address() {
         assert_eq!(RegisterSpan::new(RegisterType::Coil, 65535, 1).end(), 65536);
     }
 }

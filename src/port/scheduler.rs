@@ -72,6 +72,20 @@ pub struct ReplyTiming {
     pub late_byte: Option<Duration>,
 }
 
+/// What the scheduler knows of one device, for the status page.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct DeviceReport {
+    /// The smoothed time to the first byte of its replies (none before the first reply).
+    pub learned_response_time: Option<Duration>,
+    /// How long a request to it waits for the first byte now.
+    pub response_timeout: Duration,
+    pub events_active: bool,
+    /// "setup writes", "event setup" or "ready".
+    pub setup: &'static str,
+    /// Polling held by [`PortScheduler::set_suspended`].
+    pub suspended: bool,
+}
+
 /// What came back for a transaction.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Outcome {
@@ -212,6 +226,31 @@ impl PortScheduler {
         self.devices.len()
     }
 
+    /// What the status page shows of a device's schedule.
+    pub fn device_report(&self, device: usize, now: Duration) -> Option<DeviceReport> {
+        let state = self.devices.get(device)?;
+        Some(DeviceReport {
+            learned_response_time: state.response.learned(),
+            response_timeout: state.response.timeout(now),
+            events_active: state.events_active(),
+            setup: state.setup_state(),
+            suspended: state.suspended,
+        })
+    }
+
+    /// Holds (or resumes) the polling of a device: no reads and no preparation while held;
+    /// writes and its events still go. Returns false for an unknown device.
+    pub fn set_suspended(&mut self, device: usize, suspended: bool) -> bool {
+        let Some(state) = self.devices.get_mut(device) else {
+            return false;
+        };
+        if state.suspended != suspended {
+            info!(device = %state.plan.name, suspended, "polling held from the status page");
+        }
+        state.suspended = suspended;
+        true
+    }
+
     /// Queues a write; a queued write to the same register is replaced (the latest value wins).
     pub fn queue_write(&mut self, now: Duration, write: RegisterWrite) {
         let same_register = |p: &PendingWrite| {
@@ -315,6 +354,11 @@ impl PortScheduler {
             Some(InFlight::Write { write }) => Some(write.write.device),
             Some(InFlight::PollEvents { .. }) | None => None,
         };
+        // The late window this transaction went without (see `classic_transaction`).
+        let skipped_late_window = device
+            .and_then(|d| self.devices.get(d))
+            .filter(|d| d.health.answered_last())
+            .map(|d| d.response.timeout(now));
         if let Some(device) = device {
             self.learn_response_time(now, device, &outcome, timing);
         }
@@ -341,6 +385,15 @@ impl PortScheduler {
                 members,
             }) => self.complete_read(now, device, span, &members, outcome, &mut out),
             Some(InFlight::Write { write }) => self.complete_write(now, write, outcome, &mut out),
+        }
+        if let (Some(window), Some(state)) = (
+            skipped_late_window,
+            device.and_then(|d| self.devices.get_mut(d)),
+        ) {
+            if !state.health.answered_last() {
+                // It failed: its next request waits as long as if the window had been watched.
+                state.health.hold_off_longer(window);
+            }
         }
         let still_offline = device
             .and_then(|d| self.devices.get(d))
@@ -413,19 +466,21 @@ impl PortScheduler {
     fn start_event_poll(&mut self, now: Duration) -> Action {
         let request = Request::poll_events(self.events.request());
         let line = &self.settings.line;
-        let max_reply = 8 + usize::from(self.events.max_data_len());
         // USB adapters deliver late, and a loaded machine reads late: a short first-byte timeout
         // would end the poll while the arbitration is still going on, and its bytes would land
         // in the next request's window. A bus with Fast Modbus devices always answers (someone
         // wins with "no events"), so the allowance costs only when nobody takes part.
         let margin = self.settings.latency_margin.max(ADAPTER_LATENCY_ALLOWANCE);
         // The usual answer is "no events" after a few arbitration windows; longer packets are
-        // rare and bounded by max_data_len.
+        // rare and bounded by the poll's max_data_len.
         let typical = line.arbitration_wait() + line.arbitration_window() * 6;
+        let request_len = request.encoded_len();
         let transaction = Transaction {
-            estimated: line.transaction_time(9, typical, 5),
-            request_time: line.wire_time(request.encode().map(|b| b.len()).unwrap_or(9)),
-            reply_timeout: line.event_reply_timeout() + line.wire_time(max_reply + 32) + margin,
+            estimated: line.transaction_time(request_len, typical, request.expected_reply_len()),
+            request_time: line.wire_time(request_len),
+            reply_timeout: line.event_reply_timeout()
+                + line.wire_time(request.max_reply_len() + 32)
+                + margin,
             first_byte_timeout: Some(line.event_first_byte_timeout() + margin),
             late_window: margin,
             request,
@@ -441,12 +496,24 @@ impl PortScheduler {
         now: Duration,
         device: &DeviceState,
         request: Request,
-        reply_pdu_len: usize,
     ) -> Transaction {
         let line = &self.settings.line;
-        let request_len = request.encode().map(|b| b.len()).unwrap_or(256);
-        let reply_len = reply_pdu_len + 3;
+        let request_len = request.encoded_len();
+        let reply_len = request.expected_reply_len();
         let response_timeout = device.response.timeout(now);
+        // After a timeout the line is watched a while longer for the late reply, to learn a
+        // longer response time from it; meanwhile the bus carries nothing. A device that
+        // answered its last request (an isolated loss, the usual case on a noisy line) skips
+        // that watch and the bus goes on with the others at once: its own next request waits
+        // as long as before (its holdoff grows by the window skipped, see `complete_timed`), and
+        // its late reply can only land in another device's window, where its address gives it
+        // away. A second failure in a row gets the window back, so a device that became slow is
+        // learned at its next request.
+        let late_window = if device.health.answered_last() {
+            Duration::ZERO
+        } else {
+            response_timeout
+        };
         let request_time = line.wire_time(request_len);
         let estimated = if device.health.is_offline() {
             // A dead device costs its whole timeout and the late window after it.
@@ -459,7 +526,7 @@ impl PortScheduler {
             request_time,
             reply_timeout: response_timeout + line.wire_time(reply_len) + ADAPTER_LATENCY_ALLOWANCE,
             first_byte_timeout: Some(response_timeout),
-            late_window: response_timeout,
+            late_window,
             estimated,
         }
     }
@@ -499,7 +566,7 @@ impl PortScheduler {
             },
         };
         let transaction =
-            self.classic_transaction(now, device, Request::classic(device.plan.address, pdu), 5);
+            self.classic_transaction(now, device, Request::classic(device.plan.address, pdu));
         Some((
             transaction,
             InFlight::Write {
@@ -510,7 +577,7 @@ impl PortScheduler {
 
     fn choose_preparation(&self, now: Duration) -> Option<(Transaction, InFlight)> {
         for (index, device) in self.devices.iter().enumerate() {
-            if device.is_prepared() || !self.may_transact(device, now) {
+            if device.is_prepared() || device.suspended || !self.may_transact(device, now) {
                 continue;
             }
             if let Some(setup_index) = device.next_setup_write() {
@@ -529,7 +596,6 @@ impl PortScheduler {
                     now,
                     device,
                     Request::classic(device.plan.address, pdu),
-                    5,
                 );
                 return Some((
                     transaction,
@@ -541,9 +607,8 @@ impl PortScheduler {
             }
             if self.settings.fast_modbus && device.wants_events() {
                 let (ranges, members) = device.event_ranges();
-                let mask_len: usize = ranges.iter().map(EventRange::mask_len).sum();
                 let request = Request::configure_events(device.plan.address, ranges.clone());
-                let transaction = self.classic_transaction(now, device, request, 3 + mask_len);
+                let transaction = self.classic_transaction(now, device, request);
                 return Some((
                     transaction,
                     InFlight::EnableEvents {
@@ -562,7 +627,7 @@ impl PortScheduler {
             .devices
             .iter()
             .enumerate()
-            .filter(|(_, d)| d.is_prepared() && self.may_transact(d, now))
+            .filter(|(_, d)| d.is_prepared() && !d.suspended && self.may_transact(d, now))
             .filter_map(|(index, d)| d.choose_read(now).map(|choice| (index, choice)))
             .min_by_key(|(_, choice)| choice.urgency)?;
         let (device, ReadChoice { span, members, .. }) = best;
@@ -571,7 +636,6 @@ impl PortScheduler {
             now,
             state,
             Request::classic(state.plan.address, span.read_request()),
-            span.reply_pdu_len(),
         );
         Some((
             transaction,
@@ -626,7 +690,7 @@ impl PortScheduler {
             span.count = u16::try_from(end - u32::from(span.start)).ok()?;
         }
         let request = Request::classic(state.plan.address, span.read_request());
-        let transaction = self.classic_transaction(now, state, request, span.reply_pdu_len());
+        let transaction = self.classic_transaction(now, state, request);
         Some((
             transaction,
             InFlight::Read {
@@ -648,6 +712,7 @@ impl PortScheduler {
         let devices = self
             .devices
             .iter()
+            .filter(|d| !d.suspended)
             .filter_map(|d| d.next_deadline().map(|at| offline_gate(d, at)));
         let writes = self.writes.iter().filter_map(|p| {
             self.devices

@@ -1061,3 +1061,167 @@ fn an_offline_device_that_answers_late_is_not_held_back_like_a_dead_one() {
     let retry_gap = first_value - tries[first_late];
     assert!(retry_gap < ms(5000), "{retry_gap:?} after the late answer");
 }
+
+/// The classic request the scheduler sends next (time moves on over waits), with its
+/// transaction; events of other kinds are answered as a healthy device would.
+fn next_classic(scheduler: &mut PortScheduler, now: &mut Duration) -> Transaction {
+    for _ in 0..10_000 {
+        match scheduler.next(*now) {
+            Action::Transmit(transaction) => {
+                if matches!(transaction.request.body, RequestBody::Classic(_)) {
+                    return transaction;
+                }
+                let outcome = healthy(&transaction.request);
+                *now += ms(5);
+                scheduler.complete(*now, outcome);
+            }
+            Action::Wait { until } => *now = until.max(*now + ms(1)),
+        }
+    }
+    panic!("no classic request");
+}
+
+#[test]
+fn an_isolated_timeout_skips_the_late_window_but_the_device_waits_as_long_as_before() {
+    let mut port = settings(115_200);
+    port.fast_modbus = false;
+    let plans = vec![
+        device(30, vec![read(RegisterType::Input, 0, EventMode::Polled)]),
+        device(31, vec![read(RegisterType::Input, 0, EventMode::Polled)]),
+    ];
+    let mut scheduler = PortScheduler::new(port, plans);
+    let mut now = Duration::ZERO;
+    // Never heard from: the late window is watched (the first answers teach the response time).
+    let first = next_classic(&mut scheduler, &mut now);
+    assert_eq!(Some(first.late_window), first.first_byte_timeout);
+    now += ms(5);
+    scheduler.complete(now, healthy(&first.request));
+    // Both devices answer for a while.
+    let mut answered = 0;
+    let lost = loop {
+        let transaction = next_classic(&mut scheduler, &mut now);
+        if answered >= 6 && transaction.request.address == 30 {
+            break transaction;
+        }
+        now += ms(5);
+        scheduler.complete(now, healthy(&transaction.request));
+        answered += 1;
+    };
+    // Device 30 answered its last request: this one does not watch for a late reply.
+    assert_eq!(lost.late_window, Duration::ZERO);
+    let timeout = lost
+        .first_byte_timeout
+        .expect("a classic read has a first-byte timeout");
+    now += lost.request_time + timeout;
+    let failed_at = now;
+    scheduler.complete(now, Outcome::NoReply);
+    // The bus goes on with device 31 at once; device 30 is asked again only once its late
+    // reply could no longer come: its holdoff and the window it skipped.
+    let next_to_31 = next_classic(&mut scheduler, &mut now);
+    assert_eq!(next_to_31.request.address, 31);
+    assert_eq!(now, failed_at, "device 31 waits for nothing");
+    now += ms(5);
+    scheduler.complete(now, healthy(&next_to_31.request));
+    let again = loop {
+        let transaction = next_classic(&mut scheduler, &mut now);
+        if transaction.request.address == 30 {
+            break transaction;
+        }
+        now += ms(5);
+        scheduler.complete(now, healthy(&transaction.request));
+    };
+    let holdoff = HealthPolicy::default().late_reply_holdoff;
+    assert!(
+        now >= failed_at + holdoff + timeout,
+        "asked again {:?} after the failure",
+        now - failed_at
+    );
+    // A second failure in a row watches for the late reply again (a device that became slow).
+    assert_eq!(Some(again.late_window), again.first_byte_timeout);
+}
+
+#[test]
+fn a_device_that_becomes_slow_is_learned_at_its_second_failure() {
+    let mut port = settings(9600);
+    port.fast_modbus = false;
+    let plan = device(30, vec![read(RegisterType::Input, 0, EventMode::Polled)]);
+    let mut scheduler = PortScheduler::new(port, vec![plan]);
+    let mut log = Log::default();
+    // Quick replies for 5 s, then every reply 600 ms after the request (timeout 524 ms + 1 char).
+    let end = run_timed(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(20_000),
+        |at, request| {
+            let latency = (at >= ms(5_000)).then_some(ms(600));
+            (healthy(request), latency)
+        },
+    );
+    let failures: Vec<Duration> = log
+        .events
+        .iter()
+        .filter(|(_, e)| matches!(e, PortEvent::ReadFailed { .. }))
+        .map(|(at, _)| *at)
+        .collect();
+    assert!(
+        failures.len() <= 2,
+        "the first late reply is not watched for, the second is: {failures:?}"
+    );
+    let values_after = log
+        .events
+        .iter()
+        .filter(|(at, e)| *at > ms(8_000) && matches!(e, PortEvent::Values { .. }))
+        .count();
+    assert!(
+        values_after >= 10,
+        "read again once learned: {values_after}"
+    );
+    let Action::Transmit(transaction) = scheduler.next(end) else {
+        panic!("a read is due");
+    };
+    assert!(transaction.first_byte_timeout > Some(ms(600)));
+}
+
+#[test]
+fn a_suspended_device_is_not_polled_and_the_scheduler_does_not_spin() {
+    let reads = |address| {
+        device(
+            address,
+            vec![read(RegisterType::Holding, 1, EventMode::Polled)],
+        )
+    };
+    let mut scheduler = PortScheduler::new(settings(115_200), vec![reads(1), reads(2)]);
+    assert!(scheduler.set_suspended(1, true));
+    assert!(!scheduler.set_suspended(7, true));
+    let mut log = Log::default();
+    let now = run(&mut scheduler, &mut log, ms(0), ms(2000), |_, r| healthy(r));
+    assert!(!log.classic_to(1).is_empty());
+    assert!(log.classic_to(2).is_empty());
+    assert!(scheduler.device_report(1, now).unwrap().suspended);
+    // Only the held device would be due: the scheduler waits instead of returning "now".
+    let mut only_held = PortScheduler::new(settings(115_200), vec![reads(2)]);
+    only_held.set_suspended(0, true);
+    match only_held.next(ms(10)) {
+        Action::Wait { until } => assert!(until > ms(10), "{until:?}"),
+        other => panic!("{other:?}"),
+    }
+    // A write still goes.
+    only_held.queue_write(
+        ms(10),
+        RegisterWrite {
+            device: 0,
+            register_type: RegisterType::Holding,
+            address: 5,
+            values: vec![1],
+            force_multiple: false,
+        },
+    );
+    assert!(matches!(only_held.next(ms(10)), Action::Transmit(_)));
+    scheduler.set_suspended(1, false);
+    let mut log = Log::default();
+    run(&mut scheduler, &mut log, now, now + ms(500), |_, r| {
+        healthy(r)
+    });
+    assert!(!log.classic_to(2).is_empty());
+}

@@ -16,6 +16,13 @@ pub const CLASSIC_BROADCAST: u8 = 0;
 /// Highest address a device may have.
 pub const MAX_DEVICE_ADDRESS: u8 = 247;
 
+/// Bytes around a PDU in an RTU frame: the address before it, the CRC after it.
+pub const RTU_OVERHEAD: usize = 3;
+/// Bytes of a Fast Modbus frame's function code (0x46), which precedes the sub-command.
+const FAST_FUNCTION_LEN: usize = 1;
+/// A 0x11 event packet's sub-command, flag, event count and data length, before its data.
+const EVENT_PACKET_HEADER_LEN: usize = 4;
+
 /// A frame from the master.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Request {
@@ -91,6 +98,49 @@ impl Request {
         matches!(self.body, RequestBody::Fast(_))
     }
 
+    /// The length of the whole reply frame (address to CRC) when the device answers as asked:
+    /// exact for classic requests, requests by serial number, scans and 0x18; for an event poll
+    /// the shortest answer, "no events" (an event packet announces its length in its header).
+    /// 0 for a classic broadcast, which nobody answers. An exception reply is 5 bytes.
+    pub fn expected_reply_len(&self) -> usize {
+        if !self.expects_reply() {
+            return 0;
+        }
+        let fast = |sub_and_body: usize| RTU_OVERHEAD + FAST_FUNCTION_LEN + sub_and_body;
+        match &self.body {
+            RequestBody::Classic(pdu) => RTU_OVERHEAD + pdu.reply_pdu_len(),
+            // 0x09, serial number, the classic reply PDU.
+            RequestBody::Fast(FastRequest::BySerial { pdu, .. }) => fast(5 + pdu.reply_pdu_len()),
+            // 0x03, serial number, Modbus address (or 0x04, the end of the scan, shorter).
+            RequestBody::Fast(FastRequest::ScanStart | FastRequest::ScanContinue) => fast(6),
+            // 0x12.
+            RequestBody::Fast(FastRequest::PollEvents(_)) => fast(1),
+            // 0x18, mask length, one bit per register asked for.
+            RequestBody::Fast(FastRequest::ConfigureEvents { ranges }) => {
+                fast(2 + ranges.iter().map(EventRange::mask_len).sum::<usize>())
+            }
+        }
+    }
+
+    /// The longest reply frame (address to CRC) this request may get: for an event poll a
+    /// packet carrying `max_data_len` bytes of events; otherwise [`Self::expected_reply_len`].
+    pub fn max_reply_len(&self) -> usize {
+        match &self.body {
+            RequestBody::Fast(FastRequest::PollEvents(poll)) if self.expects_reply() => {
+                RTU_OVERHEAD
+                    + FAST_FUNCTION_LEN
+                    + EVENT_PACKET_HEADER_LEN
+                    + usize::from(poll.max_data_len)
+            }
+            _ => self.expected_reply_len(),
+        }
+    }
+
+    /// Bytes of the frame on the wire (CRC included); 0 when it cannot be encoded.
+    pub fn encoded_len(&self) -> usize {
+        self.encode().map(|frame| frame.len()).unwrap_or(0)
+    }
+
     /// The frame as it goes on the wire, CRC included.
     pub fn encode(&self) -> Result<Vec<u8>, EncodeError> {
         let mut out = Vec::with_capacity(16);
@@ -161,13 +211,19 @@ impl Reply {
     }
 
     pub fn decode(frame: &[u8]) -> Result<Self, DecodeError> {
-        let (address, body) = split_frame(frame)?;
-        let body = match body.split_first() {
+        let (address, pdu) = split_frame(frame)?;
+        Self::decode_pdu(address, pdu)
+    }
+
+    /// Decodes a reply that travelled without address byte and CRC (Modbus TCP carries the
+    /// unit id in its header and relies on TCP's own checks).
+    pub fn decode_pdu(address: u8, pdu: &[u8]) -> Result<Self, DecodeError> {
+        let body = match pdu.split_first() {
             Some((&function, rest)) if fast::is_fast_function(function) => ReplyBody::Fast {
                 function,
                 reply: FastReply::decode(rest)?,
             },
-            _ => ReplyBody::Classic(ResponsePdu::decode(body)?),
+            _ => ReplyBody::Classic(ResponsePdu::decode(pdu)?),
         };
         Ok(Self { address, body })
     }
@@ -218,4 +274,122 @@ fn split_frame(frame: &[u8]) -> Result<(u8, &[u8]), DecodeError> {
         .get(..rest.len().saturating_sub(2))
         .ok_or(DecodeError::Truncated)?;
     Ok((address, pdu))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::protocol::fast::{Event, EventPacket, EventPriority, EventSource, RegisterType};
+
+    fn encoded_len(reply: &Reply) -> usize {
+        reply.encode().map(|frame| frame.len()).unwrap_or(0)
+    }
+
+    #[test]
+    fn expected_reply_len_is_the_length_of_the_encoded_reply() {
+        let read = Request::classic(7, RequestPdu::ReadInputRegisters { start: 0, count: 3 });
+        let values = ResponsePdu::ReadInputRegisters {
+            values: vec![1, 2, 3],
+        };
+        assert_eq!(read.expected_reply_len(), 11);
+        assert_eq!(
+            read.expected_reply_len(),
+            encoded_len(&Reply::classic(7, values))
+        );
+
+        let coils = Request::classic(7, RequestPdu::ReadCoils { start: 0, count: 9 });
+        let packed = ResponsePdu::ReadCoils { packed: vec![0, 1] };
+        assert_eq!(
+            coils.expected_reply_len(),
+            encoded_len(&Reply::classic(7, packed))
+        );
+
+        let write = RequestPdu::WriteMultipleRegisters {
+            start: 4,
+            values: vec![1, 2],
+        };
+        let echo = ResponsePdu::WriteMultipleRegisters { start: 4, count: 2 };
+        assert_eq!(
+            Request::classic(7, write.clone()).expected_reply_len(),
+            encoded_len(&Reply::classic(7, echo.clone()))
+        );
+
+        let by_serial = Request::by_serial(0xFE00_0001, write);
+        let answer = FastReply::BySerial {
+            serial: 0xFE00_0001,
+            pdu: echo,
+        };
+        assert_eq!(
+            by_serial.expected_reply_len(),
+            encoded_len(&Reply::fast(fast::BROADCAST_ADDRESS, answer))
+        );
+
+        let found = FastReply::ScanFound {
+            serial: 0xFE00_0001,
+            modbus_address: 7,
+        };
+        assert_eq!(
+            Request::scan_start().expected_reply_len(),
+            encoded_len(&Reply::fast(fast::BROADCAST_ADDRESS, found))
+        );
+
+        let ranges = vec![EventRange::registers(
+            RegisterType::DiscreteInput,
+            0,
+            vec![EventPriority::Low; 9],
+        )];
+        let configured = FastReply::EventsConfigured {
+            masks: vec![0xFF, 0x01],
+        };
+        assert_eq!(
+            Request::configure_events(7, ranges).expected_reply_len(),
+            encoded_len(&Reply::fast(7, configured))
+        );
+    }
+
+    #[test]
+    fn an_event_poll_expects_no_events_and_allows_a_full_packet() {
+        let poll = Request::poll_events(EventPoll {
+            min_address: 0,
+            max_data_len: 10,
+            ack_address: 0,
+            ack_flag: 0,
+        });
+        assert_eq!(
+            poll.expected_reply_len(),
+            encoded_len(&Reply::fast(fast::BROADCAST_ADDRESS, FastReply::NoEvents))
+        );
+        // Two discrete inputs: 4 bytes of header and 1 of value each, 10 bytes of event data.
+        let packet = EventPacket {
+            flag: 1,
+            event_count: 2,
+            events: vec![
+                Event {
+                    source: EventSource::Register(RegisterType::DiscreteInput),
+                    id: 1,
+                    payload: vec![1],
+                },
+                Event {
+                    source: EventSource::Register(RegisterType::DiscreteInput),
+                    id: 2,
+                    payload: vec![0],
+                },
+            ],
+        };
+        assert_eq!(
+            poll.max_reply_len(),
+            encoded_len(&Reply::fast(7, FastReply::Events(packet)))
+        );
+    }
+
+    #[test]
+    fn nobody_answers_a_classic_broadcast() {
+        let write = RequestPdu::WriteSingleRegister {
+            address: 1,
+            value: 2,
+        };
+        let broadcast = Request::classic(CLASSIC_BROADCAST, write);
+        assert_eq!(broadcast.expected_reply_len(), 0);
+        assert_eq!(broadcast.max_reply_len(), 0);
+    }
 }

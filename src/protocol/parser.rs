@@ -161,31 +161,37 @@ impl ReplyParser {
             }
     }
 
-    /// The checks that need the whole decoded reply (echoes of writes, serial numbers).
     fn answers(&self, reply: &Reply) -> bool {
-        let Expected::ReplyTo(request) = &self.expected else {
-            return true;
-        };
-        match (&request.body, &reply.body) {
-            (RequestBody::Classic(pdu), ReplyBody::Classic(answer)) => pdu.is_answered_by(answer),
-            (
-                RequestBody::Fast(FastRequest::BySerial { serial, pdu }),
-                ReplyBody::Fast { reply, .. },
-            ) => {
-                matches!(reply, fast::FastReply::BySerial { serial: s, pdu: answer } if s == serial && pdu.is_answered_by(answer))
-            }
-            (
-                RequestBody::Fast(FastRequest::ConfigureEvents { ranges }),
-                ReplyBody::Fast { reply, .. },
-            ) => {
-                matches!(reply, fast::FastReply::EventsConfigured { masks } if masks.len() == mask_len(ranges))
-            }
-            (RequestBody::Fast(_), ReplyBody::Classic(ResponsePdu::Exception { function, .. })) => {
-                *function == fast::FUNCTION
-            }
-            (RequestBody::Fast(_), ReplyBody::Fast { .. }) => true,
-            _ => false,
+        match &self.expected {
+            Expected::Any => true,
+            Expected::ReplyTo(request) => answers(request, reply),
         }
+    }
+}
+
+/// True when `reply` answers `request`: the checks that need the whole decoded reply (the
+/// function, byte counts, echoes of writes, serial numbers). The parser applies them to every
+/// frame; a transport without RTU framing (Modbus TCP) applies them to what it decoded.
+pub fn answers(request: &Request, reply: &Reply) -> bool {
+    match (&request.body, &reply.body) {
+        (RequestBody::Classic(pdu), ReplyBody::Classic(answer)) => pdu.is_answered_by(answer),
+        (
+            RequestBody::Fast(FastRequest::BySerial { serial, pdu }),
+            ReplyBody::Fast { reply, .. },
+        ) => {
+            matches!(reply, fast::FastReply::BySerial { serial: s, pdu: answer } if s == serial && pdu.is_answered_by(answer))
+        }
+        (
+            RequestBody::Fast(FastRequest::ConfigureEvents { ranges }),
+            ReplyBody::Fast { reply, .. },
+        ) => {
+            matches!(reply, fast::FastReply::EventsConfigured { masks } if masks.len() == mask_len(ranges))
+        }
+        (RequestBody::Fast(_), ReplyBody::Classic(ResponsePdu::Exception { function, .. })) => {
+            *function == fast::FUNCTION
+        }
+        (RequestBody::Fast(_), ReplyBody::Fast { .. }) => true,
+        _ => false,
     }
 }
 
@@ -267,7 +273,7 @@ fn classic_reply_header_matches(request: &RequestPdu, bytes: &[u8]) -> bool {
                 | RequestPdu::ReadHoldingRegisters { .. }
                 | RequestPdu::ReadInputRegisters { .. },
                 Some(&byte_count),
-            ) => usize::from(byte_count) + 2 == request.expected_reply_len(),
+            ) => usize::from(byte_count) + 2 == request.reply_pdu_len(),
             _ => true,
         },
         Some(_) => false,

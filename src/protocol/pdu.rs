@@ -282,8 +282,10 @@ impl RequestPdu {
         }
     }
 
-    /// The exact length of a successful (non-exception) reply PDU to this request.
-    pub fn expected_reply_len(&self) -> usize {
+    /// The exact length of a successful (non-exception) reply PDU to this request: function
+    /// code, byte count and data of a read; the 5-byte echo of a write. An exception is shorter
+    /// (2 bytes).
+    pub fn reply_pdu_len(&self) -> usize {
         match self {
             Self::ReadCoils { count, .. } | Self::ReadDiscreteInputs { count, .. } => {
                 2 + usize::from(*count).div_ceil(8)

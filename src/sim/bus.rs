@@ -58,6 +58,18 @@ pub struct Bus {
     rng: XorShift64,
     changes: Vec<RegisterChange>,
     stats: BusStats,
+    link: LinkState,
+}
+
+/// Whether the master's links (the pty, TCP connections) are there: the `link_down`,
+/// `link_up` and `link_drop` control commands take them away, as an unplugged USB adapter or a
+/// gateway dropping its connections does. The transports act on it (src/sim/pty.rs, tcp.rs).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct LinkState {
+    /// False while the links are away: no pty, TCP connections closed as soon as accepted.
+    pub up: bool,
+    /// Bumped each time the links are cut: a link opened under an older generation ends.
+    pub generation: u64,
 }
 
 /// What the bus has served since it started (the `stats` control command; benchmarks count
@@ -85,7 +97,26 @@ impl Bus {
             rng: XorShift64::new(seed),
             changes: Vec::new(),
             stats: BusStats::default(),
+            link: LinkState {
+                up: true,
+                generation: 0,
+            },
         }
+    }
+
+    pub fn link(&self) -> LinkState {
+        self.link
+    }
+
+    /// Cuts every link to the master; they stay away until [`Bus::restore_links`] when
+    /// `stay_down`, else they may come back at once (a dropped connection).
+    pub fn cut_links(&mut self, stay_down: bool) {
+        self.link.generation += 1;
+        self.link.up = !stay_down;
+    }
+
+    pub fn restore_links(&mut self) {
+        self.link.up = true;
     }
 
     pub fn stats(&self) -> BusStats {

@@ -206,6 +206,18 @@ fn run(bus: &mut Bus, now: Duration, command: &ControlCommand) -> Result<Value, 
                 .map_err(|code| code.to_string())?;
             Ok(json!({}))
         }
+        "link_down" => {
+            bus.cut_links(true);
+            Ok(json!({}))
+        }
+        "link_up" => {
+            bus.restore_links();
+            Ok(json!({}))
+        }
+        "link_drop" => {
+            bus.cut_links(false);
+            Ok(json!({}))
+        }
         "faults" => {
             let index = find_device(bus, command)?;
             let device = bus.device_mut(index).ok_or("no such device")?;
@@ -224,7 +236,7 @@ fn run(bus: &mut Bus, now: Duration, command: &ControlCommand) -> Result<Value, 
         }
         other => Err(format!(
             "unknown command {other:?} (ping, list, get, set, toggle, reboot, unplug, replug, \
-             set_address, set_line, replace, faults, stats, watch)"
+             set_address, set_line, replace, faults, link_down, link_up, link_drop, stats, watch)"
         )),
     }
 }
@@ -448,6 +460,22 @@ mod tests {
             Some(3)
         );
         assert!(execute_line(&mut bus, Duration::ZERO, r#"{"cmd":"watch"}"#).watch);
+        assert!(bus.link().up);
+        assert_eq!(
+            run_line(&mut bus, r#"{"cmd":"link_down"}"#)["ok"],
+            json!(true)
+        );
+        assert_eq!((bus.link().up, bus.link().generation), (false, 1));
+        assert_eq!(
+            run_line(&mut bus, r#"{"cmd":"link_up"}"#)["ok"],
+            json!(true)
+        );
+        assert_eq!((bus.link().up, bus.link().generation), (true, 1));
+        assert_eq!(
+            run_line(&mut bus, r#"{"cmd":"link_drop"}"#)["ok"],
+            json!(true)
+        );
+        assert_eq!((bus.link().up, bus.link().generation), (true, 2));
         assert_eq!(bus.take_changes().len(), 6);
     }
 

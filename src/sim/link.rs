@@ -23,8 +23,14 @@ pub trait LinkReader {
 /// How often the loop looks at the stop flag when the line is idle.
 const IDLE_POLL: Duration = Duration::from_millis(50);
 
-/// Serves requests until the peer closes, the runtime stops, or reading fails.
-pub fn serve(reader: &mut dyn LinkReader, pacer: &Pacer, runtime: &SimRuntime) -> io::Result<()> {
+/// Serves requests until the peer closes, the runtime stops, the links are cut (their
+/// generation is no longer `generation`, the one the link was opened under), or reading fails.
+pub fn serve(
+    reader: &mut dyn LinkReader,
+    pacer: &Pacer,
+    runtime: &SimRuntime,
+    generation: u64,
+) -> io::Result<()> {
     super::pacing::raise_to_realtime();
     let mut wire = Wire::new();
     let mut buf = [0u8; 512];
@@ -35,7 +41,7 @@ pub fn serve(reader: &mut dyn LinkReader, pacer: &Pacer, runtime: &SimRuntime) -
         }
         transmission
     };
-    while !runtime.stopped() {
+    while !runtime.stopped() && runtime.link_generation() == generation {
         let now = runtime.clock.now();
         let timeout = wire.silence_deadline().map_or(IDLE_POLL, |deadline| {
             deadline.saturating_sub(now).min(IDLE_POLL)

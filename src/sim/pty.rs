@@ -37,6 +37,8 @@ pub struct PtyLink {
     _slave: OwnedFd,
     pub slave_path: PathBuf,
     pub link: PathBuf,
+    /// The settings a new pty gets after the link was cut.
+    initial: LineSettings,
 }
 
 fn nix_err(err: nix::Error) -> io::Error {
@@ -86,33 +88,83 @@ impl PtyLink {
             _slave: pty.slave,
             slave_path,
             link: link.to_path_buf(),
+            initial,
         })
     }
 
-    /// Serves the pty on two threads (receive loop, pacer) until the runtime stops. The symlink
-    /// is removed when the receive loop ends.
+    /// Serves the pty on two threads (receive loop, pacer) until the runtime stops. When the
+    /// links are cut (the `link_down` control command) the pty goes away as an unplugged USB
+    /// adapter does: symlink removed, both ends closed, so the master's open descriptor fails;
+    /// once the links are up again a new pty appears behind the same symlink.
     pub fn spawn(self, runtime: Arc<SimRuntime>) -> io::Result<JoinHandle<()>> {
+        std::thread::Builder::new()
+            .name("sim-pty".into())
+            .spawn(move || {
+                let link = self.link.clone();
+                let initial = self.initial;
+                let mut pty = Some(self);
+                while let Some(open) = pty.take() {
+                    let generation = runtime.link_generation();
+                    if runtime.link_up() {
+                        if let Err(err) = open.serve(&runtime, generation) {
+                            tracing::error!("sim: pty: {err}");
+                            return;
+                        }
+                    } else {
+                        drop(open);
+                    }
+                    if runtime.stopped() {
+                        return;
+                    }
+                    tracing::info!("sim: pty {} gone (link cut)", link.display());
+                    while !runtime.link_up() && !runtime.stopped() {
+                        std::thread::sleep(LINK_POLL);
+                    }
+                    if runtime.stopped() {
+                        return;
+                    }
+                    while pty.is_none() && !runtime.stopped() {
+                        match PtyLink::open(&link, initial) {
+                            Ok(reopened) => {
+                                tracing::info!(
+                                    "sim: pty {} back -> {}",
+                                    link.display(),
+                                    reopened.slave_path.display()
+                                );
+                                pty = Some(reopened);
+                            }
+                            Err(err) => {
+                                tracing::error!("sim: pty {}: {err}; trying again", link.display());
+                                std::thread::sleep(LINK_POLL * 25);
+                            }
+                        }
+                    }
+                }
+            })
+    }
+
+    /// Serves this pty until the runtime stops or the links' generation moves on; the pty is
+    /// closed and its symlink removed when this returns.
+    fn serve(self, runtime: &SimRuntime, generation: u64) -> io::Result<()> {
         let mut writer = self.master.try_clone()?;
         let (pacer, pacer_thread) = Pacer::spawn(
             "pty",
             runtime.clock,
             Box::new(move |bytes| write_all_nonblocking(&mut writer, bytes)),
         )?;
-        std::thread::Builder::new()
-            .name("sim-pty".into())
-            .spawn(move || {
-                let mut reader = PtyReader {
-                    master: &self.master,
-                };
-                if let Err(err) = serve(&mut reader, &pacer, &runtime) {
-                    tracing::error!("sim: pty: {err}");
-                }
-                pacer.close();
-                let _ = pacer_thread.join();
-                drop(self);
-            })
+        let mut reader = PtyReader {
+            master: &self.master,
+        };
+        let served = serve(&mut reader, &pacer, runtime, generation);
+        pacer.close();
+        let _ = pacer_thread.join();
+        drop(self);
+        served
     }
 }
+
+/// How often a cut pty looks whether it may come back.
+const LINK_POLL: Duration = Duration::from_millis(20);
 
 impl Drop for PtyLink {
     fn drop(&mut self) {

@@ -173,6 +173,10 @@ pub struct SimRuntime {
     pub clock: Clock,
     pub log: ChangeLog,
     stop: AtomicBool,
+    /// The bus's [`super::bus::LinkState`], mirrored after every command so that the
+    /// transports' loops read it without taking the bus's lock.
+    link_up: AtomicBool,
+    link_generation: AtomicU64,
 }
 
 impl SimRuntime {
@@ -182,6 +186,8 @@ impl SimRuntime {
             clock: Clock::start(),
             log,
             stop: AtomicBool::new(false),
+            link_up: AtomicBool::new(true),
+            link_generation: AtomicU64::new(0),
         }
     }
 
@@ -190,7 +196,11 @@ impl SimRuntime {
         let mut bus = lock(&self.bus);
         let result = f(&mut bus, self.clock.now());
         let changes = bus.take_changes();
+        let link = bus.link();
         drop(bus);
+        self.link_up.store(link.up, Ordering::SeqCst);
+        self.link_generation
+            .store(link.generation, Ordering::SeqCst);
         self.log.record(&changes, &self.clock);
         result
     }
@@ -201,5 +211,15 @@ impl SimRuntime {
 
     pub fn stopped(&self) -> bool {
         self.stop.load(Ordering::SeqCst)
+    }
+
+    /// Whether the master may have a link now (see [`super::bus::LinkState`]).
+    pub fn link_up(&self) -> bool {
+        self.link_up.load(Ordering::SeqCst)
+    }
+
+    /// The links' generation: a link opened under another one must end.
+    pub fn link_generation(&self) -> u64 {
+        self.link_generation.load(Ordering::SeqCst)
     }
 }

@@ -49,6 +49,11 @@ pub fn spawn(
         .spawn(move || {
             while !runtime.stopped() {
                 match listener.accept() {
+                    Ok((stream, peer)) if !runtime.link_up() => {
+                        // The gateway is away: the connection ends at once.
+                        tracing::info!("sim: tcp: {peer} refused (link down)");
+                        drop(stream);
+                    }
                     Ok((stream, peer)) => {
                         tracing::info!("sim: tcp: {peer} connected");
                         let runtime = Arc::clone(&runtime);
@@ -80,6 +85,7 @@ fn spawn_connection(
 ) -> io::Result<()> {
     stream.set_nonblocking(false)?;
     stream.set_nodelay(true)?;
+    let generation = runtime.link_generation();
     let mut writer = stream.try_clone()?;
     let (pacer, pacer_thread) = Pacer::spawn(
         "tcp",
@@ -93,7 +99,7 @@ fn spawn_connection(
                 stream,
                 line: MasterLine::exact(line),
             };
-            if let Err(err) = serve(&mut reader, &pacer, &runtime) {
+            if let Err(err) = serve(&mut reader, &pacer, &runtime, generation) {
                 tracing::debug!("sim: tcp connection: {err}");
             }
             pacer.close();
@@ -126,10 +132,11 @@ fn serve_gateway(
     runtime: &SimRuntime,
 ) -> io::Result<()> {
     stream.set_read_timeout(Some(Duration::from_millis(50)))?;
+    let generation = runtime.link_generation();
     let master = MasterLine::exact(line);
     let mut buffer = Vec::new();
     let mut chunk = [0u8; 512];
-    while !runtime.stopped() {
+    while !runtime.stopped() && runtime.link_generation() == generation {
         let request = match mbap::take_request(&mut buffer) {
             Ok(Some(request)) => request,
             Ok(None) => {

@@ -132,9 +132,7 @@ impl ToolPort {
                 line,
             };
             let transport = Transport::open(&endpoint).await.map_err(|err| match err {
-                TransportError::Open { source, .. } => {
-                    classify(&self.path, std::io::Error::from(source))
-                }
+                TransportError::Open { source, .. } => classify(&self.path, source),
                 other => PortError::Transport(other),
             })?;
             self.current = Some((line, transport));

@@ -1,8 +1,8 @@
 //! Modbus TCP framing: `transaction id(2) protocol 0(2) length(2) unit id(1) PDU`, no CRC.
-//! Requests are built as RTU frames by the protocol core and re-wrapped here; replies are turned
-//! back into RTU frames (unit id as address, CRC added) so the same parser checks them.
+//! Requests are built as RTU frames by the protocol core and re-wrapped here; replies are decoded
+//! from their unit id and PDU ([`Reply::decode_pdu`]): TCP checks the bytes, there is no CRC.
 
-use crate::protocol::crc::append_crc;
+use crate::protocol::{DecodeError, Reply};
 
 const HEADER_LEN: usize = 7;
 
@@ -34,11 +34,11 @@ impl MbapCodec {
         out
     }
 
-    /// Takes received bytes; returns the RTU form of every complete reply to the last request
-    /// (replies to older transaction ids are dropped).
-    pub fn unwrap(&mut self, bytes: &[u8]) -> Vec<u8> {
+    /// Takes received bytes; returns every complete reply to the last request, decoded (replies
+    /// to older transaction ids are dropped).
+    pub fn unwrap(&mut self, bytes: &[u8]) -> Vec<Result<Reply, DecodeError>> {
         self.received.extend_from_slice(bytes);
-        let mut rtu = Vec::new();
+        let mut replies = Vec::new();
         while let Some(header) = self.received.get(..HEADER_LEN) {
             let transaction_id = u16::from_be_bytes([header[0], header[1]]);
             let protocol_id = u16::from_be_bytes([header[2], header[3]]);
@@ -54,15 +54,16 @@ impl MbapCodec {
                 break;
             };
             if transaction_id == self.transaction_id {
-                let mut frame = Vec::with_capacity(length + 2);
-                frame.push(unit);
-                frame.extend_from_slice(pdu);
-                append_crc(&mut frame);
-                rtu.extend_from_slice(&frame);
+                replies.push(Reply::decode_pdu(unit, pdu));
             }
             self.received.drain(..total);
         }
-        rtu
+        replies
+    }
+
+    /// True while part of a frame is buffered.
+    pub fn has_partial_frame(&self) -> bool {
+        !self.received.is_empty()
     }
 }
 
@@ -88,17 +89,19 @@ mod tests {
         let stale = [0, 0, 0, 0, 0, 5, 20, 3, 2, 0, 99];
         assert!(codec.unwrap(&stale).is_empty());
         assert!(codec.unwrap(&reply[..4]).is_empty());
-        let rtu = codec.unwrap(&reply[4..]);
+        let replies = codec.unwrap(&reply[4..]);
         let expected = Reply::classic(20, ResponsePdu::ReadHoldingRegisters { values: vec![20] });
-        assert_eq!(Reply::decode(&rtu), Ok(expected));
+        assert_eq!(replies, vec![Ok(expected)]);
+        assert!(!codec.has_partial_frame());
     }
 
     #[test]
-    fn garbage_never_panics() {
+    fn garbage_never_panics_and_yields_no_reply() {
         let mut codec = MbapCodec::default();
+        codec.wrap(&[1, 3, 0, 0, 0, 1, 0, 0]);
         for len in 0..64u8 {
             let bytes: Vec<u8> = (0..len).map(|i| i.wrapping_mul(37)).collect();
-            let _ = codec.unwrap(&bytes);
+            assert!(codec.unwrap(&bytes).is_empty());
         }
     }
 }

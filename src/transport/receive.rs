@@ -108,6 +108,11 @@ impl ReplyWindow {
         self.phase == Phase::Waiting
     }
 
+    /// When the last bytes that count as the reply arrived.
+    pub fn last_byte_at(&self) -> Option<Duration> {
+        self.first_byte_at.and(self.last_byte_at)
+    }
+
     /// When to call [`expire`](Self::expire) if no bytes come before.
     pub fn wake_at(&self) -> Duration {
         match self.phase {

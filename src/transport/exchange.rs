@@ -1,0 +1,843 @@
+//! One request and its reply on a line, sans IO: the state machine behind
+//! [`Transport::transact`](super::Transport::transact), in the style of quinn-proto and str0m.
+//! No clock and no IO: the caller passes the time (a `Duration` on any monotonic clock of its
+//! choosing, e.g. since the port was opened) into every call, moves the bytes, and sleeps.
+//!
+//! It owns every rule about a transaction's bytes and times: the guard interval before a request,
+//! the flush of stale input, the reply window of [`ReplyWindow`] (reply clock from the request's
+//! end on the wire, first-byte and reply timeouts, the inter-byte gap, the late window),
+//! finding the reply with the protocol's parser (or the MBAP framing of Modbus TCP), and the
+//! decision between a reply, garbage and silence.
+//!
+//! A driver, one transaction at a time:
+//!
+//! ```text
+//! exchange.start(&transaction)?;
+//! loop {
+//!     if let Some(transmit) = exchange.poll_transmit(now) {
+//!         if transmit.flush_input { drop whatever the line holds }
+//!         write(transmit.bytes);
+//!         exchange.handle_sent(now);             // when `write` returned
+//!     }
+//!     if let Some((outcome, timing)) = exchange.poll_outcome() { break }
+//!     wait for bytes until exchange.poll_timeout():
+//!         bytes came  -> exchange.handle_bytes(now, &bytes)
+//!         time passed -> exchange.handle_timeout(now)
+//! }
+//! ```
+//!
+//! [`Exchange::reply_complete_at`] lets a driver that pays for every wake-up (a serial port)
+//! sleep through a reply whose length is known instead of reading it a few bytes at a time.
+
+use std::time::Duration;
+
+use tracing::debug;
+
+use super::mbap::MbapCodec;
+use super::receive::{Received, ReplyWindow};
+use crate::port::{Outcome, ReplyTiming, Transaction};
+use crate::protocol::parser::answers;
+use crate::protocol::pdu::FrameLength;
+use crate::protocol::{
+    EncodeError, FastRequest, LineSettings, ParseStatus, Reply, ReplyParser, Request, RequestBody,
+};
+
+/// How replies are framed on the link.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Framing {
+    /// Address, PDU, CRC: a serial line, or RTU frames over TCP.
+    Rtu,
+    /// Modbus TCP: an MBAP header, no CRC.
+    ModbusTcp,
+}
+
+/// What the exchange needs to know about its link.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LinkConfig {
+    pub framing: Framing,
+    /// A serial line and its settings: the bytes' timing on the wire is known, so bytes before
+    /// the request has left the wire are not its reply, and a reply's end can be predicted.
+    /// `None` for TCP, whose far side's timing is unknown.
+    pub serial: Option<LineSettings>,
+    /// Silence between bytes after which a started reply is given up, and after which the line
+    /// counts as quiet again.
+    pub quiet_gap: Duration,
+    /// Silence kept on the line before every request.
+    pub guard_interval: Duration,
+}
+
+/// A request to put on the line.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Transmit {
+    /// Drop whatever the line delivered and nobody read (late replies, noise) before writing:
+    /// it cannot be the reply to this request.
+    pub flush_input: bool,
+    pub bytes: Vec<u8>,
+}
+
+#[derive(Debug)]
+enum State {
+    Idle,
+    /// Waiting for the guard interval, then for [`Exchange::poll_transmit`].
+    Pending {
+        request: Request,
+        frame: Vec<u8>,
+    },
+    /// Handed to the driver; waiting for [`Exchange::handle_sent`].
+    Sending {
+        request: Request,
+        write_started: Duration,
+    },
+    /// A broadcast: nobody answers, but the line is busy until it has left.
+    Broadcasting {
+        until: Duration,
+    },
+    Receiving(Box<Receiving>),
+    Done(Outcome, ReplyTiming),
+}
+
+#[derive(Debug)]
+struct Receiving {
+    request: Request,
+    window: ReplyWindow,
+    parser: ReplyParser,
+    /// Bytes came that were not the reply (garbage, a bad CRC, another device's frame).
+    garbled: bool,
+}
+
+/// The transactions of one link, one at a time. See the module documentation.
+#[derive(Debug)]
+pub struct Exchange {
+    config: LinkConfig,
+    mbap: Option<MbapCodec>,
+    /// The transaction being run (copied from [`Self::start`]'s argument).
+    transaction: Option<Transaction>,
+    /// When the line was last busy: the end of the last request on the wire or the last byte
+    /// received. The guard interval counts from here.
+    line_busy_until: Option<Duration>,
+    state: State,
+}
+
+impl Exchange {
+    pub fn new(config: LinkConfig) -> Self {
+        Self {
+            mbap: (config.framing == Framing::ModbusTcp).then(MbapCodec::default),
+            config,
+            transaction: None,
+            line_busy_until: None,
+            state: State::Idle,
+        }
+    }
+
+    pub fn config(&self) -> &LinkConfig {
+        &self.config
+    }
+
+    /// Keeps this much silence on the line before every request.
+    pub fn set_guard_interval(&mut self, guard_interval: Duration) {
+        self.config.guard_interval = guard_interval;
+    }
+
+    /// Begins a transaction (forgetting one that has not finished). Fails when the request
+    /// cannot be encoded.
+    pub fn start(&mut self, transaction: &Transaction) -> Result<(), EncodeError> {
+        let frame = transaction.request.encode()?;
+        let frame = match &mut self.mbap {
+            Some(mbap) => mbap.wrap(&frame),
+            None => frame,
+        };
+        self.transaction = Some(transaction.clone());
+        self.state = State::Pending {
+            request: transaction.request.clone(),
+            frame,
+        };
+        Ok(())
+    }
+
+    /// The request, once the guard interval since the line was last busy has passed.
+    pub fn poll_transmit(&mut self, now: Duration) -> Option<Transmit> {
+        if !matches!(self.state, State::Pending { .. }) || now < self.transmit_at() {
+            return None;
+        }
+        let State::Pending { request, frame } = std::mem::replace(&mut self.state, State::Idle)
+        else {
+            return None;
+        };
+        self.state = State::Sending {
+            request,
+            write_started: now,
+        };
+        Some(Transmit {
+            flush_input: true,
+            bytes: frame,
+        })
+    }
+
+    /// The earliest time a request may go out.
+    fn transmit_at(&self) -> Duration {
+        match (self.line_busy_until, self.config.guard_interval) {
+            (Some(busy), guard) if !guard.is_zero() => busy.saturating_add(guard),
+            _ => Duration::ZERO,
+        }
+    }
+
+    /// The driver's `write` of the request returned at `now`: the reply window opens.
+    pub fn handle_sent(&mut self, now: Duration) {
+        let State::Sending {
+            request,
+            write_started,
+        } = std::mem::replace(&mut self.state, State::Idle)
+        else {
+            return;
+        };
+        let Some(transaction) = &self.transaction else {
+            return;
+        };
+        let window = ReplyWindow::new(
+            transaction,
+            (write_started, now),
+            self.config.quiet_gap,
+            self.config.serial.is_some(),
+        );
+        self.line_busy_until = Some(window.clock_start());
+        self.state = if request.expects_reply() {
+            State::Receiving(Box::new(Receiving {
+                parser: ReplyParser::for_request(&request),
+                request,
+                window,
+                garbled: false,
+            }))
+        } else {
+            State::Broadcasting {
+                until: window.clock_start(),
+            }
+        };
+    }
+
+    /// Bytes arrived at `now` (the time they were read).
+    pub fn handle_bytes(&mut self, now: Duration, bytes: &[u8]) {
+        if bytes.is_empty() {
+            return;
+        }
+        self.line_busy_until = Some(self.line_busy_until.map_or(now, |busy| busy.max(now)));
+        let State::Receiving(receiving) = &mut self.state else {
+            // Before the request or after the outcome: not a reply to anything.
+            debug!(count = bytes.len(), "bytes outside a transaction dropped");
+            return;
+        };
+        if receiving.window.receive(now) == Received::Discard {
+            debug!(
+                count = bytes.len(),
+                "bytes outside the reply window dropped"
+            );
+            return;
+        }
+        let reply = match &mut self.mbap {
+            Some(mbap) => receiving.take_mbap(mbap.unwrap(bytes)),
+            None => receiving.take_rtu(bytes),
+        };
+        if let Some(reply) = reply {
+            let timing = receiving.window.timing();
+            self.state = State::Done(Outcome::Reply(reply), timing);
+        }
+    }
+
+    /// When to call [`Self::handle_timeout`] if no bytes come before (`None`: nothing is timed,
+    /// e.g. before [`Self::start`] or while the request is being written).
+    pub fn poll_timeout(&self) -> Option<Duration> {
+        match &self.state {
+            State::Pending { .. } => Some(self.transmit_at()),
+            State::Broadcasting { until } => Some(*until),
+            State::Receiving(receiving) => Some(receiving.window.wake_at()),
+            State::Idle | State::Sending { .. } | State::Done(..) => None,
+        }
+    }
+
+    /// The time from [`Self::poll_timeout`] has come (`now`).
+    pub fn handle_timeout(&mut self, now: Duration) {
+        match &mut self.state {
+            State::Broadcasting { until } if now >= *until => {
+                self.state = State::Done(Outcome::NoReply, ReplyTiming::default());
+            }
+            State::Receiving(receiving) => {
+                if !receiving.window.expire(now) {
+                    return;
+                }
+                let incomplete = match &self.mbap {
+                    Some(mbap) => mbap.has_partial_frame(),
+                    None => !receiving.parser.buffered().is_empty(),
+                };
+                let outcome = if receiving.garbled || incomplete {
+                    Outcome::Garbled
+                } else {
+                    Outcome::NoReply
+                };
+                let timing = receiving.window.timing();
+                self.state = State::Done(outcome, timing);
+            }
+            _ => {}
+        }
+    }
+
+    /// The transaction's outcome once it is finished, and what the scheduler learns from its
+    /// timing; the exchange is then ready for the next [`Self::start`].
+    pub fn poll_outcome(&mut self) -> Option<(Outcome, ReplyTiming)> {
+        if !matches!(self.state, State::Done(..)) {
+            return None;
+        }
+        match std::mem::replace(&mut self.state, State::Idle) {
+            State::Done(outcome, timing) => {
+                self.transaction = None;
+                Some((outcome, timing))
+            }
+            _ => None,
+        }
+    }
+
+    /// On a serial line, once a reply of known length has begun: when its last byte should have
+    /// arrived (the missing bytes' wire time after the last bytes read; the frame's length from
+    /// its header once that is in, else from the request). A driver may sleep until then (or
+    /// [`Self::poll_timeout`] if earlier) and read the rest at once instead of waking for every
+    /// few bytes; timeouts are unchanged. `None` when the reply has not begun (the first byte's
+    /// time is what the scheduler learns from) or its end cannot be known yet: a reply that
+    /// follows an arbitration (event polls, scans) varies in start and length until its frame's
+    /// header is in.
+    pub fn reply_complete_at(&self) -> Option<Duration> {
+        let line = self.config.serial?;
+        let State::Receiving(receiving) = &self.state else {
+            return None;
+        };
+        if !receiving.window.is_waiting() {
+            return None;
+        }
+        let last_byte_at = receiving.window.last_byte_at()?;
+        let buffered = receiving.parser.buffered();
+        let total = match Reply::length_from_header(buffered) {
+            FrameLength::Known(len) => len,
+            // After an arbitration, who answers and how much is known only from the frame's
+            // header: read byte by byte until then.
+            FrameLength::NeedMore if follows_arbitration(&receiving.request) => return None,
+            FrameLength::NeedMore => receiving.request.expected_reply_len(),
+            FrameLength::Unknown => return None,
+        };
+        let missing = total.checked_sub(buffered.len()).filter(|&n| n > 0)?;
+        Some(last_byte_at.saturating_add(line.wire_time(missing)))
+    }
+}
+
+impl Receiving {
+    /// Feeds RTU bytes to the parser; the reply once it is complete.
+    fn take_rtu(&mut self, bytes: &[u8]) -> Option<Reply> {
+        self.parser.push(bytes);
+        loop {
+            match self.parser.poll() {
+                ParseStatus::NeedMore => return None,
+                ParseStatus::Frame(parsed) => return Some(parsed.reply),
+                ParseStatus::Error(err) => {
+                    debug!(%err, "dropped reply bytes");
+                    self.garbled = true;
+                }
+            }
+        }
+    }
+
+    /// The first decoded Modbus TCP reply that answers the request.
+    fn take_mbap(
+        &mut self,
+        replies: Vec<Result<Reply, crate::protocol::DecodeError>>,
+    ) -> Option<Reply> {
+        for reply in replies {
+            match reply {
+                Ok(reply) if answers(&self.request, &reply) => return Some(reply),
+                Ok(reply) => {
+                    debug!(
+                        address = reply.address,
+                        "a reply that does not answer the request"
+                    );
+                    self.garbled = true;
+                }
+                Err(err) => {
+                    debug!(%err, "malformed reply");
+                    self.garbled = true;
+                }
+            }
+        }
+        None
+    }
+}
+
+/// Replies to these requests come after an arbitration among devices: their start and length
+/// vary.
+fn follows_arbitration(request: &Request) -> bool {
+    matches!(
+        request.body,
+        RequestBody::Fast(
+            FastRequest::PollEvents(_) | FastRequest::ScanStart | FastRequest::ScanContinue
+        )
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    //! Byte by byte on virtual time: a device's bytes arrive at the end of their character on the
+    //! wire, and [`run`] hands bytes and timeouts to the exchange in time order, as a driver
+    //! whose reads return at once would.
+    use super::*;
+    use crate::protocol::timing::ADAPTER_LATENCY_ALLOWANCE;
+    use crate::protocol::{EventPoll, Parity, RequestPdu, ResponsePdu};
+
+    fn ms(ms: u64) -> Duration {
+        Duration::from_millis(ms)
+    }
+
+    fn line(baud: u32) -> LineSettings {
+        LineSettings::new(baud, Parity::None, 2)
+    }
+
+    fn serial(line: LineSettings) -> LinkConfig {
+        LinkConfig {
+            framing: Framing::Rtu,
+            serial: Some(line),
+            quiet_gap: (line.char_time() * 8).max(ms(20)),
+            guard_interval: Duration::ZERO,
+        }
+    }
+
+    const RESPONSE_TIMEOUT: Duration = Duration::from_millis(30);
+
+    /// As the scheduler builds a classic transaction.
+    fn transaction(line: &LineSettings, request: Request) -> Transaction {
+        let request_time = line.wire_time(request.encoded_len());
+        let reply_time = line.wire_time(request.expected_reply_len());
+        Transaction {
+            request,
+            request_time,
+            reply_timeout: RESPONSE_TIMEOUT + reply_time + ADAPTER_LATENCY_ALLOWANCE,
+            first_byte_timeout: Some(RESPONSE_TIMEOUT),
+            late_window: RESPONSE_TIMEOUT,
+            estimated: request_time + reply_time,
+        }
+    }
+
+    fn read_request() -> Request {
+        Request::classic(
+            0x1E,
+            RequestPdu::ReadInputRegisters {
+                start: 0x10,
+                count: 2,
+            },
+        )
+    }
+
+    fn reply_frame() -> Vec<u8> {
+        let values = ResponsePdu::ReadInputRegisters {
+            values: vec![0x1234, 0x5678],
+        };
+        Reply::classic(0x1E, values).encode().unwrap_or_default()
+    }
+
+    /// `bytes` sent by a device from `start` at the line's pace: each arrives at the end of its
+    /// character.
+    fn on_the_wire(line: &LineSettings, start: Duration, bytes: &[u8]) -> Vec<(Duration, u8)> {
+        (1..)
+            .zip(bytes)
+            .map(|(n, &byte)| (start + line.wire_time(n), byte))
+            .collect()
+    }
+
+    /// What a run ended with, and when.
+    struct Finished {
+        outcome: Outcome,
+        timing: ReplyTiming,
+        at: Duration,
+        /// When the request's `write` returned.
+        sent_at: Duration,
+    }
+
+    /// Runs one transaction from `now`: the request's `write` returns at once; `arrivals` (times
+    /// on the same clock) are handed over one byte at a time, timeouts when they come first.
+    fn run(
+        exchange: &mut Exchange,
+        transaction: &Transaction,
+        mut now: Duration,
+        arrivals: &[(Duration, u8)],
+    ) -> Finished {
+        exchange.start(transaction).expect("encodes");
+        let mut sent_at = Duration::ZERO;
+        let mut next = 0;
+        for _ in 0..10_000 {
+            if let Some(transmit) = exchange.poll_transmit(now) {
+                assert!(transmit.flush_input, "stale input is flushed first");
+                exchange.handle_sent(now);
+                sent_at = now;
+                // Whatever the line delivered before the write was flushed.
+                while arrivals.get(next).is_some_and(|(at, _)| *at < now) {
+                    next += 1;
+                }
+            }
+            if let Some((outcome, timing)) = exchange.poll_outcome() {
+                return Finished {
+                    outcome,
+                    timing,
+                    at: now,
+                    sent_at,
+                };
+            }
+            let timeout = exchange
+                .poll_timeout()
+                .expect("a pending transaction is timed");
+            match arrivals.get(next) {
+                Some(&(at, byte)) if at < timeout => {
+                    now = now.max(at);
+                    exchange.handle_bytes(now, &[byte]);
+                    next += 1;
+                }
+                _ => {
+                    now = now.max(timeout);
+                    exchange.handle_timeout(now);
+                }
+            }
+        }
+        panic!("the exchange never finished");
+    }
+
+    #[test]
+    fn a_reply_arriving_byte_by_byte_is_taken_at_its_last_byte() {
+        for baud in [9600, 115_200] {
+            let line = line(baud);
+            let transaction = transaction(&line, read_request());
+            let mut exchange = Exchange::new(serial(line));
+            let start = ms(100);
+            let request_end = start + transaction.request_time;
+            // The device answers 1 ms after the request has left the wire.
+            let arrivals = on_the_wire(&line, request_end + ms(1), &reply_frame());
+            let finished = run(&mut exchange, &transaction, start, &arrivals);
+            let expected = Reply::classic(
+                0x1E,
+                ResponsePdu::ReadInputRegisters {
+                    values: vec![0x1234, 0x5678],
+                },
+            );
+            assert_eq!(finished.outcome, Outcome::Reply(expected), "at {baud}");
+            assert_eq!(
+                finished.at,
+                arrivals.last().map(|a| a.0).unwrap_or_default()
+            );
+            assert_eq!(
+                finished.timing.first_byte,
+                Some(ms(1) + line.wire_time(1)),
+                "first byte timed from the request's end at {baud}"
+            );
+        }
+    }
+
+    #[test]
+    fn silence_ends_after_the_first_byte_timeout_and_the_late_window() {
+        for baud in [9600, 115_200] {
+            let line = line(baud);
+            let transaction = transaction(&line, read_request());
+            let mut exchange = Exchange::new(serial(line));
+            exchange.start(&transaction).expect("encodes");
+            assert!(exchange.poll_transmit(ms(0)).is_some());
+            assert_eq!(exchange.poll_timeout(), None, "nothing timed while writing");
+            exchange.handle_sent(ms(0));
+            let request_end = transaction.request_time;
+            assert_eq!(
+                exchange.poll_timeout(),
+                Some(request_end + RESPONSE_TIMEOUT)
+            );
+            let finished = run(&mut exchange, &transaction, ms(1000), &[]);
+            assert_eq!(finished.outcome, Outcome::NoReply);
+            assert_eq!(
+                finished.at,
+                ms(1000) + transaction.request_time + RESPONSE_TIMEOUT + RESPONSE_TIMEOUT,
+                "first-byte timeout, then the late window, at {baud}"
+            );
+            assert_eq!(finished.timing, ReplyTiming::default());
+        }
+    }
+
+    #[test]
+    fn a_reply_cut_short_is_garbled_after_the_quiet_gap() {
+        for baud in [9600, 115_200] {
+            let line = line(baud);
+            let config = serial(line);
+            let transaction = transaction(&line, read_request());
+            let mut exchange = Exchange::new(config);
+            let frame = reply_frame();
+            let arrivals = on_the_wire(&line, transaction.request_time, &frame[..4]);
+            let finished = run(&mut exchange, &transaction, ms(0), &arrivals);
+            assert_eq!(finished.outcome, Outcome::Garbled, "at {baud}");
+            let last = arrivals.last().map(|a| a.0).unwrap_or_default();
+            assert_eq!(finished.at, last + config.quiet_gap);
+        }
+    }
+
+    #[test]
+    fn a_reply_with_a_bad_crc_is_garbled_not_silent() {
+        let line = line(115_200);
+        let transaction = transaction(&line, read_request());
+        let mut frame = reply_frame();
+        if let Some(crc) = frame.last_mut() {
+            *crc ^= 0x55;
+        }
+        let arrivals = on_the_wire(&line, transaction.request_time, &frame);
+        let mut exchange = Exchange::new(serial(line));
+        let finished = run(&mut exchange, &transaction, ms(0), &arrivals);
+        assert_eq!(finished.outcome, Outcome::Garbled);
+    }
+
+    #[test]
+    fn a_valid_frame_after_garbage_is_the_reply() {
+        let line = line(9600);
+        let transaction = transaction(&line, read_request());
+        let mut bytes = vec![0x00, 0x13];
+        bytes.extend(reply_frame());
+        let arrivals = on_the_wire(&line, transaction.request_time + ms(2), &bytes);
+        let mut exchange = Exchange::new(serial(line));
+        let finished = run(&mut exchange, &transaction, ms(0), &arrivals);
+        assert!(matches!(finished.outcome, Outcome::Reply(_)));
+    }
+
+    #[test]
+    fn a_late_reply_is_thrown_away_and_reported() {
+        for baud in [9600, 115_200] {
+            let line = line(baud);
+            let transaction = transaction(&line, read_request());
+            let mut exchange = Exchange::new(serial(line));
+            // 40 ms after the request: 10 ms after the first-byte timeout, in the late window.
+            let late = transaction.request_time + ms(40);
+            let arrivals = on_the_wire(&line, late, &reply_frame());
+            let finished = run(&mut exchange, &transaction, ms(0), &arrivals);
+            assert_eq!(finished.outcome, Outcome::NoReply, "at {baud}");
+            assert_eq!(finished.timing.first_byte, None);
+            assert_eq!(finished.timing.late_byte, Some(ms(40) + line.wire_time(1)));
+            // Not finished before the late reply has ended and the line was quiet a frame gap.
+            let last = arrivals.last().map(|a| a.0).unwrap_or_default();
+            assert!(finished.at >= last + serial(line).quiet_gap, "at {baud}");
+        }
+    }
+
+    #[test]
+    fn bytes_before_the_request_left_the_wire_are_not_its_reply() {
+        let line = line(9600);
+        let transaction = transaction(&line, read_request());
+        let mut arrivals = vec![(ms(2), 0x1E), (ms(3), 0x04)];
+        let reply_start = transaction.request_time + ms(1);
+        arrivals.extend(on_the_wire(&line, reply_start, &reply_frame()));
+        let mut exchange = Exchange::new(serial(line));
+        let finished = run(&mut exchange, &transaction, ms(0), &arrivals);
+        assert!(matches!(finished.outcome, Outcome::Reply(_)));
+        assert_eq!(finished.timing.first_byte, Some(ms(1) + line.wire_time(1)));
+    }
+
+    #[test]
+    fn the_guard_interval_keeps_the_line_quiet_before_a_request() {
+        let line = line(115_200);
+        let guard = ms(5);
+        let mut exchange = Exchange::new(LinkConfig {
+            guard_interval: guard,
+            ..serial(line)
+        });
+        let transaction = transaction(&line, read_request());
+        let arrivals = on_the_wire(&line, transaction.request_time, &reply_frame());
+        let first = run(&mut exchange, &transaction, ms(0), &arrivals);
+        let last_byte = first.at;
+        // Noise after the reply keeps the line busy.
+        exchange.handle_bytes(last_byte + ms(1), &[0x55]);
+        exchange.start(&transaction).expect("encodes");
+        assert_eq!(exchange.poll_transmit(last_byte + ms(2)), None);
+        assert_eq!(exchange.poll_timeout(), Some(last_byte + ms(1) + guard));
+        exchange.handle_timeout(last_byte + ms(1) + guard);
+        let transmit = exchange.poll_transmit(last_byte + ms(1) + guard);
+        assert!(transmit.is_some_and(
+            |t| t.flush_input && t.bytes == read_request().encode().unwrap_or_default()
+        ));
+        // Without a guard interval the request goes out at once.
+        let mut unguarded = Exchange::new(serial(line));
+        let second = run(&mut unguarded, &transaction, ms(50), &[]);
+        assert_eq!(second.sent_at, ms(50));
+        assert_eq!(first.sent_at, ms(0));
+    }
+
+    #[test]
+    fn a_broadcast_waits_only_for_the_request_to_leave_the_wire() {
+        let line = line(9600);
+        let write = RequestPdu::WriteSingleRegister {
+            address: 1,
+            value: 2,
+        };
+        let transaction = transaction(&line, Request::classic(0, write));
+        let mut exchange = Exchange::new(serial(line));
+        let finished = run(&mut exchange, &transaction, ms(10), &[]);
+        assert_eq!(finished.outcome, Outcome::NoReply);
+        assert_eq!(finished.at, ms(10) + transaction.request_time);
+    }
+
+    #[test]
+    fn an_event_reply_is_found_after_the_arbitration_filler() {
+        let line = line(115_200);
+        let poll = Request::poll_events(EventPoll {
+            min_address: 0,
+            max_data_len: 100,
+            ack_address: 0,
+            ack_flag: 0,
+        });
+        let transaction = transaction(&line, poll);
+        let no_events = Reply::fast(0xFD, crate::protocol::FastReply::NoEvents);
+        let mut bytes = vec![0xFF, 0xFF];
+        bytes.extend(no_events.encode().unwrap_or_default());
+        let arrivals = on_the_wire(&line, transaction.request_time + ms(1), &bytes);
+        let mut exchange = Exchange::new(serial(line));
+        exchange.start(&transaction).expect("encodes");
+        exchange.poll_transmit(ms(0));
+        exchange.handle_sent(ms(0));
+        exchange.handle_bytes(arrivals[0].0, &[0xFF]);
+        assert_eq!(
+            exchange.reply_complete_at(),
+            None,
+            "an arbitration's winner and length are unknown"
+        );
+        let finished = run(&mut exchange, &transaction, ms(100), &[]);
+        assert_eq!(finished.outcome, Outcome::NoReply);
+        let mut exchange = Exchange::new(serial(line));
+        let finished = run(&mut exchange, &transaction, ms(0), &arrivals);
+        assert_eq!(finished.outcome, Outcome::Reply(no_events));
+    }
+
+    #[test]
+    fn an_event_packet_is_predicted_once_its_header_is_in() {
+        let line = line(115_200);
+        let poll = Request::poll_events(EventPoll {
+            min_address: 0,
+            max_data_len: 100,
+            ack_address: 0,
+            ack_flag: 0,
+        });
+        let transaction = transaction(&line, poll);
+        let mut exchange = Exchange::new(serial(line));
+        exchange.start(&transaction).expect("encodes");
+        exchange.poll_transmit(ms(0));
+        exchange.handle_sent(ms(0));
+        // Filler, then the winner's address and function: the length is not known yet.
+        exchange.handle_bytes(ms(1), &[0xFF, 0x16, 0x46, 0x11]);
+        assert_eq!(exchange.reply_complete_at(), None);
+        // 16 46 11 flag count len=0x0A: 10 bytes of events and the CRC still to come.
+        exchange.handle_bytes(ms(2), &[0x01, 0x02, 0x0A]);
+        assert_eq!(
+            exchange.reply_complete_at(),
+            Some(ms(2) + line.wire_time(12))
+        );
+    }
+
+    #[test]
+    fn the_end_of_a_reply_of_known_length_is_predicted() {
+        for baud in [9600, 115_200] {
+            let line = line(baud);
+            let transaction = transaction(&line, read_request());
+            let mut exchange = Exchange::new(serial(line));
+            exchange.start(&transaction).expect("encodes");
+            exchange.poll_transmit(ms(0));
+            exchange.handle_sent(ms(0));
+            assert_eq!(exchange.reply_complete_at(), None, "before the first byte");
+            let frame = reply_frame();
+            let arrivals = on_the_wire(&line, transaction.request_time, &frame);
+            let (first_at, first) = arrivals[0];
+            exchange.handle_bytes(first_at, &[first]);
+            let last_at = first_at + line.wire_time(frame.len() - 1);
+            assert_eq!(exchange.reply_complete_at(), Some(last_at), "at {baud}");
+            // Read late, in one piece, all but the CRC's last byte: one character after that.
+            let rest: Vec<u8> = frame[1..frame.len() - 1].to_vec();
+            exchange.handle_bytes(last_at + ms(3), &rest);
+            assert_eq!(
+                exchange.reply_complete_at(),
+                Some(last_at + ms(3) + line.wire_time(1))
+            );
+            exchange.handle_bytes(last_at + ms(4), &frame[frame.len() - 1..]);
+            assert!(matches!(
+                exchange.poll_outcome(),
+                Some((Outcome::Reply(_), _))
+            ));
+            assert_eq!(exchange.reply_complete_at(), None);
+        }
+    }
+
+    #[test]
+    fn an_exception_is_predicted_from_its_header() {
+        let line = line(9600);
+        let transaction = transaction(&line, read_request());
+        let mut exchange = Exchange::new(serial(line));
+        exchange.start(&transaction).expect("encodes");
+        exchange.poll_transmit(ms(0));
+        exchange.handle_sent(ms(0));
+        exchange.handle_bytes(ms(20), &[0x1E, 0x84]);
+        // 1E 84 02 CRC CRC: three more characters.
+        assert_eq!(
+            exchange.reply_complete_at(),
+            Some(ms(20) + line.wire_time(3))
+        );
+    }
+
+    #[test]
+    fn modbus_tcp_replies_are_decoded_without_a_crc() {
+        let config = LinkConfig {
+            framing: Framing::ModbusTcp,
+            serial: None,
+            quiet_gap: ms(50),
+            guard_interval: Duration::ZERO,
+        };
+        let line = line(115_200);
+        let transaction = transaction(&line, read_request());
+        let mut exchange = Exchange::new(config);
+        exchange.start(&transaction).expect("encodes");
+        let transmit = exchange.poll_transmit(ms(0)).expect("sent at once");
+        assert_eq!(
+            transmit.bytes,
+            vec![0, 1, 0, 0, 0, 6, 0x1E, 4, 0, 0x10, 0, 2]
+        );
+        exchange.handle_sent(ms(0));
+        assert_eq!(exchange.reply_complete_at(), None, "TCP timing is unknown");
+        // Transaction 1, 7 bytes of unit + PDU: 1E 04 04 12 34 56 78.
+        exchange.handle_bytes(ms(3), &[0, 1, 0, 0, 0, 7, 0x1E, 4, 4, 0x12]);
+        assert_eq!(exchange.poll_outcome(), None);
+        exchange.handle_bytes(ms(4), &[0x34, 0x56, 0x78]);
+        let (outcome, timing) = exchange.poll_outcome().expect("a reply");
+        let values = ResponsePdu::ReadInputRegisters {
+            values: vec![0x1234, 0x5678],
+        };
+        assert_eq!(outcome, Outcome::Reply(Reply::classic(0x1E, values)));
+        assert_eq!(timing.first_byte, Some(ms(3) - transaction.request_time));
+    }
+
+    #[test]
+    fn a_modbus_tcp_reply_to_another_request_is_garbled() {
+        let config = LinkConfig {
+            framing: Framing::ModbusTcp,
+            serial: None,
+            quiet_gap: ms(50),
+            guard_interval: Duration::ZERO,
+        };
+        let line = line(115_200);
+        let transaction = transaction(&line, read_request());
+        let mut exchange = Exchange::new(config);
+        // One register where two were asked for.
+        let arrivals: Vec<(Duration, u8)> = [0u8, 1, 0, 0, 0, 5, 0x1E, 4, 2, 0x12, 0x34]
+            .iter()
+            .map(|&b| (ms(2), b))
+            .collect();
+        let finished = run(&mut exchange, &transaction, ms(0), &arrivals);
+        assert_eq!(finished.outcome, Outcome::Garbled);
+    }
+
+    #[test]
+    fn bytes_outside_a_transaction_never_become_a_reply() {
+        let line = line(115_200);
+        let transaction = transaction(&line, read_request());
+        let mut exchange = Exchange::new(serial(line));
+        // A whole, valid reply before the request: stale, never taken.
+        exchange.handle_bytes(ms(1), &reply_frame());
+        assert_eq!(exchange.poll_outcome(), None);
+        let finished = run(&mut exchange, &transaction, ms(2), &[]);
+        assert_eq!(finished.outcome, Outcome::NoReply);
+    }
+}

@@ -1,0 +1,191 @@
+//! A serial port (a real RS-485 adapter or the simulator's pseudo-terminal) under tokio, watched
+//! only while the transport waits for bytes it cannot time.
+//!
+//! A line delivers a reply a few bytes at a time. Registered with the reactor all the time, the
+//! port would wake the daemon for every few bytes, and every wake-up costs a round through the
+//! kernel (and on a tty a read that finds nothing costs a wait for the kernel's receive worker).
+//! So the port is registered only while the transport waits for bytes it cannot time; between
+//! the first byte of a reply of known length and its expected end
+//! ([`Exchange::reply_complete_at`](super::exchange::Exchange::reply_complete_at)) the transport
+//! sleeps on a timerfd (tokio's timers round to milliseconds, several characters at 115200) and
+//! then reads the rest at once.
+
+use std::fs::File;
+use std::io::{self, Read, Write};
+use std::os::fd::{AsFd, AsRawFd, FromRawFd, IntoRawFd, OwnedFd, RawFd};
+
+use nix::fcntl::{fcntl, FcntlArg, OFlag};
+use nix::sys::termios::{tcflush, FlushArg};
+use nix::sys::time::TimeSpec;
+use nix::sys::timerfd::{ClockId, Expiration, TimerFd, TimerFlags, TimerSetTimeFlags};
+use tokio::io::unix::AsyncFd;
+use tokio::io::Interest;
+use tokio::time::Instant;
+
+use crate::protocol::{self, LineSettings};
+
+/// The port's descriptor as the reactor sees it while it is watched (the port itself stays with
+/// [`SerialLink`], which outlives every registration).
+struct WatchedFd(RawFd);
+
+impl AsRawFd for WatchedFd {
+    fn as_raw_fd(&self) -> RawFd {
+        self.0
+    }
+}
+
+/// A timerfd as the reactor sees it.
+struct Timer(TimerFd);
+
+impl AsRawFd for Timer {
+    fn as_raw_fd(&self) -> RawFd {
+        self.0.as_fd().as_raw_fd()
+    }
+}
+
+/// Registers `fd` with the reactor for `interest`.
+fn register<T: AsRawFd>(fd: T, interest: Interest) -> io::Result<AsyncFd<T>> {
+    // SAFETY: the descriptors registered here are the link's port and timer, which the link keeps
+    // open, unchanged, for longer than any registration (see the field order of `SerialLink`).
+    Ok(unsafe { AsyncFd::register_with_interest(fd, interest) }?)
+}
+
+pub struct SerialLink {
+    /// Declared before `port`: a registration is removed before the port is closed.
+    watch: Option<AsyncFd<WatchedFd>>,
+    timer: AsyncFd<Timer>,
+    port: File,
+}
+
+impl SerialLink {
+    /// Opens and sets up the port (raw, exclusive, the line's settings), non-blocking.
+    pub fn open(path: &str, line: &LineSettings) -> io::Result<Self> {
+        let port = serialport::new(path, line.baud)
+            .data_bits(match line.data_bits {
+                5 => serialport::DataBits::Five,
+                6 => serialport::DataBits::Six,
+                7 => serialport::DataBits::Seven,
+                _ => serialport::DataBits::Eight,
+            })
+            .parity(match line.parity {
+                protocol::Parity::None => serialport::Parity::None,
+                protocol::Parity::Even => serialport::Parity::Even,
+                protocol::Parity::Odd => serialport::Parity::Odd,
+            })
+            .stop_bits(if line.stop_bits == 2 {
+                serialport::StopBits::Two
+            } else {
+                serialport::StopBits::One
+            })
+            .open_native()
+            .map_err(io::Error::from)?;
+        // SAFETY: `into_raw_fd` gives up the descriptor without closing it; nothing else owns it.
+        let port = File::from(unsafe { OwnedFd::from_raw_fd(port.into_raw_fd()) });
+        fcntl(&port, FcntlArg::F_SETFL(OFlag::O_NONBLOCK))?;
+        let timer = TimerFd::new(
+            ClockId::CLOCK_MONOTONIC,
+            TimerFlags::TFD_NONBLOCK | TimerFlags::TFD_CLOEXEC,
+        )?;
+        Ok(Self {
+            watch: None,
+            timer: register(Timer(timer), Interest::READABLE)?,
+            port,
+        })
+    }
+
+    /// Throws away what the line delivered and nobody read yet.
+    pub fn flush_input(&mut self) -> io::Result<()> {
+        // A registration from the last transaction would carry its readiness over.
+        self.watch = None;
+        tcflush(&self.port, FlushArg::TCIFLUSH).map_err(io::Error::from)
+    }
+
+    pub async fn write_all(&mut self, mut bytes: &[u8]) -> io::Result<()> {
+        while !bytes.is_empty() {
+            match self.port.write(bytes) {
+                Ok(0) => return Err(io::ErrorKind::WriteZero.into()),
+                Ok(written) => bytes = bytes.get(written..).unwrap_or(&[]),
+                Err(err) if err.kind() == io::ErrorKind::WouldBlock => {
+                    // The transmit buffer is full (never for a Modbus frame on a sane driver).
+                    let writable = register(WatchedFd(self.port.as_raw_fd()), Interest::WRITABLE)?;
+                    writable.writable().await?.clear_ready();
+                }
+                Err(err) if err.kind() == io::ErrorKind::Interrupted => {}
+                Err(err) => return Err(err),
+            }
+        }
+        Ok(())
+    }
+
+    /// Waits until bytes arrive and reads them (one read: a tty hands over all it has).
+    pub async fn read(&mut self, buffer: &mut [u8]) -> io::Result<usize> {
+        if self.watch.is_none() {
+            self.watch = Some(register(
+                WatchedFd(self.port.as_raw_fd()),
+                Interest::READABLE,
+            )?);
+        }
+        let Some(watch) = &self.watch else {
+            return Err(io::ErrorKind::Other.into());
+        };
+        loop {
+            let mut ready = watch.readable().await?;
+            match (&self.port).read(buffer) {
+                Err(err) if err.kind() == io::ErrorKind::WouldBlock => ready.clear_ready(),
+                Err(err) if err.kind() == io::ErrorKind::Interrupted => {}
+                Ok(count) => {
+                    // A tty read returns everything there is (unless the buffer is full): the
+                    // next call waits for the next edge rather than paying for a read that
+                    // finds nothing, the costly kind on a tty.
+                    if count < buffer.len() {
+                        ready.clear_ready();
+                    }
+                    return Ok(count);
+                }
+                Err(err) => return Err(err),
+            }
+        }
+    }
+
+    /// Stops watching the line: bytes that arrive wake nobody until [`Self::read_now`].
+    pub fn unwatch(&mut self) {
+        self.watch = None;
+    }
+
+    /// Reads whatever has arrived, without waiting: `Ok(None)` when nothing has.
+    pub fn read_now(&mut self, buffer: &mut [u8]) -> io::Result<Option<usize>> {
+        loop {
+            match (&self.port).read(buffer) {
+                Ok(count) => return Ok(Some(count)),
+                Err(err) if err.kind() == io::ErrorKind::WouldBlock => return Ok(None),
+                Err(err) if err.kind() == io::ErrorKind::Interrupted => {}
+                Err(err) => return Err(err),
+            }
+        }
+    }
+
+    /// Sleeps until `at`, to within the kernel's timer slack.
+    pub async fn sleep_until(&mut self, at: Instant) -> io::Result<()> {
+        let left = at.saturating_duration_since(Instant::now());
+        if left.is_zero() {
+            return Ok(());
+        }
+        // Setting the timer also forgets an expiry nobody waited for.
+        self.timer
+            .get_ref()
+            .0
+            .set(
+                Expiration::OneShot(TimeSpec::from_duration(left)),
+                TimerSetTimeFlags::empty(),
+            )
+            .map_err(io::Error::from)?;
+        loop {
+            let mut ready = self.timer.readable().await?;
+            // Readiness left over from an earlier expiry: not this one.
+            ready.clear_ready();
+            if Instant::now() >= at {
+                return Ok(());
+            }
+        }
+    }
+}
