@@ -822,3 +822,117 @@ fn an_open_page_does_not_hold_the_daemons_exit() {
         }
     }
 }
+
+/// `rtu2mqtt demo` serves the page and prints where.
+#[test]
+fn the_demo_prints_the_status_page_url_and_serves_it() {
+    use std::io::BufRead;
+    let mut demo = Command::new(env!("CARGO_BIN_EXE_rtu2mqtt"))
+        .args(["demo", "--no-broker"])
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let stderr = std::io::BufReader::new(demo.stderr.take().unwrap());
+    let (sender, lines) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for line in stderr.lines().map_while(Result::ok) {
+            if sender.send(line).is_err() {
+                break;
+            }
+        }
+    });
+    let deadline = Instant::now() + DEADLINE;
+    let url = loop {
+        let line = lines
+            .recv_timeout(deadline.saturating_duration_since(Instant::now()))
+            .expect("the demo prints the status page's URL");
+        if let Some(rest) = line.trim_start().strip_prefix("status:") {
+            break rest.split_whitespace().next().unwrap().to_string();
+        }
+    };
+    let port: u16 = url
+        .strip_prefix("http://127.0.0.1:")
+        .and_then(|rest| rest.trim_end_matches('/').parse().ok())
+        .unwrap_or_else(|| panic!("{url}"));
+    let started = Instant::now();
+    let devices = loop {
+        let count = status(port).and_then(|s| s["ports"][0]["devices"].as_array().map(Vec::len));
+        if let Some(count) = count {
+            break count;
+        }
+        assert!(
+            started.elapsed() < DEADLINE,
+            "the demo's page did not answer at {url}"
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    };
+    assert_eq!(devices, 5);
+    let pid = nix::unistd::Pid::from_raw(demo.id() as i32);
+    nix::sys::signal::kill(pid, nix::sys::signal::Signal::SIGINT).unwrap();
+    let _ = demo.wait();
+}
+
+/// The page's scan button: a Fast Modbus scan through the running port's bus queue (the RPC
+/// `port/Scan`), while the daemon keeps serving the bus.
+#[test]
+fn a_scan_from_the_page_finds_the_devices_through_the_running_port() {
+    let setup = start(115_200, false, json!({}));
+    let port = setup.http_port;
+    let port_name = wait_for("the port open", &setup.daemon, || {
+        let status = status(port)?;
+        let first = &status["ports"][0];
+        (first["open"] == true).then(|| first["name"].as_str().map(str::to_string))?
+    });
+    let body = json!({"port": port_name}).to_string();
+    let (code, _, answer) = http(port, "POST", "/api/scan", &[("x-rtu2mqtt", "1")], &body).unwrap();
+    assert_eq!(code, 200, "{answer}");
+    let report: Value = serde_json::from_str(&answer).unwrap();
+    let serials: Vec<&str> = report["devices"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter_map(|d| d["sn"].as_str())
+        .collect();
+    // 0xFE000020 and 0xFE000021, the simulator's serial numbers.
+    assert_eq!(serials, ["4261412896", "4261412897"], "{report}");
+
+    // The scan's requests count with the scheduler's own. With both devices' polling held,
+    // only event requests go out besides them.
+    for device in ["relay6_20", "climate_21"] {
+        let body = json!({"device": device, "suspended": true}).to_string();
+        let (code, _, _) =
+            http(port, "POST", "/api/suspend", &[("x-rtu2mqtt", "1")], &body).unwrap();
+        assert_eq!(code, 202);
+    }
+    wait_for("both devices held", &setup.daemon, || {
+        let status = status(port)?;
+        status["ports"][0]["devices"]
+            .as_array()?
+            .iter()
+            .all(|d| d["suspended"] == true)
+            .then_some(())
+    });
+    let not_event_rounds = || {
+        let samples = metrics(port).unwrap();
+        metric(&samples, "rtu2mqtt_transactions_total", &[]).unwrap()
+            - metric(&samples, "rtu2mqtt_event_rounds_total", &[]).unwrap()
+    };
+    let before = not_event_rounds();
+    let (code, _, answer) = http(port, "POST", "/api/scan", &[("x-rtu2mqtt", "1")], &body).unwrap();
+    assert_eq!(code, 200, "{answer}");
+    // Scan start, a continue per device, the end: four at least.
+    assert!(not_event_rounds() >= before + 4.0);
+    // Another name is refused in words.
+    let (code, _, answer) = http(
+        port,
+        "POST",
+        "/api/scan",
+        &[("x-rtu2mqtt", "1")],
+        r#"{"port": "/dev/nothing"}"#,
+    )
+    .unwrap();
+    assert_eq!(code, 502);
+    assert!(answer.contains("no running port"), "{answer}");
+}

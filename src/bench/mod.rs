@@ -14,4 +14,6 @@ pub mod plots;
 #[cfg(feature = "bench")]
 pub mod report;
 #[cfg(feature = "bench")]
+pub mod scan;
+#[cfg(feature = "bench")]
 pub mod scenarios;

@@ -9,6 +9,7 @@ use anyhow::Context;
 
 use crate::bench::plots;
 use crate::bench::report::{markdown, Environment};
+use crate::bench::scan::{devices_at_three_settings, run_scan};
 use crate::bench::scenarios::{plan, run, BenchOptions, RunResult};
 
 /// Run the benchmarks (event latency, cost, bus efficiency, …) and write a report with plots.
@@ -20,7 +21,7 @@ pub struct Args {
     /// Each scenario briefly (about a minute in all): to check the bench, not to quote numbers.
     #[arg(long)]
     pub quick: bool,
-    /// Only these scenarios (e.g. `--only 2,7`); 5 (scan) is not implemented.
+    /// Only these scenarios (e.g. `--only 2,7`).
     #[arg(long, value_delimiter = ',', value_name = "N,…")]
     pub only: Vec<u8>,
     /// Line speeds to run at (8N2).
@@ -81,6 +82,29 @@ pub fn run_bench(args: Args) -> anyhow::Result<ExitCode> {
         );
         results.push(result);
     }
+    let mut scans = Vec::new();
+    if args.only.is_empty() || args.only.contains(&5) {
+        let buses = [
+            ("6 devices at 3 settings", devices_at_three_settings()),
+            ("empty bus", Vec::new()),
+        ];
+        for (label, devices) in buses {
+            eprintln!("[{:>3.0} s] scan: {label}", started.elapsed().as_secs_f64());
+            let scan = run_scan(&binary, &args.mosquitto, label, &devices);
+            eprintln!(
+                "        {} of {} devices found, {} settings in {:.2} s{}",
+                scan.devices_found,
+                scan.devices_on_bus,
+                scan.settings_scanned,
+                scan.elapsed.as_secs_f64(),
+                scan.problem
+                    .as_deref()
+                    .map(|p| format!(" — {}", p.lines().next().unwrap_or("")))
+                    .unwrap_or_default()
+            );
+            scans.push(scan);
+        }
+    }
     let plotted = if plots::load_font() {
         write_plots(&args.out, &results)
     } else {
@@ -95,7 +119,7 @@ pub fn run_bench(args: Args) -> anyhow::Result<ExitCode> {
         total: started.elapsed(),
         quick: args.quick,
     };
-    let mut text = markdown(&results, &environment);
+    let mut text = markdown(&results, &scans, &environment);
     if let Err(err) = &plotted {
         text.push_str(&format!("\nPlots: {err:#}\n"));
     }

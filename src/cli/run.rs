@@ -112,6 +112,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         );
         let status_server = status.map(|(hub, server)| {
             hub.set_writes(writes.clone());
+            hub.set_port_directory(bus.port_directory());
             tokio::spawn(server.serve())
         });
         // wb-mqtt-serial's MQTT RPC, on its own broker connection (not with --stdio).

@@ -470,8 +470,11 @@ impl PortTask {
             return Err(self.lost_port());
         };
         debug!(port = %self.plan_name, away = ?bus.away, "queued transaction");
+        let started = self.now();
         match transport.transact(&job.transaction).await {
             Ok((outcome, _timing)) => {
+                // The status page counts it with the scheduler's own: the line was as busy.
+                self.record_transaction(started, &job.transaction, &outcome);
                 let _ = job.reply.send(Ok(outcome));
                 Ok(())
             }

@@ -52,12 +52,7 @@ pub fn update_line(update: &DeviceUpdate) -> serde_json::Value {
 pub async fn print_updates(mut updates: mpsc::Receiver<DeviceUpdate>) {
     let mut stdout = tokio::io::stdout();
     while let Some(update) = updates.recv().await {
-        if let DeviceUpdate::Value {
-            from_event: false,
-            changed: false,
-            ..
-        } = &update
-        {
+        if !printed(&update) {
             continue;
         }
         let line = format!("{}\n", update_line(&update));
@@ -65,6 +60,19 @@ pub async fn print_updates(mut updates: mpsc::Receiver<DeviceUpdate>) {
             return;
         }
     }
+}
+
+/// Whether the stdout sink prints `update`: all but a value read again unchanged (whether it
+/// changed is the device model's to say).
+fn printed(update: &DeviceUpdate) -> bool {
+    !matches!(
+        update,
+        DeviceUpdate::Value {
+            from_event: false,
+            changed: false,
+            ..
+        }
+    )
 }
 
 /// Reads control writes from stdin until it closes.
@@ -98,5 +106,32 @@ pub async fn read_writes(writes: mpsc::Sender<ControlWrite>) {
             },
             Err(err) => warn!(%line, %err, "not a JSON line"),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn value(from_event: bool, changed: bool) -> DeviceUpdate {
+        DeviceUpdate::Value {
+            device_id: "relay6_20".into(),
+            control_id: "K1".into(),
+            value: "1".into(),
+            from_event,
+            changed,
+        }
+    }
+
+    #[test]
+    fn changes_and_every_event_value_are_printed() {
+        assert!(printed(&value(false, true)));
+        assert!(printed(&value(true, true)));
+        assert!(printed(&value(true, false)), "an event repeating the value");
+        assert!(!printed(&value(false, false)), "a read repeating the value");
+        assert_eq!(
+            update_line(&value(true, false)).to_string(),
+            r#"{"device":"relay6_20","control":"K1","value":"1","event":true}"#
+        );
     }
 }

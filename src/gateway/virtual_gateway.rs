@@ -3,11 +3,10 @@
 //! threads, no pty and no broker. A scenario runs in milliseconds and is exact: "no reply" and
 //! "published within" are facts of the virtual wire, not of a busy machine.
 //!
-//! The wire between scheduler and bus is [`VirtualGateway::transact`]: the request goes on the
-//! bus at `now`, the bus says which bytes come back and when (wire times of
-//! `protocol::timing`), and the transport's own reply window (`transport::receive`) and parser
-//! decide what counts as the reply. Keep it small: it is replaced by the sans-IO transport
-//! once that exists.
+//! The wire between scheduler and bus is [`VirtualGateway::transact`]: the daemon's own sans-IO
+//! transport ([`Exchange`]: guard interval, reply window, parser, reply vs garbage vs silence)
+//! driven on virtual time, with the bus saying which bytes come back and when (wire times of
+//! `protocol::timing`). Only the IO is replaced.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -23,11 +22,11 @@ use crate::config::TemplateLibrary;
 use crate::mqtt::TopicScheme;
 use crate::mqtt::{MqttAction, PlannerSettings, PublicationPlanner, UnchangedPolicy, WriteOutcome};
 use crate::port::{Action, Outcome, PortScheduler, ReplyTiming, Transaction};
-use crate::protocol::{LineSettings, ParseStatus, RegisterType, ReplyParser};
+use crate::protocol::{LineSettings, RegisterType};
 use crate::sim::bus::Bus;
 use crate::sim::bus_file::{build_device, parse_line, DeviceEntry, TemplateSource};
 use crate::sim::MasterLine;
-use crate::transport::receive::{Received, ReplyWindow};
+use crate::transport::exchange::{Exchange, Framing, LinkConfig};
 use crate::updates::{ControlWrite, DeviceUpdate};
 
 fn repo(path: &str) -> PathBuf {
@@ -47,6 +46,7 @@ pub struct VirtualGateway {
     pub now: Duration,
     epoch: Instant,
     line: LineSettings,
+    exchange: Exchange,
     scheduler: PortScheduler,
     models: Vec<DeviceModel>,
     planner: PublicationPlanner,
@@ -112,6 +112,13 @@ impl VirtualGateway {
             now: Duration::ZERO,
             epoch: Instant::now(),
             line: plan.settings.line,
+            exchange: Exchange::new(LinkConfig {
+                framing: Framing::Rtu,
+                serial: Some(plan.settings.line),
+                // As `Transport::open` sets it for a serial port.
+                quiet_gap: (plan.settings.line.char_time() * 8).max(Duration::from_millis(20)),
+                guard_interval: plan.settings.guard_interval,
+            }),
             scheduler: PortScheduler::new(plan.settings, plan.devices),
             models: Vec::new(),
             planner: PublicationPlanner::new(PlannerSettings {
@@ -277,59 +284,45 @@ impl VirtualGateway {
         }
     }
 
-    /// One transaction on the virtual wire: what came back, its timing, and when the line is
-    /// free again.
+    /// One transaction on the virtual wire: what came back, its timing, and when it ended.
+    /// The driver loop of `transport::exchange`, with the bus in place of the serial port: the
+    /// request is heard at once, bytes arrive at their stop bits' times.
     fn transact(&mut self, transaction: &Transaction) -> (Outcome, ReplyTiming, Duration) {
-        let start = self.now;
-        let Ok(frame) = transaction.request.encode() else {
-            return (Outcome::NoReply, ReplyTiming::default(), start);
-        };
-        let transmission = self
-            .bus
-            .exchange(&frame, MasterLine::exact(self.line), start);
-        if !transaction.request.expects_reply() {
-            return (
-                Outcome::NoReply,
-                ReplyTiming::default(),
-                start + transaction.request_time,
-            );
+        let mut now = self.now;
+        if self.exchange.start(transaction).is_err() {
+            return (Outcome::NoReply, ReplyTiming::default(), now);
         }
-        // The serial transport's frame gap (transport::Transport::open).
-        let quiet_gap = (self.line.char_time() * 8).max(Duration::from_millis(20));
-        let mut window = ReplyWindow::new(transaction, (start, start), quiet_gap, true);
-        let mut parser = ReplyParser::for_request(&transaction.request);
-        let mut garbled = false;
-        for (at, byte) in transmission.arrivals() {
-            while !window.is_finished() && window.wake_at() <= at {
-                window.expire(window.wake_at());
+        let mut arrivals = std::collections::VecDeque::new();
+        loop {
+            if let Some(transmit) = self.exchange.poll_transmit(now) {
+                let line = MasterLine::exact(self.line);
+                arrivals = self
+                    .bus
+                    .exchange(&transmit.bytes, line, now)
+                    .arrivals()
+                    .into();
+                self.exchange.handle_sent(now);
             }
-            if window.is_finished() {
-                break;
+            if let Some((outcome, timing)) = self.exchange.poll_outcome() {
+                return (outcome, timing, now);
             }
-            if window.receive(at) == Received::Discard {
-                continue;
-            }
-            parser.push(&[byte]);
-            loop {
-                match parser.poll() {
-                    ParseStatus::NeedMore => break,
-                    ParseStatus::Frame(parsed) => {
-                        return (Outcome::Reply(parsed.reply), window.timing(), at)
-                    }
-                    ParseStatus::Error(_) => garbled = true,
+            let timeout = self.exchange.poll_timeout();
+            let next_byte = arrivals
+                .front()
+                .copied()
+                .filter(|&(at, _)| timeout.is_none_or(|t| at <= t));
+            match (next_byte, timeout) {
+                (Some((at, byte)), _) => {
+                    arrivals.pop_front();
+                    now = now.max(at);
+                    self.exchange.handle_bytes(now, &[byte]);
                 }
+                (None, Some(timeout)) => {
+                    now = now.max(timeout);
+                    self.exchange.handle_timeout(now);
+                }
+                (None, None) => return (Outcome::NoReply, ReplyTiming::default(), now),
             }
         }
-        let mut done = start;
-        while !window.is_finished() {
-            done = window.wake_at();
-            window.expire(done);
-        }
-        let outcome = if garbled || !parser.buffered().is_empty() {
-            Outcome::Garbled
-        } else {
-            Outcome::NoReply
-        };
-        (outcome, window.timing(), done)
     }
 }

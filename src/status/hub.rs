@@ -90,6 +90,8 @@ pub struct StatusHub {
     ports: Mutex<Vec<Arc<PortStatus>>>,
     /// Where writes from the page go: the queue MQTT `/on` writes go to.
     writes: Mutex<Option<mpsc::Sender<ControlWrite>>>,
+    /// The running ports' bus queues: a scan from the page goes through them as an RPC does.
+    directory: Mutex<Option<crate::daemon::PortDirectory>>,
 }
 
 impl Default for StatusHub {
@@ -112,7 +114,39 @@ impl StatusHub {
             started: Instant::now(),
             ports: Mutex::new(Vec::new()),
             writes: Mutex::new(None),
+            directory: Mutex::new(None),
         }
+    }
+
+    pub fn set_port_directory(&self, directory: crate::daemon::PortDirectory) {
+        *lock(&self.directory) = Some(directory);
+    }
+
+    /// A Fast Modbus scan of the port named `port` (as the page shows it), through its bus queue
+    /// as the RPC `port/Scan` runs it: between the daemon's own transactions, at the port's
+    /// settings. The report as the RPC returns it, or what went wrong in words.
+    pub async fn scan(&self, port: &str) -> Result<Value, String> {
+        let directory = lock(&self.directory)
+            .clone()
+            .ok_or("the bus side is not running")?;
+        let access = lock(&directory)
+            .values()
+            .find(|access| access.name == port)
+            .cloned()
+            .ok_or_else(|| format!("no running port `{port}`"))?;
+        let config = &access.resolved.config;
+        let params = match (&config.path, &config.address) {
+            (Some(path), _) => json!({"path": path}),
+            (None, Some(address)) => {
+                json!({"ip": address, "port": config.port.unwrap_or_default()})
+            }
+            (None, None) => return Err(format!("port `{port}` has neither a path nor an address")),
+        };
+        let method = crate::rpc::params::parse_method("port", "Scan", &params)
+            .map_err(|err| err.to_string())?;
+        crate::rpc::methods::execute(&directory, method)
+            .await
+            .map_err(|err| err.to_string())
     }
 
     pub fn add_port(&self, port: Arc<PortStatus>) {

@@ -110,6 +110,7 @@ impl StatusServer {
             .route("/api/frames", get(frames))
             .route("/api/write", post(write))
             .route("/api/suspend", post(suspend))
+            .route("/api/scan", post(scan))
             .route("/metrics", get(metrics))
             .layer(middleware::from_fn_with_state(state.clone(), guard))
             .with_state(state);
@@ -281,6 +282,27 @@ async fn suspend(State(state): State<AppState>, headers: HeaderMap, body: Bytes)
             format!("no device `{device}` on any port\n"),
         )
             .into_response()
+    }
+}
+
+/// `{"port": <name as in /api/status>}`: a Fast Modbus scan through the port's bus queue (the
+/// RPC `port/Scan`); answers when the scan is done with its report.
+async fn scan(State(state): State<AppState>, headers: HeaderMap, body: Bytes) -> Response {
+    let request = match page_post(&headers, &body) {
+        Ok(request) => request,
+        Err(refused) => return refused.into_response(),
+    };
+    let Some(port) = request["port"].as_str() else {
+        return (
+            StatusCode::BAD_REQUEST,
+            "give port (its name as /api/status shows it)\n",
+        )
+            .into_response();
+    };
+    info!(%port, "scan from the status page");
+    match state.hub.scan(port).await {
+        Ok(report) => json_response(&report),
+        Err(problem) => (StatusCode::BAD_GATEWAY, format!("{problem}\n")).into_response(),
     }
 }
 

@@ -379,15 +379,22 @@ impl PortStats {
         let device = &mut self.devices[index];
         match update {
             DeviceUpdate::Value {
-                value, from_event, ..
+                value,
+                from_event,
+                changed,
+                ..
             } => {
                 let control = device
                     .controls
                     .entry(control_id.cloned().unwrap_or_default())
                     .or_default();
+                // The source is how the value last changed: a poll that confirms what an event
+                // brought does not make it a polled value.
+                if *changed || control.value.is_none() {
+                    control.from_event = *from_event;
+                    control.updated = Some(now);
+                }
                 control.value = Some(value.clone());
-                control.from_event = *from_event;
-                control.updated = Some(now);
             }
             DeviceUpdate::ControlError { errors, .. } => {
                 device
@@ -577,9 +584,21 @@ mod tests {
             },
             ms(5),
         );
+        // A poll that reads the same value again leaves the source at "event".
+        stats.observe_update(
+            &DeviceUpdate::Value {
+                device_id: "b".into(),
+                control_id: "K1".into(),
+                value: "1".into(),
+                from_event: false,
+                changed: false,
+            },
+            ms(6),
+        );
         let control = &stats.devices[1].controls["K1"];
         assert_eq!(control.value.as_deref(), Some("1"));
         assert!(control.from_event);
+        assert_eq!(control.updated, Some(ms(5)));
         assert!(stats.devices[1].online);
         assert!(!stats.devices[0].online);
     }
