@@ -394,6 +394,20 @@ async fn bad_requests_get_json_rpc_errors_and_the_daemon_lives_on() {
     .await;
     assert_eq!(hurried["error"]["code"], -32600, "{hurried}");
 
+    // Scan step by step, as wb-device-manager does: start, next, next until none is left.
+    let mut serials = Vec::new();
+    for mode in ["start", "next", "next"] {
+        let step = rpc(port, "port", "Scan", json!({"path": path, "mode": mode})).await;
+        let devices = step["result"]["devices"]
+            .as_array()
+            .expect("devices")
+            .clone();
+        assert!(devices.len() <= 1, "{step}");
+        serials.extend(devices.iter().map(|d| d["sn"].as_str().unwrap().to_owned()));
+    }
+    serials.sort();
+    assert_eq!(serials, ["4261412896", "4261412897"]);
+
     // Still serving.
     let ports = rpc(port, "ports", "Load", json!({})).await;
     assert_eq!(ports["result"][0]["path"], path.as_str());
