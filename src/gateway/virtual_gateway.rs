@@ -5,9 +5,8 @@
 //!
 //! The wire between scheduler and bus is [`VirtualGateway::transact`]: the request goes on the
 //! bus at `now`, the bus says which bytes come back and when (wire times of
-//! `protocol::timing`), and the transport's own reply window (`transport::receive`) and parser
-//! decide what counts as the reply. Keep it small: it is replaced by the sans-IO transport
-//! once that exists.
+//! `protocol::timing`), and the transport's own state machine (`transport::exchange`) decides
+//! what counts as the reply, as it does on a real line.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -23,11 +22,11 @@ use crate::config::TemplateLibrary;
 use crate::mqtt::TopicScheme;
 use crate::mqtt::{MqttAction, PlannerSettings, PublicationPlanner, UnchangedPolicy, WriteOutcome};
 use crate::port::{Action, Outcome, PortScheduler, ReplyTiming, Transaction};
-use crate::protocol::{LineSettings, ParseStatus, RegisterType, ReplyParser};
+use crate::protocol::{LineSettings, RegisterType};
 use crate::sim::bus::Bus;
 use crate::sim::bus_file::{build_device, parse_line, DeviceEntry, TemplateSource};
 use crate::sim::MasterLine;
-use crate::transport::receive::{Received, ReplyWindow};
+use crate::transport::exchange::{Exchange, LinkConfig};
 use crate::updates::{ControlWrite, DeviceUpdate};
 
 fn repo(path: &str) -> PathBuf {
@@ -278,58 +277,41 @@ impl VirtualGateway {
     }
 
     /// One transaction on the virtual wire: what came back, its timing, and when the line is
-    /// free again.
+    /// free again. The transport's own state machine ([`Exchange`]) decides, as on a real line.
     fn transact(&mut self, transaction: &Transaction) -> (Outcome, ReplyTiming, Duration) {
         let start = self.now;
-        let Ok(frame) = transaction.request.encode() else {
+        let mut exchange = Exchange::new(LinkConfig::serial(self.line));
+        let transmit = match exchange.start(transaction) {
+            Ok(()) => exchange.poll_transmit(start),
+            Err(_) => None,
+        };
+        let Some(transmit) = transmit else {
             return (Outcome::NoReply, ReplyTiming::default(), start);
         };
         let transmission = self
             .bus
-            .exchange(&frame, MasterLine::exact(self.line), start);
-        if !transaction.request.expects_reply() {
-            return (
-                Outcome::NoReply,
-                ReplyTiming::default(),
-                start + transaction.request_time,
-            );
-        }
-        // The serial transport's frame gap (transport::Transport::open).
-        let quiet_gap = (self.line.char_time() * 8).max(Duration::from_millis(20));
-        let mut window = ReplyWindow::new(transaction, (start, start), quiet_gap, true);
-        let mut parser = ReplyParser::for_request(&transaction.request);
-        let mut garbled = false;
-        for (at, byte) in transmission.arrivals() {
-            while !window.is_finished() && window.wake_at() <= at {
-                window.expire(window.wake_at());
+            .exchange(&transmit.bytes, MasterLine::exact(self.line), start);
+        exchange.handle_sent(start);
+        let mut arrivals = transmission.arrivals().into_iter().peekable();
+        let mut now = start;
+        loop {
+            if let Some((outcome, timing)) = exchange.poll_outcome() {
+                return (outcome, timing, now);
             }
-            if window.is_finished() {
-                break;
-            }
-            if window.receive(at) == Received::Discard {
-                continue;
-            }
-            parser.push(&[byte]);
-            loop {
-                match parser.poll() {
-                    ParseStatus::NeedMore => break,
-                    ParseStatus::Frame(parsed) => {
-                        return (Outcome::Reply(parsed.reply), window.timing(), at)
-                    }
-                    ParseStatus::Error(_) => garbled = true,
+            let Some(timeout) = exchange.poll_timeout() else {
+                return (Outcome::NoReply, ReplyTiming::default(), now);
+            };
+            match arrivals.peek() {
+                Some(&(at, byte)) if at < timeout => {
+                    now = now.max(at);
+                    exchange.handle_bytes(now, &[byte]);
+                    arrivals.next();
+                }
+                _ => {
+                    now = now.max(timeout);
+                    exchange.handle_timeout(now);
                 }
             }
         }
-        let mut done = start;
-        while !window.is_finished() {
-            done = window.wake_at();
-            window.expire(done);
-        }
-        let outcome = if garbled || !parser.buffered().is_empty() {
-            Outcome::Garbled
-        } else {
-            Outcome::NoReply
-        };
-        (outcome, window.timing(), done)
     }
 }

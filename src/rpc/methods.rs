@@ -11,8 +11,8 @@ use super::params::{
 };
 use crate::config::config_file::PortType;
 use crate::daemon::bus_queue::BusQueue;
-use crate::gateway::port_plan::line_settings;
 use crate::daemon::{PortAccess, PortDirectory};
+use crate::gateway::port_plan::line_settings;
 use crate::port::{Outcome, Transaction};
 use crate::protocol::fast::FastReply;
 use crate::protocol::timing::ADAPTER_LATENCY_ALLOWANCE;
