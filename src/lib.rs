@@ -18,6 +18,7 @@ pub mod protocol;
 pub mod rpc;
 pub mod service;
 pub mod sim;
+pub mod status;
 pub mod tools;
 pub mod transport;
 pub mod updates;

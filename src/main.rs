@@ -46,6 +46,9 @@ enum Command {
     /// Run the benchmarks and write bench/results/latest.md with PNG plots (docs/bench.md).
     #[cfg(feature = "bench")]
     Bench(cli::bench::Args),
+    /// Print the bcrypt hash of a password read from stdin, for the status page's
+    /// `http.password_hash` (e.g. `printf '%s' 'secret' | rtu2mqtt hash-password`).
+    HashPassword(cli::hash_password::Args),
     /// Print a shell completion script (e.g. `rtu2mqtt completions bash > /etc/bash_completion.d/rtu2mqtt`).
     Completions(cli::generate::CompletionsArgs),
     /// Write the man pages (rtu2mqtt.1 and one per subcommand) into a directory.
@@ -72,6 +75,7 @@ fn main() -> std::process::ExitCode {
         Command::Write(args) => cli::access::run_write(args),
         Command::SetAddress(args) => cli::address::run_set_address(args),
         Command::FixAddresses(args) => cli::address::run_fix_addresses(args),
+        Command::HashPassword(args) => cli::hash_password::run(args),
         Command::Completions(args) => cli::generate::completions(args, Cli::command()),
         Command::Manpages(args) => cli::generate::manpages(args, Cli::command()),
     };

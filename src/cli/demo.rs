@@ -54,6 +54,9 @@ pub struct Args {
     /// otherwise a built-in one is started on it.
     #[arg(long)]
     pub mqtt_port: Option<u16>,
+    /// Port of the status page on 127.0.0.1 (default 8080, or a free one when 8080 is taken).
+    #[arg(long)]
+    pub http_port: Option<u16>,
 }
 
 /// The demo's scratch directory: private (0700), under a fresh random name, removed at the end.
@@ -117,6 +120,9 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     if let Some(broker) = &broker {
         daemon_config["mqtt"]["port"] = Value::from(broker.port());
     }
+    let http_listener = bind_http_port(args.http_port)?;
+    let http_port = http_listener.local_addr()?.port();
+    daemon_config["http"] = serde_json::json!({"listen": format!("127.0.0.1:{http_port}")});
     write_new(&config, &serde_json::to_string_pretty(&daemon_config)?)?;
 
     eprintln!("rtu2mqtt demo: five simulated devices on a virtual RS-485 bus at 115200 8N2 (Fast Modbus events on)");
@@ -126,6 +132,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         control.display()
     );
     eprintln!("  files:      {}", dir.path().display());
+    eprintln!("  status:     http://127.0.0.1:{http_port}/  (live page; /metrics for Prometheus)");
     match &broker {
         Some(broker) => {
             let port = broker.port();
@@ -147,6 +154,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         config,
         templates: vec![templates],
         stdio: broker.is_none(),
+        http_listener: Some(std::sync::Arc::new(http_listener)),
     };
     let _live_view = broker.as_ref().map(|b| live_view(b.port()));
     let code = super::run::run(run_args)?;
@@ -155,6 +163,20 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     drop(broker);
     drop(dir);
     Ok(code)
+}
+
+/// The status page's socket: on the port asked for, else 8080 when free, else any free one.
+/// Bound here and handed to the daemon, so the URL printed is the one served.
+fn bind_http_port(wanted: Option<u16>) -> anyhow::Result<std::net::TcpListener> {
+    let bind = |port: u16| std::net::TcpListener::bind(("127.0.0.1", port));
+    if let Some(port) = wanted {
+        return bind(port).with_context(|| {
+            format!("the status page cannot listen on 127.0.0.1:{port}: is another program using the port? Pick another with --http-port")
+        });
+    }
+    bind(8080)
+        .or_else(|_| bind(0))
+        .context("no free TCP port on 127.0.0.1 for the status page")
 }
 
 /// Where the demo's daemon publishes.

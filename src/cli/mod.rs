@@ -12,6 +12,7 @@ pub mod decode;
 pub mod demo;
 pub mod events;
 pub mod generate;
+pub mod hash_password;
 pub mod run;
 pub mod scan;
 pub mod schema;

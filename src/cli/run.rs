@@ -9,14 +9,16 @@ use tokio::signal::unix::{signal, SignalKind};
 use tokio::sync::watch;
 use tracing::{error, info, warn};
 
+use crate::config::config_file::HttpConfig;
 use crate::config::library::TemplateLibrary;
 use crate::config::load::{load_config, LoadedConfig, DEFAULT_CONFIG_PATH};
-use crate::daemon::{start_bus_side, stdio, termination_signal, BusControl, BusSide};
+use crate::daemon::{start_bus_side_with_status, stdio, termination_signal, BusControl, BusSide};
 use crate::device::model::ResolvedPort;
 use crate::device::resolve_config;
 use crate::mqtt::{run_mqtt_reporting, MqttSettings};
 use crate::rpc::run_rpc_server;
 use crate::service::{notify_systemd, BrokerState, ServiceHealth};
+use crate::status::{StatusHub, StatusServer};
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -30,6 +32,10 @@ pub struct Args {
     /// on stdin ({"device":…,"control":…,"value":…}) instead of MQTT.
     #[arg(long)]
     pub stdio: bool,
+    /// The status page's socket, already bound (the demo binds it before printing its URL, so
+    /// two demos cannot race for the same port); `http.listen` must name the same address.
+    #[arg(skip)]
+    pub http_listener: Option<std::sync::Arc<std::net::TcpListener>>,
 }
 
 /// Loads the config and resolves its devices against the templates; the errors as the
@@ -64,6 +70,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let mqtt_settings = MqttSettings::from_config(&loaded.config);
     let fast_modbus = loaded.config.fast_modbus;
     let running_mqtt = serde_json::to_value(&loaded.config.mqtt).unwrap_or_default();
+    let http = loaded.config.http.clone();
     let result = runtime.block_on(async move {
         // Installed first: from here on SIGHUP reloads instead of killing the process.
         let mut hangups = signal(SignalKind::hangup()).context("cannot handle SIGHUP")?;
@@ -76,11 +83,37 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             BrokerState::Connecting
         }));
         let notifier = tokio::spawn(notify_systemd(Arc::clone(&health), shutdown_rx.clone()));
+        // The status page, when configured: bound before the buses start, so that a port in
+        // use stops the daemon with a clear message instead of running without its page.
+        let status = match &http {
+            Some(http) => {
+                let hub = Arc::new(StatusHub::new());
+                let prebound = args
+                    .http_listener
+                    .as_ref()
+                    .map(|listener| listener.try_clone())
+                    .transpose()?;
+                let server =
+                    StatusServer::bind(http, prebound, Arc::clone(&hub), shutdown_rx.clone())
+                        .await?;
+                Some((hub, server))
+            }
+            None => None,
+        };
         let BusSide {
             updates,
             writes,
             control: mut bus,
-        } = start_bus_side(ports, fast_modbus, Arc::clone(&health));
+        } = start_bus_side_with_status(
+            ports,
+            fast_modbus,
+            Arc::clone(&health),
+            status.as_ref().map(|(hub, _)| Arc::clone(hub)),
+        );
+        let status_server = status.map(|(hub, server)| {
+            hub.set_writes(writes.clone());
+            tokio::spawn(server.serve())
+        });
         // wb-mqtt-serial's MQTT RPC, on its own broker connection (not with --stdio).
         let mut rpc_task = None;
         let mut sink = if args.stdio {
@@ -115,7 +148,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             tokio::select! {
                 () = &mut terminate => break None,
                 result = &mut sink => break Some(result),
-                _ = hangups.recv() => reload(&args, &mut bus, &running_mqtt).await,
+                _ = hangups.recv() => reload(&args, &mut bus, &running_mqtt, &http).await,
             }
         };
         info!("stopping");
@@ -132,6 +165,11 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         if let Some(rpc_task) = rpc_task {
             let _ = rpc_task.await;
         }
+        if let Some(server) = status_server {
+            // Open pages are told to close; a client that holds its connection does not hold
+            // the exit.
+            let _ = tokio::time::timeout(std::time::Duration::from_secs(2), server).await;
+        }
         match finished {
             Some(Ok(Err(err))) => Err(anyhow::Error::new(err).context("MQTT")),
             Some(Err(join)) => Err(anyhow::anyhow!("the MQTT task failed: {join}")),
@@ -146,7 +184,12 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
 
 /// SIGHUP: re-reads the config and templates and applies the difference port by port. A config
 /// that does not load leaves everything running as it was.
-async fn reload(args: &Args, bus: &mut BusControl, running_mqtt: &serde_json::Value) {
+async fn reload(
+    args: &Args,
+    bus: &mut BusControl,
+    running_mqtt: &serde_json::Value,
+    running_http: &Option<HttpConfig>,
+) {
     info!(config = %args.config.display(), "SIGHUP: reloading the config and templates");
     let (loaded, ports) = match load(args) {
         Ok(loaded) => loaded,
@@ -161,6 +204,9 @@ async fn reload(args: &Args, bus: &mut BusControl, running_mqtt: &serde_json::Va
     let mqtt = serde_json::to_value(&loaded.config.mqtt).unwrap_or_default();
     if mqtt != *running_mqtt {
         warn!("the mqtt section changed: it takes effect when the service restarts");
+    }
+    if loaded.config.http != *running_http {
+        warn!("the http section changed: it takes effect when the service restarts");
     }
     let summary = bus.reload(ports, loaded.config.fast_modbus).await;
     info!(

@@ -36,6 +36,97 @@ pub struct Config {
     pub template_dirs: Vec<PathBuf>,
     #[serde(default)]
     pub ports: Vec<PortConfig>,
+    /// The built-in status page and Prometheus metrics (docs/status-page.md). Off when absent;
+    /// `"http": {}` serves them on 127.0.0.1:8080.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub http: Option<HttpConfig>,
+}
+
+/// The status page's HTTP server.
+#[derive(Debug, Clone, Deserialize, Serialize, JsonSchema, PartialEq, Eq)]
+#[serde(deny_unknown_fields)]
+pub struct HttpConfig {
+    /// Address and port to listen on. Only a loopback address (127.0.0.1, ::1) may go without
+    /// `user` and `password_hash`: the page can write controls.
+    #[serde(default = "default_http_listen")]
+    pub listen: String,
+    /// Basic-auth user name (required with `password_hash`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub user: Option<String>,
+    /// bcrypt hash of the password (`$2b$…`): `rtu2mqtt hash-password` prints one, as does
+    /// `htpasswd -nbB user PASSWORD` (the part after the colon).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub password_hash: Option<String>,
+}
+
+/// The status page's default address: this machine only.
+pub const DEFAULT_HTTP_LISTEN: &str = "127.0.0.1:8080";
+
+fn default_http_listen() -> String {
+    DEFAULT_HTTP_LISTEN.to_string()
+}
+
+impl Default for HttpConfig {
+    fn default() -> Self {
+        Self {
+            listen: default_http_listen(),
+            user: None,
+            password_hash: None,
+        }
+    }
+}
+
+impl HttpConfig {
+    /// What is wrong with this section, as (key, problem) for the integrator; empty when fine.
+    pub fn problems(&self) -> Vec<(&'static str, String)> {
+        let mut problems = Vec::new();
+        match self.listen.parse::<std::net::SocketAddr>() {
+            Err(_) => problems.push((
+                "listen",
+                format!(
+                    "`{}` is not an address and port: write e.g. \"127.0.0.1:8080\" or \"0.0.0.0:8080\"",
+                    self.listen
+                ),
+            )),
+            Ok(address) if !address.ip().is_loopback() && self.password_hash.is_none() => {
+                problems.push((
+                    "listen",
+                    format!(
+                        "{address} is reachable from other machines and the page can write \
+                         controls: add `user` and `password_hash` (rtu2mqtt hash-password \
+                         prints one), or listen on 127.0.0.1"
+                    ),
+                ))
+            }
+            Ok(_) => {}
+        }
+        match (&self.user, &self.password_hash) {
+            (Some(_), None) => problems.push((
+                "user",
+                "a user needs its `password_hash` (rtu2mqtt hash-password prints one)".into(),
+            )),
+            (None, Some(_)) => {
+                problems.push(("password_hash", "a password hash needs its `user`".into()))
+            }
+            _ => {}
+        }
+        if let Some(hash) = &self.password_hash {
+            let bcrypt = ["$2a$", "$2b$", "$2x$", "$2y$"]
+                .iter()
+                .any(|prefix| hash.starts_with(prefix))
+                && hash.len() == 60;
+            if !bcrypt {
+                problems.push((
+                    "password_hash",
+                    "not a bcrypt hash (60 characters starting with $2b$): produce one with \
+                     `rtu2mqtt hash-password` or `htpasswd -nbB user PASSWORD`; never put the \
+                     password itself here"
+                        .into(),
+                ));
+            }
+        }
+        problems
+    }
 }
 
 fn default_max_unchanged_interval() -> i64 {

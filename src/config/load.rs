@@ -82,6 +82,7 @@ pub fn load_config_source(source: SourceText, apply_env: bool) -> Result<LoadedC
     };
     let (device_extra_keys, mut errors) = split_ignored(&loaded, ignored);
     errors.extend(check_ports(&loaded));
+    errors.extend(check_http(&loaded));
     if errors.is_empty() {
         Ok(LoadedConfig {
             device_extra_keys,
@@ -253,6 +254,18 @@ fn check_tls(loaded: &LoadedConfig) -> Vec<LocatedError> {
     errors
 }
 
+/// The status page may only be reachable from other machines behind a password.
+fn check_http(loaded: &LoadedConfig) -> Vec<LocatedError> {
+    let Some(http) = &loaded.config.http else {
+        return Vec::new();
+    };
+    let at = JsonPath::root().key("http");
+    http.problems()
+        .into_iter()
+        .map(|(key, message)| loaded.error(at.key(key), Problem::Invalid(message)))
+        .collect()
+}
+
 /// The config's JSON Schema as a value (also what `rtu2mqtt schema config` prints).
 pub fn config_schema() -> Value {
     serde_json::to_value(schemars::schema_for!(Config)).unwrap_or(Value::Null)
@@ -415,6 +428,39 @@ mod tests {
             "{}",
             errors[0]
         );
+    }
+
+    #[test]
+    fn the_status_page_is_off_unless_configured_and_loopback_unless_password_protected() {
+        assert_eq!(load("{}").unwrap().config.http, None);
+        let http = load(r#"{"http": {}}"#).unwrap().config.http.unwrap();
+        assert_eq!(http.listen, "127.0.0.1:8080");
+        assert!(load(r#"{"http": {"listen": "[::1]:9000"}}"#).is_ok());
+        let hash = "$2b$05$dCQ30UB4jly1BFDuIxBRAuNZQfUjMqCDKeE1BLR1sstX/KO5QMpFK";
+        let open_to_all = load(r#"{"http": {"listen": "0.0.0.0:8080"}}"#)
+            .unwrap_err()
+            .0;
+        assert_eq!(open_to_all.len(), 1);
+        assert_eq!(open_to_all[0].path.to_string(), "http.listen");
+        assert!(
+            open_to_all[0].to_string().contains("password_hash"),
+            "{}",
+            open_to_all[0]
+        );
+        let guarded = format!(
+            r#"{{"http": {{"listen": "0.0.0.0:8080", "user": "admin", "password_hash": "{hash}"}}}}"#
+        );
+        assert!(load(&guarded).is_ok());
+        // A password in clear where its hash belongs, an address without a port.
+        let plain = load(
+            r#"{"http": {"listen": "127.0.0.1", "user": "admin", "password_hash": "s3cret"}}"#,
+        )
+        .unwrap_err()
+        .0;
+        let paths: Vec<String> = plain.iter().map(|e| e.path.to_string()).collect();
+        assert_eq!(paths, ["http.listen", "http.password_hash"]);
+        let no_user = load(&format!(r#"{{"http": {{"password_hash": "{hash}"}}}}"#)).unwrap_err();
+        assert_eq!(no_user.0[0].path.to_string(), "http.password_hash");
     }
 
     #[test]

@@ -18,6 +18,7 @@ use crate::gateway::device_model::DeviceModel;
 use crate::gateway::port_plan::port_plan;
 use crate::protocol::LineSettings;
 use crate::service::{PortVitals, ServiceHealth};
+use crate::status::{PortStatus, StatusHub};
 use crate::updates::{ControlWrite, DeviceUpdate};
 use bus_queue::BusQueue;
 use port_task::PortTask;
@@ -60,6 +61,7 @@ struct RunningPort {
     stop: watch::Sender<bool>,
     task: JoinHandle<()>,
     vitals: Arc<PortVitals>,
+    status: Option<Arc<PortStatus>>,
 }
 
 /// Owns the port tasks: stops them all at shutdown, and on a reload stops, starts or restarts
@@ -72,6 +74,8 @@ pub struct BusControl {
     router: JoinHandle<()>,
     health: Arc<ServiceHealth>,
     directory: PortDirectory,
+    /// The status page's registry of ports, when the page is on.
+    status: Option<Arc<StatusHub>>,
 }
 
 /// What a reload did, for the log and the tests.
@@ -100,6 +104,16 @@ pub fn start_bus_side(
     fast_modbus: bool,
     health: Arc<ServiceHealth>,
 ) -> BusSide {
+    start_bus_side_with_status(ports, fast_modbus, health, None)
+}
+
+/// [`start_bus_side`], with every port counted for the status page in `status`.
+pub fn start_bus_side_with_status(
+    ports: Vec<ResolvedPort>,
+    fast_modbus: bool,
+    health: Arc<ServiceHealth>,
+    status: Option<Arc<StatusHub>>,
+) -> BusSide {
     let (update_tx, update_rx) = mpsc::channel(UPDATE_QUEUE);
     let (write_tx, mut write_rx) = mpsc::channel::<ControlWrite>(WRITE_QUEUE);
     let routes: Routes = Arc::default();
@@ -123,6 +137,7 @@ pub fn start_bus_side(
         router,
         health,
         directory: PortDirectory::default(),
+        status,
     };
     for port in ports {
         let (task, added) = control.prepare_port(&port);
@@ -156,10 +171,12 @@ impl BusControl {
         let mut models = Vec::new();
         let mut added = Vec::new();
         let mut routes = lock(&self.routes);
+        let mut devices = Vec::new();
         for (index, device) in port.devices.iter().enumerate() {
             let device = Arc::new(device.clone());
             routes.insert(device.id.clone(), port_write_tx.clone());
             added.push(DeviceUpdate::Added(Arc::clone(&device)));
+            devices.push(Arc::clone(&device));
             models.push(DeviceModel::new(device, index));
         }
         let (queue, queued) = BusQueue::new();
@@ -177,10 +194,22 @@ impl BusControl {
             },
         );
         let identity_plans = port.devices.iter().map(identity::identity_plan).collect();
-        let task = PortTask::new(plan, models, self.updates.clone(), port_write_rx)
+        let status = self.status.as_ref().map(|hub| {
+            let mut settings = serde_json::to_value(&port.config).unwrap_or_default();
+            if let Some(settings) = settings.as_object_mut() {
+                settings.remove("devices");
+            }
+            let status = Arc::new(PortStatus::new(&plan.name, settings, devices));
+            hub.add_port(Arc::clone(&status));
+            status
+        });
+        let mut task = PortTask::new(plan, models, self.updates.clone(), port_write_rx)
             .with_vitals(vitals)
             .with_bus_queue(queue.clone(), queued)
             .with_identity(identity_plans);
+        if let Some(status) = status {
+            task = task.with_status(status);
+        }
         (task, added)
     }
 
@@ -191,6 +220,7 @@ impl BusControl {
 
     fn spawn_port(&mut self, port: ResolvedPort, task: PortTask) {
         let vitals = task.vitals();
+        let status = task.status();
         let (stop, stopped) = watch::channel(false);
         let task = tokio::spawn(task.run(stopped));
         let config = serde_json::to_value(&port.config).unwrap_or_default();
@@ -202,6 +232,7 @@ impl BusControl {
                 stop,
                 task,
                 vitals,
+                status,
             },
         );
     }
@@ -213,6 +244,9 @@ impl BusControl {
         let _ = running.stop.send(true);
         let _ = running.task.await;
         self.health.remove_port(&running.vitals);
+        if let (Some(hub), Some(status)) = (&self.status, &running.status) {
+            hub.remove_port(status);
+        }
         let mut routes = lock(&self.routes);
         for device in &running.resolved.devices {
             routes.remove(&device.id);

@@ -13,9 +13,11 @@ use super::identity::{read_identity, IdentityPlan, IdentityRead};
 use crate::gateway::device_model::{apply_port_events, DeviceModel};
 use crate::gateway::port_plan::PortPlan;
 use crate::mqtt::throttle::{LogBudget, LogDecision};
-use crate::port::{Action, Outcome, PortEvent, PortScheduler, ReplyTiming};
+use crate::port::{Action, Outcome, PortEvent, PortScheduler, ReplyTiming, Transaction};
 use crate::protocol::LineSettings;
 use crate::service::{BrokerState, PortVitals, ServiceHealth};
+use crate::status::hub::PortCommand;
+use crate::status::PortStatus;
 use crate::transport::{Endpoint, Transport, TransportError};
 use crate::updates::{ControlWrite, DeviceUpdate};
 
@@ -45,6 +47,8 @@ pub struct PortTask {
     /// The sending side of that queue, for this port's identity reads.
     queue: Option<BusQueue>,
     identity: IdentityState,
+    /// The status page's counters of this port; none while the status server is off.
+    status: Option<Arc<PortStatus>>,
 }
 
 /// Who each device is (model, serial number, firmware), read when it comes online or restarts,
@@ -97,6 +101,7 @@ impl PortTask {
             queued: None,
             queue: None,
             identity: IdentityState::default(),
+            status: None,
         }
     }
 
@@ -205,6 +210,55 @@ impl PortTask {
         .await;
     }
 
+    /// Counts transactions, errors and values for the status page into `status`.
+    pub fn with_status(mut self, status: Arc<PortStatus>) -> Self {
+        // The counters' times are on this task's clock.
+        self.epoch = status.epoch;
+        self.status = Some(status);
+        self
+    }
+
+    /// The handle given to [`Self::with_status`].
+    pub fn status(&self) -> Option<Arc<PortStatus>> {
+        self.status.clone()
+    }
+
+    /// What the status page asked for (hold or resume a device's polling).
+    fn apply_status_commands(&mut self) {
+        let Some(status) = &self.status else {
+            return;
+        };
+        let now = self.now();
+        for command in status.take_commands() {
+            match command {
+                PortCommand::Suspend { device, suspended } => {
+                    self.scheduler.set_suspended(device, suspended);
+                    let report = self.scheduler.device_report(device, now);
+                    status.record(|stats| stats.set_schedule(device, report));
+                }
+            }
+        }
+    }
+
+    /// The status page's one hook into a transaction: counted after its updates went out (an
+    /// event round trip ends at the hand-over to MQTT).
+    fn record_transaction(&self, started: Duration, transaction: &Transaction, outcome: &Outcome) {
+        let Some(status) = &self.status else {
+            return;
+        };
+        let now = self.now();
+        status.record(|stats| {
+            if let Some(device) = stats.transaction_done(started, now, transaction, outcome) {
+                stats.events_published(device, now);
+            }
+            if stats.schedule_due(now) {
+                for device in 0..self.scheduler.device_count() {
+                    stats.set_schedule(device, self.scheduler.device_report(device, now));
+                }
+            }
+        });
+    }
+
     /// Reports open/closed, progress and devices online into `vitals`.
     pub fn with_vitals(mut self, vitals: Arc<PortVitals>) -> Self {
         self.vitals = Some(vitals);
@@ -227,6 +281,9 @@ impl PortTask {
     fn set_open(&self, open: bool) {
         if let Some(vitals) = &self.vitals {
             vitals.set_open(open);
+        }
+        if let Some(status) = &self.status {
+            status.record(|stats| stats.set_open(open));
         }
     }
 
@@ -322,8 +379,10 @@ impl PortTask {
                     continue;
                 }
             }
+            self.apply_status_commands();
             match self.scheduler.next(self.now()) {
                 Action::Transmit(transaction) => {
+                    let started = self.now();
                     queued_turn = true;
                     if bus.away.is_some() {
                         self.switch_line(&mut bus, None).await?;
@@ -342,8 +401,12 @@ impl PortTask {
                         Ok((outcome, timing)) => (outcome.clone(), *timing),
                         Err(_) => (Outcome::NoReply, ReplyTiming::default()),
                     };
+                    let recorded = self.status.as_ref().map(|_| outcome.clone());
                     let events = self.scheduler.complete_timed(self.now(), outcome, timing);
                     self.dispatch(events).await;
+                    if let Some(outcome) = recorded {
+                        self.record_transaction(started, &transaction, &outcome);
+                    }
                     result?;
                 }
                 Action::Wait { until } => {
@@ -522,6 +585,14 @@ impl PortTask {
     }
 
     async fn send(&self, updates: Vec<DeviceUpdate>) {
+        if let Some(status) = &self.status {
+            let now = self.now();
+            status.record(|stats| {
+                for update in &updates {
+                    stats.observe_update(update, now);
+                }
+            });
+        }
         for update in updates {
             // The MQTT side drains this queue into its latest-value-per-topic state at once, so
             // waiting here only happens if that task itself is stuck.

@@ -73,6 +73,9 @@ pub(super) struct DeviceState {
     preparation: Preparation,
     reads: Vec<ReadState>,
     events_active: bool,
+    /// Polling held by the operator (status page): no reads or preparation; writes and events
+    /// still go.
+    pub suspended: bool,
 }
 
 impl DeviceState {
@@ -100,6 +103,7 @@ impl DeviceState {
             preparation: Preparation::Done,
             reads,
             events_active: false,
+            suspended: false,
         };
         state.preparation = state.first_preparation_step();
         state
@@ -129,6 +133,15 @@ impl DeviceState {
 
     pub(super) fn events_active(&self) -> bool {
         self.events_active
+    }
+
+    /// Where the device's preparation stands, in words (status page).
+    pub(super) fn setup_state(&self) -> &'static str {
+        match self.preparation {
+            Preparation::Setup { .. } => "setup writes",
+            Preparation::Events => "event setup",
+            Preparation::Done => "ready",
+        }
     }
 
     pub(super) fn is_prepared(&self) -> bool {

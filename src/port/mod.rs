@@ -12,4 +12,6 @@ pub mod scheduler;
 pub use health::{HealthPolicy, MIN_LATE_REPLY_HOLDOFF};
 pub use plan::{DevicePlan, EventMode, PlannedRead, PortSettings, RegisterWrite, SetupWrite};
 pub use read_plan::{MergeLimits, RegisterSpan};
-pub use scheduler::{Action, Outcome, PortEvent, PortScheduler, ReplyTiming, Transaction};
+pub use scheduler::{
+    Action, DeviceReport, Outcome, PortEvent, PortScheduler, ReplyTiming, Transaction,
+};

@@ -72,6 +72,20 @@ pub struct ReplyTiming {
     pub late_byte: Option<Duration>,
 }
 
+/// What the scheduler knows of one device, for the status page.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct DeviceReport {
+    /// The smoothed time to the first byte of its replies (none before the first reply).
+    pub learned_response_time: Option<Duration>,
+    /// How long a request to it waits for the first byte now.
+    pub response_timeout: Duration,
+    pub events_active: bool,
+    /// "setup writes", "event setup" or "ready".
+    pub setup: &'static str,
+    /// Polling held by [`PortScheduler::set_suspended`].
+    pub suspended: bool,
+}
+
 /// What came back for a transaction.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Outcome {
@@ -210,6 +224,31 @@ impl PortScheduler {
 
     pub fn device_count(&self) -> usize {
         self.devices.len()
+    }
+
+    /// What the status page shows of a device's schedule.
+    pub fn device_report(&self, device: usize, now: Duration) -> Option<DeviceReport> {
+        let state = self.devices.get(device)?;
+        Some(DeviceReport {
+            learned_response_time: state.response.learned(),
+            response_timeout: state.response.timeout(now),
+            events_active: state.events_active(),
+            setup: state.setup_state(),
+            suspended: state.suspended,
+        })
+    }
+
+    /// Holds (or resumes) the polling of a device: no reads and no preparation while held;
+    /// writes and its events still go. Returns false for an unknown device.
+    pub fn set_suspended(&mut self, device: usize, suspended: bool) -> bool {
+        let Some(state) = self.devices.get_mut(device) else {
+            return false;
+        };
+        if state.suspended != suspended {
+            info!(device = %state.plan.name, suspended, "polling held from the status page");
+        }
+        state.suspended = suspended;
+        true
     }
 
     /// Queues a write; a queued write to the same register is replaced (the latest value wins).
@@ -538,7 +577,7 @@ impl PortScheduler {
 
     fn choose_preparation(&self, now: Duration) -> Option<(Transaction, InFlight)> {
         for (index, device) in self.devices.iter().enumerate() {
-            if device.is_prepared() || !self.may_transact(device, now) {
+            if device.is_prepared() || device.suspended || !self.may_transact(device, now) {
                 continue;
             }
             if let Some(setup_index) = device.next_setup_write() {
@@ -588,7 +627,7 @@ impl PortScheduler {
             .devices
             .iter()
             .enumerate()
-            .filter(|(_, d)| d.is_prepared() && self.may_transact(d, now))
+            .filter(|(_, d)| d.is_prepared() && !d.suspended && self.may_transact(d, now))
             .filter_map(|(index, d)| d.choose_read(now).map(|choice| (index, choice)))
             .min_by_key(|(_, choice)| choice.urgency)?;
         let (device, ReadChoice { span, members, .. }) = best;
@@ -673,6 +712,7 @@ impl PortScheduler {
         let devices = self
             .devices
             .iter()
+            .filter(|d| !d.suspended)
             .filter_map(|d| d.next_deadline().map(|at| offline_gate(d, at)));
         let writes = self.writes.iter().filter_map(|p| {
             self.devices

@@ -1182,3 +1182,46 @@ fn a_device_that_becomes_slow_is_learned_at_its_second_failure() {
     };
     assert!(transaction.first_byte_timeout > Some(ms(600)));
 }
+
+#[test]
+fn a_suspended_device_is_not_polled_and_the_scheduler_does_not_spin() {
+    let reads = |address| {
+        device(
+            address,
+            vec![read(RegisterType::Holding, 1, EventMode::Polled)],
+        )
+    };
+    let mut scheduler = PortScheduler::new(settings(115_200), vec![reads(1), reads(2)]);
+    assert!(scheduler.set_suspended(1, true));
+    assert!(!scheduler.set_suspended(7, true));
+    let mut log = Log::default();
+    let now = run(&mut scheduler, &mut log, ms(0), ms(2000), |_, r| healthy(r));
+    assert!(!log.classic_to(1).is_empty());
+    assert!(log.classic_to(2).is_empty());
+    assert!(scheduler.device_report(1, now).unwrap().suspended);
+    // Only the held device would be due: the scheduler waits instead of returning "now".
+    let mut only_held = PortScheduler::new(settings(115_200), vec![reads(2)]);
+    only_held.set_suspended(0, true);
+    match only_held.next(ms(10)) {
+        Action::Wait { until } => assert!(until > ms(10), "{until:?}"),
+        other => panic!("{other:?}"),
+    }
+    // A write still goes.
+    only_held.queue_write(
+        ms(10),
+        RegisterWrite {
+            device: 0,
+            register_type: RegisterType::Holding,
+            address: 5,
+            values: vec![1],
+            force_multiple: false,
+        },
+    );
+    assert!(matches!(only_held.next(ms(10)), Action::Transmit(_)));
+    scheduler.set_suspended(1, false);
+    let mut log = Log::default();
+    run(&mut scheduler, &mut log, now, now + ms(500), |_, r| {
+        healthy(r)
+    });
+    assert!(!log.classic_to(2).is_empty());
+}

@@ -225,6 +225,11 @@ impl ResponseTimer {
         self.floor
     }
 
+    /// The smoothed time to the first byte learned so far (none before the first reply).
+    pub fn learned(&self) -> Option<Duration> {
+        self.smoothed
+    }
+
     /// How long to wait for the first byte of a reply, from the end of the request.
     pub fn timeout(&self, now: Duration) -> Duration {
         let learned = self
