@@ -4,15 +4,12 @@
 use std::time::Duration;
 
 use super::plan::PortSettings;
-use crate::protocol::frame::MAX_DEVICE_ADDRESS;
+use crate::protocol::frame::{EVENT_PACKET_OVERHEAD, MAX_DEVICE_ADDRESS, MAX_EVENT_DATA_LEN};
 use crate::protocol::EventPoll;
 
 /// Event requests sent back to back after packets, before the interval applies again: enough to
 /// drain a burst from several devices, not enough to starve classic reads.
 const MAX_BURST: u32 = 8;
-
-/// Longest event data that keeps the 0x11 frame within 256 bytes.
-const MAX_EVENT_DATA: usize = 248;
 
 #[derive(Debug, Clone)]
 pub(super) struct EventPoller {
@@ -110,8 +107,8 @@ fn max_data_len(settings: &PortSettings) -> u8 {
     let chars = settings.event_interval.as_nanos() / char_nanos;
     let data = usize::try_from(chars)
         .unwrap_or(usize::MAX)
-        .saturating_sub(8)
-        .clamp(6, MAX_EVENT_DATA);
+        .saturating_sub(EVENT_PACKET_OVERHEAD)
+        .clamp(6, MAX_EVENT_DATA_LEN);
     u8::try_from(data).unwrap_or(u8::MAX)
 }
 

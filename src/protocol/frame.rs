@@ -22,6 +22,10 @@ pub const RTU_OVERHEAD: usize = 3;
 const FAST_FUNCTION_LEN: usize = 1;
 /// A 0x11 event packet's sub-command, flag, event count and data length, before its data.
 const EVENT_PACKET_HEADER_LEN: usize = 4;
+/// Bytes of a 0x11 event packet around its event data: address, function, header, CRC.
+pub const EVENT_PACKET_OVERHEAD: usize = RTU_OVERHEAD + FAST_FUNCTION_LEN + EVENT_PACKET_HEADER_LEN;
+/// The most event data one packet can carry within the longest RTU frame.
+pub const MAX_EVENT_DATA_LEN: usize = MAX_FRAME_LEN - EVENT_PACKET_OVERHEAD;
 
 /// A frame from the master.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -127,10 +131,7 @@ impl Request {
     pub fn max_reply_len(&self) -> usize {
         match &self.body {
             RequestBody::Fast(FastRequest::PollEvents(poll)) if self.expects_reply() => {
-                RTU_OVERHEAD
-                    + FAST_FUNCTION_LEN
-                    + EVENT_PACKET_HEADER_LEN
-                    + usize::from(poll.max_data_len)
+                EVENT_PACKET_OVERHEAD + usize::from(poll.max_data_len)
             }
             _ => self.expected_reply_len(),
         }

@@ -66,6 +66,32 @@ pub struct LinkConfig {
     pub guard_interval: Duration,
 }
 
+impl LinkConfig {
+    /// A serial line (an RS-485 adapter or a pseudo-terminal) with these settings, no guard
+    /// interval.
+    pub fn serial(line: LineSettings) -> Self {
+        Self {
+            framing: Framing::Rtu,
+            serial: Some(line),
+            // USB adapters deliver in bursts: allow several characters of silence, at least 20 ms
+            // (wb-mqtt-serial's default frame timeout).
+            quiet_gap: (line.char_time() * 8).max(Duration::from_millis(20)),
+            guard_interval: Duration::ZERO,
+        }
+    }
+
+    /// A TCP link: the far side's serial timing is unknown, so no early bytes are thrown away
+    /// and a frame may pause for a network's delay.
+    pub fn tcp(framing: Framing) -> Self {
+        Self {
+            framing,
+            serial: None,
+            quiet_gap: Duration::from_millis(50),
+            guard_interval: Duration::ZERO,
+        }
+    }
+}
+
 /// A request to put on the line.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Transmit {
@@ -395,12 +421,7 @@ mod tests {
     }
 
     fn serial(line: LineSettings) -> LinkConfig {
-        LinkConfig {
-            framing: Framing::Rtu,
-            serial: Some(line),
-            quiet_gap: (line.char_time() * 8).max(ms(20)),
-            guard_interval: Duration::ZERO,
-        }
+        LinkConfig::serial(line)
     }
 
     const RESPONSE_TIMEOUT: Duration = Duration::from_millis(30);

@@ -104,15 +104,7 @@ impl Transport {
                     path: path.clone(),
                     source,
                 })?;
-                // USB adapters deliver in bursts: allow several characters of silence, at least 20 ms
-                // (wb-mqtt-serial's default frame timeout).
-                let gap = (line.char_time() * 8).max(Duration::from_millis(20));
-                let config = LinkConfig {
-                    framing: Framing::Rtu,
-                    serial: Some(*line),
-                    quiet_gap: gap,
-                    guard_interval: Duration::ZERO,
-                };
+                let config = LinkConfig::serial(*line);
                 (Link::Serial(link), config)
             }
             Endpoint::RtuOverTcp {
@@ -120,14 +112,14 @@ impl Transport {
                 connect_timeout,
             } => (
                 Link::Tcp(connect(address, *connect_timeout).await?),
-                tcp_config(Framing::Rtu),
+                LinkConfig::tcp(Framing::Rtu),
             ),
             Endpoint::ModbusTcp {
                 address,
                 connect_timeout,
             } => (
                 Link::Tcp(connect(address, *connect_timeout).await?),
-                tcp_config(Framing::ModbusTcp),
+                LinkConfig::tcp(Framing::ModbusTcp),
             ),
         };
         Ok(Self {
@@ -282,17 +274,6 @@ impl Transport {
             name: self.name.clone(),
             source,
         })
-    }
-}
-
-/// A TCP link: the far side's serial timing is unknown, so no early bytes are thrown away and a
-/// frame may pause for a network's delay.
-fn tcp_config(framing: Framing) -> LinkConfig {
-    LinkConfig {
-        framing,
-        serial: None,
-        quiet_gap: Duration::from_millis(50),
-        guard_interval: Duration::ZERO,
     }
 }
 
