@@ -20,6 +20,7 @@ use tracing::{debug, info, warn};
 
 use super::discovery::DiscoverySettings;
 use super::outbox::{unsendable, Outbox};
+use super::pending_writes::PendingWrites;
 use super::planner::{PlannerSettings, PublicationPlanner, UnchangedPolicy, WriteOutcome};
 use super::sweep::Sweeper;
 use super::throttle::{BirthCoalescer, LogBudget, LogDecision};
@@ -52,7 +53,7 @@ const MAX_INCOMING_PACKET: usize = 268_435_455 + 5;
 /// The most of an incoming payload kept: more than any `/on` payload accepted, enough for the
 /// device record of hundreds of devices.
 const MAX_KEPT_PAYLOAD: usize = 64 * 1024;
-/// Dropped `/on` writes logged per minute; the rest are counted.
+/// `/on` writes dropped because the bus side has stopped, logged per minute; the rest counted.
 const DROPPED_WRITE_LOG_LINES: u32 = 10;
 /// Where Debian keeps the system CAs, used when TLS is on without `ca_file`.
 const SYSTEM_CA_FILE: &str = "/etc/ssl/certs/ca-certificates.crt";
@@ -128,7 +129,8 @@ enum ConnectionEvent {
 /// Runs the MQTT side until `shutdown` completes or every `updates` sender is dropped.
 ///
 /// `updates` come from the bus side (send `Added` for each device first); checked `/on`
-/// writes go out on `writes` (never awaited: a full queue drops the write and sets `w`). On
+/// writes go out on `writes` (never awaited: while its queue is full, the latest write per control
+/// waits in [`PendingWrites`], so no write is lost and the broker is still served). On
 /// exit, with `mqtt.clear_on_exit`, every retained topic of the devices is deleted; the
 /// driver status becomes `offline` either way.
 pub async fn run_mqtt(
@@ -175,6 +177,7 @@ pub async fn run_mqtt_reporting(
     let mut connected = false;
     let mut births = BirthCoalescer::default();
     let mut dropped_log = LogBudget::new(DROPPED_WRITE_LOG_LINES);
+    let mut pending_writes = PendingWrites::default();
     tokio::pin!(shutdown);
     loop {
         let birth_due = births.due().map(tokio::time::Instant::from_std);
@@ -210,7 +213,8 @@ pub async fn run_mqtt_reporting(
                         }
                     } else {
                         let message = OnMessage { topic: &topic, payload: &payload, size, retain };
-                        on_message(&mut planner, &writes, &mut dropped_log, message);
+                        let bus = WriteTarget { writes: &writes, pending: &mut pending_writes, dropped_log: &mut dropped_log };
+                        on_message(&mut planner, bus, message);
                     }
                 }
                 None => break,
@@ -229,6 +233,17 @@ pub async fn run_mqtt_reporting(
                 None => {
                     debug!("the bus side closed its update channel");
                     break;
+                }
+            },
+            permit = writes.reserve(), if !pending_writes.is_empty() => match permit {
+                Ok(permit) => {
+                    if let Some(write) = pending_writes.pop() {
+                        permit.send(write);
+                    }
+                }
+                Err(_) => {
+                    warn!(dropped = pending_writes.len(), "writes dropped: the bus side has stopped");
+                    pending_writes.clear();
                 }
             },
             () = tokio::time::sleep(RETRY_FULL_QUEUE), if connected && !outbox.is_empty() => {}
@@ -313,12 +328,15 @@ struct OnMessage<'a> {
     retain: bool,
 }
 
-fn on_message(
-    planner: &mut PublicationPlanner,
-    writes: &mpsc::Sender<ControlWrite>,
-    dropped_log: &mut LogBudget,
-    message: OnMessage<'_>,
-) {
+/// Where accepted `/on` writes go: the bus side, or, while its queue is full, the pending
+/// writes.
+struct WriteTarget<'a> {
+    writes: &'a mpsc::Sender<ControlWrite>,
+    pending: &'a mut PendingWrites,
+    dropped_log: &'a mut LogBudget,
+}
+
+fn on_message(planner: &mut PublicationPlanner, bus: WriteTarget<'_>, message: OnMessage<'_>) {
     let OnMessage {
         topic,
         payload,
@@ -338,15 +356,29 @@ fn on_message(
         }
         WriteOutcome::Accepted(write) => {
             debug!(device_id = %write.device_id, control_id = %write.control_id, size, "write");
-            if let Err(err) = writes.try_send(write) {
-                let write = err.into_inner();
-                if let LogDecision::Log { suppressed_before } = dropped_log.check(Instant::now()) {
-                    warn!(
-                        device_id = %write.device_id,
-                        control_id = %write.control_id,
-                        suppressed_before,
-                        "write dropped: the bus side takes no more writes (queue full or stopped)"
-                    );
+            // Behind waiting writes, a write waits too: the order of controls is kept.
+            if !bus.pending.is_empty() {
+                if bus.pending.push(write) {
+                    debug!("an older write to the same control was still waiting: superseded");
+                }
+                return;
+            }
+            match bus.writes.try_send(write) {
+                Ok(()) => {}
+                Err(mpsc::error::TrySendError::Full(write)) => {
+                    debug!("the bus side is busy: the write waits");
+                    bus.pending.push(write);
+                }
+                Err(mpsc::error::TrySendError::Closed(write)) => {
+                    let now = Instant::now();
+                    if let LogDecision::Log { suppressed_before } = bus.dropped_log.check(now) {
+                        warn!(
+                            device_id = %write.device_id,
+                            control_id = %write.control_id,
+                            suppressed_before,
+                            "write dropped: the bus side has stopped"
+                        );
+                    }
                 }
             }
         }

@@ -12,6 +12,7 @@ pub mod client;
 pub mod discovery;
 pub mod layout;
 pub mod outbox;
+pub mod pending_writes;
 pub mod planner;
 pub mod sweep;
 pub mod throttle;

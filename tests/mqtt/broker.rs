@@ -482,3 +482,57 @@ async fn a_topic_the_client_refuses_does_not_block_the_others() {
     assert_eq!(state["/rtu2mqtt/rtu2mqtt/status"], "offline");
     assert!(!state.contains_key(&k1), "cleared on exit: {state:#?}");
 }
+
+/// Writes come faster than the bus side takes them (its queue of 16 is full and nobody reads):
+/// none is lost. The latest payload of every control reaches the bus side, in the order the
+/// controls were first written, once the bus side reads again.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn writes_wait_while_the_bus_side_is_busy_and_the_latest_per_control_arrives() {
+    let broker = Mosquitto::start();
+    let mut mqtt = MqttUnderTest::start(settings(broker.port));
+    feed_two_devices(&mqtt).await;
+    let on = |control: &str| format!("/devices/{RELAY}/controls/{control}/on");
+    state_with(
+        broker.port,
+        &format!("/devices/{RELAY}/controls/K6/meta/type"),
+        "switch",
+    )
+    .await;
+    let mut published = Vec::new();
+    for i in 0..40 {
+        published.push(("K3", if i % 2 == 0 { "1" } else { "0" }));
+    }
+    published.extend([("K1", "1"), ("K3", "1"), ("K1", "0"), ("K6", "1")]);
+    for (control, payload) in &published {
+        publish(broker.port, &on(control), payload, false).await;
+    }
+    // Read until the last control written arrives; it was written last, so it comes last.
+    let mut received = Vec::new();
+    loop {
+        let write = tokio::time::timeout(TIMEOUT, mqtt.writes.recv())
+            .await
+            .expect("every control's latest write reaches the bus side")
+            .expect("writes channel open");
+        received.push((write.control_id.clone(), write.payload.clone()));
+        if write.control_id == "K6" {
+            break;
+        }
+    }
+    let last = |control: &str| {
+        received
+            .iter()
+            .rev()
+            .find(|(c, _)| c == control)
+            .map(|(_, p)| p.as_str())
+    };
+    assert_eq!(last("K3"), Some("1"), "{received:?}");
+    assert_eq!(last("K1"), Some("0"), "{received:?}");
+    assert_eq!(received.last(), Some(&("K6".to_string(), "1".to_string())));
+    assert!(received.len() <= published.len(), "{received:?}");
+    // The first writes went through as they came, in order, before the queue filled.
+    let firsts: Vec<&str> = received.iter().take(16).map(|(_, p)| p.as_str()).collect();
+    let expected: Vec<&str> = published.iter().take(16).map(|(_, p)| *p).collect();
+    assert_eq!(firsts, expected);
+    assert!(mqtt.writes.try_recv().is_err(), "nothing else was written");
+    mqtt.stop().await;
+}
