@@ -82,7 +82,6 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         } else {
             BrokerState::Connecting
         }));
-        let notifier = tokio::spawn(notify_systemd(Arc::clone(&health), shutdown_rx.clone()));
         // The status page, when configured: bound before the buses start, so that a port in
         // use stops the daemon with a clear message instead of running without its page.
         let status = match &http {
@@ -110,6 +109,9 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             Arc::clone(&health),
             status.as_ref().map(|(hub, _)| Arc::clone(hub)),
         );
+        // Only now: READY waits for every port to have tried to open, and before the ports are
+        // registered there are none to wait for.
+        let notifier = tokio::spawn(notify_systemd(Arc::clone(&health), shutdown_rx.clone()));
         let status_server = status.map(|(hub, server)| {
             hub.set_writes(writes.clone());
             hub.set_port_directory(bus.port_directory());

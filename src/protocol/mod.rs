@@ -22,6 +22,7 @@ pub mod frame;
 pub mod parser;
 pub mod pdu;
 pub mod timing;
+pub mod transaction;
 mod wire;
 
 pub use arbitration::{arbitrate, Arbitration, ArbitrationWord, EventUrgency};
@@ -37,6 +38,7 @@ pub use parser::{
 };
 pub use pdu::{ExceptionCode, RequestPdu, ResponsePdu};
 pub use timing::{LineSettings, Parity};
+pub use transaction::{Outcome, ReplyTiming, Transaction};
 
 /// Why bytes did not decode to a frame.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]

@@ -35,12 +35,12 @@ use tracing::debug;
 
 use super::mbap::MbapCodec;
 use super::receive::{Received, ReplyWindow};
-use crate::port::{Outcome, ReplyTiming, Transaction};
 use crate::protocol::parser::answers;
 use crate::protocol::pdu::FrameLength;
 use crate::protocol::{
     EncodeError, FastRequest, LineSettings, ParseStatus, Reply, ReplyParser, Request, RequestBody,
 };
+use crate::protocol::{Outcome, ReplyTiming, Transaction};
 
 /// How replies are framed on the link.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -21,8 +21,8 @@ use exchange::{Exchange, Framing, LinkConfig};
 use serial::SerialLink;
 use tracing::debug;
 
-use crate::port::{Outcome, ReplyTiming, Transaction};
 use crate::protocol::{self, LineSettings};
+use crate::protocol::{Outcome, ReplyTiming, Transaction};
 
 pub use mbap::MbapCodec;
 

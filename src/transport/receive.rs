@@ -14,7 +14,7 @@
 
 use std::time::Duration;
 
-use crate::port::{ReplyTiming, Transaction};
+use crate::protocol::{ReplyTiming, Transaction};
 
 /// Longest a babbling line may keep the transport draining after a failed transaction, so that a
 /// stuck transmitter cannot stall the port forever.
