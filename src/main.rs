@@ -58,6 +58,17 @@ enum Command {
 
 fn main() -> std::process::ExitCode {
     let cli = Cli::parse();
+    if matches!(
+        cli.command,
+        Command::Scan(_)
+            | Command::Events(_)
+            | Command::Read(_)
+            | Command::Write(_)
+            | Command::SetAddress(_)
+            | Command::FixAddresses(_)
+    ) {
+        cli::init_tool_logging();
+    }
     let result = match cli.command {
         Command::CheckConfig(args) => cli::check::run_check_config(args),
         Command::CheckTemplates(args) => cli::check::run_check_templates(args),

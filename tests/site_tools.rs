@@ -870,3 +870,27 @@ fn bad_crc_at_one_setting_is_reported_and_the_scan_goes_on() {
     );
     assert_eq!(report["port_settings_scanned"], 12);
 }
+
+/// Through a USB adapter that hands bytes over late (the simulator holds every byte 40 ms, more
+/// than an FTDI chip's 16 ms latency timer), a scan whose allowance covers the delay finds every
+/// device at its own setting, and nothing at the settings that follow one in use, where the
+/// late bytes arrive.
+#[test]
+fn scan_through_a_slow_usb_adapter_finds_every_device_at_its_settings() {
+    let sim = SimProcess::start("site-bus.json", &["--adapter-latency-ms", "40"]);
+    let port = port(&sim);
+    let run = tool(&["scan", "--port", &port, "--json", "--latency", LATENCY_MS]);
+    assert_eq!(run.code, 0, "{}{}", run.stdout, run.stderr);
+    let report: Value = serde_json::from_str(&run.stdout).unwrap();
+    assert_eq!(
+        found(&report),
+        vec![
+            (0xFE00_0010, 10, "9600 8N2".into()),
+            (0xFE00_0011, 10, "9600 8N2".into()),
+            (0xFE00_0020, 20, "115200 8N2".into()),
+            (0xFE00_0030, 30, "19200 8O1".into()),
+            (0xFE00_0031, 31, "19200 8O1".into()),
+        ],
+        "{report:#}"
+    );
+}

@@ -22,9 +22,19 @@ pub mod via_mqtt;
 /// Logs to stderr; `RUST_LOG` (e.g. `debug`, `rtu2mqtt::transport=debug`) picks the detail.
 /// Colours only on a terminal: journald and log files would store the escape codes as text.
 pub fn init_logging() {
+    init_logging_at("info");
+}
+
+/// The site tools log only warnings unless `RUST_LOG` asks for more (`RUST_LOG=debug` shows
+/// every frame): their results go to stdout, and stderr stays for what went wrong.
+pub fn init_tool_logging() {
+    init_logging_at("warn");
+}
+
+fn init_logging_at(default: &str) {
     use std::io::IsTerminal;
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
-        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(default));
     let colour = std::io::stderr().is_terminal() && std::env::var_os("NO_COLOR").is_none();
     let _ = tracing_subscriber::fmt()
         .with_env_filter(filter)

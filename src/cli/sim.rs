@@ -51,6 +51,10 @@ pub struct Args {
     /// Run a timed scenario of control commands (JSON lines with at_ms / every_ms / count).
     #[arg(long, value_name = "FILE")]
     pub script: Option<PathBuf>,
+    /// Deliver the pty's bytes this many ms after they end on the wire, as a USB-RS485 adapter
+    /// does (an FTDI chip holds bytes up to its 16 ms latency timer); 0 = a native UART.
+    #[arg(long, value_name = "MS", default_value_t = 0, value_parser = clap::value_parser!(u64).range(0..=1000))]
+    pub adapter_latency_ms: u64,
     /// Where templates named by device_type are looked up (default: ./templates, else the
     /// repository's templates/).
     #[arg(long, value_name = "DIR")]
@@ -109,10 +113,10 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
                 .with_context(|| format!("opening the change log {path}"))?,
         )),
     };
-    let runtime = Arc::new(SimRuntime::new(
-        Bus::new(devices, bus_file.seed),
-        ChangeLog::new(sink),
-    ));
+    let runtime = Arc::new(
+        SimRuntime::new(Bus::new(devices, bus_file.seed), ChangeLog::new(sink))
+            .with_adapter_latency(Duration::from_millis(args.adapter_latency_ms)),
+    );
     install_signal_handlers()?;
     let mut out = std::io::stdout().lock();
     let mut threads = Vec::new();

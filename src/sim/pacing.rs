@@ -42,6 +42,9 @@ pub struct Pacer {
     queue: Mutex<Queue>,
     wake: Condvar,
     clock: Clock,
+    /// Added to every byte's arrival: what a USB adapter adds between the wire and the master
+    /// (an FTDI chip's latency timer is 16 ms by default).
+    delivery_delay: Duration,
 }
 
 fn lock(mutex: &Mutex<Queue>) -> MutexGuard<'_, Queue> {
@@ -52,12 +55,14 @@ impl Pacer {
     pub fn spawn(
         name: &str,
         clock: Clock,
+        delivery_delay: Duration,
         writer: ByteWriter,
     ) -> io::Result<(Arc<Self>, JoinHandle<()>)> {
         let pacer = Arc::new(Self {
             queue: Mutex::new(Queue::default()),
             wake: Condvar::new(),
             clock,
+            delivery_delay,
         });
         let worker = Arc::clone(&pacer);
         let handle = std::thread::Builder::new()
@@ -77,6 +82,7 @@ impl Pacer {
     pub fn schedule(&self, transmission: &Transmission) {
         let mut queue = lock(&self.queue);
         for (at, byte) in transmission.arrivals() {
+            let at = at + self.delivery_delay;
             let position = queue.bytes.partition_point(|&(t, _)| t <= at);
             queue.bytes.insert(position, (at, byte));
         }
@@ -91,10 +97,11 @@ impl Pacer {
         let mut queue = lock(&self.queue);
         let sent_through = queue.sent_through;
         queue.bytes.clear();
+        let delay = self.delivery_delay;
         queue.bytes.extend(
             arrivals
                 .iter()
-                .copied()
+                .map(|&(at, byte)| (at + delay, byte))
                 .filter(|&(at, _)| sent_through.is_none_or(|sent| at > sent)),
         );
         drop(queue);

@@ -177,6 +177,8 @@ pub struct SimRuntime {
     /// transports' loops read it without taking the bus's lock.
     link_up: AtomicBool,
     link_generation: AtomicU64,
+    /// What the pty's "USB adapter" adds to every reply byte's arrival at the master.
+    pub adapter_latency: Duration,
 }
 
 impl SimRuntime {
@@ -188,7 +190,15 @@ impl SimRuntime {
             stop: AtomicBool::new(false),
             link_up: AtomicBool::new(true),
             link_generation: AtomicU64::new(0),
+            adapter_latency: Duration::ZERO,
         }
+    }
+
+    /// Bytes reach the master over the pty `latency` after they end on the wire, as through a
+    /// USB adapter that holds them for its latency timer.
+    pub fn with_adapter_latency(mut self, latency: Duration) -> Self {
+        self.adapter_latency = latency;
+        self
     }
 
     /// Runs `f` on the bus at the current time, then logs the register changes it made.

@@ -90,6 +90,7 @@ fn spawn_connection(
     let (pacer, pacer_thread) = Pacer::spawn(
         "tcp",
         runtime.clock,
+        Duration::ZERO,
         Box::new(move |bytes| writer.write_all(bytes)),
     )?;
     std::thread::Builder::new()
