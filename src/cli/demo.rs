@@ -18,32 +18,6 @@ use crate::embedded_broker::EmbeddedBroker;
 const BUS: &str = include_str!("../../config/examples/sim-bus.json");
 const DAEMON_CONFIG: &str = include_str!("../../config/examples/sim-daemon.json");
 const SCENARIO: &str = include_str!("../../config/demo/scenario.script");
-const TEMPLATES: [(&str, &str); 6] = [
-    (
-        "rtu2mqtt-relay6.json",
-        include_str!("../../templates/rtu2mqtt-relay6.json"),
-    ),
-    (
-        "rtu2mqtt-climate.json",
-        include_str!("../../templates/rtu2mqtt-climate.json"),
-    ),
-    (
-        "rtu2mqtt-counter8.json",
-        include_str!("../../templates/rtu2mqtt-counter8.json"),
-    ),
-    (
-        "rtu2mqtt-dimmer.json",
-        include_str!("../../templates/rtu2mqtt-dimmer.json"),
-    ),
-    (
-        "rtu2mqtt-energy-meter.json",
-        include_str!("../../templates/rtu2mqtt-energy-meter.json"),
-    ),
-    (
-        "rtu2mqtt-generic.json",
-        include_str!("../../templates/rtu2mqtt-generic.json"),
-    ),
-];
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -94,7 +68,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let dir = create_demo_dir()?;
     let templates = dir.path().join("templates");
     std::fs::create_dir(&templates)?;
-    for (name, text) in TEMPLATES {
+    for (name, text) in crate::config::library::BUILT_IN_TEMPLATES {
         write_new(&templates.join(name), text)?;
     }
     let bus = dir.path().join("bus.json");

@@ -23,7 +23,7 @@ pub const WB_USER_TEMPLATE_DIR: &str = "/etc/wb-mqtt-serial.conf.d/templates";
 /// The templates shipped in `templates/`, built into the binary so that a config using them
 /// checks and runs from anywhere (a source checkout, a test) without `--templates`. Every
 /// directory of the search path wins over them.
-const BUILT_IN_TEMPLATES: [(&str, &str); 6] = [
+pub const BUILT_IN_TEMPLATES: [(&str, &str); 6] = [
     (
         "rtu2mqtt-climate.json",
         include_str!("../../templates/rtu2mqtt-climate.json"),

@@ -122,7 +122,6 @@ async fn read_words(
     let transaction = read_transaction(
         line,
         Request::classic(plan.address, pdu),
-        count,
         plan.response_timeout,
     );
     match queue.transact(None, transaction).await.ok()? {
@@ -143,19 +142,10 @@ async fn read_words(
 fn read_transaction(
     line: LineSettings,
     request: Request,
-    count: u16,
     response_timeout: Duration,
 ) -> Transaction {
     let timeout = response_timeout.max(Duration::from_millis(100)) + ADAPTER_LATENCY_ALLOWANCE;
-    let request_time = line.wire_time(8);
-    Transaction {
-        estimated: request_time + timeout,
-        request_time,
-        reply_timeout: timeout + line.wire_time(5 + 2 * usize::from(count) + 8),
-        first_byte_timeout: Some(timeout),
-        late_window: timeout.min(Duration::from_millis(100)),
-        request,
-    }
+    Transaction::to_device(&line, request, timeout)
 }
 
 #[cfg(test)]

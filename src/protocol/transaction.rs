@@ -4,7 +4,14 @@
 
 use std::time::Duration;
 
-use super::{Reply, Request};
+use super::{LineSettings, Reply, Request};
+
+/// How much longer than its length a reply to one device may take on the line: adapters hand
+/// bytes over in batches, and a loaded machine reads them late.
+const REPLY_SLACK_CHARACTERS: usize = 32;
+
+/// The longest a timed-out request watches the line for its late reply.
+const MAX_LATE_WINDOW: Duration = Duration::from_millis(100);
 
 /// One request and how long to wait for its reply. Every timeout counts from the end of the
 /// request on the wire: `request_time` after the transport handed it over.
@@ -43,4 +50,52 @@ pub enum Outcome {
     NoReply,
     /// Bytes arrived but no valid frame (CRC errors, a collision).
     Garbled,
+}
+
+impl Transaction {
+    /// A request to one device outside the scheduler (site tools, identity reads, RPC): the
+    /// first byte within `response_timeout` (the device's time and the adapter's, counted from
+    /// the end of the request), then the longest reply the request allows, with some slack.
+    pub fn to_device(line: &LineSettings, request: Request, response_timeout: Duration) -> Self {
+        let request_time = line.wire_time(request.encoded_len());
+        let reply_time = line.wire_time(request.max_reply_len() + REPLY_SLACK_CHARACTERS);
+        Self {
+            estimated: request_time + response_timeout + reply_time,
+            request_time,
+            reply_timeout: response_timeout + reply_time,
+            first_byte_timeout: Some(response_timeout),
+            late_window: response_timeout.min(MAX_LATE_WINDOW),
+            request,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::protocol::{Parity, RequestPdu};
+
+    #[test]
+    fn a_request_to_one_device_waits_for_its_longest_reply() {
+        let line = LineSettings {
+            baud: 9600,
+            data_bits: 8,
+            parity: Parity::None,
+            stop_bits: 2,
+        };
+        let request = Request::classic(
+            20,
+            RequestPdu::ReadHoldingRegisters {
+                start: 0,
+                count: 10,
+            },
+        );
+        let timeout = Duration::from_millis(124);
+        let transaction = Transaction::to_device(&line, request, timeout);
+        // 8 bytes of request; 25 bytes of reply (3 + 20 + CRC) and 32 of slack.
+        assert_eq!(transaction.request_time, line.wire_time(8));
+        assert_eq!(transaction.first_byte_timeout, Some(timeout));
+        assert_eq!(transaction.reply_timeout, timeout + line.wire_time(25 + 32));
+        assert_eq!(transaction.late_window, Duration::from_millis(100));
+    }
 }

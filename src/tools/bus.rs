@@ -272,7 +272,7 @@ pub trait ToolBus {
         timeout: Duration,
     ) -> Result<Answer, PortError> {
         let request = Request::by_serial(serial, pdu);
-        let transaction = request_transaction(&line, request, 12 + 256, timeout + self.latency());
+        let transaction = Transaction::to_device(&line, request, timeout + self.latency());
         Ok(match self.transact(line, transaction).await? {
             Outcome::Reply(Reply {
                 body:
@@ -300,7 +300,7 @@ pub trait ToolBus {
         timeout: Duration,
     ) -> Result<Answer, PortError> {
         let request = Request::classic(address, pdu);
-        let transaction = request_transaction(&line, request, 8 + 256, timeout + self.latency());
+        let transaction = Transaction::to_device(&line, request, timeout + self.latency());
         Ok(match self.transact(line, transaction).await? {
             Outcome::Reply(Reply {
                 body: ReplyBody::Classic(pdu),
@@ -422,24 +422,6 @@ pub fn scan_transaction(
         // Silence after a scan start means nobody at this setting, and the next request goes out
         // at another setting (after an input flush): no late reply to wait for.
         late_window: if start { Duration::ZERO } else { latency },
-        request,
-    }
-}
-
-/// Timeouts of a request to one device: `timeout` to the first byte, then the longest reply.
-fn request_transaction(
-    line: &LineSettings,
-    request: Request,
-    max_reply_len: usize,
-    timeout: Duration,
-) -> Transaction {
-    let request_time = line.wire_time(request.encode().map(|b| b.len()).unwrap_or(256));
-    Transaction {
-        estimated: request_time + timeout,
-        request_time,
-        reply_timeout: timeout + line.wire_time(max_reply_len + 32),
-        first_byte_timeout: Some(timeout),
-        late_window: timeout.min(Duration::from_millis(100)),
         request,
     }
 }
