@@ -27,13 +27,16 @@ pub struct HealthPolicy {
 pub const MIN_LATE_REPLY_HOLDOFF: Duration = Duration::from_secs(1);
 
 impl Default for HealthPolicy {
-    /// wb-mqtt-serial's defaults: 2 failures and 3 s; retries 0.5 s longer each time, up to 10 s.
+    /// wb-mqtt-serial's defaults: 2 failures and 3 s; retries 0.5 s longer each time, but up to
+    /// 2 s where wb-mqtt-serial waits up to 10 s: the scheduler's budget for offline devices
+    /// (a share of the bus) already keeps dead devices from slowing the others, and a device
+    /// that a burst of noise got marked offline is back within 2 s of the noise ending.
     fn default() -> Self {
         Self {
             max_fail_cycles: 2,
             device_timeout: Duration::from_secs(3),
             retry_step: Duration::from_millis(500),
-            max_retry_delay: Duration::from_secs(10),
+            max_retry_delay: Duration::from_secs(2),
             late_reply_holdoff: MIN_LATE_REPLY_HOLDOFF,
         }
     }
@@ -116,6 +119,17 @@ impl DeviceHealth {
         match self.state {
             State::Offline { retry_at, .. } => Some(retry_at.max(self.quiet_until)),
             _ => None,
+        }
+    }
+
+    /// The device was heard from outside its own transactions (a Fast Modbus event reached us
+    /// from it): when disconnected, it is retried at once instead of after its delay.
+    pub fn heard_from(&mut self, now: Duration) {
+        if self.is_offline() {
+            self.state = State::Offline {
+                retry_at: now,
+                delay: Duration::ZERO,
+            };
         }
     }
 
@@ -280,7 +294,7 @@ mod tests {
     }
 
     #[test]
-    fn retry_delay_grows_to_ten_seconds_and_resets_on_success() {
+    fn retry_delay_grows_to_two_seconds_and_resets_on_success() {
         let mut health = DeviceHealth::new(HealthPolicy::default());
         health.record_failure(ms(0));
         let mut now = ms(0);
@@ -295,8 +309,30 @@ mod tests {
         assert_eq!(delays[0], ms(1000));
         assert_eq!(delays[1], ms(1000));
         assert_eq!(delays[2], ms(1500));
-        assert_eq!(*delays.last().unwrap(), ms(10_000));
+        assert_eq!(delays[3], ms(2000));
+        assert_eq!(*delays.last().unwrap(), ms(2000));
         assert_eq!(health.record_success(now), HealthChange::CameOnline);
         assert!(health.may_transact(now));
+    }
+
+    #[test]
+    fn an_event_from_a_disconnected_device_gets_it_retried_at_once() {
+        let mut health = DeviceHealth::new(HealthPolicy::default());
+        health.record_failure(ms(0));
+        for _ in 0..6 {
+            let retry_at = health.retry_at().unwrap();
+            health.record_failure(retry_at);
+        }
+        let now = health.retry_at().unwrap() - ms(1500);
+        assert!(!health.may_transact(now));
+        health.heard_from(now);
+        // Only the late-reply hold-off of its last failure is kept.
+        let last_failure = now - ms(500);
+        assert_eq!(health.retry_at(), Some(now.max(last_failure + ms(1000))));
+        // An online device is not affected.
+        let mut online = DeviceHealth::new(HealthPolicy::default());
+        online.record_success(ms(0));
+        online.heard_from(ms(10));
+        assert!(online.is_online());
     }
 }

@@ -721,6 +721,9 @@ impl PortScheduler {
                     debug!(address, "events from a device that is not in the config");
                     return;
                 };
+                if let Some(state) = self.devices.get_mut(device) {
+                    state.heard_from(now);
+                }
                 for event in packet.events {
                     if event.is_reboot() {
                         if let Some(state) = self.devices.get_mut(device) {

@@ -1225,3 +1225,75 @@ fn a_suspended_device_is_not_polled_and_the_scheduler_does_not_spin() {
     });
     assert!(!log.classic_to(2).is_empty());
 }
+
+/// Noise got a device marked offline, but it still sends Fast Modbus events: the first event
+/// from it gets it retried at once (after the late-reply hold-off of its last failure), not
+/// after its retry delay.
+#[test]
+fn an_event_from_an_offline_device_gets_it_retried_at_once() {
+    let events_device = |address| {
+        let mut plan = device(
+            address,
+            vec![
+                read(RegisterType::Coil, 0, EventMode::Sporadic),
+                read(RegisterType::Holding, 5, EventMode::Polled),
+            ],
+        );
+        // A long retry delay, so that only the event can explain a quick retry.
+        plan.health.retry_step = ms(30_000);
+        plan.health.max_retry_delay = ms(30_000);
+        plan
+    };
+    let mut scheduler = PortScheduler::new(
+        settings(115_200),
+        vec![events_device(20), events_device(21)],
+    );
+    let mut log = Log::default();
+    let silent = ms(1000)..ms(6000);
+    let event_at = ms(9000);
+    let mut event_sent = false;
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(12_000),
+        |at, request| match &request.body {
+            RequestBody::Classic(_) if request.address == 21 && silent.contains(&at) => {
+                Outcome::NoReply
+            }
+            RequestBody::Fast(FastRequest::PollEvents(_)) if at >= event_at && !event_sent => {
+                event_sent = true;
+                Outcome::Reply(Reply::fast(
+                    21,
+                    FastReply::Events(EventPacket {
+                        flag: 1,
+                        event_count: 1,
+                        events: vec![Event {
+                            source: crate::protocol::EventSource::Register(RegisterType::Coil),
+                            id: 0,
+                            payload: vec![1],
+                        }],
+                    }),
+                ))
+            }
+            _ => healthy(request),
+        },
+    );
+    let went_offline = log
+        .events
+        .iter()
+        .find(|(_, e)| *e == PortEvent::Offline { device: 1 })
+        .map(|(at, _)| *at)
+        .expect("device 21 went offline");
+    assert!(went_offline < ms(6000), "{went_offline:?}");
+    let back = log
+        .events
+        .iter()
+        .find(|(at, e)| *at > went_offline && *e == PortEvent::Online { device: 1 })
+        .map(|(at, _)| *at)
+        .expect("device 21 came back");
+    assert!(
+        back > event_at && back < event_at + ms(200),
+        "back at {back:?}, the event came at {event_at:?}"
+    );
+}
