@@ -326,10 +326,109 @@ async fn reads_scans_and_errors(bench: &Bench, baud: u32) {
     assert_eq!(address_of_climate(), 21);
 }
 
+/// The retained value of a control once it is no longer `old`.
+async fn value_other_than(port: u16, topic: &str, old: &str) -> String {
+    wait_for(&format!("{topic} other than {old:?}"), || async {
+        let state = retained(port).await?;
+        state.get(topic).filter(|v| v.as_str() != old).cloned()
+    })
+    .await
+}
+
+/// `device/SetPoll`: with `poll` false the climate sensor is no longer read (its polled Sound
+/// Level stays as it was while the relay's polled Serial follows the simulator twice);
+/// with `poll` true it is read again. Then the errors.
+async fn set_poll_holds_and_resumes_a_device(bench: &Bench) {
+    let port = bench.broker.port;
+    let path = bench.sim.pty.to_str().unwrap().to_owned();
+    let sound = "/devices/climate_21/controls/Sound Level";
+    let serial = "/devices/relay6_20/controls/Serial";
+    // The sensor is being polled (port/Setup above moved it away for a while): a change shows.
+    let sound_at_start = wait_for("the climate sensor's Sound Level", || async {
+        retained(port).await?.get(sound).cloned()
+    })
+    .await;
+    bench
+        .sim
+        .control(json!({"cmd": "set", "device": 21, "type": "input", "address": 3, "value": 555}));
+    let sound_before = value_other_than(port, sound, &sound_at_start).await;
+    assert_eq!(sound_before, "5.55");
+    let held = rpc(
+        port,
+        "device",
+        "SetPoll",
+        json!({"device_id": "climate_21", "poll": false}),
+    )
+    .await;
+    assert_eq!(held, json!({"id": 1, "result": {}, "error": null}));
+    bench
+        .sim
+        .control(json!({"cmd": "set", "device": 21, "type": "input", "address": 3, "value": 777}));
+    let mut serial_now = wait_for("the relay's Serial", || async {
+        retained(port).await?.get(serial).cloned()
+    })
+    .await;
+    for low in [1001, 1002] {
+        bench.sim.control(
+            json!({"cmd": "set", "device": 20, "type": "input", "address": 270, "value": [0, low]}),
+        );
+        serial_now = value_other_than(port, serial, &serial_now).await;
+        assert_eq!(serial_now, low.to_string());
+    }
+    let state = retained(port).await.unwrap_or_default();
+    assert_eq!(
+        state.get(sound),
+        Some(&sound_before),
+        "the held device was read: {state:?}"
+    );
+
+    let resumed = rpc(
+        port,
+        "device",
+        "SetPoll",
+        json!({"path": path, "slave_id": 21, "poll": true}),
+    )
+    .await;
+    assert_eq!(resumed, json!({"id": 1, "result": {}, "error": null}));
+    value_other_than(port, sound, &sound_before).await;
+
+    let unknown = rpc(
+        port,
+        "device",
+        "SetPoll",
+        json!({"path": path, "slave_id": 99, "poll": false}),
+    )
+    .await;
+    assert_eq!(unknown["error"]["code"], -32000, "{unknown}");
+    assert!(
+        unknown["error"]["message"]
+            .as_str()
+            .unwrap()
+            .contains("Port or device not found"),
+        "{unknown}"
+    );
+    let no_poll = rpc(
+        port,
+        "device",
+        "SetPoll",
+        json!({"device_id": "climate_21"}),
+    )
+    .await;
+    assert_eq!(no_poll["error"]["code"], -32000, "{no_poll}");
+    assert!(
+        no_poll["error"]["message"]
+            .as_str()
+            .unwrap()
+            .contains("poll"),
+        "{no_poll}"
+    );
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn rpc_through_the_daemon_at_115200() {
     let bench = start("115200 8N2", 115_200);
     reads_scans_and_errors(&bench, 115_200).await;
+    set_poll_holds_and_resumes_a_device(&bench).await;
     drop(bench.daemon);
 }
 
@@ -337,6 +436,7 @@ async fn rpc_through_the_daemon_at_115200() {
 async fn rpc_through_the_daemon_at_9600() {
     let bench = start("9600 8N2", 9600);
     reads_scans_and_errors(&bench, 9600).await;
+    set_poll_holds_and_resumes_a_device(&bench).await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -4,7 +4,8 @@
 //! serves two queued transactions in a row while its scheduler has something to send.
 //!
 //! A caller that needs a sequence (a scan: start, continue, continue, ...) sends one transaction
-//! at a time and decides the next from the reply.
+//! at a time and decides the next from the reply. The same queue carries the operator's holds
+//! on a device's polling (`device/SetPoll`), which take no bus time.
 
 use thiserror::Error;
 use tokio::sync::{mpsc, oneshot};
@@ -15,6 +16,18 @@ use crate::protocol::LineSettings;
 /// Queued transactions a port holds at most; more are refused at once (the caller reports a
 /// busy port rather than wait behind a pile of work).
 pub const BUS_QUEUE_DEPTH: usize = 16;
+
+/// What a running port is asked to do.
+pub enum QueuedJob {
+    Transaction(QueuedTransaction),
+    /// Hold the polling of the port's `device`-th device for `hold_for`, counted from when the
+    /// port task takes the job (`None`: resume it).
+    HoldPolling {
+        device: usize,
+        hold_for: Option<std::time::Duration>,
+        done: oneshot::Sender<()>,
+    },
+}
 
 /// One transaction asked of a running port.
 pub struct QueuedTransaction {
@@ -42,11 +55,11 @@ pub enum BusQueueError {
 /// The sending side, cloned by whoever needs the bus.
 #[derive(Clone, Debug)]
 pub struct BusQueue {
-    sender: mpsc::Sender<QueuedTransaction>,
+    sender: mpsc::Sender<QueuedJob>,
 }
 
 /// The receiving side, owned by the port task.
-pub type BusQueueReceiver = mpsc::Receiver<QueuedTransaction>;
+pub type BusQueueReceiver = mpsc::Receiver<QueuedJob>;
 
 impl BusQueue {
     pub fn new() -> (Self, BusQueueReceiver) {
@@ -63,17 +76,36 @@ impl BusQueue {
         transaction: Transaction,
     ) -> Result<Outcome, BusQueueError> {
         let (reply, outcome) = oneshot::channel();
-        self.sender
-            .try_send(QueuedTransaction {
-                line,
-                transaction,
-                reply,
-            })
-            .map_err(|err| match err {
-                mpsc::error::TrySendError::Full(_) => BusQueueError::Full,
-                mpsc::error::TrySendError::Closed(_) => BusQueueError::Stopped,
-            })?;
+        self.send(QueuedJob::Transaction(QueuedTransaction {
+            line,
+            transaction,
+            reply,
+        }))?;
         outcome.await.unwrap_or(Err(BusQueueError::Stopped))
+    }
+
+    /// Holds the polling of the port's `device`-th device for `hold_for` from now (again from
+    /// now if it was held already), or resumes it (`None`); returns once the port task has
+    /// done it.
+    pub async fn hold_polling(
+        &self,
+        device: usize,
+        hold_for: Option<std::time::Duration>,
+    ) -> Result<(), BusQueueError> {
+        let (done, applied) = oneshot::channel();
+        self.send(QueuedJob::HoldPolling {
+            device,
+            hold_for,
+            done,
+        })?;
+        applied.await.map_err(|_| BusQueueError::Stopped)
+    }
+
+    fn send(&self, job: QueuedJob) -> Result<(), BusQueueError> {
+        self.sender.try_send(job).map_err(|err| match err {
+            mpsc::error::TrySendError::Full(_) => BusQueueError::Full,
+            mpsc::error::TrySendError::Closed(_) => BusQueueError::Stopped,
+        })
     }
 }
 
@@ -119,7 +151,9 @@ mod tests {
             queue.transact(None, transaction()).await,
             Err(BusQueueError::Full)
         );
-        let first = receiver.recv().await.unwrap();
+        let Some(QueuedJob::Transaction(first)) = receiver.recv().await else {
+            panic!("a transaction was queued");
+        };
         first.reply.send(Ok(Outcome::NoReply)).unwrap();
         drop(receiver);
         let mut outcomes = Vec::new();

@@ -8,7 +8,7 @@ use tokio::sync::{mpsc, watch};
 use tokio::time::Instant;
 use tracing::{debug, info, warn};
 
-use super::bus_queue::{BusQueue, BusQueueError, BusQueueReceiver, QueuedTransaction};
+use super::bus_queue::{BusQueue, BusQueueError, BusQueueReceiver, QueuedJob, QueuedTransaction};
 use super::identity::{read_identity, IdentityPlan, IdentityRead};
 use crate::gateway::device_model::{apply_port_events, DeviceModel};
 use crate::gateway::port_plan::PortPlan;
@@ -371,6 +371,9 @@ impl PortTask {
             }
             if queued_turn {
                 if let Some(job) = self.queued.as_mut().and_then(|q| q.try_recv().ok()) {
+                    let Some(job) = self.take_job(job) else {
+                        continue;
+                    };
                     queued_turn = false;
                     tokio::select! {
                         result = self.serve_queued(&mut bus, job) => result?,
@@ -422,10 +425,12 @@ impl PortTask {
                         }
                         job = next_queued(&mut self.queued) => match job {
                             Some(job) => {
-                                queued_turn = false;
-                                tokio::select! {
-                                    result = self.serve_queued(&mut bus, job) => result?,
-                                    _ = shutdown.changed() => return Ok(()),
+                                if let Some(job) = self.take_job(job) {
+                                    queued_turn = false;
+                                    tokio::select! {
+                                        result = self.serve_queued(&mut bus, job) => result?,
+                                        _ = shutdown.changed() => return Ok(()),
+                                    }
                                 }
                             }
                             // Nobody can queue any more: stop listening.
@@ -434,6 +439,29 @@ impl PortTask {
                         _ = shutdown.changed() => return Ok(()),
                     }
                 }
+            }
+        }
+    }
+
+    /// Carries out at once what a queued job asks that takes no bus time (a hold on a
+    /// device's polling); the transaction to serve, if it is one.
+    fn take_job(&mut self, job: QueuedJob) -> Option<QueuedTransaction> {
+        match job {
+            QueuedJob::Transaction(transaction) => Some(transaction),
+            QueuedJob::HoldPolling {
+                device,
+                hold_for,
+                done,
+            } => {
+                let now = self.now();
+                let until = hold_for.map(|hold| now.saturating_add(hold));
+                self.scheduler.hold_polling(device, until);
+                if let Some(status) = &self.status {
+                    let report = self.scheduler.device_report(device, now);
+                    status.record(|stats| stats.set_schedule(device, report));
+                }
+                let _ = done.send(());
+                None
             }
         }
     }
@@ -527,11 +555,26 @@ impl PortTask {
 
     /// Answers every queued transaction with "port closed" (the port is being reopened).
     fn refuse_queued(&mut self, why: &str) {
+        let now = self.now();
         if let Some(queued) = self.queued.as_mut() {
             while let Ok(job) = queued.try_recv() {
-                let _ = job
-                    .reply
-                    .send(Err(BusQueueError::PortClosed(why.to_owned())));
+                match job {
+                    QueuedJob::Transaction(job) => {
+                        let _ = job
+                            .reply
+                            .send(Err(BusQueueError::PortClosed(why.to_owned())));
+                    }
+                    // A hold takes no bus: the scheduler keeps it while the port is reopened.
+                    QueuedJob::HoldPolling {
+                        device,
+                        hold_for,
+                        done,
+                    } => {
+                        let until = hold_for.map(|hold| now.saturating_add(hold));
+                        self.scheduler.hold_polling(device, until);
+                        let _ = done.send(());
+                    }
+                }
             }
         }
     }
@@ -607,7 +650,7 @@ impl PortTask {
 }
 
 /// The next queued transaction; never resolves when there is no queue.
-async fn next_queued(queued: &mut Option<BusQueueReceiver>) -> Option<QueuedTransaction> {
+async fn next_queued(queued: &mut Option<BusQueueReceiver>) -> Option<QueuedJob> {
     match queued {
         Some(queued) => queued.recv().await,
         None => std::future::pending().await,

@@ -73,9 +73,11 @@ pub(super) struct DeviceState {
     preparation: Preparation,
     reads: Vec<ReadState>,
     events_active: bool,
-    /// Polling held by the operator (status page): no reads or preparation; writes and events
-    /// still go.
+    /// Polling held by the operator (status page, MQTT RPC `device/SetPoll`): no reads or
+    /// preparation; writes and events still go.
     pub suspended: bool,
+    /// When a hold asked for a limited time ends (`None`: until resumed).
+    pub suspended_until: Option<Duration>,
 }
 
 impl DeviceState {
@@ -104,6 +106,7 @@ impl DeviceState {
             reads,
             events_active: false,
             suspended: false,
+            suspended_until: None,
         };
         state.preparation = state.first_preparation_step();
         state

@@ -203,14 +203,33 @@ impl PortScheduler {
     /// Holds (or resumes) the polling of a device: no reads and no preparation while held;
     /// writes and its events still go. Returns false for an unknown device.
     pub fn set_suspended(&mut self, device: usize, suspended: bool) -> bool {
+        self.hold_polling(device, suspended.then_some(Duration::MAX))
+    }
+
+    /// Holds the polling of a device until `until` (`Duration::MAX`: until resumed), or resumes
+    /// it (`None`). A hold asked again moves its end. Returns false for an unknown device.
+    pub fn hold_polling(&mut self, device: usize, until: Option<Duration>) -> bool {
         let Some(state) = self.devices.get_mut(device) else {
             return false;
         };
+        let suspended = until.is_some();
         if state.suspended != suspended {
-            info!(device = %state.plan.name, suspended, "polling held from the status page");
+            info!(device = %state.plan.name, suspended, "polling hold changed by the operator");
         }
         state.suspended = suspended;
+        state.suspended_until = until.filter(|&until| until != Duration::MAX);
         true
+    }
+
+    /// Ends the holds whose time is up.
+    fn expire_holds(&mut self, now: Duration) {
+        for state in &mut self.devices {
+            if state.suspended_until.is_some_and(|until| now >= until) {
+                info!(device = %state.plan.name, "polling hold expired: polling again");
+                state.suspended = false;
+                state.suspended_until = None;
+            }
+        }
     }
 
     /// Queues a write; a queued write to the same register is replaced (the latest value wins).
@@ -236,6 +255,7 @@ impl PortScheduler {
         if self.in_flight.is_some() {
             return Action::Wait { until: now };
         }
+        self.expire_holds(now);
         let events_active = self.events_active();
         if events_active && now >= self.event_due_at() {
             return self.start_event_poll(now);

@@ -1297,3 +1297,40 @@ fn an_event_from_an_offline_device_gets_it_retried_at_once() {
         "back at {back:?}, the event came at {event_at:?}"
     );
 }
+
+/// `device/SetPoll`'s hold: for a limited time, then polling resumes by itself; asked again, the
+/// hold runs from then.
+#[test]
+fn a_hold_for_a_limited_time_ends_by_itself() {
+    let reads = |address| {
+        device(
+            address,
+            vec![read(RegisterType::Holding, 1, EventMode::Polled)],
+        )
+    };
+    let mut scheduler = PortScheduler::new(settings(115_200), vec![reads(1), reads(2)]);
+    assert!(scheduler.hold_polling(1, Some(ms(1000))));
+    let mut log = Log::default();
+    let now = run(&mut scheduler, &mut log, ms(0), ms(900), |_, r| healthy(r));
+    assert!(log.classic_to(2).is_empty(), "held until 1 s");
+    // Asked again at 0.9 s: held until 1.9 s.
+    assert!(scheduler.hold_polling(1, Some(now + ms(1000))));
+    let mut log = Log::default();
+    run(&mut scheduler, &mut log, now, ms(3000), |_, r| healthy(r));
+    let reads_of_2: Vec<Duration> = log.classic_to(2).into_iter().map(|(at, _)| at).collect();
+    let first = *reads_of_2.first().expect("polled again after the hold");
+    assert!(
+        first >= now + ms(1000) && first < now + ms(1100),
+        "first read at {first:?}, the hold ended at {:?}",
+        now + ms(1000)
+    );
+    assert!(!scheduler.device_report(1, ms(3000)).unwrap().suspended);
+    // Resumed before its end.
+    scheduler.hold_polling(1, Some(ms(60_000)));
+    scheduler.hold_polling(1, None);
+    let mut log = Log::default();
+    run(&mut scheduler, &mut log, ms(3000), ms(3100), |_, r| {
+        healthy(r)
+    });
+    assert!(!log.classic_to(2).is_empty());
+}

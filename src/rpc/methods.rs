@@ -7,7 +7,8 @@ use serde_json::{json, Map, Value};
 
 use super::message::RpcError;
 use super::params::{
-    DeviceProbe, MessageFormat, Method, PortLoad, PortScan, PortSelector, PortSetup, ScanMode,
+    DeviceProbe, DeviceSetPoll, MessageFormat, Method, PortLoad, PortScan, PortSelector, PortSetup,
+    ScanMode, POLL_HOLD,
 };
 use crate::config::config_file::PortType;
 use crate::daemon::bus_queue::BusQueue;
@@ -76,6 +77,7 @@ pub async fn execute(ports: &PortDirectory, method: Method) -> Result<Value, Rpc
         Method::PortScan(scan) => port_scan(ports, scan).await,
         Method::DeviceProbe(probe) => device_probe(ports, probe).await,
         Method::PortSetup(setup) => port_setup(ports, setup).await,
+        Method::DeviceSetPoll(set_poll) => device_set_poll(ports, set_poll).await,
     }
 }
 
@@ -342,6 +344,34 @@ fn configured_device_type(access: &PortAccess, address: u8) -> Option<String> {
 
 /// `device/Probe`: a Wiren Board device at a given address (classic requests): its serial
 /// number first; silence means "nobody there" (`{}`).
+/// Holds or resumes a configured device's polling; `{}` as wb-mqtt-serial answers.
+async fn device_set_poll(ports: &PortDirectory, request: DeviceSetPoll) -> Result<Value, RpcError> {
+    let (access, named) = find_port(ports, &request.port)?;
+    let slave_id = request.slave_id.or(named);
+    let index = access
+        .resolved
+        .devices
+        .iter()
+        .position(|d| match &request.port {
+            PortSelector::Device(id) => d.id == *id,
+            _ => Some(d.slave_id) == slave_id,
+        })
+        .ok_or_else(|| {
+            RpcError::server(format!(
+                "Port or device not found: no device at slave_id {} on {}",
+                slave_id.map_or_else(|| "?".to_owned(), |id| id.to_string()),
+                access.name
+            ))
+        })?;
+    let hold_for = (!request.poll).then_some(POLL_HOLD);
+    access
+        .queue
+        .hold_polling(index, hold_for)
+        .await
+        .map_err(|err| RpcError::server(err.to_string()))?;
+    Ok(Value::Object(Map::new()))
+}
+
 async fn device_probe(ports: &PortDirectory, probe: DeviceProbe) -> Result<Value, RpcError> {
     let (access, _) = find_port(ports, &probe.port)?;
     let line = request_line(&access, &probe.line);

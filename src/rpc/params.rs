@@ -22,12 +22,12 @@ pub const SERVED: &[(&str, &str)] = &[
     ("port", "Scan"),
     ("device", "Probe"),
     ("port", "Setup"),
+    ("device", "SetPoll"),
 ];
 pub const NOT_SERVED: &[(&str, &str)] = &[
     ("device", "LoadConfig"),
     ("device", "Load"),
     ("device", "Set"),
-    ("device", "SetPoll"),
     ("config", "Load"),
     ("config", "GetSchema"),
 ];
@@ -139,6 +139,19 @@ pub struct PortSetup {
     pub total_timeout: Duration,
 }
 
+/// How long `device/SetPoll` with `poll` false holds a device's polling (wb-mqtt-serial's 10
+/// minutes; asking again holds it 10 minutes from then).
+pub const POLL_HOLD: Duration = Duration::from_secs(600);
+
+/// `device/SetPoll`: hold (for [`POLL_HOLD`]) or resume the polling of a configured device,
+/// named by `device_id` or by its port and `slave_id`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DeviceSetPoll {
+    pub port: PortSelector,
+    pub slave_id: Option<u8>,
+    pub poll: bool,
+}
+
 /// A request, read.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Method {
@@ -147,13 +160,14 @@ pub enum Method {
     PortScan(PortScan),
     DeviceProbe(DeviceProbe),
     PortSetup(PortSetup),
+    DeviceSetPoll(DeviceSetPoll),
 }
 
 impl Method {
     /// The time the request may take at most, reply included.
     pub fn total_timeout(&self) -> Duration {
         match self {
-            Self::PortsLoad => DEFAULT_TOTAL_TIMEOUT,
+            Self::PortsLoad | Self::DeviceSetPoll(_) => DEFAULT_TOTAL_TIMEOUT,
             Self::PortLoad(p) => p.total_timeout,
             Self::PortScan(p) => p.total_timeout,
             Self::DeviceProbe(p) => p.total_timeout,
@@ -200,6 +214,23 @@ pub fn parse_method(service: &str, method: &str, params: &Value) -> Result<Metho
             items: setup_items(fields)?,
             total_timeout: total_timeout(fields)?,
         })),
+        ("device", "SetPoll") => {
+            let port = port_selector(fields)?;
+            let slave_id = slave_id(fields)?;
+            if slave_id.is_none() && !matches!(port, PortSelector::Device(_)) {
+                return Err(bad("slave_id", "missing (or give \"device_id\")"));
+            }
+            let poll = match fields.get("poll") {
+                Some(Value::Bool(poll)) => *poll,
+                Some(other) => return Err(bad("poll", format!("{other}: use true or false"))),
+                None => return Err(bad("poll", "missing: true resumes polling, false holds it")),
+            };
+            Ok(Method::DeviceSetPoll(DeviceSetPoll {
+                port,
+                slave_id,
+                poll,
+            }))
+        }
         _ if NOT_SERVED.contains(&(service, method)) => Err(RpcError::server(format!(
             "{service}/{method} is not served by rtu2mqtt yet; served: {}",
             served_list()
@@ -632,6 +663,44 @@ mod tests {
         assert!(pdu(5, 1, &[1]).is_err());
         assert!(pdu(16, 2, &[0, 1]).is_err());
         assert!(pdu(15, 9, &[0xFF]).is_err());
+    }
+
+    #[test]
+    fn set_poll_takes_a_device_id_or_a_port_and_slave_id() {
+        assert_eq!(
+            parse_method(
+                "device",
+                "SetPoll",
+                &json!({"device_id": "climate_21", "poll": false})
+            )
+            .unwrap(),
+            Method::DeviceSetPoll(DeviceSetPoll {
+                port: PortSelector::Device("climate_21".into()),
+                slave_id: None,
+                poll: false
+            })
+        );
+        assert_eq!(
+            parse_method(
+                "device",
+                "SetPoll",
+                &json!({"path": "/dev/ttyRS485-1", "slave_id": 21, "poll": true})
+            )
+            .unwrap(),
+            Method::DeviceSetPoll(DeviceSetPoll {
+                port: PortSelector::Path("/dev/ttyRS485-1".into()),
+                slave_id: Some(21),
+                poll: true
+            })
+        );
+        for (params, field) in [
+            (json!({"path": "/dev/x", "poll": true}), "slave_id"),
+            (json!({"device_id": "d"}), "poll"),
+            (json!({"device_id": "d", "poll": "no"}), "poll"),
+        ] {
+            let err = parse_method("device", "SetPoll", &params).unwrap_err();
+            assert!(err.message.contains(field), "{params}: {}", err.message);
+        }
     }
 
     #[test]
