@@ -424,11 +424,73 @@ async fn set_poll_holds_and_resumes_a_device(bench: &Bench) {
     );
 }
 
+/// `rtu2mqtt set-address` on the port the daemon holds: it goes through the service (port/Scan,
+/// port/Setup by serial number, port/Scan again), the device takes the address, and the
+/// daemon's events keep flowing.
+async fn set_address_goes_through_the_service(bench: &Bench) {
+    let port = bench.broker.port;
+    let address_of_climate = || {
+        bench.sim.control(
+            json!({"cmd": "get", "serial": "0xFE000021", "type": "holding", "address": 128}),
+        )["value"]
+            .clone()
+    };
+    let set_address = |address: &str| {
+        let mut command = Command::new(env!("CARGO_BIN_EXE_rtu2mqtt"));
+        command
+            .args(["set-address", "--port"])
+            .arg(&bench.sim.pty)
+            .args(["--serial", "0xFE000021", "--address", address])
+            .args(["--broker", &format!("127.0.0.1:{port}")]);
+        async move {
+            let output = tokio::task::spawn_blocking(move || command.output().unwrap())
+                .await
+                .unwrap();
+            (
+                output.status.code(),
+                String::from_utf8_lossy(&output.stdout).into_owned(),
+                String::from_utf8_lossy(&output.stderr).into_owned(),
+            )
+        }
+    };
+    let (code, stdout, stderr) = set_address("31").await;
+    assert_eq!(code, Some(0), "{stdout} {stderr}");
+    assert!(
+        stderr.contains("through the running rtu2mqtt service"),
+        "{stderr}"
+    );
+    assert!(stdout.contains("address 21 -> 31"), "{stdout}");
+    assert_eq!(address_of_climate(), 31);
+    let (code, stdout, stderr) = set_address("21").await;
+    assert_eq!(code, Some(0), "{stdout} {stderr}");
+    assert_eq!(address_of_climate(), 21);
+    // An address another device uses is refused, and nothing is written.
+    let (code, _, stderr) = set_address("20").await;
+    assert_eq!(code, Some(1), "{stderr}");
+    assert!(stderr.contains("already used"), "{stderr}");
+    assert_eq!(address_of_climate(), 21);
+    // The daemon's events still flow: a relay input reaches MQTT.
+    let k1 = "/devices/relay6_20/controls/K1";
+    let before = wait_for("the relay's K1", || async {
+        retained(port).await?.get(k1).cloned()
+    })
+    .await;
+    let flipped = if before == "1" { 0 } else { 1 };
+    bench.sim.control(
+        json!({"cmd": "set", "device": 20, "type": "coil", "address": 0, "value": flipped}),
+    );
+    assert_eq!(
+        value_other_than(port, k1, &before).await,
+        flipped.to_string()
+    );
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn rpc_through_the_daemon_at_115200() {
     let bench = start("115200 8N2", 115_200);
     reads_scans_and_errors(&bench, 115_200).await;
     set_poll_holds_and_resumes_a_device(&bench).await;
+    set_address_goes_through_the_service(&bench).await;
     drop(bench.daemon);
 }
 
@@ -437,6 +499,7 @@ async fn rpc_through_the_daemon_at_9600() {
     let bench = start("9600 8N2", 9600);
     reads_scans_and_errors(&bench, 9600).await;
     set_poll_holds_and_resumes_a_device(&bench).await;
+    set_address_goes_through_the_service(&bench).await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

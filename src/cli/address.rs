@@ -45,6 +45,8 @@ pub struct SetAddressArgs {
     /// Change it even when another device already uses that address at the same setting.
     #[arg(long)]
     pub force: bool,
+    #[command(flatten)]
+    pub service: super::via_mqtt::ViaMqttArgs,
 }
 
 #[derive(clap::Args, Debug)]
@@ -140,7 +142,16 @@ pub fn run_set_address(args: SetAddressArgs) -> anyhow::Result<ExitCode> {
 }
 
 async fn set_address(args: &SetAddressArgs) -> Result<ExitCode, PortError> {
-    let mut port = args.port.open()?;
+    if args.service.via_mqtt {
+        return Ok(set_address_via_service(args).await);
+    }
+    let mut port = match args.port.open() {
+        Err(PortError::Busy { path }) if args.service.can_reach_service() => {
+            eprintln!("{path} is busy: changing the address through the running rtu2mqtt service (MQTT RPC)");
+            return Ok(set_address_via_service(args).await);
+        }
+        other => other?,
+    };
     let plan = args.port.plan();
     let serial = serial_text(args.serial);
     let Some((line, old, report)) = locate(&mut port, &plan, args.serial).await? else {
@@ -198,6 +209,135 @@ async fn set_address(args: &SetAddressArgs) -> Result<ExitCode, PortError> {
             scanned.map_or("nothing".into(), |a| a.to_string())
         );
         Ok(ExitCode::from(exit::NOT_FOUND))
+    }
+}
+
+/// The Fast Modbus devices at one setting of a port the service holds, as (serial, address).
+async fn scan_via_service(
+    session: &mut crate::rpc::client::RpcSession,
+    path: &str,
+    line: &LineSettings,
+) -> Result<Vec<(u32, u8)>, ExitCode> {
+    let mut params = super::via_mqtt::line_params(line);
+    params["path"] = serde_json::json!(path);
+    let result = super::via_mqtt::service_call(
+        session,
+        "port",
+        "Scan",
+        params,
+        std::time::Duration::from_secs(10),
+    )
+    .await?;
+    if let Some(error) = result["error"].as_str() {
+        eprintln!("{line}: {error}");
+    }
+    Ok(result["devices"]
+        .as_array()
+        .into_iter()
+        .flatten()
+        .filter_map(|device| {
+            let serial = device["sn"].as_str()?.parse::<u32>().ok()?;
+            let address = u8::try_from(device["cfg"]["slave_id"].as_u64()?).ok()?;
+            Some((serial, address))
+        })
+        .collect())
+}
+
+/// `set-address` through the running service: `port/Scan` finds the device (the service's own
+/// settings first), `port/Setup` writes the address by serial number, a second `port/Scan`
+/// confirms it.
+async fn set_address_via_service(args: &SetAddressArgs) -> ExitCode {
+    let mut session = match super::via_mqtt::connect_service(&args.service).await {
+        Ok(session) => session,
+        Err(code) => return code,
+    };
+    let path = args.port.port.as_str();
+    let home = match super::via_mqtt::served_line(&mut session, path).await {
+        Ok(line) => line,
+        Err(code) => return code,
+    };
+    let mut plan = args.port.plan();
+    if let Some(index) = plan.iter().position(|l| *l == home) {
+        plan.remove(index);
+        plan.insert(0, home);
+    }
+    let serial = serial_text(args.serial);
+    let mut found = None;
+    for line in &plan {
+        let devices = match scan_via_service(&mut session, path, line).await {
+            Ok(devices) => devices,
+            Err(code) => return code,
+        };
+        if let Some((_, address)) = devices.iter().find(|(s, _)| *s == args.serial) {
+            found = Some((*line, *address, devices.clone()));
+            break;
+        }
+    }
+    let Some((line, old, devices)) = found else {
+        eprintln!(
+            "no device with serial {serial} answered a Fast Modbus scan at {} port setting(s) of \
+             {path} (through the service): check the number (decimal or 0x hex) and the wiring",
+            plan.len()
+        );
+        return ExitCode::from(exit::NOT_FOUND);
+    };
+    if old == args.address {
+        println!("serial {serial} already has address {old} ({line}); nothing to do");
+        return ExitCode::SUCCESS;
+    }
+    let taken_by: Vec<String> = devices
+        .iter()
+        .filter(|(s, a)| *a == args.address && *s != args.serial)
+        .map(|(s, _)| serial_text(*s))
+        .collect();
+    if !taken_by.is_empty() && !args.force {
+        eprintln!(
+            "address {} is already used at {line} by serial {}: choose another (rtu2mqtt scan \
+             lists the used ones) or add --force",
+            args.address,
+            taken_by.join(", ")
+        );
+        return ExitCode::from(exit::NOT_FOUND);
+    }
+    let mut item = super::via_mqtt::line_params(&line);
+    item["slave_id"] = serde_json::json!(old);
+    item["sn"] = serde_json::json!(args.serial);
+    item["cfg"] = serde_json::json!({"slave_id": args.address});
+    let setup = serde_json::json!({"path": path, "items": [item]});
+    if let Err(code) = super::via_mqtt::service_call(
+        &mut session,
+        "port",
+        "Setup",
+        setup,
+        std::time::Duration::from_secs(10),
+    )
+    .await
+    {
+        eprintln!("serial {serial} at {line}: the address stays {old}");
+        return code;
+    }
+    let scanned = match scan_via_service(&mut session, path, &line).await {
+        Ok(devices) => devices
+            .iter()
+            .find(|(s, _)| *s == args.serial)
+            .map(|(_, a)| *a),
+        Err(code) => return code,
+    };
+    if scanned == Some(args.address) {
+        println!(
+            "serial {serial} at {line}: address {old} -> {} (confirmed by a scan, through the \
+             service); if the service polls this device, change its slave_id in the service's \
+             config too",
+            args.address
+        );
+        ExitCode::SUCCESS
+    } else {
+        eprintln!(
+            "serial {serial} at {line}: wrote address {} but the scan shows {}",
+            args.address,
+            scanned.map_or("nothing".into(), |a| a.to_string())
+        );
+        ExitCode::from(exit::NOT_FOUND)
     }
 }
 
