@@ -69,6 +69,8 @@ async fn rpc(port: u16, service: &str, method: &str, params: Value) -> Value {
 }
 
 struct Bench {
+    /// The line of the bus, e.g. "115200 8N2".
+    line: String,
     broker: Mosquitto,
     sim: SimProcess,
     daemon: DaemonProcess,
@@ -96,6 +98,7 @@ fn start(line: &str, baud: u32) -> Bench {
     });
     let daemon = DaemonProcess::start(&config, &[], Stdio::null(), Stdio::null());
     Bench {
+        line: line.to_owned(),
         broker,
         sim,
         daemon,
@@ -424,9 +427,9 @@ async fn set_poll_holds_and_resumes_a_device(bench: &Bench) {
     );
 }
 
-/// `rtu2mqtt set-address` on the port the daemon holds: it goes through the service (port/Scan,
-/// port/Setup by serial number, port/Scan again), the device takes the address, and the
-/// daemon's events keep flowing.
+/// `rtu2mqtt set-address` and `fix-addresses` on the port the daemon holds: they go through the
+/// service (port/Scan, port/Setup by serial number, port/Scan again), the devices take the
+/// addresses, and the daemon's events keep flowing.
 async fn set_address_goes_through_the_service(bench: &Bench) {
     let port = bench.broker.port;
     let address_of_climate = || {
@@ -469,6 +472,82 @@ async fn set_address_goes_through_the_service(bench: &Bench) {
     assert_eq!(code, Some(1), "{stderr}");
     assert!(stderr.contains("already used"), "{stderr}");
     assert_eq!(address_of_climate(), 21);
+    // fix-addresses through the service: a duplicate made on purpose is found and resolved.
+    let tool = |args: Vec<String>| {
+        let mut command = Command::new(env!("CARGO_BIN_EXE_rtu2mqtt"));
+        command
+            .args(&args)
+            .args(["--broker", &format!("127.0.0.1:{port}")]);
+        async move {
+            let output = tokio::task::spawn_blocking(move || command.output().unwrap())
+                .await
+                .unwrap();
+            (
+                output.status.code(),
+                String::from_utf8_lossy(&output.stdout).into_owned(),
+                String::from_utf8_lossy(&output.stderr).into_owned(),
+            )
+        }
+    };
+    let pty = bench.sim.pty.to_str().unwrap().to_owned();
+    let line_args = |line: &str| -> Vec<String> {
+        let (baud, rest) = line.split_once(' ').unwrap();
+        let parity = &rest[1..2];
+        let stop_bits = &rest[2..3];
+        ["--baud", baud, "--parity", parity, "--stop-bits", stop_bits]
+            .map(str::to_owned)
+            .to_vec()
+    };
+    let set = |serial: &str, address: &str, force: bool| {
+        let mut args: Vec<String> = [
+            "set-address",
+            "--port",
+            &pty,
+            "--serial",
+            serial,
+            "--address",
+            address,
+        ]
+        .map(str::to_owned)
+        .to_vec();
+        if force {
+            args.push("--force".into());
+        }
+        tool(args)
+    };
+    let (code, stdout, stderr) = set("0xFE000021", "20", true).await;
+    assert_eq!(code, Some(0), "{stdout} {stderr}");
+    assert_eq!(address_of_climate(), 20);
+    let mut fix: Vec<String> = ["fix-addresses", "--port", &pty]
+        .map(str::to_owned)
+        .to_vec();
+    fix.extend(line_args(&bench.line));
+    let (code, stdout, stderr) = tool(fix.clone()).await;
+    assert_eq!(code, Some(1), "dry run: {stdout} {stderr}");
+    assert!(stdout.contains("(planned)"), "{stdout}");
+    assert_eq!(address_of_climate(), 20, "a dry run writes nothing");
+    fix.push("--apply".into());
+    let (code, stdout, stderr) = tool(fix).await;
+    assert_eq!(code, Some(0), "{stdout} {stderr}");
+    assert!(
+        stderr.contains("through the running rtu2mqtt service"),
+        "{stderr}"
+    );
+    assert!(stdout.contains("confirmed by a new scan"), "{stdout}");
+    let address_of_relay = || {
+        bench.sim.control(
+            json!({"cmd": "get", "serial": "0xFE000020", "type": "holding", "address": 128}),
+        )["value"]
+            .clone()
+    };
+    assert_ne!(address_of_climate(), address_of_relay());
+    // Back as configured.
+    for (serial, address) in [("0xFE000020", "20"), ("0xFE000021", "21")] {
+        let (code, stdout, stderr) = set(serial, address, true).await;
+        assert_eq!(code, Some(0), "{stdout} {stderr}");
+    }
+    assert_eq!(address_of_climate(), 21);
+    assert_eq!(address_of_relay(), 20);
     // The daemon's events still flow: a relay input reaches MQTT.
     let k1 = "/devices/relay6_20/controls/K1";
     let before = wait_for("the relay's K1", || async {

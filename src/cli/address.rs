@@ -59,6 +59,8 @@ pub struct FixAddressesArgs {
     /// Write the new addresses (without it: only show the plan).
     #[arg(long)]
     pub apply: bool,
+    #[command(flatten)]
+    pub service: super::via_mqtt::ViaMqttArgs,
 }
 
 /// Scans setting after setting until the device with `serial` answers; the report of that
@@ -364,11 +366,125 @@ fn print_changes(changes: &[AddressChange], applied: bool) {
     }
 }
 
+/// What `fix-addresses` needs of a port: the port itself, or the running service that holds it.
+#[allow(async_fn_in_trait)]
+trait AddressBus {
+    /// Fast Modbus scan of `lines` into `report`.
+    async fn scan(
+        &mut self,
+        lines: &[LineSettings],
+        report: &mut ScanReport,
+    ) -> Result<(), ExitCode>;
+    /// Writes the address register of the device with `serial` (now at `change.from`); Err
+    /// with the reason.
+    async fn write_address(
+        &mut self,
+        change: &AddressChange,
+    ) -> Result<Result<(), String>, ExitCode>;
+}
+
+impl AddressBus for ToolPort {
+    async fn scan(
+        &mut self,
+        lines: &[LineSettings],
+        report: &mut ScanReport,
+    ) -> Result<(), ExitCode> {
+        super::scan::fast_scan(self, lines, report)
+            .await
+            .map_err(|err| port_failure(&err))
+    }
+
+    async fn write_address(
+        &mut self,
+        change: &AddressChange,
+    ) -> Result<Result<(), String>, ExitCode> {
+        write_address(self, change.line, change.serial, change.to)
+            .await
+            .map_err(|err| port_failure(&err))
+    }
+}
+
+/// The running service, through `port/Scan` and `port/Setup`.
+struct ServiceBus {
+    session: crate::rpc::client::RpcSession,
+    path: String,
+}
+
+impl AddressBus for ServiceBus {
+    async fn scan(
+        &mut self,
+        lines: &[LineSettings],
+        report: &mut ScanReport,
+    ) -> Result<(), ExitCode> {
+        for line in lines {
+            report.settings_tried.push(*line);
+            for (serial, address) in scan_via_service(&mut self.session, &self.path, line).await? {
+                report.add_fast(*line, serial, address);
+            }
+        }
+        Ok(())
+    }
+
+    async fn write_address(
+        &mut self,
+        change: &AddressChange,
+    ) -> Result<Result<(), String>, ExitCode> {
+        let mut item = super::via_mqtt::line_params(&change.line);
+        item["slave_id"] = serde_json::json!(change.from);
+        item["sn"] = serde_json::json!(change.serial);
+        item["cfg"] = serde_json::json!({"slave_id": change.to});
+        let setup = serde_json::json!({"path": self.path, "items": [item]});
+        Ok(
+            match self
+                .session
+                .call("port", "Setup", setup, std::time::Duration::from_secs(10))
+                .await
+            {
+                Ok(_) => Ok(()),
+                Err(err) => Err(err.to_string()),
+            },
+        )
+    }
+}
+
 async fn fix_addresses(args: &FixAddressesArgs) -> Result<ExitCode, PortError> {
-    let mut port = args.port.open()?;
+    if !args.service.via_mqtt {
+        match args.port.open() {
+            Err(PortError::Busy { path }) if args.service.can_reach_service() => {
+                eprintln!("{path} is busy: fixing addresses through the running rtu2mqtt service (MQTT RPC)");
+            }
+            other => {
+                let mut port = other?;
+                let code = fix_addresses_on(&mut port, args).await;
+                port.restore();
+                return Ok(code);
+            }
+        }
+    }
+    let session = match super::via_mqtt::connect_service(&args.service).await {
+        Ok(session) => session,
+        Err(code) => return Ok(code),
+    };
+    let mut service = ServiceBus {
+        session,
+        path: args.port.port.clone(),
+    };
+    Ok(fix_addresses_on(&mut service, args).await)
+}
+
+async fn fix_addresses_on(bus: &mut impl AddressBus, args: &FixAddressesArgs) -> ExitCode {
+    match fix_addresses_steps(bus, args).await {
+        Ok(code) | Err(code) => code,
+    }
+}
+
+async fn fix_addresses_steps(
+    bus: &mut impl AddressBus,
+    args: &FixAddressesArgs,
+) -> Result<ExitCode, ExitCode> {
     let plan = args.port.plan();
     let mut report = ScanReport::default();
-    super::scan::fast_scan(&mut port, &plan, &mut report).await?;
+    bus.scan(&plan, &mut report).await?;
     let duplicates = report.duplicates();
     if duplicates.is_empty() {
         println!(
@@ -389,8 +505,7 @@ async fn fix_addresses(args: &FixAddressesArgs) -> Result<ExitCode, PortError> {
     }
     let mut failed = false;
     for change in &address_plan.changes {
-        if let Err(reason) = write_address(&mut port, change.line, change.serial, change.to).await?
-        {
+        if let Err(reason) = bus.write_address(change).await? {
             failed = true;
             eprintln!(
                 "serial {} at {}: {reason}",
@@ -403,8 +518,7 @@ async fn fix_addresses(args: &FixAddressesArgs) -> Result<ExitCode, PortError> {
     let mut lines: Vec<LineSettings> = duplicates.iter().map(|d| d.line).collect();
     lines.dedup();
     let mut check = ScanReport::default();
-    super::scan::fast_scan(&mut port, &lines, &mut check).await?;
-    port.restore();
+    bus.scan(&lines, &mut check).await?;
     for change in &address_plan.changes {
         let now = check
             .devices
