@@ -90,7 +90,7 @@ fn start(line: &str, baud: u32) -> Bench {
     let config = json!({
         "mqtt": {"host": "127.0.0.1", "port": broker.port, "client_id": "rtu2mqtt-rpc-test"},
         "ports": [{"path": sim.pty, "baud_rate": baud, "stop_bits": 2, "devices": [
-            {"device_type": "rtu2mqtt-relay6", "slave_id": 20},
+            {"device_type": "rtu2mqtt-relay6", "slave_id": 20, "in0_mode": 3},
             {"device_type": "rtu2mqtt-climate", "slave_id": 21}
         ]}]
     });
@@ -324,6 +324,236 @@ async fn reads_scans_and_errors(bench: &Bench, baud: u32) {
     .await;
     assert_eq!(back["error"], Value::Null, "{back}");
     assert_eq!(address_of_climate(), 21);
+}
+
+/// `device/LoadConfig`, `device/Load`, `device/Set`, `device/SetPoll`: exact replies, errors,
+/// and the daemon's events flowing before, during and after.
+async fn device_methods(bench: &Bench) {
+    let port = bench.broker.port;
+    let path = bench.sim.pty.to_str().unwrap().to_owned();
+    wait_until_served(port).await;
+    let event_seen = |value: &'static str| {
+        wait_for(
+            "the relay's Input 1 event on the broker",
+            move || async move {
+                let state = retained(port).await?;
+                (state.get("/devices/relay6_20/controls/Input 1")? == value).then_some(())
+            },
+        )
+    };
+    let press = |value: u16| {
+        bench.sim.control(
+            json!({"cmd": "set", "device": 20, "type": "discrete", "address": 0, "value": value}),
+        )
+    };
+    press(1);
+    event_seen("1").await;
+
+    // device/Load: channels by template name, decoded as the daemon publishes them.
+    bench
+        .sim
+        .control(json!({"cmd": "set", "device": 21, "type": "input", "address": 4, "value": 2150}));
+    let load = rpc_raw(
+        port,
+        "device",
+        "Load",
+        &json!({"id": 3, "params": {"device_id": "climate_21", "channels": ["Temperature", "Serial"]}})
+            .to_string(),
+    )
+    .await;
+    assert_eq!(
+        load,
+        r#"{"id":3,"result":{"channels":{"Temperature":21.5,"Serial":4261412897}},"error":null}"#
+    );
+    let by_address = rpc(
+        port,
+        "device",
+        "Load",
+        json!({"path": path, "slave_id": 21, "channels": ["Temperature"]}),
+    )
+    .await;
+    assert_eq!(
+        by_address,
+        json!({"id": 1, "result": {"channels": {"Temperature": 21.5}}, "error": null})
+    );
+    let unknown = rpc(
+        port,
+        "device",
+        "Load",
+        json!({"device_id": "climate_21", "channels": ["Nope"]}),
+    )
+    .await;
+    assert_eq!(
+        unknown["error"],
+        json!({"code": -32000, "message":
+            "Channel \"Nope\" is write only or not found in \"rtu2mqtt-climate\" device template"})
+    );
+    let parameters = rpc(
+        port,
+        "device",
+        "Load",
+        json!({"device_id": "climate_21", "parameters": ["baud_rate"]}),
+    )
+    .await;
+    assert_eq!(parameters["error"]["code"], -32000, "{parameters}");
+    let unconfigured = rpc(
+        port,
+        "device",
+        "Load",
+        json!({"path": path, "slave_id": 99, "channels": ["Temperature"]}),
+    )
+    .await;
+    assert_eq!(unconfigured["error"]["code"], -32000, "{unconfigured}");
+    assert!(unconfigured["error"]["message"]
+        .as_str()
+        .unwrap()
+        .contains("no configured device at slave_id 99"));
+
+    // device/Set: checked as an /on payload, written through the bus queue.
+    let set = rpc_raw(
+        port,
+        "device",
+        "Set",
+        &json!({"id": 4, "params": {"device_id": "relay6_20", "channels": {"K5": 1}}}).to_string(),
+    )
+    .await;
+    assert_eq!(set, r#"{"id":4,"result":{},"error":null}"#);
+    let k5 = bench
+        .sim
+        .control(json!({"cmd": "get", "device": 20, "type": "coil", "address": 4}));
+    assert_eq!(k5["value"], 1);
+    let off = rpc(
+        port,
+        "device",
+        "Set",
+        json!({"path": path, "slave_id": 20, "channels": {"K5": "0"}}),
+    )
+    .await;
+    assert_eq!(off, json!({"id": 1, "result": {}, "error": null}));
+    let k5 = bench
+        .sim
+        .control(json!({"cmd": "get", "device": 20, "type": "coil", "address": 4}));
+    assert_eq!(k5["value"], 0);
+    let read_only = rpc(
+        port,
+        "device",
+        "Set",
+        json!({"device_id": "relay6_20", "channels": {"Input 1": 1}}),
+    )
+    .await;
+    assert_eq!(
+        read_only["error"],
+        json!({"code": -32000, "message":
+            "Channel \"Input 1\" is read only or not found in \"rtu2mqtt-relay6\" device template"})
+    );
+    // The device model's check: a switch takes 0 or 1; nothing is written.
+    let bad = rpc(
+        port,
+        "device",
+        "Set",
+        json!({"device_id": "relay6_20", "channels": {"K5": "maybe"}}),
+    )
+    .await;
+    assert_eq!(bad["error"]["code"], -32000, "{bad}");
+    assert!(
+        bad["error"]["message"]
+            .as_str()
+            .unwrap()
+            .starts_with("Channel \"K5\": a switch takes"),
+        "{bad}"
+    );
+
+    press(0);
+    event_seen("0").await;
+
+    // device/LoadConfig: the configured parameters, the model and firmware read now.
+    let config = rpc_raw(
+        port,
+        "device",
+        "LoadConfig",
+        &json!({"id": 5, "params": {"device_id": "relay6_20"}}).to_string(),
+    )
+    .await;
+    assert_eq!(
+        config,
+        r#"{"id":5,"result":{"parameters":{"in0_mode":3},"model":"WBMR6C","fw":"1.26.0"},"error":null}"#
+    );
+    let climate = rpc(
+        port,
+        "device",
+        "LoadConfig",
+        json!({"path": path, "slave_id": 21}),
+    )
+    .await;
+    assert_eq!(
+        climate,
+        json!({"id": 1, "result": {"parameters": {}, "model": "WBMSW4", "fw": "1.0.0"}, "error": null})
+    );
+
+    // device/SetPoll: hold and resume; unknown devices as wb-mqtt-serial says it.
+    let hold = rpc_raw(
+        port,
+        "device",
+        "SetPoll",
+        &json!({"id": 6, "params": {"device_id": "climate_21", "poll": false}}).to_string(),
+    )
+    .await;
+    assert_eq!(hold, r#"{"id":6,"result":{},"error":null}"#);
+    wait_for("the hold in the daemon's log", || async {
+        bench.daemon.log().contains("polling held").then_some(())
+    })
+    .await;
+    let resume = rpc(
+        port,
+        "device",
+        "SetPoll",
+        json!({"path": path, "slave_id": 21, "poll": true}),
+    )
+    .await;
+    assert_eq!(resume, json!({"id": 1, "result": {}, "error": null}));
+    bench
+        .sim
+        .control(json!({"cmd": "set", "device": 21, "type": "input", "address": 4, "value": 2310}));
+    wait_for("the temperature polled again after the resume", || async {
+        let state = retained(port).await?;
+        (state.get("/devices/climate_21/controls/Temperature")? == "23.1").then_some(())
+    })
+    .await;
+    let nobody = rpc(
+        port,
+        "device",
+        "SetPoll",
+        json!({"device_id": "nope", "poll": false}),
+    )
+    .await;
+    assert_eq!(
+        nobody,
+        json!({"id": 1, "result": null, "error": {"code": -32000, "message": "Port or device not found"}})
+    );
+    let no_poll = rpc(
+        port,
+        "device",
+        "SetPoll",
+        json!({"device_id": "climate_21"}),
+    )
+    .await;
+    assert_eq!(no_poll["error"]["code"], -32000, "{no_poll}");
+
+    // Events still flow after all of it.
+    press(1);
+    event_seen("1").await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn device_methods_at_115200() {
+    let bench = start("115200 8N2", 115_200);
+    device_methods(&bench).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn device_methods_at_9600() {
+    let bench = start("9600 8N2", 9600);
+    device_methods(&bench).await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

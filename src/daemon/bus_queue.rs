@@ -6,6 +6,9 @@
 //! A caller that needs a sequence (a scan: start, continue, continue, ...) sends one transaction
 //! at a time and decides the next from the reply.
 
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+
 use thiserror::Error;
 use tokio::sync::{mpsc, oneshot};
 
@@ -43,6 +46,41 @@ pub enum BusQueueError {
 #[derive(Clone, Debug)]
 pub struct BusQueue {
     sender: mpsc::Sender<QueuedTransaction>,
+    control: PortControl,
+}
+
+/// Requests to the port's scheduler that are no bus transaction (RPC `device/SetPoll`: hold or
+/// resume a device's polling). The port task takes them before its scheduler's next
+/// transaction; checking costs one atomic load when there is none.
+#[derive(Clone, Debug, Default)]
+pub struct PortControl {
+    pending: Arc<AtomicBool>,
+    /// (device index on the port, suspended), in order.
+    commands: Arc<Mutex<Vec<(usize, bool)>>>,
+}
+
+impl PortControl {
+    /// Holds (`true`) or resumes (`false`) the polling of the port's `device`-th device.
+    pub fn suspend(&self, device: usize, suspended: bool) {
+        self.commands
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .push((device, suspended));
+        self.pending.store(true, Ordering::Release);
+    }
+
+    /// The commands sent since the last call, in order.
+    pub fn take(&self) -> Vec<(usize, bool)> {
+        if !self.pending.swap(false, Ordering::AcqRel) {
+            return Vec::new();
+        }
+        std::mem::take(
+            &mut *self
+                .commands
+                .lock()
+                .unwrap_or_else(std::sync::PoisonError::into_inner),
+        )
+    }
 }
 
 /// The receiving side, owned by the port task.
@@ -51,7 +89,13 @@ pub type BusQueueReceiver = mpsc::Receiver<QueuedTransaction>;
 impl BusQueue {
     pub fn new() -> (Self, BusQueueReceiver) {
         let (sender, receiver) = mpsc::channel(BUS_QUEUE_DEPTH);
-        (Self { sender }, receiver)
+        let control = PortControl::default();
+        (Self { sender, control }, receiver)
+    }
+
+    /// The port's scheduler commands (shared by every clone of this queue).
+    pub fn control(&self) -> &PortControl {
+        &self.control
     }
 
     /// Sends `transaction` (at `line`, or the port's own settings) between the port's own
@@ -92,6 +136,21 @@ mod tests {
             late_window: Duration::ZERO,
             estimated: Duration::from_millis(10),
         }
+    }
+
+    #[test]
+    fn control_commands_come_out_once_and_in_order() {
+        let (queue, _receiver) = BusQueue::new();
+        assert!(queue.control().take().is_empty());
+        let other = queue.clone();
+        other.control().suspend(2, true);
+        queue.control().suspend(0, true);
+        queue.control().suspend(2, false);
+        assert_eq!(
+            queue.control().take(),
+            vec![(2, true), (0, true), (2, false)]
+        );
+        assert!(other.control().take().is_empty());
     }
 
     #[tokio::test]

@@ -223,8 +223,17 @@ impl PortTask {
         self.status.clone()
     }
 
-    /// What the status page asked for (hold or resume a device's polling).
+    /// What the status page and MQTT RPC asked for (hold or resume a device's polling).
     fn apply_status_commands(&mut self) {
+        // MQTT RPC's device/SetPoll, through the bus queue's control.
+        let rpc = self.queue.as_ref().map(|q| q.control().take());
+        for (device, suspended) in rpc.into_iter().flatten() {
+            self.scheduler.set_suspended(device, suspended);
+            if let Some(status) = &self.status {
+                let report = self.scheduler.device_report(device, self.now());
+                status.record(|stats| stats.set_schedule(device, report));
+            }
+        }
         let Some(status) = &self.status else {
             return;
         };
