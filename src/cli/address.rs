@@ -1,6 +1,9 @@
 //! `rtu2mqtt set-address` and `rtu2mqtt fix-addresses`: change Modbus addresses by serial number
 //! (Fast Modbus 0x46 0x08), so devices that share an address are told apart without unplugging
-//! anything, and check the result with a new scan.
+//! anything, and check the result with a new scan. When the port is busy (the service holds
+//! it) or with `--via-mqtt`, the same goes through the running service: `port/Scan` to find
+//! the devices, `port/Setup` by serial number (`sn`) to write the address, `port/Load` by
+//! serial number (rtu2mqtt's `sn` extension) to read it back.
 
 use std::process::ExitCode;
 
@@ -14,6 +17,8 @@ use crate::tools::plan::parse_range;
 use crate::tools::report::{serial_text, AddressChange, ScanReport};
 
 use super::scan::{block_on_tool, port_failure, PortArgs};
+use super::via_mqtt::{line_params, response_words, scan_setting_via_service, ViaMqttArgs};
+use crate::rpc::client::RpcSession;
 
 /// The Wiren Board holding register with the device's Modbus address.
 pub const ADDRESS_REGISTER: u16 = 128;
@@ -45,6 +50,8 @@ pub struct SetAddressArgs {
     /// Change it even when another device already uses that address at the same setting.
     #[arg(long)]
     pub force: bool,
+    #[command(flatten)]
+    pub service: ViaMqttArgs,
 }
 
 #[derive(clap::Args, Debug)]
@@ -57,6 +64,77 @@ pub struct FixAddressesArgs {
     /// Write the new addresses (without it: only show the plan).
     #[arg(long)]
     pub apply: bool,
+    #[command(flatten)]
+    pub service: ViaMqttArgs,
+}
+
+/// The bus the address tools work on: the port itself, or the running service holding it.
+pub enum AddressBus {
+    Direct(Box<ToolPort>),
+    Service { session: RpcSession, path: String },
+}
+
+impl AddressBus {
+    /// The port, or the service when `--via-mqtt` is given or the port is busy and the broker
+    /// is known.
+    pub async fn open(port: &PortArgs, service: &ViaMqttArgs) -> Result<Self, PortError> {
+        if !service.via_mqtt {
+            match port.open() {
+                Err(PortError::Busy { path }) if service.can_reach_service() => {
+                    eprintln!(
+                        "{path} is busy: going through the running rtu2mqtt service (MQTT RPC)"
+                    );
+                }
+                other => return other.map(|port| Self::Direct(Box::new(port))),
+            }
+        }
+        let broker = service.broker_config().map_err(PortError::Service)?;
+        let session = RpcSession::connect(&broker)
+            .await
+            .map_err(|err| PortError::Service(err.to_string()))?;
+        Ok(Self::Service {
+            session,
+            path: port.port.clone(),
+        })
+    }
+
+    async fn scan_setting(
+        &mut self,
+        line: LineSettings,
+        report: &mut ScanReport,
+    ) -> Result<Vec<(u32, u8)>, PortError> {
+        match self {
+            Self::Direct(port) => port.scan_setting(line, report).await,
+            Self::Service { session, path } => {
+                scan_setting_via_service(session, path, line, report).await
+            }
+        }
+    }
+
+    /// Every setting of `plan`, with each device's identity (the service reads it with its
+    /// scan).
+    async fn fast_scan(
+        &mut self,
+        plan: &[LineSettings],
+        report: &mut ScanReport,
+    ) -> Result<(), PortError> {
+        match self {
+            Self::Direct(port) => super::scan::fast_scan(port, plan, report).await,
+            Self::Service { session, path } => {
+                for &line in plan {
+                    report.settings_tried.push(line);
+                    scan_setting_via_service(session, path, line, report).await?;
+                }
+                Ok(())
+            }
+        }
+    }
+
+    fn restore(&mut self) {
+        if let Self::Direct(port) = self {
+            port.restore();
+        }
+    }
 }
 
 /// Scans setting after setting until the device with `serial` answers; the report of that
@@ -77,13 +155,52 @@ pub async fn locate(
     Ok(None)
 }
 
+/// [`locate`], on the port or through the service.
+async fn locate_on_bus(
+    port: &mut AddressBus,
+    plan: &[LineSettings],
+    serial: u32,
+) -> Result<Option<(LineSettings, u8, ScanReport)>, PortError> {
+    for &line in plan {
+        let mut report = ScanReport::default();
+        report.settings_tried.push(line);
+        let seen = port.scan_setting(line, &mut report).await?;
+        if let Some((_, address)) = seen.iter().find(|(s, _)| *s == serial) {
+            return Ok(Some((line, *address, report)));
+        }
+    }
+    Ok(None)
+}
+
 /// Writes the address register by serial number; Err with the reason when the device refuses.
+/// Through the service: `port/Setup` with `sn` (as Wiren Board's device manager does it).
 async fn write_address(
-    port: &mut ToolPort,
+    bus: &mut AddressBus,
     line: LineSettings,
     serial: u32,
+    from: u8,
     address: u8,
 ) -> Result<Result<(), String>, PortError> {
+    let port = match bus {
+        AddressBus::Direct(port) => port,
+        AddressBus::Service { session, path } => {
+            let mut item = line_params(&line);
+            item["slave_id"] = serde_json::json!(from);
+            item["sn"] = serde_json::json!(serial);
+            item["cfg"] = serde_json::json!({ "slave_id": address });
+            let params = serde_json::json!({ "path": path, "items": [item] });
+            return Ok(
+                match session
+                    .call("port", "Setup", params, std::time::Duration::from_secs(10))
+                    .await
+                {
+                    Ok(_) => Ok(()),
+                    Err(crate::rpc::client::CallError::Refused(why)) => Err(why.message),
+                    Err(err) => return Err(PortError::Service(err.to_string())),
+                },
+            );
+        }
+    };
     let pdu = RequestPdu::WriteSingleRegister {
         address: ADDRESS_REGISTER,
         value: u16::from(address),
@@ -111,10 +228,36 @@ async fn write_address(
 
 /// The address the device with `serial` reports now, read back by serial number.
 async fn read_address(
-    port: &mut ToolPort,
+    bus: &mut AddressBus,
     line: LineSettings,
     serial: u32,
 ) -> Result<Option<u16>, PortError> {
+    let port = match bus {
+        AddressBus::Direct(port) => port,
+        AddressBus::Service { session, path } => {
+            let mut params = line_params(&line);
+            params["path"] = serde_json::json!(path);
+            params["protocol"] = serde_json::json!("modbus");
+            params["sn"] = serde_json::json!(serial);
+            params["function"] = serde_json::json!(3);
+            params["address"] = serde_json::json!(ADDRESS_REGISTER);
+            params["count"] = serde_json::json!(1);
+            params["format"] = serde_json::json!("HEX");
+            return Ok(
+                match session
+                    .call("port", "Load", params, std::time::Duration::from_secs(10))
+                    .await
+                {
+                    Ok(result) => result["response"]
+                        .as_str()
+                        .and_then(|hex| response_words(hex, false, 1))
+                        .and_then(|words| words.first().copied()),
+                    Err(crate::rpc::client::CallError::Refused(_)) => None,
+                    Err(err) => return Err(PortError::Service(err.to_string())),
+                },
+            );
+        }
+    };
     let pdu = RequestPdu::ReadHoldingRegisters {
         start: ADDRESS_REGISTER,
         count: 1,
@@ -140,10 +283,10 @@ pub fn run_set_address(args: SetAddressArgs) -> anyhow::Result<ExitCode> {
 }
 
 async fn set_address(args: &SetAddressArgs) -> Result<ExitCode, PortError> {
-    let mut port = args.port.open()?;
+    let mut port = AddressBus::open(&args.port, &args.service).await?;
     let plan = args.port.plan();
     let serial = serial_text(args.serial);
-    let Some((line, old, report)) = locate(&mut port, &plan, args.serial).await? else {
+    let Some((line, old, report)) = locate_on_bus(&mut port, &plan, args.serial).await? else {
         eprintln!(
             "no device with serial {serial} answered a Fast Modbus scan at {} port setting(s) of \
              {}: check the number (decimal or 0x hex) and the wiring",
@@ -171,7 +314,7 @@ async fn set_address(args: &SetAddressArgs) -> Result<ExitCode, PortError> {
         );
         return Ok(ExitCode::from(exit::NOT_FOUND));
     }
-    if let Err(reason) = write_address(&mut port, line, args.serial, args.address).await? {
+    if let Err(reason) = write_address(&mut port, line, args.serial, old, args.address).await? {
         eprintln!("serial {serial} at {line}: {reason}; the address stays {old}");
         return Ok(ExitCode::from(exit::NOT_FOUND));
     }
@@ -225,10 +368,10 @@ fn print_changes(changes: &[AddressChange], applied: bool) {
 }
 
 async fn fix_addresses(args: &FixAddressesArgs) -> Result<ExitCode, PortError> {
-    let mut port = args.port.open()?;
+    let mut port = AddressBus::open(&args.port, &args.service).await?;
     let plan = args.port.plan();
     let mut report = ScanReport::default();
-    super::scan::fast_scan(&mut port, &plan, &mut report).await?;
+    port.fast_scan(&plan, &mut report).await?;
     let duplicates = report.duplicates();
     if duplicates.is_empty() {
         println!(
@@ -249,7 +392,14 @@ async fn fix_addresses(args: &FixAddressesArgs) -> Result<ExitCode, PortError> {
     }
     let mut failed = false;
     for change in &address_plan.changes {
-        if let Err(reason) = write_address(&mut port, change.line, change.serial, change.to).await?
+        if let Err(reason) = write_address(
+            &mut port,
+            change.line,
+            change.serial,
+            change.from,
+            change.to,
+        )
+        .await?
         {
             failed = true;
             eprintln!(
@@ -263,7 +413,7 @@ async fn fix_addresses(args: &FixAddressesArgs) -> Result<ExitCode, PortError> {
     let mut lines: Vec<LineSettings> = duplicates.iter().map(|d| d.line).collect();
     lines.dedup();
     let mut check = ScanReport::default();
-    super::scan::fast_scan(&mut port, &lines, &mut check).await?;
+    port.fast_scan(&lines, &mut check).await?;
     port.restore();
     for change in &address_plan.changes {
         let now = check
