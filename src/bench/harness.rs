@@ -84,6 +84,10 @@ pub struct ProcessStats {
     pub peak_rss_kib: u64,
     /// Resident set now (VmRSS), in KiB.
     pub rss_kib: u64,
+    /// The private part of the resident set now (RssAnon: heap, stacks), in KiB. VmHWM and
+    /// VmRSS also count the binary's code pages (file-backed, shared, ~9 MB for a build with
+    /// the `bench` feature), which the daemon's own memory use does not change.
+    pub anon_rss_kib: u64,
 }
 
 /// Reads /proc/<pid>/stat and /proc/<pid>/status. None when the process is gone.
@@ -108,6 +112,7 @@ pub fn process_stats(pid: u32) -> Option<ProcessStats> {
         cpu: ticks_to_duration(utime + stime),
         peak_rss_kib: kib("VmHWM:"),
         rss_kib: kib("VmRSS:"),
+        anon_rss_kib: kib("RssAnon:"),
     })
 }
 

@@ -67,6 +67,8 @@ pub struct RunResult {
     pub window: Duration,
     pub daemon_cpu: Duration,
     pub daemon_peak_rss_kib: u64,
+    /// RssAnon at the end of the window (private memory, without the binary's code pages).
+    pub daemon_anon_rss_kib: u64,
     pub sim_cpu: Duration,
     /// Requests the simulator heard in the window.
     pub transactions: u64,
@@ -271,6 +273,7 @@ fn run_into(
     let bus_after = harness.bus_stats()?;
     result.daemon_cpu = daemon_after.cpu.saturating_sub(daemon_before.cpu);
     result.daemon_peak_rss_kib = daemon_after.peak_rss_kib;
+    result.daemon_anon_rss_kib = daemon_after.anon_rss_kib;
     result.sim_cpu = sim_after.cpu.saturating_sub(sim_before.cpu);
     let delta = |key: &str| {
         bus_after[key]
