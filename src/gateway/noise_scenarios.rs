@@ -254,7 +254,9 @@ impl NoiseBus {
             };
             let (Ok(address), Some(register)) = (
                 address.parse::<u8>(),
-                control.strip_prefix('R').and_then(|r| r.parse::<u16>().ok()),
+                control
+                    .strip_prefix('R')
+                    .and_then(|r| r.parse::<u16>().ok()),
             ) else {
                 continue;
             };
@@ -470,8 +472,7 @@ fn noise_figures() {
     for baud in [115_200, 9600] {
         for dead in [0, 2, 4] {
             for length in [60, 300] {
-                let (reads, p50, p90, max) =
-                    healthy_rate(baud, dead, Duration::from_secs(length));
+                let (reads, p50, p90, max) = healthy_rate(baud, dead, Duration::from_secs(length));
                 eprintln!(
                     "FIGURES virtual dead_devices={dead} besides 6 baud={baud} \
                      healthy_reads/{length}s={reads} event p50={p50:?} p90={p90:?} max={max:?}"
@@ -487,7 +488,9 @@ fn noise_figures() {
         let mut recoveries = Vec::new();
         for seed in 1..=seeds {
             let figures = noise_run(devices, baud, seed, noise());
-            eprintln!("FIGURES virtual noise devices={devices} baud={baud} seed={seed} {figures:?}");
+            eprintln!(
+                "FIGURES virtual noise devices={devices} baud={baud} seed={seed} {figures:?}"
+            );
             recoveries.push(figures.recovery);
         }
         recoveries.sort();

@@ -431,8 +431,14 @@ mod tests {
         health.record_failure(ms(0));
         assert!(health.seems_dead());
         assert!(health.heard_from(ms(600)));
-        assert!(!health.seems_dead() && health.is_offline(), "offline until it answers");
-        assert!(!health.may_transact(ms(999)), "the late-reply holdoff still holds");
+        assert!(
+            !health.seems_dead() && health.is_offline(),
+            "offline until it answers"
+        );
+        assert!(
+            !health.may_transact(ms(999)),
+            "the late-reply holdoff still holds"
+        );
         assert!(health.may_transact(ms(1000)));
         assert!(!health.heard_from(ms(700)), "reported once");
         // A silent retry makes it look dead again.

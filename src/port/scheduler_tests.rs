@@ -1409,5 +1409,8 @@ fn an_offline_device_answering_late_is_not_charged_as_a_dead_one() {
     let dead = retries_of_an_offline_device(false);
     let late = retries_of_an_offline_device(true);
     assert!(dead <= 8, "a dead device: {dead} retries in 60 s");
-    assert!(late >= 2 * dead, "answering late: {late} retries, dead: {dead}");
+    assert!(
+        late >= 2 * dead,
+        "answering late: {late} retries, dead: {dead}"
+    );
 }
