@@ -92,7 +92,7 @@ fn start(line: &str, baud: u32) -> Bench {
     let config = json!({
         "mqtt": {"host": "127.0.0.1", "port": broker.port, "client_id": "rtu2mqtt-rpc-test"},
         "ports": [{"path": sim.pty, "baud_rate": baud, "stop_bits": 2, "devices": [
-            {"device_type": "rtu2mqtt-relay6", "slave_id": 20},
+            {"device_type": "rtu2mqtt-relay6", "slave_id": 20, "in0_mode": 3},
             {"device_type": "rtu2mqtt-climate", "slave_id": 21}
         ]}]
     });
@@ -562,6 +562,350 @@ async fn set_address_goes_through_the_service(bench: &Bench) {
         value_other_than(port, k1, &before).await,
         flipped.to_string()
     );
+}
+
+/// `device/LoadConfig`, `device/Load`, `device/Set`: exact replies, errors, and the daemon's
+/// events flowing before, during and after (`device/SetPoll`: `set_poll_holds_and_resumes_a_device`).
+async fn device_methods(bench: &Bench) {
+    let port = bench.broker.port;
+    let path = bench.sim.pty.to_str().unwrap().to_owned();
+    wait_until_served(port).await;
+    let event_seen = |value: &'static str| {
+        wait_for(
+            "the relay's Input 1 event on the broker",
+            move || async move {
+                let state = retained(port).await?;
+                (state.get("/devices/relay6_20/controls/Input 1")? == value).then_some(())
+            },
+        )
+    };
+    let press = |value: u16| {
+        bench.sim.control(
+            json!({"cmd": "set", "device": 20, "type": "discrete", "address": 0, "value": value}),
+        )
+    };
+    press(1);
+    event_seen("1").await;
+
+    // device/Load: channels by template name, decoded as the daemon publishes them.
+    bench
+        .sim
+        .control(json!({"cmd": "set", "device": 21, "type": "input", "address": 4, "value": 2150}));
+    let load = rpc_raw(
+        port,
+        "device",
+        "Load",
+        &json!({"id": 3, "params": {"device_id": "climate_21", "channels": ["Temperature", "Serial"]}})
+            .to_string(),
+    )
+    .await;
+    assert_eq!(
+        load,
+        r#"{"id":3,"result":{"channels":{"Temperature":21.5,"Serial":4261412897}},"error":null}"#
+    );
+    let by_address = rpc(
+        port,
+        "device",
+        "Load",
+        json!({"path": path, "slave_id": 21, "channels": ["Temperature"]}),
+    )
+    .await;
+    assert_eq!(
+        by_address,
+        json!({"id": 1, "result": {"channels": {"Temperature": 21.5}}, "error": null})
+    );
+    let unknown = rpc(
+        port,
+        "device",
+        "Load",
+        json!({"device_id": "climate_21", "channels": ["Nope"]}),
+    )
+    .await;
+    assert_eq!(
+        unknown["error"],
+        json!({"code": -32000, "message":
+            "Channel \"Nope\" is write only or not found in \"rtu2mqtt-climate\" device template"})
+    );
+    let parameters = rpc(
+        port,
+        "device",
+        "Load",
+        json!({"device_id": "climate_21", "parameters": ["baud_rate"]}),
+    )
+    .await;
+    assert_eq!(parameters["error"]["code"], -32000, "{parameters}");
+    let unconfigured = rpc(
+        port,
+        "device",
+        "Load",
+        json!({"path": path, "slave_id": 99, "channels": ["Temperature"]}),
+    )
+    .await;
+    assert_eq!(unconfigured["error"]["code"], -32000, "{unconfigured}");
+    assert!(unconfigured["error"]["message"]
+        .as_str()
+        .unwrap()
+        .contains("no configured device at slave_id 99"));
+
+    // device/Set: checked as an /on payload, written through the bus queue.
+    let set = rpc_raw(
+        port,
+        "device",
+        "Set",
+        &json!({"id": 4, "params": {"device_id": "relay6_20", "channels": {"K5": 1}}}).to_string(),
+    )
+    .await;
+    assert_eq!(set, r#"{"id":4,"result":{},"error":null}"#);
+    let k5 = bench
+        .sim
+        .control(json!({"cmd": "get", "device": 20, "type": "coil", "address": 4}));
+    assert_eq!(k5["value"], 1);
+    let off = rpc(
+        port,
+        "device",
+        "Set",
+        json!({"path": path, "slave_id": 20, "channels": {"K5": "0"}}),
+    )
+    .await;
+    assert_eq!(off, json!({"id": 1, "result": {}, "error": null}));
+    let k5 = bench
+        .sim
+        .control(json!({"cmd": "get", "device": 20, "type": "coil", "address": 4}));
+    assert_eq!(k5["value"], 0);
+    let read_only = rpc(
+        port,
+        "device",
+        "Set",
+        json!({"device_id": "relay6_20", "channels": {"Input 1": 1}}),
+    )
+    .await;
+    assert_eq!(
+        read_only["error"],
+        json!({"code": -32000, "message":
+            "Channel \"Input 1\" is read only or not found in \"rtu2mqtt-relay6\" device template"})
+    );
+    // The device model's check: a switch takes 0 or 1; nothing is written.
+    let bad = rpc(
+        port,
+        "device",
+        "Set",
+        json!({"device_id": "relay6_20", "channels": {"K5": "maybe"}}),
+    )
+    .await;
+    assert_eq!(bad["error"]["code"], -32000, "{bad}");
+    assert!(
+        bad["error"]["message"]
+            .as_str()
+            .unwrap()
+            .starts_with("Channel \"K5\": a switch takes"),
+        "{bad}"
+    );
+
+    press(0);
+    event_seen("0").await;
+
+    // device/LoadConfig: the configured parameters, the model and firmware read now.
+    let config = rpc_raw(
+        port,
+        "device",
+        "LoadConfig",
+        &json!({"id": 5, "params": {"device_id": "relay6_20"}}).to_string(),
+    )
+    .await;
+    assert_eq!(
+        config,
+        r#"{"id":5,"result":{"parameters":{"in0_mode":3},"model":"WBMR6C","fw":"1.26.0"},"error":null}"#
+    );
+    let climate = rpc(
+        port,
+        "device",
+        "LoadConfig",
+        json!({"path": path, "slave_id": 21}),
+    )
+    .await;
+    assert_eq!(
+        climate,
+        json!({"id": 1, "result": {"parameters": {}, "model": "WBMSW4", "fw": "1.0.0"}, "error": null})
+    );
+
+    // Events still flow after all of it.
+    press(1);
+    event_seen("1").await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn device_methods_at_115200() {
+    let bench = start("115200 8N2", 115_200);
+    device_methods(&bench).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn device_methods_at_9600() {
+    let bench = start("9600 8N2", 9600);
+    device_methods(&bench).await;
+}
+
+/// The address tools and `events` on the daemon's busy port: two devices the daemon does not
+/// poll share address 30; the daemon's relay keeps sending events throughout.
+async fn site_tools_through_the_daemon(line: &str, baud: u32) {
+    let broker = Mosquitto::start();
+    let dir = tempfile::tempdir().unwrap();
+    let bus = dir.path().join("bus.json");
+    let devices = json!({"devices": [
+        {"name": "relay", "template": "rtu2mqtt-relay6", "address": 20, "serial": "0xFE000020",
+         "line": line, "model": "WBMR6C", "firmware": "1.26.0"},
+        {"name": "climate", "template": "rtu2mqtt-climate", "address": 21, "serial": "0xFE000021",
+         "line": line},
+        {"name": "spare-a", "template": "rtu2mqtt-climate", "address": 30, "serial": "0xFE000030",
+         "line": line},
+        {"name": "spare-b", "template": "rtu2mqtt-climate", "address": 30, "serial": "0xFE000031",
+         "line": line}
+    ]});
+    std::fs::write(&bus, devices.to_string()).unwrap();
+    let sim = SimProcess::start_with(&bus, &repo("templates"), &[]);
+    let config = json!({
+        "mqtt": {"host": "127.0.0.1", "port": broker.port, "client_id": "rtu2mqtt-tools-test"},
+        "template_dirs": [repo("templates")],
+        "ports": [{"path": sim.pty, "baud_rate": baud, "stop_bits": 2, "devices": [
+            {"device_type": "rtu2mqtt-relay6", "slave_id": 20},
+            {"device_type": "rtu2mqtt-climate", "slave_id": 21}
+        ]}]
+    });
+    let service_config = dir.path().join("service.json");
+    std::fs::write(&service_config, config.to_string()).unwrap();
+    let daemon = DaemonProcess::start(&config, &[], Stdio::null(), Stdio::null());
+    let port = broker.port;
+    let path = sim.pty.to_str().unwrap().to_owned();
+    wait_until_served(port).await;
+    let press = |value: u16| {
+        sim.control(
+            json!({"cmd": "set", "device": 20, "type": "discrete", "address": 0, "value": value}),
+        )
+    };
+    let event_seen = |value: &'static str| {
+        wait_for(
+            "the relay's Input 1 event on the broker",
+            move || async move {
+                let state = retained(port).await?;
+                (state.get("/devices/relay6_20/controls/Input 1")? == value).then_some(())
+            },
+        )
+    };
+    press(1);
+    event_seen("1").await;
+    let tool = |args: &[&str]| {
+        let mut command = Command::new(env!("CARGO_BIN_EXE_rtu2mqtt"));
+        command
+            .args(args)
+            .args(["--port", &path, "--parity", "N", "--stop-bits", "2"])
+            .args(["--baud", &baud.to_string()])
+            .args(["--broker", &format!("127.0.0.1:{port}")])
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped());
+        command
+    };
+    let address_of = |serial: &str| {
+        sim.control(json!({"cmd": "get", "serial": serial, "type": "holding", "address": 128}))
+            ["value"]
+            .as_u64()
+            .unwrap()
+    };
+
+    // fix-addresses on the busy port (through the service on its own), an event during it.
+    let fix = tool(&["fix-addresses", "--apply", "--range", "30-40"])
+        .spawn()
+        .unwrap();
+    press(0);
+    event_seen("0").await;
+    let output = tokio::task::spawn_blocking(move || fix.wait_with_output().unwrap())
+        .await
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&output.stdout).into_owned();
+    let stderr = String::from_utf8_lossy(&output.stderr).into_owned();
+    assert_eq!(output.status.code(), Some(0), "{stdout} {stderr}");
+    assert!(
+        stderr.contains("is busy: fixing addresses through the running rtu2mqtt service"),
+        "{stderr}"
+    );
+    assert!(stdout.contains("(confirmed by a new scan)"), "{stdout}");
+    let (a, b) = (address_of("0xFE000030"), address_of("0xFE000031"));
+    assert_ne!(a, b, "{stdout}");
+    assert!((30..=40).contains(&a) && (30..=40).contains(&b), "{a} {b}");
+    press(1);
+    event_seen("1").await;
+
+    // set-address by serial number with --via-mqtt: port/Setup by sn, read back, scanned.
+    let output = tokio::task::spawn_blocking({
+        let mut command = tool(&["set-address", "--serial", "0xFE000031", "--address", "41"]);
+        command.arg("--via-mqtt");
+        move || command.output().unwrap()
+    })
+    .await
+    .unwrap();
+    let stdout = String::from_utf8_lossy(&output.stdout).into_owned();
+    let stderr = String::from_utf8_lossy(&output.stderr).into_owned();
+    assert_eq!(output.status.code(), Some(0), "{stdout} {stderr}");
+    assert!(
+        stdout.contains("-> 41 (confirmed by a scan, through the service)"),
+        "{stdout}"
+    );
+    assert_eq!(address_of("0xFE000031"), 41);
+    press(0);
+    event_seen("0").await;
+
+    // events on the busy port: the service's event stream (it keeps acknowledging them).
+    let mut events = tool(&["events", "--json", "--count", "1"]);
+    events.arg("--service-config").arg(&service_config);
+    let mut events = events.spawn().unwrap();
+    let mut stderr = std::io::BufReader::new(events.stderr.take().unwrap());
+    let ready = tokio::task::spawn_blocking(move || {
+        use std::io::BufRead;
+        let mut seen = String::new();
+        loop {
+            let mut line = String::new();
+            if stderr.read_line(&mut line).unwrap() == 0 {
+                return seen;
+            }
+            seen.push_str(&line);
+            if line.starts_with("showing the events") {
+                return seen;
+            }
+        }
+    })
+    .await
+    .unwrap();
+    assert!(
+        ready.contains("is busy: showing the running rtu2mqtt service's events"),
+        "{ready}"
+    );
+    assert!(ready.contains("showing the events"), "{ready}");
+    press(1);
+    let output = tokio::task::spawn_blocking(move || events.wait_with_output().unwrap())
+        .await
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&output.stdout).into_owned();
+    assert_eq!(output.status.code(), Some(0), "{stdout}");
+    let event: Value = serde_json::from_str(stdout.trim()).unwrap();
+    assert_eq!(
+        event,
+        json!({"address": 20, "device": "relay6_20", "channel": "Input 1", "text": "1",
+               "via": "service"})
+    );
+    // The service got (and acknowledged) it too, and goes on.
+    event_seen("1").await;
+    press(0);
+    event_seen("0").await;
+    assert!(!daemon.log().contains("panicked"), "{}", daemon.log());
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn site_tools_through_the_daemon_at_115200() {
+    site_tools_through_the_daemon("115200 8N2", 115_200).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn site_tools_through_the_daemon_at_9600() {
+    site_tools_through_the_daemon("9600 8N2", 9600).await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

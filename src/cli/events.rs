@@ -1,5 +1,10 @@
 //! `rtu2mqtt events`: the live Fast Modbus event stream of a port, decoded and acknowledged, with
 //! channel names when a config is given. Ends with Ctrl-C, after --count events or --duration.
+//!
+//! When the running service holds the port (busy, or `--via-mqtt`), the events are the
+//! service's: it polls and acknowledges them, and this command shows what it publishes for the
+//! event channels of that port (from the service's config) instead of polling the bus itself,
+//! which would take events away from the service.
 
 use std::collections::BTreeMap;
 use std::path::PathBuf;
@@ -100,6 +105,8 @@ pub struct Args {
     /// One JSON object per line.
     #[arg(long)]
     pub json: bool,
+    #[command(flatten)]
+    pub service: super::via_mqtt::ViaMqttArgs,
 }
 
 /// What a config says about a register: its channel, and how to read its value.
@@ -114,6 +121,8 @@ struct ConfigView {
     names: BTreeMap<(u8, RegisterType, u16), ChannelName>,
     line: Option<LineSettings>,
     enable: Vec<EnableSpec>,
+    /// MQTT (device id, control id) of the channels with events, and the device's address.
+    event_controls: BTreeMap<(String, String), u8>,
 }
 
 fn load_view(
@@ -145,6 +154,7 @@ fn load_view(
         names: BTreeMap::new(),
         line: None,
         enable: Vec::new(),
+        event_controls: BTreeMap::new(),
     };
     let Some(resolved) = ports
         .iter()
@@ -171,6 +181,10 @@ fn load_view(
                         codec: single.then(|| register.codec.clone()),
                     },
                 );
+                if channel.events != EventMode::Polled {
+                    view.event_controls
+                        .insert((device.id.clone(), channel.id.clone()), device.slave_id);
+                }
                 if channel.events != EventMode::Polled && single {
                     view.enable.push(EnableSpec {
                         address: device.slave_id,
@@ -186,6 +200,18 @@ fn load_view(
 }
 
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+    if args.service.via_mqtt {
+        return run_via_service(&args);
+    }
+    // The service holds the port: its events, not ours (polling the bus here would take them
+    // away from it).
+    if matches!(args.port.open(), Err(PortError::Busy { .. })) && args.service.can_reach_service() {
+        eprintln!(
+            "{} is busy: showing the running rtu2mqtt service's events (MQTT)",
+            args.port.port
+        );
+        return run_via_service(&args);
+    }
     let view = match &args.config {
         Some(path) => match load_view(path, &args.templates, &args.port.port) {
             Ok(view) => Some(view),
@@ -212,6 +238,133 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             Err(err) => Ok(port_failure(&err)),
         }
     })
+}
+
+/// The service's events of this port: what it publishes for the event channels of its config
+/// (`--config`, else `--service-config`), live publications only (not the retained state).
+fn run_via_service(args: &Args) -> anyhow::Result<ExitCode> {
+    let config = args
+        .config
+        .clone()
+        .unwrap_or_else(|| args.service.service_config.clone());
+    let view = match load_view(&config, &args.templates, &args.port.port) {
+        Ok(view) => view,
+        Err(message) => {
+            eprintln!(
+                "the service's events are shown by channel: its config names them (give \
+                 --config or --service-config): {message}"
+            );
+            return Ok(ExitCode::from(exit::USAGE));
+        }
+    };
+    if !args.enable.is_empty() {
+        eprintln!("--enable is ignored through the service: it enables the events of its config");
+    }
+    if view.event_controls.is_empty() {
+        eprintln!(
+            "no channel of {} in {} has events (sporadic or semi-sporadic): nothing to show",
+            args.port.port,
+            config.display()
+        );
+        return Ok(ExitCode::from(exit::NOT_FOUND));
+    }
+    let broker = match args.service.broker_config() {
+        Ok(broker) => broker,
+        Err(message) => {
+            eprintln!("{message}");
+            return Ok(ExitCode::from(exit::USAGE));
+        }
+    };
+    block_on_tool(async move {
+        match service_stream(args, &view, &broker).await {
+            Ok(code) => Ok(code),
+            Err(err) => Ok(port_failure(&err)),
+        }
+    })
+}
+
+async fn service_stream(
+    args: &Args,
+    view: &ConfigView,
+    broker: &crate::config::config_file::MqttConfig,
+) -> Result<ExitCode, PortError> {
+    use rumqttc::{AsyncClient, Event as MqttEvent, Packet, QoS};
+    let client_id = format!("rtu2mqtt-events-{}", std::process::id());
+    let options = crate::mqtt::client::connection_options(broker, &client_id)
+        .map_err(|err| PortError::Service(err.to_string()))?;
+    let (client, mut eventloop) = AsyncClient::new(options, 64);
+    let address = format!("{}:{}", broker.host, broker.port);
+    let deadline = args
+        .duration
+        .filter(|d| d.is_finite() && *d >= 0.0)
+        .map(|d| tokio::time::Instant::now() + Duration::from_secs_f64(d.min(1e9)));
+    let mut seen = 0u64;
+    loop {
+        if args.count.is_some_and(|c| seen >= c) {
+            break;
+        }
+        let event = match deadline {
+            Some(deadline) => match tokio::time::timeout_at(deadline, eventloop.poll()).await {
+                Ok(event) => event,
+                Err(_) => break,
+            },
+            None => eventloop.poll().await,
+        };
+        match event {
+            Ok(MqttEvent::Incoming(Packet::ConnAck(_))) => {
+                client
+                    .subscribe("/devices/+/controls/+", QoS::AtMostOnce)
+                    .await
+                    .map_err(|err| PortError::Service(err.to_string()))?;
+            }
+            Ok(MqttEvent::Incoming(Packet::SubAck(_))) => {
+                eprintln!(
+                    "showing the events the rtu2mqtt service publishes for {} (broker {address}; \
+                     Ctrl-C to stop)",
+                    args.port.port
+                );
+            }
+            Ok(MqttEvent::Incoming(Packet::Publish(publish))) => {
+                // The retained state comes first on subscribing: not an event.
+                if publish.retain {
+                    continue;
+                }
+                let mut parts = publish.topic.split('/').skip(1);
+                let (Some("devices"), Some(device), Some("controls"), Some(control), None) = (
+                    parts.next(),
+                    parts.next(),
+                    parts.next(),
+                    parts.next(),
+                    parts.next(),
+                ) else {
+                    continue;
+                };
+                let key = (device.to_owned(), control.to_owned());
+                let Some(slave_id) = view.event_controls.get(&key) else {
+                    continue;
+                };
+                let value = String::from_utf8_lossy(&publish.payload);
+                seen += 1;
+                if args.json {
+                    println!(
+                        "{}",
+                        json!({"address": slave_id, "device": device, "channel": control,
+                               "text": value, "via": "service"})
+                    );
+                } else {
+                    println!("address {slave_id}: {device}/{control} = {value}");
+                }
+            }
+            Ok(_) => {}
+            Err(err) => {
+                return Err(PortError::Service(format!(
+                    "cannot reach the MQTT broker {address}: {err}"
+                )))
+            }
+        }
+    }
+    let _ = client.disconnect().await;
+    Ok(ExitCode::SUCCESS)
 }
 
 /// Sends the 0x18 request for one device's registers; prints which were enabled.

@@ -561,9 +561,7 @@ pub fn config_snippet(
 /// The scan through the running service: `port/Scan` at each setting of the plan (the service
 /// reads each device's details by serial number).
 async fn scan_via_service(args: &Args, report: &mut ScanReport) -> Result<(), PortError> {
-    use super::via_mqtt::line_params;
     use crate::rpc::client::RpcSession;
-    use crate::tools::report::SettingProblem;
     let broker = args.service.broker_config().map_err(PortError::Service)?;
     let mut session = RpcSession::connect(&broker)
         .await
@@ -573,38 +571,8 @@ async fn scan_via_service(args: &Args, report: &mut ScanReport) -> Result<(), Po
     }
     for line in args.port.plan() {
         report.settings_tried.push(line);
-        let mut params = line_params(&line);
-        params["path"] = json!(args.port.port);
-        let result = session
-            .call("port", "Scan", params, Duration::from_secs(10))
-            .await
-            .map_err(|err| PortError::Service(err.to_string()))?;
-        if let Some(error) = result["error"].as_str() {
-            report.problems.push(SettingProblem {
-                line,
-                what: error.to_owned(),
-            });
-        }
-        for device in result["devices"].as_array().into_iter().flatten() {
-            let serial = device["sn"].as_str().and_then(|sn| sn.parse::<u32>().ok());
-            let address = device["cfg"]["slave_id"]
-                .as_u64()
-                .and_then(|a| u8::try_from(a).ok());
-            let (Some(serial), Some(address)) = (serial, address) else {
-                continue;
-            };
-            if report.add_fast(line, serial, address) {
-                if let Some(found) = report.devices.last_mut() {
-                    let text =
-                        |value: &Value| value.as_str().filter(|t| !t.is_empty()).map(str::to_owned);
-                    found.identity = Identity {
-                        model: text(&device["device_signature"]),
-                        firmware: text(&device["fw"]["version"]),
-                        signature: text(&device["fw_signature"]),
-                    };
-                }
-            }
-        }
+        super::via_mqtt::scan_setting_via_service(&mut session, &args.port.port, line, report)
+            .await?;
     }
     Ok(())
 }

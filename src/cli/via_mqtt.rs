@@ -154,6 +154,54 @@ pub fn line_params(line: &LineSettings) -> Value {
     })
 }
 
+/// One setting scanned through the service (`port/Scan`, which also reads each device's
+/// identity by serial number): the devices go into `report`, as the direct scan puts them;
+/// returns (serial, address) of each device answering there.
+pub async fn scan_setting_via_service(
+    session: &mut RpcSession,
+    path: &str,
+    line: LineSettings,
+    report: &mut crate::tools::report::ScanReport,
+) -> Result<Vec<(u32, u8)>, crate::tools::bus::PortError> {
+    use crate::tools::bus::PortError;
+    use crate::tools::report::{Identity, SettingProblem};
+    let mut params = line_params(&line);
+    params["path"] = json!(path);
+    let result = session
+        .call("port", "Scan", params, Duration::from_secs(10))
+        .await
+        .map_err(|err| PortError::Service(err.to_string()))?;
+    if let Some(error) = result["error"].as_str() {
+        report.problems.push(SettingProblem {
+            line,
+            what: error.to_owned(),
+        });
+    }
+    let mut seen = Vec::new();
+    for device in result["devices"].as_array().into_iter().flatten() {
+        let serial = device["sn"].as_str().and_then(|sn| sn.parse::<u32>().ok());
+        let address = device["cfg"]["slave_id"]
+            .as_u64()
+            .and_then(|a| u8::try_from(a).ok());
+        let (Some(serial), Some(address)) = (serial, address) else {
+            continue;
+        };
+        seen.push((serial, address));
+        if report.add_fast(line, serial, address) {
+            if let Some(found) = report.devices.last_mut() {
+                let text =
+                    |value: &Value| value.as_str().filter(|t| !t.is_empty()).map(str::to_owned);
+                found.identity = Identity {
+                    model: text(&device["device_signature"]),
+                    firmware: text(&device["fw"]["version"]),
+                    signature: text(&device["fw_signature"]),
+                };
+            }
+        }
+    }
+    Ok(seen)
+}
+
 /// Words from a `port/Load` hex response (bits as 0/1 for coils and discrete inputs).
 pub fn response_words(response: &str, bits: bool, count: u16) -> Option<Vec<u16>> {
     let bytes = crate::protocol::parse_hex(response).ok()?;

@@ -210,7 +210,11 @@ impl PortScheduler {
         };
         let suspended = until.is_some();
         if state.suspended != suspended {
-            info!(device = %state.plan.name, suspended, "polling hold changed by the operator");
+            if suspended {
+                info!(device = %state.plan.name, "polling held by the operator");
+            } else {
+                info!(device = %state.plan.name, "polling resumed by the operator");
+            }
         }
         state.suspended = suspended;
         state.suspended_until = until.filter(|&until| until != Duration::MAX);

@@ -1,14 +1,15 @@
 //! What each method does on a running port: every bus exchange goes through the port's
 //! [`BusQueue`], one transaction at a time, between the port's own transactions.
 
+use std::sync::Arc;
 use std::time::Duration;
 
 use serde_json::{json, Map, Value};
 
 use super::message::RpcError;
 use super::params::{
-    DeviceProbe, DeviceSetPoll, MessageFormat, Method, PortLoad, PortScan, PortSelector, PortSetup,
-    ScanMode, POLL_HOLD,
+    DeviceLoad, DeviceLoadConfig, DeviceProbe, DeviceSet, DeviceSetPoll, MessageFormat, Method,
+    PortLoad, PortScan, PortSelector, PortSetup, ScanMode, POLL_HOLD,
 };
 use crate::config::config_file::PortType;
 use crate::daemon::bus_queue::BusQueue;
@@ -77,7 +78,10 @@ pub async fn execute(ports: &PortDirectory, method: Method) -> Result<Value, Rpc
         Method::PortScan(scan) => port_scan(ports, scan).await,
         Method::DeviceProbe(probe) => device_probe(ports, probe).await,
         Method::PortSetup(setup) => port_setup(ports, setup).await,
+        Method::DeviceLoad(load) => device_load(ports, load).await,
+        Method::DeviceSet(set) => device_set(ports, set).await,
         Method::DeviceSetPoll(set_poll) => device_set_poll(ports, set_poll).await,
+        Method::DeviceLoadConfig(load) => device_load_config(ports, load).await,
     }
 }
 
@@ -346,23 +350,9 @@ fn configured_device_type(access: &PortAccess, address: u8) -> Option<String> {
 /// number first; silence means "nobody there" (`{}`).
 /// Holds or resumes a configured device's polling; `{}` as wb-mqtt-serial answers.
 async fn device_set_poll(ports: &PortDirectory, request: DeviceSetPoll) -> Result<Value, RpcError> {
-    let (access, named) = find_port(ports, &request.port)?;
-    let slave_id = request.slave_id.or(named);
-    let index = access
-        .resolved
-        .devices
-        .iter()
-        .position(|d| match &request.port {
-            PortSelector::Device(id) => d.id == *id,
-            _ => Some(d.slave_id) == slave_id,
-        })
-        .ok_or_else(|| {
-            RpcError::server(format!(
-                "Port or device not found: no device at slave_id {} on {}",
-                slave_id.map_or_else(|| "?".to_owned(), |id| id.to_string()),
-                access.name
-            ))
-        })?;
+    // wb-mqtt-serial's words for any device it does not poll.
+    let (access, index) = find_device(ports, &request.port, request.slave_id)
+        .map_err(|_| RpcError::server("Port or device not found"))?;
     let hold_for = (!request.poll).then_some(POLL_HOLD);
     access
         .queue
@@ -491,6 +481,387 @@ async fn setup_write(
             describe(&other)
         ))),
     }
+}
+
+/// The configured device a `device/…` request names: by `device_id`, or by the port and its
+/// `slave_id`. wb-mqtt-serial also serves devices that are not configured (from a
+/// `device_type` alone); rtu2mqtt serves the configured ones only.
+fn find_device(
+    ports: &PortDirectory,
+    selector: &PortSelector,
+    slave_id: Option<u8>,
+) -> Result<(PortAccess, usize), RpcError> {
+    let (access, device_slave_id) = find_port(ports, selector)?;
+    let address = match (selector, slave_id.or(device_slave_id)) {
+        (PortSelector::Device(id), _) => {
+            let index = access
+                .resolved
+                .devices
+                .iter()
+                .position(|d| d.id == *id)
+                .ok_or_else(|| RpcError::server("Port or device not found"))?;
+            return Ok((access, index));
+        }
+        (_, Some(address)) => address,
+        (_, None) => return Err(RpcError::server("bad \"slave_id\": missing")),
+    };
+    let index = access
+        .resolved
+        .devices
+        .iter()
+        .position(|d| d.slave_id == address)
+        .ok_or_else(|| {
+            RpcError::server(format!(
+                "no configured device at slave_id {address} on {}: rtu2mqtt serves device/Load \
+                 and device/Set for configured devices only (give \"device_id\", or the \
+                 \"slave_id\" of one)",
+                access.name
+            ))
+        })?;
+    Ok((access, index))
+}
+
+/// `parameters` of `device/Load` and `device/Set`: the template parameters are turned into
+/// setup writes when the config is read; they are not kept to be read or written on request.
+fn refuse_parameters(parameters: &[String]) -> Result<(), RpcError> {
+    match parameters.first() {
+        None => Ok(()),
+        Some(first) => Err(RpcError::server(format!(
+            "Parameter \"{first}\": template parameters are not served by rtu2mqtt's \
+             device/Load and device/Set yet (channels are)"
+        ))),
+    }
+}
+
+/// A channel of a device by its template name (as wb-mqtt-serial names it), or by its MQTT
+/// control id.
+fn channel_named<'a>(
+    device: &'a crate::device::model::ResolvedDevice,
+    name: &str,
+) -> Option<&'a crate::device::model::ResolvedChannel> {
+    device
+        .channels
+        .iter()
+        .find(|c| c.name == name)
+        .or_else(|| device.channel(name))
+}
+
+/// A decoded value as wb-mqtt-serial gives it: a number where the text is one, else the text.
+fn value_json(text: &str) -> Value {
+    match text.trim().parse::<f64>() {
+        // Whole numbers as integers (wb-mqtt-serial's JSON writes 21, not 21.0).
+        Ok(number) if number.is_finite() && number.fract() == 0.0 && number.abs() < 9.0e15 => {
+            json!(number as i64)
+        }
+        Ok(number) if number.is_finite() => json!(number),
+        _ => json!(text),
+    }
+}
+
+/// `device/Load`: reads the named channels of a configured device, each through the bus queue
+/// (tried three times, as wb-mqtt-serial does), and decodes them as the daemon does. Result
+/// `{"channels": {"name": value}}`.
+async fn device_load(ports: &PortDirectory, load: DeviceLoad) -> Result<Value, RpcError> {
+    refuse_parameters(&load.parameters)?;
+    let (access, index) = find_device(ports, &load.port, load.slave_id)?;
+    let device = &access.resolved.devices[index];
+    let mut wanted = Vec::new();
+    for name in &load.channels {
+        match channel_named(device, name) {
+            Some(channel) if !channel.write_only => wanted.push((name, channel)),
+            _ => {
+                return Err(RpcError::server(format!(
+                    "Channel \"{name}\" is write only or not found in \"{}\" device template",
+                    device.device_type.as_deref().unwrap_or(&device.id)
+                )))
+            }
+        }
+    }
+    let line = request_line(&access, &super::params::LineOverride::default());
+    let mut bus = QueuedBus::new(&access);
+    let mut channels = Map::new();
+    for (name, channel) in wanted {
+        let mut words: Vec<Vec<u16>> = Vec::new();
+        for register in &channel.registers {
+            let Some(target) = register.read else {
+                continue;
+            };
+            words.push(read_words(&mut bus, line, device.slave_id, target).await?);
+        }
+        let refs: Vec<&[u16]> = words.iter().map(Vec::as_slice).collect();
+        let value = match channel.decode(&refs) {
+            Ok(crate::device::Reading::Value(text)) => value_json(&text),
+            Ok(crate::device::Reading::DeviceError) => {
+                return Err(RpcError::server(format!(
+                    "Channel \"{name}\": the device reports an error value"
+                )))
+            }
+            Ok(crate::device::Reading::Unsupported) => json!("unsupported"),
+            Err(err) => {
+                return Err(RpcError::server(format!(
+                    "Channel \"{name}\": cannot decode: {err}"
+                )))
+            }
+        };
+        channels.insert(name.clone(), value);
+    }
+    let mut result = Map::new();
+    if !channels.is_empty() {
+        result.insert("channels".into(), Value::Object(channels));
+    }
+    Ok(Value::Object(result))
+}
+
+/// Tries of a `device/Load` read or a `device/Set` write (wb-mqtt-serial: 1 + 2 retries).
+const DEVICE_TRIES: usize = 3;
+
+async fn read_words(
+    bus: &mut QueuedBus,
+    line: LineSettings,
+    address: u8,
+    target: crate::device::model::RegisterRef,
+) -> Result<Vec<u16>, RpcError> {
+    use crate::protocol::RegisterType;
+    let (start, count) = (target.address, target.count.max(1));
+    let pdu = match target.reg_type {
+        RegisterType::Coil => RequestPdu::ReadCoils { start, count },
+        RegisterType::DiscreteInput => RequestPdu::ReadDiscreteInputs { start, count },
+        RegisterType::Holding => RequestPdu::ReadHoldingRegisters { start, count },
+        RegisterType::Input => RequestPdu::ReadInputRegisters { start, count },
+    };
+    let mut answer = Answer::NoReply;
+    for _ in 0..DEVICE_TRIES {
+        answer = bus
+            .classic(
+                line,
+                address,
+                pdu.clone(),
+                crate::tools::bus::KNOWN_DEVICE_TIMEOUT,
+            )
+            .await
+            .map_err(io_error)?;
+        let bits = |packed: &[u8]| -> Vec<u16> {
+            (0..usize::from(count))
+                .map(|i| u16::from(packed.get(i / 8).is_some_and(|b| b & (1 << (i % 8)) != 0)))
+                .collect()
+        };
+        match &answer {
+            Answer::Pdu(
+                ResponsePdu::ReadHoldingRegisters { values }
+                | ResponsePdu::ReadInputRegisters { values },
+            ) if values.len() == usize::from(count) => return Ok(values.clone()),
+            Answer::Pdu(
+                ResponsePdu::ReadCoils { packed } | ResponsePdu::ReadDiscreteInputs { packed },
+            ) => return Ok(bits(packed)),
+            Answer::Pdu(ResponsePdu::Exception { .. }) => break,
+            _ => {}
+        }
+    }
+    Err(RpcError::server(format!(
+        "Failed to read {count} registers starting from <{:?} {start}> of slave {address} at \
+         {line}: {}",
+        target.reg_type,
+        describe(&answer)
+    )))
+}
+
+/// `device/Set`: writes the named channels of a configured device. Each value is checked as
+/// its `/on` payload would be (the device model's write check: control type, limits, register
+/// format, read-only), then written through the bus queue. Result `{}`.
+async fn device_set(ports: &PortDirectory, set: DeviceSet) -> Result<Value, RpcError> {
+    refuse_parameters(&set.parameters)?;
+    let (access, index) = find_device(ports, &set.port, set.slave_id)?;
+    let device = Arc::new(access.resolved.devices[index].clone());
+    let model = crate::gateway::device_model::DeviceModel::new(Arc::clone(&device), index);
+    let template = device
+        .device_type
+        .as_deref()
+        .unwrap_or(&device.id)
+        .to_owned();
+    // Every value is checked before anything is written.
+    let mut writes = Vec::new();
+    for (name, payload) in &set.channels {
+        let channel = channel_named(&device, name)
+            .filter(|c| !c.readonly)
+            .ok_or_else(|| {
+                RpcError::server(format!(
+                    "Channel \"{name}\" is read only or not found in \"{template}\" device \
+                     template"
+                ))
+            })?;
+        let register_writes = model
+            .write(&channel.id, payload)
+            .map_err(|why| RpcError::server(format!("Channel \"{name}\": {why}")))?;
+        writes.extend(register_writes);
+    }
+    let line = request_line(&access, &super::params::LineOverride::default());
+    let mut bus = QueuedBus::new(&access);
+    for write in writes {
+        let pdu = write_pdu(&write);
+        let mut answer = Answer::NoReply;
+        for _ in 0..DEVICE_TRIES {
+            answer = bus
+                .classic(
+                    line,
+                    device.slave_id,
+                    pdu.clone(),
+                    crate::tools::bus::KNOWN_DEVICE_TIMEOUT,
+                )
+                .await
+                .map_err(io_error)?;
+            if matches!(answer, Answer::Pdu(_)) {
+                break;
+            }
+        }
+        match answer {
+            Answer::Pdu(
+                ResponsePdu::WriteSingleCoil { .. }
+                | ResponsePdu::WriteSingleRegister { .. }
+                | ResponsePdu::WriteMultipleCoils { .. }
+                | ResponsePdu::WriteMultipleRegisters { .. },
+            ) => {}
+            other => {
+                return Err(RpcError::server(format!(
+                    "Failed to write <{:?} {}> of slave {} at {line}: {}",
+                    write.register_type,
+                    write.address,
+                    device.slave_id,
+                    describe(&other)
+                )))
+            }
+        }
+    }
+    Ok(json!({}))
+}
+
+fn write_pdu(write: &crate::port::RegisterWrite) -> RequestPdu {
+    use crate::protocol::RegisterType;
+    let single = write.values.len() == 1 && !write.force_multiple;
+    match (write.register_type, single) {
+        (RegisterType::Coil, true) => RequestPdu::WriteSingleCoil {
+            address: write.address,
+            value: write.values[0] != 0,
+        },
+        (RegisterType::Coil, false) => RequestPdu::WriteMultipleCoils {
+            start: write.address,
+            values: write.values.iter().map(|v| *v != 0).collect(),
+        },
+        (_, true) => RequestPdu::WriteSingleRegister {
+            address: write.address,
+            value: write.values[0],
+        },
+        (_, false) => RequestPdu::WriteMultipleRegisters {
+            start: write.address,
+            values: write.values.clone(),
+        },
+    }
+}
+
+/// `device/LoadConfig`: the parameter values of a configured device as its config sets them
+/// and, for a Wiren Board device, its model and firmware, read now and checked against the
+/// template's `hw` list (as wb-mqtt-serial refuses a device the template does not fit).
+async fn device_load_config(
+    ports: &PortDirectory,
+    load: DeviceLoadConfig,
+) -> Result<Value, RpcError> {
+    let (access, index) = find_device(ports, &load.port, load.slave_id)?;
+    let device = &access.resolved.devices[index];
+    let mut parameters = Map::new();
+    for item in &device.setup {
+        if let Some(id) = &item.parameter_id {
+            parameters
+                .entry(id.clone())
+                .or_insert_with(|| value_json(&item.value));
+        }
+    }
+    let mut result = json!({ "parameters": parameters });
+    if !device.is_wb {
+        return Ok(result);
+    }
+    let line = request_line(&access, &super::params::LineOverride::default());
+    let mut bus = QueuedBus::new(&access);
+    let mut reader = Reader::Address(device.slave_id);
+    let text = |words: Vec<u16>| standard_text(&words).unwrap_or_default();
+    let model = match reader
+        .read(&mut bus, line, wb_register::MODEL, 20)
+        .await
+        .map_err(io_error)?
+    {
+        Ok(words) => text(words),
+        Err(_) => match reader
+            .read(&mut bus, line, wb_register::MODEL, 6)
+            .await
+            .map_err(io_error)?
+        {
+            Ok(words) => text(words),
+            Err(answer) => {
+                return Err(RpcError::server(format!(
+                    "Port IO error: reading the model (holding 200) of slave {} at {line}: {}",
+                    device.slave_id,
+                    describe(&answer)
+                )))
+            }
+        },
+    };
+    let fw = match reader
+        .read(&mut bus, line, wb_register::FIRMWARE, 16)
+        .await
+        .map_err(io_error)?
+    {
+        Ok(words) => text(words),
+        Err(answer) => {
+            return Err(RpcError::server(format!(
+                "Port IO error: reading the firmware version (holding 250) of slave {} at \
+                 {line}: {}",
+                device.slave_id,
+                describe(&answer)
+            )))
+        }
+    };
+    if !device.hw.is_empty() {
+        match device.hw.iter().find(|hw| hw.signature == model) {
+            Some(hw) => {
+                if let Some(min) = hw.fw.as_deref().filter(|min| !version_at_least(&fw, min)) {
+                    return Err(RpcError::server(format!(
+                        "Device \"{model}\" firmware version {fw} is lower than selected \
+                         template minimal supported version {min}"
+                    )));
+                }
+            }
+            None => {
+                return Err(RpcError::server(format!(
+                    "Device \"{model}\" with firmware version {fw} is incompatible with selected \
+                     template device models"
+                )))
+            }
+        }
+    }
+    result["model"] = json!(model);
+    if !fw.is_empty() {
+        result["fw"] = json!(fw);
+    }
+    Ok(result)
+}
+
+/// Dotted firmware versions compared number by number (`1.10.0` ≥ `1.9`); a part that is no
+/// number compares as 0.
+fn version_at_least(version: &str, min: &str) -> bool {
+    let parts = |v: &str| -> Vec<u64> {
+        v.split(['.', '-', '+'])
+            .map(|p| p.trim().parse().unwrap_or(0))
+            .collect()
+    };
+    let (have, need) = (parts(version), parts(min));
+    for i in 0..have.len().max(need.len()) {
+        let (a, b) = (
+            have.get(i).copied().unwrap_or(0),
+            need.get(i).copied().unwrap_or(0),
+        );
+        if a != b {
+            return a > b;
+        }
+    }
+    true
 }
 
 /// Wiren Board's standard registers (holding).
@@ -641,6 +1012,25 @@ async fn device_details(
 mod tests {
     use super::*;
     use crate::protocol::ExceptionCode;
+
+    #[test]
+    fn firmware_versions_compare_number_by_number() {
+        assert!(version_at_least("1.10.0", "1.9"));
+        assert!(version_at_least("1.9", "1.9.0"));
+        assert!(!version_at_least("1.8.3", "1.9"));
+        assert!(!version_at_least("", "1.0"));
+        assert!(version_at_least("2.0.0-rc1", "2"));
+    }
+
+    #[test]
+    fn values_are_numbers_where_the_text_is_one() {
+        assert_eq!(value_json("21.5"), json!(21.5));
+        assert_eq!(value_json("1"), json!(1));
+        assert_eq!(value_json("4261412897"), json!(4_261_412_897_u64));
+        assert_eq!(value_json("-3"), json!(-3));
+        assert_eq!(value_json("on"), json!("on"));
+        assert_eq!(value_json("NaN"), json!("NaN"));
+    }
 
     #[test]
     fn load_results_as_wb_mqtt_serial_gives_them() {

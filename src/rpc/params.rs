@@ -22,15 +22,12 @@ pub const SERVED: &[(&str, &str)] = &[
     ("port", "Scan"),
     ("device", "Probe"),
     ("port", "Setup"),
-    ("device", "SetPoll"),
-];
-pub const NOT_SERVED: &[(&str, &str)] = &[
     ("device", "LoadConfig"),
     ("device", "Load"),
     ("device", "Set"),
-    ("config", "Load"),
-    ("config", "GetSchema"),
+    ("device", "SetPoll"),
 ];
+pub const NOT_SERVED: &[(&str, &str)] = &[("config", "Load"), ("config", "GetSchema")];
 
 /// Which configured port a request means: `path` (serial), `ip` + `port` (TCP), or the port of
 /// a configured `device_id`.
@@ -139,6 +136,29 @@ pub struct PortSetup {
     pub total_timeout: Duration,
 }
 
+/// `device/Load`: channels (by template name) of a configured device, read and decoded as the
+/// daemon decodes them.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DeviceLoad {
+    pub port: PortSelector,
+    /// The device's address when the port is named by `path`/`ip` (not by `device_id`).
+    pub slave_id: Option<u8>,
+    pub channels: Vec<String>,
+    pub parameters: Vec<String>,
+    pub total_timeout: Duration,
+}
+
+/// `device/Set`: values to write to channels (by template name) of a configured device, each
+/// as its `/on` payload.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DeviceSet {
+    pub port: PortSelector,
+    pub slave_id: Option<u8>,
+    pub channels: Vec<(String, String)>,
+    pub parameters: Vec<String>,
+    pub total_timeout: Duration,
+}
+
 /// How long `device/SetPoll` with `poll` false holds a device's polling (wb-mqtt-serial's 10
 /// minutes; asking again holds it 10 minutes from then).
 pub const POLL_HOLD: Duration = Duration::from_secs(600);
@@ -152,6 +172,14 @@ pub struct DeviceSetPoll {
     pub poll: bool,
 }
 
+/// `device/LoadConfig`: a configured device's parameters, and its model and firmware.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DeviceLoadConfig {
+    pub port: PortSelector,
+    pub slave_id: Option<u8>,
+    pub total_timeout: Duration,
+}
+
 /// A request, read.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Method {
@@ -160,18 +188,25 @@ pub enum Method {
     PortScan(PortScan),
     DeviceProbe(DeviceProbe),
     PortSetup(PortSetup),
+    DeviceLoad(DeviceLoad),
+    DeviceSet(DeviceSet),
     DeviceSetPoll(DeviceSetPoll),
+    DeviceLoadConfig(DeviceLoadConfig),
 }
 
 impl Method {
     /// The time the request may take at most, reply included.
     pub fn total_timeout(&self) -> Duration {
         match self {
-            Self::PortsLoad | Self::DeviceSetPoll(_) => DEFAULT_TOTAL_TIMEOUT,
+            Self::PortsLoad => DEFAULT_TOTAL_TIMEOUT,
             Self::PortLoad(p) => p.total_timeout,
             Self::PortScan(p) => p.total_timeout,
             Self::DeviceProbe(p) => p.total_timeout,
             Self::PortSetup(p) => p.total_timeout,
+            Self::DeviceLoad(p) => p.total_timeout,
+            Self::DeviceSet(p) => p.total_timeout,
+            Self::DeviceSetPoll(_) => DEFAULT_TOTAL_TIMEOUT,
+            Self::DeviceLoadConfig(p) => p.total_timeout,
         }
     }
 }
@@ -214,6 +249,23 @@ pub fn parse_method(service: &str, method: &str, params: &Value) -> Result<Metho
             items: setup_items(fields)?,
             total_timeout: total_timeout(fields)?,
         })),
+        ("device", "Load") => Ok(Method::DeviceLoad(DeviceLoad {
+            port: port_selector(fields)?,
+            slave_id: slave_id(fields)?,
+            channels: name_list(fields, "channels")?,
+            parameters: name_list(fields, "parameters")?,
+            total_timeout: total_timeout(fields)?,
+        })),
+        ("device", "Set") => Ok(Method::DeviceSet(DeviceSet {
+            port: port_selector(fields)?,
+            slave_id: slave_id(fields)?,
+            channels: value_map(fields, "channels")?,
+            parameters: value_map(fields, "parameters")?
+                .into_iter()
+                .map(|(name, _)| name)
+                .collect(),
+            total_timeout: total_timeout(fields)?,
+        })),
         ("device", "SetPoll") => {
             let port = port_selector(fields)?;
             let slave_id = slave_id(fields)?;
@@ -231,6 +283,11 @@ pub fn parse_method(service: &str, method: &str, params: &Value) -> Result<Metho
                 poll,
             }))
         }
+        ("device", "LoadConfig") => Ok(Method::DeviceLoadConfig(DeviceLoadConfig {
+            port: port_selector(fields)?,
+            slave_id: slave_id(fields)?,
+            total_timeout: total_timeout(fields)?,
+        })),
         _ if NOT_SERVED.contains(&(service, method)) => Err(RpcError::server(format!(
             "{service}/{method} is not served by rtu2mqtt yet; served: {}",
             served_list()
@@ -240,6 +297,50 @@ pub fn parse_method(service: &str, method: &str, params: &Value) -> Result<Metho
             served_list()
         ))),
     }
+}
+
+/// `device/Load`'s `channels`/`parameters`: a list of names (duplicates read once).
+fn name_list(fields: &Map<String, Value>, name: &str) -> Result<Vec<String>, RpcError> {
+    let Some(value) = fields.get(name) else {
+        return Ok(Vec::new());
+    };
+    let items = value
+        .as_array()
+        .ok_or_else(|| bad(name, "not a list of names"))?;
+    let mut names: Vec<String> = Vec::new();
+    for item in items {
+        let text = item
+            .as_str()
+            .filter(|t| !t.is_empty())
+            .ok_or_else(|| bad(name, format!("{item} is not a name")))?;
+        if !names.iter().any(|n| n == text) {
+            names.push(text.to_owned());
+        }
+    }
+    Ok(names)
+}
+
+/// `device/Set`'s `channels`/`parameters`: an object of name → value (number, string or
+/// boolean; wb-mqtt-serial takes each value as its text).
+fn value_map(fields: &Map<String, Value>, name: &str) -> Result<Vec<(String, String)>, RpcError> {
+    let Some(value) = fields.get(name) else {
+        return Ok(Vec::new());
+    };
+    let items = value
+        .as_object()
+        .ok_or_else(|| bad(name, "not an object of name: value"))?;
+    items
+        .iter()
+        .map(|(key, value)| {
+            let text = match value {
+                Value::String(text) => text.clone(),
+                Value::Number(number) => number.to_string(),
+                Value::Bool(flag) => u8::from(*flag).to_string(),
+                other => return Err(bad(name, format!("{key:?}: {other} is no value"))),
+            };
+            Ok((key.clone(), text))
+        })
+        .collect()
 }
 
 fn setup_items(fields: &Map<String, Value>) -> Result<Vec<SetupItem>, RpcError> {
@@ -767,7 +868,7 @@ mod tests {
         let unknown = parse("port", "Explode", json!({})).unwrap_err();
         assert!(unknown.message.contains("unknown method port/Explode"));
         assert!(unknown.message.contains("port/Scan"));
-        let later = parse("device", "LoadConfig", json!({})).unwrap_err();
+        let later = parse("config", "Load", json!({})).unwrap_err();
         assert!(later.message.contains("not served"), "{}", later.message);
     }
 
