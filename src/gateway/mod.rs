@@ -6,6 +6,8 @@ pub mod device_model;
 pub mod port_plan;
 
 #[cfg(test)]
+mod noise_scenarios;
+#[cfg(test)]
 mod scenarios;
 #[cfg(test)]
 pub(crate) mod virtual_gateway;

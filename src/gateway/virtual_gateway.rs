@@ -59,6 +59,20 @@ pub struct VirtualGateway {
     pub updates: Vec<(Duration, DeviceUpdate)>,
     /// Since when the port has been unusable (`None`: it works).
     port_closed_since: Option<Duration>,
+    /// Every transaction on the wire, in order.
+    pub wire_log: Vec<WireRecord>,
+}
+
+/// One transaction on the virtual wire.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct WireRecord {
+    pub at: Duration,
+    pub ended: Duration,
+    /// The request's address (0xFD: a broadcast event poll).
+    pub address: u8,
+    pub fast: bool,
+    /// A valid reply came back.
+    pub answered: bool,
 }
 
 impl VirtualGateway {
@@ -70,18 +84,40 @@ impl VirtualGateway {
 
     /// [`Self::new`] with the site-wide Fast Modbus switch (`fast_modbus` in the config).
     pub fn with_fast_modbus(line: &str, devices: &[(&str, u8)], fast_modbus: bool) -> Self {
-        let settings = parse_line(line).expect("a line like 115200 8N2");
-        let mut templates = TemplateSource::new(&repo("templates"), &repo("templates"));
-        let simulated = devices
+        let entries: Vec<Value> = devices
             .iter()
             .map(|&(template, address)| {
-                let entry: DeviceEntry = serde_json::from_value(json!({
+                json!({
                     "template": template,
                     "address": address,
                     "serial": 0xFE00_0000u32 + u32::from(address),
                     "line": line,
-                }))
-                .expect("a bus entry");
+                })
+            })
+            .collect();
+        Self::from_bus(line, &entries, &repo("templates"), fast_modbus, 1)
+    }
+
+    /// A port at `line` with the simulator's bus `entries` (as in a bus file: `template` a
+    /// `device_type` found in `templates_dir`, `address`, `fast`, …), each configured with its
+    /// template and slave id; `seed` drives the simulator's injected faults.
+    pub fn from_bus(
+        line: &str,
+        entries: &[Value],
+        templates_dir: &Path,
+        fast_modbus: bool,
+        seed: u64,
+    ) -> Self {
+        let settings = parse_line(line).expect("a line like 115200 8N2");
+        let mut templates = TemplateSource::new(templates_dir, templates_dir);
+        let mut devices = Vec::new();
+        let simulated = entries
+            .iter()
+            .map(|entry| {
+                let entry: DeviceEntry =
+                    serde_json::from_value(entry.clone()).expect("a bus entry");
+                let template = entry.template.clone().expect("a template");
+                devices.push((template, entry.address));
                 build_device(&entry, &mut templates).expect("a simulated device")
             })
             .collect();
@@ -103,7 +139,7 @@ impl VirtualGateway {
             false,
         )
         .expect("the config loads");
-        let library = TemplateLibrary::load_dirs(&[repo("templates")]);
+        let library = TemplateLibrary::load_dirs(&[templates_dir.to_path_buf()]);
         let port = crate::device::resolve_config(&loaded, &library)
             .expect("the config resolves")
             .remove(0);
@@ -127,11 +163,12 @@ impl VirtualGateway {
                 discovery: None,
                 clear_discovery_on_exit: false,
             }),
-            bus: Bus::new(simulated, 1),
+            bus: Bus::new(simulated, seed),
             retained: BTreeMap::new(),
             published: Vec::new(),
             updates: Vec::new(),
             port_closed_since: None,
+            wire_log: Vec::new(),
         };
         for (index, device) in port.devices.into_iter().enumerate() {
             let device = Arc::new(device);
@@ -155,6 +192,13 @@ impl VirtualGateway {
             match self.scheduler.next(self.now) {
                 Action::Transmit(transaction) => {
                     let (outcome, timing, done) = self.transact(&transaction);
+                    self.wire_log.push(WireRecord {
+                        at: self.now,
+                        ended: done,
+                        address: transaction.request.address,
+                        fast: transaction.request.is_fast(),
+                        answered: matches!(outcome, Outcome::Reply(_)),
+                    });
                     self.now = done;
                     let events = self.scheduler.complete_timed(self.now, outcome, timing);
                     self.hand_to_models(events);
@@ -227,6 +271,14 @@ impl VirtualGateway {
         let index = self.device_index(address);
         if let Some(device) = self.bus.device_mut(index) {
             device.plugged = plugged;
+        }
+    }
+
+    /// The faults the simulated device at `address` injects into its replies from now on.
+    pub fn set_faults(&mut self, address: u8, faults: crate::sim::faults::Faults) {
+        let index = self.device_index(address);
+        if let Some(device) = self.bus.device_mut(index) {
+            device.faults = faults;
         }
     }
 

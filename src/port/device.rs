@@ -311,8 +311,8 @@ impl DeviceState {
 
     /// True when the device came online.
     /// A Fast Modbus event came from this device: alive, whatever its own requests saw.
-    pub(super) fn heard_from(&mut self, now: Duration) {
-        self.health.heard_from(now);
+    pub(super) fn heard_from(&mut self, now: Duration) -> bool {
+        self.health.heard_from(now)
     }
 
     pub(super) fn record_success(&mut self, now: Duration) -> bool {

@@ -42,6 +42,77 @@ impl Default for HealthPolicy {
     }
 }
 
+/// The bus time that retries of devices that seem dead may take, all together (issue 15,
+/// defect 7: dead devices must not slow the healthy ones): a bucket that fills at
+/// [`DEAD_RETRY_SHARE_PERCENT`] of the time and holds at most that share of
+/// [`DEAD_RETRY_WINDOW`]. A retry starts only when the bucket holds what it may cost, and its
+/// real cost is taken out when it ends; between two retries the others get the bus at least as
+/// long as the first took. Over any stretch of time such retries take at most the share of it
+/// plus one bucket: a few devices that a burst of noise got marked offline are retried on their
+/// own schedule, many dead ones share the budget.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct DeadRetryBudget {
+    /// Credit in nanoseconds at `at` (negative: a retry cost more than it was expected to).
+    credit_ns: i128,
+    at: Duration,
+    /// No retry before this (the others' turn after the last one).
+    not_before: Duration,
+}
+
+/// The share of bus time that retries of dead devices may take.
+pub const DEAD_RETRY_SHARE_PERCENT: u32 = 10;
+/// The bucket holds the share of this much time.
+pub const DEAD_RETRY_WINDOW: Duration = Duration::from_secs(60);
+
+impl Default for DeadRetryBudget {
+    fn default() -> Self {
+        Self {
+            credit_ns: Self::cap(),
+            at: Duration::ZERO,
+            not_before: Duration::ZERO,
+        }
+    }
+}
+
+impl DeadRetryBudget {
+    fn cap() -> i128 {
+        DEAD_RETRY_WINDOW.as_nanos() as i128 * i128::from(DEAD_RETRY_SHARE_PERCENT) / 100
+    }
+
+    fn credit(&self, now: Duration) -> i128 {
+        let earned = now.saturating_sub(self.at).as_nanos() as i128
+            * i128::from(DEAD_RETRY_SHARE_PERCENT)
+            / 100;
+        self.credit_ns.saturating_add(earned).min(Self::cap())
+    }
+
+    /// Whether a retry that may cost `cost` can start now (one dearer than the whole bucket
+    /// goes when the bucket is full).
+    pub fn allows(&self, now: Duration, cost: Duration) -> bool {
+        now >= self.not_before && self.credit(now) >= (cost.as_nanos() as i128).min(Self::cap())
+    }
+
+    /// When a retry that may cost `cost` can start (now, or when the bucket has filled enough).
+    pub fn available_at(&self, now: Duration, cost: Duration) -> Duration {
+        let now = now.max(self.not_before);
+        let missing = (cost.as_nanos() as i128).min(Self::cap()) - self.credit(now);
+        if missing <= 0 {
+            return now;
+        }
+        let wait_ns = missing * 100 / i128::from(DEAD_RETRY_SHARE_PERCENT);
+        now.saturating_add(Duration::from_nanos(
+            u64::try_from(wait_ns).unwrap_or(u64::MAX),
+        ))
+    }
+
+    /// A retry that ended at `now` took `cost` of the bus.
+    pub fn spend(&mut self, now: Duration, cost: Duration) {
+        self.credit_ns = self.credit(now).saturating_sub(cost.as_nanos() as i128);
+        self.at = now;
+        self.not_before = now.saturating_add(cost);
+    }
+}
+
 /// What changed after a transaction.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum HealthChange {
@@ -56,10 +127,13 @@ enum State {
     /// Not heard from yet.
     Unknown,
     Online,
-    /// Retried no earlier than `retry_at`.
+    /// Retried no earlier than `retry_at`. `alive`: it showed a sign of life since its last
+    /// failure (an event, a late reply): it is retried as soon as its holdoff allows, not as a
+    /// dead device.
     Offline {
         retry_at: Duration,
         delay: Duration,
+        alive: bool,
     },
 }
 
@@ -92,6 +166,11 @@ impl DeviceHealth {
         matches!(self.state, State::Offline { .. })
     }
 
+    /// Offline, with no sign of life since its last failure: retried as a dead device.
+    pub fn seems_dead(&self) -> bool {
+        matches!(self.state, State::Offline { alive: false, .. })
+    }
+
     /// A disconnected device gets one transaction per retry slot; others whenever they are due.
     pub fn may_transact(&self, now: Duration) -> bool {
         now >= self.quiet_until
@@ -122,14 +201,21 @@ impl DeviceHealth {
         }
     }
 
-    /// The device was heard from outside its own transactions (a Fast Modbus event reached us
-    /// from it): when disconnected, it is retried at once instead of after its delay.
-    pub fn heard_from(&mut self, now: Duration) {
-        if self.is_offline() {
-            self.state = State::Offline {
-                retry_at: now,
-                delay: Duration::ZERO,
-            };
+    /// The device showed it is there while disconnected (a Fast Modbus event reached us from it,
+    /// or bytes came after a timeout): it is retried at once (its late-reply holdoff still
+    /// holds) instead of after its delay, and not as a dead device. It stays offline until a
+    /// transaction succeeds (wb-mqtt-serial's rule). True when it seemed dead before.
+    pub fn heard_from(&mut self, now: Duration) -> bool {
+        match self.state {
+            State::Offline { alive, .. } => {
+                self.state = State::Offline {
+                    retry_at: now,
+                    delay: Duration::ZERO,
+                    alive: true,
+                };
+                !alive
+            }
+            _ => false,
         }
     }
 
@@ -155,6 +241,7 @@ impl DeviceHealth {
                 self.state = State::Offline {
                     retry_at: now + delay,
                     delay,
+                    alive: false,
                 };
                 HealthChange::None
             }
@@ -164,6 +251,7 @@ impl DeviceHealth {
                 self.state = State::Offline {
                     retry_at: now + delay,
                     delay,
+                    alive: false,
                 };
                 HealthChange::WentOffline
             }
@@ -191,6 +279,7 @@ impl DeviceHealth {
         self.state = State::Offline {
             retry_at: now,
             delay: Duration::ZERO,
+            alive: false,
         };
         true
     }
@@ -334,5 +423,26 @@ mod tests {
         online.record_success(ms(0));
         online.heard_from(ms(10));
         assert!(online.is_online());
+    }
+
+    #[test]
+    fn a_sign_of_life_makes_a_disconnected_device_no_longer_look_dead() {
+        let mut health = DeviceHealth::new(HealthPolicy::default());
+        health.record_failure(ms(0));
+        assert!(health.seems_dead());
+        assert!(health.heard_from(ms(600)));
+        assert!(
+            !health.seems_dead() && health.is_offline(),
+            "offline until it answers"
+        );
+        assert!(
+            !health.may_transact(ms(999)),
+            "the late-reply holdoff still holds"
+        );
+        assert!(health.may_transact(ms(1000)));
+        assert!(!health.heard_from(ms(700)), "reported once");
+        // A silent retry makes it look dead again.
+        health.record_failure(ms(1100));
+        assert!(health.seems_dead());
     }
 }

@@ -16,6 +16,7 @@ use tracing::{debug, info, warn};
 
 use super::device::{DeviceState, ReadChoice};
 use super::events::EventPoller;
+use super::health::DeadRetryBudget;
 use super::plan::{DevicePlan, PortSettings, RegisterWrite};
 use super::read_plan::RegisterSpan;
 use crate::protocol::fast::enabled_registers;
@@ -28,11 +29,6 @@ use crate::protocol::{
 
 /// How long a failed write keeps being retried.
 const WRITE_RETRY_TIME: Duration = Duration::from_secs(600);
-
-/// The share of bus time that devices already marked offline may take with their retries (all
-/// together): the healthy devices keep the rest. Each failed retry of an offline device holds the
-/// next one back until its cost is this share of the time since.
-const OFFLINE_SHARE_PERCENT: u32 = 10;
 
 /// What the driver does next.
 #[derive(Debug, Clone, PartialEq)]
@@ -148,8 +144,8 @@ pub struct PortScheduler {
     in_flight: Option<InFlight>,
     /// When the transaction in flight started.
     in_flight_since: Duration,
-    /// Offline devices are not retried before this (their share of the bus is spent).
-    offline_retry_at: Duration,
+    /// The bus time retries of devices that seem dead may still take.
+    dead_retries: DeadRetryBudget,
     /// When the last event poll ended and how long it took.
     last_event_poll: (Duration, Duration),
     /// Whether anything but an event poll went out since the last event poll.
@@ -170,7 +166,7 @@ impl PortScheduler {
             writes: Vec::new(),
             in_flight: None,
             in_flight_since: Duration::ZERO,
-            offline_retry_at: Duration::ZERO,
+            dead_retries: DeadRetryBudget::default(),
             last_event_poll: (Duration::ZERO, Duration::ZERO),
             sent_since_event_poll: false,
         }
@@ -351,6 +347,9 @@ impl PortScheduler {
         let was_offline = device
             .and_then(|d| self.devices.get(d))
             .is_some_and(|d| d.health.is_offline());
+        let was_dead = device
+            .and_then(|d| self.devices.get(d))
+            .is_some_and(|d| d.health.seems_dead());
         match self.in_flight.take() {
             None => warn!("a transaction outcome arrived with nothing in flight"),
             Some(InFlight::PollEvents { started }) => {
@@ -384,13 +383,17 @@ impl PortScheduler {
         let still_offline = device
             .and_then(|d| self.devices.get(d))
             .is_some_and(|d| d.health.is_offline());
-        if was_offline && still_offline && timing.late_byte.is_none() {
-            // A retry of a dead device: the next one waits until this one's cost is a small share
-            // of the bus time, however many dead devices there are. (One that answered late is
-            // alive: it is retried on its own schedule, with the longer timeout it has learned.)
-            let cost = now.saturating_sub(self.in_flight_since);
-            let hold = cost.saturating_mul(100 / OFFLINE_SHARE_PERCENT - 1);
-            self.offline_retry_at = self.offline_retry_at.max(now.saturating_add(hold));
+        if timing.late_byte.is_some() && was_offline && still_offline {
+            // It answered, late: alive. Retried on its own schedule, with the longer timeout it
+            // has learned, not held back like a dead device.
+            if let Some(state) = device.and_then(|d| self.devices.get_mut(d)) {
+                state.heard_from(now);
+            }
+        } else if was_dead {
+            // A retry of a device that seemed dead: its cost comes out of the dead devices' share
+            // of the bus, however many there are.
+            self.dead_retries
+                .spend(now, now.saturating_sub(self.in_flight_since));
         }
         out
     }
@@ -421,10 +424,20 @@ impl PortScheduler {
     }
 
     /// Whether a device may be sent a request now: offline devices only in their retry slot, and
-    /// only while the offline devices' share of the bus is not spent.
+    /// those that seem dead only while the dead devices' share of the bus holds what a retry
+    /// may cost.
     fn may_transact(&self, device: &DeviceState, now: Duration) -> bool {
         device.health.may_transact(now)
-            && (!device.health.is_offline() || now >= self.offline_retry_at)
+            && (!device.health.seems_dead()
+                || self
+                    .dead_retries
+                    .allows(now, self.dead_retry_cost(device, now)))
+    }
+
+    /// What a retry of a device that seems dead may cost: its whole response timeout and the
+    /// late window after it (see `classic_transaction`).
+    fn dead_retry_cost(&self, device: &DeviceState, now: Duration) -> Duration {
+        self.settings.line.wire_time(8) + device.response.timeout(now).saturating_mul(2)
     }
 
     /// The port cannot be opened (or was lost) since `since`: devices not heard from for their
@@ -689,8 +702,11 @@ impl PortScheduler {
 
     fn earliest_deadline(&self, now: Duration) -> Duration {
         let offline_gate = |d: &DeviceState, at: Duration| {
-            if d.health.is_offline() {
-                at.max(self.offline_retry_at)
+            if d.health.seems_dead() {
+                at.max(
+                    self.dead_retries
+                        .available_at(now, self.dead_retry_cost(d, now)),
+                )
             } else {
                 at
             }
@@ -746,7 +762,9 @@ impl PortScheduler {
                     return;
                 };
                 if let Some(state) = self.devices.get_mut(device) {
-                    state.heard_from(now);
+                    if state.heard_from(now) {
+                        info!(device = %state.plan.name, "offline device sent events: trying it again at once");
+                    }
                 }
                 for event in packet.events {
                     if event.is_reboot() {

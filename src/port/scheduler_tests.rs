@@ -644,8 +644,10 @@ fn a_dead_device_backs_off_while_the_others_keep_their_rate() {
     );
     let tries: Vec<Duration> = log.classic_to(2).into_iter().map(|(at, _)| at).collect();
     let gaps: Vec<Duration> = tries.windows(2).map(|w| w[1] - w[0]).collect();
+    // Once the dead devices' budget governs, a retry waits for its credit: microseconds either
+    // way.
     assert!(
-        gaps.windows(2).all(|w| w[1] >= w[0]),
+        gaps.windows(2).all(|w| w[1] + ms(10) >= w[0]),
         "retry delays grow: {gaps:?}"
     );
     assert!(
@@ -1333,4 +1335,82 @@ fn a_hold_for_a_limited_time_ends_by_itself() {
         healthy(r)
     });
     assert!(!log.classic_to(2).is_empty());
+}
+
+#[test]
+fn the_dead_devices_budget_allows_a_burst_then_holds_a_share() {
+    use crate::port::health::{DeadRetryBudget, DEAD_RETRY_SHARE_PERCENT, DEAD_RETRY_WINDOW};
+    let mut budget = DeadRetryBudget::default();
+    let retry = ms(1050);
+    let mut now = Duration::ZERO;
+    let mut spent = Duration::ZERO;
+    let mut starts = Vec::new();
+    while now < ms(600_000) {
+        if budget.allows(now, retry) {
+            starts.push(now);
+            now += retry;
+            budget.spend(now, retry);
+            spent += retry;
+        } else {
+            let at = budget.available_at(now, retry);
+            assert!(at > now);
+            now = at;
+        }
+    }
+    // The share of the time plus one bucket, never more.
+    let bucket = DEAD_RETRY_WINDOW * DEAD_RETRY_SHARE_PERCENT / 100;
+    assert!(
+        spent <= now * DEAD_RETRY_SHARE_PERCENT / 100 + bucket,
+        "{spent:?} in {now:?}"
+    );
+    // Never two in a row: the others get the bus at least as long between them.
+    assert!(
+        starts.windows(2).all(|w| w[1] - w[0] >= retry * 2),
+        "{starts:?}"
+    );
+    // A full bucket first: retries as close as that allows, then a tenth of the bus.
+    assert_eq!(starts[1] - starts[0], retry * 2);
+    let last = starts.windows(2).last().map(|w| w[1] - w[0]).unwrap();
+    assert!(last >= retry * 9 && last <= retry * 11, "{last:?}");
+}
+
+/// A device silent to its requests: with `late`, it answers 700 ms late (past its timeout)
+/// after 30 s; without, it stays silent. How often it was retried from 30 s to 90 s.
+fn retries_of_an_offline_device(late: bool) -> usize {
+    let mut port = settings(115_200);
+    port.fast_modbus = false;
+    let plans = vec![
+        device(1, vec![read(RegisterType::Holding, 0, EventMode::Polled)]),
+        device(2, vec![read(RegisterType::Holding, 0, EventMode::Polled)]),
+    ];
+    let mut scheduler = PortScheduler::new(port, plans);
+    let mut log = Log::default();
+    run_timed(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(90_000),
+        |at, request| match request.address {
+            2 if late && at >= ms(30_000) => (healthy(request), Some(ms(700))),
+            2 => (Outcome::NoReply, None),
+            _ => (healthy(request), None),
+        },
+    );
+    log.classic_to(2)
+        .iter()
+        .filter(|(at, _)| *at >= ms(30_000))
+        .count()
+}
+
+#[test]
+fn an_offline_device_answering_late_is_not_charged_as_a_dead_one() {
+    // Its late answers prove it alive: retried on its own schedule, not within the dead
+    // devices' tenth of the bus.
+    let dead = retries_of_an_offline_device(false);
+    let late = retries_of_an_offline_device(true);
+    assert!(dead <= 8, "a dead device: {dead} retries in 60 s");
+    assert!(
+        late >= 2 * dead,
+        "answering late: {late} retries, dead: {dead}"
+    );
 }
