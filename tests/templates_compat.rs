@@ -42,7 +42,7 @@ fn all_fixtures_load_and_resolve() {
         );
         count += 1;
     }
-    assert_eq!(count, 3);
+    assert_eq!(count, 4);
 }
 
 /// Asserts a channel's first register: table, address, format and event mode.
@@ -364,4 +364,43 @@ fn bit_width_zero_is_the_format_width() {
         .unwrap_or_else(|e| panic!("{e}"));
     let codec = &d.channel("Status high byte").unwrap().registers[0].codec;
     assert_eq!((codec.bit_shift, codec.bit_width), (8, 16));
+}
+
+/// Groups with only an `id`, a parameter without an address used only by conditions (its
+/// `default` is substituted before they are evaluated), and conditional template setup items.
+#[test]
+fn untitled_groups_and_condition_only_parameter() {
+    let setup = |d: &ResolvedDevice| -> Vec<(u16, Vec<u16>)> {
+        d.setup
+            .iter()
+            .map(|s| (s.register.address, s.words.clone()))
+            .collect()
+    };
+    // Default mode 1: "sensor off" and "room sensor"; the address-less parameter is never written.
+    let d = device("config-test-boiler-gateway.json", json!({"slave_id": 1}));
+    assert_eq!(setup(&d), vec![(20, vec![0]), (22, vec![1])]);
+    assert_channel(&d, "status", Input, 5, U16, Polled);
+    assert_channel(&d, "fault", Input, 5, U16, Polled);
+    assert_eq!(
+        d.channel("fault").unwrap().decode(&[&[0x0003]]).unwrap(),
+        Reading::Value("1".into())
+    );
+    assert_eq!(
+        d.channel("pressure").unwrap().decode(&[&[1234]]).unwrap(),
+        Reading::Value("23.4".into())
+    );
+
+    // Mode 2 from the config: the conditional parameter is written too.
+    let d = device(
+        "config-test-boiler-gateway.json",
+        json!({"slave_id": 1, "mode": 2, "curve": 5}),
+    );
+    assert_eq!(setup(&d), vec![(20, vec![0]), (22, vec![2]), (30, vec![5])]);
+
+    // Mode 0: the parameter's condition is false, so `curve` is not written.
+    let d = device(
+        "config-test-boiler-gateway.json",
+        json!({"slave_id": 1, "mode": 0, "curve": 5}),
+    );
+    assert_eq!(setup(&d), vec![(21, vec![0])]);
 }

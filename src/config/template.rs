@@ -117,6 +117,9 @@ with_device_settings! {
 #[derive(Debug, Clone, Deserialize, Serialize, JsonSchema)]
 pub struct GroupSpec {
     pub id: String,
+    /// wb-mqtt-serial's library has groups with only an `id` (their title comes from
+    /// `translations`); layout only, so a missing title is empty.
+    #[serde(default)]
     pub title: String,
     pub order: Option<i64>,
     pub description: Option<String>,
