@@ -252,7 +252,7 @@ fn check_templates_reports_per_file() {
         .unwrap();
     let (ok, text) = report(out);
     assert!(ok, "{text}");
-    assert_eq!(text.matches(": ok").count(), 9, "{text}");
+    assert_eq!(text.matches(": ok").count(), 10, "{text}");
 }
 
 #[test]
