@@ -16,7 +16,10 @@ use rtu2mqtt::bench::harness::{
     monotonic_ns, wait_until, BrokerTls, Change, Harness, HarnessOptions, Publication,
 };
 use rtu2mqtt::bench::history::{check_held_values, HistoryReport, RegisterKey};
-use rtu2mqtt::bench::layout::BenchLayout;
+use rtu2mqtt::bench::layout::{
+    BenchLayout, FAULT_BUS_EVENTS as EVENTS, FAULT_BUS_REGISTERS as REGISTERS,
+    FAULT_BUS_SETUP_REGISTER as SETUP_REGISTER, FAULT_BUS_SETUP_VALUE as SETUP_VALUE,
+};
 use rtu2mqtt::bench::matching::{match_changes, MatchReport};
 use serde_json::{json, Value};
 
@@ -25,11 +28,6 @@ const PATIENCE: Duration = Duration::from_secs(90);
 const EVERY: Duration = Duration::from_millis(50);
 /// Pace of the simulated world: one register change per tick.
 const TICK: Duration = Duration::from_millis(10);
-const EVENTS: u16 = 2;
-const REGISTERS: u16 = 4;
-/// A holding register the template's `setup` writes (to see it rewritten after a reboot).
-const SETUP_REGISTER: u16 = 100;
-const SETUP_VALUE: u16 = 7;
 
 /// The serial number the benchmark layout gives the device at `address` (control commands name
 /// devices by serial, so that they still work while two devices share an address).
@@ -167,23 +165,10 @@ impl Run {
     /// As [`Run::start_on`]; with `tls`, the daemon reaches the broker over TLS with a client
     /// certificate (the harness's subscriber keeps a plain listener of the same broker).
     fn start_with(devices: u8, baud: u32, link: Link, tls: bool) -> Self {
-        let layout = BenchLayout {
-            devices,
-            events: EVENTS,
-            registers: REGISTERS,
-            baud,
-            fast_devices: true,
-        };
+        let layout = BenchLayout::fault_bus(devices, baud);
+        let (name, template, entries) = layout.fault_bus_files();
         let mut bus = layout.bus();
-        if let Some(list) = bus["devices"].as_array_mut() {
-            for device in list {
-                let address = device["address"].as_u64().unwrap_or(0);
-                device["fast"] = json!(address % 2 == 1);
-            }
-        }
-        let (name, mut template) = layout.template();
-        template["device"]["setup"] =
-            json!([{"title": "Mode", "address": SETUP_REGISTER, "value": SETUP_VALUE}]);
+        bus["devices"] = json!(entries);
         let mut options =
             HarnessOptions::new(env!("CARGO_BIN_EXE_rtu2mqtt"), bus, vec![(name, template)]);
         let line = format!("{baud} 8N2");

@@ -75,6 +75,17 @@ fn found(report: &Value) -> Vec<(u64, u64, String)> {
     devices
 }
 
+/// The Fast Modbus devices of site-bus.json as `found` lists them.
+fn site_bus_fast_devices() -> Vec<(u64, u64, String)> {
+    vec![
+        (0xFE00_0010, 10, "9600 8N2".into()),
+        (0xFE00_0011, 10, "9600 8N2".into()),
+        (0xFE00_0020, 20, "115200 8N2".into()),
+        (0xFE00_0030, 30, "19200 8O1".into()),
+        (0xFE00_0031, 31, "19200 8O1".into()),
+    ]
+}
+
 fn device(report: &Value, serial: u64) -> &Value {
     report["devices"]
         .as_array()
@@ -103,17 +114,7 @@ fn scan_finds_every_fast_device_at_its_settings_and_flags_the_duplicate() {
     termios::tcsetattr(&before, SetArg::TCSANOW, &settings).unwrap();
     let report = scan_json(&sim, &[]);
     assert_eq!(report["port_settings_scanned"], 48);
-    assert_eq!(
-        found(&report),
-        vec![
-            (0xFE00_0010, 10, "9600 8N2".into()),
-            (0xFE00_0011, 10, "9600 8N2".into()),
-            (0xFE00_0020, 20, "115200 8N2".into()),
-            (0xFE00_0030, 30, "19200 8O1".into()),
-            (0xFE00_0031, 31, "19200 8O1".into()),
-        ],
-        "{report:#}"
-    );
+    assert_eq!(found(&report), site_bus_fast_devices(), "{report:#}");
     let relay = device(&report, 0xFE00_0011);
     assert_eq!(relay["model"], "WBMR6C");
     assert_eq!(relay["firmware"], "1.26.1");
@@ -374,7 +375,7 @@ fn set_address_by_serial_is_verified_and_refuses_a_taken_address() {
     assert_eq!(run.code, 0, "{}{}", run.stdout, run.stderr);
     assert!(
         run.stdout
-            .contains("address 31 -> 77 (read back and confirmed by a scan)"),
+            .contains("address 31 -> 77 (confirmed by a scan)"),
         "{}",
         run.stdout
     );
@@ -882,15 +883,5 @@ fn scan_through_a_slow_usb_adapter_finds_every_device_at_its_settings() {
     let run = tool(&["scan", "--port", &port, "--json", "--latency", LATENCY_MS]);
     assert_eq!(run.code, 0, "{}{}", run.stdout, run.stderr);
     let report: Value = serde_json::from_str(&run.stdout).unwrap();
-    assert_eq!(
-        found(&report),
-        vec![
-            (0xFE00_0010, 10, "9600 8N2".into()),
-            (0xFE00_0011, 10, "9600 8N2".into()),
-            (0xFE00_0020, 20, "115200 8N2".into()),
-            (0xFE00_0030, 30, "19200 8O1".into()),
-            (0xFE00_0031, 31, "19200 8O1".into()),
-        ],
-        "{report:#}"
-    );
+    assert_eq!(found(&report), site_bus_fast_devices(), "{report:#}");
 }

@@ -21,7 +21,45 @@ pub struct BenchLayout {
 /// The MQTT device id prefix: ids are `bench_<address>`.
 pub const DEVICE_ID: &str = "bench";
 
+/// The fault suite's bus (`tests/fault_suite.rs`, and on virtual time
+/// `src/gateway/noise_scenarios.rs`): event inputs and polled registers per device, odd
+/// addresses speak Fast Modbus, even ones are classic, and the template writes
+/// [`FAULT_BUS_SETUP_VALUE`] to [`FAULT_BUS_SETUP_REGISTER`] at setup (to see it rewritten after
+/// a reboot).
+pub const FAULT_BUS_EVENTS: u16 = 2;
+pub const FAULT_BUS_REGISTERS: u16 = 4;
+pub const FAULT_BUS_SETUP_REGISTER: u16 = 100;
+pub const FAULT_BUS_SETUP_VALUE: u16 = 7;
+
 impl BenchLayout {
+    /// The fault suite's bus of `devices` at `baud` (see [`FAULT_BUS_EVENTS`]).
+    pub fn fault_bus(devices: u8, baud: u32) -> Self {
+        Self {
+            devices,
+            events: FAULT_BUS_EVENTS,
+            registers: FAULT_BUS_REGISTERS,
+            baud,
+            fast_devices: true,
+        }
+    }
+
+    /// The fault suite's template (with its setup write) as (file name, template), and the
+    /// simulator's device entries, odd addresses Fast Modbus.
+    pub fn fault_bus_files(&self) -> (String, Value, Vec<Value>) {
+        let (name, mut template) = self.template();
+        template["device"]["setup"] = json!([{"title": "Mode",
+            "address": FAULT_BUS_SETUP_REGISTER, "value": FAULT_BUS_SETUP_VALUE}]);
+        let mut entries = self.bus()["devices"]
+            .as_array()
+            .cloned()
+            .unwrap_or_default();
+        for entry in &mut entries {
+            let address = entry["address"].as_u64().unwrap_or(0);
+            entry["fast"] = json!(address % 2 == 1);
+        }
+        (name, template, entries)
+    }
+
     pub fn device_type(&self) -> String {
         format!("bench-e{}-r{}", self.events, self.registers)
     }

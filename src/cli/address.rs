@@ -113,27 +113,6 @@ async fn write_address(
     )
 }
 
-/// The address the device with `serial` reports now, read back by serial number.
-async fn read_address(
-    port: &mut ToolPort,
-    line: LineSettings,
-    serial: u32,
-) -> Result<Option<u16>, PortError> {
-    let pdu = RequestPdu::ReadHoldingRegisters {
-        start: ADDRESS_REGISTER,
-        count: 1,
-    };
-    Ok(
-        match port
-            .by_serial(line, serial, pdu, KNOWN_DEVICE_TIMEOUT)
-            .await?
-        {
-            Answer::Pdu(ResponsePdu::ReadHoldingRegisters { values }) => values.first().copied(),
-            _ => None,
-        },
-    )
-}
-
 pub fn run_set_address(args: SetAddressArgs) -> anyhow::Result<ExitCode> {
     block_on_tool(async move {
         match set_address(&args).await {
@@ -144,19 +123,76 @@ pub fn run_set_address(args: SetAddressArgs) -> anyhow::Result<ExitCode> {
 }
 
 async fn set_address(args: &SetAddressArgs) -> Result<ExitCode, PortError> {
-    if args.service.via_mqtt {
-        return Ok(set_address_via_service(args).await);
-    }
-    let mut port = match args.port.open() {
-        Err(PortError::Busy { path }) if args.service.can_reach_service() => {
-            eprintln!("{path} is busy: changing the address through the running rtu2mqtt service (MQTT RPC)");
-            return Ok(set_address_via_service(args).await);
+    if !args.service.via_mqtt {
+        match args.port.open() {
+            Err(PortError::Busy { path }) if args.service.can_reach_service() => {
+                eprintln!(
+                    "{path} is busy: changing the address through the running rtu2mqtt service \
+                     (MQTT RPC)"
+                );
+            }
+            other => {
+                let mut port = other?;
+                let code = set_address_on(&mut port, args, args.port.plan()).await;
+                port.restore();
+                return Ok(code);
+            }
         }
-        other => other?,
+    }
+    let (mut service, home) = match ServiceBus::connect(&args.service, &args.port.port).await {
+        Ok(connected) => connected,
+        Err(code) => return Ok(code),
     };
-    let plan = args.port.plan();
+    // The service's own settings first: where its devices most likely are.
+    let mut plan = args.port.plan();
+    if let Some(index) = plan.iter().position(|l| *l == home) {
+        plan.remove(index);
+        plan.insert(0, home);
+    }
+    let code = set_address_on(&mut service, args, plan).await;
+    if code == ExitCode::SUCCESS {
+        eprintln!(
+            "if the service polls this device, change its slave_id in the service's config too"
+        );
+    }
+    Ok(code)
+}
+
+/// Finds the device by serial number (setting after setting), writes its new address and
+/// confirms it with a new scan of that setting.
+async fn set_address_on(
+    bus: &mut impl AddressBus,
+    args: &SetAddressArgs,
+    plan: Vec<LineSettings>,
+) -> ExitCode {
+    set_address_steps(bus, args, &plan)
+        .await
+        .unwrap_or_else(|code| code)
+}
+
+async fn set_address_steps(
+    bus: &mut impl AddressBus,
+    args: &SetAddressArgs,
+    plan: &[LineSettings],
+) -> Result<ExitCode, ExitCode> {
     let serial = serial_text(args.serial);
-    let Some((line, old, report)) = locate(&mut port, &plan, args.serial).await? else {
+    let address_at = |report: &ScanReport| {
+        report
+            .devices
+            .iter()
+            .find(|d| d.serial == Some(args.serial))
+            .map(|d| d.address)
+    };
+    let mut found = None;
+    for &line in plan {
+        let mut report = ScanReport::default();
+        bus.scan(&[line], &mut report).await?;
+        if let Some(address) = address_at(&report) {
+            found = Some((line, address, report));
+            break;
+        }
+    }
+    let Some((line, old, report)) = found else {
         eprintln!(
             "no device with serial {serial} answered a Fast Modbus scan at {} port setting(s) of \
              {}: check the number (decimal or 0x hex) and the wiring",
@@ -184,30 +220,29 @@ async fn set_address(args: &SetAddressArgs) -> Result<ExitCode, PortError> {
         );
         return Ok(ExitCode::from(exit::NOT_FOUND));
     }
-    if let Err(reason) = write_address(&mut port, line, args.serial, args.address).await? {
+    let change = AddressChange {
+        serial: args.serial,
+        line,
+        from: old,
+        to: args.address,
+    };
+    if let Err(reason) = bus.write_address(&change).await? {
         eprintln!("serial {serial} at {line}: {reason}; the address stays {old}");
         return Ok(ExitCode::from(exit::NOT_FOUND));
     }
-    let read_back = read_address(&mut port, line, args.serial).await?;
     let mut check = ScanReport::default();
-    let seen = port.scan_setting(line, &mut check).await?;
-    port.restore();
-    let scanned = seen
-        .iter()
-        .find(|(s, _)| *s == args.serial)
-        .map(|(_, a)| *a);
-    if read_back == Some(u16::from(args.address)) && scanned == Some(args.address) {
+    bus.scan(&[line], &mut check).await?;
+    let scanned = address_at(&check);
+    if scanned == Some(args.address) {
         println!(
-            "serial {serial} at {line}: address {old} -> {} (read back and confirmed by a scan)",
+            "serial {serial} at {line}: address {old} -> {} (confirmed by a scan)",
             args.address
         );
         Ok(ExitCode::SUCCESS)
     } else {
         eprintln!(
-            "serial {serial} at {line}: wrote address {} but the device reports {} and the scan \
-             shows {}",
+            "serial {serial} at {line}: wrote address {} but the scan shows {}",
             args.address,
-            read_back.map_or("nothing".into(), |a| a.to_string()),
             scanned.map_or("nothing".into(), |a| a.to_string())
         );
         Ok(ExitCode::from(exit::NOT_FOUND))
@@ -243,104 +278,6 @@ async fn scan_via_service(
             Some((serial, address))
         })
         .collect())
-}
-
-/// `set-address` through the running service: `port/Scan` finds the device (the service's own
-/// settings first), `port/Setup` writes the address by serial number, a second `port/Scan`
-/// confirms it.
-async fn set_address_via_service(args: &SetAddressArgs) -> ExitCode {
-    let mut session = match super::via_mqtt::connect_service(&args.service).await {
-        Ok(session) => session,
-        Err(code) => return code,
-    };
-    let path = args.port.port.as_str();
-    let home = match super::via_mqtt::served_line(&mut session, path).await {
-        Ok(line) => line,
-        Err(code) => return code,
-    };
-    let mut plan = args.port.plan();
-    if let Some(index) = plan.iter().position(|l| *l == home) {
-        plan.remove(index);
-        plan.insert(0, home);
-    }
-    let serial = serial_text(args.serial);
-    let mut found = None;
-    for line in &plan {
-        let devices = match scan_via_service(&mut session, path, line).await {
-            Ok(devices) => devices,
-            Err(code) => return code,
-        };
-        if let Some((_, address)) = devices.iter().find(|(s, _)| *s == args.serial) {
-            found = Some((*line, *address, devices.clone()));
-            break;
-        }
-    }
-    let Some((line, old, devices)) = found else {
-        eprintln!(
-            "no device with serial {serial} answered a Fast Modbus scan at {} port setting(s) of \
-             {path} (through the service): check the number (decimal or 0x hex) and the wiring",
-            plan.len()
-        );
-        return ExitCode::from(exit::NOT_FOUND);
-    };
-    if old == args.address {
-        println!("serial {serial} already has address {old} ({line}); nothing to do");
-        return ExitCode::SUCCESS;
-    }
-    let taken_by: Vec<String> = devices
-        .iter()
-        .filter(|(s, a)| *a == args.address && *s != args.serial)
-        .map(|(s, _)| serial_text(*s))
-        .collect();
-    if !taken_by.is_empty() && !args.force {
-        eprintln!(
-            "address {} is already used at {line} by serial {}: choose another (rtu2mqtt scan \
-             lists the used ones) or add --force",
-            args.address,
-            taken_by.join(", ")
-        );
-        return ExitCode::from(exit::NOT_FOUND);
-    }
-    let mut item = super::via_mqtt::line_params(&line);
-    item["slave_id"] = serde_json::json!(old);
-    item["sn"] = serde_json::json!(args.serial);
-    item["cfg"] = serde_json::json!({"slave_id": args.address});
-    let setup = serde_json::json!({"path": path, "items": [item]});
-    if let Err(code) = super::via_mqtt::service_call(
-        &mut session,
-        "port",
-        "Setup",
-        setup,
-        std::time::Duration::from_secs(10),
-    )
-    .await
-    {
-        eprintln!("serial {serial} at {line}: the address stays {old}");
-        return code;
-    }
-    let scanned = match scan_via_service(&mut session, path, &line).await {
-        Ok(devices) => devices
-            .iter()
-            .find(|(s, _)| *s == args.serial)
-            .map(|(_, a)| *a),
-        Err(code) => return code,
-    };
-    if scanned == Some(args.address) {
-        println!(
-            "serial {serial} at {line}: address {old} -> {} (confirmed by a scan, through the \
-             service); if the service polls this device, change its slave_id in the service's \
-             config too",
-            args.address
-        );
-        ExitCode::SUCCESS
-    } else {
-        eprintln!(
-            "serial {serial} at {line}: wrote address {} but the scan shows {}",
-            args.address,
-            scanned.map_or("nothing".into(), |a| a.to_string())
-        );
-        ExitCode::from(exit::NOT_FOUND)
-    }
 }
 
 pub fn run_fix_addresses(args: FixAddressesArgs) -> anyhow::Result<ExitCode> {
@@ -389,9 +326,14 @@ impl AddressBus for ToolPort {
         lines: &[LineSettings],
         report: &mut ScanReport,
     ) -> Result<(), ExitCode> {
-        super::scan::fast_scan(self, lines, report)
-            .await
-            .map_err(|err| port_failure(&err))
+        // The address tools need serials and addresses only: no model or firmware reads.
+        for &line in lines {
+            report.settings_tried.push(line);
+            self.scan_setting(line, report)
+                .await
+                .map_err(|err| port_failure(&err))?;
+        }
+        Ok(())
     }
 
     async fn write_address(
@@ -408,6 +350,24 @@ impl AddressBus for ToolPort {
 struct ServiceBus {
     session: crate::rpc::client::RpcSession,
     path: String,
+}
+
+impl ServiceBus {
+    /// Connects to the service holding `path`; with the port's settings there.
+    async fn connect(
+        args: &super::via_mqtt::ViaMqttArgs,
+        path: &str,
+    ) -> Result<(Self, LineSettings), ExitCode> {
+        let mut session = super::via_mqtt::connect_service(args).await?;
+        let home = super::via_mqtt::served_line(&mut session, path).await?;
+        Ok((
+            Self {
+                session,
+                path: path.to_owned(),
+            },
+            home,
+        ))
+    }
 }
 
 impl AddressBus for ServiceBus {
@@ -461,21 +421,19 @@ async fn fix_addresses(args: &FixAddressesArgs) -> Result<ExitCode, PortError> {
             }
         }
     }
-    let session = match super::via_mqtt::connect_service(&args.service).await {
-        Ok(session) => session,
+    let mut service = match ServiceBus::connect(&args.service, &args.port.port).await {
+        Ok((service, _home)) => service,
         Err(code) => return Ok(code),
-    };
-    let mut service = ServiceBus {
-        session,
-        path: args.port.port.clone(),
     };
     Ok(fix_addresses_on(&mut service, args).await)
 }
 
+/// Finds duplicate addresses over the plan, proposes or writes free ones, and checks them with
+/// a new scan. The error side is an exit code already explained to the integrator.
 async fn fix_addresses_on(bus: &mut impl AddressBus, args: &FixAddressesArgs) -> ExitCode {
-    match fix_addresses_steps(bus, args).await {
-        Ok(code) | Err(code) => code,
-    }
+    fix_addresses_steps(bus, args)
+        .await
+        .unwrap_or_else(|code| code)
 }
 
 async fn fix_addresses_steps(

@@ -228,13 +228,11 @@ impl PortTask {
         let Some(status) = &self.status else {
             return;
         };
-        let now = self.now();
         for command in status.take_commands() {
             match command {
+                // Until resumed.
                 PortCommand::Suspend { device, suspended } => {
-                    self.scheduler.set_suspended(device, suspended);
-                    let report = self.scheduler.device_report(device, now);
-                    status.record(|stats| stats.set_schedule(device, report));
+                    self.hold_polling(device, suspended.then_some(Duration::MAX));
                 }
             }
         }
@@ -453,13 +451,7 @@ impl PortTask {
                 hold_for,
                 done,
             } => {
-                let now = self.now();
-                let until = hold_for.map(|hold| now.saturating_add(hold));
-                self.scheduler.hold_polling(device, until);
-                if let Some(status) = &self.status {
-                    let report = self.scheduler.device_report(device, now);
-                    status.record(|stats| stats.set_schedule(device, report));
-                }
+                self.hold_polling(device, hold_for);
                 let _ = done.send(());
                 None
             }
@@ -555,27 +547,37 @@ impl PortTask {
 
     /// Answers every queued transaction with "port closed" (the port is being reopened).
     fn refuse_queued(&mut self, why: &str) {
-        let now = self.now();
-        if let Some(queued) = self.queued.as_mut() {
-            while let Ok(job) = queued.try_recv() {
-                match job {
-                    QueuedJob::Transaction(job) => {
-                        let _ = job
-                            .reply
-                            .send(Err(BusQueueError::PortClosed(why.to_owned())));
-                    }
-                    // A hold takes no bus: the scheduler keeps it while the port is reopened.
-                    QueuedJob::HoldPolling {
-                        device,
-                        hold_for,
-                        done,
-                    } => {
-                        let until = hold_for.map(|hold| now.saturating_add(hold));
-                        self.scheduler.hold_polling(device, until);
-                        let _ = done.send(());
-                    }
+        let Some(queued) = self.queued.as_mut() else {
+            return;
+        };
+        let mut jobs = Vec::new();
+        while let Ok(job) = queued.try_recv() {
+            jobs.push(job);
+        }
+        for job in jobs {
+            match job {
+                QueuedJob::Transaction(job) => {
+                    let _ = job
+                        .reply
+                        .send(Err(BusQueueError::PortClosed(why.to_owned())));
+                }
+                // A hold takes no bus: the scheduler keeps it while the port is reopened.
+                job @ QueuedJob::HoldPolling { .. } => {
+                    let _ = self.take_job(job);
                 }
             }
+        }
+    }
+
+    /// Holds the polling of the port's `device`-th device for `hold_for` from now, or resumes
+    /// it; the status page sees the change.
+    fn hold_polling(&mut self, device: usize, hold_for: Option<Duration>) {
+        let now = self.now();
+        let until = hold_for.map(|hold| now.saturating_add(hold));
+        self.scheduler.hold_polling(device, until);
+        if let Some(status) = &self.status {
+            let report = self.scheduler.device_report(device, now);
+            status.record(|stats| stats.set_schedule(device, report));
         }
     }
 

@@ -15,19 +15,15 @@
 use std::collections::BTreeMap;
 use std::time::Duration;
 
-use serde_json::json;
-
 use super::virtual_gateway::VirtualGateway;
-use crate::bench::layout::BenchLayout;
+use crate::bench::layout::{
+    BenchLayout, FAULT_BUS_EVENTS as EVENTS, FAULT_BUS_REGISTERS as REGISTERS,
+};
 use crate::protocol::RegisterType;
 use crate::sim::faults::Faults;
 use crate::updates::DeviceUpdate;
 
 const TICK: Duration = Duration::from_millis(10);
-const EVENTS: u16 = 2;
-const REGISTERS: u16 = 4;
-const SETUP_REGISTER: u16 = 100;
-const SETUP_VALUE: u16 = 7;
 const FAULT_TIME: Duration = Duration::from_secs(25);
 /// Issue 15: the broker shows the simulator's values within 2 s of the faults ending.
 const RECOVERY_TARGET: Duration = Duration::from_secs(2);
@@ -67,26 +63,10 @@ impl NoiseBus {
     /// `devices` at `baud`, up and converged on their first values; the devices at `absent`
     /// are configured but unplugged for good.
     fn start(devices: u8, baud: u32, seed: u64, absent: &[u8]) -> Self {
-        let layout = BenchLayout {
-            devices,
-            events: EVENTS,
-            registers: REGISTERS,
-            baud,
-            fast_devices: true,
-        };
+        let layout = BenchLayout::fault_bus(devices, baud);
         let dir = tempfile::tempdir().expect("a template directory");
-        let (name, mut template) = layout.template();
-        template["device"]["setup"] =
-            json!([{"title": "Mode", "address": SETUP_REGISTER, "value": SETUP_VALUE}]);
+        let (name, template, entries) = layout.fault_bus_files();
         std::fs::write(dir.path().join(name), template.to_string()).expect("template written");
-        let mut entries = layout.bus()["devices"]
-            .as_array()
-            .cloned()
-            .expect("bus devices");
-        for entry in &mut entries {
-            let address = entry["address"].as_u64().unwrap_or(0);
-            entry["fast"] = json!(address % 2 == 1);
-        }
         let gateway =
             VirtualGateway::from_bus(&layout.line(), &entries, dir.path(), true, seed.max(1));
         let slots = usize::from(devices) * usize::from(REGISTERS);

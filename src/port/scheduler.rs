@@ -50,7 +50,7 @@ pub struct DeviceReport {
     pub events_active: bool,
     /// "setup writes", "event setup" or "ready".
     pub setup: &'static str,
-    /// Polling held by [`PortScheduler::set_suspended`].
+    /// Polling held by [`PortScheduler::hold_polling`].
     pub suspended: bool,
 }
 
@@ -196,14 +196,9 @@ impl PortScheduler {
         })
     }
 
-    /// Holds (or resumes) the polling of a device: no reads and no preparation while held;
-    /// writes and its events still go. Returns false for an unknown device.
-    pub fn set_suspended(&mut self, device: usize, suspended: bool) -> bool {
-        self.hold_polling(device, suspended.then_some(Duration::MAX))
-    }
-
     /// Holds the polling of a device until `until` (`Duration::MAX`: until resumed), or resumes
-    /// it (`None`). A hold asked again moves its end. Returns false for an unknown device.
+    /// it (`None`): no reads and no preparation while held; writes and its events still go. A
+    /// hold asked again moves its end. Returns false for an unknown device.
     pub fn hold_polling(&mut self, device: usize, until: Option<Duration>) -> bool {
         let Some(state) = self.devices.get_mut(device) else {
             return false;

@@ -1194,8 +1194,8 @@ fn a_suspended_device_is_not_polled_and_the_scheduler_does_not_spin() {
         )
     };
     let mut scheduler = PortScheduler::new(settings(115_200), vec![reads(1), reads(2)]);
-    assert!(scheduler.set_suspended(1, true));
-    assert!(!scheduler.set_suspended(7, true));
+    assert!(scheduler.hold_polling(1, Some(Duration::MAX)));
+    assert!(!scheduler.hold_polling(7, Some(Duration::MAX)));
     let mut log = Log::default();
     let now = run(&mut scheduler, &mut log, ms(0), ms(2000), |_, r| healthy(r));
     assert!(!log.classic_to(1).is_empty());
@@ -1203,7 +1203,7 @@ fn a_suspended_device_is_not_polled_and_the_scheduler_does_not_spin() {
     assert!(scheduler.device_report(1, now).unwrap().suspended);
     // Only the held device would be due: the scheduler waits instead of returning "now".
     let mut only_held = PortScheduler::new(settings(115_200), vec![reads(2)]);
-    only_held.set_suspended(0, true);
+    only_held.hold_polling(0, Some(Duration::MAX));
     match only_held.next(ms(10)) {
         Action::Wait { until } => assert!(until > ms(10), "{until:?}"),
         other => panic!("{other:?}"),
@@ -1220,7 +1220,7 @@ fn a_suspended_device_is_not_polled_and_the_scheduler_does_not_spin() {
         },
     );
     assert!(matches!(only_held.next(ms(10)), Action::Transmit(_)));
-    scheduler.set_suspended(1, false);
+    scheduler.hold_polling(1, None);
     let mut log = Log::default();
     run(&mut scheduler, &mut log, now, now + ms(500), |_, r| {
         healthy(r)

@@ -782,26 +782,15 @@ async fn device_load_config(
     let mut bus = QueuedBus::new(&access);
     let mut reader = Reader::Address(device.slave_id);
     let text = |words: Vec<u16>| standard_text(&words).unwrap_or_default();
-    let model = match reader
-        .read(&mut bus, line, wb_register::MODEL, 20)
-        .await
-        .map_err(io_error)?
-    {
+    let model = match read_model(&mut bus, line, &mut reader).await? {
         Ok(words) => text(words),
-        Err(_) => match reader
-            .read(&mut bus, line, wb_register::MODEL, 6)
-            .await
-            .map_err(io_error)?
-        {
-            Ok(words) => text(words),
-            Err(answer) => {
-                return Err(RpcError::server(format!(
-                    "Port IO error: reading the model (holding 200) of slave {} at {line}: {}",
-                    device.slave_id,
-                    describe(&answer)
-                )))
-            }
-        },
+        Err(answer) => {
+            return Err(RpcError::server(format!(
+                "Port IO error: reading the model (holding 200) of slave {} at {line}: {}",
+                device.slave_id,
+                describe(&answer)
+            )))
+        }
     };
     let fw = match reader
         .read(&mut bus, line, wb_register::FIRMWARE, 16)
@@ -928,6 +917,25 @@ fn error_entry(what: &str, message: &str) -> Value {
 
 /// What wb-mqtt-serial reports of a found device: `sn`, `device_signature`, `fw_signature`,
 /// `cfg` (address and port settings), `fw.version`, and `errors` for what could not be read.
+/// The model string (holding 200): 20 characters, else 6, as wb-mqtt-serial reads it.
+async fn read_model(
+    bus: &mut QueuedBus,
+    line: LineSettings,
+    reader: &mut Reader,
+) -> Result<Result<Vec<u16>, Answer>, RpcError> {
+    match reader
+        .read(bus, line, wb_register::MODEL, 20)
+        .await
+        .map_err(io_error)?
+    {
+        Ok(words) => Ok(Ok(words)),
+        Err(_) => reader
+            .read(bus, line, wb_register::MODEL, 6)
+            .await
+            .map_err(io_error),
+    }
+}
+
 async fn device_details(
     bus: &mut QueuedBus,
     line: LineSettings,
@@ -941,19 +949,7 @@ async fn device_details(
         Ok(words) => Ok(standard_text(&words).unwrap_or_default()),
         Err(answer) => Err(describe(&answer)),
     };
-    let model = match reader
-        .read(bus, line, wb_register::MODEL, 20)
-        .await
-        .map_err(io_error)?
-    {
-        Ok(words) => text(Ok(words)),
-        Err(_) => text(
-            reader
-                .read(bus, line, wb_register::MODEL, 6)
-                .await
-                .map_err(io_error)?,
-        ),
-    };
+    let model = text(read_model(bus, line, reader).await?);
     match model {
         Ok(model) => {
             details.insert("device_signature".into(), json!(model));
