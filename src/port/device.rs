@@ -84,6 +84,8 @@ pub(super) struct DeviceState {
     fast_modbus: bool,
     preparation: Preparation,
     reads: Vec<ReadState>,
+    /// The planned reads' indices ordered by (span, index): the order reads are merged in.
+    by_span: Vec<usize>,
     events_active: bool,
     /// Polling held by the operator (status page, MQTT RPC `device/SetPoll`): no reads or
     /// preparation; writes and events still go.
@@ -107,6 +109,8 @@ impl DeviceState {
                 period_missed: false,
             })
             .collect();
+        let mut by_span: Vec<usize> = (0..plan.reads.len()).collect();
+        by_span.sort_by_key(|&i| (plan.reads.get(i).map(|r| r.span), i));
         let health = DeviceHealth::new(plan.health);
         let response = ResponseTimer::new(line.response_timeout_floor(plan.response_timeout));
         let mut state = Self {
@@ -116,6 +120,7 @@ impl DeviceState {
             fast_modbus,
             preparation: Preparation::Done,
             reads,
+            by_span,
             events_active: false,
             suspended: false,
             suspended_until: None,
@@ -400,6 +405,47 @@ impl DeviceState {
     }
 
     pub(super) fn choose_read(&self, now: Duration) -> Option<ReadChoice> {
+        let keepalive = self.keepalive_index();
+        let is_due = |i: usize| self.due_from(i, keepalive).is_some_and(|at| at <= now);
+        let urgency = |i: usize| self.urgency(i);
+        let first = (0..self.reads.len())
+            .filter(|&i| is_due(i))
+            .min_by_key(|&i| urgency(i))?;
+        let first_span = self.plan.reads.get(first)?.span;
+        let mut span = first_span;
+        let mut members = vec![first];
+        if !self.reads.get(first).is_some_and(|r| r.solo) {
+            // The due reads after the first, by span: `by_span` is in that order already.
+            let followers = self
+                .by_span
+                .iter()
+                .copied()
+                .filter(|&i| i != first && is_due(i) && !self.reads.get(i).is_some_and(|r| r.solo))
+                .filter_map(|i| self.plan.reads.get(i).map(|p| (p.span, i)))
+                .filter(|(s, _)| {
+                    s.register_type == first_span.register_type && s.start >= first_span.start
+                });
+            for (next, index) in followers {
+                match self.plan.merge.extend(span, next) {
+                    Some(extended) => {
+                        span = extended;
+                        members.push(index);
+                    }
+                    None => break,
+                }
+            }
+        }
+        Some(ReadChoice {
+            span,
+            members,
+            urgency: urgency(first),
+        })
+    }
+
+    /// [`Self::choose_read`] as it was written first (collecting and sorting the due reads):
+    /// the unit tests check the two agree.
+    #[cfg(test)]
+    pub(super) fn choose_read_by_sorting(&self, now: Duration) -> Option<ReadChoice> {
         let keepalive = self.keepalive_index();
         let due: Vec<usize> = (0..self.reads.len())
             .filter(|&i| self.due_from(i, keepalive).is_some_and(|at| at <= now))

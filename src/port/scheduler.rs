@@ -1249,6 +1249,12 @@ impl PortScheduler {
 
     fn check_index(&self, now: Duration) {
         for state in &self.devices {
+            assert_eq!(
+                state.choose_read(now),
+                state.choose_read_by_sorting(now),
+                "{}: read at {now:?}",
+                state.plan.name
+            );
             assert!(
                 state.suspended_until.is_none_or(|until| now < until),
                 "{}: a hold past its end at {now:?}",
