@@ -3,6 +3,7 @@
 //! parameters and conditions are all applied; nothing here needs the JSON any more.
 
 use std::collections::BTreeMap;
+use std::sync::Arc;
 use std::time::Duration;
 
 use super::codec::{CodecError, Reading, ValueCodec};
@@ -239,6 +240,72 @@ pub struct DeviceTiming {
     pub read_rate_limit: Option<Duration>,
 }
 
+/// A list resolved once and shared by every device made from the same template with the same
+/// overrides (channels, setup items): a device's own memory is then its address, id and name,
+/// not a copy of its template. Reads as a slice; tests that build variants call
+/// [`SharedVec::make_mut`], which copies the list first if another device shares it.
+#[derive(Clone)]
+pub struct SharedVec<T>(Arc<Vec<T>>);
+
+impl<T> SharedVec<T> {
+    /// Shares `items`, without the spare capacity left by building them.
+    pub fn new(mut items: Vec<T>) -> Self {
+        items.shrink_to_fit();
+        Self(Arc::new(items))
+    }
+
+    /// Whether `a` and `b` are the same list in memory (not merely equal).
+    pub fn ptr_eq(a: &Self, b: &Self) -> bool {
+        Arc::ptr_eq(&a.0, &b.0)
+    }
+}
+
+impl<T: Clone> SharedVec<T> {
+    /// The list to change, copied first when other devices share it.
+    pub fn make_mut(&mut self) -> &mut Vec<T> {
+        Arc::make_mut(&mut self.0)
+    }
+}
+
+impl<T> Default for SharedVec<T> {
+    fn default() -> Self {
+        Self(Arc::new(Vec::new()))
+    }
+}
+
+impl<T> std::ops::Deref for SharedVec<T> {
+    type Target = [T];
+    fn deref(&self) -> &[T] {
+        &self.0
+    }
+}
+
+impl<'a, T> IntoIterator for &'a SharedVec<T> {
+    type Item = &'a T;
+    type IntoIter = std::slice::Iter<'a, T>;
+    fn into_iter(self) -> Self::IntoIter {
+        self.0.iter()
+    }
+}
+
+impl<T> From<Vec<T>> for SharedVec<T> {
+    fn from(items: Vec<T>) -> Self {
+        Self::new(items)
+    }
+}
+
+impl<T: PartialEq> PartialEq for SharedVec<T> {
+    fn eq(&self, other: &Self) -> bool {
+        Self::ptr_eq(self, other) || self.0 == other.0
+    }
+}
+
+impl<T: std::fmt::Debug> std::fmt::Debug for SharedVec<T> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        self.0.fmt(f)
+    }
+}
+
 /// One configured device, ready to poll.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ResolvedDevice {
@@ -252,9 +319,10 @@ pub struct ResolvedDevice {
     pub is_wb: bool,
     pub hw: Vec<HardwareSignature>,
     pub timing: DeviceTiming,
-    pub channels: Vec<ResolvedChannel>,
-    /// In write order.
-    pub setup: Vec<SetupItem>,
+    /// Shared with the other devices of the same template and overrides.
+    pub channels: SharedVec<ResolvedChannel>,
+    /// In write order; shared like `channels`.
+    pub setup: SharedVec<SetupItem>,
     /// Register of the serial number (channels `Serial`, `serial_number`, `Serial NO`), even
     /// when that channel is disabled: used by scan and probe to match devices.
     pub serial_number: Option<ChannelRegister>,
