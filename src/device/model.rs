@@ -2,7 +2,6 @@
 //! the simulator builds its virtual registers from. Templates, config overrides, subdevices,
 //! parameters and conditions are all applied; nothing here needs the JSON any more.
 
-use std::collections::BTreeMap;
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -75,11 +74,78 @@ pub struct ChannelRegister {
     pub press_counter: bool,
 }
 
+/// A text per language, sorted by language code (as the meta JSON lists them). A channel has
+/// one to three languages: a short list, where a map would allocate a whole tree node (over
+/// 500 bytes) for every channel and enum value.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Titles(Vec<(String, String)>);
+
+impl Titles {
+    pub fn get(&self, lang: &str) -> Option<&String> {
+        self.position(lang).ok().map(|i| &self.0[i].1)
+    }
+
+    /// Sets the text of `lang`, replacing any it had.
+    pub fn insert(&mut self, lang: String, text: String) {
+        match self.position(&lang) {
+            Ok(i) => self.0[i].1 = text,
+            Err(i) => self.0.insert(i, (lang, text)),
+        }
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.0.is_empty()
+    }
+
+    pub fn len(&self) -> usize {
+        self.0.len()
+    }
+
+    pub fn clear(&mut self) {
+        self.0.clear();
+    }
+
+    /// (language, text), by language.
+    pub fn iter(&self) -> impl Iterator<Item = (&str, &str)> {
+        self.0
+            .iter()
+            .map(|(lang, text)| (lang.as_str(), text.as_str()))
+    }
+
+    fn position(&self, lang: &str) -> Result<usize, usize> {
+        self.0.binary_search_by(|(key, _)| key.as_str().cmp(lang))
+    }
+}
+
+impl FromIterator<(String, String)> for Titles {
+    fn from_iter<I: IntoIterator<Item = (String, String)>>(items: I) -> Self {
+        let mut titles = Titles::default();
+        for (lang, text) in items {
+            titles.insert(lang, text);
+        }
+        titles.0.shrink_to_fit();
+        titles
+    }
+}
+
+impl<const N: usize> From<[(String, String); N]> for Titles {
+    fn from(items: [(String, String); N]) -> Self {
+        items.into_iter().collect()
+    }
+}
+
+/// A JSON object `{lang: text}`, as the meta's `title` and `enum` carry it.
+impl serde::Serialize for Titles {
+    fn serialize<S: serde::Serializer>(&self, serializer: S) -> Result<S::Ok, S::Error> {
+        serializer.collect_map(self.iter())
+    }
+}
+
 /// Title of one enum value, per language.
 #[derive(Debug, Clone, PartialEq)]
 pub struct EnumTitle {
     pub value: String,
-    pub title: BTreeMap<String, String>,
+    pub title: Titles,
 }
 
 /// One MQTT control.
@@ -90,7 +156,7 @@ pub struct ResolvedChannel {
     /// Template name (with subdevice prefixes): what config overrides match.
     pub name: String,
     /// Title per language for the control meta.
-    pub title: BTreeMap<String, String>,
+    pub title: Titles,
     pub registers: Vec<ChannelRegister>,
     /// WB control type (`value`, `switch`, `range`, `text`, `pushbutton`, `rgb`, deprecated
     /// typed values …); `wo-switch` is already turned into a write-only `switch`.
@@ -351,4 +417,40 @@ pub struct ResolvedPort {
     pub index: usize,
     pub config: PortConfig,
     pub devices: Vec<ResolvedDevice>,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Titles keep one text per language, sorted by language code whatever the order they
+    /// came in, and serialize as the JSON object the meta carries.
+    #[test]
+    fn titles_are_one_text_per_language_in_order() {
+        let mut titles = Titles::from([
+            ("ru".to_string(), "Температура".to_string()),
+            ("en".to_string(), "Temp".to_string()),
+        ]);
+        titles.insert("en".into(), "Temperature".into());
+        titles.insert("de".into(), "Temperatur".into());
+        assert_eq!(titles.len(), 3);
+        assert_eq!(titles.get("en").map(String::as_str), Some("Temperature"));
+        assert_eq!(titles.get("fr"), None);
+        assert_eq!(
+            serde_json::to_string(&titles).unwrap(),
+            r#"{"de":"Temperatur","en":"Temperature","ru":"Температура"}"#
+        );
+    }
+
+    #[test]
+    fn shared_lists_compare_by_content_and_copy_on_change() {
+        let a = SharedVec::new(vec![1, 2, 3]);
+        let mut b = a.clone();
+        assert!(SharedVec::ptr_eq(&a, &b));
+        b.make_mut().push(4);
+        assert!(!SharedVec::ptr_eq(&a, &b));
+        assert_eq!(&a[..], [1, 2, 3]);
+        assert_eq!(&b[..], [1, 2, 3, 4]);
+        assert_eq!(SharedVec::new(vec![1, 2, 3]), a);
+    }
 }

@@ -472,7 +472,7 @@ impl Walker {
             title_prefix: context.title_prefix.clone(),
         };
         if slot.id.as_deref() != Some("") {
-            for (lang, title) in self.titles(&slot.name, context) {
+            for (lang, title) in self.title_map(&slot.name, context) {
                 inner.title_prefix.insert(lang, title);
             }
         }
@@ -482,7 +482,11 @@ impl Walker {
 
     /// Title per language: the translation of `name` (English: the name itself), after the
     /// translated subdevice prefix.
-    fn titles(&self, name: &str, context: &Context) -> BTreeMap<String, String> {
+    fn titles(&self, name: &str, context: &Context) -> Titles {
+        self.title_map(name, context).into_iter().collect()
+    }
+
+    fn title_map(&self, name: &str, context: &Context) -> BTreeMap<String, String> {
         let mut out = BTreeMap::new();
         out.insert("en".to_string(), name.to_string());
         for (lang, table) in &self.translations {
