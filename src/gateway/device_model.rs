@@ -862,7 +862,7 @@ mod tests {
             register.write = Some(holding);
         }
         let mut device = (*relay().device).clone();
-        device.channels = vec![channel];
+        device.channels = vec![channel].into();
         DeviceModel::new(Arc::new(device), 0)
     }
 
