@@ -272,6 +272,16 @@ impl ResponseTimer {
         // Not a sample of the smoothed estimate: one straggler must not dominate it for long.
         self.late = Some((raised, now.saturating_add(LATE_REPLY_MEMORY)));
     }
+    /// Nothing at all came back for a request, through its timeout and the late window after it:
+    /// the device is silent, not slow. A longer timeout a late reply taught it is forgotten:
+    /// kept, it would make every retry of a dead device hold the bus for the raised time (twice,
+    /// with the late window) instead of its normal one, at the others' expense. A device that
+    /// comes back slow is taught again by its next late reply, which a retry's late window
+    /// catches as long as it comes within twice the normal timeout (as for a device never heard
+    /// from).
+    pub fn silent(&mut self) {
+        self.late = None;
+    }
 }
 
 /// Windows of a scan arbitration.
@@ -432,6 +442,23 @@ mod tests {
         let later = timer.timeout(now + LATE_REPLY_MEMORY);
         assert!(later < raised, "{later:?}");
         assert!(later >= floor);
+    }
+
+    #[test]
+    fn silence_through_the_raised_timeout_forgets_it() {
+        let floor = Duration::from_millis(524);
+        let mut timer = ResponseTimer::new(floor);
+        for _ in 0..8 {
+            timer.answered(Duration::from_millis(2));
+        }
+        let now = Duration::from_secs(10);
+        timer.answered_late(now, Duration::from_millis(700));
+        assert!(timer.timeout(now) >= Duration::from_millis(1000));
+        timer.silent();
+        assert_eq!(timer.timeout(now), floor);
+        // Late again: raised again.
+        timer.answered_late(now, Duration::from_millis(700));
+        assert!(timer.timeout(now) >= Duration::from_millis(1000));
     }
 
     #[test]
