@@ -781,6 +781,10 @@ impl PortScheduler {
                         continue;
                     }
                     if let crate::protocol::EventSource::Register(register_type) = event.source {
+                        let words = crate::protocol::event_payload_words(&event.payload).len();
+                        if let Some(state) = self.devices.get_mut(device) {
+                            state.read_partial_event_value(register_type, event.id, words);
+                        }
                         out.push(PortEvent::EventValue {
                             device,
                             register_type,
