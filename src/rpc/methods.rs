@@ -12,6 +12,7 @@ use super::params::{
     PortLoad, PortScan, PortSelector, PortSetup, ScanMode, POLL_HOLD,
 };
 use crate::config::config_file::PortType;
+use crate::config::{TemplateFile, TemplateLibrary};
 use crate::daemon::bus_queue::BusQueue;
 use crate::daemon::{PortAccess, PortDirectory};
 use crate::gateway::port_plan::line_settings;
@@ -70,8 +71,44 @@ impl ToolBus for QueuedBus {
     }
 }
 
-/// Runs a request; `Err` is the JSON-RPC error to send back.
+/// The templates the running config was resolved with (those its devices use), replaced on a
+/// reload: `device/LoadConfig` reads a template's parameter list from them.
+#[derive(Debug, Clone, Default)]
+pub struct DeviceTemplates(Arc<std::sync::RwLock<TemplateLibrary>>);
+
+impl DeviceTemplates {
+    pub fn new(templates: TemplateLibrary) -> Self {
+        Self(Arc::new(std::sync::RwLock::new(templates)))
+    }
+
+    pub fn replace(&self, templates: TemplateLibrary) {
+        *self
+            .0
+            .write()
+            .unwrap_or_else(std::sync::PoisonError::into_inner) = templates;
+    }
+
+    fn get(&self, device_type: &str) -> Option<TemplateFile> {
+        self.0
+            .read()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .get(device_type)
+            .cloned()
+    }
+}
+
+/// Runs a request that needs no template (the status page's scan); `Err` is the JSON-RPC error
+/// to send back.
 pub async fn execute(ports: &PortDirectory, method: Method) -> Result<Value, RpcError> {
+    execute_with_templates(ports, &DeviceTemplates::default(), method).await
+}
+
+/// Runs a request; `Err` is the JSON-RPC error to send back.
+pub async fn execute_with_templates(
+    ports: &PortDirectory,
+    templates: &DeviceTemplates,
+    method: Method,
+) -> Result<Value, RpcError> {
     match method {
         Method::PortsLoad => Ok(ports_load(ports)),
         Method::PortLoad(load) => port_load(ports, load).await,
@@ -81,7 +118,7 @@ pub async fn execute(ports: &PortDirectory, method: Method) -> Result<Value, Rpc
         Method::DeviceLoad(load) => device_load(ports, load).await,
         Method::DeviceSet(set) => device_set(ports, set).await,
         Method::DeviceSetPoll(set_poll) => device_set_poll(ports, set_poll).await,
-        Method::DeviceLoadConfig(load) => device_load_config(ports, load).await,
+        Method::DeviceLoadConfig(load) => device_load_config(ports, templates, load).await,
     }
 }
 
@@ -615,19 +652,27 @@ async fn device_load(ports: &PortDirectory, load: DeviceLoad) -> Result<Value, R
 /// Tries of a `device/Load` read or a `device/Set` write (wb-mqtt-serial: 1 + 2 retries).
 const DEVICE_TRIES: usize = 3;
 
-async fn read_words(
+/// A read of a configured device's registers: their words (one per bit for coils and discrete
+/// inputs), or the device's refusal.
+enum SpanRead {
+    Words(Vec<u16>),
+    Refused(Answer),
+}
+
+/// Reads `span` of the device at `address` through the bus queue, tried [`DEVICE_TRIES`] times
+/// (a refusal is final); silence or garbage every time is the error.
+async fn read_span(
     bus: &mut QueuedBus,
     line: LineSettings,
     address: u8,
-    target: crate::device::model::RegisterRef,
-) -> Result<Vec<u16>, RpcError> {
-    use crate::protocol::RegisterType;
-    let (start, count) = (target.address, target.count.max(1));
-    let pdu = match target.reg_type {
-        RegisterType::Coil => RequestPdu::ReadCoils { start, count },
-        RegisterType::DiscreteInput => RequestPdu::ReadDiscreteInputs { start, count },
-        RegisterType::Holding => RequestPdu::ReadHoldingRegisters { start, count },
-        RegisterType::Input => RequestPdu::ReadInputRegisters { start, count },
+    span: crate::port::RegisterSpan,
+) -> Result<SpanRead, RpcError> {
+    let count = span.count.max(1);
+    let pdu = crate::port::RegisterSpan { count, ..span }.read_request();
+    let bits = |packed: &[u8]| -> Vec<u16> {
+        (0..usize::from(count))
+            .map(|i| u16::from(packed.get(i / 8).is_some_and(|b| b & (1 << (i % 8)) != 0)))
+            .collect()
     };
     let mut answer = Answer::NoReply;
     for _ in 0..DEVICE_TRIES {
@@ -640,44 +685,79 @@ async fn read_words(
             )
             .await
             .map_err(io_error)?;
-        let bits = |packed: &[u8]| -> Vec<u16> {
-            (0..usize::from(count))
-                .map(|i| u16::from(packed.get(i / 8).is_some_and(|b| b & (1 << (i % 8)) != 0)))
-                .collect()
-        };
         match &answer {
             Answer::Pdu(
                 ResponsePdu::ReadHoldingRegisters { values }
                 | ResponsePdu::ReadInputRegisters { values },
-            ) if values.len() == usize::from(count) => return Ok(values.clone()),
+            ) if values.len() == usize::from(count) => return Ok(SpanRead::Words(values.clone())),
             Answer::Pdu(
                 ResponsePdu::ReadCoils { packed } | ResponsePdu::ReadDiscreteInputs { packed },
-            ) => return Ok(bits(packed)),
-            Answer::Pdu(ResponsePdu::Exception { .. }) => break,
+            ) => return Ok(SpanRead::Words(bits(packed))),
+            Answer::Pdu(ResponsePdu::Exception { .. }) => return Ok(SpanRead::Refused(answer)),
             _ => {}
         }
     }
-    Err(RpcError::server(format!(
-        "Failed to read {count} registers starting from <{:?} {start}> of slave {address} at \
-         {line}: {}",
-        target.reg_type,
-        describe(&answer)
-    )))
+    Err(read_failed(span, address, line, &answer))
+}
+
+fn read_failed(
+    span: crate::port::RegisterSpan,
+    address: u8,
+    line: LineSettings,
+    answer: &Answer,
+) -> RpcError {
+    RpcError::server(format!(
+        "Failed to read {} registers starting from <{:?} {}> of slave {address} at {line}: {}",
+        span.count.max(1),
+        span.register_type,
+        span.start,
+        describe(answer)
+    ))
+}
+
+/// The words of `target`; a refusal is an error too.
+async fn read_words(
+    bus: &mut QueuedBus,
+    line: LineSettings,
+    address: u8,
+    target: crate::device::model::RegisterRef,
+) -> Result<Vec<u16>, RpcError> {
+    let span = target.span();
+    match read_span(bus, line, address, span).await? {
+        SpanRead::Words(words) => Ok(words),
+        SpanRead::Refused(answer) => Err(read_failed(span, address, line, &answer)),
+    }
 }
 
 /// `device/Set`: writes the named channels of a configured device. Each value is checked as
 /// its `/on` payload would be (the device model's write check: control type, limits, register
-/// format, read-only), then written through the bus queue. Result `{}`.
+/// format, read-only), then written through the bus queue. A bit field's register is read
+/// first and given to the model as the daemon's reads give it, so the model keeps the other
+/// bits as it does for `/on`. Result `{}`.
 async fn device_set(ports: &PortDirectory, set: DeviceSet) -> Result<Value, RpcError> {
     refuse_parameters(&set.parameters)?;
     let (access, index) = find_device(ports, &set.port, set.slave_id)?;
     let device = Arc::new(access.resolved.devices[index].clone());
-    let model = crate::gateway::device_model::DeviceModel::new(Arc::clone(&device), index);
+    let mut model = crate::gateway::device_model::DeviceModel::new(Arc::clone(&device), index);
     let template = device
         .device_type
         .as_deref()
         .unwrap_or(&device.id)
         .to_owned();
+    let line = request_line(&access, &super::params::LineOverride::default());
+    let mut bus = QueuedBus::new(&access);
+    let learn = |model: &mut crate::gateway::device_model::DeviceModel,
+                 span: crate::port::RegisterSpan,
+                 values: Vec<u16>| {
+        model.apply(
+            crate::port::PortEvent::Values {
+                device: index,
+                span,
+                values,
+            },
+            &mut Vec::new(),
+        );
+    };
     // Every value is checked before anything is written.
     let mut writes = Vec::new();
     for (name, payload) in &set.channels {
@@ -689,13 +769,30 @@ async fn device_set(ports: &PortDirectory, set: DeviceSet) -> Result<Value, RpcE
                      template"
                 ))
             })?;
+        for register in channel.registers.iter().filter(|r| r.codec.is_partial()) {
+            let Some(target) = register.write.or(register.read) else {
+                continue;
+            };
+            // A register the model would refuse to write is not worth a read.
+            if target.reg_type.is_writable() {
+                let words = read_words(&mut bus, line, device.slave_id, target).await?;
+                learn(&mut model, target.span(), words);
+            }
+        }
         let register_writes = model
             .write(&channel.id, payload)
             .map_err(|why| RpcError::server(format!("Channel \"{name}\": {why}")))?;
+        // A later bit field of the same register in this request keeps these bits.
+        for write in &register_writes {
+            let count = u16::try_from(write.values.len()).unwrap_or(u16::MAX);
+            learn(
+                &mut model,
+                crate::port::RegisterSpan::new(write.register_type, write.address, count),
+                write.values.clone(),
+            );
+        }
         writes.extend(register_writes);
     }
-    let line = request_line(&access, &super::params::LineOverride::default());
-    let mut bus = QueuedBus::new(&access);
     for write in writes {
         let pdu = write_pdu(&write);
         let mut answer = Answer::NoReply;
@@ -757,32 +854,122 @@ fn write_pdu(write: &crate::port::RegisterWrite) -> RequestPdu {
     }
 }
 
-/// `device/LoadConfig`: the parameter values of a configured device as its config sets them
-/// and, for a Wiren Board device, its model and firmware, read now and checked against the
-/// template's `hw` list (as wb-mqtt-serial refuses a device the template does not fit).
+/// `device/LoadConfig`, as wb-mqtt-serial answers it: the template's parameters, those the
+/// config sets as it sets them and the others read from the device now (see
+/// [`super::parameters`]), and for a Wiren Board device its model and firmware, read now and
+/// checked against the template's `hw` list (as wb-mqtt-serial refuses a device the template
+/// does not fit). A template without parameters gives `{}`.
 async fn device_load_config(
     ports: &PortDirectory,
+    templates: &DeviceTemplates,
     load: DeviceLoadConfig,
 ) -> Result<Value, RpcError> {
+    use super::parameters::{
+        group_reads, has_parameters, has_subdevices, parameter_registers, reported, words_of,
+        ReadWords,
+    };
     let (access, index) = find_device(ports, &load.port, load.slave_id)?;
     let device = &access.resolved.devices[index];
-    let mut parameters = Map::new();
+    let Some(device_type) = device.device_type.as_deref() else {
+        return Ok(json!({}));
+    };
+    let template = templates.get(device_type).ok_or_else(|| {
+        RpcError::server(format!(
+            "the template \"{device_type}\" is not loaded (reload the service after adding it)"
+        ))
+    })?;
+    if has_subdevices(&template) {
+        return Err(RpcError::server(format!(
+            "Device \"{device_type}\" is not supported by this RPC"
+        )));
+    }
+    if !has_parameters(&template) {
+        return Ok(json!({}));
+    }
+    let mut known = Map::new();
     for item in &device.setup {
         if let Some(id) = &item.parameter_id {
-            parameters
+            known
                 .entry(id.clone())
                 .or_insert_with(|| value_json(&item.value));
         }
     }
-    let mut result = json!({ "parameters": parameters });
-    if !device.is_wb {
-        return Ok(result);
-    }
     let line = request_line(&access, &super::params::LineOverride::default());
     let mut bus = QueuedBus::new(&access);
+    let identity = if device.is_wb {
+        Some(wb_identity(&mut bus, line, device).await?)
+    } else {
+        None
+    };
+    let firmware = identity.as_ref().map(|(_, fw)| fw.as_str());
+    let registers = parameter_registers(&template, device.slave_id, &known, firmware)
+        .map_err(RpcError::server)?;
+    let spans: Vec<crate::port::RegisterSpan> = registers.iter().filter_map(|r| r.span()).collect();
+    let limits = crate::port::MergeLimits {
+        max_read_registers: device.timing.max_read_registers,
+        max_register_hole: device.timing.max_reg_hole,
+        max_bit_hole: device.timing.max_bit_hole,
+    };
+    let mut words = ReadWords::new();
+    let keep = |words: &mut ReadWords, span: crate::port::RegisterSpan, values: Vec<u16>| {
+        for (offset, value) in (0..span.count).zip(values) {
+            words.insert((span.register_type, span.start.wrapping_add(offset)), value);
+        }
+    };
+    for read in group_reads(&spans, limits) {
+        match read_span(&mut bus, line, device.slave_id, read).await? {
+            SpanRead::Words(values) => keep(&mut words, read, values),
+            SpanRead::Refused(_) => {
+                // A refused parameter is left out, as wb-mqtt-serial leaves it; one the device
+                // does not have must not hide the others read with it.
+                let members: Vec<_> = spans.iter().filter(|s| read.contains(s)).copied().collect();
+                for member in group_reads(&members, crate::port::MergeLimits::default()) {
+                    if member == read {
+                        continue;
+                    }
+                    if let SpanRead::Words(values) =
+                        read_span(&mut bus, line, device.slave_id, member).await?
+                    {
+                        keep(&mut words, member, values);
+                    }
+                }
+            }
+        }
+    }
+    let values: Vec<Option<Value>> = registers
+        .iter()
+        .map(|parameter| {
+            let read = words_of(&words, parameter.span()?)?;
+            match parameter.register.codec.decode(&read) {
+                Ok(crate::device::Reading::Value(text)) => Some(value_json(&text)),
+                _ => None,
+            }
+        })
+        .collect();
+    let mut result = Map::new();
+    result.insert(
+        "parameters".into(),
+        Value::Object(reported(&registers, &values, &known)),
+    );
+    if let Some((model, fw)) = identity {
+        result.insert("model".into(), json!(model));
+        if !fw.is_empty() {
+            result.insert("fw".into(), json!(fw));
+        }
+    }
+    Ok(Value::Object(result))
+}
+
+/// A Wiren Board device's model (holding 200) and firmware version (250), checked against the
+/// template's `hw` list with wb-mqtt-serial's words.
+async fn wb_identity(
+    bus: &mut QueuedBus,
+    line: LineSettings,
+    device: &crate::device::model::ResolvedDevice,
+) -> Result<(String, String), RpcError> {
     let mut reader = Reader::Address(device.slave_id);
     let text = |words: Vec<u16>| standard_text(&words).unwrap_or_default();
-    let model = match read_model(&mut bus, line, &mut reader).await? {
+    let model = match read_model(bus, line, &mut reader).await? {
         Ok(words) => text(words),
         Err(answer) => {
             return Err(RpcError::server(format!(
@@ -793,7 +980,7 @@ async fn device_load_config(
         }
     };
     let fw = match reader
-        .read(&mut bus, line, wb_register::FIRMWARE, 16)
+        .read(bus, line, wb_register::FIRMWARE, 16)
         .await
         .map_err(io_error)?
     {
@@ -825,16 +1012,12 @@ async fn device_load_config(
             }
         }
     }
-    result["model"] = json!(model);
-    if !fw.is_empty() {
-        result["fw"] = json!(fw);
-    }
-    Ok(result)
+    Ok((model, fw))
 }
 
 /// Dotted firmware versions compared number by number (`1.10.0` ≥ `1.9`); a part that is no
 /// number compares as 0.
-fn version_at_least(version: &str, min: &str) -> bool {
+pub(super) fn version_at_least(version: &str, min: &str) -> bool {
     let parts = |v: &str| -> Vec<u64> {
         v.split(['.', '-', '+'])
             .map(|p| p.trim().parse().unwrap_or(0))
