@@ -97,12 +97,38 @@ fn start_with_generic(line: &str, baud: u32, generic: bool) -> Bench {
         json!({"device_type": "rtu2mqtt-relay6", "slave_id": 20, "in0_mode": 3}),
         json!({"device_type": "rtu2mqtt-climate", "slave_id": 21}),
     ];
+    let templates = dir.path().join("templates");
     if generic {
         // Holding 6 = 0b1010_0101: "Holding Bit 3" (6:3:1) is 0, the other bits are mixed.
         sim_devices.push(json!({"name": "generic", "template": "rtu2mqtt-generic",
             "address": 22, "serial": "0xFE000022", "line": line, "fast": false,
             "values": {"holding:6": 0xA5}}));
-        config_devices.push(json!({"device_type": "rtu2mqtt-generic", "slave_id": 22}));
+        // The daemon's template for it: parameters on the simulated registers, one on a
+        // register the device does not have (holding 7), two with conditions.
+        let template = json!({
+            "device_type": "rtu2mqtt-generic-parameters",
+            "device": {
+                "name": "Generic", "id": "generic", "max_read_registers": 10,
+                "parameters": {
+                    "scaled": {"title": "Scaled", "address": 1, "format": "s16", "scale": 0.5},
+                    "high_bits": {"title": "Bits 8-15", "address": "6:8:8"},
+                    "ghost": {"title": "Not on the device", "address": 7},
+                    "if_ghost": {"title": "When ghost is 1", "address": 0,
+                                 "condition": "ghost==1"},
+                    "if_negative": {"title": "When scaled < 0", "address": 2,
+                                    "condition": "scaled<0"}
+                },
+                "channels": [{"name": "Holding Bit 3", "reg_type": "holding",
+                              "address": "6:3:1", "type": "switch"}]
+            }
+        });
+        std::fs::create_dir_all(&templates).unwrap();
+        std::fs::write(
+            templates.join("rtu2mqtt-generic-parameters.json"),
+            template.to_string(),
+        )
+        .unwrap();
+        config_devices.push(json!({"device_type": "rtu2mqtt-generic-parameters", "slave_id": 22}));
     }
     std::fs::write(&bus, json!({ "devices": sim_devices }).to_string()).unwrap();
     let sim = SimProcess::start_with(&bus, &repo("templates"), &[]);
@@ -110,7 +136,13 @@ fn start_with_generic(line: &str, baud: u32, generic: bool) -> Bench {
         "mqtt": {"host": "127.0.0.1", "port": broker.port, "client_id": "rtu2mqtt-rpc-test"},
         "ports": [{"path": sim.pty, "baud_rate": baud, "stop_bits": 2, "devices": config_devices}]
     });
-    let daemon = DaemonProcess::start(&config, &[], Stdio::null(), Stdio::null());
+    let templates = templates.to_str().unwrap();
+    let extra: &[&str] = if generic {
+        &["--templates", templates]
+    } else {
+        &[]
+    };
+    let daemon = DaemonProcess::start(&config, extra, Stdio::null(), Stdio::null());
     Bench {
         line: line.to_owned(),
         broker,
@@ -816,7 +848,14 @@ async fn device_methods(bench: &Bench) {
             "baud_rate": baud / 100, "co2_sensor_enabled": 1, "motion_filter_time_const_s": 15,
             "selfheating_compensation_deg": -1}, "model": "WBMSW4", "fw": "1.0.0"}, "error": null})
     );
-    // A template without parameters: {} as wb-mqtt-serial answers.
+    // A device that is no Wiren Board one: parameters only. The one on a register the device
+    // does not have is left out (its neighbour, read with it at first, is read again alone),
+    // and so is the one whose condition names it; conditions see scaled values.
+    for (address, value) in [(1, 0xFFF6), (2, 7)] {
+        bench.sim.control(
+            json!({"cmd": "set", "device": 22, "type": "holding", "address": address, "value": value}),
+        );
+    }
     let generic = rpc(
         port,
         "device",
@@ -824,7 +863,11 @@ async fn device_methods(bench: &Bench) {
         json!({"device_id": "generic_22"}),
     )
     .await;
-    assert_eq!(generic, json!({"id": 1, "result": {}, "error": null}));
+    assert_eq!(
+        generic,
+        json!({"id": 1, "result": {"parameters": {"high_bits": 0x12, "if_negative": 7,
+               "scaled": -5}}, "error": null})
+    );
 
     // Events still flow after all of it.
     press(1);
