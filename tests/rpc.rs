@@ -673,14 +673,45 @@ async fn device_methods(bench: &Bench) {
         json!({"code": -32000, "message":
             "Channel \"Nope\" is write only or not found in \"rtu2mqtt-climate\" device template"})
     );
+    // Template parameters, read from the device as it holds them (scaled).
+    bench.sim.control(
+        json!({"cmd": "set", "device": 21, "type": "holding", "address": 101, "value": 250}),
+    );
     let parameters = rpc(
         port,
         "device",
         "Load",
-        json!({"device_id": "climate_21", "parameters": ["baud_rate"]}),
+        json!({"device_id": "climate_21", "channels": ["Temperature"],
+               "parameters": ["baud_rate", "selfheating_compensation_deg"]}),
     )
     .await;
-    assert_eq!(parameters["error"]["code"], -32000, "{parameters}");
+    assert_eq!(
+        parameters["result"],
+        json!({"channels": {"Temperature": 21.5},
+               "parameters": {"baud_rate": baud / 100, "selfheating_compensation_deg": 2.5}}),
+        "{parameters}"
+    );
+    let unknown_parameter = rpc(
+        port,
+        "device",
+        "Load",
+        json!({"device_id": "climate_21", "parameters": ["nope"]}),
+    )
+    .await;
+    assert_eq!(
+        unknown_parameter["error"],
+        json!({"code": -32000, "message":
+            "Parameter \"nope\" is write only or not found in \"rtu2mqtt-climate\" device template"})
+    );
+    // Writing parameters on request is not served (the config's values are set-up writes).
+    let set_parameter = rpc(
+        port,
+        "device",
+        "Set",
+        json!({"device_id": "climate_21", "parameters": {"baud_rate": 96}}),
+    )
+    .await;
+    assert_eq!(set_parameter["error"]["code"], -32000, "{set_parameter}");
     let unconfigured = rpc(
         port,
         "device",

@@ -115,7 +115,7 @@ pub async fn execute_with_templates(
         Method::PortScan(scan) => port_scan(ports, scan).await,
         Method::DeviceProbe(probe) => device_probe(ports, probe).await,
         Method::PortSetup(setup) => port_setup(ports, setup).await,
-        Method::DeviceLoad(load) => device_load(ports, load).await,
+        Method::DeviceLoad(load) => device_load(ports, templates, load).await,
         Method::DeviceSet(set) => device_set(ports, set).await,
         Method::DeviceSetPoll(set_poll) => device_set_poll(ports, set_poll).await,
         Method::DeviceLoadConfig(load) => device_load_config(ports, templates, load).await,
@@ -558,14 +558,14 @@ fn find_device(
     Ok((access, index))
 }
 
-/// `parameters` of `device/Load` and `device/Set`: the template parameters are turned into
-/// setup writes when the config is read; they are not kept to be read or written on request.
+/// `parameters` of `device/Set`: template parameters are written as setup items when the
+/// device connects (from the config); writing them on request is not served yet.
 fn refuse_parameters(parameters: &[String]) -> Result<(), RpcError> {
     match parameters.first() {
         None => Ok(()),
         Some(first) => Err(RpcError::server(format!(
-            "Parameter \"{first}\": template parameters are not served by rtu2mqtt's \
-             device/Load and device/Set yet (channels are)"
+            "Parameter \"{first}\": template parameters are not written by rtu2mqtt's \
+             device/Set yet (channels are; device/Load and device/LoadConfig read parameters)"
         ))),
     }
 }
@@ -595,13 +595,23 @@ fn value_json(text: &str) -> Value {
     }
 }
 
-/// `device/Load`: reads the named channels of a configured device, each through the bus queue
-/// (tried three times, as wb-mqtt-serial does), and decodes them as the daemon does. Result
-/// `{"channels": {"name": value}}`.
-async fn device_load(ports: &PortDirectory, load: DeviceLoad) -> Result<Value, RpcError> {
-    refuse_parameters(&load.parameters)?;
+/// `device/Load`: reads the named channels and template parameters of a configured device,
+/// each through the bus queue (tried three times, as wb-mqtt-serial does), and decodes them as
+/// the daemon does. Result `{"channels": {"name": value}, "parameters": {"id": value}}`.
+async fn device_load(
+    ports: &PortDirectory,
+    templates: &DeviceTemplates,
+    load: DeviceLoad,
+) -> Result<Value, RpcError> {
     let (access, index) = find_device(ports, &load.port, load.slave_id)?;
     let device = &access.resolved.devices[index];
+    let parameters = if load.parameters.is_empty() {
+        Vec::new()
+    } else {
+        let template = device_template(templates, device)?;
+        super::parameters::named_parameters(&template, device.slave_id, &load.parameters)
+            .map_err(RpcError::server)?
+    };
     let mut wanted = Vec::new();
     for name in &load.channels {
         match channel_named(device, name) {
@@ -642,11 +652,57 @@ async fn device_load(ports: &PortDirectory, load: DeviceLoad) -> Result<Value, R
         };
         channels.insert(name.clone(), value);
     }
+    let mut values = Map::new();
+    for parameter in &parameters {
+        let Some(target) = parameter.register.read else {
+            continue;
+        };
+        let words = read_words(&mut bus, line, device.slave_id, target).await?;
+        let value = match parameter.register.codec.decode(&words) {
+            Ok(crate::device::Reading::Value(text)) => value_json(&text),
+            Ok(_) => json!("unsupported"),
+            Err(err) => {
+                return Err(RpcError::server(format!(
+                    "Parameter \"{}\": cannot decode: {err}",
+                    parameter.id
+                )))
+            }
+        };
+        values.insert(parameter.id.clone(), value);
+    }
     let mut result = Map::new();
     if !channels.is_empty() {
         result.insert("channels".into(), Value::Object(channels));
     }
+    if !values.is_empty() {
+        result.insert("parameters".into(), Value::Object(values));
+    }
     Ok(Value::Object(result))
+}
+
+/// The template a configured device was resolved with, for its parameters; templates with
+/// subdevices are refused, as wb-mqtt-serial's device methods refuse them.
+fn device_template(
+    templates: &DeviceTemplates,
+    device: &crate::device::model::ResolvedDevice,
+) -> Result<TemplateFile, RpcError> {
+    let device_type = device.device_type.as_deref().ok_or_else(|| {
+        RpcError::server(format!(
+            "device \"{}\" has no template, hence no parameters",
+            device.id
+        ))
+    })?;
+    let template = templates.get(device_type).ok_or_else(|| {
+        RpcError::server(format!(
+            "the template \"{device_type}\" is not loaded (reload the service after adding it)"
+        ))
+    })?;
+    if super::parameters::has_subdevices(&template) {
+        return Err(RpcError::server(format!(
+            "Device \"{device_type}\" is not supported by this RPC"
+        )));
+    }
+    Ok(template)
 }
 
 /// Tries of a `device/Load` read or a `device/Set` write (wb-mqtt-serial: 1 + 2 retries).
@@ -865,24 +921,14 @@ async fn device_load_config(
     load: DeviceLoadConfig,
 ) -> Result<Value, RpcError> {
     use super::parameters::{
-        group_reads, has_parameters, has_subdevices, parameter_registers, reported, words_of,
-        ReadWords,
+        group_reads, has_parameters, parameter_registers, reported, words_of, ReadWords,
     };
     let (access, index) = find_device(ports, &load.port, load.slave_id)?;
     let device = &access.resolved.devices[index];
-    let Some(device_type) = device.device_type.as_deref() else {
+    if device.device_type.is_none() {
         return Ok(json!({}));
-    };
-    let template = templates.get(device_type).ok_or_else(|| {
-        RpcError::server(format!(
-            "the template \"{device_type}\" is not loaded (reload the service after adding it)"
-        ))
-    })?;
-    if has_subdevices(&template) {
-        return Err(RpcError::server(format!(
-            "Device \"{device_type}\" is not supported by this RPC"
-        )));
     }
+    let template = device_template(templates, device)?;
     if !has_parameters(&template) {
         return Ok(json!({}));
     }

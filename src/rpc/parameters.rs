@@ -78,8 +78,7 @@ pub fn has_subdevices(template: &TemplateFile) -> bool {
 
 /// What wb-mqtt-serial reads for `device/LoadConfig`: every declaration with an `address`, not
 /// `readonly`, whose id the config does not set (`known`), and whose `fw` the device's firmware
-/// reaches (when it is known). The registers come from the template resolver: the device's
-/// own keys (shift, protocol) with one channel per declaration.
+/// reaches (when it is known).
 pub fn parameter_registers(
     template: &TemplateFile,
     slave_id: u8,
@@ -102,23 +101,54 @@ pub fn parameter_registers(
                 continue;
             }
         }
-        let condition = match spec.get("condition").and_then(Value::as_str) {
-            Some(text) if !text.trim().is_empty() => {
-                Some(Condition::parse(text).map_err(|err| {
-                    format!("parameter \"{id}\": condition {text:?}: {}", err.message)
-                })?)
-            }
-            _ => None,
-        };
-        wanted.push((id, spec, condition));
+        wanted.push((id, spec));
     }
+    resolve(template, slave_id, wanted)
+}
+
+/// What `device/Load` reads for its `parameters`: the first declaration of each id with an
+/// `address`, as wb-mqtt-serial takes it (conditions do not apply); `Err` names an id the
+/// template has no readable declaration of, in wb-mqtt-serial's words.
+pub fn named_parameters(
+    template: &TemplateFile,
+    slave_id: u8,
+    ids: &[String],
+) -> Result<Vec<ParameterRegister>, String> {
+    let all = declarations(template);
+    let mut wanted = Vec::new();
+    for id in ids {
+        let declaration = all
+            .iter()
+            .find(|(declared, spec)| declared == id && spec.contains_key("address"))
+            .ok_or_else(|| {
+                format!(
+                    "Parameter \"{id}\" is write only or not found in \"{}\" device template",
+                    template.device_type()
+                )
+            })?;
+        wanted.push((declaration.0.clone(), declaration.1));
+    }
+    let mut registers = resolve(template, slave_id, wanted)?;
+    for register in &mut registers {
+        register.condition = None;
+    }
+    Ok(registers)
+}
+
+/// The registers of `wanted` declarations, from the template resolver: the device's own keys
+/// (shift, protocol) with one channel per declaration.
+fn resolve(
+    template: &TemplateFile,
+    slave_id: u8,
+    wanted: Vec<(String, &Map<String, Value>)>,
+) -> Result<Vec<ParameterRegister>, String> {
     if wanted.is_empty() {
         return Ok(Vec::new());
     }
     let channels: Vec<Value> = wanted
         .iter()
         .enumerate()
-        .map(|(index, (_, spec, _))| {
+        .map(|(index, (_, spec))| {
             let mut channel = Map::new();
             channel.insert("name".into(), json!(channel_name(index)));
             for key in REGISTER_KEYS {
@@ -142,7 +172,7 @@ pub fn parameter_registers(
     let resolved = resolve_template_device(&file, &json!({ "slave_id": slave_id }))
         .map_err(|errors| format!("the template's parameters do not resolve: {errors}"))?;
     let mut registers = Vec::new();
-    for (index, (id, _, condition)) in wanted.into_iter().enumerate() {
+    for (index, (id, spec)) in wanted.into_iter().enumerate() {
         let name = channel_name(index);
         let register = resolved
             .channels
@@ -151,6 +181,14 @@ pub fn parameter_registers(
             .and_then(|c| c.registers.first())
             .filter(|r| r.read.is_some())
             .ok_or_else(|| format!("parameter \"{id}\" has no register to read"))?;
+        let condition = match spec.get("condition").and_then(Value::as_str) {
+            Some(text) if !text.trim().is_empty() => {
+                Some(Condition::parse(text).map_err(|err| {
+                    format!("parameter \"{id}\": condition {text:?}: {}", err.message)
+                })?)
+            }
+            _ => None,
+        };
         registers.push(ParameterRegister {
             id,
             register: register.clone(),
@@ -341,6 +379,28 @@ mod tests {
         // A value that could not be read is left out, and so is what depends on it.
         let result = reported(&registers, &[None, Some(json!(40)), None], &Map::new());
         assert_eq!(Value::Object(result), json!({}));
+    }
+
+    #[test]
+    fn parameters_named_by_device_load() {
+        let template = template(json!([
+            {"id": "range", "title": "r", "address": 20, "condition": "kind==1", "readonly": true},
+            {"id": "range", "title": "r", "address": 21, "condition": "kind==2"},
+            {"id": "write_only", "title": "w", "write_address": 22}
+        ]));
+        let ids = ["range".to_owned()];
+        let registers = named_parameters(&template, 1, &ids).unwrap();
+        assert_eq!(registers.len(), 1);
+        assert_eq!(registers[0].span(), Some(holding(20, 1)));
+        assert!(registers[0].condition.is_none());
+        for missing in ["write_only", "nope"] {
+            assert_eq!(
+                named_parameters(&template, 1, &[missing.to_owned()]).unwrap_err(),
+                format!(
+                    "Parameter \"{missing}\" is write only or not found in \"t\" device template"
+                )
+            );
+        }
     }
 
     #[test]
