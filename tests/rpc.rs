@@ -703,15 +703,52 @@ async fn device_methods(bench: &Bench) {
         json!({"code": -32000, "message":
             "Parameter \"nope\" is write only or not found in \"rtu2mqtt-climate\" device template"})
     );
-    // Writing parameters on request is not served (the config's values are set-up writes).
-    let set_parameter = rpc(
+    // device/Set of parameters: encoded with their format and scale, as the device model
+    // encodes a channel; a read-only or unknown one and a bad value are refused, nothing written.
+    let set_parameters = rpc(
         port,
         "device",
         "Set",
-        json!({"device_id": "climate_21", "parameters": {"baud_rate": 96}}),
+        json!({"device_id": "climate_21",
+               "parameters": {"selfheating_compensation_deg": -1.5, "co2_sensor_enabled": 0}}),
     )
     .await;
-    assert_eq!(set_parameter["error"]["code"], -32000, "{set_parameter}");
+    assert_eq!(
+        set_parameters,
+        json!({"id": 1, "result": {}, "error": null})
+    );
+    let climate_register = |kind: &str, address: u16| {
+        bench
+            .sim
+            .control(json!({"cmd": "get", "device": 21, "type": kind, "address": address}))["value"]
+            .clone()
+    };
+    assert_eq!(climate_register("holding", 101), 0x10000 - 150);
+    assert_eq!(climate_register("coil", 3), 0);
+    for (parameters, message) in [
+        (
+            json!({"nope": 1}),
+            "Parameter \"nope\" is read only or not found in \"rtu2mqtt-climate\" device template",
+        ),
+        (
+            json!({"motion_filter_time_const_s": 20, "selfheating_compensation_deg": "warm"}),
+            "Parameter \"selfheating_compensation_deg\": a value takes a number, got `warm`",
+        ),
+    ] {
+        let refused = rpc(
+            port,
+            "device",
+            "Set",
+            json!({"device_id": "climate_21", "parameters": parameters}),
+        )
+        .await;
+        assert_eq!(
+            refused["error"],
+            json!({"code": -32000, "message": message}),
+            "{refused}"
+        );
+    }
+    assert_ne!(climate_register("holding", 282), 20);
     let unconfigured = rpc(
         port,
         "device",
@@ -899,6 +936,16 @@ async fn device_methods(bench: &Bench) {
         json!({"id": 1, "result": {"parameters": {"high_bits": 0x12, "if_negative": 7,
                "scaled": -5}}, "error": null})
     );
+    // A parameter that is a bit field: the other bits as the device holds them.
+    let high_bits = rpc(
+        port,
+        "device",
+        "Set",
+        json!({"device_id": "generic_22", "parameters": {"high_bits": 0x34}}),
+    )
+    .await;
+    assert_eq!(high_bits, json!({"id": 1, "result": {}, "error": null}));
+    assert_eq!(holding_6(), 0x3400);
 
     // Events still flow after all of it.
     press(1);

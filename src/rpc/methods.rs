@@ -116,7 +116,7 @@ pub async fn execute_with_templates(
         Method::DeviceProbe(probe) => device_probe(ports, probe).await,
         Method::PortSetup(setup) => port_setup(ports, setup).await,
         Method::DeviceLoad(load) => device_load(ports, templates, load).await,
-        Method::DeviceSet(set) => device_set(ports, set).await,
+        Method::DeviceSet(set) => device_set(ports, templates, set).await,
         Method::DeviceSetPoll(set_poll) => device_set_poll(ports, set_poll).await,
         Method::DeviceLoadConfig(load) => device_load_config(ports, templates, load).await,
     }
@@ -558,18 +558,6 @@ fn find_device(
     Ok((access, index))
 }
 
-/// `parameters` of `device/Set`: template parameters are written as setup items when the
-/// device connects (from the config); writing them on request is not served yet.
-fn refuse_parameters(parameters: &[String]) -> Result<(), RpcError> {
-    match parameters.first() {
-        None => Ok(()),
-        Some(first) => Err(RpcError::server(format!(
-            "Parameter \"{first}\": template parameters are not written by rtu2mqtt's \
-             device/Set yet (channels are; device/Load and device/LoadConfig read parameters)"
-        ))),
-    }
-}
-
 /// A channel of a device by its template name (as wb-mqtt-serial names it), or by its MQTT
 /// control id.
 fn channel_named<'a>(
@@ -785,35 +773,40 @@ async fn read_words(
     }
 }
 
-/// `device/Set`: writes the named channels of a configured device. Each value is checked as
-/// its `/on` payload would be (the device model's write check: control type, limits, register
-/// format, read-only), then written through the bus queue. A bit field's register is read
-/// first and given to the model as the daemon's reads give it, so the model keeps the other
-/// bits as it does for `/on`. Result `{}`.
-async fn device_set(ports: &PortDirectory, set: DeviceSet) -> Result<Value, RpcError> {
-    refuse_parameters(&set.parameters)?;
+/// `device/Set`: writes the named channels and template parameters of a configured device.
+/// Each value is checked as its `/on` payload would be (the device model's write check: control
+/// type, limits, register format, read-only; see [`checked_writes`]), then written through the
+/// bus queue, channels first. Nothing is written if one value is refused. Result `{}`.
+async fn device_set(
+    ports: &PortDirectory,
+    templates: &DeviceTemplates,
+    set: DeviceSet,
+) -> Result<Value, RpcError> {
+    use crate::gateway::device_model::DeviceModel;
     let (access, index) = find_device(ports, &set.port, set.slave_id)?;
     let device = Arc::new(access.resolved.devices[index].clone());
-    let mut model = crate::gateway::device_model::DeviceModel::new(Arc::clone(&device), index);
     let template = device
         .device_type
         .as_deref()
         .unwrap_or(&device.id)
         .to_owned();
+    // The channels as the device model knows them; the parameters as a device of their own
+    // (one channel per parameter), so the same model checks and encodes them.
+    let mut channels_model = DeviceModel::new(Arc::clone(&device), index);
+    let mut parameters_model = None;
+    if !set.parameters.is_empty() {
+        let file = device_template(templates, &device)?;
+        let ids: Vec<&str> = set.parameters.iter().map(|(id, _)| id.as_str()).collect();
+        let (parameters_device, controls) =
+            super::parameters::writable_parameters(&file, device.slave_id, &ids)
+                .map_err(RpcError::server)?;
+        parameters_model = Some((
+            DeviceModel::new(Arc::new(parameters_device), index),
+            controls,
+        ));
+    }
     let line = request_line(&access, &super::params::LineOverride::default());
     let mut bus = QueuedBus::new(&access);
-    let learn = |model: &mut crate::gateway::device_model::DeviceModel,
-                 span: crate::port::RegisterSpan,
-                 values: Vec<u16>| {
-        model.apply(
-            crate::port::PortEvent::Values {
-                device: index,
-                span,
-                values,
-            },
-            &mut Vec::new(),
-        );
-    };
     // Every value is checked before anything is written.
     let mut writes = Vec::new();
     for (name, payload) in &set.channels {
@@ -825,29 +818,27 @@ async fn device_set(ports: &PortDirectory, set: DeviceSet) -> Result<Value, RpcE
                      template"
                 ))
             })?;
-        for register in channel.registers.iter().filter(|r| r.codec.is_partial()) {
-            let Some(target) = register.write.or(register.read) else {
-                continue;
-            };
-            // A register the model would refuse to write is not worth a read.
-            if target.reg_type.is_writable() {
-                let words = read_words(&mut bus, line, device.slave_id, target).await?;
-                learn(&mut model, target.span(), words);
-            }
-        }
-        let register_writes = model
-            .write(&channel.id, payload)
-            .map_err(|why| RpcError::server(format!("Channel \"{name}\": {why}")))?;
-        // A later bit field of the same register in this request keeps these bits.
-        for write in &register_writes {
-            let count = u16::try_from(write.values.len()).unwrap_or(u16::MAX);
-            learn(
-                &mut model,
-                crate::port::RegisterSpan::new(write.register_type, write.address, count),
-                write.values.clone(),
+        let control = channel.id.clone();
+        writes.extend(
+            checked_writes(
+                &mut bus,
+                line,
+                (&mut channels_model, index),
+                &control,
+                payload,
+            )
+            .await
+            .map_err(|why| RpcError::server(format!("Channel \"{name}\": {why}")))?,
+        );
+    }
+    if let Some((model, controls)) = &mut parameters_model {
+        for ((id, payload), control) in set.parameters.iter().zip(controls.iter()) {
+            writes.extend(
+                checked_writes(&mut bus, line, (model, index), control, payload)
+                    .await
+                    .map_err(|why| RpcError::server(format!("Parameter \"{id}\": {why}")))?,
             );
         }
-        writes.extend(register_writes);
     }
     for write in writes {
         let pdu = write_pdu(&write);
@@ -885,6 +876,60 @@ async fn device_set(ports: &PortDirectory, set: DeviceSet) -> Result<Value, RpcE
         }
     }
     Ok(json!({}))
+}
+
+/// The register writes of one value for control `control` of `model`, checked and encoded by
+/// the device model as an `/on` payload. A bit field's register is read first and handed to
+/// the model as the daemon's reads hand it over, so the model keeps the other bits as the
+/// device holds them now; the writes are handed over too, so a later bit field of the same
+/// register in the same request keeps these bits. `Err` is why (the model's words, or the
+/// read that failed).
+async fn checked_writes(
+    bus: &mut QueuedBus,
+    line: LineSettings,
+    (model, index): (&mut crate::gateway::device_model::DeviceModel, usize),
+    control: &str,
+    payload: &str,
+) -> Result<Vec<crate::port::RegisterWrite>, String> {
+    let device = Arc::clone(&model.device);
+    let learn = |model: &mut crate::gateway::device_model::DeviceModel,
+                 span: crate::port::RegisterSpan,
+                 values: Vec<u16>| {
+        model.apply(
+            crate::port::PortEvent::Values {
+                device: index,
+                span,
+                values,
+            },
+            &mut Vec::new(),
+        );
+    };
+    if let Some(channel) = device.channel(control) {
+        for register in channel.registers.iter().filter(|r| r.codec.is_partial()) {
+            let Some(target) = register.write.or(register.read) else {
+                continue;
+            };
+            // A register the model would refuse to write is not worth a read.
+            if target.reg_type.is_writable() {
+                let words = read_words(bus, line, device.slave_id, target)
+                    .await
+                    .map_err(|err| err.message)?;
+                learn(model, target.span(), words);
+            }
+        }
+    }
+    let writes = model
+        .write(control, payload)
+        .map_err(|why| why.to_string())?;
+    for write in &writes {
+        let count = u16::try_from(write.values.len()).unwrap_or(u16::MAX);
+        learn(
+            model,
+            crate::port::RegisterSpan::new(write.register_type, write.address, count),
+            write.values.clone(),
+        );
+    }
+    Ok(writes)
 }
 
 fn write_pdu(write: &crate::port::RegisterWrite) -> RequestPdu {

@@ -11,7 +11,7 @@ use serde_json::{json, Map, Value};
 use crate::config::condition::Condition;
 use crate::config::parse::SourceText;
 use crate::config::TemplateFile;
-use crate::device::model::ChannelRegister;
+use crate::device::model::{ChannelRegister, ResolvedDevice};
 use crate::device::resolve_template_device;
 use crate::port::{MergeLimits, RegisterSpan};
 use crate::protocol::RegisterType;
@@ -34,9 +34,10 @@ impl ParameterRegister {
 }
 
 /// Keys of a parameter that say where its value is and how it is decoded.
-const REGISTER_KEYS: [&str; 8] = [
+const REGISTER_KEYS: [&str; 9] = [
     "reg_type",
     "address",
+    "write_address",
     "format",
     "word_order",
     "byte_order",
@@ -87,12 +88,7 @@ pub fn parameter_registers(
 ) -> Result<Vec<ParameterRegister>, String> {
     let mut wanted = Vec::new();
     for (id, spec) in declarations(template) {
-        let readonly = match spec.get("readonly") {
-            Some(Value::Bool(readonly)) => *readonly,
-            Some(Value::Number(n)) => n.as_f64().is_some_and(|n| n != 0.0),
-            _ => false,
-        };
-        if !spec.contains_key("address") || readonly || known.contains_key(&id) {
+        if !spec.contains_key("address") || is_readonly(spec) || known.contains_key(&id) {
             continue;
         }
         let needs = spec.get("fw").and_then(Value::as_str).unwrap_or("");
@@ -145,6 +141,16 @@ fn resolve(
     if wanted.is_empty() {
         return Ok(Vec::new());
     }
+    Ok(resolve_as_device(template, slave_id, wanted)?.0)
+}
+
+/// [`resolve`], with the device the declarations resolve to: one channel per declaration,
+/// named [`channel_name`] of its index.
+fn resolve_as_device(
+    template: &TemplateFile,
+    slave_id: u8,
+    wanted: Vec<(String, &Map<String, Value>)>,
+) -> Result<(Vec<ParameterRegister>, ResolvedDevice), String> {
     let channels: Vec<Value> = wanted
         .iter()
         .enumerate()
@@ -179,8 +185,8 @@ fn resolve(
             .iter()
             .find(|c| c.name == name)
             .and_then(|c| c.registers.first())
-            .filter(|r| r.read.is_some())
-            .ok_or_else(|| format!("parameter \"{id}\" has no register to read"))?;
+            .filter(|r| r.read.is_some() || r.write.is_some())
+            .ok_or_else(|| format!("parameter \"{id}\" has no register"))?;
         let condition = match spec.get("condition").and_then(Value::as_str) {
             Some(text) if !text.trim().is_empty() => {
                 Some(Condition::parse(text).map_err(|err| {
@@ -195,7 +201,42 @@ fn resolve(
             condition,
         });
     }
-    Ok(registers)
+    Ok((registers, resolved))
+}
+
+/// What `device/Set` writes for its `parameters`, as wb-mqtt-serial takes them: the first
+/// declaration of each id that is not `readonly`, resolved as a device whose channels are the
+/// parameters (so the device model checks, encodes and merges bit fields as for `/on`). Returns
+/// that device and each id's control id in it; `Err` names an id it cannot write, in
+/// wb-mqtt-serial's words.
+pub fn writable_parameters(
+    template: &TemplateFile,
+    slave_id: u8,
+    ids: &[&str],
+) -> Result<(ResolvedDevice, Vec<String>), String> {
+    let all = declarations(template);
+    let mut wanted = Vec::new();
+    for id in ids {
+        let declaration = all
+            .iter()
+            .find(|(declared, spec)| declared == id && !is_readonly(spec))
+            .filter(|(_, spec)| spec.contains_key("address") || spec.contains_key("write_address"))
+            .ok_or_else(|| {
+                format!(
+                    "Parameter \"{id}\" is read only or not found in \"{}\" device template",
+                    template.device_type()
+                )
+            })?;
+        wanted.push((declaration.0.clone(), declaration.1));
+    }
+    let count = wanted.len();
+    let (_, device) = resolve_as_device(template, slave_id, wanted)?;
+    Ok((device, (0..count).map(channel_name).collect()))
+}
+
+/// `readonly` (UI only: never written, not read by `device/LoadConfig`).
+fn is_readonly(spec: &Map<String, Value>) -> bool {
+    spec.get("readonly").and_then(Value::as_bool) == Some(true)
 }
 
 fn channel_name(index: usize) -> String {
@@ -401,6 +442,28 @@ mod tests {
                 )
             );
         }
+    }
+
+    #[test]
+    fn parameters_written_by_device_set() {
+        let template = template(json!([
+            {"id": "mode", "title": "m", "address": 20, "readonly": true},
+            {"id": "mode", "title": "m", "address": 21, "format": "s16", "scale": 0.1},
+            {"id": "flag", "title": "f", "write_address": "22:4:1"},
+            {"id": "shown", "title": "s", "address": 23, "readonly": true}
+        ]));
+        let (device, controls) = writable_parameters(&template, 1, &["flag", "mode"]).unwrap();
+        let register = |control: &str| device.channel(control).unwrap().registers[0].clone();
+        let flag = register(&controls[0]);
+        assert_eq!(flag.read, None);
+        assert_eq!(flag.write.map(|w| (w.address, w.bit_shift)), Some((22, 4)));
+        let mode = register(&controls[1]);
+        assert_eq!(mode.write.map(|w| w.address), Some(21));
+        assert_eq!(mode.codec.encode("-1.5", None).unwrap(), [0xFFF1]);
+        assert_eq!(
+            writable_parameters(&template, 1, &["shown"]).unwrap_err(),
+            "Parameter \"shown\" is read only or not found in \"t\" device template"
+        );
     }
 
     #[test]
