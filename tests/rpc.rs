@@ -946,6 +946,17 @@ async fn device_methods(bench: &Bench) {
     .await;
     assert_eq!(high_bits, json!({"id": 1, "result": {}, "error": null}));
     assert_eq!(holding_6(), 0x3400);
+    // A channel and a parameter in the same register, in one request: both land.
+    let both = rpc(
+        port,
+        "device",
+        "Set",
+        json!({"device_id": "generic_22", "channels": {"Holding Bit 3": 1},
+               "parameters": {"high_bits": 0x56}}),
+    )
+    .await;
+    assert_eq!(both, json!({"id": 1, "result": {}, "error": null}));
+    assert_eq!(holding_6(), 0x5608);
 
     // Events still flow after all of it.
     press(1);

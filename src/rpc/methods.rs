@@ -819,25 +819,24 @@ async fn device_set(
                 ))
             })?;
         let control = channel.id.clone();
-        writes.extend(
-            checked_writes(
-                &mut bus,
-                line,
-                (&mut channels_model, index),
-                &control,
-                payload,
-            )
-            .await
-            .map_err(|why| RpcError::server(format!("Channel \"{name}\": {why}")))?,
-        );
+        let checked = checked_writes(
+            &mut bus,
+            line,
+            (&mut channels_model, index),
+            (&control, payload),
+            &writes,
+        )
+        .await
+        .map_err(|why| RpcError::server(format!("Channel \"{name}\": {why}")))?;
+        writes.extend(checked);
     }
     if let Some((model, controls)) = &mut parameters_model {
         for ((id, payload), control) in set.parameters.iter().zip(controls.iter()) {
-            writes.extend(
-                checked_writes(&mut bus, line, (model, index), control, payload)
+            let checked =
+                checked_writes(&mut bus, line, (model, index), (control, payload), &writes)
                     .await
-                    .map_err(|why| RpcError::server(format!("Parameter \"{id}\": {why}")))?,
-            );
+                    .map_err(|why| RpcError::server(format!("Parameter \"{id}\": {why}")))?;
+            writes.extend(checked);
         }
     }
     for write in writes {
@@ -880,16 +879,15 @@ async fn device_set(
 
 /// The register writes of one value for control `control` of `model`, checked and encoded by
 /// the device model as an `/on` payload. A bit field's register is read first and handed to
-/// the model as the daemon's reads hand it over, so the model keeps the other bits as the
-/// device holds them now; the writes are handed over too, so a later bit field of the same
-/// register in the same request keeps these bits. `Err` is why (the model's words, or the
-/// read that failed).
+/// the model as the daemon's reads hand it over, then the writes of this request before it
+/// (`pending`, which land first), so the model keeps the other bits as the device will hold
+/// them. `Err` is why (the model's words, or the read that failed).
 async fn checked_writes(
     bus: &mut QueuedBus,
     line: LineSettings,
     (model, index): (&mut crate::gateway::device_model::DeviceModel, usize),
-    control: &str,
-    payload: &str,
+    (control, payload): (&str, &str),
+    pending: &[crate::port::RegisterWrite],
 ) -> Result<Vec<crate::port::RegisterWrite>, String> {
     let device = Arc::clone(&model.device);
     let learn = |model: &mut crate::gateway::device_model::DeviceModel,
@@ -918,10 +916,7 @@ async fn checked_writes(
             }
         }
     }
-    let writes = model
-        .write(control, payload)
-        .map_err(|why| why.to_string())?;
-    for write in &writes {
+    for write in pending {
         let count = u16::try_from(write.values.len()).unwrap_or(u16::MAX);
         learn(
             model,
@@ -929,7 +924,7 @@ async fn checked_writes(
             write.values.clone(),
         );
     }
-    Ok(writes)
+    model.write(control, payload).map_err(|why| why.to_string())
 }
 
 fn write_pdu(write: &crate::port::RegisterWrite) -> RequestPdu {
