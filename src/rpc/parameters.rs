@@ -1,8 +1,9 @@
-//! `device/LoadConfig`'s template parameters, as wb-mqtt-serial reads them from a device: which
-//! ones (an `address`, not `readonly`, not set by the config, within the device's firmware),
-//! their registers and formats (resolved by the template resolver itself, each parameter as a
-//! channel), how they are grouped into reads, and which values are reported (each parameter's
-//! `condition` on the values known so far). Pure: the reads are `methods.rs`'s.
+//! Template parameters in the device methods, as wb-mqtt-serial takes them: which declarations
+//! `device/LoadConfig` reads (an `address`, not `readonly`, not set by the config, within the
+//! device's firmware), `device/Load` reads and `device/Set` writes; their registers and formats
+//! (resolved by the template resolver itself, each parameter as a channel of a device of their
+//! own); how reads are grouped; which values `device/LoadConfig` reports (each declaration's
+//! `condition` on the values known so far). Pure: the bus work is `methods.rs`'s.
 
 use std::collections::{BTreeMap, HashMap};
 
@@ -16,8 +17,8 @@ use crate::device::resolve_template_device;
 use crate::port::{MergeLimits, RegisterSpan};
 use crate::protocol::RegisterType;
 
-/// One declaration of a template parameter to read (a template may declare an id several
-/// times, with other registers under other conditions).
+/// One declaration of a template parameter (a template may declare an id several times, with
+/// other registers under other conditions).
 #[derive(Debug, Clone)]
 pub struct ParameterRegister {
     pub id: String,
@@ -33,7 +34,7 @@ impl ParameterRegister {
     }
 }
 
-/// Keys of a parameter that say where its value is and how it is decoded.
+/// Keys of a parameter that say where its value is and how it is encoded.
 const REGISTER_KEYS: [&str; 9] = [
     "reg_type",
     "address",
