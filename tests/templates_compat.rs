@@ -42,7 +42,7 @@ fn all_fixtures_load_and_resolve() {
         );
         count += 1;
     }
-    assert_eq!(count, 4);
+    assert_eq!(count, 5);
 }
 
 /// Asserts a channel's first register: table, address, format and event mode.
@@ -403,4 +403,114 @@ fn untitled_groups_and_condition_only_parameter() {
         json!({"slave_id": 1, "mode": 0, "curve": 5}),
     );
     assert_eq!(setup(&d), vec![(21, vec![0])]);
+}
+
+fn setup_writes(d: &ResolvedDevice) -> Vec<(u16, Vec<u16>)> {
+    d.setup
+        .iter()
+        .map(|s| (s.register.address, s.words.clone()))
+        .collect()
+}
+
+/// WB-LED declares `in1_sp` once per dimmer mode, each with its own `enum` and an exclusive
+/// condition: a value is checked against the declaration in effect, and when none is in effect
+/// (here the input is a latching switch) nothing is written and nothing is checked, as in
+/// wb-mqtt-serial, whose validator only knows the declarations whose condition holds.
+#[test]
+fn parameter_declared_once_per_mode() {
+    let d = device(
+        "config-test-wb-dimmer.json",
+        json!({"slave_id": 1, "dimmer_mode": 256, "in1_sp": 4102}),
+    );
+    assert_eq!(
+        setup_writes(&d),
+        vec![(1000, vec![4102]), (4000, vec![256])]
+    );
+    let d = device(
+        "config-test-wb-dimmer.json",
+        json!({"slave_id": 1, "dimmer_mode": 0, "in1_sp": 4097}),
+    );
+    assert_eq!(setup_writes(&d), vec![(1000, vec![4097]), (4000, vec![0])]);
+    // The value of another mode is refused for this mode …
+    let err = resolve_template_device(
+        &template("config-test-wb-dimmer.json"),
+        &json!({"slave_id": 1, "dimmer_mode": 0, "in1_sp": 4102}),
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(err.contains("`in1_sp` cannot be 4102"), "{err}");
+    // … and not checked (nor written) while no declaration is in effect.
+    let d = device(
+        "config-test-wb-dimmer.json",
+        json!({"slave_id": 1, "dimmer_mode": 256, "input_1_mode": 1, "in1_sp": 4102}),
+    );
+    assert_eq!(setup_writes(&d), vec![(1020, vec![1]), (4000, vec![256])]);
+}
+
+/// MDM3: two parameters on one address; the condition on a third parameter picks which one is
+/// written.
+#[test]
+fn parameters_sharing_an_address() {
+    let d = device(
+        "config-test-wb-dimmer.json",
+        json!({"slave_id": 1, "dimmer_mode": 256, "out_number": 100, "action_single": 2, "action_all": 3}),
+    );
+    assert_eq!(
+        setup_writes(&d),
+        vec![(768, vec![100]), (832, vec![3]), (4000, vec![256])]
+    );
+    let d = device(
+        "config-test-wb-dimmer.json",
+        json!({"slave_id": 1, "dimmer_mode": 256, "out_number": 1, "action_single": 2, "action_all": 3}),
+    );
+    assert_eq!(
+        setup_writes(&d),
+        vec![(768, vec![1]), (832, vec![2]), (4000, vec![256])]
+    );
+}
+
+/// MR6C/MCM8: the same channel name twice, sporadic or polled by the input mode (a parameter
+/// default counts as defined); RGB of three registers; `error_value` as a hex string; one
+/// address read as s32 or s16 by condition.
+#[test]
+fn channels_chosen_by_condition_rgb_and_hex_error_value() {
+    let d = device(
+        "config-test-wb-dimmer.json",
+        json!({"slave_id": 1, "dimmer_mode": 256}),
+    );
+    assert_channel(&d, "Input 1", DiscreteInput, 0, U8, Sporadic);
+    assert_eq!(d.channels.iter().filter(|c| c.id == "Input 1").count(), 1);
+    let rgb = d.channel("RGB Palette").unwrap();
+    assert_eq!(
+        (rgb.control_type.as_str(), rgb.registers.len(), rgb.events),
+        ("rgb", 3, Sporadic)
+    );
+    assert_eq!(
+        rgb.decode(&[&[255], &[128], &[0]]).unwrap(),
+        Reading::Value("255;128;0".into())
+    );
+    assert_eq!(
+        rgb.encode("1;2;3", &[None, None, None]).unwrap(),
+        vec![vec![1], vec![2], vec![3]]
+    );
+    let hue = d.channel("RGB Strip Hue").unwrap();
+    assert_eq!(hue.decode(&[&[0xFFFF]]).unwrap(), Reading::DeviceError);
+    assert_eq!(hue.decode(&[&[180]]).unwrap(), Reading::Value("180".into()));
+    assert_channel(&d, "Encoder revolutions", Holding, 368, S16, Polled);
+    assert!(d.channel("Encoder position").is_none());
+    assert!(d.channel("Channel 1 Brightness").is_none());
+    let overcurrent = d.channel("Overcurrent").unwrap();
+    assert_eq!(overcurrent.control_type, "switch");
+    assert_eq!(
+        overcurrent.decode(&[&[1]]).unwrap(),
+        Reading::Value("1".into())
+    );
+
+    let d = device(
+        "config-test-wb-dimmer.json",
+        json!({"slave_id": 1, "dimmer_mode": 0, "input_1_mode": 3}),
+    );
+    assert_channel(&d, "Input 1", DiscreteInput, 0, U8, Polled);
+    assert_channel(&d, "Encoder position", Holding, 368, S32, Polled);
+    assert!(d.channel("RGB Palette").is_none());
 }

@@ -400,6 +400,10 @@ impl Level<'_> {
             };
             let origin = format!("c:{}", self.value_path.key(&id));
             match self.values.get(&id) {
+                // Not written while its condition is false; wb-mqtt-serial's validator does not
+                // know such a declaration either (WB-LED declares one id per dimmer mode, each
+                // with its own `enum`).
+                Some(_) if !condition_true(spec, &conditions) => {}
                 Some(value) => {
                     if let Some(allowed) = allowed_values(spec) {
                         if !allowed.is_empty() && !allowed.contains(value) {
