@@ -173,7 +173,8 @@ fn key_typos_suggest_the_closest_keys() {
 
 #[test]
 fn syntax_errors_have_line_and_column() {
-    let (ok, text) = check_config("{\n  \"ports\": [\n    {\"path\": \"/dev/x\",}\n  ]\n}");
+    let (ok, text) =
+        check_config("{\n  \"ports\": [\n    {\"path\": \"/dev/x\" \"baud_rate\": 1}\n  ]\n}");
     assert!(!ok);
     assert!(text.contains("config.json:3:23: not valid JSON"), "{text}");
 }

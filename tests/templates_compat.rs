@@ -42,7 +42,7 @@ fn all_fixtures_load_and_resolve() {
         );
         count += 1;
     }
-    assert_eq!(count, 5);
+    assert_eq!(count, 6);
 }
 
 /// Asserts a channel's first register: table, address, format and event mode.
@@ -513,4 +513,18 @@ fn channels_chosen_by_condition_rgb_and_hex_error_value() {
     assert_channel(&d, "Input 1", DiscreteInput, 0, U8, Polled);
     assert_channel(&d, "Encoder position", Holding, 368, S32, Polled);
     assert!(d.channel("RGB Palette").is_none());
+}
+
+/// A released WB-MWAC-v2 template had trailing commas; jsoncpp (wb-mqtt-serial's reader) accepts
+/// them, so a controller with that package installed has such a file in its template directory.
+#[test]
+fn trailing_commas_are_accepted() {
+    let d = device(
+        "config-test-trailing-commas.json",
+        json!({"slave_id": 4, "timer_min": 30}),
+    );
+    assert_channel(&d, "Leak", DiscreteInput, 0, U8, Polled);
+    let text = d.channel("Text, with commas,").unwrap();
+    assert_eq!(text.enum_titles.len(), 2);
+    assert_eq!(setup_writes(&d), vec![(975, vec![30])]);
 }
