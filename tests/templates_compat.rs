@@ -42,7 +42,7 @@ fn all_fixtures_load_and_resolve() {
         );
         count += 1;
     }
-    assert_eq!(count, 6);
+    assert_eq!(count, 7);
 }
 
 /// Asserts a channel's first register: table, address, format and event mode.
@@ -527,4 +527,29 @@ fn trailing_commas_are_accepted() {
     let text = d.channel("Text, with commas,").unwrap();
     assert_eq!(text.enum_titles.len(), 2);
     assert_eq!(setup_writes(&d), vec![(975, vec![30])]);
+}
+
+/// 1-Wire sensor ids are u64 parameters (WB-M1W2 v.3): a value above 2^53 is written exactly,
+/// from a parameter and from a config `setup` item alike.
+#[test]
+fn u64_parameter_is_written_exactly() {
+    let d = device(
+        "config-test-w1-ids.json",
+        json!({"slave_id": 1, "bus1_sens1_id": 0x2900_0000_0000_0029_u64, "filter_deg": 0.5,
+               "setup": [{"title": "id", "address": 5700, "format": "u64", "value": u64::MAX}]}),
+    );
+    assert_eq!(
+        setup_writes(&d),
+        vec![
+            (99, vec![8]),
+            (5632, vec![0x2900, 0, 0, 0x0029]),
+            (5700, vec![0xFFFF, 0xFFFF, 0xFFFF, 0xFFFF]),
+        ]
+    );
+    let temperature = d.channel("External Sensor 1").unwrap();
+    assert_eq!(temperature.name, "Input 1 Temperature");
+    assert_eq!(
+        temperature.decode(&[&[0x0191]]).unwrap(),
+        Reading::Value("25.05".into())
+    );
 }
