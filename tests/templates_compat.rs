@@ -530,7 +530,8 @@ fn trailing_commas_are_accepted() {
 }
 
 /// 1-Wire sensor ids are u64 parameters (WB-M1W2 v.3): a value above 2^53 is written exactly,
-/// from a parameter and from a config `setup` item alike.
+/// from a parameter and from a config `setup` item alike. WB-MS v.2: a scaled s16 parameter with
+/// a negative value, and a coil parameter.
 #[test]
 fn u64_parameter_is_written_exactly() {
     let d = device(
@@ -545,6 +546,19 @@ fn u64_parameter_is_written_exactly() {
             (5632, vec![0x2900, 0, 0, 0x0029]),
             (5700, vec![0xFFFF, 0xFFFF, 0xFFFF, 0xFFFF]),
         ]
+    );
+    let d2 = device(
+        "config-test-w1-ids.json",
+        json!({"slave_id": 1, "bus1_sens1_temp_offset_deg": -0.5, "heater_enabled": 1}),
+    );
+    let writes: Vec<(RegisterType, u16, Vec<u16>)> = d2
+        .setup
+        .iter()
+        .map(|s| (s.register.reg_type, s.register.address, s.words.clone()))
+        .collect();
+    assert_eq!(
+        writes,
+        vec![(Coil, 2, vec![1]), (Holding, 1616, vec![0xFFF8])]
     );
     let temperature = d.channel("External Sensor 1").unwrap();
     assert_eq!(temperature.name, "Input 1 Temperature");
