@@ -42,7 +42,7 @@ fn all_fixtures_load_and_resolve() {
         );
         count += 1;
     }
-    assert_eq!(count, 7);
+    assert_eq!(count, 8);
 }
 
 /// Asserts a channel's first register: table, address, format and event mode.
@@ -566,4 +566,27 @@ fn u64_parameter_is_written_exactly() {
         temperature.decode(&[&[0x0191]]).unwrap(),
         Reading::Value("25.05".into())
     );
+}
+
+/// Values as the meters of wb-mqtt-serial's library publish them: little-endian word order,
+/// scale then `round_to`, hex `error_value` compared on the raw register value.
+#[test]
+fn meter_values_scale_round_and_error_values() {
+    let d = device("config-test-energy-meter.json", json!({"slave_id": 1}));
+    let value = |id: &str, words: &[u16]| d.channel(id).unwrap().decode(&[words]).unwrap();
+    let text = |s: &str| Reading::Value(s.into());
+    assert_eq!(value("Power", &[0x1234, 0x0001]), text("7020"));
+    assert_eq!(value("Energy", &[12345, 0]), text("1.2345"));
+    assert_eq!(
+        value("AP energy", &[0xCD15, 0x075B, 0, 0]),
+        text("1234.56789")
+    );
+    assert_eq!(value("Ipeak", &[0xFC18, 0xFFFF]), text("-16"));
+    assert_eq!(value("P Current", &[0x7FFF, 0xFFFF]), Reading::DeviceError);
+    assert_eq!(value("P Current", &[0x00BC, 0x614E]), text("12.35"));
+    assert_eq!(value("Temp 1", &[0xFFFF]), Reading::DeviceError);
+    assert_eq!(value("Temp 1", &[0xFFF0]), text("-1"));
+    assert_eq!(value("Temp 1", &[0x0190]), text("25"));
+    assert_channel(&d, "Period", Holding, 0x8007, U8, Polled);
+    assert_eq!(value("Period", &[0x1234]), text("52"));
 }
