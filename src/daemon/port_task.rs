@@ -49,6 +49,10 @@ pub struct PortTask {
     identity: IdentityState,
     /// The status page's counters of this port; none while the status server is off.
     status: Option<Arc<PortStatus>>,
+    /// Kept between transactions (emptied after each), so that a read of many values
+    /// allocates no lists: its events, then the updates made of them.
+    port_events: Vec<PortEvent>,
+    update_buffer: Vec<DeviceUpdate>,
 }
 
 /// Who each device is (model, serial number, firmware), read when it comes online or restarts,
@@ -102,6 +106,8 @@ impl PortTask {
             queue: None,
             identity: IdentityState::default(),
             status: None,
+            port_events: Vec::new(),
+            update_buffer: Vec::new(),
         }
     }
 
@@ -326,8 +332,8 @@ impl PortTask {
             let reopen_at = Instant::now() + delay;
             loop {
                 self.beat();
-                let events = self.scheduler.port_unavailable(self.now(), closed_since);
-                self.dispatch(events).await;
+                let mut events = self.scheduler.port_unavailable(self.now(), closed_since);
+                self.dispatch(&mut events).await;
                 self.refuse_queued("it failed and is being reopened");
                 let wake = reopen_at.min(Instant::now() + FIRST_REOPEN_DELAY);
                 tokio::select! {
@@ -403,8 +409,11 @@ impl PortTask {
                         Err(err) => (Outcome::NoReply, ReplyTiming::default(), Some(err)),
                     };
                     let recorded = self.status.as_ref().map(|_| outcome.clone());
-                    let events = self.scheduler.complete_timed(self.now(), outcome, timing);
-                    self.dispatch(events).await;
+                    let mut events = std::mem::take(&mut self.port_events);
+                    self.scheduler
+                        .complete_into(self.now(), outcome, timing, &mut events);
+                    self.dispatch(&mut events).await;
+                    self.port_events = events;
                     if let Some(outcome) = recorded {
                         self.record_transaction(started, &transaction, &outcome);
                     }
@@ -606,13 +615,14 @@ impl PortTask {
         self.send(updates).await;
     }
 
-    async fn dispatch(&mut self, events: Vec<PortEvent>) {
+    /// Turns `events` (emptied) into device updates and sends them.
+    async fn dispatch(&mut self, events: &mut Vec<PortEvent>) {
         if let Some(vitals) = &self.vitals {
             if self.online.len() != self.models.len() {
                 self.online = vec![false; self.models.len()];
             }
             let mut changed = false;
-            for event in &events {
+            for event in events.iter() {
                 if let PortEvent::Online { device } | PortEvent::Offline { device } = event {
                     if let Some(slot) = self.online.get_mut(*device) {
                         *slot = matches!(event, PortEvent::Online { .. });
@@ -624,26 +634,32 @@ impl PortTask {
                 vitals.set_devices_online(self.online.iter().filter(|o| **o).count());
             }
         }
-        for event in &events {
+        for event in events.iter() {
             if let PortEvent::Online { device } | PortEvent::Rebooted { device } = event {
                 self.ask_identity(*device);
             }
         }
-        let mut updates = Vec::new();
-        apply_port_events(&mut self.models, events, &mut updates);
-        self.send(updates).await;
+        let mut updates = std::mem::take(&mut self.update_buffer);
+        apply_port_events(&mut self.models, events.drain(..), &mut updates);
+        self.send_all(&mut updates).await;
+        self.update_buffer = updates;
     }
 
-    async fn send(&self, updates: Vec<DeviceUpdate>) {
+    async fn send(&self, mut updates: Vec<DeviceUpdate>) {
+        self.send_all(&mut updates).await;
+    }
+
+    /// Sends `updates`, emptying it.
+    async fn send_all(&self, updates: &mut Vec<DeviceUpdate>) {
         if let Some(status) = &self.status {
             let now = self.now();
             status.record(|stats| {
-                for update in &updates {
+                for update in updates.iter() {
                     stats.observe_update(update, now);
                 }
             });
         }
-        for update in updates {
+        for update in updates.drain(..) {
             // The MQTT side drains this queue into its latest-value-per-topic state at once, so
             // waiting here only happens if that task itself is stuck.
             if self.updates.send(update).await.is_err() {

@@ -450,7 +450,7 @@ impl DeviceModel {
 /// devices in the scheduler's order.
 pub fn apply_port_events(
     models: &mut [DeviceModel],
-    events: Vec<PortEvent>,
+    events: impl IntoIterator<Item = PortEvent>,
     out: &mut Vec<DeviceUpdate>,
 ) {
     for event in events {

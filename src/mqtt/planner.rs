@@ -4,7 +4,7 @@
 //! broker. Values, their changes and the error flags are the device model's
 //! (`gateway::device_model`); this side only maps them to topics.
 
-use std::collections::{BTreeMap, HashMap};
+use std::collections::HashMap;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -92,7 +92,9 @@ struct PublishedDevice {
 #[derive(Debug)]
 pub struct PublicationPlanner {
     settings: PlannerSettings,
-    devices: BTreeMap<String, PublishedDevice>,
+    /// By id. Hashed: every value looks its device up. Everything published for all devices
+    /// goes in the order of their ids ([`Self::by_id`]).
+    devices: HashMap<String, PublishedDevice>,
     /// `/on` topic → (device id, control id), for writable controls.
     on_topics: HashMap<String, (String, String)>,
 }
@@ -101,7 +103,7 @@ impl PublicationPlanner {
     pub fn new(settings: PlannerSettings) -> Self {
         Self {
             settings,
-            devices: BTreeMap::new(),
+            devices: HashMap::new(),
             on_topics: HashMap::new(),
         }
     }
@@ -413,7 +415,8 @@ impl PublicationPlanner {
     /// Everything to (re)do after connecting: subscriptions, then every retained topic with
     /// its current payload (a restarted broker may have lost them all).
     pub fn snapshot(&mut self) -> Vec<MqttAction> {
-        let ids: Vec<String> = self.devices.keys().cloned().collect();
+        let mut ids: Vec<String> = self.devices.keys().cloned().collect();
+        ids.sort_unstable();
         let mut out = Vec::new();
         for id in ids {
             if let Some(mut state) = self.devices.remove(&id) {
@@ -426,8 +429,8 @@ impl PublicationPlanner {
 
     /// Every discovery config again (Home Assistant announced itself `online`).
     pub fn discovery_snapshot(&self) -> Vec<MqttAction> {
-        self.devices
-            .values()
+        self.by_id()
+            .into_iter()
             .flat_map(|s| self.discovery_configs(&s.device, &s.identity))
             .map(MqttAction::Publish)
             .collect()
@@ -437,10 +440,17 @@ impl PublicationPlanner {
     /// `clear_discovery_on_exit`).
     pub fn clear_all(&self) -> Vec<MqttAction> {
         let with_discovery = self.settings.clear_discovery_on_exit;
-        self.devices
-            .values()
+        self.by_id()
+            .into_iter()
             .flat_map(|s| self.removal(s, with_discovery))
             .collect()
+    }
+
+    /// The devices in the order of their ids.
+    fn by_id(&self) -> Vec<&PublishedDevice> {
+        let mut devices: Vec<(&String, &PublishedDevice)> = self.devices.iter().collect();
+        devices.sort_unstable_by_key(|&(id, _)| id);
+        devices.into_iter().map(|(_, device)| device).collect()
     }
 
     /// The ids of the devices served.
@@ -457,7 +467,7 @@ impl PublicationPlanner {
 }
 
 fn lookup<'a>(
-    devices: &'a mut BTreeMap<String, PublishedDevice>,
+    devices: &'a mut HashMap<String, PublishedDevice>,
     device_id: &str,
     control_id: &str,
 ) -> Option<(&'a ResolvedChannel, &'a mut PublishedControl)> {

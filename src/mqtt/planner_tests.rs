@@ -454,3 +454,66 @@ fn identity_updates_discovery_device_block() {
     );
     assert!(planner.handle(update, Instant::now()).is_empty());
 }
+
+/// Whatever the order devices were announced in, what is published for all of them (after a
+/// reconnect, for Home Assistant, on a clean exit) goes in the order of their ids.
+#[test]
+fn everything_published_for_all_devices_goes_in_the_order_of_their_ids() {
+    let mut planner = PublicationPlanner::new(settings(true));
+    let now = Instant::now();
+    let slaves = [7, 3, 12, 1, 9];
+    for slave in slaves {
+        planner.handle(
+            DeviceUpdate::Added(template_device("rtu2mqtt-relay6", slave)),
+            now,
+        );
+    }
+    let mut ids: Vec<String> = slaves
+        .iter()
+        .map(|&slave| template_device("rtu2mqtt-relay6", slave).id.clone())
+        .collect();
+    ids.sort();
+    // The device a topic belongs to, in the order topics are published.
+    let order = |actions: &[MqttAction]| {
+        let mut seen: Vec<String> = Vec::new();
+        for (topic, _, _) in publications(actions) {
+            // `/devices/<id>/…`, or Home Assistant's `…/rtu2mqtt_<id>/…`.
+            let Some(id) = ids.iter().find(|id| {
+                topic.contains(&format!("/{id}/")) || topic.contains(&format!("_{id}/"))
+            }) else {
+                continue;
+            };
+            if seen.last() != Some(id) {
+                seen.push(id.clone());
+            }
+        }
+        seen
+    };
+    assert_eq!(order(&planner.snapshot()), ids);
+    assert_eq!(order(&planner.discovery_snapshot()), ids);
+    assert_eq!(order(&planner.clear_all()), ids);
+    assert_eq!(planner.device_ids().into_iter().collect::<Vec<_>>(), ids);
+}
+
+/// Values go to their control however the device's channels are ordered, and an unknown
+/// control or device changes nothing.
+#[test]
+fn values_find_their_control_and_unknown_ones_are_ignored() {
+    let mut planner = PublicationPlanner::new(settings(false));
+    let now = Instant::now();
+    let relay = template_device("rtu2mqtt-relay6", 1);
+    let id = relay.id.clone();
+    planner.handle(DeviceUpdate::Added(relay.clone()), now);
+    for channel in relay.channels.iter().rev() {
+        let actions = planner.handle(value(&id, &channel.id, "1"), now);
+        assert_eq!(
+            publications(&actions)
+                .into_iter()
+                .map(|(topic, payload, _)| (topic, payload))
+                .collect::<Vec<_>>(),
+            [(format!("/devices/{id}/controls/{}", channel.id), "1".into())]
+        );
+    }
+    assert!(planner.handle(value(&id, "nonesuch", "1"), now).is_empty());
+    assert!(planner.handle(value("nonesuch", "K1", "1"), now).is_empty());
+}

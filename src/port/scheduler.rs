@@ -423,6 +423,20 @@ impl PortScheduler {
         timing: ReplyTiming,
     ) -> Vec<PortEvent> {
         let mut out = Vec::new();
+        self.complete_into(now, outcome, timing, &mut out);
+        out
+    }
+
+    /// [`complete_timed`](Self::complete_timed) adding its events to `out`: a driver that
+    /// keeps one buffer allocates nothing for them per transaction (a merged read of 60
+    /// registers reports 60 values).
+    pub fn complete_into(
+        &mut self,
+        now: Duration,
+        outcome: Outcome,
+        timing: ReplyTiming,
+        out: &mut Vec<PortEvent>,
+    ) {
         let device = match &self.in_flight {
             Some(InFlight::Setup { device, .. })
             | Some(InFlight::EnableEvents { device, .. })
@@ -458,22 +472,22 @@ impl PortScheduler {
             None => warn!("a transaction outcome arrived with nothing in flight"),
             Some(InFlight::PollEvents { started }) => {
                 self.last_event_poll = (now, now.saturating_sub(started));
-                self.complete_event_poll(now, started, outcome, &mut out)
+                self.complete_event_poll(now, started, outcome, out)
             }
             Some(InFlight::Setup { device, index }) => {
-                self.complete_setup(now, device, index, outcome, &mut out)
+                self.complete_setup(now, device, index, outcome, out)
             }
             Some(InFlight::EnableEvents {
                 device,
                 ranges,
                 members,
-            }) => self.complete_enable_events(now, device, &ranges, &members, outcome, &mut out),
+            }) => self.complete_enable_events(now, device, &ranges, &members, outcome, out),
             Some(InFlight::Read {
                 device,
                 span,
                 members,
-            }) => self.complete_read(now, device, span, &members, outcome, &mut out),
-            Some(InFlight::Write { write }) => self.complete_write(now, write, outcome, &mut out),
+            }) => self.complete_read(now, device, span, &members, outcome, out),
+            Some(InFlight::Write { write }) => self.complete_write(now, write, outcome, out),
         }
         if let (Some(window), Some(state)) = (
             skipped_late_window,
@@ -502,7 +516,6 @@ impl PortScheduler {
         if let Some(device) = device {
             self.index.mark_stale(device);
         }
-        out
     }
 
     fn learn_response_time(
