@@ -184,14 +184,30 @@ impl Run {
 
     /// As [`Run::start`], the daemon reaching the bus through `link`.
     fn start_on(devices: u8, baud: u32, link: Link) -> Self {
-        Self::start_with(devices, baud, link, false)
+        Self::start_with(devices, baud, link, false, false)
     }
 
     /// As [`Run::start_on`]; with `tls`, the daemon reaches the broker over TLS with a client
-    /// certificate (the harness's subscriber keeps a plain listener of the same broker).
-    fn start_with(devices: u8, baud: u32, link: Link, tls: bool) -> Self {
+    /// certificate (the harness's subscriber keeps a plain listener of the same broker). With
+    /// `word_events`, the Fast Modbus device at address 3 sends the words of its wide event
+    /// values by separate events (2-byte payloads), as the independent bus emulator of issue 15
+    /// did, where the others send each value whole at its first register.
+    fn start_with(devices: u8, baud: u32, link: Link, tls: bool, word_events: bool) -> Self {
         let layout = BenchLayout::fault_bus(devices, baud);
-        let (name, template, entries) = layout.fault_bus_files();
+        let (name, template, mut entries) = layout.fault_bus_files();
+        if word_events {
+            let blocks: Vec<Value> = FAULT_BUS_WIDE
+                .iter()
+                .filter(|wide| wide.sporadic)
+                .map(|wide| {
+                    json!({"type": "input", "address": wide.address, "count": wide.words,
+                           "events": true, "writable": false})
+                })
+                .collect();
+            for entry in entries.iter_mut().filter(|e| e["address"] == 3) {
+                entry["registers"] = json!(blocks);
+            }
+        }
         let mut bus = layout.bus();
         bus["devices"] = json!(entries);
         let mut options =
@@ -578,14 +594,15 @@ impl Run {
     }
 }
 
-/// Scenario 1: noise on a bus of fast and classic devices whose values change all the time.
+/// Scenario 1: noise on a bus of fast and classic devices whose values change all the time;
+/// device 3 reports its wide values a word at a time (issue 15's independent emulator did).
 fn noise_scenario(devices: u8, baud: u32) {
     let fault_time = if long_variant() {
         Duration::from_secs(300)
     } else {
         Duration::from_secs(25)
     };
-    let mut run = Run::start(devices, baud);
+    let mut run = Run::start_with(devices, baud, Link::Pty, false, true);
     let since = monotonic_ns();
     let stats_before = run.harness.bus_stats().expect("stats");
     let requests_before = stats_before["requests"].as_u64().unwrap_or(0);
@@ -1216,7 +1233,7 @@ fn modbus_tcp_gateway_dropping_the_connection_is_reconnected() {
 #[test]
 fn tls_broker_killed_and_restarted_under_noise_gets_everything_back() {
     let rounds = if long_variant() { 10 } else { 2 };
-    let mut run = Run::start_with(4, 115_200, Link::Pty, true);
+    let mut run = Run::start_with(4, 115_200, Link::Pty, true, false);
     let since = monotonic_ns();
     run.faults_on_all(&noise());
     let mut restores = Vec::new();
