@@ -515,8 +515,8 @@ fn channels_chosen_by_condition_rgb_and_hex_error_value() {
     assert!(d.channel("RGB Palette").is_none());
 }
 
-/// A released WB-MWAC-v2 template had trailing commas; jsoncpp (wb-mqtt-serial's reader) accepts
-/// them, so a controller with that package installed has such a file in its template directory.
+/// An older WB-MWAC-v2 template had trailing commas; jsoncpp (wb-mqtt-serial's reader) accepts
+/// them. A key given twice in one object takes the last value, as in jsoncpp (WB-MRWM2).
 #[test]
 fn trailing_commas_are_accepted() {
     let d = device(
