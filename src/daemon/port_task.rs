@@ -398,9 +398,9 @@ impl PortTask {
                         _ = shutdown.changed() => return Ok(()),
                     };
                     self.transacted |= result.is_ok();
-                    let (outcome, timing) = match &result {
-                        Ok((outcome, timing)) => (outcome.clone(), *timing),
-                        Err(_) => (Outcome::NoReply, ReplyTiming::default()),
+                    let (outcome, timing, failure) = match result {
+                        Ok((outcome, timing)) => (outcome, timing, None),
+                        Err(err) => (Outcome::NoReply, ReplyTiming::default(), Some(err)),
                     };
                     let recorded = self.status.as_ref().map(|_| outcome.clone());
                     let events = self.scheduler.complete_timed(self.now(), outcome, timing);
@@ -408,7 +408,9 @@ impl PortTask {
                     if let Some(outcome) = recorded {
                         self.record_transaction(started, &transaction, &outcome);
                     }
-                    result?;
+                    if let Some(err) = failure {
+                        return Err(err);
+                    }
                 }
                 Action::Wait { until } => {
                     let wake = (self.epoch + until).min(Instant::now() + HEARTBEAT);

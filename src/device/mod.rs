@@ -16,5 +16,5 @@ pub use codec::{CodecError, Reading, ValueCodec};
 pub use configure::{check_template, resolve_config, resolve_template_device};
 pub use model::{
     ChannelRegister, DeviceTiming, EnumTitle, EventMode, Priority, RegisterRef, RegisterType,
-    ResolvedChannel, ResolvedDevice, ResolvedPort, SetupItem, WriteFunction,
+    ResolvedChannel, ResolvedDevice, ResolvedPort, SetupItem, SharedVec, Titles, WriteFunction,
 };

@@ -10,27 +10,49 @@ use super::MqttAction;
 #[derive(Debug, Default)]
 pub struct Outbox {
     next_seq: i64,
-    seq_of: HashMap<(u8, String), i64>,
+    /// Where each topic's publish waits in `queue`.
+    publish_seq: HashMap<String, i64>,
+    /// Where each topic's subscribe or unsubscribe waits: the two replace each other.
+    filter_seq: HashMap<String, i64>,
     queue: BTreeMap<i64, MqttAction>,
 }
 
-fn key(action: &MqttAction) -> (u8, String) {
+/// The topic of an action, and whether it is a publish.
+fn topic(action: &MqttAction) -> (&str, bool) {
     match action {
-        MqttAction::Publish(p) => (0, p.topic.clone()),
-        // A subscribe and an unsubscribe of one topic replace each other.
-        MqttAction::Subscribe(t) | MqttAction::Unsubscribe(t) => (1, t.clone()),
+        MqttAction::Publish(p) => (&p.topic, true),
+        MqttAction::Subscribe(t) | MqttAction::Unsubscribe(t) => (t, false),
     }
 }
 
 impl Outbox {
-    pub fn push(&mut self, action: MqttAction) {
-        let key = key(&action);
-        if let Some(old) = self.seq_of.remove(&key) {
-            self.queue.remove(&old);
+    fn seqs(&mut self, publish: bool) -> &mut HashMap<String, i64> {
+        if publish {
+            &mut self.publish_seq
+        } else {
+            &mut self.filter_seq
         }
+    }
+
+    pub fn push(&mut self, action: MqttAction) {
         let seq = self.next_seq;
         self.next_seq += 1;
-        self.seq_of.insert(key, seq);
+        let (topic, publish) = topic(&action);
+        let seqs = if publish {
+            &mut self.publish_seq
+        } else {
+            &mut self.filter_seq
+        };
+        // The topic is copied only when it is new to the queue.
+        match seqs.get_mut(topic) {
+            Some(old) => {
+                self.queue.remove(old);
+                *old = seq;
+            }
+            None => {
+                seqs.insert(topic.to_owned(), seq);
+            }
+        }
         self.queue.insert(seq, action);
     }
 
@@ -42,15 +64,16 @@ impl Outbox {
 
     pub fn pop(&mut self) -> Option<MqttAction> {
         let (_, action) = self.queue.pop_first()?;
-        self.seq_of.remove(&key(&action));
+        let (topic, publish) = topic(&action);
+        self.seqs(publish).remove(topic);
         Some(action)
     }
 
     /// Puts back an action the client could not take, ahead of everything else, unless a newer
     /// one for its topic arrived meanwhile.
     pub fn push_front(&mut self, action: MqttAction) {
-        let key = key(&action);
-        if self.seq_of.contains_key(&key) {
+        let (topic, publish) = topic(&action);
+        if self.seqs(publish).contains_key(topic) {
             return;
         }
         // Below the first entry (sequence numbers may go negative), or just below the next one when empty.
@@ -58,12 +81,14 @@ impl Outbox {
             .queue
             .first_key_value()
             .map_or(self.next_seq - 1, |(s, _)| s - 1);
-        self.seq_of.insert(key, seq);
+        let owned = topic.to_owned();
+        self.seqs(publish).insert(owned, seq);
         self.queue.insert(seq, action);
     }
 
     pub fn clear(&mut self) {
-        self.seq_of.clear();
+        self.publish_seq.clear();
+        self.filter_seq.clear();
         self.queue.clear();
     }
 
@@ -95,13 +120,10 @@ pub fn unsendable(action: &MqttAction, max_packet: usize) -> Option<&'static str
         return Some("the topic is longer than MQTT allows (65535 bytes)");
     }
     // The broker closes the connection on these (MQTT 3.1.1 §1.5.3).
-    if topic
-        .chars()
-        .any(|c| c.is_control() || matches!(c, '\u{FFFE}' | '\u{FFFF}'))
-    {
+    if holds_control_character(topic) {
         return Some("the topic holds a NUL or another control character");
     }
-    if !filter && topic.contains(['+', '#']) {
+    if !filter && topic.bytes().any(|b| b == b'+' || b == b'#') {
         return Some("the topic holds a wildcard (`+` or `#`)");
     }
     if filter && !rumqttc::valid_filter(topic) {
@@ -112,6 +134,17 @@ pub fn unsendable(action: &MqttAction, max_packet: usize) -> Option<&'static str
         return Some("the message is larger than the client's packet limit");
     }
     None
+}
+
+/// A control character (Unicode `Cc`), U+FFFE or U+FFFF. Topics are ASCII nearly always: those
+/// are checked byte by byte.
+fn holds_control_character(topic: &str) -> bool {
+    if topic.is_ascii() {
+        return topic.bytes().any(|b| b < 0x20 || b == 0x7f);
+    }
+    topic
+        .chars()
+        .any(|c| c.is_control() || matches!(c, '\u{FFFE}' | '\u{FFFF}'))
 }
 
 #[cfg(test)]
@@ -177,6 +210,35 @@ mod tests {
             None
         );
         assert!(unsendable(&MqttAction::Subscribe("/devices/#/x".into()), max).is_some());
+    }
+
+    #[test]
+    fn control_characters_are_found_in_ascii_and_beyond() {
+        for topic in [
+            "a\u{7f}b",
+            "a\u{1f}",
+            "\u{85}x",
+            "é\u{9f}",
+            "x\u{FFFE}",
+            "é\u{FFFF}",
+        ] {
+            assert!(holds_control_character(topic), "{topic:?}");
+        }
+        for topic in ["/devices/a/controls/b", "/devices/é/controls/Température ~"] {
+            assert!(!holds_control_character(topic), "{topic:?}");
+        }
+    }
+
+    #[test]
+    fn a_subscribe_and_an_unsubscribe_replace_each_other_not_a_publish() {
+        let mut outbox = Outbox::default();
+        outbox.push(MqttAction::Subscribe("t".into()));
+        outbox.push(publish("t", "1"));
+        outbox.push(MqttAction::Unsubscribe("t".into()));
+        assert_eq!(outbox.len(), 2);
+        assert_eq!(outbox.pop(), Some(publish("t", "1")));
+        assert_eq!(outbox.pop(), Some(MqttAction::Unsubscribe("t".into())));
+        assert!(outbox.is_empty());
     }
 
     #[test]

@@ -70,6 +70,8 @@ pub enum WriteOutcome {
 /// What is published for one control (republished after a reconnect).
 #[derive(Debug, Default)]
 struct PublishedControl {
+    /// Where its channel is in the device's channel list (found without comparing ids).
+    channel: usize,
     value: Option<String>,
     last_published: Option<Instant>,
     errors: ErrorFlags,
@@ -177,6 +179,12 @@ impl PublicationPlanner {
                 .and_then(|p| p.controls.remove(&channel.id))
                 .unwrap_or_default();
             controls.insert(channel.id.clone(), state);
+        }
+        // The first channel of an id is the one values go to.
+        for (index, channel) in device.channels.iter().enumerate().rev() {
+            if let Some(control) = controls.get_mut(&channel.id) {
+                control.channel = index;
+            }
         }
         let (identity, online) = previous
             .map(|p| (p.identity, p.online))
@@ -454,8 +462,11 @@ fn lookup<'a>(
     control_id: &str,
 ) -> Option<(&'a ResolvedChannel, &'a mut PublishedControl)> {
     let state = devices.get_mut(device_id)?;
-    let channel = state.device.channels.iter().find(|c| c.id == control_id)?;
     let control = state.controls.get_mut(control_id)?;
+    let channel = match state.device.channels.get(control.channel) {
+        Some(channel) if channel.id == control_id => channel,
+        _ => state.device.channels.iter().find(|c| c.id == control_id)?,
+    };
     Some((channel, control))
 }
 

@@ -53,14 +53,26 @@ struct ReadState {
     period_missed: bool,
 }
 
+/// Lower is more urgent: periodic reads first, then by due time, then least recently read.
+pub(super) type ReadUrgency = (u8, Duration, Option<Duration>);
+
 /// The read a device would do now, and how urgent it is.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub(super) struct ReadChoice {
     pub span: RegisterSpan,
     /// Indices of the planned reads this request covers.
     pub members: Vec<usize>,
-    /// Lower is more urgent: periodic reads first, then by due time, then least recently read.
-    pub urgency: (u8, Duration, Option<Duration>),
+    pub urgency: ReadUrgency,
+}
+
+/// What a device's reads look like from `now` on, for the scheduler's due order: the urgency of
+/// the read [`DeviceState::choose_read`] would pick now, and the first later time at which
+/// another read becomes due (until then the urgency cannot change without the device's state
+/// changing).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) struct ReadOutlook {
+    pub urgency: Option<ReadUrgency>,
+    pub next_due: Option<Duration>,
 }
 
 #[derive(Debug, Clone)]
@@ -309,6 +321,27 @@ impl DeviceState {
         }
     }
 
+    /// An event carried `words` registers of the value read at `start`, fewer than it has: its
+    /// other words may have changed with it (a device updates a value at once), so the value is
+    /// read once at the next turn, events-only or not, rather than joined with words read
+    /// before (src/gateway/device_model.rs waits for that read).
+    pub(super) fn read_partial_event_value(
+        &mut self,
+        register_type: RegisterType,
+        start: u16,
+        words: usize,
+    ) {
+        for (plan, read) in self.plan.reads.iter().zip(self.reads.iter_mut()) {
+            if plan.span.register_type == register_type
+                && plan.span.start == start
+                && usize::from(plan.span.count) > words
+                && read.exclusion != Exclusion::Unsupported
+            {
+                read.initial_pending = true;
+            }
+        }
+    }
+
     /// True when the device came online.
     /// A Fast Modbus event came from this device: alive, whatever its own requests saw.
     pub(super) fn heard_from(&mut self, now: Duration) -> bool {
@@ -339,32 +372,60 @@ impl DeviceState {
             .position(|r| r.exclusion == Exclusion::EventsOnly)
     }
 
-    fn is_due(&self, index: usize, now: Duration) -> bool {
-        let Some(read) = self.reads.get(index) else {
-            return false;
-        };
+    /// When read `index` is due: `Some(ZERO)` when it is due whatever the time, `None` when
+    /// only a change of state can make it due. `keepalive` is [`Self::keepalive_index`].
+    fn due_from(&self, index: usize, keepalive: Option<usize>) -> Option<Duration> {
+        let read = self.reads.get(index)?;
         match read.exclusion {
-            Exclusion::Unsupported => false,
-            _ if read.initial_pending => true,
-            Exclusion::None => read.next_due <= now,
-            Exclusion::EventsOnly => self.keepalive_index() == Some(index) && read.next_due <= now,
+            Exclusion::Unsupported => None,
+            _ if read.initial_pending => Some(Duration::ZERO),
+            Exclusion::None => Some(read.next_due),
+            Exclusion::EventsOnly if keepalive == Some(index) => Some(read.next_due),
+            Exclusion::EventsOnly => None,
         }
     }
 
-    pub(super) fn choose_read(&self, now: Duration) -> Option<ReadChoice> {
-        let due: Vec<usize> = (0..self.reads.len())
-            .filter(|&i| self.is_due(i, now))
-            .collect();
-        let urgency = |i: usize| {
-            let plan = self.plan.reads.get(i);
-            let read = self.reads.get(i);
-            let class = u8::from(plan.is_none_or(|p| p.period.is_none()));
-            (
-                class,
-                read.map_or(Duration::ZERO, |r| r.next_due),
-                read.and_then(|r| r.last_read),
-            )
+    fn urgency(&self, index: usize) -> ReadUrgency {
+        let plan = self.plan.reads.get(index);
+        let read = self.reads.get(index);
+        let class = u8::from(plan.is_none_or(|p| p.period.is_none()));
+        (
+            class,
+            read.map_or(Duration::ZERO, |r| r.next_due),
+            read.and_then(|r| r.last_read),
+        )
+    }
+
+    /// See [`ReadOutlook`]; the urgency is that of [`Self::choose_read`] at `now`.
+    pub(super) fn read_outlook(&self, now: Duration) -> ReadOutlook {
+        let keepalive = self.keepalive_index();
+        let mut outlook = ReadOutlook {
+            urgency: None,
+            next_due: None,
         };
+        for index in 0..self.reads.len() {
+            match self.due_from(index, keepalive) {
+                Some(at) if at <= now => {
+                    let urgency = self.urgency(index);
+                    if outlook.urgency.is_none_or(|best| urgency < best) {
+                        outlook.urgency = Some(urgency);
+                    }
+                }
+                Some(at) if outlook.next_due.is_none_or(|next| at < next) => {
+                    outlook.next_due = Some(at);
+                }
+                _ => {}
+            }
+        }
+        outlook
+    }
+
+    pub(super) fn choose_read(&self, now: Duration) -> Option<ReadChoice> {
+        let keepalive = self.keepalive_index();
+        let due: Vec<usize> = (0..self.reads.len())
+            .filter(|&i| self.due_from(i, keepalive).is_some_and(|at| at <= now))
+            .collect();
+        let urgency = |i: usize| self.urgency(i);
         let first = *due.iter().min_by_key(|&&i| urgency(i))?;
         let first_span = self.plan.reads.get(first)?.span;
         let mut span = first_span;

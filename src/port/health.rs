@@ -180,6 +180,15 @@ impl DeviceHealth {
             }
     }
 
+    /// From when [`may_transact`](Self::may_transact) holds (it holds at every later time
+    /// too, until the state changes): the scheduler keeps a device aside until then.
+    pub fn may_transact_from(&self) -> Duration {
+        match self.state {
+            State::Offline { retry_at, .. } => retry_at.max(self.quiet_until),
+            _ => self.quiet_until,
+        }
+    }
+
     /// The device is online and answered its last transaction: a failure now is an isolated
     /// loss (the common case on a noisy line), not a device that became slow or died.
     pub fn answered_last(&self) -> bool {

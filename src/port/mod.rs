@@ -3,6 +3,7 @@
 //! with a transport; tests drive it with a fake clock and scripted outcomes.
 
 mod device;
+mod due_index;
 mod events;
 pub mod health;
 pub mod plan;

@@ -15,6 +15,7 @@ use std::time::Duration;
 use tracing::{debug, info, warn};
 
 use super::device::{DeviceState, ReadChoice};
+use super::due_index::{DueIndex, Placement};
 use super::events::EventPoller;
 use super::health::DeadRetryBudget;
 use super::plan::{DevicePlan, PortSettings, RegisterWrite};
@@ -104,7 +105,7 @@ pub enum PortEvent {
     },
 }
 
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, PartialEq)]
 enum InFlight {
     PollEvents {
         started: Duration,
@@ -128,7 +129,16 @@ enum InFlight {
     },
 }
 
-#[derive(Debug, Clone)]
+/// What of a transaction fits the time left before the event slot.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Fit {
+    Whole,
+    /// The first this many members of a merged read.
+    Prefix(usize),
+    Nothing,
+}
+
+#[derive(Debug, Clone, PartialEq)]
 struct PendingWrite {
     write: RegisterWrite,
     give_up_at: Duration,
@@ -150,16 +160,28 @@ pub struct PortScheduler {
     last_event_poll: (Duration, Duration),
     /// Whether anything but an event poll went out since the last event poll.
     sent_since_event_poll: bool,
+    /// Which devices may be prepared or read now, in the order they are picked.
+    index: DueIndex,
+    /// The first device at each address: event packets name their sender by address.
+    by_address: Vec<Option<usize>>,
 }
 
 impl PortScheduler {
     pub fn new(settings: PortSettings, plans: Vec<DevicePlan>) -> Self {
         let events = EventPoller::new(&settings);
-        let devices = plans
+        let devices: Vec<DeviceState> = plans
             .into_iter()
             .map(|plan| DeviceState::new(plan, settings.fast_modbus, &settings.line))
             .collect();
+        let mut by_address = vec![None; usize::from(u8::MAX) + 1];
+        for (index, device) in devices.iter().enumerate() {
+            if let Some(slot @ None) = by_address.get_mut(usize::from(device.plan.address)) {
+                *slot = Some(index);
+            }
+        }
         Self {
+            index: DueIndex::new(devices.len()),
+            by_address,
             settings,
             devices,
             events,
@@ -177,6 +199,7 @@ impl PortScheduler {
     pub fn set_up_again(&mut self, device: usize) {
         if let Some(state) = self.devices.get_mut(device) {
             state.restart_preparation();
+            self.index.mark_stale(device);
         }
     }
 
@@ -213,17 +236,86 @@ impl PortScheduler {
         }
         state.suspended = suspended;
         state.suspended_until = until.filter(|&until| until != Duration::MAX);
+        self.index.mark_stale(device);
         true
     }
 
-    /// Ends the holds whose time is up.
-    fn expire_holds(&mut self, now: Duration) {
-        for state in &mut self.devices {
-            if state.suspended_until.is_some_and(|until| now >= until) {
-                info!(device = %state.plan.name, "polling hold expired: polling again");
-                state.suspended = false;
-                state.suspended_until = None;
-            }
+    /// Ends the device's hold if its time is up.
+    fn expire_hold(&mut self, device: usize, now: Duration) {
+        let Some(state) = self.devices.get_mut(device) else {
+            return;
+        };
+        if state.suspended_until.is_some_and(|until| now >= until) {
+            info!(device = %state.plan.name, "polling hold expired: polling again");
+            state.suspended = false;
+            state.suspended_until = None;
+            self.index.mark_stale(device);
+        }
+    }
+
+    /// Brings the index up to `now`: devices changed since they were placed, and those whose
+    /// wake time has come (their holds end here), are placed again.
+    fn refresh(&mut self, now: Duration) {
+        if self.index.is_before_placements(now) {
+            self.index.mark_all_stale();
+        }
+        loop {
+            self.place_stale(now);
+            let Some(device) = self.index.take_woken(now) else {
+                break;
+            };
+            self.expire_hold(device, now);
+        }
+    }
+
+    /// Places again the devices changed since they were last placed.
+    fn place_stale(&mut self, now: Duration) {
+        while let Some(device) = self.index.take_stale() {
+            let Some(state) = self.devices.get(device) else {
+                continue;
+            };
+            let placement = Self::placement(state, now);
+            self.index.place(device, state.plan.address, now, placement);
+        }
+    }
+
+    /// Where a device stands at `now` (see [`DueIndex`]): the conditions of
+    /// [`choose_preparation`](Self::choose_preparation) and [`choose_read`](Self::choose_read)
+    /// but the dead devices' budget, which is checked when choosing.
+    fn placement(state: &DeviceState, now: Duration) -> Placement {
+        let events_active = state.events_active();
+        if state.suspended {
+            return Placement {
+                wake: state.suspended_until,
+                events_active,
+                ..Placement::default()
+            };
+        }
+        let seems_dead = state.health.seems_dead();
+        let open_at = state.health.may_transact_from();
+        if now < open_at {
+            return Placement {
+                wake: Some(open_at),
+                seems_dead,
+                events_active,
+                ..Placement::default()
+            };
+        }
+        if !state.is_prepared() {
+            return Placement {
+                preparing: true,
+                seems_dead,
+                events_active,
+                ..Placement::default()
+            };
+        }
+        let outlook = state.read_outlook(now);
+        Placement {
+            preparing: false,
+            read: outlook.urgency,
+            seems_dead,
+            wake: outlook.next_due,
+            events_active,
         }
     }
 
@@ -241,8 +333,9 @@ impl PortScheduler {
         });
     }
 
+    /// Whether events are polled (the index must be up to date).
     fn events_active(&self) -> bool {
-        self.settings.fast_modbus && self.devices.iter().any(DeviceState::events_active)
+        self.settings.fast_modbus && self.index.any_events_active()
     }
 
     /// What to do now. Call again after [`complete`](Self::complete) or when `until` has passed.
@@ -250,7 +343,9 @@ impl PortScheduler {
         if self.in_flight.is_some() {
             return Action::Wait { until: now };
         }
-        self.expire_holds(now);
+        self.refresh(now);
+        #[cfg(test)]
+        self.check_index(now);
         let events_active = self.events_active();
         if events_active && now >= self.event_due_at() {
             return self.start_event_poll(now);
@@ -262,10 +357,14 @@ impl PortScheduler {
                     return self.commit(now, transaction, in_flight);
                 }
                 // Read what fits before the event slot (all of it if possible) ...
-                if let Some((fitting, in_flight)) =
-                    self.fit(now, &transaction, &in_flight, slot_left)
-                {
-                    return self.commit(now, fitting, in_flight);
+                match self.longest_fit(now, &transaction, &in_flight, slot_left) {
+                    Fit::Whole => return self.commit(now, transaction, in_flight),
+                    Fit::Prefix(taken) => {
+                        if let Some((part, in_flight)) = self.read_prefix(now, &in_flight, taken) {
+                            return self.commit(now, part, in_flight);
+                        }
+                    }
+                    Fit::Nothing => {}
                 }
                 // ... or poll events early, which resets the slot. What can never fit a whole
                 // interval goes anyway, at its smallest: a late event request beats a read that
@@ -274,7 +373,7 @@ impl PortScheduler {
                 // and polling again would starve the read for good.
                 let interval = self.settings.event_interval;
                 if self.sent_since_event_poll
-                    && self.fit(now, &transaction, &in_flight, interval).is_some()
+                    && self.longest_fit(now, &transaction, &in_flight, interval) != Fit::Nothing
                 {
                     return self.start_event_poll(now);
                 }
@@ -338,6 +437,16 @@ impl PortScheduler {
             .map(|d| d.response.timeout(now));
         if let Some(device) = device {
             self.learn_response_time(now, device, &outcome, timing);
+            // Silence through the timeout and the late window (watched: it failed its last
+            // request too) is a dead device, not a slow one: retried at its normal timeout.
+            let silent = !matches!(outcome, Outcome::Reply(_))
+                && timing.first_byte.is_none()
+                && timing.late_byte.is_none();
+            if let (true, None, Some(state)) =
+                (silent, skipped_late_window, self.devices.get_mut(device))
+            {
+                state.response.silent();
+            }
         }
         let was_offline = device
             .and_then(|d| self.devices.get(d))
@@ -389,6 +498,9 @@ impl PortScheduler {
             // of the bus, however many there are.
             self.dead_retries
                 .spend(now, now.saturating_sub(self.in_flight_since));
+        }
+        if let Some(device) = device {
+            self.index.mark_stale(device);
         }
         out
     }
@@ -445,6 +557,7 @@ impl PortScheduler {
             }
             warn!(device = %state.plan.name, "port unavailable: device marked offline");
             state.restart_preparation();
+            self.index.mark_stale(index);
             out.push(PortEvent::Offline { device: index });
             for span in state.plan.reads.iter().map(|r| r.span) {
                 out.push(PortEvent::ReadFailed {
@@ -569,62 +682,97 @@ impl PortScheduler {
         ))
     }
 
+    /// The first of the devices that seem dead, in `candidates`' order, that the dead
+    /// devices' budget lets go now.
+    fn first_dead_allowed<T: Copy>(
+        &self,
+        now: Duration,
+        mut candidates: impl Iterator<Item = T>,
+        device_of: impl Fn(T) -> usize,
+    ) -> Option<T> {
+        // A retry costs something: if nothing may go, nothing dearer may (no scan).
+        if !self.dead_retries.allows(now, Duration::ZERO) {
+            return None;
+        }
+        candidates.find(|&candidate| {
+            self.devices
+                .get(device_of(candidate))
+                .is_some_and(|d| self.may_transact(d, now))
+        })
+    }
+
+    /// Setup writes or the event setup of the first device (by index) whose preparation may go:
+    /// the index keeps those in order, apart from those that seem dead (budget permitting).
     fn choose_preparation(&self, now: Duration) -> Option<(Transaction, InFlight)> {
-        for (index, device) in self.devices.iter().enumerate() {
-            if device.is_prepared() || device.suspended || !self.may_transact(device, now) {
-                continue;
-            }
-            if let Some(setup_index) = device.next_setup_write() {
-                let write = device.plan.setup.get(setup_index)?;
-                let pdu = match write.values.as_slice() {
-                    [value] => RequestPdu::WriteSingleRegister {
-                        address: write.address,
-                        value: *value,
-                    },
-                    values => RequestPdu::WriteMultipleRegisters {
-                        start: write.address,
-                        values: values.to_vec(),
-                    },
-                };
-                let transaction = self.classic_transaction(
-                    now,
-                    device,
-                    Request::classic(device.plan.address, pdu),
-                );
-                return Some((
-                    transaction,
-                    InFlight::Setup {
-                        device: index,
-                        index: setup_index,
-                    },
-                ));
-            }
-            if self.settings.fast_modbus && device.wants_events() {
-                let (ranges, members) = device.event_ranges();
-                let request = Request::configure_events(device.plan.address, ranges.clone());
-                let transaction = self.classic_transaction(now, device, request);
-                return Some((
-                    transaction,
-                    InFlight::EnableEvents {
-                        device: index,
-                        ranges,
-                        members,
-                    },
-                ));
-            }
+        let dead = self.first_dead_allowed(now, self.index.dead_preparing(), |d| d);
+        let index = match (self.index.first_preparing(), dead) {
+            (Some(healthy), Some(dead)) => healthy.min(dead),
+            (healthy, dead) => healthy.or(dead)?,
+        };
+        self.preparation_of(now, index)
+    }
+
+    /// The preparation step of device `index`. (A device is unprepared only while a setup write
+    /// or, with Fast Modbus on, its event setup is due.)
+    fn preparation_of(&self, now: Duration, index: usize) -> Option<(Transaction, InFlight)> {
+        let device = self.devices.get(index)?;
+        if let Some(setup_index) = device.next_setup_write() {
+            let write = device.plan.setup.get(setup_index)?;
+            let pdu = match write.values.as_slice() {
+                [value] => RequestPdu::WriteSingleRegister {
+                    address: write.address,
+                    value: *value,
+                },
+                values => RequestPdu::WriteMultipleRegisters {
+                    start: write.address,
+                    values: values.to_vec(),
+                },
+            };
+            let transaction =
+                self.classic_transaction(now, device, Request::classic(device.plan.address, pdu));
+            return Some((
+                transaction,
+                InFlight::Setup {
+                    device: index,
+                    index: setup_index,
+                },
+            ));
+        }
+        if self.settings.fast_modbus && device.wants_events() {
+            let (ranges, members) = device.event_ranges();
+            let request = Request::configure_events(device.plan.address, ranges.clone());
+            let transaction = self.classic_transaction(now, device, request);
+            return Some((
+                transaction,
+                InFlight::EnableEvents {
+                    device: index,
+                    ranges,
+                    members,
+                },
+            ));
         }
         None
     }
 
+    /// The most urgent read of all devices that may be read now (ties: the lowest index): the
+    /// index keeps them in that order, apart from those that seem dead (budget permitting).
     fn choose_read(&self, now: Duration) -> Option<(Transaction, InFlight)> {
-        let best = self
-            .devices
-            .iter()
-            .enumerate()
-            .filter(|(_, d)| d.is_prepared() && !d.suspended && self.may_transact(d, now))
-            .filter_map(|(index, d)| d.choose_read(now).map(|choice| (index, choice)))
-            .min_by_key(|(_, choice)| choice.urgency)?;
-        let (device, ReadChoice { span, members, .. }) = best;
+        let dead = self.first_dead_allowed(now, self.index.dead_reads(), |(_, d)| d);
+        let (_, device) = match (self.index.first_read(), dead) {
+            (Some(healthy), Some(dead)) => healthy.min(dead),
+            (healthy, dead) => healthy.or(dead)?,
+        };
+        let choice = self.devices.get(device)?.choose_read(now)?;
+        self.read_of(now, device, choice)
+    }
+
+    fn read_of(
+        &self,
+        now: Duration,
+        device: usize,
+        choice: ReadChoice,
+    ) -> Option<(Transaction, InFlight)> {
+        let ReadChoice { span, members, .. } = choice;
         let state = self.devices.get(device)?;
         let transaction = self.classic_transaction(
             now,
@@ -641,24 +789,28 @@ impl PortScheduler {
         ))
     }
 
-    /// The transaction, or the longest leading part of a merged read, that fits `budget`.
-    fn fit(
+    /// What of the transaction fits `budget`: all of it, or the longest leading part of a
+    /// merged read that does.
+    fn longest_fit(
         &self,
         now: Duration,
         transaction: &Transaction,
         in_flight: &InFlight,
         budget: Duration,
-    ) -> Option<(Transaction, InFlight)> {
+    ) -> Fit {
         if transaction.estimated <= budget {
-            return Some((transaction.clone(), in_flight.clone()));
+            return Fit::Whole;
         }
         let InFlight::Read { members, .. } = in_flight else {
-            return None;
+            return Fit::Nothing;
         };
         (1..members.len())
             .rev()
-            .filter_map(|taken| self.read_prefix(now, in_flight, taken))
-            .find(|(shorter, _)| shorter.estimated <= budget)
+            .find(|&taken| {
+                self.prefix_transaction(now, in_flight, taken)
+                    .is_some_and(|shorter| shorter.estimated <= budget)
+            })
+            .map_or(Fit::Nothing, Fit::Prefix)
     }
 
     /// The read of the first `taken` members of a merged read.
@@ -674,17 +826,8 @@ impl PortScheduler {
         else {
             return None;
         };
-        let state = self.devices.get(*device)?;
+        let (transaction, span) = self.prefix_read(now, *device, members, taken)?;
         let part = members.get(..taken)?.to_vec();
-        let first = state.read_span(*part.first()?)?;
-        let mut span = first;
-        for &member in &part {
-            let member_span = state.read_span(member)?;
-            let end = span.end().max(member_span.end());
-            span.count = u16::try_from(end - u32::from(span.start)).ok()?;
-        }
-        let request = Request::classic(state.plan.address, span.read_request());
-        let transaction = self.classic_transaction(now, state, request);
         Some((
             transaction,
             InFlight::Read {
@@ -693,6 +836,43 @@ impl PortScheduler {
                 members: part,
             },
         ))
+    }
+
+    /// [`read_prefix`](Self::read_prefix)'s transaction alone (no members list built).
+    fn prefix_transaction(
+        &self,
+        now: Duration,
+        in_flight: &InFlight,
+        taken: usize,
+    ) -> Option<Transaction> {
+        let InFlight::Read {
+            device, members, ..
+        } = in_flight
+        else {
+            return None;
+        };
+        self.prefix_read(now, *device, members, taken)
+            .map(|(transaction, _)| transaction)
+    }
+
+    fn prefix_read(
+        &self,
+        now: Duration,
+        device: usize,
+        members: &[usize],
+        taken: usize,
+    ) -> Option<(Transaction, RegisterSpan)> {
+        let state = self.devices.get(device)?;
+        let part = members.get(..taken)?;
+        let first = state.read_span(*part.first()?)?;
+        let mut span = first;
+        for &member in part {
+            let member_span = state.read_span(member)?;
+            let end = span.end().max(member_span.end());
+            span.count = u16::try_from(end - u32::from(span.start)).ok()?;
+        }
+        let request = Request::classic(state.plan.address, span.read_request());
+        Some((self.classic_transaction(now, state, request), span))
     }
 
     fn earliest_deadline(&self, now: Duration) -> Duration {
@@ -724,7 +904,7 @@ impl PortScheduler {
     }
 
     fn device_by_address(&self, address: u8) -> Option<usize> {
-        self.devices.iter().position(|d| d.plan.address == address)
+        self.by_address.get(usize::from(address)).copied().flatten()
     }
 
     fn complete_event_poll(
@@ -743,13 +923,9 @@ impl PortScheduler {
                         ..
                     },
             }) => {
-                let highest_listener = self
-                    .devices
-                    .iter()
-                    .filter(|d| d.events_active())
-                    .map(|d| d.plan.address)
-                    .max()
-                    .unwrap_or(0);
+                // Devices changed since the last placement may have had their events turned off.
+                self.place_stale(now);
+                let highest_listener = self.index.highest_listener().unwrap_or(0);
                 self.events
                     .packet_received(now, address, packet.flag, highest_listener);
                 let Some(device) = self.device_by_address(address) else {
@@ -760,6 +936,7 @@ impl PortScheduler {
                     if state.heard_from(now) {
                         info!(device = %state.plan.name, "offline device sent events: trying it again at once");
                     }
+                    self.index.mark_stale(device);
                 }
                 for event in packet.events {
                     if event.is_reboot() {
@@ -771,6 +948,10 @@ impl PortScheduler {
                         continue;
                     }
                     if let crate::protocol::EventSource::Register(register_type) = event.source {
+                        let words = crate::protocol::event_payload_words(&event.payload).len();
+                        if let Some(state) = self.devices.get_mut(device) {
+                            state.read_partial_event_value(register_type, event.id, words);
+                        }
                         out.push(PortEvent::EventValue {
                             device,
                             register_type,
@@ -1037,6 +1218,59 @@ impl PortScheduler {
             warn!(device = %state.plan.name, address = state.plan.address, "device does not answer: marked offline, retrying with growing delay");
             out.push(PortEvent::Offline { device });
         }
+    }
+}
+
+/// The choices as they were made before the index, by a scan of every device: the index is
+/// checked against them at every [`PortScheduler::next`] of the unit tests.
+#[cfg(test)]
+impl PortScheduler {
+    fn choose_preparation_by_scan(&self, now: Duration) -> Option<(Transaction, InFlight)> {
+        for (index, device) in self.devices.iter().enumerate() {
+            if device.is_prepared() || device.suspended || !self.may_transact(device, now) {
+                continue;
+            }
+            if let Some(choice) = self.preparation_of(now, index) {
+                return Some(choice);
+            }
+        }
+        None
+    }
+
+    fn choose_read_by_scan(&self, now: Duration) -> Option<(Transaction, InFlight)> {
+        let (device, choice) = self
+            .devices
+            .iter()
+            .enumerate()
+            .filter(|(_, d)| d.is_prepared() && !d.suspended && self.may_transact(d, now))
+            .filter_map(|(index, d)| d.choose_read(now).map(|choice| (index, choice)))
+            .min_by_key(|(_, choice)| choice.urgency)?;
+        self.read_of(now, device, choice)
+    }
+
+    fn check_index(&self, now: Duration) {
+        for state in &self.devices {
+            assert!(
+                state.suspended_until.is_none_or(|until| now < until),
+                "{}: a hold past its end at {now:?}",
+                state.plan.name
+            );
+        }
+        assert_eq!(
+            self.events_active(),
+            self.settings.fast_modbus && self.devices.iter().any(DeviceState::events_active),
+            "events active at {now:?}"
+        );
+        assert_eq!(
+            self.choose_preparation(now),
+            self.choose_preparation_by_scan(now),
+            "preparation at {now:?}"
+        );
+        assert_eq!(
+            self.choose_read(now),
+            self.choose_read_by_scan(now),
+            "read at {now:?}"
+        );
     }
 }
 

@@ -1414,3 +1414,185 @@ fn an_offline_device_answering_late_is_not_charged_as_a_dead_one() {
         "answering late: {late} retries, dead: {dead}"
     );
 }
+
+/// A small deterministic generator for the randomized test below (seeded: the same runs every
+/// time).
+struct Rng(u64);
+
+impl Rng {
+    fn next(&mut self) -> u64 {
+        // xorshift64*
+        self.0 ^= self.0 >> 12;
+        self.0 ^= self.0 << 25;
+        self.0 ^= self.0 >> 27;
+        self.0.wrapping_mul(0x2545_F491_4F6C_DD1D)
+    }
+
+    fn below(&mut self, n: u64) -> u64 {
+        self.next() % n.max(1)
+    }
+
+    fn chance(&mut self, percent: u64) -> bool {
+        self.below(100) < percent
+    }
+}
+
+fn random_plan(rng: &mut Rng, address: u8) -> DevicePlan {
+    let types = [
+        RegisterType::Coil,
+        RegisterType::DiscreteInput,
+        RegisterType::Holding,
+        RegisterType::Input,
+    ];
+    let modes = [
+        EventMode::Polled,
+        EventMode::Sporadic,
+        EventMode::SemiSporadic,
+    ];
+    let reads = (0..1 + rng.below(6))
+        .map(|_| PlannedRead {
+            span: RegisterSpan::new(
+                types[rng.below(4) as usize],
+                rng.below(12) as u16,
+                1 + rng.below(3) as u16,
+            ),
+            period: rng.chance(40).then(|| ms(5 + rng.below(200))),
+            events: modes[rng.below(3) as usize],
+        })
+        .collect();
+    let setup = (0..rng.below(3))
+        .map(|i| SetupWrite {
+            address: 100 + i as u16,
+            values: vec![1; 1 + rng.below(2) as usize],
+        })
+        .collect();
+    let mut plan = device(address, reads);
+    plan.setup = setup;
+    plan.merge = MergeLimits {
+        max_read_registers: rng.below(6) as u16,
+        max_register_hole: rng.below(3) as u16,
+        max_bit_hole: rng.below(3) as u16,
+    };
+    if rng.chance(50) {
+        plan.health = HealthPolicy {
+            max_fail_cycles: 1 + rng.below(3) as u32,
+            device_timeout: ms(rng.below(300)),
+            retry_step: ms(10 + rng.below(100)),
+            max_retry_delay: ms(50 + rng.below(300)),
+            late_reply_holdoff: ms(rng.below(60)),
+        };
+    }
+    plan
+}
+
+/// An answer drawn at random: mostly the healthy one, sometimes silence, noise, an exception,
+/// or (to an event request) a packet from any device, a reboot among its events.
+fn random_outcome(rng: &mut Rng, request: &Request, addresses: &[u8]) -> Outcome {
+    match rng.below(20) {
+        0..=2 => Outcome::NoReply,
+        3 => Outcome::Garbled,
+        4 => match &request.body {
+            RequestBody::Classic(pdu) => Outcome::Reply(Reply::classic(
+                request.address,
+                ResponsePdu::Exception {
+                    function: pdu.function(),
+                    code: ExceptionCode::ILLEGAL_DATA_ADDRESS,
+                },
+            )),
+            _ => Outcome::NoReply,
+        },
+        5..=7 if matches!(request.body, RequestBody::Fast(FastRequest::PollEvents(_))) => {
+            let address = addresses[rng.below(addresses.len() as u64) as usize];
+            let mut events = vec![Event {
+                source: crate::protocol::EventSource::Register(RegisterType::Coil),
+                id: rng.below(12) as u16,
+                payload: vec![1],
+            }];
+            if rng.chance(20) {
+                events.push(Event::reboot());
+            }
+            Outcome::Reply(Reply::fast(
+                address,
+                FastReply::Events(EventPacket {
+                    flag: rng.below(2) as u8,
+                    event_count: events.len() as u8,
+                    events,
+                }),
+            ))
+        }
+        _ => healthy(request),
+    }
+}
+
+/// The due order the scheduler keeps makes the same choices as a scan of every device would:
+/// `next` checks its choice against that scan at every call in these tests (`check_index`), here
+/// over random buses, answers, holds, writes, reboots, lost ports and time jumps.
+#[test]
+fn the_due_order_chooses_as_a_scan_of_every_device_would() {
+    for seed in 1..=150u64 {
+        let mut rng = Rng(seed.wrapping_mul(0x9E37_79B9_7F4A_7C15));
+        let count = 1 + rng.below(10) as usize;
+        let addresses: Vec<u8> = (0..count).map(|_| 1 + rng.below(20) as u8).collect();
+        let plans = addresses
+            .iter()
+            .map(|&address| random_plan(&mut rng, address))
+            .collect();
+        let mut settings = settings([9600, 115_200][rng.below(2) as usize]);
+        settings.fast_modbus = rng.chance(70);
+        let mut scheduler = PortScheduler::new(settings, plans);
+        let mut now = Duration::ZERO;
+        let mut transactions = 0;
+        for _ in 0..600 {
+            let device = rng.below(count as u64) as usize;
+            match rng.below(100) {
+                0..=2 => {
+                    let until = match rng.below(3) {
+                        0 => None,
+                        1 => Some(Duration::MAX),
+                        _ => Some(now + ms(rng.below(300))),
+                    };
+                    scheduler.hold_polling(device, until);
+                }
+                3..=4 => scheduler.queue_write(
+                    now,
+                    RegisterWrite {
+                        device,
+                        register_type: RegisterType::Holding,
+                        address: rng.below(4) as u16,
+                        values: vec![rng.below(100) as u16],
+                        force_multiple: rng.chance(30),
+                    },
+                ),
+                5 => scheduler.set_up_again(device),
+                6 => {
+                    let since = now.saturating_sub(ms(rng.below(5000)));
+                    scheduler.port_unavailable(now, since);
+                }
+                // The clock of a test may go back; the scheduler must not care.
+                7 => now = now.saturating_sub(ms(rng.below(50))),
+                _ => match scheduler.next(now) {
+                    Action::Transmit(transaction) => {
+                        transactions += 1;
+                        let outcome = random_outcome(&mut rng, &transaction.request, &addresses);
+                        let late = rng.chance(5).then(|| ms(1 + rng.below(400)));
+                        let timing = ReplyTiming {
+                            first_byte: matches!(outcome, Outcome::Reply(_))
+                                .then(|| ms(1 + rng.below(20))),
+                            late_byte: late.filter(|_| !matches!(outcome, Outcome::Reply(_))),
+                        };
+                        now += transaction.estimated.min(ms(300)) + ms(rng.below(3));
+                        scheduler.complete_timed(now, outcome, timing);
+                    }
+                    Action::Wait { until } => {
+                        now = if rng.chance(50) {
+                            until.max(now)
+                        } else {
+                            now + ms(rng.below(40))
+                        };
+                    }
+                },
+            }
+        }
+        assert!(transactions > 0, "seed {seed}: the bus carried nothing");
+    }
+}
