@@ -42,7 +42,7 @@ fn all_fixtures_load_and_resolve() {
         );
         count += 1;
     }
-    assert_eq!(count, 8);
+    assert_eq!(count, 9);
 }
 
 /// Asserts a channel's first register: table, address, format and event mode.
@@ -515,8 +515,8 @@ fn channels_chosen_by_condition_rgb_and_hex_error_value() {
     assert!(d.channel("RGB Palette").is_none());
 }
 
-/// A released WB-MWAC-v2 template had trailing commas; jsoncpp (wb-mqtt-serial's reader) accepts
-/// them, so a controller with that package installed has such a file in its template directory.
+/// An older WB-MWAC-v2 template had trailing commas; jsoncpp (wb-mqtt-serial's reader) accepts
+/// them. A key given twice in one object takes the last value, as in jsoncpp (WB-MRWM2).
 #[test]
 fn trailing_commas_are_accepted() {
     let d = device(
@@ -589,4 +589,75 @@ fn meter_values_scale_round_and_error_values() {
     assert_eq!(value("Temp 1", &[0x0190]), text("25"));
     assert_channel(&d, "Period", Holding, 0x8007, U8, Polled);
     assert_eq!(value("Period", &[0x1234]), text("52"));
+}
+
+/// Breezart-style HVAC constructs: one bit read as a status and written as an inverted switch
+/// (the other bits of the register are kept), 8-bit fields, pushbuttons that share a register,
+/// a scaled setpoint.
+#[test]
+fn hvac_bit_fields_inverted_switch_and_shared_pushbuttons() {
+    let d = device("config-test-hvac.json", json!({"slave_id": 1}));
+    assert_eq!(d.timing.guard_interval.as_micros(), 5000);
+    let channel = |id: &str| d.channel(id).unwrap();
+    assert_eq!(
+        channel("unit_status").decode(&[&[0xFFF6]]).unwrap(),
+        Reading::Value("2".into())
+    );
+    assert_eq!(
+        channel("error_code").decode(&[&[0xFFFE, 0xFFFF]]).unwrap(),
+        Reading::Value("-2".into())
+    );
+    assert_channel(&d, "current_time_program", Input, 64008, U8, Polled);
+    assert_eq!(
+        channel("current_time_program")
+            .decode(&[&[0x12FF]])
+            .unwrap(),
+        Reading::Value("255".into())
+    );
+    // Bit 7 clear: the status says 0 ("On"), the inverted switch says 1.
+    assert_eq!(
+        channel("time_program_auto_status")
+            .decode(&[&[0x0F0F]])
+            .unwrap(),
+        Reading::Value("0".into())
+    );
+    assert!(channel("time_program_auto_status").readonly);
+    let autorun = channel("time_program_autorun");
+    assert_eq!(
+        autorun.decode(&[&[0x0F0F]]).unwrap(),
+        Reading::Value("1".into())
+    );
+    assert_eq!(
+        autorun.decode(&[&[0x0F8F]]).unwrap(),
+        Reading::Value("0".into())
+    );
+    assert_eq!(
+        autorun.encode("1", &[Some(&[0x00FF][..])]).unwrap(),
+        vec![vec![0x007F]]
+    );
+    assert_eq!(
+        autorun.encode("0", &[Some(&[0x0F0F][..])]).unwrap(),
+        vec![vec![0x0F8F]]
+    );
+    assert_eq!(
+        channel("setpoint_temperature")
+            .encode("21.5", &[None])
+            .unwrap(),
+        vec![vec![215]]
+    );
+    assert_eq!(
+        channel("setpoint_temperature")
+            .decode(&[&[0xFFEC]])
+            .unwrap(),
+        Reading::Value("-2".into())
+    );
+    for (id, word) in [("time_program_1", 1), ("time_program_3", 3)] {
+        let button = channel(id);
+        assert!(button.write_only, "{id}");
+        assert_eq!(
+            button.encode("1", &[None]).unwrap(),
+            vec![vec![word]],
+            "{id}"
+        );
+    }
 }
