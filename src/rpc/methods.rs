@@ -1,6 +1,7 @@
 //! What each method does on a running port: every bus exchange goes through the port's
 //! [`BusQueue`], one transaction at a time, between the port's own transactions.
 
+use std::path::Path;
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -19,6 +20,7 @@ use crate::gateway::port_plan::line_settings;
 use crate::port::{Outcome, Transaction};
 use crate::protocol::fast::FastReply;
 use crate::protocol::timing::ADAPTER_LATENCY_ALLOWANCE;
+use crate::tools::adapter::{sysfs_tty, Adapter};
 use crate::protocol::{LineSettings, Reply, ReplyBody, Request, RequestPdu, ResponsePdu};
 use crate::tools::bus::{scan_transaction, Answer, PortError, ToolBus};
 use crate::tools::report::ScanReport;
@@ -30,22 +32,34 @@ pub struct QueuedBus {
     /// The port's own settings; `None` for TCP gateways (settings do not apply).
     home: Option<LineSettings>,
     latency: Duration,
+    /// What the serial port is (a USB adapter or not), for requests at other settings.
+    adapter: Option<Adapter>,
 }
 
 impl QueuedBus {
     pub fn new(access: &PortAccess) -> Self {
+        let adapter = access
+            .resolved
+            .config
+            .path
+            .as_deref()
+            .map(|path| Adapter::detect(Path::new(path), &sysfs_tty()));
         Self {
             queue: access.queue.clone(),
             home: access.line,
             latency: RPC_LATENCY,
+            adapter,
         }
     }
 
     /// Timeouts for requests at `line`: at other settings than the port's own (a client
-    /// scanning all 48) the USB adapter's allowance only, as the site tools use it.
+    /// scanning all 48, where every empty setting costs this once) what the kind of port
+    /// needs, as the site tools use it.
     fn for_line(mut self, line: LineSettings) -> Self {
         if self.home.is_some_and(|home| home != line) {
-            self.latency = ADAPTER_LATENCY_ALLOWANCE;
+            self.latency = self
+                .adapter
+                .map_or(ADAPTER_LATENCY_ALLOWANCE, Adapter::reply_allowance);
         }
         self
     }
