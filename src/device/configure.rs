@@ -372,6 +372,24 @@ pub fn resolve_template_device(
     template: &TemplateFile,
     device: &Value,
 ) -> Result<ResolvedDevice, ErrorList> {
+    resolve_single(template, device, true)
+}
+
+/// As [`resolve_template_device`], without asking for the `required` parameters: what the
+/// hardware has does not depend on what a config must give (the simulator builds a WB-LED or
+/// a WB-MAI6, whose templates require a mode, from its template alone).
+pub fn resolve_template_device_unconfigured(
+    template: &TemplateFile,
+    device: &Value,
+) -> Result<ResolvedDevice, ErrorList> {
+    resolve_single(template, device, false)
+}
+
+fn resolve_single(
+    template: &TemplateFile,
+    device: &Value,
+    check_required: bool,
+) -> Result<ResolvedDevice, ErrorList> {
     let object = device.as_object().cloned().unwrap_or_default();
     let parsed: Option<SlaveId> = object
         .get("slave_id")
@@ -387,7 +405,7 @@ pub fn resolve_template_device(
         Some(template),
         &default_port(),
         (slave_id, module),
-        true,
+        check_required,
         &mut Vec::new(),
         &mut SharedResolutions::default(),
     )
