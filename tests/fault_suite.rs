@@ -15,12 +15,13 @@ use std::time::{Duration, Instant};
 use rtu2mqtt::bench::harness::{
     monotonic_ns, wait_until, BrokerTls, Change, Harness, HarnessOptions, Publication,
 };
-use rtu2mqtt::bench::history::{check_held_values, HistoryReport, RegisterKey};
+use rtu2mqtt::bench::history::{check_held_values, value_histories, HistoryReport, RegisterKey};
 use rtu2mqtt::bench::layout::{
-    BenchLayout, FAULT_BUS_EVENTS as EVENTS, FAULT_BUS_REGISTERS as REGISTERS,
-    FAULT_BUS_SETUP_REGISTER as SETUP_REGISTER, FAULT_BUS_SETUP_VALUE as SETUP_VALUE,
+    join_words, BenchLayout, FaultSlot, FAULT_BUS_EVENTS as EVENTS,
+    FAULT_BUS_REGISTERS as REGISTERS, FAULT_BUS_SETUP_REGISTER as SETUP_REGISTER,
+    FAULT_BUS_SETUP_VALUE as SETUP_VALUE, FAULT_BUS_WIDE,
 };
-use rtu2mqtt::bench::matching::{match_changes, MatchReport};
+use rtu2mqtt::bench::matching::{match_expected, ExpectedChange, MatchReport};
 use serde_json::{json, Value};
 
 /// How long anything may take to show up (a deadline against hanging, not a latency bound).
@@ -46,23 +47,47 @@ fn noise() -> Value {
            "exception": 0.02, "garbage": 0.02})
 }
 
+/// Every single register of the fault bus's values on the device at `address`, as the
+/// simulator holds them now.
+fn sim_registers(harness: &Harness, address: u8) -> BTreeMap<RegisterKey, u16> {
+    let mut ranges = vec![("discrete", 0, EVENTS), ("input", 0, REGISTERS)];
+    ranges.extend(FAULT_BUS_WIDE.iter().map(|w| ("input", w.address, w.words)));
+    let mut registers = BTreeMap::new();
+    for (register_type, start, count) in ranges {
+        let values = harness
+            .registers(address, register_type, start, count)
+            .expect("registers");
+        for (register, value) in (start..).zip(values) {
+            registers.insert(RegisterKey::new(address, register_type, register), value);
+        }
+    }
+    registers
+}
+
 /// One run: the harness, the bus layout and what the test knows of the simulated world.
 struct Run {
     harness: Harness,
     layout: BenchLayout,
-    /// Every value topic → its register.
+    /// Every value topic → its value (a register, or several: the wide values).
     topics: BTreeMap<String, RegisterKey>,
-    /// Each register's value before any change.
+    /// Each single register's value before any change.
     initial: BTreeMap<RegisterKey, u16>,
-    /// Values a register may take: register slot × span + sequence (no two registers share one).
+    /// Values a slot may take: slot × span + sequence (no two values share one; a wide value's
+    /// other words are functions of it, see `bench::layout::wide_words`).
     span: u16,
-    sequence: BTreeMap<RegisterKey, u16>,
+    /// Values changed one per tick, round robin (registers and wide values).
+    round_robin: Vec<FaultSlot>,
+    /// Wide values whose next change waits until the last one is published.
+    awaited_slots: Vec<FaultSlot>,
+    /// Per slot index: values taken so far.
+    sequence: Vec<u16>,
     next_slot: usize,
     /// Last payload per topic, from the publications read so far.
     last_payload: BTreeMap<String, String>,
     publications_read: usize,
-    /// Event inputs toggled whose new value is not yet published: topic → value.
-    awaiting: BTreeMap<String, u16>,
+    /// Event inputs toggled (and awaited wide values changed) whose new value is not yet
+    /// published: topic → payload.
+    awaiting: BTreeMap<String, String>,
     toggles: usize,
     /// The test CA and certificates of a TLS run (removed with the run).
     _pki: Option<tempfile::TempDir>,
@@ -159,14 +184,30 @@ impl Run {
 
     /// As [`Run::start`], the daemon reaching the bus through `link`.
     fn start_on(devices: u8, baud: u32, link: Link) -> Self {
-        Self::start_with(devices, baud, link, false)
+        Self::start_with(devices, baud, link, false, false)
     }
 
     /// As [`Run::start_on`]; with `tls`, the daemon reaches the broker over TLS with a client
-    /// certificate (the harness's subscriber keeps a plain listener of the same broker).
-    fn start_with(devices: u8, baud: u32, link: Link, tls: bool) -> Self {
+    /// certificate (the harness's subscriber keeps a plain listener of the same broker). With
+    /// `word_events`, the Fast Modbus device at address 3 sends the words of its wide event
+    /// values by separate events (2-byte payloads), as the independent bus emulator of issue 15
+    /// did, where the others send each value whole at its first register.
+    fn start_with(devices: u8, baud: u32, link: Link, tls: bool, word_events: bool) -> Self {
         let layout = BenchLayout::fault_bus(devices, baud);
-        let (name, template, entries) = layout.fault_bus_files();
+        let (name, template, mut entries) = layout.fault_bus_files();
+        if word_events {
+            let blocks: Vec<Value> = FAULT_BUS_WIDE
+                .iter()
+                .filter(|wide| wide.sporadic)
+                .map(|wide| {
+                    json!({"type": "input", "address": wide.address, "count": wide.words,
+                           "events": true, "writable": false})
+                })
+                .collect();
+            for entry in entries.iter_mut().filter(|e| e["address"] == 3) {
+                entry["registers"] = json!(blocks);
+            }
+        }
         let mut bus = layout.bus();
         bus["devices"] = json!(entries);
         let mut options =
@@ -196,35 +237,21 @@ impl Run {
             dir
         });
         let harness = Harness::start(&options).expect("harness starts");
-        let mut topics = BTreeMap::new();
+        let topics = layout.fault_topics();
         let mut initial = BTreeMap::new();
         for address in 1..=devices {
-            let discrete = harness
-                .registers(address, "discrete", 0, EVENTS)
-                .expect("discrete inputs");
-            let inputs = harness
-                .registers(address, "input", 0, REGISTERS)
-                .expect("input registers");
-            for (register_type, values) in [("discrete", discrete), ("input", inputs)] {
-                for (register, value) in (0..).zip(values) {
-                    let key = RegisterKey::new(address, register_type, register);
-                    let (topic, _) = layout
-                        .topic_of(address, register_type, register, value)
-                        .expect("a register of the layout");
-                    topics.insert(topic, key.clone());
-                    initial.insert(key, value);
-                }
-            }
+            initial.extend(sim_registers(&harness, address));
         }
-        let slots = usize::from(devices) * usize::from(REGISTERS);
-        let span = u16::try_from(65_536 / slots).unwrap_or(u16::MAX);
+        let (round_robin, awaited_slots) = layout.fault_slots();
         let mut run = Self {
             harness,
+            span: layout.fault_span(),
+            sequence: vec![0; round_robin.len() + awaited_slots.len()],
+            round_robin,
+            awaited_slots,
             layout,
             topics,
             initial,
-            span,
-            sequence: BTreeMap::new(),
             next_slot: 0,
             last_payload: BTreeMap::new(),
             publications_read: 0,
@@ -232,9 +259,12 @@ impl Run {
             toggles: 0,
             _pki: pki,
         };
-        // Give every register a value of its own before the daemon reads anything.
-        for _ in 0..slots {
+        // Give every value one of its own before the daemon reads anything.
+        for _ in 0..run.round_robin.len() {
             run.change_next_register();
+        }
+        for slot in run.awaited_slots.clone() {
+            run.change_slot(slot);
         }
         let mut ports = run.layout.ports(run.harness.pty(), &json!({}));
         if let Some(kind) = listen {
@@ -269,27 +299,36 @@ impl Run {
         self.layout.devices
     }
 
-    fn payload(key: &RegisterKey, value: u16) -> String {
-        let _ = key;
-        value.to_string()
-    }
-
-    /// Sets the next register (round robin) to its next value of its own.
-    fn change_next_register(&mut self) {
-        let slots = usize::from(self.devices()) * usize::from(REGISTERS);
-        let slot = self.next_slot % slots;
-        self.next_slot += 1;
-        let address = u8::try_from(slot / usize::from(REGISTERS) + 1).unwrap_or(1);
-        let register = u16::try_from(slot % usize::from(REGISTERS)).unwrap_or(0);
-        let key = RegisterKey::new(address, "input", register);
-        let sequence = self.sequence.entry(key).or_insert(0);
+    /// `slot` takes its next value of its own, all its words at once (false: it has used up
+    /// its values; a run never gets there).
+    fn change_slot(&mut self, slot: FaultSlot) -> bool {
+        let Some(sequence) = self.sequence.get_mut(slot.index) else {
+            return false;
+        };
         if *sequence + 1 >= self.span {
-            // This register has used up its values: leave it (a run never gets here).
-            return;
+            return false;
         }
         *sequence += 1;
-        let value = u16::try_from(slot).unwrap_or(0) * self.span + *sequence;
-        self.set(address, "input", register, value);
+        let words = slot.words_for(self.span, *sequence);
+        self.harness
+            .control(
+                &json!({"cmd": "set", "serial": serial(slot.address), "type": "input",
+                             "address": slot.register, "value": words}),
+            )
+            .expect("set");
+        true
+    }
+
+    /// Sets the next register or wide value (round robin) to its next value of its own.
+    fn change_next_register(&mut self) {
+        let Some(&slot) = self
+            .round_robin
+            .get(self.next_slot % self.round_robin.len().max(1))
+        else {
+            return;
+        };
+        self.next_slot += 1;
+        self.change_slot(slot);
     }
 
     fn set(&self, address: u8, register_type: &str, register: u16, value: u16) {
@@ -313,17 +352,15 @@ impl Run {
         }
     }
 
-    /// Toggles every event input whose last toggle has been published (so that no change can
-    /// be legitimately overwritten by the next one: each must be published).
+    /// Toggles every event input (and changes every awaited wide value) whose last change has
+    /// been published (so that no change can be legitimately overwritten by the next one: each
+    /// must be published).
     fn toggle_published_events(&mut self) {
         self.read_publications();
         let published: Vec<String> = self
             .awaiting
             .iter()
-            .filter(|(topic, value)| {
-                self.last_payload.get(*topic).map(String::as_str)
-                    == Some(value.to_string().as_str())
-            })
+            .filter(|(topic, payload)| self.last_payload.get(*topic) == Some(*payload))
             .map(|(topic, _)| topic.clone())
             .collect();
         for topic in published {
@@ -345,10 +382,28 @@ impl Run {
                                      "address": event}),
                     )
                     .expect("toggle");
-                let value = u16::try_from(reply["value"].as_u64().unwrap_or(0)).unwrap_or(0);
-                self.awaiting.insert(topic, value);
+                let value = reply["value"].as_u64().unwrap_or(0);
+                self.awaiting.insert(topic, value.to_string());
                 self.toggles += 1;
             }
+        }
+        for slot in self.awaited_slots.clone() {
+            let key = slot.key();
+            let Some(topic) = self
+                .topics
+                .iter()
+                .find(|(_, k)| **k == key)
+                .map(|(t, _)| t.clone())
+            else {
+                continue;
+            };
+            if self.awaiting.contains_key(&topic) || !self.change_slot(slot) {
+                continue;
+            }
+            let words = slot.words_for(self.span, self.sequence[slot.index]);
+            let payload = BenchLayout::fault_payload(&key, join_words(&words));
+            self.awaiting.insert(topic, payload);
+            self.toggles += 1;
         }
     }
 
@@ -384,24 +439,23 @@ impl Run {
 
     /// What the broker should show now: topic → payload, from the simulator's registers.
     fn expected(&self) -> BTreeMap<String, String> {
-        let mut expected = BTreeMap::new();
+        let mut registers = BTreeMap::new();
         for address in 1..=self.devices() {
-            for (register_type, count) in [("discrete", EVENTS), ("input", REGISTERS)] {
-                let values = self
-                    .harness
-                    .registers(address, register_type, 0, count)
-                    .expect("registers");
-                for (register, value) in (0..).zip(values) {
-                    if let Some((topic, payload)) =
-                        self.layout
-                            .topic_of(address, register_type, register, value)
-                    {
-                        expected.insert(topic, payload);
-                    }
-                }
-            }
+            registers.extend(sim_registers(&self.harness, address));
         }
-        expected
+        self.topics
+            .iter()
+            .map(|(topic, key)| {
+                let words: Vec<u16> = key
+                    .registers()
+                    .map(|r| registers.get(&r).copied().unwrap_or(0))
+                    .collect();
+                (
+                    topic.clone(),
+                    BenchLayout::fault_payload(key, join_words(&words)),
+                )
+            })
+            .collect()
     }
 
     /// The last published value of every topic and the simulator's disagree, or an error flag
@@ -465,35 +519,46 @@ impl Run {
             &self.harness.publications(),
             since_ns,
             &self.topics,
-            Self::payload,
+            BenchLayout::fault_payload,
         )
     }
 
-    /// The event inputs' changes matched with their publications.
-    fn event_matching(&self, since_ns: u64) -> MatchReport {
-        let changes: Vec<Change> = self
-            .changes()
+    /// The changes of the values `keep` selects since `since_ns` (a wide value's words of one
+    /// instant are one change) matched with their publications.
+    fn matching(&self, since_ns: u64, keep: impl Fn(&RegisterKey) -> bool) -> MatchReport {
+        let keys: Vec<(&String, &RegisterKey)> =
+            self.topics.iter().filter(|(_, k)| keep(k)).collect();
+        let topic_of: BTreeMap<&RegisterKey, &String> =
+            keys.iter().map(|(t, k)| (*k, *t)).collect();
+        let (_, changes) =
+            value_histories(&self.initial, &self.changes(), keys.iter().map(|(_, k)| *k));
+        let expected: Vec<ExpectedChange> = changes
             .into_iter()
-            .filter(|c| c.register_type == "discrete" && c.mono_ns >= since_ns)
+            .filter(|c| c.mono_ns >= since_ns && c.origin == "control")
+            .filter_map(|c| {
+                Some(ExpectedChange {
+                    mono_ns: c.mono_ns,
+                    topic: topic_of.get(&c.key)?.to_string(),
+                    payload: BenchLayout::fault_payload(&c.key, c.value),
+                })
+            })
             .collect();
-        match_changes(&changes, &self.harness.publications(), since_ns, |c| {
-            self.layout
-                .topic_of(c.address, &c.register_type, c.register, c.value)
+        match_expected(&expected, &self.harness.publications(), since_ns)
+    }
+
+    /// The changes of event inputs and awaited wide values matched with their publications:
+    /// each must be published exactly once.
+    fn event_matching(&self, since_ns: u64) -> MatchReport {
+        let awaited: Vec<RegisterKey> = self.awaited_slots.iter().map(FaultSlot::key).collect();
+        self.matching(since_ns, |k| {
+            k.register_type == "discrete" || awaited.contains(k)
         })
     }
 
-    /// All value changes matched with publications (for the figures: lost counts registers
-    /// that changed twice between two reads, which no poller can see).
+    /// All value changes matched with publications (for the figures: lost counts values that
+    /// changed twice between two reads, which no poller can see).
     fn value_matching(&self, since_ns: u64) -> MatchReport {
-        let changes: Vec<Change> = self
-            .changes()
-            .into_iter()
-            .filter(|c| c.mono_ns >= since_ns && c.origin == "control")
-            .collect();
-        match_changes(&changes, &self.harness.publications(), since_ns, |c| {
-            self.layout
-                .topic_of(c.address, &c.register_type, c.register, c.value)
-        })
+        self.matching(since_ns, |_| true)
     }
 
     fn assert_no_bad_value(&self, since_ns: u64, what: &str) -> usize {
@@ -529,18 +594,19 @@ impl Run {
     }
 }
 
-/// Scenario 1: noise on a bus of fast and classic devices whose values change all the time.
+/// Scenario 1: noise on a bus of fast and classic devices whose values change all the time;
+/// device 3 reports its wide values a word at a time (issue 15's independent emulator did).
 fn noise_scenario(devices: u8, baud: u32) {
     let fault_time = if long_variant() {
         Duration::from_secs(300)
     } else {
         Duration::from_secs(25)
     };
-    let mut run = Run::start(devices, baud);
+    let mut run = Run::start_with(devices, baud, Link::Pty, false, true);
     let since = monotonic_ns();
-    let requests_before = run.harness.bus_stats().expect("stats")["requests"]
-        .as_u64()
-        .unwrap_or(0);
+    let stats_before = run.harness.bus_stats().expect("stats");
+    let requests_before = stats_before["requests"].as_u64().unwrap_or(0);
+    let contended_before = stats_before["contended_event_polls"].as_u64().unwrap_or(0);
     run.faults_on_all(&noise());
     run.drive(fault_time);
     run.faults_on_all(&json!({}));
@@ -562,12 +628,20 @@ fn noise_scenario(devices: u8, baud: u32) {
     assert_eq!(values.wrong, 0, "{values:?}");
     let stats = run.harness.bus_stats().expect("stats");
     let requests = stats["requests"].as_u64().unwrap_or(0) - requests_before;
+    // Several Fast Modbus devices with events answering the same poll (arbitration) under the
+    // noise: the bus must really produce it for the run to prove anything about it.
+    let contended = stats["contended_event_polls"].as_u64().unwrap_or(0) - contended_before;
+    let max_contenders = stats["max_event_contenders"].as_u64().unwrap_or(0);
+    assert!(
+        contended > 0 && max_contenders >= 2,
+        "no event poll had two devices with events: {stats}"
+    );
     // Devices the noise made look dead for a while (their back-off is most of the recovery).
     let marked_offline = run.harness.daemon_log().matches("marked offline").count();
     eprintln!(
         "FIGURES noise devices={devices} baud={baud} faults_s={} requests={requests} \
-         devices_marked_offline={marked_offline} \
-         register_changes={} publications_checked={checked} wrong_values=0 \
+         devices_marked_offline={marked_offline} contended_event_polls={contended} \
+         max_event_contenders={max_contenders} value_changes={} publications_checked={checked} wrong_values=0 \
          event_changes={} events_lost={} event_duplicates={} value_duplicates={} \
          value_changes_unseen_between_reads={} recovery_after_faults_ms={} (converged {} ms)",
         fault_time.as_secs(),
@@ -1159,7 +1233,7 @@ fn modbus_tcp_gateway_dropping_the_connection_is_reconnected() {
 #[test]
 fn tls_broker_killed_and_restarted_under_noise_gets_everything_back() {
     let rounds = if long_variant() { 10 } else { 2 };
-    let mut run = Run::start_with(4, 115_200, Link::Pty, true);
+    let mut run = Run::start_with(4, 115_200, Link::Pty, true, false);
     let since = monotonic_ns();
     run.faults_on_all(&noise());
     let mut restores = Vec::new();

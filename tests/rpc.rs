@@ -78,25 +78,71 @@ struct Bench {
 }
 
 fn start(line: &str, baud: u32) -> Bench {
+    start_with_generic(line, baud, false)
+}
+
+/// With `generic`, also a classic Modbus device (no Fast Modbus) with a bit-field channel at
+/// address 22.
+fn start_with_generic(line: &str, baud: u32, generic: bool) -> Bench {
     let broker = Mosquitto::start();
     let dir = tempfile::tempdir().unwrap();
     let bus = dir.path().join("bus.json");
-    let devices = json!({"devices": [
-        {"name": "relay", "template": "rtu2mqtt-relay6", "address": 20, "serial": "0xFE000020",
-         "line": line, "model": "WBMR6C", "firmware": "1.26.0"},
-        {"name": "climate", "template": "rtu2mqtt-climate", "address": 21, "serial": "0xFE000021",
-         "line": line, "values": {"input:4": 2150}}
-    ]});
-    std::fs::write(&bus, devices.to_string()).unwrap();
+    let mut sim_devices = vec![
+        json!({"name": "relay", "template": "rtu2mqtt-relay6", "address": 20,
+               "serial": "0xFE000020", "line": line, "model": "WBMR6C", "firmware": "1.26.0"}),
+        json!({"name": "climate", "template": "rtu2mqtt-climate", "address": 21,
+               "serial": "0xFE000021", "line": line, "values": {"input:4": 2150}}),
+    ];
+    let mut config_devices = vec![
+        json!({"device_type": "rtu2mqtt-relay6", "slave_id": 20, "in0_mode": 3}),
+        json!({"device_type": "rtu2mqtt-climate", "slave_id": 21}),
+    ];
+    let templates = dir.path().join("templates");
+    if generic {
+        // Holding 6 = 0b1010_0101: "Holding Bit 3" (6:3:1) is 0, the other bits are mixed.
+        sim_devices.push(json!({"name": "generic", "template": "rtu2mqtt-generic",
+            "address": 22, "serial": "0xFE000022", "line": line, "fast": false,
+            "values": {"holding:6": 0xA5}}));
+        // The daemon's template for it: parameters on the simulated registers, one on a
+        // register the device does not have (holding 7), two with conditions.
+        let template = json!({
+            "device_type": "rtu2mqtt-generic-parameters",
+            "device": {
+                "name": "Generic", "id": "generic", "max_read_registers": 10,
+                "parameters": {
+                    "scaled": {"title": "Scaled", "address": 1, "format": "s16", "scale": 0.5},
+                    "high_bits": {"title": "Bits 8-15", "address": "6:8:8"},
+                    "ghost": {"title": "Not on the device", "address": 7},
+                    "if_ghost": {"title": "When ghost is 1", "address": 0,
+                                 "condition": "ghost==1"},
+                    "if_negative": {"title": "When scaled < 0", "address": 2,
+                                    "condition": "scaled<0"}
+                },
+                "channels": [{"name": "Holding Bit 3", "reg_type": "holding",
+                              "address": "6:3:1", "type": "switch"}]
+            }
+        });
+        std::fs::create_dir_all(&templates).unwrap();
+        std::fs::write(
+            templates.join("rtu2mqtt-generic-parameters.json"),
+            template.to_string(),
+        )
+        .unwrap();
+        config_devices.push(json!({"device_type": "rtu2mqtt-generic-parameters", "slave_id": 22}));
+    }
+    std::fs::write(&bus, json!({ "devices": sim_devices }).to_string()).unwrap();
     let sim = SimProcess::start_with(&bus, &repo("templates"), &[]);
     let config = json!({
         "mqtt": {"host": "127.0.0.1", "port": broker.port, "client_id": "rtu2mqtt-rpc-test"},
-        "ports": [{"path": sim.pty, "baud_rate": baud, "stop_bits": 2, "devices": [
-            {"device_type": "rtu2mqtt-relay6", "slave_id": 20, "in0_mode": 3},
-            {"device_type": "rtu2mqtt-climate", "slave_id": 21}
-        ]}]
+        "ports": [{"path": sim.pty, "baud_rate": baud, "stop_bits": 2, "devices": config_devices}]
     });
-    let daemon = DaemonProcess::start(&config, &[], Stdio::null(), Stdio::null());
+    let templates = templates.to_str().unwrap();
+    let extra: &[&str] = if generic {
+        &["--templates", templates]
+    } else {
+        &[]
+    };
+    let daemon = DaemonProcess::start(&config, extra, Stdio::null(), Stdio::null());
     Bench {
         line: line.to_owned(),
         broker,
@@ -568,6 +614,7 @@ async fn set_address_goes_through_the_service(bench: &Bench) {
 /// events flowing before, during and after (`device/SetPoll`: `set_poll_holds_and_resumes_a_device`).
 async fn device_methods(bench: &Bench) {
     let port = bench.broker.port;
+    let baud: u64 = bench.line.split(' ').next().unwrap().parse().unwrap();
     let path = bench.sim.pty.to_str().unwrap().to_owned();
     wait_until_served(port).await;
     let event_seen = |value: &'static str| {
@@ -626,14 +673,82 @@ async fn device_methods(bench: &Bench) {
         json!({"code": -32000, "message":
             "Channel \"Nope\" is write only or not found in \"rtu2mqtt-climate\" device template"})
     );
+    // Template parameters, read from the device as it holds them (scaled).
+    bench.sim.control(
+        json!({"cmd": "set", "device": 21, "type": "holding", "address": 101, "value": 250}),
+    );
     let parameters = rpc(
         port,
         "device",
         "Load",
-        json!({"device_id": "climate_21", "parameters": ["baud_rate"]}),
+        json!({"device_id": "climate_21", "channels": ["Temperature"],
+               "parameters": ["baud_rate", "selfheating_compensation_deg"]}),
     )
     .await;
-    assert_eq!(parameters["error"]["code"], -32000, "{parameters}");
+    assert_eq!(
+        parameters["result"],
+        json!({"channels": {"Temperature": 21.5},
+               "parameters": {"baud_rate": baud / 100, "selfheating_compensation_deg": 2.5}}),
+        "{parameters}"
+    );
+    let unknown_parameter = rpc(
+        port,
+        "device",
+        "Load",
+        json!({"device_id": "climate_21", "parameters": ["nope"]}),
+    )
+    .await;
+    assert_eq!(
+        unknown_parameter["error"],
+        json!({"code": -32000, "message":
+            "Parameter \"nope\" is write only or not found in \"rtu2mqtt-climate\" device template"})
+    );
+    // device/Set of parameters: encoded with their format and scale, as the device model
+    // encodes a channel; a read-only or unknown one and a bad value are refused, nothing written.
+    let set_parameters = rpc(
+        port,
+        "device",
+        "Set",
+        json!({"device_id": "climate_21",
+               "parameters": {"selfheating_compensation_deg": -1.5, "co2_sensor_enabled": 0}}),
+    )
+    .await;
+    assert_eq!(
+        set_parameters,
+        json!({"id": 1, "result": {}, "error": null})
+    );
+    let climate_register = |kind: &str, address: u16| {
+        bench
+            .sim
+            .control(json!({"cmd": "get", "device": 21, "type": kind, "address": address}))["value"]
+            .clone()
+    };
+    assert_eq!(climate_register("holding", 101), 0x10000 - 150);
+    assert_eq!(climate_register("coil", 3), 0);
+    for (parameters, message) in [
+        (
+            json!({"nope": 1}),
+            "Parameter \"nope\" is read only or not found in \"rtu2mqtt-climate\" device template",
+        ),
+        (
+            json!({"motion_filter_time_const_s": 20, "selfheating_compensation_deg": "warm"}),
+            "Parameter \"selfheating_compensation_deg\": a value takes a number, got `warm`",
+        ),
+    ] {
+        let refused = rpc(
+            port,
+            "device",
+            "Set",
+            json!({"device_id": "climate_21", "parameters": parameters}),
+        )
+        .await;
+        assert_eq!(
+            refused["error"],
+            json!({"code": -32000, "message": message}),
+            "{refused}"
+        );
+    }
+    assert_ne!(climate_register("holding", 282), 20);
     let unconfigured = rpc(
         port,
         "device",
@@ -704,7 +819,69 @@ async fn device_methods(bench: &Bench) {
     press(0);
     event_seen("0").await;
 
-    // device/LoadConfig: the configured parameters, the model and firmware read now.
+    // device/Set on a bit field: the register is read first, only bit 3 changes.
+    let holding_6 = || {
+        bench
+            .sim
+            .control(json!({"cmd": "get", "device": 22, "type": "holding", "address": 6}))["value"]
+            .clone()
+    };
+    assert_eq!(holding_6(), 0xA5);
+    let bit_on = rpc(
+        port,
+        "device",
+        "Set",
+        json!({"device_id": "generic_22", "channels": {"Holding Bit 3": "1"}}),
+    )
+    .await;
+    assert_eq!(bit_on, json!({"id": 1, "result": {}, "error": null}));
+    assert_eq!(holding_6(), 0xAD);
+    // Other bits changed on the device since: they are kept as they are now.
+    bench.sim.control(
+        json!({"cmd": "set", "device": 22, "type": "holding", "address": 6, "value": 0x1208}),
+    );
+    let bit_off = rpc(
+        port,
+        "device",
+        "Set",
+        json!({"path": path, "slave_id": 22, "channels": {"Holding Bit 3": 0}}),
+    )
+    .await;
+    assert_eq!(bit_off, json!({"id": 1, "result": {}, "error": null}));
+    assert_eq!(holding_6(), 0x1200);
+    let bad_bit = rpc(
+        port,
+        "device",
+        "Set",
+        json!({"device_id": "generic_22", "channels": {"Holding Bit 3": "2"}}),
+    )
+    .await;
+    assert_eq!(bad_bit["error"]["code"], -32000, "{bad_bit}");
+    assert_eq!(holding_6(), 0x1200);
+
+    // device/LoadConfig: the parameters the config sets as it sets them, every other one read
+    // from the device now (as the simulator holds it), the model and firmware.
+    let holding = |device: u8, address: u16| -> u64 {
+        bench
+            .sim
+            .control(json!({"cmd": "get", "device": device, "type": "holding", "address": address}))
+            ["value"]
+            .as_u64()
+            .unwrap()
+    };
+    // in2_mode (holding 10) changed through the service, as the web UI would write it.
+    let write = json!({"path": path, "protocol": "modbus", "slave_id": 20, "function": 6,
+                       "address": 10, "count": 1, "format": "HEX", "msg": "0004"});
+    let written = rpc(port, "port", "Load", write).await;
+    assert_eq!(written["result"], json!({"response": ""}), "{written}");
+    let mut relay_parameters = serde_json::Map::new();
+    relay_parameters.insert("baud_rate".into(), json!(holding(20, 110)));
+    relay_parameters.insert("in0_mode".into(), json!(3));
+    for input in 1..=6u16 {
+        relay_parameters.insert(format!("in{input}_mode"), json!(holding(20, 8 + input)));
+    }
+    assert_eq!(relay_parameters["in2_mode"], 4);
+    assert_eq!(relay_parameters["baud_rate"], baud / 100);
     let config = rpc_raw(
         port,
         "device",
@@ -712,10 +889,20 @@ async fn device_methods(bench: &Bench) {
         &json!({"id": 5, "params": {"device_id": "relay6_20"}}).to_string(),
     )
     .await;
-    assert_eq!(
-        config,
-        r#"{"id":5,"result":{"parameters":{"in0_mode":3},"model":"WBMR6C","fw":"1.26.0"},"error":null}"#
-    );
+    let expected = json!({"id": 5, "result": {"parameters": relay_parameters, "model": "WBMR6C",
+                          "fw": "1.26.0"}, "error": null});
+    assert_eq!(config, expected.to_string());
+
+    // Through the simulator's control socket: a signed, scaled parameter, a coil, a plain one.
+    for (kind, address, value) in [
+        ("holding", 101, 0xFF9C),
+        ("coil", 3, 1),
+        ("holding", 282, 15),
+    ] {
+        bench.sim.control(
+            json!({"cmd": "set", "device": 21, "type": kind, "address": address, "value": value}),
+        );
+    }
     let climate = rpc(
         port,
         "device",
@@ -725,8 +912,51 @@ async fn device_methods(bench: &Bench) {
     .await;
     assert_eq!(
         climate,
-        json!({"id": 1, "result": {"parameters": {}, "model": "WBMSW4", "fw": "1.0.0"}, "error": null})
+        json!({"id": 1, "result": {"parameters": {
+            "baud_rate": baud / 100, "co2_sensor_enabled": 1, "motion_filter_time_const_s": 15,
+            "selfheating_compensation_deg": -1}, "model": "WBMSW4", "fw": "1.0.0"}, "error": null})
     );
+    // A device that is no Wiren Board one: parameters only. The one on a register the device
+    // does not have is left out (its neighbour, read with it at first, is read again alone),
+    // and so is the one whose condition names it; conditions see scaled values.
+    for (address, value) in [(1, 0xFFF6), (2, 7)] {
+        bench.sim.control(
+            json!({"cmd": "set", "device": 22, "type": "holding", "address": address, "value": value}),
+        );
+    }
+    let generic = rpc(
+        port,
+        "device",
+        "LoadConfig",
+        json!({"device_id": "generic_22"}),
+    )
+    .await;
+    assert_eq!(
+        generic,
+        json!({"id": 1, "result": {"parameters": {"high_bits": 0x12, "if_negative": 7,
+               "scaled": -5}}, "error": null})
+    );
+    // A parameter that is a bit field: the other bits as the device holds them.
+    let high_bits = rpc(
+        port,
+        "device",
+        "Set",
+        json!({"device_id": "generic_22", "parameters": {"high_bits": 0x34}}),
+    )
+    .await;
+    assert_eq!(high_bits, json!({"id": 1, "result": {}, "error": null}));
+    assert_eq!(holding_6(), 0x3400);
+    // A channel and a parameter in the same register, in one request: both land.
+    let both = rpc(
+        port,
+        "device",
+        "Set",
+        json!({"device_id": "generic_22", "channels": {"Holding Bit 3": 1},
+               "parameters": {"high_bits": 0x56}}),
+    )
+    .await;
+    assert_eq!(both, json!({"id": 1, "result": {}, "error": null}));
+    assert_eq!(holding_6(), 0x5608);
 
     // Events still flow after all of it.
     press(1);
@@ -735,13 +965,13 @@ async fn device_methods(bench: &Bench) {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn device_methods_at_115200() {
-    let bench = start("115200 8N2", 115_200);
+    let bench = start_with_generic("115200 8N2", 115_200, true);
     device_methods(&bench).await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn device_methods_at_9600() {
-    let bench = start("9600 8N2", 9600);
+    let bench = start_with_generic("9600 8N2", 9600, true);
     device_methods(&bench).await;
 }
 

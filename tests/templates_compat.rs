@@ -42,7 +42,7 @@ fn all_fixtures_load_and_resolve() {
         );
         count += 1;
     }
-    assert_eq!(count, 4);
+    assert_eq!(count, 9);
 }
 
 /// Asserts a channel's first register: table, address, format and event mode.
@@ -403,4 +403,261 @@ fn untitled_groups_and_condition_only_parameter() {
         json!({"slave_id": 1, "mode": 0, "curve": 5}),
     );
     assert_eq!(setup(&d), vec![(21, vec![0])]);
+}
+
+fn setup_writes(d: &ResolvedDevice) -> Vec<(u16, Vec<u16>)> {
+    d.setup
+        .iter()
+        .map(|s| (s.register.address, s.words.clone()))
+        .collect()
+}
+
+/// WB-LED declares `in1_sp` once per dimmer mode, each with its own `enum` and an exclusive
+/// condition: a value is checked against the declaration in effect, and when none is in effect
+/// (here the input is a latching switch) nothing is written and nothing is checked, as in
+/// wb-mqtt-serial, whose validator only knows the declarations whose condition holds.
+#[test]
+fn parameter_declared_once_per_mode() {
+    let d = device(
+        "config-test-wb-dimmer.json",
+        json!({"slave_id": 1, "dimmer_mode": 256, "in1_sp": 4102}),
+    );
+    assert_eq!(
+        setup_writes(&d),
+        vec![(1000, vec![4102]), (4000, vec![256])]
+    );
+    let d = device(
+        "config-test-wb-dimmer.json",
+        json!({"slave_id": 1, "dimmer_mode": 0, "in1_sp": 4097}),
+    );
+    assert_eq!(setup_writes(&d), vec![(1000, vec![4097]), (4000, vec![0])]);
+    // The value of another mode is refused for this mode …
+    let err = resolve_template_device(
+        &template("config-test-wb-dimmer.json"),
+        &json!({"slave_id": 1, "dimmer_mode": 0, "in1_sp": 4102}),
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(err.contains("`in1_sp` cannot be 4102"), "{err}");
+    // … and not checked (nor written) while no declaration is in effect.
+    let d = device(
+        "config-test-wb-dimmer.json",
+        json!({"slave_id": 1, "dimmer_mode": 256, "input_1_mode": 1, "in1_sp": 4102}),
+    );
+    assert_eq!(setup_writes(&d), vec![(1020, vec![1]), (4000, vec![256])]);
+}
+
+/// MDM3: two parameters on one address; the condition on a third parameter picks which one is
+/// written.
+#[test]
+fn parameters_sharing_an_address() {
+    let d = device(
+        "config-test-wb-dimmer.json",
+        json!({"slave_id": 1, "dimmer_mode": 256, "out_number": 100, "action_single": 2, "action_all": 3}),
+    );
+    assert_eq!(
+        setup_writes(&d),
+        vec![(768, vec![100]), (832, vec![3]), (4000, vec![256])]
+    );
+    let d = device(
+        "config-test-wb-dimmer.json",
+        json!({"slave_id": 1, "dimmer_mode": 256, "out_number": 1, "action_single": 2, "action_all": 3}),
+    );
+    assert_eq!(
+        setup_writes(&d),
+        vec![(768, vec![1]), (832, vec![2]), (4000, vec![256])]
+    );
+}
+
+/// MR6C/MCM8: the same channel name twice, sporadic or polled by the input mode (a parameter
+/// default counts as defined); RGB of three registers; `error_value` as a hex string; one
+/// address read as s32 or s16 by condition.
+#[test]
+fn channels_chosen_by_condition_rgb_and_hex_error_value() {
+    let d = device(
+        "config-test-wb-dimmer.json",
+        json!({"slave_id": 1, "dimmer_mode": 256}),
+    );
+    assert_channel(&d, "Input 1", DiscreteInput, 0, U8, Sporadic);
+    assert_eq!(d.channels.iter().filter(|c| c.id == "Input 1").count(), 1);
+    let rgb = d.channel("RGB Palette").unwrap();
+    assert_eq!(
+        (rgb.control_type.as_str(), rgb.registers.len(), rgb.events),
+        ("rgb", 3, Sporadic)
+    );
+    assert_eq!(
+        rgb.decode(&[&[255], &[128], &[0]]).unwrap(),
+        Reading::Value("255;128;0".into())
+    );
+    assert_eq!(
+        rgb.encode("1;2;3", &[None, None, None]).unwrap(),
+        vec![vec![1], vec![2], vec![3]]
+    );
+    let hue = d.channel("RGB Strip Hue").unwrap();
+    assert_eq!(hue.decode(&[&[0xFFFF]]).unwrap(), Reading::DeviceError);
+    assert_eq!(hue.decode(&[&[180]]).unwrap(), Reading::Value("180".into()));
+    assert_channel(&d, "Encoder revolutions", Holding, 368, S16, Polled);
+    assert!(d.channel("Encoder position").is_none());
+    assert!(d.channel("Channel 1 Brightness").is_none());
+    let overcurrent = d.channel("Overcurrent").unwrap();
+    assert_eq!(overcurrent.control_type, "switch");
+    assert_eq!(
+        overcurrent.decode(&[&[1]]).unwrap(),
+        Reading::Value("1".into())
+    );
+
+    let d = device(
+        "config-test-wb-dimmer.json",
+        json!({"slave_id": 1, "dimmer_mode": 0, "input_1_mode": 3}),
+    );
+    assert_channel(&d, "Input 1", DiscreteInput, 0, U8, Polled);
+    assert_channel(&d, "Encoder position", Holding, 368, S32, Polled);
+    assert!(d.channel("RGB Palette").is_none());
+}
+
+/// An older WB-MWAC-v2 template had trailing commas; jsoncpp (wb-mqtt-serial's reader) accepts
+/// them. A key given twice in one object takes the last value, as in jsoncpp (WB-MRWM2).
+#[test]
+fn trailing_commas_are_accepted() {
+    let d = device(
+        "config-test-trailing-commas.json",
+        json!({"slave_id": 4, "timer_min": 30}),
+    );
+    assert_channel(&d, "Leak", DiscreteInput, 0, U8, Polled);
+    let text = d.channel("Text, with commas,").unwrap();
+    assert_eq!(text.enum_titles.len(), 2);
+    assert_eq!(setup_writes(&d), vec![(975, vec![30])]);
+}
+
+/// 1-Wire sensor ids are u64 parameters (WB-M1W2 v.3): a value above 2^53 is written exactly,
+/// from a parameter and from a config `setup` item alike. WB-MS v.2: a scaled s16 parameter with
+/// a negative value, and a coil parameter.
+#[test]
+fn u64_parameter_is_written_exactly() {
+    let d = device(
+        "config-test-w1-ids.json",
+        json!({"slave_id": 1, "bus1_sens1_id": 0x2900_0000_0000_0029_u64, "filter_deg": 0.5,
+               "setup": [{"title": "id", "address": 5700, "format": "u64", "value": u64::MAX}]}),
+    );
+    assert_eq!(
+        setup_writes(&d),
+        vec![
+            (99, vec![8]),
+            (5632, vec![0x2900, 0, 0, 0x0029]),
+            (5700, vec![0xFFFF, 0xFFFF, 0xFFFF, 0xFFFF]),
+        ]
+    );
+    let d2 = device(
+        "config-test-w1-ids.json",
+        json!({"slave_id": 1, "bus1_sens1_temp_offset_deg": -0.5, "heater_enabled": 1}),
+    );
+    let writes: Vec<(RegisterType, u16, Vec<u16>)> = d2
+        .setup
+        .iter()
+        .map(|s| (s.register.reg_type, s.register.address, s.words.clone()))
+        .collect();
+    assert_eq!(
+        writes,
+        vec![(Coil, 2, vec![1]), (Holding, 1616, vec![0xFFF8])]
+    );
+    let temperature = d.channel("External Sensor 1").unwrap();
+    assert_eq!(temperature.name, "Input 1 Temperature");
+    assert_eq!(
+        temperature.decode(&[&[0x0191]]).unwrap(),
+        Reading::Value("25.05".into())
+    );
+}
+
+/// Values as the meters of wb-mqtt-serial's library publish them: little-endian word order,
+/// scale then `round_to`, hex `error_value` compared on the raw register value.
+#[test]
+fn meter_values_scale_round_and_error_values() {
+    let d = device("config-test-energy-meter.json", json!({"slave_id": 1}));
+    let value = |id: &str, words: &[u16]| d.channel(id).unwrap().decode(&[words]).unwrap();
+    let text = |s: &str| Reading::Value(s.into());
+    assert_eq!(value("Power", &[0x1234, 0x0001]), text("7020"));
+    assert_eq!(value("Energy", &[12345, 0]), text("1.2345"));
+    assert_eq!(
+        value("AP energy", &[0xCD15, 0x075B, 0, 0]),
+        text("1234.56789")
+    );
+    assert_eq!(value("Ipeak", &[0xFC18, 0xFFFF]), text("-16"));
+    assert_eq!(value("P Current", &[0x7FFF, 0xFFFF]), Reading::DeviceError);
+    assert_eq!(value("P Current", &[0x00BC, 0x614E]), text("12.35"));
+    assert_eq!(value("Temp 1", &[0xFFFF]), Reading::DeviceError);
+    assert_eq!(value("Temp 1", &[0xFFF0]), text("-1"));
+    assert_eq!(value("Temp 1", &[0x0190]), text("25"));
+    assert_channel(&d, "Period", Holding, 0x8007, U8, Polled);
+    assert_eq!(value("Period", &[0x1234]), text("52"));
+}
+
+/// Breezart-style HVAC constructs: one bit read as a status and written as an inverted switch
+/// (the other bits of the register are kept), 8-bit fields, pushbuttons that share a register,
+/// a scaled setpoint.
+#[test]
+fn hvac_bit_fields_inverted_switch_and_shared_pushbuttons() {
+    let d = device("config-test-hvac.json", json!({"slave_id": 1}));
+    assert_eq!(d.timing.guard_interval.as_micros(), 5000);
+    let channel = |id: &str| d.channel(id).unwrap();
+    assert_eq!(
+        channel("unit_status").decode(&[&[0xFFF6]]).unwrap(),
+        Reading::Value("2".into())
+    );
+    assert_eq!(
+        channel("error_code").decode(&[&[0xFFFE, 0xFFFF]]).unwrap(),
+        Reading::Value("-2".into())
+    );
+    assert_channel(&d, "current_time_program", Input, 64008, U8, Polled);
+    assert_eq!(
+        channel("current_time_program")
+            .decode(&[&[0x12FF]])
+            .unwrap(),
+        Reading::Value("255".into())
+    );
+    // Bit 7 clear: the status says 0 ("On"), the inverted switch says 1.
+    assert_eq!(
+        channel("time_program_auto_status")
+            .decode(&[&[0x0F0F]])
+            .unwrap(),
+        Reading::Value("0".into())
+    );
+    assert!(channel("time_program_auto_status").readonly);
+    let autorun = channel("time_program_autorun");
+    assert_eq!(
+        autorun.decode(&[&[0x0F0F]]).unwrap(),
+        Reading::Value("1".into())
+    );
+    assert_eq!(
+        autorun.decode(&[&[0x0F8F]]).unwrap(),
+        Reading::Value("0".into())
+    );
+    assert_eq!(
+        autorun.encode("1", &[Some(&[0x00FF][..])]).unwrap(),
+        vec![vec![0x007F]]
+    );
+    assert_eq!(
+        autorun.encode("0", &[Some(&[0x0F0F][..])]).unwrap(),
+        vec![vec![0x0F8F]]
+    );
+    assert_eq!(
+        channel("setpoint_temperature")
+            .encode("21.5", &[None])
+            .unwrap(),
+        vec![vec![215]]
+    );
+    assert_eq!(
+        channel("setpoint_temperature")
+            .decode(&[&[0xFFEC]])
+            .unwrap(),
+        Reading::Value("-2".into())
+    );
+    for (id, word) in [("time_program_1", 1), ("time_program_3", 3)] {
+        let button = channel(id);
+        assert!(button.write_only, "{id}");
+        assert_eq!(
+            button.encode("1", &[None]).unwrap(),
+            vec![vec![word]],
+            "{id}"
+        );
+    }
 }

@@ -40,29 +40,51 @@ pub fn match_changes(
     since_ns: u64,
     topic_of: impl Fn(&Change) -> Option<(String, String)>,
 ) -> MatchReport {
+    let mut unmapped = 0;
+    let expected: Vec<ExpectedChange> = changes
+        .iter()
+        .filter_map(|change| {
+            let mapped = topic_of(change).map(|(topic, payload)| ExpectedChange {
+                mono_ns: change.mono_ns,
+                topic,
+                payload,
+            });
+            unmapped += usize::from(mapped.is_none());
+            mapped
+        })
+        .collect();
+    MatchReport {
+        unmapped,
+        ..match_expected(&expected, publications, since_ns)
+    }
+}
+
+/// A change as it must be published: when it happened, its topic and payload (for values that
+/// are not one register: see `history::value_histories`).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ExpectedChange {
+    pub mono_ns: u64,
+    pub topic: String,
+    pub payload: String,
+}
+
+/// [`match_changes`] for changes already mapped to their topics.
+pub fn match_expected(
+    changes: &[ExpectedChange],
+    publications: &[Publication],
+    since_ns: u64,
+) -> MatchReport {
     let mut report = MatchReport::default();
     // topic → changes in time order, (time, expected payload).
     let mut by_topic: BTreeMap<&str, VecDeque<(u64, String)>> = BTreeMap::new();
-    let mut topics: Vec<(String, VecDeque<(u64, String)>)> = Vec::new();
-    let mut index_of: BTreeMap<String, usize> = BTreeMap::new();
-    let mut ordered: Vec<&Change> = changes.iter().collect();
+    let mut ordered: Vec<&ExpectedChange> = changes.iter().collect();
     ordered.sort_by_key(|c| c.mono_ns);
     for change in ordered {
-        let Some((topic, payload)) = topic_of(change) else {
-            report.unmapped += 1;
-            continue;
-        };
         report.changes += 1;
-        let index = *index_of.entry(topic.clone()).or_insert_with(|| {
-            topics.push((topic, VecDeque::new()));
-            topics.len() - 1
-        });
-        if let Some((_, queue)) = topics.get_mut(index) {
-            queue.push_back((change.mono_ns, payload));
-        }
-    }
-    for (topic, queue) in &mut topics {
-        by_topic.insert(topic.as_str(), std::mem::take(queue));
+        by_topic
+            .entry(change.topic.as_str())
+            .or_default()
+            .push_back((change.mono_ns, change.payload.clone()));
     }
     let mut last_value: BTreeMap<&str, &str> = BTreeMap::new();
     let mut ordered: Vec<&Publication> = publications.iter().collect();

@@ -16,7 +16,7 @@ use crate::daemon::{start_bus_side_with_status, stdio, termination_signal, BusCo
 use crate::device::model::ResolvedPort;
 use crate::device::resolve_config;
 use crate::mqtt::{run_mqtt_reporting, MqttSettings};
-use crate::rpc::run_rpc_server;
+use crate::rpc::{run_rpc_server, DeviceTemplates};
 use crate::service::{notify_systemd, BrokerState, ServiceHealth};
 use crate::status::{StatusHub, StatusServer};
 
@@ -39,8 +39,8 @@ pub struct Args {
 }
 
 /// Loads the config and resolves its devices against the templates; the errors as the
-/// integrator reads them otherwise.
-fn load(args: &Args) -> Result<(LoadedConfig, Vec<ResolvedPort>), Vec<String>> {
+/// integrator reads them otherwise. Also the templates the devices use (for the RPC).
+fn load(args: &Args) -> Result<(LoadedConfig, Vec<ResolvedPort>, TemplateLibrary), Vec<String>> {
     let loaded = load_config(&args.config)
         .map_err(|errors| errors.0.iter().map(ToString::to_string).collect::<Vec<_>>())?;
     let mut dirs = loaded.config.template_dirs.clone();
@@ -48,12 +48,18 @@ fn load(args: &Args) -> Result<(LoadedConfig, Vec<ResolvedPort>), Vec<String>> {
     let library = TemplateLibrary::load_standard(&dirs);
     let ports = resolve_config(&loaded, &library)
         .map_err(|errors| errors.0.iter().map(ToString::to_string).collect::<Vec<_>>())?;
-    Ok((loaded, ports))
+    let used = library.only(
+        ports
+            .iter()
+            .flat_map(|port| &port.devices)
+            .filter_map(|device| device.device_type.as_deref()),
+    );
+    Ok((loaded, ports, used))
 }
 
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     super::init_logging();
-    let (loaded, ports) = match load(&args) {
+    let (loaded, ports, templates) = match load(&args) {
         Ok(loaded) => loaded,
         Err(errors) => {
             for error in &errors {
@@ -71,6 +77,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let fast_modbus = loaded.config.fast_modbus;
     let running_mqtt = serde_json::to_value(&loaded.config.mqtt).unwrap_or_default();
     let http = loaded.config.http.clone();
+    let templates = DeviceTemplates::new(templates);
     let result = runtime.block_on(async move {
         // Installed first: from here on SIGHUP reloads instead of killing the process.
         let mut hangups = signal(SignalKind::hangup()).context("cannot handle SIGHUP")?;
@@ -134,6 +141,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             rpc_task = Some(tokio::spawn(run_rpc_server(
                 mqtt_settings.broker.clone(),
                 bus.port_directory(),
+                templates.clone(),
                 async move {
                     let _ = rpc_stop.wait_for(|stop| *stop).await;
                 },
@@ -151,7 +159,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             tokio::select! {
                 () = &mut terminate => break None,
                 result = &mut sink => break Some(result),
-                _ = hangups.recv() => reload(&args, &mut bus, &running_mqtt, &http).await,
+                _ = hangups.recv() => reload(&args, &mut bus, &templates, &running_mqtt, &http).await,
             }
         };
         info!("stopping");
@@ -190,11 +198,12 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
 async fn reload(
     args: &Args,
     bus: &mut BusControl,
+    templates: &DeviceTemplates,
     running_mqtt: &serde_json::Value,
     running_http: &Option<HttpConfig>,
 ) {
     info!(config = %args.config.display(), "SIGHUP: reloading the config and templates");
-    let (loaded, ports) = match load(args) {
+    let (loaded, ports, used_templates) = match load(args) {
         Ok(loaded) => loaded,
         Err(errors) => {
             error!(
@@ -211,6 +220,7 @@ async fn reload(
     if loaded.config.http != *running_http {
         warn!("the http section changed: it takes effect when the service restarts");
     }
+    templates.replace(used_templates);
     let summary = bus.reload(ports, loaded.config.fast_modbus).await;
     info!(
         started = ?summary.ports_started,

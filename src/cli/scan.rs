@@ -3,7 +3,7 @@
 //! options and the runtime shared by the other site tools.
 
 use std::io::IsTerminal;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::{Duration, Instant};
 
@@ -11,6 +11,7 @@ use serde_json::{json, Value};
 
 use crate::config::TemplateLibrary;
 use crate::protocol::{LineSettings, Parity, RequestPdu, ResponsePdu};
+use crate::tools::adapter::{sysfs_tty, Adapter};
 use crate::tools::bus::{Answer, PortError, ToolBus, ToolPort, KNOWN_DEVICE_TIMEOUT};
 use crate::tools::exit;
 use crate::tools::plan::{parse_parity, parse_range, scan_plan, PlanFilter};
@@ -33,8 +34,10 @@ pub struct PortArgs {
     #[arg(long, value_delimiter = ',', value_parser = clap::value_parser!(u8).range(1..=2))]
     pub stop_bits: Vec<u8>,
     /// Added to every reply timeout, in ms: what a USB adapter and a busy machine add.
-    #[arg(long, default_value_t = 24, value_name = "MS")]
-    pub latency: u64,
+    /// Default: from the kind of port (5 for a native UART, an FTDI adapter's latency timer
+    /// + 4, 24 for other USB adapters).
+    #[arg(long, value_name = "MS")]
+    pub latency: Option<u64>,
 }
 
 impl PortArgs {
@@ -55,7 +58,19 @@ impl PortArgs {
     }
 
     pub fn open(&self) -> Result<ToolPort, PortError> {
-        ToolPort::open(&self.port, Duration::from_millis(self.latency))
+        ToolPort::open(&self.port, self.reply_allowance())
+    }
+
+    /// `--latency`, or what the kind of port needs.
+    pub fn reply_allowance(&self) -> Duration {
+        match self.latency {
+            Some(ms) => Duration::from_millis(ms),
+            None => {
+                let adapter = Adapter::detect(Path::new(&self.port), &sysfs_tty());
+                tracing::info!(port = %self.port, "{}", adapter.describe());
+                adapter.reply_allowance()
+            }
+        }
     }
 }
 
@@ -154,7 +169,8 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     Ok(if report.devices.is_empty() {
         eprintln!(
             "no device answered at {} setting(s) of {}: check wiring (A/B swapped?), power, and \
-             that the devices speak Fast Modbus (else add --classic)",
+             that the devices speak Fast Modbus (else add --classic); behind a slow USB adapter or \
+             converter, give replies more time with --latency 40",
             report.settings_tried.len(),
             args.port.port
         );

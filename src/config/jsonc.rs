@@ -4,7 +4,9 @@
 //! stripped text are those of the file the integrator edits: every error can point into the
 //! original file.
 
-/// Replaces `// …` and `/* … */` comments outside strings with spaces (newlines are kept).
+/// Replaces `// …` and `/* … */` comments outside strings with spaces (newlines are kept), and
+/// a trailing comma before `}` or `]` with a space: wb-mqtt-serial reads its files with jsoncpp,
+/// whose default reader accepts both, and a released WB-MWAC-v2 template has trailing commas.
 ///
 /// An unterminated block comment is blanked to the end; the JSON parser then reports what is
 /// missing at the end of the file, which is where the integrator has to look anyway.
@@ -59,9 +61,38 @@ pub fn strip_comments(text: &str) -> String {
             }
         }
     }
+    blank_trailing_commas(&mut out);
     // Only ASCII bytes of comments were replaced by ASCII spaces, and multi-byte characters inside
     // comments are blanked byte by byte, so the result is valid UTF-8.
     String::from_utf8(out).unwrap_or_default()
+}
+
+/// Blanks every `,` outside strings that only whitespace separates from a closing `}` or `]`
+/// (comments are already blanked).
+fn blank_trailing_commas(bytes: &mut [u8]) {
+    let mut in_string = false;
+    let mut i = 0;
+    while i < bytes.len() {
+        let byte = bytes[i];
+        if in_string {
+            if byte == b'\\' {
+                i += 1;
+            } else if byte == b'"' {
+                in_string = false;
+            }
+        } else if byte == b'"' {
+            in_string = true;
+        } else if byte == b',' {
+            let next = bytes[i + 1..]
+                .iter()
+                .find(|b| !b.is_ascii_whitespace())
+                .copied();
+            if matches!(next, Some(b'}' | b']')) {
+                bytes[i] = b' ';
+            }
+        }
+        i += 1;
+    }
 }
 
 /// Keeps line breaks (so line numbers stay right) and blanks everything else of a comment.
@@ -129,6 +160,18 @@ mod tests {
         let stripped = strip_comments(text);
         let value: serde_json::Value = serde_json::from_str(&stripped).unwrap();
         assert_eq!(value["t"], "Вход");
+    }
+
+    #[test]
+    fn trailing_commas_are_blanked_outside_strings() {
+        let text = "{\"a\": [1, 2,\n], \"b\": \"x,]\", /* c */ \"c\": {\"d\": 1, // e\n},}";
+        let stripped = strip_comments(text);
+        assert_eq!(stripped.len(), text.len());
+        let value: serde_json::Value = serde_json::from_str(&stripped).unwrap();
+        assert_eq!(value["a"], serde_json::json!([1, 2]));
+        assert_eq!(value["b"], "x,]");
+        assert_eq!(value["c"]["d"], 1);
+        assert!(serde_json::from_str::<serde_json::Value>(&strip_comments("[1,,]")).is_err());
     }
 
     #[test]

@@ -257,6 +257,21 @@ impl TemplateLibrary {
         self.templates.get(device_type)
     }
 
+    /// The templates of these device types only (with the same dirs): what a running service
+    /// keeps of the library it resolved its config with.
+    pub fn only<'a>(&self, device_types: impl IntoIterator<Item = &'a str>) -> Self {
+        let mut kept = Self {
+            dirs: self.dirs.clone(),
+            ..Self::default()
+        };
+        for device_type in device_types {
+            if let Some(template) = self.get(device_type) {
+                kept.insert(template.clone());
+            }
+        }
+        kept
+    }
+
     pub fn iter(&self) -> impl Iterator<Item = &TemplateFile> {
         self.templates.values()
     }

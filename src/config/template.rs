@@ -246,11 +246,29 @@ pub struct SetupItemSpec {
 }
 
 /// A setup value: a number, or an integer string (`"0x10"`).
-#[derive(Debug, Clone, PartialEq, Deserialize, Serialize, JsonSchema)]
+///
+/// A JSON integer is kept as its exact text: 1-Wire sensor ids (WB-M1W2 v.3) are u64 values
+/// above 2^53, which a double would round.
+#[derive(Debug, Clone, PartialEq, Serialize, JsonSchema)]
 #[serde(untagged)]
 pub enum SetupValue {
     Number(f64),
     Text(String),
+}
+
+impl<'de> Deserialize<'de> for SetupValue {
+    fn deserialize<D: serde::Deserializer<'de>>(deserializer: D) -> Result<Self, D::Error> {
+        match serde_json::Value::deserialize(deserializer)? {
+            serde_json::Value::Number(number) => Ok(match number.as_f64() {
+                Some(value) if number.is_f64() => SetupValue::Number(value),
+                _ => SetupValue::Text(number.to_string()),
+            }),
+            serde_json::Value::String(text) => Ok(SetupValue::Text(text)),
+            other => Err(serde::de::Error::custom(format!(
+                "expected a number or an integer string, not {other}"
+            ))),
+        }
+    }
 }
 
 /// A device parameter: a value the config may set, written as a setup item.

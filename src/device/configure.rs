@@ -8,7 +8,9 @@ use serde_json::{json, Map, Value};
 
 use super::merge::{merge_device, DeviceMergeInput, MergeError};
 use super::model::{ResolvedDevice, ResolvedPort};
-use super::resolve::{resolve_device, topic_level_problem, ResolveError, ResolveInput};
+use super::resolve::{
+    resolve_device, topic_level_problem, ResolveError, ResolveInput, SharedResolutions,
+};
 use crate::config::config_file::PortConfig;
 use crate::config::error::{ErrorList, LocatedError, Problem};
 use crate::config::json_path::JsonPath;
@@ -40,6 +42,7 @@ pub fn resolve_config_checked(
     let mut errors = Vec::new();
     let mut ports = Vec::new();
     let mut device_ids: BTreeMap<String, JsonPath> = BTreeMap::new();
+    let mut shared = SharedResolutions::default();
     for (port_index, port) in loaded.config.ports.iter().enumerate() {
         if !port.enabled {
             continue;
@@ -101,6 +104,7 @@ pub fn resolve_config_checked(
                 (slave_id, module),
                 true,
                 &mut warnings,
+                &mut shared,
             ) {
                 Ok(mut resolved) => {
                     if resolved.id.is_empty() {
@@ -195,6 +199,7 @@ fn resolve_one(
     (slave_id, module): (u8, Option<i128>),
     check_required: bool,
     warnings: &mut Vec<LocatedError>,
+    shared: &mut SharedResolutions,
 ) -> Result<ResolvedDevice, Vec<LocatedError>> {
     let locate = |origin: &str, problem: Problem| {
         locate_origin(&config_source, template, path, origin, problem)
@@ -233,7 +238,7 @@ fn resolve_one(
             .unwrap_or_default(),
         device_type: template.map(|t| t.device_type().to_string()),
     };
-    resolve_device(&resolve_input).map_err(|errors| {
+    resolve_device(&resolve_input, shared).map_err(|errors| {
         errors
             .into_iter()
             .map(|ResolveError { origin, problem }| locate(&origin, problem))
@@ -324,6 +329,7 @@ pub fn check_template(template: &TemplateFile) -> Vec<LocatedError> {
             (1, module),
             false,
             &mut Vec::new(),
+            &mut SharedResolutions::default(),
         ) {
             for error in more.drain(..) {
                 if !errors.contains(&error) {
@@ -366,6 +372,24 @@ pub fn resolve_template_device(
     template: &TemplateFile,
     device: &Value,
 ) -> Result<ResolvedDevice, ErrorList> {
+    resolve_single(template, device, true)
+}
+
+/// As [`resolve_template_device`], without asking for the `required` parameters: what the
+/// hardware has does not depend on what a config must give (the simulator builds a WB-LED or
+/// a WB-MAI6, whose templates require a mode, from its template alone).
+pub fn resolve_template_device_unconfigured(
+    template: &TemplateFile,
+    device: &Value,
+) -> Result<ResolvedDevice, ErrorList> {
+    resolve_single(template, device, false)
+}
+
+fn resolve_single(
+    template: &TemplateFile,
+    device: &Value,
+    check_required: bool,
+) -> Result<ResolvedDevice, ErrorList> {
     let object = device.as_object().cloned().unwrap_or_default();
     let parsed: Option<SlaveId> = object
         .get("slave_id")
@@ -381,8 +405,130 @@ pub fn resolve_template_device(
         Some(template),
         &default_port(),
         (slave_id, module),
-        true,
+        check_required,
         &mut Vec::new(),
+        &mut SharedResolutions::default(),
     )
     .map_err(ErrorList)
+}
+
+#[cfg(test)]
+mod tests {
+    use std::path::Path;
+
+    use serde_json::json;
+
+    use super::*;
+    use crate::device::SharedVec;
+
+    /// The devices of a config's ports (templates from the repository's `templates` and the
+    /// WBIO test template), in config order.
+    fn resolve(ports: Value) -> Vec<ResolvedDevice> {
+        let config = json!({ "ports": ports });
+        let loaded = crate::config::load::load_config_source(
+            SourceText::from_text(Path::new("c.json"), &config.to_string()),
+            false,
+        )
+        .unwrap();
+        let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+        let library =
+            TemplateLibrary::load_dirs(&[root.join("templates"), root.join("tests/data/wb-rules")]);
+        resolve_config(&loaded, &library)
+            .unwrap_or_else(|errors| panic!("{errors}"))
+            .into_iter()
+            .flat_map(|port| port.devices)
+            .collect()
+    }
+
+    fn shares(a: &ResolvedDevice, b: &ResolvedDevice) -> bool {
+        let channels = SharedVec::ptr_eq(&a.channels, &b.channels);
+        assert_eq!(channels, SharedVec::ptr_eq(&a.setup, &b.setup));
+        channels
+    }
+
+    /// Identical devices hold one copy of their template's channels and setup, and only their
+    /// own id, name and address — also across ports (only the timing depends on the port).
+    #[test]
+    fn devices_of_one_template_share_its_resolution() {
+        let devices = resolve(json!([
+            {"path": "/dev/ttyA", "devices": [
+                {"device_type": "rtu2mqtt-relay6", "slave_id": 20},
+                {"device_type": "rtu2mqtt-relay6", "slave_id": 21},
+            ]},
+            {"path": "/dev/ttyB", "response_timeout_ms": 700, "devices": [
+                {"device_type": "rtu2mqtt-relay6", "slave_id": 22},
+            ]},
+        ]));
+        let [a, b, c] = &devices[..] else {
+            panic!("3 devices expected")
+        };
+        assert!(shares(a, b) && shares(a, c));
+        assert!(!a.channels.is_empty() && !a.setup.is_empty());
+        assert_eq!(
+            [&a.id, &b.id, &c.id].map(String::as_str),
+            ["relay6_20", "relay6_21", "relay6_22"]
+        );
+        assert_eq!([a.slave_id, b.slave_id, c.slave_id], [20, 21, 22]);
+        assert_eq!(c.timing.response_timeout.as_millis(), 700);
+        assert_ne!(a.timing, c.timing);
+    }
+
+    /// A device with its own overrides or parameters gets its own channels and setup; devices
+    /// with the same overrides share theirs, although the overrides sit at different places in
+    /// the config (which error messages would name).
+    #[test]
+    fn devices_with_other_overrides_do_not_share() {
+        let override_k1 = json!([{"name": "K1", "read_period_ms": 100}]);
+        let devices = resolve(json!([
+            {"path": "/dev/ttyA", "devices": [
+                {"device_type": "rtu2mqtt-relay6", "slave_id": 1},
+                {"device_type": "rtu2mqtt-relay6", "slave_id": 2, "channels": override_k1},
+                {"device_type": "rtu2mqtt-relay6", "slave_id": 3, "channels": override_k1},
+                {"device_type": "rtu2mqtt-relay6", "slave_id": 4, "baud_rate": 1152},
+                {"device_type": "rtu2mqtt-relay6", "slave_id": 5, "id": "hall", "name": "Hall"},
+            ]},
+        ]));
+        let [plain, k1, k1_again, baud, named] = &devices[..] else {
+            panic!("5 devices expected")
+        };
+        assert!(!shares(plain, k1));
+        assert!(shares(k1, k1_again));
+        assert!(!shares(plain, baud));
+        assert!(!shares(k1, baud));
+        assert!(shares(plain, named), "an own id and name change no channel");
+        assert_eq!((named.id.as_str(), named.name.as_str()), ("hall", "Hall"));
+        let period = |device: &ResolvedDevice| device.channel("K1").unwrap().read_period;
+        assert_eq!(period(plain), None);
+        assert_eq!(period(k1), Some(std::time::Duration::from_millis(100)));
+        let baud_value = |device: &ResolvedDevice| {
+            device
+                .setup
+                .iter()
+                .find(|s| s.parameter_id.as_deref() == Some("baud_rate"))
+                .map(|s| s.value.clone())
+        };
+        assert_eq!(baud_value(baud).as_deref(), Some("1152"));
+        assert_ne!(baud_value(plain), baud_value(baud));
+    }
+
+    /// WBIO modules behind one WB-MIO differ in their addresses only through the module number:
+    /// those in the same register window share, the others do not.
+    #[test]
+    fn modbus_io_modules_in_other_windows_do_not_share() {
+        let devices = resolve(json!([
+            {"path": "/dev/ttyA", "devices": [
+                {"device_type": "TEST-WBIO", "slave_id": "1:1"},
+                {"device_type": "TEST-WBIO", "slave_id": "1:2"},
+                {"device_type": "TEST-WBIO", "slave_id": "2:1"},
+            ]},
+        ]));
+        let [first, second, other_mio] = &devices[..] else {
+            panic!("3 devices expected")
+        };
+        assert!(!shares(first, second));
+        assert!(shares(first, other_mio));
+        let k1 = |device: &ResolvedDevice| device.channel("K1").unwrap().registers[0].read;
+        assert_eq!(k1(first).unwrap().address, 1016);
+        assert_eq!(k1(second).unwrap().address, 1032);
+    }
 }

@@ -183,6 +183,7 @@ pub fn merge_device(input: &DeviceMergeInput) -> Result<(Value, Vec<MergeError>)
     let level = Level {
         parameters,
         values: &values,
+        config: input.device,
         config_setup: input.device.get("setup"),
         config_setup_path: input.device_path.key("setup"),
         value_path: input.device_path.clone(),
@@ -350,6 +351,8 @@ struct Level<'a> {
     parameters: Option<&'a Value>,
     /// Parameter values given in the config.
     values: &'a BTreeMap<String, f64>,
+    /// The config object that gave them (their exact JSON numbers).
+    config: &'a Map<String, Value>,
     config_setup: Option<&'a Value>,
     config_setup_path: JsonPath,
     /// Where the config gives parameter values (for errors on them).
@@ -400,6 +403,10 @@ impl Level<'_> {
             };
             let origin = format!("c:{}", self.value_path.key(&id));
             match self.values.get(&id) {
+                // Not written while its condition is false; wb-mqtt-serial's validator does not
+                // know such a declaration either (WB-LED declares one id per dimmer mode, each
+                // with its own `enum`).
+                Some(_) if !condition_true(spec, &conditions) => {}
                 Some(value) => {
                     if let Some(allowed) = allowed_values(spec) {
                         if !allowed.is_empty() && !allowed.contains(value) {
@@ -492,7 +499,14 @@ impl Level<'_> {
             }
             let mut item = with_origin(spec, &origin);
             if let Some(object) = item.as_object_mut() {
-                object.insert("value".into(), serde_json::json!(value));
+                // The config's own number: an integer stays exact (u64 sensor ids above 2^53).
+                let exact = self
+                    .config
+                    .get(&id)
+                    .filter(|v| v.is_u64() || v.is_i64())
+                    .cloned()
+                    .unwrap_or_else(|| serde_json::json!(value));
+                object.insert("value".into(), exact);
                 object.insert("id".into(), Value::String(id.clone()));
                 object
                     .entry("title")
@@ -831,6 +845,7 @@ fn expand_subdevice(
     let level = Level {
         parameters,
         values: &values,
+        config: &config_object,
         config_setup: config_object.get("setup"),
         config_setup_path: config_path.key("setup"),
         value_path: config_path.clone(),

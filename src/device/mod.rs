@@ -13,8 +13,10 @@ pub mod resolve;
 
 pub use crate::config::format::{ByteOrder, RegisterFormat, WordOrder};
 pub use codec::{CodecError, Reading, ValueCodec};
-pub use configure::{check_template, resolve_config, resolve_template_device};
+pub use configure::{
+    check_template, resolve_config, resolve_template_device, resolve_template_device_unconfigured,
+};
 pub use model::{
     ChannelRegister, DeviceTiming, EnumTitle, EventMode, Priority, RegisterRef, RegisterType,
-    ResolvedChannel, ResolvedDevice, ResolvedPort, SetupItem, WriteFunction,
+    ResolvedChannel, ResolvedDevice, ResolvedPort, SetupItem, SharedVec, Titles, WriteFunction,
 };

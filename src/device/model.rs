@@ -2,7 +2,7 @@
 //! the simulator builds its virtual registers from. Templates, config overrides, subdevices,
 //! parameters and conditions are all applied; nothing here needs the JSON any more.
 
-use std::collections::BTreeMap;
+use std::sync::Arc;
 use std::time::Duration;
 
 use super::codec::{CodecError, Reading, ValueCodec};
@@ -74,11 +74,78 @@ pub struct ChannelRegister {
     pub press_counter: bool,
 }
 
+/// A text per language, sorted by language code (as the meta JSON lists them). A channel has
+/// one to three languages: a short list, where a map would allocate a whole tree node (over
+/// 500 bytes) for every channel and enum value.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Titles(Vec<(String, String)>);
+
+impl Titles {
+    pub fn get(&self, lang: &str) -> Option<&String> {
+        self.position(lang).ok().map(|i| &self.0[i].1)
+    }
+
+    /// Sets the text of `lang`, replacing any it had.
+    pub fn insert(&mut self, lang: String, text: String) {
+        match self.position(&lang) {
+            Ok(i) => self.0[i].1 = text,
+            Err(i) => self.0.insert(i, (lang, text)),
+        }
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.0.is_empty()
+    }
+
+    pub fn len(&self) -> usize {
+        self.0.len()
+    }
+
+    pub fn clear(&mut self) {
+        self.0.clear();
+    }
+
+    /// (language, text), by language.
+    pub fn iter(&self) -> impl Iterator<Item = (&str, &str)> {
+        self.0
+            .iter()
+            .map(|(lang, text)| (lang.as_str(), text.as_str()))
+    }
+
+    fn position(&self, lang: &str) -> Result<usize, usize> {
+        self.0.binary_search_by(|(key, _)| key.as_str().cmp(lang))
+    }
+}
+
+impl FromIterator<(String, String)> for Titles {
+    fn from_iter<I: IntoIterator<Item = (String, String)>>(items: I) -> Self {
+        let mut titles = Titles::default();
+        for (lang, text) in items {
+            titles.insert(lang, text);
+        }
+        titles.0.shrink_to_fit();
+        titles
+    }
+}
+
+impl<const N: usize> From<[(String, String); N]> for Titles {
+    fn from(items: [(String, String); N]) -> Self {
+        items.into_iter().collect()
+    }
+}
+
+/// A JSON object `{lang: text}`, as the meta's `title` and `enum` carry it.
+impl serde::Serialize for Titles {
+    fn serialize<S: serde::Serializer>(&self, serializer: S) -> Result<S::Ok, S::Error> {
+        serializer.collect_map(self.iter())
+    }
+}
+
 /// Title of one enum value, per language.
 #[derive(Debug, Clone, PartialEq)]
 pub struct EnumTitle {
     pub value: String,
-    pub title: BTreeMap<String, String>,
+    pub title: Titles,
 }
 
 /// One MQTT control.
@@ -89,7 +156,7 @@ pub struct ResolvedChannel {
     /// Template name (with subdevice prefixes): what config overrides match.
     pub name: String,
     /// Title per language for the control meta.
-    pub title: BTreeMap<String, String>,
+    pub title: Titles,
     pub registers: Vec<ChannelRegister>,
     /// WB control type (`value`, `switch`, `range`, `text`, `pushbutton`, `rgb`, deprecated
     /// typed values …); `wo-switch` is already turned into a write-only `switch`.
@@ -239,6 +306,72 @@ pub struct DeviceTiming {
     pub read_rate_limit: Option<Duration>,
 }
 
+/// A list resolved once and shared by every device made from the same template with the same
+/// overrides (channels, setup items): a device's own memory is then its address, id and name,
+/// not a copy of its template. Reads as a slice; tests that build variants call
+/// [`SharedVec::make_mut`], which copies the list first if another device shares it.
+#[derive(Clone)]
+pub struct SharedVec<T>(Arc<Vec<T>>);
+
+impl<T> SharedVec<T> {
+    /// Shares `items`, without the spare capacity left by building them.
+    pub fn new(mut items: Vec<T>) -> Self {
+        items.shrink_to_fit();
+        Self(Arc::new(items))
+    }
+
+    /// Whether `a` and `b` are the same list in memory (not merely equal).
+    pub fn ptr_eq(a: &Self, b: &Self) -> bool {
+        Arc::ptr_eq(&a.0, &b.0)
+    }
+}
+
+impl<T: Clone> SharedVec<T> {
+    /// The list to change, copied first when other devices share it.
+    pub fn make_mut(&mut self) -> &mut Vec<T> {
+        Arc::make_mut(&mut self.0)
+    }
+}
+
+impl<T> Default for SharedVec<T> {
+    fn default() -> Self {
+        Self(Arc::new(Vec::new()))
+    }
+}
+
+impl<T> std::ops::Deref for SharedVec<T> {
+    type Target = [T];
+    fn deref(&self) -> &[T] {
+        &self.0
+    }
+}
+
+impl<'a, T> IntoIterator for &'a SharedVec<T> {
+    type Item = &'a T;
+    type IntoIter = std::slice::Iter<'a, T>;
+    fn into_iter(self) -> Self::IntoIter {
+        self.0.iter()
+    }
+}
+
+impl<T> From<Vec<T>> for SharedVec<T> {
+    fn from(items: Vec<T>) -> Self {
+        Self::new(items)
+    }
+}
+
+impl<T: PartialEq> PartialEq for SharedVec<T> {
+    fn eq(&self, other: &Self) -> bool {
+        Self::ptr_eq(self, other) || self.0 == other.0
+    }
+}
+
+impl<T: std::fmt::Debug> std::fmt::Debug for SharedVec<T> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        self.0.fmt(f)
+    }
+}
+
 /// One configured device, ready to poll.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ResolvedDevice {
@@ -252,9 +385,10 @@ pub struct ResolvedDevice {
     pub is_wb: bool,
     pub hw: Vec<HardwareSignature>,
     pub timing: DeviceTiming,
-    pub channels: Vec<ResolvedChannel>,
-    /// In write order.
-    pub setup: Vec<SetupItem>,
+    /// Shared with the other devices of the same template and overrides.
+    pub channels: SharedVec<ResolvedChannel>,
+    /// In write order; shared like `channels`.
+    pub setup: SharedVec<SetupItem>,
     /// Register of the serial number (channels `Serial`, `serial_number`, `Serial NO`), even
     /// when that channel is disabled: used by scan and probe to match devices.
     pub serial_number: Option<ChannelRegister>,
@@ -283,4 +417,40 @@ pub struct ResolvedPort {
     pub index: usize,
     pub config: PortConfig,
     pub devices: Vec<ResolvedDevice>,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Titles keep one text per language, sorted by language code whatever the order they
+    /// came in, and serialize as the JSON object the meta carries.
+    #[test]
+    fn titles_are_one_text_per_language_in_order() {
+        let mut titles = Titles::from([
+            ("ru".to_string(), "Температура".to_string()),
+            ("en".to_string(), "Temp".to_string()),
+        ]);
+        titles.insert("en".into(), "Temperature".into());
+        titles.insert("de".into(), "Temperatur".into());
+        assert_eq!(titles.len(), 3);
+        assert_eq!(titles.get("en").map(String::as_str), Some("Temperature"));
+        assert_eq!(titles.get("fr"), None);
+        assert_eq!(
+            serde_json::to_string(&titles).unwrap(),
+            r#"{"de":"Temperatur","en":"Temperature","ru":"Температура"}"#
+        );
+    }
+
+    #[test]
+    fn shared_lists_compare_by_content_and_copy_on_change() {
+        let a = SharedVec::new(vec![1, 2, 3]);
+        let mut b = a.clone();
+        assert!(SharedVec::ptr_eq(&a, &b));
+        b.make_mut().push(4);
+        assert!(!SharedVec::ptr_eq(&a, &b));
+        assert_eq!(&a[..], [1, 2, 3]);
+        assert_eq!(&b[..], [1, 2, 3, 4]);
+        assert_eq!(SharedVec::new(vec![1, 2, 3]), a);
+    }
 }

@@ -1,7 +1,7 @@
 //! From a merged device (see `merge`) to the flat [`ResolvedDevice`]: register addresses with
 //! subdevice shift and stride, codecs, control meta, event flags and setup writes.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashMap};
 use std::time::Duration;
 
 use serde_json::Value;
@@ -87,20 +87,65 @@ pub struct ResolveInput<'a> {
     pub device_type: Option<String>,
 }
 
-pub fn resolve_device(input: &ResolveInput) -> Result<ResolvedDevice, Vec<ResolveError>> {
+/// What devices made from one template with the same overrides have in common, resolved once
+/// and shared (see [`SharedVec`]): their channels, setup items and serial number register.
+#[derive(Clone)]
+struct SharedParts {
+    channels: SharedVec<ResolvedChannel>,
+    setup: SharedVec<SetupItem>,
+    serial_number: Option<ChannelRegister>,
+}
+
+/// The channels and setup already resolved while resolving one config, by [`shared_key`]: a bus of
+/// 32 identical modules holds one copy of their channels, not 32.
+#[derive(Default)]
+pub struct SharedResolutions {
+    by_key: HashMap<String, SharedParts>,
+}
+
+/// Keys of a merged device that differ from device to device without changing its channels or
+/// setup: they are left out of [`shared_key`].
+const PER_DEVICE_KEYS: [&str; 3] = ["id", "name", "slave_id"];
+
+/// What the channels and setup of a device are made of: the merged device without its
+/// per-device keys and without `__origin` (where each setting came from, for error messages:
+/// two devices with the same overrides have them at different config paths), and the
+/// `modbus_io` module (it shifts every address). Everything else stays in, so a setting that
+/// differs always gives a device its own resolution.
+fn shared_key(merged: &Value, module: Option<i128>) -> String {
+    fn without_origins(value: &Value) -> Value {
+        match value {
+            Value::Object(map) => Value::Object(
+                map.iter()
+                    .filter(|(key, _)| key.as_str() != "__origin")
+                    .map(|(key, value)| (key.clone(), without_origins(value)))
+                    .collect(),
+            ),
+            Value::Array(items) => Value::Array(items.iter().map(without_origins).collect()),
+            other => other.clone(),
+        }
+    }
+    let mut parts = match without_origins(merged) {
+        Value::Object(map) => map,
+        _ => serde_json::Map::new(),
+    };
+    for key in PER_DEVICE_KEYS {
+        parts.remove(key);
+    }
+    let module = module.map(|m| m.to_string()).unwrap_or_default();
+    format!("{module}:{}", Value::Object(parts))
+}
+
+pub fn resolve_device(
+    input: &ResolveInput,
+    shared: &mut SharedResolutions,
+) -> Result<ResolvedDevice, Vec<ResolveError>> {
     let device: TemplateDevice = serde_json::from_value(input.merged.clone()).map_err(|err| {
         vec![ResolveError {
             origin: String::new(),
             problem: Problem::Invalid(format!("merged device: {err}")),
         }]
     })?;
-    let mut walker = Walker {
-        translations: device.translations.clone().unwrap_or_default(),
-        channels: Vec::new(),
-        setup: Vec::new(),
-        serial_number: None,
-        errors: Vec::new(),
-    };
     let mut duration_errors: Vec<ResolveError> = crate::config::device_durations!(&device)
         .into_iter()
         .filter_map(|(key, value)| duration_problem(key, value))
@@ -124,13 +169,48 @@ pub fn resolve_device(input: &ResolveInput) -> Result<ResolvedDevice, Vec<Resolv
         },
         ..Context::default()
     };
-    walker.setup_items(device.setup.as_deref().unwrap_or(&[]), &root);
-    walker.channels(device.channels.as_deref().unwrap_or(&[]), &root);
+    let key = shared_key(input.merged, input.module);
+    let parts = match shared.by_key.get(&key) {
+        Some(parts) => parts.clone(),
+        None => {
+            let parts = resolve_parts(&device, &root)?;
+            shared.by_key.insert(key, parts.clone());
+            parts
+        }
+    };
+    let is_wb = input.is_wb_template || device.enable_wb_continuous_read == Some(true);
+    let timing = timing(&device, input.port, is_wb);
+    Ok(ResolvedDevice {
+        id: device.id.clone().unwrap_or_default(),
+        name: device.name.clone().unwrap_or_default(),
+        device_type: input.device_type.clone(),
+        slave_id: input.slave_id,
+        is_wb,
+        hw: input.hw.clone(),
+        timing,
+        channels: parts.channels,
+        setup: parts.setup,
+        serial_number: parts.serial_number,
+    })
+}
+
+/// Channels, setup items and the serial number register of a merged device.
+fn resolve_parts(
+    device: &TemplateDevice,
+    root: &Context,
+) -> Result<SharedParts, Vec<ResolveError>> {
+    let mut walker = Walker {
+        translations: device.translations.clone().unwrap_or_default(),
+        channels: Vec::new(),
+        setup: Vec::new(),
+        serial_number: None,
+        errors: Vec::new(),
+    };
+    walker.setup_items(device.setup.as_deref().unwrap_or(&[]), root);
+    walker.channels(device.channels.as_deref().unwrap_or(&[]), root);
     if !walker.errors.is_empty() {
         return Err(walker.errors);
     }
-    let is_wb = input.is_wb_template || device.enable_wb_continuous_read == Some(true);
-    let timing = timing(&device, input.port, is_wb);
     let mut setup = walker.setup;
     if device.preserve_setup_order != Some(true) {
         setup.sort_by_key(|s| {
@@ -160,16 +240,9 @@ pub fn resolve_device(input: &ResolveInput) -> Result<ResolvedDevice, Vec<Resolv
     for (i, channel) in channels.iter_mut().enumerate() {
         channel.order = i as u32 + 1;
     }
-    Ok(ResolvedDevice {
-        id: device.id.clone().unwrap_or_default(),
-        name: device.name.clone().unwrap_or_default(),
-        device_type: input.device_type.clone(),
-        slave_id: input.slave_id,
-        is_wb,
-        hw: input.hw.clone(),
-        timing,
-        channels,
-        setup,
+    Ok(SharedParts {
+        channels: SharedVec::new(channels),
+        setup: SharedVec::new(setup),
         serial_number: walker.serial_number,
     })
 }
@@ -399,7 +472,7 @@ impl Walker {
             title_prefix: context.title_prefix.clone(),
         };
         if slot.id.as_deref() != Some("") {
-            for (lang, title) in self.titles(&slot.name, context) {
+            for (lang, title) in self.title_map(&slot.name, context) {
                 inner.title_prefix.insert(lang, title);
             }
         }
@@ -409,7 +482,11 @@ impl Walker {
 
     /// Title per language: the translation of `name` (English: the name itself), after the
     /// translated subdevice prefix.
-    fn titles(&self, name: &str, context: &Context) -> BTreeMap<String, String> {
+    fn titles(&self, name: &str, context: &Context) -> Titles {
+        self.title_map(name, context).into_iter().collect()
+    }
+
+    fn title_map(&self, name: &str, context: &Context) -> BTreeMap<String, String> {
         let mut out = BTreeMap::new();
         out.insert("en".to_string(), name.to_string());
         for (lang, table) in &self.translations {

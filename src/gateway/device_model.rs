@@ -114,6 +114,14 @@ impl DeviceModel {
                     self.words
                         .insert((register_type, address.wrapping_add(offset)), word);
                 }
+                // Part of a wider value: its other words, as last read, may be older than this
+                // one (a device updates a value at once). Forgotten, so that the value waits for
+                // the read the scheduler makes at once rather than being published half updated.
+                let value_width = self.value_width(register_type, address);
+                for offset in width..value_width {
+                    self.words
+                        .remove(&(register_type, address.wrapping_add(offset)));
+                }
                 // Published once the whole packet is in (see `flush_events`): a packet may carry
                 // several words of one value, and a value made of old and new words is wrong.
                 let span = RegisterSpan::new(register_type, address, width);
@@ -218,6 +226,18 @@ impl DeviceModel {
             .find(|r| r.reg_type == register_type && r.address == address)
             .map(|r| r.count.max(1));
         channel_width.map_or(carried, |width| width.min(carried))
+    }
+
+    /// Registers of the value read at `address` (1 when no channel reads one there).
+    fn value_width(&self, register_type: RegisterType, address: u16) -> u16 {
+        self.device
+            .channels
+            .iter()
+            .flat_map(|c| c.registers.iter().filter_map(|r| r.read))
+            .filter(|r| r.reg_type == register_type && r.address == address)
+            .map(|r| r.count.max(1))
+            .max()
+            .unwrap_or(1)
     }
 
     fn publish_channels(
@@ -701,11 +721,17 @@ mod tests {
         let mut model = template_model("rtu2mqtt-counter8", 20);
         assert_eq!(poll(&mut model, 60, &[0, 5]), one("Input 1 counter", "5"));
         // 60 = 1: device 20, 0x11, flag 1, 1 event, 6 data bytes: len 2, input, id 60, value 1.
+        // The value's first word alone: 61 may have changed with it, so nothing is published
+        // until the value is read (the scheduler reads it at once), never 1:5 on trust.
         assert_eq!(
             feed_packet(&mut model, "14 46 11 01 01 06 02 04 003C 0100"),
+            Vec::new()
+        );
+        assert_eq!(
+            poll(&mut model, 60, &[1, 5]),
             one("Input 1 counter", "65541")
         );
-        // 61 = 7.
+        // 61 = 7, reported by an event of its own: joined with 60.
         assert_eq!(
             feed_packet(&mut model, "14 46 11 00 01 06 02 04 003D 0700"),
             one("Input 1 counter", "65543")
@@ -722,11 +748,12 @@ mod tests {
     fn an_event_for_the_first_word_of_a_scaled_value_keeps_the_second() {
         let mut model = template_model("rtu2mqtt-climate", 20);
         assert_eq!(poll(&mut model, 9, &[1, 0]), one("Illuminance", "655.36"));
-        // Register 9 reported unchanged (1): still 655.36, not 0.01.
+        // Register 9 reported (1) alone: never 0.01; the value waits for its read.
         assert_eq!(
             feed_packet(&mut model, "14 46 11 01 01 06 02 04 0009 0100"),
-            one("Illuminance", "655.36")
+            Vec::new()
         );
+        assert_eq!(poll(&mut model, 9, &[1, 0]), one("Illuminance", "655.36"));
         // Register 10 becomes 1: 655.37, not 0.01.
         assert_eq!(
             feed_packet(&mut model, "14 46 11 00 01 06 02 04 000A 0100"),
@@ -862,7 +889,7 @@ mod tests {
             register.write = Some(holding);
         }
         let mut device = (*relay().device).clone();
-        device.channels = vec![channel];
+        device.channels = vec![channel].into();
         DeviceModel::new(Arc::new(device), 0)
     }
 

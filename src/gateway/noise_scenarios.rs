@@ -16,10 +16,13 @@ use std::collections::BTreeMap;
 use std::time::Duration;
 
 use super::virtual_gateway::VirtualGateway;
-use crate::bench::layout::{
-    BenchLayout, FAULT_BUS_EVENTS as EVENTS, FAULT_BUS_REGISTERS as REGISTERS,
-};
+use crate::bench::harness::{Change, Publication};
+use crate::bench::history::{check_held_values, value_histories, RegisterKey};
+use crate::bench::layout::{BenchLayout, FaultSlot, FAULT_BUS_EVENTS as EVENTS, FAULT_BUS_WIDE};
+use crate::bench::matching::{match_expected, ExpectedChange, MatchReport};
 use crate::protocol::RegisterType;
+use crate::sim::bus::{BusStats, ChangeOrigin};
+use crate::sim::control::register_type_name;
 use crate::sim::faults::Faults;
 use crate::updates::DeviceUpdate;
 
@@ -41,18 +44,32 @@ fn noise() -> Faults {
     }
 }
 
+fn nanos(at: Duration) -> u64 {
+    u64::try_from(at.as_nanos()).unwrap_or(u64::MAX)
+}
+
 struct NoiseBus {
     gateway: VirtualGateway,
     layout: BenchLayout,
-    /// Values of a register: slot × span + sequence (no two registers share one).
+    /// Values per slot (see [`FaultSlot::words_for`]).
     span: u16,
-    /// Per register slot: when each sequence number became the value (index = sequence - 1).
-    held_since: Vec<Vec<Duration>>,
+    /// Values changed one per tick, round robin.
+    round_robin: Vec<FaultSlot>,
+    /// Wide values whose next change waits until the last one is published.
+    awaited_slots: Vec<FaultSlot>,
+    /// Per slot index: values taken so far.
+    sequence: Vec<u16>,
     next_slot: usize,
-    /// Event topics toggled whose new value is not yet published.
+    /// Every value topic and its value.
+    topics: BTreeMap<String, RegisterKey>,
+    /// Every single register's value before the first change.
+    initial: BTreeMap<RegisterKey, u16>,
+    /// The simulator's change log so far.
+    changes: Vec<Change>,
+    /// Event topics (and awaited wide values) changed whose new value is not yet published.
     awaiting: BTreeMap<String, String>,
     toggles: usize,
-    /// Every toggle: when, topic, new value.
+    /// Every event input toggle: when, topic, new value.
     toggle_log: Vec<(Duration, String, String)>,
     /// Configured devices that never answer (left out of every check).
     absent: Vec<u8>,
@@ -63,27 +80,63 @@ impl NoiseBus {
     /// `devices` at `baud`, up and converged on their first values; the devices at `absent`
     /// are configured but unplugged for good.
     fn start(devices: u8, baud: u32, seed: u64, absent: &[u8]) -> Self {
+        Self::start_with(devices, baud, seed, absent, false)
+    }
+
+    /// As [`Self::start`]; with `word_events`, the Fast Modbus devices send the words of their
+    /// wide event values by separate events, a register each (2-byte payloads), as the
+    /// independent bus emulator of issue 15 did, instead of the whole value at its first
+    /// register.
+    fn start_with(devices: u8, baud: u32, seed: u64, absent: &[u8], word_events: bool) -> Self {
         let layout = BenchLayout::fault_bus(devices, baud);
         let dir = tempfile::tempdir().expect("a template directory");
-        let (name, template, entries) = layout.fault_bus_files();
+        let (name, template, mut entries) = layout.fault_bus_files();
+        if word_events {
+            let blocks: Vec<serde_json::Value> = FAULT_BUS_WIDE
+                .iter()
+                .filter(|wide| wide.sporadic)
+                .map(|wide| {
+                    serde_json::json!({"type": "input", "address": wide.address,
+                        "count": wide.words, "events": true, "writable": false})
+                })
+                .collect();
+            for entry in entries.iter_mut().filter(|e| e["fast"] == true) {
+                entry["registers"] = serde_json::json!(blocks);
+            }
+        }
         std::fs::write(dir.path().join(name), template.to_string()).expect("template written");
         let gateway =
             VirtualGateway::from_bus(&layout.line(), &entries, dir.path(), true, seed.max(1));
-        let slots = usize::from(devices) * usize::from(REGISTERS);
+        let (round_robin, awaited_slots) = layout.fault_slots();
+        let topics = layout.fault_topics();
         let mut bus = Self {
             gateway,
+            span: layout.fault_span(),
+            sequence: vec![0; round_robin.len() + awaited_slots.len()],
+            round_robin,
+            awaited_slots,
             layout,
-            span: u16::try_from(65_536 / slots).unwrap_or(u16::MAX),
-            held_since: vec![Vec::new(); slots],
             next_slot: 0,
+            topics,
+            initial: BTreeMap::new(),
+            changes: Vec::new(),
             awaiting: BTreeMap::new(),
             toggles: 0,
             toggle_log: Vec::new(),
             absent: absent.to_vec(),
             _templates: dir,
         };
-        for _ in 0..slots {
+        for key in bus.topics.values() {
+            for register in key.registers() {
+                let value = bus.sim_register(&register).unwrap_or(0);
+                bus.initial.insert(register, value);
+            }
+        }
+        for _ in 0..bus.round_robin.len() {
             bus.change_next_register();
+        }
+        for slot in bus.awaited_slots.clone() {
+            bus.change_slot(slot);
         }
         for &address in absent {
             bus.gateway.set_plugged(address, false);
@@ -93,28 +146,67 @@ impl NoiseBus {
         bus
     }
 
-    fn slot_of(&self, address: u8, register: u16) -> usize {
-        usize::from(address.saturating_sub(1)) * usize::from(REGISTERS) + usize::from(register)
+    fn sim_register(&self, key: &RegisterKey) -> Option<u16> {
+        let register_type = match key.register_type.as_str() {
+            "discrete" => RegisterType::DiscreteInput,
+            _ => RegisterType::Input,
+        };
+        self.gateway
+            .register(key.address, register_type, key.register)
     }
 
-    /// The next register (round robin) takes its next value of its own.
+    /// The payload the broker should show for `key` now.
+    fn sim_payload(&self, key: &RegisterKey) -> Option<String> {
+        let words: Option<Vec<u16>> = key.registers().map(|r| self.sim_register(&r)).collect();
+        let value = crate::bench::layout::join_words(&words?);
+        Some(BenchLayout::fault_payload(key, value))
+    }
+
+    /// `slot` takes its next value of its own (all its words at once); false when it has used
+    /// up its values.
+    fn change_slot(&mut self, slot: FaultSlot) -> bool {
+        let Some(sequence) = self.sequence.get_mut(slot.index) else {
+            return false;
+        };
+        if *sequence + 1 >= self.span {
+            return false;
+        }
+        *sequence += 1;
+        let words = slot.words_for(self.span, *sequence);
+        self.gateway
+            .change(slot.address, RegisterType::Input, slot.register, &words);
+        self.collect_changes();
+        true
+    }
+
+    /// The next register or wide value (round robin) takes its next value of its own.
     fn change_next_register(&mut self) {
-        let slots = self.held_since.len();
-        let slot = self.next_slot % slots;
-        self.next_slot += 1;
-        let Ok(sequence) = u16::try_from(self.held_since[slot].len() + 1) else {
+        let Some(&slot) = self
+            .round_robin
+            .get(self.next_slot % self.round_robin.len().max(1))
+        else {
             return;
         };
-        if sequence >= self.span {
-            return;
+        self.next_slot += 1;
+        self.change_slot(slot);
+    }
+
+    /// Moves the simulator's change log into [`Self::changes`], as the harness's `watch` does.
+    fn collect_changes(&mut self) {
+        for change in self.gateway.bus.take_changes() {
+            self.changes.push(Change {
+                mono_ns: nanos(change.at),
+                address: change.address,
+                register_type: register_type_name(change.change.register_type).to_string(),
+                register: change.change.address,
+                value: change.change.new,
+                origin: match change.origin {
+                    ChangeOrigin::Master => "master",
+                    ChangeOrigin::Control => "control",
+                }
+                .to_string(),
+            });
         }
-        let address = u8::try_from(slot / usize::from(REGISTERS) + 1).unwrap_or(1);
-        let register = u16::try_from(slot % usize::from(REGISTERS)).unwrap_or(0);
-        let value = u16::try_from(slot).unwrap_or(0) * self.span + sequence;
-        let now = self.gateway.now;
-        self.gateway
-            .change(address, RegisterType::Input, register, &[value]);
-        self.held_since[slot].push(now);
     }
 
     fn topic(&self, address: u8, register_type: &str, register: u16) -> String {
@@ -124,7 +216,8 @@ impl NoiseBus {
             .0
     }
 
-    /// Toggles every event input whose last toggle has been published.
+    /// Toggles every event input, and changes every awaited wide value, whose last change has
+    /// been published.
     fn toggle_published_events(&mut self) {
         let retained = &self.gateway.retained;
         self.awaiting
@@ -145,11 +238,32 @@ impl NoiseBus {
                 let toggled = u16::from(value == 0);
                 self.gateway
                     .change(address, RegisterType::DiscreteInput, event, &[toggled]);
+                self.collect_changes();
                 self.toggle_log
                     .push((self.gateway.now, topic.clone(), toggled.to_string()));
                 self.awaiting.insert(topic, toggled.to_string());
                 self.toggles += 1;
             }
+        }
+        for slot in self.awaited_slots.clone() {
+            if self.absent.contains(&slot.address) {
+                continue;
+            }
+            let key = slot.key();
+            let Some(topic) = self
+                .topics
+                .iter()
+                .find(|(_, k)| **k == key)
+                .map(|(t, _)| t.clone())
+            else {
+                continue;
+            };
+            if self.awaiting.contains_key(&topic) || !self.change_slot(slot) {
+                continue;
+            }
+            let payload = self.sim_payload(&key).unwrap_or_default();
+            self.awaiting.insert(topic, payload);
+            self.toggles += 1;
         }
     }
 
@@ -175,22 +289,14 @@ impl NoiseBus {
 
     /// What still differs between the broker and the simulator (None: converged).
     fn disagreement(&self) -> Option<String> {
-        for address in 1..=self.layout.devices {
-            if self.absent.contains(&address) {
+        for (topic, key) in &self.topics {
+            if self.absent.contains(&key.address) {
                 continue;
             }
-            for (register_type, name, count) in [
-                (RegisterType::DiscreteInput, "discrete", EVENTS),
-                (RegisterType::Input, "input", REGISTERS),
-            ] {
-                for register in 0..count {
-                    let topic = self.topic(address, name, register);
-                    let value = self.gateway.register(address, register_type, register);
-                    let published = self.gateway.retained.get(&topic);
-                    if published.map(String::as_str) != value.map(|v| v.to_string()).as_deref() {
-                        return Some(format!("{topic}: {published:?}, simulator {value:?}"));
-                    }
-                }
+            let value = self.sim_payload(key);
+            let published = self.gateway.retained.get(topic);
+            if published != value.as_ref() {
+                return Some(format!("{topic}: {published:?}, simulator {value:?}"));
             }
         }
         self.gateway
@@ -219,63 +325,96 @@ impl NoiseBus {
         None
     }
 
-    /// Every register publication since `since` checked against what the register held:
-    /// (publications checked, what was wrong).
-    fn check_published(&self, since: Duration) -> (usize, Vec<String>) {
-        let mut checked = 0;
-        let mut wrong = Vec::new();
-        let mut last: BTreeMap<&str, u16> = BTreeMap::new();
-        for publication in &self.gateway.published {
-            let Some(rest) = publication.topic.strip_prefix("/devices/bench_") else {
-                continue;
-            };
-            let Some((address, control)) = rest.split_once("/controls/") else {
-                continue;
-            };
-            let (Ok(address), Some(register)) = (
-                address.parse::<u8>(),
-                control
-                    .strip_prefix('R')
-                    .and_then(|r| r.parse::<u16>().ok()),
-            ) else {
-                continue;
-            };
-            let Ok(value) = publication.payload.parse::<u16>() else {
-                wrong.push(format!("{publication:?}: not a number"));
-                continue;
-            };
-            let slot = self.slot_of(address, register);
-            let base = u16::try_from(slot).unwrap_or(0) * self.span;
-            let sequence = usize::from(value.wrapping_sub(base));
-            let held = value >= base
-                && sequence >= 1
-                && self.held_since[slot]
-                    .get(sequence - 1)
-                    .is_some_and(|since| *since <= publication.at);
-            let older = last
-                .get(publication.topic.as_str())
-                .is_some_and(|previous| *previous >= value);
-            last.insert(&publication.topic, value);
-            if publication.at < since {
-                continue;
-            }
-            checked += 1;
-            if !held {
-                wrong.push(format!("{publication:?}: never held by then"));
-            } else if older {
-                wrong.push(format!("{publication:?}: not newer than the last"));
-            }
-        }
-        (checked, wrong)
+    fn publications(&self) -> Vec<Publication> {
+        self.gateway
+            .published
+            .iter()
+            .map(|p| Publication {
+                mono_ns: nanos(p.at),
+                topic: p.topic.clone(),
+                payload: p.payload.clone(),
+                retain: true,
+            })
+            .collect()
     }
 
-    /// Publications on event topics since `since`.
+    /// Every value publication since `since` checked against what the value held (all its
+    /// words at one instant): (publications checked, what was wrong).
+    fn check_published(&self, since: Duration) -> (usize, Vec<String>) {
+        let report = check_held_values(
+            &self.initial,
+            &self.changes,
+            &self.publications(),
+            nanos(since),
+            &self.topics,
+            BenchLayout::fault_payload,
+        );
+        let wrong = report
+            .bad
+            .iter()
+            .map(|bad| {
+                format!(
+                    "{} = {} at {:?}: {} (held {:?})",
+                    bad.publication.topic,
+                    bad.publication.payload,
+                    Duration::from_nanos(bad.publication.mono_ns),
+                    bad.reason,
+                    bad.held
+                )
+            })
+            .collect();
+        (report.checked, wrong)
+    }
+
+    /// The changes of event inputs and awaited wide values since `since` matched with their
+    /// publications: each must be published exactly once.
+    fn awaited_matching(&self, since: Duration) -> MatchReport {
+        let awaited: Vec<RegisterKey> = self
+            .awaited_slots
+            .iter()
+            .map(FaultSlot::key)
+            .chain(
+                self.topics
+                    .values()
+                    .filter(|k| k.register_type == "discrete")
+                    .cloned(),
+            )
+            .filter(|k| !self.absent.contains(&k.address))
+            .collect();
+        let topic_of: BTreeMap<&RegisterKey, &String> =
+            self.topics.iter().map(|(t, k)| (k, t)).collect();
+        let (_, changes) = value_histories(&self.initial, &self.changes, &awaited);
+        let expected: Vec<ExpectedChange> = changes
+            .into_iter()
+            .filter(|c| c.mono_ns >= nanos(since) && c.origin == "control")
+            .filter_map(|c| {
+                Some(ExpectedChange {
+                    mono_ns: c.mono_ns,
+                    topic: topic_of.get(&c.key)?.to_string(),
+                    payload: BenchLayout::fault_payload(&c.key, c.value),
+                })
+            })
+            .collect();
+        // A publication at `since` itself came before the changes made at that instant (the
+        // world changes between two runs of the gateway): it counts as earlier.
+        match_expected(&expected, &self.publications(), nanos(since) + 1)
+    }
+
+    /// Publications on event input and awaited wide value topics since `since`.
     fn event_publications(&self, since: Duration) -> usize {
+        let awaited: Vec<String> = FAULT_BUS_WIDE
+            .iter()
+            .filter(|w| w.awaited)
+            .map(|w| format!("/controls/{}", w.name))
+            .collect();
         self.gateway
             .published
             .iter()
             .filter(|p| {
-                p.at >= since && p.topic.contains("/controls/E") && !p.topic.contains("/meta")
+                p.at >= since
+                    && !p.topic.contains("/meta")
+                    && (p.topic.contains("/controls/E")
+                        || awaited.iter().any(|a| p.topic.ends_with(a.as_str())))
             })
             .count()
     }
@@ -335,8 +474,13 @@ impl NoiseBus {
 struct NoiseFigures {
     recovery: Duration,
     checked: usize,
+    /// Event input toggles and awaited wide value changes, each published exactly once.
     toggles: usize,
     marked_offline: usize,
+    /// Event polls in which two devices or more had events and arbitrated (the simulator's
+    /// count), and the most that did in one poll.
+    contended_event_polls: u64,
+    max_event_contenders: u64,
 }
 
 /// `fault_time` of `faults` on `devices` at `baud`, then the recovery; asserts that nothing
@@ -345,9 +489,11 @@ fn noise_run(devices: u8, baud: u32, seed: u64, faults: Faults) -> NoiseFigures 
     let mut bus = NoiseBus::start(devices, baud, seed, &[]);
     let since = bus.gateway.now;
     let toggles_before = bus.toggles;
+    let stats_before: BusStats = bus.gateway.bus.stats();
     bus.faults_on_all(faults);
     bus.drive(FAULT_TIME);
     bus.faults_on_all(Faults::default());
+    let stats = bus.gateway.bus.stats();
     let case = format!("{devices} devices at {baud}, seed {seed}");
     let Some(recovery) = bus.run_until_converged(Duration::from_secs(90)) else {
         panic!("{case}: never converged: {:?}", bus.disagreement());
@@ -361,11 +507,24 @@ fn noise_run(devices: u8, baud: u32, seed: u64, faults: Faults) -> NoiseFigures 
         toggles,
         "{case}: every toggle published exactly once"
     );
+    let matched = bus.awaited_matching(since);
+    assert_eq!(
+        (
+            matched.changes,
+            matched.lost,
+            matched.wrong,
+            matched.duplicates
+        ),
+        (toggles, 0, 0, 0),
+        "{case}: {matched:?}"
+    );
     NoiseFigures {
         recovery,
         checked,
         toggles,
         marked_offline: bus.marked_offline(since),
+        contended_event_polls: stats.contended_event_polls - stats_before.contended_event_polls,
+        max_event_contenders: stats.max_event_contenders,
     }
 }
 
@@ -393,25 +552,173 @@ fn healthy_rate(baud: u32, dead: u8, length: Duration) -> (usize, Duration, Dura
     )
 }
 
+/// What a device that a late reply taught the longer timeout costs the others once it dies.
+#[derive(Debug)]
+#[allow(dead_code)] // printed
+struct LateThenDead {
+    /// Its transactions after it was marked offline, and the longest and total bus time they took.
+    retries: usize,
+    longest_retry: Duration,
+    retry_time: Duration,
+    /// Reads of the six healthy devices' registers, their longest event wait.
+    healthy_reads: usize,
+    event_max: Duration,
+}
+
+/// Six healthy devices and device 7 (Fast Modbus), which answers every request 700 ms late
+/// for 10 s (past its 524 ms timeout: it learns the longer one, about 1.05 s, and is read with
+/// it), then answers in time for 2 s, then dies; `length` after it died.
+fn late_then_dead(baud: u32, length: Duration) -> LateThenDead {
+    late_then_dead_bus(baud, length).1
+}
+
+/// [`late_then_dead`], with the bus.
+fn late_then_dead_bus(baud: u32, length: Duration) -> (NoiseBus, LateThenDead) {
+    let mut bus = NoiseBus::start(7, baud, 1, &[]);
+    bus.gateway.set_faults(
+        7,
+        Faults {
+            delay_reply: 1.0,
+            delay: Duration::from_millis(700),
+            ..Faults::default()
+        },
+    );
+    bus.drive(Duration::from_secs(10));
+    bus.gateway.set_faults(7, Faults::default());
+    bus.drive(Duration::from_secs(2));
+    bus.gateway.set_plugged(7, false);
+    bus.absent.push(7);
+    let died = bus.gateway.now;
+    bus.drive(length);
+    let offline_at = bus
+        .gateway
+        .updates
+        .iter()
+        .find(|(at, u)| {
+            *at >= died
+                && matches!(u, DeviceUpdate::Online { device_id, online: false } if device_id == "bench_7")
+        })
+        .map_or(bus.gateway.now, |(at, _)| *at);
+    let retries: Vec<Duration> = bus
+        .gateway
+        .wire_log
+        .iter()
+        .filter(|r| r.address == 7 && r.at >= offline_at)
+        .map(|r| r.ended - r.at)
+        .collect();
+    let healthy: Vec<u8> = (1..=6).collect();
+    let figures = LateThenDead {
+        retries: retries.len(),
+        longest_retry: retries.iter().max().copied().unwrap_or_default(),
+        retry_time: retries.iter().sum(),
+        healthy_reads: bus.reads_of(&healthy, died),
+        event_max: bus
+            .event_latencies(&healthy, died)
+            .last()
+            .copied()
+            .unwrap_or_default(),
+    };
+    (bus, figures)
+}
+
+/// A late reply raises a device's response timeout for 5 minutes (about 1.05 s here), and its
+/// slow answers raise the smoothed time. Once the device is dead, silence through that timeout
+/// and the late window after it shows it is not slow: its retries go back to its normal timeout
+/// (524 ms, and as long again watching for a late reply), instead of holding the bus 2.1 s
+/// (115200) or 3.3 s (9600) each.
+#[test]
+fn a_dead_device_is_retried_at_its_normal_timeout_though_it_once_answered_late() {
+    for baud in [115_200, 9600] {
+        let (mut bus, figures) = late_then_dead_bus(baud, Duration::from_secs(60));
+        assert!(figures.retries > 0, "{baud}: {figures:?}");
+        assert!(
+            figures.longest_retry < Duration::from_millis(1100),
+            "{baud}: {figures:?}"
+        );
+        // It comes back as slow as it was: its late reply, caught in a retry's late window,
+        // teaches it the longer timeout again, and its values come back.
+        bus.gateway.set_faults(
+            7,
+            Faults {
+                delay_reply: 1.0,
+                delay: Duration::from_millis(700),
+                ..Faults::default()
+            },
+        );
+        bus.gateway.set_plugged(7, true);
+        bus.absent.clear();
+        bus.drive(Duration::from_secs(5));
+        assert!(
+            bus.run_until_converged(Duration::from_secs(30)).is_some(),
+            "{baud}: back slow, never read again: {:?}",
+            bus.disagreement()
+        );
+    }
+}
+
+/// Issue 15, defect 1 with a device that reports a wide value's words by separate events (2-byte
+/// payloads) while the daemon enables the value at its first register only: the event carries
+/// the first word of an update of all words. Joined with the other words as last read it would
+/// be a value the device never held; the value is read instead, and every change still comes
+/// through.
+#[test]
+fn a_wide_value_reported_a_word_at_a_time_is_never_published_half_updated() {
+    for faults in [Faults::default(), noise()] {
+        let mut bus = NoiseBus::start_with(4, 115_200, 1, &[], true);
+        let since = bus.gateway.now;
+        let toggles_before = bus.toggles;
+        bus.faults_on_all(faults);
+        bus.drive(Duration::from_secs(10));
+        bus.faults_on_all(Faults::default());
+        assert!(
+            bus.run_until_converged(Duration::from_secs(30)).is_some(),
+            "{:?}",
+            bus.disagreement()
+        );
+        let (checked, wrong) = bus.check_published(since);
+        assert!(checked > 0);
+        assert!(wrong.is_empty(), "{faults:?}: {wrong:#?}");
+        let matched = bus.awaited_matching(since);
+        assert_eq!(
+            (
+                matched.changes,
+                matched.lost,
+                matched.wrong,
+                matched.duplicates
+            ),
+            (bus.toggles - toggles_before, 0, 0, 0),
+            "{faults:?}: {matched:?}"
+        );
+    }
+}
+
 /// Issue 15: within 2 s of the noise ending the broker shows the simulator's values. What can
 /// make it a little longer is a safety rule, not the back-off of dead devices: a device whose
 /// request failed just before the end is left alone for its late-reply holdoff (1 s, plus the
 /// late window it skipped: up to 2.05 s with the longer timeout the noise's late replies taught
-/// it). At 9600 the bus needs about 2.2 s to read everything after the load stops even without
-/// any fault ([`noise_figures`] prints both); a noisy run takes up to 0.5 s more.
+/// it). At 9600 the bus needs a whole poll cycle (about 3.3 s with this load, the bus busy all
+/// along: reads and event polls) to bring every value up to date after the load stops even
+/// without any fault ([`noise_figures`] prints both): there the noise may add at most 0.5 s to
+/// the fault-free run.
 #[test]
 fn after_the_noise_the_values_are_back_within_the_holdoff_of_the_last_failure() {
     let holdoff_bound = RECOVERY_TARGET + Duration::from_millis(100);
+    let slow_line_cycle = noise_run(32, 9600, 1, Faults::default()).recovery;
     for (devices, baud, seeds, bound) in [
         (8, 115_200, 1..=8, holdoff_bound),
         (32, 115_200, 1..=4, holdoff_bound),
-        (32, 9600, 1..=2, Duration::from_secs(3)),
+        (
+            32,
+            9600,
+            1..=2,
+            slow_line_cycle + Duration::from_millis(500),
+        ),
     ] {
         for seed in seeds {
             let figures = noise_run(devices, baud, seed, noise());
             assert!(
                 figures.recovery <= bound,
-                "{devices} devices at {baud}, seed {seed}: {figures:?}"
+                "{devices} devices at {baud}, seed {seed}: {figures:?} (bound {bound:?})"
             );
         }
     }
@@ -459,6 +766,10 @@ fn noise_figures() {
                 );
             }
         }
+    }
+    for baud in [115_200, 9600] {
+        let figures = late_then_dead(baud, Duration::from_secs(60));
+        eprintln!("FIGURES virtual late_then_dead baud={baud} 60s after it died: {figures:?}");
     }
     for (devices, baud) in [(8, 115_200), (32, 115_200), (32, 9600)] {
         let clean = noise_run(devices, baud, 1, Faults::default()).recovery;

@@ -98,6 +98,8 @@ pub fn device_plan(device: &ResolvedDevice) -> DevicePlan {
             }
         }
     }
+    // Kept by the scheduler for as long as the port runs.
+    reads.shrink_to_fit();
     let setup = device
         .setup
         .iter()

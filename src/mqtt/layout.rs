@@ -110,7 +110,7 @@ pub fn control_meta_json(channel: &ResolvedChannel) -> Value {
         meta.insert("title", json!(channel.title));
     }
     if !channel.enum_titles.is_empty() {
-        let titles: BTreeMap<&str, &BTreeMap<String, String>> = channel
+        let titles: BTreeMap<&str, &crate::device::Titles> = channel
             .enum_titles
             .iter()
             .map(|e| (e.value.as_str(), &e.title))
@@ -198,13 +198,15 @@ pub fn device_topics(topics: &TopicScheme, device: &ResolvedDevice) -> Vec<Strin
 #[cfg(test)]
 pub(crate) mod tests {
     use super::*;
-    use crate::device::{ChannelRegister, EnumTitle, EventMode, RegisterFormat, ValueCodec};
+    use crate::device::{
+        ChannelRegister, EnumTitle, EventMode, RegisterFormat, Titles, ValueCodec,
+    };
 
     pub(crate) fn channel(id: &str, control_type: &str) -> ResolvedChannel {
         ResolvedChannel {
             id: id.to_string(),
             name: id.to_string(),
-            title: BTreeMap::from([("en".to_string(), id.to_string())]),
+            title: Titles::from([("en".to_string(), id.to_string())]),
             registers: vec![ChannelRegister {
                 read: None,
                 write: None,
@@ -255,7 +257,7 @@ pub(crate) mod tests {
         mode.hidden = true;
         mode.enum_titles = vec![EnumTitle {
             value: "0".into(),
-            title: BTreeMap::from([("en".into(), "Off".into())]),
+            title: Titles::from([("en".into(), "Off".into())]),
         }];
         let meta = control_meta_json(&mode).to_string();
         assert_eq!(

@@ -242,7 +242,7 @@ fn pushbutton_presses_always_publish_and_are_not_retained() {
     let mut button = device.channels[0].clone();
     button.id = "Reset".into();
     button.control_type = "pushbutton".into();
-    device.channels.push(button);
+    device.channels.make_mut().push(button);
     let id = device.id.clone();
     planner.handle(DeviceUpdate::Added(Arc::new(device)), Instant::now());
     for _ in 0..2 {
@@ -367,7 +367,7 @@ fn config_change_drops_removed_controls() {
     let id = relay.id.clone();
     planner.handle(DeviceUpdate::Added(relay.clone()), Instant::now());
     let mut smaller = (*relay).clone();
-    smaller.channels.retain(|c| c.id != "K6");
+    smaller.channels.make_mut().retain(|c| c.id != "K6");
     let out = planner.handle(DeviceUpdate::Added(Arc::new(smaller)), Instant::now());
     let text = render(&out);
     assert!(text.contains(&format!(

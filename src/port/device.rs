@@ -326,6 +326,27 @@ impl DeviceState {
         }
     }
 
+    /// An event carried `words` registers of the value read at `start`, fewer than it has: its
+    /// other words may have changed with it (a device updates a value at once), so the value is
+    /// read once at the next turn, events-only or not, rather than joined with words read
+    /// before (src/gateway/device_model.rs waits for that read).
+    pub(super) fn read_partial_event_value(
+        &mut self,
+        register_type: RegisterType,
+        start: u16,
+        words: usize,
+    ) {
+        for (plan, read) in self.plan.reads.iter().zip(self.reads.iter_mut()) {
+            if plan.span.register_type == register_type
+                && plan.span.start == start
+                && usize::from(plan.span.count) > words
+                && read.exclusion != Exclusion::Unsupported
+            {
+                read.initial_pending = true;
+            }
+        }
+    }
+
     /// True when the device came online.
     /// A Fast Modbus event came from this device: alive, whatever its own requests saw.
     pub(super) fn heard_from(&mut self, now: Duration) -> bool {

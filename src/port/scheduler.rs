@@ -451,6 +451,16 @@ impl PortScheduler {
             .map(|d| d.response.timeout(now));
         if let Some(device) = device {
             self.learn_response_time(now, device, &outcome, timing);
+            // Silence through the timeout and the late window (watched: it failed its last
+            // request too) is a dead device, not a slow one: retried at its normal timeout.
+            let silent = !matches!(outcome, Outcome::Reply(_))
+                && timing.first_byte.is_none()
+                && timing.late_byte.is_none();
+            if let (true, None, Some(state)) =
+                (silent, skipped_late_window, self.devices.get_mut(device))
+            {
+                state.response.silent();
+            }
         }
         let was_offline = device
             .and_then(|d| self.devices.get(d))
@@ -951,6 +961,10 @@ impl PortScheduler {
                         continue;
                     }
                     if let crate::protocol::EventSource::Register(register_type) = event.source {
+                        let words = crate::protocol::event_payload_words(&event.payload).len();
+                        if let Some(state) = self.devices.get_mut(device) {
+                            state.read_partial_event_value(register_type, event.id, words);
+                        }
                         out.push(PortEvent::EventValue {
                             device,
                             register_type,

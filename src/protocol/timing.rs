@@ -272,6 +272,18 @@ impl ResponseTimer {
         // Not a sample of the smoothed estimate: one straggler must not dominate it for long.
         self.late = Some((raised, now.saturating_add(LATE_REPLY_MEMORY)));
     }
+    /// Nothing at all came back for a request, through its timeout and the late window after it:
+    /// the device is silent, not slow. What its answers taught above the floor (the smoothed
+    /// time, a late reply's longer timeout) is forgotten: kept, it would make every retry of a
+    /// dead device hold the bus for that time (twice, with the late window) instead of its
+    /// normal one, at the others' expense. A device that comes back slow is taught again by its
+    /// next late reply, which a retry's late window catches as long as it comes within twice
+    /// the normal timeout (as for a device never heard from).
+    pub fn silent(&mut self) {
+        self.late = None;
+        self.smoothed = None;
+        self.variation = Duration::ZERO;
+    }
 }
 
 /// Windows of a scan arbitration.
@@ -432,6 +444,24 @@ mod tests {
         let later = timer.timeout(now + LATE_REPLY_MEMORY);
         assert!(later < raised, "{later:?}");
         assert!(later >= floor);
+    }
+
+    #[test]
+    fn silence_through_the_raised_timeout_forgets_it() {
+        let floor = Duration::from_millis(524);
+        let mut timer = ResponseTimer::new(floor);
+        // It answered slowly for a while, then a reply came later still.
+        for _ in 0..8 {
+            timer.answered(Duration::from_millis(700));
+        }
+        let now = Duration::from_secs(10);
+        timer.answered_late(now, Duration::from_millis(1100));
+        assert!(timer.timeout(now) >= Duration::from_millis(1000));
+        timer.silent();
+        assert_eq!(timer.timeout(now), floor);
+        // Late again: raised again.
+        timer.answered_late(now, Duration::from_millis(700));
+        assert!(timer.timeout(now) >= Duration::from_millis(1000));
     }
 
     #[test]

@@ -1,6 +1,7 @@
 //! What each method does on a running port: every bus exchange goes through the port's
 //! [`BusQueue`], one transaction at a time, between the port's own transactions.
 
+use std::path::Path;
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -12,6 +13,7 @@ use super::params::{
     PortLoad, PortScan, PortSelector, PortSetup, ScanMode, POLL_HOLD,
 };
 use crate::config::config_file::PortType;
+use crate::config::{TemplateFile, TemplateLibrary};
 use crate::daemon::bus_queue::BusQueue;
 use crate::daemon::{PortAccess, PortDirectory};
 use crate::gateway::port_plan::line_settings;
@@ -19,6 +21,7 @@ use crate::port::{Outcome, Transaction};
 use crate::protocol::fast::FastReply;
 use crate::protocol::timing::ADAPTER_LATENCY_ALLOWANCE;
 use crate::protocol::{LineSettings, Reply, ReplyBody, Request, RequestPdu, ResponsePdu};
+use crate::tools::adapter::{sysfs_tty, Adapter};
 use crate::tools::bus::{scan_transaction, Answer, PortError, ToolBus};
 use crate::tools::report::ScanReport;
 use crate::tools::values::standard_text;
@@ -29,22 +32,34 @@ pub struct QueuedBus {
     /// The port's own settings; `None` for TCP gateways (settings do not apply).
     home: Option<LineSettings>,
     latency: Duration,
+    /// What the serial port is (a USB adapter or not), for requests at other settings.
+    adapter: Option<Adapter>,
 }
 
 impl QueuedBus {
     pub fn new(access: &PortAccess) -> Self {
+        let adapter = access
+            .resolved
+            .config
+            .path
+            .as_deref()
+            .map(|path| Adapter::detect(Path::new(path), &sysfs_tty()));
         Self {
             queue: access.queue.clone(),
             home: access.line,
             latency: RPC_LATENCY,
+            adapter,
         }
     }
 
     /// Timeouts for requests at `line`: at other settings than the port's own (a client
-    /// scanning all 48) the USB adapter's allowance only, as the site tools use it.
+    /// scanning all 48, where every empty setting costs this once) what the kind of port
+    /// needs, as the site tools use it.
     fn for_line(mut self, line: LineSettings) -> Self {
         if self.home.is_some_and(|home| home != line) {
-            self.latency = ADAPTER_LATENCY_ALLOWANCE;
+            self.latency = self
+                .adapter
+                .map_or(ADAPTER_LATENCY_ALLOWANCE, Adapter::reply_allowance);
         }
         self
     }
@@ -70,18 +85,54 @@ impl ToolBus for QueuedBus {
     }
 }
 
-/// Runs a request; `Err` is the JSON-RPC error to send back.
+/// The templates the running config was resolved with (those its devices use), replaced on a
+/// reload: `device/LoadConfig` reads a template's parameter list from them.
+#[derive(Debug, Clone, Default)]
+pub struct DeviceTemplates(Arc<std::sync::RwLock<TemplateLibrary>>);
+
+impl DeviceTemplates {
+    pub fn new(templates: TemplateLibrary) -> Self {
+        Self(Arc::new(std::sync::RwLock::new(templates)))
+    }
+
+    pub fn replace(&self, templates: TemplateLibrary) {
+        *self
+            .0
+            .write()
+            .unwrap_or_else(std::sync::PoisonError::into_inner) = templates;
+    }
+
+    fn get(&self, device_type: &str) -> Option<TemplateFile> {
+        self.0
+            .read()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .get(device_type)
+            .cloned()
+    }
+}
+
+/// Runs a request that needs no template (the status page's scan); `Err` is the JSON-RPC error
+/// to send back.
 pub async fn execute(ports: &PortDirectory, method: Method) -> Result<Value, RpcError> {
+    execute_with_templates(ports, &DeviceTemplates::default(), method).await
+}
+
+/// Runs a request; `Err` is the JSON-RPC error to send back.
+pub async fn execute_with_templates(
+    ports: &PortDirectory,
+    templates: &DeviceTemplates,
+    method: Method,
+) -> Result<Value, RpcError> {
     match method {
         Method::PortsLoad => Ok(ports_load(ports)),
         Method::PortLoad(load) => port_load(ports, load).await,
         Method::PortScan(scan) => port_scan(ports, scan).await,
         Method::DeviceProbe(probe) => device_probe(ports, probe).await,
         Method::PortSetup(setup) => port_setup(ports, setup).await,
-        Method::DeviceLoad(load) => device_load(ports, load).await,
-        Method::DeviceSet(set) => device_set(ports, set).await,
+        Method::DeviceLoad(load) => device_load(ports, templates, load).await,
+        Method::DeviceSet(set) => device_set(ports, templates, set).await,
         Method::DeviceSetPoll(set_poll) => device_set_poll(ports, set_poll).await,
-        Method::DeviceLoadConfig(load) => device_load_config(ports, load).await,
+        Method::DeviceLoadConfig(load) => device_load_config(ports, templates, load).await,
     }
 }
 
@@ -521,18 +572,6 @@ fn find_device(
     Ok((access, index))
 }
 
-/// `parameters` of `device/Load` and `device/Set`: the template parameters are turned into
-/// setup writes when the config is read; they are not kept to be read or written on request.
-fn refuse_parameters(parameters: &[String]) -> Result<(), RpcError> {
-    match parameters.first() {
-        None => Ok(()),
-        Some(first) => Err(RpcError::server(format!(
-            "Parameter \"{first}\": template parameters are not served by rtu2mqtt's \
-             device/Load and device/Set yet (channels are)"
-        ))),
-    }
-}
-
 /// A channel of a device by its template name (as wb-mqtt-serial names it), or by its MQTT
 /// control id.
 fn channel_named<'a>(
@@ -558,13 +597,23 @@ fn value_json(text: &str) -> Value {
     }
 }
 
-/// `device/Load`: reads the named channels of a configured device, each through the bus queue
-/// (tried three times, as wb-mqtt-serial does), and decodes them as the daemon does. Result
-/// `{"channels": {"name": value}}`.
-async fn device_load(ports: &PortDirectory, load: DeviceLoad) -> Result<Value, RpcError> {
-    refuse_parameters(&load.parameters)?;
+/// `device/Load`: reads the named channels and template parameters of a configured device,
+/// each through the bus queue (tried three times, as wb-mqtt-serial does), and decodes them as
+/// the daemon does. Result `{"channels": {"name": value}, "parameters": {"id": value}}`.
+async fn device_load(
+    ports: &PortDirectory,
+    templates: &DeviceTemplates,
+    load: DeviceLoad,
+) -> Result<Value, RpcError> {
     let (access, index) = find_device(ports, &load.port, load.slave_id)?;
     let device = &access.resolved.devices[index];
+    let parameters = if load.parameters.is_empty() {
+        Vec::new()
+    } else {
+        let template = device_template(templates, device)?;
+        super::parameters::named_parameters(&template, device.slave_id, &load.parameters)
+            .map_err(RpcError::server)?
+    };
     let mut wanted = Vec::new();
     for name in &load.channels {
         match channel_named(device, name) {
@@ -605,29 +654,83 @@ async fn device_load(ports: &PortDirectory, load: DeviceLoad) -> Result<Value, R
         };
         channels.insert(name.clone(), value);
     }
+    let mut values = Map::new();
+    for parameter in &parameters {
+        let Some(target) = parameter.register.read else {
+            continue;
+        };
+        let words = read_words(&mut bus, line, device.slave_id, target).await?;
+        let value = match parameter.register.codec.decode(&words) {
+            Ok(crate::device::Reading::Value(text)) => value_json(&text),
+            Ok(_) => json!("unsupported"),
+            Err(err) => {
+                return Err(RpcError::server(format!(
+                    "Parameter \"{}\": cannot decode: {err}",
+                    parameter.id
+                )))
+            }
+        };
+        values.insert(parameter.id.clone(), value);
+    }
     let mut result = Map::new();
     if !channels.is_empty() {
         result.insert("channels".into(), Value::Object(channels));
     }
+    if !values.is_empty() {
+        result.insert("parameters".into(), Value::Object(values));
+    }
     Ok(Value::Object(result))
+}
+
+/// The template a configured device was resolved with, for its parameters; templates with
+/// subdevices are refused, as wb-mqtt-serial's device methods refuse them.
+fn device_template(
+    templates: &DeviceTemplates,
+    device: &crate::device::model::ResolvedDevice,
+) -> Result<TemplateFile, RpcError> {
+    let device_type = device.device_type.as_deref().ok_or_else(|| {
+        RpcError::server(format!(
+            "device \"{}\" has no template, hence no parameters",
+            device.id
+        ))
+    })?;
+    let template = templates.get(device_type).ok_or_else(|| {
+        RpcError::server(format!(
+            "the template \"{device_type}\" is not loaded (reload the service after adding it)"
+        ))
+    })?;
+    if super::parameters::has_subdevices(&template) {
+        return Err(RpcError::server(format!(
+            "Device \"{device_type}\" is not supported by this RPC"
+        )));
+    }
+    Ok(template)
 }
 
 /// Tries of a `device/Load` read or a `device/Set` write (wb-mqtt-serial: 1 + 2 retries).
 const DEVICE_TRIES: usize = 3;
 
-async fn read_words(
+/// A read of a configured device's registers: their words (one per bit for coils and discrete
+/// inputs), or the device's refusal.
+enum SpanRead {
+    Words(Vec<u16>),
+    Refused(Answer),
+}
+
+/// Reads `span` of the device at `address` through the bus queue, tried [`DEVICE_TRIES`] times
+/// (a refusal is final); silence or garbage every time is the error.
+async fn read_span(
     bus: &mut QueuedBus,
     line: LineSettings,
     address: u8,
-    target: crate::device::model::RegisterRef,
-) -> Result<Vec<u16>, RpcError> {
-    use crate::protocol::RegisterType;
-    let (start, count) = (target.address, target.count.max(1));
-    let pdu = match target.reg_type {
-        RegisterType::Coil => RequestPdu::ReadCoils { start, count },
-        RegisterType::DiscreteInput => RequestPdu::ReadDiscreteInputs { start, count },
-        RegisterType::Holding => RequestPdu::ReadHoldingRegisters { start, count },
-        RegisterType::Input => RequestPdu::ReadInputRegisters { start, count },
+    span: crate::port::RegisterSpan,
+) -> Result<SpanRead, RpcError> {
+    let count = span.count.max(1);
+    let pdu = crate::port::RegisterSpan { count, ..span }.read_request();
+    let bits = |packed: &[u8]| -> Vec<u16> {
+        (0..usize::from(count))
+            .map(|i| u16::from(packed.get(i / 8).is_some_and(|b| b & (1 << (i % 8)) != 0)))
+            .collect()
     };
     let mut answer = Answer::NoReply;
     for _ in 0..DEVICE_TRIES {
@@ -640,44 +743,84 @@ async fn read_words(
             )
             .await
             .map_err(io_error)?;
-        let bits = |packed: &[u8]| -> Vec<u16> {
-            (0..usize::from(count))
-                .map(|i| u16::from(packed.get(i / 8).is_some_and(|b| b & (1 << (i % 8)) != 0)))
-                .collect()
-        };
         match &answer {
             Answer::Pdu(
                 ResponsePdu::ReadHoldingRegisters { values }
                 | ResponsePdu::ReadInputRegisters { values },
-            ) if values.len() == usize::from(count) => return Ok(values.clone()),
+            ) if values.len() == usize::from(count) => return Ok(SpanRead::Words(values.clone())),
             Answer::Pdu(
                 ResponsePdu::ReadCoils { packed } | ResponsePdu::ReadDiscreteInputs { packed },
-            ) => return Ok(bits(packed)),
-            Answer::Pdu(ResponsePdu::Exception { .. }) => break,
+            ) => return Ok(SpanRead::Words(bits(packed))),
+            Answer::Pdu(ResponsePdu::Exception { .. }) => return Ok(SpanRead::Refused(answer)),
             _ => {}
         }
     }
-    Err(RpcError::server(format!(
-        "Failed to read {count} registers starting from <{:?} {start}> of slave {address} at \
-         {line}: {}",
-        target.reg_type,
-        describe(&answer)
-    )))
+    Err(read_failed(span, address, line, &answer))
 }
 
-/// `device/Set`: writes the named channels of a configured device. Each value is checked as
-/// its `/on` payload would be (the device model's write check: control type, limits, register
-/// format, read-only), then written through the bus queue. Result `{}`.
-async fn device_set(ports: &PortDirectory, set: DeviceSet) -> Result<Value, RpcError> {
-    refuse_parameters(&set.parameters)?;
+fn read_failed(
+    span: crate::port::RegisterSpan,
+    address: u8,
+    line: LineSettings,
+    answer: &Answer,
+) -> RpcError {
+    RpcError::server(format!(
+        "Failed to read {} registers starting from <{:?} {}> of slave {address} at {line}: {}",
+        span.count.max(1),
+        span.register_type,
+        span.start,
+        describe(answer)
+    ))
+}
+
+/// The words of `target`; a refusal is an error too.
+async fn read_words(
+    bus: &mut QueuedBus,
+    line: LineSettings,
+    address: u8,
+    target: crate::device::model::RegisterRef,
+) -> Result<Vec<u16>, RpcError> {
+    let span = target.span();
+    match read_span(bus, line, address, span).await? {
+        SpanRead::Words(words) => Ok(words),
+        SpanRead::Refused(answer) => Err(read_failed(span, address, line, &answer)),
+    }
+}
+
+/// `device/Set`: writes the named channels and template parameters of a configured device.
+/// Each value is checked as its `/on` payload would be (the device model's write check: control
+/// type, limits, register format, read-only; see [`checked_writes`]), then written through the
+/// bus queue, channels first. Nothing is written if one value is refused. Result `{}`.
+async fn device_set(
+    ports: &PortDirectory,
+    templates: &DeviceTemplates,
+    set: DeviceSet,
+) -> Result<Value, RpcError> {
+    use crate::gateway::device_model::DeviceModel;
     let (access, index) = find_device(ports, &set.port, set.slave_id)?;
     let device = Arc::new(access.resolved.devices[index].clone());
-    let model = crate::gateway::device_model::DeviceModel::new(Arc::clone(&device), index);
     let template = device
         .device_type
         .as_deref()
         .unwrap_or(&device.id)
         .to_owned();
+    // The channels as the device model knows them; the parameters as a device of their own
+    // (one channel per parameter), so the same model checks and encodes them.
+    let mut channels_model = DeviceModel::new(Arc::clone(&device), index);
+    let mut parameters_model = None;
+    if !set.parameters.is_empty() {
+        let file = device_template(templates, &device)?;
+        let ids: Vec<&str> = set.parameters.iter().map(|(id, _)| id.as_str()).collect();
+        let (parameters_device, controls) =
+            super::parameters::writable_parameters(&file, device.slave_id, &ids)
+                .map_err(RpcError::server)?;
+        parameters_model = Some((
+            DeviceModel::new(Arc::new(parameters_device), index),
+            controls,
+        ));
+    }
+    let line = request_line(&access, &super::params::LineOverride::default());
+    let mut bus = QueuedBus::new(&access);
     // Every value is checked before anything is written.
     let mut writes = Vec::new();
     for (name, payload) in &set.channels {
@@ -689,13 +832,27 @@ async fn device_set(ports: &PortDirectory, set: DeviceSet) -> Result<Value, RpcE
                      template"
                 ))
             })?;
-        let register_writes = model
-            .write(&channel.id, payload)
-            .map_err(|why| RpcError::server(format!("Channel \"{name}\": {why}")))?;
-        writes.extend(register_writes);
+        let control = channel.id.clone();
+        let checked = checked_writes(
+            &mut bus,
+            line,
+            (&mut channels_model, index),
+            (&control, payload),
+            &writes,
+        )
+        .await
+        .map_err(|why| RpcError::server(format!("Channel \"{name}\": {why}")))?;
+        writes.extend(checked);
     }
-    let line = request_line(&access, &super::params::LineOverride::default());
-    let mut bus = QueuedBus::new(&access);
+    if let Some((model, controls)) = &mut parameters_model {
+        for ((id, payload), control) in set.parameters.iter().zip(controls.iter()) {
+            let checked =
+                checked_writes(&mut bus, line, (model, index), (control, payload), &writes)
+                    .await
+                    .map_err(|why| RpcError::server(format!("Parameter \"{id}\": {why}")))?;
+            writes.extend(checked);
+        }
+    }
     for write in writes {
         let pdu = write_pdu(&write);
         let mut answer = Answer::NoReply;
@@ -734,6 +891,56 @@ async fn device_set(ports: &PortDirectory, set: DeviceSet) -> Result<Value, RpcE
     Ok(json!({}))
 }
 
+/// The register writes of one value for control `control` of `model`, checked and encoded by
+/// the device model as an `/on` payload. A bit field's register is read first and handed to
+/// the model as the daemon's reads hand it over, then the writes of this request before it
+/// (`pending`, which land first), so the model keeps the other bits as the device will hold
+/// them. `Err` is why (the model's words, or the read that failed).
+async fn checked_writes(
+    bus: &mut QueuedBus,
+    line: LineSettings,
+    (model, index): (&mut crate::gateway::device_model::DeviceModel, usize),
+    (control, payload): (&str, &str),
+    pending: &[crate::port::RegisterWrite],
+) -> Result<Vec<crate::port::RegisterWrite>, String> {
+    let device = Arc::clone(&model.device);
+    let learn = |model: &mut crate::gateway::device_model::DeviceModel,
+                 span: crate::port::RegisterSpan,
+                 values: Vec<u16>| {
+        model.apply(
+            crate::port::PortEvent::Values {
+                device: index,
+                span,
+                values,
+            },
+            &mut Vec::new(),
+        );
+    };
+    if let Some(channel) = device.channel(control) {
+        for register in channel.registers.iter().filter(|r| r.codec.is_partial()) {
+            let Some(target) = register.write.or(register.read) else {
+                continue;
+            };
+            // A register the model would refuse to write is not worth a read.
+            if target.reg_type.is_writable() {
+                let words = read_words(bus, line, device.slave_id, target)
+                    .await
+                    .map_err(|err| err.message)?;
+                learn(model, target.span(), words);
+            }
+        }
+    }
+    for write in pending {
+        let count = u16::try_from(write.values.len()).unwrap_or(u16::MAX);
+        learn(
+            model,
+            crate::port::RegisterSpan::new(write.register_type, write.address, count),
+            write.values.clone(),
+        );
+    }
+    model.write(control, payload).map_err(|why| why.to_string())
+}
+
 fn write_pdu(write: &crate::port::RegisterWrite) -> RequestPdu {
     use crate::protocol::RegisterType;
     let single = write.values.len() == 1 && !write.force_multiple;
@@ -757,32 +964,112 @@ fn write_pdu(write: &crate::port::RegisterWrite) -> RequestPdu {
     }
 }
 
-/// `device/LoadConfig`: the parameter values of a configured device as its config sets them
-/// and, for a Wiren Board device, its model and firmware, read now and checked against the
-/// template's `hw` list (as wb-mqtt-serial refuses a device the template does not fit).
+/// `device/LoadConfig`, as wb-mqtt-serial answers it: the template's parameters, those the
+/// config sets as it sets them and the others read from the device now (see
+/// [`super::parameters`]), and for a Wiren Board device its model and firmware, read now and
+/// checked against the template's `hw` list (as wb-mqtt-serial refuses a device the template
+/// does not fit). A template without parameters gives `{}`.
 async fn device_load_config(
     ports: &PortDirectory,
+    templates: &DeviceTemplates,
     load: DeviceLoadConfig,
 ) -> Result<Value, RpcError> {
+    use super::parameters::{
+        group_reads, has_parameters, parameter_registers, reported, words_of, ReadWords,
+    };
     let (access, index) = find_device(ports, &load.port, load.slave_id)?;
     let device = &access.resolved.devices[index];
-    let mut parameters = Map::new();
+    if device.device_type.is_none() {
+        return Ok(json!({}));
+    }
+    let template = device_template(templates, device)?;
+    if !has_parameters(&template) {
+        return Ok(json!({}));
+    }
+    let mut known = Map::new();
     for item in &device.setup {
         if let Some(id) = &item.parameter_id {
-            parameters
+            known
                 .entry(id.clone())
                 .or_insert_with(|| value_json(&item.value));
         }
     }
-    let mut result = json!({ "parameters": parameters });
-    if !device.is_wb {
-        return Ok(result);
-    }
     let line = request_line(&access, &super::params::LineOverride::default());
     let mut bus = QueuedBus::new(&access);
+    let identity = if device.is_wb {
+        Some(wb_identity(&mut bus, line, device).await?)
+    } else {
+        None
+    };
+    let firmware = identity.as_ref().map(|(_, fw)| fw.as_str());
+    let registers = parameter_registers(&template, device.slave_id, &known, firmware)
+        .map_err(RpcError::server)?;
+    let spans: Vec<crate::port::RegisterSpan> = registers.iter().filter_map(|r| r.span()).collect();
+    let limits = crate::port::MergeLimits {
+        max_read_registers: device.timing.max_read_registers,
+        max_register_hole: device.timing.max_reg_hole,
+        max_bit_hole: device.timing.max_bit_hole,
+    };
+    let mut words = ReadWords::new();
+    let keep = |words: &mut ReadWords, span: crate::port::RegisterSpan, values: Vec<u16>| {
+        for (offset, value) in (0..span.count).zip(values) {
+            words.insert((span.register_type, span.start.wrapping_add(offset)), value);
+        }
+    };
+    for read in group_reads(&spans, limits) {
+        match read_span(&mut bus, line, device.slave_id, read).await? {
+            SpanRead::Words(values) => keep(&mut words, read, values),
+            SpanRead::Refused(_) => {
+                // A refused parameter is left out, as wb-mqtt-serial leaves it; one the device
+                // does not have must not hide the others read with it.
+                let members: Vec<_> = spans.iter().filter(|s| read.contains(s)).copied().collect();
+                for member in group_reads(&members, crate::port::MergeLimits::default()) {
+                    if member == read {
+                        continue;
+                    }
+                    if let SpanRead::Words(values) =
+                        read_span(&mut bus, line, device.slave_id, member).await?
+                    {
+                        keep(&mut words, member, values);
+                    }
+                }
+            }
+        }
+    }
+    let values: Vec<Option<Value>> = registers
+        .iter()
+        .map(|parameter| {
+            let read = words_of(&words, parameter.span()?)?;
+            match parameter.register.codec.decode(&read) {
+                Ok(crate::device::Reading::Value(text)) => Some(value_json(&text)),
+                _ => None,
+            }
+        })
+        .collect();
+    let mut result = Map::new();
+    result.insert(
+        "parameters".into(),
+        Value::Object(reported(&registers, &values, &known)),
+    );
+    if let Some((model, fw)) = identity {
+        result.insert("model".into(), json!(model));
+        if !fw.is_empty() {
+            result.insert("fw".into(), json!(fw));
+        }
+    }
+    Ok(Value::Object(result))
+}
+
+/// A Wiren Board device's model (holding 200) and firmware version (250), checked against the
+/// template's `hw` list with wb-mqtt-serial's words.
+async fn wb_identity(
+    bus: &mut QueuedBus,
+    line: LineSettings,
+    device: &crate::device::model::ResolvedDevice,
+) -> Result<(String, String), RpcError> {
     let mut reader = Reader::Address(device.slave_id);
     let text = |words: Vec<u16>| standard_text(&words).unwrap_or_default();
-    let model = match read_model(&mut bus, line, &mut reader).await? {
+    let model = match read_model(bus, line, &mut reader).await? {
         Ok(words) => text(words),
         Err(answer) => {
             return Err(RpcError::server(format!(
@@ -793,7 +1080,7 @@ async fn device_load_config(
         }
     };
     let fw = match reader
-        .read(&mut bus, line, wb_register::FIRMWARE, 16)
+        .read(bus, line, wb_register::FIRMWARE, 16)
         .await
         .map_err(io_error)?
     {
@@ -825,16 +1112,12 @@ async fn device_load_config(
             }
         }
     }
-    result["model"] = json!(model);
-    if !fw.is_empty() {
-        result["fw"] = json!(fw);
-    }
-    Ok(result)
+    Ok((model, fw))
 }
 
 /// Dotted firmware versions compared number by number (`1.10.0` ≥ `1.9`); a part that is no
 /// number compares as 0.
-fn version_at_least(version: &str, min: &str) -> bool {
+pub(super) fn version_at_least(version: &str, min: &str) -> bool {
     let parts = |v: &str| -> Vec<u64> {
         v.split(['.', '-', '+'])
             .map(|p| p.trim().parse().unwrap_or(0))

@@ -9,7 +9,9 @@
 pub mod client;
 pub mod message;
 pub mod methods;
+pub mod parameters;
 pub mod params;
 pub mod server;
 
+pub use methods::DeviceTemplates;
 pub use server::run_rpc_server;

@@ -155,7 +155,7 @@ pub struct DeviceSet {
     pub port: PortSelector,
     pub slave_id: Option<u8>,
     pub channels: Vec<(String, String)>,
-    pub parameters: Vec<String>,
+    pub parameters: Vec<(String, String)>,
     pub total_timeout: Duration,
 }
 
@@ -260,10 +260,7 @@ pub fn parse_method(service: &str, method: &str, params: &Value) -> Result<Metho
             port: port_selector(fields)?,
             slave_id: slave_id(fields)?,
             channels: value_map(fields, "channels")?,
-            parameters: value_map(fields, "parameters")?
-                .into_iter()
-                .map(|(name, _)| name)
-                .collect(),
+            parameters: value_map(fields, "parameters")?,
             total_timeout: total_timeout(fields)?,
         })),
         ("device", "SetPoll") => {

@@ -13,7 +13,7 @@ use tracing::{debug, info, warn};
 use super::message::{
     advertised_topic, parse_request, reply_payload, RequestTopic, RpcError, REQUEST_FILTER,
 };
-use super::methods::execute;
+use super::methods::{execute_with_templates, DeviceTemplates};
 use super::params::{parse_method, SERVED};
 use crate::config::config_file::MqttConfig;
 use crate::daemon::PortDirectory;
@@ -32,6 +32,7 @@ const EXIT_FLUSH_TIMEOUT: Duration = Duration::from_secs(2);
 pub async fn run_rpc_server(
     broker: MqttConfig,
     ports: PortDirectory,
+    templates: DeviceTemplates,
     shutdown: impl Future<Output = ()>,
 ) -> Result<(), MqttError> {
     let client_id = format!("{}-rpc", broker.client_id);
@@ -74,10 +75,11 @@ pub async fn run_rpc_server(
                 let payload = publish.payload;
                 let client = client.clone();
                 let ports = Arc::clone(&ports);
+                let templates = templates.clone();
                 match Arc::clone(&slots).try_acquire_owned() {
                     Ok(slot) => {
                         tokio::spawn(async move {
-                            let (id, outcome) = serve(&ports, &topic, &payload).await;
+                            let (id, outcome) = serve(&ports, &templates, &topic, &payload).await;
                             send_reply(&client, &topic, &id, &outcome).await;
                             drop(slot);
                         });
@@ -128,6 +130,7 @@ pub async fn run_rpc_server(
 /// One request, from its payload to the outcome (never panics, whatever the payload).
 pub async fn serve(
     ports: &PortDirectory,
+    templates: &DeviceTemplates,
     topic: &RequestTopic,
     payload: &[u8],
 ) -> (serde_json::Value, Result<serde_json::Value, RpcError>) {
@@ -153,7 +156,12 @@ pub async fn serve(
     };
     let total_timeout = method.total_timeout();
     debug!(method = %topic.name(), client = %topic.client, params = %request.params, "RPC request");
-    let outcome = match tokio::time::timeout(total_timeout, execute(ports, method)).await {
+    let outcome = match tokio::time::timeout(
+        total_timeout,
+        execute_with_templates(ports, templates, method),
+    )
+    .await
+    {
         Ok(outcome) => outcome,
         Err(_) => Err(RpcError::timeout(format!(
             "RPC request timeout: {} took longer than total_timeout ({} ms)",

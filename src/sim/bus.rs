@@ -88,6 +88,12 @@ pub struct BusStats {
     pub answered: u64,
     /// Bytes sent back, arbitration fillers included.
     pub reply_bytes: u64,
+    /// Event polls (0x10) heard by at least one Fast Modbus device.
+    pub event_polls: u64,
+    /// Event polls where two devices or more had events to send and arbitrated for the bus.
+    pub contended_event_polls: u64,
+    /// The most devices with events that arbitrated in one poll.
+    pub max_event_contenders: u64,
 }
 
 impl Bus {
@@ -494,6 +500,21 @@ impl Bus {
                 takes_part.then(|| (i, ArbitrationWord::event(d.event_urgency(), address)))
             })
             .collect();
+        let with_events = contenders
+            .iter()
+            .filter(|&&(i, _)| {
+                self.devices
+                    .get(i)
+                    .is_some_and(|d| d.event_urgency() != EventUrgency::Nothing)
+            })
+            .count() as u64;
+        if !contenders.is_empty() {
+            self.stats.event_polls += 1;
+        }
+        if with_events >= 2 {
+            self.stats.contended_event_polls += 1;
+        }
+        self.stats.max_event_contenders = self.stats.max_event_contenders.max(with_events);
         let max_data_len = poll.max_data_len;
         self.arbitration_round(&contenders, received, replies, fillers, |device| {
             if device.event_urgency() == EventUrgency::Nothing {

@@ -318,6 +318,16 @@ fn events_reproduce_the_seed_trace() {
         send(&mut bus, &poll(0, 0xFF, 0, 0)),
         cat(ff(6), with_crc("F1 46 11 01 01 05 01 01 00 00 00"))
     );
+    // Only the first round had both devices with events arbitrating for the bus.
+    let stats = bus.stats();
+    assert_eq!(
+        (
+            stats.event_polls,
+            stats.contended_event_polls,
+            stats.max_event_contenders
+        ),
+        (4, 1, 2)
+    );
 }
 
 #[test]

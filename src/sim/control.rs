@@ -112,6 +112,9 @@ fn run(bus: &mut Bus, now: Duration, command: &ControlCommand) -> Result<Value, 
                 "fast_requests": stats.fast_requests,
                 "answered": stats.answered,
                 "reply_bytes": stats.reply_bytes,
+                "event_polls": stats.event_polls,
+                "contended_event_polls": stats.contended_event_polls,
+                "max_event_contenders": stats.max_event_contenders,
             }))
         }
         "list" => Ok(json!({ "devices": list(bus) })),

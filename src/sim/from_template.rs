@@ -1,5 +1,5 @@
 //! A device template as the simulator's registers, read through the shared template loader
-//! (`config::TemplateFile`, `device::resolve_template_device`): the simulator and the daemon
+//! (`config::TemplateFile`, `device::resolve_template_device_unconfigured`): the simulator and the daemon
 //! cannot disagree on what a template means.
 //!
 //! A real device has every register of its template, whatever a master configures, so the
@@ -14,7 +14,7 @@ use serde_json::{json, Map, Value};
 
 use crate::config::parse::SourceText;
 use crate::config::{TemplateFile, TemplateLibrary};
-use crate::device::{resolve_template_device, EventMode, RegisterRef, ResolvedDevice};
+use crate::device::{resolve_template_device_unconfigured, EventMode, RegisterRef, ResolvedDevice};
 
 use super::registers::RegisterMap;
 use super::SimError;
@@ -69,12 +69,12 @@ pub fn template_registers(
     address: u8,
 ) -> Result<TemplateRegisters, SimError> {
     let config = json!({ "slave_id": address });
-    let configured = resolve_template_device(template, &config)
+    let configured = resolve_template_device_unconfigured(template, &config)
         .map_err(|errors| SimError::Template(errors.to_string()))?;
     let mut registers = RegisterMap::new();
     add_device(&mut registers, &configured);
     let limited = match opened(template).and_then(|open| {
-        resolve_template_device(&open, &config).map_err(|errors| errors.to_string())
+        resolve_template_device_unconfigured(&open, &config).map_err(|errors| errors.to_string())
     }) {
         Ok(open) => {
             add_device(&mut registers, &open);
@@ -295,6 +295,29 @@ mod tests {
         // The default subdevice, shifted, with its parameters.
         assert_eq!(r.event_width(RegisterType::Input, 1002), Some(1));
         assert!(r.cell(RegisterType::Holding, 1003).unwrap().writable);
+    }
+
+    /// A WB-LED or WB-MAI6 template requires a mode the config must give; the hardware has
+    /// its registers whatever the mode, so the simulator builds it from the template alone.
+    #[test]
+    fn a_template_with_a_required_parameter_is_simulated() {
+        let t = registers(
+            r#"{"device_type": "t", "device": {
+                "parameters": {"mode": {"title": "m", "address": 16, "reg_type": "holding",
+                                        "enum": [1, 2], "required": true}},
+                "channels": [
+                    {"name": "A", "reg_type": "input", "address": 1},
+                    {"name": "B", "reg_type": "input", "address": 2, "condition": "mode==2"}]}}"#,
+        );
+        assert_eq!(t.limited, None);
+        assert!(t.registers.get(RegisterType::Input, 1).is_some());
+        assert!(t.registers.get(RegisterType::Input, 2).is_some());
+        assert!(
+            t.registers
+                .cell(RegisterType::Holding, 16)
+                .unwrap()
+                .writable
+        );
     }
 
     #[test]

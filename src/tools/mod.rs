@@ -2,6 +2,7 @@
 //! pure logic (which port settings to try, what a scan found, how duplicates are resolved, how a
 //! register value reads) in sans-IO modules, and one small IO layer ([`bus`]) over the transport.
 
+pub mod adapter;
 pub mod bus;
 pub mod plan;
 pub mod report;

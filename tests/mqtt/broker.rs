@@ -462,7 +462,7 @@ async fn a_topic_the_client_refuses_does_not_block_the_others() {
     let mut level = relay.channels[0].clone();
     level.id = "Lvl#".into();
     level.readonly = true;
-    relay.channels.insert(0, level);
+    relay.channels.make_mut().insert(0, level);
     mqtt.send(DeviceUpdate::Added(std::sync::Arc::new(relay)))
         .await;
     mqtt.send(value(RELAY, "Lvl#", "1")).await;

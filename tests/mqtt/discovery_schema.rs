@@ -58,7 +58,7 @@ fn every_control_type() -> ResolvedDevice {
             channel.control_type = control_type.to_string();
             channel.units = None;
             channel.readonly = readonly;
-            device.channels.push(channel);
+            device.channels.make_mut().push(channel);
         }
     }
     for (units, id) in [
@@ -70,7 +70,7 @@ fn every_control_type() -> ResolvedDevice {
         let mut channel = base.clone();
         channel.id = id.to_string();
         channel.units = Some(units.to_string());
-        device.channels.push(channel);
+        device.channels.make_mut().push(channel);
     }
     device
 }

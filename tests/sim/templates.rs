@@ -73,7 +73,10 @@ fn every_template_builds_a_device() {
     let shipped = files.len();
     files.extend(json_files(&repo("tests/data/wb-templates")));
     assert_eq!(shipped, 6);
-    assert_eq!(files.len(), 10);
+    assert!(
+        files.len() >= shipped + 4,
+        "the wb-format fixtures are found"
+    );
     for file in &files {
         let template = TemplateFile::load(file).unwrap_or_else(|e| panic!("{e}"));
         let registers = template_registers(&template, 20).unwrap_or_else(|e| panic!("{e}"));
