@@ -1503,10 +1503,17 @@ fn random_outcome(rng: &mut Rng, request: &Request, addresses: &[u8]) -> Outcome
         },
         5..=7 if matches!(request.body, RequestBody::Fast(FastRequest::PollEvents(_))) => {
             let address = addresses[rng.below(addresses.len() as u64) as usize];
+            let types = [
+                RegisterType::Coil,
+                RegisterType::DiscreteInput,
+                RegisterType::Holding,
+                RegisterType::Input,
+            ];
+            // Register values of one word or two (a partial wide value is read again).
             let mut events = vec![Event {
-                source: crate::protocol::EventSource::Register(RegisterType::Coil),
+                source: crate::protocol::EventSource::Register(types[rng.below(4) as usize]),
                 id: rng.below(12) as u16,
-                payload: vec![1],
+                payload: vec![1; 1 + rng.below(4) as usize],
             }];
             if rng.chance(20) {
                 events.push(Event::reboot());
