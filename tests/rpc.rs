@@ -207,6 +207,21 @@ async fn reads_scans_and_errors(bench: &Bench, baud: u32) {
         r#"{"id":7,"result":{"response":"0866"},"error":null}"#
     );
 
+    // port/Load without "protocol": a raw transfer. The same read as a whole RTU frame, and
+    // the whole reply back, CRC included; silence is an empty response, not an error.
+    let raw = json!({"path": path, "format": "HEX", "msg": "150400040001731f",
+                     "response_size": 7});
+    let answer = rpc(port, "port", "Load", raw).await;
+    assert_eq!(
+        answer["result"],
+        json!({"response": "15040208660ed9"}),
+        "{answer}"
+    );
+    let nobody = json!({"path": path, "format": "HEX", "msg": "6303000000018c48",
+                        "response_size": 7, "response_timeout": 100});
+    let answer = rpc(port, "port", "Load", nobody).await;
+    assert_eq!(answer["result"], json!({"response": ""}), "{answer}");
+
     // A write through port/Load reaches the device.
     let write = json!({"path": path, "protocol": "modbus", "slave_id": 20, "function": 5,
                        "address": 2, "count": 1, "format": "HEX", "msg": "ff00"});

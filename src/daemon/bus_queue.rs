@@ -12,6 +12,7 @@ use tokio::sync::{mpsc, oneshot};
 
 use crate::port::{Outcome, Transaction};
 use crate::protocol::LineSettings;
+use crate::transport::raw::RawRequest;
 
 /// Queued transactions a port holds at most; more are refused at once (the caller reports a
 /// busy port rather than wait behind a pile of work).
@@ -20,6 +21,8 @@ pub const BUS_QUEUE_DEPTH: usize = 16;
 /// What a running port is asked to do.
 pub enum QueuedJob {
     Transaction(QueuedTransaction),
+    /// Bytes out and back as they are (`port/Load` without a protocol).
+    Raw(QueuedRaw),
     /// Hold the polling of the port's `device`-th device for `hold_for`, counted from when the
     /// port task takes the job (`None`: resume it).
     HoldPolling {
@@ -37,6 +40,14 @@ pub struct QueuedTransaction {
     pub line: Option<LineSettings>,
     pub transaction: Transaction,
     pub reply: oneshot::Sender<Result<Outcome, BusQueueError>>,
+}
+
+/// One raw transfer asked of a running port: no frame is parsed, the answer is what came.
+pub struct QueuedRaw {
+    /// As for [`QueuedTransaction::line`].
+    pub line: Option<LineSettings>,
+    pub request: RawRequest,
+    pub reply: oneshot::Sender<Result<Vec<u8>, BusQueueError>>,
 }
 
 /// Why a queued transaction got no outcome.
@@ -82,6 +93,22 @@ impl BusQueue {
             reply,
         }))?;
         outcome.await.unwrap_or(Err(BusQueueError::Stopped))
+    }
+
+    /// Sends `request`'s bytes as they are (at `line`, or the port's own settings) between the
+    /// port's own transactions and returns what came back.
+    pub async fn transfer_raw(
+        &self,
+        line: Option<LineSettings>,
+        request: RawRequest,
+    ) -> Result<Vec<u8>, BusQueueError> {
+        let (reply, answer) = oneshot::channel();
+        self.send(QueuedJob::Raw(QueuedRaw {
+            line,
+            request,
+            reply,
+        }))?;
+        answer.await.unwrap_or(Err(BusQueueError::Stopped))
     }
 
     /// Holds the polling of the port's `device`-th device for `hold_for` from now (again from

@@ -8,7 +8,9 @@ use tokio::sync::{mpsc, watch};
 use tokio::time::Instant;
 use tracing::{debug, info, warn};
 
-use super::bus_queue::{BusQueue, BusQueueError, BusQueueReceiver, QueuedJob, QueuedTransaction};
+use super::bus_queue::{
+    BusQueue, BusQueueError, BusQueueReceiver, QueuedJob, QueuedRaw, QueuedTransaction,
+};
 use super::identity::{read_identity, IdentityPlan, IdentityRead};
 use crate::gateway::device_model::{apply_port_events, DeviceModel};
 use crate::gateway::port_plan::PortPlan;
@@ -67,6 +69,40 @@ struct IdentityState {
     reading: Vec<bool>,
     requests: Option<mpsc::UnboundedSender<usize>>,
     results: Option<mpsc::Receiver<(usize, IdentityRead)>>,
+}
+
+/// A queued job that takes bus time.
+enum BusWork {
+    Transaction(QueuedTransaction),
+    Raw(QueuedRaw),
+}
+
+impl BusWork {
+    fn line(&self) -> Option<LineSettings> {
+        match self {
+            BusWork::Transaction(job) => job.line,
+            BusWork::Raw(job) => job.line,
+        }
+    }
+
+    /// Its caller gave up waiting (a timeout dropped the receiving side).
+    fn withdrawn(&self) -> bool {
+        match self {
+            BusWork::Transaction(job) => job.reply.is_closed(),
+            BusWork::Raw(job) => job.reply.is_closed(),
+        }
+    }
+
+    fn refuse(self, why: BusQueueError) {
+        match self {
+            BusWork::Transaction(job) => {
+                let _ = job.reply.send(Err(why));
+            }
+            BusWork::Raw(job) => {
+                let _ = job.reply.send(Err(why));
+            }
+        }
+    }
 }
 
 /// The open bus, and the settings it was switched to for queued transactions (a serial port
@@ -454,9 +490,10 @@ impl PortTask {
 
     /// Carries out at once what a queued job asks that takes no bus time (a hold on a
     /// device's polling); the transaction to serve, if it is one.
-    fn take_job(&mut self, job: QueuedJob) -> Option<QueuedTransaction> {
+    fn take_job(&mut self, job: QueuedJob) -> Option<BusWork> {
         match job {
-            QueuedJob::Transaction(transaction) => Some(transaction),
+            QueuedJob::Transaction(transaction) => Some(BusWork::Transaction(transaction)),
+            QueuedJob::Raw(raw) => Some(BusWork::Raw(raw)),
             QueuedJob::HoldPolling {
                 device,
                 hold_for,
@@ -474,31 +511,49 @@ impl PortTask {
     async fn serve_queued(
         &mut self,
         bus: &mut OpenBus,
-        job: QueuedTransaction,
+        job: BusWork,
     ) -> Result<(), TransportError> {
-        if job.reply.is_closed() {
-            // Withdrawn (its caller timed out) before its turn.
+        if job.withdrawn() {
+            // Its caller timed out before its turn.
             return Ok(());
         }
         let home = self.home_line();
-        let wanted = match (job.line, home) {
+        let wanted = match (job.line(), home) {
             (Some(line), Some(home)) if line != home => Some(line),
             _ => None,
         };
         if wanted != bus.away {
             if let Err(err) = self.switch_line(bus, wanted).await {
                 let line = wanted.or(home).map(|l| l.to_string()).unwrap_or_default();
-                let _ = job.reply.send(Err(BusQueueError::Settings {
+                job.refuse(BusQueueError::Settings {
                     line,
                     reason: err.to_string(),
-                }));
+                });
                 // Back at the port's own settings, or the port task reopens the port.
                 return self.switch_line(bus, None).await;
             }
         }
         let Some(transport) = bus.transport.as_mut() else {
-            let _ = job.reply.send(Err(BusQueueError::Stopped));
+            job.refuse(BusQueueError::Stopped);
             return Err(self.lost_port());
+        };
+        let job = match job {
+            BusWork::Transaction(job) => job,
+            BusWork::Raw(raw) => {
+                debug!(port = %self.plan_name, away = ?bus.away, "queued raw transfer");
+                return match transport.transfer_raw(&raw.request).await {
+                    Ok(answer) => {
+                        let _ = raw.reply.send(Ok(answer));
+                        Ok(())
+                    }
+                    Err(err) => {
+                        let _ = raw
+                            .reply
+                            .send(Err(BusQueueError::PortClosed(err.to_string())));
+                        Err(err)
+                    }
+                };
+            }
         };
         debug!(port = %self.plan_name, away = ?bus.away, "queued transaction");
         let started = self.now();
@@ -568,9 +623,10 @@ impl PortTask {
         for job in jobs {
             match job {
                 QueuedJob::Transaction(job) => {
-                    let _ = job
-                        .reply
-                        .send(Err(BusQueueError::PortClosed(why.to_owned())));
+                    BusWork::Transaction(job).refuse(BusQueueError::PortClosed(why.to_owned()));
+                }
+                QueuedJob::Raw(raw) => {
+                    BusWork::Raw(raw).refuse(BusQueueError::PortClosed(why.to_owned()));
                 }
                 // A hold takes no bus: the scheduler keeps it while the port is reopened.
                 job @ QueuedJob::HoldPolling { .. } => {

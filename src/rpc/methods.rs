@@ -10,7 +10,7 @@ use serde_json::{json, Map, Value};
 use super::message::RpcError;
 use super::params::{
     DeviceLoad, DeviceLoadConfig, DeviceProbe, DeviceSet, DeviceSetPoll, MessageFormat, Method,
-    PortLoad, PortScan, PortSelector, PortSetup, ScanMode, POLL_HOLD,
+    PortLoad, PortLoadRaw, PortScan, PortSelector, PortSetup, ScanMode, POLL_HOLD,
 };
 use crate::config::config_file::PortType;
 use crate::config::{TemplateFile, TemplateLibrary};
@@ -25,6 +25,7 @@ use crate::tools::adapter::{sysfs_tty, Adapter};
 use crate::tools::bus::{scan_transaction, Answer, PortError, ToolBus};
 use crate::tools::report::ScanReport;
 use crate::tools::values::standard_text;
+use crate::transport::raw::RawRequest;
 
 /// A running port's bus as the site tools' exchanges see it.
 pub struct QueuedBus {
@@ -126,6 +127,7 @@ pub async fn execute_with_templates(
     match method {
         Method::PortsLoad => Ok(ports_load(ports)),
         Method::PortLoad(load) => port_load(ports, load).await,
+        Method::PortLoadRaw(raw) => port_load_raw(ports, raw).await,
         Method::PortScan(scan) => port_scan(ports, scan).await,
         Method::DeviceProbe(probe) => device_probe(ports, probe).await,
         Method::PortSetup(setup) => port_setup(ports, setup).await,
@@ -273,6 +275,35 @@ async fn port_load(ports: &PortDirectory, load: PortLoad) -> Result<Value, RpcEr
     })
 }
 
+/// `port/Load` without a protocol: the bytes out as given, then `{"response": …}` with what
+/// came back (empty when nothing did: silence is no error in a raw transfer, as in
+/// wb-mqtt-serial).
+async fn port_load_raw(ports: &PortDirectory, raw: PortLoadRaw) -> Result<Value, RpcError> {
+    let (access, _) = find_port(ports, &raw.port)?;
+    let line = access.line.map(|_| request_line(&access, &raw.line));
+    let request = RawRequest {
+        bytes: raw.message,
+        response_size: raw.response_size,
+        response_timeout: raw.response_timeout + RPC_LATENCY,
+        frame_timeout: raw.frame_timeout,
+    };
+    let answer = access
+        .queue
+        .transfer_raw(line, request)
+        .await
+        .map_err(|err| RpcError::server(format!("Port IO error: {err}")))?;
+    Ok(json!({ "response": format_response(&answer, raw.format) }))
+}
+
+/// `response` as wb-mqtt-serial writes it: two lowercase hex digits per byte, or the bytes as
+/// a string.
+fn format_response(data: &[u8], format: MessageFormat) -> String {
+    match format {
+        MessageFormat::Hex => data.iter().map(|b| format!("{b:02x}")).collect(),
+        MessageFormat::Str => String::from_utf8_lossy(data).into_owned(),
+    }
+}
+
 /// The result of `port/Load` for a reply: `{"response": data}` or `{"exception": …}`.
 pub fn load_result(answer: &Answer, format: MessageFormat) -> Result<Value, &'static str> {
     let data: Vec<u8> = match answer {
@@ -291,11 +322,7 @@ pub fn load_result(answer: &Answer, format: MessageFormat) -> Result<Value, &'st
         | Answer::Pdu(ResponsePdu::ReadDiscreteInputs { packed }) => packed.clone(),
         Answer::Pdu(_) => Vec::new(),
     };
-    let response = match format {
-        MessageFormat::Hex => data.iter().map(|b| format!("{b:02x}")).collect(),
-        MessageFormat::Str => String::from_utf8_lossy(&data).into_owned(),
-    };
-    Ok(json!({ "response": response }))
+    Ok(json!({ "response": format_response(&data, format) }))
 }
 
 /// `port/Scan`: the Fast Modbus scan at one setting, then each device's details.

@@ -82,6 +82,26 @@ pub struct PortLoad {
     pub total_timeout: Duration,
 }
 
+/// `port/Load` without `protocol`: bytes out as they are, and what comes back.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PortLoadRaw {
+    pub port: PortSelector,
+    pub line: LineOverride,
+    pub message: Vec<u8>,
+    pub format: MessageFormat,
+    /// Bytes to wait for at most.
+    pub response_size: usize,
+    pub response_timeout: Duration,
+    pub frame_timeout: Duration,
+    pub total_timeout: Duration,
+}
+
+/// Silence after a byte that ends a raw answer when the request does not say (wb-mqtt-serial's
+/// default frame timeout).
+pub const DEFAULT_RAW_FRAME_TIMEOUT: Duration = Duration::from_millis(20);
+/// The longest raw answer taken (a whole frame of any protocol on a serial bus fits).
+pub const MAX_RAW_RESPONSE: u64 = 4096;
+
 /// `port/Scan`'s modes.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum ScanMode {
@@ -185,6 +205,7 @@ pub struct DeviceLoadConfig {
 pub enum Method {
     PortsLoad,
     PortLoad(PortLoad),
+    PortLoadRaw(PortLoadRaw),
     PortScan(PortScan),
     DeviceProbe(DeviceProbe),
     PortSetup(PortSetup),
@@ -200,6 +221,7 @@ impl Method {
         match self {
             Self::PortsLoad => DEFAULT_TOTAL_TIMEOUT,
             Self::PortLoad(p) => p.total_timeout,
+            Self::PortLoadRaw(p) => p.total_timeout,
             Self::PortScan(p) => p.total_timeout,
             Self::DeviceProbe(p) => p.total_timeout,
             Self::PortSetup(p) => p.total_timeout,
@@ -217,7 +239,10 @@ pub fn parse_method(service: &str, method: &str, params: &Value) -> Result<Metho
     let fields = params.as_object().unwrap_or(&empty);
     match (service, method) {
         ("ports", "Load") => Ok(Method::PortsLoad),
-        ("port", "Load") => parse_port_load(fields).map(Method::PortLoad),
+        ("port", "Load") => match optional_str(fields, "protocol")? {
+            None => parse_port_load_raw(fields).map(Method::PortLoadRaw),
+            Some(_) => parse_port_load(fields).map(Method::PortLoad),
+        },
         ("port", "Scan") => Ok(Method::PortScan(PortScan {
             port: port_selector(fields)?,
             line: line_override(fields)?,
@@ -401,22 +426,9 @@ fn bad(field: &str, why: impl std::fmt::Display) -> RpcError {
     RpcError::server(format!("bad \"{field}\": {why}"))
 }
 
-fn parse_port_load(fields: &Map<String, Value>) -> Result<PortLoad, RpcError> {
-    match optional_str(fields, "protocol")? {
-        Some("modbus" | "modbus-tcp") => {}
-        None => {
-            return Err(RpcError::server(
-                "raw transfers (port/Load without \"protocol\") are not supported by rtu2mqtt: \
-                 give \"protocol\": \"modbus\" with slave_id, function, address and count",
-            ))
-        }
-        Some(other) => {
-            return Err(bad(
-                "protocol",
-                format!("{other:?}: use \"modbus\" or \"modbus-tcp\""),
-            ))
-        }
-    }
+/// `format` and `msg`, as wb-mqtt-serial reads them (`HEX`: two hex digits per byte; anything
+/// else: the string's bytes).
+fn message(fields: &Map<String, Value>) -> Result<(MessageFormat, Vec<u8>), RpcError> {
     let format = match optional_str(fields, "format")? {
         Some("HEX") => MessageFormat::Hex,
         _ => MessageFormat::Str,
@@ -428,6 +440,61 @@ fn parse_port_load(fields: &Map<String, Value>) -> Result<PortLoad, RpcError> {
             MessageFormat::Hex => parse_hex_message(text)?,
         },
     };
+    Ok((format, message))
+}
+
+fn parse_port_load_raw(fields: &Map<String, Value>) -> Result<PortLoadRaw, RpcError> {
+    let (format, message) = message(fields)?;
+    if message.is_empty() {
+        return Err(bad("msg", "missing or empty: the bytes to send"));
+    }
+    let response_size = optional_uint(fields, "response_size")?.ok_or_else(|| {
+        bad(
+            "response_size",
+            "missing: how many bytes to wait for at most",
+        )
+    })?;
+    if response_size > MAX_RAW_RESPONSE {
+        return Err(bad(
+            "response_size",
+            format!("{response_size} is above {MAX_RAW_RESPONSE}"),
+        ));
+    }
+    let port = port_selector(fields)?;
+    if matches!(port, PortSelector::Device(_)) {
+        return Err(bad(
+            "device_id",
+            "a raw transfer goes to a port: give \"path\" (or \"ip\" and \"port\")",
+        ));
+    }
+    Ok(PortLoadRaw {
+        port,
+        line: line_override(fields)?,
+        message,
+        format,
+        response_size: usize::try_from(response_size).unwrap_or(0),
+        response_timeout: optional_millis(fields, "response_timeout")?
+            .unwrap_or(DEFAULT_RESPONSE_TIMEOUT),
+        frame_timeout: optional_millis(fields, "frame_timeout")?
+            .unwrap_or(DEFAULT_RAW_FRAME_TIMEOUT),
+        total_timeout: total_timeout(fields)?,
+    })
+}
+
+fn parse_port_load(fields: &Map<String, Value>) -> Result<PortLoad, RpcError> {
+    match optional_str(fields, "protocol")? {
+        Some("modbus" | "modbus-tcp") => {}
+        None => {
+            return Err(bad("protocol", "missing"));
+        }
+        Some(other) => {
+            return Err(bad(
+                "protocol",
+                format!("{other:?}: use \"modbus\" or \"modbus-tcp\""),
+            ))
+        }
+    }
+    let (format, message) = message(fields)?;
     let function = optional_uint(fields, "function")?.ok_or_else(|| bad("function", "missing"))?;
     let address = optional_uint(fields, "address")?.unwrap_or(0);
     let address = u16::try_from(address).map_err(|_| bad("address", "above 65535"))?;
@@ -802,10 +869,66 @@ mod tests {
     }
 
     #[test]
+    fn port_load_without_protocol_is_a_raw_transfer() {
+        let method = parse(
+            "port",
+            "Load",
+            json!({"path": "/dev/ttyRS485-1", "baud_rate": 9600, "format": "HEX",
+                   "msg": "0103000000018 40A".replace(' ', ""), "response_size": 7,
+                   "response_timeout": 200, "frame_timeout": 30, "total_timeout": 3000}),
+        )
+        .unwrap();
+        let Method::PortLoadRaw(raw) = method else {
+            panic!("{method:?}");
+        };
+        assert_eq!(raw.port, PortSelector::Path("/dev/ttyRS485-1".into()));
+        assert_eq!(
+            raw.message,
+            [0x01, 0x03, 0x00, 0x00, 0x00, 0x01, 0x84, 0x0A]
+        );
+        assert_eq!(raw.format, MessageFormat::Hex);
+        assert_eq!(raw.response_size, 7);
+        assert_eq!(raw.response_timeout, Duration::from_millis(200));
+        assert_eq!(raw.frame_timeout, Duration::from_millis(30));
+        assert_eq!(raw.total_timeout, Duration::from_millis(3000));
+        // A string message is sent as its bytes; the timeouts default as wb-mqtt-serial's.
+        let Method::PortLoadRaw(text) = parse(
+            "port",
+            "Load",
+            json!({"path": "/dev/ttyRS485-1", "msg": "#01RD\r", "response_size": 16}),
+        )
+        .unwrap() else {
+            panic!("not raw");
+        };
+        assert_eq!(text.message, b"#01RD\r");
+        assert_eq!(text.format, MessageFormat::Str);
+        assert_eq!(text.response_timeout, DEFAULT_RESPONSE_TIMEOUT);
+        assert_eq!(text.frame_timeout, DEFAULT_RAW_FRAME_TIMEOUT);
+    }
+
+    #[test]
     fn bad_params_say_which_field_and_why() {
         let cases = [
+            // Without "protocol": a raw transfer.
             (
                 json!({"path": "/dev/x", "slave_id": 1, "function": 3, "address": 1, "count": 1}),
+                "msg",
+            ),
+            (json!({"path": "/dev/x", "msg": "hello"}), "response_size"),
+            (
+                json!({"path": "/dev/x", "msg": "01", "format": "HEX", "response_size": 5000}),
+                "response_size",
+            ),
+            (
+                json!({"path": "/dev/x", "msg": "010", "format": "HEX", "response_size": 8}),
+                "msg",
+            ),
+            (
+                json!({"device_id": "relay", "msg": "x", "response_size": 8}),
+                "device_id",
+            ),
+            (
+                json!({"path": "/dev/x", "protocol": "dlms", "slave_id": 1, "function": 3}),
                 "protocol",
             ),
             (

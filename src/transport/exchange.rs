@@ -207,6 +207,12 @@ impl Exchange {
         }
     }
 
+    /// Something outside this exchange (a raw transfer) kept the line busy until `until`: the
+    /// guard interval of the next request counts from there.
+    pub fn line_was_busy(&mut self, until: Duration) {
+        self.line_busy_until = Some(self.line_busy_until.map_or(until, |busy| busy.max(until)));
+    }
+
     /// The driver's `write` of the request returned at `now`: the reply window opens.
     pub fn handle_sent(&mut self, now: Duration) {
         let State::Sending {

@@ -6,6 +6,7 @@
 
 pub mod exchange;
 mod mbap;
+pub mod raw;
 pub mod receive;
 mod serial;
 
@@ -18,6 +19,7 @@ use tokio::net::TcpStream;
 use tokio::time::{timeout_at, Instant};
 
 use exchange::{Exchange, Framing, LinkConfig};
+use raw::{RawRequest, RawTransfer};
 use serial::SerialLink;
 use tracing::debug;
 
@@ -183,6 +185,48 @@ impl Transport {
                     let bytes = buffer.get(..count).unwrap_or(&[]);
                     debug!(port = %self.name, rx = %protocol::hex(bytes), "bytes");
                     self.exchange.handle_bytes(self.now(), bytes);
+                }
+            }
+        }
+    }
+
+    /// A raw transfer (no protocol): `request`'s bytes out, then what comes back up to its
+    /// size, until its first-byte timeout or a silence; every decision is the
+    /// [`RawTransfer`]'s. Only a broken port or connection is an error.
+    pub async fn transfer_raw(&mut self, request: &RawRequest) -> Result<Vec<u8>, TransportError> {
+        let mut transfer = RawTransfer::new(request.clone(), *self.exchange.config());
+        let mut buffer = [0u8; 512];
+        loop {
+            if let Some(transmit) = transfer.poll_transmit(self.now()) {
+                if transmit.flush_input {
+                    self.flush_input()?;
+                }
+                debug!(port = %self.name, tx = %protocol::hex(&transmit.bytes), "raw request");
+                self.write_all(&transmit.bytes).await?;
+                transfer.handle_sent(self.now());
+            }
+            if let Some(busy) = transfer.line_busy_until() {
+                self.exchange.line_was_busy(busy);
+            }
+            if let Some(answer) = transfer.poll_outcome() {
+                return Ok(answer);
+            }
+            let Some(timeout) = transfer.poll_timeout() else {
+                return Ok(Vec::new());
+            };
+            let wake = self.epoch + timeout;
+            let mut no_pacing = MAX_PACED_READS;
+            match self.next_bytes(wake, &mut no_pacing, &mut buffer).await? {
+                None => transfer.handle_timeout(self.now()),
+                Some(0) => {
+                    return Err(TransportError::Closed {
+                        name: self.name.clone(),
+                    })
+                }
+                Some(count) => {
+                    let bytes = buffer.get(..count).unwrap_or(&[]);
+                    debug!(port = %self.name, rx = %protocol::hex(bytes), "raw bytes");
+                    transfer.handle_bytes(self.now(), bytes);
                 }
             }
         }
