@@ -411,7 +411,9 @@ impl NoiseBus {
             .published
             .iter()
             .filter(|p| {
-                p.at >= since
+                // A publication at `since` itself answers a change made before it (counted
+                // in the toggles before), not one of the run's.
+                p.at > since
                     && !p.topic.contains("/meta")
                     && (p.topic.contains("/controls/E")
                         || awaited.iter().any(|a| p.topic.ends_with(a.as_str())))
