@@ -42,7 +42,7 @@ fn all_fixtures_load_and_resolve() {
         );
         count += 1;
     }
-    assert_eq!(count, 10);
+    assert_eq!(count, 11);
 }
 
 /// Asserts a channel's first register: table, address, format and event mode.
@@ -721,5 +721,52 @@ fn write_only_valve_and_status_fields() {
     assert_eq!(
         channel("hardware_version").decode(&[&[0x1234]]).unwrap(),
         Reading::Value("18".into())
+    );
+}
+
+/// WB-MAI2-MINI/CC: the bounds are required only once the config gives the mode (wb-mqtt-serial's
+/// validator sees no defaults), the scale parameter's condition is a bare parameter name, and the
+/// declaration and channel of the scale in effect are used.
+#[test]
+fn bounds_required_once_the_mode_is_given() {
+    let d = device("config-test-analog-scale.json", json!({"slave_id": 1}));
+    assert_eq!(setup_writes(&d), vec![]);
+    assert_eq!(
+        d.channel("in1_value")
+            .unwrap()
+            .decode(&[&[0xFFF6]])
+            .unwrap(),
+        Reading::Value("-10".into())
+    );
+
+    let err = resolve_template_device(
+        &template("config-test-analog-scale.json"),
+        &json!({"slave_id": 1, "in1_mode": 2}),
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(err.contains("requires parameter `in1_min`"), "{err}");
+    assert!(err.contains("requires parameter `in1_scale`"), "{err}");
+
+    // Mode 0: the bare condition `in1_mode` is false, so the range is not required.
+    let d = device(
+        "config-test-analog-scale.json",
+        json!({"slave_id": 1, "in1_mode": 0, "in1_min": -5}),
+    );
+    assert_eq!(setup_writes(&d), vec![(8, vec![0]), (10, vec![0xFFFB])]);
+
+    // Scale 10: the second declaration is in effect (-3276.8 is raw -32768); the readonly scale
+    // itself is never written.
+    let d = device(
+        "config-test-analog-scale.json",
+        json!({"slave_id": 1, "in1_mode": 1, "in1_scale": 10, "in1_min": -3276.8}),
+    );
+    assert_eq!(setup_writes(&d), vec![(8, vec![1]), (10, vec![0x8000])]);
+    assert_eq!(
+        d.channel("in1_value")
+            .unwrap()
+            .decode(&[&[0xFFF6]])
+            .unwrap(),
+        Reading::Value("-1".into())
     );
 }
