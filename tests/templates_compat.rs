@@ -42,7 +42,7 @@ fn all_fixtures_load_and_resolve() {
         );
         count += 1;
     }
-    assert_eq!(count, 9);
+    assert_eq!(count, 11);
 }
 
 /// Asserts a channel's first register: table, address, format and event mode.
@@ -660,4 +660,113 @@ fn hvac_bit_fields_inverted_switch_and_shared_pushbuttons() {
             "{id}"
         );
     }
+}
+
+/// Leak-protection controllers (Ensystec): `required` parameters behind a condition on another
+/// parameter's default. wb-mqtt-serial's validator evaluates those conditions over the config's
+/// own values (`TJsonParams(config)`, no defaults), so `zone1_type` is required only once the
+/// config gives `zone1_enable`; `readonly` parameters are never written.
+#[test]
+fn required_parameter_behind_a_defaulted_condition() {
+    let d = device("config-test-leak-protect.json", json!({"slave_id": 1}));
+    assert_eq!(setup_writes(&d), vec![]);
+    // The defaults choose the leak-sensor channel.
+    assert_channel(&d, "zone_1", Holding, 3, U16, Polled);
+    assert!(d.channel("zone_1_counter").is_none());
+
+    let err = resolve_template_device(
+        &template("config-test-leak-protect.json"),
+        &json!({"slave_id": 1, "zone1_enable": 1}),
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(err.contains("requires parameter `zone1_type`"), "{err}");
+    assert!(!err.contains("zone2_type"), "{err}");
+
+    // Readonly parameters are shown, never written; `address` is an ordinary parameter id.
+    let d = device(
+        "config-test-leak-protect.json",
+        json!({"slave_id": 1, "zone1_enable": 1, "zone1_type": 0, "address": 20}),
+    );
+    assert_eq!(setup_writes(&d), vec![(15, vec![20])]);
+    assert_eq!(d.slave_id, 1);
+    assert_channel(&d, "zone_1_counter", Holding, 17, S32, Polled);
+    assert!(d.channel("zone_1").is_none());
+}
+
+/// A valve switch with only a `write_address` is write-only and writes on_value/off_value;
+/// inverted read-only bits, a 2-bit status and a high byte decode from their fields.
+#[test]
+fn write_only_valve_and_status_fields() {
+    let d = device("config-test-leak-protect.json", json!({"slave_id": 1}));
+    let channel = |id: &str| d.channel(id).unwrap();
+    let valve = channel("valve_1");
+    assert!(valve.write_only);
+    assert!(valve.registers[0].read.is_none());
+    assert_eq!(valve.registers[0].write.unwrap().address, 6);
+    assert_eq!(valve.encode("1", &[None]).unwrap(), vec![vec![3]]);
+    assert_eq!(valve.encode("0", &[None]).unwrap(), vec![vec![1]]);
+    assert_eq!(
+        channel("low_battery").decode(&[&[0x0000]]).unwrap(),
+        Reading::Value("1".into())
+    );
+    assert_eq!(
+        channel("low_battery").decode(&[&[0x0004]]).unwrap(),
+        Reading::Value("0".into())
+    );
+    assert_eq!(
+        channel("valve_1_status").decode(&[&[0x0300]]).unwrap(),
+        Reading::Value("3".into())
+    );
+    assert_eq!(
+        channel("hardware_version").decode(&[&[0x1234]]).unwrap(),
+        Reading::Value("18".into())
+    );
+}
+
+/// WB-MAI2-MINI/CC: the bounds are required only once the config gives the mode (wb-mqtt-serial's
+/// validator sees no defaults), the scale parameter's condition is a bare parameter name, and the
+/// declaration and channel of the scale in effect are used.
+#[test]
+fn bounds_required_once_the_mode_is_given() {
+    let d = device("config-test-analog-scale.json", json!({"slave_id": 1}));
+    assert_eq!(setup_writes(&d), vec![]);
+    assert_eq!(
+        d.channel("in1_value")
+            .unwrap()
+            .decode(&[&[0xFFF6]])
+            .unwrap(),
+        Reading::Value("-10".into())
+    );
+
+    let err = resolve_template_device(
+        &template("config-test-analog-scale.json"),
+        &json!({"slave_id": 1, "in1_mode": 2}),
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(err.contains("requires parameter `in1_min`"), "{err}");
+    assert!(err.contains("requires parameter `in1_scale`"), "{err}");
+
+    // Mode 0: the bare condition `in1_mode` is false, so the range is not required.
+    let d = device(
+        "config-test-analog-scale.json",
+        json!({"slave_id": 1, "in1_mode": 0, "in1_min": -5}),
+    );
+    assert_eq!(setup_writes(&d), vec![(8, vec![0]), (10, vec![0xFFFB])]);
+
+    // Scale 10: the second declaration is in effect (-3276.8 is raw -32768); the readonly scale
+    // itself is never written.
+    let d = device(
+        "config-test-analog-scale.json",
+        json!({"slave_id": 1, "in1_mode": 1, "in1_scale": 10, "in1_min": -3276.8}),
+    );
+    assert_eq!(setup_writes(&d), vec![(8, vec![1]), (10, vec![0x8000])]);
+    assert_eq!(
+        d.channel("in1_value")
+            .unwrap()
+            .decode(&[&[0xFFF6]])
+            .unwrap(),
+        Reading::Value("-1".into())
+    );
 }

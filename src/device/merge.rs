@@ -433,13 +433,20 @@ impl Level<'_> {
                         });
                     }
                 }
-                None if check_required
-                    && spec.get("required").and_then(Value::as_bool) == Some(true)
-                    && condition_true(spec, &conditions) =>
-                {
-                    let choices = allowed_values(spec)
+                // wb-mqtt-serial's validator evaluates the conditions of `required` parameters
+                // over the config's own values, without defaults (`TJsonParams(config)`): a
+                // leak controller's `zone1_type` is required only once the config gives
+                // `zone1_enable`, whose default would make its condition hold.
+                None if check_required => {
+                    let Some(required) = declarations.iter().map(|(_, p)| *p).find(|p| {
+                        p.get("required").and_then(Value::as_bool) == Some(true)
+                            && condition_true(p, self.values)
+                    }) else {
+                        continue;
+                    };
+                    let choices = allowed_values(required)
                         .filter(|a| !a.is_empty())
-                        .map(|a| format!(" (one of {})", describe_choices(spec, &a)))
+                        .map(|a| format!(" (one of {})", describe_choices(required, &a)))
                         .unwrap_or_default();
                     errors.push(MergeError {
                         origin: format!("c:{}", self.value_path),
