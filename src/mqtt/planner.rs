@@ -72,7 +72,7 @@ pub enum WriteOutcome {
 struct PublishedControl {
     /// Where its channel is in the device's channel list (found without comparing ids).
     channel: usize,
-    value: Option<String>,
+    value: Option<Arc<str>>,
     last_published: Option<Instant>,
     errors: ErrorFlags,
     published_errors: String,
@@ -323,7 +323,7 @@ impl PublicationPlanner {
         &mut self,
         device_id: &str,
         control_id: &str,
-        value: String,
+        value: Arc<str>,
         changed: bool,
         now: Instant,
     ) -> Vec<MqttAction> {

@@ -145,7 +145,7 @@ fn values_publish_on_change_only() {
     // Issue 15 defect 9: a value read by the poll and then reported by an event (or an event
     // repeated by the device) is published once, as wb-mqtt-serial publishes on change.
     let event = DeviceUpdate::Value {
-        device_id: id.clone(),
+        device_id: id.as_str().into(),
         control_id: "K1".into(),
         value: "0".into(),
         from_event: true,
