@@ -624,6 +624,9 @@ pub fn apply_port_events(
     events: impl IntoIterator<Item = PortEvent>,
     out: &mut Vec<DeviceUpdate>,
 ) {
+    // Only the models that events reached have any to publish (every call ends with none
+    // pending): the others, most of a large bus, are not looked at again.
+    let mut evented: Vec<usize> = Vec::new();
     for event in events {
         let device = match &event {
             PortEvent::Values { device, .. }
@@ -636,12 +639,19 @@ pub fn apply_port_events(
             | PortEvent::Offline { device }
             | PortEvent::Rebooted { device } => *device,
         };
+        if matches!(event, PortEvent::EventValue { .. }) && evented.last() != Some(&device) {
+            evented.push(device);
+        }
         if let Some(model) = models.get_mut(device) {
             model.apply(event, out);
         }
     }
-    for model in models {
-        model.flush_events(out);
+    evented.sort_unstable();
+    evented.dedup();
+    for device in evented {
+        if let Some(model) = models.get_mut(device) {
+            model.flush_events(out);
+        }
     }
 }
 
