@@ -23,11 +23,12 @@ pub enum DeviceUpdate {
     /// it differs from the value the device model reported before (always true for the first).
     /// MQTT publishes on change either way, as wb-mqtt-serial does: a device repeating an
     /// unconfirmed packet, or an event after the poll that already read the value, must not
-    /// publish it twice.
+    /// publish it twice. The texts are shared, not copied: the ids with the device model, a
+    /// value read again with the one reported before.
     Value {
-        device_id: String,
-        control_id: String,
-        value: String,
+        device_id: Arc<str>,
+        control_id: Arc<str>,
+        value: Arc<str>,
         from_event: bool,
         changed: bool,
     },

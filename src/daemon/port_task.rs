@@ -717,7 +717,13 @@ impl PortTask {
         }
         for update in updates.drain(..) {
             // The MQTT side drains this queue into its latest-value-per-topic state at once, so
-            // waiting here only happens if that task itself is stuck.
+            // waiting here only happens if that task itself is stuck (`try_send` first: most
+            // of a read's many values find room, and need no future).
+            let update = match self.updates.try_send(update) {
+                Ok(()) => continue,
+                Err(mpsc::error::TrySendError::Closed(_)) => return,
+                Err(mpsc::error::TrySendError::Full(update)) => update,
+            };
             if self.updates.send(update).await.is_err() {
                 return;
             }

@@ -32,7 +32,7 @@ pub fn update_line(update: &DeviceUpdate) -> serde_json::Value {
             from_event,
             ..
         } => {
-            json!({ "device": device_id, "control": control_id, "value": value, "event": from_event })
+            json!({ "device": &**device_id, "control": &**control_id, "value": &**value, "event": from_event })
         }
         DeviceUpdate::ControlError {
             device_id,

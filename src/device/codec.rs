@@ -46,6 +46,17 @@ pub enum Reading {
     Unsupported,
 }
 
+/// What [`ValueCodec::decode_into`] produced.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Decoded {
+    /// The text to publish, appended to the caller's buffer.
+    Text,
+    /// As [`Reading::DeviceError`].
+    DeviceError,
+    /// As [`Reading::Unsupported`].
+    Unsupported,
+}
+
 /// Why words could not be decoded or a text could not be encoded.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum CodecError {
@@ -156,70 +167,87 @@ impl ValueCodec {
 
     /// Decodes the words of one register value.
     pub fn decode(&self, words: &[u16]) -> Result<Reading, CodecError> {
+        let mut text = String::new();
+        Ok(match self.decode_into(words, &mut text)? {
+            Decoded::Text => Reading::Value(text),
+            Decoded::DeviceError => Reading::DeviceError,
+            Decoded::Unsupported => Reading::Unsupported,
+        })
+    }
+
+    /// [`ValueCodec::decode`] appending the text to `text` (left as it was unless the result
+    /// is [`Decoded::Text`]): the device model decodes every read value into one buffer.
+    pub fn decode_into(&self, words: &[u16], text: &mut String) -> Result<Decoded, CodecError> {
         if self.format.is_string() && !self.is_bit {
             self.check_len(words)?;
-            return Ok(Reading::Value(self.decode_string(words)));
+            text.push_str(&self.decode_string(words));
+            return Ok(Decoded::Text);
         }
         let field = self.raw_field(words)?;
         if self.unsupported_value == Some(field) {
-            return Ok(Reading::Unsupported);
+            return Ok(Decoded::Unsupported);
         }
         if self.error_value == Some(field) {
-            return Ok(Reading::DeviceError);
+            return Ok(Decoded::DeviceError);
         }
         if self.on_value == Some(field) {
-            return Ok(Reading::Value("1".to_string()));
+            text.push('1');
+            return Ok(Decoded::Text);
         }
         if self.off_value == Some(field) {
-            return Ok(Reading::Value("0".to_string()));
+            text.push('0');
+            return Ok(Decoded::Text);
         }
-        self.field_text(field).map(Reading::Value)
+        self.field_text(field, text)?;
+        Ok(Decoded::Text)
     }
 
     fn has_transform(&self) -> bool {
         self.scale != 1.0 || self.offset != 0.0 || self.round_to != 0.0
     }
 
-    fn field_text(&self, field: u64) -> Result<String, CodecError> {
+    fn field_text(&self, field: u64, text: &mut String) -> Result<(), CodecError> {
         let format = self.format;
         if self.is_bit {
-            return Ok(if self.has_transform() {
-                self.scaled_text(field as f64)
+            if self.has_transform() {
+                text.push_str(&self.scaled_text(field as f64));
             } else {
-                field.to_string()
-            });
+                push_display(text, field);
+            }
+            return Ok(());
         }
         match format {
             RegisterFormat::Float => {
                 let value = f32::from_bits(field as u32);
                 if self.has_transform() {
-                    Ok(self.scaled_text(f64::from(value)))
+                    text.push_str(&self.scaled_text(f64::from(value)));
                 } else {
-                    Ok(format_g(f64::from(value), 7))
+                    text.push_str(&format_g(f64::from(value), 7));
                 }
             }
-            RegisterFormat::Double => Ok(self.scaled_text(f64::from_bits(field))),
-            RegisterFormat::Char8 => Ok(char::from((field & 0xFF) as u8).to_string()),
+            RegisterFormat::Double => text.push_str(&self.scaled_text(f64::from_bits(field))),
+            RegisterFormat::Char8 => text.push(char::from((field & 0xFF) as u8)),
             _ if format.is_bcd() => {
                 let value =
                     decode_bcd(field, format.value_bits()).ok_or(CodecError::InvalidBcd(field))?;
-                self.integer_text(i128::from(value))
+                self.integer_text(i128::from(value), text);
             }
             _ if format.is_signed() => {
                 let bits = self.bit_width.clamp(1, 64);
                 let shift = 64 - bits;
                 let value = ((field << shift) as i64) >> shift;
-                self.integer_text(i128::from(value))
+                self.integer_text(i128::from(value), text);
             }
-            _ => self.integer_text(i128::from(field)),
+            _ => self.integer_text(i128::from(field), text),
         }
+        Ok(())
     }
 
-    fn integer_text(&self, value: i128) -> Result<String, CodecError> {
+    fn integer_text(&self, value: i128, text: &mut String) {
         if self.has_transform() {
-            Ok(self.scaled_text(value as f64))
+            text.push_str(&self.scaled_text(value as f64));
         } else {
-            Ok(value.to_string())
+            push_display(text, value);
         }
     }
 
@@ -440,3 +468,10 @@ fn encode_bcd(mut value: u64) -> u64 {
 #[cfg(test)]
 #[path = "codec_tests.rs"]
 mod tests;
+
+/// Appends `value` as `to_string` would print it, without a String of its own.
+fn push_display(text: &mut String, value: impl std::fmt::Display) {
+    use std::fmt::Write;
+    // Writing into a String cannot fail.
+    let _ = write!(text, "{value}");
+}

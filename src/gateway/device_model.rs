@@ -7,12 +7,13 @@
 //! and which payloads a control accepts. The sinks (MQTT, stdout) only map the updates.
 
 use std::collections::{BTreeSet, HashMap};
-use std::sync::Arc;
+use std::hash::{BuildHasherDefault, Hasher};
+use std::sync::{Arc, Mutex, Weak};
 
 use tracing::{debug, warn};
 
-use crate::device::model::{ResolvedChannel, ResolvedDevice, WriteFunction};
-use crate::device::Reading;
+use crate::device::codec::Decoded;
+use crate::device::model::{ResolvedChannel, ResolvedDevice, SharedVec, WriteFunction};
 use crate::port::{PortEvent, RegisterSpan, RegisterWrite};
 use crate::protocol::RegisterType;
 use crate::updates::{DeviceUpdate, ErrorFlags};
@@ -22,12 +23,158 @@ pub struct DeviceModel {
     pub device: Arc<ResolvedDevice>,
     /// This device's index on its port (the scheduler's device number).
     index: usize,
-    words: HashMap<(RegisterType, u16), u16>,
+    /// The device's id, shared by every value update.
+    device_id: Arc<str>,
+    /// Which channels read each register, and their ids.
+    channel_index: Arc<ChannelIndex>,
+    words: HashMap<(RegisterType, u16), u16, BuildHasherDefault<WordKeyHasher>>,
     errors: Vec<ErrorFlags>,
-    /// The last value reported per channel, to tell a change from a repeat.
-    reported: Vec<Option<String>>,
+    /// The last value reported per channel, to tell a change from a repeat (and sent again,
+    /// not copied, when it repeats).
+    reported: Vec<Option<Arc<str>>>,
     /// Channels that events changed since the last [`DeviceModel::flush_events`].
     pending_events: BTreeSet<usize>,
+    /// Kept between reads, so that a read of many values allocates nothing for them unless
+    /// they changed: the channels a read touched, a channel's words, its value's text.
+    touched: Vec<usize>,
+    word_buffer: Vec<u16>,
+    text: String,
+}
+
+/// Which channels read each register, and the channels' ids as updates carry them: built once
+/// per channel list and shared, as the list is, by the devices made from the same template and
+/// overrides.
+#[derive(Debug)]
+struct ChannelIndex {
+    /// The list indexed (matched by identity, see [`SharedVec::ptr_eq`]).
+    channels: SharedVec<ResolvedChannel>,
+    /// (register type, address, channel) for every register (or bit) that a channel reads,
+    /// sorted. The address is a u32, as [`RegisterSpan::end`]: a value may end past 65535.
+    readers: Vec<(RegisterType, u32, u32)>,
+    control_ids: Vec<Arc<str>>,
+}
+
+/// The channel indexes in use, to share one between the devices of one channel list.
+static CHANNEL_INDEXES: Mutex<Vec<Weak<ChannelIndex>>> = Mutex::new(Vec::new());
+
+impl ChannelIndex {
+    fn build(channels: &SharedVec<ResolvedChannel>) -> Self {
+        let mut readers = Vec::new();
+        for (index, channel) in channels.iter().enumerate() {
+            let index = u32::try_from(index).unwrap_or(u32::MAX);
+            for read in channel.registers.iter().filter_map(|r| r.read) {
+                let span = read.span();
+                for address in u32::from(span.start)..span.end() {
+                    readers.push((span.register_type, address, index));
+                }
+            }
+        }
+        readers.sort_unstable();
+        readers.dedup();
+        readers.shrink_to_fit();
+        Self {
+            channels: channels.clone(),
+            readers,
+            control_ids: channels.iter().map(|c| Arc::from(c.id.as_str())).collect(),
+        }
+    }
+
+    /// The index of `channels`: the one another device of the same list uses, or a new one.
+    fn shared(channels: &SharedVec<ResolvedChannel>) -> Arc<Self> {
+        let mut indexes = CHANNEL_INDEXES
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        indexes.retain(|index| index.strong_count() > 0);
+        if let Some(index) = indexes
+            .iter()
+            .filter_map(Weak::upgrade)
+            .find(|index| SharedVec::ptr_eq(&index.channels, channels))
+        {
+            return index;
+        }
+        let index = Arc::new(Self::build(channels));
+        indexes.push(Arc::downgrade(&index));
+        index
+    }
+
+    /// The channels that read any register of `span`, in channel order, into `out`.
+    fn readers_of(&self, span: &RegisterSpan, out: &mut Vec<usize>) {
+        out.clear();
+        if span.count == 0 {
+            // No register, but still "overlapping" a wider value around its start (as
+            // `reads_span` has it): too odd to index.
+            out.extend(
+                self.channels
+                    .iter()
+                    .enumerate()
+                    .filter(|(_, channel)| reads_span(channel, span))
+                    .map(|(index, _)| index),
+            );
+            return;
+        }
+        let start = u32::from(span.start);
+        let end = span.end();
+        let first = self
+            .readers
+            .partition_point(|&(register_type, address, _)| {
+                (register_type, address) < (span.register_type, start)
+            });
+        let matching =
+            self.readers
+                .iter()
+                .skip(first)
+                .take_while(|&&(register_type, address, _)| {
+                    register_type == span.register_type && address < end
+                });
+        out.extend(matching.map(|&(_, _, channel)| channel as usize));
+        if out.len() > 1 {
+            out.sort_unstable();
+            out.dedup();
+        }
+    }
+}
+
+/// FxHash's multiply-rotate on a register's (type, address): the register words are looked up
+/// for every value read, and SipHash's protection against crafted keys buys nothing here.
+#[derive(Debug, Default, Clone, Copy)]
+struct WordKeyHasher(u64);
+
+impl WordKeyHasher {
+    fn add(&mut self, word: u64) {
+        self.0 = (self.0.rotate_left(5) ^ word).wrapping_mul(0x51_7c_c1_b7_27_22_0a_95);
+    }
+}
+
+impl Hasher for WordKeyHasher {
+    fn finish(&self) -> u64 {
+        self.0
+    }
+
+    fn write(&mut self, bytes: &[u8]) {
+        for &byte in bytes {
+            self.add(u64::from(byte));
+        }
+    }
+
+    fn write_u8(&mut self, n: u8) {
+        self.add(u64::from(n));
+    }
+
+    fn write_u16(&mut self, n: u16) {
+        self.add(u64::from(n));
+    }
+
+    fn write_u32(&mut self, n: u32) {
+        self.add(u64::from(n));
+    }
+
+    fn write_u64(&mut self, n: u64) {
+        self.add(n);
+    }
+
+    fn write_usize(&mut self, n: usize) {
+        self.add(n as u64);
+    }
 }
 
 /// Longest `/on` payload looked at; anything longer is refused before parsing.
@@ -59,11 +206,16 @@ impl DeviceModel {
         let errors = vec![ErrorFlags::default(); device.channels.len()];
         Self {
             reported: vec![None; device.channels.len()],
+            device_id: Arc::from(device.id.as_str()),
+            channel_index: ChannelIndex::shared(&device.channels),
             device,
             index,
-            words: HashMap::new(),
+            words: HashMap::default(),
             errors,
             pending_events: BTreeSet::new(),
+            touched: Vec::new(),
+            word_buffer: Vec::new(),
+            text: String::new(),
         }
     }
 
@@ -89,15 +241,10 @@ impl DeviceModel {
                         .wrapping_add(u16::try_from(offset).unwrap_or(u16::MAX));
                     self.words.insert((span.register_type, address), *value);
                 }
-                let touched: Vec<usize> = (0..self.device.channels.len())
-                    .filter(|&index| {
-                        self.device
-                            .channels
-                            .get(index)
-                            .is_some_and(|channel| reads_span(channel, &span))
-                    })
-                    .collect();
-                self.publish_channels(touched, false, out);
+                let mut touched = std::mem::take(&mut self.touched);
+                self.channel_index.readers_of(&span, &mut touched);
+                self.publish_channels(&touched, false, out);
+                self.touched = touched;
             }
             PortEvent::EventValue {
                 register_type,
@@ -125,12 +272,10 @@ impl DeviceModel {
                 // Published once the whole packet is in (see `flush_events`): a packet may carry
                 // several words of one value, and a value made of old and new words is wrong.
                 let span = RegisterSpan::new(register_type, address, width);
-                let device = Arc::clone(&self.device);
-                for (index, channel) in device.channels.iter().enumerate() {
-                    if reads_span(channel, &span) {
-                        self.pending_events.insert(index);
-                    }
-                }
+                let mut touched = std::mem::take(&mut self.touched);
+                self.channel_index.readers_of(&span, &mut touched);
+                self.pending_events.extend(touched.iter().copied());
+                self.touched = touched;
             }
             PortEvent::ReadFailed {
                 span, unsupported, ..
@@ -205,10 +350,11 @@ impl DeviceModel {
         if self.pending_events.is_empty() {
             return;
         }
-        let touched: Vec<usize> = std::mem::take(&mut self.pending_events)
-            .into_iter()
-            .collect();
-        self.publish_channels(touched, true, out);
+        let mut touched = std::mem::take(&mut self.touched);
+        touched.clear();
+        touched.extend(std::mem::take(&mut self.pending_events));
+        self.publish_channels(&touched, true, out);
+        self.touched = touched;
     }
 
     /// How many words an event payload holds for the value at `address`: what its bytes carry,
@@ -242,23 +388,23 @@ impl DeviceModel {
 
     fn publish_channels(
         &mut self,
-        touched: Vec<usize>,
+        touched: &[usize],
         from_event: bool,
         out: &mut Vec<DeviceUpdate>,
     ) {
         let device = Arc::clone(&self.device);
-        for index in touched {
+        let mut text = std::mem::take(&mut self.text);
+        for &index in touched {
             let Some(channel) = device.channels.get(index) else {
                 continue;
             };
-            let Some(words) = self.channel_words(channel) else {
+            text.clear();
+            let Some(reading) = self.decode_channel(channel, &mut text) else {
                 continue;
             };
-            let parts: Vec<&[u16]> = words.iter().map(Vec::as_slice).collect();
-            let reading = channel.decode(&parts);
             let flags = self.errors.get(index).copied().unwrap_or_default();
             match reading {
-                Ok(Reading::Value(value)) => {
+                Ok(Decoded::Text) => {
                     // Clear `r` before the good value, as wb-mqtt-serial does.
                     if flags.read {
                         self.update_flags(
@@ -270,23 +416,29 @@ impl DeviceModel {
                             out,
                         );
                     }
-                    let changed = self
-                        .reported
+                    let Some(last) = self.reported.get_mut(index) else {
+                        continue;
+                    };
+                    // Most reads repeat the value: a new one is copied, a repeat sent again.
+                    let changed = last.as_deref() != Some(text.as_str());
+                    let value = match last {
+                        Some(last) if !changed => Arc::clone(last),
+                        _ => Arc::clone(last.insert(Arc::from(text.as_str()))),
+                    };
+                    let control_id = self
+                        .channel_index
+                        .control_ids
                         .get(index)
-                        .is_none_or(|last| last.as_deref() != Some(value.as_str()));
-                    // Most reads repeat the value: copy it only when it changed.
-                    if let (true, Some(last)) = (changed, self.reported.get_mut(index)) {
-                        *last = Some(value.clone());
-                    }
+                        .map_or_else(|| Arc::from(channel.id.as_str()), Arc::clone);
                     out.push(DeviceUpdate::Value {
-                        device_id: device.id.clone(),
-                        control_id: channel.id.clone(),
+                        device_id: Arc::clone(&self.device_id),
+                        control_id,
                         value,
                         from_event,
                         changed,
                     });
                 }
-                Ok(Reading::DeviceError | Reading::Unsupported) => {
+                Ok(Decoded::DeviceError | Decoded::Unsupported) => {
                     self.update_flags(
                         index,
                         ErrorFlags {
@@ -309,24 +461,43 @@ impl DeviceModel {
                 }
             }
         }
+        self.text = text;
     }
 
-    /// The words of every register of the channel, when all have been read.
-    fn channel_words(&self, channel: &ResolvedChannel) -> Option<Vec<Vec<u16>>> {
-        channel
-            .registers
-            .iter()
-            .map(|register| {
-                let read = register.read?;
-                (0..read.count.max(1))
-                    .map(|i| {
-                        self.words
-                            .get(&(read.reg_type, read.address.wrapping_add(i)))
-                            .copied()
-                    })
-                    .collect::<Option<Vec<u16>>>()
-            })
-            .collect()
+    /// Decodes the channel's value into `text` from the words of every register (joined with
+    /// `;`, as [`ResolvedChannel::decode`] does); none until all have been read.
+    fn decode_channel(
+        &mut self,
+        channel: &ResolvedChannel,
+        text: &mut String,
+    ) -> Option<Result<Decoded, crate::device::CodecError>> {
+        let words = &mut self.word_buffer;
+        words.clear();
+        for register in &channel.registers {
+            let read = register.read?;
+            for i in 0..read.count.max(1) {
+                let word = self
+                    .words
+                    .get(&(read.reg_type, read.address.wrapping_add(i)))?;
+                words.push(*word);
+            }
+        }
+        let mut rest = words.as_slice();
+        for (position, register) in channel.registers.iter().enumerate() {
+            let count = register
+                .read
+                .map_or(1, |read| usize::from(read.count.max(1)));
+            let (part, after) = rest.split_at(count.min(rest.len()));
+            rest = after;
+            if position > 0 {
+                text.push(';');
+            }
+            match register.codec.decode_into(part, text) {
+                Ok(Decoded::Text) => {}
+                other => return Some(other),
+            }
+        }
+        Some(Ok(Decoded::Text))
     }
 
     fn set_flags(
@@ -453,6 +624,9 @@ pub fn apply_port_events(
     events: impl IntoIterator<Item = PortEvent>,
     out: &mut Vec<DeviceUpdate>,
 ) {
+    // Only the models that events reached have any to publish (every call ends with none
+    // pending): the others, most of a large bus, are not looked at again.
+    let mut evented: Vec<usize> = Vec::new();
     for event in events {
         let device = match &event {
             PortEvent::Values { device, .. }
@@ -465,12 +639,19 @@ pub fn apply_port_events(
             | PortEvent::Offline { device }
             | PortEvent::Rebooted { device } => *device,
         };
+        if matches!(event, PortEvent::EventValue { .. }) && evented.last() != Some(&device) {
+            evented.push(device);
+        }
         if let Some(model) = models.get_mut(device) {
             model.apply(event, out);
         }
     }
-    for model in models {
-        model.flush_events(out);
+    evented.sort_unstable();
+    evented.dedup();
+    for device in evented {
+        if let Some(model) = models.get_mut(device) {
+            model.flush_events(out);
+        }
     }
 }
 
@@ -566,7 +747,7 @@ fn writes_register(channel: &ResolvedChannel, register_type: RegisterType, addre
 mod tests {
     use super::*;
     use crate::config::TemplateFile;
-    use crate::device::resolve_template_device;
+    use crate::device::{resolve_template_device, Reading};
 
     fn relay() -> DeviceModel {
         let path =
@@ -585,7 +766,7 @@ mod tests {
                     value,
                     from_event,
                     ..
-                } => Some((control_id.clone(), value.clone(), *from_event)),
+                } => Some((control_id.to_string(), value.to_string(), *from_event)),
                 _ => None,
             })
             .collect()
@@ -1000,6 +1181,223 @@ mod tests {
             }));
         }
         assert_eq!(changes, [true, false, true]);
+    }
+
+    /// A small deterministic generator for the randomized tests.
+    struct Random(u64);
+
+    impl Random {
+        fn next(&mut self) -> u64 {
+            self.0 ^= self.0 << 13;
+            self.0 ^= self.0 >> 7;
+            self.0 ^= self.0 << 17;
+            self.0
+        }
+
+        fn below(&mut self, bound: u64) -> u64 {
+            self.next() % bound.max(1)
+        }
+    }
+
+    const TEMPLATES: [&str; 6] = [
+        "rtu2mqtt-climate",
+        "rtu2mqtt-counter8",
+        "rtu2mqtt-dimmer",
+        "rtu2mqtt-energy-meter",
+        "rtu2mqtt-generic",
+        "rtu2mqtt-relay6",
+    ];
+
+    /// The channel index finds the channels that the scan of every channel (`reads_span`)
+    /// finds, in the same order, for random spans around every template's registers (empty,
+    /// partly overlapping and past-65535 spans included) and on random channel lists.
+    #[test]
+    fn the_channel_index_finds_what_the_scan_of_every_channel_finds() {
+        let mut random = Random(0x2545_F491_4F6C_DD1D);
+        let mut devices: Vec<Arc<ResolvedDevice>> = TEMPLATES
+            .iter()
+            .map(|template| Arc::clone(&template_model(template, 20).device))
+            .collect();
+        // Random lists: overlapping registers of every type, bits, wide values, the address
+        // space's end.
+        for _ in 0..20 {
+            let mut device = (*devices[0]).clone();
+            let template_channel = device.channels[0].clone();
+            let channels = device.channels.make_mut();
+            channels.clear();
+            for number in 0..random.below(40) + 1 {
+                let mut channel = template_channel.clone();
+                channel.id = format!("C{number}");
+                for register in &mut channel.registers {
+                    let register_type = [
+                        RegisterType::Coil,
+                        RegisterType::DiscreteInput,
+                        RegisterType::Holding,
+                        RegisterType::Input,
+                    ][random.below(4) as usize];
+                    let address = if random.below(8) == 0 {
+                        u16::MAX - random.below(4) as u16
+                    } else {
+                        random.below(64) as u16
+                    };
+                    register.read = (random.below(10) > 0).then_some(crate::device::RegisterRef {
+                        reg_type: register_type,
+                        address,
+                        count: random.below(5) as u16,
+                        bit_shift: 0,
+                        bit_width: 0,
+                    });
+                }
+                channels.push(channel);
+            }
+            devices.push(Arc::new(device));
+        }
+        let mut found = Vec::new();
+        let mut spans = 0;
+        for device in &devices {
+            let model = DeviceModel::new(Arc::clone(device), 0);
+            let reads: Vec<RegisterSpan> = device
+                .channels
+                .iter()
+                .flat_map(|c| c.registers.iter().filter_map(|r| r.read))
+                .map(|r| r.span())
+                .collect();
+            for _ in 0..400 {
+                let around = reads.get(random.below(reads.len() as u64) as usize);
+                let register_type = around.map_or(RegisterType::Holding, |r| r.register_type);
+                let base = around.map_or(0, |r| r.start);
+                let start = base.saturating_sub(random.below(4) as u16).saturating_add(
+                    if random.below(2) == 0 {
+                        random.below(4) as u16
+                    } else {
+                        0
+                    },
+                );
+                let count = random.below(70) as u16;
+                let span = RegisterSpan::new(register_type, start, count);
+                let scanned: Vec<usize> = (0..device.channels.len())
+                    .filter(|&i| reads_span(&device.channels[i], &span))
+                    .collect();
+                model.channel_index.readers_of(&span, &mut found);
+                assert_eq!(found, scanned, "{span:?} on {}", device.id);
+                spans += 1;
+            }
+        }
+        assert_eq!(spans, 26 * 400);
+    }
+
+    /// Devices of one channel list share one index (and its control ids); another list gets
+    /// its own.
+    #[test]
+    fn devices_of_one_channel_list_share_its_index() {
+        let first = template_model("rtu2mqtt-relay6", 20);
+        let mut device = (*first.device).clone();
+        device.id = "relay6_21".into();
+        let second = DeviceModel::new(Arc::new(device.clone()), 1);
+        assert!(Arc::ptr_eq(&first.channel_index, &second.channel_index));
+        device.channels.make_mut()[0].id = "K1'".into();
+        let third = DeviceModel::new(Arc::new(device), 2);
+        assert!(!Arc::ptr_eq(&first.channel_index, &third.channel_index));
+        assert_eq!(&*third.channel_index.control_ids[0], "K1'");
+    }
+
+    /// Random reads of every template publish, for each channel the read touches, what
+    /// `ResolvedChannel::decode` makes of the channel's words, and say whether it changed;
+    /// a value read again is the same shared text.
+    #[test]
+    fn read_values_are_what_the_channel_decodes() {
+        let mut random = Random(0x9E37_79B9_7F4A_7C15);
+        for template in TEMPLATES {
+            let mut model = template_model(template, 20);
+            let device = Arc::clone(&model.device);
+            let mut words: HashMap<(RegisterType, u16), u16> = HashMap::new();
+            let mut last: HashMap<String, Arc<str>> = HashMap::new();
+            let reads: Vec<RegisterSpan> = device
+                .channels
+                .iter()
+                .flat_map(|c| c.registers.iter().filter_map(|r| r.read))
+                .map(|r| r.span())
+                .collect();
+            for _ in 0..300 {
+                let around = reads[random.below(reads.len() as u64) as usize];
+                let span = RegisterSpan::new(
+                    around.register_type,
+                    around.start.saturating_sub(random.below(3) as u16),
+                    around.count + random.below(6) as u16,
+                );
+                let values: Vec<u16> = (0..span.count)
+                    .map(|_| match random.below(4) {
+                        0 => 0,
+                        1 => 1,
+                        2 => 0xFFFF,
+                        _ => random.next() as u16,
+                    })
+                    .map(|word| {
+                        if around.register_type.is_bit() {
+                            word & 1
+                        } else {
+                            word
+                        }
+                    })
+                    .collect();
+                for (offset, value) in values.iter().enumerate() {
+                    words.insert((span.register_type, span.start + offset as u16), *value);
+                }
+                let mut out = Vec::new();
+                model.apply(
+                    PortEvent::Values {
+                        device: 0,
+                        span,
+                        values,
+                    },
+                    &mut out,
+                );
+                let mut expected = Vec::new();
+                for channel in device.channels.iter().filter(|c| reads_span(c, &span)) {
+                    let parts: Option<Vec<Vec<u16>>> = channel
+                        .registers
+                        .iter()
+                        .map(|register| {
+                            let read = register.read?;
+                            (0..read.count.max(1))
+                                .map(|i| words.get(&(read.reg_type, read.address + i)).copied())
+                                .collect()
+                        })
+                        .collect();
+                    let Some(parts) = parts else { continue };
+                    let parts: Vec<&[u16]> = parts.iter().map(Vec::as_slice).collect();
+                    if let Ok(Reading::Value(text)) = channel.decode(&parts) {
+                        expected.push((channel.id.clone(), text));
+                    }
+                }
+                let published: Vec<(String, String)> = out
+                    .iter()
+                    .filter_map(|u| match u {
+                        DeviceUpdate::Value {
+                            device_id,
+                            control_id,
+                            value,
+                            changed,
+                            from_event: false,
+                        } => {
+                            assert_eq!(&**device_id, device.id);
+                            let before = last.insert(control_id.to_string(), Arc::clone(value));
+                            assert_eq!(
+                                *changed,
+                                before.as_deref() != Some(&**value),
+                                "{template} {control_id}"
+                            );
+                            if let (false, Some(before)) = (*changed, before) {
+                                assert!(Arc::ptr_eq(&before, value), "a repeat is not copied");
+                            }
+                            Some((control_id.to_string(), value.to_string()))
+                        }
+                        _ => None,
+                    })
+                    .collect();
+                assert_eq!(published, expected, "{template} {span:?}");
+            }
+        }
     }
 
     #[test]

@@ -441,7 +441,7 @@ impl NoiseBus {
             .filter(|(at, update)| {
                 *at >= since
                     && matches!(update, DeviceUpdate::Value { device_id, control_id, .. }
-                        if ids.contains(device_id) && control_id.starts_with('R'))
+                        if ids.iter().any(|id| **id == **device_id) && control_id.starts_with('R'))
             })
             .count()
     }

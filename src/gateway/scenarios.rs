@@ -54,7 +54,9 @@ fn reported(
                 value,
                 from_event,
                 ..
-            } if device_id == device && control_id == control => Some((value.clone(), *from_event)),
+            } if **device_id == *device && **control_id == *control => {
+                Some((value.to_string(), *from_event))
+            }
             _ => None,
         })
         .collect()

@@ -35,6 +35,9 @@ const CLIENT_QUEUE: usize = 256;
 /// Events from the connection driver (incoming messages, connects).
 const EVENT_QUEUE: usize = 256;
 /// How long to wait before offering the client more when its queue was full.
+/// Updates taken from the bus side at once: a read of many values comes as many updates, and
+/// one pass of the select loop per update cost more than the update itself.
+const UPDATE_BATCH: usize = 128;
 const RETRY_FULL_QUEUE: Duration = Duration::from_millis(10);
 const FIRST_RECONNECT_DELAY: Duration = Duration::from_millis(500);
 const MAX_RECONNECT_DELAY: Duration = Duration::from_secs(30);
@@ -178,6 +181,7 @@ pub async fn run_mqtt_reporting(
     let mut births = BirthCoalescer::default();
     let mut dropped_log = LogBudget::new(DROPPED_WRITE_LOG_LINES);
     let mut pending_writes = PendingWrites::default();
+    let mut update_batch = Vec::with_capacity(UPDATE_BATCH);
     tokio::pin!(shutdown);
     loop {
         let birth_due = births.due().map(tokio::time::Instant::from_std);
@@ -219,20 +223,24 @@ pub async fn run_mqtt_reporting(
                 }
                 None => break,
             },
-            update = updates.recv() => match update {
-                Some(update) => {
+            received = updates.recv_many(&mut update_batch, UPDATE_BATCH) => {
+                if received == 0 {
+                    debug!("the bus side closed its update channel");
+                    break;
+                }
+                let now = Instant::now();
+                for update in update_batch.drain(..) {
                     let devices_changed = matches!(update, DeviceUpdate::Added(_) | DeviceUpdate::Removed { .. });
-                    let actions = planner.handle(update, Instant::now());
+                    let actions = planner.handle(update, now);
                     if connected {
                         outbox.extend(actions);
                         if devices_changed && sweeper.is_done() {
                             outbox.push(MqttAction::Publish(sweeper.record(&planner.device_ids())));
                         }
+                        // Offered one update at a time, as they came: two values of one topic
+                        // in a batch are both offered, not merged in the outbox.
+                        offer(&client, &mut outbox);
                     }
-                }
-                None => {
-                    debug!("the bus side closed its update channel");
-                    break;
                 }
             },
             permit = writes.reserve(), if !pending_writes.is_empty() => match permit {

@@ -72,7 +72,10 @@ pub enum WriteOutcome {
 struct PublishedControl {
     /// Where its channel is in the device's channel list (found without comparing ids).
     channel: usize,
-    value: Option<String>,
+    /// Its channel is a pushbutton: every value is published, changed or not (known here so
+    /// that a repeated value is passed over without looking at the channel).
+    pushbutton: bool,
+    value: Option<Arc<str>>,
     last_published: Option<Instant>,
     errors: ErrorFlags,
     published_errors: String,
@@ -186,6 +189,7 @@ impl PublicationPlanner {
         for (index, channel) in device.channels.iter().enumerate().rev() {
             if let Some(control) = controls.get_mut(&channel.id) {
                 control.channel = index;
+                control.pushbutton = layout::is_pushbutton(channel);
             }
         }
         let (identity, online) = previous
@@ -323,13 +327,14 @@ impl PublicationPlanner {
         &mut self,
         device_id: &str,
         control_id: &str,
-        value: String,
+        value: Arc<str>,
         changed: bool,
         now: Instant,
     ) -> Vec<MqttAction> {
         let topics = &self.settings.topics;
         let unchanged_policy = self.settings.unchanged;
-        let Some((channel, control)) = lookup(&mut self.devices, device_id, control_id) else {
+        let Some((device, control)) = lookup_control(&mut self.devices, device_id, control_id)
+        else {
             debug!(
                 device_id,
                 control_id, "value of an unknown control, ignored"
@@ -344,7 +349,14 @@ impl PublicationPlanner {
                 .last_published
                 .is_none_or(|t| now.saturating_duration_since(t) >= interval),
         };
-        if changed || due || layout::is_pushbutton(channel) {
+        if changed || due || control.pushbutton {
+            let Some(channel) = channel_of(device, control, control_id) else {
+                debug!(
+                    device_id,
+                    control_id, "value of a control without a channel, ignored"
+                );
+                return Vec::new();
+            };
             out.push(MqttAction::Publish(layout::control_value(
                 topics, device_id, channel, &value,
             )));
@@ -471,13 +483,32 @@ fn lookup<'a>(
     device_id: &str,
     control_id: &str,
 ) -> Option<(&'a ResolvedChannel, &'a mut PublishedControl)> {
+    let (device, control) = lookup_control(devices, device_id, control_id)?;
+    let channel = channel_of(device, control, control_id)?;
+    Some((channel, control))
+}
+
+/// The device and the published state of one of its controls; its channel is looked at only
+/// when needed ([`channel_of`]): most values repeat the last one and publish nothing.
+fn lookup_control<'a>(
+    devices: &'a mut HashMap<String, PublishedDevice>,
+    device_id: &str,
+    control_id: &str,
+) -> Option<(&'a ResolvedDevice, &'a mut PublishedControl)> {
     let state = devices.get_mut(device_id)?;
     let control = state.controls.get_mut(control_id)?;
-    let channel = match state.device.channels.get(control.channel) {
-        Some(channel) if channel.id == control_id => channel,
-        _ => state.device.channels.iter().find(|c| c.id == control_id)?,
-    };
-    Some((channel, control))
+    Some((&state.device, control))
+}
+
+fn channel_of<'a>(
+    device: &'a ResolvedDevice,
+    control: &PublishedControl,
+    control_id: &str,
+) -> Option<&'a ResolvedChannel> {
+    match device.channels.get(control.channel) {
+        Some(channel) if channel.id == control_id => Some(channel),
+        _ => device.channels.iter().find(|c| c.id == control_id),
+    }
 }
 
 fn error_if_changed(

@@ -145,7 +145,7 @@ fn values_publish_on_change_only() {
     // Issue 15 defect 9: a value read by the poll and then reported by an event (or an event
     // repeated by the device) is published once, as wb-mqtt-serial publishes on change.
     let event = DeviceUpdate::Value {
-        device_id: id.clone(),
+        device_id: id.as_str().into(),
         control_id: "K1".into(),
         value: "0".into(),
         from_event: true,
@@ -245,8 +245,9 @@ fn pushbutton_presses_always_publish_and_are_not_retained() {
     device.channels.make_mut().push(button);
     let id = device.id.clone();
     planner.handle(DeviceUpdate::Added(Arc::new(device)), Instant::now());
-    for _ in 0..2 {
-        let out = planner.handle(value(&id, "Reset", "1"), Instant::now());
+    // A press repeating the last one (the device model says it did not change) too.
+    for update in [value(&id, "Reset", "1"), repeat(&id, "Reset", "1")] {
+        let out = planner.handle(update, Instant::now());
         assert_eq!(
             publications(&out),
             [(format!("/devices/{id}/controls/Reset"), "1".into(), false)]

@@ -359,13 +359,13 @@ impl PortStats {
 
     /// What the device models told MQTT: values, error flags, online.
     pub fn observe_update(&mut self, update: &DeviceUpdate, now: Duration) {
-        let (device_id, control_id) = match update {
+        let (device_id, control_id): (&str, Option<&str>) = match update {
             DeviceUpdate::Value {
                 device_id,
                 control_id,
                 ..
-            }
-            | DeviceUpdate::ControlError {
+            } => (device_id, Some(control_id)),
+            DeviceUpdate::ControlError {
                 device_id,
                 control_id,
                 ..
@@ -384,22 +384,30 @@ impl PortStats {
                 changed,
                 ..
             } => {
-                let control = device
-                    .controls
-                    .entry(control_id.cloned().unwrap_or_default())
-                    .or_default();
+                let control_id = control_id.unwrap_or_default();
+                // Looked up before an entry is made: most values are of known controls.
+                if !device.controls.contains_key(control_id) {
+                    device
+                        .controls
+                        .insert(control_id.to_owned(), ControlState::default());
+                }
+                let Some(control) = device.controls.get_mut(control_id) else {
+                    return;
+                };
                 // The source is how the value last changed: a poll that confirms what an event
                 // brought does not make it a polled value.
                 if *changed || control.value.is_none() {
                     control.from_event = *from_event;
                     control.updated = Some(now);
                 }
-                control.value = Some(value.clone());
+                if control.value.as_deref() != Some(&**value) {
+                    control.value = Some(value.to_string());
+                }
             }
             DeviceUpdate::ControlError { errors, .. } => {
                 device
                     .controls
-                    .entry(control_id.cloned().unwrap_or_default())
+                    .entry(control_id.unwrap_or_default().to_owned())
                     .or_default()
                     .errors = *errors;
             }
