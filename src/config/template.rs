@@ -307,6 +307,27 @@ pub struct ParameterSpec {
 #[derive(Debug, Clone, Default)]
 pub struct Parameters(pub Vec<(String, ParameterSpec)>);
 
+/// The declarations of a raw `parameters` value (an object keyed by id, or an array of objects
+/// with `id`), in file order: (id, declaration). Entries that are not objects, and array
+/// entries without an `id`, are left out.
+pub fn parameter_declarations(
+    parameters: Option<&serde_json::Value>,
+) -> Vec<(String, &serde_json::Map<String, serde_json::Value>)> {
+    use serde_json::Value;
+    match parameters {
+        Some(Value::Object(map)) => map
+            .iter()
+            .filter_map(|(id, spec)| Some((id.clone(), spec.as_object()?)))
+            .collect(),
+        Some(Value::Array(items)) => items
+            .iter()
+            .filter_map(Value::as_object)
+            .filter_map(|spec| Some((spec.get("id")?.as_str()?.to_owned(), spec)))
+            .collect(),
+        _ => Vec::new(),
+    }
+}
+
 impl Parameters {
     /// Every parameter with its id, in file order.
     pub fn iter(&self) -> impl Iterator<Item = (&str, &ParameterSpec)> {

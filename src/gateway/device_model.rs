@@ -1256,12 +1256,7 @@ mod tests {
         let mut spans = 0;
         for device in &devices {
             let model = DeviceModel::new(Arc::clone(device), 0);
-            let reads: Vec<RegisterSpan> = device
-                .channels
-                .iter()
-                .flat_map(|c| c.registers.iter().filter_map(|r| r.read))
-                .map(|r| r.span())
-                .collect();
+            let reads = read_spans(device);
             for _ in 0..400 {
                 let around = reads.get(random.below(reads.len() as u64) as usize);
                 let register_type = around.map_or(RegisterType::Holding, |r| r.register_type);
@@ -1304,6 +1299,16 @@ mod tests {
     /// Random reads of every template publish, for each channel the read touches, what
     /// `ResolvedChannel::decode` makes of the channel's words, and say whether it changed;
     /// a value read again is the same shared text.
+    /// The register spans `device`'s channels read.
+    fn read_spans(device: &ResolvedDevice) -> Vec<RegisterSpan> {
+        device
+            .channels
+            .iter()
+            .flat_map(|c| c.registers.iter().filter_map(|r| r.read))
+            .map(|r| r.span())
+            .collect()
+    }
+
     #[test]
     fn read_values_are_what_the_channel_decodes() {
         let mut random = Random(0x9E37_79B9_7F4A_7C15);
@@ -1312,12 +1317,7 @@ mod tests {
             let device = Arc::clone(&model.device);
             let mut words: HashMap<(RegisterType, u16), u16> = HashMap::new();
             let mut last: HashMap<String, Arc<str>> = HashMap::new();
-            let reads: Vec<RegisterSpan> = device
-                .channels
-                .iter()
-                .flat_map(|c| c.registers.iter().filter_map(|r| r.read))
-                .map(|r| r.span())
-                .collect();
+            let reads = read_spans(&device);
             for _ in 0..300 {
                 let around = reads[random.below(reads.len() as u64) as usize];
                 let span = RegisterSpan::new(

@@ -421,6 +421,21 @@ impl NoiseBus {
             .count()
     }
 
+    /// Every change made since `since` (`changes` of them) was published once, with its value.
+    fn assert_every_change_matched(&self, since: Duration, changes: usize, case: &str) {
+        let matched = self.awaited_matching(since);
+        assert_eq!(
+            (
+                matched.changes,
+                matched.lost,
+                matched.wrong,
+                matched.duplicates
+            ),
+            (changes, 0, 0, 0),
+            "{case}: {matched:?}"
+        );
+    }
+
     /// How many times a device was marked offline since `since`.
     fn marked_offline(&self, since: Duration) -> usize {
         self.gateway
@@ -509,17 +524,7 @@ fn noise_run(devices: u8, baud: u32, seed: u64, faults: Faults) -> NoiseFigures 
         toggles,
         "{case}: every toggle published exactly once"
     );
-    let matched = bus.awaited_matching(since);
-    assert_eq!(
-        (
-            matched.changes,
-            matched.lost,
-            matched.wrong,
-            matched.duplicates
-        ),
-        (toggles, 0, 0, 0),
-        "{case}: {matched:?}"
-    );
+    bus.assert_every_change_matched(since, toggles, &case);
     NoiseFigures {
         recovery,
         checked,
@@ -680,16 +685,10 @@ fn a_wide_value_reported_a_word_at_a_time_is_never_published_half_updated() {
         let (checked, wrong) = bus.check_published(since);
         assert!(checked > 0);
         assert!(wrong.is_empty(), "{faults:?}: {wrong:#?}");
-        let matched = bus.awaited_matching(since);
-        assert_eq!(
-            (
-                matched.changes,
-                matched.lost,
-                matched.wrong,
-                matched.duplicates
-            ),
-            (bus.toggles - toggles_before, 0, 0, 0),
-            "{faults:?}: {matched:?}"
+        bus.assert_every_change_matched(
+            since,
+            bus.toggles - toggles_before,
+            &format!("{faults:?}"),
         );
     }
 }

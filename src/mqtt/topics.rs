@@ -44,41 +44,33 @@ impl TopicScheme {
 
     /// `<prefix>/devices/<dev>/controls/<ctl>`: the value topic.
     pub fn control(&self, device_id: &str, control_id: &str) -> String {
-        joined(&[
-            &self.prefix,
-            "/devices/",
-            device_id,
-            "/controls/",
-            control_id,
-        ])
+        self.under_control(device_id, control_id, &[])
     }
 
     pub fn control_meta(&self, device_id: &str, control_id: &str, sub: Option<&str>) -> String {
-        let (slash, sub) = match sub {
-            Some(sub) => ("/meta/", sub),
-            None => ("/meta", ""),
-        };
-        joined(&[
-            &self.prefix,
-            "/devices/",
-            device_id,
-            "/controls/",
-            control_id,
-            slash,
-            sub,
-        ])
+        match sub {
+            Some(sub) => self.under_control(device_id, control_id, &["/meta/", sub]),
+            None => self.under_control(device_id, control_id, &["/meta"]),
+        }
     }
 
     /// Where clients ask to set a control.
     pub fn control_on(&self, device_id: &str, control_id: &str) -> String {
-        joined(&[
+        self.under_control(device_id, control_id, &["/on"])
+    }
+
+    /// The control's topic followed by `tail`, built at its exact length.
+    fn under_control(&self, device_id: &str, control_id: &str, tail: &[&str]) -> String {
+        let mut topic = joined(&[
             &self.prefix,
             "/devices/",
             device_id,
             "/controls/",
             control_id,
-            "/on",
-        ])
+        ]);
+        topic.reserve_exact(tail.iter().map(|part| part.len()).sum());
+        tail.iter().for_each(|part| topic.push_str(part));
+        topic
     }
 
     /// The driver's own status: retained `online` while connected, `offline` as last will and

@@ -446,15 +446,7 @@ impl DeviceState {
                 .filter(|(s, _)| {
                     s.register_type == first_span.register_type && s.start >= first_span.start
                 });
-            for (next, index) in followers {
-                match self.plan.merge.extend(span, next) {
-                    Some(extended) => {
-                        span = extended;
-                        members.push(index);
-                    }
-                    None => break,
-                }
-            }
+            span = self.merge_followers(span, followers, &mut members);
         }
         Some(ReadChoice {
             span,
@@ -484,21 +476,33 @@ impl DeviceState {
                 .filter(|(s, _)| s.register_type == span.register_type && s.start >= span.start)
                 .collect();
             followers.sort();
-            for (next, index) in followers {
-                match self.plan.merge.extend(span, next) {
-                    Some(extended) => {
-                        span = extended;
-                        members.push(index);
-                    }
-                    None => break,
-                }
-            }
+            span = self.merge_followers(span, followers, &mut members);
         }
         Some(ReadChoice {
             span,
             members,
             urgency: urgency(first),
         })
+    }
+
+    /// `span` extended over `followers` (in span order) as far as the merge limits allow; the
+    /// reads taken join `members`.
+    fn merge_followers(
+        &self,
+        mut span: RegisterSpan,
+        followers: impl IntoIterator<Item = (RegisterSpan, usize)>,
+        members: &mut Vec<usize>,
+    ) -> RegisterSpan {
+        for (next, index) in followers {
+            match self.plan.merge.extend(span, next) {
+                Some(extended) => {
+                    span = extended;
+                    members.push(index);
+                }
+                None => break,
+            }
+        }
+        span
     }
 
     pub(super) fn read_span(&self, index: usize) -> Option<RegisterSpan> {

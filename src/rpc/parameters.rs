@@ -11,6 +11,7 @@ use serde_json::{json, Map, Value};
 
 use crate::config::condition::Condition;
 use crate::config::parse::SourceText;
+use crate::config::template::parameter_declarations;
 use crate::config::TemplateFile;
 use crate::device::model::{ChannelRegister, ResolvedDevice};
 use crate::device::resolve_template_device;
@@ -49,18 +50,7 @@ const REGISTER_KEYS: [&str; 9] = [
 
 /// The template's parameter declarations in file order: (id, declaration).
 fn declarations(template: &TemplateFile) -> Vec<(String, &Map<String, Value>)> {
-    match template.raw.get("device").and_then(|d| d.get("parameters")) {
-        Some(Value::Object(map)) => map
-            .iter()
-            .filter_map(|(id, spec)| Some((id.clone(), spec.as_object()?)))
-            .collect(),
-        Some(Value::Array(items)) => items
-            .iter()
-            .filter_map(Value::as_object)
-            .filter_map(|spec| Some((spec.get("id")?.as_str()?.to_owned(), spec)))
-            .collect(),
-        _ => Vec::new(),
-    }
+    parameter_declarations(template.raw.get("device").and_then(|d| d.get("parameters")))
 }
 
 /// The template declares parameters (wb-mqtt-serial answers `{}` for a template without).

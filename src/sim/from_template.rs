@@ -13,6 +13,7 @@ use std::path::Path;
 use serde_json::{json, Map, Value};
 
 use crate::config::parse::SourceText;
+use crate::config::template::parameter_declarations;
 use crate::config::{TemplateFile, TemplateLibrary};
 use crate::device::{resolve_template_device_unconfigured, EventMode, RegisterRef, ResolvedDevice};
 
@@ -199,22 +200,8 @@ const PARAMETER_REGISTER_KEYS: [&str; 6] = [
 
 /// A channel per parameter that has an address: the resolver places it (shift, stride, width).
 fn parameter_channels(parameters: Option<&Value>) -> Vec<Value> {
-    let list: Vec<(String, &Map<String, Value>)> = match parameters {
-        Some(Value::Object(map)) => map
-            .iter()
-            .filter_map(|(id, spec)| Some((id.clone(), spec.as_object()?)))
-            .collect(),
-        Some(Value::Array(items)) => items
-            .iter()
-            .filter_map(Value::as_object)
-            .map(|spec| {
-                let id = spec.get("id").and_then(Value::as_str).unwrap_or("");
-                (id.to_string(), spec)
-            })
-            .collect(),
-        _ => Vec::new(),
-    };
-    list.into_iter()
+    parameter_declarations(parameters)
+        .into_iter()
         .filter(|(_, spec)| spec.contains_key("address") || spec.contains_key("write_address"))
         .map(|(id, spec)| {
             let mut channel = Map::new();

@@ -205,16 +205,17 @@ impl Transport {
                 self.write_all(&transmit.bytes).await?;
                 transfer.handle_sent(self.now());
             }
-            if let Some(busy) = transfer.line_busy_until() {
-                self.exchange.line_was_busy(busy);
-            }
             if let Some(answer) = transfer.poll_outcome() {
+                if let Some(busy) = transfer.line_busy_until() {
+                    self.exchange.line_was_busy(busy);
+                }
                 return Ok(answer);
             }
             let Some(timeout) = transfer.poll_timeout() else {
                 return Ok(Vec::new());
             };
             let wake = self.epoch + timeout;
+            // A raw answer has no known length: read it as it comes.
             let mut no_pacing = MAX_PACED_READS;
             match self.next_bytes(wake, &mut no_pacing, &mut buffer).await? {
                 None => transfer.handle_timeout(self.now()),

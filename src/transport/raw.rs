@@ -45,6 +45,8 @@ pub struct RawTransfer {
     link: LinkConfig,
     state: State,
     received: Vec<u8>,
+    /// The end of the request on the wire or the last byte received, whichever is later.
+    line_busy_until: Option<Duration>,
 }
 
 impl RawTransfer {
@@ -54,6 +56,7 @@ impl RawTransfer {
             request,
             link,
             state: State::Pending,
+            line_busy_until: None,
         }
     }
 
@@ -74,18 +77,20 @@ impl RawTransfer {
         let State::Sending { write_started } = self.state else {
             return;
         };
-        if self.request.response_size == 0 {
-            self.state = State::Done;
-            return;
-        }
         // On a serial line the request is still leaving the wire when `write` returns.
         let on_wire = self
             .link
             .serial
             .map(|line| write_started + line.wire_time(self.request.bytes.len()))
             .unwrap_or(now);
+        let clock_start = on_wire.max(now);
+        self.line_busy_until = Some(clock_start);
+        if self.request.response_size == 0 {
+            self.state = State::Done;
+            return;
+        }
         self.state = State::Receiving {
-            clock_start: on_wire.max(now),
+            clock_start,
             last_byte: None,
         };
     }
@@ -102,10 +107,14 @@ impl RawTransfer {
         if self.link.serial.is_some() && now < *clock_start && last_byte.is_none() {
             return;
         }
-        let room = self.request.response_size - self.received.len();
+        let room = self
+            .request
+            .response_size
+            .saturating_sub(self.received.len());
         self.received
-            .extend_from_slice(bytes.get(..room.min(bytes.len())).unwrap_or(bytes));
+            .extend_from_slice(bytes.get(..room.min(bytes.len())).unwrap_or_default());
         *last_byte = Some(now);
+        self.line_busy_until = Some(now);
         if self.received.len() >= self.request.response_size {
             self.state = State::Done;
         }
@@ -137,15 +146,10 @@ impl RawTransfer {
         matches!(self.state, State::Done).then(|| std::mem::take(&mut self.received))
     }
 
-    /// Until when the line was busy with this transfer (for the guard interval of the next).
+    /// Until when the line was busy with this transfer, finished or not (for the guard
+    /// interval of the next request).
     pub fn line_busy_until(&self) -> Option<Duration> {
-        match self.state {
-            State::Receiving {
-                clock_start,
-                last_byte,
-            } => Some(last_byte.unwrap_or(clock_start)),
-            _ => None,
-        }
+        self.line_busy_until
     }
 }
 
@@ -201,6 +205,11 @@ mod tests {
             raw.poll_outcome(),
             Some(vec![0x01, 0x03, 0x02, 0x00, 0x2A, 0x39, 0x9B]),
             "nothing past the size"
+        );
+        assert_eq!(
+            raw.line_busy_until(),
+            Some(ms(25)),
+            "the guard interval counts from the last byte, after the transfer too"
         );
     }
 
