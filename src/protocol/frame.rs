@@ -126,6 +126,19 @@ impl Request {
         }
     }
 
+    /// How much of the reply tells the rest: the expected reply, and after an event poll at
+    /// least an event packet up to its data length (address, function, header; the "no
+    /// events" frame is one byte shorter). A reader that takes this much in one go knows the
+    /// whole frame's length after it.
+    pub fn reply_len_known_after(&self) -> usize {
+        match &self.body {
+            RequestBody::Fast(FastRequest::PollEvents(_)) if self.expects_reply() => self
+                .expected_reply_len()
+                .max(1 + FAST_FUNCTION_LEN + EVENT_PACKET_HEADER_LEN),
+            _ => self.expected_reply_len(),
+        }
+    }
+
     /// The longest reply frame (address to CRC) this request may get: for an event poll a
     /// packet carrying `max_data_len` bytes of events; otherwise [`Self::expected_reply_len`].
     pub fn max_reply_len(&self) -> usize {

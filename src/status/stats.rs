@@ -461,6 +461,7 @@ mod tests {
             first_byte_timeout: None,
             late_window: ms(0),
             estimated: ms(10),
+            expected_reply_start: None,
         }
     }
 

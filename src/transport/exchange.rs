@@ -129,7 +129,16 @@ struct Receiving {
     parser: ReplyParser,
     /// Bytes came that were not the reply (garbage, a bad CRC, another device's frame).
     garbled: bool,
+    /// When the reply should be complete if it starts when expected: the driver may sleep until
+    /// then and read it in one go ([`Exchange::batch_read_at`]). `None` once tried, or when
+    /// there is no expectation.
+    batch_read_at: Option<Duration>,
 }
+
+/// Every this many transactions with a batch read, one waits for its first byte instead, so that
+/// the device's response time is measured again (a batch read cannot tell when the reply began,
+/// and would never notice a device that became faster).
+const EXACT_TIMING_EVERY: u32 = 16;
 
 /// The transactions of one link, one at a time. See the module documentation.
 #[derive(Debug)]
@@ -141,6 +150,8 @@ pub struct Exchange {
     /// When the line was last busy: the end of the last request on the wire or the last byte
     /// received. The guard interval counts from here.
     line_busy_until: Option<Duration>,
+    /// Transactions with a batch read since the last one timed to its first byte.
+    batch_reads_in_a_row: u32,
     state: State,
 }
 
@@ -151,6 +162,7 @@ impl Exchange {
             config,
             transaction: None,
             line_busy_until: None,
+            batch_reads_in_a_row: 0,
             state: State::Idle,
         }
     }
@@ -232,18 +244,92 @@ impl Exchange {
             self.config.serial.is_some(),
         );
         self.line_busy_until = Some(window.clock_start());
+        let expected_reply_start = transaction.expected_reply_start;
+        let batch_read_at = self.plan_batch_read(expected_reply_start, &request, &window);
         self.state = if request.expects_reply() {
             State::Receiving(Box::new(Receiving {
                 parser: ReplyParser::for_request(&request),
                 request,
                 window,
                 garbled: false,
+                batch_read_at,
             }))
         } else {
             State::Broadcasting {
                 until: window.clock_start(),
             }
         };
+    }
+
+    /// On a serial line, when the reply is expected to be complete (see
+    /// [`Transaction::expected_reply_start`]), never after its first-byte deadline. Replies
+    /// after an arbitration are read up to their shortest frame, whose header tells the rest.
+    fn plan_batch_read(
+        &mut self,
+        expected_reply_start: Option<Duration>,
+        request: &Request,
+        window: &ReplyWindow,
+    ) -> Option<Duration> {
+        let line = self.config.serial?;
+        let start = expected_reply_start?;
+        if !request.expects_reply() {
+            return None;
+        }
+        // An arbitration's timing is the protocol's, not learned: nothing to measure again.
+        if !follows_arbitration(request) {
+            self.batch_reads_in_a_row += 1;
+            if self.batch_reads_in_a_row >= EXACT_TIMING_EVERY {
+                self.batch_reads_in_a_row = 0;
+                return None;
+            }
+        }
+        let complete = window
+            .clock_start()
+            .saturating_add(start)
+            .saturating_add(line.wire_time(request.reply_len_known_after()));
+        Some(complete.min(window.first_byte_deadline()))
+    }
+
+    /// When a driver that pays for every wake-up (a serial port) may sleep to, then read what
+    /// arrived in one go and hand it to [`Self::handle_batch`] (or, if nothing did, call
+    /// [`Self::handle_batch`] with no bytes): the time the reply should be complete if it
+    /// starts when expected. The first bytes of a reply, only once per transaction; `None`
+    /// otherwise, and the driver waits for bytes as usual.
+    pub fn batch_read_at(&self) -> Option<Duration> {
+        let State::Receiving(receiving) = &self.state else {
+            return None;
+        };
+        if !receiving.window.is_waiting() || receiving.window.has_reply_bytes() {
+            return None;
+        }
+        receiving.batch_read_at
+    }
+
+    /// What the driver read at `now` after sleeping to [`Self::batch_read_at`] (possibly
+    /// nothing). The bytes came after the request had left the wire, when exactly is unknown:
+    /// a reply completed by them teaches the scheduler no response time. An adapter's echo of
+    /// the request in front of them is dropped (the early bytes a watched line would discard
+    /// by their time).
+    pub fn handle_batch(&mut self, now: Duration, bytes: &[u8]) {
+        let State::Receiving(receiving) = &mut self.state else {
+            return;
+        };
+        receiving.batch_read_at = None;
+        if bytes.is_empty() {
+            return;
+        }
+        let mut bytes = bytes;
+        if let Ok(request) = receiving.request.encode() {
+            if bytes.len() > request.len() && bytes.starts_with(&request) {
+                debug!(count = request.len(), "the request's echo dropped");
+                bytes = bytes.get(request.len()..).unwrap_or(&[]);
+            }
+        }
+        self.line_busy_until = Some(self.line_busy_until.map_or(now, |busy| busy.max(now)));
+        if receiving.window.receive_batch(now) == Received::Discard {
+            return;
+        }
+        self.take_reply(bytes);
     }
 
     /// Bytes arrived at `now` (the time they were read).
@@ -264,12 +350,27 @@ impl Exchange {
             );
             return;
         }
+        self.take_reply(bytes);
+    }
+
+    /// Hands reply bytes to the parser; finishes the transaction on a complete reply.
+    fn take_reply(&mut self, bytes: &[u8]) {
+        let State::Receiving(receiving) = &mut self.state else {
+            return;
+        };
         let reply = match &mut self.mbap {
             Some(mbap) => receiving.take_mbap(mbap.unwrap(bytes)),
             None => receiving.take_rtu(bytes),
         };
         if let Some(reply) = reply {
-            let timing = receiving.window.timing();
+            let mut timing = receiving.window.timing();
+            if !receiving.window.first_byte_exact() {
+                // Read in one go after a sleep: when the reply began is unknown, and its read
+                // time would teach a response time longer with every batch read.
+                timing.first_byte = None;
+            } else if !follows_arbitration(&receiving.request) {
+                self.batch_reads_in_a_row = 0;
+            }
             self.state = State::Done(Outcome::Reply(reply), timing);
         }
     }
@@ -443,6 +544,7 @@ mod tests {
             first_byte_timeout: Some(RESPONSE_TIMEOUT),
             late_window: RESPONSE_TIMEOUT,
             estimated: request_time + reply_time,
+            expected_reply_start: None,
         }
     }
 
@@ -526,6 +628,283 @@ mod tests {
             }
         }
         panic!("the exchange never finished");
+    }
+
+    /// Like [`run`], for a driver that sleeps to [`Exchange::batch_read_at`] and reads what
+    /// arrived by then in one go; also returns how many times it woke (reads and timeouts).
+    fn run_batched(
+        exchange: &mut Exchange,
+        transaction: &Transaction,
+        mut now: Duration,
+        arrivals: &[(Duration, u8)],
+    ) -> (Finished, usize) {
+        exchange.start(transaction).expect("encodes");
+        let mut sent_at = Duration::ZERO;
+        let mut next = 0;
+        let mut paced_reads = 0;
+        // Each pass after the first follows a wake-up.
+        for wakes in 0..10_000 {
+            if let Some(transmit) = exchange.poll_transmit(now) {
+                assert!(transmit.flush_input, "stale input is flushed first");
+                exchange.handle_sent(now);
+                sent_at = now;
+                while arrivals.get(next).is_some_and(|(at, _)| *at < now) {
+                    next += 1;
+                }
+            }
+            if let Some((outcome, timing)) = exchange.poll_outcome() {
+                let finished = Finished {
+                    outcome,
+                    timing,
+                    at: now,
+                    sent_at,
+                };
+                return (finished, wakes);
+            }
+            // As the transport: a batch read once, then sleeps through a reply of known length
+            // (a few times at most), then byte by byte.
+            let batch = exchange.batch_read_at();
+            let paced = exchange.reply_complete_at().filter(|_| paced_reads < 3);
+            let until = batch
+                .or(paced)
+                .filter(|at| exchange.poll_timeout().is_none_or(|timeout| *at < timeout));
+            if let Some(at) = until {
+                now = now.max(at);
+                let mut bytes = Vec::new();
+                while let Some(&(_, byte)) = arrivals.get(next).filter(|a| a.0 <= now) {
+                    bytes.push(byte);
+                    next += 1;
+                }
+                if batch.is_some() {
+                    exchange.handle_batch(now, &bytes);
+                } else if bytes.is_empty() {
+                    paced_reads = 3;
+                } else {
+                    paced_reads += 1;
+                    exchange.handle_bytes(now, &bytes);
+                }
+                continue;
+            }
+            let timeout = exchange
+                .poll_timeout()
+                .expect("a pending transaction is timed");
+            match arrivals.get(next) {
+                Some(&(at, byte)) if at < timeout => {
+                    now = now.max(at);
+                    exchange.handle_bytes(now, &[byte]);
+                    next += 1;
+                }
+                _ => {
+                    now = now.max(timeout);
+                    exchange.handle_timeout(now);
+                }
+            }
+        }
+        panic!("the exchange never finished");
+    }
+
+    fn expecting_reply_after(mut transaction: Transaction, start: Duration) -> Transaction {
+        transaction.expected_reply_start = Some(start);
+        transaction
+    }
+
+    fn read_reply() -> Outcome {
+        Outcome::Reply(Reply::classic(
+            0x1E,
+            ResponsePdu::ReadInputRegisters {
+                values: vec![0x1234, 0x5678],
+            },
+        ))
+    }
+
+    #[test]
+    fn a_reply_that_starts_when_expected_is_read_in_one_go() {
+        for baud in [9600, 115_200] {
+            let line = line(baud);
+            let transaction = expecting_reply_after(transaction(&line, read_request()), ms(1));
+            let mut exchange = Exchange::new(serial(line));
+            let start = ms(100);
+            let request_end = start + transaction.request_time;
+            let arrivals = on_the_wire(&line, request_end + ms(1), &reply_frame());
+            let (finished, wakes) = run_batched(&mut exchange, &transaction, start, &arrivals);
+            assert_eq!(finished.outcome, read_reply(), "at {baud}");
+            assert_eq!(wakes, 1, "one wake-up for the whole reply at {baud}");
+            assert_eq!(
+                finished.at,
+                request_end + ms(1) + line.wire_time(reply_frame().len()),
+                "read when the reply should be complete at {baud}"
+            );
+            assert_eq!(
+                finished.timing.first_byte, None,
+                "a batch cannot tell when the reply began: nothing to learn at {baud}"
+            );
+        }
+    }
+
+    #[test]
+    fn a_reply_later_than_expected_is_waited_for_and_timed() {
+        let line = line(9600);
+        let transaction = expecting_reply_after(transaction(&line, read_request()), ms(1));
+        let request_end = transaction.request_time;
+        // Nothing yet at the batch read: the first byte is waited for and timed exactly.
+        let arrivals = on_the_wire(&line, request_end + ms(12), &reply_frame());
+        let mut exchange = Exchange::new(serial(line));
+        let (finished, _) = run_batched(&mut exchange, &transaction, ms(0), &arrivals);
+        assert_eq!(finished.outcome, read_reply());
+        assert_eq!(finished.timing.first_byte, Some(ms(12) + line.wire_time(1)));
+        // Half of it by then: the rest is read when it should be complete.
+        let arrivals = on_the_wire(&line, request_end + ms(5), &reply_frame());
+        let mut exchange = Exchange::new(serial(line));
+        let (finished, wakes) = run_batched(&mut exchange, &transaction, ms(0), &arrivals);
+        assert_eq!(finished.outcome, read_reply());
+        assert_eq!(wakes, 2);
+        // When the bytes of the batch arrived is unknown: the rest is due at most its wire time
+        // after the batch was read.
+        let batch_at = request_end + ms(1) + line.wire_time(reply_frame().len());
+        let last = arrivals.last().map(|a| a.0).unwrap_or_default();
+        assert!(finished.at >= last && finished.at <= batch_at + line.wire_time(4));
+    }
+
+    #[test]
+    fn a_batch_read_never_waits_past_the_first_byte_deadline() {
+        let line = line(115_200);
+        // Expected far beyond the response timeout (30 ms): read at the deadline.
+        let transaction = expecting_reply_after(transaction(&line, read_request()), ms(80));
+        let mut exchange = Exchange::new(serial(line));
+        exchange.start(&transaction).expect("encodes");
+        exchange.poll_transmit(ms(0));
+        exchange.handle_sent(ms(0));
+        assert_eq!(
+            exchange.batch_read_at(),
+            Some(transaction.request_time + RESPONSE_TIMEOUT)
+        );
+        // Nothing by then: the first-byte timeout, then the late window, as without a batch.
+        let mut exchange = Exchange::new(serial(line));
+        let (finished, _) = run_batched(&mut exchange, &transaction, ms(0), &[]);
+        assert_eq!(finished.outcome, Outcome::NoReply);
+        assert_eq!(
+            finished.at,
+            transaction.request_time + RESPONSE_TIMEOUT + RESPONSE_TIMEOUT
+        );
+        assert_eq!(finished.timing, ReplyTiming::default());
+    }
+
+    #[test]
+    fn an_echo_of_the_request_in_front_of_a_batch_is_dropped() {
+        let line = line(115_200);
+        let transaction = expecting_reply_after(transaction(&line, read_request()), ms(1));
+        let request = read_request().encode().unwrap_or_default();
+        // The adapter hears its own request while it goes out, then the device answers.
+        let mut arrivals = on_the_wire(&line, Duration::ZERO, &request);
+        arrivals.extend(on_the_wire(
+            &line,
+            transaction.request_time + ms(1),
+            &reply_frame(),
+        ));
+        let mut exchange = Exchange::new(serial(line));
+        // The flush before the request must not see the echo: it starts after the write.
+        let (finished, wakes) = run_batched(&mut exchange, &transaction, ms(0), &arrivals);
+        assert_eq!(finished.outcome, read_reply());
+        assert_eq!(wakes, 1);
+    }
+
+    #[test]
+    fn a_garbled_batch_is_not_silence() {
+        let line = line(115_200);
+        let transaction = expecting_reply_after(transaction(&line, read_request()), ms(1));
+        let mut frame = reply_frame();
+        if let Some(last) = frame.last_mut() {
+            *last ^= 0x55;
+        }
+        let arrivals = on_the_wire(&line, transaction.request_time + ms(1), &frame);
+        let mut exchange = Exchange::new(serial(line));
+        let (finished, _) = run_batched(&mut exchange, &transaction, ms(0), &arrivals);
+        assert_eq!(finished.outcome, Outcome::Garbled);
+        assert!(
+            finished.timing.first_byte.is_some(),
+            "bytes came: the scheduler must not take the device for silent"
+        );
+    }
+
+    #[test]
+    fn every_sixteenth_batch_read_is_timed_to_its_first_byte() {
+        let line = line(115_200);
+        let transaction = expecting_reply_after(transaction(&line, read_request()), ms(1));
+        let mut exchange = Exchange::new(serial(line));
+        let mut timed = Vec::new();
+        let mut now = ms(0);
+        for n in 0..40 {
+            let arrivals = on_the_wire(
+                &line,
+                now + transaction.request_time + ms(1),
+                &reply_frame(),
+            );
+            let (finished, _) = run_batched(&mut exchange, &transaction, now, &arrivals);
+            assert_eq!(finished.outcome, read_reply());
+            if let Some(first_byte) = finished.timing.first_byte {
+                assert_eq!(first_byte, ms(1) + line.wire_time(1));
+                timed.push(n);
+            }
+            now = finished.at + ms(1);
+        }
+        assert_eq!(timed, vec![15, 31]);
+    }
+
+    #[test]
+    fn an_event_poll_is_read_once_the_winner_should_have_answered() {
+        let line = line(115_200);
+        let poll = Request::poll_events(EventPoll {
+            min_address: 0,
+            max_data_len: 100,
+            ack_address: 0,
+            ack_flag: 0,
+        });
+        let transaction =
+            expecting_reply_after(transaction(&line, poll), line.event_winner_start());
+        let no_events = Reply::fast(0xFD, crate::protocol::FastReply::NoEvents);
+        let frame = no_events.encode().unwrap_or_default();
+        let request_end = transaction.request_time;
+        // A filler byte in windows 4 and 8, the winner's frame after the last window.
+        let window = line.arbitration_window();
+        let first_window = request_end + line.device_arbitration_wait();
+        let mut arrivals = vec![
+            (first_window + window * 4 + line.char_time(), 0xFF),
+            (first_window + window * 8 + line.char_time(), 0xFF),
+        ];
+        arrivals.extend(on_the_wire(
+            &line,
+            request_end + line.event_winner_start(),
+            &frame,
+        ));
+        let mut exchange = Exchange::new(serial(line));
+        let (finished, wakes) = run_batched(&mut exchange, &transaction, ms(0), &arrivals);
+        assert_eq!(finished.outcome, Outcome::Reply(no_events));
+        assert_eq!(wakes, 1, "filler and the whole frame in one read");
+        // An event packet: its header tells the rest, read in a second go.
+        let packet = [0x16, 0x46, 0x11, 0x01, 0x02, 0x06];
+        let mut exchange = Exchange::new(serial(line));
+        let mut arrivals = vec![(first_window + window * 4 + line.char_time(), 0xFF)];
+        let mut body = packet.to_vec();
+        body.extend([2u8, 4, 0, 0x3C, 0, 1]);
+        let crc = crate::protocol::crc16(&body);
+        body.extend(crc.to_le_bytes());
+        let frame = body;
+        arrivals.extend(on_the_wire(
+            &line,
+            request_end + line.event_winner_start(),
+            &frame,
+        ));
+        let (finished, wakes) = run_batched(&mut exchange, &transaction, ms(0), &arrivals);
+        assert!(
+            matches!(finished.outcome, Outcome::Reply(_)),
+            "{:?}",
+            finished.outcome
+        );
+        assert_eq!(wakes, 2);
+        assert_eq!(
+            finished.at,
+            arrivals.last().map(|a| a.0).unwrap_or_default()
+        );
     }
 
     #[test]

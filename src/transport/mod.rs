@@ -169,6 +169,32 @@ impl Transport {
             if let Some(result) = self.exchange.poll_outcome() {
                 return Ok(result);
             }
+            if let (Some(at), Link::Serial(link)) = (self.exchange.batch_read_at(), &mut self.link)
+            {
+                link.unwatch();
+                let read = match link.sleep_until(self.epoch + at + PACING_SLACK).await {
+                    Ok(()) => link.read_now(&mut buffer),
+                    Err(err) => Err(err),
+                };
+                let count = match read {
+                    Ok(Some(0)) => {
+                        return Err(TransportError::Closed {
+                            name: self.name.clone(),
+                        })
+                    }
+                    Ok(count) => count.unwrap_or(0),
+                    Err(source) => {
+                        return Err(TransportError::Io {
+                            name: self.name.clone(),
+                            source,
+                        })
+                    }
+                };
+                let bytes = buffer.get(..count).unwrap_or(&[]);
+                debug!(port = %self.name, rx = %protocol::hex(bytes), "bytes (batch)");
+                self.exchange.handle_batch(self.now(), bytes);
+                continue;
+            }
             let Some(timeout) = self.exchange.poll_timeout() else {
                 // Never after `handle_sent`; a guard against spinning.
                 return Ok((Outcome::NoReply, ReplyTiming::default()));
@@ -266,11 +292,9 @@ impl Transport {
                         }
                     }
                 }
-                match timeout_at(wake, link.read(buffer)).await {
-                    Err(_elapsed) => Ok(None),
-                    Ok(Ok(count)) => Ok(Some(count)),
-                    Ok(Err(source)) => Err(io_error(&self.name, source)),
-                }
+                link.read_until(wake, buffer)
+                    .await
+                    .map_err(|source| io_error(&self.name, source))
             }
             Link::Tcp(stream) => match timeout_at(wake, AsyncReadExt::read(stream, buffer)).await {
                 Err(_elapsed) => Ok(None),

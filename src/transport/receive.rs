@@ -56,6 +56,9 @@ pub struct ReplyWindow {
     quiet_gap: Duration,
     phase: Phase,
     first_byte_at: Option<Duration>,
+    /// False when the reply's bytes were read in one go after a sleep: `first_byte_at` is then
+    /// only the time they were read, an upper bound of when the first came.
+    first_byte_exact: bool,
     last_byte_at: Option<Duration>,
     late_byte_at: Option<Duration>,
 }
@@ -84,9 +87,21 @@ impl ReplyWindow {
             quiet_gap,
             phase: Phase::Waiting,
             first_byte_at: None,
+            first_byte_exact: true,
             last_byte_at: None,
             late_byte_at: None,
         }
+    }
+
+    /// When the reply's first byte is due at the latest: the first-byte timeout, else the
+    /// reply's.
+    pub fn first_byte_deadline(&self) -> Duration {
+        self.first_byte_deadline.unwrap_or(self.deadline)
+    }
+
+    /// True once bytes counted as the reply arrived.
+    pub fn has_reply_bytes(&self) -> bool {
+        self.first_byte_at.is_some()
     }
 
     /// When the request has left the wire (at the earliest).
@@ -130,6 +145,23 @@ impl ReplyWindow {
     fn quiet_after(&self, until: Duration) -> Duration {
         self.last_byte_at
             .map_or(until, |last| until.max(last.saturating_add(self.quiet_gap)))
+    }
+
+    /// The first bytes after the request were read at `at`, in one go after a sleep, while the
+    /// reply was still awaited: they came after the request left the wire (the driver slept past
+    /// its end) but when exactly is unknown.
+    pub fn receive_batch(&mut self, at: Duration) -> Received {
+        let first = self.first_byte_at.is_none();
+        let received = self.receive(at.max(self.request_end));
+        if first && received == Received::Reply {
+            self.first_byte_exact = false;
+        }
+        received
+    }
+
+    /// Whether the first byte's time is known (see [`Self::receive_batch`]).
+    pub fn first_byte_exact(&self) -> bool {
+        self.first_byte_exact
     }
 
     /// Bytes arrived at `at`.
@@ -211,6 +243,7 @@ mod tests {
             reply_timeout: ms(26 + 9 + 24),
             late_window,
             estimated: ms(20),
+            expected_reply_start: None,
         }
     }
 

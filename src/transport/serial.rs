@@ -8,7 +8,11 @@
 //! the first byte of a reply of known length and its expected end
 //! ([`Exchange::reply_complete_at`](super::exchange::Exchange::reply_complete_at)) the transport
 //! sleeps on a timerfd (tokio's timers round to milliseconds, several characters at 115200) and
-//! then reads the rest at once.
+//! then reads the rest at once. When the scheduler expects the reply to start at a known time
+//! (a device's learned response time, an arbitration's end), the transport does not even wait
+//! for the first byte: it sleeps until the reply should be complete and reads it in one go
+//! ([`Exchange::batch_read_at`](super::exchange::Exchange::batch_read_at)): one wake-up per
+//! transaction.
 
 use std::fs::File;
 use std::io::{self, Read, Write};
@@ -117,34 +121,74 @@ impl SerialLink {
         Ok(())
     }
 
-    /// Waits until bytes arrive and reads them (one read: a tty hands over all it has).
-    pub async fn read(&mut self, buffer: &mut [u8]) -> io::Result<usize> {
+    /// Waits until bytes arrive and reads them (one read: a tty hands over all it has), or gives
+    /// up at `deadline` (`Ok(None)`). Timed by the link's own
+    /// timerfd: a tokio timer that is earlier than the runtime's next wake-up makes the runtime
+    /// wake itself through its eventfd first, two system calls more per transaction.
+    pub async fn read_until(
+        &mut self,
+        deadline: Instant,
+        buffer: &mut [u8],
+    ) -> io::Result<Option<usize>> {
+        if !self.arm_timer(deadline)? {
+            return self.read_now(buffer);
+        }
         if self.watch.is_none() {
             self.watch = Some(register(
                 WatchedFd(self.port.as_raw_fd()),
                 Interest::READABLE,
             )?);
         }
-        let Some(watch) = &self.watch else {
+        let (Some(watch), timer, port) = (&self.watch, &self.timer, &self.port) else {
             return Err(io::ErrorKind::Other.into());
         };
         loop {
-            let mut ready = watch.readable().await?;
-            match (&self.port).read(buffer) {
-                Err(err) if err.kind() == io::ErrorKind::WouldBlock => ready.clear_ready(),
-                Err(err) if err.kind() == io::ErrorKind::Interrupted => {}
-                Ok(count) => {
-                    // A tty read returns everything there is (unless the buffer is full): the
-                    // next call waits for the next edge rather than paying for a read that
-                    // finds nothing, the costly kind on a tty.
-                    if count < buffer.len() {
-                        ready.clear_ready();
+            tokio::select! {
+                biased;
+                ready = watch.readable() => {
+                    let mut ready = ready?;
+                    let mut reader = port;
+                    match reader.read(buffer) {
+                        Err(err) if err.kind() == io::ErrorKind::WouldBlock => ready.clear_ready(),
+                        Err(err) if err.kind() == io::ErrorKind::Interrupted => {}
+                        Ok(count) => {
+                            // A tty read returns everything there is (unless the buffer is
+                            // full): the next call waits for the next edge rather than paying
+                            // for a read that finds nothing, the costly kind on a tty.
+                            if count < buffer.len() {
+                                ready.clear_ready();
+                            }
+                            return Ok(Some(count));
+                        }
+                        Err(err) => return Err(err),
                     }
-                    return Ok(count);
                 }
-                Err(err) => return Err(err),
+                ready = timer.readable() => {
+                    ready?.clear_ready();
+                    if Instant::now() >= deadline {
+                        return Ok(None);
+                    }
+                }
             }
         }
+    }
+
+    /// Sets the timer to expire at `at`; false (and nothing set) when `at` has passed.
+    fn arm_timer(&mut self, at: Instant) -> io::Result<bool> {
+        let left = at.saturating_duration_since(Instant::now());
+        if left.is_zero() {
+            return Ok(false);
+        }
+        // Setting the timer also forgets an expiry nobody waited for.
+        self.timer
+            .get_ref()
+            .0
+            .set(
+                Expiration::OneShot(TimeSpec::from_duration(left)),
+                TimerSetTimeFlags::empty(),
+            )
+            .map_err(io::Error::from)?;
+        Ok(true)
     }
 
     /// Stops watching the line: bytes that arrive wake nobody until [`Self::read_now`].
@@ -166,19 +210,9 @@ impl SerialLink {
 
     /// Sleeps until `at`, to within the kernel's timer slack.
     pub async fn sleep_until(&mut self, at: Instant) -> io::Result<()> {
-        let left = at.saturating_duration_since(Instant::now());
-        if left.is_zero() {
+        if !self.arm_timer(at)? {
             return Ok(());
         }
-        // Setting the timer also forgets an expiry nobody waited for.
-        self.timer
-            .get_ref()
-            .0
-            .set(
-                Expiration::OneShot(TimeSpec::from_duration(left)),
-                TimerSetTimeFlags::empty(),
-            )
-            .map_err(io::Error::from)?;
         loop {
             let mut ready = self.timer.readable().await?;
             // Readiness left over from an earlier expiry: not this one.
