@@ -1,13 +1,12 @@
 //! Getting frames on and off a bus: a serial port (real RS-485 adapter or the simulator's
 //! pseudo-terminal), raw RTU frames over TCP, or Modbus TCP (MBAP). [`Transport`] only reads,
 //! writes and sleeps; what the bytes mean and when, every timeout, the guard interval and the
-//! flush of stale input are decided by the pure [`exchange::Exchange`], which uses the reply
-//! window of [`receive`] and the protocol's [`ReplyParser`](crate::protocol::ReplyParser).
+//! flush of stale input are decided by the pure [`exchange::Exchange`], which uses its reply
+//! window and the protocol's [`ReplyParser`](crate::protocol::ReplyParser).
 
 pub mod exchange;
 mod mbap;
 pub mod raw;
-pub mod receive;
 mod serial;
 
 use std::io;
