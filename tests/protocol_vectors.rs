@@ -278,6 +278,7 @@ fn every_vector_decodes_to_its_meaning_and_encodes_back() {
                     parse_reply(&mut ReplyParser::any(), &chunks).expect(&vector.name);
                 assert_eq!(whole.reply, reply, "{}", vector.name);
                 assert_eq!(whole.filler_bytes, vector.leading_ff, "{}", vector.name);
+                assert_eq!(whole.frame_len, frame.len(), "{}", vector.name);
                 assert_eq!(byte_by_byte, whole, "{}", vector.name);
             }
         }

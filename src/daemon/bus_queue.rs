@@ -150,7 +150,6 @@ mod tests {
             first_byte_timeout: None,
             late_window: Duration::ZERO,
             estimated: Duration::from_millis(10),
-            expected_reply_start: None,
         }
     }
 

@@ -603,7 +603,6 @@ impl PortScheduler {
                 + margin,
             first_byte_timeout: Some(line.event_first_byte_timeout() + margin),
             late_window: margin,
-            expected_reply_start: Some(line.event_winner_start()),
             request,
         };
         self.events.started(now);
@@ -649,7 +648,6 @@ impl PortScheduler {
             first_byte_timeout: Some(response_timeout),
             late_window,
             estimated,
-            expected_reply_start: device.response.learned(),
         }
     }
 

@@ -48,6 +48,8 @@ pub struct ParsedReply {
     pub reply: Reply,
     /// 0xFF bytes skipped before this frame (one per arbitration window with a dominant bit).
     pub filler_bytes: usize,
+    /// Bytes of the frame itself, address to CRC.
+    pub frame_len: usize,
 }
 
 /// The master's reply parser for one request.
@@ -140,6 +142,7 @@ impl ReplyParser {
             Ok(reply) if self.answers(&reply) => ParseStatus::Frame(ParsedReply {
                 reply,
                 filler_bytes: std::mem::take(&mut self.filler_bytes),
+                frame_len: len,
             }),
             Ok(reply) => ParseStatus::Error(ParseError::Unexpected {
                 address: reply.address,

@@ -30,11 +30,6 @@ pub struct Transaction {
     pub late_window: Duration,
     /// Expected bus time of the whole transaction.
     pub estimated: Duration,
-    /// When the reply's first byte usually comes, from the end of the request (a device's
-    /// learned response time; the winner's frame after an arbitration). A serial transport
-    /// then sleeps until the reply should be complete and reads it at once, instead of waking
-    /// for the first byte and again for the rest; `None`: no such expectation.
-    pub expected_reply_start: Option<Duration>,
 }
 
 /// What the transport saw of a reply's timing, counted from the end of the request.
@@ -70,7 +65,6 @@ impl Transaction {
             reply_timeout: response_timeout + reply_time,
             first_byte_timeout: Some(response_timeout),
             late_window: response_timeout.min(MAX_LATE_WINDOW),
-            expected_reply_start: None,
             request,
         }
     }

@@ -461,7 +461,6 @@ mod tests {
             first_byte_timeout: None,
             late_window: ms(0),
             estimated: ms(10),
-            expected_reply_start: None,
         }
     }
 

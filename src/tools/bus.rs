@@ -326,7 +326,6 @@ pub trait ToolBus {
             reply_timeout: reply_timeout + self.latency(),
             first_byte_timeout: Some(first_byte_timeout + self.latency()),
             late_window: self.latency(),
-            expected_reply_start: None,
             request,
         };
         self.transact(line, transaction).await
@@ -423,7 +422,6 @@ pub fn scan_transaction(
         // Silence after a scan start means nobody at this setting, and the next request goes out
         // at another setting (after an input flush): no late reply to wait for.
         late_window: if start { Duration::ZERO } else { latency },
-        expected_reply_start: None,
         request,
     }
 }

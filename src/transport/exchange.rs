@@ -29,6 +29,7 @@
 //! [`Exchange::reply_complete_at`] lets a driver that pays for every wake-up (a serial port)
 //! sleep through a reply whose length is known instead of reading it a few bytes at a time.
 
+use std::collections::HashMap;
 use std::time::Duration;
 
 use tracing::debug;
@@ -129,16 +130,65 @@ struct Receiving {
     parser: ReplyParser,
     /// Bytes came that were not the reply (garbage, a bad CRC, another device's frame).
     garbled: bool,
-    /// When the reply should be complete if it starts when expected: the driver may sleep until
-    /// then and read it in one go ([`Exchange::batch_read_at`]). `None` once tried, or when
-    /// there is no expectation.
+    /// When the reply should be complete if it comes as the device's last ones did: the driver
+    /// may sleep until then and read it in one go ([`Exchange::batch_read_at`]). `None` once
+    /// tried, or when nothing is known of the device yet.
     batch_read_at: Option<Duration>,
 }
 
-/// Every this many transactions with a batch read, one waits for its first byte instead, so that
-/// the device's response time is measured again (a batch read cannot tell when the reply began,
-/// and would never notice a device that became faster).
+/// Every this many transactions with a batch read, one is read as it comes instead, so that the
+/// device's reply delay is measured again (a batch read cannot tell when the reply came, and
+/// would never notice a device that became faster).
 const EXACT_TIMING_EVERY: u32 = 16;
+
+/// Replies whose delay is learned together: one device's answers to one function (a write may
+/// take a device longer than a read; an event poll's arbitration is shorter than a scan's).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+struct ReplyKind {
+    address: u8,
+    fast: bool,
+    function: u8,
+}
+
+impl ReplyKind {
+    fn of(request: &Request) -> Self {
+        let (fast, function) = match &request.body {
+            RequestBody::Classic(pdu) => (false, pdu.function()),
+            RequestBody::Fast(fast) => (true, fast.sub_command()),
+        };
+        Self {
+            address: request.address,
+            fast,
+            function,
+        }
+    }
+}
+
+/// How long after the end of its request a device's reply is complete, beyond the reply's own
+/// wire time: the device's turnaround, an adapter's latency (a USB adapter hands the whole reply
+/// over at once, after its latency timer), an arbitration before the frame. Learned from
+/// replies read as they came; a batch read sleeps that long and the reply's wire time.
+#[derive(Debug, Clone, Copy)]
+struct ReplyDelay {
+    delay: Duration,
+    /// Batch reads since the delay was last measured.
+    batch_reads: u32,
+}
+
+impl ReplyDelay {
+    /// A reply read as it came was complete `sample` beyond its wire time. A shorter delay is
+    /// taken at once (a batch read that sleeps too long costs bus time on every transaction);
+    /// a longer one an eighth at a time (a write that took the device longer, a busy moment of
+    /// the machine, must not slow the batch reads for long).
+    fn learn(&mut self, sample: Duration) {
+        self.delay = if sample <= self.delay {
+            sample
+        } else {
+            self.delay + (sample - self.delay) / 8
+        };
+        self.batch_reads = 0;
+    }
+}
 
 /// The transactions of one link, one at a time. See the module documentation.
 #[derive(Debug)]
@@ -150,8 +200,8 @@ pub struct Exchange {
     /// When the line was last busy: the end of the last request on the wire or the last byte
     /// received. The guard interval counts from here.
     line_busy_until: Option<Duration>,
-    /// Transactions with a batch read since the last one timed to its first byte.
-    batch_reads_in_a_row: u32,
+    /// What the link learned of each kind of reply's delay.
+    reply_delays: HashMap<ReplyKind, ReplyDelay>,
     state: State,
 }
 
@@ -162,7 +212,7 @@ impl Exchange {
             config,
             transaction: None,
             line_busy_until: None,
-            batch_reads_in_a_row: 0,
+            reply_delays: HashMap::new(),
             state: State::Idle,
         }
     }
@@ -244,8 +294,7 @@ impl Exchange {
             self.config.serial.is_some(),
         );
         self.line_busy_until = Some(window.clock_start());
-        let expected_reply_start = transaction.expected_reply_start;
-        let batch_read_at = self.plan_batch_read(expected_reply_start, &request, &window);
+        let batch_read_at = self.plan_batch_read(&request, &window);
         self.state = if request.expects_reply() {
             State::Receiving(Box::new(Receiving {
                 parser: ReplyParser::for_request(&request),
@@ -261,31 +310,23 @@ impl Exchange {
         };
     }
 
-    /// On a serial line, when the reply is expected to be complete (see
-    /// [`Transaction::expected_reply_start`]), never after its first-byte deadline. Replies
-    /// after an arbitration are read up to their shortest frame, whose header tells the rest.
-    fn plan_batch_read(
-        &mut self,
-        expected_reply_start: Option<Duration>,
-        request: &Request,
-        window: &ReplyWindow,
-    ) -> Option<Duration> {
+    /// On a serial line, when the reply should be complete if it comes as the device's last
+    /// ones did, never after its first-byte deadline; every [`EXACT_TIMING_EVERY`]th time, and
+    /// before the device has answered once, nothing (the reply is read as it comes, to learn).
+    /// Replies after an arbitration are read up to an event packet's length field.
+    fn plan_batch_read(&mut self, request: &Request, window: &ReplyWindow) -> Option<Duration> {
         let line = self.config.serial?;
-        let start = expected_reply_start?;
         if !request.expects_reply() {
             return None;
         }
-        // An arbitration's timing is the protocol's, not learned: nothing to measure again.
-        if !follows_arbitration(request) {
-            self.batch_reads_in_a_row += 1;
-            if self.batch_reads_in_a_row >= EXACT_TIMING_EVERY {
-                self.batch_reads_in_a_row = 0;
-                return None;
-            }
+        let learned = self.reply_delays.get_mut(&ReplyKind::of(request))?;
+        learned.batch_reads += 1;
+        if learned.batch_reads >= EXACT_TIMING_EVERY {
+            return None;
         }
         let complete = window
             .clock_start()
-            .saturating_add(start)
+            .saturating_add(learned.delay)
             .saturating_add(line.wire_time(request.reply_len_known_after()));
         Some(complete.min(window.first_byte_deadline()))
     }
@@ -329,7 +370,7 @@ impl Exchange {
         if receiving.window.receive_batch(now) == Received::Discard {
             return;
         }
-        self.take_reply(bytes);
+        self.take_reply(now, bytes);
     }
 
     /// Bytes arrived at `now` (the time they were read).
@@ -350,11 +391,12 @@ impl Exchange {
             );
             return;
         }
-        self.take_reply(bytes);
+        self.take_reply(now, bytes);
     }
 
-    /// Hands reply bytes to the parser; finishes the transaction on a complete reply.
-    fn take_reply(&mut self, bytes: &[u8]) {
+    /// Hands reply bytes (read at `now`) to the parser; finishes the transaction on a complete
+    /// reply.
+    fn take_reply(&mut self, now: Duration, bytes: &[u8]) {
         let State::Receiving(receiving) = &mut self.state else {
             return;
         };
@@ -362,17 +404,27 @@ impl Exchange {
             Some(mbap) => receiving.take_mbap(mbap.unwrap(bytes)),
             None => receiving.take_rtu(bytes),
         };
-        if let Some(reply) = reply {
-            let mut timing = receiving.window.timing();
-            if !receiving.window.first_byte_exact() {
-                // Read in one go after a sleep: when the reply began is unknown, and its read
-                // time would teach a response time longer with every batch read.
-                timing.first_byte = None;
-            } else if !follows_arbitration(&receiving.request) {
-                self.batch_reads_in_a_row = 0;
-            }
-            self.state = State::Done(Outcome::Reply(reply), timing);
+        let Some((reply, frame_len)) = reply else {
+            return;
+        };
+        let mut timing = receiving.window.timing();
+        if !receiving.window.first_byte_exact() {
+            // Read in one go after a sleep: when the reply began is unknown, and its read
+            // time would teach a response time longer with every batch read.
+            timing.first_byte = None;
+        } else if let Some(line) = self.config.serial {
+            let sample = now
+                .saturating_sub(receiving.window.clock_start())
+                .saturating_sub(line.wire_time(frame_len));
+            self.reply_delays
+                .entry(ReplyKind::of(&receiving.request))
+                .and_modify(|learned| learned.learn(sample))
+                .or_insert(ReplyDelay {
+                    delay: sample,
+                    batch_reads: 0,
+                });
         }
+        self.state = State::Done(Outcome::Reply(reply), timing);
     }
 
     /// When to call [`Self::handle_timeout`] if no bytes come before (`None`: nothing is timed,
@@ -459,13 +511,13 @@ impl Exchange {
 }
 
 impl Receiving {
-    /// Feeds RTU bytes to the parser; the reply once it is complete.
-    fn take_rtu(&mut self, bytes: &[u8]) -> Option<Reply> {
+    /// Feeds RTU bytes to the parser; the reply and its frame's length once it is complete.
+    fn take_rtu(&mut self, bytes: &[u8]) -> Option<(Reply, usize)> {
         self.parser.push(bytes);
         loop {
             match self.parser.poll() {
                 ParseStatus::NeedMore => return None,
-                ParseStatus::Frame(parsed) => return Some(parsed.reply),
+                ParseStatus::Frame(parsed) => return Some((parsed.reply, parsed.frame_len)),
                 ParseStatus::Error(err) => {
                     debug!(%err, "dropped reply bytes");
                     self.garbled = true;
@@ -478,10 +530,11 @@ impl Receiving {
     fn take_mbap(
         &mut self,
         replies: Vec<Result<Reply, crate::protocol::DecodeError>>,
-    ) -> Option<Reply> {
+    ) -> Option<(Reply, usize)> {
         for reply in replies {
             match reply {
-                Ok(reply) if answers(&self.request, &reply) => return Some(reply),
+                // The length serves only a serial line's timing.
+                Ok(reply) if answers(&self.request, &reply) => return Some((reply, 0)),
                 Ok(reply) => {
                     debug!(
                         address = reply.address,
@@ -760,7 +813,6 @@ mod window {
                 reply_timeout: ms(26 + 9 + 24),
                 late_window,
                 estimated: ms(20),
-                expected_reply_start: None,
             }
         }
 
@@ -916,7 +968,6 @@ mod tests {
             first_byte_timeout: Some(RESPONSE_TIMEOUT),
             late_window: RESPONSE_TIMEOUT,
             estimated: request_time + reply_time,
-            expected_reply_start: None,
         }
     }
 
@@ -1061,10 +1112,15 @@ mod tests {
                 .poll_timeout()
                 .expect("a pending transaction is timed");
             match arrivals.get(next) {
-                Some(&(at, byte)) if at < timeout => {
+                Some(&(at, _)) if at < timeout => {
+                    // One read takes every byte there is: all that arrived at that instant.
                     now = now.max(at);
-                    exchange.handle_bytes(now, &[byte]);
-                    next += 1;
+                    let mut bytes = Vec::new();
+                    while let Some(&(_, byte)) = arrivals.get(next).filter(|a| a.0 <= now) {
+                        bytes.push(byte);
+                        next += 1;
+                    }
+                    exchange.handle_bytes(now, &bytes);
                 }
                 _ => {
                     now = now.max(timeout);
@@ -1075,9 +1131,30 @@ mod tests {
         panic!("the exchange never finished");
     }
 
-    fn expecting_reply_after(mut transaction: Transaction, start: Duration) -> Transaction {
-        transaction.expected_reply_start = Some(start);
-        transaction
+    /// Runs one transaction from `start` that the device answers `delay` after the request's
+    /// end, byte by byte at the line's pace; returns when it finished.
+    fn answered_after(
+        exchange: &mut Exchange,
+        line: &LineSettings,
+        transaction: &Transaction,
+        start: Duration,
+        delay: Duration,
+    ) -> (Finished, usize) {
+        let arrivals = on_the_wire(
+            line,
+            start + transaction.request_time + delay,
+            &reply_frame(),
+        );
+        run_batched(exchange, transaction, start, &arrivals)
+    }
+
+    /// Equal to within a microsecond (the wire times of a frame and of its bytes one by one
+    /// round differently).
+    fn assert_near(actual: Duration, expected: Duration, what: &str) {
+        assert!(
+            actual.abs_diff(expected) <= Duration::from_micros(1),
+            "{what}: {actual:?} instead of {expected:?}"
+        );
     }
 
     fn read_reply() -> Outcome {
@@ -1090,21 +1167,25 @@ mod tests {
     }
 
     #[test]
-    fn a_reply_that_starts_when_expected_is_read_in_one_go() {
+    fn a_reply_that_comes_as_the_last_one_did_is_read_in_one_go() {
         for baud in [9600, 115_200] {
             let line = line(baud);
-            let transaction = expecting_reply_after(transaction(&line, read_request()), ms(1));
+            let transaction = transaction(&line, read_request());
             let mut exchange = Exchange::new(serial(line));
-            let start = ms(100);
-            let request_end = start + transaction.request_time;
-            let arrivals = on_the_wire(&line, request_end + ms(1), &reply_frame());
-            let (finished, wakes) = run_batched(&mut exchange, &transaction, start, &arrivals);
+            // The first reply of a device is read as it comes, and timed.
+            let (first, wakes) = answered_after(&mut exchange, &line, &transaction, ms(0), ms(1));
+            assert_eq!(first.outcome, read_reply());
+            assert!(wakes >= 2, "at {baud}");
+            assert_eq!(first.timing.first_byte, Some(ms(1) + line.wire_time(1)));
+            let start = first.at + ms(5);
+            let (finished, wakes) =
+                answered_after(&mut exchange, &line, &transaction, start, ms(1));
             assert_eq!(finished.outcome, read_reply(), "at {baud}");
             assert_eq!(wakes, 1, "one wake-up for the whole reply at {baud}");
-            assert_eq!(
+            assert_near(
                 finished.at,
-                request_end + ms(1) + line.wire_time(reply_frame().len()),
-                "read when the reply should be complete at {baud}"
+                start + transaction.request_time + ms(1) + line.wire_time(reply_frame().len()),
+                &format!("read when the reply should be complete at {baud}"),
             );
             assert_eq!(
                 finished.timing.first_byte, None,
@@ -1114,49 +1195,84 @@ mod tests {
     }
 
     #[test]
-    fn a_reply_later_than_expected_is_waited_for_and_timed() {
-        let line = line(9600);
-        let transaction = expecting_reply_after(transaction(&line, read_request()), ms(1));
-        let request_end = transaction.request_time;
-        // Nothing yet at the batch read: the first byte is waited for and timed exactly.
-        let arrivals = on_the_wire(&line, request_end + ms(12), &reply_frame());
+    fn a_reply_handed_over_at_once_by_an_adapter_is_read_when_it_comes() {
+        // A USB adapter holds the reply until its latency timer (4 ms here) and hands all of it
+        // over at once: the first byte comes when the last does.
+        let line = line(115_200);
+        let transaction = transaction(&line, read_request());
         let mut exchange = Exchange::new(serial(line));
-        let (finished, _) = run_batched(&mut exchange, &transaction, ms(0), &arrivals);
+        let burst_after = ms(1) + line.wire_time(reply_frame().len()) + ms(4);
+        let burst = |start: Duration| -> Vec<(Duration, u8)> {
+            let at = start + transaction.request_time + burst_after;
+            reply_frame().into_iter().map(|byte| (at, byte)).collect()
+        };
+        let (first, _) = run_batched(&mut exchange, &transaction, ms(0), &burst(ms(0)));
+        assert_eq!(first.outcome, read_reply());
+        let start = first.at + ms(5);
+        let (finished, wakes) = run_batched(&mut exchange, &transaction, start, &burst(start));
+        assert_eq!(finished.outcome, read_reply());
+        assert_eq!(wakes, 1);
+        assert_near(
+            finished.at,
+            start + transaction.request_time + burst_after,
+            "read when the adapter hands the reply over",
+        );
+    }
+
+    #[test]
+    fn a_reply_later_than_the_last_one_is_waited_for_and_timed() {
+        let line = line(9600);
+        let transaction = transaction(&line, read_request());
+        let mut exchange = Exchange::new(serial(line));
+        let (first, _) = answered_after(&mut exchange, &line, &transaction, ms(0), ms(1));
+        // Nothing yet at the batch read: the first byte is waited for and timed exactly.
+        let start = first.at + ms(5);
+        let (finished, _) = answered_after(&mut exchange, &line, &transaction, start, ms(12));
         assert_eq!(finished.outcome, read_reply());
         assert_eq!(finished.timing.first_byte, Some(ms(12) + line.wire_time(1)));
-        // Half of it by then: the rest is read when it should be complete.
-        let arrivals = on_the_wire(&line, request_end + ms(5), &reply_frame());
+        // Partly there by then: the rest is read when it should be complete.
         let mut exchange = Exchange::new(serial(line));
-        let (finished, wakes) = run_batched(&mut exchange, &transaction, ms(0), &arrivals);
+        let (first, _) = answered_after(&mut exchange, &line, &transaction, ms(0), ms(1));
+        let start = first.at + ms(5);
+        let request_end = start + transaction.request_time;
+        let (finished, wakes) = answered_after(&mut exchange, &line, &transaction, start, ms(5));
         assert_eq!(finished.outcome, read_reply());
         assert_eq!(wakes, 2);
         // When the bytes of the batch arrived is unknown: the rest is due at most its wire time
         // after the batch was read.
         let batch_at = request_end + ms(1) + line.wire_time(reply_frame().len());
-        let last = arrivals.last().map(|a| a.0).unwrap_or_default();
-        assert!(finished.at >= last && finished.at <= batch_at + line.wire_time(4));
+        let last = request_end + ms(5) + line.wire_time(reply_frame().len());
+        assert!(finished.at >= last);
+        assert_near(
+            finished.at,
+            batch_at + line.wire_time(4),
+            "the rest read when due",
+        );
     }
 
     #[test]
     fn a_batch_read_never_waits_past_the_first_byte_deadline() {
-        let line = line(115_200);
-        // Expected far beyond the response timeout (30 ms): read at the deadline.
-        let transaction = expecting_reply_after(transaction(&line, read_request()), ms(80));
+        let line = line(9600);
+        let transaction = transaction(&line, read_request());
         let mut exchange = Exchange::new(serial(line));
+        // A device that takes 28 ms of the 30 ms response timeout; its reply takes 10 ms more.
+        let (first, _) = answered_after(&mut exchange, &line, &transaction, ms(0), ms(28));
+        assert_eq!(first.outcome, read_reply());
+        let start = first.at + ms(5);
         exchange.start(&transaction).expect("encodes");
-        exchange.poll_transmit(ms(0));
-        exchange.handle_sent(ms(0));
+        exchange.poll_transmit(start);
+        exchange.handle_sent(start);
         assert_eq!(
             exchange.batch_read_at(),
-            Some(transaction.request_time + RESPONSE_TIMEOUT)
+            Some(start + transaction.request_time + RESPONSE_TIMEOUT)
         );
-        // Nothing by then: the first-byte timeout, then the late window, as without a batch.
-        let mut exchange = Exchange::new(serial(line));
-        let (finished, _) = run_batched(&mut exchange, &transaction, ms(0), &[]);
+        // Silent this time: the first-byte timeout, then the late window, as without a batch.
+        let start = start + ms(100);
+        let (finished, _) = run_batched(&mut exchange, &transaction, start, &[]);
         assert_eq!(finished.outcome, Outcome::NoReply);
         assert_eq!(
             finished.at,
-            transaction.request_time + RESPONSE_TIMEOUT + RESPONSE_TIMEOUT
+            start + transaction.request_time + RESPONSE_TIMEOUT + RESPONSE_TIMEOUT
         );
         assert_eq!(finished.timing, ReplyTiming::default());
     }
@@ -1164,18 +1280,19 @@ mod tests {
     #[test]
     fn an_echo_of_the_request_in_front_of_a_batch_is_dropped() {
         let line = line(115_200);
-        let transaction = expecting_reply_after(transaction(&line, read_request()), ms(1));
+        let transaction = transaction(&line, read_request());
+        let mut exchange = Exchange::new(serial(line));
+        let (first, _) = answered_after(&mut exchange, &line, &transaction, ms(0), ms(1));
+        let start = first.at + ms(5);
         let request = read_request().encode().unwrap_or_default();
         // The adapter hears its own request while it goes out, then the device answers.
-        let mut arrivals = on_the_wire(&line, Duration::ZERO, &request);
+        let mut arrivals = on_the_wire(&line, start, &request);
         arrivals.extend(on_the_wire(
             &line,
-            transaction.request_time + ms(1),
+            start + transaction.request_time + ms(1),
             &reply_frame(),
         ));
-        let mut exchange = Exchange::new(serial(line));
-        // The flush before the request must not see the echo: it starts after the write.
-        let (finished, wakes) = run_batched(&mut exchange, &transaction, ms(0), &arrivals);
+        let (finished, wakes) = run_batched(&mut exchange, &transaction, start, &arrivals);
         assert_eq!(finished.outcome, read_reply());
         assert_eq!(wakes, 1);
     }
@@ -1183,14 +1300,16 @@ mod tests {
     #[test]
     fn a_garbled_batch_is_not_silence() {
         let line = line(115_200);
-        let transaction = expecting_reply_after(transaction(&line, read_request()), ms(1));
+        let transaction = transaction(&line, read_request());
+        let mut exchange = Exchange::new(serial(line));
+        let (first, _) = answered_after(&mut exchange, &line, &transaction, ms(0), ms(1));
+        let start = first.at + ms(5);
         let mut frame = reply_frame();
         if let Some(last) = frame.last_mut() {
             *last ^= 0x55;
         }
-        let arrivals = on_the_wire(&line, transaction.request_time + ms(1), &frame);
-        let mut exchange = Exchange::new(serial(line));
-        let (finished, _) = run_batched(&mut exchange, &transaction, ms(0), &arrivals);
+        let arrivals = on_the_wire(&line, start + transaction.request_time + ms(1), &frame);
+        let (finished, _) = run_batched(&mut exchange, &transaction, start, &arrivals);
         assert_eq!(finished.outcome, Outcome::Garbled);
         assert!(
             finished.timing.first_byte.is_some(),
@@ -1199,27 +1318,28 @@ mod tests {
     }
 
     #[test]
-    fn every_sixteenth_batch_read_is_timed_to_its_first_byte() {
+    fn every_sixteenth_reply_is_read_as_it_comes_and_teaches_a_shorter_delay_at_once() {
         let line = line(115_200);
-        let transaction = expecting_reply_after(transaction(&line, read_request()), ms(1));
+        let transaction = transaction(&line, read_request());
         let mut exchange = Exchange::new(serial(line));
+        let (first, _) = answered_after(&mut exchange, &line, &transaction, ms(0), ms(5));
+        let mut now = first.at + ms(1);
         let mut timed = Vec::new();
-        let mut now = ms(0);
+        let mut ends = Vec::new();
         for n in 0..40 {
-            let arrivals = on_the_wire(
-                &line,
-                now + transaction.request_time + ms(1),
-                &reply_frame(),
-            );
-            let (finished, _) = run_batched(&mut exchange, &transaction, now, &arrivals);
+            // The device became faster: 1 ms instead of 5.
+            let (finished, _) = answered_after(&mut exchange, &line, &transaction, now, ms(1));
             assert_eq!(finished.outcome, read_reply());
-            if let Some(first_byte) = finished.timing.first_byte {
-                assert_eq!(first_byte, ms(1) + line.wire_time(1));
+            if finished.timing.first_byte.is_some() {
                 timed.push(n);
             }
+            ends.push(finished.at - now - transaction.request_time);
             now = finished.at + ms(1);
         }
         assert_eq!(timed, vec![15, 31]);
+        let reply_time = line.wire_time(reply_frame().len());
+        assert_near(ends[0], ms(5) + reply_time, "read at the learned 5 ms");
+        assert_near(ends[20], ms(1) + reply_time, "read at 1 ms once measured");
     }
 
     #[test]
@@ -1231,52 +1351,48 @@ mod tests {
             ack_address: 0,
             ack_flag: 0,
         });
-        let transaction =
-            expecting_reply_after(transaction(&line, poll), line.event_winner_start());
+        let transaction = transaction(&line, poll);
         let no_events = Reply::fast(0xFD, crate::protocol::FastReply::NoEvents);
-        let frame = no_events.encode().unwrap_or_default();
-        let request_end = transaction.request_time;
         // A filler byte in windows 4 and 8, the winner's frame after the last window.
         let window = line.arbitration_window();
-        let first_window = request_end + line.device_arbitration_wait();
-        let mut arrivals = vec![
-            (first_window + window * 4 + line.char_time(), 0xFF),
-            (first_window + window * 8 + line.char_time(), 0xFF),
-        ];
-        arrivals.extend(on_the_wire(
-            &line,
-            request_end + line.event_winner_start(),
-            &frame,
-        ));
+        let round = |start: Duration, frame: &[u8]| {
+            let request_end = start + transaction.request_time;
+            let first_window = request_end + line.device_arbitration_wait();
+            let mut arrivals = vec![
+                (first_window + window * 4 + line.char_time(), 0xFF),
+                (first_window + window * 8 + line.char_time(), 0xFF),
+            ];
+            arrivals.extend(on_the_wire(
+                &line,
+                request_end + line.event_winner_start(),
+                frame,
+            ));
+            arrivals
+        };
+        let frame = no_events.encode().unwrap_or_default();
         let mut exchange = Exchange::new(serial(line));
-        let (finished, wakes) = run_batched(&mut exchange, &transaction, ms(0), &arrivals);
+        let (first, _) = run_batched(&mut exchange, &transaction, ms(0), &round(ms(0), &frame));
+        assert_eq!(first.outcome, Outcome::Reply(no_events.clone()));
+        let start = first.at + ms(1);
+        let (finished, wakes) =
+            run_batched(&mut exchange, &transaction, start, &round(start, &frame));
         assert_eq!(finished.outcome, Outcome::Reply(no_events));
         assert_eq!(wakes, 1, "filler and the whole frame in one read");
         // An event packet: its header tells the rest, read in a second go.
-        let packet = [0x16, 0x46, 0x11, 0x01, 0x02, 0x06];
-        let mut exchange = Exchange::new(serial(line));
-        let mut arrivals = vec![(first_window + window * 4 + line.char_time(), 0xFF)];
-        let mut body = packet.to_vec();
-        body.extend([2u8, 4, 0, 0x3C, 0, 1]);
-        let crc = crate::protocol::crc16(&body);
-        body.extend(crc.to_le_bytes());
-        let frame = body;
-        arrivals.extend(on_the_wire(
-            &line,
-            request_end + line.event_winner_start(),
-            &frame,
-        ));
-        let (finished, wakes) = run_batched(&mut exchange, &transaction, ms(0), &arrivals);
+        let mut packet = vec![0x16, 0x46, 0x11, 0x01, 0x02, 0x06, 2, 4, 0, 0x3C, 0, 1];
+        let crc = crate::protocol::crc16(&packet);
+        packet.extend(crc.to_le_bytes());
+        let start = finished.at + ms(1);
+        let arrivals = round(start, &packet);
+        let (finished, wakes) = run_batched(&mut exchange, &transaction, start, &arrivals);
         assert!(
             matches!(finished.outcome, Outcome::Reply(_)),
             "{:?}",
             finished.outcome
         );
         assert_eq!(wakes, 2);
-        assert_eq!(
-            finished.at,
-            arrivals.last().map(|a| a.0).unwrap_or_default()
-        );
+        let last = arrivals.last().map(|a| a.0).unwrap_or_default();
+        assert_near(finished.at, last, "the packet read when complete");
     }
 
     #[test]

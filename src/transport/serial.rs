@@ -8,9 +8,9 @@
 //! the first byte of a reply of known length and its expected end
 //! ([`Exchange::reply_complete_at`](super::exchange::Exchange::reply_complete_at)) the transport
 //! sleeps on a timerfd (tokio's timers round to milliseconds, several characters at 115200) and
-//! then reads the rest at once. When the scheduler expects the reply to start at a known time
-//! (a device's learned response time, an arbitration's end), the transport does not even wait
-//! for the first byte: it sleeps until the reply should be complete and reads it in one go
+//! then reads the rest at once. Once the exchange has learned how long after its request a kind
+//! of reply is complete, the transport does not even wait for the first byte: it sleeps until
+//! the reply should be complete and reads it in one go
 //! ([`Exchange::batch_read_at`](super::exchange::Exchange::batch_read_at)): one wake-up per
 //! transaction.
 
