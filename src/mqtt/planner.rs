@@ -96,7 +96,7 @@ struct PublishedDevice {
 pub struct PublicationPlanner {
     settings: PlannerSettings,
     /// By id. Hashed: every value looks its device up. Everything published for all devices
-    /// goes in the order of their ids ([`Self::by_id`]).
+    /// goes in the order of their ids ([`Self::device_order`]).
     devices: HashMap<String, PublishedDevice>,
     /// `/on` topic → (device id, control id), for writable controls.
     on_topics: HashMap<String, (String, String)>,
@@ -425,44 +425,65 @@ impl PublicationPlanner {
     }
 
     /// Everything to (re)do after connecting: subscriptions, then every retained topic with
-    /// its current payload (a restarted broker may have lost them all).
+    /// its current payload (a restarted broker may have lost them all). All devices at once:
+    /// the client builds it one device at a time ([`Self::device_order`],
+    /// [`Self::device_snapshot`]) so that only one device's actions are held.
     pub fn snapshot(&mut self) -> Vec<MqttAction> {
-        let mut ids: Vec<String> = self.devices.keys().cloned().collect();
-        ids.sort_unstable();
-        let mut out = Vec::new();
-        for id in ids {
-            if let Some(mut state) = self.devices.remove(&id) {
-                out.extend(self.device_actions(&mut state, true));
-                self.devices.insert(id, state);
-            }
-        }
+        let ids = self.device_order();
+        ids.iter().flat_map(|id| self.device_snapshot(id)).collect()
+    }
+
+    /// Everything to (re)do for one device after connecting, from its current state; nothing
+    /// for a device no longer served.
+    pub fn device_snapshot(&mut self, device_id: &str) -> Vec<MqttAction> {
+        let Some(mut state) = self.devices.remove(device_id) else {
+            return Vec::new();
+        };
+        let out = self.device_actions(&mut state, true);
+        self.devices.insert(device_id.to_owned(), state);
         out
     }
 
     /// Every discovery config again (Home Assistant announced itself `online`).
     pub fn discovery_snapshot(&self) -> Vec<MqttAction> {
-        self.by_id()
-            .into_iter()
-            .flat_map(|s| self.discovery_configs(&s.device, &s.identity))
-            .map(MqttAction::Publish)
+        self.device_order()
+            .iter()
+            .flat_map(|id| self.device_discovery(id))
             .collect()
+    }
+
+    /// One device's discovery configs; nothing for a device no longer served.
+    pub fn device_discovery(&self, device_id: &str) -> Vec<MqttAction> {
+        self.devices.get(device_id).map_or_else(Vec::new, |s| {
+            self.discovery_configs(&s.device, &s.identity)
+                .into_iter()
+                .map(MqttAction::Publish)
+                .collect()
+        })
     }
 
     /// Clean exit: delete every retained topic of every device (discovery configs only when
     /// `clear_discovery_on_exit`).
     pub fn clear_all(&self) -> Vec<MqttAction> {
-        let with_discovery = self.settings.clear_discovery_on_exit;
-        self.by_id()
-            .into_iter()
-            .flat_map(|s| self.removal(s, with_discovery))
+        self.device_order()
+            .iter()
+            .flat_map(|id| self.device_clear(id))
             .collect()
     }
 
-    /// The devices in the order of their ids.
-    fn by_id(&self) -> Vec<&PublishedDevice> {
-        let mut devices: Vec<(&String, &PublishedDevice)> = self.devices.iter().collect();
-        devices.sort_unstable_by_key(|&(id, _)| id);
-        devices.into_iter().map(|(_, device)| device).collect()
+    /// [`Self::clear_all`] for one device.
+    pub fn device_clear(&self, device_id: &str) -> Vec<MqttAction> {
+        let with_discovery = self.settings.clear_discovery_on_exit;
+        self.devices
+            .get(device_id)
+            .map_or_else(Vec::new, |s| self.removal(s, with_discovery))
+    }
+
+    /// The ids of the devices, in the order everything published for all of them goes.
+    pub fn device_order(&self) -> Vec<String> {
+        let mut ids: Vec<String> = self.devices.keys().cloned().collect();
+        ids.sort_unstable();
+        ids
     }
 
     /// The ids of the devices served.
