@@ -4,8 +4,8 @@
 //! Never blocks the bus side: updates are taken as they come, and while the broker is away
 //! nothing queues up — the planner keeps the latest state, and after every (re)connect the
 //! whole retained state is published again (a restarted broker may have lost it), one device
-//! at a time from a [`Backlog`] as the client takes it. Between connects, an [`Outbox`] with
-//! one entry per topic absorbs bursts the client cannot take yet.
+//! at a time as the client takes it ([`Waiting`]). Between connects, an outbox with one entry
+//! per topic absorbs bursts the client cannot take yet.
 
 use std::future::Future;
 use std::path::PathBuf;
@@ -20,7 +20,7 @@ use tokio::sync::mpsc;
 use tracing::{debug, info, warn};
 
 use super::discovery::DiscoverySettings;
-use super::outbox::{covered_by_backlog, unsendable, Backlog, Outbox, Owed};
+use super::outbox::{log_unsendable, next_from_backlog, unsendable, Owed, Waiting};
 use super::pending_writes::PendingWrites;
 use super::planner::{PlannerSettings, PublicationPlanner, UnchangedPolicy, WriteOutcome};
 use super::sweep::Sweeper;
@@ -239,7 +239,7 @@ pub async fn run_mqtt_reporting(
                     }
                     // Offered one update at a time, as they came: two values of one topic
                     // in a batch are both offered, not merged in the outbox.
-                    waiting.offer(&mut planner, |action| try_request(&client, action));
+                    waiting.offer(&mut planner, MAX_OUTGOING_PACKET, |action| try_request(&client, action));
                 }
             },
             permit = writes.reserve(), if !pending_writes.is_empty() => match permit {
@@ -264,7 +264,9 @@ pub async fn run_mqtt_reporting(
             }
         }
         if connected {
-            waiting.offer(&mut planner, |action| try_request(&client, action));
+            waiting.offer(&mut planner, MAX_OUTGOING_PACKET, |action| {
+                try_request(&client, action)
+            });
         }
     }
 
@@ -417,110 +419,6 @@ fn on_message(planner: &mut PublicationPlanner, bus: WriteTarget<'_>, message: O
     }
 }
 
-/// The device an update is about.
-fn device_of(update: &DeviceUpdate) -> &str {
-    match update {
-        DeviceUpdate::Added(device) => &device.id,
-        DeviceUpdate::Value { device_id, .. } => device_id,
-        DeviceUpdate::Identity { device_id, .. }
-        | DeviceUpdate::Removed { device_id }
-        | DeviceUpdate::ControlError { device_id, .. }
-        | DeviceUpdate::Online { device_id, .. } => device_id,
-    }
-}
-
-/// The actions of the next device in the backlog that has any (a device removed meanwhile has
-/// none), built from its state now.
-fn next_from_backlog(
-    backlog: &mut Backlog,
-    planner: &mut PublicationPlanner,
-) -> Option<Vec<MqttAction>> {
-    while let Some((id, owed)) = backlog.pop() {
-        let actions = match owed {
-            Owed::Everything => planner.device_snapshot(&id),
-            Owed::Discovery => planner.device_discovery(&id),
-        };
-        if !actions.is_empty() {
-            return Some(actions);
-        }
-    }
-    None
-}
-
-/// What waits for the client while connected: actions, one per topic, and the devices whose
-/// retained state is still owed, built one device at a time as the client takes them.
-#[derive(Debug, Default)]
-struct Waiting {
-    outbox: Outbox,
-    backlog: Backlog,
-}
-
-impl Waiting {
-    /// After a connect: `first`, then every device's retained state.
-    fn connected(&mut self, first: Vec<MqttAction>, devices: Vec<String>) {
-        self.clear();
-        self.outbox.extend(first);
-        for id in devices {
-            self.backlog.add(&id, Owed::Everything);
-        }
-    }
-
-    fn clear(&mut self) {
-        self.outbox.clear();
-        self.backlog.clear();
-    }
-
-    fn is_empty(&self) -> bool {
-        self.outbox.is_empty() && self.backlog.is_empty()
-    }
-
-    /// The planner's actions for `update`, while connected. A device added now waits in the
-    /// backlog like the others; for a device waiting there, only what its republished state
-    /// will not carry goes out now (a deletion, a pushbutton press): its meta still comes
-    /// before its values, and those are the latest when it is built.
-    fn update(&mut self, planner: &mut PublicationPlanner, update: DeviceUpdate, now: Instant) {
-        if let DeviceUpdate::Added(device) = &update {
-            self.backlog.add(&device.id, Owed::Everything);
-        }
-        let in_backlog =
-            !self.backlog.is_empty() && self.backlog.owes_everything(device_of(&update));
-        let actions = planner.handle(update, now);
-        if in_backlog {
-            self.outbox
-                .extend(actions.into_iter().filter(|a| !covered_by_backlog(a)));
-        } else {
-            self.outbox.extend(actions);
-        }
-    }
-
-    /// Gives `take` (the client, without waiting) as many actions as it takes, then the
-    /// backlog's devices one at a time while it takes them all. `take` returns false when it
-    /// takes no more. What the client or broker would refuse whatever happens is logged and
-    /// dropped, never retried.
-    fn offer(
-        &mut self,
-        planner: &mut PublicationPlanner,
-        mut take: impl FnMut(&MqttAction) -> bool,
-    ) {
-        loop {
-            while let Some(action) = self.outbox.pop() {
-                if let Some(reason) = unsendable(&action, MAX_OUTGOING_PACKET) {
-                    log_unsendable(&action, reason);
-                    continue;
-                }
-                if !take(&action) {
-                    self.outbox.push_front(action);
-                    return;
-                }
-            }
-            match next_from_backlog(&mut self.backlog, planner) {
-                Some(actions) => self.outbox.extend(actions),
-                None => return,
-            }
-        }
-    }
-}
-
 /// Hands `action` to the client if its queue has room.
 fn try_request(client: &AsyncClient, action: &MqttAction) -> bool {
     let result = match action {
@@ -539,20 +437,6 @@ fn try_request(client: &AsyncClient, action: &MqttAction) -> bool {
             false
         }
     }
-}
-
-fn log_unsendable(action: &MqttAction, reason: &str) {
-    let (what, topic) = match action {
-        MqttAction::Publish(p) => ("publication", p.topic.as_str()),
-        MqttAction::Subscribe(t) => ("subscription", t.as_str()),
-        MqttAction::Unsubscribe(t) => ("unsubscription", t.as_str()),
-    };
-    let shown: String = topic.escape_debug().take(200).collect();
-    warn!(
-        topic = %shown,
-        reason,
-        "dropped an MQTT {what}: check the device and channel names in the config and templates"
-    );
 }
 
 async fn send(client: &AsyncClient, action: MqttAction) -> Result<(), ClientError> {

@@ -8,9 +8,16 @@
 //! when the outbox has drained, so one device's actions are held at a time, not every device's
 //! (13,000 actions, some 7 MB, at 32 devices of 68 controls).
 
-use std::collections::{BTreeMap, HashMap, VecDeque};
+use std::collections::{BTreeMap, HashMap, HashSet, VecDeque};
 
+use std::time::Instant;
+
+use tracing::warn;
+
+use super::layout;
+use super::planner::PublicationPlanner;
 use super::MqttAction;
+use crate::updates::DeviceUpdate;
 
 #[derive(Debug, Default)]
 pub struct Outbox {
@@ -139,7 +146,7 @@ impl Backlog {
     }
 
     /// True while `device_id`'s whole retained state waits here: what the planner decides for
-    /// it meanwhile goes out with it, from the state at that time ([`covered_by_backlog`]).
+    /// it meanwhile goes out with it, from the state at that time ([`carried_by_backlog`]).
     pub fn owes_everything(&self, device_id: &str) -> bool {
         self.devices
             .iter()
@@ -174,16 +181,152 @@ impl Backlog {
     }
 }
 
-/// True when a device's republished state carries what `action` would do (a retained payload
-/// or a subscription), so that it can be left out while the device waits in the [`Backlog`].
-/// Deletions (empty retained payloads), unsubscriptions and transient messages (pushbutton
-/// presses) are not carried and must go out.
-pub fn covered_by_backlog(action: &MqttAction) -> bool {
+/// True when a device's state, republished from the [`Backlog`], carries what `action` does,
+/// so that it can be left out while the device waits there: a subscription, or a retained
+/// payload on one of its topics (values, errors, meta, discovery configs are published from
+/// the state then). `added_topics`, for the actions of a device (re)added with a new config,
+/// are its new topics: the deletions of those it no longer has must still go out. Transient
+/// messages (pushbutton presses) and unsubscriptions are never carried.
+fn carried_by_backlog(action: &MqttAction, added_topics: Option<&HashSet<String>>) -> bool {
     match action {
-        MqttAction::Publish(p) => p.retain && !p.payload.is_empty(),
+        MqttAction::Publish(p) if !p.retain => false,
+        MqttAction::Publish(p) => {
+            added_topics.is_none_or(|topics| !p.payload.is_empty() || topics.contains(&p.topic))
+        }
         MqttAction::Subscribe(_) => true,
         MqttAction::Unsubscribe(_) => false,
     }
+}
+
+/// The device an update is about.
+fn device_of(update: &DeviceUpdate) -> &str {
+    match update {
+        DeviceUpdate::Added(device) => &device.id,
+        DeviceUpdate::Value { device_id, .. } => device_id,
+        DeviceUpdate::Identity { device_id, .. }
+        | DeviceUpdate::Removed { device_id }
+        | DeviceUpdate::ControlError { device_id, .. }
+        | DeviceUpdate::Online { device_id, .. } => device_id,
+    }
+}
+
+/// The actions of the next device in the backlog that has any (a device removed meanwhile has
+/// none), built from its state now.
+pub fn next_from_backlog(
+    backlog: &mut Backlog,
+    planner: &mut PublicationPlanner,
+) -> Option<Vec<MqttAction>> {
+    while let Some((id, owed)) = backlog.pop() {
+        let actions = match owed {
+            Owed::Everything => planner.device_snapshot(&id),
+            Owed::Discovery => planner.device_discovery(&id),
+        };
+        if !actions.is_empty() {
+            return Some(actions);
+        }
+    }
+    None
+}
+
+/// What waits for the client while connected: actions, one per topic, and the devices whose
+/// retained state is still owed, built one device at a time as the client takes them.
+#[derive(Debug, Default)]
+pub struct Waiting {
+    pub outbox: Outbox,
+    pub backlog: Backlog,
+}
+
+impl Waiting {
+    /// After a connect: `first`, then every device's retained state.
+    pub fn connected(&mut self, first: Vec<MqttAction>, devices: Vec<String>) {
+        self.clear();
+        self.outbox.extend(first);
+        for id in devices {
+            self.backlog.add(&id, Owed::Everything);
+        }
+    }
+
+    pub fn clear(&mut self) {
+        self.outbox.clear();
+        self.backlog.clear();
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.outbox.is_empty() && self.backlog.is_empty()
+    }
+
+    /// The planner's actions for `update`, while connected. A device added now waits in the
+    /// backlog like the others; for a device waiting there, only what its republished state
+    /// will not carry goes out now (deletions, a pushbutton press): its meta still comes
+    /// before its values, and those are the latest when it is built.
+    pub fn update(&mut self, planner: &mut PublicationPlanner, update: DeviceUpdate, now: Instant) {
+        if let DeviceUpdate::Added(device) = &update {
+            self.backlog.add(&device.id, Owed::Everything);
+        }
+        let in_backlog = !self.backlog.is_empty()
+            && !matches!(update, DeviceUpdate::Removed { .. })
+            && self.backlog.owes_everything(device_of(&update));
+        if !in_backlog {
+            self.outbox.extend(planner.handle(update, now));
+            return;
+        }
+        let added_topics = match &update {
+            DeviceUpdate::Added(device) => Some(
+                layout::device_topics(planner.topics(), device)
+                    .into_iter()
+                    .collect::<HashSet<_>>(),
+            ),
+            _ => None,
+        };
+        let actions = planner.handle(update, now);
+        self.outbox.extend(
+            actions
+                .into_iter()
+                .filter(|a| !carried_by_backlog(a, added_topics.as_ref())),
+        );
+    }
+
+    /// Gives `take` (the client, without waiting) as many actions as it takes, then the
+    /// backlog's devices one at a time while it takes them all. `take` returns false when it
+    /// takes no more. What the client or broker would refuse whatever happens is logged and
+    /// dropped, never retried.
+    pub fn offer(
+        &mut self,
+        planner: &mut PublicationPlanner,
+        max_packet: usize,
+        mut take: impl FnMut(&MqttAction) -> bool,
+    ) {
+        loop {
+            while let Some(action) = self.outbox.pop() {
+                if let Some(reason) = unsendable(&action, max_packet) {
+                    log_unsendable(&action, reason);
+                    continue;
+                }
+                if !take(&action) {
+                    self.outbox.push_front(action);
+                    return;
+                }
+            }
+            match next_from_backlog(&mut self.backlog, planner) {
+                Some(actions) => self.outbox.extend(actions),
+                None => return,
+            }
+        }
+    }
+}
+
+pub fn log_unsendable(action: &MqttAction, reason: &str) {
+    let (what, topic) = match action {
+        MqttAction::Publish(p) => ("publication", p.topic.as_str()),
+        MqttAction::Subscribe(t) => ("subscription", t.as_str()),
+        MqttAction::Unsubscribe(t) => ("unsubscription", t.as_str()),
+    };
+    let shown: String = topic.escape_debug().take(200).collect();
+    warn!(
+        topic = %shown,
+        reason,
+        "dropped an MQTT {what}: check the device and channel names in the config and templates"
+    );
 }
 
 /// Longest topic MQTT can carry (a two-byte length).
@@ -324,6 +467,54 @@ mod tests {
         assert_eq!(outbox.pop(), Some(publish("t", "1")));
         assert_eq!(outbox.pop(), Some(MqttAction::Unsubscribe("t".into())));
         assert!(outbox.is_empty());
+    }
+
+    #[test]
+    fn the_backlog_keeps_each_device_once_in_its_place() {
+        let mut backlog = Backlog::default();
+        backlog.add("b", Owed::Discovery);
+        backlog.add("a", Owed::Everything);
+        backlog.add("b", Owed::Everything);
+        backlog.add("a", Owed::Discovery);
+        backlog.add("c", Owed::Discovery);
+        assert!(backlog.owes_everything("a") && backlog.owes_everything("b"));
+        assert!(!backlog.owes_everything("c") && !backlog.owes_everything("d"));
+        let mut exiting = std::mem::take(&mut backlog);
+        exiting.before_clearing(true);
+        let order: Vec<_> = std::iter::from_fn(|| exiting.pop()).collect();
+        assert_eq!(
+            order,
+            [
+                ("b".to_string(), Owed::Discovery),
+                ("a".to_string(), Owed::Discovery),
+                ("c".to_string(), Owed::Discovery)
+            ]
+        );
+        backlog.add("a", Owed::Everything);
+        backlog.before_clearing(false);
+        assert!(backlog.is_empty());
+    }
+
+    #[test]
+    fn what_a_waiting_device_still_sends_at_once() {
+        let transient = MqttAction::Publish(Publication::transient("/devices/d/controls/b", "1"));
+        let deletion = MqttAction::Publish(Publication::removal("/devices/d/controls/x/meta"));
+        let cleared = MqttAction::Publish(Publication::removal("/devices/d/meta/error"));
+        let retained = publish("/devices/d/controls/v", "1");
+        let unsubscribe = MqttAction::Unsubscribe("/devices/d/controls/x/on".into());
+        let subscribe = MqttAction::Subscribe("/devices/d/controls/v/on".into());
+        let new_topics: HashSet<String> = ["/devices/d/meta/error", "/devices/d/controls/v"]
+            .map(String::from)
+            .into();
+        for added in [None, Some(&new_topics)] {
+            assert!(!carried_by_backlog(&transient, added));
+            assert!(!carried_by_backlog(&unsubscribe, added));
+            assert!(carried_by_backlog(&retained, added));
+            assert!(carried_by_backlog(&subscribe, added));
+            assert!(carried_by_backlog(&cleared, added));
+        }
+        // A config change deletes the topics the device no longer has.
+        assert!(!carried_by_backlog(&deletion, Some(&new_topics)));
     }
 
     #[test]
