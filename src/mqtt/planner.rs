@@ -87,8 +87,6 @@ struct PublishedDevice {
     identity: DeviceIdentity,
     online: bool,
     controls: HashMap<String, PublishedControl>,
-    /// Discovery topics published for this device (to delete exactly those).
-    discovery_topics: Vec<String>,
 }
 
 /// Turns [`DeviceUpdate`]s into broker actions and remembers the published state.
@@ -157,9 +155,9 @@ impl PublicationPlanner {
                     out.push(MqttAction::Publish(Publication::removal(topic)));
                 }
             }
-            let new_discovery = self.discovery_configs(&device, &old.identity);
-            for topic in &old.discovery_topics {
-                if !new_discovery.iter().any(|c| &c.topic == topic) {
+            let new_discovery = self.discovery_topics(&device);
+            for topic in self.discovery_topics(&old.device) {
+                if !new_discovery.contains(&topic) {
                     out.push(MqttAction::Publish(Publication::removal(topic)));
                 }
             }
@@ -200,7 +198,6 @@ impl PublicationPlanner {
             identity,
             online,
             controls,
-            discovery_topics: Vec::new(),
         };
         out.extend(self.device_actions(&mut state, false));
         for channel in device.channels.iter().filter(|c| layout::is_writable(c)) {
@@ -244,9 +241,7 @@ impl PublicationPlanner {
                 publications.push(layout::control_value(topics, &device.id, channel, value));
             }
         }
-        let configs = self.discovery_configs(&device, &state.identity);
-        state.discovery_topics = configs.iter().map(|c| c.topic.clone()).collect();
-        publications.extend(configs);
+        publications.extend(self.discovery_configs(&device, &state.identity));
         out.extend(publications.into_iter().map(MqttAction::Publish));
         out
     }
@@ -262,6 +257,18 @@ impl PublicationPlanner {
         discovery::device_configs(settings, &self.settings.topics, device, identity)
             .into_iter()
             .map(|c| Publication::retained(c.topic, c.payload.to_string()))
+            .collect()
+    }
+
+    /// The discovery configs' topics of `device` (none with discovery off).
+    fn discovery_topics(&self, device: &ResolvedDevice) -> Vec<String> {
+        let Some(settings) = &self.settings.discovery else {
+            return Vec::new();
+        };
+        device
+            .channels
+            .iter()
+            .filter_map(|c| discovery::config_topic(settings, &self.settings.topics, &device.id, c))
             .collect()
     }
 
@@ -314,7 +321,7 @@ impl PublicationPlanner {
     fn removal(&self, state: &PublishedDevice, with_discovery: bool) -> Vec<MqttAction> {
         let mut topics = Vec::new();
         if with_discovery {
-            topics.extend(state.discovery_topics.iter().cloned());
+            topics.extend(self.discovery_topics(&state.device));
         }
         topics.extend(self.device_topics(&state.device));
         topics
