@@ -6,10 +6,10 @@
 //! The retained state of every device, republished after each connect, waits in a
 //! [`Backlog`] of device ids instead: a device's actions are built from its current state only
 //! when the outbox has drained, so one device's actions are held at a time, not every device's
-//! (13,000 actions, some 7 MB, at 32 devices of 68 controls).
+//! (13,000 actions, some 7 MB, at 32 devices of 68 controls). [`Waiting`] is the two together,
+//! as the client task drives them.
 
 use std::collections::{BTreeMap, HashMap, HashSet, VecDeque};
-
 use std::time::Instant;
 
 use tracing::warn;
