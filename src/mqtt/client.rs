@@ -3,8 +3,9 @@
 //!
 //! Never blocks the bus side: updates are taken as they come, and while the broker is away
 //! nothing queues up — the planner keeps the latest state, and after every (re)connect the
-//! whole retained state is published again (a restarted broker may have lost it). Between
-//! connects, an [`Outbox`] with one entry per topic absorbs bursts the client cannot take yet.
+//! whole retained state is published again (a restarted broker may have lost it), one device
+//! at a time as the client takes it ([`Waiting`]). Between connects, an outbox with one entry
+//! per topic absorbs bursts the client cannot take yet.
 
 use std::future::Future;
 use std::path::PathBuf;
@@ -19,7 +20,7 @@ use tokio::sync::mpsc;
 use tracing::{debug, info, warn};
 
 use super::discovery::DiscoverySettings;
-use super::outbox::{unsendable, Outbox};
+use super::outbox::{log_unsendable, next_from_backlog, unsendable, Owed, Waiting};
 use super::pending_writes::PendingWrites;
 use super::planner::{PlannerSettings, PublicationPlanner, UnchangedPolicy, WriteOutcome};
 use super::sweep::Sweeper;
@@ -176,7 +177,7 @@ pub async fn run_mqtt_reporting(
     ));
     let ha_status = planner.discovery_status_topic();
 
-    let mut outbox = Outbox::default();
+    let mut waiting = Waiting::default();
     let mut connected = false;
     let mut births = BirthCoalescer::default();
     let mut dropped_log = LogBudget::new(DROPPED_WRITE_LOG_LINES);
@@ -192,24 +193,21 @@ pub async fn run_mqtt_reporting(
                 Some(ConnectionEvent::Connected) => {
                     connected = true;
                     births.resent_now(Instant::now());
-                    outbox.clear();
-                    outbox.push(MqttAction::Publish(Publication::retained(&status_topic, "online")));
-                    if let Some(topic) = &ha_status {
-                        outbox.push(MqttAction::Subscribe(topic.clone()));
-                    }
-                    outbox.extend(sweeper.connected());
-                    outbox.extend(planner.snapshot());
-                    debug!(actions = outbox.len(), "republishing the retained state");
+                    let mut first = vec![MqttAction::Publish(Publication::retained(&status_topic, "online"))];
+                    first.extend(ha_status.iter().map(|topic| MqttAction::Subscribe(topic.clone())));
+                    first.extend(sweeper.connected());
+                    waiting.connected(first, planner.device_order());
+                    debug!(devices = waiting.backlog.len(), "republishing the retained state");
                 }
                 Some(ConnectionEvent::Disconnected) => {
                     connected = false;
                     sweeper.disconnected();
-                    outbox.clear();
+                    waiting.clear();
                 }
                 Some(ConnectionEvent::Message { topic, payload, size, retain }) => {
                     let is_ha_status = ha_status.as_deref() == Some(topic.as_str());
                     if let Some(actions) = sweeper.on_message(&topic, &payload, retain, &planner.device_ids()) {
-                        outbox.extend(actions);
+                        waiting.outbox.extend(actions);
                     } else if is_ha_status {
                         // Any client may publish this: many births give one resend.
                         if payload == b"online" {
@@ -231,16 +229,17 @@ pub async fn run_mqtt_reporting(
                 let now = Instant::now();
                 for update in update_batch.drain(..) {
                     let devices_changed = matches!(update, DeviceUpdate::Added(_) | DeviceUpdate::Removed { .. });
-                    let actions = planner.handle(update, now);
-                    if connected {
-                        outbox.extend(actions);
-                        if devices_changed && sweeper.is_done() {
-                            outbox.push(MqttAction::Publish(sweeper.record(&planner.device_ids())));
-                        }
-                        // Offered one update at a time, as they came: two values of one topic
-                        // in a batch are both offered, not merged in the outbox.
-                        offer(&client, &mut outbox);
+                    if !connected {
+                        planner.handle(update, now);
+                        continue;
                     }
+                    waiting.update(&mut planner, update, now);
+                    if devices_changed && sweeper.is_done() {
+                        waiting.outbox.push(MqttAction::Publish(sweeper.record(&planner.device_ids())));
+                    }
+                    // Offered one update at a time, as they came: two values of one topic
+                    // in a batch are both offered, not merged in the outbox.
+                    waiting.offer(&mut planner, MAX_OUTGOING_PACKET, |action| try_request(&client, action));
                 }
             },
             permit = writes.reserve(), if !pending_writes.is_empty() => match permit {
@@ -254,16 +253,20 @@ pub async fn run_mqtt_reporting(
                     pending_writes.clear();
                 }
             },
-            () = tokio::time::sleep(RETRY_FULL_QUEUE), if connected && !outbox.is_empty() => {}
+            () = tokio::time::sleep(RETRY_FULL_QUEUE), if connected && !waiting.is_empty() => {}
             () = sleep_until_some(birth_due) => {
                 if births.take_due(Instant::now()) && connected {
                     info!("Home Assistant is online: sending discovery configs");
-                    outbox.extend(planner.discovery_snapshot());
+                    for id in planner.device_order() {
+                        waiting.backlog.add(&id, Owed::Discovery);
+                    }
                 }
             }
         }
         if connected {
-            offer(&client, &mut outbox);
+            waiting.offer(&mut planner, MAX_OUTGOING_PACKET, |action| {
+                try_request(&client, action)
+            });
         }
     }
 
@@ -271,23 +274,46 @@ pub async fn run_mqtt_reporting(
     // until our DISCONNECT is written.
     drop(events);
     if connected {
-        if settings.broker.clear_on_exit {
-            outbox.extend(planner.clear_all());
+        let clear_on_exit = settings.broker.clear_on_exit;
+        // The devices to delete, one at a time after what still waits.
+        let mut clearing = if clear_on_exit {
+            waiting
+                .backlog
+                .before_clearing(!settings.broker.homeassistant.clear_on_exit);
+            planner.device_order()
+        } else {
+            Vec::new()
         }
-        outbox.push(MqttAction::Publish(Publication::retained(
+        .into_iter();
+        let mut offline = Some(MqttAction::Publish(Publication::retained(
             &status_topic,
             "offline",
         )));
         // Every publication is tried: one the client refuses must not keep the others (the
         // `offline` status last of all) from the broker.
+        let Waiting {
+            mut outbox,
+            mut backlog,
+        } = waiting;
         let flush = async {
             let mut failed = 0usize;
-            while let Some(action) = outbox.pop() {
-                if let Some(reason) = unsendable(&action, MAX_OUTGOING_PACKET) {
-                    log_unsendable(&action, reason);
-                    failed += 1;
-                } else if send(&client, action).await.is_err() {
-                    failed += 1;
+            loop {
+                while let Some(action) = outbox.pop() {
+                    if let Some(reason) = unsendable(&action, MAX_OUTGOING_PACKET) {
+                        log_unsendable(&action, reason);
+                        failed += 1;
+                    } else if send(&client, action).await.is_err() {
+                        failed += 1;
+                    }
+                }
+                if let Some(actions) = next_from_backlog(&mut backlog, &mut planner) {
+                    outbox.extend(actions);
+                } else if let Some(id) = clearing.next() {
+                    outbox.extend(planner.device_clear(&id));
+                } else if let Some(offline) = offline.take() {
+                    outbox.push(offline);
+                } else {
+                    break;
                 }
             }
             let _ = client.disconnect().await;
@@ -393,43 +419,24 @@ fn on_message(planner: &mut PublicationPlanner, bus: WriteTarget<'_>, message: O
     }
 }
 
-/// Gives the client as many queued actions as it takes without waiting. What the client or
-/// broker would refuse whatever happens is logged and dropped, never retried.
-fn offer(client: &AsyncClient, outbox: &mut Outbox) {
-    while let Some(action) = outbox.pop() {
-        if let Some(reason) = unsendable(&action, MAX_OUTGOING_PACKET) {
-            log_unsendable(&action, reason);
-            continue;
+/// Hands `action` to the client if its queue has room.
+fn try_request(client: &AsyncClient, action: &MqttAction) -> bool {
+    let result = match action {
+        MqttAction::Publish(p) => {
+            client.try_publish(p.topic.as_str(), p.qos, p.retain, p.payload.as_bytes())
         }
-        let result = match &action {
-            MqttAction::Publish(p) => {
-                client.try_publish(p.topic.as_str(), p.qos, p.retain, p.payload.as_bytes())
-            }
-            MqttAction::Subscribe(topic) => client.try_subscribe(topic.as_str(), QoS::AtLeastOnce),
-            MqttAction::Unsubscribe(topic) => client.try_unsubscribe(topic.as_str()),
-        };
-        if let Err(error) = result {
+        MqttAction::Subscribe(topic) => client.try_subscribe(topic.as_str(), QoS::AtLeastOnce),
+        MqttAction::Unsubscribe(topic) => client.try_unsubscribe(topic.as_str()),
+    };
+    match result {
+        Ok(()) => true,
+        Err(error) => {
             if !matches!(error, ClientError::TryRequest(_)) {
                 debug!(%error, "MQTT client refused a request");
             }
-            outbox.push_front(action);
-            return;
+            false
         }
     }
-}
-
-fn log_unsendable(action: &MqttAction, reason: &str) {
-    let (what, topic) = match action {
-        MqttAction::Publish(p) => ("publication", p.topic.as_str()),
-        MqttAction::Subscribe(t) => ("subscription", t.as_str()),
-        MqttAction::Unsubscribe(t) => ("unsubscription", t.as_str()),
-    };
-    let shown: String = topic.escape_debug().take(200).collect();
-    warn!(
-        topic = %shown,
-        reason,
-        "dropped an MQTT {what}: check the device and channel names in the config and templates"
-    );
 }
 
 async fn send(client: &AsyncClient, action: MqttAction) -> Result<(), ClientError> {

@@ -67,6 +67,24 @@ pub fn device_configs(
         .collect()
 }
 
+/// Where the discovery config of one control goes; None for a control without one. Depends on
+/// the device's id and the channel only, so the topics to delete are found again from the
+/// device, not kept.
+pub fn config_topic(
+    settings: &DiscoverySettings,
+    topics: &TopicScheme,
+    device_id: &str,
+    channel: &ResolvedChannel,
+) -> Option<String> {
+    let component = component_for(channel)?;
+    Some(format!(
+        "{}/{component}/{}/{}/config",
+        settings.prefix,
+        device_identifier(topics, device_id),
+        topic_level(&channel.id).to_lowercase()
+    ))
+}
+
 /// The discovery config of one control.
 pub fn control_config(
     settings: &DiscoverySettings,
@@ -157,10 +175,7 @@ pub fn control_config(
     }
     Some(DiscoveryConfig {
         component,
-        topic: format!(
-            "{}/{component}/{device_uid}/{object}/config",
-            settings.prefix
-        ),
+        topic: config_topic(settings, topics, &device.id, channel)?,
         payload: Value::Object(config),
     })
 }

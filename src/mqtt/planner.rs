@@ -87,8 +87,6 @@ struct PublishedDevice {
     identity: DeviceIdentity,
     online: bool,
     controls: HashMap<String, PublishedControl>,
-    /// Discovery topics published for this device (to delete exactly those).
-    discovery_topics: Vec<String>,
 }
 
 /// Turns [`DeviceUpdate`]s into broker actions and remembers the published state.
@@ -96,7 +94,7 @@ struct PublishedDevice {
 pub struct PublicationPlanner {
     settings: PlannerSettings,
     /// By id. Hashed: every value looks its device up. Everything published for all devices
-    /// goes in the order of their ids ([`Self::by_id`]).
+    /// goes in the order of their ids ([`Self::device_order`]).
     devices: HashMap<String, PublishedDevice>,
     /// `/on` topic → (device id, control id), for writable controls.
     on_topics: HashMap<String, (String, String)>,
@@ -157,9 +155,9 @@ impl PublicationPlanner {
                     out.push(MqttAction::Publish(Publication::removal(topic)));
                 }
             }
-            let new_discovery = self.discovery_configs(&device, &old.identity);
-            for topic in &old.discovery_topics {
-                if !new_discovery.iter().any(|c| &c.topic == topic) {
+            let new_discovery = self.discovery_topics(&device);
+            for topic in self.discovery_topics(&old.device) {
+                if !new_discovery.contains(&topic) {
                     out.push(MqttAction::Publish(Publication::removal(topic)));
                 }
             }
@@ -200,7 +198,6 @@ impl PublicationPlanner {
             identity,
             online,
             controls,
-            discovery_topics: Vec::new(),
         };
         out.extend(self.device_actions(&mut state, false));
         for channel in device.channels.iter().filter(|c| layout::is_writable(c)) {
@@ -244,9 +241,7 @@ impl PublicationPlanner {
                 publications.push(layout::control_value(topics, &device.id, channel, value));
             }
         }
-        let configs = self.discovery_configs(&device, &state.identity);
-        state.discovery_topics = configs.iter().map(|c| c.topic.clone()).collect();
-        publications.extend(configs);
+        publications.extend(self.discovery_configs(&device, &state.identity));
         out.extend(publications.into_iter().map(MqttAction::Publish));
         out
     }
@@ -262,6 +257,18 @@ impl PublicationPlanner {
         discovery::device_configs(settings, &self.settings.topics, device, identity)
             .into_iter()
             .map(|c| Publication::retained(c.topic, c.payload.to_string()))
+            .collect()
+    }
+
+    /// The discovery configs' topics of `device` (none with discovery off).
+    fn discovery_topics(&self, device: &ResolvedDevice) -> Vec<String> {
+        let Some(settings) = &self.settings.discovery else {
+            return Vec::new();
+        };
+        device
+            .channels
+            .iter()
+            .filter_map(|c| discovery::config_topic(settings, &self.settings.topics, &device.id, c))
             .collect()
     }
 
@@ -314,7 +321,7 @@ impl PublicationPlanner {
     fn removal(&self, state: &PublishedDevice, with_discovery: bool) -> Vec<MqttAction> {
         let mut topics = Vec::new();
         if with_discovery {
-            topics.extend(state.discovery_topics.iter().cloned());
+            topics.extend(self.discovery_topics(&state.device));
         }
         topics.extend(self.device_topics(&state.device));
         topics
@@ -425,44 +432,65 @@ impl PublicationPlanner {
     }
 
     /// Everything to (re)do after connecting: subscriptions, then every retained topic with
-    /// its current payload (a restarted broker may have lost them all).
+    /// its current payload (a restarted broker may have lost them all). All devices at once:
+    /// the client builds it one device at a time ([`Self::device_order`],
+    /// [`Self::device_snapshot`]) so that only one device's actions are held.
     pub fn snapshot(&mut self) -> Vec<MqttAction> {
-        let mut ids: Vec<String> = self.devices.keys().cloned().collect();
-        ids.sort_unstable();
-        let mut out = Vec::new();
-        for id in ids {
-            if let Some(mut state) = self.devices.remove(&id) {
-                out.extend(self.device_actions(&mut state, true));
-                self.devices.insert(id, state);
-            }
-        }
+        let ids = self.device_order();
+        ids.iter().flat_map(|id| self.device_snapshot(id)).collect()
+    }
+
+    /// Everything to (re)do for one device after connecting, from its current state; nothing
+    /// for a device no longer served.
+    pub fn device_snapshot(&mut self, device_id: &str) -> Vec<MqttAction> {
+        let Some(mut state) = self.devices.remove(device_id) else {
+            return Vec::new();
+        };
+        let out = self.device_actions(&mut state, true);
+        self.devices.insert(device_id.to_owned(), state);
         out
     }
 
     /// Every discovery config again (Home Assistant announced itself `online`).
     pub fn discovery_snapshot(&self) -> Vec<MqttAction> {
-        self.by_id()
-            .into_iter()
-            .flat_map(|s| self.discovery_configs(&s.device, &s.identity))
-            .map(MqttAction::Publish)
+        self.device_order()
+            .iter()
+            .flat_map(|id| self.device_discovery(id))
             .collect()
+    }
+
+    /// One device's discovery configs; nothing for a device no longer served.
+    pub fn device_discovery(&self, device_id: &str) -> Vec<MqttAction> {
+        self.devices.get(device_id).map_or_else(Vec::new, |s| {
+            self.discovery_configs(&s.device, &s.identity)
+                .into_iter()
+                .map(MqttAction::Publish)
+                .collect()
+        })
     }
 
     /// Clean exit: delete every retained topic of every device (discovery configs only when
     /// `clear_discovery_on_exit`).
     pub fn clear_all(&self) -> Vec<MqttAction> {
-        let with_discovery = self.settings.clear_discovery_on_exit;
-        self.by_id()
-            .into_iter()
-            .flat_map(|s| self.removal(s, with_discovery))
+        self.device_order()
+            .iter()
+            .flat_map(|id| self.device_clear(id))
             .collect()
     }
 
-    /// The devices in the order of their ids.
-    fn by_id(&self) -> Vec<&PublishedDevice> {
-        let mut devices: Vec<(&String, &PublishedDevice)> = self.devices.iter().collect();
-        devices.sort_unstable_by_key(|&(id, _)| id);
-        devices.into_iter().map(|(_, device)| device).collect()
+    /// [`Self::clear_all`] for one device.
+    pub fn device_clear(&self, device_id: &str) -> Vec<MqttAction> {
+        let with_discovery = self.settings.clear_discovery_on_exit;
+        self.devices
+            .get(device_id)
+            .map_or_else(Vec::new, |s| self.removal(s, with_discovery))
+    }
+
+    /// The ids of the devices, in the order everything published for all of them goes.
+    pub fn device_order(&self) -> Vec<String> {
+        let mut ids: Vec<String> = self.devices.keys().cloned().collect();
+        ids.sort_unstable();
+        ids
     }
 
     /// The ids of the devices served.

@@ -518,3 +518,188 @@ fn values_find_their_control_and_unknown_ones_are_ignored() {
     assert!(planner.handle(value(&id, "nonesuch", "1"), now).is_empty());
     assert!(planner.handle(value("nonesuch", "K1", "1"), now).is_empty());
 }
+
+/// After a reconnect the client is handed one device's retained state at a time, built when it
+/// has taken everything before: values changed meanwhile go out as they are then (never the
+/// ones from before the reconnect), a device removed meanwhile publishes nothing but its
+/// deletions, a device added meanwhile waits its turn, each device's subscriptions and meta
+/// come before its values, and the outbox never holds much more than one device's actions.
+#[test]
+fn after_a_reconnect_devices_are_built_one_at_a_time_from_their_latest_state() {
+    use crate::mqtt::outbox::Waiting;
+    use std::collections::BTreeMap;
+    let now = Instant::now();
+    let relay = |slave| template_device("rtu2mqtt-relay6", slave);
+    let ids: Vec<String> = (1..=5).map(|slave| relay(slave).id.clone()).collect();
+    let mut planner = PublicationPlanner::new(settings(true));
+    for (slave, id) in (1..=4).zip(&ids) {
+        planner.handle(DeviceUpdate::Added(relay(slave)), now);
+        planner.handle(value(id, "K1", "1"), now);
+    }
+    // What one device sends after a reconnect, and when it is removed.
+    let (one_device, one_removal) = {
+        let mut single = PublicationPlanner::new(settings(true));
+        single.handle(DeviceUpdate::Added(relay(1)), now);
+        single.handle(value(&ids[0], "K1", "1"), now);
+        let snapshot = single.snapshot().len();
+        let removed = DeviceUpdate::Removed {
+            device_id: ids[0].clone(),
+        };
+        (snapshot, single.handle(removed, now).len())
+    };
+
+    let mut waiting = Waiting::default();
+    let online = MqttAction::Publish(Publication::retained("/rtu2mqtt/status", "online"));
+    waiting.connected(vec![online], planner.device_order());
+    let mut sent: Vec<MqttAction> = Vec::new();
+    let mut most_waiting = 0;
+    let mut offer = |waiting: &mut Waiting, planner: &mut PublicationPlanner| {
+        let mut room = 25;
+        waiting.offer(planner, usize::MAX, |action| {
+            if room == 0 {
+                return false;
+            }
+            room -= 1;
+            sent.push(action.clone());
+            true
+        });
+        most_waiting = most_waiting.max(waiting.outbox.len());
+    };
+    let mut rounds = 0;
+    while !waiting.is_empty() {
+        offer(&mut waiting, &mut planner);
+        rounds += 1;
+        match rounds {
+            // Device 1 is being sent, the others wait.
+            1 => {
+                waiting.update(&mut planner, value(&ids[0], "K2", "1"), now);
+                waiting.update(&mut planner, value(&ids[1], "K1", "0"), now);
+                waiting.update(&mut planner, DeviceUpdate::Added(relay(5)), now);
+                waiting.update(&mut planner, value(&ids[4], "K3", "1"), now);
+            }
+            2 => {
+                let removed = DeviceUpdate::Removed {
+                    device_id: ids[2].clone(),
+                };
+                waiting.update(&mut planner, removed, now);
+            }
+            _ => {}
+        }
+        assert!(rounds < 1000, "the backlog never drains");
+    }
+    // The device being sent, the deletions of the removed one, the values.
+    assert!(
+        most_waiting <= one_device + one_removal + 3,
+        "{most_waiting} actions waited at once; one device has {one_device}"
+    );
+
+    let sent_publications = publications(&sent);
+    let payloads = |topic: &str| -> Vec<&str> {
+        sent_publications
+            .iter()
+            .filter(|(t, _, _)| t == topic)
+            .map(|(_, p, _)| p.as_str())
+            .collect()
+    };
+    let control = |id: &str, control: &str| format!("/devices/{id}/controls/{control}");
+    assert_eq!(payloads(&control(&ids[0], "K2")), ["1"]);
+    assert_eq!(
+        payloads(&control(&ids[1], "K1")),
+        ["0"],
+        "the latest value only"
+    );
+    assert_eq!(payloads(&control(&ids[4], "K3")), ["1"]);
+    let removed = &ids[2];
+    for (topic, payload, _) in &sent_publications {
+        if topic.contains(&format!("/{removed}/")) || topic.contains(&format!("_{removed}/")) {
+            assert_eq!(payload, "", "{topic} published for a removed device");
+        }
+    }
+    assert!(sent.iter().any(|a| matches!(a, MqttAction::Unsubscribe(t)
+        if *t == format!("{}/on", control(removed, "K1")))));
+    for id in [&ids[0], &ids[1], &ids[3], &ids[4]] {
+        let position = |wanted: &dyn Fn(&MqttAction) -> bool| sent.iter().position(wanted);
+        let subscribed = position(
+            &|a| matches!(a, MqttAction::Subscribe(t) if *t == format!("{}/on", control(id, "K1"))),
+        );
+        let meta = position(
+            &|a| matches!(a, MqttAction::Publish(p) if p.topic == format!("/devices/{id}/meta")),
+        );
+        let first_value = position(&|a| {
+            matches!(a, MqttAction::Publish(p)
+                if p.topic.starts_with(&format!("/devices/{id}/controls/"))
+                    && !p.topic.contains("/meta"))
+        });
+        assert!(subscribed < meta && meta < first_value, "{id}");
+        assert!(subscribed.is_some());
+    }
+    // What the broker holds in the end is the state at the end, as one snapshot would send it.
+    let mut retained = BTreeMap::new();
+    for (topic, payload, retain) in &sent_publications {
+        if *retain && payload.is_empty() {
+            retained.remove(topic);
+        } else if *retain {
+            retained.insert(topic.clone(), payload.clone());
+        }
+    }
+    retained.remove("/rtu2mqtt/status");
+    let expected: BTreeMap<String, String> = publications(&planner.snapshot())
+        .into_iter()
+        .filter(|(_, payload, _)| !payload.is_empty())
+        .map(|(topic, payload, _)| (topic, payload))
+        .collect();
+    assert_eq!(retained, expected);
+}
+
+/// A device re-announced with a smaller config while it waits for its turn after a reconnect:
+/// the deletions of what it no longer has go out at once, the rest with its turn.
+#[test]
+fn a_config_change_while_waiting_deletes_dropped_topics_at_once() {
+    use crate::mqtt::outbox::Waiting;
+    let now = Instant::now();
+    let mut planner = PublicationPlanner::new(settings(true));
+    let first = template_device("rtu2mqtt-relay6", 1);
+    let relay = template_device("rtu2mqtt-relay6", 2);
+    let id = relay.id.clone();
+    planner.handle(DeviceUpdate::Added(first), now);
+    planner.handle(DeviceUpdate::Added(relay.clone()), now);
+    let mut waiting = Waiting::default();
+    waiting.connected(Vec::new(), planner.device_order());
+    let mut smaller = (*relay).clone();
+    smaller.channels.make_mut().retain(|c| c.id != "K6");
+    waiting.update(&mut planner, DeviceUpdate::Added(Arc::new(smaller)), now);
+    waiting.update(&mut planner, value(&id, "K1", "1"), now);
+    let mut at_once = Vec::new();
+    while let Some(action) = waiting.outbox.pop() {
+        at_once.push(action);
+    }
+    let text = render(&at_once);
+    assert!(text.contains(&format!(
+        "publish\tretain\tq1\t/devices/{id}/controls/K6/meta\t\n"
+    )));
+    assert!(text.contains(&format!("unsubscribe\t/devices/{id}/controls/K6/on")));
+    assert!(text.contains(&format!(
+        "publish\tretain\tq1\thomeassistant/switch/rtu2mqtt_{id}/k6/config\t\n"
+    )));
+    // Nothing of what it still has: no meta, no cleared error, no value before its turn.
+    assert!(!text.contains(&format!("/devices/{id}/meta")), "{text}");
+    assert!(
+        !text.contains(&format!("/devices/{id}/controls/K5")),
+        "{text}"
+    );
+    assert!(
+        !text.contains(&format!("/devices/{id}/controls/K1\t")),
+        "{text}"
+    );
+    let mut later = Vec::new();
+    waiting.offer(&mut planner, usize::MAX, |action| {
+        later.push(action.clone());
+        true
+    });
+    let text = render(&later);
+    assert!(
+        text.contains(&format!("/devices/{id}/controls/K1\t1\n")),
+        "{text}"
+    );
+    assert!(!text.contains(&format!("/devices/{id}/controls/K6/meta\t{{")));
+}
