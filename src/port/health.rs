@@ -28,15 +28,17 @@ pub const MIN_LATE_REPLY_HOLDOFF: Duration = Duration::from_secs(1);
 
 impl Default for HealthPolicy {
     /// wb-mqtt-serial's defaults: 2 failures and 3 s; retries 0.5 s longer each time, but up to
-    /// 2 s where wb-mqtt-serial waits up to 10 s: the scheduler's budget for offline devices
-    /// (a share of the bus) already keeps dead devices from slowing the others, and a device
-    /// that a burst of noise got marked offline is back within 2 s of the noise ending.
+    /// the late-reply holdoff (1 s) where wb-mqtt-serial waits up to 10 s: the scheduler's budget
+    /// for offline devices (a share of the bus) already keeps dead devices from slowing the
+    /// others. A longer delay only kept a device that a burst of noise got marked offline away
+    /// after the noise: its last failed retry can end as the noise ends, and with 2 s of delay
+    /// it was back 2.1 s later at the earliest (issue 15 asks for 2 s).
     fn default() -> Self {
         Self {
             max_fail_cycles: 2,
             device_timeout: Duration::from_secs(3),
             retry_step: Duration::from_millis(500),
-            max_retry_delay: Duration::from_secs(2),
+            max_retry_delay: MIN_LATE_REPLY_HOLDOFF,
             late_reply_holdoff: MIN_LATE_REPLY_HOLDOFF,
         }
     }
@@ -392,7 +394,7 @@ mod tests {
     }
 
     #[test]
-    fn retry_delay_grows_to_two_seconds_and_resets_on_success() {
+    fn retries_wait_for_the_holdoff_and_reset_on_success() {
         let mut health = DeviceHealth::new(HealthPolicy::default());
         health.record_failure(ms(0));
         let mut now = ms(0);
@@ -403,19 +405,20 @@ mod tests {
             now = retry_at;
             health.record_failure(now);
         }
-        // The first retries wait for the late-reply hold-off (1 s), then the growing delay rules.
-        assert_eq!(delays[0], ms(1000));
-        assert_eq!(delays[1], ms(1000));
-        assert_eq!(delays[2], ms(1500));
-        assert_eq!(delays[3], ms(2000));
-        assert_eq!(*delays.last().unwrap(), ms(2000));
+        // The delay grows (0.5 s, then 1 s) but never past the late-reply hold-off (1 s), which
+        // every retry waits for anyway: the dead devices' budget spaces them out.
+        assert!(delays.iter().all(|&delay| delay == ms(1000)), "{delays:?}");
         assert_eq!(health.record_success(now), HealthChange::CameOnline);
         assert!(health.may_transact(now));
     }
 
     #[test]
     fn an_event_from_a_disconnected_device_gets_it_retried_at_once() {
-        let mut health = DeviceHealth::new(HealthPolicy::default());
+        // A retry delay longer than the holdoff, as a config may give (wb-mqtt-serial's 10 s).
+        let mut health = DeviceHealth::new(HealthPolicy {
+            max_retry_delay: ms(2000),
+            ..HealthPolicy::default()
+        });
         health.record_failure(ms(0));
         for _ in 0..6 {
             let retry_at = health.retry_at().unwrap();

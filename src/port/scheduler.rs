@@ -445,10 +445,9 @@ impl PortScheduler {
             Some(InFlight::PollEvents { .. }) | None => None,
         };
         // The late window this transaction went without (see `classic_transaction`).
-        let skipped_late_window = device
+        let late_window_skipped = device
             .and_then(|d| self.devices.get(d))
-            .filter(|d| d.health.answered_last())
-            .map(|d| d.response.timeout(now));
+            .is_some_and(|d| d.health.answered_last());
         if let Some(device) = device {
             self.learn_response_time(now, device, &outcome, timing);
             // Silence through the timeout and the late window (watched: it failed its last
@@ -456,8 +455,8 @@ impl PortScheduler {
             let silent = !matches!(outcome, Outcome::Reply(_))
                 && timing.first_byte.is_none()
                 && timing.late_byte.is_none();
-            if let (true, None, Some(state)) =
-                (silent, skipped_late_window, self.devices.get_mut(device))
+            if let (true, false, Some(state)) =
+                (silent, late_window_skipped, self.devices.get_mut(device))
             {
                 state.response.silent();
             }
@@ -489,12 +488,22 @@ impl PortScheduler {
             }) => self.complete_read(now, device, span, &members, outcome, out),
             Some(InFlight::Write { write }) => self.complete_write(now, write, outcome, out),
         }
-        if let (Some(window), Some(state)) = (
-            skipped_late_window,
+        // Only a request that heard nothing in time skipped a window: a reply that began in
+        // time (garbled, or not this device's) had none to watch.
+        let heard_nothing_in_time = timing.first_byte.is_none() && timing.late_byte.is_none();
+        if let (true, true, Some(state)) = (
+            late_window_skipped,
+            heard_nothing_in_time,
             device.and_then(|d| self.devices.get_mut(d)),
         ) {
             if !state.health.answered_last() {
-                // It failed: its next request waits as long as if the window had been watched.
+                // It failed: its next request waits as long as if the window had been watched,
+                // the window counted at the device's configured timeout. What it learned above
+                // that came from its own late replies (`ResponseTimer::answered_late` raises the
+                // timeout to 1.5 × the lateness seen and at least twice the timeout missed): the
+                // raised timeout already is the window that reply fell into, and adding it again
+                // would hold the device back three times its worst lateness and more.
+                let window = state.response.floor();
                 state.health.hold_off_longer(window);
             }
         }
