@@ -322,3 +322,275 @@ fn slow_lines_with_and_without_fast_modbus() {
         }
     }
 }
+
+/// The bench's scenario 1 bus on virtual time: `devices` × `events` event inputs (`bench`
+/// template, nothing polled), the simulator's 500 µs turnaround, at `baud`; up and converged.
+fn bench_event_bus(
+    devices: u8,
+    events: u16,
+    baud: u32,
+) -> (
+    VirtualGateway,
+    crate::bench::layout::BenchLayout,
+    tempfile::TempDir,
+) {
+    let layout = crate::bench::layout::BenchLayout {
+        devices,
+        events,
+        registers: 0,
+        baud,
+        fast_devices: true,
+    };
+    let dir = tempfile::tempdir().expect("a template directory");
+    let (name, template) = layout.template();
+    std::fs::write(dir.path().join(name), template.to_string()).expect("template written");
+    let entries = layout.bus()["devices"]
+        .as_array()
+        .cloned()
+        .unwrap_or_default();
+    let gateway = VirtualGateway::from_bus(&layout.line(), &entries, dir.path(), true, 1);
+    (gateway, layout, dir)
+}
+
+/// A small seeded generator (xorshift), for toggles the same on every run.
+struct Toggles(u64);
+
+impl Toggles {
+    fn next(&mut self) -> u64 {
+        self.0 ^= self.0 << 13;
+        self.0 ^= self.0 >> 7;
+        self.0 ^= self.0 << 17;
+        self.0
+    }
+
+    /// An exponential gap of mean `mean`.
+    fn gap(&mut self, mean: Duration) -> Duration {
+        let uniform = (self.next() >> 11) as f64 / (1u64 << 53) as f64;
+        mean.mul_f64(-(1.0 - uniform).ln())
+    }
+}
+
+/// Scenario 1 of the bench on virtual time: `count` random toggles at `rate` per second on the
+/// bus of [`bench_event_bus`]; each one's time from the change on the bus to its publication,
+/// sorted.
+fn idle_bus_latencies(devices: u8, baud: u32, count: usize, rate: f64) -> (Vec<Duration>, usize) {
+    let (mut gateway, layout, _dir) = bench_event_bus(devices, 8, baud);
+    gateway.run_for(WARM_UP);
+    let mut toggles = Toggles(0x9E37_79B9_7F4A_7C15);
+    let mean = Duration::from_secs_f64(1.0 / rate);
+    let mut pending: Vec<(Duration, String, String)> = Vec::new();
+    let mut latencies = Vec::new();
+    let mut at = gateway.now;
+    for _ in 0..count {
+        at += toggles.gap(mean);
+        if at > gateway.now {
+            gateway.run_for(at - gateway.now);
+        }
+        let address = 1 + (toggles.next() % u64::from(layout.devices)) as u8;
+        let input = (toggles.next() % u64::from(layout.events)) as u16;
+        let value = gateway
+            .register(address, RegisterType::DiscreteInput, input)
+            .unwrap_or(0);
+        let toggled = u16::from(value == 0);
+        gateway.change(address, RegisterType::DiscreteInput, input, &[toggled]);
+        let topic = format!(
+            "{}E{input}",
+            crate::bench::layout::BenchLayout::topic_prefix(address)
+        );
+        pending.push((at, topic, toggled.to_string()));
+    }
+    gateway.run_for(Duration::from_secs(1));
+    if std::env::var("IDLE_TRACE").is_ok() {
+        let start = WARM_UP + Duration::from_secs(2);
+        for r in gateway.wire_log.iter().filter(|r| {
+            r.at >= start
+                && r.at
+                    < start
+                        + Duration::from_millis(if std::env::var("IDLE_WIRE").is_ok() {
+                            300
+                        } else {
+                            0
+                        })
+        }) {
+            eprintln!(
+                "wire {:.4}..{:.4} ({:.2} ms) addr {} fast {} answered {}",
+                r.at.as_secs_f64(),
+                r.ended.as_secs_f64(),
+                (r.ended - r.at).as_secs_f64() * 1000.0,
+                r.address,
+                r.fast,
+                r.answered
+            );
+        }
+        let (mut slow, mut slow_behind_other, mut slow_rotation) = (0, 0, 0);
+        for (changed, topic, value) in &pending {
+            let published = gateway
+                .published
+                .iter()
+                .find(|p| p.at >= *changed && &p.topic == topic && &p.payload == value)
+                .map(|p| p.at);
+            if let Some(published) = published {
+                if published - *changed > Duration::from_millis(10) {
+                    slow += 1;
+                    let device = &topic[..topic.rfind('/').unwrap_or(0)];
+                    let others = gateway.published.iter().any(|p| {
+                        p.at > *changed
+                            && p.at < published
+                            && !p.topic.contains("/meta")
+                            && !p.topic.starts_with(device)
+                    });
+                    if others {
+                        slow_behind_other += 1;
+                    }
+                    let polls = gateway
+                        .wire_log
+                        .iter()
+                        .filter(|r| r.at >= *changed && r.ended <= published)
+                        .count();
+                    if !others && polls >= 2 {
+                        slow_rotation += 1;
+                    }
+                }
+            }
+        }
+        eprintln!("SLOW baud={baud} over 10 ms: {slow}, behind another device's packet: {slow_behind_other}, behind an empty poll or a read only: {slow_rotation}");
+        for (changed, topic, value) in &pending {
+            if std::env::var("IDLE_WIRE").is_err() {
+                break;
+            }
+            let published = gateway
+                .published
+                .iter()
+                .find(|p| p.at >= *changed && &p.topic == topic && &p.payload == value)
+                .map(|p| p.at);
+            if published.is_some_and(|p| {
+                p - *changed < Duration::from_millis(if baud > 9600 { 10 } else { 1000 })
+            }) {
+                continue;
+            }
+            eprintln!(
+                "toggle {:.4} {topic} -> {:?}",
+                changed.as_secs_f64(),
+                published.map(|p| p.as_secs_f64())
+            );
+            for r in gateway.wire_log.iter().filter(|r| {
+                r.ended + Duration::from_millis(5) >= *changed
+                    && r.at <= published.unwrap_or(*changed)
+            }) {
+                eprintln!(
+                    "   wire {:.4}..{:.4} ({:.2} ms) addr {} fast {} answered {}",
+                    r.at.as_secs_f64(),
+                    r.ended.as_secs_f64(),
+                    (r.ended - r.at).as_secs_f64() * 1000.0,
+                    r.address,
+                    r.fast,
+                    r.answered
+                );
+            }
+            for p in gateway
+                .published
+                .iter()
+                .filter(|p| p.at >= *changed && p.at <= published.unwrap_or(*changed))
+            {
+                eprintln!("   pub {:.4} {} {}", p.at.as_secs_f64(), p.topic, p.payload);
+            }
+        }
+    }
+    // Matched as the bench matches them: a publication reports the latest pending change of
+    // its topic whose value it carries; earlier pending ones are lost (a pulse no poll saw).
+    // A change is on the bus from `changed` on (a transaction under way then could not carry it
+    // anyway: the simulated device answers when the request ends).
+    let nanos = |at: Duration| u64::try_from(at.as_nanos()).unwrap_or(u64::MAX);
+    let since = pending.first().map_or(Duration::ZERO, |(at, _, _)| *at);
+    let expected: Vec<crate::bench::matching::ExpectedChange> = pending
+        .into_iter()
+        .map(
+            |(changed, topic, payload)| crate::bench::matching::ExpectedChange {
+                mono_ns: nanos(changed),
+                topic,
+                payload,
+            },
+        )
+        .collect();
+    let publications: Vec<crate::bench::harness::Publication> = gateway
+        .published
+        .iter()
+        .filter(|p| !p.topic.contains("/meta"))
+        .map(|p| crate::bench::harness::Publication {
+            mono_ns: nanos(p.at),
+            topic: p.topic.clone(),
+            payload: p.payload.clone(),
+            retain: true,
+        })
+        .collect();
+    let report = crate::bench::matching::match_expected(&expected, &publications, nanos(since));
+    latencies.extend(
+        report
+            .latencies_ns
+            .iter()
+            .map(|&ns| Duration::from_nanos(ns)),
+    );
+    latencies.sort();
+    (latencies, report.lost)
+}
+
+fn percentile(sorted: &[Duration], percent: usize) -> Duration {
+    sorted
+        .get((sorted.len() * percent / 100).min(sorted.len().saturating_sub(1)))
+        .copied()
+        .unwrap_or_default()
+}
+
+#[test]
+#[ignore = "measurement: prints the idle bus figures (bench scenario 1 on virtual time)"]
+fn idle_bus_figures() {
+    for baud in [115_200, 9600] {
+        let (latencies, lost) = idle_bus_latencies(8, baud, 400, 20.0);
+        eprintln!(
+            "FIGURES idle bus baud={baud} published={} lost={lost} p50={:?} p90={:?} p99={:?} max={:?}",
+            latencies.len(),
+            percentile(&latencies, 50),
+            percentile(&latencies, 90),
+            percentile(&latencies, 99),
+            latencies.last()
+        );
+    }
+}
+
+/// Bench scenario 1 (issue 14): on a bus whose values all come by events, each device's
+/// keep-alive read goes alone between two event polls. The 8 devices were set up together, so
+/// their keep-alives fall due together each second; sent in a row before the event slot they
+/// held every event back by 8 reads (15 ms at 115200, the idle bus's longest waits).
+#[test]
+fn keep_alive_reads_go_one_at_a_time_between_event_polls() {
+    for baud in [115_200, 9600] {
+        let (mut gateway, _layout, _dir) = bench_event_bus(8, 8, baud);
+        gateway.run_for(WARM_UP);
+        let since = gateway.now;
+        gateway.run_for(Duration::from_secs(5));
+        let window: Vec<_> = gateway.wire_log.iter().filter(|r| r.at >= since).collect();
+        let mut classic_in_a_row = 0;
+        for record in &window {
+            if record.fast && record.address == 0xFD {
+                classic_in_a_row = 0;
+            } else {
+                classic_in_a_row += 1;
+                assert!(
+                    classic_in_a_row <= 1,
+                    "{baud}: two reads in a row at {:?}",
+                    record.at
+                );
+            }
+        }
+        for address in 1..=8u8 {
+            let reads = window
+                .iter()
+                .filter(|r| r.address == address && !r.fast)
+                .count();
+            assert!(
+                (4..=6).contains(&reads),
+                "{baud}: device {address} read {reads} times in 5 s"
+            );
+        }
+    }
+}

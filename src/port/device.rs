@@ -505,6 +505,17 @@ impl DeviceState {
         span
     }
 
+    /// Whether a read of `members` is only the keep-alive read of a device whose values all
+    /// come by events (not a first read, nothing polled).
+    pub(super) fn is_keepalive_read(&self, members: &[usize]) -> bool {
+        !members.is_empty()
+            && members.iter().all(|&member| {
+                self.reads
+                    .get(member)
+                    .is_some_and(|r| r.exclusion == Exclusion::EventsOnly && !r.initial_pending)
+            })
+    }
+
     pub(super) fn read_span(&self, index: usize) -> Option<RegisterSpan> {
         self.plan.reads.get(index).map(|r| r.span)
     }

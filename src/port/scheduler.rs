@@ -356,6 +356,13 @@ impl PortScheduler {
                 if !events_active {
                     return self.commit(now, transaction, in_flight);
                 }
+                // A keep-alive read is the least urgent work there is: one at a time between
+                // event polls. All of a bus's keep-alives fall due together (their devices were
+                // set up together), and sent in a row before the slot they held every event
+                // back by all of them (8 devices at 115200: 15 ms, the idle bus's p99).
+                if self.sent_since_event_poll && self.is_keepalive(&in_flight) {
+                    return self.start_event_poll(now);
+                }
                 // Read what fits before the event slot (all of it if possible) ...
                 match self.longest_fit(now, &transaction, &in_flight, slot_left) {
                     Fit::Whole => return self.commit(now, transaction, in_flight),
@@ -386,6 +393,18 @@ impl PortScheduler {
             None => Action::Wait {
                 until: self.earliest_deadline(now),
             },
+        }
+    }
+
+    fn is_keepalive(&self, in_flight: &InFlight) -> bool {
+        match in_flight {
+            InFlight::Read {
+                device, members, ..
+            } => self
+                .devices
+                .get(*device)
+                .is_some_and(|state| state.is_keepalive_read(members)),
+            _ => false,
         }
     }
 
