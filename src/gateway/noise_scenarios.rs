@@ -847,8 +847,12 @@ fn recovery_trace() {
                 eprintln!("  late publication {topic} at +{at:?}");
             }
             let _ = &mut bus;
+            let back: u64 = std::env::var("TRACE_BACK_S")
+                .ok()
+                .and_then(|s| s.parse().ok())
+                .unwrap_or(3);
             for r in bus.gateway.wire_log.iter().filter(|r| {
-                r.ended + Duration::from_secs(3) >= ended && r.at <= ended + figures.recovery
+                r.ended + Duration::from_secs(back) >= ended && r.at <= ended + figures.recovery
             }) {
                 if r.fast && r.address == 0xFD && r.answered {
                     continue;

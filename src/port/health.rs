@@ -61,6 +61,13 @@ pub struct DeadRetryBudget {
     not_before: Duration,
 }
 
+/// After a retry of a device that seems dead, the others get the bus at least as long as it
+/// took, but never more than this before the next such retry. A retry at a timeout that a late
+/// reply had raised takes 2.1 s (timeout and late window); the whole of that kept another device
+/// that the same noise got marked offline waiting 2.1 s after the noise had ended (issue 15:
+/// back within 2 s). The bucket still bounds what such retries take over time.
+pub const DEAD_RETRY_SPACING_CAP: Duration = Duration::from_secs(1);
+
 /// The share of bus time that retries of dead devices may take.
 pub const DEAD_RETRY_SHARE_PERCENT: u32 = 10;
 /// The bucket holds the share of this much time.
@@ -111,7 +118,7 @@ impl DeadRetryBudget {
     pub fn spend(&mut self, now: Duration, cost: Duration) {
         self.credit_ns = self.credit(now).saturating_sub(cost.as_nanos() as i128);
         self.at = now;
-        self.not_before = now.saturating_add(cost);
+        self.not_before = now.saturating_add(cost.min(DEAD_RETRY_SPACING_CAP));
     }
 }
 

@@ -275,6 +275,7 @@ impl PortScheduler {
                 continue;
             };
             let placement = Self::placement(state, now);
+
             self.index.place(device, state.plan.address, now, placement);
         }
     }
@@ -967,9 +968,20 @@ impl PortScheduler {
                 // Devices changed since the last placement may have had their events turned off.
                 self.place_stale(now);
                 let highest_listener = self.index.highest_listener().unwrap_or(0);
-                self.events
-                    .packet_received(now, address, packet.flag, highest_listener);
-                let Some(device) = self.device_by_address(address) else {
+                let sender = self.device_by_address(address);
+                let reboot_before_setup = !packet.events.is_empty()
+                    && packet.events.iter().all(|event| event.is_reboot())
+                    && sender
+                        .and_then(|d| self.devices.get(d))
+                        .is_some_and(|d| !d.is_prepared());
+                if reboot_before_setup {
+                    self.events
+                        .packet_received_at_leisure(address, packet.flag, highest_listener);
+                } else {
+                    self.events
+                        .packet_received(now, address, packet.flag, highest_listener);
+                }
+                let Some(device) = sender else {
                     debug!(address, "events from a device that is not in the config");
                     return;
                 };

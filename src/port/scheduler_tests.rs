@@ -471,16 +471,20 @@ fn registers_and_devices_without_events_fall_back_to_polling() {
         ms(2000),
         |_, request| match (&request.body, request.address) {
             (RequestBody::Fast(FastRequest::ConfigureEvents { .. }), 1) => {
-                // One range for both coils: coil 0 can send events, coil 1 cannot.
+                // One range for both coils: coil 0 can send events, coil 1 cannot; then the
+                // reboot event, disabled (no setup writes).
                 match &request.body {
                     RequestBody::Fast(FastRequest::ConfigureEvents { ranges }) => {
-                        assert_eq!(ranges.len(), 1)
+                        assert_eq!(ranges.len(), 2);
+                        assert_eq!(ranges[1].source, crate::protocol::EventSource::System);
                     }
                     _ => unreachable!(),
                 }
                 Outcome::Reply(Reply::fast(
                     1,
-                    FastReply::EventsConfigured { masks: vec![0b01] },
+                    FastReply::EventsConfigured {
+                        masks: vec![0b01, 0],
+                    },
                 ))
             }
             (RequestBody::Fast(FastRequest::ConfigureEvents { .. }), 2) => {
@@ -1443,7 +1447,9 @@ fn a_hold_for_a_limited_time_ends_by_itself() {
 
 #[test]
 fn the_dead_devices_budget_allows_a_burst_then_holds_a_share() {
-    use crate::port::health::{DeadRetryBudget, DEAD_RETRY_SHARE_PERCENT, DEAD_RETRY_WINDOW};
+    use crate::port::health::{
+        DeadRetryBudget, DEAD_RETRY_SHARE_PERCENT, DEAD_RETRY_SPACING_CAP, DEAD_RETRY_WINDOW,
+    };
     let mut budget = DeadRetryBudget::default();
     let retry = ms(1050);
     let mut now = Duration::ZERO;
@@ -1467,13 +1473,14 @@ fn the_dead_devices_budget_allows_a_burst_then_holds_a_share() {
         spent <= now * DEAD_RETRY_SHARE_PERCENT / 100 + bucket,
         "{spent:?} in {now:?}"
     );
-    // Never two in a row: the others get the bus at least as long between them.
+    // Never two in a row: the others get the bus as long between them, up to the cap.
+    let spacing = retry.min(DEAD_RETRY_SPACING_CAP);
     assert!(
-        starts.windows(2).all(|w| w[1] - w[0] >= retry * 2),
+        starts.windows(2).all(|w| w[1] - w[0] >= retry + spacing),
         "{starts:?}"
     );
     // A full bucket first: retries as close as that allows, then a tenth of the bus.
-    assert_eq!(starts[1] - starts[0], retry * 2);
+    assert_eq!(starts[1] - starts[0], retry + spacing);
     let last = starts.windows(2).last().map(|w| w[1] - w[0]).unwrap();
     assert!(last >= retry * 9 && last <= retry * 11, "{last:?}");
 }
