@@ -371,9 +371,17 @@ impl Toggles {
 }
 
 /// Scenario 1 of the bench on virtual time: `count` random toggles at `rate` per second on the
-/// bus of [`bench_event_bus`]; each one's time from the change on the bus to its publication,
-/// sorted.
-fn idle_bus_latencies(devices: u8, baud: u32, count: usize, rate: f64) -> (Vec<Duration>, usize) {
+/// bus of [`bench_event_bus`], each one's time from the change on the bus to its publication.
+/// What [`idle_bus`] measured.
+struct IdleBus {
+    /// Change to publication, sorted.
+    latencies: Vec<Duration>,
+    /// Changes never published (toggled back before a poll saw them).
+    lost: usize,
+    slow: SlowToggles,
+}
+
+fn idle_bus(devices: u8, baud: u32, count: usize, rate: f64) -> IdleBus {
     let (mut gateway, layout, _dir) = bench_event_bus(devices, 8, baud);
     gateway.run_for(WARM_UP);
     let mut toggles = Toggles(0x9E37_79B9_7F4A_7C15);
@@ -400,102 +408,7 @@ fn idle_bus_latencies(devices: u8, baud: u32, count: usize, rate: f64) -> (Vec<D
         pending.push((at, topic, toggled.to_string()));
     }
     gateway.run_for(Duration::from_secs(1));
-    if std::env::var("IDLE_TRACE").is_ok() {
-        let start = WARM_UP + Duration::from_secs(2);
-        for r in gateway.wire_log.iter().filter(|r| {
-            r.at >= start
-                && r.at
-                    < start
-                        + Duration::from_millis(if std::env::var("IDLE_WIRE").is_ok() {
-                            300
-                        } else {
-                            0
-                        })
-        }) {
-            eprintln!(
-                "wire {:.4}..{:.4} ({:.2} ms) addr {} fast {} answered {}",
-                r.at.as_secs_f64(),
-                r.ended.as_secs_f64(),
-                (r.ended - r.at).as_secs_f64() * 1000.0,
-                r.address,
-                r.fast,
-                r.answered
-            );
-        }
-        let (mut slow, mut slow_behind_other, mut slow_rotation) = (0, 0, 0);
-        for (changed, topic, value) in &pending {
-            let published = gateway
-                .published
-                .iter()
-                .find(|p| p.at >= *changed && &p.topic == topic && &p.payload == value)
-                .map(|p| p.at);
-            if let Some(published) = published {
-                if published - *changed > Duration::from_millis(10) {
-                    slow += 1;
-                    let device = &topic[..topic.rfind('/').unwrap_or(0)];
-                    let others = gateway.published.iter().any(|p| {
-                        p.at > *changed
-                            && p.at < published
-                            && !p.topic.contains("/meta")
-                            && !p.topic.starts_with(device)
-                    });
-                    if others {
-                        slow_behind_other += 1;
-                    }
-                    let polls = gateway
-                        .wire_log
-                        .iter()
-                        .filter(|r| r.at >= *changed && r.ended <= published)
-                        .count();
-                    if !others && polls >= 2 {
-                        slow_rotation += 1;
-                    }
-                }
-            }
-        }
-        eprintln!("SLOW baud={baud} over 10 ms: {slow}, behind another device's packet: {slow_behind_other}, behind an empty poll or a read only: {slow_rotation}");
-        for (changed, topic, value) in &pending {
-            if std::env::var("IDLE_WIRE").is_err() {
-                break;
-            }
-            let published = gateway
-                .published
-                .iter()
-                .find(|p| p.at >= *changed && &p.topic == topic && &p.payload == value)
-                .map(|p| p.at);
-            if published.is_some_and(|p| {
-                p - *changed < Duration::from_millis(if baud > 9600 { 10 } else { 1000 })
-            }) {
-                continue;
-            }
-            eprintln!(
-                "toggle {:.4} {topic} -> {:?}",
-                changed.as_secs_f64(),
-                published.map(|p| p.as_secs_f64())
-            );
-            for r in gateway.wire_log.iter().filter(|r| {
-                r.ended + Duration::from_millis(5) >= *changed
-                    && r.at <= published.unwrap_or(*changed)
-            }) {
-                eprintln!(
-                    "   wire {:.4}..{:.4} ({:.2} ms) addr {} fast {} answered {}",
-                    r.at.as_secs_f64(),
-                    r.ended.as_secs_f64(),
-                    (r.ended - r.at).as_secs_f64() * 1000.0,
-                    r.address,
-                    r.fast,
-                    r.answered
-                );
-            }
-            for p in gateway
-                .published
-                .iter()
-                .filter(|p| p.at >= *changed && p.at <= published.unwrap_or(*changed))
-            {
-                eprintln!("   pub {:.4} {} {}", p.at.as_secs_f64(), p.topic, p.payload);
-            }
-        }
-    }
+    let slow = slow_toggles(&gateway, &pending);
     // Matched as the bench matches them: a publication reports the latest pending change of
     // its topic whose value it carries; earlier pending ones are lost (a pulse no poll saw).
     // A change is on the bus from `changed` on (a transaction under way then could not carry it
@@ -531,7 +444,60 @@ fn idle_bus_latencies(devices: u8, baud: u32, count: usize, rate: f64) -> (Vec<D
             .map(|&ns| Duration::from_nanos(ns)),
     );
     latencies.sort();
-    (latencies, report.lost)
+    IdleBus {
+        latencies,
+        lost: report.lost,
+        slow,
+    }
+}
+
+/// Toggles published more than 10 ms after their change.
+#[derive(Debug, Default)]
+#[allow(dead_code)] // printed
+struct SlowToggles {
+    count: usize,
+    /// Another device's event was published meanwhile: its packet went first (arbitration
+    /// gives one device's packet per poll).
+    behind_another_packet: usize,
+    /// Nothing else was published meanwhile, but more than one poll or read went by (the
+    /// `min_address` rotation's empty poll, a keep-alive read).
+    behind_an_empty_poll_or_a_read: usize,
+}
+
+fn slow_toggles(gateway: &VirtualGateway, pending: &[(Duration, String, String)]) -> SlowToggles {
+    let mut slow = SlowToggles::default();
+    for (changed, topic, value) in pending {
+        let Some(published) = gateway
+            .published
+            .iter()
+            .find(|p| p.at >= *changed && &p.topic == topic && &p.payload == value)
+            .map(|p| p.at)
+        else {
+            continue;
+        };
+        if published - *changed <= ms(10) {
+            continue;
+        }
+        slow.count += 1;
+        let device = &topic[..topic.rfind('/').unwrap_or(0)];
+        let others = gateway.published.iter().any(|p| {
+            p.at > *changed
+                && p.at < published
+                && !p.topic.contains("/meta")
+                && !p.topic.starts_with(device)
+        });
+        let transactions = gateway
+            .wire_log
+            .iter()
+            .filter(|r| r.at >= *changed && r.ended <= published)
+            .count();
+        if others {
+            slow.behind_another_packet += 1;
+        } else if transactions >= 2 {
+            slow.behind_an_empty_poll_or_a_read += 1;
+        }
+    }
+    slow
 }
 
 fn percentile(sorted: &[Duration], percent: usize) -> Duration {
@@ -545,9 +511,13 @@ fn percentile(sorted: &[Duration], percent: usize) -> Duration {
 #[ignore = "measurement: prints the idle bus figures (bench scenario 1 on virtual time)"]
 fn idle_bus_figures() {
     for baud in [115_200, 9600] {
-        let (latencies, lost) = idle_bus_latencies(8, baud, 400, 20.0);
+        let IdleBus {
+            latencies,
+            lost,
+            slow,
+        } = idle_bus(8, baud, 400, 20.0);
         eprintln!(
-            "FIGURES idle bus baud={baud} published={} lost={lost} p50={:?} p90={:?} p99={:?} max={:?}",
+            "FIGURES idle bus baud={baud} published={} lost={lost} p50={:?} p90={:?} p99={:?} max={:?} {slow:?}",
             latencies.len(),
             percentile(&latencies, 50),
             percentile(&latencies, 90),
