@@ -503,6 +503,16 @@ struct NoiseFigures {
 /// `fault_time` of `faults` on `devices` at `baud`, then the recovery; asserts that nothing
 /// wrong was published and no event lost.
 fn noise_run(devices: u8, baud: u32, seed: u64, faults: Faults) -> NoiseFigures {
+    noise_run_bus(devices, baud, seed, faults).0
+}
+
+/// [`noise_run`], with the bus after it and when the faults ended.
+fn noise_run_bus(
+    devices: u8,
+    baud: u32,
+    seed: u64,
+    faults: Faults,
+) -> (NoiseFigures, NoiseBus, Duration) {
     let mut bus = NoiseBus::start(devices, baud, seed, &[]);
     let since = bus.gateway.now;
     let toggles_before = bus.toggles;
@@ -510,6 +520,7 @@ fn noise_run(devices: u8, baud: u32, seed: u64, faults: Faults) -> NoiseFigures 
     bus.faults_on_all(faults);
     bus.drive(FAULT_TIME);
     bus.faults_on_all(Faults::default());
+    let faults_ended = bus.gateway.now;
     let stats = bus.gateway.bus.stats();
     let case = format!("{devices} devices at {baud}, seed {seed}");
     let Some(recovery) = bus.run_until_converged(Duration::from_secs(90)) else {
@@ -525,14 +536,15 @@ fn noise_run(devices: u8, baud: u32, seed: u64, faults: Faults) -> NoiseFigures 
         "{case}: every toggle published exactly once"
     );
     bus.assert_every_change_matched(since, toggles, &case);
-    NoiseFigures {
+    let figures = NoiseFigures {
         recovery,
         checked,
         toggles,
         marked_offline: bus.marked_offline(since),
         contended_event_polls: stats.contended_event_polls - stats_before.contended_event_polls,
         max_event_contenders: stats.max_event_contenders,
-    }
+    };
+    (figures, bus, faults_ended)
 }
 
 /// What 6 healthy devices at `baud` get over `length` with `dead` more devices configured that
@@ -693,21 +705,22 @@ fn a_wide_value_reported_a_word_at_a_time_is_never_published_half_updated() {
     }
 }
 
-/// Issue 15: within 2 s of the noise ending the broker shows the simulator's values. What can
-/// make it a little longer is a safety rule, not the back-off of dead devices: a device whose
-/// request failed just before the end is left alone for its late-reply holdoff (1 s, plus the
-/// late window it skipped: up to 2.05 s with the longer timeout the noise's late replies taught
-/// it). At 9600 the bus needs a whole poll cycle (about 3.3 s with this load, the bus busy all
+/// Issue 15: within 2 s of the noise ending the broker shows the simulator's values, over 20
+/// seeds per bus at 115200. The floor is a safety rule: a device whose request failed just
+/// before the end is left alone for its late-reply holdoff (1 s, plus the late window it skipped
+/// at its configured timeout: 1.52 s). Three seeds took 2.06–2.30 s before 25 Nov 2026 (8
+/// devices seed 3, 32 devices seeds 7 and 17): the window added after a reply that came in time
+/// (CRC error), the window counted at a timeout a late reply had raised to 1.05 s, and an
+/// offline device's retry delay grown to 2 s. At 9600 the bus needs a whole poll cycle (about 3.3 s with this load, the bus busy all
 /// along: reads and event polls) to bring every value up to date after the load stops even
 /// without any fault ([`noise_figures`] prints both): there the noise may add at most 0.5 s to
 /// the fault-free run.
 #[test]
 fn after_the_noise_the_values_are_back_within_the_holdoff_of_the_last_failure() {
-    let holdoff_bound = RECOVERY_TARGET + Duration::from_millis(100);
     let slow_line_cycle = noise_run(32, 9600, 1, Faults::default()).recovery;
     for (devices, baud, seeds, bound) in [
-        (8, 115_200, 1..=8, holdoff_bound),
-        (32, 115_200, 1..=4, holdoff_bound),
+        (8, 115_200, 1..=20, RECOVERY_TARGET),
+        (32, 115_200, 1..=20, RECOVERY_TARGET),
         (
             32,
             9600,
@@ -793,6 +806,70 @@ fn noise_figures() {
                  min={min:?} median={:?} max={max:?} over_2s={over}",
                 recoveries[recoveries.len() / 2]
             );
+        }
+    }
+}
+
+/// Why a noise run recovers slowly: each seed's recovery at 115200 (8 and 32 devices,
+/// `NOISE_SEEDS` each, `NOISE_DEVICES` to pick one bus) and, for those over 1.6 s, the topics
+/// published last and every transaction but answered event polls from `TRACE_BACK_S` (3) before
+/// the end of the noise. `cargo test --lib recovery_trace -- --ignored --nocapture`.
+#[test]
+#[ignore = "diagnosis: prints the slow seeds' wire"]
+fn recovery_trace() {
+    let seeds: u64 = std::env::var("NOISE_SEEDS")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(20);
+    let only: Option<u8> = std::env::var("NOISE_DEVICES")
+        .ok()
+        .and_then(|s| s.parse().ok());
+    for devices in [8u8, 32] {
+        if only.is_some_and(|o| o != devices) {
+            continue;
+        }
+        for seed in 1..=seeds {
+            let (figures, bus, ended) = noise_run_bus(devices, 115_200, seed, noise());
+            eprintln!(
+                "TRACE devices={devices} seed={seed} recovery={:?}",
+                figures.recovery
+            );
+            if figures.recovery <= Duration::from_millis(1600) {
+                continue;
+            }
+            // Replay: which topic converged last, and when.
+            let mut last: BTreeMap<String, Duration> = BTreeMap::new();
+            for p in bus.gateway.published.iter().filter(|p| p.at >= ended) {
+                last.insert(p.topic.clone(), p.at - ended);
+            }
+            let mut late: Vec<_> = last
+                .iter()
+                .filter(|(_, at)| **at > Duration::from_millis(1000))
+                .collect();
+            late.sort_by_key(|(_, at)| **at);
+            for (topic, at) in late.iter().rev().take(6) {
+                eprintln!("  late publication {topic} at +{at:?}");
+            }
+            let back: u64 = std::env::var("TRACE_BACK_S")
+                .ok()
+                .and_then(|s| s.parse().ok())
+                .unwrap_or(3);
+            for r in bus.gateway.wire_log.iter().filter(|r| {
+                r.ended + Duration::from_secs(back) >= ended && r.at <= ended + figures.recovery
+            }) {
+                if r.fast && r.address == 0xFD && r.answered {
+                    continue;
+                }
+                let t = |d: Duration| d.as_secs_f64() - ended.as_secs_f64();
+                eprintln!(
+                    "  wire {:+.4}..{:+.4} addr {} fast {} answered {}",
+                    t(r.at),
+                    t(r.ended),
+                    r.address,
+                    r.fast,
+                    r.answered
+                );
+            }
         }
     }
 }

@@ -6,6 +6,7 @@ use std::time::Duration;
 use super::health::{DeviceHealth, HealthChange};
 use super::plan::{DevicePlan, EventMode};
 use super::read_plan::RegisterSpan;
+use crate::protocol::fast::REBOOT_EVENT_ID;
 use crate::protocol::frame::MAX_FRAME_LEN;
 use crate::protocol::timing::ResponseTimer;
 use crate::protocol::{EventPriority, EventRange, EventSource, LineSettings, RegisterType};
@@ -213,8 +214,16 @@ impl DeviceState {
             })
             .collect();
         candidates.sort_by_key(|(_, span, _)| (span.register_type, span.start));
+        // A device with no setup writes also gets wb-mqtt-serial's `0F 0000 01 00` record (the
+        // reboot event disabled): it drops the power-on "I rebooted" still pending, which would
+        // otherwise come in after the setup and start it all over. Nothing can be lost by it
+        // here: a reboot before this request only undid what this request and the first reads
+        // after it set up again; one after it arms the event anew (the device restarts with its
+        // defaults). A device with setup writes does not get it: a reboot between its setup
+        // and this request would go unnoticed, and its setup with it.
+        let clear_reboot = self.plan.setup.is_empty();
         // address, 0x46, 0x18, list_len, CRC: the rest of the frame is the list.
-        let mut room = MAX_FRAME_LEN - 6;
+        let mut room = MAX_FRAME_LEN - 6 - if clear_reboot { 5 } else { 0 };
         let mut ranges: Vec<EventRange> = Vec::new();
         let mut members = Vec::new();
         for (index, span, priority) in candidates {
@@ -262,6 +271,13 @@ impl DeviceState {
                 vec![priority],
             ));
             members.push(index);
+        }
+        if clear_reboot && !ranges.is_empty() {
+            ranges.push(EventRange {
+                source: EventSource::System,
+                start: REBOOT_EVENT_ID,
+                priorities: vec![EventPriority::Disabled],
+            });
         }
         (ranges, members)
     }
@@ -505,6 +521,17 @@ impl DeviceState {
         span
     }
 
+    /// Whether a read of `members` is only the keep-alive read of a device whose values all
+    /// come by events (not a first read, nothing polled).
+    pub(super) fn is_keepalive_read(&self, members: &[usize]) -> bool {
+        !members.is_empty()
+            && members.iter().all(|&member| {
+                self.reads
+                    .get(member)
+                    .is_some_and(|r| r.exclusion == Exclusion::EventsOnly && !r.initial_pending)
+            })
+    }
+
     pub(super) fn read_span(&self, index: usize) -> Option<RegisterSpan> {
         self.plan.reads.get(index).map(|r| r.span)
     }
@@ -614,15 +641,35 @@ mod tests {
         let device = counter8();
         let (ranges, members) = device.event_ranges();
         let request = Request::configure_events(20, ranges).encode().unwrap();
-        let list = "1F \
+        // The template has no setup writes: the reboot event is disabled at the end (its
+        // power-on report dropped), as wb-mqtt-serial does.
+        let list = "24 \
              02 0000 08 01 01 01 01 01 01 01 01 \
-             04 003C 0F 01 00 01 00 01 00 01 00 01 00 01 00 01 00 01";
+             04 003C 0F 01 00 01 00 01 00 01 00 01 00 01 00 01 00 01 \
+             0F 0000 01 00";
         let expected = crate::protocol::parse_hex(&format!("14 46 18 {list}")).unwrap();
         assert_eq!(
             hex(request.get(..request.len() - 2).unwrap()),
             hex(&expected)
         );
         assert_eq!(members.len(), 16);
+    }
+
+    /// A device with setup writes keeps its power-on reboot event: a reboot between its setup
+    /// and its event setup must still be reported, or the setup would be lost unnoticed.
+    #[test]
+    fn a_device_with_setup_writes_keeps_its_reboot_event() {
+        let mut plan = counter8().plan;
+        plan.setup.push(crate::port::plan::SetupWrite {
+            address: 100,
+            values: vec![7],
+        });
+        let device = DeviceState::new(plan, true, &LineSettings::WIREN_BOARD_DEFAULT);
+        let (ranges, _) = device.event_ranges();
+        assert_eq!(ranges.len(), 2);
+        assert!(ranges
+            .iter()
+            .all(|r| matches!(r.source, EventSource::Register(_))));
     }
 
     /// A value counts as event-driven when its first register is enabled.
