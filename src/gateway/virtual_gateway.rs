@@ -338,7 +338,8 @@ impl VirtualGateway {
 
     /// One transaction on the virtual wire: what came back, its timing, and when it ended.
     /// The driver loop of `transport::exchange`, with the bus in place of the serial port: the
-    /// request is heard at once, bytes arrive at their stop bits' times.
+    /// request is heard at once, bytes arrive at their stop bits' times, and are read one by
+    /// one, or in one go where the exchange asks for a batch read.
     fn transact(&mut self, transaction: &Transaction) -> (Outcome, ReplyTiming, Duration) {
         let mut now = self.now;
         if self.exchange.start(transaction).is_err() {
@@ -359,6 +360,22 @@ impl VirtualGateway {
                 return (outcome, timing, now);
             }
             let timeout = self.exchange.poll_timeout();
+            // As the serial transport: a reply whose timing the exchange has learned is read in
+            // one go when it should be complete.
+            if let Some(at) = self
+                .exchange
+                .batch_read_at()
+                .filter(|&at| timeout.is_none_or(|t| at <= t))
+            {
+                now = now.max(at);
+                let mut batch = Vec::new();
+                while let Some((_, byte)) = arrivals.front().copied().filter(|&(a, _)| a <= now) {
+                    arrivals.pop_front();
+                    batch.push(byte);
+                }
+                self.exchange.handle_batch(now, &batch);
+                continue;
+            }
             let next_byte = arrivals
                 .front()
                 .copied()
