@@ -334,10 +334,25 @@ fn bench_event_bus(
     crate::bench::layout::BenchLayout,
     tempfile::TempDir,
 ) {
+    bench_bus(devices, events, 0, baud)
+}
+
+/// Bench scenario 2's bus: `devices` × (`events` event inputs + `registers` input registers
+/// polled as fast as the bus allows).
+fn bench_bus(
+    devices: u8,
+    events: u16,
+    registers: u16,
+    baud: u32,
+) -> (
+    VirtualGateway,
+    crate::bench::layout::BenchLayout,
+    tempfile::TempDir,
+) {
     let layout = crate::bench::layout::BenchLayout {
         devices,
         events,
-        registers: 0,
+        registers,
         baud,
         fast_devices: true,
     };
@@ -382,7 +397,20 @@ struct IdleBus {
 }
 
 fn idle_bus(devices: u8, baud: u32, count: usize, rate: f64) -> IdleBus {
-    let (mut gateway, layout, _dir) = bench_event_bus(devices, 8, baud);
+    toggled_bus(bench_event_bus(devices, 8, baud), count, rate)
+}
+
+/// Random toggles of the bus's event inputs at `rate` per second, matched with their
+/// publications as the bench matches them.
+fn toggled_bus(
+    (mut gateway, layout, _dir): (
+        VirtualGateway,
+        crate::bench::layout::BenchLayout,
+        tempfile::TempDir,
+    ),
+    count: usize,
+    rate: f64,
+) -> IdleBus {
     gateway.run_for(WARM_UP);
     let mut toggles = Toggles(0x9E37_79B9_7F4A_7C15);
     let mean = Duration::from_secs_f64(1.0 / rate);
@@ -518,6 +546,26 @@ fn idle_bus_figures() {
         } = idle_bus(8, baud, 400, 20.0);
         eprintln!(
             "FIGURES idle bus baud={baud} published={} lost={lost} p50={:?} p90={:?} p99={:?} max={:?} {slow:?}",
+            latencies.len(),
+            percentile(&latencies, 50),
+            percentile(&latencies, 90),
+            percentile(&latencies, 99),
+            latencies.last()
+        );
+    }
+}
+
+#[test]
+#[ignore = "measurement: prints bench scenario 2's event latency under load on virtual time"]
+fn loaded_bus_figures() {
+    for (baud, count, rate) in [(115_200, 2000, 50.0), (9600, 800, 8.0)] {
+        let IdleBus {
+            latencies,
+            lost,
+            slow,
+        } = toggled_bus(bench_bus(32, 8, 60, baud), count, rate);
+        eprintln!(
+            "FIGURES loaded bus baud={baud} published={} lost={lost} p50={:?} p90={:?} p99={:?} max={:?} {slow:?}",
             latencies.len(),
             percentile(&latencies, 50),
             percentile(&latencies, 90),

@@ -19,6 +19,11 @@ pub(super) struct EventPoller {
     ack: Option<(u8, u8)>,
     max_data_len: u8,
     burst: u32,
+    /// When the round of requests under way began (its first request): rounds start an
+    /// interval apart, however long the bursts in them take.
+    round_started: Option<Duration>,
+    /// When the latest request began.
+    last_started: Duration,
 }
 
 impl EventPoller {
@@ -30,6 +35,8 @@ impl EventPoller {
             ack: None,
             max_data_len: max_data_len(settings),
             burst: 0,
+            round_started: None,
+            last_started: Duration::ZERO,
         }
     }
 
@@ -48,7 +55,19 @@ impl EventPoller {
     }
 
     pub(super) fn started(&mut self, now: Duration) {
+        self.round_started.get_or_insert(now);
+        self.last_started = now;
         self.next_at = now + self.interval;
+    }
+
+    /// The round is over: the next one starts an interval after this one began, so that a
+    /// burst does not push every later round back by its own length (32 devices at 115200
+    /// with 50 changes/s: rounds 70 ms apart instead of 50, event p99 67 ms on virtual time).
+    /// A round that took more than half the interval leaves the bus to other requests for at
+    /// least half an interval after its last request began.
+    fn end_round(&mut self) {
+        let started = self.round_started.take().unwrap_or(self.last_started);
+        self.next_at = (started + self.interval).max(self.last_started + self.interval / 2);
     }
 
     /// A device sent a packet: confirm it next time, let the devices above it speak first, and
@@ -79,6 +98,7 @@ impl EventPoller {
             // runs out of events (no "no events" reply to end the burst) would get one packet
             // per interval for good, and events would queue up in the devices.
             self.burst = 0;
+            self.end_round();
         }
     }
 
@@ -93,11 +113,10 @@ impl EventPoller {
         flag: u8,
         highest_listener: u8,
     ) {
-        let next_at = self.next_at;
         let burst = self.burst;
-        self.packet_received(next_at, address, flag, highest_listener);
-        self.next_at = next_at;
+        self.packet_received(self.next_at, address, flag, highest_listener);
         self.burst = burst;
+        self.end_round();
     }
 
     /// "No events" or silence. If part of the address range was excluded, ask the whole bus again
@@ -108,13 +127,17 @@ impl EventPoller {
         if self.min_address != 0 {
             self.min_address = 0;
             self.next_at = started;
+        } else {
+            self.end_round();
         }
     }
 
     /// An unreadable reply (noise, collision): confirm nothing, so the device sends its packet
-    /// again under the same flag.
+    /// again under the same flag, in the next round.
     pub(super) fn garbled(&mut self, _now: Duration) {
         self.ack = None;
+        self.burst = 0;
+        self.end_round();
     }
 }
 
@@ -175,7 +198,39 @@ mod tests {
         assert_eq!(events.next_at(), ms(3));
         events.started(ms(6));
         events.nothing_pending(ms(6));
-        assert_eq!(events.next_at(), ms(56), "then the interval");
+        assert_eq!(
+            events.next_at(),
+            ms(50),
+            "then the next round, an interval after this one began"
+        );
+    }
+
+    #[test]
+    fn rounds_keep_their_rhythm_and_a_long_one_leaves_half_an_interval() {
+        let ms = Duration::from_millis;
+        let mut events = poller(115_200);
+        // Three packets and "no events": 20 ms of polls, the next round still at 50 ms.
+        for n in 0..3u64 {
+            events.started(ms(5 * n));
+            events.packet_received(ms(5 * n + 4), 3 + n as u8, 0, 30);
+        }
+        events.started(ms(15));
+        events.nothing_pending(ms(15));
+        assert_eq!(events.request().min_address, 0);
+        assert_eq!(events.next_at(), ms(15), "the bus below the rotation first");
+        events.started(ms(15));
+        events.nothing_pending(ms(15));
+        assert_eq!(events.next_at(), ms(50));
+        // At 9600 a poll takes ~48 ms: a burst of 8 outlasts the 200 ms interval; the bus is
+        // left to other requests for 100 ms after the last poll began.
+        let mut events = poller(9600);
+        for n in 0..MAX_BURST {
+            events.started(ms(48 * u64::from(n)));
+            events.packet_received(ms(48 * u64::from(n) + 40), 5, 0, 30);
+        }
+        events.started(ms(384));
+        events.packet_received(ms(424), 5, 1, 30);
+        assert_eq!(events.next_at(), ms(484));
     }
 
     #[test]
@@ -184,6 +239,7 @@ mod tests {
         let mut now = Duration::ZERO;
         // A bus that never runs out of events: every request brings a packet.
         for round in 0..3 {
+            let round_start = now;
             for _ in 0..MAX_BURST {
                 events.started(now);
                 events.packet_received(now, 5, 0, 30);
@@ -194,8 +250,8 @@ mod tests {
             events.packet_received(now, 5, 1, 30);
             assert_eq!(
                 events.next_at(),
-                now + Duration::from_millis(50),
-                "round {round}: the burst ends at the slot"
+                round_start + Duration::from_millis(50),
+                "round {round}: the burst ends, the next round an interval after it began"
             );
             now = events.next_at();
         }
