@@ -16,7 +16,7 @@ use crate::device::codec::Decoded;
 use crate::device::model::{ResolvedChannel, ResolvedDevice, SharedVec, WriteFunction};
 use crate::port::{PortEvent, RegisterSpan, RegisterWrite};
 use crate::protocol::RegisterType;
-use crate::updates::{DeviceUpdate, ErrorFlags};
+use crate::updates::{DeviceUpdate, ErrorFlags, Repeats};
 
 #[derive(Debug)]
 pub struct DeviceModel {
@@ -32,6 +32,13 @@ pub struct DeviceModel {
     /// The last value reported per channel, to tell a change from a repeat (and sent again,
     /// not copied, when it repeats).
     reported: Vec<Option<Arc<str>>>,
+    /// Which repeated values the sinks need (see [`Repeats`]).
+    repeats: Repeats,
+    /// Per channel (at [`ChannelIndex::word_slots`]), the words its reported value was decoded
+    /// from, when `words_decoded` says so: the same words make the same text, so a read that
+    /// repeats them is known to repeat the value without decoding it.
+    last_words: Vec<u16>,
+    words_decoded: Vec<bool>,
     /// Channels that events changed since the last [`DeviceModel::flush_events`].
     pending_events: BTreeSet<usize>,
     /// Kept between reads, so that a read of many values allocates nothing for them unless
@@ -52,6 +59,11 @@ struct ChannelIndex {
     /// sorted. The address is a u32, as [`RegisterSpan::end`]: a value may end past 65535.
     readers: Vec<(RegisterType, u32, u32)>,
     control_ids: Vec<Arc<str>>,
+    /// Per channel, where its words are kept in [`DeviceModel::last_words`]: (start, count).
+    word_slots: Vec<(usize, usize)>,
+    /// Per channel, whether it is a pushbutton (its every value is reported, see
+    /// [`Repeats::report`]; the type as `mqtt::layout::is_pushbutton` reads it).
+    pushbuttons: Vec<bool>,
 }
 
 /// The channel indexes in use, to share one between the devices of one channel list.
@@ -72,11 +84,35 @@ impl ChannelIndex {
         readers.sort_unstable();
         readers.dedup();
         readers.shrink_to_fit();
+        let mut word_slots = Vec::with_capacity(channels.len());
+        let mut next = 0;
+        for channel in channels.iter() {
+            let count = channel
+                .registers
+                .iter()
+                .filter_map(|r| r.read)
+                .map(|read| usize::from(read.count.max(1)))
+                .sum();
+            word_slots.push((next, count));
+            next += count;
+        }
         Self {
             channels: channels.clone(),
             readers,
             control_ids: channels.iter().map(|c| Arc::from(c.id.as_str())).collect(),
+            word_slots,
+            pushbuttons: channels
+                .iter()
+                .map(|c| c.control_type == "pushbutton")
+                .collect(),
         }
+    }
+
+    /// How many words [`DeviceModel::last_words`] keeps for all channels.
+    fn word_count(&self) -> usize {
+        self.word_slots
+            .last()
+            .map_or(0, |&(start, count)| start + count)
     }
 
     /// The index of `channels`: the one another device of the same list uses, or a new one.
@@ -202,12 +238,18 @@ pub enum WriteRejected {
 }
 
 impl DeviceModel {
-    pub fn new(device: Arc<ResolvedDevice>, index: usize) -> Self {
+    /// The model of `device`, the `index`th of its port, reporting `repeats` besides the
+    /// changes (the sinks that read its updates say which they need).
+    pub fn new(device: Arc<ResolvedDevice>, index: usize, repeats: Repeats) -> Self {
         let errors = vec![ErrorFlags::default(); device.channels.len()];
+        let channel_index = ChannelIndex::shared(&device.channels);
         Self {
             reported: vec![None; device.channels.len()],
+            repeats,
+            last_words: vec![0; channel_index.word_count()],
+            words_decoded: vec![false; device.channels.len()],
             device_id: Arc::from(device.id.as_str()),
-            channel_index: ChannelIndex::shared(&device.channels),
+            channel_index,
             device,
             index,
             words: HashMap::default(),
@@ -386,6 +428,9 @@ impl DeviceModel {
             .unwrap_or(1)
     }
 
+    /// Reports the values of the `touched` channels whose words are all known: each change,
+    /// and each repeat that [`Repeats::report`] asks for. A good value clears `r` first,
+    /// changed or not.
     fn publish_channels(
         &mut self,
         touched: &[usize],
@@ -398,11 +443,43 @@ impl DeviceModel {
             let Some(channel) = device.channels.get(index) else {
                 continue;
             };
-            text.clear();
-            let Some(reading) = self.decode_channel(channel, &mut text) else {
+            if !self.gather_words(channel) {
                 continue;
-            };
+            }
             let flags = self.errors.get(index).copied().unwrap_or_default();
+            let report_repeat = self.repeats.report(
+                from_event,
+                self.channel_index
+                    .pushbuttons
+                    .get(index)
+                    .copied()
+                    .unwrap_or(false),
+            );
+            if self.repeats_decoded_words(index) {
+                // The words of the value reported last: the same value, not decoded again.
+                if flags.read {
+                    self.update_flags(
+                        index,
+                        ErrorFlags {
+                            read: false,
+                            ..flags
+                        },
+                        out,
+                    );
+                }
+                if report_repeat {
+                    if let Some(Some(last)) = self.reported.get(index) {
+                        let value = Arc::clone(last);
+                        self.push_value(index, channel, value, from_event, false, out);
+                    }
+                }
+                continue;
+            }
+            text.clear();
+            let reading = decode_words(channel, &self.word_buffer, &mut text);
+            if let Some(decoded) = self.words_decoded.get_mut(index) {
+                *decoded = false;
+            }
             match reading {
                 Ok(Decoded::Text) => {
                     // Clear `r` before the good value, as wb-mqtt-serial does.
@@ -425,18 +502,10 @@ impl DeviceModel {
                         Some(last) if !changed => Arc::clone(last),
                         _ => Arc::clone(last.insert(Arc::from(text.as_str()))),
                     };
-                    let control_id = self
-                        .channel_index
-                        .control_ids
-                        .get(index)
-                        .map_or_else(|| Arc::from(channel.id.as_str()), Arc::clone);
-                    out.push(DeviceUpdate::Value {
-                        device_id: Arc::clone(&self.device_id),
-                        control_id,
-                        value,
-                        from_event,
-                        changed,
-                    });
+                    self.remember_decoded_words(index);
+                    if changed || report_repeat {
+                        self.push_value(index, channel, value, from_event, changed, out);
+                    }
                 }
                 Ok(Decoded::DeviceError | Decoded::Unsupported) => {
                     self.update_flags(
@@ -464,40 +533,77 @@ impl DeviceModel {
         self.text = text;
     }
 
-    /// Decodes the channel's value into `text` from the words of every register (joined with
-    /// `;`, as [`ResolvedChannel::decode`] does); none until all have been read.
-    fn decode_channel(
-        &mut self,
+    fn push_value(
+        &self,
+        index: usize,
         channel: &ResolvedChannel,
-        text: &mut String,
-    ) -> Option<Result<Decoded, crate::device::CodecError>> {
+        value: Arc<str>,
+        from_event: bool,
+        changed: bool,
+        out: &mut Vec<DeviceUpdate>,
+    ) {
+        let control_id = self
+            .channel_index
+            .control_ids
+            .get(index)
+            .map_or_else(|| Arc::from(channel.id.as_str()), Arc::clone);
+        out.push(DeviceUpdate::Value {
+            device_id: Arc::clone(&self.device_id),
+            control_id,
+            value,
+            from_event,
+            changed,
+        });
+    }
+
+    /// Puts the words of every register of the channel into `word_buffer`, in order; false
+    /// until all have been read.
+    fn gather_words(&mut self, channel: &ResolvedChannel) -> bool {
         let words = &mut self.word_buffer;
         words.clear();
         for register in &channel.registers {
-            let read = register.read?;
+            let Some(read) = register.read else {
+                return false;
+            };
             for i in 0..read.count.max(1) {
-                let word = self
+                match self
                     .words
-                    .get(&(read.reg_type, read.address.wrapping_add(i)))?;
-                words.push(*word);
+                    .get(&(read.reg_type, read.address.wrapping_add(i)))
+                {
+                    Some(word) => words.push(*word),
+                    None => return false,
+                }
             }
         }
-        let mut rest = words.as_slice();
-        for (position, register) in channel.registers.iter().enumerate() {
-            let count = register
-                .read
-                .map_or(1, |read| usize::from(read.count.max(1)));
-            let (part, after) = rest.split_at(count.min(rest.len()));
-            rest = after;
-            if position > 0 {
-                text.push(';');
-            }
-            match register.codec.decode_into(part, text) {
-                Ok(Decoded::Text) => {}
-                other => return Some(other),
-            }
+        true
+    }
+
+    /// Whether `word_buffer` holds the words the channel's reported value was decoded from.
+    fn repeats_decoded_words(&self, index: usize) -> bool {
+        self.words_decoded.get(index).copied().unwrap_or(false)
+            && self.last_words_of(index) == Some(self.word_buffer.as_slice())
+    }
+
+    fn last_words_of(&self, index: usize) -> Option<&[u16]> {
+        let &(start, count) = self.channel_index.word_slots.get(index)?;
+        self.last_words.get(start..start + count)
+    }
+
+    /// Keeps `word_buffer` as the words of the channel's reported value.
+    fn remember_decoded_words(&mut self, index: usize) {
+        let Some(&(start, count)) = self.channel_index.word_slots.get(index) else {
+            return;
+        };
+        if count != self.word_buffer.len() {
+            return;
         }
-        Some(Ok(Decoded::Text))
+        let Some(slot) = self.last_words.get_mut(start..start + count) else {
+            return;
+        };
+        slot.copy_from_slice(&self.word_buffer);
+        if let Some(decoded) = self.words_decoded.get_mut(index) {
+            *decoded = true;
+        }
     }
 
     fn set_flags(
@@ -735,6 +841,31 @@ fn reads_span(channel: &ResolvedChannel, span: &RegisterSpan) -> bool {
         .any(|r| spans_overlap(&r, span))
 }
 
+/// Decodes a channel's value into `text` from the words of all its registers, in order
+/// (joined with `;`, as [`ResolvedChannel::decode`] does).
+fn decode_words(
+    channel: &ResolvedChannel,
+    words: &[u16],
+    text: &mut String,
+) -> Result<Decoded, crate::device::CodecError> {
+    let mut rest = words;
+    for (position, register) in channel.registers.iter().enumerate() {
+        let count = register
+            .read
+            .map_or(1, |read| usize::from(read.count.max(1)));
+        let (part, after) = rest.split_at(count.min(rest.len()));
+        rest = after;
+        if position > 0 {
+            text.push(';');
+        }
+        match register.codec.decode_into(part, text) {
+            Ok(Decoded::Text) => {}
+            other => return other,
+        }
+    }
+    Ok(Decoded::Text)
+}
+
 fn writes_register(channel: &ResolvedChannel, register_type: RegisterType, address: u16) -> bool {
     channel
         .registers
@@ -755,7 +886,7 @@ mod tests {
         let template = TemplateFile::load(&path).unwrap();
         let device =
             resolve_template_device(&template, &serde_json::json!({"slave_id": 20})).unwrap();
-        DeviceModel::new(Arc::new(device), 0)
+        DeviceModel::new(Arc::new(device), 0, Repeats::All)
     }
 
     fn values(out: &[DeviceUpdate]) -> Vec<(String, String, bool)> {
@@ -835,7 +966,7 @@ mod tests {
         let device =
             resolve_template_device(&template, &serde_json::json!({ "slave_id": slave_id }))
                 .unwrap();
-        DeviceModel::new(Arc::new(device), 0)
+        DeviceModel::new(Arc::new(device), 0, Repeats::All)
     }
 
     /// Feeds one 0x11 event packet, given as on the wire without its CRC, to the model the way
@@ -1071,7 +1202,7 @@ mod tests {
         }
         let mut device = (*relay().device).clone();
         device.channels = vec![channel].into();
-        DeviceModel::new(Arc::new(device), 0)
+        DeviceModel::new(Arc::new(device), 0, Repeats::All)
     }
 
     fn accepts(channel: &ResolvedChannel, payload: &str) -> bool {
@@ -1255,7 +1386,7 @@ mod tests {
         let mut found = Vec::new();
         let mut spans = 0;
         for device in &devices {
-            let model = DeviceModel::new(Arc::clone(device), 0);
+            let model = DeviceModel::new(Arc::clone(device), 0, Repeats::All);
             let reads = read_spans(device);
             for _ in 0..400 {
                 let around = reads.get(random.below(reads.len() as u64) as usize);
@@ -1288,10 +1419,10 @@ mod tests {
         let first = template_model("rtu2mqtt-relay6", 20);
         let mut device = (*first.device).clone();
         device.id = "relay6_21".into();
-        let second = DeviceModel::new(Arc::new(device.clone()), 1);
+        let second = DeviceModel::new(Arc::new(device.clone()), 1, Repeats::All);
         assert!(Arc::ptr_eq(&first.channel_index, &second.channel_index));
         device.channels.make_mut()[0].id = "K1'".into();
-        let third = DeviceModel::new(Arc::new(device), 2);
+        let third = DeviceModel::new(Arc::new(device), 2, Repeats::All);
         assert!(!Arc::ptr_eq(&first.channel_index, &third.channel_index));
         assert_eq!(&*third.channel_index.control_ids[0], "K1'");
     }
@@ -1425,5 +1556,237 @@ mod tests {
             model.write("nope", "1"),
             Err(WriteRejected::UnknownControl("nope".into()))
         );
+    }
+
+    /// `device` with its first channel made a pushbutton, modelled reporting `repeats`.
+    fn with_pushbutton(device: &ResolvedDevice, repeats: Repeats) -> DeviceModel {
+        let mut device = device.clone();
+        device.channels.make_mut()[0].control_type = "pushbutton".into();
+        DeviceModel::new(Arc::new(device), 0, repeats)
+    }
+
+    fn read_coils(model: &mut DeviceModel, words: &[u16]) -> Vec<DeviceUpdate> {
+        let mut out = Vec::new();
+        model.apply(
+            PortEvent::Values {
+                device: 0,
+                span: RegisterSpan::new(RegisterType::Coil, 0, words.len() as u16),
+                values: words.to_vec(),
+            },
+            &mut out,
+        );
+        out
+    }
+
+    /// (control, value, changed) of every value update.
+    fn reported(out: &[DeviceUpdate]) -> Vec<(String, String, bool)> {
+        out.iter()
+            .filter_map(|u| match u {
+                DeviceUpdate::Value {
+                    control_id,
+                    value,
+                    changed,
+                    ..
+                } => Some((control_id.to_string(), value.to_string(), *changed)),
+                _ => None,
+            })
+            .collect()
+    }
+
+    fn report(control: &str, value: &str, changed: bool) -> (String, String, bool) {
+        (control.to_owned(), value.to_owned(), changed)
+    }
+
+    /// Issue 14: with changes only asked for, a read that repeats a value reports nothing for
+    /// it; asked for every value, the repeat comes (marked unchanged).
+    #[test]
+    fn a_repeated_value_is_reported_only_when_the_sinks_ask_for_repeats() {
+        let device = Arc::clone(&relay().device);
+        let mut changes_only = DeviceModel::new(Arc::clone(&device), 0, Repeats::None);
+        let mut every_value = DeviceModel::new(device, 0, Repeats::All);
+        for model in [&mut changes_only, &mut every_value] {
+            assert_eq!(
+                reported(&read_coils(model, &[1, 0])),
+                [report("K1", "1", true), report("K2", "0", true)]
+            );
+        }
+        assert!(read_coils(&mut changes_only, &[1, 0]).is_empty());
+        assert_eq!(
+            reported(&read_coils(&mut changes_only, &[1, 1])),
+            [report("K2", "1", true)]
+        );
+        assert_eq!(
+            reported(&read_coils(&mut every_value, &[1, 0])),
+            [report("K1", "1", false), report("K2", "0", false)]
+        );
+    }
+
+    /// A pushbutton's every value is reported, whatever the sinks asked for.
+    #[test]
+    fn a_pushbutton_reports_every_value() {
+        let mut model = with_pushbutton(&relay().device, Repeats::None);
+        assert_eq!(
+            reported(&read_coils(&mut model, &[1, 0])),
+            [report("K1", "1", true), report("K2", "0", true)]
+        );
+        assert_eq!(
+            reported(&read_coils(&mut model, &[1, 0])),
+            [report("K1", "1", false)]
+        );
+    }
+
+    /// The stdout sink's repeats: every event value, not a read repeating one.
+    #[test]
+    fn event_repeats_are_reported_when_asked_for_and_read_repeats_are_not() {
+        let mut model = template_model("rtu2mqtt-counter8", 20);
+        model.repeats = Repeats::Events;
+        assert_eq!(poll(&mut model, 60, &[0, 5]), one("Input 1 counter", "5"));
+        assert_eq!(poll(&mut model, 60, &[0, 5]), Vec::new());
+        // An event repeating the low word: the same value, reported as an event value.
+        assert_eq!(
+            feed_packet(&mut model, "14 46 11 00 01 06 02 04 003D 0500"),
+            one("Input 1 counter", "5")
+        );
+    }
+
+    /// A read that fails sets `r`; the next good read clears it even though it repeats the
+    /// value (which, asked for changes only, is not reported again).
+    #[test]
+    fn r_is_cleared_by_a_good_read_that_repeats_the_value() {
+        let mut model = DeviceModel::new(Arc::clone(&relay().device), 0, Repeats::None);
+        assert_eq!(
+            reported(&read_coils(&mut model, &[1])),
+            [report("K1", "1", true)]
+        );
+        let mut out = Vec::new();
+        model.apply(
+            PortEvent::ReadFailed {
+                device: 0,
+                span: RegisterSpan::new(RegisterType::Coil, 0, 1),
+                unsupported: false,
+            },
+            &mut out,
+        );
+        let flags = |out: &[DeviceUpdate]| -> Vec<(String, String)> {
+            out.iter()
+                .filter_map(|u| match u {
+                    DeviceUpdate::ControlError {
+                        control_id, errors, ..
+                    } => Some((control_id.clone(), errors.to_string())),
+                    _ => None,
+                })
+                .collect()
+        };
+        assert_eq!(flags(&out), [("K1".to_owned(), "r".to_owned())]);
+        let out = read_coils(&mut model, &[1]);
+        assert_eq!(flags(&out), [("K1".to_owned(), String::new())]);
+        assert!(reported(&out).is_empty(), "{out:?}");
+    }
+
+    /// For every template and every choice of repeats, on random reads (mostly repeating
+    /// words), events, failed reads, restarts and lost devices: a model reports exactly what a
+    /// model reporting every value and decoding every value afresh (as before issue 14)
+    /// reports, less the repeats not asked for; error flags alike.
+    #[test]
+    fn a_model_reports_what_every_value_gives_less_the_repeats_not_asked_for() {
+        let mut random = Random(0xD1B5_4A32_D192_ED03);
+        let mut devices: Vec<Arc<ResolvedDevice>> = TEMPLATES
+            .iter()
+            .map(|template| Arc::clone(&template_model(template, 20).device))
+            .collect();
+        devices.push(Arc::clone(
+            &with_pushbutton(&relay().device, Repeats::All).device,
+        ));
+        let mut repeats_seen = 0;
+        for device in &devices {
+            for repeats in [Repeats::None, Repeats::Events, Repeats::All] {
+                let mut all = DeviceModel::new(Arc::clone(device), 0, Repeats::All);
+                let mut asked = DeviceModel::new(Arc::clone(device), 0, repeats);
+                let reads = read_spans(device);
+                for _ in 0..400 {
+                    let around = reads[random.below(reads.len() as u64) as usize];
+                    let word = |random: &mut Random| -> u16 {
+                        let word = match random.below(8) {
+                            0 => 0xFFFF,
+                            1 => random.next() as u16,
+                            other => (other % 2) as u16,
+                        };
+                        if around.register_type.is_bit() {
+                            word & 1
+                        } else {
+                            word
+                        }
+                    };
+                    let events: Vec<PortEvent> = match random.below(10) {
+                        0..=5 => {
+                            let span = RegisterSpan::new(
+                                around.register_type,
+                                around.start.saturating_sub(random.below(2) as u16),
+                                around.count + random.below(3) as u16,
+                            );
+                            let values = (0..span.count).map(|_| word(&mut random)).collect();
+                            vec![PortEvent::Values {
+                                device: 0,
+                                span,
+                                values,
+                            }]
+                        }
+                        6 | 7 => (0..=random.below(2))
+                            .map(|_| {
+                                let [low, high] = word(&mut random).to_le_bytes();
+                                PortEvent::EventValue {
+                                    device: 0,
+                                    register_type: around.register_type,
+                                    address: around.start + random.below(2) as u16,
+                                    payload: vec![low, high],
+                                }
+                            })
+                            .collect(),
+                        8 => vec![PortEvent::ReadFailed {
+                            device: 0,
+                            span: around,
+                            unsupported: false,
+                        }],
+                        _ => vec![match random.below(3) {
+                            0 => PortEvent::Rebooted { device: 0 },
+                            1 => PortEvent::Offline { device: 0 },
+                            _ => PortEvent::Online { device: 0 },
+                        }],
+                    };
+                    let mut from_all = Vec::new();
+                    let mut from_asked = Vec::new();
+                    // No value known to repeat its words: every one decoded again.
+                    all.words_decoded.fill(false);
+                    apply_port_events(
+                        std::slice::from_mut(&mut all),
+                        events.clone(),
+                        &mut from_all,
+                    );
+                    apply_port_events(std::slice::from_mut(&mut asked), events, &mut from_asked);
+                    let expected: Vec<String> = from_all
+                        .iter()
+                        .filter(|u| match u {
+                            DeviceUpdate::Value {
+                                control_id,
+                                from_event,
+                                changed,
+                                ..
+                            } => {
+                                let pushbutton = device
+                                    .channel(control_id)
+                                    .is_some_and(|c| c.control_type == "pushbutton");
+                                repeats_seen += usize::from(!changed);
+                                *changed || repeats.report(*from_event, pushbutton)
+                            }
+                            _ => true,
+                        })
+                        .map(|u| format!("{u:?}"))
+                        .collect();
+                    let got: Vec<String> = from_asked.iter().map(|u| format!("{u:?}")).collect();
+                    assert_eq!(got, expected, "{} {repeats:?}", device.id);
+                }
+            }
+        }
+        assert!(repeats_seen > 1000, "{repeats_seen} repeats only");
     }
 }

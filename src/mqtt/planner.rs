@@ -15,7 +15,7 @@ use super::layout;
 use super::topics::TopicScheme;
 use super::{MqttAction, Publication};
 use crate::device::{ResolvedChannel, ResolvedDevice};
-use crate::updates::{ControlWrite, DeviceIdentity, DeviceUpdate, ErrorFlags};
+use crate::updates::{ControlWrite, DeviceIdentity, DeviceUpdate, ErrorFlags, Repeats};
 
 /// When an unchanged value is published again (config `max_unchanged_interval`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -34,6 +34,15 @@ impl UnchangedPolicy {
             i64::MIN..=-1 => Self::OnChange,
             0 => Self::EveryRead,
             n => Self::After(Duration::from_secs(n.max(5) as u64)),
+        }
+    }
+
+    /// The values the device models must report besides the changes for this policy: the
+    /// repeats it publishes again (all, checked here against the time), or none.
+    pub fn repeats(self) -> Repeats {
+        match self {
+            Self::OnChange => Repeats::None,
+            Self::EveryRead | Self::After(_) => Repeats::All,
         }
     }
 }
