@@ -39,6 +39,8 @@ pub struct DeviceModel {
     /// repeats them is known to repeat the value without decoding it.
     last_words: Vec<u16>,
     words_decoded: Vec<bool>,
+    /// Where in the channel index the last search for a span's channels ended.
+    reader_hint: usize,
     /// Channels that events changed since the last [`DeviceModel::flush_events`].
     pending_events: BTreeSet<usize>,
     /// Kept between reads, so that a read of many values allocates nothing for them unless
@@ -59,8 +61,14 @@ struct ChannelIndex {
     /// sorted. The address is a u32, as [`RegisterSpan::end`]: a value may end past 65535.
     readers: Vec<(RegisterType, u32, u32)>,
     control_ids: Vec<Arc<str>>,
-    /// Per channel, where its words are kept in [`DeviceModel::last_words`]: (start, count).
-    word_slots: Vec<(usize, usize)>,
+    /// Per channel, where its words are in `word_registers` and in
+    /// [`DeviceModel::last_words`]: (start, count); none for a channel with a register it
+    /// does not read (it has no value to decode).
+    word_slots: Vec<Option<(usize, usize)>>,
+    /// The register of every word of every channel, in the order its value is decoded from:
+    /// found here rather than in the channel's registers, which a read of many values would
+    /// otherwise bring into the cache one by one only to find them unchanged.
+    word_registers: Vec<(RegisterType, u16)>,
     /// Per channel, whether it is a pushbutton (its every value is reported, see
     /// [`Repeats::report`]; the type as `mqtt::layout::is_pushbutton` reads it).
     pushbuttons: Vec<bool>,
@@ -85,22 +93,28 @@ impl ChannelIndex {
         readers.dedup();
         readers.shrink_to_fit();
         let mut word_slots = Vec::with_capacity(channels.len());
-        let mut next = 0;
+        let mut word_registers = Vec::new();
         for channel in channels.iter() {
-            let count = channel
-                .registers
-                .iter()
-                .filter_map(|r| r.read)
-                .map(|read| usize::from(read.count.max(1)))
-                .sum();
-            word_slots.push((next, count));
-            next += count;
+            let reads: Option<Vec<_>> = channel.registers.iter().map(|r| r.read).collect();
+            let Some(reads) = reads else {
+                word_slots.push(None);
+                continue;
+            };
+            let start = word_registers.len();
+            for read in reads {
+                for i in 0..read.count.max(1) {
+                    word_registers.push((read.reg_type, read.address.wrapping_add(i)));
+                }
+            }
+            word_slots.push(Some((start, word_registers.len() - start)));
         }
+        word_registers.shrink_to_fit();
         Self {
             channels: channels.clone(),
             readers,
             control_ids: channels.iter().map(|c| Arc::from(c.id.as_str())).collect(),
             word_slots,
+            word_registers,
             pushbuttons: channels
                 .iter()
                 .map(|c| c.control_type == "pushbutton")
@@ -110,9 +124,7 @@ impl ChannelIndex {
 
     /// How many words [`DeviceModel::last_words`] keeps for all channels.
     fn word_count(&self) -> usize {
-        self.word_slots
-            .last()
-            .map_or(0, |&(start, count)| start + count)
+        self.word_registers.len()
     }
 
     /// The index of `channels`: the one another device of the same list uses, or a new one.
@@ -133,8 +145,11 @@ impl ChannelIndex {
         index
     }
 
-    /// The channels that read any register of `span`, in channel order, into `out`.
-    fn readers_of(&self, span: &RegisterSpan, out: &mut Vec<usize>) {
+    /// The channels that read any register of `span`, in channel order, into `out`. `hint`:
+    /// where the last search ended, kept by the caller; a device's reads come in address
+    /// order (a read of many values arrives as one span per value), so the next span usually
+    /// starts there and needs no search.
+    fn readers_of(&self, span: &RegisterSpan, out: &mut Vec<usize>, hint: &mut usize) {
         out.clear();
         if span.count == 0 {
             // No register, but still "overlapping" a wider value around its start (as
@@ -150,11 +165,20 @@ impl ChannelIndex {
         }
         let start = u32::from(span.start);
         let end = span.end();
-        let first = self
-            .readers
-            .partition_point(|&(register_type, address, _)| {
-                (register_type, address) < (span.register_type, start)
-            });
+        let before = |&(register_type, address, _): &(RegisterType, u32, u32)| {
+            (register_type, address) < (span.register_type, start)
+        };
+        // The hint is the first entry not before the span when the one at it is not and the
+        // one just before it is (the entries are sorted).
+        let hinted = self.readers.get(*hint).is_some_and(|entry| !before(entry))
+            && hint
+                .checked_sub(1)
+                .is_none_or(|previous| self.readers.get(previous).is_some_and(before));
+        let first = if hinted {
+            *hint
+        } else {
+            self.readers.partition_point(before)
+        };
         let matching =
             self.readers
                 .iter()
@@ -163,7 +187,8 @@ impl ChannelIndex {
                     register_type == span.register_type && address < end
                 });
         out.extend(matching.map(|&(_, _, channel)| channel as usize));
-        if out.len() > 1 {
+        *hint = first + out.len();
+        if !out.is_sorted_by(|a, b| a < b) {
             out.sort_unstable();
             out.dedup();
         }
@@ -248,6 +273,7 @@ impl DeviceModel {
             repeats,
             last_words: vec![0; channel_index.word_count()],
             words_decoded: vec![false; device.channels.len()],
+            reader_hint: 0,
             device_id: Arc::from(device.id.as_str()),
             channel_index,
             device,
@@ -284,7 +310,8 @@ impl DeviceModel {
                     self.words.insert((span.register_type, address), *value);
                 }
                 let mut touched = std::mem::take(&mut self.touched);
-                self.channel_index.readers_of(&span, &mut touched);
+                self.channel_index
+                    .readers_of(&span, &mut touched, &mut self.reader_hint);
                 self.publish_channels(&touched, false, out);
                 self.touched = touched;
             }
@@ -315,7 +342,8 @@ impl DeviceModel {
                 // several words of one value, and a value made of old and new words is wrong.
                 let span = RegisterSpan::new(register_type, address, width);
                 let mut touched = std::mem::take(&mut self.touched);
-                self.channel_index.readers_of(&span, &mut touched);
+                self.channel_index
+                    .readers_of(&span, &mut touched, &mut self.reader_hint);
                 self.pending_events.extend(touched.iter().copied());
                 self.touched = touched;
             }
@@ -437,13 +465,9 @@ impl DeviceModel {
         from_event: bool,
         out: &mut Vec<DeviceUpdate>,
     ) {
-        let device = Arc::clone(&self.device);
         let mut text = std::mem::take(&mut self.text);
         for &index in touched {
-            let Some(channel) = device.channels.get(index) else {
-                continue;
-            };
-            if !self.gather_words(channel) {
+            if !self.gather_words(index) {
                 continue;
             }
             let flags = self.errors.get(index).copied().unwrap_or_default();
@@ -470,11 +494,15 @@ impl DeviceModel {
                 if report_repeat {
                     if let Some(Some(last)) = self.reported.get(index) {
                         let value = Arc::clone(last);
-                        self.push_value(index, channel, value, from_event, false, out);
+                        self.push_value(index, value, from_event, false, out);
                     }
                 }
                 continue;
             }
+            let device = Arc::clone(&self.device);
+            let Some(channel) = device.channels.get(index) else {
+                continue;
+            };
             text.clear();
             let reading = decode_words(channel, &self.word_buffer, &mut text);
             if let Some(decoded) = self.words_decoded.get_mut(index) {
@@ -504,7 +532,7 @@ impl DeviceModel {
                     };
                     self.remember_decoded_words(index);
                     if changed || report_repeat {
-                        self.push_value(index, channel, value, from_event, changed, out);
+                        self.push_value(index, value, from_event, changed, out);
                     }
                 }
                 Ok(Decoded::DeviceError | Decoded::Unsupported) => {
@@ -536,17 +564,16 @@ impl DeviceModel {
     fn push_value(
         &self,
         index: usize,
-        channel: &ResolvedChannel,
         value: Arc<str>,
         from_event: bool,
         changed: bool,
         out: &mut Vec<DeviceUpdate>,
     ) {
-        let control_id = self
-            .channel_index
-            .control_ids
-            .get(index)
-            .map_or_else(|| Arc::from(channel.id.as_str()), Arc::clone);
+        // The index has the id of every channel the model has.
+        let Some(control_id) = self.channel_index.control_ids.get(index) else {
+            return;
+        };
+        let control_id = Arc::clone(control_id);
         out.push(DeviceUpdate::Value {
             device_id: Arc::clone(&self.device_id),
             control_id,
@@ -556,23 +583,21 @@ impl DeviceModel {
         });
     }
 
-    /// Puts the words of every register of the channel into `word_buffer`, in order; false
-    /// until all have been read.
-    fn gather_words(&mut self, channel: &ResolvedChannel) -> bool {
+    /// Puts the words of every register of the `index`th channel into `word_buffer`, in
+    /// order; false until all have been read.
+    fn gather_words(&mut self, index: usize) -> bool {
         let words = &mut self.word_buffer;
         words.clear();
-        for register in &channel.registers {
-            let Some(read) = register.read else {
-                return false;
-            };
-            for i in 0..read.count.max(1) {
-                match self
-                    .words
-                    .get(&(read.reg_type, read.address.wrapping_add(i)))
-                {
-                    Some(word) => words.push(*word),
-                    None => return false,
-                }
+        let Some(Some((start, count))) = self.channel_index.word_slots.get(index).copied() else {
+            return false;
+        };
+        let Some(registers) = self.channel_index.word_registers.get(start..start + count) else {
+            return false;
+        };
+        for register in registers {
+            match self.words.get(register) {
+                Some(word) => words.push(*word),
+                None => return false,
             }
         }
         true
@@ -580,18 +605,21 @@ impl DeviceModel {
 
     /// Whether `word_buffer` holds the words the channel's reported value was decoded from.
     fn repeats_decoded_words(&self, index: usize) -> bool {
+        // Compared word by word: most values are one or two words, too few for `memcmp`.
         self.words_decoded.get(index).copied().unwrap_or(false)
-            && self.last_words_of(index) == Some(self.word_buffer.as_slice())
+            && self
+                .last_words_of(index)
+                .is_some_and(|last| last.iter().eq(self.word_buffer.iter()))
     }
 
     fn last_words_of(&self, index: usize) -> Option<&[u16]> {
-        let &(start, count) = self.channel_index.word_slots.get(index)?;
+        let (start, count) = (*self.channel_index.word_slots.get(index)?)?;
         self.last_words.get(start..start + count)
     }
 
     /// Keeps `word_buffer` as the words of the channel's reported value.
     fn remember_decoded_words(&mut self, index: usize) {
-        let Some(&(start, count)) = self.channel_index.word_slots.get(index) else {
+        let Some(Some((start, count))) = self.channel_index.word_slots.get(index).copied() else {
             return;
         };
         if count != self.word_buffer.len() {
@@ -1387,9 +1415,21 @@ mod tests {
         let mut spans = 0;
         for device in &devices {
             let model = DeviceModel::new(Arc::clone(device), 0, Repeats::All);
-            let reads = read_spans(device);
+            let mut reads = read_spans(device);
+            reads.sort_by_key(|r| (r.register_type, r.start));
+            // Searches start from where the last ended; half of the spans follow each other in
+            // address order, as a read of many values arrives, the others jump anywhere.
+            let mut hint = 0;
+            let mut next_read = 0;
             for _ in 0..400 {
-                let around = reads.get(random.below(reads.len() as u64) as usize);
+                let in_order = random.below(2) == 0;
+                let at = if in_order {
+                    next_read
+                } else {
+                    random.below(reads.len() as u64) as usize
+                };
+                next_read = (at + 1) % reads.len().max(1);
+                let around = reads.get(at);
                 let register_type = around.map_or(RegisterType::Holding, |r| r.register_type);
                 let base = around.map_or(0, |r| r.start);
                 let start = base.saturating_sub(random.below(4) as u16).saturating_add(
@@ -1400,11 +1440,14 @@ mod tests {
                     },
                 );
                 let count = random.below(70) as u16;
-                let span = RegisterSpan::new(register_type, start, count);
+                let span = match around {
+                    Some(&read) if in_order => read,
+                    _ => RegisterSpan::new(register_type, start, count),
+                };
                 let scanned: Vec<usize> = (0..device.channels.len())
                     .filter(|&i| reads_span(&device.channels[i], &span))
                     .collect();
-                model.channel_index.readers_of(&span, &mut found);
+                model.channel_index.readers_of(&span, &mut found, &mut hint);
                 assert_eq!(found, scanned, "{span:?} on {}", device.id);
                 spans += 1;
             }
