@@ -530,6 +530,9 @@ fn the_policy_asks_the_models_for_the_repeats_it_publishes() {
     );
 }
 
+/// (topic, payload, retained) of each publication.
+type Publications = Vec<(String, String, bool)>;
+
 /// Issue 14, from register words to publications: a device model built with the policy's
 /// repeats and the planner with that policy publish, for a coil read four times as 1 (at 0, 5,
 /// 10 and 11 s), what each `max_unchanged_interval` says; a pushbutton every read, whatever
@@ -537,7 +540,7 @@ fn the_policy_asks_the_models_for_the_repeats_it_publishes() {
 fn reads_of_an_unchanged_coil(
     max_unchanged_interval: i64,
     pushbutton: bool,
-) -> Vec<(usize, Vec<(String, String, bool)>)> {
+) -> Vec<(usize, Publications)> {
     use crate::gateway::device_model::DeviceModel;
     use crate::port::{PortEvent, RegisterSpan};
     use crate::protocol::RegisterType;
