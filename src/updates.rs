@@ -18,7 +18,8 @@ pub enum DeviceUpdate {
     },
     /// Remove every retained topic of the device (clean shutdown, or dropped from the config).
     Removed { device_id: String },
-    /// A control's value, formatted the Wiren Board way, after every good read or event.
+    /// A control's value, formatted the Wiren Board way, after a good read or event that
+    /// changed it, and after those that repeat it when [`Repeats`] asks for them.
     /// `from_event`: it came by a Fast Modbus event (for logs and the stdout sink). `changed`:
     /// it differs from the value the device model reported before (always true for the first).
     /// MQTT publishes on change either way, as wb-mqtt-serial does: a device repeating an
@@ -40,6 +41,32 @@ pub enum DeviceUpdate {
     },
     /// The device answers again (`true`) or stopped answering.
     Online { device_id: String, online: bool },
+}
+
+/// Which values the device model reports when they repeat the one it reported before (a
+/// change is always reported): what its sinks need beyond the changes, chosen where the models
+/// are built. Most reads repeat every value; those not needed are not even decoded.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Repeats {
+    /// None: MQTT publishing changes only (`max_unchanged_interval` -1); the status page.
+    None,
+    /// Values brought by events: the stdout sink prints each.
+    Events,
+    /// Every value: MQTT publishing unchanged values again (`max_unchanged_interval` 0 or N).
+    All,
+}
+
+impl Repeats {
+    /// Whether a value that repeats the last one is reported. A pushbutton's every value is
+    /// (MQTT publishes each: a press), whatever the sinks asked for.
+    pub fn report(self, from_event: bool, pushbutton: bool) -> bool {
+        pushbutton
+            || match self {
+                Self::None => false,
+                Self::Events => from_event,
+                Self::All => true,
+            }
+    }
 }
 
 /// Facts a device reports about itself.

@@ -15,7 +15,7 @@ use crate::config::load::{load_config, LoadedConfig, DEFAULT_CONFIG_PATH};
 use crate::daemon::{start_bus_side_with_status, stdio, termination_signal, BusControl, BusSide};
 use crate::device::model::ResolvedPort;
 use crate::device::resolve_config;
-use crate::mqtt::{run_mqtt_reporting, MqttSettings};
+use crate::mqtt::{run_mqtt_reporting, MqttSettings, UnchangedPolicy};
 use crate::rpc::{run_rpc_server, DeviceTemplates};
 use crate::service::{notify_systemd, BrokerState, ServiceHealth};
 use crate::status::{StatusHub, StatusServer};
@@ -115,6 +115,12 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             fast_modbus,
             Arc::clone(&health),
             status.as_ref().map(|(hub, _)| Arc::clone(hub)),
+            // What the one sink (stdout or MQTT) needs besides the changes.
+            if args.stdio {
+                stdio::REPEATS
+            } else {
+                UnchangedPolicy::from_config(mqtt_settings.max_unchanged_interval).repeats()
+            },
         );
         // Only now: READY waits for every port to have tried to open, and before the ports are
         // registered there are none to wait for.

@@ -19,7 +19,7 @@ use crate::gateway::port_plan::port_plan;
 use crate::protocol::LineSettings;
 use crate::service::{PortVitals, ServiceHealth};
 use crate::status::{PortStatus, StatusHub};
-use crate::updates::{ControlWrite, DeviceUpdate};
+use crate::updates::{ControlWrite, DeviceUpdate, Repeats};
 use bus_queue::BusQueue;
 use port_task::PortTask;
 
@@ -76,6 +76,8 @@ pub struct BusControl {
     directory: PortDirectory,
     /// The status page's registry of ports, when the page is on.
     status: Option<Arc<StatusHub>>,
+    /// The repeated values the sink needs from the device models.
+    repeats: Repeats,
 }
 
 /// What a reload did, for the log and the tests.
@@ -99,12 +101,14 @@ fn port_key(port: &ResolvedPort) -> String {
 
 /// Starts one task per port and a router for control writes. Every device is announced with
 /// [`DeviceUpdate::Added`] before any of its values.
+/// `repeats`: the values the sink needs besides the changes (see [`Repeats`]).
 pub fn start_bus_side(
     ports: Vec<ResolvedPort>,
     fast_modbus: bool,
     health: Arc<ServiceHealth>,
+    repeats: Repeats,
 ) -> BusSide {
-    start_bus_side_with_status(ports, fast_modbus, health, None)
+    start_bus_side_with_status(ports, fast_modbus, health, None, repeats)
 }
 
 /// [`start_bus_side`], with every port counted for the status page in `status`.
@@ -113,6 +117,7 @@ pub fn start_bus_side_with_status(
     fast_modbus: bool,
     health: Arc<ServiceHealth>,
     status: Option<Arc<StatusHub>>,
+    repeats: Repeats,
 ) -> BusSide {
     let (update_tx, update_rx) = mpsc::channel(UPDATE_QUEUE);
     let (write_tx, mut write_rx) = mpsc::channel::<ControlWrite>(WRITE_QUEUE);
@@ -138,6 +143,7 @@ pub fn start_bus_side_with_status(
         health,
         directory: PortDirectory::default(),
         status,
+        repeats,
     };
     for port in ports {
         let (task, added) = control.prepare_port(&port);
@@ -177,7 +183,7 @@ impl BusControl {
             routes.insert(device.id.clone(), port_write_tx.clone());
             added.push(DeviceUpdate::Added(Arc::clone(&device)));
             devices.push(Arc::clone(&device));
-            models.push(DeviceModel::new(device, index));
+            models.push(DeviceModel::new(device, index, self.repeats));
         }
         let (queue, queued) = BusQueue::new();
         let line = match &plan.endpoint {

@@ -10,7 +10,11 @@ use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
 use tokio::sync::mpsc;
 use tracing::warn;
 
-use crate::updates::{ControlWrite, DeviceUpdate};
+use crate::updates::{ControlWrite, DeviceUpdate, Repeats};
+
+/// The values this sink needs the device models to report besides the changes: every event
+/// value, which it prints.
+pub const REPEATS: Repeats = Repeats::Events;
 
 pub fn update_line(update: &DeviceUpdate) -> serde_json::Value {
     match update {

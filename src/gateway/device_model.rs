@@ -16,7 +16,7 @@ use crate::device::codec::Decoded;
 use crate::device::model::{ResolvedChannel, ResolvedDevice, SharedVec, WriteFunction};
 use crate::port::{PortEvent, RegisterSpan, RegisterWrite};
 use crate::protocol::RegisterType;
-use crate::updates::{DeviceUpdate, ErrorFlags};
+use crate::updates::{DeviceUpdate, ErrorFlags, Repeats};
 
 #[derive(Debug)]
 pub struct DeviceModel {
@@ -32,6 +32,15 @@ pub struct DeviceModel {
     /// The last value reported per channel, to tell a change from a repeat (and sent again,
     /// not copied, when it repeats).
     reported: Vec<Option<Arc<str>>>,
+    /// Which repeated values the sinks need (see [`Repeats`]).
+    repeats: Repeats,
+    /// Per channel (at [`ChannelIndex::word_slots`]), the words its reported value was decoded
+    /// from, when `words_decoded` says so: the same words make the same text, so a read that
+    /// repeats them is known to repeat the value without decoding it.
+    last_words: Vec<u16>,
+    words_decoded: Vec<bool>,
+    /// Where in the channel index the last search for a span's channels ended.
+    reader_hint: usize,
     /// Channels that events changed since the last [`DeviceModel::flush_events`].
     pending_events: BTreeSet<usize>,
     /// Kept between reads, so that a read of many values allocates nothing for them unless
@@ -52,6 +61,17 @@ struct ChannelIndex {
     /// sorted. The address is a u32, as [`RegisterSpan::end`]: a value may end past 65535.
     readers: Vec<(RegisterType, u32, u32)>,
     control_ids: Vec<Arc<str>>,
+    /// Per channel, where its words are in `word_registers` and in
+    /// [`DeviceModel::last_words`]: (start, count); none for a channel with a register it
+    /// does not read (it has no value to decode).
+    word_slots: Vec<Option<(usize, usize)>>,
+    /// The register of every word of every channel, in the order its value is decoded from:
+    /// found here rather than in the channel's registers, which a read of many values would
+    /// otherwise bring into the cache one by one only to find them unchanged.
+    word_registers: Vec<(RegisterType, u16)>,
+    /// Per channel, whether it is a pushbutton (its every value is reported, see
+    /// [`Repeats::report`]; the type as `mqtt::layout::is_pushbutton` reads it).
+    pushbuttons: Vec<bool>,
 }
 
 /// The channel indexes in use, to share one between the devices of one channel list.
@@ -72,11 +92,39 @@ impl ChannelIndex {
         readers.sort_unstable();
         readers.dedup();
         readers.shrink_to_fit();
+        let mut word_slots = Vec::with_capacity(channels.len());
+        let mut word_registers = Vec::new();
+        for channel in channels.iter() {
+            let reads: Option<Vec<_>> = channel.registers.iter().map(|r| r.read).collect();
+            let Some(reads) = reads else {
+                word_slots.push(None);
+                continue;
+            };
+            let start = word_registers.len();
+            for read in reads {
+                for i in 0..read.count.max(1) {
+                    word_registers.push((read.reg_type, read.address.wrapping_add(i)));
+                }
+            }
+            word_slots.push(Some((start, word_registers.len() - start)));
+        }
+        word_registers.shrink_to_fit();
         Self {
             channels: channels.clone(),
             readers,
             control_ids: channels.iter().map(|c| Arc::from(c.id.as_str())).collect(),
+            word_slots,
+            word_registers,
+            pushbuttons: channels
+                .iter()
+                .map(|c| c.control_type == "pushbutton")
+                .collect(),
         }
+    }
+
+    /// How many words [`DeviceModel::last_words`] keeps for all channels.
+    fn word_count(&self) -> usize {
+        self.word_registers.len()
     }
 
     /// The index of `channels`: the one another device of the same list uses, or a new one.
@@ -97,8 +145,11 @@ impl ChannelIndex {
         index
     }
 
-    /// The channels that read any register of `span`, in channel order, into `out`.
-    fn readers_of(&self, span: &RegisterSpan, out: &mut Vec<usize>) {
+    /// The channels that read any register of `span`, in channel order, into `out`. `hint`:
+    /// where the last search ended, kept by the caller; a device's reads come in address
+    /// order (a read of many values arrives as one span per value), so the next span usually
+    /// starts there and needs no search.
+    fn readers_of(&self, span: &RegisterSpan, out: &mut Vec<usize>, hint: &mut usize) {
         out.clear();
         if span.count == 0 {
             // No register, but still "overlapping" a wider value around its start (as
@@ -114,11 +165,20 @@ impl ChannelIndex {
         }
         let start = u32::from(span.start);
         let end = span.end();
-        let first = self
-            .readers
-            .partition_point(|&(register_type, address, _)| {
-                (register_type, address) < (span.register_type, start)
-            });
+        let before = |&(register_type, address, _): &(RegisterType, u32, u32)| {
+            (register_type, address) < (span.register_type, start)
+        };
+        // The hint is the first entry not before the span when the one at it is not and the
+        // one just before it is (the entries are sorted).
+        let hinted = self.readers.get(*hint).is_some_and(|entry| !before(entry))
+            && hint
+                .checked_sub(1)
+                .is_none_or(|previous| self.readers.get(previous).is_some_and(before));
+        let first = if hinted {
+            *hint
+        } else {
+            self.readers.partition_point(before)
+        };
         let matching =
             self.readers
                 .iter()
@@ -127,7 +187,8 @@ impl ChannelIndex {
                     register_type == span.register_type && address < end
                 });
         out.extend(matching.map(|&(_, _, channel)| channel as usize));
-        if out.len() > 1 {
+        *hint = first + out.len();
+        if !out.is_sorted_by(|a, b| a < b) {
             out.sort_unstable();
             out.dedup();
         }
@@ -202,12 +263,19 @@ pub enum WriteRejected {
 }
 
 impl DeviceModel {
-    pub fn new(device: Arc<ResolvedDevice>, index: usize) -> Self {
+    /// The model of `device`, the `index`th of its port, reporting `repeats` besides the
+    /// changes (the sinks that read its updates say which they need).
+    pub fn new(device: Arc<ResolvedDevice>, index: usize, repeats: Repeats) -> Self {
         let errors = vec![ErrorFlags::default(); device.channels.len()];
+        let channel_index = ChannelIndex::shared(&device.channels);
         Self {
             reported: vec![None; device.channels.len()],
+            repeats,
+            last_words: vec![0; channel_index.word_count()],
+            words_decoded: vec![false; device.channels.len()],
+            reader_hint: 0,
             device_id: Arc::from(device.id.as_str()),
-            channel_index: ChannelIndex::shared(&device.channels),
+            channel_index,
             device,
             index,
             words: HashMap::default(),
@@ -242,7 +310,8 @@ impl DeviceModel {
                     self.words.insert((span.register_type, address), *value);
                 }
                 let mut touched = std::mem::take(&mut self.touched);
-                self.channel_index.readers_of(&span, &mut touched);
+                self.channel_index
+                    .readers_of(&span, &mut touched, &mut self.reader_hint);
                 self.publish_channels(&touched, false, out);
                 self.touched = touched;
             }
@@ -273,7 +342,8 @@ impl DeviceModel {
                 // several words of one value, and a value made of old and new words is wrong.
                 let span = RegisterSpan::new(register_type, address, width);
                 let mut touched = std::mem::take(&mut self.touched);
-                self.channel_index.readers_of(&span, &mut touched);
+                self.channel_index
+                    .readers_of(&span, &mut touched, &mut self.reader_hint);
                 self.pending_events.extend(touched.iter().copied());
                 self.touched = touched;
             }
@@ -386,23 +456,58 @@ impl DeviceModel {
             .unwrap_or(1)
     }
 
+    /// Reports the values of the `touched` channels whose words are all known: each change,
+    /// and each repeat that [`Repeats::report`] asks for. A good value clears `r` first,
+    /// changed or not.
     fn publish_channels(
         &mut self,
         touched: &[usize],
         from_event: bool,
         out: &mut Vec<DeviceUpdate>,
     ) {
-        let device = Arc::clone(&self.device);
         let mut text = std::mem::take(&mut self.text);
         for &index in touched {
+            if !self.gather_words(index) {
+                continue;
+            }
+            let flags = self.errors.get(index).copied().unwrap_or_default();
+            let report_repeat = self.repeats.report(
+                from_event,
+                self.channel_index
+                    .pushbuttons
+                    .get(index)
+                    .copied()
+                    .unwrap_or(false),
+            );
+            if self.repeats_decoded_words(index) {
+                // The words of the value reported last: the same value, not decoded again.
+                if flags.read {
+                    self.update_flags(
+                        index,
+                        ErrorFlags {
+                            read: false,
+                            ..flags
+                        },
+                        out,
+                    );
+                }
+                if report_repeat {
+                    if let Some(Some(last)) = self.reported.get(index) {
+                        let value = Arc::clone(last);
+                        self.push_value(index, value, from_event, false, out);
+                    }
+                }
+                continue;
+            }
+            let device = Arc::clone(&self.device);
             let Some(channel) = device.channels.get(index) else {
                 continue;
             };
             text.clear();
-            let Some(reading) = self.decode_channel(channel, &mut text) else {
-                continue;
-            };
-            let flags = self.errors.get(index).copied().unwrap_or_default();
+            let reading = decode_words(channel, &self.word_buffer, &mut text);
+            if let Some(decoded) = self.words_decoded.get_mut(index) {
+                *decoded = false;
+            }
             match reading {
                 Ok(Decoded::Text) => {
                     // Clear `r` before the good value, as wb-mqtt-serial does.
@@ -425,18 +530,10 @@ impl DeviceModel {
                         Some(last) if !changed => Arc::clone(last),
                         _ => Arc::clone(last.insert(Arc::from(text.as_str()))),
                     };
-                    let control_id = self
-                        .channel_index
-                        .control_ids
-                        .get(index)
-                        .map_or_else(|| Arc::from(channel.id.as_str()), Arc::clone);
-                    out.push(DeviceUpdate::Value {
-                        device_id: Arc::clone(&self.device_id),
-                        control_id,
-                        value,
-                        from_event,
-                        changed,
-                    });
+                    self.remember_decoded_words(index);
+                    if changed || report_repeat {
+                        self.push_value(index, value, from_event, changed, out);
+                    }
                 }
                 Ok(Decoded::DeviceError | Decoded::Unsupported) => {
                     self.update_flags(
@@ -464,40 +561,77 @@ impl DeviceModel {
         self.text = text;
     }
 
-    /// Decodes the channel's value into `text` from the words of every register (joined with
-    /// `;`, as [`ResolvedChannel::decode`] does); none until all have been read.
-    fn decode_channel(
-        &mut self,
-        channel: &ResolvedChannel,
-        text: &mut String,
-    ) -> Option<Result<Decoded, crate::device::CodecError>> {
+    fn push_value(
+        &self,
+        index: usize,
+        value: Arc<str>,
+        from_event: bool,
+        changed: bool,
+        out: &mut Vec<DeviceUpdate>,
+    ) {
+        // The index has the id of every channel the model has.
+        let Some(control_id) = self.channel_index.control_ids.get(index) else {
+            return;
+        };
+        let control_id = Arc::clone(control_id);
+        out.push(DeviceUpdate::Value {
+            device_id: Arc::clone(&self.device_id),
+            control_id,
+            value,
+            from_event,
+            changed,
+        });
+    }
+
+    /// Puts the words of every register of the `index`th channel into `word_buffer`, in
+    /// order; false until all have been read.
+    fn gather_words(&mut self, index: usize) -> bool {
         let words = &mut self.word_buffer;
         words.clear();
-        for register in &channel.registers {
-            let read = register.read?;
-            for i in 0..read.count.max(1) {
-                let word = self
-                    .words
-                    .get(&(read.reg_type, read.address.wrapping_add(i)))?;
-                words.push(*word);
+        let Some(Some((start, count))) = self.channel_index.word_slots.get(index).copied() else {
+            return false;
+        };
+        let Some(registers) = self.channel_index.word_registers.get(start..start + count) else {
+            return false;
+        };
+        for register in registers {
+            match self.words.get(register) {
+                Some(word) => words.push(*word),
+                None => return false,
             }
         }
-        let mut rest = words.as_slice();
-        for (position, register) in channel.registers.iter().enumerate() {
-            let count = register
-                .read
-                .map_or(1, |read| usize::from(read.count.max(1)));
-            let (part, after) = rest.split_at(count.min(rest.len()));
-            rest = after;
-            if position > 0 {
-                text.push(';');
-            }
-            match register.codec.decode_into(part, text) {
-                Ok(Decoded::Text) => {}
-                other => return Some(other),
-            }
+        true
+    }
+
+    /// Whether `word_buffer` holds the words the channel's reported value was decoded from.
+    fn repeats_decoded_words(&self, index: usize) -> bool {
+        // Compared word by word: most values are one or two words, too few for `memcmp`.
+        self.words_decoded.get(index).copied().unwrap_or(false)
+            && self
+                .last_words_of(index)
+                .is_some_and(|last| last.iter().eq(self.word_buffer.iter()))
+    }
+
+    fn last_words_of(&self, index: usize) -> Option<&[u16]> {
+        let (start, count) = (*self.channel_index.word_slots.get(index)?)?;
+        self.last_words.get(start..start + count)
+    }
+
+    /// Keeps `word_buffer` as the words of the channel's reported value.
+    fn remember_decoded_words(&mut self, index: usize) {
+        let Some(Some((start, count))) = self.channel_index.word_slots.get(index).copied() else {
+            return;
+        };
+        if count != self.word_buffer.len() {
+            return;
         }
-        Some(Ok(Decoded::Text))
+        let Some(slot) = self.last_words.get_mut(start..start + count) else {
+            return;
+        };
+        slot.copy_from_slice(&self.word_buffer);
+        if let Some(decoded) = self.words_decoded.get_mut(index) {
+            *decoded = true;
+        }
     }
 
     fn set_flags(
@@ -735,6 +869,31 @@ fn reads_span(channel: &ResolvedChannel, span: &RegisterSpan) -> bool {
         .any(|r| spans_overlap(&r, span))
 }
 
+/// Decodes a channel's value into `text` from the words of all its registers, in order
+/// (joined with `;`, as [`ResolvedChannel::decode`] does).
+fn decode_words(
+    channel: &ResolvedChannel,
+    words: &[u16],
+    text: &mut String,
+) -> Result<Decoded, crate::device::CodecError> {
+    let mut rest = words;
+    for (position, register) in channel.registers.iter().enumerate() {
+        let count = register
+            .read
+            .map_or(1, |read| usize::from(read.count.max(1)));
+        let (part, after) = rest.split_at(count.min(rest.len()));
+        rest = after;
+        if position > 0 {
+            text.push(';');
+        }
+        match register.codec.decode_into(part, text) {
+            Ok(Decoded::Text) => {}
+            other => return other,
+        }
+    }
+    Ok(Decoded::Text)
+}
+
 fn writes_register(channel: &ResolvedChannel, register_type: RegisterType, address: u16) -> bool {
     channel
         .registers
@@ -755,7 +914,7 @@ mod tests {
         let template = TemplateFile::load(&path).unwrap();
         let device =
             resolve_template_device(&template, &serde_json::json!({"slave_id": 20})).unwrap();
-        DeviceModel::new(Arc::new(device), 0)
+        DeviceModel::new(Arc::new(device), 0, Repeats::All)
     }
 
     fn values(out: &[DeviceUpdate]) -> Vec<(String, String, bool)> {
@@ -835,7 +994,7 @@ mod tests {
         let device =
             resolve_template_device(&template, &serde_json::json!({ "slave_id": slave_id }))
                 .unwrap();
-        DeviceModel::new(Arc::new(device), 0)
+        DeviceModel::new(Arc::new(device), 0, Repeats::All)
     }
 
     /// Feeds one 0x11 event packet, given as on the wire without its CRC, to the model the way
@@ -1071,7 +1230,7 @@ mod tests {
         }
         let mut device = (*relay().device).clone();
         device.channels = vec![channel].into();
-        DeviceModel::new(Arc::new(device), 0)
+        DeviceModel::new(Arc::new(device), 0, Repeats::All)
     }
 
     fn accepts(channel: &ResolvedChannel, payload: &str) -> bool {
@@ -1255,10 +1414,22 @@ mod tests {
         let mut found = Vec::new();
         let mut spans = 0;
         for device in &devices {
-            let model = DeviceModel::new(Arc::clone(device), 0);
-            let reads = read_spans(device);
+            let model = DeviceModel::new(Arc::clone(device), 0, Repeats::All);
+            let mut reads = read_spans(device);
+            reads.sort_by_key(|r| (r.register_type, r.start));
+            // Searches start from where the last ended; half of the spans follow each other in
+            // address order, as a read of many values arrives, the others jump anywhere.
+            let mut hint = 0;
+            let mut next_read = 0;
             for _ in 0..400 {
-                let around = reads.get(random.below(reads.len() as u64) as usize);
+                let in_order = random.below(2) == 0;
+                let at = if in_order {
+                    next_read
+                } else {
+                    random.below(reads.len() as u64) as usize
+                };
+                next_read = (at + 1) % reads.len().max(1);
+                let around = reads.get(at);
                 let register_type = around.map_or(RegisterType::Holding, |r| r.register_type);
                 let base = around.map_or(0, |r| r.start);
                 let start = base.saturating_sub(random.below(4) as u16).saturating_add(
@@ -1269,11 +1440,14 @@ mod tests {
                     },
                 );
                 let count = random.below(70) as u16;
-                let span = RegisterSpan::new(register_type, start, count);
+                let span = match around {
+                    Some(&read) if in_order => read,
+                    _ => RegisterSpan::new(register_type, start, count),
+                };
                 let scanned: Vec<usize> = (0..device.channels.len())
                     .filter(|&i| reads_span(&device.channels[i], &span))
                     .collect();
-                model.channel_index.readers_of(&span, &mut found);
+                model.channel_index.readers_of(&span, &mut found, &mut hint);
                 assert_eq!(found, scanned, "{span:?} on {}", device.id);
                 spans += 1;
             }
@@ -1288,10 +1462,10 @@ mod tests {
         let first = template_model("rtu2mqtt-relay6", 20);
         let mut device = (*first.device).clone();
         device.id = "relay6_21".into();
-        let second = DeviceModel::new(Arc::new(device.clone()), 1);
+        let second = DeviceModel::new(Arc::new(device.clone()), 1, Repeats::All);
         assert!(Arc::ptr_eq(&first.channel_index, &second.channel_index));
         device.channels.make_mut()[0].id = "K1'".into();
-        let third = DeviceModel::new(Arc::new(device), 2);
+        let third = DeviceModel::new(Arc::new(device), 2, Repeats::All);
         assert!(!Arc::ptr_eq(&first.channel_index, &third.channel_index));
         assert_eq!(&*third.channel_index.control_ids[0], "K1'");
     }
@@ -1425,5 +1599,237 @@ mod tests {
             model.write("nope", "1"),
             Err(WriteRejected::UnknownControl("nope".into()))
         );
+    }
+
+    /// `device` with its first channel made a pushbutton, modelled reporting `repeats`.
+    fn with_pushbutton(device: &ResolvedDevice, repeats: Repeats) -> DeviceModel {
+        let mut device = device.clone();
+        device.channels.make_mut()[0].control_type = "pushbutton".into();
+        DeviceModel::new(Arc::new(device), 0, repeats)
+    }
+
+    fn read_coils(model: &mut DeviceModel, words: &[u16]) -> Vec<DeviceUpdate> {
+        let mut out = Vec::new();
+        model.apply(
+            PortEvent::Values {
+                device: 0,
+                span: RegisterSpan::new(RegisterType::Coil, 0, words.len() as u16),
+                values: words.to_vec(),
+            },
+            &mut out,
+        );
+        out
+    }
+
+    /// (control, value, changed) of every value update.
+    fn reported(out: &[DeviceUpdate]) -> Vec<(String, String, bool)> {
+        out.iter()
+            .filter_map(|u| match u {
+                DeviceUpdate::Value {
+                    control_id,
+                    value,
+                    changed,
+                    ..
+                } => Some((control_id.to_string(), value.to_string(), *changed)),
+                _ => None,
+            })
+            .collect()
+    }
+
+    fn report(control: &str, value: &str, changed: bool) -> (String, String, bool) {
+        (control.to_owned(), value.to_owned(), changed)
+    }
+
+    /// Issue 14: with changes only asked for, a read that repeats a value reports nothing for
+    /// it; asked for every value, the repeat comes (marked unchanged).
+    #[test]
+    fn a_repeated_value_is_reported_only_when_the_sinks_ask_for_repeats() {
+        let device = Arc::clone(&relay().device);
+        let mut changes_only = DeviceModel::new(Arc::clone(&device), 0, Repeats::None);
+        let mut every_value = DeviceModel::new(device, 0, Repeats::All);
+        for model in [&mut changes_only, &mut every_value] {
+            assert_eq!(
+                reported(&read_coils(model, &[1, 0])),
+                [report("K1", "1", true), report("K2", "0", true)]
+            );
+        }
+        assert!(read_coils(&mut changes_only, &[1, 0]).is_empty());
+        assert_eq!(
+            reported(&read_coils(&mut changes_only, &[1, 1])),
+            [report("K2", "1", true)]
+        );
+        assert_eq!(
+            reported(&read_coils(&mut every_value, &[1, 0])),
+            [report("K1", "1", false), report("K2", "0", false)]
+        );
+    }
+
+    /// A pushbutton's every value is reported, whatever the sinks asked for.
+    #[test]
+    fn a_pushbutton_reports_every_value() {
+        let mut model = with_pushbutton(&relay().device, Repeats::None);
+        assert_eq!(
+            reported(&read_coils(&mut model, &[1, 0])),
+            [report("K1", "1", true), report("K2", "0", true)]
+        );
+        assert_eq!(
+            reported(&read_coils(&mut model, &[1, 0])),
+            [report("K1", "1", false)]
+        );
+    }
+
+    /// The stdout sink's repeats: every event value, not a read repeating one.
+    #[test]
+    fn event_repeats_are_reported_when_asked_for_and_read_repeats_are_not() {
+        let mut model = template_model("rtu2mqtt-counter8", 20);
+        model.repeats = Repeats::Events;
+        assert_eq!(poll(&mut model, 60, &[0, 5]), one("Input 1 counter", "5"));
+        assert_eq!(poll(&mut model, 60, &[0, 5]), Vec::new());
+        // An event repeating the low word: the same value, reported as an event value.
+        assert_eq!(
+            feed_packet(&mut model, "14 46 11 00 01 06 02 04 003D 0500"),
+            one("Input 1 counter", "5")
+        );
+    }
+
+    /// A read that fails sets `r`; the next good read clears it even though it repeats the
+    /// value (which, asked for changes only, is not reported again).
+    #[test]
+    fn r_is_cleared_by_a_good_read_that_repeats_the_value() {
+        let mut model = DeviceModel::new(Arc::clone(&relay().device), 0, Repeats::None);
+        assert_eq!(
+            reported(&read_coils(&mut model, &[1])),
+            [report("K1", "1", true)]
+        );
+        let mut out = Vec::new();
+        model.apply(
+            PortEvent::ReadFailed {
+                device: 0,
+                span: RegisterSpan::new(RegisterType::Coil, 0, 1),
+                unsupported: false,
+            },
+            &mut out,
+        );
+        let flags = |out: &[DeviceUpdate]| -> Vec<(String, String)> {
+            out.iter()
+                .filter_map(|u| match u {
+                    DeviceUpdate::ControlError {
+                        control_id, errors, ..
+                    } => Some((control_id.clone(), errors.to_string())),
+                    _ => None,
+                })
+                .collect()
+        };
+        assert_eq!(flags(&out), [("K1".to_owned(), "r".to_owned())]);
+        let out = read_coils(&mut model, &[1]);
+        assert_eq!(flags(&out), [("K1".to_owned(), String::new())]);
+        assert!(reported(&out).is_empty(), "{out:?}");
+    }
+
+    /// For every template and every choice of repeats, on random reads (mostly repeating
+    /// words), events, failed reads, restarts and lost devices: a model reports exactly what a
+    /// model reporting every value and decoding every value afresh (as before issue 14)
+    /// reports, less the repeats not asked for; error flags alike.
+    #[test]
+    fn a_model_reports_what_every_value_gives_less_the_repeats_not_asked_for() {
+        let mut random = Random(0xD1B5_4A32_D192_ED03);
+        let mut devices: Vec<Arc<ResolvedDevice>> = TEMPLATES
+            .iter()
+            .map(|template| Arc::clone(&template_model(template, 20).device))
+            .collect();
+        devices.push(Arc::clone(
+            &with_pushbutton(&relay().device, Repeats::All).device,
+        ));
+        let mut repeats_seen = 0;
+        for device in &devices {
+            for repeats in [Repeats::None, Repeats::Events, Repeats::All] {
+                let mut all = DeviceModel::new(Arc::clone(device), 0, Repeats::All);
+                let mut asked = DeviceModel::new(Arc::clone(device), 0, repeats);
+                let reads = read_spans(device);
+                for _ in 0..400 {
+                    let around = reads[random.below(reads.len() as u64) as usize];
+                    let word = |random: &mut Random| -> u16 {
+                        let word = match random.below(8) {
+                            0 => 0xFFFF,
+                            1 => random.next() as u16,
+                            other => (other % 2) as u16,
+                        };
+                        if around.register_type.is_bit() {
+                            word & 1
+                        } else {
+                            word
+                        }
+                    };
+                    let events: Vec<PortEvent> = match random.below(10) {
+                        0..=5 => {
+                            let span = RegisterSpan::new(
+                                around.register_type,
+                                around.start.saturating_sub(random.below(2) as u16),
+                                around.count + random.below(3) as u16,
+                            );
+                            let values = (0..span.count).map(|_| word(&mut random)).collect();
+                            vec![PortEvent::Values {
+                                device: 0,
+                                span,
+                                values,
+                            }]
+                        }
+                        6 | 7 => (0..=random.below(2))
+                            .map(|_| {
+                                let [low, high] = word(&mut random).to_le_bytes();
+                                PortEvent::EventValue {
+                                    device: 0,
+                                    register_type: around.register_type,
+                                    address: around.start + random.below(2) as u16,
+                                    payload: vec![low, high],
+                                }
+                            })
+                            .collect(),
+                        8 => vec![PortEvent::ReadFailed {
+                            device: 0,
+                            span: around,
+                            unsupported: false,
+                        }],
+                        _ => vec![match random.below(3) {
+                            0 => PortEvent::Rebooted { device: 0 },
+                            1 => PortEvent::Offline { device: 0 },
+                            _ => PortEvent::Online { device: 0 },
+                        }],
+                    };
+                    let mut from_all = Vec::new();
+                    let mut from_asked = Vec::new();
+                    // No value known to repeat its words: every one decoded again.
+                    all.words_decoded.fill(false);
+                    apply_port_events(
+                        std::slice::from_mut(&mut all),
+                        events.clone(),
+                        &mut from_all,
+                    );
+                    apply_port_events(std::slice::from_mut(&mut asked), events, &mut from_asked);
+                    let expected: Vec<String> = from_all
+                        .iter()
+                        .filter(|u| match u {
+                            DeviceUpdate::Value {
+                                control_id,
+                                from_event,
+                                changed,
+                                ..
+                            } => {
+                                let pushbutton = device
+                                    .channel(control_id)
+                                    .is_some_and(|c| c.control_type == "pushbutton");
+                                repeats_seen += usize::from(!changed);
+                                *changed || repeats.report(*from_event, pushbutton)
+                            }
+                            _ => true,
+                        })
+                        .map(|u| format!("{u:?}"))
+                        .collect();
+                    let got: Vec<String> = from_asked.iter().map(|u| format!("{u:?}")).collect();
+                    assert_eq!(got, expected, "{} {repeats:?}", device.id);
+                }
+            }
+        }
+        assert!(repeats_seen > 1000, "{repeats_seen} repeats only");
     }
 }

@@ -24,7 +24,7 @@ use crate::protocol::RegisterType;
 use crate::sim::bus::{BusStats, ChangeOrigin};
 use crate::sim::control::register_type_name;
 use crate::sim::faults::Faults;
-use crate::updates::DeviceUpdate;
+use crate::updates::{DeviceUpdate, Repeats};
 
 const TICK: Duration = Duration::from_millis(10);
 const FAULT_TIME: Duration = Duration::from_secs(25);
@@ -80,14 +80,23 @@ impl NoiseBus {
     /// `devices` at `baud`, up and converged on their first values; the devices at `absent`
     /// are configured but unplugged for good.
     fn start(devices: u8, baud: u32, seed: u64, absent: &[u8]) -> Self {
-        Self::start_with(devices, baud, seed, absent, false)
+        Self::start_with(devices, baud, seed, absent, false, Repeats::All)
     }
 
     /// As [`Self::start`]; with `word_events`, the Fast Modbus devices send the words of their
     /// wide event values by separate events, a register each (2-byte payloads), as the
     /// independent bus emulator of issue 15 did, instead of the whole value at its first
     /// register.
-    fn start_with(devices: u8, baud: u32, seed: u64, absent: &[u8], word_events: bool) -> Self {
+    /// `repeats`: what the device models report besides the changes (every value, unless a
+    /// test compares).
+    fn start_with(
+        devices: u8,
+        baud: u32,
+        seed: u64,
+        absent: &[u8],
+        word_events: bool,
+        repeats: Repeats,
+    ) -> Self {
         let layout = BenchLayout::fault_bus(devices, baud);
         let dir = tempfile::tempdir().expect("a template directory");
         let (name, template, mut entries) = layout.fault_bus_files();
@@ -105,8 +114,14 @@ impl NoiseBus {
             }
         }
         std::fs::write(dir.path().join(name), template.to_string()).expect("template written");
-        let gateway =
-            VirtualGateway::from_bus(&layout.line(), &entries, dir.path(), true, seed.max(1));
+        let gateway = VirtualGateway::from_bus(
+            &layout.line(),
+            &entries,
+            dir.path(),
+            true,
+            seed.max(1),
+            repeats,
+        );
         let (round_robin, awaited_slots) = layout.fault_slots();
         let topics = layout.fault_topics();
         let mut bus = Self {
@@ -547,6 +562,46 @@ fn noise_run_bus(
     (figures, bus, faults_ended)
 }
 
+/// Issue 14: device models that report changes only (what MQTT asks for by default) make the
+/// planner publish exactly what models reporting every value do, at the same instants, through
+/// noise, recovery, event toggles and changing registers; and the sinks are handed the same
+/// updates less the repeats.
+#[test]
+fn models_reporting_changes_only_publish_what_every_value_publishes() {
+    for seed in 1..=2 {
+        let run = |repeats| {
+            let mut bus = NoiseBus::start_with(8, 115_200, seed, &[], false, repeats);
+            bus.faults_on_all(noise());
+            bus.drive(Duration::from_secs(4));
+            bus.faults_on_all(Faults::default());
+            bus.drive(Duration::from_secs(2));
+            let published: Vec<(Duration, String, String)> = bus
+                .gateway
+                .published
+                .iter()
+                .map(|p| (p.at, p.topic.clone(), p.payload.clone()))
+                .collect();
+            let updates: Vec<String> = bus
+                .gateway
+                .updates
+                .iter()
+                .filter(|(_, update)| !matches!(update, DeviceUpdate::Value { changed: false, .. }))
+                .map(|(at, update)| format!("{at:?} {update:?}"))
+                .collect();
+            (published, updates)
+        };
+        let (every_value, every_update) = run(Repeats::All);
+        let (changes_only, change_updates) = run(Repeats::None);
+        assert!(
+            every_value.len() > 500,
+            "{} publications",
+            every_value.len()
+        );
+        assert_eq!(changes_only, every_value, "seed {seed}");
+        assert_eq!(change_updates, every_update, "seed {seed}");
+    }
+}
+
 /// What 6 healthy devices at `baud` get over `length` with `dead` more devices configured that
 /// never answer: (reads of their registers, event latency p50, p90, max).
 fn healthy_rate(baud: u32, dead: u8, length: Duration) -> (usize, Duration, Duration, Duration) {
@@ -683,7 +738,7 @@ fn a_dead_device_is_retried_at_its_normal_timeout_though_it_once_answered_late()
 #[test]
 fn a_wide_value_reported_a_word_at_a_time_is_never_published_half_updated() {
     for faults in [Faults::default(), noise()] {
-        let mut bus = NoiseBus::start_with(4, 115_200, 1, &[], true);
+        let mut bus = NoiseBus::start_with(4, 115_200, 1, &[], true, Repeats::All);
         let since = bus.gateway.now;
         let toggles_before = bus.toggles;
         bus.faults_on_all(faults);

@@ -8,7 +8,7 @@ use std::time::Duration;
 
 use super::virtual_gateway::VirtualGateway;
 use crate::protocol::RegisterType;
-use crate::updates::DeviceUpdate;
+use crate::updates::{DeviceUpdate, Repeats};
 
 const LINES: [&str; 3] = ["9600 8N2", "115200 8N2", "19200 8E1"];
 
@@ -363,7 +363,8 @@ fn bench_bus(
         .as_array()
         .cloned()
         .unwrap_or_default();
-    let gateway = VirtualGateway::from_bus(&layout.line(), &entries, dir.path(), true, 1);
+    let gateway =
+        VirtualGateway::from_bus(&layout.line(), &entries, dir.path(), true, 1, Repeats::All);
     (gateway, layout, dir)
 }
 

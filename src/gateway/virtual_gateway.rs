@@ -27,7 +27,7 @@ use crate::sim::bus::Bus;
 use crate::sim::bus_file::{build_device, parse_line, DeviceEntry, TemplateSource};
 use crate::sim::MasterLine;
 use crate::transport::exchange::{Exchange, Framing, LinkConfig};
-use crate::updates::{ControlWrite, DeviceUpdate};
+use crate::updates::{ControlWrite, DeviceUpdate, Repeats};
 
 fn repo(path: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join(path)
@@ -95,18 +95,29 @@ impl VirtualGateway {
                 })
             })
             .collect();
-        Self::from_bus(line, &entries, &repo("templates"), fast_modbus, 1)
+        Self::from_bus(
+            line,
+            &entries,
+            &repo("templates"),
+            fast_modbus,
+            1,
+            Repeats::All,
+        )
     }
 
     /// A port at `line` with the simulator's bus `entries` (as in a bus file: `template` a
     /// `device_type` found in `templates_dir`, `address`, `fast`, …), each configured with its
-    /// template and slave id; `seed` drives the simulator's injected faults.
+    /// template and slave id; `seed` drives the simulator's injected faults. The device models
+    /// report `repeats` besides the changes: the scenarios count reads by the values reported
+    /// ([`Self::updates`]), so they ask for every one ([`Repeats::All`]); the planner publishes
+    /// changes only, as the daemon's default (`max_unchanged_interval` -1, [`Repeats::None`]).
     pub fn from_bus(
         line: &str,
         entries: &[Value],
         templates_dir: &Path,
         fast_modbus: bool,
         seed: u64,
+        repeats: Repeats,
     ) -> Self {
         let settings = parse_line(line).expect("a line like 115200 8N2");
         let mut templates = TemplateSource::new(templates_dir, templates_dir);
@@ -173,7 +184,9 @@ impl VirtualGateway {
         for (index, device) in port.devices.into_iter().enumerate() {
             let device = Arc::new(device);
             gateway.sink(vec![DeviceUpdate::Added(Arc::clone(&device))]);
-            gateway.models.push(DeviceModel::new(device, index));
+            gateway
+                .models
+                .push(DeviceModel::new(device, index, repeats));
         }
         gateway
     }

@@ -5,6 +5,7 @@
 //! (`gateway::device_model`); this side only maps them to topics.
 
 use std::collections::HashMap;
+use std::hash::{BuildHasherDefault, Hasher};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -15,7 +16,7 @@ use super::layout;
 use super::topics::TopicScheme;
 use super::{MqttAction, Publication};
 use crate::device::{ResolvedChannel, ResolvedDevice};
-use crate::updates::{ControlWrite, DeviceIdentity, DeviceUpdate, ErrorFlags};
+use crate::updates::{ControlWrite, DeviceIdentity, DeviceUpdate, ErrorFlags, Repeats};
 
 /// When an unchanged value is published again (config `max_unchanged_interval`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -34,6 +35,15 @@ impl UnchangedPolicy {
             i64::MIN..=-1 => Self::OnChange,
             0 => Self::EveryRead,
             n => Self::After(Duration::from_secs(n.max(5) as u64)),
+        }
+    }
+
+    /// The values the device models must report besides the changes for this policy: the
+    /// repeats it publishes again (all, checked here against the time), or none.
+    pub fn repeats(self) -> Repeats {
+        match self {
+            Self::OnChange => Repeats::None,
+            Self::EveryRead | Self::After(_) => Repeats::All,
         }
     }
 }
@@ -86,7 +96,7 @@ struct PublishedDevice {
     device: Arc<ResolvedDevice>,
     identity: DeviceIdentity,
     online: bool,
-    controls: HashMap<String, PublishedControl>,
+    controls: IdMap<PublishedControl>,
 }
 
 /// Turns [`DeviceUpdate`]s into broker actions and remembers the published state.
@@ -95,7 +105,7 @@ pub struct PublicationPlanner {
     settings: PlannerSettings,
     /// By id. Hashed: every value looks its device up. Everything published for all devices
     /// goes in the order of their ids ([`Self::device_order`]).
-    devices: HashMap<String, PublishedDevice>,
+    devices: IdMap<PublishedDevice>,
     /// `/on` topic → (device id, control id), for writable controls.
     on_topics: HashMap<String, (String, String)>,
 }
@@ -104,7 +114,7 @@ impl PublicationPlanner {
     pub fn new(settings: PlannerSettings) -> Self {
         Self {
             settings,
-            devices: HashMap::new(),
+            devices: IdMap::default(),
             on_topics: HashMap::new(),
         }
     }
@@ -175,7 +185,7 @@ impl PublicationPlanner {
                 }
             }
         }
-        let mut controls = HashMap::new();
+        let mut controls = IdMap::default();
         for channel in &device.channels {
             let state = previous
                 .as_mut()
@@ -506,8 +516,53 @@ impl PublicationPlanner {
     }
 }
 
+/// By device or control id, hashed with [`IdHasher`].
+type IdMap<V> = HashMap<String, V, BuildHasherDefault<IdHasher>>;
+
+/// FxHash's multiply-rotate, 8 bytes at a time: every value looks its device and control up by
+/// id (twice SipHash's rounds over short ids, per value, before). The ids come from the
+/// config, not from the network, so SipHash's protection against crafted keys buys nothing
+/// here; `/on` topics, which do come from the network, keep it.
+#[derive(Debug, Default, Clone, Copy)]
+pub(crate) struct IdHasher(u64);
+
+impl IdHasher {
+    fn add(&mut self, word: u64) {
+        self.0 = (self.0.rotate_left(5) ^ word).wrapping_mul(0x51_7c_c1_b7_27_22_0a_95);
+    }
+}
+
+impl Hasher for IdHasher {
+    fn finish(&self) -> u64 {
+        self.0
+    }
+
+    fn write(&mut self, bytes: &[u8]) {
+        let mut chunks = bytes.chunks_exact(8);
+        for chunk in &mut chunks {
+            let mut word = [0; 8];
+            word.copy_from_slice(chunk);
+            self.add(u64::from_le_bytes(word));
+        }
+        let rest = chunks.remainder();
+        if !rest.is_empty() {
+            let mut word = [0; 8];
+            word[..rest.len()].copy_from_slice(rest);
+            self.add(u64::from_le_bytes(word));
+        }
+    }
+
+    fn write_u8(&mut self, n: u8) {
+        self.add(u64::from(n));
+    }
+
+    fn write_usize(&mut self, n: usize) {
+        self.add(n as u64);
+    }
+}
+
 fn lookup<'a>(
-    devices: &'a mut HashMap<String, PublishedDevice>,
+    devices: &'a mut IdMap<PublishedDevice>,
     device_id: &str,
     control_id: &str,
 ) -> Option<(&'a ResolvedChannel, &'a mut PublishedControl)> {
@@ -519,7 +574,7 @@ fn lookup<'a>(
 /// The device and the published state of one of its controls; its channel is looked at only
 /// when needed ([`channel_of`]): most values repeat the last one and publish nothing.
 fn lookup_control<'a>(
-    devices: &'a mut HashMap<String, PublishedDevice>,
+    devices: &'a mut IdMap<PublishedDevice>,
     device_id: &str,
     control_id: &str,
 ) -> Option<(&'a ResolvedDevice, &'a mut PublishedControl)> {

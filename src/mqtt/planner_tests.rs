@@ -703,3 +703,111 @@ fn a_config_change_while_waiting_deletes_dropped_topics_at_once() {
     );
     assert!(!text.contains(&format!("/devices/{id}/controls/K6/meta\t{{")));
 }
+
+/// Issue 14: the policy asks the device models for the repeats it publishes, no more.
+#[test]
+fn the_policy_asks_the_models_for_the_repeats_it_publishes() {
+    assert_eq!(UnchangedPolicy::OnChange.repeats(), Repeats::None);
+    assert_eq!(UnchangedPolicy::EveryRead.repeats(), Repeats::All);
+    assert_eq!(
+        UnchangedPolicy::After(Duration::from_secs(10)).repeats(),
+        Repeats::All
+    );
+}
+
+/// (topic, payload, retained) of each publication.
+type Publications = Vec<(String, String, bool)>;
+
+/// Issue 14, from register words to publications: a device model built with the policy's
+/// repeats and the planner with that policy publish, for a coil read four times as 1 (at 0, 5,
+/// 10 and 11 s), what each `max_unchanged_interval` says; a pushbutton every read, whatever
+/// the policy. Returns (updates the model handed over, publications) per read.
+fn reads_of_an_unchanged_coil(
+    max_unchanged_interval: i64,
+    pushbutton: bool,
+) -> Vec<(usize, Publications)> {
+    use crate::gateway::device_model::DeviceModel;
+    use crate::port::{PortEvent, RegisterSpan};
+    use crate::protocol::RegisterType;
+
+    let policy = UnchangedPolicy::from_config(max_unchanged_interval);
+    let mut device = (*template_device("rtu2mqtt-relay6", 1)).clone();
+    if pushbutton {
+        device.channels.make_mut()[0].control_type = "pushbutton".into();
+    }
+    let device = Arc::new(device);
+    let mut model = DeviceModel::new(Arc::clone(&device), 0, policy.repeats());
+    let mut planner = PublicationPlanner::new(PlannerSettings {
+        unchanged: policy,
+        ..settings(false)
+    });
+    let t0 = Instant::now();
+    planner.handle(DeviceUpdate::Added(device), t0);
+    [0, 5, 10, 11]
+        .into_iter()
+        .map(|second| {
+            let mut updates = Vec::new();
+            model.apply(
+                PortEvent::Values {
+                    device: 0,
+                    span: RegisterSpan::new(RegisterType::Coil, 0, 1),
+                    values: vec![1],
+                },
+                &mut updates,
+            );
+            let count = updates.len();
+            let published = updates
+                .into_iter()
+                .flat_map(|u| planner.handle(u, t0 + Duration::from_secs(second)))
+                .collect::<Vec<_>>();
+            (count, publications(&published))
+        })
+        .collect()
+}
+
+#[test]
+fn an_unchanged_value_goes_out_as_max_unchanged_interval_says() {
+    let k1 = |retained| {
+        vec![(
+            "/devices/relay6_1/controls/K1".to_owned(),
+            "1".to_owned(),
+            retained,
+        )]
+    };
+    let none = Vec::new();
+    // -1: published once; the repeats are not even handed over.
+    assert_eq!(
+        reads_of_an_unchanged_coil(-1, false),
+        [
+            (1, k1(true)),
+            (0, none.clone()),
+            (0, none.clone()),
+            (0, none.clone())
+        ]
+    );
+    // 0: every read.
+    assert_eq!(
+        reads_of_an_unchanged_coil(0, false),
+        [(1, k1(true)), (1, k1(true)), (1, k1(true)), (1, k1(true))]
+    );
+    // 10 s: again once 10 s have passed since the last publication.
+    assert_eq!(
+        reads_of_an_unchanged_coil(10, false),
+        [
+            (1, k1(true)),
+            (1, none.clone()),
+            (1, k1(true)),
+            (1, none.clone())
+        ]
+    );
+    // A pushbutton: every read, under -1 too.
+    assert_eq!(
+        reads_of_an_unchanged_coil(-1, true),
+        [
+            (1, k1(false)),
+            (1, k1(false)),
+            (1, k1(false)),
+            (1, k1(false))
+        ]
+    );
+}

@@ -824,6 +824,7 @@ async fn device_set(
     set: DeviceSet,
 ) -> Result<Value, RpcError> {
     use crate::gateway::device_model::DeviceModel;
+    use crate::updates::Repeats;
     let (access, index) = find_device(ports, &set.port, set.slave_id)?;
     let device = Arc::new(access.resolved.devices[index].clone());
     let template = device
@@ -833,7 +834,8 @@ async fn device_set(
         .to_owned();
     // The channels as the device model knows them; the parameters as a device of their own
     // (one channel per parameter), so the same model checks and encodes them.
-    let mut channels_model = DeviceModel::new(Arc::clone(&device), index);
+    // Only writes go through these models: no value is read, none repeats.
+    let mut channels_model = DeviceModel::new(Arc::clone(&device), index, Repeats::None);
     let mut parameters_model = None;
     if !set.parameters.is_empty() {
         let file = device_template(templates, &device)?;
@@ -842,7 +844,7 @@ async fn device_set(
             super::parameters::writable_parameters(&file, device.slave_id, &ids)
                 .map_err(RpcError::server)?;
         parameters_model = Some((
-            DeviceModel::new(Arc::new(parameters_device), index),
+            DeviceModel::new(Arc::new(parameters_device), index, Repeats::None),
             controls,
         ));
     }

@@ -103,8 +103,11 @@ async fn writes_go_to_the_bus_side_and_bad_payloads_set_w() {
     mqtt.send(value(RELAY, "K3", "1")).await;
     state_with(broker.port, &k3, "1").await;
 
-    let mut model =
-        rtu2mqtt::gateway::device_model::DeviceModel::new(template_device("rtu2mqtt-relay6", 1), 0);
+    let mut model = rtu2mqtt::gateway::device_model::DeviceModel::new(
+        template_device("rtu2mqtt-relay6", 1),
+        0,
+        rtu2mqtt::updates::Repeats::None,
+    );
     assert!(bus_side_takes(&mqtt, &mut model, &write).await);
     // Not a switch value: the device model refuses it, `w`, nothing written.
     publish(broker.port, &format!("{k3}/on"), "7", false).await;
@@ -354,8 +357,11 @@ async fn huge_on_payloads_are_refused_without_disconnecting() {
     let recorder = Recorder::start(broker.port, status).await;
 
     let k3 = format!("/devices/{RELAY}/controls/K3");
-    let mut model =
-        rtu2mqtt::gateway::device_model::DeviceModel::new(template_device("rtu2mqtt-relay6", 1), 0);
+    let mut model = rtu2mqtt::gateway::device_model::DeviceModel::new(
+        template_device("rtu2mqtt-relay6", 1),
+        0,
+        rtu2mqtt::updates::Repeats::None,
+    );
     publish(broker.port, &format!("{k3}/on"), &huge, false).await;
     let write = tokio::time::timeout(TIMEOUT, mqtt.writes.recv())
         .await
