@@ -16,7 +16,7 @@ use rtu2mqtt::mqtt::{
     PlannerSettings, PublicationPlanner, TopicScheme, UnchangedPolicy, WriteOutcome,
 };
 use rtu2mqtt::protocol::RegisterType;
-use rtu2mqtt::updates::DeviceUpdate;
+use rtu2mqtt::device_updates::DeviceUpdate;
 
 const TEMPLATES: [&str; 6] = [
     "rtu2mqtt-relay6",

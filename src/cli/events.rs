@@ -18,7 +18,7 @@ use crate::config::TemplateLibrary;
 use crate::device::codec::{Reading, ValueCodec};
 use crate::device::configure::resolve_config_checked;
 use crate::device::model::EventMode;
-use crate::port::Outcome;
+use crate::port::TransactionOutcome;
 use crate::protocol::fast::{split_event_masks, FastReply};
 use crate::protocol::{
     Event, EventPoll, EventPriority, EventRange, EventSource, LineSettings, RegisterType, Reply,
@@ -389,7 +389,7 @@ async fn enable(
         )
         .await?;
     let masks = match &outcome {
-        Outcome::Reply(Reply {
+        TransactionOutcome::Reply(Reply {
             body:
                 ReplyBody::Fast {
                     reply: FastReply::EventsConfigured { masks },
@@ -401,9 +401,9 @@ async fn enable(
     };
     let Some(masks) = masks else {
         let why = match outcome {
-            Outcome::NoReply => "no reply".to_owned(),
-            Outcome::Garbled => "unreadable reply".to_owned(),
-            Outcome::Reply(reply) => format!("{:?}", reply.body),
+            TransactionOutcome::NoReply => "no reply".to_owned(),
+            TransactionOutcome::Garbled => "unreadable reply".to_owned(),
+            TransactionOutcome::Reply(reply) => format!("{:?}", reply.body),
         };
         eprintln!("address {address} at {line}: enabling events failed ({why})");
         return Ok(false);
@@ -544,7 +544,7 @@ async fn stream(
         poll.ack_address = 0;
         poll.ack_flag = 0;
         match outcome {
-            Outcome::Reply(Reply {
+            TransactionOutcome::Reply(Reply {
                 address,
                 body:
                     ReplyBody::Fast {
@@ -564,7 +564,7 @@ async fn stream(
                 }
                 continue;
             }
-            Outcome::Garbled => tracing::debug!("unreadable reply to an event poll"),
+            TransactionOutcome::Garbled => tracing::debug!("unreadable reply to an event poll"),
             _ => {}
         }
         if done {

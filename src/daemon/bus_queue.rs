@@ -10,7 +10,7 @@
 use thiserror::Error;
 use tokio::sync::{mpsc, oneshot};
 
-use crate::port::{Outcome, Transaction};
+use crate::port::{Transaction, TransactionOutcome};
 use crate::protocol::LineSettings;
 use crate::transport::raw::RawRequest;
 
@@ -39,7 +39,7 @@ pub struct QueuedTransaction {
     /// before the scheduler's next one.
     pub line: Option<LineSettings>,
     pub transaction: Transaction,
-    pub reply: oneshot::Sender<Result<Outcome, BusQueueError>>,
+    pub reply: oneshot::Sender<Result<TransactionOutcome, BusQueueError>>,
 }
 
 /// One raw transfer asked of a running port: no frame is parsed, the answer is what came.
@@ -85,7 +85,7 @@ impl BusQueue {
         &self,
         line: Option<LineSettings>,
         transaction: Transaction,
-    ) -> Result<Outcome, BusQueueError> {
+    ) -> Result<TransactionOutcome, BusQueueError> {
         let (reply, outcome) = oneshot::channel();
         self.send(QueuedJob::Transaction(QueuedTransaction {
             line,
@@ -181,7 +181,7 @@ mod tests {
         let Some(QueuedJob::Transaction(first)) = receiver.recv().await else {
             panic!("a transaction was queued");
         };
-        first.reply.send(Ok(Outcome::NoReply)).unwrap();
+        first.reply.send(Ok(TransactionOutcome::NoReply)).unwrap();
         drop(receiver);
         let mut outcomes = Vec::new();
         for caller in waiting {

@@ -10,13 +10,13 @@ use std::time::Duration;
 
 use super::bus_queue::BusQueue;
 use crate::device::model::ResolvedDevice;
-use crate::port::{Outcome, Transaction};
+use crate::device_updates::DeviceIdentity;
+use crate::port::{Transaction, TransactionOutcome};
 use crate::protocol::timing::ADAPTER_LATENCY_ALLOWANCE;
 use crate::protocol::{
     LineSettings, RegisterType, Reply, ReplyBody, Request, RequestPdu, ResponsePdu,
 };
 use crate::tools::values::standard_text;
-use crate::updates::DeviceIdentity;
 
 /// Wiren Board's standard holding registers.
 const MODEL: (u16, u16) = (200, 20);
@@ -125,7 +125,7 @@ async fn read_words(
         plan.response_timeout,
     );
     match queue.transact(None, transaction).await.ok()? {
-        Outcome::Reply(Reply {
+        TransactionOutcome::Reply(Reply {
             address,
             body:
                 ReplyBody::Classic(

@@ -14,12 +14,12 @@ use tokio::task::JoinHandle;
 use tracing::{info, warn};
 
 use crate::device::model::ResolvedPort;
+use crate::device_updates::{ControlWrite, DeviceUpdate, Repeats};
 use crate::gateway::device_model::DeviceModel;
 use crate::gateway::port_plan::port_plan;
 use crate::protocol::LineSettings;
 use crate::service::{PortVitals, ServiceHealth};
 use crate::status::{PortStatus, StatusHub};
-use crate::updates::{ControlWrite, DeviceUpdate, Repeats};
 use bus_queue::BusQueue;
 use port_task::PortTask;
 

@@ -12,16 +12,18 @@ use super::bus_queue::{
     BusQueue, BusQueueError, BusQueueReceiver, QueuedJob, QueuedRaw, QueuedTransaction,
 };
 use super::identity::{read_identity, IdentityPlan, IdentityRead};
+use crate::device_updates::{ControlWrite, DeviceUpdate};
 use crate::gateway::device_model::{apply_port_events, DeviceModel};
 use crate::gateway::port_plan::PortPlan;
 use crate::mqtt::throttle::{LogBudget, LogDecision};
-use crate::port::{Action, Outcome, PortEvent, PortScheduler, ReplyTiming, Transaction};
+use crate::port::{
+    NextStep, PortEvent, PortScheduler, ReplyTiming, Transaction, TransactionOutcome,
+};
 use crate::protocol::LineSettings;
 use crate::service::{BrokerState, PortVitals, ServiceHealth};
 use crate::status::hub::PortCommand;
 use crate::status::PortStatus;
 use crate::transport::{Endpoint, Transport, TransportError};
-use crate::updates::{ControlWrite, DeviceUpdate};
 
 const FIRST_REOPEN_DELAY: Duration = Duration::from_millis(500);
 const MAX_REOPEN_DELAY: Duration = Duration::from_secs(10);
@@ -282,7 +284,12 @@ impl PortTask {
 
     /// The status page's one hook into a transaction: counted after its updates went out (an
     /// event round trip ends at the hand-over to MQTT).
-    fn record_transaction(&self, started: Duration, transaction: &Transaction, outcome: &Outcome) {
+    fn record_transaction(
+        &self,
+        started: Duration,
+        transaction: &Transaction,
+        outcome: &TransactionOutcome,
+    ) {
         let Some(status) = &self.status else {
             return;
         };
@@ -424,7 +431,7 @@ impl PortTask {
             }
             self.apply_status_commands();
             match self.scheduler.next(self.now()) {
-                Action::Transmit(transaction) => {
+                NextStep::Transmit(transaction) => {
                     let started = self.now();
                     queued_turn = true;
                     if bus.away.is_some() {
@@ -442,7 +449,11 @@ impl PortTask {
                     self.transacted |= result.is_ok();
                     let (outcome, timing, failure) = match result {
                         Ok((outcome, timing)) => (outcome, timing, None),
-                        Err(err) => (Outcome::NoReply, ReplyTiming::default(), Some(err)),
+                        Err(err) => (
+                            TransactionOutcome::NoReply,
+                            ReplyTiming::default(),
+                            Some(err),
+                        ),
                     };
                     let recorded = self.status.as_ref().map(|_| outcome.clone());
                     let mut events = std::mem::take(&mut self.port_events);
@@ -457,7 +468,7 @@ impl PortTask {
                         return Err(err);
                     }
                 }
-                Action::Wait { until } => {
+                NextStep::Wait { until } => {
                     let wake = (self.epoch + until).min(Instant::now() + HEARTBEAT);
                     tokio::select! {
                         _ = tokio::time::sleep_until(wake) => {}

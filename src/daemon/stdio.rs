@@ -10,7 +10,7 @@ use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
 use tokio::sync::mpsc;
 use tracing::warn;
 
-use crate::updates::{ControlWrite, DeviceUpdate, Repeats};
+use crate::device_updates::{ControlWrite, DeviceUpdate, Repeats};
 
 /// The values this sink needs the device models to report besides the changes: every event
 /// value, which it prints.

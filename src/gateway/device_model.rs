@@ -14,9 +14,9 @@ use tracing::{debug, warn};
 
 use crate::device::codec::Decoded;
 use crate::device::model::{ResolvedChannel, ResolvedDevice, SharedVec, WriteFunction};
+use crate::device_updates::{DeviceUpdate, ErrorFlags, Repeats};
 use crate::port::{PortEvent, RegisterSpan, RegisterWrite};
 use crate::protocol::RegisterType;
-use crate::updates::{DeviceUpdate, ErrorFlags, Repeats};
 
 #[derive(Debug)]
 pub struct DeviceModel {

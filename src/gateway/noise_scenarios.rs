@@ -20,11 +20,11 @@ use crate::bench::harness::{Change, Publication};
 use crate::bench::history::{check_held_values, value_histories, RegisterKey};
 use crate::bench::layout::{BenchLayout, FaultSlot, FAULT_BUS_EVENTS as EVENTS, FAULT_BUS_WIDE};
 use crate::bench::matching::{match_expected, ExpectedChange, MatchReport};
+use crate::device_updates::{DeviceUpdate, Repeats};
 use crate::protocol::RegisterType;
 use crate::sim::bus::{BusStats, ChangeOrigin};
 use crate::sim::control::register_type_name;
 use crate::sim::faults::Faults;
-use crate::updates::{DeviceUpdate, Repeats};
 
 const TICK: Duration = Duration::from_millis(10);
 const FAULT_TIME: Duration = Duration::from_secs(25);

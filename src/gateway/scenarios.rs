@@ -7,8 +7,8 @@
 use std::time::Duration;
 
 use super::virtual_gateway::VirtualGateway;
+use crate::device_updates::{DeviceUpdate, Repeats};
 use crate::protocol::RegisterType;
-use crate::updates::{DeviceUpdate, Repeats};
 
 const LINES: [&str; 3] = ["9600 8N2", "115200 8N2", "19200 8E1"];
 

@@ -19,15 +19,15 @@ use super::device_model::{apply_port_events, DeviceModel};
 use super::port_plan::port_plan;
 use crate::config::parse::SourceText;
 use crate::config::TemplateLibrary;
+use crate::device_updates::{ControlWrite, DeviceUpdate, Repeats};
 use crate::mqtt::TopicScheme;
 use crate::mqtt::{MqttAction, PlannerSettings, PublicationPlanner, UnchangedPolicy, WriteOutcome};
-use crate::port::{Action, Outcome, PortScheduler, ReplyTiming, Transaction};
+use crate::port::{NextStep, PortScheduler, ReplyTiming, Transaction, TransactionOutcome};
 use crate::protocol::{LineSettings, RegisterType};
 use crate::sim::bus::Bus;
 use crate::sim::bus_file::{build_device, parse_line, DeviceEntry, TemplateSource};
 use crate::sim::MasterLine;
 use crate::transport::exchange::{Exchange, Framing, LinkConfig};
-use crate::updates::{ControlWrite, DeviceUpdate, Repeats};
 
 fn repo(path: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join(path)
@@ -203,20 +203,20 @@ impl VirtualGateway {
                 continue;
             }
             match self.scheduler.next(self.now) {
-                Action::Transmit(transaction) => {
+                NextStep::Transmit(transaction) => {
                     let (outcome, timing, done) = self.transact(&transaction);
                     self.wire_log.push(WireRecord {
                         at: self.now,
                         ended: done,
                         address: transaction.request.address,
                         fast: transaction.request.is_fast(),
-                        answered: matches!(outcome, Outcome::Reply(_)),
+                        answered: matches!(outcome, TransactionOutcome::Reply(_)),
                     });
                     self.now = done;
                     let events = self.scheduler.complete_timed(self.now, outcome, timing);
                     self.hand_to_models(events);
                 }
-                Action::Wait { until } => {
+                NextStep::Wait { until } => {
                     self.now = until.clamp(self.now + Duration::from_micros(1), end);
                 }
             }
@@ -353,10 +353,13 @@ impl VirtualGateway {
     /// The driver loop of `transport::exchange`, with the bus in place of the serial port: the
     /// request is heard at once, bytes arrive at their stop bits' times, and are read one by
     /// one, or in one go where the exchange asks for a batch read.
-    fn transact(&mut self, transaction: &Transaction) -> (Outcome, ReplyTiming, Duration) {
+    fn transact(
+        &mut self,
+        transaction: &Transaction,
+    ) -> (TransactionOutcome, ReplyTiming, Duration) {
         let mut now = self.now;
         if self.exchange.start(transaction).is_err() {
-            return (Outcome::NoReply, ReplyTiming::default(), now);
+            return (TransactionOutcome::NoReply, ReplyTiming::default(), now);
         }
         let mut arrivals = std::collections::VecDeque::new();
         loop {
@@ -403,7 +406,7 @@ impl VirtualGateway {
                     now = now.max(timeout);
                     self.exchange.handle_timeout(now);
                 }
-                (None, None) => return (Outcome::NoReply, ReplyTiming::default(), now),
+                (None, None) => return (TransactionOutcome::NoReply, ReplyTiming::default(), now),
             }
         }
     }

@@ -28,8 +28,8 @@ use super::throttle::{BirthCoalescer, LogBudget, LogDecision};
 use super::topics::{discovery_prefix, TopicError, TopicScheme};
 use super::{MqttAction, Publication};
 use crate::config::config_file::{Config, MqttConfig, TlsConfig};
+use crate::device_updates::{ControlWrite, DeviceUpdate};
 use crate::service::{BrokerState, ServiceHealth};
-use crate::updates::{ControlWrite, DeviceUpdate};
 
 /// Requests rumqttc buffers between this task and its connection.
 const CLIENT_QUEUE: usize = 256;

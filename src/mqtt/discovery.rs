@@ -8,7 +8,7 @@ use serde_json::{json, Map, Value};
 
 use super::topics::{topic_level, TopicScheme};
 use crate::device::{ResolvedChannel, ResolvedDevice};
-use crate::updates::DeviceIdentity;
+use crate::device_updates::DeviceIdentity;
 
 /// Where discovery configs go and how ids are made.
 #[derive(Debug, Clone, PartialEq, Eq)]

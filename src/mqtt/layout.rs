@@ -9,7 +9,7 @@ use super::topics::TopicScheme;
 use super::Publication;
 use crate::device::number_text::format_g;
 use crate::device::{ResolvedChannel, ResolvedDevice};
-use crate::updates::DeviceIdentity;
+use crate::device_updates::DeviceIdentity;
 
 /// `driver` in device meta.
 pub const DRIVER_NAME: &str = "rtu2mqtt";

@@ -5,8 +5,8 @@
 //! time, passed in) into [`MqttAction`]s, and `/on` messages into [`ControlWrite`]s; the client
 //! task only moves those to and from rumqttc. See `docs/mqtt.md` for the layout.
 //!
-//! [`DeviceUpdate`]: crate::updates::DeviceUpdate
-//! [`ControlWrite`]: crate::updates::ControlWrite
+//! [`DeviceUpdate`]: crate::device_updates::DeviceUpdate
+//! [`ControlWrite`]: crate::device_updates::ControlWrite
 
 pub mod client;
 pub mod discovery;

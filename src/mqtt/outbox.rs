@@ -17,7 +17,7 @@ use tracing::warn;
 use super::layout;
 use super::planner::PublicationPlanner;
 use super::MqttAction;
-use crate::updates::DeviceUpdate;
+use crate::device_updates::DeviceUpdate;
 
 #[derive(Debug, Default)]
 pub struct Outbox {

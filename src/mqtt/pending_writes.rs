@@ -6,7 +6,7 @@
 
 use std::collections::VecDeque;
 
-use crate::updates::ControlWrite;
+use crate::device_updates::ControlWrite;
 
 #[derive(Debug, Default)]
 pub struct PendingWrites {

@@ -16,7 +16,7 @@ use super::layout;
 use super::topics::TopicScheme;
 use super::{MqttAction, Publication};
 use crate::device::{ResolvedChannel, ResolvedDevice};
-use crate::updates::{ControlWrite, DeviceIdentity, DeviceUpdate, ErrorFlags, Repeats};
+use crate::device_updates::{ControlWrite, DeviceIdentity, DeviceUpdate, ErrorFlags, Repeats};
 
 /// When an unchanged value is published again (config `max_unchanged_interval`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -14,5 +14,5 @@ pub use health::{HealthPolicy, MIN_LATE_REPLY_HOLDOFF};
 pub use plan::{DevicePlan, EventMode, PlannedRead, PortSettings, RegisterWrite, SetupWrite};
 pub use read_plan::{MergeLimits, RegisterSpan};
 pub use scheduler::{
-    Action, DeviceReport, Outcome, PortEvent, PortScheduler, ReplyTiming, Transaction,
+    DeviceReport, NextStep, PortEvent, PortScheduler, ReplyTiming, Transaction, TransactionOutcome,
 };

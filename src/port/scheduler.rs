@@ -22,7 +22,7 @@ use super::plan::{DevicePlan, PortSettings, RegisterWrite};
 use super::read_plan::RegisterSpan;
 use crate::protocol::fast::enabled_registers;
 use crate::protocol::timing::ADAPTER_LATENCY_ALLOWANCE;
-pub use crate::protocol::transaction::{Outcome, ReplyTiming, Transaction};
+pub use crate::protocol::transaction::{ReplyTiming, Transaction, TransactionOutcome};
 use crate::protocol::{
     EventRange, ExceptionCode, FastReply, RegisterType, Reply, ReplyBody, Request, RequestPdu,
     ResponsePdu,
@@ -33,7 +33,7 @@ const WRITE_RETRY_TIME: Duration = Duration::from_secs(600);
 
 /// What the driver does next.
 #[derive(Debug, Clone, PartialEq)]
-pub enum Action {
+pub enum NextStep {
     Transmit(Transaction),
     /// Nothing to do before this time (or before a write is queued).
     Wait {
@@ -340,9 +340,9 @@ impl PortScheduler {
     }
 
     /// What to do now. Call again after [`complete`](Self::complete) or when `until` has passed.
-    pub fn next(&mut self, now: Duration) -> Action {
+    pub fn next(&mut self, now: Duration) -> NextStep {
         if self.in_flight.is_some() {
-            return Action::Wait { until: now };
+            return NextStep::Wait { until: now };
         }
         self.refresh(now);
         #[cfg(test)]
@@ -391,7 +391,7 @@ impl PortScheduler {
                 self.commit(now, smallest, in_flight)
             }
             None if events_active => self.start_event_poll(now),
-            None => Action::Wait {
+            None => NextStep::Wait {
                 until: self.earliest_deadline(now),
             },
         }
@@ -422,15 +422,15 @@ impl PortScheduler {
         }
     }
 
-    fn commit(&mut self, now: Duration, transaction: Transaction, in_flight: InFlight) -> Action {
+    fn commit(&mut self, now: Duration, transaction: Transaction, in_flight: InFlight) -> NextStep {
         self.sent_since_event_poll = !matches!(in_flight, InFlight::PollEvents { .. });
         self.in_flight = Some(in_flight);
         self.in_flight_since = now;
-        Action::Transmit(transaction)
+        NextStep::Transmit(transaction)
     }
 
     /// Takes the outcome of the transaction [`next`](Self::next) returned.
-    pub fn complete(&mut self, now: Duration, outcome: Outcome) -> Vec<PortEvent> {
+    pub fn complete(&mut self, now: Duration, outcome: TransactionOutcome) -> Vec<PortEvent> {
         self.complete_timed(now, outcome, ReplyTiming::default())
     }
 
@@ -439,7 +439,7 @@ impl PortScheduler {
     pub fn complete_timed(
         &mut self,
         now: Duration,
-        outcome: Outcome,
+        outcome: TransactionOutcome,
         timing: ReplyTiming,
     ) -> Vec<PortEvent> {
         let mut out = Vec::new();
@@ -453,7 +453,7 @@ impl PortScheduler {
     pub fn complete_into(
         &mut self,
         now: Duration,
-        outcome: Outcome,
+        outcome: TransactionOutcome,
         timing: ReplyTiming,
         out: &mut Vec<PortEvent>,
     ) {
@@ -472,7 +472,7 @@ impl PortScheduler {
             self.learn_response_time(now, device, &outcome, timing);
             // Silence through the timeout and the late window (watched: it failed its last
             // request too) is a dead device, not a slow one: retried at its normal timeout.
-            let silent = !matches!(outcome, Outcome::Reply(_))
+            let silent = !matches!(outcome, TransactionOutcome::Reply(_))
                 && timing.first_byte.is_none()
                 && timing.late_byte.is_none();
             if let (true, false, Some(state)) =
@@ -551,7 +551,7 @@ impl PortScheduler {
         &mut self,
         now: Duration,
         device: usize,
-        outcome: &Outcome,
+        outcome: &TransactionOutcome,
         timing: ReplyTiming,
     ) {
         let Some(state) = self.devices.get_mut(device) else {
@@ -567,7 +567,9 @@ impl PortScheduler {
                 new_timeout_ms = state.response.timeout(now).as_millis() as u64,
                 "reply came after the response timeout: thrown away, waiting longer from now on"
             );
-        } else if let (Outcome::Reply(_), Some(first_byte)) = (outcome, timing.first_byte) {
+        } else if let (TransactionOutcome::Reply(_), Some(first_byte)) =
+            (outcome, timing.first_byte)
+        {
             state.response.answered(first_byte);
         }
     }
@@ -612,7 +614,7 @@ impl PortScheduler {
         out
     }
 
-    fn start_event_poll(&mut self, now: Duration) -> Action {
+    fn start_event_poll(&mut self, now: Duration) -> NextStep {
         let request = Request::poll_events(self.events.request());
         let line = &self.settings.line;
         // USB adapters deliver late, and a loaded machine reads late: a short first-byte timeout
@@ -953,11 +955,11 @@ impl PortScheduler {
         &mut self,
         now: Duration,
         started: Duration,
-        outcome: Outcome,
+        outcome: TransactionOutcome,
         out: &mut Vec<PortEvent>,
     ) {
         match outcome {
-            Outcome::Reply(Reply {
+            TransactionOutcome::Reply(Reply {
                 address,
                 body:
                     ReplyBody::Fast {
@@ -1014,9 +1016,11 @@ impl PortScheduler {
                     }
                 }
             }
-            Outcome::Reply(_) | Outcome::NoReply => self.events.nothing_pending(started),
+            TransactionOutcome::Reply(_) | TransactionOutcome::NoReply => {
+                self.events.nothing_pending(started)
+            }
 
-            Outcome::Garbled => self.events.garbled(now),
+            TransactionOutcome::Garbled => self.events.garbled(now),
         }
     }
 
@@ -1025,14 +1029,14 @@ impl PortScheduler {
         now: Duration,
         device: usize,
         index: usize,
-        outcome: Outcome,
+        outcome: TransactionOutcome,
         out: &mut Vec<PortEvent>,
     ) {
         let Some(state) = self.devices.get_mut(device) else {
             return;
         };
         match outcome {
-            Outcome::Reply(Reply {
+            TransactionOutcome::Reply(Reply {
                 body: ReplyBody::Classic(ResponsePdu::Exception { code, .. }),
                 ..
             }) => {
@@ -1040,11 +1044,13 @@ impl PortScheduler {
                 Self::health_success(state, device, now, out);
                 state.setup_write_done(index);
             }
-            Outcome::Reply(_) => {
+            TransactionOutcome::Reply(_) => {
                 Self::health_success(state, device, now, out);
                 state.setup_write_done(index);
             }
-            Outcome::NoReply | Outcome::Garbled => Self::health_failure(state, device, now, out),
+            TransactionOutcome::NoReply | TransactionOutcome::Garbled => {
+                Self::health_failure(state, device, now, out)
+            }
         }
     }
 
@@ -1054,14 +1060,14 @@ impl PortScheduler {
         device: usize,
         ranges: &[EventRange],
         members: &[usize],
-        outcome: Outcome,
+        outcome: TransactionOutcome,
         out: &mut Vec<PortEvent>,
     ) {
         let Some(state) = self.devices.get_mut(device) else {
             return;
         };
         match outcome {
-            Outcome::Reply(Reply {
+            TransactionOutcome::Reply(Reply {
                 body:
                     ReplyBody::Fast {
                         reply: FastReply::EventsConfigured { masks },
@@ -1073,12 +1079,12 @@ impl PortScheduler {
                 let enabled = enabled_registers(&masks, ranges).unwrap_or_default();
                 state.events_configured(now, members, &enabled);
             }
-            Outcome::Reply(_) => {
+            TransactionOutcome::Reply(_) => {
                 info!(device = %state.plan.name, "device does not support Fast Modbus events: polling it");
                 Self::health_success(state, device, now, out);
                 state.events_refused(now);
             }
-            Outcome::NoReply | Outcome::Garbled => {
+            TransactionOutcome::NoReply | TransactionOutcome::Garbled => {
                 warn!(device = %state.plan.name, "no answer to the event setup: polling it");
                 state.events_refused(now);
             }
@@ -1091,14 +1097,14 @@ impl PortScheduler {
         device: usize,
         span: RegisterSpan,
         members: &[usize],
-        outcome: Outcome,
+        outcome: TransactionOutcome,
         out: &mut Vec<PortEvent>,
     ) {
         let Some(state) = self.devices.get_mut(device) else {
             return;
         };
         let values = match outcome {
-            Outcome::Reply(Reply {
+            TransactionOutcome::Reply(Reply {
                 body: ReplyBody::Classic(pdu),
                 ..
             }) => match pdu {
@@ -1162,7 +1168,7 @@ impl PortScheduler {
         &mut self,
         now: Duration,
         pending: PendingWrite,
-        outcome: Outcome,
+        outcome: TransactionOutcome,
         out: &mut Vec<PortEvent>,
     ) {
         let write = &pending.write;
@@ -1179,7 +1185,7 @@ impl PortScheduler {
             })
         };
         match outcome {
-            Outcome::Reply(Reply {
+            TransactionOutcome::Reply(Reply {
                 body: ReplyBody::Classic(ResponsePdu::Exception { code, .. }),
                 ..
             }) => {
@@ -1193,7 +1199,7 @@ impl PortScheduler {
                     permanent: true,
                 });
             }
-            Outcome::Reply(_) => {
+            TransactionOutcome::Reply(_) => {
                 Self::health_success(state, device, now, out);
                 self.writes.retain(|p| !(p.write == pending.write));
                 let span = RegisterSpan::new(
@@ -1212,7 +1218,7 @@ impl PortScheduler {
                     values: write.values.clone(),
                 });
             }
-            Outcome::NoReply | Outcome::Garbled => {
+            TransactionOutcome::NoReply | TransactionOutcome::Garbled => {
                 Self::health_failure(state, device, now, out);
                 let give_up = now >= pending.give_up_at;
                 if give_up || replaced(&self.writes) {

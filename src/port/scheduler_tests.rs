@@ -80,7 +80,7 @@ fn run(
     log: &mut Log,
     now: Duration,
     end: Duration,
-    mut respond: impl FnMut(Duration, &Request) -> Outcome,
+    mut respond: impl FnMut(Duration, &Request) -> TransactionOutcome,
 ) -> Duration {
     run_timed(scheduler, log, now, end, |at, request| {
         (respond(at, request), None)
@@ -95,12 +95,12 @@ fn run_timed(
     log: &mut Log,
     mut now: Duration,
     end: Duration,
-    mut respond: impl FnMut(Duration, &Request) -> (Outcome, Option<Duration>),
+    mut respond: impl FnMut(Duration, &Request) -> (TransactionOutcome, Option<Duration>),
 ) -> Duration {
     let line = scheduler.settings.line;
     while now < end {
         match scheduler.next(now) {
-            Action::Transmit(transaction) => {
+            NextStep::Transmit(transaction) => {
                 log.sent.push((now, transaction.request.clone()));
                 let (outcome, latency) = respond(now, &transaction.request);
                 let request_len = transaction.request.encode().unwrap().len();
@@ -110,7 +110,9 @@ fn run_timed(
                     .unwrap_or(transaction.reply_timeout);
                 let silence = transaction.request_time + response_timeout + transaction.late_window;
                 let (outcome, timing, took) = match (outcome, latency) {
-                    (Outcome::Reply(reply), Some(latency)) if latency > response_timeout => {
+                    (TransactionOutcome::Reply(reply), Some(latency))
+                        if latency > response_timeout =>
+                    {
                         let timing = ReplyTiming {
                             first_byte: None,
                             late_byte: (latency <= response_timeout + transaction.late_window)
@@ -119,9 +121,9 @@ fn run_timed(
                         let reply_end = transaction.request_time
                             + latency
                             + line.wire_time(reply.encode().unwrap().len());
-                        (Outcome::NoReply, timing, silence.max(reply_end))
+                        (TransactionOutcome::NoReply, timing, silence.max(reply_end))
                     }
-                    (Outcome::Reply(reply), latency) => {
+                    (TransactionOutcome::Reply(reply), latency) => {
                         let arbitration = if matches!(
                             transaction.request.body,
                             RequestBody::Fast(FastRequest::PollEvents(_))
@@ -138,7 +140,7 @@ fn run_timed(
                         };
                         let took =
                             line.transaction_time(request_len, latency + arbitration, reply_len);
-                        (Outcome::Reply(reply), timing, took)
+                        (TransactionOutcome::Reply(reply), timing, took)
                     }
                     (other, _) => (other, ReplyTiming::default(), silence),
                 };
@@ -147,7 +149,7 @@ fn run_timed(
                     log.events.push((now, event));
                 }
             }
-            Action::Wait { until } => now = until.max(now + Duration::from_micros(1)),
+            NextStep::Wait { until } => now = until.max(now + Duration::from_micros(1)),
         }
     }
     now
@@ -155,21 +157,23 @@ fn run_timed(
 
 /// A well-behaved device: reads return the register address as the value, writes are echoed,
 /// 0x18 enables every register, event requests find nothing.
-fn healthy(request: &Request) -> Outcome {
+fn healthy(request: &Request) -> TransactionOutcome {
     let address = request.address;
     match &request.body {
         RequestBody::Fast(FastRequest::PollEvents(_)) => {
-            Outcome::Reply(Reply::fast(0xFD, FastReply::NoEvents))
+            TransactionOutcome::Reply(Reply::fast(0xFD, FastReply::NoEvents))
         }
         RequestBody::Fast(FastRequest::ConfigureEvents { ranges }) => {
             let masks = ranges
                 .iter()
                 .flat_map(|r| crate::protocol::pdu::pack_bits(&vec![true; r.priorities.len()]))
                 .collect();
-            Outcome::Reply(Reply::fast(address, FastReply::EventsConfigured { masks }))
+            TransactionOutcome::Reply(Reply::fast(address, FastReply::EventsConfigured { masks }))
         }
-        RequestBody::Fast(_) => Outcome::NoReply,
-        RequestBody::Classic(pdu) => Outcome::Reply(Reply::classic(address, classic_answer(pdu))),
+        RequestBody::Fast(_) => TransactionOutcome::NoReply,
+        RequestBody::Classic(pdu) => {
+            TransactionOutcome::Reply(Reply::classic(address, classic_answer(pdu)))
+        }
     }
 }
 
@@ -329,7 +333,7 @@ fn an_event_packet_is_acknowledged_in_the_next_request() {
                     id: 0,
                     payload: vec![1],
                 };
-                Outcome::Reply(Reply::fast(
+                TransactionOutcome::Reply(Reply::fast(
                     20,
                     FastReply::Events(EventPacket {
                         flag: 1,
@@ -403,7 +407,7 @@ fn a_reboot_event_brings_setup_event_setup_and_a_fresh_read() {
                         event_count: 1,
                         events: vec![Event::reboot()],
                     };
-                    Outcome::Reply(Reply::fast(20, FastReply::Events(packet)))
+                    TransactionOutcome::Reply(Reply::fast(20, FastReply::Events(packet)))
                 } else {
                     healthy(request)
                 }
@@ -480,7 +484,7 @@ fn registers_and_devices_without_events_fall_back_to_polling() {
                     }
                     _ => unreachable!(),
                 }
-                Outcome::Reply(Reply::fast(
+                TransactionOutcome::Reply(Reply::fast(
                     1,
                     FastReply::EventsConfigured {
                         masks: vec![0b01, 0],
@@ -488,7 +492,7 @@ fn registers_and_devices_without_events_fall_back_to_polling() {
                 ))
             }
             (RequestBody::Fast(FastRequest::ConfigureEvents { .. }), 2) => {
-                Outcome::Reply(Reply::classic(
+                TransactionOutcome::Reply(Reply::classic(
                     2,
                     ResponsePdu::Exception {
                         function: 0x46,
@@ -533,7 +537,7 @@ fn a_refused_merged_read_is_split_and_only_the_bad_register_dropped() {
             RequestBody::Classic(RequestPdu::ReadHoldingRegisters { start, count })
                 if *start <= 1 && start + count > 1 =>
             {
-                Outcome::Reply(Reply::classic(
+                TransactionOutcome::Reply(Reply::classic(
                     7,
                     ResponsePdu::Exception {
                         function: 3,
@@ -640,7 +644,7 @@ fn a_dead_device_backs_off_while_the_others_keep_their_rate() {
         ms(150_000),
         |_, request| {
             if request.address == 2 {
-                Outcome::NoReply
+                TransactionOutcome::NoReply
             } else {
                 healthy(request)
             }
@@ -690,7 +694,7 @@ fn an_unplugged_device_comes_back_with_its_setup() {
         ms(20_000),
         |at, request| {
             if (ms(5000)..ms(10_000)).contains(&at) {
-                Outcome::NoReply
+                TransactionOutcome::NoReply
             } else {
                 healthy(request)
             }
@@ -824,7 +828,7 @@ fn the_reply_clock_covers_the_request_and_a_wb_timeout_at_every_baud() {
         port.fast_modbus = false;
         let plan = wb_device(7, vec![read(RegisterType::Holding, 0, EventMode::Polled)]);
         let mut scheduler = PortScheduler::new(port, vec![plan]);
-        let Action::Transmit(transaction) = scheduler.next(Duration::ZERO) else {
+        let NextStep::Transmit(transaction) = scheduler.next(Duration::ZERO) else {
             panic!("a read is due at {baud}");
         };
         let line = scheduler.settings.line;
@@ -897,7 +901,7 @@ fn a_device_that_answered_late_gets_a_longer_timeout() {
         .find(|(_, e)| matches!(e, PortEvent::Values { .. }))
         .map(|(at, _)| *at);
     assert!(first_value < Some(ms(3000)), "{first_value:?}");
-    let Action::Transmit(transaction) = scheduler.next(end) else {
+    let NextStep::Transmit(transaction) = scheduler.next(end) else {
         panic!("a read is due");
     };
     assert!(transaction.first_byte_timeout > Some(ms(600)));
@@ -928,7 +932,7 @@ fn reads_per_device(fast_modbus: bool, dead: &[u8], end: Duration) -> (Vec<usize
         end,
         |_, request| {
             if dead.contains(&request.address) {
-                Outcome::NoReply
+                TransactionOutcome::NoReply
             } else {
                 healthy(request)
             }
@@ -975,7 +979,7 @@ fn a_port_that_stays_closed_marks_its_devices_offline() {
     }));
     assert!(scheduler.port_unavailable(ms(9000), ms(0)).is_empty());
     // The port is back: the devices are tried at once.
-    assert!(matches!(scheduler.next(ms(9000)), Action::Transmit(_)));
+    assert!(matches!(scheduler.next(ms(9000)), NextStep::Transmit(_)));
 }
 
 #[test]
@@ -1048,7 +1052,7 @@ fn an_offline_device_that_answers_late_is_not_held_back_like_a_dead_one() {
         ms(40_000),
         |at, request| {
             if at < ms(5000) {
-                (Outcome::NoReply, None)
+                (TransactionOutcome::NoReply, None)
             } else {
                 (healthy(request), Some(ms(600)))
             }
@@ -1073,7 +1077,7 @@ fn an_offline_device_that_answers_late_is_not_held_back_like_a_dead_one() {
 fn next_classic(scheduler: &mut PortScheduler, now: &mut Duration) -> Transaction {
     for _ in 0..10_000 {
         match scheduler.next(*now) {
-            Action::Transmit(transaction) => {
+            NextStep::Transmit(transaction) => {
                 if matches!(transaction.request.body, RequestBody::Classic(_)) {
                     return transaction;
                 }
@@ -1081,7 +1085,7 @@ fn next_classic(scheduler: &mut PortScheduler, now: &mut Duration) -> Transactio
                 *now += ms(5);
                 scheduler.complete(*now, outcome);
             }
-            Action::Wait { until } => *now = until.max(*now + ms(1)),
+            NextStep::Wait { until } => *now = until.max(*now + ms(1)),
         }
     }
     panic!("no classic request");
@@ -1120,7 +1124,7 @@ fn an_isolated_timeout_skips_the_late_window_but_the_device_waits_as_long_as_bef
         .expect("a classic read has a first-byte timeout");
     now += lost.request_time + timeout;
     let failed_at = now;
-    scheduler.complete(now, Outcome::NoReply);
+    scheduler.complete(now, TransactionOutcome::NoReply);
     // The bus goes on with device 31 at once; device 30 is asked again only once its late
     // reply could no longer come: its holdoff and the window it skipped.
     let next_to_31 = next_classic(&mut scheduler, &mut now);
@@ -1188,7 +1192,7 @@ fn a_garbled_reply_in_time_holds_the_device_off_without_a_skipped_window() {
     let failed_at = now;
     scheduler.complete_timed(
         now,
-        Outcome::Garbled,
+        TransactionOutcome::Garbled,
         ReplyTiming {
             first_byte: Some(first_byte),
             late_byte: None,
@@ -1215,13 +1219,13 @@ fn a_window_skipped_counts_at_the_configured_timeout_after_a_late_reply() {
     // An isolated loss (window skipped), then a reply 700 ms late in the window of the next try.
     let lost = answer_until(&mut scheduler, &mut now, 30);
     now += lost.request_time + lost.first_byte_timeout.unwrap();
-    scheduler.complete(now, Outcome::NoReply);
+    scheduler.complete(now, TransactionOutcome::NoReply);
     let late = answer_until(&mut scheduler, &mut now, 30);
     assert_eq!(Some(late.late_window), late.first_byte_timeout);
     now += late.request_time + ms(750);
     scheduler.complete_timed(
         now,
-        Outcome::NoReply,
+        TransactionOutcome::NoReply,
         ReplyTiming {
             first_byte: None,
             late_byte: Some(ms(700)),
@@ -1239,7 +1243,7 @@ fn a_window_skipped_counts_at_the_configured_timeout_after_a_late_reply() {
     assert_eq!(silent.late_window, Duration::ZERO);
     now += silent.request_time + raised;
     let failed_at = now;
-    scheduler.complete(now, Outcome::NoReply);
+    scheduler.complete(now, TransactionOutcome::NoReply);
     answer_until(&mut scheduler, &mut now, 30);
     let holdoff = HealthPolicy::default().late_reply_holdoff;
     assert!(now >= failed_at + holdoff + floor, "{:?}", now - failed_at);
@@ -1287,7 +1291,7 @@ fn a_device_that_becomes_slow_is_learned_at_its_second_failure() {
         values_after >= 10,
         "read again once learned: {values_after}"
     );
-    let Action::Transmit(transaction) = scheduler.next(end) else {
+    let NextStep::Transmit(transaction) = scheduler.next(end) else {
         panic!("a read is due");
     };
     assert!(transaction.first_byte_timeout > Some(ms(600)));
@@ -1313,7 +1317,7 @@ fn a_suspended_device_is_not_polled_and_the_scheduler_does_not_spin() {
     let mut only_held = PortScheduler::new(settings(115_200), vec![reads(2)]);
     only_held.hold_polling(0, Some(Duration::MAX));
     match only_held.next(ms(10)) {
-        Action::Wait { until } => assert!(until > ms(10), "{until:?}"),
+        NextStep::Wait { until } => assert!(until > ms(10), "{until:?}"),
         other => panic!("{other:?}"),
     }
     // A write still goes.
@@ -1327,7 +1331,7 @@ fn a_suspended_device_is_not_polled_and_the_scheduler_does_not_spin() {
             force_multiple: false,
         },
     );
-    assert!(matches!(only_held.next(ms(10)), Action::Transmit(_)));
+    assert!(matches!(only_held.next(ms(10)), NextStep::Transmit(_)));
     scheduler.hold_polling(1, None);
     let mut log = Log::default();
     run(&mut scheduler, &mut log, now, now + ms(500), |_, r| {
@@ -1369,11 +1373,11 @@ fn an_event_from_an_offline_device_gets_it_retried_at_once() {
         ms(12_000),
         |at, request| match &request.body {
             RequestBody::Classic(_) if request.address == 21 && silent.contains(&at) => {
-                Outcome::NoReply
+                TransactionOutcome::NoReply
             }
             RequestBody::Fast(FastRequest::PollEvents(_)) if at >= event_at && !event_sent => {
                 event_sent = true;
-                Outcome::Reply(Reply::fast(
+                TransactionOutcome::Reply(Reply::fast(
                     21,
                     FastReply::Events(EventPacket {
                         flag: 1,
@@ -1503,7 +1507,7 @@ fn retries_of_an_offline_device(late: bool) -> usize {
         ms(90_000),
         |at, request| match request.address {
             2 if late && at >= ms(30_000) => (healthy(request), Some(ms(700))),
-            2 => (Outcome::NoReply, None),
+            2 => (TransactionOutcome::NoReply, None),
             _ => (healthy(request), None),
         },
     );
@@ -1598,19 +1602,19 @@ fn random_plan(rng: &mut Rng, address: u8) -> DevicePlan {
 
 /// An answer drawn at random: mostly the healthy one, sometimes silence, noise, an exception,
 /// or (to an event request) a packet from any device, a reboot among its events.
-fn random_outcome(rng: &mut Rng, request: &Request, addresses: &[u8]) -> Outcome {
+fn random_outcome(rng: &mut Rng, request: &Request, addresses: &[u8]) -> TransactionOutcome {
     match rng.below(20) {
-        0..=2 => Outcome::NoReply,
-        3 => Outcome::Garbled,
+        0..=2 => TransactionOutcome::NoReply,
+        3 => TransactionOutcome::Garbled,
         4 => match &request.body {
-            RequestBody::Classic(pdu) => Outcome::Reply(Reply::classic(
+            RequestBody::Classic(pdu) => TransactionOutcome::Reply(Reply::classic(
                 request.address,
                 ResponsePdu::Exception {
                     function: pdu.function(),
                     code: ExceptionCode::ILLEGAL_DATA_ADDRESS,
                 },
             )),
-            _ => Outcome::NoReply,
+            _ => TransactionOutcome::NoReply,
         },
         5..=7 if matches!(request.body, RequestBody::Fast(FastRequest::PollEvents(_))) => {
             let address = addresses[rng.below(addresses.len() as u64) as usize];
@@ -1629,7 +1633,7 @@ fn random_outcome(rng: &mut Rng, request: &Request, addresses: &[u8]) -> Outcome
             if rng.chance(20) {
                 events.push(Event::reboot());
             }
-            Outcome::Reply(Reply::fast(
+            TransactionOutcome::Reply(Reply::fast(
                 address,
                 FastReply::Events(EventPacket {
                     flag: rng.below(2) as u8,
@@ -1689,19 +1693,20 @@ fn the_due_order_chooses_as_a_scan_of_every_device_would() {
                 // The clock of a test may go back; the scheduler must not care.
                 7 => now = now.saturating_sub(ms(rng.below(50))),
                 _ => match scheduler.next(now) {
-                    Action::Transmit(transaction) => {
+                    NextStep::Transmit(transaction) => {
                         transactions += 1;
                         let outcome = random_outcome(&mut rng, &transaction.request, &addresses);
                         let late = rng.chance(5).then(|| ms(1 + rng.below(400)));
                         let timing = ReplyTiming {
-                            first_byte: matches!(outcome, Outcome::Reply(_))
+                            first_byte: matches!(outcome, TransactionOutcome::Reply(_))
                                 .then(|| ms(1 + rng.below(20))),
-                            late_byte: late.filter(|_| !matches!(outcome, Outcome::Reply(_))),
+                            late_byte: late
+                                .filter(|_| !matches!(outcome, TransactionOutcome::Reply(_))),
                         };
                         now += transaction.estimated.min(ms(300)) + ms(rng.below(3));
                         scheduler.complete_timed(now, outcome, timing);
                     }
-                    Action::Wait { until } => {
+                    NextStep::Wait { until } => {
                         now = if rng.chance(50) {
                             until.max(now)
                         } else {

@@ -38,7 +38,7 @@ pub use parser::{
 };
 pub use pdu::{ExceptionCode, RequestPdu, ResponsePdu};
 pub use timing::{LineSettings, Parity};
-pub use transaction::{Outcome, ReplyTiming, Transaction};
+pub use transaction::{ReplyTiming, Transaction, TransactionOutcome};
 
 /// Why bytes did not decode to a frame.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]

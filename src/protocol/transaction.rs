@@ -44,7 +44,7 @@ pub struct ReplyTiming {
 
 /// What came back for a transaction.
 #[derive(Debug, Clone, PartialEq)]
-pub enum Outcome {
+pub enum TransactionOutcome {
     Reply(Reply),
     /// Nothing, or nothing that answers the request, before the timeout.
     NoReply,

@@ -17,7 +17,7 @@ use crate::config::{TemplateFile, TemplateLibrary};
 use crate::daemon::bus_queue::BusQueue;
 use crate::daemon::{PortAccess, PortDirectory};
 use crate::gateway::port_plan::line_settings;
-use crate::port::{Outcome, Transaction};
+use crate::port::{Transaction, TransactionOutcome};
 use crate::protocol::fast::FastReply;
 use crate::protocol::timing::ADAPTER_LATENCY_ALLOWANCE;
 use crate::protocol::{LineSettings, Reply, ReplyBody, Request, RequestPdu, ResponsePdu};
@@ -80,7 +80,7 @@ impl ToolBus for QueuedBus {
         &mut self,
         line: LineSettings,
         transaction: Transaction,
-    ) -> Result<Outcome, PortError> {
+    ) -> Result<TransactionOutcome, PortError> {
         let line = self.home.map(|_| line);
         Ok(self.queue.transact(line, transaction).await?)
     }
@@ -366,7 +366,7 @@ async fn port_scan(ports: &PortDirectory, scan: PortScan) -> Result<Value, RpcEr
             };
             let transaction = scan_transaction(&line, request, start, bus.latency());
             match bus.transact(line, transaction).await.map_err(io_error)? {
-                Outcome::Reply(Reply {
+                TransactionOutcome::Reply(Reply {
                     body:
                         ReplyBody::Fast {
                             reply:
@@ -378,7 +378,7 @@ async fn port_scan(ports: &PortDirectory, scan: PortScan) -> Result<Value, RpcEr
                         },
                     ..
                 }) => vec![(serial, modbus_address)],
-                Outcome::Reply(Reply {
+                TransactionOutcome::Reply(Reply {
                     body:
                         ReplyBody::Fast {
                             reply: FastReply::ScanEnd,
@@ -386,8 +386,8 @@ async fn port_scan(ports: &PortDirectory, scan: PortScan) -> Result<Value, RpcEr
                         },
                     ..
                 })
-                | Outcome::NoReply => Vec::new(),
-                Outcome::Reply(_) | Outcome::Garbled => {
+                | TransactionOutcome::NoReply => Vec::new(),
+                TransactionOutcome::Reply(_) | TransactionOutcome::Garbled => {
                     error = Some("unreadable reply to the scan (bad CRC or a collision)".into());
                     Vec::new()
                 }
@@ -823,8 +823,8 @@ async fn device_set(
     templates: &DeviceTemplates,
     set: DeviceSet,
 ) -> Result<Value, RpcError> {
+    use crate::device_updates::Repeats;
     use crate::gateway::device_model::DeviceModel;
-    use crate::updates::Repeats;
     let (access, index) = find_device(ports, &set.port, set.slave_id)?;
     let device = Arc::new(access.resolved.devices[index].clone());
     let template = device

@@ -12,8 +12,8 @@ use tokio::time::Instant;
 
 use super::stats::{ErrorCounts, PortStats, LATENCY_BOUNDS_MS};
 use crate::device::ResolvedDevice;
-use crate::port::Outcome;
-use crate::updates::ControlWrite;
+use crate::device_updates::ControlWrite;
+use crate::port::TransactionOutcome;
 
 fn lock<T>(mutex: &Mutex<T>) -> MutexGuard<'_, T> {
     mutex.lock().unwrap_or_else(PoisonError::into_inner)
@@ -233,18 +233,18 @@ impl StatusHub {
                     let request = crate::cli::decode::explain_request(&frame.request);
                     let request_hex = frame.request.encode().map(|b| hex(&b)).unwrap_or_default();
                     let (reply, reply_hex) = match &frame.outcome {
-                        Outcome::Reply(reply) => (
+                        TransactionOutcome::Reply(reply) => (
                             crate::cli::decode::explain_reply(reply),
                             reply.encode().map(|b| hex(&b)).unwrap_or_default(),
                         ),
-                        Outcome::NoReply => (
+                        TransactionOutcome::NoReply => (
                             crate::cli::decode::Reading {
                                 summary: "no reply (timeout)".to_string(),
                                 details: Vec::new(),
                             },
                             String::new(),
                         ),
-                        Outcome::Garbled => (
+                        TransactionOutcome::Garbled => (
                             crate::cli::decode::Reading {
                                 summary: "bytes without a valid frame (bad CRC or collision)"
                                     .to_string(),

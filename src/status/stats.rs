@@ -5,10 +5,10 @@
 use std::collections::{BTreeMap, VecDeque};
 use std::time::Duration;
 
-use crate::port::{DeviceReport, Outcome, Transaction};
+use crate::device_updates::{DeviceUpdate, ErrorFlags};
+use crate::port::{DeviceReport, Transaction, TransactionOutcome};
 use crate::protocol::fast::{FastReply, FastRequest};
 use crate::protocol::{Reply, ReplyBody, RequestBody, ResponsePdu};
-use crate::updates::{DeviceUpdate, ErrorFlags};
 
 /// Rates and bus utilisation are averaged over this many whole seconds.
 pub const WINDOW_SECONDS: u64 = 10;
@@ -49,15 +49,15 @@ enum ErrorKind {
     Exception,
 }
 
-fn error_kind(outcome: &Outcome) -> Option<ErrorKind> {
+fn error_kind(outcome: &TransactionOutcome) -> Option<ErrorKind> {
     match outcome {
-        Outcome::NoReply => Some(ErrorKind::Timeout),
-        Outcome::Garbled => Some(ErrorKind::BadCrc),
-        Outcome::Reply(Reply {
+        TransactionOutcome::NoReply => Some(ErrorKind::Timeout),
+        TransactionOutcome::Garbled => Some(ErrorKind::BadCrc),
+        TransactionOutcome::Reply(Reply {
             body: ReplyBody::Classic(ResponsePdu::Exception { .. }),
             ..
         }) => Some(ErrorKind::Exception),
-        Outcome::Reply(Reply {
+        TransactionOutcome::Reply(Reply {
             body:
                 ReplyBody::Fast {
                     reply:
@@ -69,7 +69,7 @@ fn error_kind(outcome: &Outcome) -> Option<ErrorKind> {
                 },
             ..
         }) => Some(ErrorKind::Exception),
-        Outcome::Reply(_) => None,
+        TransactionOutcome::Reply(_) => None,
     }
 }
 
@@ -131,7 +131,7 @@ impl Histogram {
 pub struct FrameRecord {
     pub at: Duration,
     pub request: crate::protocol::Request,
-    pub outcome: Outcome,
+    pub outcome: TransactionOutcome,
     /// From the start of the request to the outcome.
     pub took: Duration,
 }
@@ -258,7 +258,7 @@ impl PortStats {
         started: Duration,
         now: Duration,
         transaction: &Transaction,
-        outcome: &Outcome,
+        outcome: &TransactionOutcome,
     ) -> Option<usize> {
         let took = now.saturating_sub(started);
         let kind = error_kind(outcome);
@@ -283,7 +283,7 @@ impl PortStats {
         // The device the frames belong to: the one addressed, or for an event round the one
         // that won the arbitration.
         let (device, events_from) = match outcome {
-            Outcome::Reply(Reply {
+            TransactionOutcome::Reply(Reply {
                 address,
                 body:
                     ReplyBody::Fast {
@@ -295,7 +295,7 @@ impl PortStats {
                 let device = self.device_by_address(*address);
                 (device, device)
             }
-            Outcome::Reply(Reply {
+            TransactionOutcome::Reply(Reply {
                 body:
                     ReplyBody::Fast {
                         reply: FastReply::NoEvents,
@@ -315,7 +315,7 @@ impl PortStats {
         if let Some(stats) = device.and_then(|d| self.devices.get_mut(d)) {
             stats.transactions += 1;
             stats.errors.count(kind);
-            if matches!(outcome, Outcome::Reply(_)) {
+            if matches!(outcome, TransactionOutcome::Reply(_)) {
                 stats.last_seen = Some(now);
             }
             if stats.frames.len() == FRAMES_PER_DEVICE {
@@ -487,9 +487,9 @@ mod tests {
     #[test]
     fn errors_are_counted_by_kind_for_port_and_device() {
         let mut stats = stats();
-        stats.transaction_done(ms(0), ms(10), &read(1), &Outcome::NoReply);
-        stats.transaction_done(ms(10), ms(20), &read(2), &Outcome::Garbled);
-        let exception = Outcome::Reply(Reply {
+        stats.transaction_done(ms(0), ms(10), &read(1), &TransactionOutcome::NoReply);
+        stats.transaction_done(ms(10), ms(20), &read(2), &TransactionOutcome::Garbled);
+        let exception = TransactionOutcome::Reply(Reply {
             address: 2,
             body: ReplyBody::Classic(ResponsePdu::Exception {
                 function: 3,
@@ -520,7 +520,12 @@ mod tests {
         // 20 transactions of 100 ms each in second 1: 2 s busy over a 10 s window at second 11.
         for i in 0..20 {
             let start = ms(1000 + i * 40);
-            stats.transaction_done(start, start + ms(100), &read(1), &Outcome::NoReply);
+            stats.transaction_done(
+                start,
+                start + ms(100),
+                &read(1),
+                &TransactionOutcome::NoReply,
+            );
         }
         let rates = stats.rates(ms(11_500));
         assert_eq!(rates.transactions_per_second, 2.0);
@@ -532,13 +537,13 @@ mod tests {
     #[test]
     fn event_round_trip_counts_from_the_first_round_that_could_carry_it() {
         let mut stats = stats();
-        let nothing = Outcome::Reply(Reply::fast(0xFD, FastReply::NoEvents));
+        let nothing = TransactionOutcome::Reply(Reply::fast(0xFD, FastReply::NoEvents));
         assert_eq!(
             stats.transaction_done(ms(0), ms(5), &event_poll(), &nothing),
             None
         );
         // Round at 100 ms: device 2 wins, device 1 still has its change pending.
-        let events = Outcome::Reply(Reply::fast(
+        let events = TransactionOutcome::Reply(Reply::fast(
             2,
             FastReply::Events(EventPacket {
                 flag: 0,
@@ -549,7 +554,7 @@ mod tests {
         let from = stats.transaction_done(ms(100), ms(110), &event_poll(), &events);
         assert_eq!(from, Some(1));
         stats.events_published(1, ms(112));
-        let events_of_1 = Outcome::Reply(Reply::fast(
+        let events_of_1 = TransactionOutcome::Reply(Reply::fast(
             1,
             FastReply::Events(EventPacket {
                 flag: 0,

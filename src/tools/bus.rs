@@ -13,7 +13,7 @@ use nix::sys::termios::{self, SetArg, Termios};
 use thiserror::Error;
 use tracing::debug;
 
-use crate::port::{Outcome, Transaction};
+use crate::port::{Transaction, TransactionOutcome};
 use crate::protocol::{
     fast::FastReply, LineSettings, Reply, ReplyBody, Request, RequestPdu, ResponsePdu,
 };
@@ -167,7 +167,7 @@ pub trait ToolBus {
         &mut self,
         line: LineSettings,
         transaction: Transaction,
-    ) -> Result<Outcome, PortError>;
+    ) -> Result<TransactionOutcome, PortError>;
 
     /// The Fast Modbus scan at one setting: scan start, then continue until a device says the
     /// scan is over. New devices go into `report`; trouble becomes a problem of this setting.
@@ -184,7 +184,7 @@ pub trait ToolBus {
         for round in 0..MAX_SCAN_ROUNDS {
             let transaction = scan_transaction(&line, request.clone(), round == 0, self.latency());
             match self.transact(line, transaction).await? {
-                Outcome::Reply(Reply {
+                TransactionOutcome::Reply(Reply {
                     body: ReplyBody::Fast { reply, .. },
                     ..
                 }) => match reply {
@@ -210,7 +210,7 @@ pub trait ToolBus {
                         return Ok(seen);
                     }
                 },
-                Outcome::Reply(other) => {
+                TransactionOutcome::Reply(other) => {
                     report.problems.push(SettingProblem {
                         line,
                         what: format!(
@@ -220,14 +220,14 @@ pub trait ToolBus {
                     });
                     return Ok(seen);
                 }
-                Outcome::NoReply if round == 0 => return Ok(seen),
+                TransactionOutcome::NoReply if round == 0 => return Ok(seen),
                 // Devices answered before, so someone must answer (a device or "end of scan"):
                 // a late reply was lost to a busy adapter or machine. Ask once more.
-                Outcome::NoReply if !retried_silence => {
+                TransactionOutcome::NoReply if !retried_silence => {
                     retried_silence = true;
                     request = Request::scan_continue();
                 }
-                Outcome::NoReply => {
+                TransactionOutcome::NoReply => {
                     report.problems.push(SettingProblem {
                         line,
                         what: format!(
@@ -238,7 +238,7 @@ pub trait ToolBus {
                     });
                     return Ok(seen);
                 }
-                Outcome::Garbled => {
+                TransactionOutcome::Garbled => {
                     garbled_in_a_row += 1;
                     if garbled_in_a_row >= MAX_GARBLED_IN_A_ROW {
                         report.problems.push(SettingProblem {
@@ -274,7 +274,7 @@ pub trait ToolBus {
         let request = Request::by_serial(serial, pdu);
         let transaction = Transaction::to_device(&line, request, timeout + self.latency());
         Ok(match self.transact(line, transaction).await? {
-            Outcome::Reply(Reply {
+            TransactionOutcome::Reply(Reply {
                 body:
                     ReplyBody::Fast {
                         reply: FastReply::BySerial { serial: from, pdu },
@@ -282,12 +282,12 @@ pub trait ToolBus {
                     },
                 ..
             }) if from == serial => Answer::Pdu(pdu),
-            Outcome::Reply(Reply {
+            TransactionOutcome::Reply(Reply {
                 body: ReplyBody::Classic(pdu @ ResponsePdu::Exception { .. }),
                 ..
             }) => Answer::Pdu(pdu),
-            Outcome::Reply(_) | Outcome::Garbled => Answer::Garbled,
-            Outcome::NoReply => Answer::NoReply,
+            TransactionOutcome::Reply(_) | TransactionOutcome::Garbled => Answer::Garbled,
+            TransactionOutcome::NoReply => Answer::NoReply,
         })
     }
 
@@ -302,12 +302,12 @@ pub trait ToolBus {
         let request = Request::classic(address, pdu);
         let transaction = Transaction::to_device(&line, request, timeout + self.latency());
         Ok(match self.transact(line, transaction).await? {
-            Outcome::Reply(Reply {
+            TransactionOutcome::Reply(Reply {
                 body: ReplyBody::Classic(pdu),
                 address: from,
             }) if from == address => Answer::Pdu(pdu),
-            Outcome::Reply(_) | Outcome::Garbled => Answer::Garbled,
-            Outcome::NoReply => Answer::NoReply,
+            TransactionOutcome::Reply(_) | TransactionOutcome::Garbled => Answer::Garbled,
+            TransactionOutcome::NoReply => Answer::NoReply,
         })
     }
 
@@ -318,7 +318,7 @@ pub trait ToolBus {
         request: Request,
         first_byte_timeout: Duration,
         reply_timeout: Duration,
-    ) -> Result<Outcome, PortError> {
+    ) -> Result<TransactionOutcome, PortError> {
         let request_time = line.wire_time(request.encode().map(|b| b.len()).unwrap_or(16));
         let transaction = Transaction {
             estimated: request_time + reply_timeout,
@@ -363,7 +363,7 @@ impl ToolBus for ToolPort {
         &mut self,
         line: LineSettings,
         transaction: Transaction,
-    ) -> Result<Outcome, PortError> {
+    ) -> Result<TransactionOutcome, PortError> {
         let transport = self.at(line).await?;
         Ok(transport.transact(&transaction).await?.0)
     }

@@ -40,7 +40,7 @@ use crate::protocol::pdu::FrameLength;
 use crate::protocol::{
     EncodeError, FastRequest, LineSettings, ParseStatus, Reply, ReplyParser, Request, RequestBody,
 };
-use crate::protocol::{Outcome, ReplyTiming, Transaction};
+use crate::protocol::{ReplyTiming, Transaction, TransactionOutcome};
 use window::{Received, ReplyWindow};
 
 /// How replies are framed on the link.
@@ -120,7 +120,7 @@ enum State {
         until: Duration,
     },
     Receiving(Box<Receiving>),
-    Done(Outcome, ReplyTiming),
+    Done(TransactionOutcome, ReplyTiming),
 }
 
 #[derive(Debug)]
@@ -424,7 +424,7 @@ impl Exchange {
                     batch_reads: 0,
                 });
         }
-        self.state = State::Done(Outcome::Reply(reply), timing);
+        self.state = State::Done(TransactionOutcome::Reply(reply), timing);
     }
 
     /// When to call [`Self::handle_timeout`] if no bytes come before (`None`: nothing is timed,
@@ -442,7 +442,7 @@ impl Exchange {
     pub fn handle_timeout(&mut self, now: Duration) {
         match &mut self.state {
             State::Broadcasting { until } if now >= *until => {
-                self.state = State::Done(Outcome::NoReply, ReplyTiming::default());
+                self.state = State::Done(TransactionOutcome::NoReply, ReplyTiming::default());
             }
             State::Receiving(receiving) => {
                 if !receiving.window.expire(now) {
@@ -453,9 +453,9 @@ impl Exchange {
                     None => !receiving.parser.buffered().is_empty(),
                 };
                 let outcome = if receiving.garbled || incomplete {
-                    Outcome::Garbled
+                    TransactionOutcome::Garbled
                 } else {
-                    Outcome::NoReply
+                    TransactionOutcome::NoReply
                 };
                 let timing = receiving.window.timing();
                 self.state = State::Done(outcome, timing);
@@ -466,7 +466,7 @@ impl Exchange {
 
     /// The transaction's outcome once it is finished, and what the scheduler learns from its
     /// timing; the exchange is then ready for the next [`Self::start`].
-    pub fn poll_outcome(&mut self) -> Option<(Outcome, ReplyTiming)> {
+    pub fn poll_outcome(&mut self) -> Option<(TransactionOutcome, ReplyTiming)> {
         if !matches!(self.state, State::Done(..)) {
             return None;
         }
@@ -999,7 +999,7 @@ mod tests {
 
     /// What a run ended with, and when.
     struct Finished {
-        outcome: Outcome,
+        outcome: TransactionOutcome,
         timing: ReplyTiming,
         at: Duration,
         /// When the request's `write` returned.
@@ -1157,8 +1157,8 @@ mod tests {
         );
     }
 
-    fn read_reply() -> Outcome {
-        Outcome::Reply(Reply::classic(
+    fn read_reply() -> TransactionOutcome {
+        TransactionOutcome::Reply(Reply::classic(
             0x1E,
             ResponsePdu::ReadInputRegisters {
                 values: vec![0x1234, 0x5678],
@@ -1269,7 +1269,7 @@ mod tests {
         // Silent this time: the first-byte timeout, then the late window, as without a batch.
         let start = start + ms(100);
         let (finished, _) = run_batched(&mut exchange, &transaction, start, &[]);
-        assert_eq!(finished.outcome, Outcome::NoReply);
+        assert_eq!(finished.outcome, TransactionOutcome::NoReply);
         assert_eq!(
             finished.at,
             start + transaction.request_time + RESPONSE_TIMEOUT + RESPONSE_TIMEOUT
@@ -1310,7 +1310,7 @@ mod tests {
         }
         let arrivals = on_the_wire(&line, start + transaction.request_time + ms(1), &frame);
         let (finished, _) = run_batched(&mut exchange, &transaction, start, &arrivals);
-        assert_eq!(finished.outcome, Outcome::Garbled);
+        assert_eq!(finished.outcome, TransactionOutcome::Garbled);
         assert!(
             finished.timing.first_byte.is_some(),
             "bytes came: the scheduler must not take the device for silent"
@@ -1372,11 +1372,11 @@ mod tests {
         let frame = no_events.encode().unwrap_or_default();
         let mut exchange = Exchange::new(serial(line));
         let (first, _) = run_batched(&mut exchange, &transaction, ms(0), &round(ms(0), &frame));
-        assert_eq!(first.outcome, Outcome::Reply(no_events.clone()));
+        assert_eq!(first.outcome, TransactionOutcome::Reply(no_events.clone()));
         let start = first.at + ms(1);
         let (finished, wakes) =
             run_batched(&mut exchange, &transaction, start, &round(start, &frame));
-        assert_eq!(finished.outcome, Outcome::Reply(no_events));
+        assert_eq!(finished.outcome, TransactionOutcome::Reply(no_events));
         assert_eq!(wakes, 1, "filler and the whole frame in one read");
         // An event packet: its header tells the rest, read in a second go.
         let mut packet = vec![0x16, 0x46, 0x11, 0x01, 0x02, 0x06, 2, 4, 0, 0x3C, 0, 1];
@@ -1386,7 +1386,7 @@ mod tests {
         let arrivals = round(start, &packet);
         let (finished, wakes) = run_batched(&mut exchange, &transaction, start, &arrivals);
         assert!(
-            matches!(finished.outcome, Outcome::Reply(_)),
+            matches!(finished.outcome, TransactionOutcome::Reply(_)),
             "{:?}",
             finished.outcome
         );
@@ -1412,7 +1412,11 @@ mod tests {
                     values: vec![0x1234, 0x5678],
                 },
             );
-            assert_eq!(finished.outcome, Outcome::Reply(expected), "at {baud}");
+            assert_eq!(
+                finished.outcome,
+                TransactionOutcome::Reply(expected),
+                "at {baud}"
+            );
             assert_eq!(
                 finished.at,
                 arrivals.last().map(|a| a.0).unwrap_or_default()
@@ -1441,7 +1445,7 @@ mod tests {
                 Some(request_end + RESPONSE_TIMEOUT)
             );
             let finished = run(&mut exchange, &transaction, ms(1000), &[]);
-            assert_eq!(finished.outcome, Outcome::NoReply);
+            assert_eq!(finished.outcome, TransactionOutcome::NoReply);
             assert_eq!(
                 finished.at,
                 ms(1000) + transaction.request_time + RESPONSE_TIMEOUT + RESPONSE_TIMEOUT,
@@ -1461,7 +1465,7 @@ mod tests {
             let frame = reply_frame();
             let arrivals = on_the_wire(&line, transaction.request_time, &frame[..4]);
             let finished = run(&mut exchange, &transaction, ms(0), &arrivals);
-            assert_eq!(finished.outcome, Outcome::Garbled, "at {baud}");
+            assert_eq!(finished.outcome, TransactionOutcome::Garbled, "at {baud}");
             let last = arrivals.last().map(|a| a.0).unwrap_or_default();
             assert_eq!(finished.at, last + config.quiet_gap);
         }
@@ -1478,7 +1482,7 @@ mod tests {
         let arrivals = on_the_wire(&line, transaction.request_time, &frame);
         let mut exchange = Exchange::new(serial(line));
         let finished = run(&mut exchange, &transaction, ms(0), &arrivals);
-        assert_eq!(finished.outcome, Outcome::Garbled);
+        assert_eq!(finished.outcome, TransactionOutcome::Garbled);
     }
 
     #[test]
@@ -1490,7 +1494,7 @@ mod tests {
         let arrivals = on_the_wire(&line, transaction.request_time + ms(2), &bytes);
         let mut exchange = Exchange::new(serial(line));
         let finished = run(&mut exchange, &transaction, ms(0), &arrivals);
-        assert!(matches!(finished.outcome, Outcome::Reply(_)));
+        assert!(matches!(finished.outcome, TransactionOutcome::Reply(_)));
     }
 
     #[test]
@@ -1503,7 +1507,7 @@ mod tests {
             let late = transaction.request_time + ms(40);
             let arrivals = on_the_wire(&line, late, &reply_frame());
             let finished = run(&mut exchange, &transaction, ms(0), &arrivals);
-            assert_eq!(finished.outcome, Outcome::NoReply, "at {baud}");
+            assert_eq!(finished.outcome, TransactionOutcome::NoReply, "at {baud}");
             assert_eq!(finished.timing.first_byte, None);
             assert_eq!(finished.timing.late_byte, Some(ms(40) + line.wire_time(1)));
             // Not finished before the late reply has ended and the line was quiet a frame gap.
@@ -1521,7 +1525,7 @@ mod tests {
         arrivals.extend(on_the_wire(&line, reply_start, &reply_frame()));
         let mut exchange = Exchange::new(serial(line));
         let finished = run(&mut exchange, &transaction, ms(0), &arrivals);
-        assert!(matches!(finished.outcome, Outcome::Reply(_)));
+        assert!(matches!(finished.outcome, TransactionOutcome::Reply(_)));
         assert_eq!(finished.timing.first_byte, Some(ms(1) + line.wire_time(1)));
     }
 
@@ -1564,7 +1568,7 @@ mod tests {
         let transaction = transaction(&line, Request::classic(0, write));
         let mut exchange = Exchange::new(serial(line));
         let finished = run(&mut exchange, &transaction, ms(10), &[]);
-        assert_eq!(finished.outcome, Outcome::NoReply);
+        assert_eq!(finished.outcome, TransactionOutcome::NoReply);
         assert_eq!(finished.at, ms(10) + transaction.request_time);
     }
 
@@ -1593,10 +1597,10 @@ mod tests {
             "an arbitration's winner and length are unknown"
         );
         let finished = run(&mut exchange, &transaction, ms(100), &[]);
-        assert_eq!(finished.outcome, Outcome::NoReply);
+        assert_eq!(finished.outcome, TransactionOutcome::NoReply);
         let mut exchange = Exchange::new(serial(line));
         let finished = run(&mut exchange, &transaction, ms(0), &arrivals);
-        assert_eq!(finished.outcome, Outcome::Reply(no_events));
+        assert_eq!(finished.outcome, TransactionOutcome::Reply(no_events));
     }
 
     #[test]
@@ -1650,7 +1654,7 @@ mod tests {
             exchange.handle_bytes(last_at + ms(4), &frame[frame.len() - 1..]);
             assert!(matches!(
                 exchange.poll_outcome(),
-                Some((Outcome::Reply(_), _))
+                Some((TransactionOutcome::Reply(_), _))
             ));
             assert_eq!(exchange.reply_complete_at(), None);
         }
@@ -1699,7 +1703,10 @@ mod tests {
         let values = ResponsePdu::ReadInputRegisters {
             values: vec![0x1234, 0x5678],
         };
-        assert_eq!(outcome, Outcome::Reply(Reply::classic(0x1E, values)));
+        assert_eq!(
+            outcome,
+            TransactionOutcome::Reply(Reply::classic(0x1E, values))
+        );
         assert_eq!(timing.first_byte, Some(ms(3) - transaction.request_time));
     }
 
@@ -1720,7 +1727,7 @@ mod tests {
             .map(|&b| (ms(2), b))
             .collect();
         let finished = run(&mut exchange, &transaction, ms(0), &arrivals);
-        assert_eq!(finished.outcome, Outcome::Garbled);
+        assert_eq!(finished.outcome, TransactionOutcome::Garbled);
     }
 
     #[test]
@@ -1732,6 +1739,6 @@ mod tests {
         exchange.handle_bytes(ms(1), &reply_frame());
         assert_eq!(exchange.poll_outcome(), None);
         let finished = run(&mut exchange, &transaction, ms(2), &[]);
-        assert_eq!(finished.outcome, Outcome::NoReply);
+        assert_eq!(finished.outcome, TransactionOutcome::NoReply);
     }
 }

@@ -23,7 +23,7 @@ use serial::SerialLink;
 use tracing::debug;
 
 use crate::protocol::{self, LineSettings};
-use crate::protocol::{Outcome, ReplyTiming, Transaction};
+use crate::protocol::{ReplyTiming, Transaction, TransactionOutcome};
 
 pub use mbap::MbapCodec;
 
@@ -152,7 +152,7 @@ impl Transport {
     pub async fn transact(
         &mut self,
         transaction: &Transaction,
-    ) -> Result<(Outcome, ReplyTiming), TransportError> {
+    ) -> Result<(TransactionOutcome, ReplyTiming), TransportError> {
         self.exchange.start(transaction)?;
         let mut buffer = [0u8; 512];
         let mut paced_reads = 0;
@@ -196,7 +196,7 @@ impl Transport {
             }
             let Some(timeout) = self.exchange.poll_timeout() else {
                 // Never after `handle_sent`; a guard against spinning.
-                return Ok((Outcome::NoReply, ReplyTiming::default()));
+                return Ok((TransactionOutcome::NoReply, ReplyTiming::default()));
             };
             let wake = self.epoch + timeout;
             match self.next_bytes(wake, &mut paced_reads, &mut buffer).await? {

@@ -5,7 +5,7 @@ use std::collections::BTreeMap;
 use std::time::Duration;
 
 use crate::mqtt_support::*;
-use rtu2mqtt::updates::{ControlWrite, DeviceUpdate};
+use rtu2mqtt::device_updates::{ControlWrite, DeviceUpdate};
 
 const RELAY: &str = "relay6_1";
 const CLIMATE: &str = "climate_2";
@@ -106,7 +106,7 @@ async fn writes_go_to_the_bus_side_and_bad_payloads_set_w() {
     let mut model = rtu2mqtt::gateway::device_model::DeviceModel::new(
         template_device("rtu2mqtt-relay6", 1),
         0,
-        rtu2mqtt::updates::Repeats::None,
+        rtu2mqtt::device_updates::Repeats::None,
     );
     assert!(bus_side_takes(&mqtt, &mut model, &write).await);
     // Not a switch value: the device model refuses it, `w`, nothing written.
@@ -360,7 +360,7 @@ async fn huge_on_payloads_are_refused_without_disconnecting() {
     let mut model = rtu2mqtt::gateway::device_model::DeviceModel::new(
         template_device("rtu2mqtt-relay6", 1),
         0,
-        rtu2mqtt::updates::Repeats::None,
+        rtu2mqtt::device_updates::Repeats::None,
     );
     publish(broker.port, &format!("{k3}/on"), &huge, false).await;
     let write = tokio::time::timeout(TIMEOUT, mqtt.writes.recv())

@@ -5,9 +5,9 @@ use std::collections::BTreeSet;
 
 use crate::mqtt_support::{repo, template_device};
 use rtu2mqtt::device::ResolvedDevice;
+use rtu2mqtt::device_updates::DeviceIdentity;
 use rtu2mqtt::mqtt::discovery::{device_configs, DiscoverySettings};
 use rtu2mqtt::mqtt::TopicScheme;
-use rtu2mqtt::updates::DeviceIdentity;
 use serde_json::{json, Value};
 
 fn validator() -> jsonschema::Validator {

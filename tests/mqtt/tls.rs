@@ -9,7 +9,7 @@ use crate::mqtt_support::{
     free_port, retained, settings, template_device, value, wait_for, MqttUnderTest,
 };
 use rtu2mqtt::config::config_file::TlsConfig;
-use rtu2mqtt::updates::DeviceUpdate;
+use rtu2mqtt::device_updates::DeviceUpdate;
 
 fn openssl(dir: &Path, args: &[&str]) {
     let out = Command::new("openssl")
