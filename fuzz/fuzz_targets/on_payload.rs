@@ -16,7 +16,7 @@ use rtu2mqtt::mqtt::{
     PlannerSettings, PublicationPlanner, TopicScheme, UnchangedPolicy, WriteOutcome,
 };
 use rtu2mqtt::protocol::RegisterType;
-use rtu2mqtt::device_updates::DeviceUpdate;
+use rtu2mqtt::device_updates::{DeviceUpdate, Repeats};
 
 const TEMPLATES: [&str; 6] = [
     "rtu2mqtt-relay6",
@@ -90,7 +90,7 @@ fuzz_target!(|data: &[u8]| {
         _ => return,
     };
     assert_eq!(&write.control_id, control_id);
-    let model = DeviceModel::new(Arc::clone(&target.device), 0);
+    let model = DeviceModel::new(Arc::clone(&target.device), 0, Repeats::All);
     let Ok(writes) = model.write(&write.control_id, &write.payload) else {
         return;
     };
