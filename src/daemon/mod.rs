@@ -15,7 +15,7 @@ use tracing::{info, warn};
 
 use crate::device::model::ResolvedPort;
 use crate::device_updates::{ControlWrite, DeviceUpdate, Repeats};
-use crate::gateway::device_model::DeviceModel;
+use crate::gateway::device_model::{ChannelIndexes, DeviceModel};
 use crate::gateway::port_plan::port_plan;
 use crate::protocol::LineSettings;
 use crate::service::{PortVitals, ServiceHealth};
@@ -78,6 +78,8 @@ pub struct BusControl {
     status: Option<Arc<StatusHub>>,
     /// The repeated values the sink needs from the device models.
     repeats: Repeats,
+    /// Shared by the models of all ports and reloads built from one channel list.
+    channel_indexes: ChannelIndexes,
 }
 
 /// What a reload did, for the log and the tests.
@@ -144,6 +146,7 @@ pub fn start_bus_side_with_status(
         directory: PortDirectory::default(),
         status,
         repeats,
+        channel_indexes: ChannelIndexes::default(),
     };
     for port in ports {
         let (task, added) = control.prepare_port(&port);
@@ -183,7 +186,12 @@ impl BusControl {
             routes.insert(device.id.clone(), port_write_tx.clone());
             added.push(DeviceUpdate::Added(Arc::clone(&device)));
             devices.push(Arc::clone(&device));
-            models.push(DeviceModel::new(device, index, self.repeats));
+            models.push(DeviceModel::sharing(
+                device,
+                index,
+                self.repeats,
+                &mut self.channel_indexes,
+            ));
         }
         let (queue, queued) = BusQueue::new();
         let line = match &plan.endpoint {

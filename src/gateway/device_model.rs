@@ -8,7 +8,7 @@
 
 use std::collections::{BTreeSet, HashMap};
 use std::hash::{BuildHasherDefault, Hasher};
-use std::sync::{Arc, Mutex, Weak};
+use std::sync::{Arc, Weak};
 
 use tracing::{debug, warn};
 
@@ -74,8 +74,29 @@ struct ChannelIndex {
     pushbuttons: Vec<bool>,
 }
 
-/// The channel indexes in use, to share one between the devices of one channel list.
-static CHANNEL_INDEXES: Mutex<Vec<Weak<ChannelIndex>>> = Mutex::new(Vec::new());
+/// The channel indexes in use, to share one between the devices of one channel list (the
+/// devices of one template and overrides share the list, see [`SharedVec`]). Kept by whoever
+/// builds the models: the daemon's bus side for all its ports and reloads, a test's gateway.
+#[derive(Debug, Default)]
+pub struct ChannelIndexes(Vec<Weak<ChannelIndex>>);
+
+impl ChannelIndexes {
+    /// The index of `channels`: the one another device of the same list uses, or a new one.
+    fn index_of(&mut self, channels: &SharedVec<ResolvedChannel>) -> Arc<ChannelIndex> {
+        self.0.retain(|index| index.strong_count() > 0);
+        if let Some(index) = self
+            .0
+            .iter()
+            .filter_map(Weak::upgrade)
+            .find(|index| SharedVec::ptr_eq(&index.channels, channels))
+        {
+            return index;
+        }
+        let index = Arc::new(ChannelIndex::build(channels));
+        self.0.push(Arc::downgrade(&index));
+        index
+    }
+}
 
 impl ChannelIndex {
     fn build(channels: &SharedVec<ResolvedChannel>) -> Self {
@@ -125,24 +146,6 @@ impl ChannelIndex {
     /// How many words [`DeviceModel::last_words`] keeps for all channels.
     fn word_count(&self) -> usize {
         self.word_registers.len()
-    }
-
-    /// The index of `channels`: the one another device of the same list uses, or a new one.
-    fn shared(channels: &SharedVec<ResolvedChannel>) -> Arc<Self> {
-        let mut indexes = CHANNEL_INDEXES
-            .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner);
-        indexes.retain(|index| index.strong_count() > 0);
-        if let Some(index) = indexes
-            .iter()
-            .filter_map(Weak::upgrade)
-            .find(|index| SharedVec::ptr_eq(&index.channels, channels))
-        {
-            return index;
-        }
-        let index = Arc::new(Self::build(channels));
-        indexes.push(Arc::downgrade(&index));
-        index
     }
 
     /// The channels that read any register of `span`, in channel order, into `out`. `hint`:
@@ -266,8 +269,19 @@ impl DeviceModel {
     /// The model of `device`, the `index`th of its port, reporting `repeats` besides the
     /// changes (the sinks that read its updates say which they need).
     pub fn new(device: Arc<ResolvedDevice>, index: usize, repeats: Repeats) -> Self {
+        Self::sharing(device, index, repeats, &mut ChannelIndexes::default())
+    }
+
+    /// [`Self::new`], sharing the register → channels index with the other models built from
+    /// the same channel list through `indexes`.
+    pub fn sharing(
+        device: Arc<ResolvedDevice>,
+        index: usize,
+        repeats: Repeats,
+        indexes: &mut ChannelIndexes,
+    ) -> Self {
         let errors = vec![ErrorFlags::default(); device.channels.len()];
-        let channel_index = ChannelIndex::shared(&device.channels);
+        let channel_index = indexes.index_of(&device.channels);
         Self {
             reported: vec![None; device.channels.len()],
             repeats,
@@ -1459,15 +1473,22 @@ mod tests {
     /// its own.
     #[test]
     fn devices_of_one_channel_list_share_its_index() {
-        let first = template_model("rtu2mqtt-relay6", 20);
-        let mut device = (*first.device).clone();
-        device.id = "relay6_21".into();
-        let second = DeviceModel::new(Arc::new(device.clone()), 1, Repeats::All);
+        let mut indexes = ChannelIndexes::default();
+        let device = (*template_model("rtu2mqtt-relay6", 20).device).clone();
+        let first = DeviceModel::sharing(Arc::new(device.clone()), 0, Repeats::All, &mut indexes);
+        let mut other = device.clone();
+        other.id = "relay6_21".into();
+        let second = DeviceModel::sharing(Arc::new(other.clone()), 1, Repeats::All, &mut indexes);
         assert!(Arc::ptr_eq(&first.channel_index, &second.channel_index));
-        device.channels.make_mut()[0].id = "K1'".into();
-        let third = DeviceModel::new(Arc::new(device), 2, Repeats::All);
+        other.channels.make_mut()[0].id = "K1'".into();
+        let third = DeviceModel::sharing(Arc::new(other), 2, Repeats::All, &mut indexes);
         assert!(!Arc::ptr_eq(&first.channel_index, &third.channel_index));
         assert_eq!(&*third.channel_index.control_ids[0], "K1'");
+        // Built without the builder's cache: an index of its own, no global state.
+        let alone = DeviceModel::new(Arc::new(device), 3, Repeats::All);
+        assert!(!Arc::ptr_eq(&first.channel_index, &alone.channel_index));
+        drop((first, second));
+        assert_eq!(indexes.0.iter().filter(|i| i.strong_count() > 0).count(), 1);
     }
 
     /// Random reads of every template publish, for each channel the read touches, what

@@ -15,7 +15,7 @@ use std::time::{Duration, Instant};
 
 use serde_json::{json, Value};
 
-use super::device_model::{apply_port_events, DeviceModel};
+use super::device_model::{apply_port_events, ChannelIndexes, DeviceModel};
 use super::port_plan::port_plan;
 use crate::config::parse::SourceText;
 use crate::config::TemplateLibrary;
@@ -181,12 +181,14 @@ impl VirtualGateway {
             port_closed_since: None,
             wire_log: Vec::new(),
         };
+        // As the daemon builds them: one register index per channel list.
+        let mut indexes = ChannelIndexes::default();
         for (index, device) in port.devices.into_iter().enumerate() {
             let device = Arc::new(device);
             gateway.sink(vec![DeviceUpdate::Added(Arc::clone(&device))]);
             gateway
                 .models
-                .push(DeviceModel::new(device, index, repeats));
+                .push(DeviceModel::sharing(device, index, repeats, &mut indexes));
         }
         gateway
     }
