@@ -388,8 +388,8 @@ impl Toggles {
 
 /// Scenario 1 of the bench on virtual time: `count` random toggles at `rate` per second on the
 /// bus of [`bench_event_bus`], each one's time from the change on the bus to its publication.
-/// What [`idle_bus`] measured.
-struct IdleBus {
+/// What [`toggled_bus`] measured.
+struct ToggleFigures {
     /// Change to publication, sorted.
     latencies: Vec<Duration>,
     /// Changes never published (toggled back before a poll saw them).
@@ -397,7 +397,7 @@ struct IdleBus {
     slow: SlowToggles,
 }
 
-fn idle_bus(devices: u8, baud: u32, count: usize, rate: f64) -> IdleBus {
+fn idle_bus(devices: u8, baud: u32, count: usize, rate: f64) -> ToggleFigures {
     toggled_bus(bench_event_bus(devices, 8, baud), count, rate)
 }
 
@@ -411,7 +411,7 @@ fn toggled_bus(
     ),
     count: usize,
     rate: f64,
-) -> IdleBus {
+) -> ToggleFigures {
     gateway.run_for(WARM_UP);
     let mut toggles = Toggles(0x9E37_79B9_7F4A_7C15);
     let mean = Duration::from_secs_f64(1.0 / rate);
@@ -473,7 +473,7 @@ fn toggled_bus(
             .map(|&ns| Duration::from_nanos(ns)),
     );
     latencies.sort();
-    IdleBus {
+    ToggleFigures {
         latencies,
         lost: report.lost,
         slow,
@@ -540,19 +540,7 @@ fn percentile(sorted: &[Duration], percent: usize) -> Duration {
 #[ignore = "measurement: prints the idle bus figures (bench scenario 1 on virtual time)"]
 fn idle_bus_figures() {
     for baud in [115_200, 9600] {
-        let IdleBus {
-            latencies,
-            lost,
-            slow,
-        } = idle_bus(8, baud, 400, 20.0);
-        eprintln!(
-            "FIGURES idle bus baud={baud} published={} lost={lost} p50={:?} p90={:?} p99={:?} max={:?} {slow:?}",
-            latencies.len(),
-            percentile(&latencies, 50),
-            percentile(&latencies, 90),
-            percentile(&latencies, 99),
-            latencies.last()
-        );
+        print_figures("idle bus", baud, &idle_bus(8, baud, 400, 20.0));
     }
 }
 
@@ -560,20 +548,25 @@ fn idle_bus_figures() {
 #[ignore = "measurement: prints bench scenario 2's event latency under load on virtual time"]
 fn loaded_bus_figures() {
     for (baud, count, rate) in [(115_200, 2000, 50.0), (9600, 800, 8.0)] {
-        let IdleBus {
-            latencies,
-            lost,
-            slow,
-        } = toggled_bus(bench_bus(32, 8, 60, baud), count, rate);
-        eprintln!(
-            "FIGURES loaded bus baud={baud} published={} lost={lost} p50={:?} p90={:?} p99={:?} max={:?} {slow:?}",
-            latencies.len(),
-            percentile(&latencies, 50),
-            percentile(&latencies, 90),
-            percentile(&latencies, 99),
-            latencies.last()
-        );
+        let figures = toggled_bus(bench_bus(32, 8, 60, baud), count, rate);
+        print_figures("loaded bus", baud, &figures);
     }
+}
+
+fn print_figures(bus: &str, baud: u32, figures: &ToggleFigures) {
+    let ToggleFigures {
+        latencies,
+        lost,
+        slow,
+    } = figures;
+    eprintln!(
+        "FIGURES {bus} baud={baud} published={} lost={lost} p50={:?} p90={:?} p99={:?} max={:?} {slow:?}",
+        latencies.len(),
+        percentile(latencies, 50),
+        percentile(latencies, 90),
+        percentile(latencies, 99),
+        latencies.last()
+    );
 }
 
 /// Bench scenario 1 (issue 14): on a bus whose values all come by events, each device's

@@ -1007,59 +1007,27 @@ mod tests {
     }
 
     /// Runs one transaction from `now`: the request's `write` returns at once; `arrivals` (times
-    /// on the same clock) are handed over one byte at a time, timeouts when they come first.
+    /// on the same clock) are read as they come (what arrived at one instant in one read),
+    /// timeouts when they come first.
     fn run(
         exchange: &mut Exchange,
         transaction: &Transaction,
-        mut now: Duration,
+        now: Duration,
         arrivals: &[(Duration, u8)],
     ) -> Finished {
-        exchange.start(transaction).expect("encodes");
-        let mut sent_at = Duration::ZERO;
-        let mut next = 0;
-        for _ in 0..10_000 {
-            if let Some(transmit) = exchange.poll_transmit(now) {
-                assert!(transmit.flush_input, "stale input is flushed first");
-                exchange.handle_sent(now);
-                sent_at = now;
-                // Whatever the line delivered before the write was flushed.
-                while arrivals.get(next).is_some_and(|(at, _)| *at < now) {
-                    next += 1;
-                }
-            }
-            if let Some((outcome, timing)) = exchange.poll_outcome() {
-                return Finished {
-                    outcome,
-                    timing,
-                    at: now,
-                    sent_at,
-                };
-            }
-            let timeout = exchange
-                .poll_timeout()
-                .expect("a pending transaction is timed");
-            match arrivals.get(next) {
-                Some(&(at, byte)) if at < timeout => {
-                    now = now.max(at);
-                    exchange.handle_bytes(now, &[byte]);
-                    next += 1;
-                }
-                _ => {
-                    now = now.max(timeout);
-                    exchange.handle_timeout(now);
-                }
-            }
-        }
-        panic!("the exchange never finished");
+        drive(exchange, transaction, now, arrivals, false).0
     }
 
-    /// Like [`run`], for a driver that sleeps to [`Exchange::batch_read_at`] and reads what
-    /// arrived by then in one go; also returns how many times it woke (reads and timeouts).
-    fn run_batched(
+    /// [`run`], or with `batched` as the serial transport reads: asleep until
+    /// [`Exchange::batch_read_at`], then until a reply of known length should be complete (a
+    /// few times at most), and only then byte by byte. Also returns how many times it woke
+    /// (reads and timeouts).
+    fn drive(
         exchange: &mut Exchange,
         transaction: &Transaction,
         mut now: Duration,
         arrivals: &[(Duration, u8)],
+        batched: bool,
     ) -> (Finished, usize) {
         exchange.start(transaction).expect("encodes");
         let mut sent_at = Duration::ZERO;
@@ -1084,10 +1052,10 @@ mod tests {
                 };
                 return (finished, wakes);
             }
-            // As the transport: a batch read once, then sleeps through a reply of known length
-            // (a few times at most), then byte by byte.
-            let batch = exchange.batch_read_at();
-            let paced = exchange.reply_complete_at().filter(|_| paced_reads < 3);
+            let batch = exchange.batch_read_at().filter(|_| batched);
+            let paced = exchange
+                .reply_complete_at()
+                .filter(|_| batched && paced_reads < 3);
             let until = batch
                 .or(paced)
                 .filter(|at| exchange.poll_timeout().is_none_or(|timeout| *at < timeout));
@@ -1145,7 +1113,7 @@ mod tests {
             start + transaction.request_time + delay,
             &reply_frame(),
         );
-        run_batched(exchange, transaction, start, &arrivals)
+        drive(exchange, transaction, start, &arrivals, true)
     }
 
     /// Equal to within a microsecond (the wire times of a frame and of its bytes one by one
@@ -1206,10 +1174,10 @@ mod tests {
             let at = start + transaction.request_time + burst_after;
             reply_frame().into_iter().map(|byte| (at, byte)).collect()
         };
-        let (first, _) = run_batched(&mut exchange, &transaction, ms(0), &burst(ms(0)));
+        let (first, _) = drive(&mut exchange, &transaction, ms(0), &burst(ms(0)), true);
         assert_eq!(first.outcome, read_reply());
         let start = first.at + ms(5);
-        let (finished, wakes) = run_batched(&mut exchange, &transaction, start, &burst(start));
+        let (finished, wakes) = drive(&mut exchange, &transaction, start, &burst(start), true);
         assert_eq!(finished.outcome, read_reply());
         assert_eq!(wakes, 1);
         assert_near(
@@ -1268,7 +1236,7 @@ mod tests {
         );
         // Silent this time: the first-byte timeout, then the late window, as without a batch.
         let start = start + ms(100);
-        let (finished, _) = run_batched(&mut exchange, &transaction, start, &[]);
+        let (finished, _) = drive(&mut exchange, &transaction, start, &[], true);
         assert_eq!(finished.outcome, TransactionOutcome::NoReply);
         assert_eq!(
             finished.at,
@@ -1292,7 +1260,7 @@ mod tests {
             start + transaction.request_time + ms(1),
             &reply_frame(),
         ));
-        let (finished, wakes) = run_batched(&mut exchange, &transaction, start, &arrivals);
+        let (finished, wakes) = drive(&mut exchange, &transaction, start, &arrivals, true);
         assert_eq!(finished.outcome, read_reply());
         assert_eq!(wakes, 1);
     }
@@ -1309,7 +1277,7 @@ mod tests {
             *last ^= 0x55;
         }
         let arrivals = on_the_wire(&line, start + transaction.request_time + ms(1), &frame);
-        let (finished, _) = run_batched(&mut exchange, &transaction, start, &arrivals);
+        let (finished, _) = drive(&mut exchange, &transaction, start, &arrivals, true);
         assert_eq!(finished.outcome, TransactionOutcome::Garbled);
         assert!(
             finished.timing.first_byte.is_some(),
@@ -1371,11 +1339,22 @@ mod tests {
         };
         let frame = no_events.encode().unwrap_or_default();
         let mut exchange = Exchange::new(serial(line));
-        let (first, _) = run_batched(&mut exchange, &transaction, ms(0), &round(ms(0), &frame));
+        let (first, _) = drive(
+            &mut exchange,
+            &transaction,
+            ms(0),
+            &round(ms(0), &frame),
+            true,
+        );
         assert_eq!(first.outcome, TransactionOutcome::Reply(no_events.clone()));
         let start = first.at + ms(1);
-        let (finished, wakes) =
-            run_batched(&mut exchange, &transaction, start, &round(start, &frame));
+        let (finished, wakes) = drive(
+            &mut exchange,
+            &transaction,
+            start,
+            &round(start, &frame),
+            true,
+        );
         assert_eq!(finished.outcome, TransactionOutcome::Reply(no_events));
         assert_eq!(wakes, 1, "filler and the whole frame in one read");
         // An event packet: its header tells the rest, read in a second go.
@@ -1384,7 +1363,7 @@ mod tests {
         packet.extend(crc.to_le_bytes());
         let start = finished.at + ms(1);
         let arrivals = round(start, &packet);
-        let (finished, wakes) = run_batched(&mut exchange, &transaction, start, &arrivals);
+        let (finished, wakes) = drive(&mut exchange, &transaction, start, &arrivals, true);
         assert!(
             matches!(finished.outcome, TransactionOutcome::Reply(_)),
             "{:?}",
