@@ -154,6 +154,29 @@ async fn sighup_applies_the_new_config_port_by_port() {
     );
     assert!(log.contains("reload applied"), "{log}");
 
+    // What only a restart applies is named in the log, not silently ignored.
+    let mut publishing_changed = config(
+        port,
+        &sim_a.pty,
+        &sim_b.pty,
+        json!([{"device_type": "rtu2mqtt-counter8", "slave_id": 22}]),
+    );
+    publishing_changed["max_unchanged_interval"] = json!(0);
+    std::fs::write(&config_path, publishing_changed.to_string()).unwrap();
+    daemon.signal(nix::sys::signal::Signal::SIGHUP);
+    wait_for("the restart-only change in the log", || async {
+        daemon
+            .log()
+            .contains("max_unchanged_interval changed: it takes effect when the service restarts")
+            .then_some(())
+    })
+    .await;
+    assert!(
+        !daemon.log().contains("the mqtt section changed"),
+        "{}",
+        daemon.log()
+    );
+
     // A broken config: the daemon says why and keeps serving the old one.
     std::fs::write(&config_path, "{ \"ports\": [ ").unwrap();
     daemon.signal(nix::sys::signal::Signal::SIGHUP);

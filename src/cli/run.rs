@@ -75,7 +75,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         .context("cannot start the async runtime")?;
     let mqtt_settings = MqttSettings::from_config(&loaded.config);
     let fast_modbus = loaded.config.fast_modbus;
-    let running_mqtt = serde_json::to_value(&loaded.config.mqtt).unwrap_or_default();
+    let running_mqtt = restart_only(&loaded.config);
     let http = loaded.config.http.clone();
     let templates = DeviceTemplates::new(templates);
     let result = runtime.block_on(async move {
@@ -199,13 +199,24 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
+/// What a reload cannot change, as the config has it: the `mqtt` section, and
+/// `max_unchanged_interval` (the MQTT side's policy and the device models' repeats are set once).
+type RestartOnly = (serde_json::Value, i64);
+
+fn restart_only(config: &crate::config::config_file::Config) -> RestartOnly {
+    (
+        serde_json::to_value(&config.mqtt).unwrap_or_default(),
+        config.max_unchanged_interval,
+    )
+}
+
 /// SIGHUP: re-reads the config and templates and applies the difference port by port. A config
 /// that does not load leaves everything running as it was.
 async fn reload(
     args: &Args,
     bus: &mut BusControl,
     templates: &DeviceTemplates,
-    running_mqtt: &serde_json::Value,
+    running_mqtt: &RestartOnly,
     running_http: &Option<HttpConfig>,
 ) {
     info!(config = %args.config.display(), "SIGHUP: reloading the config and templates");
@@ -219,9 +230,12 @@ async fn reload(
             return;
         }
     };
-    let mqtt = serde_json::to_value(&loaded.config.mqtt).unwrap_or_default();
-    if mqtt != *running_mqtt {
+    let (mqtt, unchanged_interval) = restart_only(&loaded.config);
+    if mqtt != running_mqtt.0 {
         warn!("the mqtt section changed: it takes effect when the service restarts");
+    }
+    if unchanged_interval != running_mqtt.1 {
+        warn!("max_unchanged_interval changed: it takes effect when the service restarts");
     }
     if loaded.config.http != *running_http {
         warn!("the http section changed: it takes effect when the service restarts");
