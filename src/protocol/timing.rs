@@ -136,13 +136,6 @@ impl LineSettings {
         self.arbitration_wait() + self.arbitration_window() * ARBITRATION_WINDOWS_EVENTS
     }
 
-    /// When the winner of an event arbitration starts its frame after the end of the request:
-    /// the devices' wait and the 12 windows (the winner's frame follows the last window whoever
-    /// wins; the master's own timeouts add margins on top).
-    pub fn event_winner_start(&self) -> Duration {
-        self.device_arbitration_wait() + self.arbitration_window() * ARBITRATION_WINDOWS_EVENTS
-    }
-
     /// When nothing at all has arrived by then after an event request, no device takes part:
     /// every address 1..=247 has a 0 bit within its first 5 bits, so a contender sends a filler
     /// byte by window 4 + 5 = 9.

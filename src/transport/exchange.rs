@@ -940,7 +940,7 @@ mod tests {
     //! wire, and [`run`] hands bytes and timeouts to the exchange in time order, as a driver
     //! whose reads return at once would.
     use super::*;
-    use crate::protocol::timing::ADAPTER_LATENCY_ALLOWANCE;
+    use crate::protocol::timing::{ADAPTER_LATENCY_ALLOWANCE, ARBITRATION_WINDOWS_EVENTS};
     use crate::protocol::{EventPoll, Parity, RequestPdu, ResponsePdu};
 
     fn ms(ms: u64) -> Duration {
@@ -1125,6 +1125,21 @@ mod tests {
         );
     }
 
+    /// An exchange at `line` that has read one reply of the device, `delay` after the request,
+    /// as it came (which teaches it the device's reply delay): the exchange, the transaction,
+    /// that first run and its wake-ups, and when the next transaction may start.
+    fn taught(
+        line: &LineSettings,
+        delay: Duration,
+    ) -> (Exchange, Transaction, (Finished, usize), Duration) {
+        let transaction = transaction(line, read_request());
+        let mut exchange = Exchange::new(serial(*line));
+        let first = answered_after(&mut exchange, line, &transaction, ms(0), delay);
+        assert_eq!(first.0.outcome, read_reply());
+        let start = first.0.at + ms(5);
+        (exchange, transaction, first, start)
+    }
+
     fn read_reply() -> TransactionOutcome {
         TransactionOutcome::Reply(Reply::classic(
             0x1E,
@@ -1138,14 +1153,10 @@ mod tests {
     fn a_reply_that_comes_as_the_last_one_did_is_read_in_one_go() {
         for baud in [9600, 115_200] {
             let line = line(baud);
-            let transaction = transaction(&line, read_request());
-            let mut exchange = Exchange::new(serial(line));
+            let (mut exchange, transaction, (first, wakes), start) = taught(&line, ms(1));
             // The first reply of a device is read as it comes, and timed.
-            let (first, wakes) = answered_after(&mut exchange, &line, &transaction, ms(0), ms(1));
-            assert_eq!(first.outcome, read_reply());
             assert!(wakes >= 2, "at {baud}");
             assert_eq!(first.timing.first_byte, Some(ms(1) + line.wire_time(1)));
-            let start = first.at + ms(5);
             let (finished, wakes) =
                 answered_after(&mut exchange, &line, &transaction, start, ms(1));
             assert_eq!(finished.outcome, read_reply(), "at {baud}");
@@ -1190,18 +1201,13 @@ mod tests {
     #[test]
     fn a_reply_later_than_the_last_one_is_waited_for_and_timed() {
         let line = line(9600);
-        let transaction = transaction(&line, read_request());
-        let mut exchange = Exchange::new(serial(line));
-        let (first, _) = answered_after(&mut exchange, &line, &transaction, ms(0), ms(1));
+        let (mut exchange, transaction, _, start) = taught(&line, ms(1));
         // Nothing yet at the batch read: the first byte is waited for and timed exactly.
-        let start = first.at + ms(5);
         let (finished, _) = answered_after(&mut exchange, &line, &transaction, start, ms(12));
         assert_eq!(finished.outcome, read_reply());
         assert_eq!(finished.timing.first_byte, Some(ms(12) + line.wire_time(1)));
         // Partly there by then: the rest is read when it should be complete.
-        let mut exchange = Exchange::new(serial(line));
-        let (first, _) = answered_after(&mut exchange, &line, &transaction, ms(0), ms(1));
-        let start = first.at + ms(5);
+        let (mut exchange, transaction, _, start) = taught(&line, ms(1));
         let request_end = start + transaction.request_time;
         let (finished, wakes) = answered_after(&mut exchange, &line, &transaction, start, ms(5));
         assert_eq!(finished.outcome, read_reply());
@@ -1221,12 +1227,8 @@ mod tests {
     #[test]
     fn a_batch_read_never_waits_past_the_first_byte_deadline() {
         let line = line(9600);
-        let transaction = transaction(&line, read_request());
-        let mut exchange = Exchange::new(serial(line));
         // A device that takes 28 ms of the 30 ms response timeout; its reply takes 10 ms more.
-        let (first, _) = answered_after(&mut exchange, &line, &transaction, ms(0), ms(28));
-        assert_eq!(first.outcome, read_reply());
-        let start = first.at + ms(5);
+        let (mut exchange, transaction, _, start) = taught(&line, ms(28));
         exchange.start(&transaction).expect("encodes");
         exchange.poll_transmit(start);
         exchange.handle_sent(start);
@@ -1248,10 +1250,7 @@ mod tests {
     #[test]
     fn an_echo_of_the_request_in_front_of_a_batch_is_dropped() {
         let line = line(115_200);
-        let transaction = transaction(&line, read_request());
-        let mut exchange = Exchange::new(serial(line));
-        let (first, _) = answered_after(&mut exchange, &line, &transaction, ms(0), ms(1));
-        let start = first.at + ms(5);
+        let (mut exchange, transaction, _, start) = taught(&line, ms(1));
         let request = read_request().encode().unwrap_or_default();
         // The adapter hears its own request while it goes out, then the device answers.
         let mut arrivals = on_the_wire(&line, start, &request);
@@ -1268,10 +1267,7 @@ mod tests {
     #[test]
     fn a_garbled_batch_is_not_silence() {
         let line = line(115_200);
-        let transaction = transaction(&line, read_request());
-        let mut exchange = Exchange::new(serial(line));
-        let (first, _) = answered_after(&mut exchange, &line, &transaction, ms(0), ms(1));
-        let start = first.at + ms(5);
+        let (mut exchange, transaction, _, start) = taught(&line, ms(1));
         let mut frame = reply_frame();
         if let Some(last) = frame.last_mut() {
             *last ^= 0x55;
@@ -1288,10 +1284,7 @@ mod tests {
     #[test]
     fn every_sixteenth_reply_is_read_as_it_comes_and_teaches_a_shorter_delay_at_once() {
         let line = line(115_200);
-        let transaction = transaction(&line, read_request());
-        let mut exchange = Exchange::new(serial(line));
-        let (first, _) = answered_after(&mut exchange, &line, &transaction, ms(0), ms(5));
-        let mut now = first.at + ms(1);
+        let (mut exchange, transaction, _, mut now) = taught(&line, ms(5));
         let mut timed = Vec::new();
         let mut ends = Vec::new();
         for n in 0..40 {
@@ -1332,7 +1325,8 @@ mod tests {
             ];
             arrivals.extend(on_the_wire(
                 &line,
-                request_end + line.event_winner_start(),
+                // The winner's frame follows the last of the 12 windows, whoever wins.
+                first_window + window * ARBITRATION_WINDOWS_EVENTS,
                 frame,
             ));
             arrivals

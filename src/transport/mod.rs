@@ -170,12 +170,10 @@ impl Transport {
             }
             if let (Some(at), Link::Serial(link)) = (self.exchange.batch_read_at(), &mut self.link)
             {
-                link.unwatch();
-                let read = match link.sleep_until(self.epoch + at + PACING_SLACK).await {
-                    Ok(()) => link.read_now(&mut buffer),
-                    Err(err) => Err(err),
-                };
-                let count = match read {
+                let count = match link
+                    .read_at(self.epoch + at + PACING_SLACK, &mut buffer)
+                    .await
+                {
                     Ok(Some(0)) => {
                         return Err(TransportError::Closed {
                             name: self.name.clone(),
@@ -279,11 +277,7 @@ impl Transport {
                     let at = self.epoch + complete_at + PACING_SLACK;
                     if at < wake {
                         *paced_reads += 1;
-                        link.unwatch();
-                        link.sleep_until(at)
-                            .await
-                            .map_err(|source| io_error(&self.name, source))?;
-                        match link.read_now(buffer) {
+                        match link.read_at(at, buffer).await {
                             Ok(Some(count)) => return Ok(Some(count)),
                             // Nothing more came: the line's own timing rules from here.
                             Ok(None) => *paced_reads = MAX_PACED_READS,

@@ -191,13 +191,16 @@ impl SerialLink {
         Ok(true)
     }
 
-    /// Stops watching the line: bytes that arrive wake nobody until [`Self::read_now`].
-    pub fn unwatch(&mut self) {
+    /// Sleeps until `at` without watching the line (bytes that arrive meanwhile wake nobody),
+    /// then reads whatever has arrived: `Ok(None)` when nothing has.
+    pub async fn read_at(&mut self, at: Instant, buffer: &mut [u8]) -> io::Result<Option<usize>> {
         self.watch = None;
+        self.sleep_until(at).await?;
+        self.read_now(buffer)
     }
 
     /// Reads whatever has arrived, without waiting: `Ok(None)` when nothing has.
-    pub fn read_now(&mut self, buffer: &mut [u8]) -> io::Result<Option<usize>> {
+    fn read_now(&mut self, buffer: &mut [u8]) -> io::Result<Option<usize>> {
         loop {
             match (&self.port).read(buffer) {
                 Ok(count) => return Ok(Some(count)),
@@ -209,7 +212,7 @@ impl SerialLink {
     }
 
     /// Sleeps until `at`, to within the kernel's timer slack.
-    pub async fn sleep_until(&mut self, at: Instant) -> io::Result<()> {
+    async fn sleep_until(&mut self, at: Instant) -> io::Result<()> {
         if !self.arm_timer(at)? {
             return Ok(());
         }
