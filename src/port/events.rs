@@ -84,12 +84,7 @@ impl EventPoller {
         flag: u8,
         highest_listener: u8,
     ) {
-        self.ack = Some((address, flag));
-        self.min_address = if address >= highest_listener.min(MAX_DEVICE_ADDRESS) {
-            0
-        } else {
-            address + 1
-        };
+        self.confirm_and_rotate(address, flag, highest_listener);
         if self.burst < MAX_BURST {
             self.burst += 1;
             self.next_at = now;
@@ -113,10 +108,18 @@ impl EventPoller {
         flag: u8,
         highest_listener: u8,
     ) {
-        let burst = self.burst;
-        self.packet_received(self.next_at, address, flag, highest_listener);
-        self.burst = burst;
+        self.confirm_and_rotate(address, flag, highest_listener);
         self.end_round();
+    }
+
+    /// The next request confirms the packet and lets the devices above its sender speak first.
+    fn confirm_and_rotate(&mut self, address: u8, flag: u8, highest_listener: u8) {
+        self.ack = Some((address, flag));
+        self.min_address = if address >= highest_listener.min(MAX_DEVICE_ADDRESS) {
+            0
+        } else {
+            address + 1
+        };
     }
 
     /// "No events" or silence. If part of the address range was excluded, ask the whole bus again
