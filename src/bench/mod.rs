@@ -10,6 +10,8 @@ pub mod layout;
 pub mod matching;
 
 #[cfg(feature = "bench")]
+pub mod floor;
+#[cfg(feature = "bench")]
 pub mod plots;
 #[cfg(feature = "bench")]
 pub mod report;

@@ -66,6 +66,8 @@ pub struct RunResult {
     /// The measurement window (first change → last change, or the fixed window).
     pub window: Duration,
     pub daemon_cpu: Duration,
+    /// The daemon's threads' sleeps (voluntary context switches) in the window.
+    pub daemon_sleeps: u64,
     pub daemon_peak_rss_kib: u64,
     /// RssAnon at the end of the window (private memory, without the binary's code pages).
     pub daemon_anon_rss_kib: u64,
@@ -89,6 +91,10 @@ impl RunResult {
     pub fn cpu_per_transaction_us(&self) -> Option<f64> {
         (self.transactions > 0)
             .then(|| self.daemon_cpu.as_secs_f64() * 1e6 / self.transactions as f64)
+    }
+
+    pub fn sleeps_per_transaction(&self) -> Option<f64> {
+        (self.transactions > 0).then(|| self.daemon_sleeps as f64 / self.transactions as f64)
     }
 
     pub fn cpu_per_value_us(&self) -> Option<f64> {
@@ -272,6 +278,7 @@ fn run_into(
     let sim_after = harness.sim_stats().unwrap_or_default();
     let bus_after = harness.bus_stats()?;
     result.daemon_cpu = daemon_after.cpu.saturating_sub(daemon_before.cpu);
+    result.daemon_sleeps = daemon_after.sleeps.saturating_sub(daemon_before.sleeps);
     result.daemon_peak_rss_kib = daemon_after.peak_rss_kib;
     result.daemon_anon_rss_kib = daemon_after.anon_rss_kib;
     result.sim_cpu = sim_after.cpu.saturating_sub(sim_before.cpu);

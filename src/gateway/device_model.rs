@@ -6,8 +6,7 @@
 //! the others of the same value), whether it changed, when `r`, `w` and `p` are set and cleared,
 //! and which payloads a control accepts. The sinks (MQTT, stdout) only map the updates.
 
-use std::collections::{BTreeSet, HashMap};
-use std::hash::{BuildHasherDefault, Hasher};
+use std::collections::BTreeSet;
 use std::sync::{Arc, Weak};
 
 use tracing::{debug, warn};
@@ -27,7 +26,9 @@ pub struct DeviceModel {
     device_id: Arc<str>,
     /// Which channels read each register, and their ids.
     channel_index: Arc<ChannelIndex>,
-    words: HashMap<(RegisterType, u16), u16, BuildHasherDefault<WordKeyHasher>>,
+    /// The last word of every register a channel reads or writes, per slot of
+    /// [`ChannelIndex::registers`] (none until read).
+    words: Vec<Option<u16>>,
     errors: Vec<ErrorFlags>,
     /// The last value reported per channel, to tell a change from a repeat (and sent again,
     /// not copied, when it repeats).
@@ -69,6 +70,12 @@ struct ChannelIndex {
     /// found here rather than in the channel's registers, which a read of many values would
     /// otherwise bring into the cache one by one only to find them unchanged.
     word_registers: Vec<(RegisterType, u16)>,
+    /// Per entry of `word_registers`, its slot in `registers`.
+    word_register_slots: Vec<usize>,
+    /// Every register a channel reads or writes, sorted: the slots of
+    /// [`DeviceModel::words`]. A read's words fill consecutive slots, found with one search
+    /// per read rather than one hash lookup per word; words no channel uses are not kept.
+    registers: Vec<(RegisterType, u16)>,
     /// Per channel, whether it is a pushbutton (its every value is reported, see
     /// [`Repeats::report`]; the type as `mqtt::layout::is_pushbutton` reads it).
     pushbuttons: Vec<bool>,
@@ -130,17 +137,45 @@ impl ChannelIndex {
             word_slots.push(Some((start, word_registers.len() - start)));
         }
         word_registers.shrink_to_fit();
+        let mut registers = word_registers.clone();
+        for channel in channels.iter() {
+            for write in channel.registers.iter().filter_map(|r| r.write) {
+                for i in 0..write.count.max(1) {
+                    registers.push((write.reg_type, write.address.wrapping_add(i)));
+                }
+            }
+        }
+        registers.sort_unstable();
+        registers.dedup();
+        registers.shrink_to_fit();
+        let word_register_slots = word_registers
+            .iter()
+            .map(|register| registers.binary_search(register).unwrap_or(usize::MAX))
+            .collect();
         Self {
             channels: channels.clone(),
             readers,
             control_ids: channels.iter().map(|c| Arc::from(c.id.as_str())).collect(),
             word_slots,
             word_registers,
+            word_register_slots,
+            registers,
             pushbuttons: channels
                 .iter()
                 .map(|c| c.control_type == "pushbutton")
                 .collect(),
         }
+    }
+
+    /// The slot of `register` in [`Self::registers`].
+    fn slot_of(&self, register: (RegisterType, u16)) -> Option<usize> {
+        self.registers.binary_search(&register).ok()
+    }
+
+    /// The first slot at or after `register` (the slots of a span's words follow it in
+    /// address order).
+    fn first_slot_from(&self, register: (RegisterType, u16)) -> usize {
+        self.registers.partition_point(|&entry| entry < register)
     }
 
     /// How many words [`DeviceModel::last_words`] keeps for all channels.
@@ -198,49 +233,6 @@ impl ChannelIndex {
     }
 }
 
-/// FxHash's multiply-rotate on a register's (type, address): the register words are looked up
-/// for every value read, and SipHash's protection against crafted keys buys nothing here.
-#[derive(Debug, Default, Clone, Copy)]
-struct WordKeyHasher(u64);
-
-impl WordKeyHasher {
-    fn add(&mut self, word: u64) {
-        self.0 = (self.0.rotate_left(5) ^ word).wrapping_mul(0x51_7c_c1_b7_27_22_0a_95);
-    }
-}
-
-impl Hasher for WordKeyHasher {
-    fn finish(&self) -> u64 {
-        self.0
-    }
-
-    fn write(&mut self, bytes: &[u8]) {
-        for &byte in bytes {
-            self.add(u64::from(byte));
-        }
-    }
-
-    fn write_u8(&mut self, n: u8) {
-        self.add(u64::from(n));
-    }
-
-    fn write_u16(&mut self, n: u16) {
-        self.add(u64::from(n));
-    }
-
-    fn write_u32(&mut self, n: u32) {
-        self.add(u64::from(n));
-    }
-
-    fn write_u64(&mut self, n: u64) {
-        self.add(n);
-    }
-
-    fn write_usize(&mut self, n: usize) {
-        self.add(n as u64);
-    }
-}
-
 /// Longest `/on` payload looked at; anything longer is refused before parsing.
 pub const MAX_PAYLOAD: usize = 4096;
 
@@ -282,6 +274,7 @@ impl DeviceModel {
     ) -> Self {
         let errors = vec![ErrorFlags::default(); device.channels.len()];
         let channel_index = indexes.index_of(&device.channels);
+        let words = vec![None; channel_index.registers.len()];
         Self {
             reported: vec![None; device.channels.len()],
             repeats,
@@ -292,7 +285,7 @@ impl DeviceModel {
             channel_index,
             device,
             index,
-            words: HashMap::default(),
+            words,
             errors,
             pending_events: BTreeSet::new(),
             touched: Vec::new(),
@@ -317,12 +310,7 @@ impl DeviceModel {
         }
         match event {
             PortEvent::Values { span, values, .. } => {
-                for (offset, value) in values.iter().enumerate() {
-                    let address = span
-                        .start
-                        .wrapping_add(u16::try_from(offset).unwrap_or(u16::MAX));
-                    self.words.insert((span.register_type, address), *value);
-                }
+                self.store_words(span.register_type, span.start, &values);
                 let mut touched = std::mem::take(&mut self.touched);
                 self.channel_index
                     .readers_of(&span, &mut touched, &mut self.reader_hint);
@@ -339,18 +327,13 @@ impl DeviceModel {
                 let width = self.event_width(register_type, address, carried.len());
                 // The value's low words: a device may pad the payload beyond the register.
                 let skip = carried.len().saturating_sub(usize::from(width));
-                for (offset, &word) in carried.iter().skip(skip).enumerate() {
-                    let offset = u16::try_from(offset).unwrap_or(u16::MAX);
-                    self.words
-                        .insert((register_type, address.wrapping_add(offset)), word);
-                }
+                self.store_words(register_type, address, carried.get(skip..).unwrap_or(&[]));
                 // Part of a wider value: its other words, as last read, may be older than this
                 // one (a device updates a value at once). Forgotten, so that the value waits for
                 // the read the scheduler makes at once rather than being published half updated.
                 let value_width = self.value_width(register_type, address);
                 for offset in width..value_width {
-                    self.words
-                        .remove(&(register_type, address.wrapping_add(offset)));
+                    self.set_word((register_type, address.wrapping_add(offset)), None);
                 }
                 // Published once the whole packet is in (see `flush_events`): a packet may carry
                 // several words of one value, and a value made of old and new words is wrong.
@@ -419,7 +402,7 @@ impl DeviceModel {
                 // The device may hold other values now: an event for one word of a wider value
                 // must not be joined with words read before the restart. The reads that follow
                 // the new setup bring every word back.
-                self.words.clear();
+                self.words.fill(None);
                 // Events of the packet that reported the restart are not joined with those
                 // words either; the reads after the new setup publish them.
                 self.pending_events.clear();
@@ -599,6 +582,43 @@ impl DeviceModel {
 
     /// Puts the words of every register of the `index`th channel into `word_buffer`, in
     /// order; false until all have been read.
+    /// Keeps `values`, the words of the registers from `start` on, for the channels that use
+    /// them: the slots from the first at or after `start`, while they are within the span
+    /// (the wire's addresses wrap at 65535, as a span's do).
+    fn store_words(&mut self, register_type: RegisterType, start: u16, values: &[u16]) {
+        let index = &self.channel_index;
+        let mut slot = index.first_slot_from((register_type, start));
+        while let Some(&(slot_type, address)) = index.registers.get(slot) {
+            let offset = usize::from(address.wrapping_sub(start));
+            let (true, Some(&value)) = (slot_type == register_type, values.get(offset)) else {
+                break;
+            };
+            if let Some(word) = self.words.get_mut(slot) {
+                *word = Some(value);
+            }
+            slot += 1;
+        }
+        // A span that wraps past 65535 goes on at address 0.
+        let last = usize::from(start) + values.len();
+        if last > usize::from(u16::MAX) + 1 {
+            let wrapped = values.get(usize::from(u16::MAX) + 1 - usize::from(start)..);
+            self.store_words(register_type, 0, wrapped.unwrap_or(&[]));
+        }
+    }
+
+    fn word(&self, register: (RegisterType, u16)) -> Option<u16> {
+        let slot = self.channel_index.slot_of(register)?;
+        self.words.get(slot).copied().flatten()
+    }
+
+    fn set_word(&mut self, register: (RegisterType, u16), value: Option<u16>) {
+        if let Some(slot) = self.channel_index.slot_of(register) {
+            if let Some(word) = self.words.get_mut(slot) {
+                *word = value;
+            }
+        }
+    }
+
     fn gather_words(&mut self, index: usize) -> bool {
         let words = &mut self.word_buffer;
         words.clear();
@@ -608,10 +628,17 @@ impl DeviceModel {
         let Some(registers) = self.channel_index.word_registers.get(start..start + count) else {
             return false;
         };
-        for register in registers {
-            match self.words.get(register) {
-                Some(word) => words.push(*word),
-                None => return false,
+        let Some(slots) = self
+            .channel_index
+            .word_register_slots
+            .get(start..start + registers.len())
+        else {
+            return false;
+        };
+        for &slot in slots {
+            match self.words.get(slot) {
+                Some(Some(word)) => words.push(*word),
+                _ => return false,
             }
         }
         true
@@ -702,11 +729,7 @@ impl DeviceModel {
             .map(|register| {
                 let target = register.write.or(register.read)?;
                 (0..target.count.max(1))
-                    .map(|i| {
-                        self.words
-                            .get(&(target.reg_type, target.address.wrapping_add(i)))
-                            .copied()
-                    })
+                    .map(|i| self.word((target.reg_type, target.address.wrapping_add(i))))
                     .collect()
             })
             .collect();
@@ -921,6 +944,7 @@ mod tests {
     use super::*;
     use crate::config::TemplateFile;
     use crate::device::{resolve_template_device, Reading};
+    use std::collections::HashMap;
 
     fn relay() -> DeviceModel {
         let path =
@@ -1062,6 +1086,42 @@ mod tests {
             .into_iter()
             .map(|(control, value, _)| (control, value))
             .collect()
+    }
+
+    /// A read's words reach the channels that use them, wherever they sit in the span; the
+    /// words between them, which no channel uses, are not kept and harm nothing.
+    #[test]
+    fn a_read_with_gaps_fills_each_channel_from_its_own_words() {
+        let raw = serde_json::json!({
+            "device_type": "gaps",
+            "device": {
+                "name": "Gaps", "id": "gaps",
+                "channels": [
+                    {"name": "A", "reg_type": "input", "address": 2},
+                    {"name": "B", "reg_type": "input", "address": 5, "format": "u32"},
+                    {"name": "C", "reg_type": "holding", "address": 5},
+                    {"name": "D", "reg_type": "input", "address": 9}
+                ]
+            }
+        });
+        let template = TemplateFile::from_source(crate::config::parse::SourceText::from_text(
+            std::path::Path::new("gaps.json"),
+            &raw.to_string(),
+        ))
+        .unwrap();
+        let device =
+            resolve_template_device(&template, &serde_json::json!({"slave_id": 1})).unwrap();
+        let mut model = DeviceModel::new(Arc::new(device), 0, Repeats::None);
+        // Inputs 0..10: A = 2, B = 5/6, D = 9; 0, 1, 3, 4, 7, 8 are nobody's.
+        assert_eq!(
+            poll(&mut model, 0, &[100, 101, 7, 103, 104, 1, 2, 107, 108, 42]),
+            [one("A", "7"), one("B", "65538"), one("D", "42")].concat()
+        );
+        // The holding register at the same address is another register.
+        assert_eq!(poll(&mut model, 5, &[1, 3]), one("B", "65539"));
+        // A read that ends inside B leaves B waiting for nothing: its words are both known.
+        assert_eq!(poll(&mut model, 4, &[0, 2]), one("B", "131075"));
+        assert_eq!(poll(&mut model, 9, &[42]), vec![]);
     }
 
     fn one(control: &str, value: &str) -> Vec<(String, String)> {
