@@ -44,6 +44,8 @@ pub struct DeviceModel {
     reader_hint: usize,
     /// Channels that events changed since the last [`DeviceModel::flush_events`].
     pending_events: BTreeSet<usize>,
+    /// The registers those events set.
+    pending_event_words: Vec<(RegisterType, u16)>,
     /// Kept between reads, so that a read of many values allocates nothing for them unless
     /// they changed: the channels a read touched, a channel's words, its value's text.
     touched: Vec<usize>,
@@ -288,6 +290,7 @@ impl DeviceModel {
             words,
             errors,
             pending_events: BTreeSet::new(),
+            pending_event_words: Vec::new(),
             touched: Vec::new(),
             word_buffer: Vec::new(),
             text: String::new(),
@@ -325,6 +328,19 @@ impl DeviceModel {
             } => {
                 let carried = crate::protocol::event_payload_words(&payload);
                 let width = self.event_width(register_type, address, carried.len());
+                // A register set again before the pending values were published: a device
+                // that queues its changes reports a short pulse as two events, possibly in one
+                // packet. The values as they stood come out first, as wb-mqtt-serial publishes
+                // every event, rather than the pulse being folded away.
+                let sets_a_pending_word = (0..width).any(|offset| {
+                    self.pending_event_words
+                        .contains(&(register_type, address.wrapping_add(offset)))
+                });
+                if sets_a_pending_word {
+                    self.flush_events(out);
+                }
+                self.pending_event_words
+                    .extend((0..width).map(|offset| (register_type, address.wrapping_add(offset))));
                 // The value's low words: a device may pad the payload beyond the register.
                 let skip = carried.len().saturating_sub(usize::from(width));
                 self.store_words(register_type, address, carried.get(skip..).unwrap_or(&[]));
@@ -406,6 +422,7 @@ impl DeviceModel {
                 // Events of the packet that reported the restart are not joined with those
                 // words either; the reads after the new setup publish them.
                 self.pending_events.clear();
+                self.pending_event_words.clear();
             }
         }
     }
@@ -414,6 +431,7 @@ impl DeviceModel {
     /// channel with a word never read yet waits for its read (done at once after the events
     /// setup), rather than being published half-known.
     pub fn flush_events(&mut self, out: &mut Vec<DeviceUpdate>) {
+        self.pending_event_words.clear();
         if self.pending_events.is_empty() {
             return;
         }
@@ -1023,6 +1041,28 @@ mod tests {
             values(&out),
             vec![("Input 1 counter".into(), "300".into(), true)]
         );
+    }
+
+    /// A device that queues its changes reports a short pulse of a coil as two events of one
+    /// packet: both values are published, in order, not only the last.
+    #[test]
+    fn a_pulse_reported_in_one_packet_is_published_as_it_happened() {
+        let mut model = relay();
+        // Device 20 (0x14), flag 0, 3 events, 15 bytes: coil 0 = 1, coil 1 = 1, coil 0 = 0.
+        let published = feed_packet(
+            &mut model,
+            "14 46 11 00 03 0F 01 01 00 00 01 01 01 00 01 01 01 01 00 00 00",
+        );
+        assert_eq!(
+            published,
+            [one("K1", "1"), one("K2", "1"), one("K1", "0")].concat()
+        );
+        // The next packet holds each coil once: one value each, after the packet.
+        let published = feed_packet(
+            &mut model,
+            "14 46 11 01 02 0A 01 01 00 00 01 01 01 00 01 00",
+        );
+        assert_eq!(published, [one("K1", "1"), one("K2", "0")].concat());
     }
 
     fn template_model(template: &str, slave_id: u8) -> DeviceModel {
