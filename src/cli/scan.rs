@@ -709,3 +709,96 @@ async fn scan_via_service(args: &Args, report: &mut ScanReport) -> Result<(), Po
     report.keep_stop_bits(&args.port.stop_bits);
     Ok(())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::protocol::Parity;
+
+    const N2: LineSettings = LineSettings::new(9600, Parity::None, 2);
+
+    /// Two devices at 9600 8N: one reports 1 stop bit, one has no registers 110..112.
+    fn report() -> ScanReport {
+        let mut report = ScanReport {
+            settings_tried: vec![N2],
+            ..ScanReport::default()
+        };
+        report.add_fast(N2, 1, 20);
+        report.add_fast(N2, 2, 21);
+        report.devices[0].take_reported(LineSettings::new(9600, Parity::None, 1));
+        report
+    }
+
+    #[test]
+    fn unknown_stop_bits_are_said_in_the_table_and_the_json() {
+        let report = report();
+        let text = table(&report, Duration::from_millis(700));
+        let lines: Vec<&str> = text.lines().collect();
+        assert!(lines[1].contains("9600 8N1"), "{text}");
+        assert!(!lines[1].contains("not reported"), "{text}");
+        assert!(lines[2].contains("9600 8N?"), "{text}");
+        assert!(
+            lines[2].contains("stop bits 1 or 2: not reported"),
+            "{text}"
+        );
+        assert!(
+            text.contains("2 device(s); 2 setting(s) covered by 1 transmission(s)"),
+            "{text}"
+        );
+        let json = report_json(&report, Duration::from_millis(700));
+        assert_eq!(json["port_settings_scanned"], 2);
+        assert_eq!(json["transmissions"], 1);
+        assert_eq!(json["devices"][0]["stop_bits"], 1);
+        assert_eq!(json["devices"][0]["settings"], "9600 8N1");
+        assert_eq!(json["devices"][1]["stop_bits"], Value::Null);
+        assert_eq!(json["devices"][1]["settings"], "9600 8N?");
+    }
+
+    #[test]
+    fn a_port_for_devices_of_unknown_stop_bits_gets_two_and_says_why() {
+        let snippet = config_snippet(
+            &report(),
+            "/dev/ttyRS485-1",
+            &TemplateLibrary::default(),
+            &[],
+        );
+        assert!(
+            snippet
+                .contains("// 9600 8N2: stop bits 2, as address 21 did not report its stop bits"),
+            "{snippet}"
+        );
+        let body: Value = serde_json::from_str(&snippet[snippet.find('{').unwrap()..]).unwrap();
+        assert_eq!(body["ports"].as_array().unwrap().len(), 1);
+        assert_eq!(body["ports"][0]["stop_bits"], 2);
+        // All reported alike: theirs, without a comment.
+        let mut alike = report();
+        alike.devices[1].take_reported(LineSettings::new(9600, Parity::None, 1));
+        let snippet = config_snippet(&alike, "/dev/ttyRS485-1", &TemplateLibrary::default(), &[]);
+        assert!(!snippet.contains("stop bits 2"), "{snippet}");
+        let body: Value = serde_json::from_str(&snippet[snippet.find('{').unwrap()..]).unwrap();
+        assert_eq!(body["ports"][0]["stop_bits"], 1);
+    }
+
+    #[test]
+    fn one_baud_rate_and_parity_is_a_single_line() {
+        let args = |stop_bits: Vec<u8>| PortArgs {
+            port: "/dev/null".into(),
+            baud: vec![9600],
+            parity: vec![Parity::Even],
+            stop_bits,
+            latency: None,
+        };
+        assert_eq!(
+            args(vec![]).single_line(),
+            Some(LineSettings::new(9600, Parity::Even, 2))
+        );
+        assert_eq!(
+            args(vec![1]).single_line(),
+            Some(LineSettings::new(9600, Parity::Even, 1))
+        );
+        assert_eq!(
+            args(vec![1, 2]).single_line(),
+            Some(LineSettings::new(9600, Parity::Even, 2))
+        );
+    }
+}

@@ -365,8 +365,8 @@ pub trait ToolBus {
     }
 
     /// A standard text block of up to `count` registers, by serial number: the first
-    /// [`TEXT_FIRST_READ`] registers, and the rest only when the text fills them (most model
-    /// names and versions are shorter; at 9600 baud each register is 2.3 ms of wire).
+    /// [`TEXT_FIRST_READ`] registers, and the rest only when the text fills them (at 9600 baud
+    /// each register is 2.3 ms of wire).
     async fn text_by_serial(
         &mut self,
         line: LineSettings,
@@ -401,8 +401,10 @@ pub trait ToolBus {
 pub const PORT_SETTINGS_REGISTER: u16 = 110;
 /// Model (200), firmware version (250), signature (290): start and length of each block.
 pub const TEXT_REGISTERS: [(u16, u16); 3] = [(200, 20), (250, 16), (290, 12)];
-/// Registers of a text block read first.
-pub const TEXT_FIRST_READ: u16 = 8;
+/// Registers of a text block read first: model names, versions and signatures are mostly
+/// shorter than 12 characters ("WB-MAP12E", "1.26.1"), and one read costs some 25 bytes of
+/// frame around its data (at 9600 baud 29 ms, as much as 12 registers).
+pub const TEXT_FIRST_READ: u16 = 12;
 
 /// The reads of a text block: the first part, then the rest.
 pub fn text_reads(start: u16, count: u16) -> Vec<(u16, u16)> {
@@ -541,8 +543,8 @@ mod tests {
 
     #[test]
     fn text_blocks_are_read_short_first() {
-        assert_eq!(text_reads(200, 20), vec![(200, 8), (208, 12)]);
-        assert_eq!(text_reads(290, 8), vec![(290, 8)]);
+        assert_eq!(text_reads(200, 20), vec![(200, 12), (212, 8)]);
+        assert_eq!(text_reads(290, 12), vec![(290, 12)]);
         assert_eq!(text_reads(290, 5), vec![(290, 5)]);
     }
 
