@@ -193,8 +193,19 @@ impl ScanReport {
 
     /// Records a device that answered a classic request at `address`; false when a device
     /// already known at this setting has that address (a Fast Modbus device answers classic
-    /// requests too).
+    /// requests too), or one with its serial number is known at another setting (it is "also
+    /// at" this one).
     pub fn add_classic(&mut self, line: LineSettings, address: u8, serial: Option<u32>) -> bool {
+        if let Some(known) = self
+            .devices
+            .iter_mut()
+            .find(|d| serial.is_some() && d.serial == serial)
+        {
+            if !known.answers_at(&line) {
+                known.also_at.push(line);
+            }
+            return false;
+        }
         let known = self.devices.iter().any(|d| {
             d.address == address && d.answers_at(&line) && (serial.is_none() || d.serial == serial)
         });
@@ -377,6 +388,16 @@ mod tests {
         assert_eq!(report.devices.len(), 1);
         assert!(report.add_classic(SLOW, 21, None));
         assert!(!report.devices[report.devices.len() - 1].fast);
+    }
+
+    #[test]
+    fn a_classic_device_answering_at_two_settings_is_one_device() {
+        let mut report = ScanReport::default();
+        assert!(report.add_classic(SLOW, 40, Some(9)));
+        assert!(!report.add_classic(EVEN, 40, Some(9)));
+        assert!(!report.add_classic(LineSettings::new(9600, Parity::None, 1), 40, Some(9)));
+        assert_eq!(report.devices.len(), 1);
+        assert_eq!(report.devices[0].also_at, vec![EVEN]);
     }
 
     #[test]
