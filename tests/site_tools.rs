@@ -4,7 +4,9 @@
 //! 19200 8O1, and a classic-only device at address 40, 115200 8N2.
 //!
 //! A pseudo-terminal cannot tell parity N from E, so devices at 8N2 also answer at 8E2 here; the
-//! scan reports the first setting in its order (8N2) and the other one as "also at".
+//! scan reports the setting their registers (110..112) name and the other one as "also at". The
+//! scan sends with 2 stop bits; devices at 8O1 hear it (a receiver checks only the first stop
+//! bit) and report their 1 stop bit.
 
 mod sim_support;
 
