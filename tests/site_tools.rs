@@ -878,6 +878,13 @@ fn bad_crc_at_one_setting_is_reported_and_the_scan_goes_on() {
         "{report:#}"
     );
     assert_eq!(report["port_settings_scanned"], 12);
+    // The troubled one sent again with 1 stop bit (in case the port's receiver checks both),
+    // where the corrupt replies stay corrupt.
+    assert_eq!(report["transmissions"], 7);
+    assert!(
+        problems.iter().any(|p| p["settings"] == "19200 8O1"),
+        "{report:#}"
+    );
 }
 
 /// Through a USB adapter that hands bytes over late (the simulator holds every byte 40 ms, more

@@ -233,10 +233,21 @@ pub async fn fast_scan(
     report: &mut ScanReport,
 ) -> Result<(), PortError> {
     for &line in plan {
+        let problems_before = report.problems.len();
         report.settings_tried.push(line);
         let seen = port.scan_setting(line, report).await?;
         if !seen.is_empty() {
             tracing::info!("{line}: {} Fast Modbus device(s)", seen.len());
+        }
+        if report.problems.len() > problems_before && line.stop_bits == 2 {
+            // A port whose receiver checks both stop bits (the 16550 and the common adapters
+            // check only the first) garbles the replies of devices at 1: hear them at 1.
+            let one_stop_bit = LineSettings {
+                stop_bits: 1,
+                ..line
+            };
+            report.settings_tried.push(one_stop_bit);
+            port.scan_setting(one_stop_bit, report).await?;
         }
     }
     for index in 0..report.devices.len() {

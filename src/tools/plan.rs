@@ -16,7 +16,8 @@ pub const PARITY_ORDER: [Parity; 3] = [Parity::None, Parity::Even, Parity::Odd];
 /// and microcontroller USARTs): a request sent with 2 is heard by devices set to 1 or 2, and a
 /// master set to 2 hears replies sent with 1 or 2. The stop bits are not visible on the wire,
 /// so one transmission per baud rate and parity covers both; 2 rather than 1 because then only
-/// the master's receiver has to check just the first stop bit, not every device's.
+/// the master's receiver has to check just the first stop bit, not every device's (the scan
+/// sends a troubled setting again with 1, for a port whose receiver checks both).
 pub const TRANSMIT_STOP_BITS: u8 = 2;
 
 /// What the command line restricts; empty lists mean "all".

@@ -170,13 +170,20 @@ impl ScanReport {
         true
     }
 
-    /// The number of port settings the transmissions covered.
+    /// The number of port settings the transmissions covered: each baud rate and parity sent
+    /// at (once, or again after trouble) covers every stop-bit count asked for.
     pub fn settings_covered(&self) -> usize {
         let per_transmission = match self.stop_bits_covered.len() {
             0 => 2,
             n => n,
         };
-        self.settings_tried.len() * per_transmission
+        let mut on_the_wire: Vec<&LineSettings> = Vec::new();
+        for line in &self.settings_tried {
+            if !on_the_wire.iter().any(|l| same_on_the_wire(l, line)) {
+                on_the_wire.push(line);
+            }
+        }
+        on_the_wire.len() * per_transmission
     }
 
     /// Leaves out the devices that reported stop bits other than `wanted` (empty: keeps all);
@@ -374,7 +381,7 @@ mod tests {
         let serials: Vec<Option<u32>> = report.devices.iter().map(|d| d.serial).collect();
         assert_eq!(serials, vec![Some(1), Some(3)]);
         assert_eq!(report.other_stop_bits, 1);
-        report.settings_tried = vec![SLOW, FAST];
+        report.settings_tried = vec![SLOW, FAST, LineSettings::new(115_200, Parity::None, 1)];
         assert_eq!(report.settings_covered(), 4);
         report.stop_bits_covered = vec![1];
         assert_eq!(report.settings_covered(), 2);
