@@ -4,7 +4,9 @@
 //! 19200 8O1, and a classic-only device at address 40, 115200 8N2.
 //!
 //! A pseudo-terminal cannot tell parity N from E, so devices at 8N2 also answer at 8E2 here; the
-//! scan reports the first setting in its order (8N2) and the other one as "also at".
+//! scan reports the setting their registers (110..112) name and the other one as "also at". The
+//! scan sends with 2 stop bits; devices at 8O1 hear it (a receiver checks only the first stop
+//! bit) and report their 1 stop bit.
 
 mod sim_support;
 
@@ -113,14 +115,20 @@ fn scan_finds_every_fast_device_at_its_settings_and_flags_the_duplicate() {
     termios::cfsetspeed(&mut settings, BaudRate::B57600).unwrap();
     termios::tcsetattr(&before, SetArg::TCSANOW, &settings).unwrap();
     let report = scan_json(&sim, &[]);
+    // 8 baud rates × 3 parities sent, each covering 1 and 2 stop bits.
     assert_eq!(report["port_settings_scanned"], 48);
+    assert_eq!(report["transmissions"], 24);
     assert_eq!(found(&report), site_bus_fast_devices(), "{report:#}");
     let relay = device(&report, 0xFE00_0011);
     assert_eq!(relay["model"], "WBMR6C");
     assert_eq!(relay["firmware"], "1.26.1");
     assert_eq!(relay["fast_modbus"], true);
+    assert_eq!(relay["stop_bits"], 2);
     assert_eq!(relay["also_at"], json!(["9600 8E2"]));
-    assert_eq!(device(&report, 0xFE00_0030)["also_at"], json!([]));
+    // Heard by a master sending 2 stop bits; the registers say 1.
+    let odd = device(&report, 0xFE00_0030);
+    assert_eq!(odd["stop_bits"], 1);
+    assert_eq!(odd["also_at"], json!([]));
     assert_eq!(
         report["duplicates"],
         json!([{"settings": "9600 8N2", "address": 10, "serials": [0xFE00_0010u32, 0xFE00_0011u32]}])
@@ -860,7 +868,7 @@ fn bad_crc_at_one_setting_is_reported_and_the_scan_goes_on() {
     assert!(
         problems
             .iter()
-            .any(|p| p["settings"] == "19200 8O1"
+            .any(|p| p["settings"] == "19200 8O2"
                 && p["problem"].as_str().unwrap().contains("bad CRC")),
         "{report:#}"
     );
@@ -870,6 +878,13 @@ fn bad_crc_at_one_setting_is_reported_and_the_scan_goes_on() {
         "{report:#}"
     );
     assert_eq!(report["port_settings_scanned"], 12);
+    // The troubled one sent again with 1 stop bit (in case the port's receiver checks both),
+    // where the corrupt replies stay corrupt.
+    assert_eq!(report["transmissions"], 7);
+    assert!(
+        problems.iter().any(|p| p["settings"] == "19200 8O1"),
+        "{report:#}"
+    );
 }
 
 /// Through a USB adapter that hands bytes over late (the simulator holds every byte 40 ms, more
@@ -884,4 +899,75 @@ fn scan_through_a_slow_usb_adapter_finds_every_device_at_its_settings() {
     assert_eq!(run.code, 0, "{}{}", run.stdout, run.stderr);
     let report: Value = serde_json::from_str(&run.stdout).unwrap();
     assert_eq!(found(&report), site_bus_fast_devices(), "{report:#}");
+}
+
+/// Devices that differ only in stop bits answer the same transmission: each is found once, at
+/// the stop bits its registers report, and a shared address is a duplicate whatever the stop
+/// bits. `--stop-bits 1` lists only the device that reports 1.
+#[test]
+fn stop_bits_come_from_the_devices_and_do_not_split_a_duplicate() {
+    let sim = SimProcess::start("stop-bits-bus.json", &[]);
+    let report = scan_json(&sim, &["--baud", "9600,19200"]);
+    assert_eq!(report["transmissions"], 6);
+    assert_eq!(report["port_settings_scanned"], 12);
+    assert_eq!(
+        found(&report),
+        vec![
+            (0xFE00_0101, 10, "9600 8N1".into()),
+            (0xFE00_0102, 10, "9600 8N2".into()),
+            (0xFE00_0103, 12, "19200 8E2".into()),
+        ],
+        "{report:#}"
+    );
+    // Not "also at" 9600 8N2: that is its own setting on the wire. (The pty cannot send parity
+    // E, so the 8E2 transmission reached it too.)
+    assert_eq!(device(&report, 0xFE00_0101)["also_at"], json!(["9600 8E2"]));
+    assert_eq!(device(&report, 0xFE00_0101)["stop_bits"], 1);
+    // Likewise the 8N2 transmission reached "even", first; its registers say E.
+    assert_eq!(
+        device(&report, 0xFE00_0103)["also_at"],
+        json!(["19200 8N2"])
+    );
+    assert_eq!(
+        report["duplicates"],
+        json!([{"settings": "9600 8N (any stop bits)", "address": 10,
+                "serials": [0xFE00_0101u32, 0xFE00_0102u32]}])
+    );
+
+    let port = port(&sim);
+    let run = tool(&[
+        "scan",
+        "--port",
+        &port,
+        "--baud",
+        "9600",
+        "--parity",
+        "N",
+        "--config",
+        "--latency",
+        LATENCY_MS,
+    ]);
+    assert_eq!(run.code, 0, "{}{}", run.stdout, run.stderr);
+    assert!(
+        run.stdout
+            .contains("9600 8N2: stop bits 2, as the devices here use 1 and 2"),
+        "{}",
+        run.stdout
+    );
+    let body = &run.stdout[run.stdout.find('{').unwrap()..];
+    let snippet: Value = serde_json::from_str(body).unwrap();
+    assert_eq!(snippet["ports"].as_array().unwrap().len(), 1, "{snippet:#}");
+    assert_eq!(snippet["ports"][0]["stop_bits"], 2);
+
+    let one = scan_json(
+        &sim,
+        &["--baud", "9600", "--parity", "N", "--stop-bits", "1"],
+    );
+    assert_eq!(
+        found(&one),
+        vec![(0xFE00_0101, 10, "9600 8N1".into())],
+        "{one:#}"
+    );
+    assert_eq!(one["other_stop_bits"], 1);
+    assert_eq!(one["port_settings_scanned"], 1);
 }

@@ -97,31 +97,36 @@ fn scenario5(out: &mut String, scans: &[ScanRun]) {
     let _ = writeln!(
         out,
         "## 5. Scan\n\n`rtu2mqtt scan --json` as its own process on the simulator's pty, all 48 \
-         port settings (8 baud rates × N/E/O × 1/2 stop bits). Wire floor: per setting, the scan \
-         request and the first-byte timeout after it (3.5 characters + one arbitration window), \
-         summed; the 1200 and 2400 baud settings alone take 0.8 s of it. Target: ≤ 1 s for the \
-         full scan.\n"
+         port settings (8 baud rates × N/E/O × 1/2 stop bits) covered by 24 transmissions (one per \
+         baud rate and parity, sent with 2 stop bits: a receiver checks only the first stop bit, \
+         so devices at 1 and 2 hear it alike; each device's stop bits come from its registers). \
+         Wire floor: per transmission, the scan request and the first-byte timeout after it (3.5 \
+         characters + one arbitration window); where devices answered, their scan rounds instead, \
+         and each device's identity reads (port settings, model, firmware, signature), summed. \
+         On the pty a device also answers the other of parity N/E (counted in the floor). Target: \
+         ≤ 1 s for the full scan.\n"
     );
     let _ = writeln!(
         out,
-        "| bus | devices found | settings scanned | total s | per setting ms | wire floor s | notes |\n|---|---|---|---|---|---|---|"
+        "| bus | devices found | settings covered | transmissions | total s | per transmission ms | wire floor s | notes |\n|---|---|---|---|---|---|---|---|"
     );
     for scan in scans {
-        let per_setting = if scan.settings_scanned > 0 {
+        let per_setting = if scan.transmissions > 0 {
             format!(
                 "{:.1}",
-                scan.elapsed.as_secs_f64() * 1e3 / scan.settings_scanned as f64
+                scan.elapsed.as_secs_f64() * 1e3 / scan.transmissions as f64
             )
         } else {
             "–".into()
         };
         let _ = writeln!(
             out,
-            "| {} | {} of {} | {} | {:.2} | {} | {:.2} | {} |",
+            "| {} | {} of {} | {} | {} | {:.2} | {} | {:.2} | {} |",
             scan.label,
             scan.devices_found,
             scan.devices_on_bus,
             scan.settings_scanned,
+            scan.transmissions,
             scan.elapsed.as_secs_f64(),
             per_setting,
             scan.wire_floor.as_secs_f64(),

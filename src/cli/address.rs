@@ -143,9 +143,13 @@ async fn set_address(args: &SetAddressArgs) -> Result<ExitCode, PortError> {
         Ok(connected) => connected,
         Err(code) => return Ok(code),
     };
-    // The service's own settings first: where its devices most likely are.
+    // The service's own settings first: where its devices most likely are (the plan's setting
+    // that differs from them only in stop bits is the same one on the wire).
     let mut plan = args.port.plan();
-    if let Some(index) = plan.iter().position(|l| *l == home) {
+    if let Some(index) = plan
+        .iter()
+        .position(|l| crate::tools::plan::same_on_the_wire(l, &home))
+    {
         plan.remove(index);
         plan.insert(0, home);
     }

@@ -100,11 +100,14 @@ pub fn run_bench(args: Args) -> anyhow::Result<ExitCode> {
             eprintln!("[{:>3.0} s] scan: {label}", started.elapsed().as_secs_f64());
             let scan = run_scan(&binary, &args.mosquitto, label, &devices);
             eprintln!(
-                "        {} of {} devices found, {} settings in {:.2} s{}",
+                "        {} of {} devices found, {} settings ({} transmissions) in {:.2} s \
+                 (wire floor {:.2} s){}",
                 scan.devices_found,
                 scan.devices_on_bus,
                 scan.settings_scanned,
+                scan.transmissions,
                 scan.elapsed.as_secs_f64(),
+                scan.wire_floor.as_secs_f64(),
                 scan.problem
                     .as_deref()
                     .map(|p| format!(" — {}", p.lines().next().unwrap_or("")))

@@ -1,6 +1,7 @@
-//! `rtu2mqtt scan`: every Fast Modbus device on a port, at every port setting, with model and
-//! firmware; optionally the slow classic scan for devices without the extension. Also the port
-//! options and the runtime shared by the other site tools.
+//! `rtu2mqtt scan`: every Fast Modbus device on a port, at every port setting, with its port
+//! settings (stop bits from its registers: the wire does not show them), model and firmware;
+//! optionally the slow classic scan for devices without the extension. Also the port options and
+//! the runtime shared by the other site tools.
 
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
@@ -12,9 +13,12 @@ use serde_json::{json, Value};
 use crate::config::TemplateLibrary;
 use crate::protocol::{LineSettings, Parity, RequestPdu, ResponsePdu};
 use crate::tools::adapter::{sysfs_tty, Adapter};
-use crate::tools::bus::{Answer, PortError, ToolBus, ToolPort, KNOWN_DEVICE_TIMEOUT};
+use crate::tools::bus::{
+    reported_port_settings, Answer, PortError, ToolBus, ToolPort, KNOWN_DEVICE_TIMEOUT,
+    PORT_SETTINGS_REGISTER, TEXT_REGISTERS,
+};
 use crate::tools::exit;
-use crate::tools::plan::{parse_parity, parse_range, scan_plan, PlanFilter};
+use crate::tools::plan::{parse_parity, parse_range, same_on_the_wire, scan_plan, PlanFilter};
 use crate::tools::report::{serial_text, FoundDevice, Identity, ScanReport};
 use crate::tools::values::standard_text;
 
@@ -30,7 +34,10 @@ pub struct PortArgs {
     /// Parity (N, E, O; comma-separated); default: all three.
     #[arg(long, value_delimiter = ',', value_parser = parse_parity)]
     pub parity: Vec<Parity>,
-    /// Stop bits (1, 2; comma-separated); default: both.
+    /// Stop bits (1, 2; comma-separated); default: both. The stop bits are not visible on the
+    /// wire: a scan sends once per baud rate and parity, with 2 stop bits (or the one count
+    /// named here), which devices at 1 or 2 hear alike, and lists the devices that report the
+    /// stop bits named here (and those that do not report theirs).
     #[arg(long, value_delimiter = ',', value_parser = clap::value_parser!(u8).range(1..=2))]
     pub stop_bits: Vec<u8>,
     /// Added to every reply timeout, in ms: what a USB adapter and a busy machine add.
@@ -41,15 +48,21 @@ pub struct PortArgs {
 }
 
 impl PortArgs {
-    pub fn plan(&self) -> Vec<LineSettings> {
-        scan_plan(&PlanFilter {
+    fn filter(&self) -> PlanFilter {
+        PlanFilter {
             bauds: self.baud.clone(),
             parities: self.parity.clone(),
             stop_bits: self.stop_bits.clone(),
-        })
+        }
     }
 
-    /// The one setting the options name, when they name exactly one.
+    /// The settings to transmit at: one per baud rate and parity (see [`scan_plan`]).
+    pub fn plan(&self) -> Vec<LineSettings> {
+        scan_plan(&self.filter())
+    }
+
+    /// The one setting the options name, when they name one baud rate and one parity: with the
+    /// stop bits named, else 2 (which devices at 1 or 2 stop bits understand alike).
     pub fn single_line(&self) -> Option<LineSettings> {
         match self.plan().as_slice() {
             [one] => Some(*one),
@@ -171,7 +184,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             "no device answered at {} setting(s) of {}: check wiring (A/B swapped?), power, and \
              that the devices speak Fast Modbus (else add --classic); behind a slow USB adapter or \
              converter, give replies more time with --latency 40",
-            report.settings_tried.len(),
+            report.settings_covered(),
             args.port.port
         );
         ExitCode::from(exit::NOT_FOUND)
@@ -196,6 +209,7 @@ pub async fn scan(args: &Args, report: &mut ScanReport) -> Result<(), PortError>
         }
     };
     let plan = args.port.plan();
+    report.stop_bits_covered = args.port.filter().stop_bits_covered();
     fast_scan(&mut port, &plan, report).await?;
     if args.classic {
         classic_scan(
@@ -208,20 +222,32 @@ pub async fn scan(args: &Args, report: &mut ScanReport) -> Result<(), PortError>
         .await?;
     }
     port.restore();
+    report.keep_stop_bits(&args.port.stop_bits);
     Ok(())
 }
 
-/// Fast Modbus scan over `plan`, then model and firmware of each new device.
+/// Fast Modbus scan over `plan`, then port settings, model and firmware of each new device.
 pub async fn fast_scan(
     port: &mut ToolPort,
     plan: &[LineSettings],
     report: &mut ScanReport,
 ) -> Result<(), PortError> {
     for &line in plan {
+        let problems_before = report.problems.len();
         report.settings_tried.push(line);
         let seen = port.scan_setting(line, report).await?;
         if !seen.is_empty() {
             tracing::info!("{line}: {} Fast Modbus device(s)", seen.len());
+        }
+        if report.problems.len() > problems_before && line.stop_bits == 2 {
+            // A port whose receiver checks both stop bits (the 16550 and the common adapters
+            // check only the first) garbles the replies of devices at 1: hear them at 1.
+            let one_stop_bit = LineSettings {
+                stop_bits: 1,
+                ..line
+            };
+            report.settings_tried.push(one_stop_bit);
+            port.scan_setting(one_stop_bit, report).await?;
         }
     }
     for index in 0..report.devices.len() {
@@ -229,9 +255,12 @@ pub async fn fast_scan(
             continue;
         };
         if let (Some(serial), true, None) = (device.serial, device.fast, &device.identity.model) {
-            let identity = port.identity(device.line, serial).await?;
+            let (identity, settings) = port.details(device.line, serial).await?;
             if let Some(device) = report.devices.get_mut(index) {
                 device.identity = identity;
+                if let Some(settings) = settings {
+                    device.take_reported(settings);
+                }
             }
         }
     }
@@ -257,7 +286,7 @@ async fn classic_scan(
             let known = report
                 .devices
                 .iter()
-                .any(|d| d.address == address && (d.line == line || d.also_at.contains(&line)));
+                .any(|d| d.address == address && d.answers_at(&line));
             if known {
                 continue;
             }
@@ -268,11 +297,14 @@ async fn classic_scan(
             };
             match port.classic(line, address, probe, timeout).await? {
                 Answer::Pdu(_) => {
-                    let identity = classic_identity(port, line, address).await?;
-                    let serial = identity.1;
+                    let (identity, serial, settings) =
+                        classic_identity(port, line, address).await?;
                     if report.add_classic(line, address, serial) {
                         if let Some(device) = report.devices.last_mut() {
-                            device.identity = identity.0;
+                            device.identity = identity;
+                            if let Some(settings) = settings {
+                                device.take_reported(settings);
+                            }
                         }
                         eprintln!(
                             "{}classic device at address {address}, {line}",
@@ -323,14 +355,15 @@ fn progress(
     }
 }
 
-/// Model, firmware and serial of a classic device from the standard registers, if it has them.
+/// Model, firmware, serial and port settings of a classic device from the standard registers, if
+/// it has them.
 async fn classic_identity(
     port: &mut ToolPort,
     line: LineSettings,
     address: u8,
-) -> Result<(Identity, Option<u32>), PortError> {
+) -> Result<(Identity, Option<u32>, Option<LineSettings>), PortError> {
     let mut texts = Vec::new();
-    for (start, count) in [(200, 20), (250, 16), (290, 12)] {
+    for (start, count) in TEXT_REGISTERS {
         let pdu = RequestPdu::ReadHoldingRegisters { start, count };
         texts.push(
             match port
@@ -356,6 +389,19 @@ async fn classic_identity(
         },
         _ => None,
     };
+    let pdu = RequestPdu::ReadHoldingRegisters {
+        start: PORT_SETTINGS_REGISTER,
+        count: 3,
+    };
+    let settings = match port
+        .classic(line, address, pdu, KNOWN_DEVICE_TIMEOUT)
+        .await?
+    {
+        Answer::Pdu(ResponsePdu::ReadHoldingRegisters { values }) => {
+            reported_port_settings(&values)
+        }
+        _ => None,
+    };
     let mut texts = texts.into_iter();
     Ok((
         Identity {
@@ -364,6 +410,7 @@ async fn classic_identity(
             signature: texts.next().flatten(),
         },
         serial,
+        settings,
     ))
 }
 
@@ -390,12 +437,20 @@ pub fn table(report: &ScanReport, elapsed: Duration) -> String {
             let others: Vec<String> = device.also_at.iter().map(|l| l.to_string()).collect();
             notes.push(format!("also answers at {}", others.join(", ")));
         }
+        if !device.stop_bits_known {
+            notes.push("stop bits 1 or 2: not reported (holding 112)".to_owned());
+        }
+        if let Some(registers) = device.registers_say {
+            notes.push(format!(
+                "its registers say {registers} (applied at its next start?)"
+            ));
+        }
         let _ = writeln!(
             out,
             "{:<24} {:>4}  {:<12} {:<5} {:<14} {:<10} {}",
             serial_cell(device),
             device.address,
-            device.line.to_string(),
+            device.settings_text(),
             if device.fast { "yes" } else { "no" },
             device.identity.model.as_deref().unwrap_or("-"),
             device.identity.firmware.as_deref().unwrap_or("-"),
@@ -404,11 +459,19 @@ pub fn table(report: &ScanReport, elapsed: Duration) -> String {
     }
     let _ = writeln!(
         out,
-        "{} device(s); {} setting(s) scanned in {:.2} s",
+        "{} device(s); {} setting(s) covered by {} transmission(s) in {:.2} s",
         report.devices.len(),
+        report.settings_covered(),
         report.settings_tried.len(),
         elapsed.as_secs_f64()
     );
+    if report.other_stop_bits > 0 {
+        let _ = writeln!(
+            out,
+            "{} device(s) with other stop bits not listed (--stop-bits)",
+            report.other_stop_bits
+        );
+    }
     for duplicate in &duplicates {
         let serials: Vec<String> = duplicate
             .devices
@@ -421,7 +484,7 @@ pub fn table(report: &ScanReport, elapsed: Duration) -> String {
             "duplicate: address {} at {} is used by {} devices ({}); fix with rtu2mqtt \
              fix-addresses --port PORT --apply",
             duplicate.address,
-            duplicate.line,
+            duplicate_settings(report, duplicate),
             duplicate.devices.len(),
             serials.join(", ")
         );
@@ -439,16 +502,42 @@ pub fn table(report: &ScanReport, elapsed: Duration) -> String {
     out
 }
 
+/// The settings of a duplicate: those of its devices, or without the stop bits when they differ
+/// or are not known (the address collides whatever the stop bits).
+fn duplicate_settings(report: &ScanReport, duplicate: &crate::tools::report::Duplicate) -> String {
+    let members: Vec<&FoundDevice> = duplicate
+        .devices
+        .iter()
+        .filter_map(|&i| report.devices.get(i))
+        .collect();
+    let alike = members
+        .iter()
+        .all(|d| d.stop_bits_known && d.line == duplicate.line);
+    if alike {
+        duplicate.line.to_string()
+    } else {
+        let line = duplicate.line;
+        format!(
+            "{} {}{} (any stop bits)",
+            line.baud,
+            line.data_bits,
+            line.parity.letter()
+        )
+    }
+}
+
 pub fn device_json(device: &FoundDevice) -> Value {
     json!({
         "serial": device.serial,
         "serial_hex": device.serial.map(|s| format!("0x{s:08X}")),
         "address": device.address,
-        "settings": device.line.to_string(),
+        "settings": device.settings_text(),
         "baud_rate": device.line.baud,
         "parity": device.line.parity.letter().to_string(),
         "data_bits": device.line.data_bits,
-        "stop_bits": device.line.stop_bits,
+        // null: not reported by the device, and not visible on the wire (1 or 2).
+        "stop_bits": device.stop_bits_known.then_some(device.line.stop_bits),
+        "registers_say": device.registers_say.map(|l| l.to_string()),
         "also_at": device.also_at.iter().map(|l| l.to_string()).collect::<Vec<_>>(),
         "fast_modbus": device.fast,
         "model": device.identity.model,
@@ -463,14 +552,16 @@ pub fn report_json(report: &ScanReport, elapsed: Duration) -> Value {
         .iter()
         .map(|d| {
             json!({
-                "settings": d.line.to_string(),
+                "settings": duplicate_settings(report, d),
                 "address": d.address,
                 "serials": d.devices.iter().filter_map(|&i| report.devices.get(i)).map(|x| x.serial).collect::<Vec<_>>(),
             })
         })
         .collect();
     json!({
-        "port_settings_scanned": report.settings_tried.len(),
+        "port_settings_scanned": report.settings_covered(),
+        "transmissions": report.settings_tried.len(),
+        "other_stop_bits": report.other_stop_bits,
         "elapsed_ms": u64::try_from(elapsed.as_millis()).unwrap_or(u64::MAX),
         "devices": report.devices.iter().map(device_json).collect::<Vec<_>>(),
         "duplicates": duplicates,
@@ -506,8 +597,9 @@ fn matching_template(
         .map(|t| t.device_type().to_owned())
 }
 
-/// A config snippet: one port per setting devices were found at, one device per address (a
-/// duplicate address is listed once, with a comment: fix it first).
+/// A config snippet: one port per setting devices were found at (stop bits aside: a port hears
+/// devices at 1 and 2 alike), one device per address (a duplicate address is listed once, with a
+/// comment: fix it first).
 pub fn config_snippet(
     report: &ScanReport,
     path: &str,
@@ -516,19 +608,32 @@ pub fn config_snippet(
 ) -> String {
     let mut lines: Vec<LineSettings> = Vec::new();
     for device in &report.devices {
-        if !lines.contains(&device.line) {
+        if !lines.iter().any(|l| same_on_the_wire(l, &device.line)) {
             lines.push(device.line);
         }
     }
     let mut ports = Vec::new();
     let mut comments = Vec::new();
     for line in &lines {
+        let members: Vec<&FoundDevice> = report
+            .devices
+            .iter()
+            .filter(|d| same_on_the_wire(&d.line, line))
+            .collect();
+        let (stop_bits, why) = port_stop_bits(&members);
+        let port_line = LineSettings { stop_bits, ..*line };
+        if let Some(why) = why {
+            comments.push(format!(
+                "// {port_line}: stop bits 2, {why}; a port at 2 works with devices at 1 or 2 (a \
+                 UART checks only the first stop bit)"
+            ));
+        }
         let mut devices = Vec::new();
         let mut addresses = Vec::new();
-        for device in report.devices.iter().filter(|d| d.line == *line) {
+        for device in members {
             if addresses.contains(&device.address) {
                 comments.push(format!(
-                    "// address {} at {line} is used by more than one device: run \
+                    "// address {} at {port_line} is used by more than one device: run \
                      rtu2mqtt fix-addresses first",
                     device.address
                 ));
@@ -538,8 +643,8 @@ pub fn config_snippet(
             let device_type = matching_template(library, preferred_dirs, &device.identity);
             if device_type.is_none() {
                 comments.push(format!(
-                    "// no template matches address {} at {line} (model {}): set device_type \
-                     by hand",
+                    "// no template matches address {} at {port_line} (model {}): set \
+                     device_type by hand",
                     device.address,
                     device.identity.model.as_deref().unwrap_or("unknown")
                 ));
@@ -551,10 +656,10 @@ pub fn config_snippet(
         }
         ports.push(json!({
             "path": path,
-            "baud_rate": line.baud,
-            "parity": line.parity.letter().to_string(),
-            "data_bits": line.data_bits,
-            "stop_bits": line.stop_bits,
+            "baud_rate": port_line.baud,
+            "parity": port_line.parity.letter().to_string(),
+            "data_bits": port_line.data_bits,
+            "stop_bits": port_line.stop_bits,
             "devices": devices,
         }));
     }
@@ -574,6 +679,27 @@ pub fn config_snippet(
     out
 }
 
+/// The stop bits of a port for `devices` (one setting on the wire): theirs when they all
+/// reported the same, else 2, with the reason.
+fn port_stop_bits(devices: &[&FoundDevice]) -> (u8, Option<String>) {
+    if let Some(unknown) = devices.iter().find(|d| !d.stop_bits_known) {
+        return (
+            2,
+            Some(format!(
+                "as address {} did not report its stop bits (holding 112)",
+                unknown.address
+            )),
+        );
+    }
+    let mut reported: Vec<u8> = devices.iter().map(|d| d.line.stop_bits).collect();
+    reported.sort_unstable();
+    reported.dedup();
+    match reported.as_slice() {
+        [one] => (*one, None),
+        _ => (2, Some("as the devices here use 1 and 2".to_owned())),
+    }
+}
+
 /// The scan through the running service: `port/Scan` at each setting of the plan (the service
 /// reads each device's details by serial number).
 async fn scan_via_service(args: &Args, report: &mut ScanReport) -> Result<(), PortError> {
@@ -585,10 +711,105 @@ async fn scan_via_service(args: &Args, report: &mut ScanReport) -> Result<(), Po
     if args.classic {
         eprintln!("--classic is not available through the service: Fast Modbus scan only");
     }
+    report.stop_bits_covered = args.port.filter().stop_bits_covered();
     for line in args.port.plan() {
         report.settings_tried.push(line);
         super::via_mqtt::scan_setting_via_service(&mut session, &args.port.port, line, report)
             .await?;
     }
+    report.keep_stop_bits(&args.port.stop_bits);
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::protocol::Parity;
+
+    const N2: LineSettings = LineSettings::new(9600, Parity::None, 2);
+
+    /// Two devices at 9600 8N: one reports 1 stop bit, one has no registers 110..112.
+    fn report() -> ScanReport {
+        let mut report = ScanReport {
+            settings_tried: vec![N2],
+            ..ScanReport::default()
+        };
+        report.add_fast(N2, 1, 20);
+        report.add_fast(N2, 2, 21);
+        report.devices[0].take_reported(LineSettings::new(9600, Parity::None, 1));
+        report
+    }
+
+    #[test]
+    fn unknown_stop_bits_are_said_in_the_table_and_the_json() {
+        let report = report();
+        let text = table(&report, Duration::from_millis(700));
+        let lines: Vec<&str> = text.lines().collect();
+        assert!(lines[1].contains("9600 8N1"), "{text}");
+        assert!(!lines[1].contains("not reported"), "{text}");
+        assert!(lines[2].contains("9600 8N?"), "{text}");
+        assert!(
+            lines[2].contains("stop bits 1 or 2: not reported"),
+            "{text}"
+        );
+        assert!(
+            text.contains("2 device(s); 2 setting(s) covered by 1 transmission(s)"),
+            "{text}"
+        );
+        let json = report_json(&report, Duration::from_millis(700));
+        assert_eq!(json["port_settings_scanned"], 2);
+        assert_eq!(json["transmissions"], 1);
+        assert_eq!(json["devices"][0]["stop_bits"], 1);
+        assert_eq!(json["devices"][0]["settings"], "9600 8N1");
+        assert_eq!(json["devices"][1]["stop_bits"], Value::Null);
+        assert_eq!(json["devices"][1]["settings"], "9600 8N?");
+    }
+
+    #[test]
+    fn a_port_for_devices_of_unknown_stop_bits_gets_two_and_says_why() {
+        let snippet = config_snippet(
+            &report(),
+            "/dev/ttyRS485-1",
+            &TemplateLibrary::default(),
+            &[],
+        );
+        assert!(
+            snippet
+                .contains("// 9600 8N2: stop bits 2, as address 21 did not report its stop bits"),
+            "{snippet}"
+        );
+        let body: Value = serde_json::from_str(&snippet[snippet.find('{').unwrap()..]).unwrap();
+        assert_eq!(body["ports"].as_array().unwrap().len(), 1);
+        assert_eq!(body["ports"][0]["stop_bits"], 2);
+        // All reported alike: theirs, without a comment.
+        let mut alike = report();
+        alike.devices[1].take_reported(LineSettings::new(9600, Parity::None, 1));
+        let snippet = config_snippet(&alike, "/dev/ttyRS485-1", &TemplateLibrary::default(), &[]);
+        assert!(!snippet.contains("stop bits 2"), "{snippet}");
+        let body: Value = serde_json::from_str(&snippet[snippet.find('{').unwrap()..]).unwrap();
+        assert_eq!(body["ports"][0]["stop_bits"], 1);
+    }
+
+    #[test]
+    fn one_baud_rate_and_parity_is_a_single_line() {
+        let args = |stop_bits: Vec<u8>| PortArgs {
+            port: "/dev/null".into(),
+            baud: vec![9600],
+            parity: vec![Parity::Even],
+            stop_bits,
+            latency: None,
+        };
+        assert_eq!(
+            args(vec![]).single_line(),
+            Some(LineSettings::new(9600, Parity::Even, 2))
+        );
+        assert_eq!(
+            args(vec![1]).single_line(),
+            Some(LineSettings::new(9600, Parity::Even, 1))
+        );
+        assert_eq!(
+            args(vec![1, 2]).single_line(),
+            Some(LineSettings::new(9600, Parity::Even, 2))
+        );
+    }
 }

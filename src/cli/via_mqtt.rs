@@ -196,10 +196,29 @@ pub async fn scan_setting_via_service(
                     firmware: text(&device["fw"]["version"]),
                     signature: text(&device["fw_signature"]),
                 };
+                if let Some(settings) = reported_settings(&device["cfg"]) {
+                    found.take_reported(settings);
+                }
             }
         }
     }
     Ok(seen)
+}
+
+/// The port settings a device reported (`cfg` of a `port/Scan` result), when it read them.
+fn reported_settings(cfg: &Value) -> Option<LineSettings> {
+    let baud = cfg["baud_rate"].as_u64()?;
+    let words = [
+        u16::try_from(baud / 100).ok()?,
+        match cfg["parity"].as_str()? {
+            "N" => 0,
+            "O" => 1,
+            "E" => 2,
+            _ => return None,
+        },
+        u16::try_from(cfg["stop_bits"].as_u64()?).ok()?,
+    ];
+    crate::tools::bus::reported_port_settings(&words)
 }
 
 /// Words from a `port/Load` hex response (bits as 0/1 for coils and discrete inputs).

@@ -43,7 +43,7 @@ enum Incoming {
     Failed(String),
 }
 
-/// One broker connection for a series of calls (a scan over 48 settings is 48 calls).
+/// One broker connection for a series of calls (a scan over 48 settings is 24 calls).
 pub struct RpcSession {
     client: AsyncClient,
     incoming: mpsc::Receiver<Incoming>,

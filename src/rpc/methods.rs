@@ -54,7 +54,7 @@ impl QueuedBus {
     }
 
     /// Timeouts for requests at `line`: at other settings than the port's own (a client
-    /// scanning all 48, where every empty setting costs this once) what the kind of port
+    /// scanning all 24, where every empty setting costs this once) what the kind of port
     /// needs, as the site tools use it.
     fn for_line(mut self, line: LineSettings) -> Self {
         if self.home.is_some_and(|home| home != line) {

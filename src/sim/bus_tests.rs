@@ -629,6 +629,7 @@ fn nobody_answers_an_absent_address_or_unused_settings() {
     // A pty cannot tell parity none from even: such a master is heard by both, not by odd.
     let pty = MasterLine {
         baud: 115_200,
+        data_bits: 8,
         stop_bits: 2,
         parity: super::line::ObservedParity::NoneOrEven,
     };
@@ -773,6 +774,72 @@ fn devices_at_other_settings_do_not_hear() {
             .bytes(),
         with_crc("05 03 02 00 05")
     );
+}
+
+#[test]
+fn stop_bits_do_not_keep_devices_apart() {
+    // A UART checks only the first stop bit: devices at 8N1 and 8N2 both hear a master at
+    // either, and both take part in one scan and answer one address.
+    let mut one_stop_bit = spec("one", 20, MR6C_SERIAL);
+    one_stop_bit.line = LineSettings::new(115_200, Parity::None, 1);
+    let mut bus = Bus::new(
+        vec![
+            VirtualDevice::new(spec("two", 20, MCM8_SERIAL)),
+            VirtualDevice::new(one_stop_bit),
+        ],
+        1,
+    );
+    for master in [
+        MasterLine::exact(LineSettings::new(115_200, Parity::None, 1)),
+        MasterLine::exact(FAST_LINE),
+    ] {
+        let mut exchange = |request: &Request| {
+            bus.exchange(&request.encode().unwrap(), master, Duration::ZERO)
+                .bytes()
+        };
+        assert_eq!(
+            exchange(&Request::scan_start()),
+            cat(ff(22), with_crc("FD 46 03 FE 40 00 AC 14"))
+        );
+        assert_eq!(
+            exchange(&Request::scan_continue()),
+            cat(ff(15), with_crc("FD 46 03 FE D2 A3 A6 14"))
+        );
+        assert_eq!(
+            exchange(&Request::scan_continue()),
+            cat(ff(20), hex("FD 46 04 D3 93"))
+        );
+        // The shared address collides, as on a real bus.
+        let read = Request::classic(
+            20,
+            RequestPdu::ReadHoldingRegisters {
+                start: 112,
+                count: 1,
+            },
+        );
+        assert!(!crate::protocol::crc::crc_is_valid(&exchange(&read)));
+    }
+    // Each reply keeps its device's own stop bits on the wire.
+    let by_serial = |serial| {
+        Request::by_serial(
+            serial,
+            RequestPdu::ReadHoldingRegisters {
+                start: 112,
+                count: 1,
+            },
+        )
+        .encode()
+        .unwrap()
+    };
+    let reply = bus.exchange(&by_serial(MR6C_SERIAL), master(), Duration::ZERO);
+    assert_eq!(
+        reply.bursts[0].char_time,
+        LineSettings::new(115_200, Parity::None, 1).char_time()
+    );
+    assert_eq!(reply.bytes(), with_crc("FD 46 09 FE D2 A3 A6 03 02 00 01"));
+    let reply = bus.exchange(&by_serial(MCM8_SERIAL), master(), Duration::ZERO);
+    assert_eq!(reply.bursts[0].char_time, FAST_LINE.char_time());
+    assert_eq!(reply.bytes(), with_crc("FD 46 09 FE 40 00 AC 03 02 00 02"));
 }
 
 #[test]

@@ -18,6 +18,7 @@ pub enum ObservedParity {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub struct MasterLine {
     pub baud: u32,
+    pub data_bits: u8,
     pub stop_bits: u8,
     pub parity: ObservedParity,
 }
@@ -27,18 +28,25 @@ impl MasterLine {
     pub fn exact(line: LineSettings) -> Self {
         Self {
             baud: line.baud,
+            data_bits: line.data_bits,
             stop_bits: line.stop_bits,
             parity: ObservedParity::Known(line.parity),
         }
     }
 
     /// Does a device with these settings understand the master? A mismatch is noise to it.
+    ///
+    /// The stop bits do not count: a UART receiver checks only the first stop bit, whatever
+    /// number it is set to (the 16550's datasheet says so; USB adapters and microcontroller
+    /// USARTs do the same), and a second one is just idle line before the next start bit. So a
+    /// device at 8N1 hears a master at 8N2 and the other way round, and the master hears the
+    /// replies of both; two devices that differ only in stop bits answer the same request.
     pub fn matches(&self, device: &LineSettings) -> bool {
         let parity_ok = match self.parity {
             ObservedParity::Known(parity) => parity == device.parity,
             ObservedParity::NoneOrEven => device.parity != Parity::Odd,
         };
-        self.baud == device.baud && self.stop_bits == device.stop_bits && parity_ok
+        self.baud == device.baud && self.data_bits == device.data_bits && parity_ok
     }
 
     /// The settings to time the line with (parity "none" when it cannot be told).
@@ -47,7 +55,10 @@ impl MasterLine {
             ObservedParity::Known(parity) => parity,
             ObservedParity::NoneOrEven => Parity::None,
         };
-        LineSettings::new(self.baud, parity, self.stop_bits)
+        LineSettings {
+            data_bits: self.data_bits,
+            ..LineSettings::new(self.baud, parity, self.stop_bits)
+        }
     }
 }
 
@@ -66,10 +77,17 @@ pub struct ReceivedRequest {
 
 impl ReceivedRequest {
     /// When the frame ended on a wire at `device_line`: a master writes a whole frame at once to a
-    /// pseudo-terminal, so the frame takes its wire time from its first byte's arrival.
+    /// pseudo-terminal, so the frame takes its wire time from its first byte's arrival. The
+    /// master's characters carry the master's stop bits (a device at 8N1 hearing a master at 8N2
+    /// sees each character followed by one more idle bit), the rest is the device's settings
+    /// (parity "none" or "even" from a pty is the device's).
     pub fn end_on_wire(&self, device_line: &LineSettings) -> Duration {
+        let sent_with = LineSettings {
+            stop_bits: self.line.stop_bits,
+            ..*device_line
+        };
         self.last_byte_at
-            .max(self.first_byte_at + device_line.wire_time(self.frame_len))
+            .max(self.first_byte_at + sent_with.wire_time(self.frame_len))
     }
 }
 
@@ -226,12 +244,48 @@ mod tests {
     fn pty_parity_is_ambiguous() {
         let pty = MasterLine {
             baud: 9600,
+            data_bits: 8,
             stop_bits: 1,
             parity: ObservedParity::NoneOrEven,
         };
         assert!(pty.matches(&LineSettings::new(9600, Parity::None, 1)));
         assert!(pty.matches(&LineSettings::new(9600, Parity::Even, 1)));
         assert!(!pty.matches(&LineSettings::new(9600, Parity::Odd, 1)));
-        assert!(!pty.matches(&LineSettings::new(9600, Parity::None, 2)));
+        assert!(!pty.matches(&LineSettings::new(4800, Parity::None, 1)));
+    }
+
+    #[test]
+    fn stop_bits_do_not_stop_a_device_hearing_the_master() {
+        for (master_stop, device_stop) in [(1, 1), (1, 2), (2, 1), (2, 2)] {
+            for parity in [Parity::None, Parity::Even, Parity::Odd] {
+                let master = MasterLine::exact(LineSettings::new(19200, parity, master_stop));
+                assert!(
+                    master.matches(&LineSettings::new(19200, parity, device_stop)),
+                    "{parity:?} {master_stop} -> {device_stop}"
+                );
+            }
+        }
+        let master = MasterLine::exact(LineSettings::new(19200, Parity::None, 2));
+        assert!(!master.matches(&LineSettings::new(19200, Parity::Even, 2)));
+        assert!(!master.matches(&LineSettings::new(9600, Parity::None, 2)));
+        let seven_bits = LineSettings {
+            data_bits: 7,
+            ..LineSettings::new(19200, Parity::None, 2)
+        };
+        assert!(!master.matches(&seven_bits));
+    }
+
+    #[test]
+    fn a_frame_ends_after_the_masters_stop_bits() {
+        let mut assembler = RequestAssembler::new();
+        let frame = parse_hex("14 03 00 80 00 01 87 27").unwrap();
+        let master = MasterLine::exact(LineSettings::new(9600, Parity::None, 2));
+        let requests = assembler.receive(&frame, Duration::ZERO, master);
+        let one_stop_bit = LineSettings::new(9600, Parity::None, 1);
+        // 8 characters of 11 bits, not of the device's 10.
+        assert_eq!(
+            requests[0].end_on_wire(&one_stop_bit),
+            LineSettings::new(9600, Parity::None, 2).wire_time(8)
+        );
     }
 }

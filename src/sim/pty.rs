@@ -3,7 +3,8 @@
 //! holds the pty master and reads those settings with `tcgetattr` on it (Linux returns the slave's
 //! termios there).
 //!
-//! What is detected: the baud rate, CSTOPB (2 stop bits) and PARODD. The Linux pty driver clears
+//! What is detected: the baud rate, CSTOPB (2 stop bits: they time the master's frames, a device
+//! hears a master whatever its stop bits, see `MasterLine::matches`) and PARODD. The Linux pty driver clears
 //! PARENB and forces CS8 whenever the slave's termios are set, so "no parity" and "even parity"
 //! look alike: a master with PARODD clear is heard by devices with parity none or even, and one
 //! with PARODD set only by devices with odd parity. Data bits are always 8.
@@ -240,6 +241,8 @@ impl LinkReader for PtyReader<'_> {
                 };
                 MasterLine {
                     baud: master_baud(self.master),
+                    // The pty forces CS8 (see the top of this file).
+                    data_bits: 8,
                     stop_bits: if flags.contains(ControlFlags::CSTOPB) {
                         2
                     } else {
@@ -252,6 +255,7 @@ impl LinkReader for PtyReader<'_> {
                 tracing::warn!("sim: pty: tcgetattr: {err}");
                 MasterLine {
                     baud: 0,
+                    data_bits: 8,
                     stop_bits: 1,
                     parity: ObservedParity::NoneOrEven,
                 }

@@ -15,7 +15,7 @@ use tracing::debug;
 
 use crate::port::{Transaction, TransactionOutcome};
 use crate::protocol::{
-    fast::FastReply, LineSettings, Reply, ReplyBody, Request, RequestPdu, ResponsePdu,
+    fast::FastReply, LineSettings, Parity, Reply, ReplyBody, Request, RequestPdu, ResponsePdu,
 };
 use crate::transport::{Endpoint, Transport, TransportError};
 
@@ -331,27 +331,106 @@ pub trait ToolBus {
         self.transact(line, transaction).await
     }
 
-    /// Model, firmware and signature from the standard registers, by serial number; what a
-    /// device does not have stays empty.
-    async fn identity(&mut self, line: LineSettings, serial: u32) -> Result<Identity, PortError> {
+    /// Port settings, model, firmware and signature from the standard registers, by serial
+    /// number; what a device does not have stays empty.
+    async fn details(
+        &mut self,
+        line: LineSettings,
+        serial: u32,
+    ) -> Result<(Identity, Option<LineSettings>), PortError> {
+        let pdu = RequestPdu::ReadHoldingRegisters {
+            start: PORT_SETTINGS_REGISTER,
+            count: 3,
+        };
+        let settings = match self
+            .by_serial(line, serial, pdu, KNOWN_DEVICE_TIMEOUT)
+            .await?
+        {
+            Answer::Pdu(ResponsePdu::ReadHoldingRegisters { values }) => {
+                reported_port_settings(&values)
+            }
+            _ => None,
+        };
         let mut texts = Vec::new();
-        for (start, count) in [(200, 20), (250, 16), (290, 12)] {
-            let pdu = RequestPdu::ReadHoldingRegisters { start, count };
-            let answer = self
-                .by_serial(line, serial, pdu, KNOWN_DEVICE_TIMEOUT)
-                .await?;
-            texts.push(match answer {
-                Answer::Pdu(ResponsePdu::ReadHoldingRegisters { values }) => standard_text(&values),
-                _ => None,
-            });
+        for (start, count) in TEXT_REGISTERS {
+            texts.push(self.text_by_serial(line, serial, start, count).await?);
         }
         let mut texts = texts.into_iter();
-        Ok(Identity {
+        let identity = Identity {
             model: texts.next().flatten(),
             firmware: texts.next().flatten(),
             signature: texts.next().flatten(),
-        })
+        };
+        Ok((identity, settings))
     }
+
+    /// A standard text block of up to `count` registers, by serial number: the first
+    /// [`TEXT_FIRST_READ`] registers, and the rest only when the text fills them (at 9600 baud
+    /// each register is 2.3 ms of wire).
+    async fn text_by_serial(
+        &mut self,
+        line: LineSettings,
+        serial: u32,
+        start: u16,
+        count: u16,
+    ) -> Result<Option<String>, PortError> {
+        let mut words = Vec::new();
+        for (start, count) in text_reads(start, count) {
+            let pdu = RequestPdu::ReadHoldingRegisters { start, count };
+            match self
+                .by_serial(line, serial, pdu, KNOWN_DEVICE_TIMEOUT)
+                .await?
+            {
+                Answer::Pdu(ResponsePdu::ReadHoldingRegisters { values }) => {
+                    let ended = values.contains(&0);
+                    words.extend(values);
+                    if ended {
+                        break;
+                    }
+                }
+                // The first part read is the text a device without the rest has.
+                _ if !words.is_empty() => break,
+                _ => return Ok(None),
+            }
+        }
+        Ok(standard_text(&words))
+    }
+}
+
+/// Holding 110..112: baud rate / 100, parity (0 none, 1 odd, 2 even), stop bits.
+pub const PORT_SETTINGS_REGISTER: u16 = 110;
+/// Model (200), firmware version (250), signature (290): start and length of each block.
+pub const TEXT_REGISTERS: [(u16, u16); 3] = [(200, 20), (250, 16), (290, 12)];
+/// Registers of a text block read first: model names, versions and signatures are mostly
+/// shorter than 12 characters ("WB-MAP12E", "1.26.1"), and one read costs some 25 bytes of
+/// frame around its data (at 9600 baud 29 ms, as much as 12 registers).
+pub const TEXT_FIRST_READ: u16 = 12;
+
+/// The reads of a text block: the first part, then the rest.
+pub fn text_reads(start: u16, count: u16) -> Vec<(u16, u16)> {
+    let first = count.min(TEXT_FIRST_READ);
+    let mut reads = vec![(start, first)];
+    if count > first {
+        reads.push((start + first, count - first));
+    }
+    reads
+}
+
+/// Port settings from holding 110..112; None for values no port can have.
+pub fn reported_port_settings(words: &[u16]) -> Option<LineSettings> {
+    let [baud, parity, stop_bits] = words else {
+        return None;
+    };
+    let parity = match parity {
+        0 => Parity::None,
+        1 => Parity::Odd,
+        2 => Parity::Even,
+        _ => return None,
+    };
+    let stop_bits = u8::try_from(*stop_bits)
+        .ok()
+        .filter(|n| (1..=2).contains(n))?;
+    (*baud > 0).then(|| LineSettings::new(u32::from(*baud) * 100, parity, stop_bits))
 }
 
 impl ToolBus for ToolPort {
@@ -429,7 +508,6 @@ pub fn scan_transaction(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::protocol::Parity;
 
     #[test]
     fn open_errors_become_what_to_do() {
@@ -441,6 +519,33 @@ mod tests {
         assert!(busy.to_string().contains("systemctl stop"), "{busy}");
         let other = classify("/dev/x", io::Error::from_raw_os_error(nix::libc::EIO));
         assert!(matches!(other, PortError::Other { .. }));
+    }
+
+    #[test]
+    fn port_settings_registers() {
+        assert_eq!(
+            reported_port_settings(&[96, 0, 1]),
+            Some(LineSettings::new(9600, Parity::None, 1))
+        );
+        assert_eq!(
+            reported_port_settings(&[1152, 2, 2]),
+            Some(LineSettings::new(115_200, Parity::Even, 2))
+        );
+        assert_eq!(
+            reported_port_settings(&[192, 1, 1]),
+            Some(LineSettings::new(19200, Parity::Odd, 1))
+        );
+        assert_eq!(reported_port_settings(&[96, 3, 1]), None);
+        assert_eq!(reported_port_settings(&[96, 0, 0]), None);
+        assert_eq!(reported_port_settings(&[0, 0, 2]), None);
+        assert_eq!(reported_port_settings(&[96, 0]), None);
+    }
+
+    #[test]
+    fn text_blocks_are_read_short_first() {
+        assert_eq!(text_reads(200, 20), vec![(200, 12), (212, 8)]);
+        assert_eq!(text_reads(290, 12), vec![(290, 12)]);
+        assert_eq!(text_reads(290, 5), vec![(290, 5)]);
     }
 
     #[test]

@@ -6,6 +6,8 @@ use serde::Serialize;
 
 use crate::protocol::LineSettings;
 
+use super::plan::same_on_the_wire;
+
 /// Model, firmware and signature as read from the Wiren Board standard registers (absent when a
 /// device does not have them).
 #[derive(Debug, Clone, Default, PartialEq, Eq, Serialize)]
@@ -21,10 +23,18 @@ pub struct FoundDevice {
     /// Known for Fast Modbus devices (and classic ones with the standard serial register).
     pub serial: Option<u32>,
     pub address: u8,
-    /// The first setting (in scan order) the device answered at.
+    /// The device's port settings: the baud rate and parity it answered at (the first in scan
+    /// order), with the stop bits it reported (holding 112). The wire does not show stop bits:
+    /// while the device has not reported them, they are the 2 the scan sent with, which a device
+    /// at 1 or 2 understands (`stop_bits_known` false).
     pub line: LineSettings,
+    /// The device reported its port settings (holding 110..112), and they are where it answered.
+    pub stop_bits_known: bool,
+    /// What holding 110..112 say when the device answered elsewhere (Wiren Board devices apply
+    /// new port settings at their next start).
+    pub registers_say: Option<LineSettings>,
     /// Further settings it answered at (a pty cannot tell parity none from even; on a real bus
-    /// this means a misbehaving device or adapter).
+    /// this means a misbehaving device or adapter). Never one that differs only in stop bits.
     pub also_at: Vec<LineSettings>,
     /// Answers Fast Modbus (0x46) requests.
     pub fast: bool,
@@ -42,12 +52,19 @@ pub struct SettingProblem {
 pub struct ScanReport {
     pub devices: Vec<FoundDevice>,
     pub problems: Vec<SettingProblem>,
+    /// The settings transmitted at.
     pub settings_tried: Vec<LineSettings>,
+    /// The stop-bit counts each transmission covers (empty: 1 and 2).
+    pub stop_bits_covered: Vec<u8>,
+    /// Devices left out because they reported stop bits the scan was not asked for.
+    pub other_stop_bits: usize,
 }
 
-/// Devices that share an address at one setting: only one of them can be polled.
+/// Devices that share an address at one setting (stop bits aside: both hear the same request):
+/// only one of them can be polled.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Duplicate {
+    /// The settings of the first of them.
     pub line: LineSettings,
     pub address: u8,
     /// Indices into [`ScanReport::devices`].
@@ -83,56 +100,143 @@ pub fn serial_text(serial: u32) -> String {
     format!("{serial} (0x{serial:08X})")
 }
 
+impl FoundDevice {
+    fn new(serial: Option<u32>, address: u8, line: LineSettings, fast: bool) -> Self {
+        Self {
+            serial,
+            address,
+            line,
+            stop_bits_known: false,
+            registers_say: None,
+            also_at: Vec::new(),
+            fast,
+            identity: Identity::default(),
+        }
+    }
+
+    /// Answered at `line` (stop bits aside).
+    pub fn answers_at(&self, line: &LineSettings) -> bool {
+        same_on_the_wire(&self.line, line) || self.also_at.iter().any(|l| same_on_the_wire(l, line))
+    }
+
+    /// The settings as text: `9600 8N1`, or `9600 8N?` while the stop bits are not known.
+    pub fn settings_text(&self) -> String {
+        let text = self.line.to_string();
+        if self.stop_bits_known {
+            return text;
+        }
+        match text.strip_suffix(|c: char| c.is_ascii_digit()) {
+            Some(rest) => format!("{rest}?"),
+            None => text,
+        }
+    }
+
+    /// Takes the port settings the device reports (holding 110..112). Where it answered decides
+    /// baud rate and parity; when the registers name one of those settings, they are the
+    /// device's (and its stop bits known), else they are kept aside as `registers_say`.
+    pub fn take_reported(&mut self, reported: LineSettings) {
+        if same_on_the_wire(&self.line, &reported) {
+            self.line = reported;
+            self.stop_bits_known = true;
+        } else if let Some(index) = self
+            .also_at
+            .iter()
+            .position(|l| same_on_the_wire(l, &reported))
+        {
+            // A pty cannot tell parity none from even: the registers say which one it is.
+            let first = std::mem::replace(&mut self.line, reported);
+            self.also_at.remove(index);
+            self.also_at.insert(0, first);
+            self.stop_bits_known = true;
+        } else {
+            self.registers_say = Some(reported);
+        }
+    }
+}
+
 impl ScanReport {
     /// Records a Fast Modbus device seen at `line`; true when it is new (not seen before at any
-    /// setting).
+    /// setting). A device seen again at settings that differ only in stop bits is not "also at"
+    /// them: they are one setting on the wire.
     pub fn add_fast(&mut self, line: LineSettings, serial: u32, address: u8) -> bool {
         if let Some(known) = self.devices.iter_mut().find(|d| d.serial == Some(serial)) {
-            if known.line != line && !known.also_at.contains(&line) {
+            if !known.answers_at(&line) {
                 known.also_at.push(line);
             }
             return false;
         }
-        self.devices.push(FoundDevice {
-            serial: Some(serial),
-            address,
-            line,
-            also_at: Vec::new(),
-            fast: true,
-            identity: Identity::default(),
-        });
+        self.devices
+            .push(FoundDevice::new(Some(serial), address, line, true));
         true
+    }
+
+    /// The number of port settings the transmissions covered: each baud rate and parity sent
+    /// at (once, or again after trouble) covers every stop-bit count asked for.
+    pub fn settings_covered(&self) -> usize {
+        let per_transmission = match self.stop_bits_covered.len() {
+            0 => 2,
+            n => n,
+        };
+        let mut on_the_wire: Vec<&LineSettings> = Vec::new();
+        for line in &self.settings_tried {
+            if !on_the_wire.iter().any(|l| same_on_the_wire(l, line)) {
+                on_the_wire.push(line);
+            }
+        }
+        on_the_wire.len() * per_transmission
+    }
+
+    /// Leaves out the devices that reported stop bits other than `wanted` (empty: keeps all);
+    /// those that did not report them stay (they may use any).
+    pub fn keep_stop_bits(&mut self, wanted: &[u8]) {
+        if wanted.is_empty() {
+            return;
+        }
+        let before = self.devices.len();
+        self.devices
+            .retain(|d| !d.stop_bits_known || wanted.contains(&d.line.stop_bits));
+        self.other_stop_bits += before - self.devices.len();
     }
 
     /// Records a device that answered a classic request at `address`; false when a device
     /// already known at this setting has that address (a Fast Modbus device answers classic
-    /// requests too).
+    /// requests too), or one with its serial number is known at another setting (it is "also
+    /// at" this one).
     pub fn add_classic(&mut self, line: LineSettings, address: u8, serial: Option<u32>) -> bool {
+        if let Some(known) = self
+            .devices
+            .iter_mut()
+            .find(|d| serial.is_some() && d.serial == serial)
+        {
+            if !known.answers_at(&line) {
+                known.also_at.push(line);
+            }
+            return false;
+        }
         let known = self.devices.iter().any(|d| {
-            d.address == address
-                && (d.line == line || d.also_at.contains(&line))
-                && (serial.is_none() || d.serial == serial)
+            d.address == address && d.answers_at(&line) && (serial.is_none() || d.serial == serial)
         });
         if known {
             return false;
         }
-        self.devices.push(FoundDevice {
-            serial,
-            address,
-            line,
-            also_at: Vec::new(),
-            fast: false,
-            identity: Identity::default(),
-        });
+        self.devices
+            .push(FoundDevice::new(serial, address, line, false));
         true
     }
 
-    /// Addresses that more than one device uses at the same setting.
+    /// Addresses that more than one device uses at the same setting (stop bits aside: devices
+    /// that differ only in them hear the same requests and answer together).
     pub fn duplicates(&self) -> Vec<Duplicate> {
-        let mut groups: BTreeMap<(String, u8), Duplicate> = BTreeMap::new();
+        let mut groups: BTreeMap<(u32, u8, char, u8), Duplicate> = BTreeMap::new();
         for (index, device) in self.devices.iter().enumerate() {
+            let line = device.line;
             groups
-                .entry((device.line.to_string(), device.address))
+                .entry((
+                    line.baud,
+                    line.data_bits,
+                    line.parity.letter(),
+                    device.address,
+                ))
                 .or_insert_with(|| Duplicate {
                     line: device.line,
                     address: device.address,
@@ -226,6 +330,64 @@ mod tests {
     }
 
     #[test]
+    fn stop_bits_are_one_setting_on_the_wire() {
+        let n1 = LineSettings::new(9600, Parity::None, 1);
+        let mut report = ScanReport::default();
+        assert!(report.add_fast(SLOW, 7, 20));
+        // The same device heard again by a master at 8N1: not "also at" 8N1.
+        assert!(!report.add_fast(n1, 7, 20));
+        assert!(report.devices[0].also_at.is_empty());
+        assert_eq!(report.devices[0].settings_text(), "9600 8N?");
+        report.devices[0].take_reported(n1);
+        assert_eq!(report.devices[0].line, n1);
+        assert!(report.devices[0].stop_bits_known);
+        assert_eq!(report.devices[0].settings_text(), "9600 8N1");
+        // Another device at address 20 with two stop bits answers the same requests.
+        report.add_fast(SLOW, 8, 20);
+        report.devices[1].take_reported(SLOW);
+        let duplicates = report.duplicates();
+        assert_eq!(duplicates.len(), 1);
+        assert_eq!(duplicates[0].devices, vec![0, 1]);
+        assert!(!report.add_classic(SLOW, 20, None));
+    }
+
+    #[test]
+    fn registers_decide_between_settings_a_pty_cannot_tell_apart() {
+        let mut report = ScanReport::default();
+        report.add_fast(SLOW, 7, 20);
+        report.add_fast(EVEN, 7, 20);
+        let even_one_stop_bit = LineSettings::new(9600, Parity::Even, 1);
+        report.devices[0].take_reported(even_one_stop_bit);
+        assert_eq!(report.devices[0].line, even_one_stop_bit);
+        assert_eq!(report.devices[0].also_at, vec![SLOW]);
+        assert_eq!(report.devices[0].registers_say, None);
+        // Registers naming a setting it did not answer at are kept aside, not believed.
+        report.add_fast(FAST, 9, 21);
+        report.devices[1].take_reported(SLOW);
+        assert_eq!(report.devices[1].line, FAST);
+        assert!(!report.devices[1].stop_bits_known);
+        assert_eq!(report.devices[1].registers_say, Some(SLOW));
+    }
+
+    #[test]
+    fn a_stop_bit_filter_keeps_devices_that_did_not_say() {
+        let mut report = ScanReport::default();
+        report.add_fast(SLOW, 1, 20);
+        report.add_fast(SLOW, 2, 21);
+        report.add_fast(SLOW, 3, 22);
+        report.devices[0].take_reported(LineSettings::new(9600, Parity::None, 1));
+        report.devices[1].take_reported(SLOW);
+        report.keep_stop_bits(&[1]);
+        let serials: Vec<Option<u32>> = report.devices.iter().map(|d| d.serial).collect();
+        assert_eq!(serials, vec![Some(1), Some(3)]);
+        assert_eq!(report.other_stop_bits, 1);
+        report.settings_tried = vec![SLOW, FAST, LineSettings::new(115_200, Parity::None, 1)];
+        assert_eq!(report.settings_covered(), 4);
+        report.stop_bits_covered = vec![1];
+        assert_eq!(report.settings_covered(), 2);
+    }
+
+    #[test]
     fn classic_answers_of_known_fast_devices_are_not_new_devices() {
         let mut report = ScanReport::default();
         report.add_fast(SLOW, 7, 20);
@@ -233,6 +395,16 @@ mod tests {
         assert_eq!(report.devices.len(), 1);
         assert!(report.add_classic(SLOW, 21, None));
         assert!(!report.devices[report.devices.len() - 1].fast);
+    }
+
+    #[test]
+    fn a_classic_device_answering_at_two_settings_is_one_device() {
+        let mut report = ScanReport::default();
+        assert!(report.add_classic(SLOW, 40, Some(9)));
+        assert!(!report.add_classic(EVEN, 40, Some(9)));
+        assert!(!report.add_classic(LineSettings::new(9600, Parity::None, 1), 40, Some(9)));
+        assert_eq!(report.devices.len(), 1);
+        assert_eq!(report.devices[0].also_at, vec![EVEN]);
     }
 
     #[test]
