@@ -37,8 +37,10 @@ impl MasterLine {
     /// Does a device with these settings understand the master? A mismatch is noise to it.
     ///
     /// The stop bits do not count: a UART receiver checks only the first stop bit, whatever
-    /// number it is set to (the 16550's datasheet says so; USB adapters and microcontroller
-    /// USARTs do the same), and a second one is just idle line before the next start bit. So a
+    /// number it is set to (16550-compatible datasheets: "the receiver will ignore all stop
+    /// bits beyond the first"; a few UARTs can be told to check both, which the scan allows for
+    /// by sending a troubled setting again with 1), and a second one is just idle line before
+    /// the next start bit. So a
     /// device at 8N1 hears a master at 8N2 and the other way round, and the master hears the
     /// replies of both; two devices that differ only in stop bits answer the same request.
     pub fn matches(&self, device: &LineSettings) -> bool {
