@@ -665,6 +665,9 @@ impl PortScheduler {
     }
 
     fn start_event_poll(&mut self, now: Duration) -> NextStep {
+        if self.events.rotation_optional() && self.choose(now).is_none() {
+            self.events.skip_rotation();
+        }
         let request = Request::poll_events(self.events.request());
         #[cfg(test)]
         assert_eq!(
