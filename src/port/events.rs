@@ -312,6 +312,44 @@ mod tests {
     }
 
     #[test]
+    fn the_rotation_may_be_skipped_after_a_first_packet_only() {
+        let mut events = poller(115_200);
+        let ms = Duration::from_millis;
+        // A first packet, in answer to a request to the whole bus: optional.
+        events.started(ms(0));
+        events.packet_received(ms(4), 5, 0, 30);
+        assert_eq!(events.request().min_address, 6);
+        assert!(events.rotation_optional());
+        events.skip_rotation();
+        assert_eq!(events.request().min_address, 0, "the whole bus");
+        assert_eq!(events.request().ack_address, 5, "still confirms the packet");
+        assert!(!events.rotation_optional());
+        // The same device again before the bus ran dry: rotated past.
+        events.started(ms(4));
+        events.packet_received(ms(8), 5, 1, 30);
+        assert!(!events.rotation_optional());
+        events.skip_rotation();
+        assert_eq!(events.request().min_address, 6);
+        // A first packet in answer to a rotated request: the sweep goes on.
+        events.started(ms(8));
+        events.packet_received(ms(12), 9, 0, 30);
+        assert!(!events.rotation_optional());
+        assert_eq!(events.request().min_address, 10);
+        // "No events" forgets who sent: 5 is a first sender again.
+        events.started(ms(12));
+        events.nothing_pending(ms(12));
+        events.started(ms(12));
+        events.nothing_pending(ms(12));
+        events.started(ms(50));
+        events.packet_received(ms(54), 5, 0, 30);
+        assert!(events.rotation_optional());
+        // Noise ends the chance: the next slot asks as the rotation says.
+        events.started(ms(54));
+        events.garbled(ms(58));
+        assert!(!events.rotation_optional());
+    }
+
+    #[test]
     fn after_the_highest_listener_the_rotation_starts_from_the_bottom() {
         let mut events = poller(115_200);
         events.started(Duration::ZERO);
