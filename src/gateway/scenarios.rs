@@ -395,6 +395,8 @@ struct ToggleFigures {
     /// Changes never published (toggled back before a poll saw them).
     lost: usize,
     slow: SlowToggles,
+    /// Registers read per second by classic requests while the toggles went on.
+    classic_registers_per_second: f64,
 }
 
 fn idle_bus(devices: u8, baud: u32, count: usize, rate: f64) -> ToggleFigures {
@@ -418,6 +420,7 @@ fn toggled_bus(
     let mut pending: Vec<(Duration, String, String)> = Vec::new();
     let mut latencies = Vec::new();
     let mut at = gateway.now;
+    let toggles_from = gateway.now;
     for _ in 0..count {
         at += toggles.gap(mean);
         if at > gateway.now {
@@ -436,6 +439,15 @@ fn toggled_bus(
         );
         pending.push((at, topic, toggled.to_string()));
     }
+    let toggles_until = gateway.now;
+    let classic_registers: u64 = gateway
+        .wire_log
+        .iter()
+        .filter(|r| r.at >= toggles_from && r.ended <= toggles_until)
+        .map(|r| u64::from(r.registers_read))
+        .sum();
+    let classic_registers_per_second =
+        classic_registers as f64 / (toggles_until - toggles_from).as_secs_f64().max(1e-9);
     gateway.run_for(Duration::from_secs(1));
     let slow = slow_toggles(&gateway, &pending);
     // Matched as the bench matches them: a publication reports the latest pending change of
@@ -477,6 +489,7 @@ fn toggled_bus(
         latencies,
         lost: report.lost,
         slow,
+        classic_registers_per_second,
     }
 }
 
@@ -558,9 +571,10 @@ fn print_figures(bus: &str, baud: u32, figures: &ToggleFigures) {
         latencies,
         lost,
         slow,
+        classic_registers_per_second,
     } = figures;
     eprintln!(
-        "FIGURES {bus} baud={baud} published={} lost={lost} p50={:?} p90={:?} p99={:?} max={:?} {slow:?}",
+        "FIGURES {bus} baud={baud} published={} lost={lost} p50={:?} p90={:?} p99={:?} max={:?} classic registers/s={classic_registers_per_second:.0} {slow:?}",
         latencies.len(),
         percentile(latencies, 50),
         percentile(latencies, 90),

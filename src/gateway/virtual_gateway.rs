@@ -23,7 +23,7 @@ use crate::device_updates::{ControlWrite, DeviceUpdate, Repeats};
 use crate::mqtt::TopicScheme;
 use crate::mqtt::{MqttAction, PlannerSettings, PublicationPlanner, UnchangedPolicy, WriteOutcome};
 use crate::port::{NextStep, PortScheduler, ReplyTiming, Transaction, TransactionOutcome};
-use crate::protocol::{LineSettings, RegisterType};
+use crate::protocol::{LineSettings, RegisterType, RequestBody, RequestPdu};
 use crate::sim::bus::Bus;
 use crate::sim::bus_file::{build_device, parse_line, DeviceEntry, TemplateSource};
 use crate::sim::MasterLine;
@@ -73,6 +73,8 @@ pub struct WireRecord {
     pub fast: bool,
     /// A valid reply came back.
     pub answered: bool,
+    /// Registers (or bits) a classic read asked for; 0 for any other request.
+    pub registers_read: u16,
 }
 
 impl VirtualGateway {
@@ -213,6 +215,15 @@ impl VirtualGateway {
                         address: transaction.request.address,
                         fast: transaction.request.is_fast(),
                         answered: matches!(outcome, TransactionOutcome::Reply(_)),
+                        registers_read: match &transaction.request.body {
+                            RequestBody::Classic(
+                                RequestPdu::ReadCoils { count, .. }
+                                | RequestPdu::ReadDiscreteInputs { count, .. }
+                                | RequestPdu::ReadHoldingRegisters { count, .. }
+                                | RequestPdu::ReadInputRegisters { count, .. },
+                            ) => *count,
+                            _ => 0,
+                        },
                     });
                     self.now = done;
                     let events = self.scheduler.complete_timed(self.now, outcome, timing);

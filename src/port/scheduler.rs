@@ -138,6 +138,52 @@ enum Fit {
     Nothing,
 }
 
+/// The timing of an event poll. Every poll of a port has the same length and the same longest
+/// reply (its `max_data_len` is the port's), so it is worked out once, not per poll.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct EventPollTiming {
+    estimated: Duration,
+    request_time: Duration,
+    reply_timeout: Duration,
+    first_byte_timeout: Duration,
+    late_window: Duration,
+}
+
+impl EventPollTiming {
+    fn new(settings: &PortSettings, request: &Request) -> Self {
+        let line = &settings.line;
+        // USB adapters deliver late, and a loaded machine reads late: a short first-byte timeout
+        // would end the poll while the arbitration is still going on, and its bytes would land
+        // in the next request's window. A bus with Fast Modbus devices always answers (someone
+        // wins with "no events"), so the allowance costs only when nobody takes part.
+        let margin = settings.latency_margin.max(ADAPTER_LATENCY_ALLOWANCE);
+        // The usual answer is "no events" after a few arbitration windows; longer packets are
+        // rare and bounded by the poll's max_data_len.
+        let typical = line.arbitration_wait() + line.arbitration_window() * 6;
+        let request_len = request.encoded_len();
+        Self {
+            estimated: line.transaction_time(request_len, typical, request.expected_reply_len()),
+            request_time: line.wire_time(request_len),
+            reply_timeout: line.event_reply_timeout()
+                + line.wire_time(request.max_reply_len() + 32)
+                + margin,
+            first_byte_timeout: line.event_first_byte_timeout() + margin,
+            late_window: margin,
+        }
+    }
+
+    fn transaction(&self, request: Request) -> Transaction {
+        Transaction {
+            estimated: self.estimated,
+            request_time: self.request_time,
+            reply_timeout: self.reply_timeout,
+            first_byte_timeout: Some(self.first_byte_timeout),
+            late_window: self.late_window,
+            request,
+        }
+    }
+}
+
 #[derive(Debug, Clone, PartialEq)]
 struct PendingWrite {
     write: RegisterWrite,
@@ -150,6 +196,7 @@ pub struct PortScheduler {
     settings: PortSettings,
     devices: Vec<DeviceState>,
     events: EventPoller,
+    event_poll_timing: EventPollTiming,
     writes: Vec<PendingWrite>,
     in_flight: Option<InFlight>,
     /// When the transaction in flight started.
@@ -169,6 +216,8 @@ pub struct PortScheduler {
 impl PortScheduler {
     pub fn new(settings: PortSettings, plans: Vec<DevicePlan>) -> Self {
         let events = EventPoller::new(&settings);
+        let event_poll_timing =
+            EventPollTiming::new(&settings, &Request::poll_events(events.request()));
         let devices: Vec<DeviceState> = plans
             .into_iter()
             .map(|plan| DeviceState::new(plan, settings.fast_modbus, &settings.line))
@@ -185,6 +234,7 @@ impl PortScheduler {
             settings,
             devices,
             events,
+            event_poll_timing,
             writes: Vec::new(),
             in_flight: None,
             in_flight_since: Duration::ZERO,
@@ -615,27 +665,17 @@ impl PortScheduler {
     }
 
     fn start_event_poll(&mut self, now: Duration) -> NextStep {
+        if self.events.rotation_optional() && self.choose(now).is_none() {
+            self.events.skip_rotation();
+        }
         let request = Request::poll_events(self.events.request());
-        let line = &self.settings.line;
-        // USB adapters deliver late, and a loaded machine reads late: a short first-byte timeout
-        // would end the poll while the arbitration is still going on, and its bytes would land
-        // in the next request's window. A bus with Fast Modbus devices always answers (someone
-        // wins with "no events"), so the allowance costs only when nobody takes part.
-        let margin = self.settings.latency_margin.max(ADAPTER_LATENCY_ALLOWANCE);
-        // The usual answer is "no events" after a few arbitration windows; longer packets are
-        // rare and bounded by the poll's max_data_len.
-        let typical = line.arbitration_wait() + line.arbitration_window() * 6;
-        let request_len = request.encoded_len();
-        let transaction = Transaction {
-            estimated: line.transaction_time(request_len, typical, request.expected_reply_len()),
-            request_time: line.wire_time(request_len),
-            reply_timeout: line.event_reply_timeout()
-                + line.wire_time(request.max_reply_len() + 32)
-                + margin,
-            first_byte_timeout: Some(line.event_first_byte_timeout() + margin),
-            late_window: margin,
-            request,
-        };
+        #[cfg(test)]
+        assert_eq!(
+            EventPollTiming::new(&self.settings, &request),
+            self.event_poll_timing,
+            "an event poll timed as the first one"
+        );
+        let transaction = self.event_poll_timing.transaction(request);
         self.events.started(now);
         self.commit(now, transaction, InFlight::PollEvents { started: now })
     }
@@ -848,13 +888,37 @@ impl PortScheduler {
         let InFlight::Read { members, .. } = in_flight else {
             return Fit::Nothing;
         };
-        (1..members.len())
-            .rev()
-            .find(|&taken| {
-                self.prefix_transaction(now, in_flight, taken)
-                    .is_some_and(|shorter| shorter.estimated <= budget)
-            })
-            .map_or(Fit::Nothing, Fit::Prefix)
+        let fits = |taken: usize| {
+            self.prefix_transaction(now, in_flight, taken)
+                .is_some_and(|shorter| shorter.estimated <= budget)
+        };
+        // A longer prefix never takes less time (its span only grows), so the longest that fits
+        // is found by bisection: a handful of prefixes built instead of one per member (a
+        // 60-register read that misses the slot by a little tried 59 before).
+        let (mut fitting, mut too_long) = (0, members.len());
+        while too_long - fitting > 1 {
+            let middle = fitting + (too_long - fitting) / 2;
+            if fits(middle) {
+                fitting = middle;
+            } else {
+                too_long = middle;
+            }
+        }
+        let fit = if fitting == 0 {
+            Fit::Nothing
+        } else {
+            Fit::Prefix(fitting)
+        };
+        #[cfg(test)]
+        assert_eq!(
+            fit,
+            (1..members.len())
+                .rev()
+                .find(|&taken| fits(taken))
+                .map_or(Fit::Nothing, Fit::Prefix),
+            "bisection against the scan of every prefix"
+        );
+        fit
     }
 
     /// The read of the first `taken` members of a merged read.

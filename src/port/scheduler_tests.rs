@@ -1719,3 +1719,103 @@ fn the_due_order_chooses_as_a_scan_of_every_device_would() {
         assert!(transactions > 0, "seed {seed}: the bus carried nothing");
     }
 }
+
+/// A fake bus for the `min_address` rotation: `packets` lists, per poll that finds a packet,
+/// the addresses with a change from then on (the bus answers with the lowest of them at or
+/// above the poll's `min_address`). Returns each poll that followed a packet: (its
+/// `min_address`, who answered it; 0xFD: nobody).
+fn polls_after_packets(plans: Vec<DevicePlan>, changes: &[(usize, &[u8])]) -> Vec<(u8, u8)> {
+    let mut scheduler = PortScheduler::new(settings(115_200), plans);
+    let mut log = Log::default();
+    let mut pending: Vec<u8> = Vec::new();
+    let mut packets = 0;
+    let mut after_packet = false;
+    let mut seen = Vec::new();
+    let start = ms(500);
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(1500),
+        |at, request| match &request.body {
+            RequestBody::Fast(FastRequest::PollEvents(poll)) if at >= start => {
+                if packets == 0 && pending.is_empty() {
+                    if let Some((_, first)) = changes.first() {
+                        pending.extend_from_slice(first);
+                    }
+                }
+                let winner = pending
+                    .iter()
+                    .copied()
+                    .filter(|&a| a >= poll.min_address)
+                    .min();
+                if after_packet {
+                    seen.push((poll.min_address, winner.unwrap_or(0xFD)));
+                }
+                let Some(address) = winner else {
+                    after_packet = false;
+                    return TransactionOutcome::Reply(Reply::fast(0xFD, FastReply::NoEvents));
+                };
+                pending.retain(|&a| a != address);
+                packets += 1;
+                after_packet = true;
+                for (after, more) in changes.iter().skip(1) {
+                    if *after == packets {
+                        pending.extend_from_slice(more);
+                    }
+                }
+                TransactionOutcome::Reply(Reply::fast(
+                    address,
+                    FastReply::Events(EventPacket {
+                        flag: u8::try_from(packets % 2).unwrap_or(0),
+                        event_count: 1,
+                        events: vec![Event {
+                            source: crate::protocol::EventSource::Register(RegisterType::Coil),
+                            id: 0,
+                            payload: vec![1],
+                        }],
+                    }),
+                ))
+            }
+            _ => healthy(request),
+        },
+    );
+    seen
+}
+
+/// Bench scenario 1 (issue 14): on a bus with nothing else to send, the poll after a packet
+/// asks the whole bus, so a change below the sender goes in the very next poll instead of after
+/// an empty poll of the devices above it. A device that sends a second packet before the bus
+/// runs dry is still rotated past, and a busy bus keeps the rotation.
+#[test]
+fn on_an_idle_bus_the_poll_after_a_packet_asks_the_whole_bus() {
+    let events_only = |address| {
+        device(
+            address,
+            vec![read(RegisterType::Coil, 0, EventMode::Sporadic)],
+        )
+    };
+    let idle = || vec![events_only(2), events_only(5), events_only(9)];
+    // 5 sends; meanwhile 2 changes: asked at once, then the bus is found empty.
+    assert_eq!(
+        polls_after_packets(idle(), &[(0, &[5]), (1, &[2])]),
+        [(0, 2), (0, 0xFD)]
+    );
+    // 5 sends twice in a row: the poll after its second packet starts above it, so 9 goes
+    // before 2 (after 9, the highest listener, the rotation starts from the bottom again).
+    assert_eq!(
+        polls_after_packets(idle(), &[(0, &[5]), (1, &[5]), (2, &[2, 9])]),
+        [(0, 5), (6, 9), (0, 2), (0, 0xFD)]
+    );
+    // A device with a register polled as fast as the bus allows: the bus is never idle, and
+    // the polls after 5's and 2's packets rotate past them, as before (2 is asked for by the
+    // poll of the whole bus after the empty one above 5).
+    let mut busy = idle();
+    busy[2]
+        .reads
+        .push(read(RegisterType::Holding, 7, EventMode::Polled));
+    assert_eq!(
+        polls_after_packets(busy, &[(0, &[5]), (1, &[2])]),
+        [(6, 0xFD), (3, 0xFD)]
+    );
+}
