@@ -68,6 +68,9 @@ pub struct RunResult {
     pub daemon_cpu: Duration,
     /// The daemon's threads' sleeps (voluntary context switches) in the window.
     pub daemon_sleeps: u64,
+    /// The CPU time of one timed wake-up of an idle thread, measured during the window
+    /// (scenario 7 only, see [`super::floor`]).
+    pub wake_up_cost: Option<Duration>,
     pub daemon_peak_rss_kib: u64,
     /// RssAnon at the end of the window (private memory, without the binary's code pages).
     pub daemon_anon_rss_kib: u64,
@@ -253,6 +256,9 @@ fn run_into(
     let published_before = harness.publication_count();
     let t0 = monotonic_ns();
     let window_start = Instant::now();
+    // 5 ms: the period of a short classic read at 115200.
+    let wake_up_meter =
+        (spec.scenario == 7).then(|| super::floor::WakeUpMeter::start(Duration::from_millis(5)));
 
     let mut rng = XorShift(0x9E37_79B9_7F4A_7C15 ^ u64::from(spec.scenario));
     if spec.changes > 0 && layout.events > 0 {
@@ -274,6 +280,7 @@ fn run_into(
         std::thread::sleep(spec.window);
     }
     result.window = window_start.elapsed();
+    result.wake_up_cost = wake_up_meter.and_then(super::floor::WakeUpMeter::finish);
     let daemon_after = harness.daemon_stats().unwrap_or_default();
     let sim_after = harness.sim_stats().unwrap_or_default();
     let bus_after = harness.bus_stats()?;

@@ -55,14 +55,6 @@ pub fn run_bench(args: Args) -> anyhow::Result<ExitCode> {
         only: args.only.clone(),
         bauds: args.baud.clone(),
     };
-    // 200 rounds of 9 ms (about the period of a 60-register read at 115200): 1.8 s.
-    let wake_up_cost = crate::bench::floor::wake_up_cost(Duration::from_millis(9), 200);
-    if let Some(cost) = wake_up_cost {
-        eprintln!(
-            "one timed wake-up costs {:.1} µs of CPU here",
-            cost.as_secs_f64() * 1e6
-        );
-    }
     let specs = plan(&options);
     let mut results: Vec<RunResult> = Vec::new();
     for (index, spec) in specs.iter().enumerate() {
@@ -129,7 +121,6 @@ pub fn run_bench(args: Args) -> anyhow::Result<ExitCode> {
         commit: commit(),
         total: started.elapsed(),
         quick: args.quick,
-        wake_up_cost,
     };
     let mut text = markdown(&results, &scans, &environment);
     if let Err(err) = &plotted {

@@ -996,7 +996,7 @@ mod tests {
             PortEvent::Values {
                 device: 0,
                 span,
-                values: vec![1, 0],
+                values: vec![1, 0].into(),
             },
             &mut out,
         );
@@ -1014,7 +1014,7 @@ mod tests {
             PortEvent::Values {
                 device: 0,
                 span,
-                values: vec![0xFE40, 0x00AC],
+                values: vec![0xFE40, 0x00AC].into(),
             },
             &mut out,
         );
@@ -1118,7 +1118,7 @@ mod tests {
             PortEvent::Values {
                 device: 0,
                 span: RegisterSpan::new(RegisterType::Input, start, count),
-                values: words.to_vec(),
+                values: words.to_vec().into(),
             },
             &mut out,
         );
@@ -1291,7 +1291,7 @@ mod tests {
             PortEvent::Values {
                 device: 0,
                 span,
-                values: vec![1],
+                values: vec![1].into(),
             },
             &mut out,
         );
@@ -1444,7 +1444,7 @@ mod tests {
                 PortEvent::Values {
                     device: 0,
                     span,
-                    values: vec![word],
+                    values: vec![word].into(),
                 },
                 &mut out,
             );
@@ -1643,7 +1643,7 @@ mod tests {
                     PortEvent::Values {
                         device: 0,
                         span,
-                        values,
+                        values: values.into(),
                     },
                     &mut out,
                 );
@@ -1735,7 +1735,7 @@ mod tests {
             PortEvent::Values {
                 device: 0,
                 span: RegisterSpan::new(RegisterType::Coil, 0, words.len() as u16),
-                values: words.to_vec(),
+                values: words.to_vec().into(),
             },
             &mut out,
         );
@@ -1888,11 +1888,12 @@ mod tests {
                                 around.start.saturating_sub(random.below(2) as u16),
                                 around.count + random.below(3) as u16,
                             );
-                            let values = (0..span.count).map(|_| word(&mut random)).collect();
+                            let values: Vec<u16> =
+                                (0..span.count).map(|_| word(&mut random)).collect();
                             vec![PortEvent::Values {
                                 device: 0,
                                 span,
-                                values,
+                                values: values.into(),
                             }]
                         }
                         6 | 7 => (0..=random.below(2))

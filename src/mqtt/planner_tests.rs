@@ -751,7 +751,7 @@ fn reads_of_an_unchanged_coil(
                 PortEvent::Values {
                     device: 0,
                     span: RegisterSpan::new(RegisterType::Coil, 0, 1),
-                    values: vec![1],
+                    values: vec![1].into(),
                 },
                 &mut updates,
             );

@@ -55,6 +55,62 @@ pub struct DeviceReport {
     pub suspended: bool,
 }
 
+/// Register words of one reply, seen through the part that belongs to one value: a read of
+/// many values hands each its part of one shared buffer (one allocation per reply, not one per
+/// value).
+#[derive(Clone)]
+pub struct ReadWords {
+    reply: std::sync::Arc<[u16]>,
+    start: usize,
+    end: usize,
+}
+
+impl ReadWords {
+    /// `range` of these words, if it is within them.
+    fn part(&self, range: std::ops::Range<usize>) -> Option<Self> {
+        let start = self.start.checked_add(range.start)?;
+        let end = self.start.checked_add(range.end)?;
+        (start <= end && end <= self.end).then(|| Self {
+            reply: std::sync::Arc::clone(&self.reply),
+            start,
+            end,
+        })
+    }
+}
+
+impl From<Vec<u16>> for ReadWords {
+    fn from(words: Vec<u16>) -> Self {
+        let end = words.len();
+        Self {
+            reply: words.into(),
+            start: 0,
+            end,
+        }
+    }
+}
+
+impl std::ops::Deref for ReadWords {
+    type Target = [u16];
+
+    fn deref(&self) -> &[u16] {
+        self.reply.get(self.start..self.end).unwrap_or(&[])
+    }
+}
+
+impl PartialEq for ReadWords {
+    fn eq(&self, other: &Self) -> bool {
+        **self == **other
+    }
+}
+
+impl Eq for ReadWords {}
+
+impl std::fmt::Debug for ReadWords {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        (**self).fmt(f)
+    }
+}
+
 /// What the port tells the device model.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum PortEvent {
@@ -62,7 +118,7 @@ pub enum PortEvent {
     Values {
         device: usize,
         span: RegisterSpan,
-        values: Vec<u16>,
+        values: ReadWords,
     },
     /// A value reported by an event: the payload is little-endian.
     EventValue {
@@ -1206,16 +1262,17 @@ impl PortScheduler {
             return;
         }
         Self::health_success(state, device, now, out);
+        let values = ReadWords::from(values);
         for &member in members {
             let Some(member_span) = state.read_span(member) else {
                 continue;
             };
             let offset = usize::from(member_span.start.saturating_sub(span.start));
-            if let Some(slice) = values.get(offset..offset + usize::from(member_span.count)) {
+            if let Some(part) = values.part(offset..offset + usize::from(member_span.count)) {
                 out.push(PortEvent::Values {
                     device,
                     span: member_span,
-                    values: slice.to_vec(),
+                    values: part,
                 });
             }
             if let Some(missed) = state.read_done(now, member) {
@@ -1279,7 +1336,7 @@ impl PortScheduler {
                 out.push(PortEvent::Values {
                     device,
                     span,
-                    values: write.values.clone(),
+                    values: write.values.clone().into(),
                 });
             }
             TransactionOutcome::NoReply | TransactionOutcome::Garbled => {

@@ -302,7 +302,7 @@ fn a_long_read_is_shortened_so_the_event_slot_is_never_missed() {
         if let PortEvent::Values { span, values, .. } = event {
             if span.register_type == RegisterType::Holding {
                 seen[usize::from(span.start - 1000)] = true;
-                assert_eq!(values, &vec![span.start]);
+                assert_eq!(&**values, &[span.start]);
             }
         }
     }
@@ -627,7 +627,7 @@ fn a_write_goes_before_the_next_read_and_the_latest_value_wins() {
         == PortEvent::Values {
             device: 0,
             span: RegisterSpan::new(RegisterType::Holding, 10, 1),
-            values: vec![2]
+            values: vec![2].into()
         }));
 }
 
@@ -1818,4 +1818,19 @@ fn on_an_idle_bus_the_poll_after_a_packet_asks_the_whole_bus() {
         polls_after_packets(busy, &[(0, &[5]), (1, &[2])]),
         [(6, 0xFD), (3, 0xFD)]
     );
+}
+
+/// The values of one reply share its words: each sees its own part, and a part that is not
+/// within the words is none (never a panic or another value's words).
+#[test]
+fn read_words_show_each_value_its_own_part_of_the_reply() {
+    let reply = ReadWords::from(vec![10, 11, 12, 13, 14]);
+    let middle = reply.part(1..4).unwrap();
+    assert_eq!(&*middle, &[11, 12, 13]);
+    assert_eq!(&*middle.part(1..2).unwrap(), &[12]);
+    assert_eq!(&*reply.part(5..5).unwrap(), &[] as &[u16]);
+    assert!(reply.part(3..6).is_none());
+    assert!(middle.part(2..4).is_none(), "not past the part, into the reply's next words");
+    assert!(reply.part(usize::MAX..usize::MAX).is_none());
+    assert_eq!(middle, ReadWords::from(vec![11, 12, 13]));
 }

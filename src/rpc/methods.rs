@@ -940,7 +940,7 @@ async fn checked_writes(
             crate::port::PortEvent::Values {
                 device: index,
                 span,
-                values,
+                values: values.into(),
             },
             &mut Vec::new(),
         );
