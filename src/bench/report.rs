@@ -147,7 +147,7 @@ fn scenario2(out: &mut String, runs: &[RunResult]) {
     );
     let _ = writeln!(
         out,
-        "| line | mode | changes | published | lost | wrong | dup | p50 ms | p90 ms | p99 ms | max ms | classic cycle ms | daemon CPU % | notes |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
+        "| line | mode | changes | published | lost | wrong | dup | p50 ms | p90 ms | p99 ms | max ms | classic cycle ms | daemon CPU % | notes |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
     );
     for run in &runs {
         let _ = writeln!(

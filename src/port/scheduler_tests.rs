@@ -1830,7 +1830,10 @@ fn read_words_show_each_value_its_own_part_of_the_reply() {
     assert_eq!(&*middle.part(1..2).unwrap(), &[12]);
     assert_eq!(&*reply.part(5..5).unwrap(), &[] as &[u16]);
     assert!(reply.part(3..6).is_none());
-    assert!(middle.part(2..4).is_none(), "not past the part, into the reply's next words");
+    assert!(
+        middle.part(2..4).is_none(),
+        "not past the part, into the reply's next words"
+    );
     assert!(reply.part(usize::MAX..usize::MAX).is_none());
     assert_eq!(middle, ReadWords::from(vec![11, 12, 13]));
 }
