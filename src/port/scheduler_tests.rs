@@ -309,6 +309,22 @@ fn a_long_read_is_shortened_so_the_event_slot_is_never_missed() {
     assert!(seen.iter().all(|&s| s), "every register is read");
 }
 
+/// `address`'s event packet (with `flag`) saying that its coil 0 went on.
+fn coil_0_went_on(address: u8, flag: u8) -> TransactionOutcome {
+    TransactionOutcome::Reply(Reply::fast(
+        address,
+        FastReply::Events(EventPacket {
+            flag,
+            event_count: 1,
+            events: vec![Event {
+                source: crate::protocol::EventSource::Register(RegisterType::Coil),
+                id: 0,
+                payload: vec![1],
+            }],
+        }),
+    ))
+}
+
 #[test]
 fn an_event_packet_is_acknowledged_in_the_next_request() {
     let mut scheduler = PortScheduler::new(
@@ -328,19 +344,7 @@ fn an_event_packet_is_acknowledged_in_the_next_request() {
         |_, request| match &request.body {
             RequestBody::Fast(FastRequest::PollEvents(_)) if !sent_packet => {
                 sent_packet = true;
-                let event = Event {
-                    source: crate::protocol::EventSource::Register(RegisterType::Coil),
-                    id: 0,
-                    payload: vec![1],
-                };
-                TransactionOutcome::Reply(Reply::fast(
-                    20,
-                    FastReply::Events(EventPacket {
-                        flag: 1,
-                        event_count: 1,
-                        events: vec![event],
-                    }),
-                ))
+                coil_0_went_on(20, 1)
             }
             _ => healthy(request),
         },
@@ -1377,18 +1381,7 @@ fn an_event_from_an_offline_device_gets_it_retried_at_once() {
             }
             RequestBody::Fast(FastRequest::PollEvents(_)) if at >= event_at && !event_sent => {
                 event_sent = true;
-                TransactionOutcome::Reply(Reply::fast(
-                    21,
-                    FastReply::Events(EventPacket {
-                        flag: 1,
-                        event_count: 1,
-                        events: vec![Event {
-                            source: crate::protocol::EventSource::Register(RegisterType::Coil),
-                            id: 0,
-                            payload: vec![1],
-                        }],
-                    }),
-                ))
+                coil_0_went_on(21, 1)
             }
             _ => healthy(request),
         },
@@ -1764,18 +1757,7 @@ fn polls_after_packets(plans: Vec<DevicePlan>, changes: &[(usize, &[u8])]) -> Ve
                         pending.extend_from_slice(more);
                     }
                 }
-                TransactionOutcome::Reply(Reply::fast(
-                    address,
-                    FastReply::Events(EventPacket {
-                        flag: u8::try_from(packets % 2).unwrap_or(0),
-                        event_count: 1,
-                        events: vec![Event {
-                            source: crate::protocol::EventSource::Register(RegisterType::Coil),
-                            id: 0,
-                            payload: vec![1],
-                        }],
-                    }),
-                ))
+                coil_0_went_on(address, u8::try_from(packets % 2).unwrap_or(0))
             }
             _ => healthy(request),
         },
