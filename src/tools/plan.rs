@@ -11,9 +11,9 @@ pub const BAUD_ORDER: [u32; 8] = [9600, 115_200, 19200, 38400, 57600, 4800, 2400
 pub const PARITY_ORDER: [Parity; 3] = [Parity::None, Parity::Even, Parity::Odd];
 
 /// The stop bits every scan request goes out with. A UART receiver checks only the first stop
-/// bit, whatever number it is set to (16550 datasheet: "the receiver checks the first stop bit
-/// only, regardless of the number of stop bits selected"; the same for the common USB adapters
-/// and microcontroller USARTs): a request sent with 2 is heard by devices set to 1 or 2, and a
+/// bit, whatever number it is set to (16550-compatible datasheets: "the receiver will ignore all
+/// stop bits beyond the first"; a few UARTs can be set to check both): a request sent with 2 is
+/// heard by devices set to 1 or 2, and a
 /// master set to 2 hears replies sent with 1 or 2. The stop bits are not visible on the wire,
 /// so one transmission per baud rate and parity covers both; 2 rather than 1 because then only
 /// the master's receiver has to check just the first stop bit, not every device's (the scan
