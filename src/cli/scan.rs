@@ -14,8 +14,8 @@ use crate::config::TemplateLibrary;
 use crate::protocol::{LineSettings, Parity, RequestPdu, ResponsePdu};
 use crate::tools::adapter::{sysfs_tty, Adapter};
 use crate::tools::bus::{
-    reported_port_settings, Answer, PortError, ToolBus, ToolPort, KNOWN_DEVICE_TIMEOUT,
-    PORT_SETTINGS_REGISTER, TEXT_REGISTERS,
+    port_settings_in, Answer, PortError, ToolBus, ToolPort, KNOWN_DEVICE_TIMEOUT,
+    PORT_SETTINGS_READ, TEXT_REGISTERS,
 };
 use crate::tools::exit;
 use crate::tools::plan::{parse_parity, parse_range, same_on_the_wire, scan_plan, PlanFilter};
@@ -389,19 +389,11 @@ async fn classic_identity(
         },
         _ => None,
     };
-    let pdu = RequestPdu::ReadHoldingRegisters {
-        start: PORT_SETTINGS_REGISTER,
-        count: 3,
-    };
-    let settings = match port
-        .classic(line, address, pdu, KNOWN_DEVICE_TIMEOUT)
-        .await?
-    {
-        Answer::Pdu(ResponsePdu::ReadHoldingRegisters { values }) => {
-            reported_port_settings(&values)
-        }
-        _ => None,
-    };
+    let settings = port_settings_in(
+        &port
+            .classic(line, address, PORT_SETTINGS_READ, KNOWN_DEVICE_TIMEOUT)
+            .await?,
+    );
     let mut texts = texts.into_iter();
     Ok((
         Identity {

@@ -601,8 +601,9 @@ impl DeviceModel {
     /// Puts the words of every register of the `index`th channel into `word_buffer`, in
     /// order; false until all have been read.
     /// Keeps `values`, the words of the registers from `start` on, for the channels that use
-    /// them: the slots from the first at or after `start`, while they are within the span
-    /// (the wire's addresses wrap at 65535, as a span's do).
+    /// them: the slots from the first at or after `start`, while they are within the span. (No
+    /// channel's registers go past 65535: the config refuses them, so a span's words past it
+    /// have no slot.)
     fn store_words(&mut self, register_type: RegisterType, start: u16, values: &[u16]) {
         let index = &self.channel_index;
         let mut slot = index.first_slot_from((register_type, start));
@@ -615,12 +616,6 @@ impl DeviceModel {
                 *word = Some(value);
             }
             slot += 1;
-        }
-        // A span that wraps past 65535 goes on at address 0.
-        let last = usize::from(start) + values.len();
-        if last > usize::from(u16::MAX) + 1 {
-            let wrapped = values.get(usize::from(u16::MAX) + 1 - usize::from(start)..);
-            self.store_words(register_type, 0, wrapped.unwrap_or(&[]));
         }
     }
 

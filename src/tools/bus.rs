@@ -338,19 +338,11 @@ pub trait ToolBus {
         line: LineSettings,
         serial: u32,
     ) -> Result<(Identity, Option<LineSettings>), PortError> {
-        let pdu = RequestPdu::ReadHoldingRegisters {
-            start: PORT_SETTINGS_REGISTER,
-            count: 3,
-        };
-        let settings = match self
-            .by_serial(line, serial, pdu, KNOWN_DEVICE_TIMEOUT)
-            .await?
-        {
-            Answer::Pdu(ResponsePdu::ReadHoldingRegisters { values }) => {
-                reported_port_settings(&values)
-            }
-            _ => None,
-        };
+        let settings = port_settings_in(
+            &self
+                .by_serial(line, serial, PORT_SETTINGS_READ, KNOWN_DEVICE_TIMEOUT)
+                .await?,
+        );
         let mut texts = Vec::new();
         for (start, count) in TEXT_REGISTERS {
             texts.push(self.text_by_serial(line, serial, start, count).await?);
@@ -399,6 +391,11 @@ pub trait ToolBus {
 
 /// Holding 110..112: baud rate / 100, parity (0 none, 1 odd, 2 even), stop bits.
 pub const PORT_SETTINGS_REGISTER: u16 = 110;
+/// The read of those three registers.
+pub const PORT_SETTINGS_READ: RequestPdu = RequestPdu::ReadHoldingRegisters {
+    start: PORT_SETTINGS_REGISTER,
+    count: 3,
+};
 /// Model (200), firmware version (250), signature (290): start and length of each block.
 pub const TEXT_REGISTERS: [(u16, u16); 3] = [(200, 20), (250, 16), (290, 12)];
 /// Registers of a text block read first: model names, versions and signatures are mostly
@@ -414,6 +411,14 @@ pub fn text_reads(start: u16, count: u16) -> Vec<(u16, u16)> {
         reads.push((start + first, count - first));
     }
     reads
+}
+
+/// Port settings from the answer to [`PORT_SETTINGS_READ`]; None for another answer.
+pub fn port_settings_in(answer: &Answer) -> Option<LineSettings> {
+    match answer {
+        Answer::Pdu(ResponsePdu::ReadHoldingRegisters { values }) => reported_port_settings(values),
+        _ => None,
+    }
 }
 
 /// Port settings from holding 110..112; None for values no port can have.
