@@ -263,6 +263,8 @@ pub struct PortScheduler {
     last_event_poll: (Duration, Duration),
     /// Whether anything but an event poll went out since the last event poll.
     sent_since_event_poll: bool,
+    /// Whether the devices' first preparation is over (see [`Self::in_startup_sweep`]).
+    startup_swept: bool,
     /// Which devices may be prepared or read now, in the order they are picked.
     index: DueIndex,
     /// The first device at each address: event packets name their sender by address.
@@ -297,6 +299,7 @@ impl PortScheduler {
             dead_retries: DeadRetryBudget::default(),
             last_event_poll: (Duration::ZERO, Duration::ZERO),
             sent_since_event_poll: false,
+            startup_swept: false,
         }
     }
 
@@ -453,7 +456,7 @@ impl PortScheduler {
         self.refresh(now);
         #[cfg(test)]
         self.check_index(now);
-        let events_active = self.events_active();
+        let events_active = self.events_active() && !self.in_startup_sweep(now);
         if events_active && now >= self.event_due_at() {
             return self.start_event_poll(now);
         }
@@ -501,6 +504,25 @@ impl PortScheduler {
                 until: self.earliest_deadline(now),
             },
         }
+    }
+
+    /// Whether the port is still preparing its devices for the first time: event polls wait
+    /// until, for the first time since the port started, no device's preparation may go.
+    /// Before a device's values have been read once, nothing its events say is news (the first
+    /// read, which follows the preparation, reads it all), and a device not yet set up has only
+    /// its reboot to report, which the setup answers anyway. Polls in the middle of the sweep
+    /// would only hold back the setup of the devices after them (on 30 devices at 115200,
+    /// 5 polls: ~15 % of the start-up). Later preparations (a reboot, a device back online)
+    /// go between event polls as usual.
+    fn in_startup_sweep(&mut self, now: Duration) -> bool {
+        if self.startup_swept {
+            return false;
+        }
+        if self.choose_preparation(now).is_some() {
+            return true;
+        }
+        self.startup_swept = true;
+        false
     }
 
     fn is_keepalive(&self, in_flight: &InFlight) -> bool {

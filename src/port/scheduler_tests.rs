@@ -1819,3 +1819,145 @@ fn read_words_show_each_value_its_own_part_of_the_reply() {
     assert!(reply.part(usize::MAX..usize::MAX).is_none());
     assert_eq!(middle, ReadWords::from(vec![11, 12, 13]));
 }
+
+fn is_event_setup(request: &Request) -> bool {
+    matches!(
+        request.body,
+        RequestBody::Fast(FastRequest::ConfigureEvents { .. })
+    )
+}
+
+#[test]
+fn at_start_up_every_device_is_set_up_before_the_first_event_poll() {
+    // 24 devices with 32 event inputs each: their 0x18 requests take longer than the 50 ms
+    // interval, and a poll among them would only delay the devices after it.
+    let plans: Vec<DevicePlan> = (1..=24)
+        .map(|address| {
+            let inputs = (0..32)
+                .map(|input| read(RegisterType::DiscreteInput, input, EventMode::Sporadic))
+                .collect();
+            device(address, inputs)
+        })
+        .collect();
+    let mut scheduler = PortScheduler::new(settings(115_200), plans);
+    let mut log = Log::default();
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(1_000),
+        |_, request| healthy(request),
+    );
+    let setups: Vec<Duration> = log
+        .sent
+        .iter()
+        .filter(|(_, r)| is_event_setup(r))
+        .map(|(at, _)| *at)
+        .collect();
+    let polls = log.event_polls();
+    assert_eq!(setups.len(), 24);
+    let last_setup = *setups.last().unwrap();
+    assert!(
+        last_setup > ms(100),
+        "the sweep is long enough: {last_setup:?}"
+    );
+    let first_poll = polls.first().unwrap().0;
+    assert!(
+        first_poll > last_setup,
+        "a poll at {first_poll:?}, during the sweep"
+    );
+    // ... and it is not held back past the sweep, nor is the rhythm after it.
+    assert!(
+        first_poll < last_setup + ms(10),
+        "{first_poll:?} {last_setup:?}"
+    );
+    let after: Vec<Duration> = polls.iter().map(|(at, _)| *at).collect();
+    assert!(max_gap(&after) <= ms(51), "{:?}", max_gap(&after));
+}
+
+#[test]
+fn a_device_silent_at_start_up_holds_the_first_event_poll_for_one_try_only() {
+    let plans: Vec<DevicePlan> = (1..=4)
+        .map(|address| {
+            device(
+                address,
+                vec![read(RegisterType::Coil, 0, EventMode::Sporadic)],
+            )
+        })
+        .collect();
+    let mut scheduler = PortScheduler::new(settings(115_200), plans);
+    let mut log = Log::default();
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(10_000),
+        |_, request| {
+            if request.address == 2 {
+                TransactionOutcome::NoReply
+            } else {
+                healthy(request)
+            }
+        },
+    );
+    let polls: Vec<Duration> = log.event_polls().iter().map(|(at, _)| *at).collect();
+    // Its try at start-up holds the bus for its response timeout and the late window after it
+    // (0.5 s each), then the sweep is over: the others are set up and polled for events at the
+    // usual rhythm, apart from the silent device's retries.
+    let first_poll = *polls.first().unwrap();
+    assert!(first_poll < ms(1_100), "{first_poll:?}");
+    let setups_before_first_poll = log
+        .sent
+        .iter()
+        .filter(|(at, r)| *at < first_poll && is_event_setup(r))
+        .count();
+    assert_eq!(setups_before_first_poll, 4);
+    assert!(polls.len() > 100, "{}", polls.len());
+}
+
+#[test]
+fn a_reboot_after_start_up_is_set_up_between_event_polls() {
+    let plans: Vec<DevicePlan> = (1..=2)
+        .map(|address| {
+            device(
+                address,
+                vec![read(RegisterType::Coil, 0, EventMode::Sporadic)],
+            )
+        })
+        .collect();
+    let mut scheduler = PortScheduler::new(settings(115_200), plans);
+    let mut log = Log::default();
+    let mut polls = 0;
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(1_000),
+        |_, request| match &request.body {
+            RequestBody::Fast(FastRequest::PollEvents(_)) => {
+                polls += 1;
+                if polls == 5 {
+                    let packet = EventPacket {
+                        flag: 0,
+                        event_count: 1,
+                        events: vec![Event::reboot()],
+                    };
+                    TransactionOutcome::Reply(Reply::fast(2, FastReply::Events(packet)))
+                } else {
+                    healthy(request)
+                }
+            }
+            _ => healthy(request),
+        },
+    );
+    let setups: Vec<Duration> = log
+        .sent
+        .iter()
+        .filter(|(_, r)| is_event_setup(r))
+        .map(|(at, _)| *at)
+        .collect();
+    assert_eq!(setups.len(), 3, "two at start-up, one after the reboot");
+    let polls: Vec<Duration> = log.event_polls().iter().map(|(at, _)| *at).collect();
+    assert!(polls.iter().any(|&at| at < setups[2]));
+    assert!(max_gap(&polls) <= ms(51), "{:?}", max_gap(&polls));
+}

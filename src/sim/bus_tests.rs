@@ -1019,8 +1019,8 @@ fn a_request_after_the_reply_is_answered_after_it() {
     let first_reply_start = FAST_LINE.wire_time(8) + turnaround;
     let first_reply = arrivals_from(first_reply_start, FAST_LINE, &hex("14 03 02 00 14 B5 88"));
     assert_eq!(wire.arrivals(), first_reply);
-    // Written the moment the last reply byte arrived.
-    let second_at = first_reply.last().unwrap().0;
+    // Written 3.5 characters after the last reply byte arrived.
+    let second_at = first_reply.last().unwrap().0 + crate::sim::wire::frame_gap(&FAST_LINE);
     let second = read_holding(241, 128, 1);
     assert!(!write(&mut wire, &mut bus, &second, second_at));
     let second_reply = arrivals_from(
@@ -1029,6 +1029,40 @@ fn a_request_after_the_reply_is_answered_after_it() {
         &with_crc("F1 03 02 00 F1"),
     );
     assert_eq!(wire.arrivals(), second_reply);
+}
+
+#[test]
+fn a_request_right_behind_a_reply_is_its_continuation_to_the_devices() {
+    // Device 241 heard device 20's reply: a request that follows it within 3.5 characters is
+    // more bytes of that frame to it (a slave delimits frames by silence), so nobody answers.
+    let mut bus = seed_bus();
+    let mut wire = Wire::new();
+    assert!(!write(
+        &mut wire,
+        &mut bus,
+        &read_holding(20, 128, 1),
+        Duration::ZERO
+    ));
+    let reply_end = wire.arrivals().last().unwrap().0;
+    let gap = crate::sim::wire::frame_gap(&FAST_LINE);
+    let too_soon = reply_end + gap - FAST_LINE.char_time();
+    assert!(!write(
+        &mut wire,
+        &mut bus,
+        &read_holding(241, 128, 1),
+        too_soon
+    ));
+    wire.forget_delivered(too_soon);
+    assert_eq!(wire.arrivals(), [], "no answer");
+    // With the gap kept, the same request is answered.
+    let in_time = too_soon + Duration::from_millis(5);
+    assert!(!write(
+        &mut wire,
+        &mut bus,
+        &read_holding(241, 128, 1),
+        in_time
+    ));
+    assert!(!wire.arrivals().is_empty());
 }
 
 #[test]

@@ -78,6 +78,8 @@ pub struct MasterWrite {
 pub struct Wire {
     /// Device bytes not yet handed to the master, in time order, never overlapping.
     pending: Vec<Slot>,
+    /// When the last device byte put on the wire ends.
+    devices_quiet_from: Duration,
     /// When the master's UART has sent everything it was given.
     master_free_at: Duration,
     run: Option<Run>,
@@ -119,9 +121,18 @@ impl Wire {
                 start,
                 end: start,
                 line,
-                spoiled: false,
+                // A request that starts before the line has been quiet for a frame gap after a
+                // device's bytes is, to every device that heard them, their continuation.
+                spoiled: start < self.devices_quiet_from + frame_gap(&settings)
+                    && start >= self.devices_quiet_from.saturating_sub(ROUNDING)
+                    && !self.devices_quiet_from.is_zero(),
             },
         };
+        if run.spoiled && run.bytes.is_empty() {
+            tracing::debug!(
+                "sim: a request less than 3.5 characters after a reply: nobody answers"
+            );
+        }
         for (index, &byte) in bytes.iter().enumerate() {
             // Wire time from the frame's start, not a sum of rounded character times.
             let byte_start = start + settings.wire_time(index);
@@ -190,6 +201,7 @@ impl Wire {
                     char_time: burst.char_time,
                     byte,
                 };
+                self.devices_quiet_from = self.devices_quiet_from.max(slot.end());
                 let mut merged = false;
                 for other in self
                     .pending

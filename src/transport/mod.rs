@@ -123,10 +123,14 @@ impl Transport {
                 LinkConfig::tcp(Framing::ModbusTcp),
             ),
         };
+        let mut exchange = Exchange::new(config);
+        // Whatever used the line before this handle (this port at other settings, another
+        // process) may have just finished: the first request keeps the frame gap too.
+        exchange.line_was_busy(Duration::ZERO);
         Ok(Self {
             name,
             link,
-            exchange: Exchange::new(config),
+            exchange,
             epoch: Instant::now(),
         })
     }
@@ -217,6 +221,8 @@ impl Transport {
     /// size, until its first-byte timeout or a silence; every decision is the
     /// [`RawTransfer`]'s. Only a broken port or connection is an error.
     pub async fn transfer_raw(&mut self, request: &RawRequest) -> Result<Vec<u8>, TransportError> {
+        // The same silence before it as before any request.
+        tokio::time::sleep_until(self.epoch + self.exchange.transmit_at()).await;
         let mut transfer = RawTransfer::new(request.clone(), *self.exchange.config());
         let mut buffer = [0u8; 512];
         loop {

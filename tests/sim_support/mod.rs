@@ -118,6 +118,11 @@ impl Drop for SimProcess {
 /// The daemon's end of the pty.
 pub struct MasterPort {
     file: File,
+    line: LineSettings,
+    /// When bytes were last read: a request keeps 3.5 characters of silence after them, as
+    /// any RTU master must (the simulator's devices take a request sooner for the end of the
+    /// frame they heard).
+    last_read: Option<Instant>,
 }
 
 fn baud(baud: u32) -> BaudRate {
@@ -141,12 +146,17 @@ impl MasterPort {
             .custom_flags(nix::libc::O_NOCTTY | nix::libc::O_NONBLOCK)
             .open(path)
             .unwrap();
-        let mut port = Self { file };
+        let mut port = Self {
+            file,
+            line,
+            last_read: None,
+        };
         port.set_line(line);
         port
     }
 
     pub fn set_line(&mut self, line: LineSettings) {
+        self.line = line;
         let mut settings = termios::tcgetattr(&self.file).unwrap();
         termios::cfmakeraw(&mut settings);
         let flags = &mut settings.control_flags;
@@ -182,6 +192,7 @@ impl MasterPort {
             match self.file.read(&mut buf) {
                 Ok(len) if len > 0 => {
                     let at = Instant::now();
+                    self.last_read = Some(at);
                     chunks.push((at, buf[..len].to_vec()));
                     all.extend_from_slice(&buf[..len]);
                     if done(&all) {
@@ -195,6 +206,11 @@ impl MasterPort {
     }
 
     pub fn send(&mut self, frame: &[u8]) {
+        // The RTU frame gap (a protocol rule, not a wait for anything).
+        if let Some(last_read) = self.last_read {
+            let quiet_from = last_read + rtu2mqtt::transport::exchange::frame_gap(&self.line);
+            std::thread::sleep(quiet_from.saturating_duration_since(Instant::now()));
+        }
         termios::tcflush(&self.file, FlushArg::TCIFLUSH).unwrap();
         self.file.write_all(frame).unwrap();
     }
