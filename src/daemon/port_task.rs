@@ -602,6 +602,7 @@ impl PortTask {
         let Endpoint::Serial { path, line } = &self.endpoint else {
             return Ok(());
         };
+        let busy_until = bus.transport.as_ref().and_then(Transport::line_busy_until);
         bus.transport = None;
         bus.away = None;
         let endpoint = Endpoint::Serial {
@@ -610,6 +611,7 @@ impl PortTask {
         };
         let mut transport = Transport::open(&endpoint).await?;
         transport.set_guard_interval(self.guard_interval);
+        transport.continues(busy_until);
         debug!(port = %self.plan_name, settings = %endpoint.name(), "port settings switched");
         bus.transport = Some(transport);
         bus.away = away;

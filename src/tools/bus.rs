@@ -79,6 +79,10 @@ pub struct ToolPort {
     /// Kept open so the original settings can be put back, even after a failed open.
     saved: Option<(File, Termios)>,
     current: Option<(LineSettings, Transport)>,
+    /// A transport was opened before: the next one continues from its line's last activity
+    /// (the first keeps the frame gap from its opening: another process may have just
+    /// finished with the port).
+    opened_once: bool,
     /// Added to every timeout: what a USB adapter and a loaded machine add to a reply's arrival.
     pub latency: Duration,
 }
@@ -115,6 +119,7 @@ impl ToolPort {
             path: path.to_owned(),
             saved: Some((file, original)),
             current: None,
+            opened_once: false,
             latency,
         })
     }
@@ -126,15 +131,23 @@ impl ToolPort {
     /// The transport at `line`, reopened when the setting changes.
     async fn at(&mut self, line: LineSettings) -> Result<&mut Transport, PortError> {
         if self.current.as_ref().map(|(l, _)| *l) != Some(line) {
+            let busy_until = self
+                .current
+                .as_ref()
+                .and_then(|(_, transport)| transport.line_busy_until());
             self.current = None;
             let endpoint = Endpoint::Serial {
                 path: self.path.clone(),
                 line,
             };
-            let transport = Transport::open(&endpoint).await.map_err(|err| match err {
+            let mut transport = Transport::open(&endpoint).await.map_err(|err| match err {
                 TransportError::Open { source, .. } => classify(&self.path, source),
                 other => PortError::Transport(other),
             })?;
+            if self.opened_once {
+                transport.continues(busy_until);
+            }
+            self.opened_once = true;
             self.current = Some((line, transport));
         }
         match &mut self.current {

@@ -260,9 +260,14 @@ impl Exchange {
     }
 
     /// When the line was last busy (the end of the last request on the wire or the last byte
-    /// read), if ever.
+    /// read), if known.
     pub fn line_busy_until(&self) -> Option<Duration> {
         self.line_busy_until
+    }
+
+    /// Sets when the line was last busy (`None`: long enough ago not to matter).
+    pub fn set_line_busy_until(&mut self, until: Option<Duration>) {
+        self.line_busy_until = until;
     }
 
     /// The request, once the guard interval since the line was last busy has passed.

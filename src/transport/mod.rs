@@ -144,6 +144,29 @@ impl Transport {
         &self.name
     }
 
+    /// When the line was last busy, for the handle that replaces this one.
+    pub fn line_busy_until(&self) -> Option<Instant> {
+        self.exchange
+            .line_busy_until()
+            .map(|busy| self.epoch + busy)
+    }
+
+    /// This handle replaces one of the same port (closed to reopen it at other settings) whose
+    /// line was last busy at `previous`: the frame gap counts from then rather than from this
+    /// handle's opening, so a switch after a quiet timeout costs no wait. Call it before the
+    /// first transaction.
+    pub fn continues(&mut self, previous: Option<Instant>) {
+        match previous {
+            Some(busy) => {
+                // Nothing has run on this handle yet: its clock may as well start then.
+                self.epoch = self.epoch.min(busy);
+                self.exchange
+                    .set_line_busy_until(Some(busy.saturating_duration_since(self.epoch)));
+            }
+            None => self.exchange.set_line_busy_until(None),
+        }
+    }
+
     /// The time on the exchange's clock.
     fn now(&self) -> Duration {
         self.epoch.elapsed()
