@@ -167,7 +167,7 @@ impl VirtualGateway {
                 // As `Transport::open` sets it for a serial port.
                 quiet_gap: (plan.settings.line.char_time() * 8).max(Duration::from_millis(20)),
                 guard_interval: plan.settings.guard_interval,
-                frame_gap: crate::transport::exchange::frame_gap(&plan.settings.line),
+                frame_gap: plan.settings.line.frame_gap(),
             }),
             scheduler: PortScheduler::new(plan.settings, plan.devices),
             models: Vec::new(),

@@ -79,6 +79,13 @@ impl LineSettings {
         self.bits_time(bytes.saturating_mul(u64::from(self.bits_per_char())))
     }
 
+    /// The silence between frames that devices and masters keep: 3.5 characters at every
+    /// baud rate (what Fast Modbus devices and wb-mqtt-serial use; see [`Self::frame_silence`]
+    /// for the Modbus spec's fixed 1.75 ms above 19200).
+    pub fn frame_gap(&self) -> Duration {
+        self.char_time().saturating_mul(7) / 2
+    }
+
     /// The silence that ends an RTU frame: 3.5 characters, fixed at 1.75 ms above 19200 baud.
     pub fn frame_silence(&self) -> Duration {
         if self.baud > 19200 {
@@ -159,14 +166,15 @@ impl LineSettings {
         }
     }
 
-    /// Wire time of one transaction: request, device turnaround, reply.
+    /// Wire time of one transaction: request, device turnaround, reply, and the frame gap a
+    /// master keeps before its next request.
     pub fn transaction_time(
         &self,
         request_len: usize,
         turnaround: Duration,
         reply_len: usize,
     ) -> Duration {
-        self.wire_time(request_len) + turnaround + self.wire_time(reply_len)
+        self.wire_time(request_len) + turnaround + self.wire_time(reply_len) + self.frame_gap()
     }
 }
 

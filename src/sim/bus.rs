@@ -21,7 +21,7 @@ use super::faults::{busy_exception, garbage, FaultAction, XorShift64};
 use super::line::{MasterLine, ReceivedRequest};
 pub use super::transmission::Transmission;
 use super::transmission::{collide, Burst, TimedFrame};
-use super::wire::{frame_gap, Wire};
+use super::wire::Wire;
 
 /// Who changed a register.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -304,7 +304,7 @@ impl Bus {
         Some(PlannedReply {
             device: index,
             frame,
-            start: received.end_on_wire(&line) + device.turnaround.max(frame_gap(&line)),
+            start: received.end_on_wire(&line) + device.turnaround.max(line.frame_gap()),
             line,
             after_arbitration: false,
         })

@@ -1020,7 +1020,7 @@ fn a_request_after_the_reply_is_answered_after_it() {
     let first_reply = arrivals_from(first_reply_start, FAST_LINE, &hex("14 03 02 00 14 B5 88"));
     assert_eq!(wire.arrivals(), first_reply);
     // Written 3.5 characters after the last reply byte arrived.
-    let second_at = first_reply.last().unwrap().0 + crate::sim::wire::frame_gap(&FAST_LINE);
+    let second_at = first_reply.last().unwrap().0 + FAST_LINE.frame_gap();
     let second = read_holding(241, 128, 1);
     assert!(!write(&mut wire, &mut bus, &second, second_at));
     let second_reply = arrivals_from(
@@ -1044,7 +1044,7 @@ fn a_request_right_behind_a_reply_is_its_continuation_to_the_devices() {
         Duration::ZERO
     ));
     let reply_end = wire.arrivals().last().unwrap().0;
-    let gap = crate::sim::wire::frame_gap(&FAST_LINE);
+    let gap = FAST_LINE.frame_gap();
     let too_soon = reply_end + gap - FAST_LINE.char_time();
     assert!(!write(
         &mut wire,

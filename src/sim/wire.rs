@@ -3,7 +3,7 @@
 //!
 //! - The master's UART sends what it is given back to back: bytes written while earlier ones are
 //!   still on the wire follow them without a gap.
-//! - Devices see a frame only after 3.5 characters of silence on the line ([`frame_gap`]). Master
+//! - Devices see a frame only after 3.5 characters of silence on the line ([`crate::protocol::LineSettings::frame_gap`]). Master
 //!   bytes that follow sooner belong to the same frame, so two requests written at once (or before
 //!   the first has ended) are one run of bytes that is not a frame: noise, nobody answers (as a
 //!   Modbus RTU slave that delimits frames by silence).
@@ -17,15 +17,10 @@
 use std::time::Duration;
 
 use crate::protocol::frame::MAX_FRAME_LEN;
-use crate::protocol::{LineSettings, ParseStatus, RequestParser};
+use crate::protocol::{ParseStatus, RequestParser};
 
 use super::line::{MasterLine, ReceivedRequest};
 use super::transmission::Transmission;
-
-/// The silence after which a device takes the bytes before it as a frame: 3.5 characters.
-pub fn frame_gap(line: &LineSettings) -> Duration {
-    line.char_time() * 7 / 2
-}
 
 /// Byte times are whole nanoseconds computed two ways (per character, per frame): bytes that
 /// touch within this much are back to back, not overlapping. A bit lasts 1 µs at 1 Mbaud.
@@ -123,7 +118,7 @@ impl Wire {
                 line,
                 // A request that starts before the line has been quiet for a frame gap after a
                 // device's bytes is, to every device that heard them, their continuation.
-                spoiled: start < self.devices_quiet_from + frame_gap(&settings)
+                spoiled: start < self.devices_quiet_from + settings.frame_gap()
                     && start >= self.devices_quiet_from.saturating_sub(ROUNDING)
                     && !self.devices_quiet_from.is_zero(),
             },
@@ -163,7 +158,7 @@ impl Wire {
     /// When the master's current run will have been followed by a frame gap.
     pub fn silence_deadline(&self) -> Option<Duration> {
         let run = self.run.as_ref()?;
-        Some(run.end + frame_gap(&run.line.settings()))
+        Some(run.end + run.line.settings().frame_gap())
     }
 
     /// Time has reached `now`: ends the master's run if its frame gap has passed and answers it.

@@ -83,7 +83,9 @@ impl LinkConfig {
             // (wb-mqtt-serial's default frame timeout).
             quiet_gap: (line.char_time() * 8).max(Duration::from_millis(20)),
             guard_interval: Duration::ZERO,
-            frame_gap: frame_gap(&line),
+            // The RTU frame delimiter, counted from when the last bytes were read (the only
+            // time known to be after they crossed the wire).
+            frame_gap: line.frame_gap(),
         }
     }
 
@@ -98,16 +100,6 @@ impl LinkConfig {
             frame_gap: Duration::ZERO,
         }
     }
-}
-
-/// The silence before a request on a serial line: 3.5 characters, as wb-mqtt-serial keeps and
-/// Fast Modbus devices expect (they open their arbitration 3.5 characters or 800 µs after a
-/// request). Not the fixed 1.75 ms the Modbus spec suggests above 19200 baud for slaves' timers:
-/// at 115200 that is 15 characters more per transaction, a tenth of the bus. Counted from when
-/// the reply's last bytes were read, the only time known to be after they crossed the wire
-/// (a reply read in one go may have ended any time before).
-pub fn frame_gap(line: &LineSettings) -> Duration {
-    line.char_time().saturating_mul(7) / 2
 }
 
 /// A request to put on the line.
@@ -1258,7 +1250,7 @@ mod tests {
     fn the_next_request_keeps_a_frame_gap_after_the_reply() {
         for baud in [9600, 115_200] {
             let line = line(baud);
-            let gap = frame_gap(&line);
+            let gap = line.frame_gap();
             let transaction = transaction(&line, read_request());
             // Read as it came or in one go: the next request waits 3.5 characters after the
             // reply's last bytes were read.

@@ -208,7 +208,7 @@ impl MasterPort {
     pub fn send(&mut self, frame: &[u8]) {
         // The RTU frame gap (a protocol rule, not a wait for anything).
         if let Some(last_read) = self.last_read {
-            let quiet_from = last_read + rtu2mqtt::transport::exchange::frame_gap(&self.line);
+            let quiet_from = last_read + self.line.frame_gap();
             std::thread::sleep(quiet_from.saturating_duration_since(Instant::now()));
         }
         termios::tcflush(&self.file, FlushArg::TCIFLUSH).unwrap();
