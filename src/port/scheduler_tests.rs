@@ -61,6 +61,15 @@ impl Log {
             .collect()
     }
 
+    /// When each 0x18 request went out.
+    fn event_setups(&self) -> Vec<Duration> {
+        self.sent
+            .iter()
+            .filter(|(_, r)| is_event_setup(r))
+            .map(|(at, _)| *at)
+            .collect()
+    }
+
     fn classic_to(&self, address: u8) -> Vec<(Duration, RequestPdu)> {
         self.sent
             .iter()
@@ -387,6 +396,30 @@ fn an_event_packet_is_acknowledged_in_the_next_request() {
         }));
 }
 
+/// A healthy bus where device `address` reports a reboot in answer to the `nth` event poll.
+fn reboot_reported_at_poll(
+    nth: usize,
+    address: u8,
+) -> impl FnMut(Duration, &Request) -> TransactionOutcome {
+    let mut polls = 0;
+    move |_, request| match &request.body {
+        RequestBody::Fast(FastRequest::PollEvents(_)) => {
+            polls += 1;
+            if polls == nth {
+                let packet = EventPacket {
+                    flag: 0,
+                    event_count: 1,
+                    events: vec![Event::reboot()],
+                };
+                TransactionOutcome::Reply(Reply::fast(address, FastReply::Events(packet)))
+            } else {
+                healthy(request)
+            }
+        }
+        _ => healthy(request),
+    }
+}
+
 #[test]
 fn a_reboot_event_brings_setup_event_setup_and_a_fresh_read() {
     let mut plan = device(20, vec![read(RegisterType::Coil, 0, EventMode::Sporadic)]);
@@ -396,28 +429,12 @@ fn a_reboot_event_brings_setup_event_setup_and_a_fresh_read() {
     }];
     let mut scheduler = PortScheduler::new(settings(115_200), vec![plan]);
     let mut log = Log::default();
-    let mut polls = 0;
     run(
         &mut scheduler,
         &mut log,
         Duration::ZERO,
         ms(500),
-        |_, request| match &request.body {
-            RequestBody::Fast(FastRequest::PollEvents(_)) => {
-                polls += 1;
-                if polls == 3 {
-                    let packet = EventPacket {
-                        flag: 0,
-                        event_count: 1,
-                        events: vec![Event::reboot()],
-                    };
-                    TransactionOutcome::Reply(Reply::fast(20, FastReply::Events(packet)))
-                } else {
-                    healthy(request)
-                }
-            }
-            _ => healthy(request),
-        },
+        reboot_reported_at_poll(3, 20),
     );
     let kinds: Vec<&str> = log
         .sent
@@ -1848,12 +1865,7 @@ fn at_start_up_every_device_is_set_up_before_the_first_event_poll() {
         ms(1_000),
         |_, request| healthy(request),
     );
-    let setups: Vec<Duration> = log
-        .sent
-        .iter()
-        .filter(|(_, r)| is_event_setup(r))
-        .map(|(at, _)| *at)
-        .collect();
+    let setups = log.event_setups();
     let polls = log.event_polls();
     assert_eq!(setups.len(), 24);
     let last_setup = *setups.last().unwrap();
@@ -1927,35 +1939,14 @@ fn a_reboot_after_start_up_is_set_up_between_event_polls() {
         .collect();
     let mut scheduler = PortScheduler::new(settings(115_200), plans);
     let mut log = Log::default();
-    let mut polls = 0;
     run(
         &mut scheduler,
         &mut log,
         Duration::ZERO,
         ms(1_000),
-        |_, request| match &request.body {
-            RequestBody::Fast(FastRequest::PollEvents(_)) => {
-                polls += 1;
-                if polls == 5 {
-                    let packet = EventPacket {
-                        flag: 0,
-                        event_count: 1,
-                        events: vec![Event::reboot()],
-                    };
-                    TransactionOutcome::Reply(Reply::fast(2, FastReply::Events(packet)))
-                } else {
-                    healthy(request)
-                }
-            }
-            _ => healthy(request),
-        },
+        reboot_reported_at_poll(5, 2),
     );
-    let setups: Vec<Duration> = log
-        .sent
-        .iter()
-        .filter(|(_, r)| is_event_setup(r))
-        .map(|(at, _)| *at)
-        .collect();
+    let setups = log.event_setups();
     assert_eq!(setups.len(), 3, "two at start-up, one after the reboot");
     let polls: Vec<Duration> = log.event_polls().iter().map(|(at, _)| *at).collect();
     assert!(polls.iter().any(|&at| at < setups[2]));
