@@ -1887,17 +1887,21 @@ fn at_start_up_every_device_is_set_up_before_the_first_event_poll() {
     assert!(max_gap(&after) <= ms(51), "{:?}", max_gap(&after));
 }
 
-#[test]
-fn a_device_silent_at_start_up_holds_the_first_event_poll_for_one_try_only() {
-    let plans: Vec<DevicePlan> = (1..=4)
+/// Devices 1..=`count`, each with one coil that sends events.
+fn coil_event_devices(count: u8) -> Vec<DevicePlan> {
+    (1..=count)
         .map(|address| {
             device(
                 address,
                 vec![read(RegisterType::Coil, 0, EventMode::Sporadic)],
             )
         })
-        .collect();
-    let mut scheduler = PortScheduler::new(settings(115_200), plans);
+        .collect()
+}
+
+#[test]
+fn a_device_silent_at_start_up_holds_the_first_event_poll_for_one_try_only() {
+    let mut scheduler = PortScheduler::new(settings(115_200), coil_event_devices(4));
     let mut log = Log::default();
     run(
         &mut scheduler,
@@ -1929,15 +1933,7 @@ fn a_device_silent_at_start_up_holds_the_first_event_poll_for_one_try_only() {
 
 #[test]
 fn a_reboot_after_start_up_is_set_up_between_event_polls() {
-    let plans: Vec<DevicePlan> = (1..=2)
-        .map(|address| {
-            device(
-                address,
-                vec![read(RegisterType::Coil, 0, EventMode::Sporadic)],
-            )
-        })
-        .collect();
-    let mut scheduler = PortScheduler::new(settings(115_200), plans);
+    let mut scheduler = PortScheduler::new(settings(115_200), coil_event_devices(2));
     let mut log = Log::default();
     run(
         &mut scheduler,
