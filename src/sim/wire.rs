@@ -73,8 +73,8 @@ pub struct MasterWrite {
 pub struct Wire {
     /// Device bytes not yet handed to the master, in time order, never overlapping.
     pending: Vec<Slot>,
-    /// When the last device byte put on the wire ends.
-    devices_quiet_from: Duration,
+    /// When the last device byte put on the wire ends (`None`: no device has sent yet).
+    devices_quiet_from: Option<Duration>,
     /// When the master's UART has sent everything it was given.
     master_free_at: Duration,
     run: Option<Run>,
@@ -118,9 +118,11 @@ impl Wire {
                 line,
                 // A request that starts before the line has been quiet for a frame gap after a
                 // device's bytes is, to every device that heard them, their continuation.
-                spoiled: start < self.devices_quiet_from + settings.frame_gap()
-                    && start >= self.devices_quiet_from.saturating_sub(ROUNDING)
-                    && !self.devices_quiet_from.is_zero(),
+                // (One that starts before the latest device byte ends collides with it below, or
+                // precedes it: a late reply still to come is not silence to keep.)
+                spoiled: self.devices_quiet_from.is_some_and(|quiet| {
+                    start >= quiet.saturating_sub(ROUNDING) && start < quiet + settings.frame_gap()
+                }),
             },
         };
         if run.spoiled && run.bytes.is_empty() {
@@ -196,7 +198,10 @@ impl Wire {
                     char_time: burst.char_time,
                     byte,
                 };
-                self.devices_quiet_from = self.devices_quiet_from.max(slot.end());
+                self.devices_quiet_from = Some(
+                    self.devices_quiet_from
+                        .map_or(slot.end(), |quiet| quiet.max(slot.end())),
+                );
                 let mut merged = false;
                 for other in self
                     .pending

@@ -79,10 +79,6 @@ pub struct ToolPort {
     /// Kept open so the original settings can be put back, even after a failed open.
     saved: Option<(File, Termios)>,
     current: Option<(LineSettings, Transport)>,
-    /// A transport was opened before: the next one continues from its line's last activity
-    /// (the first keeps the frame gap from its opening: another process may have just
-    /// finished with the port).
-    opened_once: bool,
     /// Added to every timeout: what a USB adapter and a loaded machine add to a reply's arrival.
     pub latency: Duration,
 }
@@ -119,7 +115,6 @@ impl ToolPort {
             path: path.to_owned(),
             saved: Some((file, original)),
             current: None,
-            opened_once: false,
             latency,
         })
     }
@@ -144,10 +139,7 @@ impl ToolPort {
                 TransportError::Open { source, .. } => classify(&self.path, source),
                 other => PortError::Transport(other),
             })?;
-            if self.opened_once {
-                transport.continues(busy_until);
-            }
-            self.opened_once = true;
+            transport.continues(busy_until);
             self.current = Some((line, transport));
         }
         match &mut self.current {

@@ -153,17 +153,15 @@ impl Transport {
 
     /// This handle replaces one of the same port (closed to reopen it at other settings) whose
     /// line was last busy at `previous`: the frame gap counts from then rather than from this
-    /// handle's opening, so a switch after a quiet timeout costs no wait. Call it before the
-    /// first transaction.
+    /// handle's opening, so a switch after a quiet timeout costs no wait. With no previous
+    /// handle (`None`) the gap still counts from the opening. Call it before the first
+    /// transaction.
     pub fn continues(&mut self, previous: Option<Instant>) {
-        match previous {
-            Some(busy) => {
-                // Nothing has run on this handle yet: its clock may as well start then.
-                self.epoch = self.epoch.min(busy);
-                self.exchange
-                    .set_line_busy_until(Some(busy.saturating_duration_since(self.epoch)));
-            }
-            None => self.exchange.set_line_busy_until(None),
+        if let Some(busy) = previous {
+            // Nothing has run on this handle yet: its clock may as well start then.
+            self.epoch = self.epoch.min(busy);
+            self.exchange
+                .set_line_busy_until(Some(busy.saturating_duration_since(self.epoch)));
         }
     }
 
