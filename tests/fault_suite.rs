@@ -9,7 +9,7 @@
 //! --nocapture` runs the long variants (5 minutes of noise, a 30-minute soak) and prints the
 //! figures docs/reliability.md records.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 use std::time::{Duration, Instant};
 
 use rtu2mqtt::bench::harness::{
@@ -981,6 +981,31 @@ fn setup_writes(run: &Run, address: u8) -> Vec<u64> {
         .collect()
 }
 
+/// For a failure message: the reboot rounds and every change of the setup register of the
+/// devices in `missing`, on one clock.
+fn setup_register_history(
+    run: &Run,
+    rounds: &BTreeMap<u8, Vec<Vec<u64>>>,
+    missing: &[(u8, u64)],
+) -> String {
+    let mut lines = Vec::new();
+    for address in missing.iter().map(|&(a, _)| a).collect::<BTreeSet<u8>>() {
+        lines.push(format!(
+            "device {address}: reboot rounds (mono ns) {:?}",
+            rounds.get(&address)
+        ));
+        for change in run.changes().iter().filter(|c| {
+            c.address == address && c.register_type == "holding" && c.register == SETUP_REGISTER
+        }) {
+            lines.push(format!(
+                "  {} {} -> {}",
+                change.mono_ns, change.origin, change.value
+            ));
+        }
+    }
+    lines.join("\n")
+}
+
 /// Reboot rounds (the times of one device's reboots in a round) not followed by a setup write
 /// after the round's last reboot and before the next round began: which device, when.
 fn reboots_without_setup(run: &Run, rounds: &BTreeMap<u8, Vec<Vec<u64>>>) -> Vec<(u8, u64)> {
@@ -1095,7 +1120,8 @@ fn reboot_storm_rewrites_the_setup_every_time_and_publishes_nothing_wrong() {
     let missing = reboots_without_setup(&run, &reboots);
     assert!(
         missing.is_empty(),
-        "reboots not followed by a setup write: {missing:?}\n{}",
+        "reboots not followed by a setup write: {missing:?}\n{}\n{}",
+        setup_register_history(&run, &reboots, &missing),
         run.log_tail()
     );
     let checked = run.assert_no_bad_value(since, "reboot storm");

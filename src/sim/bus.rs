@@ -59,6 +59,9 @@ pub struct Bus {
     changes: Vec<RegisterChange>,
     stats: BusStats,
     link: LinkState,
+    /// When the outside world (the control interface, a script) last acted on or looked at
+    /// the bus: see [`Bus::outside_acts`].
+    outside_acted_at: Duration,
 }
 
 /// Whether the master's links (the pty, TCP connections) are there: the `link_down`,
@@ -107,6 +110,7 @@ impl Bus {
                 up: true,
                 generation: 0,
             },
+            outside_acted_at: Duration::ZERO,
         }
     }
 
@@ -142,6 +146,15 @@ impl Bus {
         std::mem::take(&mut self.changes)
     }
 
+    /// The outside world (a control command, a script step) acts on the bus at `now`. A request
+    /// is stamped when its bytes were read, but handled once the reading thread has the bus:
+    /// a command in between came first in the devices' history, so what the request changes
+    /// is stamped after the command. Otherwise a write read before a `set` and
+    /// handled after it would be logged before the `set` while its value is the one that stayed.
+    pub fn outside_acts(&mut self, now: Duration) {
+        self.outside_acted_at = self.outside_acted_at.max(now);
+    }
+
     /// Writes registers of device `index` from outside the bus (control interface, script).
     pub fn write_register(
         &mut self,
@@ -169,6 +182,14 @@ impl Bus {
     ) {
         let Some(device) = self.devices.get(index) else {
             return;
+        };
+        // Strictly after: the log is sorted by time, and its lines of two threads may swap.
+        let at = match origin {
+            ChangeOrigin::Master if at <= self.outside_acted_at => {
+                self.outside_acted_at + Duration::from_nanos(1)
+            }
+            ChangeOrigin::Master => at,
+            ChangeOrigin::Control => at,
         };
         for change in changes {
             self.changes.push(RegisterChange {

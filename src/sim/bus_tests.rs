@@ -919,6 +919,36 @@ fn register_changes_are_recorded() {
     assert!(bus.take_changes().is_empty());
 }
 
+/// A request read before a control command but handled after it (the reading thread waited
+/// for the bus): its change comes after the command's in the log, as in the devices' history.
+#[test]
+fn a_request_handled_after_a_control_command_is_logged_after_it() {
+    let mut bus = seed_bus();
+    let control_at = Duration::from_millis(10);
+    crate::sim::control::execute_line(
+        &mut bus,
+        control_at,
+        r#"{"cmd":"set","device":20,"type":"coil","address":0,"value":0}"#,
+    );
+    let write = Request::classic(
+        20,
+        RequestPdu::WriteSingleCoil {
+            address: 0,
+            value: true,
+        },
+    );
+    let read_at = Duration::from_millis(5);
+    bus.exchange(&write.encode().unwrap(), master(), read_at);
+    let changes = bus.take_changes();
+    assert_eq!(changes.len(), 1, "{changes:?}");
+    assert_eq!(changes[0].origin, super::ChangeOrigin::Master);
+    assert!(changes[0].at > control_at, "{changes:?}");
+    // A control change keeps its own time.
+    bus.write_register(0, RegisterType::Coil, 0, &[0], Duration::from_millis(1))
+        .unwrap();
+    assert_eq!(bus.take_changes()[0].at, Duration::from_millis(1));
+}
+
 #[test]
 fn garbage_never_panics_and_a_corrupt_frame_gets_no_answer() {
     let mut bus = seed_bus();

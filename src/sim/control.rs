@@ -84,6 +84,7 @@ pub fn execute_line(bus: &mut Bus, now: Duration, line: &str) -> ControlReply {
 }
 
 pub fn execute(bus: &mut Bus, now: Duration, command: &ControlCommand) -> ControlReply {
+    bus.outside_acts(now);
     let watch = command.cmd == "watch";
     let mut reply = match run(bus, now, command) {
         Ok(Value::Object(mut fields)) => {
