@@ -68,6 +68,9 @@ pub struct DeadRetryBudget {
 /// back within 2 s). The bucket still bounds what such retries take over time.
 pub const DEAD_RETRY_SPACING_CAP: Duration = Duration::from_secs(1);
 
+/// A retry of a device that seems dead watches for a late reply once in this many.
+pub const DEAD_LATE_WATCH_EVERY: u32 = 4;
+
 /// The share of bus time that retries of dead devices may take.
 pub const DEAD_RETRY_SHARE_PERCENT: u32 = 10;
 /// The bucket holds the share of this much time.
@@ -202,6 +205,21 @@ impl DeviceHealth {
     /// loss (the common case on a noisy line), not a device that became slow or died.
     pub fn answered_last(&self) -> bool {
         self.state == State::Online && self.failures == 0
+    }
+
+    /// Whether the line is watched for a late reply after this device's request times out (the
+    /// scheduler's `classic_transaction`: a late reply teaches a longer response time, and the
+    /// bus carries nothing meanwhile). Not after an isolated loss: the device answered its last
+    /// request. Only on every [`DEAD_LATE_WATCH_EVERY`]th retry of a device that seems dead: a
+    /// dead device's retry already holds every event poll for its response timeout, and the
+    /// window would double that on every retry; a device that only became slow is still
+    /// learned within a few retries.
+    pub fn watches_late_reply(&self) -> bool {
+        match self.state {
+            State::Online => self.failures > 0,
+            State::Offline { alive: false, .. } => self.failures % DEAD_LATE_WATCH_EVERY == 0,
+            State::Unknown | State::Offline { alive: true, .. } => true,
+        }
     }
 
     /// Keeps a device that just failed quiet `by` longer: what its transaction saved by not

@@ -595,7 +595,7 @@ impl PortScheduler {
         // The late window this transaction went without (see `classic_transaction`).
         let late_window_skipped = device
             .and_then(|d| self.devices.get(d))
-            .is_some_and(|d| d.health.answered_last());
+            .is_some_and(|d| !d.health.watches_late_reply());
         if let Some(device) = device {
             self.learn_response_time(now, device, &outcome, timing);
             // Silence through the timeout and the late window (watched: it failed its last
@@ -645,7 +645,7 @@ impl PortScheduler {
             device.and_then(|d| self.devices.get_mut(d)),
         ) {
             if !state.health.answered_last() {
-                // It failed: its next request waits as long as if the window had been watched,
+                // It failed (a loss after an answer, or a retry of a device that seems dead): its next request waits as long as if the window had been watched,
                 // the window counted at the device's configured timeout. What it learned above
                 // that came from its own late replies (`ResponseTimer::answered_late` raises the
                 // timeout to 1.5 × the lateness seen and at least twice the timeout missed): the
@@ -714,9 +714,15 @@ impl PortScheduler {
     }
 
     /// What a retry of a device that seems dead may cost: its whole response timeout and the
-    /// late window after it (see `classic_transaction`).
+    /// late window after it when that is watched (see `classic_transaction`).
     fn dead_retry_cost(&self, device: &DeviceState, now: Duration) -> Duration {
-        self.settings.line.wire_time(8) + device.response.timeout(now).saturating_mul(2)
+        let timeout = device.response.timeout(now);
+        let late_window = if device.health.watches_late_reply() {
+            timeout
+        } else {
+            Duration::ZERO
+        };
+        self.settings.line.wire_time(8) + timeout + late_window
     }
 
     /// The port cannot be opened (or was lost) since `since`: devices not heard from for their
@@ -777,16 +783,17 @@ impl PortScheduler {
         // as long as before (its holdoff grows by the window skipped, see `complete_timed`), and
         // its late reply can only land in another device's window, where its address gives it
         // away. A second failure in a row gets the window back, so a device that became slow is
-        // learned at its next request.
-        let late_window = if device.health.answered_last() {
-            Duration::ZERO
-        } else {
+        // learned at its next request; a device that seems dead watches it on one retry in a
+        // few (`DeviceHealth::watches_late_reply`).
+        let late_window = if device.health.watches_late_reply() {
             response_timeout
+        } else {
+            Duration::ZERO
         };
         let request_time = line.wire_time(request_len);
         let estimated = if device.health.is_offline() {
-            // A dead device costs its whole timeout and the late window after it.
-            request_time + response_timeout * 2
+            // An offline device costs its whole timeout and the late window after it.
+            request_time + response_timeout + late_window
         } else {
             line.transaction_time(request_len, self.settings.turnaround, reply_len)
         };
