@@ -62,7 +62,7 @@ pub fn serve(
             None => wire.on_silence(runtime.clock.now(), respond),
         };
         if changed {
-            pacer.replace(&wire.arrivals());
+            pacer.replace(&wire.received());
         }
     }
     Ok(())

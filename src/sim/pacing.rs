@@ -1,9 +1,14 @@
-//! Sends scheduled bytes at their time, on a dedicated thread: a byte is handed to the master
-//! when its stop bit would end on a real wire, or up to [`RX_HOLD`] later together with the bytes
-//! that followed it, as a UART's receive FIFO hands bytes over in batches. Waking once per byte
-//! cost a context switch per byte (most of the simulator's CPU, see docs/sim.md). Without
-//! real-time priority it sleeps while more than [`SPIN_THRESHOLD`] remains, then spins: ordinary
-//! sleeps overshoot by 50–100 µs. With it, sleeps wake within a few µs and it never spins.
+//! Hands the devices' bytes to the master as a UART with a receive FIFO does, on a dedicated
+//! thread. A 16550-compatible UART (the controllers' own ports, most PC serial cards) raises its
+//! receive interrupt when [`RX_TRIGGER`] bytes are in the FIFO, and otherwise once the line has
+//! been quiet for [`RX_TIMEOUT_CHARS`] character times with bytes still in it: the last bytes of
+//! every frame reach the reader that long after their stop bit. A master that reads a reply and
+//! writes its next request at once therefore keeps the 3.5-character frame gap on real hardware
+//! without trying, and does here too (a hand-over at the stop bit would make such a master talk
+//! into the devices' frame silence, which real ports never do). Waking once per byte cost a
+//! context switch per byte (most of the simulator's CPU, see docs/sim.md). Without real-time
+//! priority it sleeps while more than [`SPIN_THRESHOLD`] remains, then spins: ordinary sleeps
+//! overshoot by 50–100 µs. With it, sleeps wake within a few µs and it never spins.
 
 use std::collections::VecDeque;
 use std::io;
@@ -11,7 +16,6 @@ use std::sync::{Arc, Condvar, Mutex, MutexGuard, PoisonError};
 use std::thread::JoinHandle;
 use std::time::Duration;
 
-use super::bus::Transmission;
 use super::runtime::Clock;
 
 /// Below this much time left, spin instead of sleeping (normal scheduling: sleeps overshoot).
@@ -22,19 +26,58 @@ const SLEEP_MARGIN: Duration = Duration::from_micros(150);
 /// kernel's tty work and to the reader on the other side.
 const REALTIME_SPIN_THRESHOLD: Duration = Duration::ZERO;
 const REALTIME_SLEEP_MARGIN: Duration = Duration::ZERO;
-/// How long a byte may wait for the next ones before it is handed over (2.6 characters at
-/// 115200, a quarter of one at 9600): one wake-up then delivers several bytes at high rates.
-pub const RX_HOLD: Duration = Duration::from_micros(250);
+/// The receive FIFO's trigger level: Linux sets a 16550A's to 8 bytes.
+pub const RX_TRIGGER: usize = 8;
+/// A 16550's character timeout: bytes below the trigger level are handed over once no byte has
+/// come for 4 character times.
+pub const RX_TIMEOUT_CHARS: u32 = 4;
 
 pub type ByteWriter = Box<dyn FnMut(&[u8]) -> io::Result<()> + Send>;
 
+/// One byte of the devices as the master's UART receives it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Arrival {
+    /// When its stop bit ends.
+    pub at: Duration,
+    pub byte: u8,
+    /// One character on the wire (the receive timeout counts in these).
+    pub char_time: Duration,
+}
+
+/// When the receiver hands the first bytes of `arrivals` (in time order) over, and how many:
+/// at the arrival of the [`RX_TRIGGER`]th, or [`RX_TIMEOUT_CHARS`] character times after the
+/// last one when no byte follows by then. `None` for no bytes.
+pub fn hand_over(arrivals: impl IntoIterator<Item = Arrival>) -> Option<(Duration, usize)> {
+    let mut arrivals = arrivals.into_iter().peekable();
+    let mut count = 0;
+    while let Some(arrival) = arrivals.next() {
+        count += 1;
+        if count == RX_TRIGGER {
+            return Some((arrival.at, count));
+        }
+        let quiet_at = arrival.at + arrival.char_time * RX_TIMEOUT_CHARS;
+        match arrivals.peek() {
+            Some(next) if next.at <= quiet_at => {}
+            _ => return Some((quiet_at, count)),
+        }
+    }
+    None
+}
+
 #[derive(Default)]
 struct Queue {
-    /// (when the byte has arrived at the master, byte), in time order.
-    bytes: VecDeque<(Duration, u8)>,
+    /// In time order.
+    bytes: VecDeque<Arrival>,
     /// Arrival time of the last byte taken for writing.
     sent_through: Option<Duration>,
     closed: bool,
+}
+
+impl Queue {
+    /// The next hand-over, with the adapter's delay added.
+    fn next_hand_over(&self, delivery_delay: Duration) -> Option<(Duration, usize)> {
+        hand_over(self.bytes.iter().copied()).map(|(at, count)| (at + delivery_delay, count))
+    }
 }
 
 /// A queue of timed bytes and the thread that writes them.
@@ -42,8 +85,8 @@ pub struct Pacer {
     queue: Mutex<Queue>,
     wake: Condvar,
     clock: Clock,
-    /// Added to every byte's arrival: what a USB adapter adds between the wire and the master
-    /// (an FTDI chip's latency timer is 16 ms by default).
+    /// Added to every hand-over: what a USB adapter adds between its UART and the master (an
+    /// FTDI chip's latency timer is 16 ms by default).
     delivery_delay: Duration,
 }
 
@@ -78,31 +121,17 @@ impl Pacer {
         Ok((pacer, handle))
     }
 
-    /// Queues every byte of `transmission` at its arrival time.
-    pub fn schedule(&self, transmission: &Transmission) {
-        let mut queue = lock(&self.queue);
-        for (at, byte) in transmission.arrivals() {
-            let at = at + self.delivery_delay;
-            let position = queue.bytes.partition_point(|&(t, _)| t <= at);
-            queue.bytes.insert(position, (at, byte));
-        }
-        drop(queue);
-        self.wake.notify_all();
-    }
-
     /// Replaces everything queued by `arrivals` (in time order): the wire's whole pending
     /// schedule, changed by a new reply or a collision. Bytes at or before the last one already
     /// written are not sent again.
-    pub fn replace(&self, arrivals: &[(Duration, u8)]) {
+    pub fn replace(&self, arrivals: &[Arrival]) {
         let mut queue = lock(&self.queue);
         let sent_through = queue.sent_through;
         queue.bytes.clear();
-        let delay = self.delivery_delay;
         queue.bytes.extend(
             arrivals
                 .iter()
-                .map(|&(at, byte)| (at + delay, byte))
-                .filter(|&(at, _)| sent_through.is_none_or(|sent| at > sent)),
+                .filter(|arrival| sent_through.is_none_or(|sent| arrival.at > sent)),
         );
         drop(queue);
         self.wake.notify_all();
@@ -130,21 +159,24 @@ impl Pacer {
             }
             let now = self.clock.now();
             let mut queue = lock(&self.queue);
-            let first_due = queue.bytes.front().map(|&(at, _)| at);
-            while let Some(&(at, byte)) = queue.bytes.front() {
-                if at > now {
+            // The schedule may have changed meanwhile (a collision): hand over what is due now.
+            let Some((at, count)) = queue
+                .next_hand_over(self.delivery_delay)
+                .filter(|&(at, _)| at <= now)
+            else {
+                continue;
+            };
+            for _ in 0..count {
+                let Some(arrival) = queue.bytes.pop_front() else {
                     break;
-                }
-                due.push(byte);
-                queue.bytes.pop_front();
-                queue.sent_through = Some(at);
+                };
+                due.push(arrival.byte);
+                queue.sent_through = Some(arrival.at);
             }
             drop(queue);
             let written = writer(&due);
-            // The simulator's own timing error (`stats`): how late the first due byte left.
-            if let Some(at) = first_due.filter(|_| !due.is_empty()) {
-                super::runtime::PACING_ERROR.record(self.clock.now().saturating_sub(at));
-            }
+            // The simulator's own timing error (`stats`): how late the hand-over was.
+            super::runtime::PACING_ERROR.record(self.clock.now().saturating_sub(at));
             if let Err(err) = written {
                 tracing::debug!("sim: pacer write failed: {err}");
                 if err.kind() != io::ErrorKind::WouldBlock {
@@ -156,7 +188,7 @@ impl Pacer {
         }
     }
 
-    /// Sleeps until the next byte is less than the spin threshold away; None once closed.
+    /// Sleeps until the next hand-over is less than the spin threshold away; None once closed.
     fn wait_for_next(
         &self,
         (spin_threshold, sleep_margin): (Duration, Duration),
@@ -166,13 +198,12 @@ impl Pacer {
             if queue.closed {
                 return None;
             }
-            let timeout = match queue.bytes.front() {
+            let timeout = match queue.next_hand_over(self.delivery_delay) {
                 None => Duration::from_millis(100),
-                Some(&(at, _)) => {
-                    let hand_over = at + RX_HOLD;
-                    let left = hand_over.saturating_sub(self.clock.now());
+                Some((at, _)) => {
+                    let left = at.saturating_sub(self.clock.now());
                     if left <= spin_threshold {
-                        return Some(hand_over);
+                        return Some(at);
                     }
                     left - sleep_margin
                 }
@@ -204,4 +235,50 @@ pub fn raise_to_realtime() -> bool {
         );
     }
     result == 0
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn us(n: u64) -> Duration {
+        Duration::from_micros(n)
+    }
+
+    /// `count` bytes back to back from `start`, 100 µs each.
+    fn frame(start: u64, count: u64) -> Vec<Arrival> {
+        (1..=count)
+            .map(|i| Arrival {
+                at: us(start + 100 * i),
+                byte: i as u8,
+                char_time: us(100),
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_short_frame_is_handed_over_four_characters_after_its_last_byte() {
+        assert_eq!(hand_over(frame(0, 5)), Some((us(500 + 400), 5)));
+        assert_eq!(hand_over(Vec::new()), None);
+    }
+
+    #[test]
+    fn a_long_frame_goes_in_trigger_level_batches_then_its_tail() {
+        let bytes = frame(0, 19);
+        assert_eq!(hand_over(bytes.clone()), Some((us(800), 8)));
+        assert_eq!(hand_over(bytes[8..].to_vec()), Some((us(1600), 8)));
+        assert_eq!(hand_over(bytes[16..].to_vec()), Some((us(1900 + 400), 3)));
+    }
+
+    #[test]
+    fn a_pause_shorter_than_the_timeout_keeps_the_bytes_together() {
+        // Arbitration fillers a window apart, then the winner's frame.
+        let mut bytes = frame(0, 2);
+        bytes.extend(frame(500, 2));
+        assert_eq!(hand_over(bytes.clone()), Some((us(700 + 400), 4)));
+        // A pause of more than 4 characters: the first bytes go at its timeout.
+        let mut bytes = frame(0, 2);
+        bytes.extend(frame(700, 2));
+        assert_eq!(hand_over(bytes), Some((us(200 + 400), 2)));
+    }
 }

@@ -20,6 +20,7 @@ use crate::protocol::frame::MAX_FRAME_LEN;
 use crate::protocol::{ParseStatus, RequestParser};
 
 use super::line::{MasterLine, ReceivedRequest};
+use super::pacing::Arrival;
 use super::transmission::Transmission;
 
 /// Byte times are whole nanoseconds computed two ways (per character, per frame): bytes that
@@ -226,6 +227,18 @@ impl Wire {
         self.pending
             .iter()
             .map(|slot| (slot.end(), slot.byte))
+            .collect()
+    }
+
+    /// The same bytes as the master's UART receives them (for its receive FIFO's timing).
+    pub fn received(&self) -> Vec<Arrival> {
+        self.pending
+            .iter()
+            .map(|slot| Arrival {
+                at: slot.end(),
+                byte: slot.byte,
+                char_time: slot.char_time,
+            })
             .collect()
     }
 

@@ -4,8 +4,8 @@
 
 use std::time::Duration;
 
-use crate::sim_support::{SimProcess, FAST};
-use rtu2mqtt::protocol::{Request, RequestPdu};
+use crate::sim_support::{with_crc, SimProcess, FAST};
+use rtu2mqtt::protocol::{LineSettings, Parity, Request, RequestPdu};
 
 #[test]
 fn a_100_byte_reply_at_115200_8n2_arrives_byte_exact() {
@@ -34,4 +34,29 @@ fn a_100_byte_reply_at_115200_8n2_arrives_byte_exact() {
     let crc = rtu2mqtt::protocol::crc16(&expected).to_le_bytes();
     expected.extend_from_slice(&crc);
     assert_eq!(received, expected);
+}
+
+/// A master that writes its next request as soon as it has read a reply, with no gap of its own,
+/// is answered every time: a real UART hands the last bytes of a reply over 4 characters after
+/// their stop bit (its receive timeout), so such a master keeps the devices' 3.5-character frame
+/// silence without trying, and the simulator's port does the same. At 9600 and 115200.
+#[test]
+fn a_master_with_no_frame_gap_of_its_own_is_answered_every_time() {
+    for (address, line) in [(241, FAST), (50, LineSettings::new(9600, Parity::None, 2))] {
+        let sim = SimProcess::start("bus.json", &[]);
+        let mut port = sim.master(line);
+        let read = Request::classic(address, RequestPdu::ReadCoils { start: 0, count: 1 });
+        let unanswered: Vec<(usize, Vec<u8>)> = (0..20)
+            .filter_map(|attempt| {
+                port.forget_last_read();
+                let (bytes, reply) = port.transact(&read);
+                let expected = with_crc(&format!("{address:02X} 01 01 00"));
+                (reply.is_none() || !bytes.ends_with(&expected)).then_some((attempt, bytes))
+            })
+            .collect();
+        assert!(
+            unanswered.is_empty(),
+            "{line}: not answered: {unanswered:02X?}"
+        );
+    }
 }

@@ -215,6 +215,12 @@ impl MasterPort {
         self.file.write_all(frame).unwrap();
     }
 
+    /// Plays a master that keeps no frame gap of its own: its next request goes out as soon as
+    /// it is written (libmodbus works so).
+    pub fn forget_last_read(&mut self) {
+        self.last_read = None;
+    }
+
     /// Sends `request` and returns every byte read until a reply to it is complete, and the reply.
     pub fn transact(&mut self, request: &Request) -> (Vec<u8>, Option<ParsedReply>) {
         self.transact_raw(&request.encode().unwrap(), request)
