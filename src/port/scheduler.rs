@@ -223,7 +223,9 @@ impl EventPollTiming {
             reply_timeout: line.event_reply_timeout()
                 + line.wire_time(request.max_reply_len() + 32)
                 + margin,
-            first_byte_timeout: line.event_first_byte_timeout() + margin,
+            // The UART hands the end of a frame over its receive timeout late: a lone filler
+            // and a short frame after it may come only then.
+            first_byte_timeout: line.event_first_byte_timeout() + margin + line.receive_timeout(),
             late_window: margin,
         }
     }

@@ -86,6 +86,13 @@ impl LineSettings {
         self.char_time().saturating_mul(7) / 2
     }
 
+    /// How long after the last byte of a frame a UART hands it to the reader: a 16550's
+    /// receive timeout, 4 characters of quiet line with bytes still in its FIFO. A master's
+    /// first-byte timeouts allow for it; the simulator delivers the end of every frame so.
+    pub fn receive_timeout(&self) -> Duration {
+        self.char_time().saturating_mul(RECEIVE_TIMEOUT_CHARS)
+    }
+
     /// The silence that ends an RTU frame: 3.5 characters, fixed at 1.75 ms above 19200 baud.
     pub fn frame_silence(&self) -> Duration {
         if self.baud > 19200 {
@@ -177,6 +184,9 @@ impl LineSettings {
         self.wire_time(request_len) + turnaround + self.wire_time(reply_len) + self.frame_gap()
     }
 }
+
+/// A 16550's receive timeout, in characters (see [`LineSettings::receive_timeout`]).
+pub const RECEIVE_TIMEOUT_CHARS: u32 = 4;
 
 /// What USB-RS485 adapters and the kernel add to a reply's arrival: wb-mqtt-serial's allowance on
 /// serial lines, added to every response timeout.

@@ -1,14 +1,16 @@
-//! Hands the devices' bytes to the master as a UART with a receive FIFO does, on a dedicated
-//! thread. A 16550-compatible UART (the controllers' own ports, most PC serial cards) raises its
-//! receive interrupt when [`RX_TRIGGER`] bytes are in the FIFO, and otherwise once the line has
-//! been quiet for [`RX_TIMEOUT_CHARS`] character times with bytes still in it: the last bytes of
-//! every frame reach the reader that long after their stop bit. A master that reads a reply and
-//! writes its next request at once therefore keeps the 3.5-character frame gap on real hardware
-//! without trying, and does here too (a hand-over at the stop bit would make such a master talk
-//! into the devices' frame silence, which real ports never do). Waking once per byte cost a
-//! context switch per byte (most of the simulator's CPU, see docs/sim.md). Without real-time
-//! priority it sleeps while more than [`SPIN_THRESHOLD`] remains, then spins: ordinary sleeps
-//! overshoot by 50–100 µs. With it, sleeps wake within a few µs and it never spins.
+//! Hands the devices' bytes to the master as a UART does, on a dedicated thread. A byte is
+//! handed over when its stop bit ends, or up to [`RX_HOLD`] later together with the bytes that
+//! followed it (a UART's receive FIFO hands bytes over in batches); but the last byte before
+//! the line falls quiet waits for the UART's receive timeout, [`RX_TIMEOUT_CHARS`] characters
+//! after its stop bit, as a 16550 holds bytes below its trigger level until the line has been
+//! quiet that long. So the end of every frame reaches the master 4 characters late, as on the
+//! controllers' own ports and PC serial cards, and a master that reads a reply and writes its
+//! next request at once keeps the devices' 3.5-character frame silence without trying, here as
+//! on real hardware (with the end handed over at its stop bit, such a master talked into that
+//! silence, which real ports never make it do). Waking once per byte cost a context switch per
+//! byte (most of the simulator's CPU, see docs/sim.md). Without real-time priority it sleeps
+//! while more than [`SPIN_THRESHOLD`] remains, then spins: ordinary sleeps overshoot by
+//! 50–100 µs. With it, sleeps wake within a few µs and it never spins.
 
 use std::collections::VecDeque;
 use std::io;
@@ -26,11 +28,11 @@ const SLEEP_MARGIN: Duration = Duration::from_micros(150);
 /// kernel's tty work and to the reader on the other side.
 const REALTIME_SPIN_THRESHOLD: Duration = Duration::ZERO;
 const REALTIME_SLEEP_MARGIN: Duration = Duration::ZERO;
-/// The receive FIFO's trigger level: Linux sets a 16550A's to 8 bytes.
-pub const RX_TRIGGER: usize = 8;
-/// A 16550's character timeout: bytes below the trigger level are handed over once no byte has
-/// come for 4 character times.
-pub const RX_TIMEOUT_CHARS: u32 = 4;
+/// How long a byte may wait for the next ones before it is handed over (2.6 characters at
+/// 115200, a quarter of one at 9600): one wake-up then delivers several bytes at high rates.
+pub const RX_HOLD: Duration = Duration::from_micros(250);
+/// The UART's receive timeout, in characters ([`LineSettings::receive_timeout`]).
+pub use crate::protocol::timing::RECEIVE_TIMEOUT_CHARS as RX_TIMEOUT_CHARS;
 
 pub type ByteWriter = Box<dyn FnMut(&[u8]) -> io::Result<()> + Send>;
 
@@ -45,20 +47,24 @@ pub struct Arrival {
 }
 
 /// When the receiver hands the first bytes of `arrivals` (in time order) over, and how many:
-/// at the arrival of the [`RX_TRIGGER`]th, or [`RX_TIMEOUT_CHARS`] character times after the
-/// last one when no byte follows by then. `None` for no bytes.
+/// the first byte and those after it up to [`RX_HOLD`] after its stop bit, or, when the line
+/// falls quiet for [`RX_TIMEOUT_CHARS`] characters after one of them, that byte and those before
+/// it, the receive timeout after its stop bit. `None` for no bytes.
 pub fn hand_over(arrivals: impl IntoIterator<Item = Arrival>) -> Option<(Duration, usize)> {
     let mut arrivals = arrivals.into_iter().peekable();
+    let first = *arrivals.peek()?;
+    let hold_until = first.at + RX_HOLD;
     let mut count = 0;
     while let Some(arrival) = arrivals.next() {
         count += 1;
-        if count == RX_TRIGGER {
-            return Some((arrival.at, count));
-        }
         let quiet_at = arrival.at + arrival.char_time * RX_TIMEOUT_CHARS;
         match arrivals.peek() {
-            Some(next) if next.at <= quiet_at => {}
-            _ => return Some((quiet_at, count)),
+            // The line falls quiet after this byte: the end of a frame.
+            Some(next) if next.at > quiet_at => return Some((quiet_at, count)),
+            None => return Some((quiet_at, count)),
+            // More comes within the hold: handed over together.
+            Some(next) if next.at <= hold_until => {}
+            Some(_) => return Some((hold_until.max(arrival.at), count)),
         }
     }
     None
@@ -257,28 +263,29 @@ mod tests {
     }
 
     #[test]
-    fn a_short_frame_is_handed_over_four_characters_after_its_last_byte() {
-        assert_eq!(hand_over(frame(0, 5)), Some((us(500 + 400), 5)));
+    fn the_end_of_a_frame_is_handed_over_four_characters_after_its_last_byte() {
+        assert_eq!(hand_over(frame(0, 2)), Some((us(200 + 400), 2)));
         assert_eq!(hand_over(Vec::new()), None);
     }
 
     #[test]
-    fn a_long_frame_goes_in_trigger_level_batches_then_its_tail() {
-        let bytes = frame(0, 19);
-        assert_eq!(hand_over(bytes.clone()), Some((us(800), 8)));
-        assert_eq!(hand_over(bytes[8..].to_vec()), Some((us(1600), 8)));
-        assert_eq!(hand_over(bytes[16..].to_vec()), Some((us(1900 + 400), 3)));
+    fn a_long_frame_goes_in_batches_of_the_hold_then_its_end() {
+        let bytes = frame(0, 8);
+        // Bytes at 100..=800 µs: the first batch holds those up to 100 + 250 µs.
+        assert_eq!(hand_over(bytes.clone()), Some((us(350), 3)));
+        assert_eq!(hand_over(bytes[3..].to_vec()), Some((us(650), 3)));
+        assert_eq!(hand_over(bytes[6..].to_vec()), Some((us(800 + 400), 2)));
     }
 
     #[test]
-    fn a_pause_shorter_than_the_timeout_keeps_the_bytes_together() {
+    fn a_pause_shorter_than_the_timeout_keeps_the_frame_going() {
         // Arbitration fillers a window apart, then the winner's frame.
-        let mut bytes = frame(0, 2);
-        bytes.extend(frame(500, 2));
-        assert_eq!(hand_over(bytes.clone()), Some((us(700 + 400), 4)));
-        // A pause of more than 4 characters: the first bytes go at its timeout.
-        let mut bytes = frame(0, 2);
-        bytes.extend(frame(700, 2));
-        assert_eq!(hand_over(bytes), Some((us(200 + 400), 2)));
+        let mut bytes = frame(0, 1);
+        bytes.extend(frame(300, 2));
+        assert_eq!(hand_over(bytes.clone()), Some((us(350), 1)));
+        // A pause of more than 4 characters ends a frame: its last byte goes at the timeout.
+        let mut bytes = frame(0, 1);
+        bytes.extend(frame(600, 2));
+        assert_eq!(hand_over(bytes), Some((us(100 + 400), 1)));
     }
 }
