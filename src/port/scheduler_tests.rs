@@ -221,6 +221,17 @@ fn classic_answer(pdu: &RequestPdu) -> ResponsePdu {
     }
 }
 
+/// Answers for a bus where the device at `address` never answers and every other one does.
+fn silent_device(address: u8) -> impl FnMut(Duration, &Request) -> TransactionOutcome {
+    move |_, request| {
+        if request.address == address {
+            TransactionOutcome::NoReply
+        } else {
+            healthy(request)
+        }
+    }
+}
+
 fn max_gap(times: &[Duration]) -> Duration {
     times
         .windows(2)
@@ -678,13 +689,7 @@ fn a_dead_device_backs_off_while_the_others_keep_their_rate() {
         &mut log,
         Duration::ZERO,
         ms(150_000),
-        |_, request| {
-            if request.address == 2 {
-                TransactionOutcome::NoReply
-            } else {
-                healthy(request)
-            }
-        },
+        silent_device(2),
     );
     let tries: Vec<Duration> = log.classic_to(2).into_iter().map(|(at, _)| at).collect();
     let gaps: Vec<Duration> = tries.windows(2).map(|w| w[1] - w[0]).collect();
@@ -1026,13 +1031,7 @@ fn a_dead_devices_retry_holds_the_event_polls_for_its_timeout_and_rarely_for_the
         &mut log,
         Duration::ZERO,
         ms(120_000),
-        |_, request| {
-            if request.address == 9 {
-                TransactionOutcome::NoReply
-            } else {
-                healthy(request)
-            }
-        },
+        silent_device(9),
     );
     let polls: Vec<Duration> = log.event_polls().into_iter().map(|(at, _)| at).collect();
     let held: Vec<Duration> = polls
@@ -1972,13 +1971,7 @@ fn a_device_silent_at_start_up_holds_the_first_event_poll_for_one_try_only() {
         &mut log,
         Duration::ZERO,
         ms(10_000),
-        |_, request| {
-            if request.address == 2 {
-                TransactionOutcome::NoReply
-            } else {
-                healthy(request)
-            }
-        },
+        silent_device(2),
     );
     let polls: Vec<Duration> = log.event_polls().iter().map(|(at, _)| *at).collect();
     // Its try at start-up holds the bus for its response timeout and the late window after it
