@@ -365,8 +365,9 @@ impl VirtualGateway {
 
     /// One transaction on the virtual wire: what came back, its timing, and when it ended.
     /// The driver loop of `transport::exchange`, with the bus in place of the serial port: the
-    /// request is heard at once, bytes arrive at their stop bits' times, and are read one by
-    /// one, or in one go where the exchange asks for a batch read.
+    /// request is heard at once, bytes arrive at their stop bits' times (a frame's end 4
+    /// characters later, the UART's receive timeout), and are read one by one, or in one go
+    /// where the exchange asks for a batch read.
     fn transact(
         &mut self,
         transaction: &Transaction,
@@ -379,11 +380,10 @@ impl VirtualGateway {
         loop {
             if let Some(transmit) = self.exchange.poll_transmit(now) {
                 let line = MasterLine::exact(self.line);
-                arrivals = self
-                    .bus
-                    .exchange(&transmit.bytes, line, now)
-                    .arrivals()
-                    .into();
+                // As the simulator's pty hands them over: a frame's end after the UART's
+                // receive timeout.
+                let received = self.bus.exchange(&transmit.bytes, line, now).received();
+                arrivals = crate::sim::pacing::handed_over_at(&received).into();
                 self.exchange.handle_sent(now);
             }
             if let Some((outcome, timing)) = self.exchange.poll_outcome() {

@@ -70,6 +70,26 @@ pub fn hand_over(arrivals: impl IntoIterator<Item = Arrival>) -> Option<(Duratio
     None
 }
 
+/// When each byte reaches a reader that takes every byte as soon as the UART hands it over (no
+/// batching): at its stop bit, or the receive timeout after it for the last byte before the line
+/// falls quiet. The virtual-time gateway reads bytes so.
+pub fn handed_over_at(arrivals: &[Arrival]) -> Vec<(Duration, u8)> {
+    arrivals
+        .iter()
+        .enumerate()
+        .map(|(index, arrival)| {
+            let quiet_at = arrival.at + arrival.char_time * RX_TIMEOUT_CHARS;
+            let ends_a_frame = arrivals
+                .get(index + 1)
+                .is_none_or(|next| next.at > quiet_at);
+            (
+                if ends_a_frame { quiet_at } else { arrival.at },
+                arrival.byte,
+            )
+        })
+        .collect()
+}
+
 #[derive(Default)]
 struct Queue {
     /// In time order.
@@ -266,6 +286,12 @@ mod tests {
     fn the_end_of_a_frame_is_handed_over_four_characters_after_its_last_byte() {
         assert_eq!(hand_over(frame(0, 2)), Some((us(200 + 400), 2)));
         assert_eq!(hand_over(Vec::new()), None);
+        let mut two_frames = frame(0, 2);
+        two_frames.extend(frame(700, 1));
+        assert_eq!(
+            handed_over_at(&two_frames),
+            [(us(100), 1), (us(200 + 400), 2), (us(800 + 400), 1)]
+        );
     }
 
     #[test]

@@ -47,6 +47,23 @@ impl Transmission {
             .collect()
     }
 
+    /// The bytes as the master's UART receives them (for its receive timeout).
+    pub fn received(&self) -> Vec<super::pacing::Arrival> {
+        self.bursts
+            .iter()
+            .flat_map(|burst| {
+                burst.bytes.iter().enumerate().map(move |(i, &byte)| {
+                    let index = u32::try_from(i + 1).unwrap_or(u32::MAX);
+                    super::pacing::Arrival {
+                        at: burst.start + burst.char_time * index,
+                        byte,
+                        char_time: burst.char_time,
+                    }
+                })
+            })
+            .collect()
+    }
+
     /// When the last byte has arrived.
     pub fn end(&self) -> Option<Duration> {
         self.arrivals().last().map(|&(at, _)| at)
