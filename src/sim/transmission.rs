@@ -34,16 +34,11 @@ impl Transmission {
             .collect()
     }
 
-    /// Each byte with the time its stop bit ends, which is when a UART hands it to the reader.
+    /// Each byte with the time its stop bit ends.
     pub fn arrivals(&self) -> Vec<(Duration, u8)> {
-        self.bursts
-            .iter()
-            .flat_map(|burst| {
-                burst.bytes.iter().enumerate().map(move |(i, &byte)| {
-                    let index = u32::try_from(i + 1).unwrap_or(u32::MAX);
-                    (burst.start + burst.char_time * index, byte)
-                })
-            })
+        self.received()
+            .into_iter()
+            .map(|arrival| (arrival.at, arrival.byte))
             .collect()
     }
 

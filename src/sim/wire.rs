@@ -224,9 +224,9 @@ impl Wire {
 
     /// Device bytes still to be handed to the master, with the time each arrives.
     pub fn arrivals(&self) -> Vec<(Duration, u8)> {
-        self.pending
-            .iter()
-            .map(|slot| (slot.end(), slot.byte))
+        self.received()
+            .into_iter()
+            .map(|arrival| (arrival.at, arrival.byte))
             .collect()
     }
 
