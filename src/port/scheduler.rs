@@ -648,8 +648,9 @@ impl PortScheduler {
             device.and_then(|d| self.devices.get_mut(d)),
         ) {
             if !state.health.answered_last() {
-                // It failed (a loss after an answer, or a retry of a device that seems dead): its next request waits as long as if the window had been watched,
-                // the window counted at the device's configured timeout. What it learned above
+                // It failed (a loss after an answer, or a retry of a device that seems dead):
+                // its next request waits as long as if the window had been watched, the window
+                // counted at the device's configured timeout. What it learned above
                 // that came from its own late replies (`ResponseTimer::answered_late` raises the
                 // timeout to 1.5 × the lateness seen and at least twice the timeout missed): the
                 // raised timeout already is the window that reply fell into, and adding it again

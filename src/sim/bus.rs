@@ -185,9 +185,9 @@ impl Bus {
         };
         // Strictly after: the log is sorted by time, and its lines of two threads may swap.
         let at = match origin {
-            ChangeOrigin::Master if at <= self.outside_acted_at => {
-                self.outside_acted_at + Duration::from_nanos(1)
-            }
+            ChangeOrigin::Master if at <= self.outside_acted_at => self
+                .outside_acted_at
+                .saturating_add(Duration::from_nanos(1)),
             ChangeOrigin::Master => at,
             ChangeOrigin::Control => at,
         };
