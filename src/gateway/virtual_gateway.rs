@@ -27,7 +27,7 @@ use crate::protocol::{LineSettings, RegisterType, RequestBody, RequestPdu};
 use crate::sim::bus::Bus;
 use crate::sim::bus_file::{build_device, parse_line, DeviceEntry, TemplateSource};
 use crate::sim::MasterLine;
-use crate::transport::exchange::{Exchange, Framing, LinkConfig};
+use crate::transport::exchange::{Exchange, LinkConfig};
 
 fn repo(path: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join(path)
@@ -161,13 +161,10 @@ impl VirtualGateway {
             now: Duration::ZERO,
             epoch: Instant::now(),
             line: plan.settings.line,
+            // As `Transport::open` sets it for a serial port.
             exchange: Exchange::new(LinkConfig {
-                framing: Framing::Rtu,
-                serial: Some(plan.settings.line),
-                // As `Transport::open` sets it for a serial port.
-                quiet_gap: (plan.settings.line.char_time() * 8).max(Duration::from_millis(20)),
                 guard_interval: plan.settings.guard_interval,
-                frame_gap: plan.settings.line.frame_gap(),
+                ..LinkConfig::serial(plan.settings.line)
             }),
             scheduler: PortScheduler::new(plan.settings, plan.devices),
             models: Vec::new(),

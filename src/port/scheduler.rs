@@ -222,11 +222,8 @@ impl EventPollTiming {
             request_time: line.wire_time(request_len),
             reply_timeout: line.event_reply_timeout()
                 + line.wire_time(request.max_reply_len() + 32)
-                + margin
-                + line.receive_timeout(),
-            // The UART hands the end of a frame over its receive timeout late: a lone filler
-            // and a short frame after it may come only then.
-            first_byte_timeout: line.event_first_byte_timeout() + margin + line.receive_timeout(),
+                + margin,
+            first_byte_timeout: line.event_first_byte_timeout() + margin,
             late_window: margin,
         }
     }
@@ -804,11 +801,7 @@ impl PortScheduler {
         Transaction {
             request,
             request_time,
-            // The UART hands the reply's end over its receive timeout after it ended.
-            reply_timeout: response_timeout
-                + line.wire_time(reply_len)
-                + line.receive_timeout()
-                + ADAPTER_LATENCY_ALLOWANCE,
+            reply_timeout: response_timeout + line.wire_time(reply_len) + ADAPTER_LATENCY_ALLOWANCE,
             first_byte_timeout: Some(response_timeout),
             late_window,
             estimated,

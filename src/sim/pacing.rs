@@ -1,7 +1,7 @@
 //! Hands the devices' bytes to the master as a UART does, on a dedicated thread. A byte is
 //! handed over when its stop bit ends, or up to [`RX_HOLD`] later together with the bytes that
 //! followed it (a UART's receive FIFO hands bytes over in batches); but the last byte before
-//! the line falls quiet waits for the UART's receive timeout, [`RX_TIMEOUT_CHARS`] characters
+//! the line falls quiet waits for the UART's receive timeout, [`RECEIVE_TIMEOUT_CHARS`] characters
 //! after its stop bit, as a 16550 holds bytes below its trigger level until the line has been
 //! quiet that long. So the end of every frame reaches the master 4 characters late, as on the
 //! controllers' own ports and PC serial cards, and a master that reads a reply and writes its
@@ -19,6 +19,7 @@ use std::thread::JoinHandle;
 use std::time::Duration;
 
 use super::runtime::Clock;
+use crate::protocol::timing::RECEIVE_TIMEOUT_CHARS;
 
 /// Below this much time left, spin instead of sleeping (normal scheduling: sleeps overshoot).
 pub const SPIN_THRESHOLD: Duration = Duration::from_micros(250);
@@ -31,8 +32,6 @@ const REALTIME_SLEEP_MARGIN: Duration = Duration::ZERO;
 /// How long a byte may wait for the next ones before it is handed over (2.6 characters at
 /// 115200, a quarter of one at 9600): one wake-up then delivers several bytes at high rates.
 pub const RX_HOLD: Duration = Duration::from_micros(250);
-/// The UART's receive timeout, in characters ([`LineSettings::receive_timeout`]).
-pub use crate::protocol::timing::RECEIVE_TIMEOUT_CHARS as RX_TIMEOUT_CHARS;
 
 pub type ByteWriter = Box<dyn FnMut(&[u8]) -> io::Result<()> + Send>;
 
@@ -46,9 +45,22 @@ pub struct Arrival {
     pub char_time: Duration,
 }
 
+impl Arrival {
+    /// When the UART hands this byte over if no other follows it: its receive timeout
+    /// (`LineSettings::receive_timeout`) after its stop bit.
+    fn quiet_at(&self) -> Duration {
+        self.at + self.char_time * RECEIVE_TIMEOUT_CHARS
+    }
+
+    /// Whether the line falls quiet after this byte, `next` being the byte after it if any.
+    fn ends_a_frame(&self, next: Option<&Arrival>) -> bool {
+        next.is_none_or(|next| next.at > self.quiet_at())
+    }
+}
+
 /// When the receiver hands the first bytes of `arrivals` (in time order) over, and how many:
 /// the first byte and those after it up to [`RX_HOLD`] after its stop bit, or, when the line
-/// falls quiet for [`RX_TIMEOUT_CHARS`] characters after one of them, that byte and those before
+/// falls quiet for [`RECEIVE_TIMEOUT_CHARS`] characters after one of them, that byte and those before
 /// it, the receive timeout after its stop bit. `None` for no bytes.
 pub fn hand_over(arrivals: impl IntoIterator<Item = Arrival>) -> Option<(Duration, usize)> {
     let mut arrivals = arrivals.into_iter().peekable();
@@ -57,14 +69,13 @@ pub fn hand_over(arrivals: impl IntoIterator<Item = Arrival>) -> Option<(Duratio
     let mut count = 0;
     while let Some(arrival) = arrivals.next() {
         count += 1;
-        let quiet_at = arrival.at + arrival.char_time * RX_TIMEOUT_CHARS;
-        match arrivals.peek() {
-            // The line falls quiet after this byte: the end of a frame.
-            Some(next) if next.at > quiet_at => return Some((quiet_at, count)),
-            None => return Some((quiet_at, count)),
-            // More comes within the hold: handed over together.
-            Some(next) if next.at <= hold_until => {}
-            Some(_) => return Some((hold_until.max(arrival.at), count)),
+        let next = arrivals.peek();
+        if arrival.ends_a_frame(next) {
+            return Some((arrival.quiet_at(), count));
+        }
+        // Bytes within the hold go together; the next one is past it.
+        if next.is_some_and(|next| next.at > hold_until) {
+            return Some((hold_until, count));
         }
     }
     None
@@ -78,14 +89,12 @@ pub fn handed_over_at(arrivals: &[Arrival]) -> Vec<(Duration, u8)> {
         .iter()
         .enumerate()
         .map(|(index, arrival)| {
-            let quiet_at = arrival.at + arrival.char_time * RX_TIMEOUT_CHARS;
-            let ends_a_frame = arrivals
-                .get(index + 1)
-                .is_none_or(|next| next.at > quiet_at);
-            (
-                if ends_a_frame { quiet_at } else { arrival.at },
-                arrival.byte,
-            )
+            let at = if arrival.ends_a_frame(arrivals.get(index + 1)) {
+                arrival.quiet_at()
+            } else {
+                arrival.at
+            };
+            (at, arrival.byte)
         })
         .collect()
 }

@@ -277,8 +277,7 @@ pub trait ToolBus {
         timeout: Duration,
     ) -> Result<Answer, PortError> {
         let request = Request::by_serial(serial, pdu);
-        let transaction =
-            Transaction::to_device(&line, request, timeout + allowance(self.latency(), &line));
+        let transaction = Transaction::to_device(&line, request, timeout + self.latency());
         Ok(match self.transact(line, transaction).await? {
             TransactionOutcome::Reply(Reply {
                 body:
@@ -306,8 +305,7 @@ pub trait ToolBus {
         timeout: Duration,
     ) -> Result<Answer, PortError> {
         let request = Request::classic(address, pdu);
-        let transaction =
-            Transaction::to_device(&line, request, timeout + allowance(self.latency(), &line));
+        let transaction = Transaction::to_device(&line, request, timeout + self.latency());
         Ok(match self.transact(line, transaction).await? {
             TransactionOutcome::Reply(Reply {
                 body: ReplyBody::Classic(pdu),
@@ -327,13 +325,12 @@ pub trait ToolBus {
         reply_timeout: Duration,
     ) -> Result<TransactionOutcome, PortError> {
         let request_time = line.wire_time(request.encode().map(|b| b.len()).unwrap_or(16));
-        let allowance = allowance(self.latency(), &line);
         let transaction = Transaction {
             estimated: request_time + reply_timeout,
             request_time,
-            reply_timeout: reply_timeout + allowance,
-            first_byte_timeout: Some(first_byte_timeout + allowance),
-            late_window: allowance,
+            reply_timeout: reply_timeout + self.latency(),
+            first_byte_timeout: Some(first_byte_timeout + self.latency()),
+            late_window: self.latency(),
             request,
         };
         self.transact(line, transaction).await
@@ -489,24 +486,15 @@ fn classify(path: &str, source: io::Error) -> PortError {
     }
 }
 
-/// What a reply's bytes may come later than the wire says: the port's latency (`--latency`, or
-/// what its kind needs) and the UART's receive timeout at `line` (the last bytes of a frame
-/// reach the reader 4 characters after they ended; 37 ms at 1200 baud).
-fn allowance(latency: Duration, line: &LineSettings) -> Duration {
-    latency + line.receive_timeout()
-}
-
 /// Timeouts of a scan request: after a scan start every device takes part, so the first window
 /// already carries a byte when anyone uses this setting (an empty setting costs a few ms); after
-/// a continue the winner may need every window. `latency` is the port's; the UART's receive
-/// timeout is added here.
+/// a continue the winner may need every window.
 pub fn scan_transaction(
     line: &LineSettings,
     request: Request,
     start: bool,
     latency: Duration,
 ) -> Transaction {
-    let latency = allowance(latency, line);
     let request_time = line.wire_time(request.encode().map(|b| b.len()).unwrap_or(5));
     let first_byte = if start {
         line.scan_start_first_byte_timeout()
@@ -576,19 +564,17 @@ mod tests {
         for baud in [9600, 115_200] {
             let line = LineSettings::new(baud, Parity::None, 2);
             let start = scan_transaction(&line, Request::scan_start(), true, latency);
-            let next = scan_transaction(&line, Request::scan_continue(), false, latency);
-            // The UART hands the end of a frame over 4 characters after it ended.
-            let allowed = latency + line.receive_timeout();
             assert_eq!(
                 start.first_byte_timeout,
-                Some(line.scan_start_first_byte_timeout() + allowed)
+                Some(line.scan_start_first_byte_timeout() + latency)
             );
             assert_eq!(start.late_window, Duration::ZERO);
+            let next = scan_transaction(&line, Request::scan_continue(), false, latency);
             assert_eq!(
                 next.first_byte_timeout,
-                Some(line.scan_reply_timeout() + allowed)
+                Some(line.scan_reply_timeout() + latency)
             );
-            assert_eq!(next.late_window, allowed);
+            assert_eq!(next.late_window, latency);
             assert!(next.reply_timeout > line.scan_reply_timeout());
         }
     }

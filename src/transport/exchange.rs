@@ -70,6 +70,10 @@ pub struct LinkConfig {
     /// delimits frames by silence (the Modbus rule) and heard another device's reply would
     /// otherwise take a request right behind it for the reply's continuation and drop both.
     pub frame_gap: Duration,
+    /// How much later than the wire says a reply's end may reach the reader: a UART's receive
+    /// timeout on a serial line (`LineSettings::receive_timeout`), added to every reply
+    /// deadline; nothing on TCP.
+    pub receive_timeout: Duration,
 }
 
 impl LinkConfig {
@@ -86,6 +90,7 @@ impl LinkConfig {
             // The RTU frame delimiter, counted from when the last bytes were read (the only
             // time known to be after they crossed the wire).
             frame_gap: line.frame_gap(),
+            receive_timeout: line.receive_timeout(),
         }
     }
 
@@ -98,6 +103,7 @@ impl LinkConfig {
             quiet_gap: Duration::from_millis(50),
             guard_interval: Duration::ZERO,
             frame_gap: Duration::ZERO,
+            receive_timeout: Duration::ZERO,
         }
     }
 }
@@ -309,12 +315,13 @@ impl Exchange {
         let Some(transaction) = &self.transaction else {
             return;
         };
-        let window = ReplyWindow::new(
+        let mut window = ReplyWindow::new(
             transaction,
             (write_started, now),
             self.config.quiet_gap,
             self.config.serial.is_some(),
         );
+        window.allow_later(self.config.receive_timeout);
         self.line_busy_until = Some(window.clock_start());
         let batch_read_at = self.plan_batch_read(&request, &window);
         self.state = if request.expects_reply() {
@@ -679,6 +686,15 @@ mod window {
                 last_byte_at: None,
                 late_byte_at: None,
             }
+        }
+
+        /// Moves the first-byte and reply deadlines `by` later (what the link adds to every
+        /// reply: [`LinkConfig::receive_timeout`]).
+        pub fn allow_later(&mut self, by: Duration) {
+            self.first_byte_deadline = self
+                .first_byte_deadline
+                .map(|deadline| deadline.saturating_add(by));
+            self.deadline = self.deadline.saturating_add(by);
         }
 
         /// When the reply's first byte is due at the latest: the first-byte timeout, else the
@@ -1288,9 +1304,11 @@ mod tests {
         exchange.start(&transaction).expect("encodes");
         exchange.poll_transmit(start);
         exchange.handle_sent(start);
+        // The first-byte deadline: the response timeout and the UART's receive timeout.
+        let first_byte_timeout = RESPONSE_TIMEOUT + line.receive_timeout();
         assert_eq!(
             exchange.batch_read_at(),
-            Some(start + transaction.request_time + RESPONSE_TIMEOUT)
+            Some(start + transaction.request_time + first_byte_timeout)
         );
         // Silent this time: the first-byte timeout, then the late window, as without a batch.
         let start = start + ms(100);
@@ -1298,7 +1316,7 @@ mod tests {
         assert_eq!(finished.outcome, TransactionOutcome::NoReply);
         assert_eq!(
             finished.at,
-            start + transaction.request_time + RESPONSE_TIMEOUT + RESPONSE_TIMEOUT
+            start + transaction.request_time + first_byte_timeout + RESPONSE_TIMEOUT
         );
         assert_eq!(finished.timing, ReplyTiming::default());
     }
@@ -1469,18 +1487,30 @@ mod tests {
             assert_eq!(exchange.poll_timeout(), None, "nothing timed while writing");
             exchange.handle_sent(ms(0));
             let request_end = transaction.request_time;
+            // A UART hands a reply's end over its receive timeout (4 characters) after it
+            // ended: every reply deadline on a serial line allows for it.
+            let first_byte_timeout = RESPONSE_TIMEOUT + line.receive_timeout();
             assert_eq!(
                 exchange.poll_timeout(),
-                Some(request_end + RESPONSE_TIMEOUT)
+                Some(request_end + first_byte_timeout)
             );
             let finished = run(&mut exchange, &transaction, ms(1000), &[]);
             assert_eq!(finished.outcome, TransactionOutcome::NoReply);
             assert_eq!(
                 finished.at,
-                ms(1000) + transaction.request_time + RESPONSE_TIMEOUT + RESPONSE_TIMEOUT,
+                ms(1000) + transaction.request_time + first_byte_timeout + RESPONSE_TIMEOUT,
                 "first-byte timeout, then the late window, at {baud}"
             );
             assert_eq!(finished.timing, ReplyTiming::default());
+            // Over TCP nothing is added.
+            let mut exchange = Exchange::new(LinkConfig::tcp(Framing::Rtu));
+            exchange.start(&transaction).expect("encodes");
+            assert!(exchange.poll_transmit(ms(0)).is_some());
+            exchange.handle_sent(ms(0));
+            assert_eq!(
+                exchange.poll_timeout(),
+                Some(request_end + RESPONSE_TIMEOUT)
+            );
         }
     }
 
@@ -1713,6 +1743,7 @@ mod tests {
             quiet_gap: ms(50),
             guard_interval: Duration::ZERO,
             frame_gap: Duration::ZERO,
+            receive_timeout: Duration::ZERO,
         };
         let line = line(115_200);
         let transaction = transaction(&line, read_request());
@@ -1748,6 +1779,7 @@ mod tests {
             quiet_gap: ms(50),
             guard_interval: Duration::ZERO,
             frame_gap: Duration::ZERO,
+            receive_timeout: Duration::ZERO,
         };
         let line = line(115_200);
         let transaction = transaction(&line, read_request());
