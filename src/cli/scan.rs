@@ -12,7 +12,7 @@ use serde_json::{json, Value};
 
 use crate::config::TemplateLibrary;
 use crate::protocol::{LineSettings, Parity, RequestPdu, ResponsePdu};
-use crate::tools::adapter::{sysfs_tty, Adapter};
+use crate::tools::adapter::Adapter;
 use crate::tools::bus::{
     port_settings_in, Answer, PortError, ToolBus, ToolPort, KNOWN_DEVICE_TIMEOUT,
     PORT_SETTINGS_READ, TEXT_REGISTERS,
@@ -21,6 +21,7 @@ use crate::tools::exit;
 use crate::tools::plan::{parse_parity, parse_range, same_on_the_wire, scan_plan, PlanFilter};
 use crate::tools::report::{serial_text, FoundDevice, Identity, ScanReport};
 use crate::tools::values::standard_text;
+use crate::transport::fifo::sysfs_tty;
 
 /// The port and the settings to try, shared by every site tool.
 #[derive(clap::Args, Debug, Clone)]
@@ -45,6 +46,12 @@ pub struct PortArgs {
     /// + 4, 24 for other USB adapters).
     #[arg(long, value_name = "MS")]
     pub latency: Option<u64>,
+    /// How many bytes the port's receive FIFO collects before it hands them over, when the
+    /// kernel does not say (it does for a controller's own UARTs:
+    /// /sys/class/tty/<port>/rx_trig_bytes, which the tools set to 1 while they run). More than
+    /// 1 makes every reply wait as the FIFO may hand it over: slower, never blind.
+    #[arg(long, value_name = "BYTES", value_parser = clap::value_parser!(u32).range(1..=256))]
+    pub fifo_trigger: Option<u32>,
 }
 
 impl PortArgs {
@@ -71,7 +78,10 @@ impl PortArgs {
     }
 
     pub fn open(&self) -> Result<ToolPort, PortError> {
-        ToolPort::open(&self.port, self.reply_allowance())
+        Ok(
+            ToolPort::open(&self.port, self.reply_allowance())?
+                .with_receive_fifo(self.fifo_trigger),
+        )
     }
 
     /// `--latency`, or what the kind of port needs.
@@ -790,6 +800,7 @@ mod tests {
             parity: vec![Parity::Even],
             stop_bits,
             latency: None,
+            fifo_trigger: None,
         };
         assert_eq!(
             args(vec![]).single_line(),

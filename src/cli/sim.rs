@@ -55,6 +55,11 @@ pub struct Args {
     /// does (an FTDI chip holds bytes up to its 16 ms latency timer); 0 = a native UART.
     #[arg(long, value_name = "MS", default_value_t = 0, value_parser = clap::value_parser!(u64).range(0..=1000))]
     pub adapter_latency_ms: u64,
+    /// Hand the pty's bytes over as a 16550 UART whose receive FIFO collects this many before
+    /// handing them over (Linux sets 8 on a 16550A), or once the line has been quiet for 4
+    /// characters. Default: bytes as they come, a frame's end 4 characters late.
+    #[arg(long, value_name = "BYTES", value_parser = clap::value_parser!(u16).range(1..=256))]
+    pub rx_fifo_trigger: Option<u16>,
     /// Where templates named by device_type are looked up (default: ./templates, else the
     /// repository's templates/).
     #[arg(long, value_name = "DIR")]
@@ -113,10 +118,12 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
                 .with_context(|| format!("opening the change log {path}"))?,
         )),
     };
-    let runtime = Arc::new(
-        SimRuntime::new(Bus::new(devices, bus_file.seed), ChangeLog::new(sink))
-            .with_adapter_latency(Duration::from_millis(args.adapter_latency_ms)),
-    );
+    let mut runtime = SimRuntime::new(Bus::new(devices, bus_file.seed), ChangeLog::new(sink))
+        .with_adapter_latency(Duration::from_millis(args.adapter_latency_ms));
+    if let Some(trigger) = args.rx_fifo_trigger {
+        runtime = runtime.with_fifo_trigger(usize::from(trigger));
+    }
+    let runtime = Arc::new(runtime);
     install_signal_handlers()?;
     let mut out = std::io::stdout().lock();
     let mut threads = Vec::new();

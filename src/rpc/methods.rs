@@ -21,10 +21,11 @@ use crate::port::{Transaction, TransactionOutcome};
 use crate::protocol::fast::FastReply;
 use crate::protocol::timing::ADAPTER_LATENCY_ALLOWANCE;
 use crate::protocol::{LineSettings, Reply, ReplyBody, Request, RequestPdu, ResponsePdu};
-use crate::tools::adapter::{sysfs_tty, Adapter};
+use crate::tools::adapter::Adapter;
 use crate::tools::bus::{scan_transaction, Answer, PortError, ToolBus};
 use crate::tools::report::ScanReport;
 use crate::tools::values::standard_text;
+use crate::transport::fifo::sysfs_tty;
 use crate::transport::raw::RawRequest;
 
 /// A running port's bus as the site tools' exchanges see it.

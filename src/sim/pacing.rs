@@ -58,23 +58,42 @@ impl Arrival {
     }
 }
 
-/// When the receiver hands the first bytes of `arrivals` (in time order) over, and how many:
-/// the first byte and those after it up to [`RX_HOLD`] after its stop bit, or, when the line
-/// falls quiet for [`RECEIVE_TIMEOUT_CHARS`] characters after one of them, that byte and those before
-/// it, the receive timeout after its stop bit. `None` for no bytes.
-pub fn hand_over(arrivals: impl IntoIterator<Item = Arrival>) -> Option<(Duration, usize)> {
+/// The master's receiver: how its UART and adapter hand the devices' bytes over.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct Receiver {
+    /// Added to every hand-over: what a USB adapter adds between its UART and the master (an
+    /// FTDI chip's latency timer is 16 ms by default).
+    pub delivery_delay: Duration,
+    /// A 16550's receive FIFO trigger level: bytes are handed over when this many have come, or
+    /// the receive timeout after the line falls quiet. `None`: as they come (batched within
+    /// [`RX_HOLD`]), a frame's end the receive timeout late.
+    pub fifo_trigger: Option<usize>,
+}
+
+/// When the receiver hands the first bytes of `arrivals` (in time order) over, and how many.
+/// Without a FIFO trigger: the first byte and those after it up to [`RX_HOLD`] after its stop
+/// bit. With one: once that many bytes have come, at the last one's stop bit. Either way, when
+/// the line falls quiet for [`RECEIVE_TIMEOUT_CHARS`] characters after one of them first, that
+/// byte and those before it, the receive timeout after its stop bit. `None` for no bytes.
+pub fn hand_over(
+    arrivals: impl IntoIterator<Item = Arrival>,
+    fifo_trigger: Option<usize>,
+) -> Option<(Duration, usize)> {
     let mut arrivals = arrivals.into_iter().peekable();
     let first = *arrivals.peek()?;
     let hold_until = first.at + RX_HOLD;
     let mut count = 0;
     while let Some(arrival) = arrivals.next() {
         count += 1;
+        if fifo_trigger.is_some_and(|trigger| count >= trigger) {
+            return Some((arrival.at, count));
+        }
         let next = arrivals.peek();
         if arrival.ends_a_frame(next) {
             return Some((arrival.quiet_at(), count));
         }
         // Bytes within the hold go together; the next one is past it.
-        if next.is_some_and(|next| next.at > hold_until) {
+        if fifo_trigger.is_none() && next.is_some_and(|next| next.at > hold_until) {
             return Some((hold_until, count));
         }
     }
@@ -110,8 +129,9 @@ struct Queue {
 
 impl Queue {
     /// The next hand-over, with the adapter's delay added.
-    fn next_hand_over(&self, delivery_delay: Duration) -> Option<(Duration, usize)> {
-        hand_over(self.bytes.iter().copied()).map(|(at, count)| (at + delivery_delay, count))
+    fn next_hand_over(&self, receiver: Receiver) -> Option<(Duration, usize)> {
+        hand_over(self.bytes.iter().copied(), receiver.fifo_trigger)
+            .map(|(at, count)| (at + receiver.delivery_delay, count))
     }
 }
 
@@ -120,9 +140,7 @@ pub struct Pacer {
     queue: Mutex<Queue>,
     wake: Condvar,
     clock: Clock,
-    /// Added to every hand-over: what a USB adapter adds between its UART and the master (an
-    /// FTDI chip's latency timer is 16 ms by default).
-    delivery_delay: Duration,
+    receiver: Receiver,
 }
 
 fn lock(mutex: &Mutex<Queue>) -> MutexGuard<'_, Queue> {
@@ -133,14 +151,14 @@ impl Pacer {
     pub fn spawn(
         name: &str,
         clock: Clock,
-        delivery_delay: Duration,
+        receiver: Receiver,
         writer: ByteWriter,
     ) -> io::Result<(Arc<Self>, JoinHandle<()>)> {
         let pacer = Arc::new(Self {
             queue: Mutex::new(Queue::default()),
             wake: Condvar::new(),
             clock,
-            delivery_delay,
+            receiver,
         });
         let worker = Arc::clone(&pacer);
         let handle = std::thread::Builder::new()
@@ -196,7 +214,7 @@ impl Pacer {
             let mut queue = lock(&self.queue);
             // The schedule may have changed meanwhile (a collision): hand over what is due now.
             let Some((at, count)) = queue
-                .next_hand_over(self.delivery_delay)
+                .next_hand_over(self.receiver)
                 .filter(|&(at, _)| at <= now)
             else {
                 continue;
@@ -233,7 +251,7 @@ impl Pacer {
             if queue.closed {
                 return None;
             }
-            let timeout = match queue.next_hand_over(self.delivery_delay) {
+            let timeout = match queue.next_hand_over(self.receiver) {
                 None => Duration::from_millis(100),
                 Some((at, _)) => {
                     let left = at.saturating_sub(self.clock.now());
@@ -293,8 +311,8 @@ mod tests {
 
     #[test]
     fn the_end_of_a_frame_is_handed_over_four_characters_after_its_last_byte() {
-        assert_eq!(hand_over(frame(0, 2)), Some((us(200 + 400), 2)));
-        assert_eq!(hand_over(Vec::new()), None);
+        assert_eq!(hand_over(frame(0, 2), None), Some((us(200 + 400), 2)));
+        assert_eq!(hand_over(Vec::new(), None), None);
         let mut two_frames = frame(0, 2);
         two_frames.extend(frame(700, 1));
         assert_eq!(
@@ -307,9 +325,12 @@ mod tests {
     fn a_long_frame_goes_in_batches_of_the_hold_then_its_end() {
         let bytes = frame(0, 8);
         // Bytes at 100..=800 µs: the first batch holds those up to 100 + 250 µs.
-        assert_eq!(hand_over(bytes.clone()), Some((us(350), 3)));
-        assert_eq!(hand_over(bytes[3..].to_vec()), Some((us(650), 3)));
-        assert_eq!(hand_over(bytes[6..].to_vec()), Some((us(800 + 400), 2)));
+        assert_eq!(hand_over(bytes.clone(), None), Some((us(350), 3)));
+        assert_eq!(hand_over(bytes[3..].to_vec(), None), Some((us(650), 3)));
+        assert_eq!(
+            hand_over(bytes[6..].to_vec(), None),
+            Some((us(800 + 400), 2))
+        );
     }
 
     #[test]
@@ -317,10 +338,35 @@ mod tests {
         // Arbitration fillers a window apart, then the winner's frame.
         let mut bytes = frame(0, 1);
         bytes.extend(frame(300, 2));
-        assert_eq!(hand_over(bytes.clone()), Some((us(350), 1)));
+        assert_eq!(hand_over(bytes.clone(), None), Some((us(350), 1)));
         // A pause of more than 4 characters ends a frame: its last byte goes at the timeout.
         let mut bytes = frame(0, 1);
         bytes.extend(frame(600, 2));
-        assert_eq!(hand_over(bytes), Some((us(100 + 400), 1)));
+        assert_eq!(hand_over(bytes, None), Some((us(100 + 400), 1)));
+    }
+
+    #[test]
+    fn a_fifo_hands_bytes_over_at_its_trigger_level_or_after_the_line_falls_quiet() {
+        // A 16-byte frame through a FIFO that triggers at 8: two batches at the 8th and 16th
+        // byte's stop bit (the last batch reached the trigger: no timeout to wait for).
+        let bytes = frame(0, 16);
+        assert_eq!(hand_over(bytes.clone(), Some(8)), Some((us(800), 8)));
+        assert_eq!(hand_over(bytes[8..].to_vec(), Some(8)), Some((us(1600), 8)));
+        // Fewer than 8 left: the receive timeout after the frame's end.
+        assert_eq!(hand_over(frame(0, 5), Some(8)), Some((us(500 + 400), 5)));
+        // Arbitration fillers 3 characters apart never leave the line quiet for 4: the first
+        // is held until the 8th has come.
+        let fillers: Vec<Arrival> = (0..10)
+            .map(|i| Arrival {
+                at: us(300 * i + 100),
+                byte: 0xFF,
+                char_time: us(100),
+            })
+            .collect();
+        assert_eq!(hand_over(fillers.clone(), None), Some((us(100 + 250), 1)));
+        assert_eq!(hand_over(fillers, Some(8)), Some((us(2200), 8)));
+        // A trigger of one byte hands every byte over at its stop bit, a frame's end too.
+        assert_eq!(hand_over(frame(0, 2), Some(1)), Some((us(100), 1)));
+        assert_eq!(hand_over(frame(100, 1), Some(1)), Some((us(200), 1)));
     }
 }

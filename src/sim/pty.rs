@@ -151,7 +151,7 @@ impl PtyLink {
         let (pacer, pacer_thread) = Pacer::spawn(
             "pty",
             runtime.clock,
-            runtime.adapter_latency,
+            runtime.receiver,
             Box::new(move |bytes| write_all_nonblocking(&mut writer, bytes)),
         )?;
         let mut reader = PtyReader {

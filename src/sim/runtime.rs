@@ -10,6 +10,7 @@ use std::time::{Duration, Instant};
 use serde_json::json;
 
 use super::bus::{Bus, ChangeOrigin, RegisterChange};
+use super::pacing::Receiver;
 
 /// Time since the simulator started, and the matching CLOCK_MONOTONIC reading for logs that
 /// other processes on the machine compare with their own clocks.
@@ -177,8 +178,9 @@ pub struct SimRuntime {
     /// transports' loops read it without taking the bus's lock.
     link_up: AtomicBool,
     link_generation: AtomicU64,
-    /// What the pty's "USB adapter" adds to every reply byte's arrival at the master.
-    pub adapter_latency: Duration,
+    /// How the pty's master receives the devices' bytes: its UART's FIFO, a USB adapter's
+    /// delay.
+    pub receiver: Receiver,
 }
 
 impl SimRuntime {
@@ -190,14 +192,21 @@ impl SimRuntime {
             stop: AtomicBool::new(false),
             link_up: AtomicBool::new(true),
             link_generation: AtomicU64::new(0),
-            adapter_latency: Duration::ZERO,
+            receiver: Receiver::default(),
         }
     }
 
     /// Bytes reach the master over the pty `latency` after they end on the wire, as through a
     /// USB adapter that holds them for its latency timer.
     pub fn with_adapter_latency(mut self, latency: Duration) -> Self {
-        self.adapter_latency = latency;
+        self.receiver.delivery_delay = latency;
+        self
+    }
+
+    /// The master's UART hands bytes over `trigger` at a time, or once the line has been quiet
+    /// for its receive timeout, as a 16550 with that receive FIFO trigger level does.
+    pub fn with_fifo_trigger(mut self, trigger: usize) -> Self {
+        self.receiver.fifo_trigger = Some(trigger.max(1));
         self
     }
 

@@ -13,7 +13,7 @@ use crate::protocol::{hex, LineSettings};
 use super::line::MasterLine;
 use super::link::{serve, LinkReader};
 use super::mbap;
-use super::pacing::Pacer;
+use super::pacing::{Pacer, Receiver};
 use super::runtime::SimRuntime;
 
 /// What a connection carries.
@@ -90,7 +90,7 @@ fn spawn_connection(
     let (pacer, pacer_thread) = Pacer::spawn(
         "tcp",
         runtime.clock,
-        Duration::ZERO,
+        Receiver::default(),
         Box::new(move |bytes| writer.write_all(bytes)),
     )?;
     std::thread::Builder::new()

@@ -7,7 +7,7 @@
 //! their latency timer there (the longest they hold received bytes before sending them on).
 
 use std::fs;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::time::Duration;
 
 /// What the kernel tells about a port.
@@ -75,11 +75,6 @@ impl Adapter {
     }
 }
 
-/// The sysfs directory of tty devices on this machine.
-pub fn sysfs_tty() -> PathBuf {
-    PathBuf::from("/sys/class/tty")
-}
-
 fn read_number(path: &Path) -> Option<u64> {
     fs::read_to_string(path).ok()?.trim().parse().ok()
 }
@@ -100,6 +95,7 @@ fn is_usb(device: &Path) -> bool {
 mod tests {
     use super::*;
     use std::os::unix::fs::symlink;
+    use std::path::PathBuf;
 
     /// A fake `/sys/class/tty` with one device `name` on `bus`, and its `/dev` node.
     fn fake_port(

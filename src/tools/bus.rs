@@ -6,17 +6,19 @@
 use std::fs::File;
 use std::io;
 use std::os::unix::fs::OpenOptionsExt;
+use std::path::Path;
 use std::time::Duration;
 
 use nix::fcntl::{Flock, FlockArg};
 use nix::sys::termios::{self, SetArg, Termios};
 use thiserror::Error;
-use tracing::debug;
+use tracing::{debug, info, warn};
 
 use crate::port::{Transaction, TransactionOutcome};
 use crate::protocol::{
     fast::FastReply, LineSettings, Parity, Reply, ReplyBody, Request, RequestPdu, ResponsePdu,
 };
+use crate::transport::fifo::{self, FifoForTool};
 use crate::transport::{Endpoint, Transport, TransportError};
 
 use super::report::{Identity, ScanReport, SettingProblem};
@@ -81,6 +83,11 @@ pub struct ToolPort {
     current: Option<(LineSettings, Transport)>,
     /// Added to every timeout: what a USB adapter and a loaded machine add to a reply's arrival.
     pub latency: Duration,
+    /// The port's receive FIFO, lowered to 1 byte for the tool's run where it can be (put back
+    /// on restore).
+    fifo: FifoForTool,
+    /// The FIFO trigger the operator named (`--fifo-trigger`), whatever the kernel says.
+    fifo_trigger: Option<u32>,
 }
 
 impl ToolPort {
@@ -116,7 +123,37 @@ impl ToolPort {
             saved: Some((file, original)),
             current: None,
             latency,
+            fifo: FifoForTool::AsItIs,
+            fifo_trigger: None,
         })
+    }
+
+    /// Makes the port hand bytes over as they come where the kernel allows it: a receive FIFO
+    /// that collects several bytes before handing them over is lowered to 1 byte for the tool's
+    /// run. Where it cannot be (or `named`, the operator's `--fifo-trigger`, says how many bytes
+    /// it collects), every reply is waited for as the FIFO may hand it over: slower, never blind.
+    pub fn with_receive_fifo(mut self, named: Option<u32>) -> Self {
+        if let Some(trigger) = named {
+            self.fifo_trigger = Some(trigger.max(1));
+            return self;
+        }
+        self.fifo = fifo::lower_for_tool(Path::new(&self.path), &fifo::sysfs_tty());
+        match &self.fifo {
+            FifoForTool::AsItIs => {}
+            FifoForTool::Lowered(lowered) => info!(
+                port = %self.path,
+                "receive FIFO set to hand bytes over one at a time for this run (it collected {} \
+                 bytes; put back at the end)",
+                lowered.previous
+            ),
+            FifoForTool::Holds { trigger, why } => warn!(
+                port = %self.path,
+                "the port's receive FIFO hands bytes over {trigger} at a time and could not be \
+                 set to 1 ({why}); every empty setting now waits for the whole arbitration \
+                 (slower; run as root for a fast scan)"
+            ),
+        }
+        self
     }
 
     pub fn path(&self) -> &str {
@@ -140,6 +177,9 @@ impl ToolPort {
                 other => PortError::Transport(other),
             })?;
             transport.continues(busy_until);
+            if let Some(trigger) = self.fifo_trigger {
+                transport.set_receive_fifo(trigger);
+            }
             self.current = Some((line, transport));
         }
         match &mut self.current {
@@ -151,6 +191,8 @@ impl ToolPort {
     /// Closes the transport and puts the port's original settings back.
     pub fn restore(&mut self) {
         self.current = None;
+        // Dropping a lowered trigger puts the old one back.
+        self.fifo = FifoForTool::AsItIs;
         if let Some((file, original)) = self.saved.take() {
             if let Err(err) = termios::tcsetattr(&file, SetArg::TCSANOW, &original) {
                 debug!(port = %self.path, %err, "could not restore the port settings");

@@ -74,6 +74,25 @@ pub struct LinkConfig {
     /// timeout on a serial line (`LineSettings::receive_timeout`), added to every reply
     /// deadline; nothing on TCP.
     pub receive_timeout: Duration,
+    /// How many bytes the serial port's receive FIFO collects before it hands them over (its
+    /// trigger level; 1: each byte as it comes). Below the trigger, bytes wait for the receive
+    /// timeout: the first byte of a reply can reach the reader that much later, and after an
+    /// arbitration (filler bytes a window apart, the line never quiet for long) only when the
+    /// whole reply is in. See [`LinkConfig::first_byte_hold`].
+    pub receive_fifo: u32,
+}
+
+/// How much later than the line says a reply's first byte may reach the reader, because the
+/// port's receive FIFO holds bytes until it has collected its trigger level.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum FirstByteHold {
+    /// Each byte is handed over as it comes.
+    None,
+    /// This much later: the trigger level's wire time.
+    By(Duration),
+    /// Any time up to the reply's own deadline: after an arbitration the fillers come a window
+    /// apart, so the FIFO may hand nothing over before the winner's frame is in.
+    WholeReply,
 }
 
 impl LinkConfig {
@@ -91,6 +110,40 @@ impl LinkConfig {
             // time known to be after they crossed the wire).
             frame_gap: line.frame_gap(),
             receive_timeout: line.receive_timeout(),
+            receive_fifo: 1,
+        }
+    }
+
+    /// The port's receive FIFO hands bytes over `trigger` at a time (or after its receive
+    /// timeout). Until a burst is handed over, each of its bytes may follow the one before by
+    /// almost the receive timeout (arbitration fillers a window apart, which never leave the
+    /// line quiet for that long): bursts may come `trigger` receive timeouts apart, and the
+    /// silence that ends a frame grows to cover them. No effect on TCP.
+    pub fn with_receive_fifo(mut self, trigger: u32) -> Self {
+        if self.serial.is_none() {
+            return self;
+        }
+        self.receive_fifo = trigger.max(1);
+        if self.receive_fifo > 1 {
+            let burst_gap = self
+                .receive_timeout
+                .saturating_mul(self.receive_fifo.saturating_add(1));
+            self.quiet_gap = self.quiet_gap.max(burst_gap);
+        }
+        self
+    }
+
+    /// How much later than the line says the first byte of the reply to `request` may arrive.
+    pub fn first_byte_hold(&self, request: &Request) -> FirstByteHold {
+        match self.serial {
+            Some(line) if self.receive_fifo > 1 => {
+                if follows_arbitration(request) {
+                    FirstByteHold::WholeReply
+                } else {
+                    FirstByteHold::By(line.char_time().saturating_mul(self.receive_fifo))
+                }
+            }
+            _ => FirstByteHold::None,
         }
     }
 
@@ -104,6 +157,7 @@ impl LinkConfig {
             guard_interval: Duration::ZERO,
             frame_gap: Duration::ZERO,
             receive_timeout: Duration::ZERO,
+            receive_fifo: 1,
         }
     }
 }
@@ -236,6 +290,11 @@ impl Exchange {
         &self.config
     }
 
+    /// See [`LinkConfig::with_receive_fifo`].
+    pub fn set_receive_fifo(&mut self, trigger: u32) {
+        self.config = self.config.with_receive_fifo(trigger);
+    }
+
     /// Keeps this much silence on the line before every request.
     pub fn set_guard_interval(&mut self, guard_interval: Duration) {
         self.config.guard_interval = guard_interval;
@@ -322,6 +381,7 @@ impl Exchange {
             self.config.serial.is_some(),
         );
         window.allow_later(self.config.receive_timeout);
+        window.hold_first_byte(self.config.first_byte_hold(&request));
         self.line_busy_until = Some(window.clock_start());
         let batch_read_at = self.plan_batch_read(&request, &window);
         self.state = if request.expects_reply() {
@@ -695,6 +755,18 @@ mod window {
                 .first_byte_deadline
                 .map(|deadline| deadline.saturating_add(by));
             self.deadline = self.deadline.saturating_add(by);
+        }
+
+        /// Lets the first byte come later, as the port's receive FIFO may hand it over
+        /// ([`super::FirstByteHold`]); never past the reply's own deadline.
+        pub fn hold_first_byte(&mut self, hold: super::FirstByteHold) {
+            self.first_byte_deadline = match hold {
+                super::FirstByteHold::None => self.first_byte_deadline,
+                super::FirstByteHold::By(by) => self
+                    .first_byte_deadline
+                    .map(|deadline| deadline.saturating_add(by).min(self.deadline)),
+                super::FirstByteHold::WholeReply => None,
+            };
         }
 
         /// When the reply's first byte is due at the latest: the first-byte timeout, else the
@@ -1631,6 +1703,154 @@ mod tests {
         assert_eq!(finished.at, ms(10) + transaction.request_time);
     }
 
+    /// `arrivals` on the wire as a 16550 whose receive FIFO triggers at `trigger` bytes hands
+    /// them to the reader (the simulator's model of it).
+    fn through_fifo(
+        line: &LineSettings,
+        arrivals: &[(Duration, u8)],
+        trigger: usize,
+    ) -> Vec<(Duration, u8)> {
+        use crate::sim::pacing::{hand_over, Arrival};
+        let mut pending: Vec<Arrival> = arrivals
+            .iter()
+            .map(|&(at, byte)| Arrival {
+                at,
+                byte,
+                char_time: line.char_time(),
+            })
+            .collect();
+        let mut handed = Vec::new();
+        while let Some((at, count)) = hand_over(pending.iter().copied(), Some(trigger)) {
+            handed.extend(pending.drain(..count).map(|arrival| (at, arrival.byte)));
+        }
+        handed
+    }
+
+    #[test]
+    fn a_fifo_that_holds_a_replys_first_bytes_does_not_turn_it_into_silence() {
+        let line = line(9600);
+        let transaction = transaction(&line, read_request());
+        // The device answers just within its response timeout; a FIFO that triggers at 8 bytes
+        // hands the 9-byte reply's first 8 over 7 characters after the first one ended.
+        let answer = transaction.request_time + RESPONSE_TIMEOUT - line.char_time();
+        let wire = on_the_wire(&line, answer, &reply_frame());
+        let fifo = through_fifo(&line, &wire, 8);
+        assert_eq!(fifo[0].0, wire[7].0, "the first byte comes with the 8th");
+        let mut exchange = Exchange::new(serial(line));
+        let finished = run(&mut exchange, &transaction, ms(0), &fifo);
+        assert_eq!(
+            finished.outcome,
+            TransactionOutcome::NoReply,
+            "past the first-byte deadline when the link does not know of the FIFO"
+        );
+        let mut exchange = Exchange::new(serial(line).with_receive_fifo(8));
+        let finished = run(&mut exchange, &transaction, ms(0), &fifo);
+        assert_eq!(finished.outcome, read_reply());
+        // The same FIFO lengthens the silence that ends a frame to the bursts' spacing: up to
+        // the trigger's bytes, each almost a receive timeout after the one before, then the
+        // timeout itself.
+        assert_eq!(
+            serial(line).with_receive_fifo(8).quiet_gap,
+            line.receive_timeout() * 9
+        );
+        assert_eq!(serial(line).with_receive_fifo(1), serial(line));
+        assert_eq!(
+            LinkConfig::tcp(Framing::Rtu).with_receive_fifo(8),
+            LinkConfig::tcp(Framing::Rtu)
+        );
+    }
+
+    #[test]
+    fn after_an_arbitration_a_fifo_may_hold_the_first_byte_until_the_frame_is_in() {
+        let line = line(9600);
+        let poll = Request::poll_events(EventPoll {
+            min_address: 0,
+            max_data_len: 100,
+            ack_address: 0,
+            ack_flag: 0,
+        });
+        let request_time = line.wire_time(poll.encoded_len());
+        // As the scheduler times a poll, without its adapter margin.
+        let transaction = Transaction {
+            estimated: request_time,
+            request_time,
+            reply_timeout: line.event_reply_timeout() + line.wire_time(poll.max_reply_len() + 32),
+            first_byte_timeout: Some(line.event_first_byte_timeout()),
+            late_window: Duration::ZERO,
+            request: poll,
+        };
+        // Address 219 (0b1101_1011) alone says "no events": fillers in windows 7 and 10 (its
+        // 0 bits after the marker 0b1111), three windows apart, less than the receive timeout,
+        // then its 5-byte frame: 7 bytes, under the trigger, handed over only once the line has
+        // fallen quiet after the frame.
+        let no_events = Reply::fast(0xFD, crate::protocol::FastReply::NoEvents);
+        let first_window = request_time + line.device_arbitration_wait();
+        let filler = |window: u32| {
+            (
+                first_window + line.arbitration_window() * (window - 1) + line.char_time(),
+                0xFF,
+            )
+        };
+        let mut wire = vec![filler(7), filler(10)];
+        wire.extend(on_the_wire(
+            &line,
+            first_window + line.arbitration_window() * ARBITRATION_WINDOWS_EVENTS,
+            &no_events.encode().unwrap_or_default(),
+        ));
+        let fifo = through_fifo(&line, &wire, 8);
+        assert!(fifo.iter().all(|&(at, _)| at == fifo[0].0), "in one go");
+        let mut exchange = Exchange::new(serial(line));
+        let finished = run(&mut exchange, &transaction, ms(0), &fifo);
+        assert_eq!(finished.outcome, TransactionOutcome::NoReply);
+        let mut exchange = Exchange::new(serial(line).with_receive_fifo(8));
+        let finished = run(&mut exchange, &transaction, ms(0), &fifo);
+        assert_eq!(finished.outcome, TransactionOutcome::Reply(no_events));
+    }
+
+    #[test]
+    fn a_scan_reply_held_in_bursts_by_a_fifo_is_read_whole() {
+        let line = line(1200);
+        let request = Request::scan_start();
+        let request_time = line.wire_time(request.encoded_len());
+        // As the site tools time a scan start, without their allowance.
+        let transaction = Transaction {
+            estimated: request_time,
+            request_time,
+            reply_timeout: line.scan_reply_timeout() + line.wire_time(32 + 10),
+            first_byte_timeout: Some(line.scan_start_first_byte_timeout()),
+            late_window: Duration::ZERO,
+            request,
+        };
+        // Serial 0xFDB6DB6D arbitrates with 0b0110 then 0xDB6DB6D: a 0 bit, so a filler, in
+        // every third window; then its scan reply.
+        let found = Reply::fast(
+            0xFD,
+            crate::protocol::FastReply::ScanFound {
+                serial: 0xFDB6_DB6D,
+                modbus_address: 50,
+            },
+        );
+        let first_window = request_time + line.device_arbitration_wait();
+        let window = line.arbitration_window();
+        let mut wire: Vec<(Duration, u8)> = (0..11)
+            .map(|n| (first_window + window * (3 * n) + line.char_time(), 0xFF))
+            .collect();
+        wire.extend(on_the_wire(
+            &line,
+            first_window + window * 32,
+            &found.encode().unwrap_or_default(),
+        ));
+        let fifo = through_fifo(&line, &wire, 8);
+        // Handed over in three bursts: the 8th filler, 8 more bytes, the frame's end.
+        let mut bursts: Vec<Duration> = fifo.iter().map(|&(at, _)| at).collect();
+        bursts.dedup();
+        assert_eq!(bursts.len(), 3);
+        assert!(bursts[1] - bursts[0] > LinkConfig::serial(line).quiet_gap);
+        let mut exchange = Exchange::new(serial(line).with_receive_fifo(8));
+        let finished = run(&mut exchange, &transaction, ms(0), &fifo);
+        assert_eq!(finished.outcome, TransactionOutcome::Reply(found));
+    }
+
     #[test]
     fn an_event_reply_is_found_after_the_arbitration_filler() {
         let line = line(115_200);
@@ -1744,6 +1964,7 @@ mod tests {
             guard_interval: Duration::ZERO,
             frame_gap: Duration::ZERO,
             receive_timeout: Duration::ZERO,
+            receive_fifo: 1,
         };
         let line = line(115_200);
         let transaction = transaction(&line, read_request());
@@ -1780,6 +2001,7 @@ mod tests {
             guard_interval: Duration::ZERO,
             frame_gap: Duration::ZERO,
             receive_timeout: Duration::ZERO,
+            receive_fifo: 1,
         };
         let line = line(115_200);
         let transaction = transaction(&line, read_request());

@@ -5,11 +5,13 @@
 //! window and the protocol's [`ReplyParser`](crate::protocol::ReplyParser).
 
 pub mod exchange;
+pub mod fifo;
 mod mbap;
 pub mod raw;
 mod serial;
 
 use std::io;
+use std::path::Path;
 use std::time::Duration;
 
 use thiserror::Error;
@@ -105,7 +107,11 @@ impl Transport {
                     path: path.clone(),
                     source,
                 })?;
-                let config = LinkConfig::serial(*line);
+                let trigger = fifo::receive_fifo_trigger(Path::new(path), &fifo::sysfs_tty());
+                if let Some(trigger) = trigger.filter(|&trigger| trigger > 1) {
+                    debug!(%path, trigger, "the receive FIFO hands bytes over {trigger} at a time");
+                }
+                let config = LinkConfig::serial(*line).with_receive_fifo(trigger.unwrap_or(1));
                 (Link::Serial(link), config)
             }
             Endpoint::RtuOverTcp {
@@ -142,6 +148,12 @@ impl Transport {
 
     pub fn name(&self) -> &str {
         &self.name
+    }
+
+    /// The port's receive FIFO hands bytes over `trigger` at a time, whatever the kernel said
+    /// when the port was opened (a site tool's `--fifo-trigger`).
+    pub fn set_receive_fifo(&mut self, trigger: u32) {
+        self.exchange.set_receive_fifo(trigger);
     }
 
     /// When the line was last busy, for the handle that replaces this one.
