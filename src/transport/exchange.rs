@@ -346,6 +346,11 @@ impl Exchange {
         })
     }
 
+    /// True while the request waits for the silence before it ([`Self::transmit_at`]).
+    pub fn awaits_transmit(&self) -> bool {
+        matches!(self.state, State::Pending { .. })
+    }
+
     /// The earliest time a request may go out: the guard interval (at least the frame gap)
     /// after the line was last busy. (A raw transfer waits for it too.)
     pub fn transmit_at(&self) -> Duration {

@@ -193,11 +193,14 @@ impl Transport {
         self.exchange.start(transaction)?;
         let mut buffer = [0u8; 512];
         let mut paced_reads = 0;
+        // The serial line was found quiet and its input empty just now: no flush needed.
+        let mut input_empty = false;
         loop {
             if let Some(transmit) = self.exchange.poll_transmit(self.now()) {
-                if transmit.flush_input {
+                if transmit.flush_input && !input_empty {
                     self.flush_input()?;
                 }
+                input_empty = false;
                 debug!(port = %self.name, tx = %protocol::hex(&transmit.bytes), "request");
                 self.write_all(&transmit.bytes).await?;
                 self.exchange.handle_sent(self.now());
@@ -234,6 +237,24 @@ impl Transport {
                 return Ok((TransactionOutcome::NoReply, ReplyTiming::default()));
             };
             let wake = self.epoch + timeout;
+            if let (true, Link::Serial(link)) = (self.exchange.awaits_transmit(), &mut self.link) {
+                // The silence before the request: checked at its end rather than watched.
+                let quiet = link
+                    .quiet_until(wake)
+                    .await
+                    .map_err(|source| TransportError::Io {
+                        name: self.name.clone(),
+                        source,
+                    })?;
+                if quiet {
+                    input_empty = true;
+                } else {
+                    debug!(port = %self.name, "bytes during the silence before a request");
+                    let now = self.now();
+                    self.exchange.line_was_busy(now);
+                }
+                continue;
+            }
             match self.next_bytes(wake, &mut paced_reads, &mut buffer).await? {
                 None => self.exchange.handle_timeout(self.now()),
                 Some(0) => {

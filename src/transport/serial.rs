@@ -12,7 +12,9 @@
 //! of reply is complete, the transport does not even wait for the first byte: it sleeps until
 //! the reply should be complete and reads it in one go
 //! ([`Exchange::batch_read_at`](super::exchange::Exchange::batch_read_at)): one wake-up per
-//! transaction.
+//! reply. The silence before a request is not watched either: the transport sleeps through it
+//! and asks the kernel once at its end whether anything came meanwhile
+//! ([`SerialLink::quiet_until`]); if nothing did, the input needs no flush.
 
 use std::fs::File;
 use std::io::{self, Read, Write};
@@ -27,6 +29,9 @@ use tokio::io::Interest;
 use tokio::time::Instant;
 
 use crate::protocol::{self, LineSettings};
+
+// How many received bytes wait to be read (FIONREAD, `int *`).
+nix::ioctl_read_bad!(input_queue_len, nix::libc::FIONREAD, nix::libc::c_int);
 
 /// The port's descriptor as the reactor sees it while it is watched (the port itself stays with
 /// [`SerialLink`], which outlives every registration).
@@ -199,6 +204,24 @@ impl SerialLink {
         self.read_now(buffer)
     }
 
+    /// Sleeps until `at` without watching the line, then tells whether it stayed quiet: true
+    /// when nothing arrived meanwhile (the input is then empty: no flush needed before a
+    /// request); false when something did, which is thrown away. The silence before a request
+    /// checked once at its end: one `ioctl` instead of a registration with the reactor, its
+    /// removal and a flush, two system calls less per transaction.
+    pub async fn quiet_until(&mut self, at: Instant) -> io::Result<bool> {
+        self.watch = None;
+        self.sleep_until(at).await?;
+        let mut pending: nix::libc::c_int = 0;
+        // SAFETY: FIONREAD writes one int through the pointer, which outlives the call.
+        unsafe { input_queue_len(self.port.as_raw_fd(), &mut pending) }.map_err(io::Error::from)?;
+        if pending == 0 {
+            return Ok(true);
+        }
+        tcflush(&self.port, FlushArg::TCIFLUSH).map_err(io::Error::from)?;
+        Ok(false)
+    }
+
     /// Reads whatever has arrived, without waiting: `Ok(None)` when nothing has.
     fn read_now(&mut self, buffer: &mut [u8]) -> io::Result<Option<usize>> {
         loop {
@@ -224,5 +247,50 @@ impl SerialLink {
                 return Ok(());
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::os::fd::AsFd;
+    use std::time::Duration;
+
+    use super::*;
+    use crate::protocol::Parity;
+
+    /// A pseudo-terminal: the port's end opened as the transport opens a serial port, and the
+    /// other end, where the "devices" write.
+    fn pty() -> (SerialLink, File) {
+        let pty = nix::pty::openpty(None, None).expect("a pty");
+        let path = nix::unistd::ttyname(pty.slave.as_fd()).expect("its name");
+        let line = LineSettings::new(9600, Parity::None, 2);
+        let link = SerialLink::open(&path.to_string_lossy(), &line).expect("opens");
+        drop(pty.slave);
+        (link, File::from(pty.master))
+    }
+
+    #[tokio::test]
+    async fn bytes_during_the_silence_before_a_request_are_noticed_and_thrown_away() {
+        let (mut link, mut devices) = pty();
+        let silence = Duration::from_millis(200);
+        assert!(link
+            .quiet_until(Instant::now() + silence)
+            .await
+            .expect("io"));
+        devices.write_all(&[0x01, 0x03, 0x02]).expect("written");
+        assert!(
+            !link
+                .quiet_until(Instant::now() + silence)
+                .await
+                .expect("io"),
+            "the bytes that came during the silence"
+        );
+        // They were thrown away: the line is quiet again, and nothing is left to read.
+        assert!(link
+            .quiet_until(Instant::now() + silence)
+            .await
+            .expect("io"));
+        let mut buffer = [0u8; 16];
+        assert_eq!(link.read_now(&mut buffer).expect("io"), None);
     }
 }
