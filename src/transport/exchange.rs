@@ -1096,6 +1096,16 @@ mod tests {
         )
     }
 
+    /// An event poll of the whole bus with nothing to confirm.
+    fn event_poll() -> Request {
+        Request::poll_events(EventPoll {
+            min_address: 0,
+            max_data_len: 100,
+            ack_address: 0,
+            ack_flag: 0,
+        })
+    }
+
     fn reply_frame() -> Vec<u8> {
         let values = ResponsePdu::ReadInputRegisters {
             values: vec![0x1234, 0x5678],
@@ -1457,12 +1467,7 @@ mod tests {
     #[test]
     fn an_event_poll_is_read_once_the_winner_should_have_answered() {
         let line = line(115_200);
-        let poll = Request::poll_events(EventPoll {
-            min_address: 0,
-            max_data_len: 100,
-            ack_address: 0,
-            ack_flag: 0,
-        });
+        let poll = event_poll();
         let transaction = transaction(&line, poll);
         let no_events = Reply::fast(0xFD, crate::protocol::FastReply::NoEvents);
         // A filler byte in windows 4 and 8, the winner's frame after the last window.
@@ -1768,12 +1773,7 @@ mod tests {
     #[test]
     fn after_an_arbitration_a_fifo_may_hold_the_first_byte_until_the_frame_is_in() {
         let line = line(9600);
-        let poll = Request::poll_events(EventPoll {
-            min_address: 0,
-            max_data_len: 100,
-            ack_address: 0,
-            ack_flag: 0,
-        });
+        let poll = event_poll();
         let request_time = line.wire_time(poll.encoded_len());
         // As the scheduler times a poll, without its adapter margin.
         let transaction = Transaction {
@@ -1859,12 +1859,7 @@ mod tests {
     #[test]
     fn an_event_reply_is_found_after_the_arbitration_filler() {
         let line = line(115_200);
-        let poll = Request::poll_events(EventPoll {
-            min_address: 0,
-            max_data_len: 100,
-            ack_address: 0,
-            ack_flag: 0,
-        });
+        let poll = event_poll();
         let transaction = transaction(&line, poll);
         let no_events = Reply::fast(0xFD, crate::protocol::FastReply::NoEvents);
         let mut bytes = vec![0xFF, 0xFF];
@@ -1890,12 +1885,7 @@ mod tests {
     #[test]
     fn an_event_packet_is_predicted_once_its_header_is_in() {
         let line = line(115_200);
-        let poll = Request::poll_events(EventPoll {
-            min_address: 0,
-            max_data_len: 100,
-            ack_address: 0,
-            ack_flag: 0,
-        });
+        let poll = event_poll();
         let transaction = transaction(&line, poll);
         let mut exchange = Exchange::new(serial(line));
         exchange.start(&transaction).expect("encodes");
