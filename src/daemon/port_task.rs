@@ -352,7 +352,14 @@ impl PortTask {
             match opened {
                 Ok(mut transport) => {
                     transport.set_guard_interval(self.guard_interval);
-                    info!(port = %self.plan_name, "port open");
+                    match transport.receive_fifo() {
+                        1 => info!(port = %self.plan_name, "port open"),
+                        trigger => info!(
+                            port = %self.plan_name,
+                            "port open; its UART hands received bytes over {trigger} at a time \
+                             (rx_trig_bytes): a reply's first bytes are waited for that much longer"
+                        ),
+                    }
                     self.set_open(true);
                     self.transacted = false;
                     match self.serve(transport, &mut shutdown).await {
