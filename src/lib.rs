@@ -6,6 +6,7 @@
 //! virtual bus.
 
 pub mod bench;
+pub mod child;
 pub mod cli;
 pub mod config;
 pub mod daemon;

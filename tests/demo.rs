@@ -2,6 +2,7 @@
 //! here, with no mosquitto on PATH) or none. Values come, the built-in scenario's input clicks
 //! arrive by Fast Modbus events, and Ctrl-C stops everything and removes the demo's directory.
 
+use rtu2mqtt::child::StopWithParent;
 use std::io::{BufRead, BufReader, Read};
 use std::net::TcpListener;
 use std::path::PathBuf;
@@ -35,6 +36,7 @@ fn lines(source: impl Read + Send + 'static) -> mpsc::Receiver<String> {
 impl Demo {
     fn start(args: &[&str]) -> Self {
         let mut child = Command::new(env!("CARGO_BIN_EXE_rtu2mqtt"))
+            .stop_with_parent()
             .arg("demo")
             .args(args)
             // No mosquitto to be found: the demo must not need one.

@@ -10,6 +10,7 @@ mod mqtt_support;
 #[path = "sim_support/mod.rs"]
 mod sim_support;
 
+use rtu2mqtt::child::StopWithParent;
 use std::path::Path;
 use std::process::{Child, Command, Stdio};
 
@@ -90,6 +91,7 @@ async fn sighup_applies_the_new_config_port_by_port() {
     let log = dir.path().join("daemon.log");
     let daemon = Daemon {
         child: Command::new(env!("CARGO_BIN_EXE_rtu2mqtt"))
+            .stop_with_parent()
             .arg("run")
             .arg("--templates")
             .arg(repo("templates"))

@@ -10,6 +10,7 @@ mod mqtt_support;
 #[path = "sim_support/mod.rs"]
 mod sim_support;
 
+use rtu2mqtt::child::StopWithParent;
 use std::process::{Command, Stdio};
 use std::sync::atomic::{AtomicU32, Ordering};
 
@@ -163,6 +164,7 @@ async fn wait_until_served(port: u16) {
 /// `rtu2mqtt read …` against the running daemon; (exit code, stdout, stderr).
 async fn cli_read(bench: &Bench, extra: &[&str]) -> (i32, String, String) {
     let mut command = Command::new(env!("CARGO_BIN_EXE_rtu2mqtt"));
+    command.stop_with_parent();
     command
         .args(["read", "--port"])
         .arg(&bench.sim.pty)
@@ -302,6 +304,7 @@ async fn reads_scans_and_errors(bench: &Bench, baud: u32) {
 
     // `write` on the busy port: through the service, then read back.
     let mut command = Command::new(env!("CARGO_BIN_EXE_rtu2mqtt"));
+    command.stop_with_parent();
     command
         .args([
             "write",
@@ -327,6 +330,7 @@ async fn reads_scans_and_errors(bench: &Bench, baud: u32) {
 
     // `scan` on the busy port: through the service, at the settings asked for.
     let mut command = Command::new(env!("CARGO_BIN_EXE_rtu2mqtt"));
+    command.stop_with_parent();
     command
         .args([
             "scan",
@@ -501,6 +505,7 @@ async fn set_address_goes_through_the_service(bench: &Bench) {
     };
     let set_address = |address: &str| {
         let mut command = Command::new(env!("CARGO_BIN_EXE_rtu2mqtt"));
+        command.stop_with_parent();
         command
             .args(["set-address", "--port"])
             .arg(&bench.sim.pty)
@@ -536,6 +541,7 @@ async fn set_address_goes_through_the_service(bench: &Bench) {
     // fix-addresses through the service: a duplicate made on purpose is found and resolved.
     let tool = |args: Vec<String>| {
         let mut command = Command::new(env!("CARGO_BIN_EXE_rtu2mqtt"));
+        command.stop_with_parent();
         command
             .args(&args)
             .args(["--broker", &format!("127.0.0.1:{port}")]);
@@ -1040,6 +1046,7 @@ async fn site_tools_through_the_daemon(line: &str, baud: u32) {
     event_seen("1").await;
     let tool = |args: &[&str]| {
         let mut command = Command::new(env!("CARGO_BIN_EXE_rtu2mqtt"));
+        command.stop_with_parent();
         command
             .args(args)
             .args(["--port", &path, "--parity", "N", "--stop-bits", "2"])

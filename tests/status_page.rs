@@ -9,6 +9,7 @@ mod mqtt_support;
 #[path = "sim_support/mod.rs"]
 mod sim_support;
 
+use rtu2mqtt::child::StopWithParent;
 use std::collections::BTreeMap;
 use std::io::{Read, Write};
 use std::net::TcpStream;
@@ -188,6 +189,7 @@ impl Browser {
         let (test_reads, browser_writes) = pipe2(OFlag::O_CLOEXEC).unwrap();
         let (input, output) = (browser_reads.as_raw_fd(), browser_writes.as_raw_fd());
         let mut command = Command::new(chromium());
+        command.stop_with_parent();
         command
             .args([
                 "--headless",
@@ -828,6 +830,7 @@ fn an_open_page_does_not_hold_the_daemons_exit() {
 fn the_demo_prints_the_status_page_url_and_serves_it() {
     use std::io::BufRead;
     let mut demo = Command::new(env!("CARGO_BIN_EXE_rtu2mqtt"))
+        .stop_with_parent()
         .args(["demo", "--no-broker"])
         .stdin(Stdio::null())
         .stdout(Stdio::null())

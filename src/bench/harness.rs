@@ -7,6 +7,7 @@
 //! differences of readings of one clock. Processes are stopped (SIGTERM, then SIGKILL) and the
 //! scratch directory removed when the [`Harness`] drops.
 
+use crate::child::StopWithParent;
 use std::io::{BufRead, BufReader, Write};
 use std::net::{TcpListener, TcpStream};
 use std::os::unix::net::UnixStream;
@@ -338,6 +339,7 @@ impl Harness {
         let pty = dir.0.join("ttyRS485-sim");
         let control_path = dir.0.join("control.sock");
         let mut sim_command = Command::new(&options.binary);
+        sim_command.stop_with_parent();
         sim_command
             .arg("sim")
             .arg("--bus")
@@ -460,6 +462,7 @@ impl Harness {
         std::fs::write(&config_path, serde_json::to_string_pretty(config)?)?;
         self.daemon_started_ns = monotonic_ns();
         let mut command = Command::new(&self.binary);
+        command.stop_with_parent();
         if let Some(filter) = &self.log_filter {
             command.env("RUST_LOG", filter);
         }
@@ -734,6 +737,7 @@ fn launch_broker(mosquitto: &Path, dir: &Path, port: u16, access: &str) -> anyho
         format!("listener {port} 127.0.0.1\n{access}persistence false\n"),
     )?;
     let mut child = Command::new(mosquitto)
+        .stop_with_parent()
         .arg("-c")
         .arg(&config)
         .stdin(Stdio::null())

@@ -3,6 +3,7 @@
 //! simulator's pty), on a bus with devices at three settings and on an empty bus (what an empty
 //! setting costs).
 
+use crate::child::StopWithParent;
 use std::path::Path;
 use std::process::Command;
 use std::time::{Duration, Instant};
@@ -183,6 +184,7 @@ fn scan_into(
     let harness = Harness::start(&options)?;
     let started = Instant::now();
     let output = Command::new(binary)
+        .stop_with_parent()
         .arg("scan")
         .arg("--port")
         .arg(harness.pty())

@@ -2,6 +2,7 @@
 //! listening on 127.0.0.1:1883, else a built-in one) and the daemon, with nothing to set up. Everything it needs is built in; it runs
 //! in a temporary directory and stops everything on Ctrl-C.
 
+use crate::child::StopWithParent;
 use std::io::{BufRead, BufReader};
 use std::os::unix::process::CommandExt;
 use std::path::Path;
@@ -244,6 +245,7 @@ fn start_simulator(
 ) -> anyhow::Result<Guard> {
     let exe = std::env::current_exe().context("cannot find the rtu2mqtt binary")?;
     let mut child = Command::new(exe)
+        .stop_with_parent()
         .process_group(0)
         .arg("sim")
         .arg("--bus")

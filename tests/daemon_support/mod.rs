@@ -2,6 +2,7 @@
 //! templates, stderr to a log that is printed when the test fails; killed when dropped.
 #![allow(dead_code)]
 
+use rtu2mqtt::child::StopWithParent;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, ExitStatus, Stdio};
 
@@ -34,6 +35,7 @@ impl DaemonProcess {
         let config_path = dir.path().join("config.json");
         std::fs::write(&config_path, config.to_string()).unwrap();
         let child = Command::new(env!("CARGO_BIN_EXE_rtu2mqtt"))
+            .stop_with_parent()
             .arg("run")
             .args(extra)
             .arg("--templates")

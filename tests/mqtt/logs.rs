@@ -1,6 +1,7 @@
 //! What the daemon's log tells an integrator about the broker, read as journald stores it
 //! (stderr not a terminal).
 
+use rtu2mqtt::child::StopWithParent;
 use std::process::{Command, Stdio};
 
 use crate::daemon_support::repo;
@@ -23,6 +24,7 @@ async fn wrong_credentials_are_named_and_logs_have_no_colour_codes() {
     });
     std::fs::write(&config_path, config.to_string()).unwrap();
     let mut daemon = Command::new(env!("CARGO_BIN_EXE_rtu2mqtt"))
+        .stop_with_parent()
         .arg("run")
         .arg("--templates")
         .arg(repo("templates"))

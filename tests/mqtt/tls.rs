@@ -2,6 +2,7 @@
 //! (openssl): server verified by our CA, client certificate required by the broker. Proves the
 //! ring-only rustls build connects, and that values arrive.
 
+use rtu2mqtt::child::StopWithParent;
 use std::path::Path;
 use std::process::{Child, Command, Stdio};
 
@@ -119,6 +120,7 @@ async fn publishes_through_a_tls_listener_with_a_client_certificate() {
     .unwrap();
     let _broker = TlsBroker(
         Command::new(crate::mqtt_support::mosquitto_program("mosquitto"))
+            .stop_with_parent()
             .arg("-c")
             .arg(dir.path().join("mosquitto.conf"))
             .stdout(Stdio::null())

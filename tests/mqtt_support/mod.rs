@@ -2,6 +2,7 @@
 //! in-process MQTT task fed through its channels, and helpers that read the broker's state.
 #![allow(dead_code)]
 
+use rtu2mqtt::child::StopWithParent;
 use std::collections::BTreeMap;
 use std::future::Future;
 use std::net::{TcpListener, TcpStream};
@@ -130,6 +131,7 @@ impl Mosquitto {
         .expect("write mosquitto.conf");
         let mosquitto = mosquitto_program("mosquitto");
         let child = Command::new(&mosquitto)
+            .stop_with_parent()
             .arg("-c")
             .arg(&config)
             .stdout(Stdio::null())

@@ -3,6 +3,7 @@
 //! core. The child is killed when the guard drops.
 #![allow(dead_code)]
 
+use rtu2mqtt::child::StopWithParent;
 use std::fs::File;
 use std::io::{BufRead, BufReader, Read, Write};
 use std::os::fd::AsFd;
@@ -46,6 +47,7 @@ impl SimProcess {
         let pty = dir.path().join("ttyRS485-sim");
         let control = dir.path().join("control.sock");
         let mut child = Command::new(env!("CARGO_BIN_EXE_rtu2mqtt"))
+            .stop_with_parent()
             .arg("sim")
             .arg("--bus")
             .arg(bus_file)
