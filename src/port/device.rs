@@ -331,11 +331,16 @@ impl DeviceState {
     }
 
     /// After a reboot or a reconnection: setup, event setup and first reads all over again.
+    /// Registers the device refused are asked again too: a device that restarted may have new
+    /// firmware (an update reboots it), and one that was away may have been replaced.
     pub(super) fn restart_preparation(&mut self) {
         self.events_active = false;
         self.preparation = self.first_preparation_step();
         for read in &mut self.reads {
-            if read.exclusion == Exclusion::EventsOnly {
+            if matches!(
+                read.exclusion,
+                Exclusion::EventsOnly | Exclusion::Unsupported
+            ) {
                 read.exclusion = Exclusion::None;
             }
             read.initial_pending = true;

@@ -612,6 +612,43 @@ fn a_refused_merged_read_is_split_and_only_the_bad_register_dropped() {
 }
 
 #[test]
+fn a_refused_register_is_asked_again_after_the_device_restarts() {
+    let reads = vec![
+        read(RegisterType::Coil, 0, EventMode::Sporadic),
+        read(RegisterType::Holding, 1, EventMode::Polled),
+    ];
+    let mut scheduler = PortScheduler::new(settings(115_200), vec![device(20, reads)]);
+    let mut log = Log::default();
+    let mut bus = reboot_reported_at_poll(10, 20);
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(1000),
+        move |now, request| match &request.body {
+            RequestBody::Classic(RequestPdu::ReadHoldingRegisters { start: 1, .. }) => {
+                TransactionOutcome::Reply(Reply::classic(
+                    20,
+                    ResponsePdu::Exception {
+                        function: 3,
+                        code: ExceptionCode::ILLEGAL_DATA_ADDRESS,
+                    },
+                ))
+            }
+            _ => bus(now, request),
+        },
+    );
+    let refused = log
+        .classic_to(20)
+        .iter()
+        .filter(|(_, pdu)| matches!(pdu, RequestPdu::ReadHoldingRegisters { start: 1, .. }))
+        .count();
+    // Once at start-up, once after the reboot (new firmware may have the register), and not
+    // polled in between.
+    assert_eq!(refused, 2);
+}
+
+#[test]
 fn a_write_goes_before_the_next_read_and_the_latest_value_wins() {
     let reads = (0..4)
         .map(|a| read(RegisterType::Holding, a * 10, EventMode::Polled))
