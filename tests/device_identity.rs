@@ -98,3 +98,68 @@ async fn identity_published_and_a_replaced_device_noticed_at_115200() {
 async fn identity_published_and_a_replaced_device_noticed_at_9600() {
     identity_at("9600 8N2", 9600).await;
 }
+
+/// A channel whose template needs newer firmware than the device has (`fw`, as wb-mqtt-serial
+/// reads it) is never read and shows the read error; one the firmware has is read as usual.
+/// The simulated device has both registers, so reading the newer one would publish its value.
+async fn newer_firmware_channels_at(line: &str, baud: u32) {
+    let broker = Mosquitto::start();
+    let port = broker.port;
+    let dir = tempfile::tempdir().unwrap();
+    let template = json!({
+        "device_type": "fw-gated",
+        "title": "Firmware-gated channels",
+        "hw": [{"signature": "WBMR6C"}],
+        "device": {"name": "FW", "id": "fw", "channels": [
+            {"name": "Old", "reg_type": "holding", "address": 100, "type": "value", "fw": "1.20"},
+            {"name": "New", "reg_type": "holding", "address": 101, "type": "value", "fw": "1.30.0"},
+            {"name": "Plain", "reg_type": "holding", "address": 102, "type": "value"}
+        ]}
+    });
+    std::fs::write(dir.path().join("fw-gated.json"), template.to_string()).unwrap();
+    let bus = dir.path().join("bus.json");
+    let devices = json!({"devices": [
+        {"name": "fw", "template": "fw-gated.json", "address": 30, "serial": "0xFE000030",
+         "line": line, "model": "WBMR6C", "firmware": "1.26.0",
+         "values": {"holding:100": 42, "holding:101": 7, "holding:102": 9}}
+    ]});
+    std::fs::write(&bus, devices.to_string()).unwrap();
+    let sim = SimProcess::start_with(&bus, dir.path(), &[]);
+    let config = json!({
+        "mqtt": {"host": "127.0.0.1", "port": port, "client_id": "rtu2mqtt-fw-test"},
+        "ports": [{"path": sim.pty, "baud_rate": baud, "stop_bits": 2, "devices": [
+            {"device_type": "fw-gated", "slave_id": 30}
+        ]}]
+    });
+    let templates = dir.path().to_string_lossy().into_owned();
+    let _daemon = DaemonProcess::start(
+        &config,
+        &["--templates", &templates],
+        Stdio::null(),
+        Stdio::null(),
+    );
+    // The older channel and the plain one read, the newer one marked: all three retained.
+    let state = wait_for("Old, Plain and the error of New", || async {
+        let state = retained(port).await?;
+        let ready = state.get("/devices/fw_30/controls/New/meta/error")? == "r"
+            && state.get("/devices/fw_30/controls/Old")? == "42"
+            && state.get("/devices/fw_30/controls/Plain")? == "9";
+        ready.then_some(state)
+    })
+    .await;
+    assert_ne!(
+        state.get("/devices/fw_30/controls/New").map(String::as_str),
+        Some("7"),
+        "a channel the firmware does not have was read"
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn channels_that_need_newer_firmware_are_not_read_at_115200() {
+    newer_firmware_channels_at("115200 8N2", 115_200).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn channels_that_need_newer_firmware_are_not_read_at_9600() {
+    newer_firmware_channels_at("9600 8N2", 9600).await;
+}

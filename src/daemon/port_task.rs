@@ -247,6 +247,15 @@ impl PortTask {
         if let (Some(slot), Some(serial)) = (self.identity.serials.get_mut(device), read.serial) {
             *slot = Some(serial);
         }
+        // Channels held to a minimum firmware: read now, or never on this firmware. (An empty
+        // read above keeps them waiting for the next one, when the device comes online.)
+        let now = self.now();
+        let mut events =
+            self.scheduler
+                .firmware_known(now, device, read.identity.firmware.as_deref());
+        if !events.is_empty() {
+            self.dispatch(&mut events).await;
+        }
         self.send(vec![DeviceUpdate::Identity {
             device_id,
             identity: read.identity,

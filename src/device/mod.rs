@@ -6,6 +6,7 @@
 
 pub mod codec;
 pub mod configure;
+pub mod firmware;
 pub mod merge;
 pub mod model;
 pub mod number_text;

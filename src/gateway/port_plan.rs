@@ -86,15 +86,35 @@ pub fn device_plan(device: &ResolvedDevice) -> DevicePlan {
     let mut reads: Vec<PlannedRead> = Vec::new();
     for channel in &device.channels {
         let events = channel.events;
+        // Only a device whose firmware is read can be held to a minimum (as wb-mqtt-serial:
+        // other devices' channels are all taken as supported).
+        let min_firmware = channel.fw.clone().filter(|_| device.is_wb);
         for register in channel.registers.iter().filter_map(|r| r.read) {
             let read = PlannedRead {
                 span: register.span(),
                 period: channel.read_period,
                 events,
+                min_firmware: min_firmware.clone(),
             };
-            // Bit fields of one register share a read.
-            if !reads.contains(&read) {
-                reads.push(read);
+            // Bit fields of one register share a read, held to the oldest firmware any of them
+            // needs (none when one needs none).
+            let shared = reads.iter_mut().find(|r| {
+                r.span == read.span && r.period == read.period && r.events == read.events
+            });
+            match shared {
+                Some(shared) => {
+                    shared.min_firmware = match (shared.min_firmware.take(), read.min_firmware) {
+                        (Some(a), Some(b)) => Some(
+                            if crate::device::firmware::compare_versions(&a, &b).is_le() {
+                                a
+                            } else {
+                                b
+                            },
+                        ),
+                        _ => None,
+                    }
+                }
+                None => reads.push(read),
             }
         }
     }

@@ -37,6 +37,20 @@ enum Exclusion {
     EventsOnly,
     /// The device said the register does not exist.
     Unsupported,
+    /// Needs a minimum firmware: not read until the device's is known.
+    AwaitingFirmware,
+    /// Needs newer firmware than the device has.
+    NewerFirmware,
+}
+
+impl Exclusion {
+    /// Never read, whatever else happens, until the device or its firmware changes.
+    fn never_read(self) -> bool {
+        matches!(
+            self,
+            Exclusion::Unsupported | Exclusion::AwaitingFirmware | Exclusion::NewerFirmware
+        )
+    }
 }
 
 #[derive(Debug, Clone)]
@@ -100,10 +114,14 @@ impl DeviceState {
         let reads = plan
             .reads
             .iter()
-            .map(|_| ReadState {
+            .map(|read| ReadState {
                 next_due: Duration::ZERO,
                 last_read: None,
-                exclusion: Exclusion::None,
+                exclusion: if read.min_firmware.is_some() {
+                    Exclusion::AwaitingFirmware
+                } else {
+                    Exclusion::None
+                },
                 initial_pending: true,
                 solo: false,
                 average_interval: None,
@@ -202,7 +220,7 @@ impl DeviceState {
             .iter()
             .enumerate()
             .filter(|(i, r)| {
-                r.events != EventMode::Polled && self.exclusion(*i) != Some(Exclusion::Unsupported)
+                r.events != EventMode::Polled && self.exclusion(*i).is_some_and(|e| !e.never_read())
             })
             .map(|(i, r)| {
                 let priority = if r.period.is_some() {
@@ -308,7 +326,7 @@ impl DeviceState {
             // Events of a value are enabled at its first register (see `event_ranges`).
             let on = is_enabled(plan.span.register_type, plan.span.start);
             any |= on;
-            if on && plan.events == EventMode::Sporadic {
+            if on && plan.events == EventMode::Sporadic && state.exclusion == Exclusion::None {
                 state.exclusion = Exclusion::EventsOnly;
             }
         }
@@ -326,7 +344,7 @@ impl DeviceState {
         self.preparation = Preparation::Done;
         for read in &mut self.reads {
             read.next_due = now;
-            read.initial_pending = read.exclusion != Exclusion::Unsupported;
+            read.initial_pending = !read.exclusion.never_read();
         }
     }
 
@@ -347,6 +365,45 @@ impl DeviceState {
         }
     }
 
+    /// The device's firmware is known (`None`: it could not be read, taken as new enough):
+    /// reads that need newer firmware are closed, the others due now. Returns the spans that
+    /// were just closed.
+    pub(super) fn firmware_known(
+        &mut self,
+        now: Duration,
+        firmware: Option<&str>,
+    ) -> Vec<RegisterSpan> {
+        let mut closed = Vec::new();
+        for (plan, read) in self.plan.reads.iter().zip(self.reads.iter_mut()) {
+            let Some(required) = &plan.min_firmware else {
+                continue;
+            };
+            let has = crate::device::firmware::firmware_has(firmware, required);
+            match read.exclusion {
+                Exclusion::AwaitingFirmware | Exclusion::NewerFirmware if has => {
+                    read.exclusion = Exclusion::None;
+                    read.initial_pending = true;
+                    read.next_due = now;
+                }
+                Exclusion::NewerFirmware => {}
+                _ if !has => {
+                    read.exclusion = Exclusion::NewerFirmware;
+                    read.initial_pending = false;
+                    closed.push(plan.span);
+                }
+                _ => {}
+            }
+        }
+        closed
+    }
+
+    /// Whether some reads wait for the device's firmware to be known.
+    pub(super) fn awaits_firmware(&self) -> bool {
+        self.reads
+            .iter()
+            .any(|r| r.exclusion == Exclusion::AwaitingFirmware)
+    }
+
     /// An event carried `words` registers of the value read at `start`, fewer than it has: its
     /// other words may have changed with it (a device updates a value at once), so the value is
     /// read once at the next turn, events-only or not, rather than joined with words read
@@ -361,7 +418,7 @@ impl DeviceState {
             if plan.span.register_type == register_type
                 && plan.span.start == start
                 && usize::from(plan.span.count) > words
-                && read.exclusion != Exclusion::Unsupported
+                && !read.exclusion.never_read()
             {
                 read.initial_pending = true;
             }
@@ -403,7 +460,7 @@ impl DeviceState {
     fn due_from(&self, index: usize, keepalive: Option<usize>) -> Option<Duration> {
         let read = self.reads.get(index)?;
         match read.exclusion {
-            Exclusion::Unsupported => None,
+            Exclusion::Unsupported | Exclusion::AwaitingFirmware | Exclusion::NewerFirmware => None,
             _ if read.initial_pending => Some(Duration::ZERO),
             Exclusion::None => Some(read.next_due),
             Exclusion::EventsOnly if keepalive == Some(index) => Some(read.next_due),

@@ -57,6 +57,10 @@ pub struct PlannedRead {
     /// Read at this period with high priority; None: round-robin in the remaining time.
     pub period: Option<Duration>,
     pub events: EventMode,
+    /// The oldest firmware that has these registers (a template's `fw`, on a device whose
+    /// firmware is read): not read until the device's firmware is known
+    /// ([`super::PortScheduler::firmware_known`]), never on older firmware.
+    pub min_firmware: Option<String>,
 }
 
 /// Holding registers written whenever the device (re)connects or reboots.

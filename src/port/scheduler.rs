@@ -312,6 +312,45 @@ impl PortScheduler {
         }
     }
 
+    /// The firmware of `device` was read (`None`: it could not be): channels that need newer
+    /// firmware are never read and reported unsupported (`r`), as wb-mqtt-serial does; the
+    /// others, held until now, are read.
+    pub fn firmware_known(
+        &mut self,
+        now: Duration,
+        device: usize,
+        firmware: Option<&str>,
+    ) -> Vec<PortEvent> {
+        let Some(state) = self.devices.get_mut(device) else {
+            return Vec::new();
+        };
+        let closed = state.firmware_known(now, firmware);
+        self.index.mark_stale(device);
+        if !closed.is_empty() {
+            info!(
+                device = %state.plan.name,
+                firmware = firmware.unwrap_or("?"),
+                count = closed.len(),
+                "channels that need newer firmware are not read"
+            );
+        }
+        closed
+            .into_iter()
+            .map(|span| PortEvent::ReadFailed {
+                device,
+                span,
+                unsupported: true,
+            })
+            .collect()
+    }
+
+    /// Whether `device` has channels held until its firmware is known.
+    pub fn awaits_firmware(&self, device: usize) -> bool {
+        self.devices
+            .get(device)
+            .is_some_and(DeviceState::awaits_firmware)
+    }
+
     pub fn device_count(&self) -> usize {
         self.devices.len()
     }

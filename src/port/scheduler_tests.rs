@@ -24,6 +24,7 @@ fn read(register_type: RegisterType, start: u16, events: EventMode) -> PlannedRe
         span: RegisterSpan::new(register_type, start, 1),
         period: None,
         events,
+        min_firmware: None,
     }
 }
 
@@ -649,6 +650,49 @@ fn a_refused_register_is_asked_again_after_the_device_restarts() {
 }
 
 #[test]
+fn a_channel_that_needs_newer_firmware_waits_for_it_and_is_never_read_on_older() {
+    let mut gated = read(RegisterType::Holding, 100, EventMode::Polled);
+    gated.min_firmware = Some("2.1".into());
+    let reads = vec![read(RegisterType::Holding, 0, EventMode::Polled), gated];
+    let mut scheduler = PortScheduler::new(settings(115_200), vec![device(7, reads)]);
+    assert!(scheduler.awaits_firmware(0));
+    let mut log = Log::default();
+    let reads_of_100 = |log: &Log| {
+        log.classic_to(7)
+            .iter()
+            .filter(|(_, pdu)| matches!(pdu, RequestPdu::ReadHoldingRegisters { start: 100, .. }))
+            .count()
+    };
+    let now = run(&mut scheduler, &mut log, Duration::ZERO, ms(100), |_, r| {
+        healthy(r)
+    });
+    assert!(log.classic_to(7).len() > 5, "the other register is polled");
+    assert_eq!(reads_of_100(&log), 0, "held until the firmware is known");
+    // Firmware 2.0: never read, reported unsupported once.
+    let events = scheduler.firmware_known(now, 0, Some("2.0"));
+    assert_eq!(
+        events,
+        vec![PortEvent::ReadFailed {
+            device: 0,
+            span: RegisterSpan::new(RegisterType::Holding, 100, 1),
+            unsupported: true
+        }]
+    );
+    assert!(!scheduler.awaits_firmware(0));
+    let now = run(&mut scheduler, &mut log, now, now + ms(100), |_, r| {
+        healthy(r)
+    });
+    assert_eq!(reads_of_100(&log), 0);
+    assert_eq!(scheduler.firmware_known(now, 0, Some("2.0.5")), Vec::new());
+    // Updated to 2.1 (or its firmware cannot be told): read from now on.
+    assert_eq!(scheduler.firmware_known(now, 0, Some("2.1.0")), Vec::new());
+    run(&mut scheduler, &mut log, now, now + ms(100), |_, r| {
+        healthy(r)
+    });
+    assert!(reads_of_100(&log) > 1);
+}
+
+#[test]
 fn a_write_goes_before_the_next_read_and_the_latest_value_wins() {
     let reads = (0..4)
         .map(|a| read(RegisterType::Holding, a * 10, EventMode::Polled))
@@ -1138,6 +1182,7 @@ fn a_read_that_just_misses_the_slot_after_a_poll_still_goes() {
                 span: RegisterSpan::new(RegisterType::Holding, 0, 110),
                 period: None,
                 events: EventMode::Polled,
+                min_firmware: None,
             }],
         ),
     ];
@@ -1683,6 +1728,7 @@ fn random_plan(rng: &mut Rng, address: u8) -> DevicePlan {
             ),
             period: rng.chance(40).then(|| ms(5 + rng.below(200))),
             events: modes[rng.below(3) as usize],
+            min_firmware: None,
         })
         .collect();
     let setup = (0..rng.below(3))
