@@ -104,13 +104,9 @@ pub fn device_plan(device: &ResolvedDevice) -> DevicePlan {
             match shared {
                 Some(shared) => {
                     shared.min_firmware = match (shared.min_firmware.take(), read.min_firmware) {
-                        (Some(a), Some(b)) => Some(
-                            if crate::device::firmware::compare_versions(&a, &b).is_le() {
-                                a
-                            } else {
-                                b
-                            },
-                        ),
+                        (Some(a), Some(b)) => Some(std::cmp::min_by(a, b, |a, b| {
+                            crate::device::firmware::compare_versions(a, b)
+                        })),
                         _ => None,
                     }
                 }
@@ -227,6 +223,46 @@ mod tests {
             port_plan(&port(60_000), true).settings.event_interval,
             Duration::from_secs(10)
         );
+    }
+
+    /// Bit fields of one register with different `fw` share a read held to the oldest of
+    /// them, or to none when one needs none; a device whose firmware is not read (no `hw`) is
+    /// held to nothing.
+    #[test]
+    fn a_shared_read_needs_the_oldest_firmware_of_its_channels() {
+        let template = |hw: bool| {
+            let mut template = json!({"device_type": "fw-bits", "device": {"name": "B", "id": "b",
+            "channels": [
+                {"name": "A", "reg_type": "holding", "address": "5:0:1", "type": "switch", "fw": "2.0"},
+                {"name": "B", "reg_type": "holding", "address": "5:1:1", "type": "switch", "fw": "1.5.0"},
+                {"name": "C", "reg_type": "holding", "address": "6:0:1", "type": "switch", "fw": "2.0"},
+                {"name": "D", "reg_type": "holding", "address": "6:1:1", "type": "switch"}
+            ]}});
+            if hw {
+                template["hw"] = json!([{"signature": "B"}]);
+            }
+            crate::config::TemplateFile::from_source(SourceText::from_text(
+                Path::new("fw-bits.json"),
+                &template.to_string(),
+            ))
+            .unwrap()
+        };
+        let needs = |hw: bool, address: u16| {
+            let device = crate::device::configure::resolve_template_device(
+                &template(hw),
+                &json!({"slave_id": 1}),
+            )
+            .unwrap();
+            device_plan(&device)
+                .reads
+                .into_iter()
+                .find(|r| r.span.start == address)
+                .expect("read")
+                .min_firmware
+        };
+        assert_eq!(needs(true, 5), Some("1.5.0".to_owned()));
+        assert_eq!(needs(true, 6), None);
+        assert_eq!(needs(false, 5), None);
     }
 
     #[test]
