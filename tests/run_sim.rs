@@ -396,11 +396,11 @@ fn bus_on_line(line: &str) -> String {
 
 /// The repository's templates are Wiren Board style (`response_timeout_ms: 1`, the allowance is
 /// added by the master): values, a change and a write at a slow baud rate, with Fast Modbus
-/// events and without.
-fn wb_templates_at(baud: u32, fast_modbus: bool, patience: Duration) {
+/// events and without. `sim_args`: how the simulator hands bytes over.
+fn wb_templates_at(baud: u32, fast_modbus: bool, patience: Duration, sim_args: &[&str]) {
     // Odd parity and one stop bit: the simulator hears only a master whose serial port was set
     // so (a pty passes both on), which proves the config's line settings reach the port.
-    let sim = start_sim_bus(&bus_on_line(&format!("{baud} 8O1")), &[]);
+    let sim = start_sim_bus(&bus_on_line(&format!("{baud} 8O1")), sim_args);
     // Only Wiren Board devices: a third-party meter (500 ms) would lend its timeout to the rest.
     let devices: Vec<Value> = [
         ("rtu2mqtt-relay6", 20),
@@ -453,7 +453,21 @@ fn wb_templates_at(baud: u32, fast_modbus: bool, patience: Duration) {
 
 #[test]
 fn wb_templates_at_9600_8o1_with_fast_modbus() {
-    wb_templates_at(9600, true, Duration::from_secs(15));
+    wb_templates_at(9600, true, Duration::from_secs(15), &[]);
+}
+
+/// The same through a controller's own UART as Linux sets it up: a 16550 whose receive FIFO
+/// hands bytes over 8 at a time, or 4 quiet characters after the last (arbitration fillers and
+/// short replies come late). The pty does not tell the daemon of the FIFO: its allowances
+/// must cover it anyway.
+#[test]
+fn wb_templates_at_9600_8o1_through_a_uart_fifo() {
+    wb_templates_at(
+        9600,
+        true,
+        Duration::from_secs(15),
+        &["--rx-fifo-trigger", "8"],
+    );
 }
 
 /// A meter whose every reply starts 600 ms after the request, with the default 500 ms response
