@@ -397,13 +397,6 @@ impl DeviceState {
         closed
     }
 
-    /// Whether some reads wait for the device's firmware to be known.
-    pub(super) fn awaits_firmware(&self) -> bool {
-        self.reads
-            .iter()
-            .any(|r| r.exclusion == Exclusion::AwaitingFirmware)
-    }
-
     /// An event carried `words` registers of the value read at `start`, fewer than it has: its
     /// other words may have changed with it (a device updates a value at once), so the value is
     /// read once at the next turn, events-only or not, rather than joined with words read

@@ -344,13 +344,6 @@ impl PortScheduler {
             .collect()
     }
 
-    /// Whether `device` has channels held until its firmware is known.
-    pub fn awaits_firmware(&self, device: usize) -> bool {
-        self.devices
-            .get(device)
-            .is_some_and(DeviceState::awaits_firmware)
-    }
-
     pub fn device_count(&self) -> usize {
         self.devices.len()
     }

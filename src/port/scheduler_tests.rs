@@ -655,7 +655,6 @@ fn a_channel_that_needs_newer_firmware_waits_for_it_and_is_never_read_on_older()
     gated.min_firmware = Some("2.1".into());
     let reads = vec![read(RegisterType::Holding, 0, EventMode::Polled), gated];
     let mut scheduler = PortScheduler::new(settings(115_200), vec![device(7, reads)]);
-    assert!(scheduler.awaits_firmware(0));
     let mut log = Log::default();
     let reads_of_100 = |log: &Log| {
         log.classic_to(7)
@@ -678,7 +677,6 @@ fn a_channel_that_needs_newer_firmware_waits_for_it_and_is_never_read_on_older()
             unsupported: true
         }]
     );
-    assert!(!scheduler.awaits_firmware(0));
     let now = run(&mut scheduler, &mut log, now, now + ms(100), |_, r| {
         healthy(r)
     });

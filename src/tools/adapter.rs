@@ -10,6 +10,8 @@ use std::fs;
 use std::path::Path;
 use std::time::Duration;
 
+use crate::transport::fifo::{read_number, tty_dir};
+
 /// What the kernel tells about a port.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Adapter {
@@ -33,11 +35,9 @@ impl Adapter {
     /// What the port at `path` is, read from sysfs (`sysfs_tty`: `/sys/class/tty` outside
     /// tests). Symbolic links (`/dev/ttyRS485-1`) are followed to the device node.
     pub fn detect(path: &Path, sysfs_tty: &Path) -> Adapter {
-        let node = fs::canonicalize(path).unwrap_or_else(|_| path.to_path_buf());
-        let Some(name) = node.file_name() else {
+        let Some(device) = tty_dir(path, sysfs_tty).map(|dir| dir.join("device")) else {
             return Adapter::Native;
         };
-        let device = sysfs_tty.join(name).join("device");
         if let Some(ms) = read_number(&device.join("latency_timer")) {
             return Adapter::UsbWithLatencyTimer {
                 latency_timer_ms: ms,
@@ -73,10 +73,6 @@ impl Adapter {
             Adapter::Native => format!("{ms} ms allowed for each reply to arrive"),
         }
     }
-}
-
-fn read_number(path: &Path) -> Option<u64> {
-    fs::read_to_string(path).ok()?.trim().parse().ok()
 }
 
 /// A USB serial driver (`usb-serial` bus) or a CDC-ACM interface (`usb` bus) owns the device.

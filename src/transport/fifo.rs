@@ -25,23 +25,28 @@ pub fn sysfs_tty() -> PathBuf {
     PathBuf::from("/sys/class/tty")
 }
 
-/// The `rx_trig_bytes` attribute of the port at `path` (symbolic links such as
-/// `/dev/ttyRS485-1` are followed to the device node), if the kernel has one for it.
-fn trigger_attribute(path: &Path, sysfs_tty: &Path) -> Option<PathBuf> {
+/// The sysfs directory of the tty at `path` (`<sysfs_tty>/<name>`; symbolic links such as
+/// `/dev/ttyRS485-1` are followed to the device node).
+pub fn tty_dir(path: &Path, sysfs_tty: &Path) -> Option<PathBuf> {
     let node = fs::canonicalize(path).unwrap_or_else(|_| path.to_path_buf());
-    let name = node.file_name()?;
-    let attribute = sysfs_tty.join(name).join("rx_trig_bytes");
-    attribute.is_file().then_some(attribute)
+    Some(sysfs_tty.join(node.file_name()?))
 }
 
-fn read_trigger(attribute: &Path) -> Option<u32> {
+/// A number from a sysfs attribute.
+pub fn read_number<T: std::str::FromStr>(attribute: &Path) -> Option<T> {
     fs::read_to_string(attribute).ok()?.trim().parse().ok()
+}
+
+/// The `rx_trig_bytes` attribute of the port at `path`, if the kernel has one for it.
+fn trigger_attribute(path: &Path, sysfs_tty: &Path) -> Option<PathBuf> {
+    let attribute = tty_dir(path, sysfs_tty)?.join("rx_trig_bytes");
+    attribute.is_file().then_some(attribute)
 }
 
 /// How many bytes the port's receive FIFO collects before it hands them over, as the kernel
 /// reports it; `None` when it does not say (USB adapters, pseudo-terminals).
 pub fn receive_fifo_trigger(path: &Path, sysfs_tty: &Path) -> Option<u32> {
-    trigger_attribute(path, sysfs_tty).and_then(|attribute| read_trigger(&attribute))
+    trigger_attribute(path, sysfs_tty).and_then(|attribute| read_number::<u32>(&attribute))
 }
 
 /// What became of a port's receive FIFO for a tool's run.
@@ -77,10 +82,10 @@ pub fn lower_for_tool(path: &Path, sysfs_tty: &Path) -> FifoForTool {
     let Some(attribute) = trigger_attribute(path, sysfs_tty) else {
         return FifoForTool::AsItIs;
     };
-    let Some(trigger) = read_trigger(&attribute).filter(|&trigger| trigger > 1) else {
+    let Some(trigger) = read_number::<u32>(&attribute).filter(|&trigger| trigger > 1) else {
         return FifoForTool::AsItIs;
     };
-    let lowered = fs::write(&attribute, "1").and_then(|()| match read_trigger(&attribute) {
+    let lowered = fs::write(&attribute, "1").and_then(|()| match read_number::<u32>(&attribute) {
         Some(1) => Ok(()),
         other => Err(io::Error::other(format!(
             "the driver kept {} bytes",
