@@ -1,6 +1,7 @@
 //! The task that owns one bus: it opens the transport (again, with a growing delay, when it
 //! fails), asks the scheduler what to do, does it, and turns what happened into device updates.
 
+use std::path::Path;
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -23,6 +24,7 @@ use crate::protocol::LineSettings;
 use crate::service::{BrokerState, PortVitals, ServiceHealth};
 use crate::status::hub::PortCommand;
 use crate::status::PortStatus;
+use crate::transport::fifo::{self, TriggerChange};
 use crate::transport::{Endpoint, Transport, TransportError};
 
 const FIRST_REOPEN_DELAY: Duration = Duration::from_millis(500);
@@ -347,6 +349,31 @@ impl PortTask {
         self.epoch.elapsed()
     }
 
+    /// Makes a serial port's UART hand received bytes over as they come, as wb-mqtt-serial does
+    /// when it opens a port (and leaves it so): with the kernel's default trigger (8 bytes on a
+    /// 16550A) a reply's end reaches the reader 4 characters late, which every transaction would
+    /// wait for, and the fillers of an arbitration may be held until the winner's frame is in.
+    /// Where it cannot be lowered, the transport allows for the trigger it reads.
+    fn lower_receive_fifo_trigger(&self) {
+        let Endpoint::Serial { path, .. } = &self.endpoint else {
+            return;
+        };
+        match fifo::lower_to_one_byte(Path::new(path), &fifo::sysfs_tty()) {
+            TriggerChange::NotReported | TriggerChange::AlreadyOne => {}
+            TriggerChange::Lowered { previous, .. } => info!(
+                port = %self.plan_name,
+                "receive FIFO set to hand bytes over one at a time (it collected {previous}; \
+                 rx_trig_bytes, as wb-mqtt-serial sets it)"
+            ),
+            TriggerChange::Holds { trigger, why } => warn!(
+                port = %self.plan_name,
+                "the UART hands received bytes over {trigger} at a time and could not be set to 1 \
+                 ({why}): replies are waited for that much longer (run as root, or write 1 to \
+                 rx_trig_bytes)"
+            ),
+        }
+    }
+
     /// Serves the bus until `shutdown` turns true.
     pub async fn run(mut self, mut shutdown: watch::Receiver<bool>) {
         self.start_identity_worker();
@@ -354,6 +381,7 @@ impl PortTask {
         // Since when the port has been unusable: its devices go offline after their timeout.
         let mut closed_since = self.now();
         loop {
+            self.lower_receive_fifo_trigger();
             let opened = tokio::select! {
                 opened = Transport::open(&self.endpoint) => opened,
                 _ = shutdown.changed() => return,
@@ -361,14 +389,7 @@ impl PortTask {
             match opened {
                 Ok(mut transport) => {
                     transport.set_guard_interval(self.guard_interval);
-                    match transport.receive_fifo() {
-                        1 => info!(port = %self.plan_name, "port open"),
-                        trigger => info!(
-                            port = %self.plan_name,
-                            "port open; its UART hands received bytes over {trigger} at a time \
-                             (rx_trig_bytes): a reply's first bytes are waited for that much longer"
-                        ),
-                    }
+                    info!(port = %self.plan_name, "port open");
                     self.set_open(true);
                     self.transacted = false;
                     match self.serve(transport, &mut shutdown).await {

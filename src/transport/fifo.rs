@@ -7,9 +7,10 @@
 //! characters late, and the filler bytes of a Fast Modbus arbitration, which come a window apart
 //! and never leave the line quiet for long, may not reach it before the winner's whole frame is
 //! in: a master that ends a scan setting when the first window brought nothing would miss every
-//! device. The exchange allows for the trigger level ([`super::exchange::FirstByteHold`]); a
-//! site tool, which waits on every empty setting, lowers the trigger to 1 byte while it runs
-//! instead, and puts it back when it ends.
+//! device. The exchange allows for the trigger level ([`super::exchange::FirstByteHold`]), but
+//! every allowance costs bus time, so the trigger is lowered to 1 byte where the kernel allows
+//! it: by the daemon when it opens a port (as wb-mqtt-serial does; it is left so), and by a site
+//! tool for its run only (put back when it ends).
 //!
 //! The kernel shows the attribute for 8250-family ports only; USB adapters and pseudo-terminals
 //! have none (a USB adapter's latency timer is its own allowance, see `tools::adapter`).
@@ -49,6 +50,47 @@ pub fn receive_fifo_trigger(path: &Path, sysfs_tty: &Path) -> Option<u32> {
     trigger_attribute(path, sysfs_tty).and_then(|attribute| read_number::<u32>(&attribute))
 }
 
+/// What lowering a port's receive FIFO trigger to 1 byte did.
+#[derive(Debug)]
+pub enum TriggerChange {
+    /// The kernel reports no trigger for the port (USB adapters, pseudo-terminals).
+    NotReported,
+    /// It was 1 byte already.
+    AlreadyOne,
+    /// Lowered from `previous` bytes.
+    Lowered { attribute: PathBuf, previous: u32 },
+    /// It collects this many bytes and could not be lowered (not root, or the driver refused).
+    Holds { trigger: u32, why: io::Error },
+}
+
+/// Sets the port's receive FIFO trigger to 1 byte when it is higher, so that bytes reach the
+/// reader as they come.
+pub fn lower_to_one_byte(path: &Path, sysfs_tty: &Path) -> TriggerChange {
+    let Some(attribute) = trigger_attribute(path, sysfs_tty) else {
+        return TriggerChange::NotReported;
+    };
+    let Some(trigger) = read_number::<u32>(&attribute) else {
+        return TriggerChange::NotReported;
+    };
+    if trigger <= 1 {
+        return TriggerChange::AlreadyOne;
+    }
+    let lowered = fs::write(&attribute, "1").and_then(|()| match read_number::<u32>(&attribute) {
+        Some(1) => Ok(()),
+        other => Err(io::Error::other(format!(
+            "the driver kept {} bytes",
+            other.map_or_else(|| "?".to_owned(), |t| t.to_string())
+        ))),
+    });
+    match lowered {
+        Ok(()) => TriggerChange::Lowered {
+            attribute,
+            previous: trigger,
+        },
+        Err(why) => TriggerChange::Holds { trigger, why },
+    }
+}
+
 /// What became of a port's receive FIFO for a tool's run.
 #[derive(Debug)]
 pub enum FifoForTool {
@@ -76,28 +118,19 @@ impl Drop for LoweredTrigger {
     }
 }
 
-/// Lowers the port's receive FIFO trigger to 1 byte when it is higher, so that bytes reach the
-/// tool as they come.
+/// Lowers the port's receive FIFO trigger to 1 byte for a tool's run (see
+/// [`lower_to_one_byte`]); the returned guard puts it back.
 pub fn lower_for_tool(path: &Path, sysfs_tty: &Path) -> FifoForTool {
-    let Some(attribute) = trigger_attribute(path, sysfs_tty) else {
-        return FifoForTool::AsItIs;
-    };
-    let Some(trigger) = read_number::<u32>(&attribute).filter(|&trigger| trigger > 1) else {
-        return FifoForTool::AsItIs;
-    };
-    let lowered = fs::write(&attribute, "1").and_then(|()| match read_number::<u32>(&attribute) {
-        Some(1) => Ok(()),
-        other => Err(io::Error::other(format!(
-            "the driver kept {} bytes",
-            other.map_or_else(|| "?".to_owned(), |t| t.to_string())
-        ))),
-    });
-    match lowered {
-        Ok(()) => FifoForTool::Lowered(LoweredTrigger {
+    match lower_to_one_byte(path, sysfs_tty) {
+        TriggerChange::NotReported | TriggerChange::AlreadyOne => FifoForTool::AsItIs,
+        TriggerChange::Lowered {
             attribute,
-            previous: trigger,
+            previous,
+        } => FifoForTool::Lowered(LoweredTrigger {
+            attribute,
+            previous,
         }),
-        Err(why) => FifoForTool::Holds { trigger, why },
+        TriggerChange::Holds { trigger, why } => FifoForTool::Holds { trigger, why },
     }
 }
 
@@ -144,6 +177,24 @@ mod tests {
         assert_eq!(receive_fifo_trigger(&port, &sysfs), Some(1));
         drop(fifo);
         assert_eq!(fs::read_to_string(&attribute).unwrap(), "8");
+    }
+
+    #[test]
+    fn lowered_to_one_byte_it_stays_so() {
+        let root = tempfile::tempdir().unwrap();
+        let (port, sysfs) = fake_port(root.path(), "ttyS1", Some("8\n"));
+        let change = lower_to_one_byte(&port, &sysfs);
+        assert!(
+            matches!(change, TriggerChange::Lowered { previous: 8, .. }),
+            "{change:?}"
+        );
+        drop(change);
+        assert_eq!(receive_fifo_trigger(&port, &sysfs), Some(1));
+        let again = lower_to_one_byte(&port, &sysfs);
+        assert!(matches!(again, TriggerChange::AlreadyOne), "{again:?}");
+        let (pty, sysfs) = fake_port(&root.path().join("b"), "pts3", None);
+        let none = lower_to_one_byte(&pty, &sysfs);
+        assert!(matches!(none, TriggerChange::NotReported), "{none:?}");
     }
 
     #[test]
