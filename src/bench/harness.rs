@@ -212,7 +212,9 @@ impl HarnessOptions {
             // For looking into a run: BENCH_LOG=rtu2mqtt=debug logs every frame.
             log_filter: std::env::var("BENCH_LOG").ok(),
             broker_tls: None,
-            sim_args: Vec::new(),
+            // The controller's UART as the daemon leaves it (rx_trig_bytes 1): a frame's end
+            // is handed over at its stop bit.
+            sim_args: vec!["--rx-fifo-trigger".to_owned(), "1".to_owned()],
         }
     }
 }

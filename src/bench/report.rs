@@ -375,7 +375,8 @@ fn simulator(out: &mut String, runs: &[RunResult]) {
         "## The simulator's own cost and timing error\n\nWhat the numbers above are worth: the \
          simulator's CPU share over each window, and how late its pacers handed reply bytes to \
          the pty: for each write, how late after the moment its modelled UART hands them over \
-         (a 16550's receive FIFO: 8 bytes, or 4 characters after the last byte); counted from \
+         (a controller's UART as the daemon sets it, `rx_trig_bytes` 1: each byte at its stop \
+         bit, a frame's end too; bytes within 250 µs go together); counted from \
          the simulator's start, warm-up included; \"late p99 ≤\" is the bound of the bucket that holds the 99th \
          percentile (buckets 10, 50, 100, 250, 500, 1000, 5000 µs).\n"
     );

@@ -57,7 +57,9 @@ pub struct Args {
     pub adapter_latency_ms: u64,
     /// Hand the pty's bytes over as a 16550 UART whose receive FIFO collects this many before
     /// handing them over (Linux sets 8 on a 16550A), or once the line has been quiet for 4
-    /// characters. Default: bytes as they come, a frame's end 4 characters late.
+    /// characters; 1: every byte as it comes, a frame's end too (the trigger rtu2mqtt and
+    /// wb-mqtt-serial set on a controller's UART). Default: bytes as they come, a frame's end
+    /// 4 characters late (a UART left at the kernel's trigger).
     #[arg(long, value_name = "BYTES", value_parser = clap::value_parser!(u16).range(1..=256))]
     pub rx_fifo_trigger: Option<u16>,
     /// Where templates named by device_type are looked up (default: ./templates, else the

@@ -65,35 +65,46 @@ pub struct Receiver {
     /// FTDI chip's latency timer is 16 ms by default).
     pub delivery_delay: Duration,
     /// A 16550's receive FIFO trigger level: bytes are handed over when this many have come, or
-    /// the receive timeout after the line falls quiet. `None`: as they come (batched within
-    /// [`RX_HOLD`]), a frame's end the receive timeout late.
+    /// the receive timeout after the line falls quiet. `Some(1)`: as they come (batched within
+    /// [`RX_HOLD`]), a frame's end too (the trigger wb-mqtt-serial and rtu2mqtt set on a
+    /// controller's UART). `None`: as they come, but a frame's end the receive timeout late (a
+    /// UART left at the kernel's trigger, for the bytes a frame ends with).
     pub fifo_trigger: Option<usize>,
 }
 
 /// When the receiver hands the first bytes of `arrivals` (in time order) over, and how many.
-/// Without a FIFO trigger: the first byte and those after it up to [`RX_HOLD`] after its stop
-/// bit. With one: once that many bytes have come, at the last one's stop bit. Either way, when
-/// the line falls quiet for [`RECEIVE_TIMEOUT_CHARS`] characters after one of them first, that
-/// byte and those before it, the receive timeout after its stop bit. `None` for no bytes.
+/// Without a FIFO trigger above 1: the first byte and those after it up to [`RX_HOLD`] after its
+/// stop bit. With one: once that many bytes have come, at the last one's stop bit. Either way,
+/// when the line falls quiet for [`RECEIVE_TIMEOUT_CHARS`] characters after one of them first,
+/// that byte and those before it, the receive timeout after its stop bit; with a trigger of 1
+/// at that byte's stop bit (a FIFO that triggers at every byte has nothing to hold). `None` for
+/// no bytes.
 pub fn hand_over(
     arrivals: impl IntoIterator<Item = Arrival>,
     fifo_trigger: Option<usize>,
 ) -> Option<(Duration, usize)> {
+    let collects = fifo_trigger.filter(|&trigger| trigger > 1);
+    let every_byte = fifo_trigger == Some(1);
     let mut arrivals = arrivals.into_iter().peekable();
     let first = *arrivals.peek()?;
     let hold_until = first.at + RX_HOLD;
     let mut count = 0;
     while let Some(arrival) = arrivals.next() {
         count += 1;
-        if fifo_trigger.is_some_and(|trigger| count >= trigger) {
+        if collects.is_some_and(|trigger| count >= trigger) {
             return Some((arrival.at, count));
         }
         let next = arrivals.peek();
         if arrival.ends_a_frame(next) {
-            return Some((arrival.quiet_at(), count));
+            let at = if every_byte {
+                arrival.at
+            } else {
+                arrival.quiet_at()
+            };
+            return Some((at, count));
         }
         // Bytes within the hold go together; the next one is past it.
-        if fifo_trigger.is_none() && next.is_some_and(|next| next.at > hold_until) {
+        if collects.is_none() && next.is_some_and(|next| next.at > hold_until) {
             return Some((hold_until, count));
         }
     }
@@ -345,6 +356,17 @@ mod tests {
         assert_eq!(hand_over(bytes, None), Some((us(100 + 400), 1)));
     }
 
+    /// Arbitration fillers 3 characters (of 100 µs) apart.
+    fn fillers_of(count: u32) -> Vec<Arrival> {
+        (0..count)
+            .map(|i| Arrival {
+                at: us(300 * u64::from(i) + 100),
+                byte: 0xFF,
+                char_time: us(100),
+            })
+            .collect()
+    }
+
     #[test]
     fn a_fifo_hands_bytes_over_at_its_trigger_level_or_after_the_line_falls_quiet() {
         // A 16-byte frame through a FIFO that triggers at 8: two batches at the 8th and 16th
@@ -356,17 +378,16 @@ mod tests {
         assert_eq!(hand_over(frame(0, 5), Some(8)), Some((us(500 + 400), 5)));
         // Arbitration fillers 3 characters apart never leave the line quiet for 4: the first
         // is held until the 8th has come.
-        let fillers: Vec<Arrival> = (0..10)
-            .map(|i| Arrival {
-                at: us(300 * i + 100),
-                byte: 0xFF,
-                char_time: us(100),
-            })
-            .collect();
+        let fillers = fillers_of(10);
         assert_eq!(hand_over(fillers.clone(), None), Some((us(100 + 250), 1)));
         assert_eq!(hand_over(fillers, Some(8)), Some((us(2200), 8)));
-        // A trigger of one byte hands every byte over at its stop bit, a frame's end too.
-        assert_eq!(hand_over(frame(0, 2), Some(1)), Some((us(100), 1)));
+        // A trigger of one byte hands every byte over as it comes (batched within the hold, as
+        // without a trigger), a frame's end at its stop bit.
+        assert_eq!(hand_over(frame(0, 2), Some(1)), Some((us(200), 2)));
         assert_eq!(hand_over(frame(100, 1), Some(1)), Some((us(200), 1)));
+        assert_eq!(hand_over(fillers_of(3), Some(1)), Some((us(100 + 250), 1)));
+        let mut bytes = frame(0, 1);
+        bytes.extend(frame(600, 2));
+        assert_eq!(hand_over(bytes, Some(1)), Some((us(100), 1)));
     }
 }
