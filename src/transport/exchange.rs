@@ -574,8 +574,9 @@ impl Exchange {
     }
 
     /// On a serial line, once a reply of known length has begun: when its last byte should have
-    /// arrived (the missing bytes' wire time after the last bytes read; the frame's length from
-    /// its header once that is in, else from the request). A driver may sleep until then (or
+    /// arrived (the missing bytes' wire time after the last bytes read, and a collecting receive
+    /// FIFO's timeout; the frame's length from its header once that is in, else from the
+    /// request). A driver may sleep until then (or
     /// [`Self::poll_timeout`] if earlier) and read the rest at once instead of waking for every
     /// few bytes; timeouts are unchanged. `None` when the reply has not begun (the first byte's
     /// time is what the scheduler learns from) or its end cannot be known yet: a reply that
@@ -600,7 +601,15 @@ impl Exchange {
             FrameLength::Unknown => return None,
         };
         let missing = total.checked_sub(buffered.len()).filter(|&n| n > 0)?;
-        Some(last_byte_at.saturating_add(line.wire_time(missing)))
+        let on_the_wire = last_byte_at.saturating_add(line.wire_time(missing));
+        // A receive FIFO that collects bytes hands the frame's last ones over only once the line
+        // has been quiet for its receive timeout: reading before that wakes the reader for
+        // nothing and leaves it watching the line.
+        Some(if self.config.receive_fifo > 1 {
+            on_the_wire.saturating_add(self.config.receive_timeout)
+        } else {
+            on_the_wire
+        })
     }
 }
 
@@ -1899,6 +1908,17 @@ mod tests {
         assert_eq!(
             exchange.reply_complete_at(),
             Some(ms(2) + line.wire_time(12))
+        );
+        // Through a FIFO that collects 8 bytes, the frame's last ones come its receive timeout
+        // after the line fell quiet.
+        let mut exchange = Exchange::new(serial(line).with_receive_fifo(8));
+        exchange.start(&transaction).expect("encodes");
+        exchange.poll_transmit(ms(0));
+        exchange.handle_sent(ms(0));
+        exchange.handle_bytes(ms(2), &[0xFF, 0x16, 0x46, 0x11, 0x01, 0x02, 0x0A]);
+        assert_eq!(
+            exchange.reply_complete_at(),
+            Some(ms(2) + line.wire_time(12) + line.receive_timeout())
         );
     }
 
