@@ -42,7 +42,7 @@ fn all_fixtures_load_and_resolve() {
         );
         count += 1;
     }
-    assert_eq!(count, 12);
+    assert_eq!(count, 13);
 }
 
 /// Asserts a channel's first register: table, address, format and event mode.
@@ -853,4 +853,44 @@ fn readonly_selector_and_parameter_before_template_setup() {
         .unwrap_err()
         .to_string();
     assert!(err.contains("requires parameter `heating`"), "{err}");
+}
+
+/// Danfoss EKC 204A1 (WB-REF): r36 is declared `u16` with scale 0.1 and a range of -15 … -3 °C.
+/// wb-mqtt-serial takes such a config and writes a negative value on an unsigned format as its
+/// two's complement; rtu2mqtt used to refuse every allowed value ("out of range for u16").
+#[test]
+fn negative_values_on_unsigned_formats_are_twos_complement() {
+    let fixture = "config-test-refrigeration-controller.json";
+    let d = device(
+        fixture,
+        json!({"slave_id": 1, "heating_differential": -15, "setpoint_min": -50, "differential": 0.5}),
+    );
+    assert_eq!(
+        setup_writes(&d),
+        vec![
+            (10101, vec![5]),
+            (10103, vec![0xFE0C]),
+            (10105, vec![0]),
+            (10149, vec![0xFF6A])
+        ]
+    );
+    let d = device(
+        fixture,
+        json!({"slave_id": 1, "heating_differential": -3.5}),
+    );
+    assert_eq!(
+        setup_writes(&d),
+        vec![(10105, vec![0]), (10149, vec![0xFFDD])]
+    );
+    // The template's range still applies, in the value's units.
+    let err = resolve_template_device(
+        &template(fixture),
+        &json!({"slave_id": 1, "heating_differential": -20}),
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(err.contains("heating_differential"), "{err}");
+    // A channel on an unsigned format takes a negative value the same way.
+    let cutout = d.channel("Cutout").unwrap();
+    assert_eq!(cutout.encode("-2.5", &[None]).unwrap(), vec![vec![0xFFE7]]);
 }
