@@ -42,7 +42,7 @@ fn all_fixtures_load_and_resolve() {
         );
         count += 1;
     }
-    assert_eq!(count, 11);
+    assert_eq!(count, 13);
 }
 
 /// Asserts a channel's first register: table, address, format and event mode.
@@ -769,4 +769,128 @@ fn bounds_required_once_the_mode_is_given() {
             .unwrap(),
         Reading::Value("-1".into())
     );
+}
+
+/// WBE2-I-OPENTHERM (with an s16 enum and a u8 parameter of Eliwell IDPlus and a filter time of
+/// WB-MSW v.4): a readonly selector that has an address picks the template setup items and is
+/// never written itself; where a parameter and a template setup item write one address, the
+/// parameter is written (wb-mqtt-serial keeps the first item of an address: config setup,
+/// parameters, template setup); one channel name is a write-only or a read-only setpoint by
+/// condition; scale and offset apply both ways.
+#[test]
+fn readonly_selector_and_parameter_before_template_setup() {
+    let fixture = "config-test-boiler-interface.json";
+    // Direct control: `season` and the "winter" item both write 212; the parameter wins.
+    let d = device(fixture, json!({"slave_id": 1, "heating": 0, "season": 2}));
+    assert_eq!(
+        setup_writes(&d),
+        vec![(205, vec![0]), (207, vec![0]), (212, vec![2])]
+    );
+    let setpoint = d.channel("Heating Setpoint").unwrap();
+    assert!(setpoint.write_only);
+    assert!(setpoint.registers[0].read.is_none());
+    assert_eq!(setpoint.registers[0].write.unwrap().address, 203);
+    assert!(d.channel("Room Temperature").is_none());
+
+    // Outdoor sensor: the curve is written between the template items, in address order.
+    let d = device(fixture, json!({"slave_id": 1, "heating": 2, "curve": 7}));
+    assert_eq!(
+        setup_writes(&d),
+        vec![
+            (203, vec![0]),
+            (206, vec![7]),
+            (207, vec![2]),
+            (212, vec![1])
+        ]
+    );
+
+    // Heating off: the setpoint is read, not written.
+    let d = device(fixture, json!({"slave_id": 1, "heating": 3}));
+    assert_eq!(setup_writes(&d), vec![(203, vec![0]), (205, vec![0])]);
+    let setpoint = d.channel("Heating Setpoint").unwrap();
+    assert!(setpoint.readonly && !setpoint.write_only);
+    assert_eq!(setpoint.registers[0].read.unwrap().address, 203);
+
+    // Room sensor: value = raw * 0.1 - 100, written back the same way.
+    let d = device(fixture, json!({"slave_id": 1, "heating": 1}));
+    let room = d.channel("Room Temperature").unwrap();
+    assert_eq!(room.encode("21.5", &[None]).unwrap(), vec![vec![1215]]);
+    assert_eq!(room.encode("-50", &[None]).unwrap(), vec![vec![500]]);
+    assert_eq!(
+        room.decode(&[&[1215]]).unwrap(),
+        Reading::Value("21.5".into())
+    );
+    assert_eq!(
+        d.channel("Water Pressure")
+            .unwrap()
+            .decode(&[&[1015]])
+            .unwrap(),
+        Reading::Value("1.5".into())
+    );
+    assert_eq!(
+        d.channel("Flame").unwrap().decode(&[&[0x0008]]).unwrap(),
+        Reading::Value("1".into())
+    );
+
+    // An s16 enum of negative values, a u8 parameter and a scale of 10.
+    let d = device(
+        fixture,
+        json!({"slave_id": 1, "heating": 3, "input_mode": -4, "buzzer": 4, "filter_ms": 50}),
+    );
+    assert_eq!(
+        setup_writes(&d),
+        vec![
+            (91, vec![5]),
+            (203, vec![0]),
+            (205, vec![0]),
+            (16430, vec![0xFFFC]),
+            (49260, vec![4])
+        ]
+    );
+
+    // The selector is required whatever its default, as by wb-mqtt-serial's validator.
+    let err = resolve_template_device(&template(fixture), &json!({"slave_id": 1}))
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("requires parameter `heating`"), "{err}");
+}
+
+/// Danfoss EKC 204A1 (WB-REF): r36 is declared `u16` with scale 0.1 and a range of -15 … -3 °C.
+/// wb-mqtt-serial takes such a config and writes a negative value on an unsigned format as its
+/// two's complement; rtu2mqtt used to refuse every allowed value ("out of range for u16").
+#[test]
+fn negative_values_on_unsigned_formats_are_twos_complement() {
+    let fixture = "config-test-refrigeration-controller.json";
+    let d = device(
+        fixture,
+        json!({"slave_id": 1, "heating_differential": -15, "setpoint_min": -50, "differential": 0.5}),
+    );
+    assert_eq!(
+        setup_writes(&d),
+        vec![
+            (10101, vec![5]),
+            (10103, vec![0xFE0C]),
+            (10105, vec![0]),
+            (10149, vec![0xFF6A])
+        ]
+    );
+    let d = device(
+        fixture,
+        json!({"slave_id": 1, "heating_differential": -3.5}),
+    );
+    assert_eq!(
+        setup_writes(&d),
+        vec![(10105, vec![0]), (10149, vec![0xFFDD])]
+    );
+    // The template's range still applies, in the value's units.
+    let err = resolve_template_device(
+        &template(fixture),
+        &json!({"slave_id": 1, "heating_differential": -20}),
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(err.contains("heating_differential"), "{err}");
+    // A channel on an unsigned format takes a negative value the same way.
+    let cutout = d.channel("Cutout").unwrap();
+    assert_eq!(cutout.encode("-2.5", &[None]).unwrap(), vec![vec![0xFFE7]]);
 }

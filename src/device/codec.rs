@@ -355,10 +355,15 @@ impl ValueCodec {
             format => {
                 let value = self.integer_for(text)?;
                 let bits = self.bit_width.clamp(1, 64);
-                let (min, max) = if format.is_signed() {
-                    (-(1i128 << (bits - 1)), (1i128 << (bits - 1)) - 1)
+                // A negative value on an unsigned format is written as its two's complement
+                // in the field's width, as wb-mqtt-serial writes it (its `stoull` wraps and
+                // the result is masked): Danfoss EKC 204A1 declares r36 as `u16` with scale
+                // 0.1 and a range of -15 … -3 °C, which the controller reads as signed.
+                let min = -(1i128 << (bits - 1));
+                let max = if format.is_signed() {
+                    (1i128 << (bits - 1)) - 1
                 } else {
-                    (0, (1i128 << bits) - 1)
+                    (1i128 << bits) - 1
                 };
                 if !(min..=max).contains(&value) {
                     return Err(self.out_of_range(text, min.to_string(), max.to_string()));

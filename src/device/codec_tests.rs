@@ -322,7 +322,11 @@ fn writes_check_the_format_range() {
     let cases: &[(RegisterFormat, &str, bool)] = &[
         (RegisterFormat::U16, "65535", true),
         (RegisterFormat::U16, "65536", false),
-        (RegisterFormat::U16, "-1", false),
+        // Negative values on unsigned formats are written as two's complement, as by
+        // wb-mqtt-serial; below the signed minimum of the width they are refused.
+        (RegisterFormat::U16, "-1", true),
+        (RegisterFormat::U16, "-32768", true),
+        (RegisterFormat::U16, "-32769", false),
         (RegisterFormat::S16, "-32768", true),
         (RegisterFormat::S16, "32768", false),
         (RegisterFormat::U8, "256", false),
@@ -341,7 +345,15 @@ fn writes_check_the_format_range() {
         .encode("70000", None)
         .unwrap_err()
         .to_string();
-    assert!(err.contains("0 … 65535"), "{err}");
+    assert!(err.contains("-32768 … 65535"), "{err}");
+    assert_eq!(
+        codec(RegisterFormat::U16).encode("-1", None).unwrap(),
+        vec![0xFFFF]
+    );
+    assert_eq!(
+        codec(RegisterFormat::U8).encode("-1", None).unwrap(),
+        vec![0x00FF]
+    );
     assert_eq!(
         codec(RegisterFormat::U16).encode("abc", None),
         Err(CodecError::NotANumber("abc".into()))
@@ -363,6 +375,13 @@ fn scaled_writes_round_to_the_nearest_raw_value() {
     };
     assert_eq!(offset.encode("-20", None).unwrap(), vec![40]);
     assert!(offset.encode("200", None).is_err());
+    // Danfoss EKC 204A1's r36: `u16`, scale 0.1, -15 … -3 °C; -15 is raw -150.
+    let differential = ValueCodec {
+        scale: 0.1,
+        ..codec(RegisterFormat::U16)
+    };
+    assert_eq!(differential.encode("-15", None).unwrap(), vec![0xFF6A]);
+    assert_eq!(differential.encode("-3.5", None).unwrap(), vec![0xFFDD]);
 }
 
 #[test]
