@@ -20,6 +20,10 @@ enum Command {
     Describe(cli::check::DescribeArgs),
     /// Print the JSON Schema of the config file or of templates.
     Schema(cli::schema::SchemaArgs),
+    /// Set the config's serial ports up for the daemon (root; the systemd unit runs it before
+    /// the daemon): each UART's receive FIFO hands bytes over one at a time, as wb-mqtt-serial
+    /// sets it.
+    PreparePorts(cli::prepare_ports::Args),
     /// Zero set-up demo: simulated devices, a broker (mosquitto when installed) and the daemon.
     Demo(cli::demo::Args),
     /// Serve the buses of the config: poll devices, receive Fast Modbus events, publish values.
@@ -72,6 +76,7 @@ fn main() -> std::process::ExitCode {
     let result = match cli.command {
         Command::CheckConfig(args) => cli::check::run_check_config(args),
         Command::CheckTemplates(args) => cli::check::run_check_templates(args),
+        Command::PreparePorts(args) => cli::prepare_ports::run(args),
         Command::Describe(args) => cli::check::run_describe(args),
         Command::Schema(args) => cli::schema::run(args),
         Command::Run(args) => cli::run::run(args),

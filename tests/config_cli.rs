@@ -1,4 +1,4 @@
-//! `check-config`, `check-templates` and `schema` run as the real binary: bad input gets a
+//! `check-config`, `check-templates`, `schema` and `prepare-ports` run as the real binary: bad input gets a
 //! located error and a non-zero exit, never a panic.
 
 use std::path::{Path, PathBuf};
@@ -791,4 +791,73 @@ fn describe_shows_what_was_resolved() {
 
     let (ok, text) = describe(&["nonexistent"]);
     assert!(!ok && text.contains("devices: wb-test-inputs_7"), "{text}");
+}
+
+/// `prepare-ports` sets each serial port's receive FIFO trigger to 1 byte (on a fake
+/// `/sys/class/tty`), says so per port, leaves ports without the attribute and TCP ports alone,
+/// and succeeds where it cannot (the service must start anyway).
+#[test]
+fn prepare_ports_lowers_each_uarts_receive_fifo_trigger() {
+    let dir = tempfile::tempdir().unwrap();
+    let dev = dir.path().join("dev");
+    let sysfs = dir.path().join("sys");
+    std::fs::create_dir_all(&dev).unwrap();
+    for (name, trigger) in [
+        ("ttyS7", Some("8\n")),
+        ("ttyS8", Some("1\n")),
+        ("ttyUSB0", None),
+    ] {
+        std::fs::write(dev.join(name), "").unwrap();
+        std::fs::create_dir_all(sysfs.join(name)).unwrap();
+        if let Some(trigger) = trigger {
+            std::fs::write(sysfs.join(name).join("rx_trig_bytes"), trigger).unwrap();
+        }
+    }
+    let port = |name: &str| serde_json::json!({"path": dev.join(name), "devices": []});
+    let config = serde_json::json!({"ports": [
+        port("ttyS7"),
+        port("ttyS8"),
+        port("ttyUSB0"),
+        {"port_type": "tcp", "address": "127.0.0.1", "port": 1, "devices": []},
+    ]});
+    let file = dir.path().join("config.json");
+    std::fs::write(&file, config.to_string()).unwrap();
+    let out = bin()
+        .arg("prepare-ports")
+        .arg("-c")
+        .arg(&file)
+        .arg("--sysfs-tty")
+        .arg(&sysfs)
+        .output()
+        .unwrap();
+    let (ok, text) = report(out);
+    assert!(ok, "{text}");
+    let lines: Vec<&str> = text.lines().collect();
+    assert_eq!(lines.len(), 3, "one line per serial port:\n{text}");
+    assert!(
+        lines[0]
+            .ends_with("ttyS7: receive FIFO set to hand bytes over one at a time (it collected 8)"),
+        "{text}"
+    );
+    assert!(
+        lines[1].ends_with("ttyS8: receive FIFO hands bytes over one at a time"),
+        "{text}"
+    );
+    assert!(
+        lines[2].contains("ttyUSB0: no receive FIFO trigger to set"),
+        "{text}"
+    );
+    let trigger = std::fs::read_to_string(sysfs.join("ttyS7/rx_trig_bytes")).unwrap();
+    assert_eq!(trigger, "1");
+
+    // A config that does not load: the errors and a failure, as check-config.
+    std::fs::write(&file, "{ \"ports\": [ }").unwrap();
+    let out = bin()
+        .arg("prepare-ports")
+        .arg("-c")
+        .arg(&file)
+        .output()
+        .unwrap();
+    let (ok, text) = report(out);
+    assert!(!ok && text.contains("config.json"), "{text}");
 }

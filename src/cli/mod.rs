@@ -13,6 +13,7 @@ pub mod demo;
 pub mod events;
 pub mod generate;
 pub mod hash_password;
+pub mod prepare_ports;
 pub mod run;
 pub mod scan;
 pub mod schema;

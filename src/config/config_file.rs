@@ -26,7 +26,9 @@ pub struct Config {
     /// security policy may forbid it: then every register is polled.
     #[serde(default = "yes")]
     pub fast_modbus: bool,
-    /// Low-priority register reads per second, split across ports (default 800).
+    /// Low-priority channel reads per second (channels without `read_period_ms`), split across
+    /// ports in proportion to their channels. No limit when absent (wb-mqtt-serial defaults to
+    /// 800, 100 on a single CPU, to spare its CPU).
     pub rate_limit: Option<u32>,
     /// Verbose logs (the command line's log level wins).
     #[serde(default)]

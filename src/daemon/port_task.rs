@@ -368,8 +368,8 @@ impl PortTask {
             TriggerChange::Holds { trigger, why } => warn!(
                 port = %self.plan_name,
                 "the UART hands received bytes over {trigger} at a time and could not be set to 1 \
-                 ({why}): replies are waited for that much longer (run as root, or write 1 to \
-                 rx_trig_bytes)"
+                 ({why}): replies are waited for that much longer (`sudo rtu2mqtt prepare-ports \
+                 -c CONFIG` sets it; the systemd service runs it at every start)"
             ),
         }
     }

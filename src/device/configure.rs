@@ -146,7 +146,11 @@ pub fn resolve_config_checked(
             index: port_index,
             config: port.clone(),
             devices,
+            low_priority_read_limit: None,
         });
+    }
+    if let Some(limit) = loaded.config.rate_limit {
+        share_rate_limit(&mut ports, limit);
     }
     let result = if errors.is_empty() {
         Ok(ports)
@@ -154,6 +158,20 @@ pub fn resolve_config_checked(
         Err(ErrorList(errors))
     };
     (result, warnings)
+}
+
+/// Splits `rate_limit` (low-priority channel reads per second, all ports together) across the
+/// ports in proportion to their channels, at least 1 each, as wb-mqtt-serial does.
+fn share_rate_limit(ports: &mut [ResolvedPort], limit: u32) {
+    let channels =
+        |port: &ResolvedPort| -> u64 { port.devices.iter().map(|d| d.channels.len() as u64).sum() };
+    let total: u64 = ports.iter().map(channels).sum();
+    for port in ports.iter_mut() {
+        let share = (u64::from(limit) * channels(port))
+            .checked_div(total)
+            .unwrap_or(u64::from(limit));
+        port.low_priority_read_limit = Some(u32::try_from(share).unwrap_or(u32::MAX).max(1));
+    }
 }
 
 /// Keys of a template that no setting reads and that look like a misspelt valid key (`scal`,
@@ -438,6 +456,45 @@ mod tests {
             .into_iter()
             .flat_map(|port| port.devices)
             .collect()
+    }
+
+    /// `rate_limit` is shared by the ports in proportion to their channels, at least 1 each.
+    #[test]
+    fn rate_limit_is_split_across_ports_by_their_channels() {
+        let config = json!({
+            "rate_limit": 100,
+            "ports": [
+                {"path": "/dev/ttyA", "devices": [
+                    {"device_type": "rtu2mqtt-relay6", "slave_id": 20},
+                    {"device_type": "rtu2mqtt-relay6", "slave_id": 21},
+                    {"device_type": "rtu2mqtt-relay6", "slave_id": 22},
+                ]},
+                {"path": "/dev/ttyB", "devices": [
+                    {"device_type": "rtu2mqtt-relay6", "slave_id": 23},
+                ]},
+                {"path": "/dev/ttyC", "devices": []},
+            ]
+        });
+        let loaded = crate::config::load::load_config_source(
+            SourceText::from_text(Path::new("c.json"), &config.to_string()),
+            false,
+        )
+        .unwrap();
+        let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+        let library = TemplateLibrary::load_dirs(&[root.join("templates")]);
+        let ports = resolve_config(&loaded, &library).unwrap_or_else(|errors| panic!("{errors}"));
+        let limits: Vec<Option<u32>> = ports.iter().map(|p| p.low_priority_read_limit).collect();
+        assert_eq!(limits, [Some(75), Some(25), Some(1)]);
+        let unlimited = crate::config::load::load_config_source(
+            SourceText::from_text(
+                Path::new("c.json"),
+                &json!({"ports": [{"path": "/dev/ttyA", "devices": []}]}).to_string(),
+            ),
+            false,
+        )
+        .unwrap();
+        let ports = resolve_config(&unlimited, &library).unwrap();
+        assert_eq!(ports[0].low_priority_read_limit, None);
     }
 
     fn shares(a: &ResolvedDevice, b: &ResolvedDevice) -> bool {

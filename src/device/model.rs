@@ -417,6 +417,9 @@ pub struct ResolvedPort {
     pub index: usize,
     pub config: PortConfig,
     pub devices: Vec<ResolvedDevice>,
+    /// This port's share of the config's `rate_limit` (low-priority channel reads per second),
+    /// in proportion to its channels; `None`: no limit.
+    pub low_priority_read_limit: Option<u32>,
 }
 
 #[cfg(test)]

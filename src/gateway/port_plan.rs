@@ -67,6 +67,7 @@ pub fn port_plan(port: &ResolvedPort, fast_modbus: bool) -> PortPlan {
     if let Some(interval) = port.config.event_interval_ms {
         settings.event_interval = Duration::from_millis(interval.clamp(5, 10_000));
     }
+    settings.low_priority_reads_per_second = port.low_priority_read_limit;
     settings.guard_interval = port
         .devices
         .iter()

@@ -71,6 +71,9 @@ struct ReadState {
 /// Lower is more urgent: periodic reads first, then by due time, then least recently read.
 pub(super) type ReadUrgency = (u8, Duration, Option<Duration>);
 
+/// The class of a [`ReadUrgency`] of a channel without a read period (round-robin).
+pub(super) const LOW_PRIORITY: u8 = 1;
+
 /// The read a device would do now, and how urgent it is.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub(super) struct ReadChoice {
@@ -464,7 +467,11 @@ impl DeviceState {
     fn urgency(&self, index: usize) -> ReadUrgency {
         let plan = self.plan.reads.get(index);
         let read = self.reads.get(index);
-        let class = u8::from(plan.is_none_or(|p| p.period.is_none()));
+        let class = if plan.is_none_or(|p| p.period.is_none()) {
+            LOW_PRIORITY
+        } else {
+            0
+        };
         (
             class,
             read.map_or(Duration::ZERO, |r| r.next_due),
@@ -651,8 +658,12 @@ impl DeviceState {
         }
     }
 
-    /// When this device next has something to do (for an idle port's sleep).
-    pub(super) fn next_deadline(&self) -> Option<Duration> {
+    /// When this device next has something to do (for an idle port's sleep); reads of channels
+    /// without a read period not before `low_priority_held_until` (`rate_limit`).
+    pub(super) fn next_deadline(
+        &self,
+        low_priority_held_until: Option<Duration>,
+    ) -> Option<Duration> {
         let retry = self.health.retry_at();
         let reads = (0..self.reads.len())
             .filter(|&i| match self.reads.get(i).map(|r| r.exclusion) {
@@ -660,7 +671,14 @@ impl DeviceState {
                 Some(Exclusion::EventsOnly) => self.keepalive_index() == Some(i),
                 _ => false,
             })
-            .filter_map(|i| self.reads.get(i).map(|r| r.next_due))
+            .filter_map(|i| {
+                let due = self.reads.get(i)?.next_due;
+                let periodic = self.plan.reads.get(i).is_some_and(|p| p.period.is_some());
+                Some(match low_priority_held_until {
+                    Some(held) if !periodic => due.max(held),
+                    _ => due,
+                })
+            })
             .min();
         match (reads, retry) {
             (Some(read), Some(retry)) => Some(read.max(retry)),

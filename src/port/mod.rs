@@ -7,6 +7,7 @@ mod due_index;
 mod events;
 pub mod health;
 pub mod plan;
+mod rate_limit;
 pub mod read_plan;
 pub mod scheduler;
 

@@ -24,6 +24,9 @@ pub struct PortSettings {
     pub turnaround: Duration,
     /// Silence kept on the bus before every request (slow or picky devices).
     pub guard_interval: Duration,
+    /// Reads of channels without a read period, at most this many a second (the config's
+    /// `rate_limit`, this port's share); `None`: as many as the bus carries.
+    pub low_priority_reads_per_second: Option<u32>,
 }
 
 impl PortSettings {
@@ -35,6 +38,7 @@ impl PortSettings {
             latency_margin: Duration::from_millis(5),
             turnaround: Duration::from_millis(1),
             guard_interval: Duration::ZERO,
+            low_priority_reads_per_second: None,
         }
     }
 }

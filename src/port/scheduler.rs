@@ -14,11 +14,12 @@ use std::time::Duration;
 
 use tracing::{debug, info, warn};
 
-use super::device::{DeviceState, ReadChoice};
+use super::device::{DeviceState, ReadChoice, LOW_PRIORITY};
 use super::due_index::{DueIndex, Placement};
 use super::events::EventPoller;
 use super::health::DeadRetryBudget;
 use super::plan::{DevicePlan, PortSettings, RegisterWrite};
+use super::rate_limit::ReadRateLimit;
 use super::read_plan::RegisterSpan;
 use crate::protocol::fast::enabled_registers;
 use crate::protocol::timing::ADAPTER_LATENCY_ALLOWANCE;
@@ -269,6 +270,8 @@ pub struct PortScheduler {
     index: DueIndex,
     /// The first device at each address: event packets name their sender by address.
     by_address: Vec<Option<usize>>,
+    /// The config's `rate_limit` on reads of channels without a read period.
+    read_rate_limit: ReadRateLimit,
 }
 
 impl PortScheduler {
@@ -289,6 +292,7 @@ impl PortScheduler {
         Self {
             index: DueIndex::new(devices.len()),
             by_address,
+            read_rate_limit: ReadRateLimit::new(settings.low_priority_reads_per_second),
             settings,
             devices,
             events,
@@ -488,6 +492,12 @@ impl PortScheduler {
         self.refresh(now);
         #[cfg(test)]
         self.check_index(now);
+        if self.read_rate_limit.held_until(now).is_some() && self.read_rate_limit.first_hold() {
+            info!(
+                "rate_limit reached: reads of channels without read_period_ms wait for the next \
+                 second (this is logged once)"
+            );
+        }
         let events_active = self.events_active() && !self.in_startup_sweep(now);
         if events_active && now >= self.event_due_at() {
             return self.start_event_poll(now);
@@ -584,6 +594,25 @@ impl PortScheduler {
 
     fn commit(&mut self, now: Duration, transaction: Transaction, in_flight: InFlight) -> NextStep {
         self.sent_since_event_poll = !matches!(in_flight, InFlight::PollEvents { .. });
+        if let InFlight::Read {
+            device, members, ..
+        } = &in_flight
+        {
+            let low_priority = self.devices.get(*device).map_or(0, |state| {
+                members
+                    .iter()
+                    .filter(|&&member| {
+                        state
+                            .plan
+                            .reads
+                            .get(member)
+                            .is_some_and(|read| read.period.is_none())
+                    })
+                    .count()
+            });
+            self.read_rate_limit
+                .count(now, u32::try_from(low_priority).unwrap_or(u32::MAX));
+        }
         self.in_flight = Some(in_flight);
         self.in_flight_since = now;
         NextStep::Transmit(transaction)
@@ -965,7 +994,16 @@ impl PortScheduler {
             (healthy, dead) => healthy.or(dead)?,
         };
         let choice = self.devices.get(device)?.choose_read(now)?;
+        if self.held_by_rate_limit(now, &choice) {
+            return None;
+        }
         self.read_of(now, device, choice)
+    }
+
+    /// Periodic reads come first in the due order: a round-robin read first means none is due,
+    /// and round-robin reads wait while `rate_limit` holds them.
+    fn held_by_rate_limit(&self, now: Duration, choice: &ReadChoice) -> bool {
+        choice.urgency.0 == LOW_PRIORITY && self.read_rate_limit.held_until(now).is_some()
     }
 
     fn read_of(
@@ -1112,11 +1150,12 @@ impl PortScheduler {
                 at
             }
         };
+        let held_until = self.read_rate_limit.held_until(now);
         let devices = self
             .devices
             .iter()
             .filter(|d| !d.suspended)
-            .filter_map(|d| d.next_deadline().map(|at| offline_gate(d, at)));
+            .filter_map(|d| d.next_deadline(held_until).map(|at| offline_gate(d, at)));
         let writes = self.writes.iter().filter_map(|p| {
             self.devices
                 .get(p.write.device)
@@ -1487,6 +1526,9 @@ impl PortScheduler {
             .filter(|(_, d)| d.is_prepared() && !d.suspended && self.may_transact(d, now))
             .filter_map(|(index, d)| d.choose_read(now).map(|choice| (index, choice)))
             .min_by_key(|(_, choice)| choice.urgency)?;
+        if self.held_by_rate_limit(now, &choice) {
+            return None;
+        }
         self.read_of(now, device, choice)
     }
 

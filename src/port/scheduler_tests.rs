@@ -884,6 +884,96 @@ fn with_fast_modbus_off_no_fast_frame_leaves_the_port() {
     assert!(log.classic_to(20).len() > 50, "everything is polled");
 }
 
+/// `rate_limit`: reads of channels without a period stop for the rest of the second once the
+/// port's share is used up; periodic reads go on, and the port sleeps instead of spinning.
+#[test]
+fn rate_limit_holds_round_robin_reads_and_not_periodic_ones() {
+    let round_robin = |limit: Option<u32>| {
+        // Ten holding registers apart (no merging) and an input read every 100 ms.
+        let mut reads: Vec<PlannedRead> = (0..10)
+            .map(|i| read(RegisterType::Holding, 10 * i, EventMode::Polled))
+            .collect();
+        let mut periodic = read(RegisterType::Input, 500, EventMode::Polled);
+        periodic.period = Some(ms(100));
+        reads.push(periodic);
+        let mut settings = settings(115_200);
+        settings.low_priority_reads_per_second = limit;
+        PortScheduler::new(settings, vec![device(5, reads)])
+    };
+    let per_second = |log: &Log| -> (Vec<usize>, usize) {
+        let sent = log.classic_to(5);
+        let low = (0..5)
+            .map(|second| {
+                let window = ms(1000 * second)..ms(1000 * (second + 1));
+                sent.iter()
+                    .filter(|(at, pdu)| {
+                        window.contains(at)
+                            && matches!(pdu, RequestPdu::ReadHoldingRegisters { .. })
+                    })
+                    .count()
+            })
+            .collect();
+        let periodic = sent
+            .iter()
+            .filter(|(_, pdu)| matches!(pdu, RequestPdu::ReadInputRegisters { .. }))
+            .count();
+        (low, periodic)
+    };
+
+    // Once the share is used up, with nothing periodic, the port sleeps until the second is
+    // over (no spinning on reads that may not go).
+    let mut settings = settings(115_200);
+    settings.low_priority_reads_per_second = Some(5);
+    let reads = (0..10)
+        .map(|i| read(RegisterType::Holding, 10 * i, EventMode::Polled))
+        .collect();
+    let mut scheduler = PortScheduler::new(settings, vec![device(5, reads)]);
+    let mut now = Duration::ZERO;
+    let mut sent = Vec::new();
+    let until = loop {
+        match scheduler.next(now) {
+            NextStep::Transmit(transaction) => {
+                sent.push(now);
+                assert!(
+                    sent.len() <= 100,
+                    "no limit: {} reads by {now:?}",
+                    sent.len()
+                );
+                now += transaction.estimated;
+                scheduler.complete(now, healthy(&transaction.request));
+            }
+            NextStep::Wait { until } => break until,
+        }
+    };
+    assert_eq!(sent.len(), 5, "reads before the first wait: {sent:?}");
+    assert_eq!(until, sent[0] + ms(1000), "the wait ends with the window");
+
+    let mut scheduler = round_robin(Some(20));
+    let mut log = Log::default();
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(5000),
+        |_, r| healthy(r),
+    );
+    let (low, periodic) = per_second(&log);
+    assert_eq!(low, [20; 5], "round-robin reads per second");
+    assert!((48..=51).contains(&periodic), "periodic reads: {periodic}");
+
+    let mut scheduler = round_robin(None);
+    let mut log = Log::default();
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(5000),
+        |_, r| healthy(r),
+    );
+    let (low, _) = per_second(&log);
+    assert!(low.iter().all(|&n| n > 200), "without a limit: {low:?}");
+}
+
 #[test]
 fn a_periodic_read_that_cannot_keep_its_period_is_flagged() {
     // At 9600 baud one read takes ~17 ms: a 5 ms period cannot be kept, a 1 s period can.

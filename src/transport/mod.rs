@@ -150,11 +150,6 @@ impl Transport {
         &self.name
     }
 
-    /// How many bytes the port's receive FIFO collects before handing them over (1 on TCP).
-    pub fn receive_fifo(&self) -> u32 {
-        self.exchange.config().receive_fifo
-    }
-
     /// The port's receive FIFO hands bytes over `trigger` at a time, whatever the kernel said
     /// when the port was opened (a site tool's `--fifo-trigger`).
     pub fn set_receive_fifo(&mut self, trigger: u32) {

@@ -1,0 +1,61 @@
+//! `rtu2mqtt prepare-ports`: what the daemon needs of its serial ports and cannot do itself
+//! once its privileges are dropped (the systemd unit runs it as root before the daemon):
+//! each UART's receive FIFO set to hand bytes over one at a time (`rx_trig_bytes` = 1), as
+//! wb-mqtt-serial sets it. With the kernel's default (8 bytes on a 16550A) a reply's end
+//! reaches the daemon 4 characters late on every transaction.
+
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+
+use crate::config::config_file::PortType;
+use crate::config::load::{load_config, DEFAULT_CONFIG_PATH};
+use crate::transport::fifo::{self, TriggerChange};
+
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// Config file: its enabled serial ports are prepared.
+    #[arg(short = 'c', long = "config", default_value = DEFAULT_CONFIG_PATH)]
+    pub config: PathBuf,
+    /// Where the kernel shows tty devices (for tests).
+    #[arg(long, hide = true, default_value = "/sys/class/tty")]
+    pub sysfs_tty: PathBuf,
+}
+
+/// Prints one line per serial port. Fails only when the config cannot be read: a port that
+/// cannot be prepared still works (the daemon allows for its FIFO), so the service must start.
+pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+    let loaded = match load_config(&args.config) {
+        Ok(loaded) => loaded,
+        Err(errors) => {
+            for error in &errors.0 {
+                println!("{error}");
+            }
+            return Ok(ExitCode::FAILURE);
+        }
+    };
+    let paths = loaded
+        .config
+        .ports
+        .iter()
+        .filter(|port| port.enabled && port.port_type == PortType::Serial)
+        .filter_map(|port| port.path.as_deref());
+    for path in paths {
+        println!("{path}: {}", prepare(Path::new(path), &args.sysfs_tty));
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+fn prepare(path: &Path, sysfs_tty: &Path) -> String {
+    match fifo::lower_to_one_byte(path, sysfs_tty) {
+        TriggerChange::NotReported => {
+            "no receive FIFO trigger to set (USB adapter, or not a UART the kernel reports)".into()
+        }
+        TriggerChange::AlreadyOne => "receive FIFO hands bytes over one at a time".into(),
+        TriggerChange::Lowered { previous, .. } => {
+            format!("receive FIFO set to hand bytes over one at a time (it collected {previous})")
+        }
+        TriggerChange::Holds { trigger, why } => format!(
+            "receive FIFO collects {trigger} bytes and could not be set to 1 ({why}; run as root)"
+        ),
+    }
+}
