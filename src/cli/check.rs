@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use crate::config::library::TemplateLibrary;
-use crate::config::load::{load_config, DEFAULT_CONFIG_PATH};
+use crate::config::load::{load_config, LoadedConfig, DEFAULT_CONFIG_PATH};
 use crate::config::{LocatedError, TemplateFile};
 use crate::device::check_template;
 use crate::device::configure::{resolve_config_checked, template_key_warnings};
@@ -31,15 +31,22 @@ pub struct CheckTemplatesArgs {
     pub paths: Vec<PathBuf>,
 }
 
-pub fn run_check_config(args: CheckConfigArgs) -> anyhow::Result<ExitCode> {
-    let loaded = match load_config(&args.config) {
-        Ok(loaded) => loaded,
+/// The config at `path`, or its errors printed (file, line:column, JSON path) and `None`.
+pub fn load_or_print_errors(path: &Path) -> Option<LoadedConfig> {
+    match load_config(path) {
+        Ok(loaded) => Some(loaded),
         Err(errors) => {
             for error in &errors.0 {
                 println!("{error}");
             }
-            return Ok(ExitCode::FAILURE);
+            None
         }
+    }
+}
+
+pub fn run_check_config(args: CheckConfigArgs) -> anyhow::Result<ExitCode> {
+    let Some(loaded) = load_or_print_errors(&args.config) else {
+        return Ok(ExitCode::FAILURE);
     };
     let mut dirs = loaded.config.template_dirs.clone();
     dirs.extend(args.templates.iter().cloned());
@@ -206,14 +213,8 @@ pub struct DescribeArgs {
 /// format, scale, period and event mode, and its setup writes in the order they are written —
 /// so a user sees what a template and their overrides really do.
 pub fn run_describe(args: DescribeArgs) -> anyhow::Result<ExitCode> {
-    let loaded = match load_config(&args.config) {
-        Ok(loaded) => loaded,
-        Err(errors) => {
-            for error in &errors.0 {
-                println!("{error}");
-            }
-            return Ok(ExitCode::FAILURE);
-        }
+    let Some(loaded) = load_or_print_errors(&args.config) else {
+        return Ok(ExitCode::FAILURE);
     };
     let mut dirs = loaded.config.template_dirs.clone();
     dirs.extend(args.templates.iter().cloned());

@@ -7,8 +7,9 @@
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
+use super::check::load_or_print_errors;
 use crate::config::config_file::PortType;
-use crate::config::load::{load_config, DEFAULT_CONFIG_PATH};
+use crate::config::load::DEFAULT_CONFIG_PATH;
 use crate::transport::fifo::{self, TriggerChange};
 
 #[derive(Debug, clap::Args)]
@@ -24,14 +25,8 @@ pub struct Args {
 /// Prints one line per serial port. Fails only when the config cannot be read: a port that
 /// cannot be prepared still works (the daemon allows for its FIFO), so the service must start.
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
-    let loaded = match load_config(&args.config) {
-        Ok(loaded) => loaded,
-        Err(errors) => {
-            for error in &errors.0 {
-                println!("{error}");
-            }
-            return Ok(ExitCode::FAILURE);
-        }
+    let Some(loaded) = load_or_print_errors(&args.config) else {
+        return Ok(ExitCode::FAILURE);
     };
     let paths = loaded
         .config

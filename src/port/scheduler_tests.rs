@@ -948,29 +948,22 @@ fn rate_limit_holds_round_robin_reads_and_not_periodic_ones() {
     assert_eq!(sent.len(), 5, "reads before the first wait: {sent:?}");
     assert_eq!(until, sent[0] + ms(1000), "the wait ends with the window");
 
-    let mut scheduler = round_robin(Some(20));
-    let mut log = Log::default();
-    run(
-        &mut scheduler,
-        &mut log,
-        Duration::ZERO,
-        ms(5000),
-        |_, r| healthy(r),
-    );
-    let (low, periodic) = per_second(&log);
+    let five_seconds = |limit: Option<u32>| {
+        let mut log = Log::default();
+        let end = ms(5000);
+        run(
+            &mut round_robin(limit),
+            &mut log,
+            Duration::ZERO,
+            end,
+            |_, r| healthy(r),
+        );
+        per_second(&log)
+    };
+    let (low, periodic) = five_seconds(Some(20));
     assert_eq!(low, [20; 5], "round-robin reads per second");
     assert!((48..=51).contains(&periodic), "periodic reads: {periodic}");
-
-    let mut scheduler = round_robin(None);
-    let mut log = Log::default();
-    run(
-        &mut scheduler,
-        &mut log,
-        Duration::ZERO,
-        ms(5000),
-        |_, r| healthy(r),
-    );
-    let (low, _) = per_second(&log);
+    let (low, _) = five_seconds(None);
     assert!(low.iter().all(|&n| n > 200), "without a limit: {low:?}");
 }
 
