@@ -9,8 +9,9 @@
 //! in: a master that ends a scan setting when the first window brought nothing would miss every
 //! device. The exchange allows for the trigger level ([`super::exchange::FirstByteHold`]), but
 //! every allowance costs bus time, so the trigger is lowered to 1 byte where the kernel allows
-//! it: by the daemon when it opens a port (as wb-mqtt-serial does; it is left so), and by a site
-//! tool for its run only (put back when it ends).
+//! it: by `rtu2mqtt prepare-ports` (the service runs it as root) and by the daemon when it opens
+//! a port, as wb-mqtt-serial does (it is left so), and by a site tool for its run only (put back
+//! when it ends).
 //!
 //! The kernel shows the attribute for 8250-family ports only; USB adapters and pseudo-terminals
 //! have none (a USB adapter's latency timer is its own allowance, see `tools::adapter`).
