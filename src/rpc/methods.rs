@@ -1,6 +1,7 @@
 //! What each method does on a running port: every bus exchange goes through the port's
 //! [`BusQueue`], one transaction at a time, between the port's own transactions.
 
+use std::cmp::Ordering;
 use std::path::Path;
 use std::sync::Arc;
 use std::time::Duration;
@@ -16,6 +17,7 @@ use crate::config::config_file::PortType;
 use crate::config::{TemplateFile, TemplateLibrary};
 use crate::daemon::bus_queue::BusQueue;
 use crate::daemon::{PortAccess, PortDirectory};
+use crate::device::firmware::compare_versions;
 use crate::gateway::port_plan::line_settings;
 use crate::port::{Transaction, TransactionOutcome};
 use crate::protocol::fast::FastReply;
@@ -1127,7 +1129,8 @@ async fn wb_identity(
     if !device.hw.is_empty() {
         match device.hw.iter().find(|hw| hw.signature == model) {
             Some(hw) => {
-                if let Some(min) = hw.fw.as_deref().filter(|min| !version_at_least(&fw, min)) {
+                let too_old = |min: &&str| compare_versions(&fw, min) == Ordering::Less;
+                if let Some(min) = hw.fw.as_deref().filter(too_old) {
                     return Err(RpcError::server(format!(
                         "Device \"{model}\" firmware version {fw} is lower than selected \
                          template minimal supported version {min}"
@@ -1143,27 +1146,6 @@ async fn wb_identity(
         }
     }
     Ok((model, fw))
-}
-
-/// Dotted firmware versions compared number by number (`1.10.0` ≥ `1.9`); a part that is no
-/// number compares as 0.
-pub(super) fn version_at_least(version: &str, min: &str) -> bool {
-    let parts = |v: &str| -> Vec<u64> {
-        v.split(['.', '-', '+'])
-            .map(|p| p.trim().parse().unwrap_or(0))
-            .collect()
-    };
-    let (have, need) = (parts(version), parts(min));
-    for i in 0..have.len().max(need.len()) {
-        let (a, b) = (
-            have.get(i).copied().unwrap_or(0),
-            need.get(i).copied().unwrap_or(0),
-        );
-        if a != b {
-            return a > b;
-        }
-    }
-    true
 }
 
 /// Wiren Board's standard registers (holding).
@@ -1321,15 +1303,6 @@ async fn device_details(
 mod tests {
     use super::*;
     use crate::protocol::ExceptionCode;
-
-    #[test]
-    fn firmware_versions_compare_number_by_number() {
-        assert!(version_at_least("1.10.0", "1.9"));
-        assert!(version_at_least("1.9", "1.9.0"));
-        assert!(!version_at_least("1.8.3", "1.9"));
-        assert!(!version_at_least("", "1.0"));
-        assert!(version_at_least("2.0.0-rc1", "2"));
-    }
 
     #[test]
     fn values_are_numbers_where_the_text_is_one() {

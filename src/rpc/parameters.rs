@@ -13,6 +13,7 @@ use crate::config::condition::Condition;
 use crate::config::parse::SourceText;
 use crate::config::template::parameter_declarations;
 use crate::config::TemplateFile;
+use crate::device::firmware::firmware_has;
 use crate::device::model::{ChannelRegister, ResolvedDevice};
 use crate::device::resolve_template_device;
 use crate::port::{MergeLimits, RegisterSpan};
@@ -82,11 +83,11 @@ pub fn parameter_registers(
         if !spec.contains_key("address") || is_readonly(spec) || known.contains_key(&id) {
             continue;
         }
+        // As wb-mqtt-serial's device tools (`IsSupportedByFw`): a parameter newer than the
+        // firmware is left out; unknown firmware has them all.
         let needs = spec.get("fw").and_then(Value::as_str).unwrap_or("");
-        if let Some(firmware) = firmware.filter(|fw| !fw.is_empty()) {
-            if !needs.is_empty() && !super::methods::version_at_least(firmware, needs) {
-                continue;
-            }
+        if !needs.is_empty() && !firmware_has(firmware, needs) {
+            continue;
         }
         wanted.push((id, spec));
     }
@@ -363,6 +364,16 @@ mod tests {
         // Firmware unknown: `fw` does not filter.
         let all = parameter_registers(&template, 5, &known, None).unwrap();
         assert!(all.iter().any(|r| r.id == "newer"));
+        // Versions order as wb-mqtt-serial orders them: a release candidate is older.
+        let has_newer = |firmware| {
+            parameter_registers(&template, 5, &known, Some(firmware))
+                .unwrap()
+                .iter()
+                .any(|r| r.id == "newer")
+        };
+        assert!(!has_newer("1.30.0-rc2"));
+        assert!(has_newer("1.30.0+wb1"));
+        assert!(has_newer("1.30"));
     }
 
     #[test]
