@@ -44,6 +44,7 @@ fn unit_is_a_notify_service_with_watchdog_and_reload() {
         "Restart=on-failure",
         "ExecReload=/bin/kill -HUP $MAINPID",
         "ExecStartPre=+/usr/bin/rtu2mqtt prepare-ports -c /etc/rtu2mqtt/config.json",
+        "ExecReload=-+/usr/bin/rtu2mqtt prepare-ports -c /etc/rtu2mqtt/config.json",
         "SupplementaryGroups=dialout",
         "NoNewPrivileges=yes",
         "ProtectSystem=strict",
