@@ -167,7 +167,8 @@ fn share_rate_limit(ports: &mut [ResolvedPort], limit: u32) {
         |port: &ResolvedPort| -> u64 { port.devices.iter().map(|d| d.channels.len() as u64).sum() };
     let total: u64 = ports.iter().map(channels).sum();
     for port in ports.iter_mut() {
-        let share = (u64::from(limit) * channels(port))
+        let share = u64::from(limit)
+            .saturating_mul(channels(port))
             .checked_div(total)
             .unwrap_or(u64::from(limit));
         port.low_priority_read_limit = Some(u32::try_from(share).unwrap_or(u32::MAX).max(1));
