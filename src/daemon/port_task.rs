@@ -48,6 +48,8 @@ pub struct PortTask {
     /// opens and fails at once (a gateway that accepts connections and drops them) is still
     /// unusable, its devices go offline and the reopen delay keeps growing.
     transacted: bool,
+    /// The port's receive FIFO could not be set to 1 byte: said once, not at every reopen.
+    fifo_held_reported: bool,
     /// Transactions asked from outside the scheduler (RPC), served between its own.
     queued: Option<BusQueueReceiver>,
     /// The sending side of that queue, for this port's identity reads.
@@ -142,6 +144,7 @@ impl PortTask {
             vitals: None,
             online: Vec::new(),
             transacted: false,
+            fifo_held_reported: false,
             queued: None,
             queue: None,
             identity: IdentityState::default(),
@@ -354,7 +357,7 @@ impl PortTask {
     /// 16550A) a reply's end reaches the reader 4 characters late, which every transaction would
     /// wait for, and the fillers of an arbitration may be held until the winner's frame is in.
     /// Where it cannot be lowered, the transport allows for the trigger it reads.
-    fn lower_receive_fifo_trigger(&self) {
+    fn lower_receive_fifo_trigger(&mut self) {
         let Endpoint::Serial { path, .. } = &self.endpoint else {
             return;
         };
@@ -365,12 +368,16 @@ impl PortTask {
                 "receive FIFO set to hand bytes over one at a time (it collected {previous}; \
                  rx_trig_bytes, as wb-mqtt-serial sets it)"
             ),
-            TriggerChange::Holds { trigger, why } => warn!(
+            TriggerChange::Holds { .. } if self.fifo_held_reported => {}
+            TriggerChange::Holds { trigger, why } => {
+                self.fifo_held_reported = true;
+                warn!(
                 port = %self.plan_name,
                 "the UART hands received bytes over {trigger} at a time and could not be set to 1 \
                  ({why}): replies are waited for that much longer (`sudo rtu2mqtt prepare-ports \
                  -c CONFIG` sets it; the systemd service runs it at every start)"
-            ),
+                );
+            }
         }
     }
 
