@@ -562,3 +562,62 @@ fn shutdown_does_not_wait_for_a_long_response_timeout() {
         std::thread::sleep(Duration::from_millis(50));
     }
 }
+
+/// `rate_limit`: reads of channels without `read_period_ms` stay within the port's share (here
+/// the whole limit, one port), at 115200 and at 9600.
+fn reads_stay_within_the_rate_limit_at(baud: u32) {
+    let line = format!("{baud} 8N2");
+    let bus = json!({"devices": [{
+        "name": "plain", "address": 40, "serial": "0xFE000040", "line": line, "fast": false,
+        "registers": [{"type": "input", "address": 0, "count": 40}]
+    }]});
+    let sim = start_sim_bus(&bus.to_string(), &[]);
+    // Every other register: twenty reads of one register each per round, none merged.
+    let channels: Vec<Value> = (0..20)
+        .map(|i| json!({"name": format!("r{i}"), "reg_type": "input", "address": i * 2}))
+        .collect();
+    let limit = 5;
+    let mut daemon = Daemon::start_config(json!({
+        "rate_limit": limit,
+        "ports": [{"path": sim.pty, "baud_rate": baud, "stop_bits": 2, "devices": [
+            {"slave_id": 40, "id": "plain", "channels": channels}
+        ]}]
+    }));
+    daemon.patience = Duration::from_secs(30);
+    daemon.has_value("plain", "r0", "0");
+    let stats = || sim.control(json!({"cmd": "stats"}));
+    let first = stats();
+    let window_us = 3_000_000;
+    let last = loop {
+        let now = stats();
+        if now["t_us"].as_u64().unwrap() >= first["t_us"].as_u64().unwrap() + window_us {
+            break now;
+        }
+        // A condition poll on the simulator's clock; the pause only paces it.
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    let reads =
+        last["registers_read"].as_u64().unwrap() - first["registers_read"].as_u64().unwrap();
+    let elapsed_s =
+        (last["t_us"].as_u64().unwrap() - first["t_us"].as_u64().unwrap()).div_ceil(1_000_000);
+    // At most the limit in each of the one-second windows the span touches; a bus without the
+    // limit reads some 50 (9600) to 350 (115200) registers a second here.
+    assert!(
+        reads <= limit * (elapsed_s + 1),
+        "{reads} registers read in {elapsed_s} s at {baud} with rate_limit {limit}"
+    );
+    assert!(
+        reads >= limit,
+        "reads stopped: {reads} in {elapsed_s} s at {baud}"
+    );
+}
+
+#[test]
+fn reads_stay_within_the_rate_limit_at_115200() {
+    reads_stay_within_the_rate_limit_at(115_200);
+}
+
+#[test]
+fn reads_stay_within_the_rate_limit_at_9600() {
+    reads_stay_within_the_rate_limit_at(9600);
+}
