@@ -42,7 +42,7 @@ fn all_fixtures_load_and_resolve() {
         );
         count += 1;
     }
-    assert_eq!(count, 13);
+    assert_eq!(count, 14);
 }
 
 /// Asserts a channel's first register: table, address, format and event mode.
@@ -893,4 +893,33 @@ fn negative_values_on_unsigned_formats_are_twos_complement() {
     // A channel on an unsigned format takes a negative value the same way.
     let cutout = d.channel("Cutout").unwrap();
     assert_eq!(cutout.encode("-2.5", &[None]).unwrap(), vec![vec![0xFFE7]]);
+}
+
+/// A bare parameter name beside `||`/`&&`: wb-mqtt-serial's evaluator (`EvalImpl` in
+/// `src/expression_evaluator.cpp`) makes `||` and `&&` false while either operand is undefined,
+/// so `zone_mode||boost==1` drops the channel until the config gives `zone_mode`, however
+/// `boost` (default 1) stands. rtu2mqtt used to take the bare name as false and evaluate the
+/// rest, polling the channel and writing the parameter and setup item.
+#[test]
+fn undefined_bare_name_makes_or_and_false() {
+    let fixture = "config-test-zone-controller.json";
+    let ids = |d: &ResolvedDevice| d.channels.iter().map(|c| c.id.clone()).collect::<Vec<_>>();
+
+    let d = device(fixture, json!({"slave_id": 1, "zone_limit": 30}));
+    assert_eq!(ids(&d), vec!["Zone Alarm"]);
+    assert_eq!(setup_writes(&d), vec![(51, vec![0])]);
+
+    // `zone_mode: 0` is defined (and false): the `boost==1` operand decides.
+    let d = device(
+        fixture,
+        json!({"slave_id": 1, "zone_mode": 0, "zone_limit": 30}),
+    );
+    assert_eq!(ids(&d), vec!["Zone Temperature", "Zone Alarm"]);
+    assert_eq!(
+        setup_writes(&d),
+        vec![(40, vec![0]), (42, vec![30]), (50, vec![1])]
+    );
+
+    let d = device(fixture, json!({"slave_id": 1, "zone_mode": 2, "boost": 1}));
+    assert_eq!(ids(&d), vec!["Zone Temperature", "Zone Valve"]);
 }
