@@ -42,7 +42,7 @@ fn all_fixtures_load_and_resolve() {
         );
         count += 1;
     }
-    assert_eq!(count, 14);
+    assert_eq!(count, 15);
 }
 
 /// Asserts a channel's first register: table, address, format and event mode.
@@ -922,4 +922,52 @@ fn undefined_bare_name_makes_or_and_false() {
 
     let d = device(fixture, json!({"slave_id": 1, "zone_mode": 2, "boost": 1}));
     assert_eq!(ids(&d), vec!["Zone Temperature", "Zone Valve"]);
+}
+
+/// `on_value`/`off_value` are in the channel's units: wb-mqtt-serial (`GetTextValue` and
+/// `SetValueToChannel` in `src/serial_port_driver.cpp`, the conversion in `src/register.cpp`)
+/// compares the published text with the decimal on_value and writes on_value through scale
+/// and offset, masked to the field. rtu2mqtt used to compare and write them raw.
+#[test]
+fn on_off_values_after_scale_and_offset() {
+    let d = device("config-test-scaled-switches.json", json!({"slave_id": 1}));
+    let channel = |id: &str| d.channel(id).unwrap();
+    let read = |id: &str, word: u16| channel(id).decode(&[&[word]]).unwrap();
+    let write = |id: &str, text: &str| channel(id).encode(text, &[Some(&[0u16][..])]).unwrap();
+
+    // Scale 0.1: "on" is raw 100.
+    assert_eq!(read("Heater", 100), Reading::Value("1".into()));
+    assert_eq!(read("Heater", 0), Reading::Value("0".into()));
+    assert_eq!(read("Heater", 55), Reading::Value("5.5".into()));
+    assert_eq!(write("Heater", "1"), vec![vec![100]]);
+    assert_eq!(write("Heater", "0"), vec![vec![0]]);
+
+    // Scale -1, offset 1: "on" (1) is raw 0, "off" (0) raw 1.
+    assert_eq!(read("Bypass", 0), Reading::Value("1".into()));
+    assert_eq!(read("Bypass", 1), Reading::Value("0".into()));
+    assert_eq!(write("Bypass", "1"), vec![vec![0]]);
+    assert_eq!(write("Bypass", "0"), vec![vec![1]]);
+
+    // s16 with on_value 0xFFFF: written as 0xFFFF, read back as -1 (not "1"), as upstream.
+    assert_eq!(write("Pump", "1"), vec![vec![0xFFFF]]);
+    assert_eq!(read("Pump", 0xFFFF), Reading::Value("-1".into()));
+
+    // on_value 3 on a 1-bit field: written masked (bit 2 set), the bit reads as "1".
+    assert_eq!(write("Mode Bit", "1"), vec![vec![0b100]]);
+    assert_eq!(read("Mode Bit", 0b100), Reading::Value("1".into()));
+}
+
+/// A float32 with a scale prints with 7 significant digits, as wb-mqtt-serial's
+/// `ToScaledTextValue<float>` (`src/register.cpp`); rtu2mqtt printed 15 once scaled.
+#[test]
+fn scaled_float_prints_seven_digits() {
+    let d = device("config-test-scaled-switches.json", json!({"slave_id": 1}));
+    let bits = 123456.7f32.to_bits();
+    assert_eq!(
+        d.channel("Energy")
+            .unwrap()
+            .decode(&[&[(bits >> 16) as u16, bits as u16]])
+            .unwrap(),
+        Reading::Value("123.4567".into())
+    );
 }

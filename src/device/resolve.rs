@@ -771,8 +771,9 @@ impl Walker {
             }
             codec.error_value = raw(spec.error_value);
             codec.unsupported_value = raw(spec.unsupported_value);
-            codec.on_value = raw(spec.on_value);
-            codec.off_value = raw(spec.off_value);
+            // Not masked: wb-mqtt-serial compares and writes them in the channel's units.
+            codec.on_value = spec.on_value.map(|v| v.value());
+            codec.off_value = spec.off_value.map(|v| v.value());
         }
         let byte_width = if format.is_string() {
             2
