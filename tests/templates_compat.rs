@@ -29,7 +29,9 @@ fn all_fixtures_load_and_resolve() {
     for entry in std::fs::read_dir(corpus()).unwrap() {
         let path = entry.unwrap().path();
         let file = TemplateFile::load(&path).unwrap_or_else(|e| panic!("{e}"));
-        let errors = check_template(&file);
+        // Warnings (channels left out on purpose) do not fail a template, as in check-templates.
+        let mut errors = check_template(&file);
+        errors.retain(|e| !matches!(e.problem, rtu2mqtt::config::Problem::Warning(_)));
         assert!(
             errors.is_empty(),
             "{}: {}",
@@ -42,7 +44,7 @@ fn all_fixtures_load_and_resolve() {
         );
         count += 1;
     }
-    assert_eq!(count, 15);
+    assert_eq!(count, 16);
 }
 
 /// Asserts a channel's first register: table, address, format and event mode.
@@ -970,4 +972,55 @@ fn scaled_float_prints_seven_digits() {
             .unwrap(),
         Reading::Value("123.4567".into())
     );
+}
+
+/// A channel whose register cannot be loaded (a `string` without `string_data_size`) is left
+/// out with a warning naming file, line and channel, and the rest of the device loads, as
+/// wb-mqtt-serial's `LoadSimpleChannel` (`src/serial_config.cpp`) does. rtu2mqtt used to refuse
+/// the whole device.
+#[test]
+fn unloadable_channel_is_left_out_with_a_warning() {
+    let fixture = "config-test-unloadable-channels.json";
+    let (d, warnings) = rtu2mqtt::device::resolve_template_device_with_warnings(
+        &template(fixture),
+        &json!({"slave_id": 1}),
+    )
+    .unwrap_or_else(|e| panic!("{e}"));
+    let ids: Vec<&str> = d.channels.iter().map(|c| c.id.as_str()).collect();
+    assert_eq!(ids, vec!["Temperature", "Status"]);
+    let texts: Vec<String> = warnings.iter().map(|w| w.to_string()).collect();
+    assert_eq!(texts.len(), 2, "{texts:#?}");
+    for (text, line, index, name) in [
+        (&texts[0], ":11:", "channels[1]", "`Firmware`"),
+        (&texts[1], ":12:", "channels[2]", "`Model`"),
+    ] {
+        assert!(text.contains(fixture) && text.contains(line), "{text}");
+        assert!(text.contains(index) && text.contains(name), "{text}");
+        assert!(
+            text.contains("is ignored") && text.contains("string_data_size"),
+            "{text}"
+        );
+    }
+
+    // check-templates reports them as warnings, not errors.
+    let found = check_template(&template(fixture));
+    assert_eq!(found.len(), 2, "{found:#?}");
+    assert!(found
+        .iter()
+        .all(|e| matches!(e.problem, rtu2mqtt::config::Problem::Warning(_))));
+
+    // A part of `consists_of` that cannot be loaded still refuses the device, as wb-mqtt-serial
+    // throws there; so does a negative `error_value`, which its schema refuses.
+    for channel in [
+        json!({"name": "Pair", "consists_of": [
+            {"reg_type": "input", "address": 5},
+            {"reg_type": "input", "address": 6, "format": "string"}]}),
+        json!({"name": "Humidity", "reg_type": "input", "address": 2, "error_value": -1}),
+    ] {
+        let err = resolve_template_device(
+            &template(fixture),
+            &json!({"slave_id": 1, "channels": [channel]}),
+        );
+        assert!(err.is_err(), "{channel}");
+    }
 }

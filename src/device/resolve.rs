@@ -94,6 +94,8 @@ struct SharedParts {
     channels: SharedVec<ResolvedChannel>,
     setup: SharedVec<SetupItem>,
     serial_number: Option<ChannelRegister>,
+    /// Channels left out, reported for every device that uses these parts.
+    warnings: Vec<ResolveError>,
 }
 
 /// The channels and setup already resolved while resolving one config, by [`shared_key`]: a bus of
@@ -136,10 +138,13 @@ fn shared_key(merged: &Value, module: Option<i128>) -> String {
     format!("{module}:{}", Value::Object(parts))
 }
 
+///
+/// Besides the device, returns warnings (a [`Problem::Warning`] each): channels left out because
+/// their register cannot be built, as wb-mqtt-serial leaves them out.
 pub fn resolve_device(
     input: &ResolveInput,
     shared: &mut SharedResolutions,
-) -> Result<ResolvedDevice, Vec<ResolveError>> {
+) -> Result<(ResolvedDevice, Vec<ResolveError>), Vec<ResolveError>> {
     let device: TemplateDevice = serde_json::from_value(input.merged.clone()).map_err(|err| {
         vec![ResolveError {
             origin: String::new(),
@@ -180,7 +185,7 @@ pub fn resolve_device(
     };
     let is_wb = input.is_wb_template || device.enable_wb_continuous_read == Some(true);
     let timing = timing(&device, input.port, is_wb);
-    Ok(ResolvedDevice {
+    let device = ResolvedDevice {
         id: device.id.clone().unwrap_or_default(),
         name: device.name.clone().unwrap_or_default(),
         device_type: input.device_type.clone(),
@@ -191,7 +196,8 @@ pub fn resolve_device(
         channels: parts.channels,
         setup: parts.setup,
         serial_number: parts.serial_number,
-    })
+    };
+    Ok((device, parts.warnings))
 }
 
 /// Channels, setup items and the serial number register of a merged device.
@@ -205,6 +211,7 @@ fn resolve_parts(
         setup: Vec::new(),
         serial_number: None,
         errors: Vec::new(),
+        warnings: Vec::new(),
     };
     walker.setup_items(device.setup.as_deref().unwrap_or(&[]), root);
     walker.channels(device.channels.as_deref().unwrap_or(&[]), root);
@@ -244,6 +251,7 @@ fn resolve_parts(
         channels: SharedVec::new(channels),
         setup: SharedVec::new(setup),
         serial_number: walker.serial_number,
+        warnings: walker.warnings,
     })
 }
 
@@ -345,6 +353,7 @@ struct Walker {
     setup: Vec<SetupItem>,
     serial_number: Option<ChannelRegister>,
     errors: Vec<ResolveError>,
+    warnings: Vec<ResolveError>,
 }
 
 /// The register-describing fields shared by channels, `consists_of` entries and setup items.
@@ -377,6 +386,19 @@ impl<'a> RegisterFields<'a> {
             round_to: spec.round_to,
             spec: Some(spec),
         }
+    }
+
+    /// A `string`/`string8` format without a size: the register has no length, whatever its
+    /// table (wb-mqtt-serial checks it before looking at coils).
+    fn unloadable_string(&self) -> Option<Problem> {
+        let format = self.format.filter(|f| f.is_string())?;
+        if self.string_data_size.is_some_and(|size| size > 0) {
+            return None;
+        }
+        Some(Problem::Invalid(format!(
+            "format `{}` needs `string_data_size` (characters)",
+            format.name()
+        )))
     }
 
     fn of_setup(item: &SetupItemSpec) -> RegisterFields<'static> {
@@ -522,10 +544,28 @@ impl Walker {
                     }
                 }
             }
-            _ => match self.register(&RegisterFields::of_channel(spec), context) {
-                Ok(register) => registers.push(register),
-                Err(problem) => self.error(&spec.origin, "", problem),
-            },
+            _ => {
+                let fields = RegisterFields::of_channel(spec);
+                // wb-mqtt-serial's `LoadSimpleChannel` (`src/serial_config.cpp`) catches what
+                // `LoadRegisterConfig` throws for a channel's register, warns that the channel
+                // "is ignored" and loads the rest of the device. Of what its config schema lets
+                // through, that is a `string` without `string_data_size`; the parts of
+                // `consists_of` and setup items are not caught there and stay errors here.
+                if let Some(problem) = fields.unloadable_string() {
+                    self.warnings.push(ResolveError {
+                        origin: spec.origin.clone().unwrap_or_default(),
+                        problem: Problem::Warning(format!(
+                            "channel `{}` is ignored, as wb-mqtt-serial ignores it: {problem}",
+                            spec.name
+                        )),
+                    });
+                    return;
+                }
+                match self.register(&fields, context) {
+                    Ok(register) => registers.push(register),
+                    Err(problem) => self.error(&spec.origin, "", problem),
+                }
+            }
         }
         let Some(first) = registers.first() else {
             return;
