@@ -44,7 +44,7 @@ fn all_fixtures_load_and_resolve() {
         );
         count += 1;
     }
-    assert_eq!(count, 16);
+    assert_eq!(count, 17);
 }
 
 /// Asserts a channel's first register: table, address, format and event mode.
@@ -1023,4 +1023,63 @@ fn unloadable_channel_is_left_out_with_a_warning() {
         );
         assert!(err.is_err(), "{channel}");
     }
+}
+
+/// `on_value` on a `consists_of` channel: wb-mqtt-serial's `LoadSimpleChannel` applies it to a
+/// single register and refuses it on more; rtu2mqtt ignored it on both.
+#[test]
+fn on_value_on_consists_of() {
+    let fixture = "config-test-scaled-switches.json";
+    let err = resolve_template_device(
+        &template(fixture),
+        &json!({"slave_id": 1, "channels": [{"name": "Pair", "type": "switch", "on_value": 1,
+            "consists_of": [{"reg_type": "holding", "address": 5}, {"reg_type": "holding", "address": 6}]}]}),
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(
+        err.contains("on_value") && err.contains("one register"),
+        "{err}"
+    );
+    let d = device(
+        fixture,
+        json!({"slave_id": 1, "channels": [{"name": "Single", "type": "switch", "on_value": 5, "off_value": 2,
+            "consists_of": [{"reg_type": "holding", "address": 5}]}]}),
+    );
+    let single = d.channel("Single").unwrap();
+    assert_eq!(single.decode(&[&[5]]).unwrap(), Reading::Value("1".into()));
+    assert_eq!(single.encode("0", &[None]).unwrap(), vec![vec![2]]);
+}
+
+/// `enum` and `enum_titles` of different lengths: wb-mqtt-serial's `LoadSimpleChannel`
+/// (`src/serial_config.cpp`) warns and publishes no titles for the channel; rtu2mqtt used to
+/// pair them by position.
+#[test]
+fn enum_titles_of_another_length_are_not_published() {
+    let fixture = "config-test-enum-titles.json";
+    let (d, warnings) = rtu2mqtt::device::resolve_template_device_with_warnings(
+        &template(fixture),
+        &json!({"slave_id": 1}),
+    )
+    .unwrap_or_else(|e| panic!("{e}"));
+    let mode = &d.channel("Mode").unwrap().enum_titles;
+    assert_eq!(
+        mode.iter().map(|t| t.value.as_str()).collect::<Vec<_>>(),
+        vec!["0", "1", "2"]
+    );
+    assert!(mode[0]
+        .title
+        .iter()
+        .any(|(lang, text)| lang == "ru" && text == "Выкл"));
+    assert!(d.channel("Fan").unwrap().enum_titles.is_empty());
+    let texts: Vec<String> = warnings.iter().map(|w| w.to_string()).collect();
+    assert_eq!(texts.len(), 1, "{texts:#?}");
+    assert!(
+        texts[0].contains(fixture)
+            && texts[0].contains(":10:")
+            && texts[0].contains("channels[1].enum_titles")
+            && texts[0].contains("`Fan`"),
+        "{}",
+        texts[0]
+    );
 }

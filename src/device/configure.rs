@@ -267,24 +267,16 @@ fn resolve_one(
             .map(|ResolveError { origin, problem }| locate(&origin, problem))
             .collect::<Vec<_>>()
     })?;
-    let resolve_warnings = resolve_warnings
-        .into_iter()
-        .map(|ResolveError { origin, problem }| locate(&origin, problem));
-    match unloadable_channels {
-        Unloadable::LeftOut => warnings.extend(resolve_warnings),
-        Unloadable::Refused => {
-            let errors: Vec<LocatedError> = resolve_warnings
-                .map(|mut error| {
-                    if let Problem::Warning(message) = &error.problem {
-                        error.problem = Problem::Invalid(message.clone());
-                    }
-                    error
-                })
-                .collect();
-            if !errors.is_empty() {
-                return Err(errors);
-            }
+    let mut refused = Vec::new();
+    for warning in resolve_warnings {
+        if warning.channel_left_out && unloadable_channels == Unloadable::Refused {
+            refused.push(locate(&warning.origin, Problem::Invalid(warning.message)));
+        } else {
+            warnings.push(locate(&warning.origin, Problem::Warning(warning.message)));
         }
+    }
+    if !refused.is_empty() {
+        return Err(refused);
     }
     Ok(device)
 }
@@ -374,7 +366,8 @@ pub fn check_template(template: &TemplateFile) -> Vec<LocatedError> {
         let Some(object) = config.as_object() else {
             continue;
         };
-        // Resolve warnings (channels left out) come back as `Problem::Warning` entries.
+        // Resolve warnings (channels left out, enum titles dropped) come back as
+        // `Problem::Warning` entries.
         let mut warnings = Vec::new();
         let result = resolve_one(
             config_source.clone(),

@@ -25,6 +25,16 @@ pub struct ResolveError {
     pub problem: Problem,
 }
 
+/// Something the resolver did differently from what a template says, as wb-mqtt-serial does it
+/// (with the `__origin` of the channel or key it concerns).
+#[derive(Debug, Clone)]
+pub struct ResolveWarning {
+    pub origin: String,
+    pub message: String,
+    /// The channel is left out (not only, say, its enum titles).
+    pub channel_left_out: bool,
+}
+
 /// The largest subdevice or module shift: more moves every register off the 0…65535 map.
 const MAX_SHIFT: u64 = 65_535;
 
@@ -95,7 +105,7 @@ struct SharedParts {
     setup: SharedVec<SetupItem>,
     serial_number: Option<ChannelRegister>,
     /// Channels left out, reported for every device that uses these parts.
-    warnings: Vec<ResolveError>,
+    warnings: Vec<ResolveWarning>,
 }
 
 /// The channels and setup already resolved while resolving one config, by [`shared_key`]: a bus of
@@ -139,12 +149,12 @@ fn shared_key(merged: &Value, module: Option<i128>) -> String {
 }
 
 ///
-/// Besides the device, returns warnings (a [`Problem::Warning`] each): channels left out because
-/// their register cannot be built, as wb-mqtt-serial leaves them out.
+/// Besides the device, returns warnings: channels left out because their register cannot be
+/// built, enum titles not published, as wb-mqtt-serial does.
 pub fn resolve_device(
     input: &ResolveInput,
     shared: &mut SharedResolutions,
-) -> Result<(ResolvedDevice, Vec<ResolveError>), Vec<ResolveError>> {
+) -> Result<(ResolvedDevice, Vec<ResolveWarning>), Vec<ResolveError>> {
     let device: TemplateDevice = serde_json::from_value(input.merged.clone()).map_err(|err| {
         vec![ResolveError {
             origin: String::new(),
@@ -353,7 +363,7 @@ struct Walker {
     setup: Vec<SetupItem>,
     serial_number: Option<ChannelRegister>,
     errors: Vec<ResolveError>,
-    warnings: Vec<ResolveError>,
+    warnings: Vec<ResolveWarning>,
 }
 
 /// The register-describing fields shared by channels, `consists_of` entries and setup items.
@@ -552,12 +562,13 @@ impl Walker {
                 // through, that is a `string` without `string_data_size`; the parts of
                 // `consists_of` and setup items are not caught there and stay errors here.
                 if let Some(problem) = fields.unloadable_string() {
-                    self.warnings.push(ResolveError {
+                    self.warnings.push(ResolveWarning {
                         origin: spec.origin.clone().unwrap_or_default(),
-                        problem: Problem::Warning(format!(
+                        message: format!(
                             "channel `{}` is ignored, as wb-mqtt-serial ignores it: {problem}",
                             spec.name
-                        )),
+                        ),
+                        channel_left_out: true,
                     });
                     return;
                 }
@@ -565,6 +576,31 @@ impl Walker {
                     Ok(register) => registers.push(register),
                     Err(problem) => self.error(&spec.origin, "", problem),
                 }
+            }
+        }
+        if spec.consists_of.is_some() && (spec.on_value.is_some() || spec.off_value.is_some()) {
+            // wb-mqtt-serial's `LoadSimpleChannel` takes them for a channel of one register
+            // only, and refuses them on more ("on_value is allowed only for single-valued
+            // controls").
+            if registers.len() != 1 {
+                let key = if spec.on_value.is_some() {
+                    ".on_value"
+                } else {
+                    ".off_value"
+                };
+                self.error(
+                    &spec.origin,
+                    key,
+                    Problem::Invalid(
+                        "`on_value`/`off_value` are allowed only on a channel of one register"
+                            .into(),
+                    ),
+                );
+                return;
+            }
+            for register in &mut registers {
+                register.codec.on_value = spec.on_value.map(|v| v.value());
+                register.codec.off_value = spec.off_value.map(|v| v.value());
             }
         }
         let Some(first) = registers.first() else {
@@ -652,10 +688,26 @@ impl Walker {
         });
     }
 
-    fn enum_titles(&self, spec: &ChannelSpec, context: &Context) -> Vec<EnumTitle> {
+    fn enum_titles(&mut self, spec: &ChannelSpec, context: &Context) -> Vec<EnumTitle> {
         let (Some(values), Some(titles)) = (&spec.enum_values, &spec.enum_titles) else {
             return Vec::new();
         };
+        if values.len() != titles.len() {
+            // wb-mqtt-serial's `LoadSimpleChannel` pairs them only when the lengths agree and
+            // otherwise warns and publishes no titles: pairing by position would title values
+            // with the wrong words if one list lost an entry in the middle.
+            self.warnings.push(ResolveWarning {
+                origin: format!("{}.enum_titles", spec.origin.as_deref().unwrap_or_default()),
+                message: format!(
+                    "channel `{}`: `enum` has {} values and `enum_titles` {} titles; no titles are published, as wb-mqtt-serial publishes none",
+                    spec.name,
+                    values.len(),
+                    titles.len()
+                ),
+                channel_left_out: false,
+            });
+            return Vec::new();
+        }
         let plain = Context {
             title_prefix: BTreeMap::new(),
             ..context.clone()
