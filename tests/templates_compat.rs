@@ -44,7 +44,7 @@ fn all_fixtures_load_and_resolve() {
         );
         count += 1;
     }
-    assert_eq!(count, 17);
+    assert_eq!(count, 18);
 }
 
 /// Asserts a channel's first register: table, address, format and event mode.
@@ -1082,4 +1082,17 @@ fn enum_titles_of_another_length_are_not_published() {
         "{}",
         texts[0]
     );
+}
+
+/// Object-form parameters become setup items in the byte order of their keys, as
+/// wb-mqtt-serial's `AppendSetupItems` (`src/config_merge_template.cpp`) walks a jsoncpp object
+/// (a sorted map): of two on one address the first in that order is written, and
+/// `preserve_setup_order` writes in that order. rtu2mqtt used the declaration order.
+#[test]
+fn object_parameters_in_key_order() {
+    let d = device(
+        "config-test-parameter-order.json",
+        json!({"slave_id": 1, "zeta_delay": 5, "alpha_mode": 1, "Beta_delay": 7}),
+    );
+    assert_eq!(setup_writes(&d), vec![(20, vec![7]), (10, vec![1])]);
 }
