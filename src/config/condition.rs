@@ -1,7 +1,17 @@
 //! The small expression language of template `condition` fields (reference §2.5):
 //! numbers, parameter names, `== != > < >= <=`, `&& ||`, `!`, parentheses and `isDefined(x)`.
 //!
-//! A comparison with an undefined parameter is false, except `!=`, which is true, as upstream.
+//! Evaluation follows wb-mqtt-serial's `EvalImpl` (`src/expression_evaluator.cpp`): a parameter
+//! the config does not define is *undefined*, and an undefined operand makes a comparison false
+//! (`!=` true) and makes `&&` and `||` false whatever the other operand, so `mode || x==1` is
+//! false while `mode` is undefined. A condition that is undefined as a whole (a bare name) is
+//! false. Comparisons, `isDefined`, `&&` and `||` are always defined; parentheses pass their
+//! content's definedness through.
+//!
+//! Operator precedence is C's, as upstream: `< <= > >=` bind tighter than `== !=`, which bind
+//! tighter than `&&`, then `||`; each level chains to the left (`a==1==1` is `(a==1)==1`).
+//! Unary `!` is an extension of ours (wb-mqtt-serial refuses it); it keeps an undefined operand
+//! undefined.
 
 use std::collections::BTreeMap;
 
@@ -71,35 +81,38 @@ impl Condition {
 
     /// True when the condition holds for these parameter values.
     pub fn holds(&self, params: &BTreeMap<String, f64>) -> bool {
-        self.truth(params)
+        self.evaluate(params).is_some_and(|v| v != 0.0)
     }
 
-    fn value(&self, params: &BTreeMap<String, f64>) -> Option<f64> {
+    /// The value of the expression, None while it is undefined (a parameter the values do not
+    /// have, or `!` of one).
+    fn evaluate(&self, params: &BTreeMap<String, f64>) -> Option<f64> {
+        let truth = |b: bool| Some(if b { 1.0 } else { 0.0 });
         match self {
             Condition::Number(v) => Some(*v),
             Condition::Parameter(name) => params.get(name).copied(),
-            other => Some(if other.truth(params) { 1.0 } else { 0.0 }),
-        }
-    }
-
-    fn truth(&self, params: &BTreeMap<String, f64>) -> bool {
-        match self {
-            Condition::Number(v) => *v != 0.0,
-            Condition::Parameter(name) => params.get(name).is_some_and(|v| *v != 0.0),
-            Condition::IsDefined(name) => params.contains_key(name),
-            Condition::Not(inner) => !inner.truth(params),
-            Condition::And(a, b) => a.truth(params) && b.truth(params),
-            Condition::Or(a, b) => a.truth(params) || b.truth(params),
-            Condition::Compare(a, op, b) => match (a.value(params), b.value(params)) {
-                (Some(x), Some(y)) => match op {
+            Condition::IsDefined(name) => truth(params.contains_key(name)),
+            Condition::Not(inner) => inner.evaluate(params).map(|v| (v == 0.0) as u8 as f64),
+            // Both operands are evaluated and both must be defined (no short cut), as upstream:
+            // `1 || x` is false while `x` is undefined.
+            Condition::And(a, b) => match (a.evaluate(params), b.evaluate(params)) {
+                (Some(x), Some(y)) => truth(x != 0.0 && y != 0.0),
+                _ => truth(false),
+            },
+            Condition::Or(a, b) => match (a.evaluate(params), b.evaluate(params)) {
+                (Some(x), Some(y)) => truth(x != 0.0 || y != 0.0),
+                _ => truth(false),
+            },
+            Condition::Compare(a, op, b) => match (a.evaluate(params), b.evaluate(params)) {
+                (Some(x), Some(y)) => truth(match op {
                     Comparison::Eq => x == y,
                     Comparison::Ne => x != y,
                     Comparison::Lt => x < y,
                     Comparison::Le => x <= y,
                     Comparison::Gt => x > y,
                     Comparison::Ge => x >= y,
-                },
-                _ => *op == Comparison::Ne,
+                }),
+                _ => truth(*op == Comparison::Ne),
             },
         }
     }
@@ -235,20 +248,36 @@ impl Parser<'_> {
         Ok(left)
     }
 
+    /// `== !=`, chained to the left over relational comparisons.
     fn comparison(&mut self) -> Result<Condition, ConditionError> {
-        let left = self.primary()?;
-        let op = match self.peek_op() {
-            Some("==") => Comparison::Eq,
-            Some("!=") => Comparison::Ne,
-            Some("<") => Comparison::Lt,
-            Some("<=") => Comparison::Le,
-            Some(">") => Comparison::Gt,
-            Some(">=") => Comparison::Ge,
-            _ => return Ok(left),
-        };
-        self.pos += 1;
-        let right = self.primary()?;
-        Ok(Condition::Compare(Box::new(left), op, Box::new(right)))
+        let mut left = self.relational()?;
+        loop {
+            let op = match self.peek_op() {
+                Some("==") => Comparison::Eq,
+                Some("!=") => Comparison::Ne,
+                _ => return Ok(left),
+            };
+            self.pos += 1;
+            let right = self.relational()?;
+            left = Condition::Compare(Box::new(left), op, Box::new(right));
+        }
+    }
+
+    /// `< <= > >=`, chained to the left.
+    fn relational(&mut self) -> Result<Condition, ConditionError> {
+        let mut left = self.primary()?;
+        loop {
+            let op = match self.peek_op() {
+                Some("<") => Comparison::Lt,
+                Some("<=") => Comparison::Le,
+                Some(">") => Comparison::Gt,
+                Some(">=") => Comparison::Ge,
+                _ => return Ok(left),
+            };
+            self.pos += 1;
+            let right = self.primary()?;
+            left = Condition::Compare(Box::new(left), op, Box::new(right));
+        }
     }
 
     fn primary(&mut self) -> Result<Condition, ConditionError> {
@@ -322,7 +351,10 @@ mod tests {
     fn comparisons_and_logic() {
         assert!(holds("in1_mode==3", &[("in1_mode", 3.0)]));
         assert!(!holds("in1_mode==3", &[("in1_mode", 2.0)]));
-        assert!(holds("a>1 && b<=2 || c", &[("a", 2.0), ("b", 2.0)]));
+        assert!(holds(
+            "a>1 && b<=2 || c",
+            &[("a", 2.0), ("b", 2.0), ("c", 0.0)]
+        ));
         assert!(holds("(a==1 || b==1) && c!=0", &[("b", 1.0), ("c", 5.0)]));
         assert!(holds("a >= -1", &[("a", -1.0)]));
         assert!(holds("x == 0x10", &[("x", 16.0)]));
@@ -337,6 +369,46 @@ mod tests {
         assert!(holds("isDefined(a)", &[("a", 0.0)]));
         assert!(!holds("isDefined(a)", &[]));
         assert!(holds("!isDefined(in1_mode) || in1_mode==3", &[]));
+    }
+
+    /// wb-mqtt-serial's `EvalImpl`: an undefined operand makes `&&`/`||` false whatever the
+    /// other one; comparisons with it are false except `!=`; parentheses do not define it.
+    #[test]
+    fn undefined_operands_of_and_or() {
+        let mode_given = [("mode", 0.0), ("x", 1.0)];
+        let mode_missing = [("x", 1.0)];
+        assert!(holds("mode||x==1", &mode_given));
+        assert!(!holds("mode||x==1", &mode_missing));
+        assert!(!holds("x==1||mode", &mode_missing));
+        assert!(!holds("x==1||(mode)", &mode_missing));
+        assert!(!holds("1||mode", &mode_missing));
+        assert!(!holds("x&&mode", &mode_missing));
+        assert!(!holds("mode", &mode_missing));
+        assert!(!holds("(mode)", &mode_missing));
+        // Comparisons, isDefined and the logical operators are always defined.
+        assert!(holds("(mode==1)||x==1", &mode_missing));
+        assert!(holds("mode!=1||x==0", &mode_missing));
+        assert!(holds("isDefined(mode)==0||mode==3", &mode_missing));
+        assert!(holds("(mode||x==1)==0", &mode_missing));
+        assert!(holds("(mode&&x)!=1", &mode_missing));
+        assert!(holds("mode>=0||x==1", &mode_missing));
+        // `!` (ours) keeps an undefined operand undefined.
+        assert!(!holds("!mode", &mode_missing));
+        assert!(!holds("!mode||x==1", &mode_missing));
+        assert!(holds("!mode||x==0", &mode_given));
+    }
+
+    /// Precedence as in C and wb-mqtt-serial's `GetPriority`; comparisons chain to the left.
+    #[test]
+    fn comparison_chains_and_precedence() {
+        assert!(holds("a==1==1", &[("a", 1.0)]));
+        assert!(holds("a==2==0", &[("a", 1.0)]));
+        // `<` binds tighter than `==`: a == (b < 2).
+        assert!(holds("a==b<2", &[("a", 1.0), ("b", 1.0)]));
+        assert!(!holds("a==b<2", &[("a", 1.0), ("b", 3.0)]));
+        assert!(holds("1<2<3", &[]));
+        assert!(holds("3>2>0", &[]));
+        assert!(!holds("3>2>1", &[]));
     }
 
     #[test]

@@ -2,8 +2,9 @@
 //!
 //! Reading follows wb-mqtt-serial: words are put in order (`word_order`, then `byte_order`
 //! inside each word), joined most significant first, the bit field is cut out
-//! (`>> shift & mask`), `error_value`/`unsupported_value`/`on_value`/`off_value` are compared on
-//! that raw field, and only then is it interpreted (sign, IEEE, BCD, text) and scaled.
+//! (`>> shift & mask`), `error_value`/`unsupported_value` are compared on that raw field, and
+//! only then is it interpreted (sign, IEEE, BCD, text) and scaled. `on_value`/`off_value` are
+//! compared with the text that gives, as wb-mqtt-serial's `TDeviceChannel::GetTextValue` does.
 
 use super::number_text::format_g;
 use crate::config::format::{ByteOrder, RegisterFormat, WordOrder};
@@ -30,9 +31,12 @@ pub struct ValueCodec {
     /// Raw field values that mean "read error" (`r`) and "register not supported".
     pub error_value: Option<u64>,
     pub unsupported_value: Option<u64>,
-    /// Raw field values published as "1" / "0" and written for "1" / "0".
-    pub on_value: Option<u64>,
-    pub off_value: Option<u64>,
+    /// `on_value` / `off_value`: integers in the channel's units (after scale and offset), as
+    /// wb-mqtt-serial takes them. A read whose text (formatted, scaled) is exactly this number
+    /// is published as "1" / "0"; a "1" / "0" written is written as this number, through scale
+    /// and offset and cut to the field's width (`src/serial_port_driver.cpp`).
+    pub on_value: Option<i128>,
+    pub off_value: Option<i128>,
 }
 
 /// What a read produced.
@@ -178,27 +182,30 @@ impl ValueCodec {
     /// [`ValueCodec::decode`] appending the text to `text` (left as it was unless the result
     /// is [`Decoded::Text`]): the device model decodes every read value into one buffer.
     pub fn decode_into(&self, words: &[u16], text: &mut String) -> Result<Decoded, CodecError> {
+        let start = text.len();
         if self.format.is_string() && !self.is_bit {
             self.check_len(words)?;
             text.push_str(&self.decode_string(words));
-            return Ok(Decoded::Text);
+        } else {
+            let field = self.raw_field(words)?;
+            if self.unsupported_value == Some(field) {
+                return Ok(Decoded::Unsupported);
+            }
+            if self.error_value == Some(field) {
+                return Ok(Decoded::DeviceError);
+            }
+            self.field_text(field, text)?;
         }
-        let field = self.raw_field(words)?;
-        if self.unsupported_value == Some(field) {
-            return Ok(Decoded::Unsupported);
+        // wb-mqtt-serial compares the text it would publish with the decimal text of
+        // `on_value` / `off_value`: with a scale 0.1, raw 100 is "10" and matches on_value 10;
+        // on `s16`, 0xFFFF is "-1" and never matches on_value 65535 (it is published as -1).
+        for (value, switch_text) in [(self.on_value, '1'), (self.off_value, '0')] {
+            if value.is_some_and(|value| is_decimal_text_of(&text[start..], value)) {
+                text.truncate(start);
+                text.push(switch_text);
+                break;
+            }
         }
-        if self.error_value == Some(field) {
-            return Ok(Decoded::DeviceError);
-        }
-        if self.on_value == Some(field) {
-            text.push('1');
-            return Ok(Decoded::Text);
-        }
-        if self.off_value == Some(field) {
-            text.push('0');
-            return Ok(Decoded::Text);
-        }
-        self.field_text(field, text)?;
         Ok(Decoded::Text)
     }
 
@@ -217,13 +224,12 @@ impl ValueCodec {
             return Ok(());
         }
         match format {
+            // A float32 prints with 7 significant digits, scaled or not, as wb-mqtt-serial's
+            // `ToScaledTextValue<float>` (`src/register.cpp`) prints it: 15 would show the
+            // float's error (11.0000002384186 for 1.1 × 10).
             RegisterFormat::Float => {
-                let value = f32::from_bits(field as u32);
-                if self.has_transform() {
-                    text.push_str(&self.scaled_text(f64::from(value)));
-                } else {
-                    text.push_str(&format_g(f64::from(value), 7));
-                }
+                let value = f64::from(f32::from_bits(field as u32));
+                text.push_str(&format_g(self.scaled_value(value), 7));
             }
             RegisterFormat::Double => text.push_str(&self.scaled_text(f64::from_bits(field))),
             RegisterFormat::Char8 => text.push(char::from((field & 0xFF) as u8)),
@@ -252,11 +258,16 @@ impl ValueCodec {
     }
 
     fn scaled_text(&self, raw: f64) -> String {
+        format_g(self.scaled_value(raw), 15)
+    }
+
+    /// `raw × scale + offset`, rounded to `round_to` (no-op for 1, 0, 0).
+    fn scaled_value(&self, raw: f64) -> f64 {
         let mut value = raw * self.scale + self.offset;
         if self.round_to > 0.0 {
             value = (value / self.round_to).round() * self.round_to;
         }
-        format_g(value, 15)
+        value
     }
 
     fn decode_string(&self, words: &[u16]) -> String {
@@ -284,7 +295,10 @@ impl ValueCodec {
     /// needed (and only used) for bit fields, whose other bits must be kept.
     pub fn encode(&self, text: &str, current: Option<&[u16]>) -> Result<Vec<u16>, CodecError> {
         if self.format.is_string() && !self.is_bit {
-            return self.encode_string(text);
+            return match self.switch_value(text.trim()) {
+                Some(value) => self.encode_string(&value.to_string()),
+                None => self.encode_string(text),
+            };
         }
         let field = self.text_to_field(text.trim())?;
         if self.is_bit {
@@ -314,20 +328,39 @@ impl ValueCodec {
         Ok(ordered)
     }
 
+    /// `on_value` for "1" and `off_value` for "0", when the channel has them.
+    fn switch_value(&self, text: &str) -> Option<i128> {
+        match text {
+            "1" => self.on_value,
+            "0" => self.off_value,
+            _ => None,
+        }
+    }
+
     /// The raw field for a value text (inverse of scale/offset, then format range check).
     pub fn text_to_field(&self, text: &str) -> Result<u64, CodecError> {
-        if text == "1" {
-            if let Some(on) = self.on_value {
-                return Ok(on);
-            }
+        match self.switch_value(text) {
+            Some(value) => self.switch_field(value),
+            None => self.value_field(text),
         }
-        if text == "0" {
-            if let Some(off) = self.off_value {
-                return Ok(off);
-            }
+    }
+
+    /// The field wb-mqtt-serial writes for `on_value` / `off_value`: the number through scale
+    /// and offset like any value, then cut to the field's width whatever the format's sign
+    /// (`GetRawValue` masks every integer format), so on_value 65535 on `s16` is 0xFFFF.
+    fn switch_field(&self, value: i128) -> Result<u64, CodecError> {
+        let text = value.to_string();
+        if self.is_bit || self.format.is_bcd() || !self.format.is_integer() {
+            return self.value_field(&text);
         }
+        Ok((self.integer_for(&text)? as u64) & (self.mask() as u64))
+    }
+
+    fn value_field(&self, text: &str) -> Result<u64, CodecError> {
         if self.is_bit {
-            return Ok(u64::from(parse_number(text)? != 0.0));
+            // A coil or discrete input takes any value that is not 0 after scale and offset
+            // as 1, as wb-mqtt-serial converts it like a register value first.
+            return Ok(u64::from(self.integer_for(text)? != 0));
         }
         match self.format {
             RegisterFormat::Char8 => Ok(u64::from(text.bytes().next().unwrap_or(0))),
@@ -444,6 +477,17 @@ fn parse_number(text: &str) -> Result<f64, CodecError> {
     }
     text.parse::<f64>()
         .map_err(|_| CodecError::NotANumber(text.to_string()))
+}
+
+/// True when `text` is exactly how C++'s `std::to_string` prints `value` (no sign on zero, no
+/// leading zeros, no exponent): the comparison wb-mqtt-serial makes for `on_value`.
+fn is_decimal_text_of(text: &str, value: i128) -> bool {
+    let digits = text.strip_prefix('-').unwrap_or(text);
+    let canonical = !digits.is_empty()
+        && digits.bytes().all(|b| b.is_ascii_digit())
+        && (digits == "0" || !digits.starts_with('0'))
+        && text != "-0";
+    canonical && text.parse::<i128>() == Ok(value)
 }
 
 /// Packed BCD (one decimal digit per nibble) to its value; None when a nibble is above 9.

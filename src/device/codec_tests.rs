@@ -122,6 +122,35 @@ fn float_prints_seven_significant_digits() {
 }
 
 #[test]
+fn scaled_float_prints_seven_significant_digits() {
+    // wb-mqtt-serial's `ToScaledTextValue<float>` prints %.7g after scale and offset too.
+    let bits = 1.1f32.to_bits();
+    let words = [(bits >> 16) as u16, bits as u16];
+    let scaled = ValueCodec {
+        scale: 10.0,
+        ..codec(RegisterFormat::Float)
+    };
+    assert_eq!(value(scaled.decode(&words).unwrap()), "11");
+    let bits = 123456.7f32.to_bits();
+    let kilo = ValueCodec {
+        scale: 0.001,
+        ..codec(RegisterFormat::Float)
+    };
+    assert_eq!(
+        value(kilo.decode(&[(bits >> 16) as u16, bits as u16]).unwrap()),
+        "123.4567"
+    );
+    // A double keeps 15.
+    let double = ValueCodec {
+        scale: 0.1,
+        ..codec(RegisterFormat::Double)
+    };
+    let bits = 1.0f64.to_bits();
+    let words: Vec<u16> = (0..4).rev().map(|i| (bits >> (16 * i)) as u16).collect();
+    assert_eq!(value(double.decode(&words).unwrap()), "0.1");
+}
+
+#[test]
 fn scale_offset_and_round_to() {
     let temperature = ValueCodec {
         scale: 0.01,
@@ -234,6 +263,79 @@ fn on_off_values_on_whole_registers() {
     assert_eq!(value(switch.decode(&[5]).unwrap()), "5");
     assert_eq!(switch.encode("1", None).unwrap(), vec![0xFF]);
     assert_eq!(switch.encode("0", None).unwrap(), vec![0x10]);
+}
+
+/// wb-mqtt-serial (`TDeviceChannel::GetTextValue`, `TSerialPortDriver::SetValueToChannel`)
+/// compares the published text with the decimal `on_value` and writes `on_value` as a value
+/// text, through scale and offset.
+#[test]
+fn on_off_values_are_in_the_channels_units() {
+    // Scale 0.1: on_value 10 is raw 100 on the wire.
+    let scaled = ValueCodec {
+        scale: 0.1,
+        on_value: Some(10),
+        off_value: Some(0),
+        ..codec(RegisterFormat::U16)
+    };
+    assert_eq!(value(scaled.decode(&[100]).unwrap()), "1");
+    assert_eq!(value(scaled.decode(&[10]).unwrap()), "1");
+    assert_eq!(value(scaled.decode(&[0]).unwrap()), "0");
+    assert_eq!(value(scaled.decode(&[105]).unwrap()), "10.5");
+    assert_eq!(scaled.encode("1", None).unwrap(), vec![100]);
+    assert_eq!(scaled.encode("0", None).unwrap(), vec![0]);
+    assert_eq!(scaled.encode("2", None).unwrap(), vec![20]);
+
+    // Scale -1, offset 1 (an inverted status): on_value 1 is raw 0.
+    let inverted = ValueCodec {
+        scale: -1.0,
+        offset: 1.0,
+        on_value: Some(1),
+        ..codec(RegisterFormat::U16)
+    };
+    assert_eq!(value(inverted.decode(&[0]).unwrap()), "1");
+    assert_eq!(inverted.encode("1", None).unwrap(), vec![0]);
+
+    // s16 with on_value 65535: the read is "-1" and never matches; the write is 0xFFFF.
+    let signed = ValueCodec {
+        on_value: Some(0xFFFF),
+        off_value: Some(0),
+        ..codec(RegisterFormat::S16)
+    };
+    assert_eq!(value(signed.decode(&[0xFFFF]).unwrap()), "-1");
+    assert_eq!(value(signed.decode(&[0]).unwrap()), "0");
+    assert_eq!(signed.encode("1", None).unwrap(), vec![0xFFFF]);
+    // … while an ordinary value keeps its range check.
+    assert!(signed.encode("65535", None).is_err());
+
+    // Only the exact decimal text matches, as C++'s `std::to_string` prints the number.
+    assert!(is_decimal_text_of("10", 10) && is_decimal_text_of("-3", -3));
+    for text in ["10.0", "1e1", "010", "+10", "-0", ""] {
+        assert!(
+            !is_decimal_text_of(text, if text == "-0" { 0 } else { 10 }),
+            "{text}"
+        );
+    }
+
+    // A coil with scale and offset: "1" written as on_value 2 through offset 2 is 0, off.
+    let coil = ValueCodec {
+        offset: 2.0,
+        on_value: Some(2),
+        ..ValueCodec::bit()
+    };
+    assert_eq!(value(coil.decode(&[0]).unwrap()), "1");
+    assert_eq!(coil.encode("1", None).unwrap(), vec![0]);
+    assert_eq!(coil.encode("3", None).unwrap(), vec![1]);
+
+    // An on_value wider than a 1-bit field is cut to it, as wb-mqtt-serial masks the write;
+    // the read (0 or 1) never matches it.
+    let bit_field = ValueCodec {
+        bit_shift: 2,
+        bit_width: 1,
+        on_value: Some(3),
+        ..codec(RegisterFormat::U16)
+    };
+    assert_eq!(bit_field.encode("1", Some(&[0])).unwrap(), vec![0b100]);
+    assert_eq!(value(bit_field.decode(&[0b100]).unwrap()), "1");
 }
 
 #[test]

@@ -105,6 +105,7 @@ pub fn resolve_config_checked(
                 true,
                 &mut warnings,
                 &mut shared,
+                Unloadable::LeftOut,
             ) {
                 Ok(mut resolved) => {
                     if resolved.id.is_empty() {
@@ -157,6 +158,9 @@ pub fn resolve_config_checked(
     } else {
         Err(ErrorList(errors))
     };
+    // A template's channel left out is reported by every device made from it: say it once.
+    let mut seen = std::collections::BTreeSet::new();
+    warnings.retain(|w| seen.insert(w.to_string()));
     (result, warnings)
 }
 
@@ -219,6 +223,7 @@ fn resolve_one(
     check_required: bool,
     warnings: &mut Vec<LocatedError>,
     shared: &mut SharedResolutions,
+    unloadable_channels: Unloadable,
 ) -> Result<ResolvedDevice, Vec<LocatedError>> {
     let locate = |origin: &str, problem: Problem| {
         locate_origin(&config_source, template, path, origin, problem)
@@ -257,12 +262,35 @@ fn resolve_one(
             .unwrap_or_default(),
         device_type: template.map(|t| t.device_type().to_string()),
     };
-    resolve_device(&resolve_input, shared).map_err(|errors| {
+    let (device, resolve_warnings) = resolve_device(&resolve_input, shared).map_err(|errors| {
         errors
             .into_iter()
             .map(|ResolveError { origin, problem }| locate(&origin, problem))
             .collect::<Vec<_>>()
-    })
+    })?;
+    let mut refused = Vec::new();
+    for warning in resolve_warnings {
+        if warning.channel_left_out && unloadable_channels == Unloadable::Refused {
+            refused.push(locate(&warning.origin, Problem::Invalid(warning.message)));
+        } else {
+            warnings.push(locate(&warning.origin, Problem::Warning(warning.message)));
+        }
+    }
+    if !refused.is_empty() {
+        return Err(refused);
+    }
+    Ok(device)
+}
+
+/// What to do with a channel whose register cannot be built.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Unloadable {
+    /// Leave it out with a warning, as wb-mqtt-serial does (configs, `check-templates`).
+    LeftOut,
+    /// Refuse the device: the simulator builds the registers a template describes, and a
+    /// register it silently lacked would make a test bench answer "illegal address" instead of
+    /// saying why.
+    Refused,
 }
 
 /// Turns an `__origin` (`t:` template path, `c:` config path) into a located error.
@@ -339,7 +367,10 @@ pub fn check_template(template: &TemplateFile) -> Vec<LocatedError> {
         let Some(object) = config.as_object() else {
             continue;
         };
-        if let Err(mut more) = resolve_one(
+        // Resolve warnings (channels left out, enum titles dropped) come back as
+        // `Problem::Warning` entries.
+        let mut warnings = Vec::new();
+        let result = resolve_one(
             config_source.clone(),
             object,
             &JsonPath::root(),
@@ -347,13 +378,16 @@ pub fn check_template(template: &TemplateFile) -> Vec<LocatedError> {
             &port,
             (1, module),
             false,
-            &mut Vec::new(),
+            &mut warnings,
             &mut SharedResolutions::default(),
-        ) {
-            for error in more.drain(..) {
-                if !errors.contains(&error) {
-                    errors.push(error);
-                }
+            Unloadable::LeftOut,
+        );
+        let warnings = warnings
+            .into_iter()
+            .filter(|w| matches!(w.problem, Problem::Warning(_)));
+        for error in warnings.chain(result.err().unwrap_or_default()) {
+            if !errors.contains(&error) {
+                errors.push(error);
             }
         }
     }
@@ -391,23 +425,43 @@ pub fn resolve_template_device(
     template: &TemplateFile,
     device: &Value,
 ) -> Result<ResolvedDevice, ErrorList> {
-    resolve_single(template, device, true)
+    resolve_single(template, device, true, &mut Vec::new(), Unloadable::LeftOut)
+}
+
+/// As [`resolve_template_device`], with the warnings (settings that do nothing, channels left
+/// out) as `check-config` shows them.
+pub fn resolve_template_device_with_warnings(
+    template: &TemplateFile,
+    device: &Value,
+) -> Result<(ResolvedDevice, Vec<LocatedError>), ErrorList> {
+    let mut warnings = Vec::new();
+    let device = resolve_single(template, device, true, &mut warnings, Unloadable::LeftOut)?;
+    Ok((device, warnings))
 }
 
 /// As [`resolve_template_device`], without asking for the `required` parameters: what the
 /// hardware has does not depend on what a config must give (the simulator builds a WB-LED or
-/// a WB-MAI6, whose templates require a mode, from its template alone).
+/// a WB-MAI6, whose templates require a mode, from its template alone). A channel whose
+/// register cannot be built is an error here, not left out (`Unloadable::Refused`).
 pub fn resolve_template_device_unconfigured(
     template: &TemplateFile,
     device: &Value,
 ) -> Result<ResolvedDevice, ErrorList> {
-    resolve_single(template, device, false)
+    resolve_single(
+        template,
+        device,
+        false,
+        &mut Vec::new(),
+        Unloadable::Refused,
+    )
 }
 
 fn resolve_single(
     template: &TemplateFile,
     device: &Value,
     check_required: bool,
+    warnings: &mut Vec<LocatedError>,
+    unloadable_channels: Unloadable,
 ) -> Result<ResolvedDevice, ErrorList> {
     let object = device.as_object().cloned().unwrap_or_default();
     let parsed: Option<SlaveId> = object
@@ -425,8 +479,9 @@ fn resolve_single(
         &default_port(),
         (slave_id, module),
         check_required,
-        &mut Vec::new(),
+        warnings,
         &mut SharedResolutions::default(),
+        unloadable_channels,
     )
     .map_err(ErrorList)
 }

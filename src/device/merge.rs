@@ -290,6 +290,19 @@ fn parameter_ids(parameters: Option<&Value>) -> Vec<String> {
     ids
 }
 
+/// Parameter ids in the order wb-mqtt-serial turns them into setup items
+/// (`AppendSetupItems` in `src/config_merge_template.cpp` walks the `parameters` value with
+/// jsoncpp's iterator): an array in declaration order, an object in the byte order of its keys,
+/// as jsoncpp keeps object members in a sorted map. Of two parameters on one address the first
+/// is written, and `preserve_setup_order` writes them in this order.
+fn setup_parameter_order(parameters: Option<&Value>) -> Vec<String> {
+    let mut ids = parameter_ids(parameters);
+    if matches!(parameters, Some(Value::Object(_))) {
+        ids.sort();
+    }
+    ids
+}
+
 /// Every declaration of parameter `id` with its index in an array (None in an object).
 fn parameter_declarations<'a>(
     parameters: Option<&'a Value>,
@@ -491,7 +504,7 @@ impl Level<'_> {
                 &format!("c:{}", self.config_setup_path.index(i)),
             ));
         }
-        for id in parameter_ids(self.parameters) {
+        for id in setup_parameter_order(self.parameters) {
             let (Some(value), Some(spec)) =
                 (self.values.get(&id), self.active_spec(&id, &conditions))
             else {

@@ -16,6 +16,7 @@ pub use crate::config::format::{ByteOrder, RegisterFormat, WordOrder};
 pub use codec::{CodecError, Reading, ValueCodec};
 pub use configure::{
     check_template, resolve_config, resolve_template_device, resolve_template_device_unconfigured,
+    resolve_template_device_with_warnings,
 };
 pub use model::{
     ChannelRegister, DeviceTiming, EnumTitle, EventMode, Priority, RegisterRef, RegisterType,

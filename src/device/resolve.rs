@@ -25,6 +25,16 @@ pub struct ResolveError {
     pub problem: Problem,
 }
 
+/// Something the resolver did differently from what a template says, as wb-mqtt-serial does it
+/// (with the `__origin` of the channel or key it concerns).
+#[derive(Debug, Clone)]
+pub struct ResolveWarning {
+    pub origin: String,
+    pub message: String,
+    /// The channel is left out (not only, say, its enum titles).
+    pub channel_left_out: bool,
+}
+
 /// The largest subdevice or module shift: more moves every register off the 0…65535 map.
 const MAX_SHIFT: u64 = 65_535;
 
@@ -94,6 +104,8 @@ struct SharedParts {
     channels: SharedVec<ResolvedChannel>,
     setup: SharedVec<SetupItem>,
     serial_number: Option<ChannelRegister>,
+    /// Channels left out, reported for every device that uses these parts.
+    warnings: Vec<ResolveWarning>,
 }
 
 /// The channels and setup already resolved while resolving one config, by [`shared_key`]: a bus of
@@ -136,10 +148,13 @@ fn shared_key(merged: &Value, module: Option<i128>) -> String {
     format!("{module}:{}", Value::Object(parts))
 }
 
+///
+/// Besides the device, returns warnings: channels left out because their register cannot be
+/// built, enum titles not published, as wb-mqtt-serial does.
 pub fn resolve_device(
     input: &ResolveInput,
     shared: &mut SharedResolutions,
-) -> Result<ResolvedDevice, Vec<ResolveError>> {
+) -> Result<(ResolvedDevice, Vec<ResolveWarning>), Vec<ResolveError>> {
     let device: TemplateDevice = serde_json::from_value(input.merged.clone()).map_err(|err| {
         vec![ResolveError {
             origin: String::new(),
@@ -180,7 +195,7 @@ pub fn resolve_device(
     };
     let is_wb = input.is_wb_template || device.enable_wb_continuous_read == Some(true);
     let timing = timing(&device, input.port, is_wb);
-    Ok(ResolvedDevice {
+    let device = ResolvedDevice {
         id: device.id.clone().unwrap_or_default(),
         name: device.name.clone().unwrap_or_default(),
         device_type: input.device_type.clone(),
@@ -191,7 +206,8 @@ pub fn resolve_device(
         channels: parts.channels,
         setup: parts.setup,
         serial_number: parts.serial_number,
-    })
+    };
+    Ok((device, parts.warnings))
 }
 
 /// Channels, setup items and the serial number register of a merged device.
@@ -205,6 +221,7 @@ fn resolve_parts(
         setup: Vec::new(),
         serial_number: None,
         errors: Vec::new(),
+        warnings: Vec::new(),
     };
     walker.setup_items(device.setup.as_deref().unwrap_or(&[]), root);
     walker.channels(device.channels.as_deref().unwrap_or(&[]), root);
@@ -244,6 +261,7 @@ fn resolve_parts(
         channels: SharedVec::new(channels),
         setup: SharedVec::new(setup),
         serial_number: walker.serial_number,
+        warnings: walker.warnings,
     })
 }
 
@@ -345,6 +363,7 @@ struct Walker {
     setup: Vec<SetupItem>,
     serial_number: Option<ChannelRegister>,
     errors: Vec<ResolveError>,
+    warnings: Vec<ResolveWarning>,
 }
 
 /// The register-describing fields shared by channels, `consists_of` entries and setup items.
@@ -377,6 +396,19 @@ impl<'a> RegisterFields<'a> {
             round_to: spec.round_to,
             spec: Some(spec),
         }
+    }
+
+    /// A `string`/`string8` format without a size: the register has no length, whatever its
+    /// table (wb-mqtt-serial checks it before looking at coils).
+    fn unloadable_string(&self) -> Option<Problem> {
+        let format = self.format.filter(|f| f.is_string())?;
+        if self.string_data_size.is_some_and(|size| size > 0) {
+            return None;
+        }
+        Some(Problem::Invalid(format!(
+            "format `{}` needs `string_data_size` (characters)",
+            format.name()
+        )))
     }
 
     fn of_setup(item: &SetupItemSpec) -> RegisterFields<'static> {
@@ -522,10 +554,54 @@ impl Walker {
                     }
                 }
             }
-            _ => match self.register(&RegisterFields::of_channel(spec), context) {
-                Ok(register) => registers.push(register),
-                Err(problem) => self.error(&spec.origin, "", problem),
-            },
+            _ => {
+                let fields = RegisterFields::of_channel(spec);
+                // wb-mqtt-serial's `LoadSimpleChannel` (`src/serial_config.cpp`) catches what
+                // `LoadRegisterConfig` throws for a channel's register, warns that the channel
+                // "is ignored" and loads the rest of the device. Of what its config schema lets
+                // through, that is a `string` without `string_data_size`; the parts of
+                // `consists_of` and setup items are not caught there and stay errors here.
+                if let Some(problem) = fields.unloadable_string() {
+                    self.warnings.push(ResolveWarning {
+                        origin: spec.origin.clone().unwrap_or_default(),
+                        message: format!(
+                            "channel `{}` is ignored, as wb-mqtt-serial ignores it: {problem}",
+                            spec.name
+                        ),
+                        channel_left_out: true,
+                    });
+                    return;
+                }
+                match self.register(&fields, context) {
+                    Ok(register) => registers.push(register),
+                    Err(problem) => self.error(&spec.origin, "", problem),
+                }
+            }
+        }
+        if spec.consists_of.is_some() && (spec.on_value.is_some() || spec.off_value.is_some()) {
+            // wb-mqtt-serial's `LoadSimpleChannel` takes them for a channel of one register
+            // only, and refuses them on more ("on_value is allowed only for single-valued
+            // controls").
+            if registers.len() != 1 {
+                let key = if spec.on_value.is_some() {
+                    ".on_value"
+                } else {
+                    ".off_value"
+                };
+                self.error(
+                    &spec.origin,
+                    key,
+                    Problem::Invalid(
+                        "`on_value`/`off_value` are allowed only on a channel of one register"
+                            .into(),
+                    ),
+                );
+                return;
+            }
+            for register in &mut registers {
+                register.codec.on_value = spec.on_value.map(|v| v.value());
+                register.codec.off_value = spec.off_value.map(|v| v.value());
+            }
         }
         let Some(first) = registers.first() else {
             return;
@@ -612,10 +688,26 @@ impl Walker {
         });
     }
 
-    fn enum_titles(&self, spec: &ChannelSpec, context: &Context) -> Vec<EnumTitle> {
+    fn enum_titles(&mut self, spec: &ChannelSpec, context: &Context) -> Vec<EnumTitle> {
         let (Some(values), Some(titles)) = (&spec.enum_values, &spec.enum_titles) else {
             return Vec::new();
         };
+        if values.len() != titles.len() {
+            // wb-mqtt-serial's `LoadSimpleChannel` pairs them only when the lengths agree and
+            // otherwise warns and publishes no titles: pairing by position would title values
+            // with the wrong words if one list lost an entry in the middle.
+            self.warnings.push(ResolveWarning {
+                origin: format!("{}.enum_titles", spec.origin.as_deref().unwrap_or_default()),
+                message: format!(
+                    "channel `{}`: `enum` has {} values and `enum_titles` {} titles; no titles are published, as wb-mqtt-serial publishes none",
+                    spec.name,
+                    values.len(),
+                    titles.len()
+                ),
+                channel_left_out: false,
+            });
+            return Vec::new();
+        }
         let plain = Context {
             title_prefix: BTreeMap::new(),
             ..context.clone()
@@ -771,8 +863,9 @@ impl Walker {
             }
             codec.error_value = raw(spec.error_value);
             codec.unsupported_value = raw(spec.unsupported_value);
-            codec.on_value = raw(spec.on_value);
-            codec.off_value = raw(spec.off_value);
+            // Not masked: wb-mqtt-serial compares and writes them in the channel's units.
+            codec.on_value = spec.on_value.map(|v| v.value());
+            codec.off_value = spec.off_value.map(|v| v.value());
         }
         let byte_width = if format.is_string() {
             2
