@@ -861,3 +861,18 @@ fn prepare_ports_lowers_each_uarts_receive_fifo_trigger() {
     let (ok, text) = report(out);
     assert!(!ok && text.contains("config.json"), "{text}");
 }
+
+/// A template with a channel wb-mqtt-serial leaves out passes `check-templates`, which says
+/// which channel is left out and why.
+#[test]
+fn check_templates_shows_the_warnings_of_a_template_that_loads() {
+    let file = repo("tests/data/wb-templates/config-test-unloadable-channels.json");
+    let out = bin().arg("check-templates").arg(&file).output().unwrap();
+    let (ok, text) = report(out);
+    assert!(ok, "{text}");
+    assert!(
+        text.contains("warning: channel `Firmware` is ignored"),
+        "{text}"
+    );
+    assert!(text.trim_end().ends_with(": ok"), "{text}");
+}

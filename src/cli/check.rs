@@ -182,12 +182,15 @@ fn args_is_default(path: &Path) -> bool {
 fn check_file(path: &Path) -> (Option<TemplateFile>, Vec<LocatedError>) {
     match TemplateFile::load(path) {
         Ok(template) => {
-            let mut errors = check_template(&template);
-            // Misspelt keys are reported, but do not fail the check (upstream files carry some).
-            for warning in template_key_warnings(&template) {
+            // Warnings (misspelt keys, a channel left out as wb-mqtt-serial leaves it out) are
+            // reported, but do not fail the check: upstream files carry some.
+            let (warnings, errors): (Vec<LocatedError>, Vec<LocatedError>) =
+                check_template(&template)
+                    .into_iter()
+                    .partition(|e| matches!(e.problem, crate::config::error::Problem::Warning(_)));
+            for warning in template_key_warnings(&template).iter().chain(&warnings) {
                 println!("{warning}");
             }
-            errors.retain(|e| !matches!(e.problem, crate::config::error::Problem::Warning(_)));
             (Some(template), errors)
         }
         Err(error) => (None, vec![error]),
