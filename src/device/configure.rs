@@ -105,7 +105,6 @@ pub fn resolve_config_checked(
                 true,
                 &mut warnings,
                 &mut shared,
-                Unloadable::LeftOut,
             ) {
                 Ok(mut resolved) => {
                     if resolved.id.is_empty() {
@@ -223,7 +222,6 @@ fn resolve_one(
     check_required: bool,
     warnings: &mut Vec<LocatedError>,
     shared: &mut SharedResolutions,
-    unloadable_channels: Unloadable,
 ) -> Result<ResolvedDevice, Vec<LocatedError>> {
     let locate = |origin: &str, problem: Problem| {
         locate_origin(&config_source, template, path, origin, problem)
@@ -268,29 +266,12 @@ fn resolve_one(
             .map(|ResolveError { origin, problem }| locate(&origin, problem))
             .collect::<Vec<_>>()
     })?;
-    let mut refused = Vec::new();
-    for warning in resolve_warnings {
-        if warning.channel_left_out && unloadable_channels == Unloadable::Refused {
-            refused.push(locate(&warning.origin, Problem::Invalid(warning.message)));
-        } else {
-            warnings.push(locate(&warning.origin, Problem::Warning(warning.message)));
-        }
-    }
-    if !refused.is_empty() {
-        return Err(refused);
-    }
+    warnings.extend(
+        resolve_warnings
+            .into_iter()
+            .map(|warning| locate(&warning.origin, Problem::Warning(warning.message))),
+    );
     Ok(device)
-}
-
-/// What to do with a channel whose register cannot be built.
-#[derive(Clone, Copy, PartialEq, Eq)]
-enum Unloadable {
-    /// Leave it out with a warning, as wb-mqtt-serial does (configs, `check-templates`).
-    LeftOut,
-    /// Refuse the device: the simulator builds the registers a template describes, and a
-    /// register it silently lacked would make a test bench answer "illegal address" instead of
-    /// saying why.
-    Refused,
 }
 
 /// Turns an `__origin` (`t:` template path, `c:` config path) into a located error.
@@ -380,7 +361,6 @@ pub fn check_template(template: &TemplateFile) -> Vec<LocatedError> {
             false,
             &mut warnings,
             &mut SharedResolutions::default(),
-            Unloadable::LeftOut,
         );
         let warnings = warnings
             .into_iter()
@@ -425,7 +405,7 @@ pub fn resolve_template_device(
     template: &TemplateFile,
     device: &Value,
 ) -> Result<ResolvedDevice, ErrorList> {
-    resolve_single(template, device, true, &mut Vec::new(), Unloadable::LeftOut)
+    resolve_single(template, device, true, &mut Vec::new())
 }
 
 /// As [`resolve_template_device`], with the warnings (settings that do nothing, channels left
@@ -435,25 +415,20 @@ pub fn resolve_template_device_with_warnings(
     device: &Value,
 ) -> Result<(ResolvedDevice, Vec<LocatedError>), ErrorList> {
     let mut warnings = Vec::new();
-    let device = resolve_single(template, device, true, &mut warnings, Unloadable::LeftOut)?;
+    let device = resolve_single(template, device, true, &mut warnings)?;
     Ok((device, warnings))
 }
 
-/// As [`resolve_template_device`], without asking for the `required` parameters: what the
-/// hardware has does not depend on what a config must give (the simulator builds a WB-LED or
-/// a WB-MAI6, whose templates require a mode, from its template alone). A channel whose
-/// register cannot be built is an error here, not left out (`Unloadable::Refused`).
+/// As [`resolve_template_device_with_warnings`], without asking for the `required`
+/// parameters: what the hardware has does not depend on what a config must give (the simulator
+/// builds a WB-LED or a WB-MAI6, whose templates require a mode, from its template alone).
 pub fn resolve_template_device_unconfigured(
     template: &TemplateFile,
     device: &Value,
-) -> Result<ResolvedDevice, ErrorList> {
-    resolve_single(
-        template,
-        device,
-        false,
-        &mut Vec::new(),
-        Unloadable::Refused,
-    )
+) -> Result<(ResolvedDevice, Vec<LocatedError>), ErrorList> {
+    let mut warnings = Vec::new();
+    let device = resolve_single(template, device, false, &mut warnings)?;
+    Ok((device, warnings))
 }
 
 fn resolve_single(
@@ -461,7 +436,6 @@ fn resolve_single(
     device: &Value,
     check_required: bool,
     warnings: &mut Vec<LocatedError>,
-    unloadable_channels: Unloadable,
 ) -> Result<ResolvedDevice, ErrorList> {
     let object = device.as_object().cloned().unwrap_or_default();
     let parsed: Option<SlaveId> = object
@@ -481,7 +455,6 @@ fn resolve_single(
         check_required,
         warnings,
         &mut SharedResolutions::default(),
-        unloadable_channels,
     )
     .map_err(ErrorList)
 }

@@ -31,8 +31,6 @@ pub struct ResolveError {
 pub struct ResolveWarning {
     pub origin: String,
     pub message: String,
-    /// The channel is left out (not only, say, its enum titles).
-    pub channel_left_out: bool,
 }
 
 /// The largest subdevice or module shift: more moves every register off the 0…65535 map.
@@ -568,7 +566,6 @@ impl Walker {
                             "channel `{}` is ignored, as wb-mqtt-serial ignores it: {problem}",
                             spec.name
                         ),
-                        channel_left_out: true,
                     });
                     return;
                 }
@@ -704,7 +701,6 @@ impl Walker {
                     values.len(),
                     titles.len()
                 ),
-                channel_left_out: false,
             });
             return Vec::new();
         }

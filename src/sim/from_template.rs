@@ -70,14 +70,19 @@ pub fn template_registers(
     address: u8,
 ) -> Result<TemplateRegisters, SimError> {
     let config = json!({ "slave_id": address });
-    let configured = resolve_template_device_unconfigured(template, &config)
+    let (configured, warnings) = resolve_template_device_unconfigured(template, &config)
         .map_err(|errors| SimError::Template(errors.to_string()))?;
+    // A channel whose register cannot be built is left out, as the daemon and wb-mqtt-serial
+    // leave it out: the device is simulated without it, and the log says so.
+    for warning in &warnings {
+        tracing::warn!("{warning}");
+    }
     let mut registers = RegisterMap::new();
     add_device(&mut registers, &configured);
     let limited = match opened(template).and_then(|open| {
         resolve_template_device_unconfigured(&open, &config).map_err(|errors| errors.to_string())
     }) {
-        Ok(open) => {
+        Ok((open, _)) => {
             add_device(&mut registers, &open);
             None
         }
@@ -312,14 +317,28 @@ mod tests {
         let source = SourceText::from_text(
             Path::new("bad.json"),
             r#"{"device_type": "t", "device": {"channels": [
-                {"name": "S", "address": 1, "format": "string"}]}}"#,
+                {"name": "S", "address": 70000, "reg_type": "input"}]}}"#,
         );
         let template = TemplateFile::from_source(source).unwrap();
         let err = template_registers(&template, 1).unwrap_err().to_string();
         assert!(
-            err.contains("bad.json") && err.contains("string_data_size"),
+            err.contains("bad.json") && err.contains("70000 is out of range"),
             "{err}"
         );
+    }
+
+    /// A channel whose register cannot be built is left out, as the daemon leaves it out: the
+    /// rest of the device is simulated.
+    #[test]
+    fn a_channel_the_daemon_leaves_out_is_not_simulated() {
+        let t = registers(
+            r#"{"device_type": "t", "device": {"channels": [
+                {"name": "A", "reg_type": "input", "address": 1},
+                {"name": "S", "reg_type": "holding", "address": 2, "format": "string"}]}}"#,
+        );
+        assert!(t.registers.get(RegisterType::Input, 1).is_some());
+        assert!(t.registers.get(RegisterType::Holding, 2).is_none());
+        assert_eq!(t.limited, None);
     }
 
     #[test]
@@ -327,9 +346,9 @@ mod tests {
         let t = registers(
             r#"{"device_type": "t", "device": {"channels": [
                 {"name": "A", "reg_type": "input", "address": 1},
-                {"name": "S", "address": 2, "format": "string", "enabled": false}]}}"#,
+                {"name": "S", "address": 70000, "enabled": false}]}}"#,
         );
-        assert!(t.limited.as_deref().unwrap().contains("string_data_size"));
+        assert!(t.limited.as_deref().unwrap().contains("70000"));
         assert!(t.registers.get(RegisterType::Input, 1).is_some());
         assert!(t.registers.get(RegisterType::Holding, 2).is_none());
     }
