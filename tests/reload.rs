@@ -156,6 +156,26 @@ async fn sighup_applies_the_new_config_port_by_port() {
     );
     assert!(log.contains("reload applied"), "{log}");
 
+    // A new `rate_limit` changes every port's share: both restart with it.
+    let mut limited = config(
+        port,
+        &sim_a.pty,
+        &sim_b.pty,
+        json!([{"device_type": "rtu2mqtt-counter8", "slave_id": 22}]),
+    );
+    limited["rate_limit"] = json!(1000);
+    std::fs::write(&config_path, limited.to_string()).unwrap();
+    daemon.signal(nix::sys::signal::Signal::SIGHUP);
+    wait_for("port A restarted with its share of rate_limit", || async {
+        let opened = daemon
+            .log()
+            .lines()
+            .filter(|l| l.contains("port open") && l.contains(&a_name))
+            .count();
+        (opened == 2).then_some(())
+    })
+    .await;
+
     // What only a restart applies is named in the log, not silently ignored.
     let mut publishing_changed = config(
         port,

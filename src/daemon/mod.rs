@@ -285,6 +285,8 @@ impl BusControl {
                     let old = &self.ports[&key];
                     old.resolved.devices == new.devices
                         && old.config == serde_json::to_value(&new.config).unwrap_or_default()
+                        // Its share of `rate_limit` (which another port's channels change too).
+                        && old.resolved.low_priority_read_limit == new.low_priority_read_limit
                 });
             if unchanged {
                 // Same port, same devices: the running task stays as it is.
