@@ -44,7 +44,7 @@ fn all_fixtures_load_and_resolve() {
         );
         count += 1;
     }
-    assert_eq!(count, 18);
+    assert_eq!(count, 20);
 }
 
 /// Asserts a channel's first register: table, address, format and event mode.
@@ -1095,4 +1095,126 @@ fn object_parameters_in_key_order() {
         json!({"slave_id": 1, "zeta_delay": 5, "alpha_mode": 1, "Beta_delay": 7}),
     );
     assert_eq!(setup_writes(&d), vec![(20, vec![7]), (10, vec![1])]);
+}
+
+/// `condition`s inside a subdevice: wb-mqtt-serial evaluates them for the device only
+/// (`MergeChannelConfigWithTemplate` in `src/config_merge_template.cpp` calls
+/// `AppendSetupItems` without an expression cache, so `CheckCondition` holds; and
+/// `RemoveDisabledChannels` looks at the device's own channels). So a subdevice's parameters and
+/// setup items are written and its channels kept whatever their condition; rtu2mqtt evaluated
+/// them over the subdevice's values and wrote and polled less.
+#[test]
+fn conditions_inside_a_subdevice_are_not_evaluated() {
+    let fixture = "config-test-subdevice-conditions.json";
+    let d = device(
+        fixture,
+        json!({"slave_id": 1, "channels": [{"name": "Boiler", "device_type": "boiler_gas", "curve_shift": 5}]}),
+    );
+    // `curve` stays at its default 0, so `curve>0` is false; all the same, the parameter and the
+    // setup item behind it are written and the channel is polled.
+    assert_eq!(setup_writes(&d), vec![(203, vec![1]), (207, vec![5])]);
+    assert_channel(&d, "Boiler Outdoor", Input, 211, U16, Polled);
+    assert!(d.channel("Boiler Mode").is_some());
+    // The device's own conditions still hold sway (`zones` defaults to 1).
+    assert!(d.channel("Zone 2 Temperature").is_none());
+    let d = device(fixture, json!({"slave_id": 1, "zones": 2}));
+    assert!(d.channel("Zone 2 Temperature").is_some());
+}
+
+/// Enum titles in a subdevice: wb-mqtt-serial translates them with the subdevice's context
+/// (`Translate(title, true, context)` in `LoadSimpleChannel`, `src/serial_config.cpp`) and
+/// publishes them in the control's meta (`SetEnumValueTitles` in `TSerialPortDriver`), so they
+/// carry the subdevice's name as a prefix, in each language. rtu2mqtt published the titles
+/// alone.
+#[test]
+fn enum_titles_in_a_subdevice_carry_its_name() {
+    let d = device(
+        "config-test-subdevice-conditions.json",
+        json!({"slave_id": 1, "channels": [{"name": "Boiler", "device_type": "boiler_gas"}]}),
+    );
+    let mode = d.channel("Boiler Mode").unwrap();
+    let titles: Vec<(&str, Option<&str>, Option<&str>)> = mode
+        .enum_titles
+        .iter()
+        .map(|e| {
+            (
+                e.value.as_str(),
+                e.title.get("en").map(String::as_str),
+                e.title.get("ru").map(String::as_str),
+            )
+        })
+        .collect();
+    assert_eq!(
+        titles,
+        vec![
+            ("0", Some("Boiler Off"), Some("Котёл Off")),
+            ("1", Some("Boiler On"), Some("Котёл Вкл")),
+        ]
+    );
+}
+
+/// Bit fields as wb-mqtt-serial cuts them out: unsigned (`GetRegisterValueFromReadData` in
+/// `src/modbus_common.cpp`), then converted as the format's whole width (`ConvertFromRawValue`
+/// in `src/register.cpp`, `Get<int16_t>`), so a 4-bit `s16` field reads 0xF as 15 where
+/// rtu2mqtt extended the field's own top bit (-1).
+#[test]
+fn narrow_signed_field_reads_unsigned() {
+    let d = rtu2mqtt::device::resolve_template_device_with_warnings(
+        &template("config-test-bit-fields.json"),
+        &json!({"slave_id": 1}),
+    )
+    .unwrap_or_else(|e| panic!("{e}"))
+    .0;
+    let nibble = d.channel("Offset Nibble").unwrap();
+    assert_eq!(
+        nibble.decode(&[&[0xFF0F]]).unwrap(),
+        Reading::Value("15".into())
+    );
+    let byte = d.channel("Signed Byte").unwrap();
+    assert_eq!(
+        byte.decode(&[&[0xFF0F]]).unwrap(),
+        Reading::Value("-1".into())
+    );
+}
+
+/// A bit shift above 255 (`"5:300:1"`): wb-mqtt-serial's `LoadRegisterBitsAddress` throws inside
+/// `LoadSimpleChannel`'s `try`, so the channel is ignored and the rest of the device loads.
+/// rtu2mqtt refused the whole template when it read it.
+#[test]
+fn bit_shift_above_255_leaves_the_channel_out() {
+    let fixture = "config-test-bit-fields.json";
+    let (d, warnings) = rtu2mqtt::device::resolve_template_device_with_warnings(
+        &template(fixture),
+        &json!({"slave_id": 1}),
+    )
+    .unwrap_or_else(|e| panic!("{e}"));
+    let ids: Vec<&str> = d.channels.iter().map(|c| c.id.as_str()).collect();
+    assert_eq!(ids, vec!["Offset Nibble", "Signed Byte", "Status"]);
+    let texts: Vec<String> = warnings.iter().map(|w| w.to_string()).collect();
+    assert_eq!(texts.len(), 1, "{texts:#?}");
+    let text = &texts[0];
+    assert!(text.contains(fixture) && text.contains(":12:"), "{text}");
+    assert!(
+        text.contains("channels[2].address") && text.contains("`Far Flag`"),
+        "{text}"
+    );
+    assert!(
+        text.contains("is ignored") && text.contains("300"),
+        "{text}"
+    );
+    let found = check_template(&template(fixture));
+    assert_eq!(found.len(), 1, "{found:#?}");
+    assert!(matches!(
+        found[0].problem,
+        rtu2mqtt::config::Problem::Warning(_)
+    ));
+    // In a setup item (or a parameter) the address is still refused, as wb-mqtt-serial throws
+    // there outside any `try`.
+    let err = resolve_template_device(
+        &template(fixture),
+        &json!({"slave_id": 1, "setup": [{"title": "far", "address": "5:300:1", "value": 1}]}),
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(err.contains("300"), "{err}");
 }

@@ -246,6 +246,10 @@ impl JsonSchema for SerialNumber {
     }
 }
 
+/// The largest bit shift wb-mqtt-serial takes in an address (`LoadRegisterBitsAddress` keeps it
+/// in a byte and throws above it).
+pub const MAX_BIT_SHIFT: u32 = 255;
+
 /// A register address: `16`, `"0x10"`, or a bit field `"16:4:1"` (register, bit shift, bit width).
 /// An empty string means "no address" (a write-only channel has only `write_address`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -274,13 +278,13 @@ impl AddressSpec {
         let register = parse_int_text(register_text)
             .and_then(|v| i64::try_from(v).ok())
             .ok_or_else(|| format!("`{text}` is not an address; write 16, \"0x10\" or \"16:4:1\" (register:shift:width)"))?;
+        // A shift above `MAX_BIT_SHIFT` is read here and refused where the register is built:
+        // wb-mqtt-serial throws it inside `LoadSimpleChannel`'s `try`, so a channel with one
+        // is left out while the rest of the template loads.
         let bit_shift = match parts.next() {
-            Some(shift) => shift
-                .trim()
-                .parse::<u32>()
-                .ok()
-                .filter(|s| *s <= 255)
-                .ok_or_else(|| format!("bit shift in `{text}` must be a number 0…255"))?,
+            Some(shift) => shift.trim().parse::<u32>().ok().ok_or_else(|| {
+                format!("bit shift in `{text}` must be a number 0…{MAX_BIT_SHIFT}")
+            })?,
             None => 0,
         };
         let bit_width = match parts.next() {
@@ -411,7 +415,10 @@ mod tests {
         );
         let a: AddressSpec = serde_json::from_str("\"\"").unwrap();
         assert_eq!(a.register, None);
-        assert!(serde_json::from_str::<AddressSpec>("\"1:300\"").is_err());
+        // Read, and refused (or the channel left out) where the register is built.
+        let a: AddressSpec = serde_json::from_str("\"1:300:1\"").unwrap();
+        assert_eq!(a.bit_shift, 300);
+        assert!(serde_json::from_str::<AddressSpec>("\"1:x:1\"").is_err());
         assert!(serde_json::from_str::<AddressSpec>("\"1:2:3:4\"").is_err());
         assert!(serde_json::from_str::<AddressSpec>("\"reg\"").is_err());
         assert!(serde_json::from_str::<AddressSpec>("1.5").is_err());

@@ -238,8 +238,12 @@ impl ValueCodec {
                     decode_bcd(field, format.value_bits()).ok_or(CodecError::InvalidBcd(field))?;
                 self.integer_text(i128::from(value), text);
             }
+            // The sign comes from the format's width, not the field's: wb-mqtt-serial cuts a
+            // field out unsigned (`GetRegisterValueFromReadData` in `src/modbus_common.cpp`:
+            // `>> offset & mask`) and `ConvertFromRawValue` (`src/register.cpp`) then takes
+            // `Get<int16_t>` of it, so an `s16` field of 4 bits reads 0xF as 15, not -1.
             _ if format.is_signed() => {
-                let bits = self.bit_width.clamp(1, 64);
+                let bits = format.value_bits().clamp(1, 64);
                 let shift = 64 - bits;
                 let value = ((field << shift) as i64) >> shift;
                 self.integer_text(i128::from(value), text);
@@ -393,7 +397,9 @@ impl ValueCodec {
                 // the result is masked): Danfoss EKC 204A1 declares r36 as `u16` with scale
                 // 0.1 and a range of -15 … -3 °C, which the controller reads as signed.
                 let min = -(1i128 << (bits - 1));
-                let max = if format.is_signed() {
+                // A signed field narrower than its format reads back unsigned (see
+                // `field_text`), so it takes what it can show: -8 … 15 for 4 bits.
+                let max = if format.is_signed() && bits >= format.value_bits() {
                     (1i128 << (bits - 1)) - 1
                 } else {
                     (1i128 << bits) - 1

@@ -237,6 +237,35 @@ fn bit_fields_read_and_merge_on_write() {
 }
 
 #[test]
+fn narrow_signed_field_takes_its_sign_from_the_format() {
+    // wb-mqtt-serial cuts the field out unsigned and converts it as the format's whole width
+    // (`Get<int16_t>`), so a 4-bit `s16` field never reads negative.
+    let nibble = ValueCodec {
+        bit_shift: 0,
+        bit_width: 4,
+        ..codec(RegisterFormat::S16)
+    };
+    assert_eq!(value(nibble.decode(&[0x000F]).unwrap()), "15");
+    assert_eq!(value(nibble.decode(&[0xFFF8]).unwrap()), "8");
+    // What it shows can be written back; -1 is still written as its two's complement.
+    assert_eq!(nibble.encode("15", Some(&[0xFFF0])).unwrap(), vec![0xFFFF]);
+    assert_eq!(nibble.encode("-1", Some(&[0])).unwrap(), vec![0x000F]);
+    assert!(nibble.encode("16", Some(&[0])).is_err());
+    // A field as wide as the format keeps its sign; `s8` takes the low byte of a wider field.
+    let byte = ValueCodec {
+        bit_shift: 8,
+        bit_width: 8,
+        ..codec(RegisterFormat::S8)
+    };
+    assert_eq!(value(byte.decode(&[0xFF00]).unwrap()), "-1");
+    let wide = ValueCodec {
+        bit_width: 16,
+        ..codec(RegisterFormat::S8)
+    };
+    assert_eq!(value(wide.decode(&[0x01FF]).unwrap()), "-1");
+}
+
+#[test]
 fn inverted_on_off_values_on_a_bit_field() {
     // ONOKOM "Timer: Heater": 55:3:1 with on_value 0, off_value 1.
     let heater = ValueCodec {

@@ -189,6 +189,7 @@ pub fn merge_device(input: &DeviceMergeInput) -> Result<(Value, Vec<MergeError>)
         value_path: input.device_path.clone(),
         template_setup: template_device.get("setup"),
         template_path: JsonPath::root().key("device"),
+        evaluate_conditions: true,
     };
     level.check_rules(input.check_required, &mut errors);
     let setup = level.setup_items(&mut errors);
@@ -203,7 +204,7 @@ pub fn merge_device(input: &DeviceMergeInput) -> Result<(Value, Vec<MergeError>)
             subdevices: &subdevices,
             check_required: input.check_required,
         },
-        &level.condition_values(),
+        Some(&level.condition_values()),
         &mut errors,
         0,
     );
@@ -372,6 +373,11 @@ struct Level<'a> {
     value_path: JsonPath,
     template_setup: Option<&'a Value>,
     template_path: JsonPath,
+    /// Whether `condition`s choose the parameters and setup items written. wb-mqtt-serial
+    /// evaluates them for the device only: `MergeChannelConfigWithTemplate`
+    /// (`src/config_merge_template.cpp`) calls `AppendSetupItems` for a subdevice without an
+    /// expression cache, and `CheckCondition` holds without one.
+    evaluate_conditions: bool,
 }
 
 impl Level<'_> {
@@ -490,6 +496,9 @@ impl Level<'_> {
 
     /// Config setup, then parameters set in the config, then template setup whose condition holds.
     fn setup_items(&self, errors: &mut Vec<MergeError>) -> Vec<Value> {
+        if !self.evaluate_conditions {
+            return self.unconditional_setup_items();
+        }
         let conditions = self.condition_values();
         let mut items = Vec::new();
         for (i, item) in self
@@ -517,22 +526,7 @@ impl Level<'_> {
             if !condition_holds(spec, &conditions, &origin, errors) {
                 continue;
             }
-            let mut item = with_origin(spec, &origin);
-            if let Some(object) = item.as_object_mut() {
-                // The config's own number: an integer stays exact (u64 sensor ids above 2^53).
-                let exact = self
-                    .config
-                    .get(&id)
-                    .filter(|v| v.is_u64() || v.is_i64())
-                    .cloned()
-                    .unwrap_or_else(|| serde_json::json!(value));
-                object.insert("value".into(), exact);
-                object.insert("id".into(), Value::String(id.clone()));
-                object
-                    .entry("title")
-                    .or_insert_with(|| Value::String(id.clone()));
-            }
-            items.push(item);
+            items.push(self.parameter_item(&id, *value, spec, &origin));
         }
         for (i, item) in self
             .template_setup
@@ -547,6 +541,63 @@ impl Level<'_> {
             }
         }
         items
+    }
+
+    /// A subdevice's setup as wb-mqtt-serial builds it (`AppendSetupItems` without an
+    /// expression cache): config setup, every declaration of a parameter the config gives
+    /// unless `readonly` (in the order jsoncpp walks `parameters`), every template setup item;
+    /// no `condition` is looked at.
+    fn unconditional_setup_items(&self) -> Vec<Value> {
+        let mut items: Vec<Value> = self
+            .config_setup
+            .and_then(Value::as_array)
+            .into_iter()
+            .flatten()
+            .enumerate()
+            .map(|(i, item)| with_origin(item, &format!("c:{}", self.config_setup_path.index(i))))
+            .collect();
+        for id in setup_parameter_order(self.parameters) {
+            let Some(value) = self.values.get(&id) else {
+                continue;
+            };
+            let origin = format!("c:{}", self.value_path.key(&id));
+            for (_, spec) in parameter_declarations(self.parameters, &id) {
+                if spec.get("readonly").and_then(Value::as_bool) != Some(true) {
+                    items.push(self.parameter_item(&id, *value, spec, &origin));
+                }
+            }
+        }
+        for (i, item) in self
+            .template_setup
+            .and_then(Value::as_array)
+            .into_iter()
+            .flatten()
+            .enumerate()
+        {
+            let origin = format!("t:{}", self.template_path.key("setup").index(i));
+            items.push(with_origin(item, &origin));
+        }
+        items
+    }
+
+    /// The setup item that writes parameter `id`'s config value with declaration `spec`.
+    fn parameter_item(&self, id: &str, value: f64, spec: &Value, origin: &str) -> Value {
+        let mut item = with_origin(spec, origin);
+        if let Some(object) = item.as_object_mut() {
+            // The config's own number: an integer stays exact (u64 sensor ids above 2^53).
+            let exact = self
+                .config
+                .get(id)
+                .filter(|v| v.is_u64() || v.is_i64())
+                .cloned()
+                .unwrap_or_else(|| serde_json::json!(value));
+            object.insert("value".into(), exact);
+            object.insert("id".into(), Value::String(id.to_string()));
+            object
+                .entry("title")
+                .or_insert_with(|| Value::String(id.to_string()));
+        }
+        item
     }
 }
 
@@ -602,7 +653,9 @@ fn condition_holds(
 }
 
 /// Merges config channel overrides into template channels, expands subdevice slots and drops
-/// channels whose condition is false.
+/// channels whose condition is false (`conditions`: the device's values; None inside a
+/// subdevice, whose channels wb-mqtt-serial keeps whatever their condition, as its
+/// `RemoveDisabledChannels` looks at the device's own channels only).
 #[allow(clippy::too_many_arguments)]
 fn merge_channels(
     template_channels: Option<&Value>,
@@ -610,7 +663,7 @@ fn merge_channels(
     overrides: Option<&Value>,
     overrides_path: &JsonPath,
     scope: &Scope,
-    conditions: &BTreeMap<String, f64>,
+    conditions: Option<&BTreeMap<String, f64>>,
     errors: &mut Vec<MergeError>,
     depth: usize,
 ) -> Vec<Value> {
@@ -674,8 +727,10 @@ fn merge_channels(
             .and_then(Value::as_str)
             .unwrap_or("")
             .to_string();
-        if !condition_holds(&channel, conditions, &origin, errors) {
-            continue;
+        if let Some(conditions) = conditions {
+            if !condition_holds(&channel, conditions, &origin, errors) {
+                continue;
+            }
         }
         if channel.get("device_type").is_some() {
             if depth > 8 {
@@ -871,6 +926,7 @@ fn expand_subdevice(
         value_path: config_path.clone(),
         template_setup: body.get("setup"),
         template_path: body_path.clone(),
+        evaluate_conditions: false,
     };
     level.check_rules(chosen_in_config && scope.check_required, errors);
     let setup = level.setup_items(errors);
@@ -880,7 +936,7 @@ fn expand_subdevice(
         config_object.get("channels"),
         &config_path.key("channels"),
         scope,
-        &level.condition_values(),
+        None,
         errors,
         depth + 1,
     );

@@ -16,7 +16,7 @@ use crate::config::load::duration_problem;
 use crate::config::template::{
     ChannelSpec, RegisterKind, SetupItemSpec, SetupValue, TemplateDevice,
 };
-use crate::config::values::AddressSpec;
+use crate::config::values::{AddressSpec, MAX_BIT_SHIFT};
 
 /// A resolve error with the `__origin` of the channel or setup item it concerns.
 #[derive(Debug, Clone)]
@@ -409,6 +409,26 @@ impl<'a> RegisterFields<'a> {
         )))
     }
 
+    /// An address whose bit shift is above what wb-mqtt-serial takes (`"5:300:1"`), with the
+    /// key that gives it.
+    fn oversized_bit_shift(&self) -> Option<(&'static str, Problem)> {
+        [
+            ("address", self.address),
+            ("write_address", self.write_address),
+        ]
+        .into_iter()
+        .find_map(|(key, address)| {
+            let address = address.filter(|a| a.bit_shift > MAX_BIT_SHIFT)?;
+            Some((
+                key,
+                Problem::Invalid(format!(
+                    "bit shift {} in `{key}` is above {MAX_BIT_SHIFT}",
+                    address.bit_shift
+                )),
+            ))
+        })
+    }
+
     fn of_setup(item: &SetupItemSpec) -> RegisterFields<'static> {
         RegisterFields {
             reg_type: item.reg_type,
@@ -569,6 +589,18 @@ impl Walker {
                     });
                     return;
                 }
+                // wb-mqtt-serial's `LoadRegisterBitsAddress` throws for a bit shift above 255
+                // inside the same `try`, so such a channel is left out too.
+                if let Some((key, problem)) = fields.oversized_bit_shift() {
+                    self.warnings.push(ResolveWarning {
+                        origin: format!("{}.{key}", spec.origin.as_deref().unwrap_or_default()),
+                        message: format!(
+                            "channel `{}` is ignored, as wb-mqtt-serial ignores it: {problem}",
+                            spec.name
+                        ),
+                    });
+                    return;
+                }
                 match self.register(&fields, context) {
                     Ok(register) => registers.push(register),
                     Err(problem) => self.error(&spec.origin, "", problem),
@@ -704,10 +736,10 @@ impl Walker {
             });
             return Vec::new();
         }
-        let plain = Context {
-            title_prefix: BTreeMap::new(),
-            ..context.clone()
-        };
+        // wb-mqtt-serial translates enum titles with the channel's context
+        // (`Translate(title, true, context)` in `LoadSimpleChannel`), so inside a subdevice
+        // they carry its name as a prefix ("Boiler On"), as the channel's title does, and the
+        // control's meta publishes them so (`TSerialPortDriver`, `SetEnumValueTitles`).
         values
             .iter()
             .zip(titles)
@@ -716,7 +748,7 @@ impl Walker {
                     Value::String(text) => text.clone(),
                     other => other.to_string(),
                 },
-                title: self.titles(title, &plain),
+                title: self.titles(title, context),
             })
             .collect()
     }
@@ -794,6 +826,9 @@ impl Walker {
                 "needs `address` (or `write_address` for a write-only channel)".into(),
             ));
         };
+        if let Some((_, problem)) = fields.oversized_bit_shift() {
+            return Err(problem);
+        }
         let mut codec = ValueCodec::plain(format);
         codec.word_order = fields.word_order.unwrap_or_default();
         codec.byte_order = fields.byte_order.unwrap_or_default();
