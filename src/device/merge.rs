@@ -494,60 +494,13 @@ impl Level<'_> {
         out
     }
 
-    /// Config setup, then parameters set in the config, then template setup whose condition holds.
+    /// Config setup, then parameters set in the config, then template setup whose condition
+    /// holds. In a subdevice no `condition` is looked at, as wb-mqtt-serial builds it
+    /// (`AppendSetupItems` without an expression cache): every declaration of a parameter the
+    /// config gives (unless `readonly`, in the order jsoncpp walks `parameters`) and every
+    /// template setup item.
     fn setup_items(&self, errors: &mut Vec<MergeError>) -> Vec<Value> {
-        if !self.evaluate_conditions {
-            return self.unconditional_setup_items();
-        }
-        let conditions = self.condition_values();
-        let mut items = Vec::new();
-        for (i, item) in self
-            .config_setup
-            .and_then(Value::as_array)
-            .into_iter()
-            .flatten()
-            .enumerate()
-        {
-            items.push(with_origin(
-                item,
-                &format!("c:{}", self.config_setup_path.index(i)),
-            ));
-        }
-        for id in setup_parameter_order(self.parameters) {
-            let (Some(value), Some(spec)) =
-                (self.values.get(&id), self.active_spec(&id, &conditions))
-            else {
-                continue;
-            };
-            let origin = format!("c:{}", self.value_path.key(&id));
-            if spec.get("readonly").and_then(Value::as_bool) == Some(true) {
-                continue;
-            }
-            if !condition_holds(spec, &conditions, &origin, errors) {
-                continue;
-            }
-            items.push(self.parameter_item(&id, *value, spec, &origin));
-        }
-        for (i, item) in self
-            .template_setup
-            .and_then(Value::as_array)
-            .into_iter()
-            .flatten()
-            .enumerate()
-        {
-            let origin = format!("t:{}", self.template_path.key("setup").index(i));
-            if condition_holds(item, &conditions, &origin, errors) {
-                items.push(with_origin(item, &origin));
-            }
-        }
-        items
-    }
-
-    /// A subdevice's setup as wb-mqtt-serial builds it (`AppendSetupItems` without an
-    /// expression cache): config setup, every declaration of a parameter the config gives
-    /// unless `readonly` (in the order jsoncpp walks `parameters`), every template setup item;
-    /// no `condition` is looked at.
-    fn unconditional_setup_items(&self) -> Vec<Value> {
+        let conditions = self.evaluate_conditions.then(|| self.condition_values());
         let mut items: Vec<Value> = self
             .config_setup
             .and_then(Value::as_array)
@@ -556,14 +509,27 @@ impl Level<'_> {
             .enumerate()
             .map(|(i, item)| with_origin(item, &format!("c:{}", self.config_setup_path.index(i))))
             .collect();
+        let writable = |spec: &Value| spec.get("readonly").and_then(Value::as_bool) != Some(true);
         for id in setup_parameter_order(self.parameters) {
             let Some(value) = self.values.get(&id) else {
                 continue;
             };
             let origin = format!("c:{}", self.value_path.key(&id));
-            for (_, spec) in parameter_declarations(self.parameters, &id) {
-                if spec.get("readonly").and_then(Value::as_bool) != Some(true) {
-                    items.push(self.parameter_item(&id, *value, spec, &origin));
+            match &conditions {
+                Some(conditions) => {
+                    let Some(spec) = self.active_spec(&id, conditions) else {
+                        continue;
+                    };
+                    if writable(spec) && condition_holds(spec, conditions, &origin, errors) {
+                        items.push(self.parameter_item(&id, *value, spec, &origin));
+                    }
+                }
+                None => {
+                    for (_, spec) in parameter_declarations(self.parameters, &id) {
+                        if writable(spec) {
+                            items.push(self.parameter_item(&id, *value, spec, &origin));
+                        }
+                    }
                 }
             }
         }
@@ -575,7 +541,12 @@ impl Level<'_> {
             .enumerate()
         {
             let origin = format!("t:{}", self.template_path.key("setup").index(i));
-            items.push(with_origin(item, &origin));
+            let holds = conditions
+                .as_ref()
+                .is_none_or(|conditions| condition_holds(item, conditions, &origin, errors));
+            if holds {
+                items.push(with_origin(item, &origin));
+            }
         }
         items
     }
