@@ -146,43 +146,40 @@ async fn sighup_applies_the_new_config_port_by_port() {
     .await;
     let log = daemon.log();
     let a_name = sim_a.pty.display().to_string();
-    let opened_a = log
-        .lines()
-        .filter(|l| l.contains("port open") && l.contains(&a_name))
-        .count();
+    let opens_of_a = |log: &str| {
+        log.lines()
+            .filter(|l| l.contains("port open") && l.contains(&a_name))
+            .count()
+    };
     assert_eq!(
-        opened_a, 1,
+        opens_of_a(&log),
+        1,
         "port A must not be reopened by the reload:\n{log}"
     );
     assert!(log.contains("reload applied"), "{log}");
 
+    // The config as it stands now (the counter on port B), for the changes below.
+    let current_config = || {
+        config(
+            port,
+            &sim_a.pty,
+            &sim_b.pty,
+            json!([{"device_type": "rtu2mqtt-counter8", "slave_id": 22}]),
+        )
+    };
+
     // A new `rate_limit` changes every port's share: both restart with it.
-    let mut limited = config(
-        port,
-        &sim_a.pty,
-        &sim_b.pty,
-        json!([{"device_type": "rtu2mqtt-counter8", "slave_id": 22}]),
-    );
+    let mut limited = current_config();
     limited["rate_limit"] = json!(1000);
     std::fs::write(&config_path, limited.to_string()).unwrap();
     daemon.signal(nix::sys::signal::Signal::SIGHUP);
     wait_for("port A restarted with its share of rate_limit", || async {
-        let opened = daemon
-            .log()
-            .lines()
-            .filter(|l| l.contains("port open") && l.contains(&a_name))
-            .count();
-        (opened == 2).then_some(())
+        (opens_of_a(&daemon.log()) == 2).then_some(())
     })
     .await;
 
     // What only a restart applies is named in the log, not silently ignored.
-    let mut publishing_changed = config(
-        port,
-        &sim_a.pty,
-        &sim_b.pty,
-        json!([{"device_type": "rtu2mqtt-counter8", "slave_id": 22}]),
-    );
+    let mut publishing_changed = current_config();
     publishing_changed["max_unchanged_interval"] = json!(0);
     std::fs::write(&config_path, publishing_changed.to_string()).unwrap();
     daemon.signal(nix::sys::signal::Signal::SIGHUP);

@@ -146,9 +146,9 @@ fn shared_key(merged: &Value, module: Option<i128>) -> String {
     format!("{module}:{}", Value::Object(parts))
 }
 
-///
-/// Besides the device, returns warnings: channels left out because their register cannot be
-/// built, enum titles not published, as wb-mqtt-serial does.
+/// Resolves a merged device: its channels, setup and timing. Besides the device, returns
+/// warnings: channels left out because their register cannot be built, enum titles not
+/// published, as wb-mqtt-serial does.
 pub fn resolve_device(
     input: &ResolveInput,
     shared: &mut SharedResolutions,
