@@ -1102,8 +1102,9 @@ async fn site_tools_through_the_daemon(line: &str, baud: u32) {
     press(0);
     event_seen("0").await;
 
-    // events on the busy port: the service's event stream (it keeps acknowledging them).
-    let mut events = tool(&["events", "--json", "--count", "1"]);
+    // events on the busy port: the packets the service received (it keeps acknowledging them),
+    // each event as it came. Bounded in time, so that a missed event fails instead of hanging.
+    let mut events = tool(&["events", "--json", "--count", "2", "--duration", "60"]);
     events.arg("--service-config").arg(&service_config);
     let mut events = events.spawn().unwrap();
     let mut stderr = std::io::BufReader::new(events.stderr.take().unwrap());
@@ -1129,21 +1130,30 @@ async fn site_tools_through_the_daemon(line: &str, baud: u32) {
     );
     assert!(ready.contains("showing the events"), "{ready}");
     press(1);
+    event_seen("1").await;
+    press(0);
     let output = tokio::task::spawn_blocking(move || events.wait_with_output().unwrap())
         .await
         .unwrap();
     let stdout = String::from_utf8_lossy(&output.stdout).into_owned();
     assert_eq!(output.status.code(), Some(0), "{stdout}");
-    let event: Value = serde_json::from_str(stdout.trim()).unwrap();
-    assert_eq!(
-        event,
-        json!({"address": 20, "device": "relay6_20", "channel": "Input 1", "text": "1",
-               "via": "service"})
-    );
-    // The service got (and acknowledged) it too, and goes on.
-    event_seen("1").await;
-    press(0);
+    let shown: Vec<Value> = stdout
+        .lines()
+        .map(|line| serde_json::from_str(line).unwrap())
+        .collect();
+    let expected: Vec<Value> = [1, 0]
+        .iter()
+        .map(|value| {
+            json!({"address": 20, "type": "discrete", "register": 0, "value": value,
+                   "reboot": false, "device": "relay6_20", "channel": "Input 1",
+                   "text": value.to_string(), "repeated": false, "via": "service"})
+        })
+        .collect();
+    assert_eq!(shown, expected, "{stdout}");
+    // The service got (and acknowledged) them too, and goes on.
     event_seen("0").await;
+    press(1);
+    event_seen("1").await;
     assert!(!daemon.log().contains("panicked"), "{}", daemon.log());
 }
 

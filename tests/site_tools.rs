@@ -611,6 +611,34 @@ fn write_sets_registers_and_coils_and_reads_them_back() {
     let run = access(&sim, &args);
     assert_eq!(run.code, 2);
     assert!(run.stderr.contains("read-only"), "{}", run.stderr);
+
+    // An option after `--` (there for the negative value) is named, not read as a number;
+    // nothing is written.
+    let args = [
+        "write",
+        "--address",
+        "20",
+        "--type",
+        "holding",
+        "--reg",
+        "1000",
+        "--format",
+        "s32",
+        "--",
+        "-2",
+        "--baud",
+        "115200",
+    ];
+    let run = access(&sim, &args);
+    assert_eq!(run.code, 2, "{}{}", run.stdout, run.stderr);
+    assert!(
+        run.stderr
+            .contains("\"--baud\" is not a value: options go before `--`"),
+        "{}",
+        run.stderr
+    );
+    let control = sim.control(json!({"cmd": "get", "device": "fast-relay", "type": "holding", "address": 1000, "count": 2}));
+    assert_eq!(control["values"], json!([0xFFFF, 0xFFFB]));
 }
 
 /// Runs `rtu2mqtt events` in the background; its stdout lines arrive on the channel.

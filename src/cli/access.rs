@@ -347,6 +347,12 @@ pub fn run_write(args: WriteArgs) -> anyhow::Result<ExitCode> {
 /// The words `values` encode to in `args`' type and format.
 fn encode_all(args: &WriteArgs) -> Result<Vec<u16>, String> {
     let target = &args.target;
+    // After `--` (which a negative value needs) everything is a value, options too.
+    if let Some(option) = args.values.iter().find(|v| v.starts_with("--")) {
+        return Err(format!(
+            "{option:?} is not a value: options go before `--` (e.g. `--baud 9600 -- -2`)"
+        ));
+    }
     if target.register_type.register_type().is_bit() {
         return args
             .values

@@ -2,9 +2,9 @@
 //! channel names when a config is given. Ends with Ctrl-C, after --count events or --duration.
 //!
 //! When the running service holds the port (busy, or `--via-mqtt`), the events are the
-//! service's: it polls and acknowledges them, and this command shows what it publishes for the
-//! event channels of that port (from the service's config) instead of polling the bus itself,
-//! which would take events away from the service.
+//! service's: it polls and acknowledges them, and this command shows the packets it received
+//! (RPC `port/EventLog`) instead of polling the bus itself, which would take events away from
+//! the service.
 
 use std::collections::BTreeMap;
 use std::path::PathBuf;
@@ -29,6 +29,8 @@ use crate::tools::bus::{PortError, ToolBus, ToolPort};
 use crate::tools::exit;
 
 use super::scan::{block_on_tool, port_failure, PortArgs};
+use super::via_mqtt::{connect_service, service_call};
+use crate::rpc::client::RpcSession;
 
 /// Most event data a device may put in one reply (wb-mqtt-serial asks for as much).
 const MAX_EVENT_DATA: u8 = 100;
@@ -121,8 +123,6 @@ struct ConfigView {
     names: BTreeMap<(u8, RegisterType, u16), ChannelName>,
     line: Option<LineSettings>,
     enable: Vec<EnableSpec>,
-    /// MQTT (device id, control id) of the channels with events, and the device's address.
-    event_controls: BTreeMap<(String, String), u8>,
 }
 
 fn load_view(
@@ -154,7 +154,6 @@ fn load_view(
         names: BTreeMap::new(),
         line: None,
         enable: Vec::new(),
-        event_controls: BTreeMap::new(),
     };
     let Some(resolved) = ports
         .iter()
@@ -181,10 +180,6 @@ fn load_view(
                         codec: single.then(|| register.codec.clone()),
                     },
                 );
-                if channel.events != EventMode::Polled {
-                    view.event_controls
-                        .insert((device.id.clone(), channel.id.clone()), device.slave_id);
-                }
                 if channel.events != EventMode::Polled && single {
                     view.enable.push(EnableSpec {
                         address: device.slave_id,
@@ -207,7 +202,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     // away from it).
     if matches!(args.port.open(), Err(PortError::Busy { .. })) && args.service.can_reach_service() {
         eprintln!(
-            "{} is busy: showing the running rtu2mqtt service's events (MQTT)",
+            "{} is busy: showing the running rtu2mqtt service's events (MQTT RPC)",
             args.port.port
         );
         return run_via_service(&args);
@@ -240,131 +235,146 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     })
 }
 
-/// The service's events of this port: what it publishes for the event channels of its config
-/// (`--config`, else `--service-config`), live publications only (not the retained state).
+/// The service's events of this port, as its port task received them (RPC `port/EventLog`):
+/// the service polls and acknowledges them, this command only shows them. Channel names come
+/// from `--config`, else from the service's config when it can be read.
 fn run_via_service(args: &Args) -> anyhow::Result<ExitCode> {
     let config = args
         .config
         .clone()
         .unwrap_or_else(|| args.service.service_config.clone());
     let view = match load_view(&config, &args.templates, &args.port.port) {
-        Ok(view) => view,
-        Err(message) => {
-            eprintln!(
-                "the service's events are shown by channel: its config names them (give \
-                 --config or --service-config): {message}"
-            );
+        Ok(view) => Some(view),
+        Err(message) if args.config.is_some() => {
+            eprintln!("{message}");
             return Ok(ExitCode::from(exit::USAGE));
+        }
+        Err(message) => {
+            eprintln!("no channel names (give --config for them): {message}");
+            None
         }
     };
     if !args.enable.is_empty() {
         eprintln!("--enable is ignored through the service: it enables the events of its config");
     }
-    if view.event_controls.is_empty() {
-        eprintln!(
-            "no channel of {} in {} has events (sporadic or semi-sporadic): nothing to show",
-            args.port.port,
-            config.display()
-        );
-        return Ok(ExitCode::from(exit::NOT_FOUND));
-    }
-    let broker = match args.service.broker_config() {
-        Ok(broker) => broker,
-        Err(message) => {
-            eprintln!("{message}");
-            return Ok(ExitCode::from(exit::USAGE));
-        }
-    };
     block_on_tool(async move {
-        match service_stream(args, &view, &broker).await {
-            Ok(code) => Ok(code),
-            Err(err) => Ok(port_failure(&err)),
-        }
+        let mut session = match connect_service(&args.service).await {
+            Ok(session) => session,
+            Err(code) => return Ok(code),
+        };
+        Ok(service_stream(args, view.as_ref(), &mut session)
+            .await
+            .unwrap_or_else(|code| code))
     })
 }
 
+/// How long one `port/EventLog` call waits for a packet.
+const EVENT_LOG_WAIT: Duration = Duration::from_secs(1);
+/// Added to that wait for the call's reply (broker round trips, a busy controller).
+const EVENT_LOG_MARGIN: Duration = Duration::from_secs(4);
+
 async fn service_stream(
     args: &Args,
-    view: &ConfigView,
-    broker: &crate::config::config_file::MqttConfig,
-) -> Result<ExitCode, PortError> {
-    use rumqttc::{AsyncClient, Event as MqttEvent, Packet, QoS};
-    let client_id = format!("rtu2mqtt-events-{}", std::process::id());
-    let options = crate::mqtt::client::connection_options(broker, &client_id)
-        .map_err(|err| PortError::Service(err.to_string()))?;
-    let (client, mut eventloop) = AsyncClient::new(options, 64);
-    let address = format!("{}:{}", broker.host, broker.port);
+    view: Option<&ConfigView>,
+    session: &mut RpcSession,
+) -> Result<ExitCode, ExitCode> {
+    let path = args.port.port.as_str();
+    let read = |from: Option<u64>, wait: Duration| {
+        let mut params = json!({
+            "path": path,
+            "wait_ms": u64::try_from(wait.as_millis()).unwrap_or(u64::MAX),
+        });
+        if let Some(from) = from {
+            params["from"] = json!(from);
+        }
+        params
+    };
+    // The first call starts the service's recording: every packet after it is shown.
+    let first = service_call(
+        session,
+        "port",
+        "EventLog",
+        read(None, Duration::ZERO),
+        EVENT_LOG_MARGIN,
+    )
+    .await?;
+    let mut from = first["next"].as_u64().unwrap_or(0);
+    eprintln!(
+        "showing the events the rtu2mqtt service receives on {path} (it polls and acknowledges \
+         them; Ctrl-C to stop)"
+    );
     let deadline = args
         .duration
         .filter(|d| d.is_finite() && *d >= 0.0)
         .map(|d| tokio::time::Instant::now() + Duration::from_secs_f64(d.min(1e9)));
-    let mut seen = 0u64;
+    let mut events_seen = 0u64;
+    let mut repeats = RepeatWatch::default();
     loop {
-        if args.count.is_some_and(|c| seen >= c) {
+        if args.count.is_some_and(|c| events_seen >= c) {
             break;
         }
-        let event = match deadline {
-            Some(deadline) => match tokio::time::timeout_at(deadline, eventloop.poll()).await {
-                Ok(event) => event,
-                Err(_) => break,
-            },
-            None => eventloop.poll().await,
+        let wait = match deadline {
+            Some(deadline) => {
+                let left = deadline.saturating_duration_since(tokio::time::Instant::now());
+                if left.is_zero() {
+                    break;
+                }
+                left.min(EVENT_LOG_WAIT)
+            }
+            None => EVENT_LOG_WAIT,
         };
-        match event {
-            Ok(MqttEvent::Incoming(Packet::ConnAck(_))) => {
-                client
-                    .subscribe("/devices/+/controls/+", QoS::AtMostOnce)
-                    .await
-                    .map_err(|err| PortError::Service(err.to_string()))?;
-            }
-            Ok(MqttEvent::Incoming(Packet::SubAck(_))) => {
-                eprintln!(
-                    "showing the events the rtu2mqtt service publishes for {} (broker {address}; \
-                     Ctrl-C to stop)",
-                    args.port.port
-                );
-            }
-            Ok(MqttEvent::Incoming(Packet::Publish(publish))) => {
-                // The retained state comes first on subscribing: not an event.
-                if publish.retain {
-                    continue;
+        let page = service_call(
+            session,
+            "port",
+            "EventLog",
+            read(Some(from), wait),
+            wait + EVENT_LOG_MARGIN,
+        )
+        .await?;
+        let lost = page["lost"].as_u64().unwrap_or(0);
+        if lost > 0 {
+            eprintln!("{lost} event packets came faster than shown here and were skipped");
+        }
+        for packet in page["packets"].as_array().into_iter().flatten() {
+            let (Some(address), Some(flag)) = (
+                packet["slave_id"]
+                    .as_u64()
+                    .and_then(|a| u8::try_from(a).ok()),
+                packet["flag"].as_u64().and_then(|f| u8::try_from(f).ok()),
+            ) else {
+                continue;
+            };
+            let events: Vec<Event> = packet["events"]
+                .as_array()
+                .into_iter()
+                .flatten()
+                .filter_map(logged_event)
+                .collect();
+            let origin = PacketOrigin {
+                address,
+                via_service: true,
+                repeated: repeats.is_repeat(address, flag, &events),
+            };
+            print_repeat(origin, args.json);
+            for event in &events {
+                print_event(origin, event, view, args.json);
+                if !event.is_reboot() {
+                    events_seen += 1;
                 }
-                let mut parts = publish.topic.split('/').skip(1);
-                let (Some("devices"), Some(device), Some("controls"), Some(control), None) = (
-                    parts.next(),
-                    parts.next(),
-                    parts.next(),
-                    parts.next(),
-                    parts.next(),
-                ) else {
-                    continue;
-                };
-                let key = (device.to_owned(), control.to_owned());
-                let Some(slave_id) = view.event_controls.get(&key) else {
-                    continue;
-                };
-                let value = String::from_utf8_lossy(&publish.payload);
-                seen += 1;
-                if args.json {
-                    println!(
-                        "{}",
-                        json!({"address": slave_id, "device": device, "channel": control,
-                               "text": value, "via": "service"})
-                    );
-                } else {
-                    println!("address {slave_id}: {device}/{control} = {value}");
-                }
-            }
-            Ok(_) => {}
-            Err(err) => {
-                return Err(PortError::Service(format!(
-                    "cannot reach the MQTT broker {address}: {err}"
-                )))
             }
         }
+        from = page["next"].as_u64().unwrap_or(from);
     }
-    let _ = client.disconnect().await;
     Ok(ExitCode::SUCCESS)
+}
+
+/// An event of a `port/EventLog` reply, back as the bus brought it.
+fn logged_event(event: &serde_json::Value) -> Option<Event> {
+    Some(Event {
+        source: EventSource::from_wire(u8::try_from(event["source"].as_u64()?).ok()?),
+        id: u16::try_from(event["id"].as_u64()?).ok()?,
+        payload: crate::protocol::parse_hex(event["payload"].as_str()?).ok()?,
+    })
 }
 
 /// Sends the 0x18 request for one device's registers; prints which were enabled.
@@ -449,12 +459,49 @@ async fn enable_all(
     Ok(all)
 }
 
-fn print_event(address: u8, event: &Event, view: Option<&ConfigView>, json_output: bool) {
+/// Where an event came from, for its line.
+#[derive(Debug, Clone, Copy)]
+struct PacketOrigin {
+    address: u8,
+    /// The service received it, not this command.
+    via_service: bool,
+    /// Its packet came again under the same flag (its confirmation was lost): its events may
+    /// have been shown already.
+    repeated: bool,
+}
+
+/// Tells a packet sent again under the same flag (its confirmation was lost) from a new one.
+#[derive(Debug, Default)]
+struct RepeatWatch {
+    last_flag: BTreeMap<u8, u8>,
+}
+
+impl RepeatWatch {
+    fn is_repeat(&mut self, address: u8, flag: u8, events: &[Event]) -> bool {
+        let previous = self.last_flag.insert(address, flag);
+        // A restarted device numbers its packets afresh.
+        previous == Some(flag) && !events.iter().any(Event::is_reboot)
+    }
+}
+
+/// Says once per packet sent again that its events may repeat.
+fn print_repeat(origin: PacketOrigin, json_output: bool) {
+    if origin.repeated && !json_output {
+        println!(
+            "address {}: packet sent again (its confirmation was lost): events may repeat",
+            origin.address
+        );
+    }
+}
+
+/// One event, in words or as JSON.
+fn print_event(origin: PacketOrigin, event: &Event, view: Option<&ConfigView>, json_output: bool) {
+    let address = origin.address;
     let raw = event.value();
-    let (kind, register_type) = match event.source {
-        EventSource::Register(t) => (register_type_name(t).to_owned(), Some(t)),
-        EventSource::System => ("system".to_owned(), None),
-        EventSource::Other(byte) => (format!("type {byte}"), None),
+    let kind = event.source.name();
+    let register_type = match event.source {
+        EventSource::Register(register_type) => Some(register_type),
+        _ => None,
     };
     let name = register_type.and_then(|t| view.and_then(|v| v.names.get(&(address, t, event.id))));
     let decoded = name.and_then(|n| n.codec.as_ref()).and_then(|codec| {
@@ -465,19 +512,21 @@ fn print_event(address: u8, event: &Event, view: Option<&ConfigView>, json_outpu
         }
     });
     if json_output {
-        println!(
-            "{}",
-            json!({
-                "address": address,
-                "type": kind,
-                "register": event.id,
-                "value": raw,
-                "reboot": event.is_reboot(),
-                "device": name.map(|n| n.device.clone()),
-                "channel": name.map(|n| n.channel.clone()),
-                "text": decoded,
-            })
-        );
+        let mut line = json!({
+            "address": address,
+            "type": kind,
+            "register": event.id,
+            "value": raw,
+            "reboot": event.is_reboot(),
+            "device": name.map(|n| n.device.clone()),
+            "channel": name.map(|n| n.channel.clone()),
+            "text": decoded,
+            "repeated": origin.repeated,
+        });
+        if origin.via_service {
+            line["via"] = json!("service");
+        }
+        println!("{line}");
         return;
     }
     if event.is_reboot() {
@@ -524,6 +573,7 @@ async fn stream(
         ack_flag: 0,
     };
     let mut events_seen = 0u64;
+    let mut repeats = RepeatWatch::default();
     let mut closing_polls = 0;
     let first_byte = line.event_first_byte_timeout();
     let reply = line.event_reply_timeout() + line.wire_time(usize::from(MAX_EVENT_DATA) + 40);
@@ -554,8 +604,14 @@ async fn stream(
             }) => {
                 poll.ack_address = address;
                 poll.ack_flag = packet.flag;
+                let origin = PacketOrigin {
+                    address,
+                    via_service: false,
+                    repeated: repeats.is_repeat(address, packet.flag, &packet.events),
+                };
+                print_repeat(origin, args.json);
                 for event in &packet.events {
-                    print_event(address, event, view, args.json);
+                    print_event(origin, event, view, args.json);
                     if event.is_reboot() {
                         enable_all(&mut port, line, &specs, Some(address), args.json).await?;
                     } else if !done {
@@ -579,6 +635,25 @@ async fn stream(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_packet_again_under_the_same_flag_is_a_repeat_until_the_device_restarts() {
+        let value = Event {
+            source: EventSource::Register(RegisterType::Coil),
+            id: 0,
+            payload: vec![1],
+        };
+        let values = std::slice::from_ref(&value);
+        let mut repeats = RepeatWatch::default();
+        assert!(!repeats.is_repeat(20, 0, values));
+        // Another device's packets under the same flag are its own.
+        assert!(!repeats.is_repeat(21, 0, values));
+        assert!(repeats.is_repeat(20, 0, values));
+        assert!(!repeats.is_repeat(20, 1, values));
+        // A restart resets the device's flag: not a repeat, whatever the flag.
+        assert!(!repeats.is_repeat(20, 1, &[Event::reboot(), value.clone()]));
+        assert!(!repeats.is_repeat(20, 0, &[value]));
+    }
 
     #[test]
     fn enable_specs_parse() {

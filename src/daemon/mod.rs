@@ -2,6 +2,7 @@
 //! or JSON lines on stdout for tests and debugging).
 
 pub mod bus_queue;
+pub mod event_log;
 pub mod identity;
 pub mod port_task;
 pub mod stdio;
@@ -21,6 +22,7 @@ use crate::protocol::LineSettings;
 use crate::service::{PortVitals, ServiceHealth};
 use crate::status::{PortStatus, StatusHub};
 use bus_queue::BusQueue;
+use event_log::EventLog;
 use port_task::PortTask;
 
 /// Room for bursts between the port tasks and the sink.
@@ -48,6 +50,8 @@ pub struct PortAccess {
     /// Its serial settings (none for TCP gateways).
     pub line: Option<LineSettings>,
     pub queue: BusQueue,
+    /// Its event packets, for a watcher (a port restarted by a reload starts a new log).
+    pub events: Arc<EventLog>,
 }
 
 /// The running ports, by [`port_key`] (the device path, or `address:port`); kept up to date
@@ -198,6 +202,7 @@ impl BusControl {
             crate::transport::Endpoint::Serial { line, .. } => Some(*line),
             _ => None,
         };
+        let events = Arc::new(EventLog::default());
         lock(&self.directory).insert(
             port_key(port),
             PortAccess {
@@ -205,6 +210,7 @@ impl BusControl {
                 resolved: Arc::new(port.clone()),
                 line,
                 queue: queue.clone(),
+                events: Arc::clone(&events),
             },
         );
         let identity_plans = port.devices.iter().map(identity::identity_plan).collect();
@@ -220,6 +226,7 @@ impl BusControl {
         let mut task = PortTask::new(plan, models, self.updates.clone(), port_write_rx)
             .with_vitals(vitals)
             .with_bus_queue(queue.clone(), queued)
+            .with_event_log(events)
             .with_identity(identity_plans);
         if let Some(status) = status {
             task = task.with_status(status);

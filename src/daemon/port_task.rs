@@ -12,6 +12,7 @@ use tracing::{debug, info, warn};
 use super::bus_queue::{
     BusQueue, BusQueueError, BusQueueReceiver, QueuedJob, QueuedRaw, QueuedTransaction,
 };
+use super::event_log::EventLog;
 use super::identity::{read_identity, IdentityPlan, IdentityRead};
 use crate::device_updates::{ControlWrite, DeviceUpdate};
 use crate::gateway::device_model::{apply_port_events, DeviceModel};
@@ -20,7 +21,8 @@ use crate::mqtt::throttle::{LogBudget, LogDecision};
 use crate::port::{
     NextStep, PortEvent, PortScheduler, ReplyTiming, Transaction, TransactionOutcome,
 };
-use crate::protocol::LineSettings;
+use crate::protocol::fast::{EventPacket, FastReply};
+use crate::protocol::{LineSettings, Reply, ReplyBody};
 use crate::service::{BrokerState, PortVitals, ServiceHealth};
 use crate::status::hub::PortCommand;
 use crate::status::PortStatus;
@@ -57,6 +59,8 @@ pub struct PortTask {
     identity: IdentityState,
     /// The status page's counters of this port; none while the status server is off.
     status: Option<Arc<PortStatus>>,
+    /// Event packets as they came, for a watcher through RPC (`rtu2mqtt events`).
+    event_log: Option<Arc<EventLog>>,
     /// Kept between transactions (emptied after each), so that a read of many values
     /// allocates no lists: its events, then the updates made of them.
     port_events: Vec<PortEvent>,
@@ -149,6 +153,7 @@ impl PortTask {
             queue: None,
             identity: IdentityState::default(),
             status: None,
+            event_log: None,
             port_events: Vec::new(),
             update_buffer: Vec::new(),
         }
@@ -318,6 +323,12 @@ impl PortTask {
                 }
             }
         });
+    }
+
+    /// Records the event packets it receives into `log` while someone watches it.
+    pub fn with_event_log(mut self, log: Arc<EventLog>) -> Self {
+        self.event_log = Some(log);
+        self
     }
 
     /// Reports open/closed, progress and devices online into `vitals`.
@@ -500,6 +511,11 @@ impl PortTask {
                         ),
                     };
                     let recorded = self.status.as_ref().map(|_| outcome.clone());
+                    if let (Some(log), Some((address, packet))) =
+                        (&self.event_log, event_packet(&outcome))
+                    {
+                        log.record(Instant::now().into_std(), address, packet);
+                    }
                     let mut events = std::mem::take(&mut self.port_events);
                     self.scheduler
                         .complete_into(self.now(), outcome, timing, &mut events);
@@ -785,6 +801,21 @@ impl PortTask {
                 return;
             }
         }
+    }
+}
+
+/// The event packet a reply brought, and who sent it.
+fn event_packet(outcome: &TransactionOutcome) -> Option<(u8, &EventPacket)> {
+    match outcome {
+        TransactionOutcome::Reply(Reply {
+            address,
+            body:
+                ReplyBody::Fast {
+                    reply: FastReply::Events(packet),
+                    ..
+                },
+        }) => Some((*address, packet)),
+        _ => None,
     }
 }
 

@@ -166,6 +166,19 @@ impl EventSource {
         }
     }
 
+    /// In words, as the tools print it: `coil`, `discrete`, `holding`, `input`, `system`, or
+    /// `type N`.
+    pub fn name(self) -> String {
+        match self {
+            Self::Register(RegisterType::Coil) => "coil".to_owned(),
+            Self::Register(RegisterType::DiscreteInput) => "discrete".to_owned(),
+            Self::Register(RegisterType::Holding) => "holding".to_owned(),
+            Self::Register(RegisterType::Input) => "input".to_owned(),
+            Self::System => "system".to_owned(),
+            Self::Other(byte) => format!("type {byte}"),
+        }
+    }
+
     pub fn to_wire(self) -> u8 {
         match self {
             Self::Register(register_type) => register_type.to_wire(),

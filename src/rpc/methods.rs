@@ -11,7 +11,7 @@ use serde_json::{json, Map, Value};
 use super::message::RpcError;
 use super::params::{
     DeviceLoad, DeviceLoadConfig, DeviceProbe, DeviceSet, DeviceSetPoll, MessageFormat, Method,
-    PortLoad, PortLoadRaw, PortScan, PortSelector, PortSetup, ScanMode, POLL_HOLD,
+    PortEventLog, PortLoad, PortLoadRaw, PortScan, PortSelector, PortSetup, ScanMode, POLL_HOLD,
 };
 use crate::config::config_file::PortType;
 use crate::config::{TemplateFile, TemplateLibrary};
@@ -138,6 +138,7 @@ pub async fn execute_with_templates(
         Method::DeviceSet(set) => device_set(ports, templates, set).await,
         Method::DeviceSetPoll(set_poll) => device_set_poll(ports, set_poll).await,
         Method::DeviceLoadConfig(load) => device_load_config(ports, templates, load).await,
+        Method::PortEventLog(read) => port_event_log(ports, read).await,
     }
 }
 
@@ -430,6 +431,39 @@ fn configured_device_type(access: &PortAccess, address: u8) -> Option<String> {
 /// `device/Probe`: a Wiren Board device at a given address (classic requests): its serial
 /// number first; silence means "nobody there" (`{}`).
 /// Holds or resumes a configured device's polling; `{}` as wb-mqtt-serial answers.
+/// `port/EventLog`: the event packets the port received from `from` on, each event with its
+/// source byte as on the wire (and in words), register or system event number, and payload.
+async fn port_event_log(ports: &PortDirectory, read: PortEventLog) -> Result<Value, RpcError> {
+    let (access, _) = find_port(ports, &read.port)?;
+    let page = access.events.read(read.from, read.wait).await;
+    let packets: Vec<Value> = page
+        .packets
+        .iter()
+        .map(|packet| {
+            let events: Vec<Value> = packet
+                .events
+                .iter()
+                .map(|event| {
+                    json!({
+                        "source": event.source.to_wire(),
+                        "type": event.source.name(),
+                        "id": event.id,
+                        "payload": crate::protocol::hex(&event.payload),
+                    })
+                })
+                .collect();
+            json!({
+                "seq": packet.seq,
+                "time_ms": packet.unix_ms,
+                "slave_id": packet.address,
+                "flag": packet.flag,
+                "events": events,
+            })
+        })
+        .collect();
+    Ok(json!({ "packets": packets, "next": page.next, "lost": page.lost }))
+}
+
 async fn device_set_poll(ports: &PortDirectory, request: DeviceSetPoll) -> Result<Value, RpcError> {
     // wb-mqtt-serial's words for any device it does not poll.
     let (access, index) = find_device(ports, &request.port, request.slave_id)

@@ -23,6 +23,7 @@ pub const SERVED: &[(&str, &str)] = &[
     ("device", "Probe"),
     ("port", "Setup"),
     ("device", "LoadConfig"),
+    ("port", "EventLog"),
     ("device", "Load"),
     ("device", "Set"),
     ("device", "SetPoll"),
@@ -200,6 +201,22 @@ pub struct DeviceLoadConfig {
     pub total_timeout: Duration,
 }
 
+/// `port/EventLog` (rtu2mqtt's own): the port's Fast Modbus event packets as they came.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PortEventLog {
+    pub port: PortSelector,
+    /// The first packet wanted (`next` of the previous reply); none: only those to come.
+    pub from: Option<u64>,
+    /// How long to wait for a packet when there is none yet.
+    pub wait: Duration,
+    pub total_timeout: Duration,
+}
+
+/// `port/EventLog`'s wait when the request gives none.
+pub const DEFAULT_EVENT_LOG_WAIT: Duration = Duration::from_secs(1);
+/// What of `total_timeout` a `port/EventLog` wait leaves for the reply to go out.
+const EVENT_LOG_REPLY_ROOM: Duration = Duration::from_millis(500);
+
 /// A request, read.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Method {
@@ -213,6 +230,7 @@ pub enum Method {
     DeviceSet(DeviceSet),
     DeviceSetPoll(DeviceSetPoll),
     DeviceLoadConfig(DeviceLoadConfig),
+    PortEventLog(PortEventLog),
 }
 
 impl Method {
@@ -229,6 +247,7 @@ impl Method {
             Self::DeviceSet(p) => p.total_timeout,
             Self::DeviceSetPoll(_) => DEFAULT_TOTAL_TIMEOUT,
             Self::DeviceLoadConfig(p) => p.total_timeout,
+            Self::PortEventLog(p) => p.total_timeout,
         }
     }
 }
@@ -310,6 +329,17 @@ pub fn parse_method(service: &str, method: &str, params: &Value) -> Result<Metho
             slave_id: slave_id(fields)?,
             total_timeout: total_timeout(fields)?,
         })),
+        ("port", "EventLog") => {
+            let total_timeout = total_timeout(fields)?;
+            let wait = optional_millis(fields, "wait_ms")?.unwrap_or(DEFAULT_EVENT_LOG_WAIT);
+            Ok(Method::PortEventLog(PortEventLog {
+                port: port_selector(fields)?,
+                from: optional_uint(fields, "from")?,
+                // The reply must leave before the caller stops waiting for it.
+                wait: wait.min(total_timeout.saturating_sub(EVENT_LOG_REPLY_ROOM)),
+                total_timeout,
+            }))
+        }
         _ if NOT_SERVED.contains(&(service, method)) => Err(RpcError::server(format!(
             "{service}/{method} is not served by rtu2mqtt yet; served: {}",
             served_list()
@@ -761,6 +791,33 @@ mod tests {
 
     fn parse(service: &str, method: &str, params: Value) -> Result<Method, RpcError> {
         parse_method(service, method, &params)
+    }
+
+    #[test]
+    fn an_event_log_read_waits_no_longer_than_its_reply_can() {
+        assert_eq!(
+            parse(
+                "port",
+                "EventLog",
+                json!({"path": "/dev/ttyRS485-1", "from": 7})
+            ),
+            Ok(Method::PortEventLog(PortEventLog {
+                port: PortSelector::Path("/dev/ttyRS485-1".into()),
+                from: Some(7),
+                wait: DEFAULT_EVENT_LOG_WAIT,
+                total_timeout: DEFAULT_TOTAL_TIMEOUT,
+            }))
+        );
+        let Ok(Method::PortEventLog(read)) = parse(
+            "port",
+            "EventLog",
+            json!({"device_id": "relay", "wait_ms": 5000, "total_timeout": 2000}),
+        ) else {
+            panic!("not read")
+        };
+        assert_eq!((read.from, read.wait), (None, Duration::from_millis(1500)));
+        let err = parse("port", "EventLog", json!({"path": "/dev/x", "from": -1})).unwrap_err();
+        assert!(err.message.contains("\"from\""), "{}", err.message);
     }
 
     #[test]
