@@ -235,7 +235,12 @@ impl TemplateLibrary {
                             .and_then(|s| s.parse_json().ok())
                             .and_then(|v| v.get("device_type")?.as_str().map(String::from))
                         {
-                            library.failed.insert(device_type, err.clone());
+                            // The first file by name, as for templates that load (wb ships
+                            // `config-X.json` before `config-X-deprecated.json`).
+                            library
+                                .failed
+                                .entry(device_type)
+                                .or_insert_with(|| err.clone());
                         }
                         library.errors.push(err)
                     }
