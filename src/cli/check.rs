@@ -4,6 +4,7 @@
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
+use crate::config::error::Problem;
 use crate::config::library::TemplateLibrary;
 use crate::config::load::{load_config, LoadedConfig, DEFAULT_CONFIG_PATH};
 use crate::config::{LocatedError, TemplateFile};
@@ -109,12 +110,23 @@ pub fn run_check_templates(args: CheckTemplatesArgs) -> anyhow::Result<ExitCode>
         }
     }
     let mut failed = false;
+    let mut other_protocols = 0;
     // device_type → (file, deprecated) of the first template seen with it.
     let mut seen: std::collections::BTreeMap<String, (PathBuf, bool)> = Default::default();
     for file in &files {
         let (template, errors) = check_file(file);
         if errors.is_empty() {
             println!("{}: ok", file.display());
+        } else if let [error] = errors.as_slice() {
+            if matches!(error.problem, Problem::UnsupportedProtocol { .. }) {
+                // wb-mqtt-serial's library ships a few dozen of them: listed, but not a failure,
+                // so that the exit status tells whether a Modbus template has an error.
+                other_protocols += 1;
+                println!("{error}");
+            } else {
+                failed = true;
+                println!("{error}");
+            }
         } else {
             failed = true;
             for error in errors {
@@ -154,6 +166,12 @@ pub fn run_check_templates(args: CheckTemplatesArgs) -> anyhow::Result<ExitCode>
             }
         }
     }
+    if other_protocols > 0 {
+        println!(
+            "{other_protocols} template(s) of other protocols than Modbus were not checked (not \
+             an error: rtu2mqtt cannot use them, their devices stay on wb-mqtt-serial)"
+        );
+    }
     if files.is_empty() {
         // Nothing checked is not a success: a wrong path must not look like a clean library.
         failed = true;
@@ -187,7 +205,7 @@ fn check_file(path: &Path) -> (Option<TemplateFile>, Vec<LocatedError>) {
             let (warnings, errors): (Vec<LocatedError>, Vec<LocatedError>) =
                 check_template(&template)
                     .into_iter()
-                    .partition(|e| matches!(e.problem, crate::config::error::Problem::Warning(_)));
+                    .partition(|e| matches!(e.problem, Problem::Warning(_)));
             for warning in template_key_warnings(&template).iter().chain(&warnings) {
                 println!("{warning}");
             }

@@ -30,6 +30,28 @@ pub enum Problem {
         /// The template directories searched, in order.
         searched: String,
     },
+    /// A template of another protocol than Modbus (Mercury, DLMS, Milur …): rtu2mqtt cannot
+    /// drive its devices. Not an error of the file: `check-templates` lists it apart.
+    #[error(
+        "protocol `{protocol}` is not supported: rtu2mqtt speaks Modbus (RTU, TCP, modbus_io) \
+         only, so devices of this template cannot be used; keep them on wb-mqtt-serial"
+    )]
+    UnsupportedProtocol { protocol: String },
+    /// A config device of another protocol: its template's (`template` is where that template
+    /// says so) or its own `protocol`.
+    #[error(
+        "{}protocol `{protocol}` is not supported{}: rtu2mqtt speaks Modbus (RTU, TCP, \
+         modbus_io) only and cannot poll this device. Keep this port on wb-mqtt-serial (one \
+         program serves a port), or set `\"enabled\": false` on this device to run the port's \
+         other devices without it",
+        device_type.as_ref().map(|d| format!("device_type `{d}`: ")).unwrap_or_default(),
+        template.as_ref().map(|t| format!(" (its template: {t})")).unwrap_or_default()
+    )]
+    UnsupportedDevice {
+        device_type: Option<String>,
+        protocol: String,
+        template: Option<String>,
+    },
     #[error("slave_id {slave_id} is used twice on this port: also by the device at {other}")]
     DuplicateSlaveId { slave_id: String, other: String },
     #[error("device id `{id}` is used twice: also by the device at {other}; set a distinct `id`")]
@@ -118,6 +140,14 @@ pub struct LocatedError {
 }
 
 impl LocatedError {
+    /// `file:line:column`, or the file alone: where the error is, for another message.
+    pub fn location(&self) -> String {
+        match self.line_column {
+            Some((line, column)) => format!("{}:{line}:{column}", self.file.display()),
+            None => self.file.display().to_string(),
+        }
+    }
+
     /// Locates `path` in `source` (the comment-blanked text of `file`).
     pub fn new(file: &Path, source: Option<&str>, path: JsonPath, problem: Problem) -> Self {
         let line_column =

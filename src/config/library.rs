@@ -80,11 +80,9 @@ impl TemplateFile {
             // this protocol knows.
             return Err(source.error(
                 JsonPath::root().key("device").key("protocol"),
-                Problem::Invalid(format!(
-                    "protocol `{protocol}` is not supported: rtu2mqtt speaks Modbus (RTU, TCP, \
-                     modbus_io) only, so devices of this template cannot be used; keep them on \
-                     wb-mqtt-serial"
-                )),
+                Problem::UnsupportedProtocol {
+                    protocol: protocol.to_string(),
+                },
             ));
         }
         let typed = deserialize_at::<Template>(&source, &raw, &JsonPath::root())?;
@@ -237,7 +235,12 @@ impl TemplateLibrary {
                             .and_then(|s| s.parse_json().ok())
                             .and_then(|v| v.get("device_type")?.as_str().map(String::from))
                         {
-                            library.failed.insert(device_type, err.clone());
+                            // The first file by name, as for templates that load (wb ships
+                            // `config-X.json` before `config-X-deprecated.json`).
+                            library
+                                .failed
+                                .entry(device_type)
+                                .or_insert_with(|| err.clone());
                         }
                         library.errors.push(err)
                     }
@@ -287,6 +290,16 @@ impl TemplateLibrary {
     /// Known device types close to `name` (case, punctuation, or a small typo), for hints.
     pub fn similar(&self, name: &str) -> Vec<String> {
         closest(name, self.templates.keys().map(String::as_str), 2, 3)
+    }
+
+    /// The protocol of `device_type`'s template and where the template says it, when the
+    /// template was left out because its protocol is not Modbus.
+    pub fn unsupported_protocol(&self, device_type: &str) -> Option<(&str, &LocatedError)> {
+        let error = self.failed.get(device_type)?;
+        match &error.problem {
+            Problem::UnsupportedProtocol { protocol } => Some((protocol.as_str(), error)),
+            _ => None,
+        }
     }
 
     /// Why `device_type` is missing: a file that failed to load may have been meant.

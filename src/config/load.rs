@@ -48,8 +48,10 @@ pub fn load_config(path: &Path) -> Result<LoadedConfig, ErrorList> {
 /// Loads config text already read (tests; `apply_env` merges the process environment).
 pub fn load_config_source(source: SourceText, apply_env: bool) -> Result<LoadedConfig, ErrorList> {
     let mut raw = source.parse_json()?;
+    let foreign = foreign_protocol_errors(&source, &raw);
     // Validate the file on its own first, so its errors point into it.
-    let typed = deserialize_at::<Config>(&source, &raw, &JsonPath::root())?;
+    let typed =
+        deserialize_at::<Config>(&source, &without_foreign_devices(&raw), &JsonPath::root())?;
     let mut config = typed.value;
     let mut ignored = typed.ignored;
     if apply_env {
@@ -62,15 +64,15 @@ pub fn load_config_source(source: SourceText, apply_env: bool) -> Result<LoadedC
                     Problem::Invalid(format!("environment override: {err}")),
                 )
             })?;
-        let merged = deserialize_at::<Config>(&source, &raw, &JsonPath::root()).map_err(|err| {
-            LocatedError {
-                problem: Problem::Invalid(format!(
-                    "{} (set by an {ENV_PREFIX}* environment variable)",
-                    err.problem
-                )),
-                ..err
-            }
-        })?;
+        let merged =
+            deserialize_at::<Config>(&source, &without_foreign_devices(&raw), &JsonPath::root())
+                .map_err(|err| LocatedError {
+                    problem: Problem::Invalid(format!(
+                        "{} (set by an {ENV_PREFIX}* environment variable)",
+                        err.problem
+                    )),
+                    ..err
+                })?;
         config = merged.value;
         ignored = merged.ignored;
     }
@@ -81,6 +83,7 @@ pub fn load_config_source(source: SourceText, apply_env: bool) -> Result<LoadedC
         device_extra_keys: Vec::new(),
     };
     let (device_extra_keys, mut errors) = split_ignored(&loaded, ignored);
+    errors.splice(0..0, foreign);
     errors.extend(check_ports(&loaded));
     errors.extend(check_http(&loaded));
     if errors.is_empty() {
@@ -91,6 +94,73 @@ pub fn load_config_source(source: SourceText, apply_env: bool) -> Result<LoadedC
     } else {
         Err(ErrorList(errors))
     }
+}
+
+/// The config devices that name a protocol other than Modbus (`"protocol": "milur"`, with
+/// channels of that protocol's register types), by path.
+fn foreign_protocol_devices(raw: &Value) -> Vec<(usize, usize, String, bool)> {
+    let mut out = Vec::new();
+    let Some(ports) = raw.get("ports").and_then(Value::as_array) else {
+        return out;
+    };
+    for (p, port) in ports.iter().enumerate() {
+        let port_enabled = port.get("enabled").and_then(Value::as_bool) != Some(false);
+        let Some(devices) = port.get("devices").and_then(Value::as_array) else {
+            continue;
+        };
+        for (d, device) in devices.iter().enumerate() {
+            if let Some(protocol) = device
+                .get("protocol")
+                .and_then(Value::as_str)
+                .filter(|p| !super::library::is_modbus_protocol(p))
+            {
+                let enabled =
+                    port_enabled && device.get("enabled").and_then(Value::as_bool) != Some(false);
+                out.push((p, d, protocol.to_string(), enabled));
+            }
+        }
+    }
+    out
+}
+
+/// An enabled device of another protocol cannot be served: said once, at its `protocol`,
+/// rather than at the first of its channels whose register type Modbus does not know.
+fn foreign_protocol_errors(source: &SourceText, raw: &Value) -> Vec<LocatedError> {
+    foreign_protocol_devices(raw)
+        .into_iter()
+        .filter(|(_, _, _, enabled)| *enabled)
+        .map(|(port, device, protocol, _)| {
+            source.error(
+                JsonPath::root()
+                    .key("ports")
+                    .index(port)
+                    .key("devices")
+                    .index(device)
+                    .key("protocol"),
+                Problem::UnsupportedDevice {
+                    device_type: None,
+                    protocol,
+                    template: None,
+                },
+            )
+        })
+        .collect()
+}
+
+/// `raw` with every device of another protocol replaced by a disabled stub (indices kept), so
+/// that the typed check does not read their channels and a disabled one costs nothing.
+fn without_foreign_devices(raw: &Value) -> std::borrow::Cow<'_, Value> {
+    let foreign = foreign_protocol_devices(raw);
+    if foreign.is_empty() {
+        return std::borrow::Cow::Borrowed(raw);
+    }
+    let mut out = raw.clone();
+    for (port, device, _, _) in foreign {
+        if let Some(slot) = out.pointer_mut(&format!("/ports/{port}/devices/{device}")) {
+            *slot = serde_json::json!({"enabled": false});
+        }
+    }
+    std::borrow::Cow::Owned(out)
 }
 
 /// Unknown keys: at device level (and in channel overrides) they may be parameter values;

@@ -79,6 +79,19 @@ pub fn resolve_config_checked(
                         Some(template)
                     }
                     None => {
+                        // A template of another protocol is there, but left out: say that, not
+                        // "no template".
+                        if let Some((protocol, at)) = library.unsupported_protocol(device_type) {
+                            errors.push(loaded.error(
+                                path.key("device_type"),
+                                Problem::UnsupportedDevice {
+                                    device_type: Some(device_type.clone()),
+                                    protocol: protocol.to_string(),
+                                    template: Some(at.location()),
+                                },
+                            ));
+                            continue;
+                        }
                         errors.push(loaded.error(
                             path.key("device_type"),
                             Problem::MissingTemplate {
