@@ -111,8 +111,8 @@ pub fn run_check_templates(args: CheckTemplatesArgs) -> anyhow::Result<ExitCode>
     }
     let mut failed = false;
     let mut other_protocols = 0;
-    // device_type → (file, deprecated) of the first template seen with it.
-    let mut seen: std::collections::BTreeMap<String, (PathBuf, bool)> = Default::default();
+    // device_type → the file last seen with it.
+    let mut seen: std::collections::BTreeMap<String, PathBuf> = Default::default();
     for file in &files {
         let (template, errors) = check_file(file);
         if errors.is_empty() {
@@ -137,33 +137,14 @@ pub fn run_check_templates(args: CheckTemplatesArgs) -> anyhow::Result<ExitCode>
             continue;
         };
         let device_type = template.device_type().to_string();
-        let deprecated = template.is_deprecated();
-        match seen.get(&device_type) {
-            None => {
-                seen.insert(device_type, (file.clone(), deprecated));
-            }
-            Some((first, first_deprecated)) if *first_deprecated != deprecated => {
-                let (used, unused) = if deprecated {
-                    (first, file)
-                } else {
-                    (file, first)
-                };
-                println!(
-                    "{}: note: device_type `{device_type}` is also defined in {}; the deprecated {} loses, {} is used",
-                    file.display(),
-                    first.display(),
-                    unused.display(),
-                    used.display()
-                );
-            }
-            Some((first, _)) => {
-                failed = true;
-                println!(
-                    "{}: device_type `{device_type}` is already defined in {}; only one is used (the later directory's, or the first file by name in one directory): remove or rename one",
-                    file.display(),
-                    first.display()
-                );
-            }
+        if let Some(first) = seen.insert(device_type.clone(), file.clone()) {
+            println!(
+                "{}: note: device_type `{device_type}` is also defined in {}; {} is used (the \
+                 last loaded, as by wb-mqtt-serial: later directories, later names)",
+                file.display(),
+                first.display(),
+                file.display()
+            );
         }
     }
     if other_protocols > 0 {

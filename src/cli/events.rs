@@ -575,6 +575,7 @@ async fn stream(
     let mut events_seen = 0u64;
     let mut repeats = RepeatWatch::default();
     let mut closing_polls = 0;
+    let mut round_started = tokio::time::Instant::now();
     let first_byte = line.event_first_byte_timeout();
     let reply = line.event_reply_timeout() + line.wire_time(usize::from(MAX_EVENT_DATA) + 40);
     loop {
@@ -626,7 +627,16 @@ async fn stream(
         if done {
             break;
         }
-        tokio::time::sleep(line.event_poll_interval()).await;
+        // Rounds (polls until no device has events) start an interval apart, as the daemon's;
+        // one that took longer is followed at once.
+        let next_round = round_started + line.event_poll_interval();
+        let now = tokio::time::Instant::now();
+        round_started = if next_round > now {
+            tokio::time::sleep_until(next_round).await;
+            next_round
+        } else {
+            now
+        };
     }
     port.restore();
     Ok(ExitCode::SUCCESS)

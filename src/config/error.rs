@@ -60,12 +60,6 @@ pub enum Problem {
     DuplicatePort { port: String, other: String },
     #[error("register address {address} is out of range: Modbus addresses are 0…65535{}", span_hint(*count))]
     AddressOutOfRange { address: i64, count: u32 },
-    #[error("template `{device_type}` is defined twice, in {first} and {second}")]
-    DuplicateTemplate {
-        device_type: String,
-        first: String,
-        second: String,
-    },
 }
 
 /// Valid keys are listed when there are few (a port's); a device with a big template has

@@ -192,40 +192,16 @@ impl TemplateLibrary {
                 .filter(|p| p.is_file() && p.extension().is_some_and(|e| e == "json"))
                 .collect();
             files.sort();
-            let mut in_this_dir: BTreeMap<String, PathBuf> = BTreeMap::new();
             for file in files {
                 match TemplateFile::load(&file) {
                     Ok(template) => {
-                        let device_type = template.device_type().to_string();
-                        let deprecated = template.is_deprecated();
-                        if let Some(current) = library.templates.get(&device_type) {
-                            // A current template wins over a deprecated one wherever they are
-                            // (wb ships `config-X.json` beside `config-X-deprecated.json`);
-                            // between equals, a later directory wins and, within one
-                            // directory, the first file by name, reported as a clash.
-                            let keep_current = match (current.is_deprecated(), deprecated) {
-                                (false, true) => true,
-                                (true, false) => false,
-                                _ => in_this_dir.contains_key(&device_type),
-                            };
-                            if let Some(first) = in_this_dir.get(&device_type) {
-                                if current.is_deprecated() == deprecated {
-                                    library.errors.push(LocatedError::file_level(
-                                        &file,
-                                        Problem::DuplicateTemplate {
-                                            device_type: device_type.clone(),
-                                            first: first.display().to_string(),
-                                            second: file.display().to_string(),
-                                        },
-                                    ));
-                                }
-                            }
-                            if keep_current {
-                                continue;
-                            }
-                        }
-                        in_this_dir.insert(device_type.clone(), file.clone());
-                        library.templates.insert(device_type, template);
+                        // As wb-mqtt-serial (`TTemplateMap::AddTemplatesDir`): the last file
+                        // loaded wins, directories in order and files by name within one,
+                        // `deprecated` or not (its library's `config-X-deprecated.json` sorts
+                        // before `config-X.json`, and a user's copy comes after both).
+                        library
+                            .templates
+                            .insert(template.device_type().to_string(), template);
                     }
                     Err(err) => {
                         // Remember which device_type the broken file was for, so a device
@@ -422,50 +398,37 @@ mod tests {
     }
 
     #[test]
-    fn duplicate_device_type_in_one_dir_is_an_error() {
+    fn the_last_template_loaded_wins_as_in_wb_mqtt_serial() {
         let dir = tempfile::tempdir().unwrap();
-        write(dir.path(), "a.json", "A", "one");
-        write(dir.path(), "b.json", "A", "two");
-        let library = TemplateLibrary::load_dirs(&[dir.path().to_path_buf()]);
-        assert_eq!(
-            library.get("A").unwrap().template.device.name.as_deref(),
-            Some("one")
-        );
-        assert!(matches!(
-            library.errors[0].problem,
-            Problem::DuplicateTemplate { .. }
-        ));
-    }
-
-    #[test]
-    fn a_current_template_wins_over_a_deprecated_twin() {
-        let dir = tempfile::tempdir().unwrap();
-        // The deprecated file sorts first.
+        // wb's twins: the deprecated file sorts first, the current one is loaded last.
         std::fs::write(
             dir.path().join("config-x-deprecated.json"),
             r#"{"device_type": "X", "deprecated": true, "device": {"name": "old", "channels": []}}"#,
         )
         .unwrap();
         write(dir.path(), "config-x.json", "X", "current");
+        // Two current files of one type in one directory: the later by name.
+        write(dir.path(), "a.json", "Y", "first");
+        write(dir.path(), "b.json", "Y", "second");
         let library = TemplateLibrary::load_dirs(&[dir.path().to_path_buf()]);
-        assert_eq!(
-            library.get("X").unwrap().template.device.name.as_deref(),
-            Some("current")
-        );
+        let name = |library: &TemplateLibrary, device_type: &str| {
+            library
+                .get(device_type)
+                .and_then(|t| t.template.device.name.clone())
+        };
+        assert_eq!(name(&library, "X").as_deref(), Some("current"));
+        assert_eq!(name(&library, "Y").as_deref(), Some("second"));
         assert!(library.errors.is_empty());
-        // Also across directories: a later deprecated one does not replace a current one.
+        // A later directory wins, even with a deprecated copy (a user's own, kept on purpose).
         let later = tempfile::tempdir().unwrap();
         std::fs::write(
             later.path().join("x.json"),
-            r#"{"device_type": "X", "deprecated": true, "device": {"name": "later old", "channels": []}}"#,
+            r#"{"device_type": "X", "deprecated": true, "device": {"name": "user's old", "channels": []}}"#,
         )
         .unwrap();
         let library =
             TemplateLibrary::load_dirs(&[dir.path().to_path_buf(), later.path().to_path_buf()]);
-        assert_eq!(
-            library.get("X").unwrap().template.device.name.as_deref(),
-            Some("current")
-        );
+        assert_eq!(name(&library, "X").as_deref(), Some("user's old"));
     }
 
     #[test]
