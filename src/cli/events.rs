@@ -594,35 +594,27 @@ async fn stream(
         // Only what this poll confirmed is confirmed.
         poll.ack_address = 0;
         poll.ack_flag = 0;
-        match outcome {
-            TransactionOutcome::Reply(Reply {
+        if let Some((address, packet)) = outcome.event_packet() {
+            poll.ack_address = address;
+            poll.ack_flag = packet.flag;
+            let origin = PacketOrigin {
                 address,
-                body:
-                    ReplyBody::Fast {
-                        reply: FastReply::Events(packet),
-                        ..
-                    },
-            }) => {
-                poll.ack_address = address;
-                poll.ack_flag = packet.flag;
-                let origin = PacketOrigin {
-                    address,
-                    via_service: false,
-                    repeated: repeats.is_repeat(address, packet.flag, &packet.events),
-                };
-                print_repeat(origin, args.json);
-                for event in &packet.events {
-                    print_event(origin, event, view, args.json);
-                    if event.is_reboot() {
-                        enable_all(&mut port, line, &specs, Some(address), args.json).await?;
-                    } else if !done {
-                        events_seen += 1;
-                    }
+                via_service: false,
+                repeated: repeats.is_repeat(address, packet.flag, &packet.events),
+            };
+            print_repeat(origin, args.json);
+            for event in &packet.events {
+                print_event(origin, event, view, args.json);
+                if event.is_reboot() {
+                    enable_all(&mut port, line, &specs, Some(address), args.json).await?;
+                } else if !done {
+                    events_seen += 1;
                 }
-                continue;
             }
-            TransactionOutcome::Garbled => tracing::debug!("unreadable reply to an event poll"),
-            _ => {}
+            continue;
+        }
+        if outcome == TransactionOutcome::Garbled {
+            tracing::debug!("unreadable reply to an event poll");
         }
         if done {
             break;

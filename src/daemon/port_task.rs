@@ -21,8 +21,7 @@ use crate::mqtt::throttle::{LogBudget, LogDecision};
 use crate::port::{
     NextStep, PortEvent, PortScheduler, ReplyTiming, Transaction, TransactionOutcome,
 };
-use crate::protocol::fast::{EventPacket, FastReply};
-use crate::protocol::{LineSettings, Reply, ReplyBody};
+use crate::protocol::LineSettings;
 use crate::service::{BrokerState, PortVitals, ServiceHealth};
 use crate::status::hub::PortCommand;
 use crate::status::PortStatus;
@@ -512,7 +511,7 @@ impl PortTask {
                     };
                     let recorded = self.status.as_ref().map(|_| outcome.clone());
                     if let (Some(log), Some((address, packet))) =
-                        (&self.event_log, event_packet(&outcome))
+                        (&self.event_log, outcome.event_packet())
                     {
                         log.record(Instant::now().into_std(), address, packet);
                     }
@@ -801,21 +800,6 @@ impl PortTask {
                 return;
             }
         }
-    }
-}
-
-/// The event packet a reply brought, and who sent it.
-fn event_packet(outcome: &TransactionOutcome) -> Option<(u8, &EventPacket)> {
-    match outcome {
-        TransactionOutcome::Reply(Reply {
-            address,
-            body:
-                ReplyBody::Fast {
-                    reply: FastReply::Events(packet),
-                    ..
-                },
-        }) => Some((*address, packet)),
-        _ => None,
     }
 }
 

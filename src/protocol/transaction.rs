@@ -4,7 +4,8 @@
 
 use std::time::Duration;
 
-use super::{LineSettings, Reply, Request};
+use super::fast::{EventPacket, FastReply};
+use super::{LineSettings, Reply, ReplyBody, Request};
 
 /// How much longer than its length a reply to one device may take on the line: adapters hand
 /// bytes over in batches, and a loaded machine reads them late.
@@ -50,6 +51,23 @@ pub enum TransactionOutcome {
     NoReply,
     /// Bytes arrived but no valid frame (CRC errors, a collision).
     Garbled,
+}
+
+impl TransactionOutcome {
+    /// The event packet an event poll brought, and who sent it.
+    pub fn event_packet(&self) -> Option<(u8, &EventPacket)> {
+        match self {
+            Self::Reply(Reply {
+                address,
+                body:
+                    ReplyBody::Fast {
+                        reply: FastReply::Events(packet),
+                        ..
+                    },
+            }) => Some((*address, packet)),
+            _ => None,
+        }
+    }
 }
 
 impl Transaction {
