@@ -582,21 +582,21 @@ fn matching_template(
         .into_iter()
         .flatten()
         .collect();
-    let matches: Vec<&crate::config::TemplateFile> = library
-        .iter()
-        .filter(|t| !t.is_deprecated())
-        .filter(|t| {
-            t.template.hw.as_ref().is_some_and(|hw| {
-                hw.iter()
-                    .any(|h| wanted.iter().any(|w| w.eq_ignore_ascii_case(&h.signature)))
-            })
+    let matches: Vec<(&str, &crate::config::library::TemplateEntry)> = library
+        .entries()
+        .filter(|(_, entry)| !entry.deprecated)
+        .filter(|(_, entry)| {
+            entry
+                .signatures
+                .iter()
+                .any(|signature| wanted.iter().any(|w| w.eq_ignore_ascii_case(signature)))
         })
         .collect();
     matches
         .iter()
-        .find(|t| preferred_dirs.iter().any(|d| t.source.path.starts_with(d)))
+        .find(|(_, entry)| preferred_dirs.iter().any(|d| entry.path().starts_with(d)))
         .or(matches.first())
-        .map(|t| t.device_type().to_owned())
+        .map(|(device_type, _)| (*device_type).to_owned())
 }
 
 /// A config snippet: one port per setting devices were found at (stop bits aside: a port hears

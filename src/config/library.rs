@@ -2,6 +2,7 @@
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
+use std::sync::OnceLock;
 
 use serde_json::Value;
 
@@ -111,15 +112,64 @@ pub fn is_modbus_protocol(protocol: &str) -> bool {
     )
 }
 
-/// Every template of the search path, the later directories winning on equal `device_type`.
+/// Where a template's text is: a file of the search path, or built into the binary.
+#[derive(Debug, Clone)]
+enum TemplateOrigin {
+    File(PathBuf),
+    BuiltIn { path: PathBuf, text: &'static str },
+}
+
+/// One `device_type` of the search path: what scanning the directories read of its file (the
+/// file is parsed then, and dropped), and the template itself, read in full when first asked
+/// for. A library of hundreds of templates, tens of megabytes of JSON, costs memory only for
+/// the templates a config uses.
+#[derive(Debug, Clone)]
+pub struct TemplateEntry {
+    origin: TemplateOrigin,
+    pub deprecated: bool,
+    /// Its `hw` signatures (Wiren Board models), for choosing a template by model.
+    pub signatures: Vec<String>,
+    loaded: OnceLock<Result<TemplateFile, LocatedError>>,
+}
+
+impl TemplateEntry {
+    pub fn path(&self) -> &Path {
+        match &self.origin {
+            TemplateOrigin::File(path) | TemplateOrigin::BuiltIn { path, .. } => path,
+        }
+    }
+
+    /// The template, read and checked the first time (its errors, if any, every time).
+    fn load(&self) -> &Result<TemplateFile, LocatedError> {
+        self.loaded.get_or_init(|| match &self.origin {
+            TemplateOrigin::File(path) => TemplateFile::load(path),
+            TemplateOrigin::BuiltIn { path, text } => {
+                TemplateFile::from_source(SourceText::from_text(path, text))
+            }
+        })
+    }
+}
+
+/// What scanning reads of a template file: enough to index it.
+#[derive(Debug, serde::Deserialize)]
+struct TemplateHead {
+    device_type: String,
+    deprecated: Option<bool>,
+    hw: Option<Vec<super::template::HardwareSignature>>,
+}
+
+/// Every template of the search path by `device_type`, the last loaded winning (later
+/// directories, later file names), as wb-mqtt-serial. Templates are indexed when the
+/// directories are scanned and read in full when used.
 #[derive(Debug, Clone, Default)]
 pub struct TemplateLibrary {
-    templates: BTreeMap<String, TemplateFile>,
-    /// Files that failed to load; fatal only for devices that use them.
+    entries: BTreeMap<String, TemplateEntry>,
+    /// Files that could not be indexed (not JSON, no `device_type`, another protocol); a
+    /// template's own errors show when it is used.
     pub errors: Vec<LocatedError>,
     /// Directories searched, in order.
     pub dirs: Vec<PathBuf>,
-    /// Files that failed to load, by the `device_type` they declare.
+    /// Files that could not be indexed, by the `device_type` they declare.
     failed: BTreeMap<String, LocatedError>,
 }
 
@@ -149,18 +199,16 @@ impl TemplateLibrary {
     pub fn built_in() -> Self {
         let mut library = Self::default();
         for (name, text) in BUILT_IN_TEMPLATES {
-            let source = SourceText::from_text(&Path::new(BUILT_IN_DIR).join(name), text);
-            match TemplateFile::from_source(source) {
-                Ok(template) => library.insert(template),
-                Err(err) => library.errors.push(err),
-            }
+            let path = Path::new(BUILT_IN_DIR).join(name);
+            let source = SourceText::from_text(&path, text);
+            library.index(source, TemplateOrigin::BuiltIn { path, text });
         }
         library
     }
 
     /// Adds `later`'s templates, which win on equal `device_type`, its errors and its dirs.
     fn merge(&mut self, later: Self) {
-        self.templates.extend(later.templates);
+        self.entries.extend(later.entries);
         self.errors.extend(later.errors);
         self.failed.extend(later.failed);
         self.dirs.extend(later.dirs);
@@ -169,7 +217,7 @@ impl TemplateLibrary {
     /// The directories searched, for messages ("searched: …").
     pub fn searched(&self) -> String {
         let mut names: Vec<String> = self.dirs.iter().map(|d| d.display().to_string()).collect();
-        if !self.templates.is_empty() || names.is_empty() {
+        if !self.entries.is_empty() || names.is_empty() {
             names.insert(0, BUILT_IN_DIR.to_string());
         }
         names.join(", ")
@@ -193,47 +241,90 @@ impl TemplateLibrary {
                 .collect();
             files.sort();
             for file in files {
-                match TemplateFile::load(&file) {
-                    Ok(template) => {
-                        // As wb-mqtt-serial (`TTemplateMap::AddTemplatesDir`): the last file
-                        // loaded wins, directories in order and files by name within one,
-                        // `deprecated` or not (its library's `config-X-deprecated.json` sorts
-                        // before `config-X.json`, and a user's copy comes after both).
-                        library
-                            .templates
-                            .insert(template.device_type().to_string(), template);
-                    }
-                    Err(err) => {
-                        // Remember which device_type the broken file was for, so a device
-                        // using it is told why rather than only "no template".
-                        if let Some(device_type) = SourceText::read(&file)
-                            .ok()
-                            .and_then(|s| s.parse_json().ok())
-                            .and_then(|v| v.get("device_type")?.as_str().map(String::from))
-                        {
-                            // The first file by name, as for templates that load (wb ships
-                            // `config-X.json` before `config-X-deprecated.json`).
-                            library
-                                .failed
-                                .entry(device_type)
-                                .or_insert_with(|| err.clone());
-                        }
-                        library.errors.push(err)
-                    }
+                match SourceText::read(&file) {
+                    Ok(source) => library.index(source, TemplateOrigin::File(file)),
+                    Err(err) => library.errors.push(err),
                 }
             }
         }
         library
     }
 
-    /// Adds one template (tests, `check-templates FILE`); replaces one of the same type.
-    pub fn insert(&mut self, template: TemplateFile) {
-        self.templates
-            .insert(template.device_type().to_string(), template);
+    /// Indexes one template text. As wb-mqtt-serial (`TTemplateMap::AddTemplatesDir`), the
+    /// last file indexed wins on equal `device_type`, `deprecated` or not (its library's
+    /// `config-X-deprecated.json` sorts before `config-X.json`, and a user's copy comes after
+    /// both); a file that is no template leaves an earlier one of its type in place.
+    fn index(&mut self, source: SourceText, origin: TemplateOrigin) {
+        let raw = match source.parse_json() {
+            Ok(raw) => raw,
+            Err(err) => {
+                self.errors.push(err);
+                return;
+            }
+        };
+        let head = match deserialize_at::<TemplateHead>(&source, &raw, &JsonPath::root()) {
+            Ok(head) => head.value,
+            Err(err) => {
+                if let Some(device_type) = raw.get("device_type").and_then(Value::as_str) {
+                    self.failed.insert(device_type.to_owned(), err.clone());
+                }
+                self.errors.push(err);
+                return;
+            }
+        };
+        if let Some(protocol) = raw
+            .pointer("/device/protocol")
+            .and_then(Value::as_str)
+            .filter(|p| !is_modbus_protocol(p))
+        {
+            let err = source.error(
+                JsonPath::root().key("device").key("protocol"),
+                Problem::UnsupportedProtocol {
+                    protocol: protocol.to_string(),
+                },
+            );
+            self.failed.insert(head.device_type, err.clone());
+            self.errors.push(err);
+            return;
+        }
+        self.entries.insert(
+            head.device_type,
+            TemplateEntry {
+                origin,
+                deprecated: head.deprecated == Some(true),
+                signatures: head
+                    .hw
+                    .unwrap_or_default()
+                    .into_iter()
+                    .map(|hw| hw.signature)
+                    .collect(),
+                loaded: OnceLock::new(),
+            },
+        );
     }
 
+    /// Adds one template (tests, `check-templates FILE`); replaces one of the same type.
+    pub fn insert(&mut self, template: TemplateFile) {
+        let entry = TemplateEntry {
+            origin: TemplateOrigin::File(template.source.path.clone()),
+            deprecated: template.is_deprecated(),
+            signatures: template
+                .template
+                .hw
+                .iter()
+                .flatten()
+                .map(|hw| hw.signature.clone())
+                .collect(),
+            loaded: OnceLock::from(Ok(template.clone())),
+        };
+        self.entries
+            .insert(template.device_type().to_string(), entry);
+    }
+
+    /// The template of `device_type`, read when first asked for; `None` when there is none or
+    /// it does not load ([`Self::load_error_for`] says why).
     pub fn get(&self, device_type: &str) -> Option<&TemplateFile> {
-        self.templates.get(device_type)
+        self.entries.get(device_type)?.load().as_ref().ok()
     }
 
     /// The templates of these device types only (with the same dirs): what a running service
@@ -251,21 +342,24 @@ impl TemplateLibrary {
         kept
     }
 
-    pub fn iter(&self) -> impl Iterator<Item = &TemplateFile> {
-        self.templates.values()
+    /// Every device type with what the index knows of its template (nothing is read).
+    pub fn entries(&self) -> impl Iterator<Item = (&str, &TemplateEntry)> {
+        self.entries
+            .iter()
+            .map(|(device_type, entry)| (device_type.as_str(), entry))
     }
 
     pub fn len(&self) -> usize {
-        self.templates.len()
+        self.entries.len()
     }
 
     pub fn is_empty(&self) -> bool {
-        self.templates.is_empty()
+        self.entries.is_empty()
     }
 
     /// Known device types close to `name` (case, punctuation, or a small typo), for hints.
     pub fn similar(&self, name: &str) -> Vec<String> {
-        closest(name, self.templates.keys().map(String::as_str), 2, 3)
+        closest(name, self.entries.keys().map(String::as_str), 2, 3)
     }
 
     /// The protocol of `device_type`'s template and where the template says it, when the
@@ -280,6 +374,9 @@ impl TemplateLibrary {
 
     /// Why `device_type` is missing: a file that failed to load may have been meant.
     pub fn load_error_for(&self, device_type: &str) -> Option<&LocatedError> {
+        if let Some(Err(error)) = self.entries.get(device_type).map(TemplateEntry::load) {
+            return Some(error);
+        }
         if let Some(error) = self.failed.get(device_type) {
             return Some(error);
         }
@@ -395,6 +492,41 @@ mod tests {
         );
         assert_eq!(library.errors.len(), 1);
         assert!(library.errors[0].file.ends_with("broken.json"));
+    }
+
+    #[test]
+    fn a_template_is_read_in_full_only_when_used() {
+        let dir = tempfile::tempdir().unwrap();
+        write(dir.path(), "a.json", "A", "fine");
+        // Valid JSON with a device_type: indexed; its channel's error shows when it is used.
+        std::fs::write(
+            dir.path().join("b.json"),
+            "{\"device_type\": \"B\", \"device\": {\"channels\": [\n  {\"name\": \"x\", \"address\": 1, \"format\": \"float32\"}]}}",
+        )
+        .unwrap();
+        let library = TemplateLibrary::load_dirs(&[dir.path().to_path_buf()]);
+        assert_eq!(library.len(), 2);
+        assert!(library.errors.is_empty(), "{:?}", library.errors);
+        let loaded = |library: &TemplateLibrary| {
+            library
+                .entries()
+                .filter(|(_, entry)| entry.loaded.get().is_some())
+                .count()
+        };
+        assert_eq!(loaded(&library), 0, "nothing read before it is used");
+        assert!(library.get("A").is_some());
+        assert_eq!(loaded(&library), 1);
+        assert!(library.get("B").is_none());
+        let error = library.load_error_for("B").expect("why B does not load");
+        assert!(
+            error
+                .to_string()
+                .contains("b.json:2:31: at device.channels[0].format"),
+            "{error}"
+        );
+        // What a service keeps: the used templates, already read.
+        let kept = library.only(["A"]);
+        assert_eq!((kept.len(), loaded(&kept)), (1, 1));
     }
 
     #[test]
