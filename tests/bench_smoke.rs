@@ -11,7 +11,8 @@ use serde_json::json;
 const PATIENCE: Duration = Duration::from_secs(30);
 const EVERY: Duration = Duration::from_millis(20);
 
-fn run_one_change(baud: u32) {
+/// `with_library`: a controller's template library on the daemon's search path too.
+fn run_one_change(baud: u32, with_library: bool) {
     let layout = BenchLayout {
         devices: 2,
         events: 2,
@@ -25,6 +26,9 @@ fn run_one_change(baud: u32) {
         vec![layout.template()],
     );
     let mut harness = Harness::start(&options).expect("harness starts");
+    if with_library {
+        harness.add_template_library().expect("library written");
+    }
     let config = harness.daemon_config(layout.ports(harness.pty(), &json!({})), json!({}));
     harness.start_daemon(&config).expect("daemon starts");
 
@@ -92,10 +96,16 @@ fn run_one_change(baud: u32) {
 
 #[test]
 fn harness_matches_a_change_with_its_publication_at_115200() {
-    run_one_change(115_200);
+    run_one_change(115_200, false);
 }
 
 #[test]
 fn harness_matches_a_change_with_its_publication_at_9600() {
-    run_one_change(9600);
+    run_one_change(9600, false);
+}
+
+/// As scenario 7 measures memory with it: the bench's own templates still win.
+#[test]
+fn harness_with_a_template_library_on_the_search_path() {
+    run_one_change(115_200, true);
 }

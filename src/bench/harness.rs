@@ -306,6 +306,8 @@ pub struct Harness {
     daemon_started_ns: u64,
     /// `RUST_LOG` of the daemon (see [`HarnessOptions::log_filter`]).
     log_filter: Option<String>,
+    /// Template directories searched by the daemon before the harness's own (which wins).
+    extra_template_dirs: Vec<PathBuf>,
     changes: Arc<Mutex<Vec<Change>>>,
     publications: Arc<Mutex<Vec<Publication>>>,
     subscriber: rumqttc::Client,
@@ -382,6 +384,7 @@ impl Harness {
         Ok(Self {
             binary: options.binary.clone(),
             log_filter: options.log_filter.clone(),
+            extra_template_dirs: Vec::new(),
             mosquitto: options.mosquitto.clone(),
             dir,
             broker,
@@ -443,6 +446,16 @@ impl Harness {
         self.dir.0.join("templates")
     }
 
+    /// Puts a template library of a controller's size ([`super::library`]) on the daemon's
+    /// search path, before the harness's own templates; returns its size in bytes. For the
+    /// daemons started after it.
+    pub fn add_template_library(&mut self) -> anyhow::Result<u64> {
+        let dir = self.dir.0.join("library");
+        let bytes = super::library::write_template_library(&dir)?;
+        self.extra_template_dirs.push(dir);
+        Ok(bytes)
+    }
+
     /// A daemon config with this harness's broker: `ports` as given, `extra` top-level keys
     /// (e.g. `fast_modbus`) merged in.
     pub fn daemon_config(&self, ports: Value, extra: Value) -> Value {
@@ -468,8 +481,11 @@ impl Harness {
         if let Some(filter) = &self.log_filter {
             command.env("RUST_LOG", filter);
         }
+        command.arg("run");
+        for dir in &self.extra_template_dirs {
+            command.arg("--templates").arg(dir);
+        }
         let child = command
-            .arg("run")
             .arg("--templates")
             .arg(self.templates_dir())
             .arg("-c")

@@ -1,12 +1,13 @@
 //! Benchmarks and the process harness they share with end-to-end tests (docs/bench.md).
 //!
 //! Always built: [`harness`] (broker, simulator, daemon and subscriber as processes),
-//! [`matching`] (changes ↔ publications), [`history`] (was each published value ever held) and [`layout`] (the benchmark bus). With the `bench`
+//! [`matching`] (changes ↔ publications), [`history`] (was each published value ever held), [`layout`] (the benchmark bus) and [`library`] (a template library of a controller's size). With the `bench`
 //! feature: the scenarios, the Markdown report and the PNG plots behind `rtu2mqtt bench`.
 
 pub mod harness;
 pub mod history;
 pub mod layout;
+pub mod library;
 pub mod matching;
 
 #[cfg(feature = "bench")]

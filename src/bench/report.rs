@@ -226,7 +226,7 @@ fn scenario7(out: &mut String, runs: &[RunResult]) {
             num(Some(run.daemon_peak_rss_kib as f64 / 1024.0), 1),
             num(Some(run.daemon_anon_rss_kib as f64 / 1024.0), 1),
             num(run.sim_cpu_percent(), 1),
-            problem(run),
+            cost_notes(run),
         );
     }
     let _ = writeln!(
@@ -237,6 +237,22 @@ fn scenario7(out: &mut String, runs: &[RunResult]) {
          reply, and on this shared VM it moves from minute to minute. `wake-ups/transaction` \
          counts the daemon's sleeps (voluntary context switches).\n"
     );
+}
+
+/// Scenario 7's notes: a template library on the search path, then any problem.
+fn cost_notes(run: &RunResult) -> String {
+    let library = run.template_library_bytes.map(|bytes| {
+        format!(
+            "{} templates ({:.0} MB) on the search path, 1 used",
+            crate::bench::library::LIBRARY_FILES,
+            bytes as f64 / 1e6
+        )
+    });
+    library
+        .into_iter()
+        .chain(Some(problem(run)).filter(|p| !p.is_empty()))
+        .collect::<Vec<_>>()
+        .join("; ")
 }
 
 fn scenario1(out: &mut String, runs: &[RunResult]) {

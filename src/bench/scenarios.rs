@@ -42,6 +42,8 @@ pub struct RunSpec {
     pub drain_timeout: Duration,
     /// Poll the simulator for the moment every device has its events enabled (scenario 6).
     pub watch_enabling: bool,
+    /// A controller's template library on the daemon's search path (scenario 7's memory).
+    pub template_library: bool,
 }
 
 /// What one run measured.
@@ -63,6 +65,8 @@ pub struct RunResult {
     pub topics_expected: usize,
     /// Daemon start → every device has all its event inputs enabled.
     pub events_enabled: Option<Duration>,
+    /// The size of the template library put on the daemon's search path, if one was.
+    pub template_library_bytes: Option<u64>,
     /// The measurement window (first change → last change, or the fixed window).
     pub window: Duration,
     pub daemon_cpu: Duration,
@@ -191,6 +195,9 @@ fn run_into(
     let layout = spec.layout;
     let options = HarnessOptions::new(binary, layout.bus(), vec![layout.template()]);
     let mut harness = Harness::start(&options)?;
+    if spec.template_library {
+        result.template_library_bytes = Some(harness.add_template_library()?);
+    }
     let config = harness.daemon_config(
         layout.ports(harness.pty(), &spec.port_extra),
         json!({"fast_modbus": spec.fast_modbus}),
@@ -391,6 +398,7 @@ pub fn plan(options: &BenchOptions) -> Vec<RunSpec> {
         warmup_timeout: warmup(layout.baud),
         drain_timeout: drain(layout.baud),
         watch_enabling: false,
+        template_library: false,
     };
     let mut runs = Vec::new();
     if wanted(2) {
@@ -430,6 +438,20 @@ pub fn plan(options: &BenchOptions) -> Vec<RunSpec> {
                     ..base(
                         7,
                         format!("s7-{baud}-{devices}"),
+                        layout(devices, 8, 60, baud),
+                    )
+                });
+            }
+            // The largest bus again with a controller's template library on the search path:
+            // memory must not grow with templates no device uses.
+            if let (Some(&devices), false) = (counts.last(), slow(baud)) {
+                runs.push(RunSpec {
+                    changes: if quick { 30 } else { 80 },
+                    rate_per_s: 10.0,
+                    template_library: true,
+                    ..base(
+                        7,
+                        format!("s7-{baud}-{devices}-library"),
                         layout(devices, 8, 60, baud),
                     )
                 });
