@@ -243,7 +243,7 @@ fn scenario7(out: &mut String, runs: &[RunResult]) {
 fn cost_notes(run: &RunResult) -> String {
     let library = run.template_library_bytes.map(|bytes| {
         format!(
-            "{} templates ({:.0} MB) on the search path, 1 used",
+            "{} templates ({:.0} MB) on the search path, none used by the bus",
             crate::bench::library::LIBRARY_FILES,
             bytes as f64 / 1e6
         )

@@ -72,19 +72,8 @@ impl TemplateFile {
 
     pub fn from_source(source: SourceText) -> Result<Self, LocatedError> {
         let raw = source.parse_json()?;
-        if let Some(protocol) = raw
-            .pointer("/device/protocol")
-            .and_then(Value::as_str)
-            .filter(|p| !is_modbus_protocol(p))
-        {
-            // Said once for the whole file, instead of the first register type that only
-            // this protocol knows.
-            return Err(source.error(
-                JsonPath::root().key("device").key("protocol"),
-                Problem::UnsupportedProtocol {
-                    protocol: protocol.to_string(),
-                },
-            ));
+        if let Some(err) = other_protocol(&source, &raw) {
+            return Err(err);
         }
         let typed = deserialize_at::<Template>(&source, &raw, &JsonPath::root())?;
         Ok(Self {
@@ -102,6 +91,21 @@ impl TemplateFile {
     pub fn is_deprecated(&self) -> bool {
         self.template.deprecated == Some(true)
     }
+}
+
+/// A template of another protocol than Modbus, said once for the whole file (at its
+/// `device.protocol`) instead of at the first register type only that protocol knows.
+fn other_protocol(source: &SourceText, raw: &Value) -> Option<LocatedError> {
+    let protocol = raw
+        .pointer("/device/protocol")
+        .and_then(Value::as_str)
+        .filter(|p| !is_modbus_protocol(p))?;
+    Some(source.error(
+        JsonPath::root().key("device").key("protocol"),
+        Problem::UnsupportedProtocol {
+            protocol: protocol.to_string(),
+        },
+    ))
 }
 
 /// The protocols of wb-mqtt-serial that are Modbus: what rtu2mqtt can drive.
@@ -272,17 +276,7 @@ impl TemplateLibrary {
                 return;
             }
         };
-        if let Some(protocol) = raw
-            .pointer("/device/protocol")
-            .and_then(Value::as_str)
-            .filter(|p| !is_modbus_protocol(p))
-        {
-            let err = source.error(
-                JsonPath::root().key("device").key("protocol"),
-                Problem::UnsupportedProtocol {
-                    protocol: protocol.to_string(),
-                },
-            );
+        if let Some(err) = other_protocol(&source, &raw) {
             self.failed.insert(head.device_type, err.clone());
             self.errors.push(err);
             return;
