@@ -1023,3 +1023,36 @@ fn stop_bits_come_from_the_devices_and_do_not_split_a_duplicate() {
     assert_eq!(one["other_stop_bits"], 1);
     assert_eq!(one["port_settings_scanned"], 1);
 }
+
+/// Through the service, a port whose config has no event channels is said to have nothing to
+/// show (before any broker is asked), instead of waiting for events that never come.
+#[test]
+fn events_through_the_service_on_a_port_without_event_channels_says_so() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = dir.path().join("config.json");
+    std::fs::write(
+        &config,
+        r#"{"ports": [{"path": "/dev/ttyRS485-9", "baud_rate": 9600, "devices": [
+            {"device_type": "rtu2mqtt-energy-meter", "slave_id": 1}]}]}"#,
+    )
+    .unwrap();
+    let run = tool(&[
+        "events",
+        "--port",
+        "/dev/ttyRS485-9",
+        "--via-mqtt",
+        "--broker",
+        "127.0.0.1:1",
+        "--config",
+        config.to_str().unwrap(),
+    ]);
+    assert_eq!(run.code, 1, "{}{}", run.stdout, run.stderr);
+    assert!(
+        run.stderr.contains("no channel of /dev/ttyRS485-9 in ")
+            && run
+                .stderr
+                .contains("has events (sporadic or semi-sporadic)"),
+        "{}",
+        run.stderr
+    );
+}

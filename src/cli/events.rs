@@ -257,6 +257,15 @@ fn run_via_service(args: &Args) -> anyhow::Result<ExitCode> {
     if !args.enable.is_empty() {
         eprintln!("--enable is ignored through the service: it enables the events of its config");
     }
+    if view.as_ref().is_some_and(|view| view.enable.is_empty()) {
+        eprintln!(
+            "no channel of {} in {} has events (sporadic or semi-sporadic): the service polls \
+             none there, nothing to show",
+            args.port.port,
+            config.display()
+        );
+        return Ok(ExitCode::from(exit::NOT_FOUND));
+    }
     block_on_tool(async move {
         let mut session = match connect_service(&args.service).await {
             Ok(session) => session,
