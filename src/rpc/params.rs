@@ -28,7 +28,17 @@ pub const SERVED: &[(&str, &str)] = &[
     ("device", "Set"),
     ("device", "SetPoll"),
 ];
-pub const NOT_SERVED: &[(&str, &str)] = &[("config", "Load"), ("config", "GetSchema")];
+pub const NOT_SERVED: &[(&str, &str)] = &[
+    ("config", "Load"),
+    ("config", "GetSchema"),
+    ("templates", "Upload"),
+    ("templates", "Delete"),
+    ("fw-update", "GetFirmwareInfo"),
+    ("fw-update", "Update"),
+    ("fw-update", "ClearError"),
+    ("fw-update", "Restore"),
+    ("metrics", "Load"),
+];
 
 /// Which configured port a request means: `path` (serial), `ip` + `port` (TCP), or the port of
 /// a configured `device_id`.
@@ -791,6 +801,25 @@ mod tests {
 
     fn parse(service: &str, method: &str, params: Value) -> Result<Method, RpcError> {
         parse_method(service, method, &params)
+    }
+
+    #[test]
+    fn wb_mqtt_serial_methods_not_served_say_so() {
+        for (service, method) in NOT_SERVED {
+            let err = parse(service, method, json!({})).unwrap_err();
+            assert!(
+                err.message
+                    .starts_with(&format!("{service}/{method} is not served by rtu2mqtt yet")),
+                "{}",
+                err.message
+            );
+        }
+        let err = parse("fw-update", "Flash", json!({})).unwrap_err();
+        assert!(
+            err.message.starts_with("unknown method fw-update/Flash"),
+            "{}",
+            err.message
+        );
     }
 
     #[test]
