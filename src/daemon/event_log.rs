@@ -90,6 +90,7 @@ impl EventLog {
     /// restarted since, and numbers from 0 again) reads from the oldest packet kept.
     pub async fn read(&self, from: Option<u64>, wait: Duration) -> LogPage {
         let deadline = tokio::time::Instant::now() + wait;
+        let mut from = from;
         loop {
             let recorded = self.recorded.notified();
             tokio::pin!(recorded);
@@ -99,6 +100,8 @@ impl EventLog {
             if !page.packets.is_empty() {
                 return page;
             }
+            // "Only those to come" means those after the first look, on every later look too.
+            from = Some(from.unwrap_or(page.next));
             if tokio::time::timeout_at(deadline, recorded).await.is_err() {
                 return self.page(Instant::now(), from, wait);
             }
@@ -213,20 +216,30 @@ mod tests {
 
     #[tokio::test]
     async fn a_read_waits_for_the_next_packet() {
+        for from_the_start in [false, true] {
+            a_read_waits_for_the_next_packet_from(from_the_start).await;
+        }
+    }
+
+    /// `from_the_start`: the read asks for "only those to come" (no `from`) and waits.
+    async fn a_read_waits_for_the_next_packet_from(from_the_start: bool) {
         let log = Arc::new(EventLog::default());
         let start = log.read(None, Duration::ZERO).await;
+        let from = (!from_the_start).then_some(start.next);
         let reader = tokio::spawn({
             let log = Arc::clone(&log);
-            async move { log.read(Some(start.next), Duration::from_secs(30)).await }
+            async move { log.read(from, Duration::from_secs(30)).await }
         });
         // Recorded until the reader has it: it may start waiting before or after a record.
-        let page = loop {
+        for _ in 0..1000 {
             log.record(Instant::now(), 20, &packet(0, 9, 1));
             tokio::task::yield_now().await;
             if reader.is_finished() {
-                break reader.await.unwrap();
+                break;
             }
-        };
+        }
+        assert!(reader.is_finished(), "the waiting read never got a packet");
+        let page = reader.await.unwrap();
         assert_eq!(page.packets[0].events[0].id, 9);
         // With nothing to come, a read ends after its wait, empty.
         let empty = log.read(Some(page.next), Duration::from_millis(1)).await;
