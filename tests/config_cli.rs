@@ -995,3 +995,52 @@ fn check_templates_lists_other_protocols_without_failing() {
     let (ok, text) = check();
     assert!(!ok && text.contains("needs `address`"), "{text}");
 }
+
+/// As in wb-mqtt-serial, the last template file of a device_type is used even when it does not
+/// load; the message names it, its error, and the earlier file it replaced.
+#[test]
+fn a_later_template_that_does_not_load_is_named_with_the_one_it_replaced() {
+    let dir = tempfile::tempdir().unwrap();
+    let (first, second) = (dir.path().join("a"), dir.path().join("b"));
+    std::fs::create_dir_all(&first).unwrap();
+    std::fs::create_dir_all(&second).unwrap();
+    std::fs::write(
+        first.join("x.json"),
+        r#"{"device_type": "X", "device": {"name": "x", "channels": [{"name": "c", "address": 1, "format": "u16"}]}}"#,
+    )
+    .unwrap();
+    std::fs::write(
+        second.join("x.json"),
+        "{\"device_type\": \"X\", \"device\": {\"name\": \"x\", \"channels\": [\n {\"name\": \"c\", \"address\": 1, \"format\": \"float32\"}]}}",
+    )
+    .unwrap();
+    let config = dir.path().join("config.json");
+    std::fs::write(
+        &config,
+        r#"{"ports": [{"path": "/dev/x", "devices": [{"device_type": "X", "slave_id": 1}]}]}"#,
+    )
+    .unwrap();
+    let run = |dirs: &[&std::path::Path]| {
+        let mut command = bin();
+        command.arg("check-config").arg("-c").arg(&config);
+        for dir in dirs {
+            command.arg("--templates").arg(dir);
+        }
+        report(command.output().unwrap())
+    };
+    let (ok, text) = run(&[&first, &second]);
+    assert!(!ok, "{text}");
+    let (a, b) = (first.join("x.json"), second.join("x.json"));
+    assert!(
+        text.contains(&format!(
+            "the template of device_type `X` ({}) does not load (the error is below); it replaces {} of the same device_type",
+            b.display(),
+            a.display()
+        )) && text.contains("at device.channels[0].format: unknown value `float32`"),
+        "{text}"
+    );
+    assert!(!text.contains("did you mean"), "{text}");
+    // The other order: the good one is the last, and used.
+    let (ok, text) = run(&[&second, &first]);
+    assert!(ok, "{text}");
+}

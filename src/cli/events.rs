@@ -288,13 +288,14 @@ async fn service_stream(
     session: &mut RpcSession,
 ) -> Result<ExitCode, ExitCode> {
     let path = args.port.port.as_str();
-    let read = |from: Option<u64>, wait: Duration| {
+    let read = |from: Option<(u64, u64)>, wait: Duration| {
         let mut params = json!({
             "path": path,
             "wait_ms": u64::try_from(wait.as_millis()).unwrap_or(u64::MAX),
         });
-        if let Some(from) = from {
+        if let Some((from, log)) = from {
             params["from"] = json!(from);
+            params["log"] = json!(log);
         }
         params
     };
@@ -307,7 +308,10 @@ async fn service_stream(
         EVENT_LOG_MARGIN,
     )
     .await?;
-    let mut from = first["next"].as_u64().unwrap_or(0);
+    let mut from = (
+        first["next"].as_u64().unwrap_or(0),
+        first["log"].as_u64().unwrap_or(0),
+    );
     eprintln!(
         "showing the events the rtu2mqtt service receives on {path} (it polls and acknowledges \
          them; Ctrl-C to stop)"
@@ -340,9 +344,18 @@ async fn service_stream(
             wait + EVENT_LOG_MARGIN,
         )
         .await?;
+        if page["restarted"] == true {
+            eprintln!(
+                "the service restarted this port (a config reload): events received meanwhile \
+                 may be missing"
+            );
+            repeats = RepeatWatch::default();
+        }
         let lost = page["lost"].as_u64().unwrap_or(0);
         if lost > 0 {
             eprintln!("{lost} event packets came faster than shown here and were skipped");
+            // A skipped packet may have changed a device's flag.
+            repeats = RepeatWatch::default();
         }
         for packet in page["packets"].as_array().into_iter().flatten() {
             let (Some(address), Some(flag)) = (
@@ -366,13 +379,18 @@ async fn service_stream(
             };
             print_repeat(origin, args.json);
             for event in &events {
-                print_event(origin, event, view, args.json);
-                if !event.is_reboot() {
+                if event.is_reboot() {
+                    print_event(origin, event, view, args.json);
+                } else if args.count.is_none_or(|c| events_seen < c) {
+                    print_event(origin, event, view, args.json);
                     events_seen += 1;
                 }
             }
         }
-        from = page["next"].as_u64().unwrap_or(from);
+        from = (
+            page["next"].as_u64().unwrap_or(from.0),
+            page["log"].as_u64().unwrap_or(from.1),
+        );
     }
     Ok(ExitCode::SUCCESS)
 }
@@ -613,11 +631,16 @@ async fn stream(
             };
             print_repeat(origin, args.json);
             for event in &packet.events {
-                print_event(origin, event, view, args.json);
+                // Past --count a register event is still confirmed with its packet, not shown.
+                let past_count = args.count.is_some_and(|c| events_seen >= c);
                 if event.is_reboot() {
+                    print_event(origin, event, view, args.json);
                     enable_all(&mut port, line, &specs, Some(address), args.json).await?;
-                } else if !done {
-                    events_seen += 1;
+                } else if !past_count {
+                    print_event(origin, event, view, args.json);
+                    if !done {
+                        events_seen += 1;
+                    }
                 }
             }
             continue;

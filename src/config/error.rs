@@ -30,6 +30,17 @@ pub enum Problem {
         /// The template directories searched, in order.
         searched: String,
     },
+    /// The device's template is there but does not load (its error follows).
+    #[error(
+        "the template of device_type `{device_type}` ({file}) does not load (the error is below){}",
+        shadowed_hint(file, shadowed)
+    )]
+    BrokenTemplate {
+        device_type: String,
+        file: String,
+        /// Earlier files of the same type it replaced.
+        shadowed: Vec<String>,
+    },
     /// A template of another protocol than Modbus (Mercury, DLMS, Milur …): rtu2mqtt cannot
     /// drive its devices. Not an error of the file: `check-templates` lists it apart.
     #[error(
@@ -202,4 +213,16 @@ impl From<LocatedError> for ErrorList {
     fn from(error: LocatedError) -> Self {
         ErrorList(vec![error])
     }
+}
+
+/// For [`Problem::BrokenTemplate`]: the files of the same type it replaced, which are not used.
+fn shadowed_hint(file: &str, shadowed: &[String]) -> String {
+    if shadowed.is_empty() {
+        return String::new();
+    }
+    format!(
+        "; it replaces {} of the same device_type, which is not used (the last file loaded \
+         wins, as in wb-mqtt-serial): fix or remove {file}",
+        shadowed.join(", ")
+    )
 }

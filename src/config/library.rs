@@ -133,6 +133,8 @@ pub struct TemplateEntry {
     pub deprecated: bool,
     /// Its `hw` signatures (Wiren Board models), for choosing a template by model.
     pub signatures: Vec<String>,
+    /// Earlier files of the same `device_type` that this one replaced, for messages.
+    pub shadowed: Vec<PathBuf>,
     loaded: OnceLock<Result<TemplateFile, LocatedError>>,
 }
 
@@ -277,10 +279,23 @@ impl TemplateLibrary {
             }
         };
         if let Some(err) = other_protocol(&source, &raw) {
+            // The last loaded wins here too: an earlier Modbus template of this type is gone.
+            self.entries.remove(&head.device_type);
             self.failed.insert(head.device_type, err.clone());
             self.errors.push(err);
             return;
         }
+        self.failed.remove(&head.device_type);
+        let shadowed = self
+            .entries
+            .remove(&head.device_type)
+            .map(|earlier| {
+                let path = earlier.path().to_path_buf();
+                let mut shadowed = earlier.shadowed;
+                shadowed.push(path);
+                shadowed
+            })
+            .unwrap_or_default();
         self.entries.insert(
             head.device_type,
             TemplateEntry {
@@ -292,6 +307,7 @@ impl TemplateLibrary {
                     .into_iter()
                     .map(|hw| hw.signature)
                     .collect(),
+                shadowed,
                 loaded: OnceLock::new(),
             },
         );
@@ -299,6 +315,7 @@ impl TemplateLibrary {
 
     /// Adds one template (tests, `check-templates FILE`); replaces one of the same type.
     pub fn insert(&mut self, template: TemplateFile) {
+        let device_type = template.device_type().to_string();
         let entry = TemplateEntry {
             origin: TemplateOrigin::File(template.source.path.clone()),
             deprecated: template.is_deprecated(),
@@ -309,10 +326,17 @@ impl TemplateLibrary {
                 .flatten()
                 .map(|hw| hw.signature.clone())
                 .collect(),
-            loaded: OnceLock::from(Ok(template.clone())),
+            shadowed: Vec::new(),
+            loaded: OnceLock::from(Ok(template)),
         };
-        self.entries
-            .insert(template.device_type().to_string(), entry);
+        self.entries.insert(device_type, entry);
+    }
+
+    /// The template of `device_type` when there is one but it does not load: its error, and
+    /// the entry (its file, the earlier files it replaced).
+    pub fn broken(&self, device_type: &str) -> Option<(&LocatedError, &TemplateEntry)> {
+        let entry = self.entries.get(device_type)?;
+        entry.load().as_ref().err().map(|error| (error, entry))
     }
 
     /// The template of `device_type`, read when first asked for; `None` when there is none or
@@ -353,7 +377,15 @@ impl TemplateLibrary {
 
     /// Known device types close to `name` (case, punctuation, or a small typo), for hints.
     pub fn similar(&self, name: &str) -> Vec<String> {
-        closest(name, self.entries.keys().map(String::as_str), 2, 3)
+        closest(
+            name,
+            self.entries
+                .keys()
+                .map(String::as_str)
+                .filter(|k| *k != name),
+            2,
+            3,
+        )
     }
 
     /// The protocol of `device_type`'s template and where the template says it, when the
@@ -521,6 +553,26 @@ mod tests {
         // What a service keeps: the used templates, already read.
         let kept = library.only(["A"]);
         assert_eq!((kept.len(), loaded(&kept)), (1, 1));
+    }
+
+    #[test]
+    fn a_later_template_of_another_protocol_wins_and_a_later_modbus_one_wins_over_it() {
+        let milur = r#"{"device_type": "M", "device": {"protocol": "milur", "channels": []}}"#;
+        let dir = tempfile::tempdir().unwrap();
+        write(dir.path(), "a.json", "M", "modbus");
+        std::fs::write(dir.path().join("b.json"), milur).unwrap();
+        let library = TemplateLibrary::load_dirs(&[dir.path().to_path_buf()]);
+        assert!(library.get("M").is_none());
+        assert_eq!(
+            library.unsupported_protocol("M").map(|(p, _)| p),
+            Some("milur")
+        );
+        let later = tempfile::tempdir().unwrap();
+        write(later.path(), "c.json", "M", "modbus again");
+        let library =
+            TemplateLibrary::load_dirs(&[dir.path().to_path_buf(), later.path().to_path_buf()]);
+        assert!(library.get("M").is_some());
+        assert!(library.unsupported_protocol("M").is_none());
     }
 
     #[test]

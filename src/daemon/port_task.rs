@@ -513,7 +513,7 @@ impl PortTask {
                     if let (Some(log), Some((address, packet))) =
                         (&self.event_log, outcome.event_packet())
                     {
-                        log.record(Instant::now().into_std(), address, packet);
+                        log.record(std::time::Instant::now(), address, packet);
                     }
                     let mut events = std::mem::take(&mut self.port_events);
                     self.scheduler

@@ -92,6 +92,24 @@ pub fn resolve_config_checked(
                             ));
                             continue;
                         }
+                        if let Some((cause, entry)) = library.broken(device_type) {
+                            errors.push(
+                                loaded.error(
+                                    path.key("device_type"),
+                                    Problem::BrokenTemplate {
+                                        device_type: device_type.clone(),
+                                        file: entry.path().display().to_string(),
+                                        shadowed: entry
+                                            .shadowed
+                                            .iter()
+                                            .map(|p| p.display().to_string())
+                                            .collect(),
+                                    },
+                                ),
+                            );
+                            errors.push(cause.clone());
+                            continue;
+                        }
                         errors.push(loaded.error(
                             path.key("device_type"),
                             Problem::MissingTemplate {

@@ -435,7 +435,7 @@ fn configured_device_type(access: &PortAccess, address: u8) -> Option<String> {
 /// source byte as on the wire (and in words), register or system event number, and payload.
 async fn port_event_log(ports: &PortDirectory, read: PortEventLog) -> Result<Value, RpcError> {
     let (access, _) = find_port(ports, &read.port)?;
-    let page = access.events.read(read.from, read.wait).await;
+    let page = access.events.read(read.from, read.log, read.wait).await;
     let packets: Vec<Value> = page
         .packets
         .iter()
@@ -461,7 +461,13 @@ async fn port_event_log(ports: &PortDirectory, read: PortEventLog) -> Result<Val
             })
         })
         .collect();
-    Ok(json!({ "packets": packets, "next": page.next, "lost": page.lost }))
+    Ok(json!({
+        "packets": packets,
+        "next": page.next,
+        "lost": page.lost,
+        "log": page.log,
+        "restarted": page.restarted,
+    }))
 }
 
 async fn device_set_poll(ports: &PortDirectory, request: DeviceSetPoll) -> Result<Value, RpcError> {

@@ -217,6 +217,8 @@ pub struct PortEventLog {
     pub port: PortSelector,
     /// The first packet wanted (`next` of the previous reply); none: only those to come.
     pub from: Option<u64>,
+    /// The log `from` counts in (`log` of the previous reply): a restarted port has another.
+    pub log: Option<u64>,
     /// How long to wait for a packet when there is none yet.
     pub wait: Duration,
     pub total_timeout: Duration,
@@ -345,6 +347,7 @@ pub fn parse_method(service: &str, method: &str, params: &Value) -> Result<Metho
             Ok(Method::PortEventLog(PortEventLog {
                 port: port_selector(fields)?,
                 from: optional_uint(fields, "from")?,
+                log: optional_uint(fields, "log")?,
                 // The reply must leave before the caller stops waiting for it.
                 wait: wait.min(total_timeout.saturating_sub(EVENT_LOG_REPLY_ROOM)),
                 total_timeout,
@@ -833,6 +836,7 @@ mod tests {
             Ok(Method::PortEventLog(PortEventLog {
                 port: PortSelector::Path("/dev/ttyRS485-1".into()),
                 from: Some(7),
+                log: None,
                 wait: DEFAULT_EVENT_LOG_WAIT,
                 total_timeout: DEFAULT_TOTAL_TIMEOUT,
             }))
