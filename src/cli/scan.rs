@@ -591,6 +591,8 @@ fn matching_template(
                 .iter()
                 .any(|signature| wanted.iter().any(|w| w.eq_ignore_ascii_case(signature)))
         })
+        // Only a template that loads is offered (read here: the few that match).
+        .filter(|(device_type, _)| library.get(device_type).is_some())
         .collect();
     matches
         .iter()
@@ -740,6 +742,34 @@ mod tests {
         report.add_fast(N2, 2, 21);
         report.devices[0].take_reported(LineSettings::new(9600, Parity::None, 1));
         report
+    }
+
+    #[test]
+    fn the_template_offered_for_a_model_is_one_that_loads() {
+        let (system, preferred) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+        std::fs::write(
+            system.path().join("good.json"),
+            r#"{"device_type": "GOOD", "hw": [{"signature": "WBMR6C"}], "device": {"channels": []}}"#,
+        )
+        .unwrap();
+        // Preferred (given with --templates), same signature, but its channel does not load.
+        std::fs::write(
+            preferred.path().join("broken.json"),
+            r#"{"device_type": "BROKEN", "hw": [{"signature": "WBMR6C"}], "device": {"channels": [{"name": "a", "address": 1, "format": "float32"}]}}"#,
+        )
+        .unwrap();
+        let library = TemplateLibrary::load_dirs(&[
+            system.path().to_path_buf(),
+            preferred.path().to_path_buf(),
+        ]);
+        let identity = crate::tools::report::Identity {
+            signature: Some("WBMR6C".into()),
+            ..Default::default()
+        };
+        assert_eq!(
+            matching_template(&library, &[preferred.path().to_path_buf()], &identity).as_deref(),
+            Some("GOOD")
+        );
     }
 
     #[test]
