@@ -10,8 +10,9 @@
 //! and where the bus or the error flags matter, on the device model (`DeviceModel`), which
 //! turns port events into published values and `/on` payloads into register writes.
 //!
-//! A test marked `#[ignore = "differs from wb-mqtt-serial: …"]` asserts wb-mqtt-serial's
-//! behaviour where rtu2mqtt does otherwise: run them with `--ignored` to see them fail.
+//! Where rtu2mqtt differs on purpose (a value that does not fit its format is refused, not cut;
+//! a string is written to its full size), the test asserts rtu2mqtt's behaviour and its
+//! comment says what wb-mqtt-serial does and why (docs/migrating.md, "What differs").
 
 use std::path::Path;
 use std::sync::Arc;
@@ -177,13 +178,16 @@ fn u8_reads_low_byte_and_writes_value() {
     assert_eq!(write(&ch, "10"), vec![10]);
 }
 
-/// TSerialClientTest.U8: "257" written to a u8 is cut to its low byte: the register gets 1
-/// (and reads back "1").
+/// TSerialClientTest.U8 has "257" written to a u8 cut to its low byte (the register gets 1).
+/// rtu2mqtt refuses it instead (`w`, nothing written): 1 is not the value asked for, and a
+/// gateway must not write a wrong value (docs/migrating.md, "What differs").
 #[test]
-#[ignore = "differs from wb-mqtt-serial: u8 write of 257 is refused as out of range, wb writes 1"]
-fn u8_write_out_of_range_wraps_to_low_byte() {
+fn u8_write_out_of_range_is_refused_not_wrapped() {
     let ch = channel(holding(20, "u8"));
-    assert_eq!(write(&ch, "257"), vec![1]);
+    let err = ch
+        .encode("257", &[None])
+        .expect_err("257 does not fit a u8");
+    assert!(err.to_string().contains("out of range for u8"), "{err}");
 }
 
 /// TSerialClientTest.S8: 254 → "-2", 253 → "-3"; "-2" written as 254.
@@ -275,13 +279,16 @@ fn u32_read_and_write_negative_wraps() {
     assert_eq!(write(&ch, "-1"), vec![0xFFFF, 0xFFFF]);
 }
 
-/// TSerialClientTest.U32: "4294967296" (overflow) is written as 0 0 and reads back "0", the
-/// registers after it untouched.
+/// TSerialClientTest.U32 has "4294967296" (overflow) written as 0 0. rtu2mqtt refuses it, as
+/// any value that does not fit its format (see the u8 case above).
 #[test]
-#[ignore = "differs from wb-mqtt-serial: u32 write of 4294967296 is refused as out of range, wb writes 0 0"]
-fn u32_write_overflow_wraps_to_zero() {
+fn u32_write_overflow_is_refused_not_wrapped() {
     let ch = channel(holding(20, "u32"));
-    assert_eq!(write(&ch, "4294967296"), vec![0, 0]);
+    let err = ch
+        .encode("4294967296", &[None])
+        .expect_err("2^32 does not fit a u32");
+    assert!(err.to_string().contains("out of range for u32"), "{err}");
+    assert_eq!(write(&ch, "4294967295"), vec![0xFFFF, 0xFFFF]);
 }
 
 /// TSerialClientTest.BCD32: 1234 5678 → "12345678"; "12345678" → 1234 5678; "567890" → 0056 7890.
@@ -386,7 +393,6 @@ fn round_to_rounds_published_float() {
 /// is rounded to `round_to` too: "12.345" puts 12.35f (0.01), 12f (1), 10f (10), 12.4f (0.2)
 /// in the registers, "12.344" puts 12.34f (0.01).
 #[test]
-#[ignore = "differs from wb-mqtt-serial: round_to is not applied to written values (12.345 written as 12.345f, wb writes 12.35f)"]
 fn round_to_rounds_written_float() {
     let cases = [
         (0.01, "12.345", 12.35f32),
@@ -473,26 +479,28 @@ fn string8_read_stops_at_zero_or_ff() {
     assert_eq!(read(&ch, &pack(b"2.4.2-rc12345678")), "2.4.2-rc12345678");
 }
 
-/// TModbusTest.WriteString: "Lateralus" to a 16-register `string` (holding_multi at 120) is one
-/// 0x10 write of 9 registers, one character each (00 4C 00 61 … 00 73): no padding.
+/// TModbusTest.WriteString has "Lateralus" to a 16-register `string` (holding_multi at 120) as
+/// one 0x10 write of the 9 characters only, which leaves the end of a longer earlier text in the
+/// device ("Lateralus" over "Lateralus Undertow" reads back as the longer one). rtu2mqtt writes
+/// the text and zeros to the string's full size, so it reads back as written
+/// (docs/migrating.md, "What differs").
 #[test]
-#[ignore = "differs from wb-mqtt-serial: a string is written padded with zeros to its full size (16 registers), wb writes only the 9 characters"]
-fn string_write_covers_only_the_text() {
+fn string_write_fills_the_whole_string() {
     let device = device_with(
         json!([{"name": "s", "reg_type": "holding_multi", "address": 120,
         "format": "string", "string_data_size": 16, "type": "text"}]),
     );
     let model = model(device);
     let list = model.write("s", "Lateralus").expect("write accepted");
-    let expected: Vec<u16> = "Lateralus".bytes().map(u16::from).collect();
+    let mut expected: Vec<u16> = "Lateralus".bytes().map(u16::from).collect();
+    expected.resize(16, 0);
     assert_eq!(writes(&list), vec![(120, expected, true)]);
 }
 
-/// TModbusTest.WriteString8: "Lateralus" to an 8-register `string8` (holding_multi at 142) is
-/// one 0x10 write of 5 registers: 4C61 7465 7261 6C75 7300.
+/// TModbusTest.WriteString8 has "Lateralus" to an 8-register `string8` (holding_multi at 142)
+/// as 5 registers (4C61 7465 7261 6C75 7300); rtu2mqtt writes the same and zeros to the 8.
 #[test]
-#[ignore = "differs from wb-mqtt-serial: a string8 is written padded with zeros to its full size (8 registers), wb writes 5"]
-fn string8_write_covers_only_the_text() {
+fn string8_write_fills_the_whole_string() {
     let device = device_with(
         json!([{"name": "s", "reg_type": "holding_multi", "address": 142,
         "format": "string8", "string_data_size": 16, "type": "text"}]),
@@ -501,7 +509,11 @@ fn string8_write_covers_only_the_text() {
     let list = model.write("s", "Lateralus").expect("write accepted");
     assert_eq!(
         writes(&list),
-        vec![(142, vec![0x4C61, 0x7465, 0x7261, 0x6C75, 0x7300], true)]
+        vec![(
+            142,
+            vec![0x4C61, 0x7465, 0x7261, 0x6C75, 0x7300, 0, 0, 0],
+            true
+        )]
     );
 }
 
@@ -746,7 +758,6 @@ fn holding_single_and_multi_functions_for_u16() {
 /// ("283686952306183") is written as four 0x06 writes, last register first: 93 = 0x0607,
 /// 92 = 0x0405, 91 = 0x0203, 90 = 0x0001.
 #[test]
-#[ignore = "differs from wb-mqtt-serial: holding_single multi-register writes go first register first (90, 91, 92, 93); wb writes 93 first"]
 fn holding_single_u64_writes_last_register_first() {
     let model = model(modbus_sample());
     assert_eq!(
@@ -928,7 +939,6 @@ fn write_address_takes_the_write() {
 /// a 3-bit field at bit 2 of holding 111 (write address 116): 0x0014 at 111 reads 5, and 5 is
 /// written to 116 as 0x0014 (`06 00 74 00 14`), the other bits 0 as nothing is known of 116.
 #[test]
-#[ignore = "differs from wb-mqtt-serial: a bit field with a write_address that is never read cannot be written (needs the current words), wb writes the field over zeros"]
 fn bit_field_with_write_address_written_over_zeros() {
     let device = device_with(
         json!([{"name": "B", "reg_type": "holding", "address": "111:2:3",
@@ -940,5 +950,70 @@ fn bit_field_with_write_address_written_over_zeros() {
     assert_eq!(
         writes(&model.write("B", "5").expect("write accepted")),
         vec![(116, vec![0x0014], false)]
+    );
+}
+
+/// What wb-mqtt-serial's register cache gives the test above beyond one write: a second field of
+/// the same write-only register goes over the first field's bits as written, not over zeros.
+/// And a field in a register that is read waits for the read (wb-mqtt-serial would write
+/// zeros over the unread bits; rtu2mqtt refuses until it knows them).
+#[test]
+fn bit_fields_of_a_write_only_register_keep_each_other() {
+    let device = device_with(json!([
+        {"name": "Low", "reg_type": "holding", "address": "111:2:3",
+         "write_address": "116:2:3", "format": "u16", "type": "value"},
+        {"name": "High", "reg_type": "holding", "address": "112:8:2",
+         "write_address": "116:8:2", "format": "u16", "type": "value"},
+        {"name": "Shared", "reg_type": "holding", "address": "120:4:4", "format": "u16",
+         "type": "value"}
+    ]));
+    let mut model = model(device);
+    let first = model.write("Low", "5").expect("write accepted");
+    assert_eq!(writes(&first), vec![(116, vec![0x0014], false)]);
+    // The scheduler hands a done write back as its words (`PortScheduler`'s `WriteDone`).
+    values_read(&mut model, RegisterType::Holding, 116, vec![0x0014]);
+    assert_eq!(
+        writes(&model.write("High", "3").expect("write accepted")),
+        vec![(116, vec![0x0314], false)]
+    );
+    assert!(
+        model.write("Shared", "1").is_err(),
+        "120 is read: its other bits first"
+    );
+    values_read(&mut model, RegisterType::Holding, 120, vec![0xF00F]);
+    assert_eq!(
+        writes(&model.write("Shared", "1").expect("write accepted")),
+        vec![(120, vec![0xF01F], false)]
+    );
+}
+
+/// Setup items are written as wb-mqtt-serial writes them on connect (`WriteSetupRegisters`:
+/// each through its register cache): a bit field goes over what the items before it wrote to
+/// the register, so two fields of one register both hold, and a field after a whole-register
+/// item keeps that item's other bits.
+#[test]
+fn bit_field_setup_items_of_one_register_keep_each_other() {
+    let device = device_with_settings(
+        json!([holding(100, "u16")]),
+        json!({"setup": [
+            {"title": "low", "address": "100:0:4", "value": 3},
+            {"title": "high", "address": "100:4:4", "value": 5},
+            {"title": "word", "address": 101, "value": 4660},
+            {"title": "bit", "address": "101:15:1", "value": 1}
+        ]}),
+    );
+    let words: Vec<(u16, Vec<u16>)> = device
+        .setup
+        .iter()
+        .map(|item| (item.register.address, item.words.clone()))
+        .collect();
+    assert_eq!(
+        words,
+        vec![
+            (100, vec![0x0003]),
+            (100, vec![0x0053]),
+            (101, vec![0x1234]),
+            (101, vec![0x9234]),
+        ]
     );
 }

@@ -267,11 +267,16 @@ impl ValueCodec {
 
     /// `raw × scale + offset`, rounded to `round_to` (no-op for 1, 0, 0).
     fn scaled_value(&self, raw: f64) -> f64 {
-        let mut value = raw * self.scale + self.offset;
+        self.rounded(raw * self.scale + self.offset)
+    }
+
+    /// `value` (in the channel's units) to the nearest multiple of `round_to`, if it has one.
+    fn rounded(&self, value: f64) -> f64 {
         if self.round_to > 0.0 {
-            value = (value / self.round_to).round() * self.round_to;
+            (value / self.round_to).round() * self.round_to
+        } else {
+            value
         }
-        value
     }
 
     fn decode_string(&self, words: &[u16]) -> String {
@@ -369,7 +374,7 @@ impl ValueCodec {
         match self.format {
             RegisterFormat::Char8 => Ok(u64::from(text.bytes().next().unwrap_or(0))),
             RegisterFormat::Float => {
-                let value = self.unscale(parse_number(text)?);
+                let value = self.unscale(self.rounded(parse_number(text)?));
                 if value.is_finite() && value.abs() > f64::from(f32::MAX) {
                     return Err(self.out_of_range(
                         text,
@@ -379,7 +384,7 @@ impl ValueCodec {
                 }
                 Ok(u64::from((value as f32).to_bits()))
             }
-            RegisterFormat::Double => Ok(self.unscale(parse_number(text)?).to_bits()),
+            RegisterFormat::Double => Ok(self.unscale(self.rounded(parse_number(text)?)).to_bits()),
             format if format.is_bcd() => {
                 let digits = format.value_bits() / 4;
                 let max = 10i128.pow(digits) - 1;
@@ -418,14 +423,20 @@ impl ValueCodec {
     }
 
     /// Integers are taken exactly when there is nothing to unscale (u64 counters would lose
-    /// digits through f64); otherwise unscaled and rounded to the nearest integer.
+    /// digits through f64); otherwise unscaled and rounded to the nearest integer. A fraction
+    /// is first rounded to `round_to`, an integer text is not: wb-mqtt-serial's conversion
+    /// (`FromScaledTextValue`) takes an integer text on its integer path and only a fraction
+    /// on its floating one, which rounds (float and double formats always take that one).
     fn integer_for(&self, text: &str) -> Result<i128, CodecError> {
-        if self.scale == 1.0 && self.offset == 0.0 {
-            if let Some(value) = parse_int_text(text) {
-                return Ok(value);
-            }
+        let integer = parse_int_text(text);
+        if let (Some(value), true) = (integer, self.scale == 1.0 && self.offset == 0.0) {
+            return Ok(value);
         }
-        let value = self.unscale(parse_number(text)?).round();
+        let number = match integer {
+            Some(value) => value as f64,
+            None => self.rounded(parse_number(text)?),
+        };
+        let value = self.unscale(number).round();
         if !value.is_finite() || value.abs() > 1.8e19 {
             return Err(self.out_of_range(
                 text,

@@ -515,6 +515,44 @@ fn scaled_writes_round_to_the_nearest_raw_value() {
     assert_eq!(differential.encode("-3.5", None).unwrap(), vec![0xFFDD]);
 }
 
+/// `round_to` applies to what is written too, before scale and offset are undone, as in
+/// wb-mqtt-serial (`TSerialClientTest.Round`): to every text on a float or double format, and
+/// to a fraction on an integer format (its integer texts take wb-mqtt-serial's integer path).
+#[test]
+fn written_values_are_rounded_to_round_to() {
+    let float = ValueCodec {
+        round_to: 0.01,
+        ..codec(RegisterFormat::Float)
+    };
+    assert_eq!(float.encode("12.345", None).unwrap(), vec![0x4145, 0x999A]);
+    assert_eq!(
+        float.encode("12.344", None).unwrap(),
+        float.encode("12.34", None).unwrap()
+    );
+    let tens = ValueCodec {
+        round_to: 10.0,
+        ..codec(RegisterFormat::Double)
+    };
+    assert_eq!(
+        tens.encode("12.345", None).unwrap(),
+        tens.encode("10", None).unwrap()
+    );
+    let half = ValueCodec {
+        scale: 0.1,
+        round_to: 0.5,
+        ..codec(RegisterFormat::U16)
+    };
+    assert_eq!(half.encode("2.7", None).unwrap(), vec![25]);
+    assert_eq!(half.encode("2.8", None).unwrap(), vec![30]);
+    assert_eq!(half.encode("3", None).unwrap(), vec![30]);
+    let steps = ValueCodec {
+        round_to: 10.0,
+        ..codec(RegisterFormat::U16)
+    };
+    assert_eq!(steps.encode("12", None).unwrap(), vec![12]);
+    assert_eq!(steps.encode("12.0", None).unwrap(), vec![10]);
+}
+
 #[test]
 fn coils_are_single_bits() {
     let coil = ValueCodec::bit();

@@ -208,6 +208,33 @@ pub fn resolve_device(
     Ok((device, parts.warnings))
 }
 
+/// Makes each bit-field setup item write its field over what the items before it wrote to
+/// the same registers (zeros where nothing was), as wb-mqtt-serial composes them over its
+/// register cache when it sets a device up: two parameters in one register
+/// (`"100:0:4"`, `"100:4:4"`) both hold, where each written over zeros would undo the other.
+/// (On a reconnect wb-mqtt-serial's cache also holds what polling last read of the register;
+/// rtu2mqtt writes the same words every time.)
+fn compose_bit_field_setup(setup: &mut [SetupItem]) {
+    let mut written: BTreeMap<(RegisterType, u16), u16> = BTreeMap::new();
+    for item in setup.iter_mut() {
+        let register = item.register;
+        let addresses = (0..item.codec.word_count)
+            .map(|i| (register.reg_type, register.address.wrapping_add(i as u16)));
+        if item.codec.is_partial() {
+            let current: Vec<u16> = addresses
+                .clone()
+                .map(|at| written.get(&at).copied().unwrap_or(0))
+                .collect();
+            if let Ok(words) = item.codec.encode(&item.value, Some(&current)) {
+                item.words = words;
+            }
+        }
+        for (at, &word) in addresses.zip(&item.words) {
+            written.insert(at, word);
+        }
+    }
+}
+
 /// Channels, setup items and the serial number register of a merged device.
 fn resolve_parts(
     device: &TemplateDevice,
@@ -251,6 +278,7 @@ fn resolve_parts(
         }
         fresh
     });
+    compose_bit_field_setup(&mut setup);
     let mut channels = walker.channels;
     for (i, channel) in channels.iter_mut().enumerate() {
         channel.order = i as u32 + 1;

@@ -189,6 +189,13 @@ impl ChannelIndex {
     /// where the last search ended, kept by the caller; a device's reads come in address
     /// order (a read of many values arrives as one span per value), so the next span usually
     /// starts there and needs no search.
+    /// Whether a channel reads `register`.
+    fn is_read(&self, (register_type, address): (RegisterType, u16)) -> bool {
+        let key = (register_type, u32::from(address));
+        let at = self.readers.partition_point(|&(t, a, _)| (t, a) < key);
+        self.readers.get(at).is_some_and(|&(t, a, _)| (t, a) == key)
+    }
+
     fn readers_of(&self, span: &RegisterSpan, out: &mut Vec<usize>, hint: &mut usize) {
         out.clear();
         if span.count == 0 {
@@ -741,9 +748,21 @@ impl DeviceModel {
             .iter()
             .map(|register| {
                 let target = register.write.or(register.read)?;
-                (0..target.count.max(1))
+                let count = target.count.max(1);
+                let known: Option<Vec<u16>> = (0..count)
                     .map(|i| self.word((target.reg_type, target.address.wrapping_add(i))))
-                    .collect()
+                    .collect();
+                // A bit field in registers no channel reads (a `write_address` of its own) goes
+                // over what was last written there, and over zeros before that, as
+                // wb-mqtt-serial composes it from its register cache (`TModbusTest.
+                // WriteHoldingRegiterWithOffsetWriteOptions`). In a register that is read, its
+                // other bits must have been read first.
+                let never_read = (0..count).all(|i| {
+                    !self
+                        .channel_index
+                        .is_read((target.reg_type, target.address.wrapping_add(i)))
+                });
+                known.or_else(|| never_read.then(|| vec![0; usize::from(count)]))
             })
             .collect();
         let current_refs: Vec<Option<&[u16]>> = current.iter().map(|c| c.as_deref()).collect();
@@ -759,7 +778,10 @@ impl DeviceModel {
                 return Err(WriteRejected::ReadOnly(control_id.to_owned()));
             }
             if register.write_function == WriteFunction::Single && values.len() > 1 {
-                for (i, value) in values.into_iter().enumerate() {
+                // The last register first, as wb-mqtt-serial writes them
+                // (`TModbusTest.HoldingSingleMulti`): a device that acts on a write to the
+                // first register of a value finds the others already in place.
+                for (i, value) in values.into_iter().enumerate().rev() {
                     let address = target
                         .address
                         .wrapping_add(u16::try_from(i).unwrap_or(u16::MAX));
@@ -853,24 +875,6 @@ fn check_payload<'a>(
     }
     let text = payload.trim();
     match channel.control_type.as_str() {
-        "switch" | "alarm" => {
-            if text != "0" && text != "1" {
-                return Err(bad_format(channel, "0 or 1", text));
-            }
-        }
-        "pushbutton" => {
-            if text != "1" {
-                return Err(bad_format(channel, "1", text));
-            }
-        }
-        "range" | "dimmer" => {
-            let integral = text
-                .parse::<f64>()
-                .is_ok_and(|v| v.is_finite() && v.fract() == 0.0);
-            if !integral {
-                return Err(bad_format(channel, "an integer", text));
-            }
-        }
         "rgb" => {
             let parts: Vec<&str> = text.split(';').collect();
             let colour = parts.len() == 3 && parts.iter().all(|p| p.trim().parse::<u8>().is_ok());
@@ -879,7 +883,11 @@ fn check_payload<'a>(
             }
         }
         "text" | "w1-id" => {}
-        // `value`, `unixtime` and the deprecated typed values are numbers.
+        // Every other type takes a number, as wb-mqtt-serial converts any `/on` text with the
+        // register's format whatever the control type: a switch's other numbers are positions
+        // (ONOKOM's vanes 2…6 on a `switch`), a `range` with a scale takes fractions (a
+        // setpoint of 22.5 °C on `s16` with scale 0.01). "1" and "0" are `on_value` and
+        // `off_value` where the channel has them; the codec and the limits check the rest.
         _ => {
             let parts_are_numbers = text
                 .split(';')
@@ -1348,26 +1356,34 @@ mod tests {
             .is_ok()
     }
 
+    /// A switch takes any number, as in wb-mqtt-serial (a multi-position switch); no words.
     #[test]
-    fn switch_takes_only_0_and_1() {
+    fn switch_takes_numbers() {
         let k1 = crate::mqtt::layout::tests::channel("K1", "switch");
         let model = model_of(k1);
         assert_eq!(model.write("K1", " 0\n").unwrap()[0].values, [0]);
-        for bad in ["2", "on", "", "\u{FFFD}"] {
+        assert_eq!(model.write("K1", "3").unwrap()[0].values, [3]);
+        for bad in ["on", "", "true", "\u{FFFD}"] {
             assert!(model.write("K1", bad).is_err(), "{bad:?}");
         }
         assert_eq!(model.write("K1", "1\u{FFFD}"), Err(WriteRejected::NotText));
     }
 
+    /// A range takes a fraction (scaled registers publish them), within its limits.
     #[test]
-    fn range_respects_limits_and_integers() {
+    fn range_respects_limits() {
         let mut level = crate::mqtt::layout::tests::channel("Level", "range");
         level.min = Some(0.0);
         level.max = Some(100.0);
         assert!(accepts(&level, "42"));
         assert!(!accepts(&level, "101"));
-        assert!(!accepts(&level, "4.5"));
         assert!(!accepts(&level, "-1"));
+        assert!(!accepts(&level, "half"));
+        level.registers[0].codec.scale = 0.01;
+        assert_eq!(
+            model_of(level).write("Level", "22.5").unwrap()[0].values,
+            [2250]
+        );
     }
 
     #[test]
@@ -1407,7 +1423,7 @@ mod tests {
     fn a_refused_write_sets_w_until_a_write_succeeds() {
         let mut model = relay();
         let mut out = Vec::new();
-        assert!(model.take_write("K1", "2", &mut out).is_err());
+        assert!(model.take_write("K1", "on", &mut out).is_err());
         assert!(model.take_write("K1", "on", &mut out).is_err());
         model.apply(
             PortEvent::WriteDone {

@@ -4,7 +4,7 @@
 use std::time::Duration;
 
 use crate::config::config_file::{PortConfig, PortType};
-use crate::device::model::{ResolvedDevice, ResolvedPort};
+use crate::device::model::{ResolvedDevice, ResolvedPort, SetupItem, WriteFunction};
 use crate::port::{
     DevicePlan, HealthPolicy, MergeLimits, PlannedRead, PortSettings, SetupWrite,
     MIN_LATE_REPLY_HOLDOFF,
@@ -121,10 +121,7 @@ pub fn device_plan(device: &ResolvedDevice) -> DevicePlan {
         .setup
         .iter()
         .filter(|s| s.register.reg_type == RegisterType::Holding && !s.words.is_empty())
-        .map(|s| SetupWrite {
-            address: s.register.address,
-            values: s.words.clone(),
-        })
+        .flat_map(setup_writes)
         .collect();
     let defaults = HealthPolicy::default();
     DevicePlan {
@@ -145,6 +142,32 @@ pub fn device_plan(device: &ResolvedDevice) -> DevicePlan {
         },
         reads,
         setup,
+    }
+}
+
+/// The writes of one setup item, with the function its `reg_type` asks for, as wb-mqtt-serial
+/// writes setup registers (`WriteRegister`): `holding_multi` 0x10 even for one register,
+/// `holding_single` one 0x06 per register, the last register first, `holding` 0x06 for one
+/// register and 0x10 for several.
+fn setup_writes(item: &SetupItem) -> Vec<SetupWrite> {
+    let address = item.register.address;
+    match item.write_function {
+        WriteFunction::Single if item.words.len() > 1 => item
+            .words
+            .iter()
+            .enumerate()
+            .rev()
+            .map(|(i, &word)| SetupWrite {
+                address: address.wrapping_add(u16::try_from(i).unwrap_or(u16::MAX)),
+                values: vec![word],
+                force_multiple: false,
+            })
+            .collect(),
+        function => vec![SetupWrite {
+            address,
+            values: item.words.clone(),
+            force_multiple: function == WriteFunction::Multiple,
+        }],
     }
 }
 
@@ -284,5 +307,42 @@ mod tests {
         spans.dedup();
         assert_eq!(spans.len(), count, "no register read twice");
         assert!(device.setup.iter().all(|s| !s.values.is_empty()));
+    }
+
+    /// Setup registers are written with the function of their `reg_type`, as wb-mqtt-serial
+    /// writes them (`TModbusTest.HoldingSingleMulti`: the last register first).
+    #[test]
+    fn setup_writes_use_the_function_of_their_register_type() {
+        let template = json!({"device_type": "setup-functions", "device": {"name": "S", "id": "s",
+            "setup": [
+                {"title": "single", "reg_type": "holding_single", "address": 10, "format": "u32", "value": 65538},
+                {"title": "multi", "reg_type": "holding_multi", "address": 20, "value": 7},
+                {"title": "plain", "reg_type": "holding", "address": 30, "format": "u32", "value": 65538},
+                {"title": "one", "address": 40, "value": 9}
+            ],
+            "channels": []}});
+        let template = crate::config::TemplateFile::from_source(SourceText::from_text(
+            Path::new("setup-functions.json"),
+            &template.to_string(),
+        ))
+        .unwrap();
+        let device =
+            crate::device::configure::resolve_template_device(&template, &json!({"slave_id": 1}))
+                .unwrap();
+        let writes: Vec<(u16, Vec<u16>, bool)> = device_plan(&device)
+            .setup
+            .into_iter()
+            .map(|w| (w.address, w.values, w.force_multiple))
+            .collect();
+        assert_eq!(
+            writes,
+            vec![
+                (11, vec![2], false),
+                (10, vec![1], false),
+                (20, vec![7], true),
+                (30, vec![1, 2], false),
+                (40, vec![9], false),
+            ]
+        );
     }
 }

@@ -736,6 +736,7 @@ mod tests {
         plan.setup.push(crate::port::plan::SetupWrite {
             address: 100,
             values: vec![7],
+            force_multiple: false,
         });
         let device = DeviceState::new(plan, true, &LineSettings::WIREN_BOARD_DEFAULT);
         let (ranges, _) = device.event_ranges();

@@ -72,6 +72,8 @@ pub struct PlannedRead {
 pub struct SetupWrite {
     pub address: u16,
     pub values: Vec<u16>,
+    /// Use 0x10 even for one value (`holding_multi`), as [`RegisterWrite::force_multiple`].
+    pub force_multiple: bool,
 }
 
 /// One device on the bus.

@@ -950,7 +950,7 @@ impl PortScheduler {
         if let Some(setup_index) = device.next_setup_write() {
             let write = device.plan.setup.get(setup_index)?;
             let pdu = match write.values.as_slice() {
-                [value] => RequestPdu::WriteSingleRegister {
+                [value] if !write.force_multiple => RequestPdu::WriteSingleRegister {
                     address: write.address,
                     value: *value,
                 },

@@ -438,6 +438,7 @@ fn a_reboot_event_brings_setup_event_setup_and_a_fresh_read() {
     plan.setup = vec![SetupWrite {
         address: 5,
         values: vec![7],
+        force_multiple: false,
     }];
     let mut scheduler = PortScheduler::new(settings(115_200), vec![plan]);
     let mut log = Log::default();
@@ -815,6 +816,7 @@ fn an_unplugged_device_comes_back_with_its_setup() {
     plan.setup = vec![SetupWrite {
         address: 9,
         values: vec![1],
+        force_multiple: false,
     }];
     let mut scheduler = PortScheduler::new(settings(115_200), vec![plan]);
     let mut log = Log::default();
@@ -1816,6 +1818,7 @@ fn random_plan(rng: &mut Rng, address: u8) -> DevicePlan {
         .map(|i| SetupWrite {
             address: 100 + i as u16,
             values: vec![1; 1 + rng.below(2) as usize],
+            force_multiple: false,
         })
         .collect();
     let mut plan = device(address, reads);
