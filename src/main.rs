@@ -24,7 +24,8 @@ enum Command {
     /// the daemon): each UART's receive FIFO hands bytes over one at a time, as wb-mqtt-serial
     /// sets it.
     PreparePorts(cli::prepare_ports::Args),
-    /// Zero set-up demo: simulated devices, a broker (mosquitto when installed) and the daemon.
+    /// Zero set-up demo: simulated devices, a broker (the one on 127.0.0.1:1883, else a built-in
+    /// one) and the daemon.
     Demo(cli::demo::Args),
     /// Serve the buses of the config: poll devices, receive Fast Modbus events, publish values.
     Run(cli::run::Args),
@@ -62,6 +63,12 @@ enum Command {
 
 fn main() -> std::process::ExitCode {
     let cli = Cli::parse();
+    if !matches!(
+        cli.command,
+        Command::Run(_) | Command::Demo(_) | Command::Sim(_)
+    ) {
+        quiet_on_closed_stdout();
+    }
     if matches!(
         cli.command,
         Command::Scan(_)
@@ -102,4 +109,16 @@ fn main() -> std::process::ExitCode {
             std::process::ExitCode::FAILURE
         }
     }
+}
+
+/// A command whose output is piped into `head` (or a closed terminal) ends quietly when the
+/// reader goes away, as other command-line tools do, instead of a panic at the next print: Rust
+/// ignores SIGPIPE, so the write fails and `println!` panics. Not for the long-running commands
+/// (the daemon, the demo, the simulator): they log and end on their own terms. Sockets are not
+/// affected (the standard library sends with MSG_NOSIGNAL).
+fn quiet_on_closed_stdout() {
+    use nix::sys::signal::{signal, SigHandler, Signal};
+    // SAFETY: at the start of `main`, before any thread exists; the default action needs no
+    // handler code.
+    let _ = unsafe { signal(Signal::SIGPIPE, SigHandler::SigDfl) };
 }

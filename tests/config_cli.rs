@@ -683,11 +683,11 @@ fn misspelt_and_protected_keys_warn_and_fail_under_strict() {
     let (ok, text) = run(false);
     assert!(ok, "warnings alone do not fail: {text}");
     assert!(
-        text.contains("typo.json:2:31: at device.channels[0].scal: warning: unknown key `scal` does nothing; did you mean `scale`?"),
+        text.contains("typo.json:2:31: at device.channels[0].scal: warning: unknown key `scal` is ignored; did you mean `scale`? As `scale` is not set, its default applies."),
         "{text}"
     );
     assert!(
-        text.contains("at ports[0].devices[0].channels[0].read_period: warning: unknown channel key `read_period` does nothing; did you mean `read_period_ms`?"),
+        text.contains("at ports[0].devices[0].channels[0].read_period: warning: unknown channel key `read_period` is ignored; did you mean `read_period_ms`?"),
         "{text}"
     );
     assert!(
@@ -824,6 +824,7 @@ fn prepare_ports_lowers_each_uarts_receive_fifo_trigger() {
         port("ttyS7"),
         port("ttyS8"),
         port("ttyUSB0"),
+        port("ttyUSB9"),
         {"port_type": "tcp", "address": "127.0.0.1", "port": 1, "devices": []},
     ]});
     let file = dir.path().join("config.json");
@@ -839,7 +840,7 @@ fn prepare_ports_lowers_each_uarts_receive_fifo_trigger() {
     let (ok, text) = report(out);
     assert!(ok, "{text}");
     let lines: Vec<&str> = text.lines().collect();
-    assert_eq!(lines.len(), 3, "one line per serial port:\n{text}");
+    assert_eq!(lines.len(), 4, "one line per serial port:\n{text}");
     assert!(
         lines[0]
             .ends_with("ttyS7: receive FIFO set to hand bytes over one at a time (it collected 8)"),
@@ -853,6 +854,7 @@ fn prepare_ports_lowers_each_uarts_receive_fifo_trigger() {
         lines[2].contains("ttyUSB0: no receive FIFO trigger to set"),
         "{text}"
     );
+    assert!(lines[3].contains("ttyUSB9: does not exist"), "{text}");
     let trigger = std::fs::read_to_string(sysfs.join("ttyS7/rx_trig_bytes")).unwrap();
     assert_eq!(trigger, "1");
 
@@ -950,7 +952,7 @@ fn a_config_device_of_another_protocol_is_named_at_its_protocol() {
             {{"path": "/dev/ttyRS485-2", "devices": [{{"slave_id": 3, "device_type": "TEST-METER"}}]}}]}}"#
     );
     let (ok, text) = with_fixtures("check-config", &port_off);
-    assert!(ok && text.contains("ok (1 ports, 1 devices"), "{text}");
+    assert!(ok && text.contains("ok (1 port, 1 device,"), "{text}");
 }
 
 #[test]

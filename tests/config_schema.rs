@@ -66,3 +66,27 @@ fn config_schema_rejects_typos() {
     assert!(!validator.is_valid(&serde_json::json!({"mqtt": {"hots": "x"}})));
     assert!(!validator.is_valid(&serde_json::json!({"ports": [{"port_type": "rtu"}]})));
 }
+
+/// `rtu2mqtt schema config | head -1`: a reader that is gone ends the command quietly (as
+/// `SIGPIPE` ends other tools), not with a panic and a backtrace. The pipe's read end is closed
+/// before the command starts, so its first write finds no reader.
+#[test]
+fn output_into_a_closed_pipe_ends_quietly() {
+    use std::os::unix::process::ExitStatusExt;
+    let (read_end, write_end) = nix::unistd::pipe().unwrap();
+    drop(read_end);
+    let output = std::process::Command::new(env!("CARGO_BIN_EXE_rtu2mqtt"))
+        .args(["schema", "config"])
+        .stdout(std::process::Stdio::from(write_end))
+        .stderr(std::process::Stdio::piped())
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(!stderr.contains("panicked"), "{stderr}");
+    assert_eq!(
+        output.status.signal(),
+        Some(13),
+        "{:?} {stderr}",
+        output.status
+    );
+}

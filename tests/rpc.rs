@@ -1185,6 +1185,45 @@ async fn rpc_through_the_daemon_at_9600() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_second_server_on_the_broker_does_not_confuse_the_tools() {
+    // Side by side, as docs/migrating.md suggests for a port left on wb-mqtt-serial: another
+    // server of these RPC topics answers every request too, "not my port" for ours, and first
+    // (it has no bus work to do).
+    let bench = start("115200 8N2", 115_200);
+    let port = bench.broker.port;
+    wait_until_served(port).await;
+    let other_config = json!({
+        "mqtt": {"host": "127.0.0.1", "port": port, "client_id": "rtu2mqtt-other-server",
+                 "clear_on_exit": true},
+        "ports": [{"path": "/dev/ttyRTU2MQTT-NOPE", "baud_rate": 9600,
+                   "devices": [{"device_type": "rtu2mqtt-relay6", "slave_id": 5}]}]
+    });
+    let mut other = DaemonProcess::start(&other_config, &[], Stdio::null(), Stdio::null());
+    wait_for("the other server's answer", || async {
+        let ports = rpc(port, "ports", "Load", json!({})).await;
+        ports.to_string().contains("ttyRTU2MQTT-NOPE").then_some(())
+    })
+    .await;
+
+    for _ in 0..3 {
+        let (code, stdout, stderr) = cli_read(&bench, &["--via-mqtt"]).await;
+        assert_eq!(code, 0, "{stdout}{stderr}");
+        let reply: Value = serde_json::from_str(stdout.trim()).unwrap();
+        assert_eq!(reply["registers"], json!([2150]), "{reply}");
+    }
+
+    // The other server's clean exit leaves the shared method topics as they were.
+    assert!(other.terminate().success());
+    let state = retained(port).await.expect("retained state");
+    assert_eq!(
+        state
+            .get("/rpc/v1/wb-mqtt-serial/port/Load")
+            .map(String::as_str),
+        Some("1")
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn bad_requests_get_json_rpc_errors_and_the_daemon_lives_on() {
     let bench = start("115200 8N2", 115_200);
     let port = bench.broker.port;

@@ -72,11 +72,15 @@ pub fn run_check_config(args: CheckConfigArgs) -> anyhow::Result<ExitCode> {
                 .flat_map(|p| &p.devices)
                 .map(|d| d.channels.len())
                 .sum();
+            let count =
+                |n: usize, what: &str| format!("{n} {what}{}", if n == 1 { "" } else { "s" });
             println!(
-                "{}: ok ({} ports, {devices} devices, {channels} channels; {} templates)",
+                "{}: ok ({}, {}, {}; {})",
                 args.config.display(),
-                ports.len(),
-                library.len()
+                count(ports.len(), "port"),
+                count(devices, "device"),
+                count(channels, "channel"),
+                count(library.len(), "template")
             );
             Ok(ExitCode::SUCCESS)
         }

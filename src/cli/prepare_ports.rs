@@ -41,6 +41,11 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
 }
 
 fn prepare(path: &Path, sysfs_tty: &Path) -> String {
+    if !path.exists() {
+        return "does not exist (a USB adapter not plugged in, or a typo in the config?); \
+                nothing to set"
+            .into();
+    }
     match fifo::lower_to_one_byte(path, sysfs_tty) {
         TriggerChange::NotReported => {
             "no receive FIFO trigger to set (USB adapter, or not a UART the kernel reports)".into()

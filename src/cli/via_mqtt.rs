@@ -110,7 +110,22 @@ pub async fn service_call(
 
 /// The settings the service runs `path` at (its `ports/Load` entry).
 pub async fn served_line(session: &mut RpcSession, path: &str) -> Result<LineSettings, ExitCode> {
-    let ports = service_call(session, "ports", "Load", json!({}), Duration::from_secs(5)).await?;
+    let has_path = |ports: &Value| {
+        ports
+            .as_array()
+            .is_some_and(|ports| ports.iter().any(|p| p["path"] == path))
+    };
+    // Each server on the broker lists its own ports: the one with this port is the answer.
+    let ports = session
+        .call_answered_by(
+            "ports",
+            "Load",
+            json!({}),
+            Duration::from_secs(5),
+            |outcome| matches!(outcome, Ok(ports) if has_path(ports)),
+        )
+        .await
+        .map_err(|err| call_failure(&err))?;
     let entry = ports
         .as_array()
         .and_then(|ports| ports.iter().find(|p| p["path"] == path));

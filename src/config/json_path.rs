@@ -48,6 +48,16 @@ impl JsonPath {
         &self.0
     }
 
+    /// The value at this path in `document`, if there is one.
+    pub fn find<'a>(&self, document: &'a serde_json::Value) -> Option<&'a serde_json::Value> {
+        self.0
+            .iter()
+            .try_fold(document, |value, segment| match segment {
+                PathSegment::Key(key) => value.get(key),
+                PathSegment::Index(index) => value.get(index),
+            })
+    }
+
     /// Parses the path notation serde_path_to_error prints (`a.b[3].c`, `?` for unknown parts).
     pub fn parse(text: &str) -> Self {
         let mut segments = Vec::new();

@@ -438,6 +438,37 @@ pub fn closest<'a>(
         .collect()
 }
 
+/// The warning for a key no setting reads, with the keys it may be a misspelling of
+/// (`suggestions`, from [`suggest_keys`]) and whether `object` (the JSON object holding it)
+/// has them: a misspelt key is ignored, so the key meant keeps its default, which is rarely
+/// harmless (`reg_typ` for `reg_type` polls holding registers instead of coils).
+pub fn unknown_key_warning(
+    what: &str,
+    key: &str,
+    suggestions: &[String],
+    object: Option<&Value>,
+) -> String {
+    let mut text = format!("unknown {what} `{key}` is ignored");
+    if suggestions.is_empty() {
+        text.push_str(" (it does nothing)");
+        return text;
+    }
+    let quoted: Vec<String> = suggestions.iter().map(|s| format!("`{s}`")).collect();
+    text.push_str(&format!("; did you mean {}?", quoted.join(" or ")));
+    let meant_unset = object.is_some_and(|object| {
+        suggestions
+            .iter()
+            .all(|meant| object.get(meant.as_str()).is_none())
+    });
+    if meant_unset {
+        text.push_str(&format!(
+            " As {} is not set, its default applies.",
+            quoted.join(" or ")
+        ));
+    }
+    text
+}
+
 /// Keys close to a misspelt `key`, closest first: a small edit distance, or one is the other
 /// with something added (`read_period` → `read_period_ms`).
 pub fn suggest_keys<'a>(key: &str, candidates: impl Iterator<Item = &'a str>) -> Vec<String> {

@@ -420,7 +420,13 @@ impl PortTask {
                     }
                 }
                 Err(err) => {
-                    warn!(port = %self.plan_name, %err, retry_in = ?delay, "cannot open the port");
+                    if held_by_another_program(&err) {
+                        warn!(port = %self.plan_name, %err, retry_in = ?delay,
+                            "cannot open the port: another program holds it (wb-mqtt-serial \
+                             still running? `systemctl stop wb-mqtt-serial`)");
+                    } else {
+                        warn!(port = %self.plan_name, %err, retry_in = ?delay, "cannot open the port");
+                    }
                     self.set_open(false);
                 }
             }
@@ -818,5 +824,40 @@ async fn next_identity(
     match results {
         Some(results) => results.recv().await,
         None => std::future::pending().await,
+    }
+}
+
+/// Whether opening failed because the port is taken: `EBUSY`, or the exclusive lock (TIOCEXCL)
+/// another program set, which the serial library reports only in words.
+fn held_by_another_program(err: &TransportError) -> bool {
+    match err {
+        TransportError::Open { source, .. } => {
+            source.raw_os_error() == Some(nix::libc::EBUSY)
+                || source.to_string().contains("exclusive lock")
+        }
+        _ => false,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_port_another_program_holds_is_told_apart() {
+        let open = |source: std::io::Error| TransportError::Open {
+            path: "/dev/ttyRS485-1".into(),
+            source,
+        };
+        assert!(held_by_another_program(&open(
+            std::io::Error::from_raw_os_error(nix::libc::EBUSY)
+        )));
+        // What the serial library says when another program set TIOCEXCL.
+        assert!(held_by_another_program(&open(std::io::Error::other(
+            "Unable to acquire exclusive lock on serial port"
+        ))));
+        assert!(!held_by_another_program(&open(
+            std::io::Error::from_raw_os_error(nix::libc::ENOENT)
+        )));
     }
 }

@@ -228,13 +228,11 @@ pub fn template_key_warnings(template: &TemplateFile) -> Vec<LocatedError> {
         }
         out.push(template.source.error(
             path.clone(),
-            Problem::Warning(format!(
-                "unknown key `{key}` does nothing; did you mean {}?",
-                suggestions
-                    .iter()
-                    .map(|s| format!("`{s}`"))
-                    .collect::<Vec<_>>()
-                    .join(" or ")
+            Problem::Warning(crate::config::library::unknown_key_warning(
+                "key",
+                key,
+                &suggestions,
+                parent.find(&template.raw),
             )),
         ));
     }

@@ -241,21 +241,11 @@ fn warn_unknown_channel_keys(
             key,
             known_channel_keys().iter().map(String::as_str),
         );
-        let hint = if suggestions.is_empty() {
-            String::new()
-        } else {
-            format!(
-                "; did you mean {}?",
-                suggestions
-                    .iter()
-                    .map(|s| format!("`{s}`"))
-                    .collect::<Vec<_>>()
-                    .join(" or ")
-            )
-        };
+        // A config channel overrides the template's channel of its name: what it leaves out
+        // comes from there, not from a default, so only the misspelling is said.
         errors.push(warning(
             format!("c:{}", at.key(key)),
-            format!("unknown channel key `{key}` does nothing{hint}"),
+            crate::config::library::unknown_key_warning("channel key", key, &suggestions, None),
         ));
     }
 }

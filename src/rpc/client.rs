@@ -32,6 +32,10 @@ pub enum CallError {
 
 /// Extra time given to a reply beyond the request's own `total_timeout` (broker round trips).
 const REPLY_MARGIN: Duration = Duration::from_secs(3);
+/// How long a call still waits for another server after one said the port is not its own
+/// ([`RpcError::is_not_served_here`]): the one that serves it answers after its bus work, which
+/// for one request of the site tools is well under this.
+const OTHER_SERVER_GRACE: Duration = Duration::from_secs(2);
 /// How long connecting to the broker and subscribing may take.
 const CONNECT_TIMEOUT: Duration = Duration::from_secs(5);
 
@@ -131,8 +135,31 @@ impl RpcSession {
         &mut self,
         service: &str,
         method: &str,
+        params: Value,
+        total_timeout: Duration,
+    ) -> Result<Value, CallError> {
+        self.call_answered_by(
+            service,
+            method,
+            params,
+            total_timeout,
+            |outcome| !matches!(outcome, Err(error) if error.is_not_served_here()),
+        )
+        .await
+    }
+
+    /// As [`Self::call`], for the reply that `answers`: another server of these topics on the
+    /// broker (wb-mqtt-serial kept for a meter port, docs/rpc.md) answers every request too,
+    /// usually first ("not my port", or its own `ports/Load`). A reply that does not answer is
+    /// kept while the one that does may still come, [`OTHER_SERVER_GRACE`] at most, and is the
+    /// outcome when none does.
+    pub async fn call_answered_by(
+        &mut self,
+        service: &str,
+        method: &str,
         mut params: Value,
         total_timeout: Duration,
+        answers: impl Fn(&Result<Value, RpcError>) -> bool,
     ) -> Result<Value, CallError> {
         if params.get("total_timeout").is_none() {
             params["total_timeout"] =
@@ -151,27 +178,37 @@ impl RpcSession {
             .await
             .map_err(|err| broker_error(&self.broker, err))?;
         let waited = total_timeout + REPLY_MARGIN;
+        let deadline = tokio::time::Instant::now() + waited;
         let broker = self.broker.clone();
-        let reply = async {
-            loop {
-                match self.incoming.recv().await {
-                    Some(Incoming::Message { topic, payload }) if topic == reply_topic => {
-                        let (reply_id, outcome) =
-                            parse_reply(&payload).map_err(CallError::Refused)?;
-                        // A late reply to an earlier call (it timed out here) is not this one's.
-                        if reply_id == json!(id) {
-                            return outcome.map_err(CallError::Refused);
-                        }
+        let mut kept: Option<Result<Value, RpcError>> = None;
+        loop {
+            let until = match &kept {
+                Some(_) => deadline.min(tokio::time::Instant::now() + OTHER_SERVER_GRACE),
+                None => deadline,
+            };
+            let Ok(incoming) = tokio::time::timeout_at(until, self.incoming.recv()).await else {
+                return match kept {
+                    Some(outcome) => outcome.map_err(CallError::Refused),
+                    None => Err(CallError::NoReply { broker, waited }),
+                };
+            };
+            match incoming {
+                Some(Incoming::Message { topic, payload }) if topic == reply_topic => {
+                    let (reply_id, outcome) = parse_reply(&payload).map_err(CallError::Refused)?;
+                    // A late reply to an earlier call (it timed out here) is not this one's.
+                    if reply_id != json!(id) {
+                        continue;
                     }
-                    Some(Incoming::Failed(reason)) => return Err(broker_error(&broker, reason)),
-                    Some(_) => {}
-                    None => return Err(broker_error(&broker, "the connection ended")),
+                    if answers(&outcome) {
+                        return outcome.map_err(CallError::Refused);
+                    }
+                    kept.get_or_insert(outcome);
                 }
+                Some(Incoming::Failed(reason)) => return Err(broker_error(&broker, reason)),
+                Some(_) => {}
+                None => return Err(broker_error(&broker, "the connection ended")),
             }
-        };
-        tokio::time::timeout(waited, reply)
-            .await
-            .unwrap_or(Err(CallError::NoReply { broker, waited }))
+        }
     }
 }
 

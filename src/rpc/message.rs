@@ -98,6 +98,25 @@ impl RpcError {
     }
 }
 
+/// What a server answers for a port or device it does not serve: rtu2mqtt's words and
+/// wb-mqtt-serial's (`RPC_WRONG_PORT`). Both answer every request on these topics when they run
+/// side by side (a meter port left on wb-mqtt-serial, docs/migrating.md).
+const NOT_SERVED_HERE: [&str; 3] = [
+    "is not served by this rtu2mqtt",
+    "Requested port doesn't exist",
+    "SerialClient wasn't found for requested port",
+];
+
+impl RpcError {
+    /// Whether the server said the port or device is not one it serves, so that another server
+    /// on the same topics may still answer.
+    pub fn is_not_served_here(&self) -> bool {
+        NOT_SERVED_HERE
+            .iter()
+            .any(|words| self.message.contains(words))
+    }
+}
+
 impl std::fmt::Display for RpcError {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         write!(f, "{} (code {})", self.message, self.code)

@@ -44,6 +44,7 @@ pub async fn run_rpc_server(
     let slots = Arc::new(Semaphore::new(MAX_REQUESTS_AT_ONCE));
     let address = format!("{}:{}", broker.host, broker.port);
     let mut unreachable_told = false;
+    let mut ever_connected = false;
     tokio::pin!(shutdown);
     loop {
         let event = tokio::select! {
@@ -53,6 +54,7 @@ pub async fn run_rpc_server(
         match event {
             Ok(Event::Incoming(Packet::ConnAck(_))) => {
                 unreachable_told = false;
+                ever_connected = true;
                 info!(broker = %address, "MQTT RPC: serving /rpc/v1/wb-mqtt-serial/…");
                 let _ = client.try_subscribe(REQUEST_FILTER, QoS::AtLeastOnce);
                 for (service, method) in SERVED {
@@ -97,7 +99,11 @@ pub async fn run_rpc_server(
             Ok(_) => {}
             Err(error) => {
                 if !unreachable_told {
-                    warn!(broker = %address, %error, "MQTT RPC: lost the broker; reconnecting");
+                    if ever_connected {
+                        warn!(broker = %address, %error, "MQTT RPC: lost the broker; reconnecting");
+                    } else {
+                        warn!(broker = %address, %error, "MQTT RPC: cannot reach the broker; retrying");
+                    }
                     unreachable_told = true;
                 }
                 tokio::select! {
@@ -107,17 +113,9 @@ pub async fn run_rpc_server(
             }
         }
     }
-    if broker.clear_on_exit {
-        // As the device topics: a clean exit leaves nothing retained behind.
-        for (service, method) in SERVED {
-            let _ = client.try_publish(
-                advertised_topic(service, method),
-                QoS::AtLeastOnce,
-                true,
-                "",
-            );
-        }
-    }
+    // The advertised method topics stay, `clear_on_exit` or not: they are wb-mqtt-serial's
+    // names, shared with any other server of them on the broker (wb-mqtt-serial itself, kept
+    // for a meter port), whose clients would otherwise find its methods gone.
     let _ = client.try_disconnect();
     // Let the connection write what is queued (until the broker closes it, or 2 s).
     let _ = tokio::time::timeout(EXIT_FLUSH_TIMEOUT, async {

@@ -213,9 +213,9 @@ pub fn load_bus(
     path: &Path,
     templates_dir: &Path,
 ) -> Result<(BusFile, Vec<VirtualDevice>), SimError> {
-    let text = std::fs::read_to_string(path).map_err(|source| SimError::Io {
+    let text = std::fs::read_to_string(path).map_err(|reason| SimError::Io {
         path: path.to_path_buf(),
-        source,
+        reason,
     })?;
     let file: BusFile =
         serde_json::from_str(&strip_comments(&text)).map_err(|err| SimError::Json {
@@ -227,8 +227,27 @@ pub fn load_bus(
         .devices
         .iter()
         .map(|entry| build_device(entry, &mut templates))
-        .collect::<Result<_, _>>()?;
+        .collect::<Result<Vec<VirtualDevice>, _>>()?;
+    check_serials_differ(&devices)?;
     Ok((file, devices))
+}
+
+/// Fast Modbus arbitration tells devices apart by the low 28 bits of their serial numbers:
+/// two devices alike there would answer a scan or an event poll as one, garbled.
+fn check_serials_differ(devices: &[VirtualDevice]) -> Result<(), SimError> {
+    const ARBITRATED: u32 = 0x0FFF_FFFF;
+    for (i, device) in devices.iter().enumerate() {
+        if let Some(other) = devices[..i]
+            .iter()
+            .find(|other| other.serial & ARBITRATED == device.serial & ARBITRATED)
+        {
+            return Err(SimError::BusFile(format!(
+                "devices {:?} and {:?}: serial numbers {:#010X} and {:#010X} have the same low                  28 bits, which Fast Modbus scans and event polls tell devices apart by; give                  one another serial",
+                other.name, device.name, other.serial, device.serial
+            )));
+        }
+    }
+    Ok(())
 }
 
 pub fn build_device(
@@ -311,6 +330,27 @@ mod tests {
         );
         assert!(parse_line("9600 7N1").is_err());
         assert!(parse_line("fast").is_err());
+    }
+
+    #[test]
+    fn serials_alike_in_their_arbitrated_bits_are_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let bus = dir.path().join("bus.json");
+        let write = |second: &str| {
+            std::fs::write(
+                &bus,
+                format!(
+                    r#"{{"devices": [{{"name": "a", "address": 1, "serial": "0xFE000001"}},
+                                    {{"name": "b", "address": 2, "serial": "{second}"}}]}}"#
+                ),
+            )
+            .unwrap();
+        };
+        write("0x0E000001");
+        let err = load_bus(&bus, dir.path()).map(|_| ()).unwrap_err();
+        assert!(err.to_string().contains(r#"devices "a" and "b""#), "{err}");
+        write("0xFE000002");
+        assert!(load_bus(&bus, dir.path()).is_ok());
     }
 
     #[test]

@@ -43,10 +43,12 @@ pub mod from_template;
 /// Why the simulator could not be set up or a control command failed.
 #[derive(Debug, thiserror::Error)]
 pub enum SimError {
-    #[error("{path}: {source}")]
+    // Not `source`: the reason is in the message once (a caller printing the error chain
+    // would repeat it).
+    #[error("{path}: {reason}")]
     Io {
         path: std::path::PathBuf,
-        source: std::io::Error,
+        reason: std::io::Error,
     },
     #[error("{path}: {message}")]
     Json {
