@@ -36,3 +36,20 @@ fn a_bad_crc_fails_and_names_the_right_one() {
     assert!(text.contains("not a valid frame"), "{text}");
     assert!(text.contains("it would be 87 27"), "{text}");
 }
+
+/// Bytes that are no hex are bad input: exit 2 (tools.md), not 1 (a frame that fails its check).
+#[test]
+fn input_that_is_not_hex_exits_2() {
+    for input in ["zz", "14 03 0"] {
+        let output = Command::new(env!("CARGO_BIN_EXE_rtu2mqtt"))
+            .arg("decode")
+            .arg(input)
+            .output()
+            .unwrap();
+        assert_eq!(output.status.code(), Some(2), "{input}: {output:?}");
+        assert!(
+            String::from_utf8_lossy(&output.stderr).contains("hex"),
+            "{output:?}"
+        );
+    }
+}

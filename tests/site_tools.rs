@@ -8,6 +8,8 @@
 //! scan sends with 2 stop bits; devices at 8O1 hear it (a receiver checks only the first stop
 //! bit) and report their 1 stop bit.
 
+mod daemon_support;
+mod mqtt_support;
 mod sim_support;
 
 use std::process::Command;
@@ -161,7 +163,14 @@ fn scan_table_names_the_duplicate_and_how_to_fix_it() {
         "{}",
         run.stdout
     );
-    assert!(run.stdout.contains("fix-addresses"), "{}", run.stdout);
+    // The command to paste, with the real port.
+    assert!(
+        run.stdout.contains(&format!(
+            "fix with rtu2mqtt fix-addresses --port {port} --apply"
+        )),
+        "{}",
+        run.stdout
+    );
     assert_eq!(
         run.stdout.matches("DUPLICATE ADDRESS").count(),
         2,
@@ -1055,4 +1064,461 @@ fn events_through_the_service_on_a_port_without_event_channels_says_so() {
         "{}",
         run.stderr
     );
+}
+
+/// A bus where a device without Fast Modbus (address 11) sits at the setting of two Fast Modbus
+/// devices that share address 10: the Fast Modbus scan does not see it.
+fn classic_neighbour_bus() -> (tempfile::TempDir, SimProcess) {
+    let dir = tempfile::tempdir().unwrap();
+    let bus = dir.path().join("bus.json");
+    let relay = sim_support::data("relay.json");
+    let relay = relay.to_str().unwrap();
+    std::fs::write(
+        &bus,
+        json!({"devices": [
+            {"name": "relay-a", "template": relay, "address": 10, "serial": "0xFE000010",
+             "line": "9600 8N2", "model": "WBMR6C", "firmware": "1.26.0"},
+            {"name": "relay-b", "template": relay, "address": 10, "serial": "0xFE000011",
+             "line": "9600 8N2", "model": "WBMR6C", "firmware": "1.26.1"},
+            {"name": "meter", "address": 11, "serial": "0xFE000040", "line": "9600 8N2",
+             "fast": false, "registers": [{"type": "holding", "address": 0, "count": 8}]}
+        ]})
+        .to_string(),
+    )
+    .unwrap();
+    let sim = SimProcess::start_with(&bus, &sim_support::data(""), &[]);
+    (dir, sim)
+}
+
+/// `set-address` and `fix-addresses` ask the new address with a classic request before they
+/// move a device there: the device without Fast Modbus at 11 answers, so set-address refuses
+/// (naming what answered) and fix-addresses picks 12.
+#[test]
+fn address_tools_keep_off_an_address_a_classic_device_answers() {
+    let (_dir, sim) = classic_neighbour_bus();
+    let port = port(&sim);
+    let at_9600 = ["--baud", "9600", "--parity", "N", "--latency", LATENCY_MS];
+    let address_of = |serial: &str| {
+        sim.control(json!({"cmd": "get", "serial": serial, "type": "holding", "address": 128}))
+            ["value"]
+            .clone()
+    };
+    let mut set = vec![
+        "set-address",
+        "--port",
+        &port,
+        "--serial",
+        "0xFE000011",
+        "--address",
+        "11",
+    ];
+    set.extend_from_slice(&at_9600);
+    let run = tool(&set);
+    assert_eq!(run.code, 1, "{}{}", run.stdout, run.stderr);
+    assert!(
+        run.stderr.contains(
+            "address 11 is already used at 9600 8N2: a device answered a classic request there \
+             (holding 128 = 11)"
+        ),
+        "{}",
+        run.stderr
+    );
+    assert_eq!(address_of("0xFE000011"), 10, "nothing written");
+
+    let mut fix = vec![
+        "fix-addresses",
+        "--port",
+        &port,
+        "--range",
+        "10-20",
+        "--apply",
+    ];
+    fix.extend_from_slice(&at_9600);
+    let run = tool(&fix);
+    assert_eq!(run.code, 0, "{}{}", run.stdout, run.stderr);
+    assert!(
+        run.stderr
+            .contains("address 11 at 9600 8N2 is not free: a device answered a classic request"),
+        "{}",
+        run.stderr
+    );
+    assert!(
+        run.stdout
+            .contains("address 10 -> 12 (confirmed by a new scan)"),
+        "{}",
+        run.stdout
+    );
+    assert_eq!(address_of("0xFE000011"), 12);
+    assert_eq!(address_of("0xFE000040"), 11);
+}
+
+/// A value wider than a register (u32, big and little word order) comes in one event: the
+/// command splits it into the channel's registers as the daemon does and decodes it with the
+/// channel's codec. Such channels are enabled from the config too, at their first register.
+#[test]
+fn events_decode_values_wider_than_a_register_in_their_word_order() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(
+        dir.path().join("wide.json"),
+        json!({
+            "device_type": "sim-wide",
+            "device": {"name": "Wide", "id": "wide", "channels": [
+                {"name": "Big", "reg_type": "input", "address": 9, "type": "value",
+                 "format": "u32", "scale": 0.01, "semi-sporadic": true},
+                {"name": "Little", "reg_type": "input", "address": 20, "type": "value",
+                 "format": "u32", "word_order": "little_endian", "scale": 0.01,
+                 "sporadic": true}
+            ]}
+        })
+        .to_string(),
+    )
+    .unwrap();
+    let bus = dir.path().join("bus.json");
+    std::fs::write(
+        &bus,
+        json!({"devices": [{"name": "wide", "template": "wide.json", "address": 25,
+                            "serial": "0xFE000025", "line": "115200 8N2"}]})
+        .to_string(),
+    )
+    .unwrap();
+    let sim = SimProcess::start_with(&bus, dir.path(), &[]);
+    let port = port(&sim);
+    let config = dir.path().join("config.json");
+    std::fs::write(
+        &config,
+        json!({
+            "ports": [{"path": port, "baud_rate": 115200, "parity": "N", "data_bits": 8, "stop_bits": 2,
+                       "devices": [{"device_type": "sim-wide", "slave_id": 25}]}]
+        })
+        .to_string(),
+    )
+    .unwrap();
+    let (mut child, lines) = spawn_events(&[
+        "events",
+        "--port",
+        &port,
+        "--config",
+        config.to_str().unwrap(),
+        "--templates",
+        dir.path().to_str().unwrap(),
+        "--json",
+        "--count",
+        "2",
+        "--latency",
+        LATENCY_MS,
+    ]);
+    let mut enabled = Vec::new();
+    let mut reboot_seen = false;
+    while !(reboot_seen && enabled.len() == 4) {
+        let line = next_json(&lines);
+        if line["reboot"] == true {
+            reboot_seen = true;
+        } else if line.get("enabled").is_some() {
+            assert_eq!(line["enabled"], true, "{line}");
+            enabled.push(line["register"].as_u64().unwrap());
+        } else {
+            panic!("unexpected line before the values changed: {line}");
+        }
+    }
+    assert!(enabled.contains(&9) && enabled.contains(&20), "{enabled:?}");
+    // 0x0001_0002 = 65538: 655.38 at scale 0.01.
+    sim.control(
+        json!({"cmd": "set", "device": "wide", "type": "input", "address": 9, "value": [1, 2]}),
+    );
+    let big = next_json(&lines);
+    assert_eq!(
+        (
+            &big["register"],
+            &big["value"],
+            &big["channel"],
+            &big["text"]
+        ),
+        (&json!(9), &json!(65538), &json!("Big"), &json!("655.38")),
+        "{big}"
+    );
+    // Low word first: the same value. The payload is the registers in order (0x0002_0001).
+    sim.control(
+        json!({"cmd": "set", "device": "wide", "type": "input", "address": 20, "value": [2, 1]}),
+    );
+    let little = next_json(&lines);
+    assert_eq!(
+        (
+            &little["register"],
+            &little["value"],
+            &little["channel"],
+            &little["text"]
+        ),
+        (
+            &json!(20),
+            &json!(0x0002_0001),
+            &json!("Little"),
+            &json!("655.38")
+        ),
+        "{little}"
+    );
+    assert!(child.wait().unwrap().success());
+}
+
+/// `events` on a port another program holds, with no broker known: the port is busy (exit 3),
+/// whatever else is missing, and the message names every tool that goes through the service.
+#[test]
+fn events_on_a_busy_port_says_busy_and_names_the_tools_that_go_through_the_service() {
+    let sim = sim();
+    let port = port(&sim);
+    let holder = std::fs::OpenOptions::new()
+        .read(true)
+        .write(true)
+        .open(&sim.pty)
+        .unwrap();
+    let _lock =
+        nix::fcntl::Flock::lock(holder, nix::fcntl::FlockArg::LockExclusiveNonblock).unwrap();
+    let run = tool(&[
+        "events",
+        "--port",
+        &port,
+        "--service-config",
+        "/nonexistent/rtu2mqtt.json",
+    ]);
+    assert_eq!(run.code, 3, "{}{}", run.stdout, run.stderr);
+    assert!(run.stderr.contains("is busy"), "{}", run.stderr);
+    assert!(
+        run.stderr
+            .contains("scan, set-address, fix-addresses, read, write or events"),
+        "{}",
+        run.stderr
+    );
+}
+
+/// A count Modbus does not allow is a bad argument (exit 2), said before the port is opened
+/// (here it does not even exist); the limits depend on the register type.
+#[test]
+fn a_bad_count_exits_2_before_the_port_is_opened() {
+    let read = |register_type: &str, count: &str| {
+        tool(&[
+            "read",
+            "--port",
+            "/dev/ttyNOSUCH-rtu2mqtt",
+            "--address",
+            "1",
+            "--type",
+            register_type,
+            "--reg",
+            "0",
+            "--count",
+            count,
+            "--baud",
+            "9600",
+            "--parity",
+            "N",
+        ])
+    };
+    for (register_type, count, limit) in [
+        ("holding", "0", "1..=125 registers"),
+        ("holding", "200", "1..=125 registers"),
+        ("input", "126", "1..=125 registers"),
+        ("coil", "2001", "1..=2000 bits"),
+    ] {
+        let run = read(register_type, count);
+        assert_eq!(run.code, 2, "{register_type} {count}: {}", run.stderr);
+        assert!(run.stderr.contains(limit), "{}", run.stderr);
+        assert!(!run.stderr.contains("does not exist"), "{}", run.stderr);
+    }
+    // 200 coils are one request: on to the port, which is missing.
+    let run = read("coil", "200");
+    assert_eq!(run.code, 3, "{}", run.stderr);
+    assert!(run.stderr.contains("does not exist"), "{}", run.stderr);
+}
+
+/// `scan --classic` cannot go through the service (it scans with Fast Modbus only): with
+/// `--via-mqtt`, or on a busy port whose service is known, it is refused as bad usage before
+/// anything is scanned or asked.
+#[test]
+fn scan_classic_through_the_service_is_refused_before_scanning() {
+    let sim = sim();
+    let port = port(&sim);
+    let forced = tool(&[
+        "scan",
+        "--port",
+        &port,
+        "--classic",
+        "--via-mqtt",
+        "--broker",
+        "127.0.0.1:1",
+    ]);
+    assert_eq!(forced.code, 2, "{}{}", forced.stdout, forced.stderr);
+    assert!(
+        forced
+            .stderr
+            .contains("--classic is not available through the service"),
+        "{}",
+        forced.stderr
+    );
+    assert!(
+        forced.stderr.contains("stop the service"),
+        "{}",
+        forced.stderr
+    );
+    let holder = std::fs::OpenOptions::new()
+        .read(true)
+        .write(true)
+        .open(&sim.pty)
+        .unwrap();
+    let _lock =
+        nix::fcntl::Flock::lock(holder, nix::fcntl::FlockArg::LockExclusiveNonblock).unwrap();
+    let busy = tool(&[
+        "scan",
+        "--port",
+        &port,
+        "--classic",
+        "--broker",
+        "127.0.0.1:1",
+    ]);
+    assert_eq!(busy.code, 2, "{}{}", busy.stdout, busy.stderr);
+    assert!(
+        busy.stderr
+            .contains("--classic is not available through the service"),
+        "{}",
+        busy.stderr
+    );
+}
+
+/// The classic scan's first progress line already estimates the time left (every address as a
+/// silent one until probes have been timed), and the summary counts the classic probes.
+#[test]
+fn classic_scan_progress_estimates_from_the_start_and_the_summary_counts_probes() {
+    let sim = sim();
+    let port = port(&sim);
+    let run = tool(&[
+        "scan",
+        "--port",
+        &port,
+        "--baud",
+        "115200",
+        "--parity",
+        "N",
+        "--stop-bits",
+        "2",
+        "--classic",
+        "--range",
+        "38-41",
+        "--timeout",
+        "150",
+        "--latency",
+        LATENCY_MS,
+    ]);
+    assert_eq!(run.code, 0, "{}{}", run.stdout, run.stderr);
+    let first = run
+        .stderr
+        .lines()
+        .find(|l| l.starts_with("classic scan"))
+        .unwrap_or_else(|| panic!("no progress: {}", run.stderr));
+    assert!(first.contains("address 38: 0/4 (0%)"), "{first}");
+    let left: f64 = first
+        .split("about ")
+        .nth(1)
+        .and_then(|rest| rest.split(' ').next())
+        .and_then(|n| n.parse().ok())
+        .unwrap_or_else(|| panic!("{first}"));
+    // Four silent addresses at 150 ms + 100 ms allowance: at least a second.
+    assert!(left >= 1.0, "{first}");
+    assert!(
+        run.stdout
+            .contains("covered by 1 Fast Modbus transmission(s) and 4 classic probe(s)"),
+        "{}",
+        run.stdout
+    );
+    assert!(run.stdout.contains("OLDBOX"), "{}", run.stdout);
+}
+
+/// Through the running service (the daemon holds the port), `set-address` asks the new address
+/// with a classic request through the service's bus queue (`port/Load`), as `read` does: the
+/// meter without Fast Modbus at 30, which the service does not poll, answers and the address is
+/// refused; a silent one is taken.
+#[test]
+fn set_address_through_the_service_probes_the_new_address_there() {
+    let broker = mqtt_support::Mosquitto::start();
+    let dir = tempfile::tempdir().unwrap();
+    let bus = dir.path().join("bus.json");
+    let relay = sim_support::data("relay.json");
+    std::fs::write(
+        &bus,
+        json!({"devices": [
+            {"name": "relay", "template": relay.to_str().unwrap(), "address": 20,
+             "serial": "0xFE000020", "line": "115200 8N2", "model": "WBMR6C", "firmware": "1.26.0"},
+            {"name": "meter", "address": 30, "serial": "0x0D00001E", "line": "115200 8N2",
+             "fast": false, "registers": [{"type": "holding", "address": 0, "count": 8}]}
+        ]})
+        .to_string(),
+    )
+    .unwrap();
+    let sim = SimProcess::start_with(&bus, &sim_support::data(""), &[]);
+    let config = json!({
+        "mqtt": {"host": "127.0.0.1", "port": broker.port, "client_id": "rtu2mqtt-site-tools-test"},
+        "ports": [{"path": sim.pty, "baud_rate": 115200, "stop_bits": 2,
+                   "devices": [{"device_type": "sim-relay", "slave_id": 20}]}]
+    });
+    let data = sim_support::data("");
+    let _daemon = daemon_support::DaemonProcess::start(
+        &config,
+        &["--templates", data.to_str().unwrap()],
+        std::process::Stdio::null(),
+        std::process::Stdio::null(),
+    );
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    runtime.block_on(mqtt_support::wait_for(
+        "the advertised port/Load method",
+        || async {
+            let state = mqtt_support::retained(broker.port).await?;
+            (state.get("/rpc/v1/wb-mqtt-serial/port/Load")? == "1").then_some(())
+        },
+    ));
+    let port = port(&sim);
+    let broker_option = format!("127.0.0.1:{}", broker.port);
+    let set = |address: &str| {
+        tool(&[
+            "set-address",
+            "--port",
+            &port,
+            "--serial",
+            "0xFE000020",
+            "--address",
+            address,
+            "--broker",
+            &broker_option,
+        ])
+    };
+    let address_of_relay = || {
+        sim.control(
+            json!({"cmd": "get", "serial": "0xFE000020", "type": "holding", "address": 128}),
+        )["value"]
+            .clone()
+    };
+    let run = set("30");
+    assert_eq!(run.code, 1, "{}{}", run.stdout, run.stderr);
+    assert!(
+        run.stderr.contains("through the running rtu2mqtt service"),
+        "{}",
+        run.stderr
+    );
+    assert!(
+        run.stderr.contains(
+            "address 30 is already used at 115200 8N2: a device answered a classic request there \
+             (holding 128 = 30)"
+        ),
+        "{}",
+        run.stderr
+    );
+    assert_eq!(address_of_relay(), 20, "nothing written");
+    let run = set("31");
+    assert_eq!(run.code, 0, "{}{}", run.stdout, run.stderr);
+    assert!(
+        run.stdout
+            .contains("address 20 -> 31 (confirmed by a scan)"),
+        "{}",
+        run.stdout
+    );
+    assert_eq!(address_of_relay(), 31);
 }

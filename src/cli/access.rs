@@ -210,6 +210,49 @@ fn failure(target: &Target, answer: &Answer, timeout: Duration) -> String {
     }
 }
 
+/// How many registers (or bits) one request may carry, as Modbus allows: reads of 1..=125
+/// registers or 1..=2000 bits, writes of 1..=123 registers or 1..=1968 coils.
+pub fn span_limit(register_type: RegisterType, write: bool) -> u16 {
+    match (register_type.is_bit(), write) {
+        (true, false) => 2000,
+        (true, true) => 1968,
+        (false, false) => 125,
+        (false, true) => 123,
+    }
+}
+
+/// Checks a request's span before the port is opened: a count Modbus allows, and registers that
+/// exist (the last one at most 65535).
+fn check_span(
+    register_type: RegisterType,
+    start: u16,
+    count: u16,
+    write: bool,
+) -> Result<(), String> {
+    let limit = span_limit(register_type, write);
+    let what = if register_type.is_bit() {
+        if write {
+            "coils"
+        } else {
+            "bits"
+        }
+    } else {
+        "registers"
+    };
+    let verb = if write { "write" } else { "read" };
+    if !(1..=limit).contains(&count) {
+        return Err(format!(
+            "{count} {what} to {verb}: one Modbus request carries 1..={limit} {what}"
+        ));
+    }
+    if u32::from(start) + u32::from(count) - 1 > u32::from(u16::MAX) {
+        return Err(format!(
+            "{count} {what} from {start} go past register 65535"
+        ));
+    }
+    Ok(())
+}
+
 fn read_pdu(register_type: RegisterType, start: u16, count: u16) -> RequestPdu {
     match register_type {
         RegisterType::Coil => RequestPdu::ReadCoils { start, count },
@@ -305,6 +348,10 @@ async fn read(args: &ReadArgs) -> Result<ExitCode, PortError> {
             value_width(target_args.format, 1)
         }
     });
+    if let Err(message) = check_span(register_type, target_args.reg, count, false) {
+        eprintln!("{message}");
+        return Ok(ExitCode::from(exit::USAGE));
+    }
     let Some(mut port) = open_or_service(target_args)? else {
         return Ok(read_via_service(target_args, count).await);
     };
@@ -415,6 +462,11 @@ async fn write(args: &WriteArgs) -> Result<ExitCode, PortError> {
         );
         return Ok(ExitCode::from(exit::USAGE));
     };
+    let count = u16::try_from(words.len()).unwrap_or(u16::MAX);
+    if let Err(message) = check_span(register_type, target_args.reg, count, true) {
+        eprintln!("{message}");
+        return Ok(ExitCode::from(exit::USAGE));
+    }
     let Some(mut port) = open_or_service(target_args)? else {
         return Ok(write_via_service(target_args, &pdu, &words).await);
     };
@@ -441,7 +493,6 @@ async fn write(args: &WriteArgs) -> Result<ExitCode, PortError> {
         return Ok(ExitCode::from(exit::NOT_FOUND));
     }
     // Read back: what the device holds now (a device may clamp or refuse silently).
-    let count = u16::try_from(words.len()).unwrap_or(u16::MAX);
     let back = request(
         &mut port,
         &target,
@@ -625,5 +676,27 @@ async fn write_via_service(args: &TargetArgs, pdu: &RequestPdu, words: &[u16]) -
             eprintln!("written, but reading back through the service failed");
             ExitCode::SUCCESS
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn request_spans_are_checked_as_modbus_allows() {
+        assert!(check_span(RegisterType::Holding, 0, 125, false).is_ok());
+        assert!(check_span(RegisterType::Input, 0, 0, false).is_err());
+        assert!(check_span(RegisterType::Holding, 0, 126, false)
+            .unwrap_err()
+            .contains("1..=125 registers"));
+        assert!(check_span(RegisterType::Coil, 0, 2000, false).is_ok());
+        assert!(check_span(RegisterType::DiscreteInput, 0, 2001, false).is_err());
+        assert!(check_span(RegisterType::Holding, 0, 124, true).is_err());
+        assert!(check_span(RegisterType::Coil, 0, 1968, true).is_ok());
+        assert!(check_span(RegisterType::Holding, 65535, 1, false).is_ok());
+        assert!(check_span(RegisterType::Holding, 65535, 2, false)
+            .unwrap_err()
+            .contains("past register 65535"));
     }
 }

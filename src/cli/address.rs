@@ -2,7 +2,9 @@
 //! (Fast Modbus 0x46 0x08), so devices that share an address are told apart without unplugging
 //! anything, and check the result with a new scan.
 
+use std::collections::BTreeSet;
 use std::process::ExitCode;
+use std::time::Duration;
 
 use anyhow::Context as _;
 
@@ -111,6 +113,41 @@ async fn write_address(
             Answer::Garbled => Err("unreadable reply to the write (bad CRC)".into()),
         },
     )
+}
+
+/// How long a classic probe of a new address waits for a reply: a device without Fast Modbus
+/// (an energy meter, another vendor's module) may take a while to answer.
+pub const ADDRESS_PROBE_TIMEOUT: Duration = Duration::from_millis(500);
+
+/// The classic request that tells whether an address is in use: a read of holding 128 (any
+/// reply, an exception too, is a device).
+pub const ADDRESS_PROBE: RequestPdu = RequestPdu::ReadHoldingRegisters {
+    start: ADDRESS_REGISTER,
+    count: 1,
+};
+
+/// What answered a classic probe of an address, in words; None: nothing (the address is free).
+pub fn probe_answer_text(answer: &Answer) -> Option<String> {
+    match answer {
+        Answer::NoReply => None,
+        Answer::Pdu(ResponsePdu::Exception { code, .. }) => Some(format!(
+            "a device answered a classic request there with {code}"
+        )),
+        Answer::Pdu(ResponsePdu::ReadHoldingRegisters { values }) => Some(format!(
+            "a device answered a classic request there (holding {ADDRESS_REGISTER} = {})",
+            values
+                .iter()
+                .map(u16::to_string)
+                .collect::<Vec<_>>()
+                .join(" ")
+        )),
+        Answer::Pdu(_) => Some("a device answered a classic request there".into()),
+        Answer::Garbled => Some(
+            "an unreadable reply came to a classic request there (bad CRC: a device, or \
+             several, answering)"
+                .into(),
+        ),
+    }
 }
 
 pub fn run_set_address(args: SetAddressArgs) -> anyhow::Result<ExitCode> {
@@ -224,6 +261,23 @@ async fn set_address_steps(
         );
         return Ok(ExitCode::from(exit::NOT_FOUND));
     }
+    // A device without Fast Modbus does not take part in the scan: ask the address itself.
+    if taken_by.is_empty() {
+        if let Some(what) = bus.probe(line, args.address).await? {
+            if !args.force {
+                eprintln!(
+                    "address {} is already used at {line}: {what}; choose another (rtu2mqtt scan \
+                     --classic lists devices without Fast Modbus) or add --force",
+                    args.address
+                );
+                return Ok(ExitCode::from(exit::NOT_FOUND));
+            }
+            eprintln!(
+                "address {} at {line}: {what}; changing anyway (--force)",
+                args.address
+            );
+        }
+    }
     let change = AddressChange {
         serial: args.serial,
         line,
@@ -322,6 +376,8 @@ trait AddressBus {
         &mut self,
         change: &AddressChange,
     ) -> Result<Result<(), String>, ExitCode>;
+    /// A classic probe of `address` at `line`: what answered, None when nothing did (free).
+    async fn probe(&mut self, line: LineSettings, address: u8) -> Result<Option<String>, ExitCode>;
 }
 
 impl AddressBus for ToolPort {
@@ -347,6 +403,14 @@ impl AddressBus for ToolPort {
         write_address(self, change.line, change.serial, change.to)
             .await
             .map_err(|err| port_failure(&err))
+    }
+
+    async fn probe(&mut self, line: LineSettings, address: u8) -> Result<Option<String>, ExitCode> {
+        let answer = self
+            .classic(line, address, ADDRESS_PROBE, ADDRESS_PROBE_TIMEOUT)
+            .await
+            .map_err(|err| port_failure(&err))?;
+        Ok(probe_answer_text(&answer))
     }
 }
 
@@ -409,6 +473,57 @@ impl AddressBus for ServiceBus {
             },
         )
     }
+
+    /// Through the service's bus queue, as `read` goes: `port/Load` of holding 128.
+    async fn probe(&mut self, line: LineSettings, address: u8) -> Result<Option<String>, ExitCode> {
+        let timeout_ms = u64::try_from(ADDRESS_PROBE_TIMEOUT.as_millis()).unwrap_or(500);
+        let mut params = super::via_mqtt::line_params(&line);
+        params["path"] = serde_json::json!(self.path);
+        params["protocol"] = serde_json::json!("modbus");
+        params["function"] = serde_json::json!(ADDRESS_PROBE.function());
+        params["address"] = serde_json::json!(ADDRESS_REGISTER);
+        params["count"] = serde_json::json!(1);
+        params["format"] = serde_json::json!("HEX");
+        params["msg"] = serde_json::json!("");
+        params["response_timeout"] = serde_json::json!(timeout_ms);
+        params["slave_id"] = serde_json::json!(address);
+        // The service tries twice; then its turn on the bus.
+        let total = ADDRESS_PROBE_TIMEOUT * 2 + Duration::from_secs(5);
+        match self.session.call("port", "Load", params, total).await {
+            Ok(result) => {
+                if let Some(exception) = result.get("exception") {
+                    return Ok(Some(format!(
+                        "a device answered a classic request there with exception {} ({})",
+                        exception["code"],
+                        exception["msg"].as_str().unwrap_or("?")
+                    )));
+                }
+                let words = result["response"]
+                    .as_str()
+                    .and_then(|response| super::via_mqtt::response_words(response, false, 1));
+                Ok(Some(
+                    probe_answer_text(&Answer::Pdu(ResponsePdu::ReadHoldingRegisters {
+                        values: words.unwrap_or_default(),
+                    }))
+                    .unwrap_or_default(),
+                ))
+            }
+            Err(crate::rpc::client::CallError::Refused(refused))
+                if refused.message.contains("no reply") =>
+            {
+                Ok(None)
+            }
+            Err(crate::rpc::client::CallError::Refused(refused))
+                if refused.message.contains("unreadable reply") =>
+            {
+                Ok(probe_answer_text(&Answer::Garbled))
+            }
+            Err(err) => {
+                eprintln!("error: asking the service whether address {address} is free: {err}");
+                Err(ExitCode::from(exit::PORT))
+            }
+        }
+    }
 }
 
 async fn fix_addresses(args: &FixAddressesArgs) -> Result<ExitCode, PortError> {
@@ -440,6 +555,45 @@ async fn fix_addresses_on(bus: &mut impl AddressBus, args: &FixAddressesArgs) ->
         .unwrap_or_else(|code| code)
 }
 
+/// The address plan, every new address checked with a classic probe at its setting: an address
+/// where something answers (a device without Fast Modbus, which the scan does not list) is taken,
+/// and the plan is made again without it.
+async fn plan_free_addresses(
+    bus: &mut impl AddressBus,
+    report: &ScanReport,
+    range: (u8, u8),
+) -> Result<crate::tools::report::AddressPlan, ExitCode> {
+    let mut occupied = BTreeSet::new();
+    let mut free: Vec<(LineSettings, u8)> = Vec::new();
+    // Each round takes at least one more address, so there are at most as many as addresses.
+    loop {
+        let plan = report.plan_addresses_avoiding(range, &occupied);
+        let mut changed = false;
+        for change in &plan.changes {
+            if free.contains(&(change.line, change.to)) {
+                continue;
+            }
+            match bus.probe(change.line, change.to).await? {
+                None => {
+                    free.push((change.line, change.to));
+                }
+                Some(what) => {
+                    eprintln!(
+                        "address {} at {} is not free: {what}",
+                        change.to, change.line
+                    );
+                    occupied.insert(change.to);
+                    changed = true;
+                    break;
+                }
+            }
+        }
+        if !changed {
+            return Ok(plan);
+        }
+    }
+}
+
 async fn fix_addresses_steps(
     bus: &mut impl AddressBus,
     args: &FixAddressesArgs,
@@ -456,7 +610,7 @@ async fn fix_addresses_steps(
         );
         return Ok(ExitCode::SUCCESS);
     }
-    let address_plan = report.plan_addresses(args.range);
+    let address_plan = plan_free_addresses(bus, &report, args.range).await?;
     for problem in &address_plan.unresolved {
         eprintln!("cannot fix: {problem}");
     }
@@ -520,4 +674,32 @@ async fn fix_addresses_steps(
             ExitCode::SUCCESS
         },
     )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::protocol::pdu::ExceptionCode;
+
+    #[test]
+    fn any_answer_to_the_probe_takes_the_address_and_says_what_came() {
+        assert_eq!(probe_answer_text(&Answer::NoReply), None);
+        let exception = Answer::Pdu(ResponsePdu::Exception {
+            function: 3,
+            code: ExceptionCode(2),
+        });
+        assert_eq!(
+            probe_answer_text(&exception).as_deref(),
+            Some(
+                "a device answered a classic request there with exception 2 (illegal data address)"
+            )
+        );
+        let value = Answer::Pdu(ResponsePdu::ReadHoldingRegisters { values: vec![30] });
+        assert!(probe_answer_text(&value)
+            .unwrap()
+            .contains("holding 128 = 30"));
+        assert!(probe_answer_text(&Answer::Garbled)
+            .unwrap()
+            .contains("unreadable reply"));
+    }
 }

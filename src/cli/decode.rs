@@ -23,7 +23,19 @@ pub struct Args {
 }
 
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
-    let bytes = protocol::parse_hex(&args.hex.join(" ")).map_err(anyhow::Error::msg)?;
+    // Bytes that are no hex: bad input (exit 2, as every tool's bad arguments), not a frame
+    // that failed its check (exit 1).
+    let bytes = match protocol::parse_hex(&args.hex.join(" ")) {
+        Ok(bytes) if !bytes.is_empty() => bytes,
+        Ok(_) => {
+            eprintln!("error: no bytes given: e.g. rtu2mqtt decode 14 03 00 80 00 01 87 27");
+            return Ok(ExitCode::from(crate::tools::exit::USAGE));
+        }
+        Err(message) => {
+            eprintln!("error: {message}");
+            return Ok(ExitCode::from(crate::tools::exit::USAGE));
+        }
+    };
     let explained = explain(&bytes);
     if args.json {
         println!("{}", serde_json::to_string_pretty(&explained.to_json())?);

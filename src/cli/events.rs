@@ -116,6 +116,8 @@ struct ChannelName {
     device: String,
     channel: String,
     codec: Option<ValueCodec>,
+    /// Registers of the value (1 for bits).
+    width: u16,
 }
 
 /// Names, the port's settings and the event registers of the config's port with this path.
@@ -171,16 +173,23 @@ fn load_view(
                 let Some(read) = &register.read else {
                     continue;
                 };
-                let single = read.count == 1 || read.reg_type.is_bit();
+                let width = if read.reg_type.is_bit() {
+                    1
+                } else {
+                    read.count.max(1)
+                };
                 view.names.insert(
                     (device.slave_id, read.reg_type, read.address),
                     ChannelName {
                         device: device.id.clone(),
                         channel: channel.id.clone(),
-                        codec: single.then(|| register.codec.clone()),
+                        codec: Some(register.codec.clone()),
+                        width,
                     },
                 );
-                if channel.events != EventMode::Polled && single {
+                // A value wider than a register is enabled at its first register, as the daemon
+                // does: the device reports the whole value there.
+                if channel.events != EventMode::Polled {
                     view.enable.push(EnableSpec {
                         address: device.slave_id,
                         register_type: read.reg_type,
@@ -200,7 +209,11 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     }
     // The service holds the port: its events, not ours (polling the bus here would take them
     // away from it).
-    if matches!(args.port.open(), Err(PortError::Busy { .. })) && args.service.can_reach_service() {
+    // A busy port is said first, whatever else is missing: the settings would not help.
+    if let Err(busy @ PortError::Busy { .. }) = args.port.open() {
+        if !args.service.can_reach_service() {
+            return Ok(port_failure(&busy));
+        }
         eprintln!(
             "{} is busy: showing the running rtu2mqtt service's events (MQTT RPC)",
             args.port.port
@@ -521,6 +534,18 @@ fn print_repeat(origin: PacketOrigin, json_output: bool) {
     }
 }
 
+/// The words of a channel `width` registers wide, in register order, from an event's payload,
+/// as the daemon stores them: the payload is the value's number, little-endian, its most
+/// significant word in the first register (the channel's codec then applies its word order).
+/// A payload padded beyond the value gives its low words; one shorter than the value gives
+/// None (the daemon reads the rest; this command cannot tell it).
+fn value_words(payload: &[u8], width: u16) -> Option<Vec<u16>> {
+    let carried = crate::protocol::event_payload_words(payload);
+    let width = usize::from(width.max(1));
+    let skip = carried.len().checked_sub(width)?;
+    carried.get(skip..).map(<[u16]>::to_vec)
+}
+
 /// One event, in words or as JSON.
 fn print_event(origin: PacketOrigin, event: &Event, view: Option<&ConfigView>, json_output: bool) {
     let address = origin.address;
@@ -531,9 +556,9 @@ fn print_event(origin: PacketOrigin, event: &Event, view: Option<&ConfigView>, j
         _ => None,
     };
     let name = register_type.and_then(|t| view.and_then(|v| v.names.get(&(address, t, event.id))));
-    let decoded = name.and_then(|n| n.codec.as_ref()).and_then(|codec| {
-        let words: Vec<u16> = raw.map(|v| vec![v as u16]).unwrap_or_default();
-        match codec.decode(&words) {
+    let decoded = name.and_then(|n| {
+        let words = value_words(&event.payload, n.width)?;
+        match n.codec.as_ref()?.decode(&words) {
             Ok(Reading::Value(text)) => Some(text),
             _ => None,
         }
@@ -687,6 +712,19 @@ mod tests {
         // A restart resets the device's flag: not a repeat, whatever the flag.
         assert!(!repeats.is_repeat(20, 1, &[Event::reboot(), value.clone()]));
         assert!(!repeats.is_repeat(20, 0, &[value]));
+    }
+
+    #[test]
+    fn an_event_value_is_split_into_its_registers_as_the_daemon_does() {
+        // 0x0001_0002 little-endian: the high word in the first register.
+        let payload = [0x02, 0x00, 0x01, 0x00];
+        assert_eq!(value_words(&payload, 2), Some(vec![0x0001, 0x0002]));
+        // A 16-bit register padded to 32 bits: its low word.
+        assert_eq!(value_words(&payload, 1), Some(vec![0x0002]));
+        // Shorter than the value: not decoded.
+        assert_eq!(value_words(&payload[..2], 2), None);
+        // A bit: one byte.
+        assert_eq!(value_words(&[1], 1), Some(vec![1]));
     }
 
     #[test]

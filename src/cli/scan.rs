@@ -151,6 +151,22 @@ pub fn port_failure(err: &PortError) -> ExitCode {
 }
 
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+    // The service scans with Fast Modbus only: a classic scan through it would miss what it was
+    // asked for, so it is refused before anything is sent.
+    if args.classic {
+        let held = args.service.via_mqtt
+            || (matches!(args.port.open(), Err(PortError::Busy { .. }))
+                && args.service.can_reach_service());
+        if held {
+            eprintln!(
+                "--classic is not available through the service (it scans with Fast Modbus \
+                 only): stop the service (systemctl stop rtu2mqtt) and scan {} directly, or \
+                 scan without --classic",
+                args.port.port
+            );
+            return Ok(ExitCode::from(exit::USAGE));
+        }
+    }
     let mut report = ScanReport::default();
     let started = Instant::now();
     let mut interrupted = false;
@@ -181,7 +197,14 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             config_snippet(&report, &args.port.port, &library, &args.templates)
         );
     } else {
-        print!("{}", table(&report, elapsed));
+        print!(
+            "{}",
+            table(
+                &report,
+                elapsed,
+                &fix_command(&args, report.through_service)
+            )
+        );
     }
     if interrupted {
         eprintln!(
@@ -201,6 +224,44 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     } else {
         ExitCode::SUCCESS
     })
+}
+
+/// The `fix-addresses` command for the port this scan went to (through the service: with the
+/// options that reach it).
+fn fix_command(args: &Args, through_service: bool) -> String {
+    let mut command = format!(
+        "rtu2mqtt fix-addresses --port {}",
+        shell_word(&args.port.port)
+    );
+    if through_service {
+        if args.service.via_mqtt {
+            command.push_str(" --via-mqtt");
+        }
+        if let Some(broker) = &args.service.broker {
+            command.push_str(&format!(" --broker {}", shell_word(broker)));
+        } else if args.service.service_config != Path::new(crate::config::load::DEFAULT_CONFIG_PATH)
+        {
+            command.push_str(&format!(
+                " --service-config {}",
+                shell_word(&args.service.service_config.to_string_lossy())
+            ));
+        }
+    }
+    command.push_str(" --apply");
+    command
+}
+
+/// `text` as one shell word: quoted when it holds anything a shell would split or expand.
+fn shell_word(text: &str) -> String {
+    let plain = !text.is_empty()
+        && text
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || "/._-:+,=@%".contains(c));
+    if plain {
+        text.to_owned()
+    } else {
+        format!("'{}'", text.replace('\'', "'\\''"))
+    }
 }
 
 /// The scan itself, filling `report` as it goes (an interrupted scan keeps what it found).
@@ -290,7 +351,11 @@ async fn classic_scan(
     let total = plan.len() * usize::from(range.1 - range.0 + 1);
     let started = Instant::now();
     let mut done = 0usize;
+    let probes_before = report.classic_probes;
     for &line in plan {
+        // A silent address costs the timeout, the allowance and the request: the estimate
+        // until probes have been timed.
+        let silent = timeout + port.latency + line.wire_time(8);
         for address in range.0..=range.1 {
             done += 1;
             let known = report
@@ -300,11 +365,17 @@ async fn classic_scan(
             if known {
                 continue;
             }
-            progress(terminal, line, address, done, total, started);
+            let probed = report.classic_probes - probes_before;
+            let left = time_left(started.elapsed(), probed, total - (done - 1), silent);
+            let shown = terminal || probed == 0 || (done - 1) % 50 == 0;
+            if shown {
+                progress(terminal, line, address, done - 1, total, left);
+            }
             let probe = RequestPdu::ReadHoldingRegisters {
                 start: 128,
                 count: 1,
             };
+            report.classic_probes += 1;
             match port.classic(line, address, probe, timeout).await? {
                 Answer::Pdu(_) => {
                     let (identity, serial, settings) =
@@ -344,23 +415,33 @@ fn clear(terminal: bool) -> &'static str {
     }
 }
 
+/// Time left for `remaining` probes: at the pace of the `probed` ones so far (`elapsed`), or
+/// `silent` each (a probe that waits out its timeout) before any has been timed.
+fn time_left(elapsed: Duration, probed: usize, remaining: usize, silent: Duration) -> Duration {
+    let per_probe = match u32::try_from(probed) {
+        Ok(probed) if probed > 0 => elapsed / probed,
+        _ => silent,
+    };
+    per_probe.saturating_mul(u32::try_from(remaining).unwrap_or(u32::MAX))
+}
+
+/// One progress line: `done` addresses of `total` handled before this one.
 fn progress(
     terminal: bool,
     line: LineSettings,
     address: u8,
     done: usize,
     total: usize,
-    started: Instant,
+    left: Duration,
 ) {
-    let per_probe = started.elapsed().as_secs_f64() / done.max(1) as f64;
-    let left = per_probe * (total.saturating_sub(done)) as f64;
     let text = format!(
-        "classic scan {line}, address {address}: {done}/{total} ({}%), about {left:.0} s left",
-        done * 100 / total.max(1)
+        "classic scan {line}, address {address}: {done}/{total} ({}%), about {} s left",
+        done * 100 / total.max(1),
+        left.as_secs_f64().ceil()
     );
     if terminal {
         eprint!("{}{text}", clear(true));
-    } else if done == 1 || done % 50 == 0 {
+    } else {
         eprintln!("{text}");
     }
 }
@@ -421,7 +502,7 @@ fn serial_cell(device: &FoundDevice) -> String {
 }
 
 /// The table an integrator reads, with what needs attention below it.
-pub fn table(report: &ScanReport, elapsed: Duration) -> String {
+pub fn table(report: &ScanReport, elapsed: Duration, fix_command: &str) -> String {
     use std::fmt::Write as _;
     let duplicates = report.duplicates();
     let mut out = String::new();
@@ -459,9 +540,17 @@ pub fn table(report: &ScanReport, elapsed: Duration) -> String {
             notes.join("; ")
         );
     }
+    let classic = if report.classic_probes > 0 {
+        format!(
+            " and {} classic probe(s) (an address at a setting each)",
+            report.classic_probes
+        )
+    } else {
+        String::new()
+    };
     let _ = writeln!(
         out,
-        "{} device(s); {} setting(s) covered by {} transmission(s) in {:.2} s",
+        "{} device(s); {} setting(s) covered by {} Fast Modbus transmission(s){classic} in {:.2} s",
         report.devices.len(),
         report.settings_covered(),
         report.settings_tried.len(),
@@ -483,8 +572,7 @@ pub fn table(report: &ScanReport, elapsed: Duration) -> String {
             .collect();
         let _ = writeln!(
             out,
-            "duplicate: address {} at {} is used by {} devices ({}); fix with rtu2mqtt \
-             fix-addresses --port PORT --apply",
+            "duplicate: address {} at {} is used by {} devices ({}); fix with {fix_command}",
             duplicate.address,
             duplicate_settings(report, duplicate),
             duplicate.devices.len(),
@@ -563,6 +651,7 @@ pub fn report_json(report: &ScanReport, elapsed: Duration) -> Value {
     json!({
         "port_settings_scanned": report.settings_covered(),
         "transmissions": report.settings_tried.len(),
+        "classic_probes": report.classic_probes,
         "other_stop_bits": report.other_stop_bits,
         "elapsed_ms": u64::try_from(elapsed.as_millis()).unwrap_or(u64::MAX),
         "devices": report.devices.iter().map(device_json).collect::<Vec<_>>(),
@@ -708,13 +797,11 @@ fn port_stop_bits(devices: &[&FoundDevice]) -> (u8, Option<String>) {
 /// reads each device's details by serial number).
 async fn scan_via_service(args: &Args, report: &mut ScanReport) -> Result<(), PortError> {
     use crate::rpc::client::RpcSession;
+    report.through_service = true;
     let broker = args.service.broker_config().map_err(PortError::Service)?;
     let mut session = RpcSession::connect(&broker)
         .await
         .map_err(|err| PortError::Service(err.to_string()))?;
-    if args.classic {
-        eprintln!("--classic is not available through the service: Fast Modbus scan only");
-    }
     report.stop_bits_covered = args.port.filter().stop_bits_covered();
     for line in args.port.plan() {
         report.settings_tried.push(line);
@@ -775,7 +862,11 @@ mod tests {
     #[test]
     fn unknown_stop_bits_are_said_in_the_table_and_the_json() {
         let report = report();
-        let text = table(&report, Duration::from_millis(700));
+        let text = table(
+            &report,
+            Duration::from_millis(700),
+            "rtu2mqtt fix-addresses --port /dev/ttyRS485-1 --apply",
+        );
         let lines: Vec<&str> = text.lines().collect();
         assert!(lines[1].contains("9600 8N1"), "{text}");
         assert!(!lines[1].contains("not reported"), "{text}");
@@ -785,7 +876,7 @@ mod tests {
             "{text}"
         );
         assert!(
-            text.contains("2 device(s); 2 setting(s) covered by 1 transmission(s)"),
+            text.contains("2 device(s); 2 setting(s) covered by 1 Fast Modbus transmission(s) in"),
             "{text}"
         );
         let json = report_json(&report, Duration::from_millis(700));
@@ -795,6 +886,39 @@ mod tests {
         assert_eq!(json["devices"][0]["settings"], "9600 8N1");
         assert_eq!(json["devices"][1]["stop_bits"], Value::Null);
         assert_eq!(json["devices"][1]["settings"], "9600 8N?");
+    }
+
+    #[test]
+    fn the_classic_scan_estimates_its_time_from_the_start() {
+        let silent = Duration::from_millis(150);
+        // Nothing timed yet: every address as a silent one.
+        assert_eq!(
+            time_left(Duration::from_millis(3), 0, 10, silent),
+            Duration::from_millis(1500)
+        );
+        // Then the pace of the probes made.
+        assert_eq!(
+            time_left(Duration::from_millis(400), 4, 6, silent),
+            Duration::from_millis(600)
+        );
+        let mut report = report();
+        report.classic_probes = 30;
+        let text = table(&report, Duration::from_millis(700), "x");
+        assert!(
+            text.contains("covered by 1 Fast Modbus transmission(s) and 30 classic probe(s)"),
+            "{text}"
+        );
+        assert_eq!(
+            report_json(&report, Duration::from_millis(700))["classic_probes"],
+            30
+        );
+    }
+
+    #[test]
+    fn the_fix_command_is_one_to_paste() {
+        assert_eq!(shell_word("/dev/ttyRS485-1"), "/dev/ttyRS485-1");
+        assert_eq!(shell_word("/tmp/my port"), "'/tmp/my port'");
+        assert_eq!(shell_word("it's"), "'it'\\''s'");
     }
 
     #[test]

@@ -39,8 +39,10 @@ pub enum PortError {
     PermissionDenied { path: String },
     #[error(
         "{path} is busy: another program has it open (the rtu2mqtt or wb-mqtt-serial service?). \
-         Stop it first (systemctl stop rtu2mqtt) and try again, or go through the service: \
-         --via-mqtt --broker HOST (read, write, scan)"
+         Stop it first (systemctl stop rtu2mqtt) and try again, or go through the rtu2mqtt \
+         service: add --broker HOST[:PORT] (or --service-config FILE naming it; --via-mqtt to \
+         go through it even when the port is free) to scan, set-address, fix-addresses, read, \
+         write or events"
     )]
     Busy { path: String },
     #[error("{path} is not a serial port: {source}")]
@@ -569,6 +571,17 @@ mod tests {
         assert!(denied.to_string().contains("dialout"), "{denied}");
         let busy = classify("/dev/x", io::Error::from_raw_os_error(nix::libc::EBUSY));
         assert!(busy.to_string().contains("systemctl stop"), "{busy}");
+        // Every tool that goes through the service is named.
+        for tool in [
+            "scan",
+            "set-address",
+            "fix-addresses",
+            "read",
+            "write",
+            "events",
+        ] {
+            assert!(busy.to_string().contains(tool), "{tool}: {busy}");
+        }
         let other = classify("/dev/x", io::Error::from_raw_os_error(nix::libc::EIO));
         assert!(matches!(other, PortError::Other { .. }));
     }

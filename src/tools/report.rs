@@ -58,6 +58,10 @@ pub struct ScanReport {
     pub stop_bits_covered: Vec<u8>,
     /// Devices left out because they reported stop bits the scan was not asked for.
     pub other_stop_bits: usize,
+    /// Addresses probed one by one with a classic request (`scan --classic`).
+    pub classic_probes: usize,
+    /// The scan went through the running service (MQTT RPC), not the port.
+    pub through_service: bool,
 }
 
 /// Devices that share an address at one setting (stop bits aside: both hear the same request):
@@ -262,7 +266,14 @@ impl ScanReport {
     /// in use at any setting count as taken, so devices stay unique if the bus is later moved to
     /// one setting.
     pub fn plan_addresses(&self, range: (u8, u8)) -> AddressPlan {
+        self.plan_addresses_avoiding(range, &BTreeSet::new())
+    }
+
+    /// [`plan_addresses`](Self::plan_addresses), also keeping off `occupied`: addresses where
+    /// something the scan did not list answers (a device without Fast Modbus).
+    pub fn plan_addresses_avoiding(&self, range: (u8, u8), occupied: &BTreeSet<u8>) -> AddressPlan {
         let mut taken: BTreeSet<u8> = self.devices.iter().map(|d| d.address).collect();
+        taken.extend(occupied.iter().copied());
         let mut plan = AddressPlan::default();
         for duplicate in self.duplicates() {
             let mut members: Vec<&FoundDevice> = duplicate
