@@ -1,6 +1,12 @@
 //! `rtu2mqtt demo`: a virtual bus of five devices (the simulator), a broker (the one already
 //! listening on 127.0.0.1:1883, else a built-in one) and the daemon, with nothing to set up. Everything it needs is built in; it runs
 //! in a temporary directory and stops everything on Ctrl-C.
+//!
+//! The broker may be shared with a real installation (the machine's mosquitto, watched by Home
+//! Assistant), so the demo keeps to its own topics: every device id starts with `demo_` (a real
+//! daemon serving the same device types has `counter8_22`, never `demo_counter8_22`), the daemon
+//! clears its device topics and discovery configs on exit, and the demo then deletes its driver
+//! topics (`/rtu2mqtt/rtu2mqtt-demo/…`). One demo at a time per broker: see [`tidy_broker`].
 
 use crate::child::StopWithParent;
 use std::io::{BufRead, BufReader};
@@ -19,6 +25,25 @@ use crate::embedded_broker::EmbeddedBroker;
 const BUS: &str = include_str!("../../config/examples/sim-bus.json");
 const DAEMON_CONFIG: &str = include_str!("../../config/examples/sim-daemon.json");
 const SCENARIO: &str = include_str!("../../config/demo/scenario.script");
+
+/// Put before every device id of the demo, so that its topics (`/devices/demo_counter8_22/…`)
+/// and Home Assistant ids never meet those of a real daemon on the same broker: the daemon's
+/// clear on exit deletes every topic of its device ids, whoever published them.
+const DEVICE_ID_PREFIX: &str = "demo_";
+
+/// The demo daemon's MQTT client id (its driver topics are `/rtu2mqtt/rtu2mqtt-demo/…`, its HA
+/// ids `rtu2mqtt-demo_<device>`). Unlike the daemon's default (`rtu2mqtt`) or the simulator
+/// example's (`rtu2mqtt-sim`), so it does not take over a running daemon's connection (a broker
+/// drops the older of two clients with one id). Fixed rather than one per run, on purpose: two
+/// demos on one broker would still publish the same `demo_*` devices and each clear the
+/// other's on exit, so a second demo is refused instead ([`tidy_broker`] finds the first one's
+/// retained `online` status); and a fixed id means a demo that was killed leaves its discovery
+/// configs under the same topics the next run overwrites and clears, not under a new id each
+/// time.
+const CLIENT_ID: &str = "rtu2mqtt-demo";
+
+/// The demo's Home Assistant discovery prefix (HA's default).
+const HA_PREFIX: &str = "homeassistant";
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -79,19 +104,34 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let pty = dir.path().join("ttyRS485-demo");
     let control = dir.path().join("sim.sock");
 
-    let broker = if args.no_broker {
-        None
-    } else {
-        Some(choose_broker(args.mqtt_port)?)
-    };
-    let _sim = start_simulator(&bus, &templates, &pty, &control, &scenario)?;
-
     let config = dir.path().join("config.json");
     let mut daemon_config: Value = serde_json::from_str(&strip_comments(DAEMON_CONFIG))
         .context("the built-in demo config is not JSON")?;
     daemon_config["ports"][0]["path"] = Value::from(pty.display().to_string());
     daemon_config["mqtt"]["host"] = Value::from("127.0.0.1");
-    daemon_config["mqtt"]["client_id"] = Value::from("rtu2mqtt-demo");
+    daemon_config["mqtt"]["client_id"] = Value::from(CLIENT_ID);
+    // Leave nothing on the broker: the device topics (the daemon's default too) and, unlike
+    // the daemon's default, the discovery configs. A daemon keeps those on a restart so HA
+    // keeps its entities' names, areas and dashboards; the demo's devices go away for good
+    // with it, and configs left behind are phantom HA devices.
+    daemon_config["mqtt"]["clear_on_exit"] = Value::from(true);
+    daemon_config["mqtt"]["homeassistant"] = serde_json::json!({
+        "enabled": true,
+        "prefix": HA_PREFIX,
+        "clear_on_exit": true,
+    });
+    let base_ids = demo_device_ids(&mut daemon_config)?;
+
+    let broker = if args.no_broker {
+        None
+    } else {
+        Some(choose_broker(args.mqtt_port)?)
+    };
+    if let Some(DemoBroker::Existing(port)) = &broker {
+        tidy_broker(*port, &base_ids, Tidy::BeforeStart)?;
+    }
+    let _sim = start_simulator(&bus, &templates, &pty, &control, &scenario)?;
+
     if let Some(broker) = &broker {
         daemon_config["mqtt"]["port"] = Value::from(broker.port());
     }
@@ -119,12 +159,21 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
                     "  broker:     the broker already listening on 127.0.0.1:{port} (use --mqtt-port for another)"
                 ),
             }
+            eprintln!(
+                "  devices:    {} (the {DEVICE_ID_PREFIX} prefix keeps them apart from a real gateway's on the same broker)",
+                demo_ids(&base_ids).join(", ")
+            );
             eprintln!("  watch:      mosquitto_sub -h 127.0.0.1 -p {port} -t '/devices/#' -v");
-            eprintln!("  switch K2:  mosquitto_pub -h 127.0.0.1 -p {port} -t /devices/relay6_20/controls/K2/on -m 1");
+            eprintln!("  switch K2:  mosquitto_pub -h 127.0.0.1 -p {port} -t /devices/{DEVICE_ID_PREFIX}relay6_20/controls/K2/on -m 1");
         }
         None => eprintln!("  no broker:  device updates follow as JSON lines"),
     }
-    eprintln!("  Ctrl-C stops everything.");
+    match &broker {
+        Some(_) => eprintln!(
+            "  Ctrl-C stops everything and deletes the demo's retained topics and Home Assistant configs."
+        ),
+        None => eprintln!("  Ctrl-C stops everything."),
+    }
     let run_args = super::run::Args {
         config,
         templates: vec![templates],
@@ -133,6 +182,13 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     };
     let _live_view = broker.as_ref().map(|b| live_view(b.port()));
     let code = super::run::run(run_args)?;
+    // The daemon has deleted its devices' topics and discovery configs; what is left is its
+    // driver status (`offline`) and device record.
+    if let Some(DemoBroker::Existing(port)) = &broker {
+        if let Err(err) = tidy_broker(*port, &base_ids, Tidy::AfterExit) {
+            eprintln!("rtu2mqtt demo: the demo's driver topics may be left on the broker: {err:#}");
+        }
+    }
     // Stop the simulator and the broker before the directory they use goes.
     drop(_sim);
     drop(broker);
@@ -218,9 +274,13 @@ fn live_view(port: u16) -> std::thread::JoinHandle<()> {
                 match eventloop.poll().await {
                     Ok(Event::Incoming(Packet::Publish(p))) if !p.retain => {
                         let parts: Vec<&str> = p.topic.split('/').collect();
+                        // Only the demo's devices: the broker may serve a real gateway too.
                         if let [_, _, device, _, control] = parts.as_slice() {
+                            if !device.starts_with(DEVICE_ID_PREFIX) {
+                                continue;
+                            }
                             println!(
-                                "{:>9.3} s  {device:<14} {control:<24} {}",
+                                "{:>9.3} s  {device:<20} {control:<24} {}",
                                 started.elapsed().as_secs_f64(),
                                 String::from_utf8_lossy(&p.payload)
                             );
@@ -276,4 +336,188 @@ fn start_simulator(
         .recv_timeout(Duration::from_secs(15))
         .context("the simulator did not get ready within 15 s")?;
     Ok(guard)
+}
+
+/// Gives every device of the demo config the id `demo_<its usual id>` (the template's id and
+/// the slave id, as the daemon would name it); returns the usual ids, in config order.
+fn demo_device_ids(config: &mut Value) -> anyhow::Result<Vec<String>> {
+    let mut base_ids = Vec::new();
+    let ports = config["ports"]
+        .as_array_mut()
+        .context("the built-in demo config has no ports")?;
+    for device in ports
+        .iter_mut()
+        .filter_map(|port| port["devices"].as_array_mut())
+        .flatten()
+    {
+        let base = match device.get("id").and_then(Value::as_str) {
+            Some(id) => id.to_string(),
+            None => {
+                let device_type = device["device_type"]
+                    .as_str()
+                    .context("a device of the built-in demo config has no device_type")?;
+                let slave_id = match &device["slave_id"] {
+                    Value::String(text) => text.clone(),
+                    other => other.to_string(),
+                };
+                format!("{}_{slave_id}", template_id(device_type)?)
+            }
+        };
+        device["id"] = Value::from(format!("{DEVICE_ID_PREFIX}{base}"));
+        base_ids.push(base);
+    }
+    Ok(base_ids)
+}
+
+/// The ids the demo's devices have on the broker.
+fn demo_ids(base_ids: &[String]) -> Vec<String> {
+    base_ids
+        .iter()
+        .map(|id| format!("{DEVICE_ID_PREFIX}{id}"))
+        .collect()
+}
+
+/// The `device.id` of a built-in template (the prefix of its devices' default ids).
+fn template_id(device_type: &str) -> anyhow::Result<String> {
+    let file = format!("{device_type}.json");
+    let (_, text) = crate::config::library::BUILT_IN_TEMPLATES
+        .iter()
+        .find(|(name, _)| *name == file)
+        .with_context(|| format!("no built-in template {device_type}"))?;
+    let template: Value = serde_json::from_str(&strip_comments(text))
+        .with_context(|| format!("the built-in template {device_type} is not JSON"))?;
+    template["device"]["id"]
+        .as_str()
+        .map(str::to_string)
+        .with_context(|| format!("the built-in template {device_type} has no device.id"))
+}
+
+/// How long the demo waits for a shared broker to show and delete its retained topics.
+const TIDY_TIMEOUT: Duration = Duration::from_secs(10);
+
+/// When [`tidy_broker`] runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Tidy {
+    /// Before the daemon starts: refuse if another demo is online; delete the driver topics
+    /// and the discovery configs an earlier demo left.
+    BeforeStart,
+    /// After the daemon has exited (and deleted its devices' topics and discovery configs
+    /// itself): delete its driver topics.
+    AfterExit,
+}
+
+/// Deletes what the demo keeps retained on a shared broker, besides what its daemon deletes
+/// itself, by exact topic (nothing of another gateway is even read):
+/// - the driver topics `/rtu2mqtt/rtu2mqtt-demo/…`: status, availability, and the device
+///   record, which an older demo wrote with unprefixed ids such as `counter8_22`: the daemon's
+///   start-up sweep would delete those devices' topics, a real gateway's;
+/// - before the start, the discovery configs of the demo's HA devices, by exact node
+///   (`rtu2mqtt-demo_demo_counter8_22`, left by a demo that was killed, and
+///   `rtu2mqtt-demo_counter8_22`, left by the demos before the `demo_` ids).
+///
+/// Before the start it first checks that no other demo (or client with the demo's client id)
+/// is online there: two would take each other's connection and clear each other's devices.
+fn tidy_broker(port: u16, base_ids: &[String], when: Tidy) -> anyhow::Result<()> {
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .context("cannot start the demo's MQTT client")?;
+    runtime.block_on(async {
+        tokio::time::timeout(TIDY_TIMEOUT, tidy(port, base_ids, when))
+            .await
+            .with_context(|| format!("the broker on 127.0.0.1:{port} did not answer in time"))?
+    })
+}
+
+async fn tidy(port: u16, base_ids: &[String], when: Tidy) -> anyhow::Result<()> {
+    use rumqttc::{AsyncClient, Event, MqttOptions, Packet, QoS, SubscribeFilter};
+    use std::collections::BTreeSet;
+
+    let node = crate::mqtt::topics::topic_level(CLIENT_ID);
+    let driver = format!("/rtu2mqtt/{node}/");
+    let status = format!("{driver}status");
+    let discovery_nodes: BTreeSet<String> = base_ids
+        .iter()
+        .filter(|_| when == Tidy::BeforeStart)
+        .flat_map(|id| [id.clone(), format!("{DEVICE_ID_PREFIX}{id}")])
+        .map(|id| format!("{node}_{}", crate::mqtt::topics::topic_level(&id)))
+        .collect();
+    let id = format!("{CLIENT_ID}-tidy-{}", std::process::id());
+    let mut options = MqttOptions::new(id, "127.0.0.1", port);
+    options.set_max_packet_size(1 << 20, 1 << 20);
+    let (client, mut eventloop) = AsyncClient::new(options, 64);
+    let filters: Vec<SubscribeFilter> = std::iter::once(format!("{driver}#"))
+        .chain(
+            discovery_nodes
+                .iter()
+                .map(|node| format!("{HA_PREFIX}/+/{node}/+/config")),
+        )
+        .map(|filter| SubscribeFilter::new(filter, QoS::AtLeastOnce))
+        .collect();
+    // Sent to ourselves after subscribing: the broker delivers the retained messages of a
+    // subscription before a later publication of the same client, so when the marker comes
+    // back every retained topic there has been seen.
+    let marker = format!("{driver}tidy-{}", std::process::id());
+    let mut found = Vec::new();
+    // The marker back, and its acknowledgement (which must not count as a deletion's).
+    let (mut marker_back, mut marker_acked) = (false, false);
+    while !(marker_back && marker_acked) {
+        match eventloop.poll().await.context("MQTT")? {
+            Event::Incoming(Packet::ConnAck(_)) => {
+                client.subscribe_many(filters.clone()).await?;
+            }
+            Event::Incoming(Packet::SubAck(_)) => {
+                client
+                    .publish(marker.as_str(), QoS::AtLeastOnce, false, "x")
+                    .await?;
+            }
+            Event::Incoming(Packet::Publish(p)) if p.topic == marker => marker_back = true,
+            Event::Incoming(Packet::PubAck(_)) => marker_acked = true,
+            Event::Incoming(Packet::Publish(p)) if p.retain && !p.payload.is_empty() => {
+                found.push((p.topic, p.payload));
+            }
+            _ => {}
+        }
+    }
+    if when == Tidy::BeforeStart
+        && found
+            .iter()
+            .any(|(topic, payload)| *topic == status && payload.as_ref() == b"online")
+    {
+        let _ = client.disconnect().await;
+        anyhow::bail!(
+            "another rtu2mqtt demo (MQTT client id {CLIENT_ID}) is running on the broker at \
+             127.0.0.1:{port} ({status} is `online`): stop it first, or give this one its own \
+             broker with --mqtt-port. If none runs (a broker restored a stale status), delete \
+             the status: mosquitto_pub -h 127.0.0.1 -p {port} -r -n -t {status}"
+        );
+    }
+    // Deleted (empty retained payloads) while the event loop runs: the client's queue is
+    // bounded. Done when the broker has acknowledged every deletion.
+    let count = found.len();
+    let delete = async {
+        for (topic, _) in found {
+            client.publish(topic, QoS::AtLeastOnce, true, "").await?;
+        }
+        anyhow::Ok(())
+    };
+    let acknowledged = async {
+        let mut acks = 0;
+        while acks < count {
+            if let Event::Incoming(Packet::PubAck(_)) = eventloop.poll().await.context("MQTT")? {
+                acks += 1;
+            }
+        }
+        anyhow::Ok(())
+    };
+    let (deleted, acknowledged) = tokio::join!(delete, acknowledged);
+    deleted?;
+    acknowledged?;
+    client.disconnect().await?;
+    loop {
+        match eventloop.poll().await {
+            Ok(Event::Outgoing(rumqttc::Outgoing::Disconnect)) | Err(_) => return Ok(()),
+            Ok(_) => {}
+        }
+    }
 }
