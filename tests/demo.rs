@@ -376,3 +376,44 @@ fn a_second_demo_on_the_same_broker_is_refused() {
         .any(|t| t.starts_with("/devices/demo_counter8_22/controls/")));
     first.interrupt_and_check(dir);
 }
+
+/// wb-mqtt-serial's RPC method topics are shared by every server of them on the broker: the
+/// demo deletes them on exit only when nobody advertised them before it started (the test
+/// above), and leaves another server's (a real gateway, or wb-mqtt-serial kept for a meter).
+#[test]
+fn the_demo_leaves_the_rpc_methods_another_server_advertised() {
+    let runtime = tokio::runtime::Runtime::new().unwrap();
+    let broker = Mosquitto::start();
+    let port = broker.port;
+    let advertised = "/rpc/v1/wb-mqtt-serial/ports/Load";
+    runtime.block_on(publish(port, advertised, "1", true));
+    let demo = Demo::start(&["--mqtt-port", &port.to_string()]);
+    let dir = demo.files_dir();
+    runtime.block_on(wait_for("the demo online", || async {
+        let state = retained(port).await?;
+        (state.get("/rtu2mqtt/rtu2mqtt-demo/status")? == "online").then_some(())
+    }));
+    demo.interrupt_and_check(dir);
+    let deadline = Instant::now() + mqtt_support::TIMEOUT;
+    let after = loop {
+        let state = runtime
+            .block_on(retained(port))
+            .expect("the broker's state");
+        let demo_gone = !state
+            .keys()
+            .any(|t| t.starts_with("/rtu2mqtt/rtu2mqtt-demo/"));
+        if demo_gone || Instant::now() >= deadline {
+            break state;
+        }
+        // A condition poll: each round reads the broker again; the pause only paces it.
+        std::thread::sleep(Duration::from_millis(25));
+    };
+    assert_eq!(after.get(advertised).map(String::as_str), Some("1"));
+    assert_eq!(
+        after
+            .get("/rpc/v1/wb-mqtt-serial/port/Load")
+            .map(String::as_str),
+        Some("1"),
+        "the demo's own advertisement of the same methods stays with the other server's"
+    );
+}

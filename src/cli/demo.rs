@@ -122,13 +122,14 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     });
     let base_ids = demo_device_ids(&mut daemon_config)?;
 
+    let mut rpc_advertised_before = false;
     let broker = if args.no_broker {
         None
     } else {
         Some(choose_broker(args.mqtt_port)?)
     };
     if let Some(DemoBroker::Existing(port)) = &broker {
-        tidy_broker(*port, &base_ids, Tidy::BeforeStart)?;
+        rpc_advertised_before = tidy_broker(*port, &base_ids, Tidy::BeforeStart)?;
     }
     let _sim = start_simulator(&bus, &templates, &pty, &control, &scenario)?;
 
@@ -185,7 +186,10 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     // The daemon has deleted its devices' topics and discovery configs; what is left is its
     // driver status (`offline`) and device record.
     if let Some(DemoBroker::Existing(port)) = &broker {
-        if let Err(err) = tidy_broker(*port, &base_ids, Tidy::AfterExit) {
+        let after = Tidy::AfterExit {
+            rpc_advertised_before,
+        };
+        if let Err(err) = tidy_broker(*port, &base_ids, after) {
             eprintln!("rtu2mqtt demo: the demo's driver topics may be left on the broker: {err:#}");
         }
     }
@@ -402,8 +406,9 @@ enum Tidy {
     /// and the discovery configs an earlier demo left.
     BeforeStart,
     /// After the daemon has exited (and deleted its devices' topics and discovery configs
-    /// itself): delete its driver topics.
-    AfterExit,
+    /// itself): delete its driver topics, and the RPC method topics unless another server
+    /// advertised them before the demo started (they are shared: the daemon leaves them).
+    AfterExit { rpc_advertised_before: bool },
 }
 
 /// Deletes what the demo keeps retained on a shared broker, besides what its daemon deletes
@@ -417,7 +422,9 @@ enum Tidy {
 ///
 /// Before the start it first checks that no other demo (or client with the demo's client id)
 /// is online there: two would take each other's connection and clear each other's devices.
-fn tidy_broker(port: u16, base_ids: &[String], when: Tidy) -> anyhow::Result<()> {
+/// Returns whether wb-mqtt-serial's RPC methods were advertised on the broker (another server
+/// of them runs, or ran).
+fn tidy_broker(port: u16, base_ids: &[String], when: Tidy) -> anyhow::Result<bool> {
     let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()
@@ -429,7 +436,7 @@ fn tidy_broker(port: u16, base_ids: &[String], when: Tidy) -> anyhow::Result<()>
     })
 }
 
-async fn tidy(port: u16, base_ids: &[String], when: Tidy) -> anyhow::Result<()> {
+async fn tidy(port: u16, base_ids: &[String], when: Tidy) -> anyhow::Result<bool> {
     use rumqttc::{AsyncClient, Event, MqttOptions, Packet, QoS, SubscribeFilter};
     use std::collections::BTreeSet;
 
@@ -446,7 +453,10 @@ async fn tidy(port: u16, base_ids: &[String], when: Tidy) -> anyhow::Result<()> 
     let mut options = MqttOptions::new(id, "127.0.0.1", port);
     options.set_max_packet_size(1 << 20, 1 << 20);
     let (client, mut eventloop) = AsyncClient::new(options, 64);
-    let filters: Vec<SubscribeFilter> = std::iter::once(format!("{driver}#"))
+    // The advertised methods only: a request topic has one level more (its client).
+    let rpc_methods = format!("{}/+/+", crate::rpc::message::TOPIC_ROOT);
+    let filters: Vec<SubscribeFilter> = [format!("{driver}#"), rpc_methods]
+        .into_iter()
         .chain(
             discovery_nodes
                 .iter()
@@ -492,6 +502,17 @@ async fn tidy(port: u16, base_ids: &[String], when: Tidy) -> anyhow::Result<()> 
              the status: mosquitto_pub -h 127.0.0.1 -p {port} -r -n -t {status}"
         );
     }
+    let is_rpc = |topic: &str| topic.starts_with(crate::rpc::message::TOPIC_ROOT);
+    let rpc_advertised = found.iter().any(|(topic, _)| is_rpc(topic));
+    found.retain(|(topic, _)| {
+        !is_rpc(topic)
+            || matches!(
+                when,
+                Tidy::AfterExit {
+                    rpc_advertised_before: false
+                }
+            )
+    });
     // Deleted (empty retained payloads) while the event loop runs: the client's queue is
     // bounded. Done when the broker has acknowledged every deletion.
     let count = found.len();
@@ -516,7 +537,9 @@ async fn tidy(port: u16, base_ids: &[String], when: Tidy) -> anyhow::Result<()> 
     client.disconnect().await?;
     loop {
         match eventloop.poll().await {
-            Ok(Event::Outgoing(rumqttc::Outgoing::Disconnect)) | Err(_) => return Ok(()),
+            Ok(Event::Outgoing(rumqttc::Outgoing::Disconnect)) | Err(_) => {
+                return Ok(rpc_advertised)
+            }
             Ok(_) => {}
         }
     }
