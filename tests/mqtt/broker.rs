@@ -109,13 +109,13 @@ async fn writes_go_to_the_bus_side_and_bad_payloads_set_w() {
         rtu2mqtt::device_updates::Repeats::None,
     );
     assert!(bus_side_takes(&mqtt, &mut model, &write).await);
-    // Not a switch value: the device model refuses it, `w`, nothing written.
-    publish(broker.port, &format!("{k3}/on"), "7", false).await;
+    // Not a number: the device model refuses it, `w`, nothing written.
+    publish(broker.port, &format!("{k3}/on"), "on", false).await;
     let write = tokio::time::timeout(TIMEOUT, mqtt.writes.recv())
         .await
         .expect("a write within the timeout")
         .expect("writes channel open");
-    assert_eq!(write.payload, "7");
+    assert_eq!(write.payload, "on");
     assert!(!bus_side_takes(&mqtt, &mut model, &write).await);
     let state = state_with(broker.port, &format!("{k3}/meta/error"), "w").await;
     assert_eq!(state.get(&k3).map(String::as_str), Some("1"));
