@@ -353,9 +353,13 @@ async fn classic_scan(
     let mut done = 0usize;
     let probes_before = report.classic_probes;
     for &line in plan {
-        // A silent address costs the timeout, the allowance and the request: the estimate
-        // until probes have been timed.
-        let silent = timeout + port.latency + line.wire_time(8);
+        // A silent address costs the request, the timeout with the allowance, and the watch
+        // for a late reply after it (so that a slow device is not taken for the next address):
+        // the estimate until probes have been timed.
+        let reply_wait = timeout + port.latency;
+        let silent = line.wire_time(8)
+            + reply_wait
+            + reply_wait.min(crate::protocol::transaction::MAX_LATE_WINDOW);
         for address in range.0..=range.1 {
             done += 1;
             let known = report

@@ -12,7 +12,7 @@ use super::{LineSettings, Reply, ReplyBody, Request};
 const REPLY_SLACK_CHARACTERS: usize = 32;
 
 /// The longest a timed-out request watches the line for its late reply.
-const MAX_LATE_WINDOW: Duration = Duration::from_millis(100);
+pub const MAX_LATE_WINDOW: Duration = Duration::from_millis(100);
 
 /// One request and how long to wait for its reply. Every timeout counts from the end of the
 /// request on the wire: `request_time` after the transport handed it over.
