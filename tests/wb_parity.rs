@@ -1016,4 +1016,8 @@ fn bit_field_setup_items_of_one_register_keep_each_other() {
             (101, vec![0x9234]),
         ]
     );
+    // The bits no item so far defines: on a reconnect they come from the register's last
+    // read, as from wb-mqtt-serial's cache (the scheduler's `setup_words`).
+    let kept: Vec<Vec<u16>> = device.setup.iter().map(|i| i.kept_bits.clone()).collect();
+    assert_eq!(kept, vec![vec![0xFFF0], vec![0xFF00], vec![], vec![]]);
 }

@@ -313,7 +313,6 @@ impl ValueCodec {
         if self.is_bit {
             return Ok(vec![u16::from(field != 0)]);
         }
-        let count = self.word_count as usize;
         let base: u128 = if self.is_partial() {
             let current = current.ok_or(CodecError::NeedsCurrentWords)?;
             self.check_len(current)?;
@@ -325,6 +324,22 @@ impl ValueCodec {
         let shift = self.bit_shift.min(127);
         let joined =
             (base & !(self.mask() << shift)) | ((u128::from(field) & self.mask()) << shift);
+        Ok(self.register_words(joined))
+    }
+
+    /// The bits of its registers the value occupies, as register words in address order (all
+    /// ones for a whole-register value): what a write of it defines.
+    pub fn field_mask_words(&self) -> Vec<u16> {
+        if !self.is_partial() {
+            return vec![u16::MAX; self.word_count as usize];
+        }
+        self.register_words(self.mask() << self.bit_shift.min(127))
+    }
+
+    /// `joined` (the value's registers as one number, first register most significant in the
+    /// format's order) as register words in address order.
+    fn register_words(&self, joined: u128) -> Vec<u16> {
+        let count = self.word_count as usize;
         let mut ordered: Vec<u16> = (0..count)
             .map(|i| joined.checked_shr(16 * (count - 1 - i) as u32).unwrap_or(0) as u16)
             .collect();
@@ -334,7 +349,7 @@ impl ValueCodec {
         if self.word_order == WordOrder::LittleEndian {
             ordered.reverse();
         }
-        Ok(ordered)
+        ordered
     }
 
     /// `on_value` for "1" and `off_value` for "0", when the channel has them.

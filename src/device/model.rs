@@ -275,9 +275,13 @@ pub struct SetupItem {
     pub write_function: WriteFunction,
     /// The value as configured (for logs).
     pub value: String,
-    /// Encoded words; for a bit field (`codec.is_partial()`), merge into the current contents
-    /// with `codec.encode(&value, Some(current))`.
+    /// Encoded words: for a bit field, over what the setup items before it wrote to the
+    /// register (zeros elsewhere).
     pub words: Vec<u16>,
+    /// Per word, the bits no setup item up to this one defines (none for a whole-register
+    /// value): taken from the register's last read contents when there are some, as
+    /// wb-mqtt-serial composes setup writes over its register cache.
+    pub kept_bits: Vec<u16>,
     pub codec: ValueCodec,
     /// Set when the write comes from a template parameter.
     pub parameter_id: Option<String>,

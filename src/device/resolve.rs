@@ -212,25 +212,40 @@ pub fn resolve_device(
 /// the same registers (zeros where nothing was), as wb-mqtt-serial composes them over its
 /// register cache when it sets a device up: two parameters in one register
 /// (`"100:0:4"`, `"100:4:4"`) both hold, where each written over zeros would undo the other.
-/// (On a reconnect wb-mqtt-serial's cache also holds what polling last read of the register;
-/// rtu2mqtt writes the same words every time.)
+/// And notes the bits no item so far defines ([`SetupItem::kept_bits`]): on a reconnect
+/// wb-mqtt-serial's cache holds what polling last read of the register, and the scheduler
+/// takes those bits from there as it does.
 fn compose_bit_field_setup(setup: &mut [SetupItem]) {
     let mut written: BTreeMap<(RegisterType, u16), u16> = BTreeMap::new();
+    let mut defined: BTreeMap<(RegisterType, u16), u16> = BTreeMap::new();
     for item in setup.iter_mut() {
         let register = item.register;
-        let addresses = (0..item.codec.word_count)
-            .map(|i| (register.reg_type, register.address.wrapping_add(i as u16)));
+        let addresses: Vec<(RegisterType, u16)> = (0..item.codec.word_count)
+            .map(|i| (register.reg_type, register.address.wrapping_add(i as u16)))
+            .collect();
         if item.codec.is_partial() {
             let current: Vec<u16> = addresses
-                .clone()
-                .map(|at| written.get(&at).copied().unwrap_or(0))
+                .iter()
+                .map(|at| written.get(at).copied().unwrap_or(0))
                 .collect();
             if let Ok(words) = item.codec.encode(&item.value, Some(&current)) {
                 item.words = words;
             }
         }
-        for (at, &word) in addresses.zip(&item.words) {
-            written.insert(at, word);
+        for ((at, &word), mask) in addresses
+            .iter()
+            .zip(&item.words)
+            .zip(item.codec.field_mask_words())
+        {
+            written.insert(*at, word);
+            *defined.entry(*at).or_insert(0) |= mask;
+        }
+        item.kept_bits = addresses
+            .iter()
+            .map(|at| !defined.get(at).copied().unwrap_or(0))
+            .collect();
+        if item.kept_bits.iter().all(|&kept| kept == 0) {
+            item.kept_bits.clear();
         }
     }
 }
@@ -817,6 +832,7 @@ impl Walker {
                     write_function: register.write_function,
                     value,
                     words,
+                    kept_bits: Vec::new(),
                     codec: register.codec,
                     parameter_id: item.id.clone(),
                 }),

@@ -161,12 +161,18 @@ fn setup_writes(item: &SetupItem) -> Vec<SetupWrite> {
                 address: address.wrapping_add(u16::try_from(i).unwrap_or(u16::MAX)),
                 values: vec![word],
                 force_multiple: false,
+                kept_bits: item
+                    .kept_bits
+                    .get(i)
+                    .map(|&kept| vec![kept])
+                    .unwrap_or_default(),
             })
             .collect(),
         function => vec![SetupWrite {
             address,
             values: item.words.clone(),
             force_multiple: function == WriteFunction::Multiple,
+            kept_bits: item.kept_bits.clone(),
         }],
     }
 }

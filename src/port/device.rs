@@ -110,6 +110,9 @@ pub(super) struct DeviceState {
     pub suspended: bool,
     /// When a hold asked for a limited time ends (`None`: until resumed).
     pub suspended_until: Option<Duration>,
+    /// The holding registers whose setup writes keep bits of what was read there, with the
+    /// last word read (empty on most devices).
+    setup_reads: Vec<(u16, Option<u16>)>,
 }
 
 impl DeviceState {
@@ -135,6 +138,20 @@ impl DeviceState {
         by_span.sort_by_key(|&i| (plan.reads.get(i).map(|r| r.span), i));
         let health = DeviceHealth::new(plan.health);
         let response = ResponseTimer::new(line.response_timeout_floor(plan.response_timeout));
+        let mut setup_reads: Vec<(u16, Option<u16>)> = plan
+            .setup
+            .iter()
+            .flat_map(|write| {
+                write
+                    .kept_bits
+                    .iter()
+                    .enumerate()
+                    .filter(|(_, &kept)| kept != 0)
+                    .map(|(i, _)| (write.address.wrapping_add(i as u16), None))
+            })
+            .collect();
+        setup_reads.sort_unstable();
+        setup_reads.dedup();
         let mut state = Self {
             plan,
             health,
@@ -146,6 +163,7 @@ impl DeviceState {
             events_active: false,
             suspended: false,
             suspended_until: None,
+            setup_reads,
         };
         state.preparation = state.first_preparation_step();
         state
@@ -195,6 +213,33 @@ impl DeviceState {
             Preparation::Setup { next } => Some(next),
             _ => None,
         }
+    }
+
+    /// Keeps what a read of holding registers found where setup writes keep bits.
+    pub(super) fn note_read(&mut self, span: RegisterSpan, values: &[u16]) {
+        if self.setup_reads.is_empty() || span.register_type != RegisterType::Holding {
+            return;
+        }
+        for (address, last) in &mut self.setup_reads {
+            if let Some(&word) = address
+                .checked_sub(span.start)
+                .and_then(|offset| values.get(usize::from(offset)))
+            {
+                *last = Some(word);
+            }
+        }
+    }
+
+    /// The words of setup write `index`: its values, with the bits it keeps from the last read
+    /// of the register (as wb-mqtt-serial writes setup over its register cache).
+    pub(super) fn setup_words(&self, index: usize) -> Option<Vec<u16>> {
+        let write = self.plan.setup.get(index)?;
+        Some(write.words_over(|address| {
+            self.setup_reads
+                .iter()
+                .find(|(at, _)| *at == address)
+                .and_then(|(_, last)| *last)
+        }))
     }
 
     pub(super) fn wants_events(&self) -> bool {
@@ -737,6 +782,7 @@ mod tests {
             address: 100,
             values: vec![7],
             force_multiple: false,
+            kept_bits: Vec::new(),
         });
         let device = DeviceState::new(plan, true, &LineSettings::WIREN_BOARD_DEFAULT);
         let (ranges, _) = device.event_ranges();

@@ -74,6 +74,29 @@ pub struct SetupWrite {
     pub values: Vec<u16>,
     /// Use 0x10 even for one value (`holding_multi`), as [`RegisterWrite::force_multiple`].
     pub force_multiple: bool,
+    /// Per value, the bits the setup does not define (empty: none): taken from what was last
+    /// read of the register, when it has been read ([`crate::device::SetupItem`]'s
+    /// `kept_bits`).
+    pub kept_bits: Vec<u16>,
+}
+
+impl SetupWrite {
+    /// The words to write: `values`, with the kept bits from `last_read` (per register, None
+    /// where it has not been read).
+    pub fn words_over(&self, last_read: impl Fn(u16) -> Option<u16>) -> Vec<u16> {
+        self.values
+            .iter()
+            .enumerate()
+            .map(|(i, &value)| {
+                let kept = self.kept_bits.get(i).copied().unwrap_or(0);
+                let address = self.address.wrapping_add(i as u16);
+                match last_read(address) {
+                    Some(read) if kept != 0 => (read & kept) | (value & !kept),
+                    _ => value,
+                }
+            })
+            .collect()
+    }
 }
 
 /// One device on the bus.

@@ -949,14 +949,15 @@ impl PortScheduler {
         let device = self.devices.get(index)?;
         if let Some(setup_index) = device.next_setup_write() {
             let write = device.plan.setup.get(setup_index)?;
-            let pdu = match write.values.as_slice() {
+            let words = device.setup_words(setup_index)?;
+            let pdu = match words.as_slice() {
                 [value] if !write.force_multiple => RequestPdu::WriteSingleRegister {
                     address: write.address,
                     value: *value,
                 },
-                values => RequestPdu::WriteMultipleRegisters {
+                _ => RequestPdu::WriteMultipleRegisters {
                     start: write.address,
-                    values: values.to_vec(),
+                    values: words,
                 },
             };
             let transaction =
@@ -1363,6 +1364,7 @@ impl PortScheduler {
             return;
         }
         Self::health_success(state, device, now, out);
+        state.note_read(span, &values);
         let values = ReadWords::from(values);
         for &member in members {
             let Some(member_span) = state.read_span(member) else {

@@ -439,6 +439,7 @@ fn a_reboot_event_brings_setup_event_setup_and_a_fresh_read() {
         address: 5,
         values: vec![7],
         force_multiple: false,
+        kept_bits: Vec::new(),
     }];
     let mut scheduler = PortScheduler::new(settings(115_200), vec![plan]);
     let mut log = Log::default();
@@ -488,6 +489,57 @@ fn a_reboot_event_brings_setup_event_setup_and_a_fresh_read() {
         .events
         .iter()
         .any(|(_, e)| *e == PortEvent::Rebooted { device: 0 }));
+}
+
+/// A setup write of a bit field keeps the register's other bits as last read, as
+/// wb-mqtt-serial writes setup over its register cache: nothing read yet at start-up (the
+/// value as planned), the read contents after a reboot.
+#[test]
+fn a_bit_field_setup_write_keeps_the_bits_last_read() {
+    let mut plan = device(
+        20,
+        vec![
+            read(RegisterType::Coil, 0, EventMode::Sporadic),
+            read(RegisterType::Holding, 5, EventMode::Polled),
+        ],
+    );
+    plan.setup = vec![SetupWrite {
+        address: 5,
+        values: vec![0x0007],
+        force_multiple: false,
+        kept_bits: vec![0xFFF0],
+    }];
+    let mut scheduler = PortScheduler::new(settings(115_200), vec![plan]);
+    let mut log = Log::default();
+    let mut reboot = reboot_reported_at_poll(3, 20);
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(500),
+        |at, request| match &request.body {
+            RequestBody::Classic(RequestPdu::ReadHoldingRegisters { start: 5, count: 1 }) => {
+                TransactionOutcome::Reply(Reply::classic(
+                    20,
+                    ResponsePdu::ReadHoldingRegisters {
+                        values: vec![0x1230],
+                    },
+                ))
+            }
+            _ => reboot(at, request),
+        },
+    );
+    let setup_values: Vec<u16> = log
+        .sent
+        .iter()
+        .filter_map(|(_, r)| match &r.body {
+            RequestBody::Classic(RequestPdu::WriteSingleRegister { address: 5, value }) => {
+                Some(*value)
+            }
+            _ => None,
+        })
+        .collect();
+    assert_eq!(setup_values, [0x0007, 0x1237]);
 }
 
 #[test]
@@ -817,6 +869,7 @@ fn an_unplugged_device_comes_back_with_its_setup() {
         address: 9,
         values: vec![1],
         force_multiple: false,
+        kept_bits: Vec::new(),
     }];
     let mut scheduler = PortScheduler::new(settings(115_200), vec![plan]);
     let mut log = Log::default();
@@ -1819,6 +1872,7 @@ fn random_plan(rng: &mut Rng, address: u8) -> DevicePlan {
             address: 100 + i as u16,
             values: vec![1; 1 + rng.below(2) as usize],
             force_multiple: false,
+            kept_bits: Vec::new(),
         })
         .collect();
     let mut plan = device(address, reads);
