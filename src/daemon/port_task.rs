@@ -19,7 +19,8 @@ use crate::gateway::device_model::{apply_port_events, DeviceModel};
 use crate::gateway::port_plan::PortPlan;
 use crate::mqtt::throttle::{LogBudget, LogDecision};
 use crate::port::{
-    NextStep, PortEvent, PortScheduler, ReplyTiming, Transaction, TransactionOutcome,
+    GuardIntervals, NextStep, PortEvent, PortScheduler, ReplyTiming, Transaction,
+    TransactionOutcome,
 };
 use crate::protocol::LineSettings;
 use crate::service::{BrokerState, PortVitals, ServiceHealth};
@@ -34,7 +35,7 @@ const MAX_REOPEN_DELAY: Duration = Duration::from_secs(10);
 pub struct PortTask {
     plan_name: String,
     endpoint: crate::transport::Endpoint,
-    guard_interval: Duration,
+    guard_intervals: GuardIntervals,
     scheduler: PortScheduler,
     models: Vec<DeviceModel>,
     updates: mpsc::Sender<DeviceUpdate>,
@@ -137,7 +138,7 @@ impl PortTask {
         Self {
             plan_name: plan.name,
             endpoint: plan.endpoint,
-            guard_interval: plan.settings.guard_interval,
+            guard_intervals: plan.settings.guard_intervals.clone(),
             scheduler: PortScheduler::new(plan.settings, plan.devices),
             models,
             updates,
@@ -404,8 +405,7 @@ impl PortTask {
                 _ = shutdown.changed() => return,
             };
             match opened {
-                Ok(mut transport) => {
-                    transport.set_guard_interval(self.guard_interval);
+                Ok(transport) => {
                     info!(port = %self.plan_name, "port open");
                     self.set_open(true);
                     self.transacted = false;
@@ -502,6 +502,9 @@ impl PortTask {
                     };
                     // Shutdown never waits for the bus: a transaction may take seconds (long
                     // timeouts, a guard interval, a babbling line).
+                    transport.set_guard_interval(
+                        self.guard_intervals.before(transaction.request.address),
+                    );
                     let result = tokio::select! {
                         result = transport.transact(&transaction) => result,
                         _ = shutdown.changed() => return Ok(()),
@@ -633,6 +636,7 @@ impl PortTask {
         };
         debug!(port = %self.plan_name, away = ?bus.away, "queued transaction");
         let started = self.now();
+        transport.set_guard_interval(self.guard_intervals.before(job.transaction.request.address));
         match transport.transact(&job.transaction).await {
             Ok((outcome, _timing)) => {
                 // The status page counts it with the scheduler's own: the line was as busy.
@@ -675,7 +679,6 @@ impl PortTask {
             line: away.unwrap_or(*line),
         };
         let mut transport = Transport::open(&endpoint).await?;
-        transport.set_guard_interval(self.guard_interval);
         transport.continues(busy_until);
         debug!(port = %self.plan_name, settings = %endpoint.name(), "port settings switched");
         bus.transport = Some(transport);
@@ -775,6 +778,12 @@ impl PortTask {
         }
         let mut updates = std::mem::take(&mut self.update_buffer);
         apply_port_events(&mut self.models, events.drain(..), &mut updates);
+        let now = self.now();
+        crate::gateway::device_model::stop_unsupported_reads(
+            &mut self.models,
+            &mut self.scheduler,
+            now,
+        );
         self.send_all(&mut updates).await;
         self.update_buffer = updates;
     }

@@ -51,6 +51,9 @@ pub struct DeviceModel {
     touched: Vec<usize>,
     word_buffer: Vec<u16>,
     text: String,
+    /// Reads whose value was `unsupported_value`, for the scheduler to stop
+    /// ([`Self::take_unsupported_reads`]).
+    unsupported_reads: Vec<crate::port::RegisterSpan>,
 }
 
 /// Which channels read each register, and the channels' ids as updates carry them: built once
@@ -301,7 +304,14 @@ impl DeviceModel {
             touched: Vec::new(),
             word_buffer: Vec::new(),
             text: String::new(),
+            unsupported_reads: Vec::new(),
         }
+    }
+
+    /// The reads that answered `unsupported_value` since the last call: wb-mqtt-serial stops
+    /// reading such a register until the device reconnects (`UnsupportedRegisterOnBorder`).
+    pub fn take_unsupported_reads(&mut self) -> Vec<crate::port::RegisterSpan> {
+        std::mem::take(&mut self.unsupported_reads)
     }
 
     pub fn id(&self) -> &str {
@@ -557,7 +567,15 @@ impl DeviceModel {
                         self.push_value(index, value, from_event, changed, out);
                     }
                 }
-                Ok(Decoded::DeviceError | Decoded::Unsupported) => {
+                Ok(decoded @ (Decoded::DeviceError | Decoded::Unsupported)) => {
+                    if decoded == Decoded::Unsupported {
+                        self.unsupported_reads.extend(
+                            channel
+                                .registers
+                                .iter()
+                                .filter_map(|register| register.read.map(|r| r.span())),
+                        );
+                    }
                     self.update_flags(
                         index,
                         ErrorFlags {
@@ -857,6 +875,20 @@ pub fn apply_port_events(
     for device in evented {
         if let Some(model) = models.get_mut(device) {
             model.flush_events(out);
+        }
+    }
+}
+
+/// Hands the reads that answered `unsupported_value` from the device models (the port's, in
+/// the scheduler's order) to the scheduler, which stops them.
+pub fn stop_unsupported_reads(
+    models: &mut [DeviceModel],
+    scheduler: &mut crate::port::PortScheduler,
+    now: std::time::Duration,
+) {
+    for (device, model) in models.iter_mut().enumerate() {
+        for span in model.take_unsupported_reads() {
+            scheduler.stop_reading(now, device, span);
         }
     }
 }

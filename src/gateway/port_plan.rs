@@ -6,7 +6,7 @@ use std::time::Duration;
 use crate::config::config_file::{PortConfig, PortType};
 use crate::device::model::{ResolvedDevice, ResolvedPort, SetupItem, WriteFunction};
 use crate::port::{
-    DevicePlan, HealthPolicy, MergeLimits, PlannedRead, PortSettings, SetupWrite,
+    DevicePlan, GuardIntervals, HealthPolicy, MergeLimits, PlannedRead, PortSettings, SetupWrite,
     MIN_LATE_REPLY_HOLDOFF,
 };
 use crate::protocol::{LineSettings, Parity, RegisterType};
@@ -68,12 +68,13 @@ pub fn port_plan(port: &ResolvedPort, fast_modbus: bool) -> PortPlan {
         settings.event_interval = Duration::from_millis(interval.clamp(5, 10_000));
     }
     settings.low_priority_reads_per_second = port.low_priority_read_limit;
-    settings.guard_interval = port
-        .devices
-        .iter()
-        .map(|d| d.timing.guard_interval)
-        .max()
-        .unwrap_or_default();
+    settings.guard_intervals = GuardIntervals(
+        port.devices
+            .iter()
+            .filter(|d| !d.timing.guard_interval.is_zero())
+            .map(|d| (d.slave_id, d.timing.guard_interval))
+            .collect(),
+    );
     let endpoint = endpoint(&port.config);
     PortPlan {
         name: endpoint.name(),
@@ -132,6 +133,7 @@ pub fn device_plan(device: &ResolvedDevice) -> DevicePlan {
             max_read_registers: device.timing.max_read_registers,
             max_register_hole: device.timing.max_reg_hole,
             max_bit_hole: device.timing.max_bit_hole,
+            min_read_registers: device.timing.min_read_registers,
         },
         // Unset (-1 in the config) means: never disconnect for that reason.
         health: HealthPolicy {

@@ -47,6 +47,8 @@ pub struct VirtualGateway {
     epoch: Instant,
     line: LineSettings,
     exchange: Exchange,
+    /// Silence before a request, per device (the port task's rule).
+    guard_intervals: crate::port::GuardIntervals,
     scheduler: PortScheduler,
     models: Vec<DeviceModel>,
     planner: PublicationPlanner,
@@ -162,10 +164,8 @@ impl VirtualGateway {
             epoch: Instant::now(),
             line: plan.settings.line,
             // As `Transport::open` sets it for a serial port.
-            exchange: Exchange::new(LinkConfig {
-                guard_interval: plan.settings.guard_interval,
-                ..LinkConfig::serial(plan.settings.line)
-            }),
+            exchange: Exchange::new(LinkConfig::serial(plan.settings.line)),
+            guard_intervals: plan.settings.guard_intervals.clone(),
             scheduler: PortScheduler::new(plan.settings, plan.devices),
             models: Vec::new(),
             planner: PublicationPlanner::new(PlannerSettings {
@@ -334,6 +334,11 @@ impl VirtualGateway {
     fn hand_to_models(&mut self, events: Vec<crate::port::PortEvent>) {
         let mut updates = Vec::new();
         apply_port_events(&mut self.models, events, &mut updates);
+        crate::gateway::device_model::stop_unsupported_reads(
+            &mut self.models,
+            &mut self.scheduler,
+            self.now,
+        );
         self.sink(updates);
     }
 
@@ -370,6 +375,8 @@ impl VirtualGateway {
         transaction: &Transaction,
     ) -> (TransactionOutcome, ReplyTiming, Duration) {
         let mut now = self.now;
+        self.exchange
+            .set_guard_interval(self.guard_intervals.before(transaction.request.address));
         if self.exchange.start(transaction).is_err() {
             return (TransactionOutcome::NoReply, ReplyTiming::default(), now);
         }

@@ -16,8 +16,9 @@ use crate::protocol::{EventPriority, EventRange, EventSource, LineSettings, Regi
 pub(super) const KEEPALIVE_PERIOD: Duration = Duration::from_secs(1);
 
 /// Registers between two event values that are filled with disabled entries rather than
-/// starting a new record (wb-mqtt-serial's `DISABLE_EVENTS_IN_HOLES`: up to 5 registers).
-const MAX_EVENT_HOLE: u32 = 5;
+/// starting a new record: up to 4, as wb-mqtt-serial's `DISABLE_EVENTS_IN_HOLES` (the next
+/// value at most 5 registers past the last one, `TModbusExtTest.EventsEnablerRangesWithHoles`).
+const MAX_EVENT_HOLE: u32 = 4;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Preparation {
@@ -60,8 +61,11 @@ struct ReadState {
     exclusion: Exclusion,
     /// Read once after (re)connecting even when events deliver it.
     initial_pending: bool,
-    /// Never merged with others (a merged read including it was refused).
+    /// Not merged with others: a merged read including it was refused, and the reads are
+    /// taken one by one until each has answered or been refused on its own.
     solo: bool,
+    /// Split off and not yet read on its own.
+    solo_unknown: bool,
     /// Smoothed time between successful reads, for the `p` flag of periodic reads.
     average_interval: Option<Duration>,
     /// The actual period is more than 10 % over `read_period_ms`.
@@ -110,6 +114,12 @@ pub(super) struct DeviceState {
     pub suspended: bool,
     /// When a hold asked for a limited time ends (`None`: until resumed).
     pub suspended_until: Option<Duration>,
+    /// A merged read over unconfigured registers was refused: no more holes for this device,
+    /// as wb-mqtt-serial turns them off (`HolesAutoDisable`).
+    holes_off: bool,
+    /// A read split off a refused merged read was refused on its own: the refusal is
+    /// explained, and the others may be merged again once all are known.
+    split_found_refused: bool,
     /// The holding registers whose setup writes keep bits of what was read there, with the
     /// last word read (empty on most devices).
     setup_reads: Vec<(u16, Option<u16>)>,
@@ -130,6 +140,7 @@ impl DeviceState {
                 },
                 initial_pending: true,
                 solo: false,
+                solo_unknown: false,
                 average_interval: None,
                 period_missed: false,
             })
@@ -163,6 +174,8 @@ impl DeviceState {
             events_active: false,
             suspended: false,
             suspended_until: None,
+            holes_off: false,
+            split_found_refused: false,
             setup_reads,
         };
         state.preparation = state.first_preparation_step();
@@ -616,8 +629,9 @@ impl DeviceState {
         followers: impl IntoIterator<Item = (RegisterSpan, usize)>,
         members: &mut Vec<usize>,
     ) -> RegisterSpan {
+        let limits = self.merge_limits();
         for (next, index) in followers {
-            match self.plan.merge.extend(span, next) {
+            match limits.extend(span, next) {
                 Some(extended) => {
                     span = extended;
                     members.push(index);
@@ -661,6 +675,7 @@ impl DeviceState {
     pub(super) fn read_done(&mut self, now: Duration, index: usize) -> Option<bool> {
         let period = self.plan.reads.get(index).and_then(|p| p.period);
         let read = self.reads.get_mut(index)?;
+        read.solo_unknown = false;
         let previous = read.last_read.replace(now);
         let was_initial = std::mem::replace(&mut read.initial_pending, false);
         let mut changed = None;
@@ -679,6 +694,7 @@ impl DeviceState {
             }
         }
         self.reschedule(now, index);
+        self.merge_again_once_split_reads_are_known();
         changed
     }
 
@@ -688,18 +704,72 @@ impl DeviceState {
             if unsupported {
                 read.exclusion = Exclusion::Unsupported;
                 read.initial_pending = false;
+                if std::mem::take(&mut read.solo_unknown) {
+                    self.split_found_refused = true;
+                }
             }
         }
         self.reschedule(now, index);
+        self.merge_again_once_split_reads_are_known();
+    }
+
+    /// Marks the planned read of `span` unsupported (not read until the device restarts);
+    /// false when there is none or it already was.
+    pub(super) fn stop_reading(&mut self, now: Duration, span: RegisterSpan) -> bool {
+        let Some(index) = self.plan.reads.iter().position(|r| r.span == span) else {
+            return false;
+        };
+        if self.reads.get(index).map(|r| r.exclusion) == Some(Exclusion::Unsupported) {
+            return false;
+        }
+        self.read_failed(now, index, true);
+        true
     }
 
     /// A merged read was refused: read each part on its own to find the unsupported one.
-    pub(super) fn split_reads(&mut self, now: Duration, members: &[usize]) {
+    /// Once each has answered or been refused, the others are merged again (without the
+    /// refused ones, which are no longer read), as wb-mqtt-serial marks only the refused
+    /// register unavailable and goes on merging the rest (`UnavailableRegisterInTheMiddle`).
+    /// A read over unconfigured registers is first tried again without holes.
+    pub(super) fn split_reads(&mut self, now: Duration, span: RegisterSpan, members: &[usize]) {
+        let covered: u32 = members
+            .iter()
+            .filter_map(|&m| self.read_span(m))
+            .map(|s| u32::from(s.count))
+            .sum();
+        let without_holes = covered < u32::from(span.count) && !self.holes_off;
+        self.holes_off |= without_holes;
         for &member in members {
             if let Some(read) = self.reads.get_mut(member) {
-                read.solo = true;
+                if !without_holes {
+                    read.solo = true;
+                    read.solo_unknown = true;
+                }
                 read.next_due = now;
             }
+        }
+    }
+
+    /// The merge limits in force: the plan's, without holes once a read over them was refused.
+    fn merge_limits(&self) -> super::read_plan::MergeLimits {
+        let mut limits = self.plan.merge;
+        if self.holes_off {
+            limits.max_register_hole = 0;
+            limits.max_bit_hole = 0;
+        }
+        limits
+    }
+
+    /// When every read split off has answered or been refused on its own: if one was refused,
+    /// the rest are merged again; if none was, the device refuses the merged read itself (a
+    /// limit of its own on long reads) and they stay apart, as before.
+    fn merge_again_once_split_reads_are_known(&mut self) {
+        if !self.split_found_refused || self.reads.iter().any(|r| r.solo && r.solo_unknown) {
+            return;
+        }
+        self.split_found_refused = false;
+        for read in &mut self.reads {
+            read.solo = false;
         }
     }
 

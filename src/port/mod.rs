@@ -12,7 +12,9 @@ pub mod read_plan;
 pub mod scheduler;
 
 pub use health::{HealthPolicy, MIN_LATE_REPLY_HOLDOFF};
-pub use plan::{DevicePlan, EventMode, PlannedRead, PortSettings, RegisterWrite, SetupWrite};
+pub use plan::{
+    DevicePlan, EventMode, GuardIntervals, PlannedRead, PortSettings, RegisterWrite, SetupWrite,
+};
 pub use read_plan::{MergeLimits, RegisterSpan};
 pub use scheduler::{
     DeviceReport, NextStep, PortEvent, PortScheduler, ReplyTiming, Transaction, TransactionOutcome,

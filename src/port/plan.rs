@@ -22,8 +22,10 @@ pub struct PortSettings {
     pub latency_margin: Duration,
     /// Expected device turnaround, for wire-time estimates.
     pub turnaround: Duration,
-    /// Silence kept on the bus before every request (slow or picky devices).
-    pub guard_interval: Duration,
+    /// Silence kept on the bus before a request to these devices (slow or picky ones: their
+    /// `guard_interval_us`), not before other devices' requests or broadcasts, as
+    /// wb-mqtt-serial keeps it (`TModbusTest.GuardInterval`).
+    pub guard_intervals: GuardIntervals,
     /// Reads of channels without a read period, at most this many a second (the config's
     /// `rate_limit`, this port's share); `None`: as many as the bus carries.
     pub low_priority_reads_per_second: Option<u32>,
@@ -37,9 +39,24 @@ impl PortSettings {
             event_interval: line.event_poll_interval(),
             latency_margin: Duration::from_millis(5),
             turnaround: Duration::from_millis(1),
-            guard_interval: Duration::ZERO,
+            guard_intervals: GuardIntervals::default(),
             low_priority_reads_per_second: None,
         }
+    }
+}
+
+/// The devices of a port that want silence on the bus before their requests.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct GuardIntervals(pub Vec<(u8, Duration)>);
+
+impl GuardIntervals {
+    /// The silence to keep before a request to `address` (none for broadcasts).
+    pub fn before(&self, address: u8) -> Duration {
+        self.0
+            .iter()
+            .find(|(device, _)| *device == address)
+            .map(|(_, guard)| *guard)
+            .unwrap_or_default()
     }
 }
 

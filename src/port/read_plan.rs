@@ -52,6 +52,10 @@ pub struct MergeLimits {
     pub max_register_hole: u16,
     /// Unconfigured bits allowed inside one read.
     pub max_bit_hole: u16,
+    /// Fewest registers (or bits) per read: a shorter read asks for this many from its start,
+    /// for devices that refuse shorter ones (wb-mqtt-serial's `min_read_registers`); 0 or 1:
+    /// no minimum.
+    pub min_read_registers: u16,
 }
 
 impl Default for MergeLimits {
@@ -61,11 +65,21 @@ impl Default for MergeLimits {
             max_read_registers: 1,
             max_register_hole: 0,
             max_bit_hole: 0,
+            min_read_registers: 1,
         }
     }
 }
 
 impl MergeLimits {
+    /// `span` read as the device needs it: at least `min_read_registers` long (not past the
+    /// end of the address space). The words beyond the span are read and not used
+    /// (`TModbusTest.MinReadRegisters`).
+    pub fn at_least_min(&self, span: RegisterSpan) -> RegisterSpan {
+        let room = u16::try_from(65_536 - u32::from(span.start)).unwrap_or(u16::MAX);
+        let count = span.count.max(self.min_read_registers.min(room));
+        RegisterSpan { count, ..span }
+    }
+
     pub fn max_count(&self, register_type: RegisterType) -> u16 {
         let protocol_max = if register_type.is_bit() {
             MAX_READ_BITS
@@ -115,6 +129,7 @@ mod tests {
             max_read_registers: 10,
             max_register_hole: 2,
             max_bit_hole: 0,
+            min_read_registers: 1,
         };
         assert_eq!(
             limits.extend(holding(0, 2), holding(2, 2)),

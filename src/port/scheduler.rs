@@ -316,6 +316,19 @@ impl PortScheduler {
         }
     }
 
+    /// The device answered `span` with its `unsupported_value`: not read again until the
+    /// device reconnects or restarts, as a register it refused (wb-mqtt-serial's
+    /// `UnsupportedRegisterOnBorder`). Merged reads go on without it.
+    pub fn stop_reading(&mut self, now: Duration, device: usize, span: RegisterSpan) {
+        let Some(state) = self.devices.get_mut(device) else {
+            return;
+        };
+        if state.stop_reading(now, span) {
+            debug!(device = %state.plan.name, ?span, "unsupported value: no longer read");
+            self.index.mark_stale(device);
+        }
+    }
+
     /// The firmware of `device` was read (`None`: it could not be): channels that need newer
     /// firmware are never read and reported unsupported (`r`), as wb-mqtt-serial does; the
     /// others, held until now, are read.
@@ -1015,6 +1028,7 @@ impl PortScheduler {
     ) -> Option<(Transaction, InFlight)> {
         let ReadChoice { span, members, .. } = choice;
         let state = self.devices.get(device)?;
+        let span = state.plan.merge.at_least_min(span);
         let transaction = self.classic_transaction(
             now,
             state,
@@ -1348,7 +1362,7 @@ impl PortScheduler {
                     );
                     if permanent && members.len() > 1 {
                         debug!(device = %state.plan.name, ?span, %code, "merged read refused: reading its parts one by one");
-                        state.split_reads(now, members);
+                        state.split_reads(now, span, members);
                     } else {
                         Self::reads_failed(state, device, now, members, permanent, out);
                     }

@@ -37,6 +37,7 @@ fn device(address: u8, reads: Vec<PlannedRead>) -> DevicePlan {
             max_read_registers: 0,
             max_register_hole: 0,
             max_bit_hole: 0,
+            min_read_registers: 1,
         },
         health: HealthPolicy::default(),
         reads,
@@ -663,6 +664,72 @@ fn a_refused_merged_read_is_split_and_only_the_bad_register_dropped() {
     assert!(after_split
         .iter()
         .any(|(_, pdu)| *pdu == RequestPdu::ReadHoldingRegisters { start: 2, count: 1 }));
+}
+
+/// Registers 0 and 2 with a gap the device does not have: once the refused one (1) is known,
+/// the others are merged again where they can be. And a device that refuses a merged read of
+/// registers it answers one by one (a limit of its own on long reads) has them read apart from
+/// then on, not merged and refused again every cycle.
+#[test]
+fn reads_split_off_a_refused_read_merge_again_only_when_a_register_was_refused() {
+    let refusing = |refuse: fn(u16, u16) -> bool| {
+        move |_: Duration, request: &Request| match &request.body {
+            RequestBody::Classic(RequestPdu::ReadHoldingRegisters { start, count })
+                if refuse(*start, *count) =>
+            {
+                TransactionOutcome::Reply(Reply::classic(
+                    7,
+                    ResponsePdu::Exception {
+                        function: 3,
+                        code: ExceptionCode::ILLEGAL_DATA_ADDRESS,
+                    },
+                ))
+            }
+            _ => healthy(request),
+        }
+    };
+    let plan = || {
+        let reads = [0, 1, 2, 3]
+            .into_iter()
+            .map(|a| read(RegisterType::Holding, a, EventMode::Polled))
+            .collect();
+        PortScheduler::new(settings(115_200), vec![device(7, reads)])
+    };
+    // Register 3 is missing: after the split, 0…2 are read together again.
+    let mut scheduler = plan();
+    let mut log = Log::default();
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(300),
+        refusing(|start, count| start <= 3 && start + count > 3),
+    );
+    let reads = log.classic_to(7);
+    let merged = RequestPdu::ReadHoldingRegisters { start: 0, count: 3 };
+    assert!(
+        reads.iter().filter(|(_, pdu)| *pdu == merged).count() > 5,
+        "{reads:?}"
+    );
+    // Every read of more than one register refused: one refused read, then one by one.
+    let mut scheduler = plan();
+    let mut log = Log::default();
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(300),
+        refusing(|_, count| count > 1),
+    );
+    let reads = log.classic_to(7);
+    let long = reads
+        .iter()
+        .filter(
+            |(_, pdu)| matches!(pdu, RequestPdu::ReadHoldingRegisters { count, .. } if *count > 1),
+        )
+        .count();
+    assert_eq!(long, 1, "{reads:?}");
+    assert!(reads.len() > 20, "{reads:?}");
 }
 
 #[test]
@@ -1881,6 +1948,7 @@ fn random_plan(rng: &mut Rng, address: u8) -> DevicePlan {
         max_read_registers: rng.below(6) as u16,
         max_register_hole: rng.below(3) as u16,
         max_bit_hole: rng.below(3) as u16,
+        min_read_registers: 1,
     };
     if rng.chance(50) {
         plan.health = HealthPolicy {

@@ -1081,6 +1081,7 @@ async fn device_load_config(
         max_read_registers: device.timing.max_read_registers,
         max_register_hole: device.timing.max_reg_hole,
         max_bit_hole: device.timing.max_bit_hole,
+        min_read_registers: device.timing.min_read_registers,
     };
     let mut words = ReadWords::new();
     let keep = |words: &mut ReadWords, span: crate::port::RegisterSpan, values: Vec<u16>| {
@@ -1089,20 +1090,26 @@ async fn device_load_config(
         }
     };
     for read in group_reads(&spans, limits) {
-        match read_span(&mut bus, line, device.slave_id, read).await? {
-            SpanRead::Words(values) => keep(&mut words, read, values),
+        let asked = limits.at_least_min(read);
+        match read_span(&mut bus, line, device.slave_id, asked).await? {
+            SpanRead::Words(values) => keep(&mut words, asked, values),
             SpanRead::Refused(_) => {
                 // A refused parameter is left out, as wb-mqtt-serial leaves it; one the device
                 // does not have must not hide the others read with it.
                 let members: Vec<_> = spans.iter().filter(|s| read.contains(s)).copied().collect();
-                for member in group_reads(&members, crate::port::MergeLimits::default()) {
+                let one_by_one = crate::port::MergeLimits {
+                    min_read_registers: limits.min_read_registers,
+                    ..crate::port::MergeLimits::default()
+                };
+                for member in group_reads(&members, one_by_one) {
                     if member == read {
                         continue;
                     }
+                    let asked = one_by_one.at_least_min(member);
                     if let SpanRead::Words(values) =
-                        read_span(&mut bus, line, device.slave_id, member).await?
+                        read_span(&mut bus, line, device.slave_id, asked).await?
                     {
-                        keep(&mut words, member, values);
+                        keep(&mut words, asked, values);
                     }
                 }
             }

@@ -493,6 +493,7 @@ mod tests {
             max_read_registers: 0,
             max_register_hole: 0,
             max_bit_hole: 0,
+            min_read_registers: 1,
         };
         assert_eq!(
             group_reads(&spans, no_holes),
