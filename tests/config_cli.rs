@@ -953,6 +953,12 @@ fn a_config_device_of_another_protocol_is_named_at_its_protocol() {
     );
     let (ok, text) = with_fixtures("check-config", &port_off);
     assert!(ok && text.contains("ok (1 port, 1 device,"), "{text}");
+    // Its path is not on this machine: said, not failed; the disabled port is not mentioned.
+    assert!(
+        text.contains("note: the serial port /dev/ttyRS485-2 does not exist on this machine"),
+        "{text}"
+    );
+    assert!(!text.contains("/dev/ttyRS485-1 does not exist"), "{text}");
 }
 
 #[test]
@@ -1045,4 +1051,21 @@ fn a_later_template_that_does_not_load_is_named_with_the_one_it_replaced() {
     // The other order: the good one is the last, and used.
     let (ok, text) = run(&[&second, &first]);
     assert!(ok, "{text}");
+}
+
+/// A `max_unchanged_interval` under 5 s works as 5 s; `check-config` says so, without failing.
+#[test]
+fn a_short_max_unchanged_interval_is_said_to_be_raised() {
+    let (ok, text) = check_config(
+        r#"{"max_unchanged_interval": 3, "ports": [{"path": "/dev/ttyRS485-1", "devices": []}]}"#,
+    );
+    assert!(ok, "{text}");
+    assert!(
+        text.contains("note: max_unchanged_interval 3 is raised to 5 s"),
+        "{text}"
+    );
+    let (ok, text) = check_config(
+        r#"{"max_unchanged_interval": 10, "ports": [{"path": "/dev/ttyRS485-1", "devices": []}]}"#,
+    );
+    assert!(ok && !text.contains("max_unchanged_interval"), "{text}");
 }

@@ -407,6 +407,27 @@ fn the_page_shows_devices_and_live_values_in_headless_chromium() {
     )
     .unwrap();
     assert_eq!(code, 403);
+    // A device or control the gateway does not have is named as such.
+    for (request, answer) in [
+        (
+            r#"{"device": "nope", "control": "K2", "value": "1"}"#,
+            "no device `nope` on this gateway",
+        ),
+        (
+            r#"{"device": "relay6_20", "control": "K9", "value": "1"}"#,
+            "no control `K9` on device `relay6_20`",
+        ),
+    ] {
+        let (code, _, body) = http(
+            port,
+            "POST",
+            "/api/write",
+            &[("content-type", "application/json"), ("x-rtu2mqtt", "1")],
+            request,
+        )
+        .unwrap();
+        assert_eq!((code, body.trim()), (404, answer));
+    }
     // The frames log decodes what went to and came from the relay.
     let (code, body) = get(port, "/api/frames?device=relay6_20").unwrap();
     assert_eq!(code, 200);

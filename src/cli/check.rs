@@ -45,6 +45,19 @@ pub fn load_or_print_errors(path: &Path) -> Option<LoadedConfig> {
     }
 }
 
+/// The enabled serial ports of `config` whose device file is not there.
+fn missing_serial_ports(config: &crate::config::config_file::Config) -> Vec<&str> {
+    config
+        .ports
+        .iter()
+        .filter(|port| {
+            port.enabled && port.port_type == crate::config::config_file::PortType::Serial
+        })
+        .filter_map(|port| port.path.as_deref())
+        .filter(|path| !Path::new(path).exists())
+        .collect()
+}
+
 pub fn run_check_config(args: CheckConfigArgs) -> anyhow::Result<ExitCode> {
     let Some(loaded) = load_or_print_errors(&args.config) else {
         return Ok(ExitCode::FAILURE);
@@ -66,6 +79,20 @@ pub fn run_check_config(args: CheckConfigArgs) -> anyhow::Result<ExitCode> {
     }
     match result {
         Ok(ports) => {
+            if (1..5).contains(&loaded.config.max_unchanged_interval) {
+                println!(
+                    "note: max_unchanged_interval {} is raised to 5 s, the shortest the service \
+                     republishes unchanged values at",
+                    loaded.config.max_unchanged_interval
+                );
+            }
+            // Not a warning (`--strict` passes): a USB adapter may be plugged in later.
+            for path in missing_serial_ports(&loaded.config) {
+                println!(
+                    "note: the serial port {path} does not exist on this machine (yet): a USB \
+                     adapter not plugged in, or a typo? The service retries it until it appears."
+                );
+            }
             let devices: usize = ports.iter().map(|p| p.devices.len()).sum();
             let channels: usize = ports
                 .iter()

@@ -103,6 +103,7 @@ impl Default for StatusHub {
 /// Why a write from the page was not queued.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum WriteRefused {
+    UnknownDevice,
     UnknownControl,
     ReadOnly,
     NotRunning,
@@ -167,12 +168,16 @@ impl StatusHub {
 
     /// Queues a write to a control as MQTT's `…/on` would.
     pub fn write(&self, device: &str, control: &str, value: &str) -> Result<(), WriteRefused> {
-        let channel = self
-            .ports()
+        let ports = self.ports();
+        let channel = ports
             .iter()
             .flat_map(|port| port.devices.iter())
             .find(|d| d.id == device)
-            .and_then(|d| d.channels.iter().find(|c| c.id == control).cloned())
+            .ok_or(WriteRefused::UnknownDevice)?
+            .channels
+            .iter()
+            .find(|c| c.id == control)
+            .cloned()
             .ok_or(WriteRefused::UnknownControl)?;
         if channel.readonly {
             return Err(WriteRefused::ReadOnly);

@@ -328,6 +328,11 @@ async fn write(State(state): State<AppState>, headers: HeaderMap, body: Bytes) -
             info!(%device, %control, %value, "write from the status page");
             (StatusCode::ACCEPTED, "queued\n").into_response()
         }
+        Err(WriteRefused::UnknownDevice) => (
+            StatusCode::NOT_FOUND,
+            format!("no device `{device}` on this gateway\n"),
+        )
+            .into_response(),
         Err(WriteRefused::UnknownControl) => (
             StatusCode::NOT_FOUND,
             format!("no control `{control}` on device `{device}`\n"),
