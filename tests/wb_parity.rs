@@ -604,27 +604,13 @@ fn error_value_gives_read_error_for_every_format() {
 // ---------------------------------------------------------------------------------------------
 
 fn modbus_sample() -> ResolvedDevice {
-    device_with(json!([
-        {"name": "Coil 0", "reg_type": "coil", "address": 0, "type": "switch"},
-        {"name": "Coil 1", "reg_type": "coil", "address": 1, "type": "switch"},
-        {"name": "RGB", "type": "rgb", "consists_of": [
-            {"reg_type": "holding", "address": 4},
-            {"reg_type": "holding", "address": 5},
-            {"reg_type": "holding", "address": 6}]},
-        {"name": "White", "reg_type": "holding", "address": 7, "type": "dimmer", "max": "0xff"},
-        {"name": "RGB_All", "reg_type": "holding", "address": 8, "type": "range", "max": 100},
-        {"name": "White1", "reg_type": "holding", "address": 9, "type": "range", "max": 100},
-        {"name": "Voltage", "reg_type": "holding", "address": 18, "type": "text"},
-        {"name": "Discrete 0", "reg_type": "discrete", "address": 20, "type": "switch"},
-        {"name": "Holding S64", "reg_type": "holding", "address": 30, "type": "value", "format": "s64"},
-        {"name": "Input U16", "reg_type": "input", "address": 40, "type": "value", "format": "u16"},
-        {"name": "Holding Float", "reg_type": "holding", "address": 50, "type": "value", "format": "float"},
-        {"name": "Holding U16", "reg_type": "holding", "address": 70, "type": "value", "format": "u16"},
-        {"name": "Holding U64 Single", "reg_type": "holding_single", "address": 90, "type": "value", "format": "u64"},
-        {"name": "Holding U16 Single", "reg_type": "holding_single", "address": 94, "type": "value", "format": "u16"},
-        {"name": "Holding U64 Multi", "reg_type": "holding_multi", "address": 95, "type": "value", "format": "u64"},
-        {"name": "Holding U16 Multi", "reg_type": "holding_multi", "address": 99, "type": "value", "format": "u16"}
-    ]))
+    // The channels of wb-mqtt-serial's configs/config-modbus-test.json, shared with
+    // tests/wb_parity_bus.rs.
+    let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/data/wb_parity/modbus-sample-channels.json");
+    let channels: Value =
+        serde_json::from_str(&std::fs::read_to_string(path).expect("the fixture")).expect("JSON");
+    device_with(channels)
 }
 
 /// TModbusIntegrationTest.Poll (gold .dat): holding 4…9 = 10 20 30 1 2 3 publish RGB

@@ -345,43 +345,21 @@ fn with_crc(text: &str) -> String {
 // TModbusIntegrationTest (configs/config-modbus-test.json)
 // ---------------------------------------------------------------------------------------------
 
+/// The channels of wb-mqtt-serial's `configs/config-modbus-test.json` (its `Modbus-sample`
+/// device), shared with `tests/wb_parity.rs`.
+fn modbus_sample_channels() -> Value {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/data/wb_parity/modbus-sample-channels.json");
+    serde_json::from_str(&std::fs::read_to_string(path).expect("the fixture")).expect("JSON")
+}
+
 /// configs/config-modbus-test.json: one device, `max_read_registers` 0, 9600 8N1, with `extra`
 /// device settings (`max_reg_hole` …).
 fn modbus_test_port(extra: Value) -> ResolvedPort {
     let mut device = json!({
         "slave_id": 1, "name": "Modbus-sample", "id": "modbus-sample",
         "max_read_registers": 0, "frame_timeout_ms": 0, "response_timeout_ms": 8,
-        "channels": [
-            {"name": "Coil 0", "reg_type": "coil", "address": 0, "type": "switch"},
-            {"name": "Coil 1", "reg_type": "coil", "address": 1, "type": "switch"},
-            {"name": "RGB", "type": "rgb", "consists_of": [
-                {"reg_type": "holding", "address": 4},
-                {"reg_type": "holding", "address": 5},
-                {"reg_type": "holding", "address": 6}]},
-            {"name": "White", "reg_type": "holding", "address": 7, "type": "dimmer", "max": "0xff"},
-            {"name": "RGB_All", "reg_type": "holding", "address": 8, "type": "range", "max": 100},
-            {"name": "White1", "reg_type": "holding", "address": 9, "type": "range", "max": 100},
-            {"name": "Voltage", "reg_type": "holding", "address": 18, "type": "text"},
-            {"name": "Discrete 0", "reg_type": "discrete", "address": 20, "type": "switch"},
-            {"name": "Holding S64", "reg_type": "holding", "address": 30, "type": "value", "format": "s64"},
-            {"name": "Input U16", "reg_type": "input", "address": 40, "type": "value", "format": "u16"},
-            {"name": "Holding Float", "reg_type": "holding", "address": 50, "type": "value", "format": "float"},
-            {"name": "Holding U16", "reg_type": "holding", "address": 70, "type": "value", "format": "u16"},
-            {"name": "Coil 2", "reg_type": "coil", "address": 72, "type": "switch"},
-            {"name": "Coil 3", "reg_type": "coil", "address": 73, "type": "switch"},
-            {"name": "Coil 4", "reg_type": "coil", "address": 74, "type": "switch"},
-            {"name": "Coil 5", "reg_type": "coil", "address": 75, "type": "switch"},
-            {"name": "Coil 6", "reg_type": "coil", "address": 76, "type": "switch"},
-            {"name": "Coil 7", "reg_type": "coil", "address": 77, "type": "switch"},
-            {"name": "Coil 8", "reg_type": "coil", "address": 78, "type": "switch"},
-            {"name": "Coil 9", "reg_type": "coil", "address": 79, "type": "switch"},
-            {"name": "Coil 10", "reg_type": "coil", "address": 80, "type": "switch"},
-            {"name": "Coil 11", "reg_type": "coil", "address": 81, "type": "switch"},
-            {"name": "Holding U64 Single", "reg_type": "holding_single", "address": 90, "type": "value", "format": "u64"},
-            {"name": "Holding U16 Single", "reg_type": "holding_single", "address": 94, "type": "value", "format": "u16"},
-            {"name": "Holding U64 Multi", "reg_type": "holding_multi", "address": 95, "type": "value", "format": "u64"},
-            {"name": "Holding U16 Multi", "reg_type": "holding_multi", "address": 99, "type": "value", "format": "u16"}
-        ]
+        "channels": modbus_sample_channels()
     });
     if let (Some(device), Some(extra)) = (device.as_object_mut(), extra.as_object()) {
         for (key, value) in extra {
