@@ -62,6 +62,9 @@ macro_rules! with_device_settings {
             /// Legacy name of `read_rate_limit_ms`.
             #[schemars(range(min = -1, max = 86400000))]
             pub poll_interval: Option<i64>,
+            /// wb-mqtt-serial's republish interval of unchanged values, in s, per device or
+            /// channel: accepted, not applied (the top-level `max_unchanged_interval` is).
+            pub max_publish_interval: Option<i64>,
             /// Not used by Modbus devices (kept so upstream files load).
             pub password: Option<Vec<SerialInt>>,
             pub access_level: Option<i64>,

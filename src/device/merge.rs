@@ -139,6 +139,14 @@ pub fn merge_device(input: &DeviceMergeInput) -> Result<(Value, Vec<MergeError>)
     let parameters = template_device.get("parameters");
     let mut values = BTreeMap::new();
     for (key, value) in input.device {
+        if key == "max_publish_interval" {
+            errors.push(warning(
+                format!("c:{}", input.device_path.key(key)),
+                "max_publish_interval is not applied per device: unchanged values are published \
+                 again by the top-level max_unchanged_interval"
+                    .into(),
+            ));
+        }
         if known_device_keys().contains(key) {
             if !SPECIAL_DEVICE_KEYS.contains(&key.as_str()) {
                 result.insert(key.clone(), value.clone());
@@ -311,6 +319,39 @@ fn parameter_declarations<'a>(
     }
 }
 
+/// Whether parameter declarations are firmware variants of one parameter: the same register
+/// and `condition`, each for another minimum firmware (`fw`; none is the oldest).
+/// wb-mqtt-serial takes them as one parameter whose values are those of the newest variant
+/// (`TConfigParserTest.ParametersFwVariants`: a firmware update widens what it allows); two
+/// whose conditions differ and both hold are a duplicate (its unsuccessful-17).
+fn are_fw_variants(declarations: &[&Value]) -> bool {
+    let Some(first) = declarations.first() else {
+        return false;
+    };
+    let same_register = declarations.iter().all(|p| {
+        ["address", "reg_type", "condition"]
+            .iter()
+            .all(|key| p.get(*key) == first.get(*key))
+    });
+    let mut versions: Vec<Vec<u64>> = declarations.iter().map(|p| fw_of(p)).collect();
+    versions.sort();
+    versions.dedup();
+    same_register && versions.len() == declarations.len()
+}
+
+/// A declaration's `fw` as comparable numbers ("2.4.0" → [2, 4, 0]); none (no `fw`) sorts first.
+fn fw_of(declaration: &Value) -> Vec<u64> {
+    declaration
+        .get("fw")
+        .and_then(Value::as_str)
+        .map(|fw| {
+            fw.split(['.', '-', '+'])
+                .map_while(|part| part.parse::<u64>().ok())
+                .collect()
+        })
+        .unwrap_or_default()
+}
+
 /// Whether an item's `condition` holds; an unparsable condition counts as false (it is
 /// reported where the item is used).
 fn condition_true(item: &Value, values: &BTreeMap<String, f64>) -> bool {
@@ -372,14 +413,22 @@ struct Level<'a> {
 
 impl Level<'_> {
     /// The declaration of `id` in effect: the one whose condition holds (reported when several
-    /// do), else the first.
+    /// do, unless they are firmware variants of one parameter: then the newest), else the
+    /// first.
     fn active_spec(&self, id: &str, conditions: &BTreeMap<String, f64>) -> Option<&Value> {
         let declarations = parameter_declarations(self.parameters, id);
-        declarations
+        let holding: Vec<&Value> = declarations
             .iter()
-            .find(|(_, p)| condition_true(p, conditions))
-            .or(declarations.first())
+            .filter(|(_, p)| condition_true(p, conditions))
             .map(|(_, p)| *p)
+            .collect();
+        if holding.len() > 1 && are_fw_variants(&holding) {
+            return holding.into_iter().max_by(|a, b| fw_of(a).cmp(&fw_of(b)));
+        }
+        holding
+            .first()
+            .copied()
+            .or(declarations.first().map(|(_, p)| *p))
     }
 
     /// wb-mqtt-serial's parameter rules: one declaration in effect per id, values within
@@ -393,7 +442,8 @@ impl Level<'_> {
                 .iter()
                 .filter(|(_, p)| condition_true(p, &conditions))
                 .collect();
-            if active.len() > 1 {
+            let specs: Vec<&Value> = active.iter().map(|(_, p)| *p).collect();
+            if active.len() > 1 && !are_fw_variants(&specs) {
                 let at = match active[1].0 {
                     Some(i) => self.template_path.key("parameters").index(i),
                     None => self.template_path.key("parameters").key(&id),

@@ -917,11 +917,14 @@ impl Walker {
             } else {
                 (1u64 << codec.bit_width) - 1
             };
-            let raw =
-                |v: Option<crate::config::values::SerialInt>| v.map(|v| (v.value() as u64) & mask);
+            // Compared with the field as read, whole: a marker wider than the field (32-bit
+            // markers on narrower fields, as some library templates give) never matches, as in
+            // wb-mqtt-serial (`TRegister::SetValue` compares the raw values); cut to the field's
+            // width it would take a real reading (70000 on 16 bits is 4464) for an error.
+            let raw = |v: Option<crate::config::values::SerialInt>| v.map(|v| v.value() as u64);
             // wb-mqtt-serial rejects these unless they are raw register content: not negative
-            // and not wider than the value (at least 32 bits are accepted, as some library
-            // templates give 32-bit markers on narrower fields).
+            // and not wider than the value (at least 32 bits are accepted, as its schema
+            // allows).
             let widest = mask.max(u64::from(u32::MAX));
             for (key, value) in [
                 ("error_value", spec.error_value),
