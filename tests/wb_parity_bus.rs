@@ -846,6 +846,21 @@ fn settings_115200() -> PortSettings {
     PortSettings::for_line(LineSettings::new(115_200, Parity::None, 2))
 }
 
+/// The event registers of `TModbusExtTest.EventsEnablerRangesWithHoles` (type, address, high
+/// priority).
+const EVENTS_ENABLER_REGISTERS: &[(RegisterType, u16, bool)] = &[
+    (RegisterType::Coil, 101, true),
+    (RegisterType::Coil, 102, true),
+    (RegisterType::Input, 103, false),
+    (RegisterType::Input, 104, false),
+    (RegisterType::Input, 107, false),
+    (RegisterType::Input, 108, false),
+    (RegisterType::Input, 109, false),
+    (RegisterType::Input, 110, true),
+    (RegisterType::Input, 111, true),
+    (RegisterType::Input, 112, true),
+];
+
 /// TModbusExtTest.EventsEnablerRangesWithHoles, as the driver sends it
 /// (TSerialClientEventsReader::EnableEvents: DISABLE_EVENTS_IN_HOLES, then the reboot event
 /// disabled): inputs 103, 104, 107…112 share a record with 105…106 at priority 0, but 118…119
@@ -853,24 +868,12 @@ fn settings_115200() -> PortSettings {
 /// `lastAddr + 5 < addr` starts a new one), then `0F 0000 01 00`.
 #[test]
 fn events_enabler_fills_gaps_of_at_most_four_registers() {
-    use RegisterType::{Coil, Input};
-    let device = sporadic_device(
-        10,
-        &[
-            (Coil, 101, true),
-            (Coil, 102, true),
-            (Input, 103, false),
-            (Input, 104, false),
-            (Input, 107, false),
-            (Input, 108, false),
-            (Input, 109, false),
-            (Input, 110, true),
-            (Input, 111, true),
-            (Input, 112, true),
-            (Input, 118, true),
-            (Input, 119, true),
-        ],
-    );
+    let mut registers = EVENTS_ENABLER_REGISTERS.to_vec();
+    registers.extend([
+        (RegisterType::Input, 118, true),
+        (RegisterType::Input, 119, true),
+    ]);
+    let device = sporadic_device(10, &registers);
     let mut scheduler = PortScheduler::new(settings_115200(), vec![device]);
     let NextStep::Transmit(transaction) = scheduler.next(Duration::ZERO) else {
         panic!("the event setup goes first");
@@ -888,22 +891,7 @@ fn events_enabler_fills_gaps_of_at_most_four_registers() {
 /// inputs 104 and 107 go at priority 0 in the same record.
 #[test]
 fn events_enabler_fills_a_gap_of_two_with_disabled_entries() {
-    use RegisterType::{Coil, Input};
-    let device = sporadic_device(
-        10,
-        &[
-            (Coil, 101, true),
-            (Coil, 102, true),
-            (Input, 103, false),
-            (Input, 104, false),
-            (Input, 107, false),
-            (Input, 108, false),
-            (Input, 109, false),
-            (Input, 110, true),
-            (Input, 111, true),
-            (Input, 112, true),
-        ],
-    );
+    let device = sporadic_device(10, EVENTS_ENABLER_REGISTERS);
     let mut scheduler = PortScheduler::new(settings_115200(), vec![device]);
     let NextStep::Transmit(transaction) = scheduler.next(Duration::ZERO) else {
         panic!("the event setup goes first");

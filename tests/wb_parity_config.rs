@@ -427,13 +427,25 @@ fn read_rate_limit_channel_then_device_then_port() {
 /// that its top-level `max_unchanged_interval` applies instead).
 #[test]
 fn max_publish_interval_is_accepted_on_a_config_device() {
-    let all = devices(&one_port(json!([
+    let config = one_port(json!([
         {"device_type": "max_publish_interval_test", "slave_id": 1},
         {"device_type": "max_publish_interval_test", "slave_id": 2, "max_publish_interval": 30},
         {"device_type": "max_publish_interval_test", "slave_id": 3,
          "channels": [{"name": "Own", "max_publish_interval": 3}]}
-    ])));
-    assert_eq!(all.len(), 3);
+    ]));
+    assert_eq!(devices(&config).len(), 3);
+    // Said, as it is not applied per device.
+    let source = SourceText::from_text(Path::new("wb_parity_config.json"), &config.to_string());
+    let loaded = load_config_source(source, false).expect("loads");
+    let library = TemplateLibrary::load_dirs(&[templates_dir()]);
+    let (_, warnings) = rtu2mqtt::device::configure::resolve_config_checked(&loaded, &library);
+    let said: Vec<String> = warnings.iter().map(|w| w.to_string()).collect();
+    assert!(
+        said.iter()
+            .any(|w| w.contains("devices[1].max_publish_interval")
+                && w.contains("max_publish_interval is not applied per device")),
+        "{said:?}"
+    );
 }
 
 /// TConfigParserTest.ParseMaxPublishInterval (device 1): a template with

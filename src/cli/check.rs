@@ -48,12 +48,7 @@ pub fn load_or_print_errors(path: &Path) -> Option<LoadedConfig> {
 /// The enabled serial ports of `config` whose device file is not there.
 fn missing_serial_ports(config: &crate::config::config_file::Config) -> Vec<&str> {
     config
-        .ports
-        .iter()
-        .filter(|port| {
-            port.enabled && port.port_type == crate::config::config_file::PortType::Serial
-        })
-        .filter_map(|port| port.path.as_deref())
+        .serial_port_paths()
         .filter(|path| !Path::new(path).exists())
         .collect()
 }

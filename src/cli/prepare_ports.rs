@@ -8,7 +8,6 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use super::check::load_or_print_errors;
-use crate::config::config_file::PortType;
 use crate::config::load::DEFAULT_CONFIG_PATH;
 use crate::transport::fifo::{self, TriggerChange};
 
@@ -28,13 +27,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let Some(loaded) = load_or_print_errors(&args.config) else {
         return Ok(ExitCode::FAILURE);
     };
-    let paths = loaded
-        .config
-        .ports
-        .iter()
-        .filter(|port| port.enabled && port.port_type == PortType::Serial)
-        .filter_map(|port| port.path.as_deref());
-    for path in paths {
+    for path in loaded.config.serial_port_paths() {
         println!("{path}: {}", prepare(Path::new(path), &args.sysfs_tty));
     }
     Ok(ExitCode::SUCCESS)

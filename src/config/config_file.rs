@@ -68,6 +68,16 @@ fn default_http_listen() -> String {
     DEFAULT_HTTP_LISTEN.to_string()
 }
 
+impl Config {
+    /// The device paths of the enabled serial ports.
+    pub fn serial_port_paths(&self) -> impl Iterator<Item = &str> {
+        self.ports
+            .iter()
+            .filter(|port| port.enabled && port.port_type == PortType::Serial)
+            .filter_map(|port| port.path.as_deref())
+    }
+}
+
 impl Default for HttpConfig {
     fn default() -> Self {
         Self {
