@@ -770,6 +770,10 @@ fn describe_shows_what_was_resolved() {
     );
     assert!(text.contains("1. holding 110 = 192  (Baud rate)"), "{text}");
     assert!(text.contains("holding 55:4:1"), "{text}");
+    assert!(
+        text.contains("response timeout: 1 ms configured, 26 ms in force"),
+        "{text}"
+    );
 
     let (ok, text) = describe(&["--json", "wb-test-sensor_8"]);
     assert!(ok, "{text}");
@@ -783,6 +787,10 @@ fn describe_shows_what_was_resolved() {
         .find(|c| c["name"] == "Input 2 counter")
         .unwrap();
     assert_eq!(counter["read_period_ms"], 250);
+    // The template's 1 ms is what wb-mqtt-serial's templates say; the port task waits the 24 ms
+    // adapter allowance and one character (1.04 ms at 9600 8N1, the port default) on top, as wb-mqtt-serial.
+    assert_eq!(devices[0]["response_timeout_ms"], 1);
+    assert_eq!(devices[0]["response_timeout_in_force_ms"], 26.0);
     assert_eq!(counter["events"], "semi-sporadic");
     assert_eq!(counter["registers"][0]["read"]["address"], 33);
 

@@ -12,6 +12,8 @@ use crate::device::check_template;
 use crate::device::configure::{resolve_config_checked, template_key_warnings};
 use crate::device::model::{EventMode, RegisterRef, RegisterType, ResolvedDevice, ResolvedPort};
 use crate::device::number_text::format_g;
+use crate::gateway::port_plan::line_settings;
+use crate::protocol::timing::ADAPTER_LATENCY_ALLOWANCE;
 
 #[derive(Debug, clap::Args)]
 pub struct CheckConfigArgs {
@@ -335,6 +337,13 @@ fn register_text(register: &RegisterRef) -> String {
     text
 }
 
+/// The timeout the port task starts from (what the status page shows before the device's
+/// response time is learned): the configured one plus the adapter allowance and a character.
+fn response_timeout_in_force_ms(port: &ResolvedPort, device: &ResolvedDevice) -> f64 {
+    let floor = line_settings(&port.config).response_timeout_floor(device.timing.response_timeout);
+    (floor.as_secs_f64() * 10_000.0).round() / 10.0
+}
+
 fn port_text(port: &ResolvedPort) -> String {
     port.config.describe()
 }
@@ -348,6 +357,14 @@ fn describe_table(port: &ResolvedPort, device: &ResolvedDevice) -> String {
         device.device_type.as_deref().unwrap_or("none"),
         port_text(port)
     );
+    out.push_str(&format!(
+        "  response timeout: {} ms configured, {} ms in force (the adapter allowance of \
+         {} ms and one character are added, as wb-mqtt-serial does; a slow device's learned \
+         response time may raise it)\n",
+        device.timing.response_timeout.as_millis(),
+        format_g(response_timeout_in_force_ms(port, device), 4),
+        ADAPTER_LATENCY_ALLOWANCE.as_millis(),
+    ));
     let mut rows = vec![[
         "CHANNEL".to_string(),
         "REGISTER".into(),
@@ -474,6 +491,7 @@ fn describe_json(port: &ResolvedPort, device: &ResolvedDevice) -> serde_json::Va
         "slave_id": device.slave_id,
         "port": port_text(port),
         "response_timeout_ms": device.timing.response_timeout.as_millis() as u64,
+        "response_timeout_in_force_ms": response_timeout_in_force_ms(port, device),
         "channels": channels,
         "setup": setup,
     })

@@ -29,7 +29,8 @@ pub struct Args {
     #[arg(long = "templates", value_name = "DIR")]
     pub templates: Vec<PathBuf>,
     /// No broker: print device updates as JSON lines on stdout and take writes as JSON lines
-    /// on stdin ({"device":…,"control":…,"value":…}) instead of MQTT.
+    /// on stdin ({"device":…,"control":…,"value":…}) instead of MQTT. Runs until Ctrl-C or
+    /// SIGTERM; the end of stdin only ends the writes (so `< /dev/null` just polls).
     #[arg(long)]
     pub stdio: bool,
     /// The status page's socket, already bound (the demo binds it before printing its URL, so
