@@ -1150,6 +1150,8 @@ impl PortScheduler {
             let end = span.end().max(member_span.end());
             span.count = u16::try_from(end - u32::from(span.start)).ok()?;
         }
+        // As long as the device needs, as the whole read was (`read_of`).
+        let span = state.plan.merge.at_least_min(span);
         let request = Request::classic(state.plan.address, span.read_request());
         Some((self.classic_transaction(now, state, request), span))
     }

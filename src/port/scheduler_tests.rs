@@ -190,11 +190,16 @@ fn healthy(request: &Request) -> TransactionOutcome {
 
 fn classic_answer(pdu: &RequestPdu) -> ResponsePdu {
     match pdu {
+        // The address as the value (the low 16 bits of it past the last address).
         RequestPdu::ReadHoldingRegisters { start, count } => ResponsePdu::ReadHoldingRegisters {
-            values: (*start..start + count).collect(),
+            values: (u32::from(*start)..u32::from(*start) + u32::from(*count))
+                .map(|a| a as u16)
+                .collect(),
         },
         RequestPdu::ReadInputRegisters { start, count } => ResponsePdu::ReadInputRegisters {
-            values: (*start..start + count).collect(),
+            values: (u32::from(*start)..u32::from(*start) + u32::from(*count))
+                .map(|a| a as u16)
+                .collect(),
         },
         RequestPdu::ReadCoils { count, .. } => ResponsePdu::ReadCoils {
             packed: vec![0; usize::from(*count).div_ceil(8)],
@@ -2293,4 +2298,107 @@ fn a_reboot_after_start_up_is_set_up_between_event_polls() {
     let polls: Vec<Duration> = log.event_polls().iter().map(|(at, _)| *at).collect();
     assert!(polls.iter().any(|&at| at < setups[2]));
     assert!(max_gap(&polls) <= ms(51), "{:?}", max_gap(&polls));
+}
+
+// ---------------------------------------------------------------------------------------------
+// Read planning under review: refused reads, min_read_registers, guards, gateways
+// ---------------------------------------------------------------------------------------------
+
+/// An exception reply to `request` (a classic one) from its device.
+fn exception(request: &Request, code: ExceptionCode) -> TransactionOutcome {
+    let function = match &request.body {
+        RequestBody::Classic(pdu) => pdu.function(),
+        RequestBody::Fast(_) => 0x46,
+    };
+    TransactionOutcome::Reply(Reply::classic(
+        request.address,
+        ResponsePdu::Exception { function, code },
+    ))
+}
+
+/// (start, count) of every holding read sent to `address`.
+fn holding_reads(log: &Log, address: u8) -> Vec<(u16, u16)> {
+    log.classic_to(address)
+        .into_iter()
+        .filter_map(|(_, pdu)| match pdu {
+            RequestPdu::ReadHoldingRegisters { start, count } => Some((start, count)),
+            _ => None,
+        })
+        .collect()
+}
+
+/// A device that refuses reads shorter than `min_read_registers`, on a port whose event polls
+/// cut long merged reads to what fits before the slot: the shortened reads are asked at least
+/// `min_read_registers` long too, and no register is taken for one the device lacks.
+#[test]
+fn a_read_shortened_for_the_event_slot_keeps_min_read_registers() {
+    let mut reads = vec![read(RegisterType::Coil, 0, EventMode::Sporadic)];
+    reads.extend((0..100).map(|a| read(RegisterType::Holding, 1000 + a, EventMode::Polled)));
+    let mut plan = device(20, reads);
+    plan.merge.min_read_registers = 4;
+    let mut scheduler = PortScheduler::new(settings(9600), vec![plan]);
+    let mut log = Log::default();
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(5_000),
+        |_, request| match &request.body {
+            RequestBody::Classic(RequestPdu::ReadHoldingRegisters { count, .. }) if *count < 4 => {
+                exception(request, ExceptionCode::ILLEGAL_DATA_VALUE)
+            }
+            _ => healthy(request),
+        },
+    );
+    let short: Vec<_> = holding_reads(&log, 20)
+        .into_iter()
+        .filter(|&(_, count)| count < 4)
+        .collect();
+    assert!(short.is_empty(), "{short:?}");
+    assert!(
+        !log.events.iter().any(|(_, e)| matches!(
+            e,
+            PortEvent::ReadFailed {
+                unsupported: true,
+                ..
+            }
+        )),
+        "a register taken for unsupported"
+    );
+}
+
+/// `min_read_registers` above what one request may carry (the config takes any number) is cut
+/// to the protocol's maximum: an unencodable request would fail the port and reopen it forever.
+#[test]
+fn min_read_registers_past_the_protocol_maximum_still_makes_requests_that_encode() {
+    let reads = vec![
+        read(RegisterType::Holding, 10, EventMode::Polled),
+        read(RegisterType::Coil, 10, EventMode::Polled),
+        read(RegisterType::Input, 65_530, EventMode::Polled),
+    ];
+    let mut plan = device(20, reads);
+    plan.merge.min_read_registers = 3000;
+    let mut scheduler = PortScheduler::new(settings(115_200), vec![plan]);
+    let mut log = Log::default();
+    // `run` encodes every request it sends.
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(300),
+        |_, r| healthy(r),
+    );
+    let pdus: Vec<RequestPdu> = log.classic_to(20).into_iter().map(|(_, p)| p).collect();
+    assert!(pdus.contains(&RequestPdu::ReadHoldingRegisters {
+        start: 10,
+        count: 125
+    }));
+    assert!(pdus.contains(&RequestPdu::ReadCoils {
+        start: 10,
+        count: 2000
+    }));
+    assert!(pdus.contains(&RequestPdu::ReadInputRegisters {
+        start: 65_530,
+        count: 6
+    }));
 }
