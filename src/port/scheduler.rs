@@ -659,6 +659,23 @@ impl PortScheduler {
         timing: ReplyTiming,
         out: &mut Vec<PortEvent>,
     ) {
+        // A gateway's exception for the device behind it (0x0A: no path to it, 0x0B: it did not
+        // respond) is no answer from the device: silence, not a device that answered and
+        // refused (it would never go offline, and its setup never be written again when it came
+        // back). wb-mqtt-serial counts it a failed transfer too.
+        let outcome = match outcome {
+            TransactionOutcome::Reply(Reply {
+                body:
+                    ReplyBody::Classic(ResponsePdu::Exception {
+                        code:
+                            ExceptionCode::GATEWAY_PATH_UNAVAILABLE
+                            | ExceptionCode::GATEWAY_TARGET_FAILED,
+                        ..
+                    }),
+                ..
+            }) => TransactionOutcome::NoReply,
+            outcome => outcome,
+        };
         let device = match &self.in_flight {
             Some(InFlight::Setup { device, .. })
             | Some(InFlight::EnableEvents { device, .. })

@@ -2402,3 +2402,86 @@ fn min_read_registers_past_the_protocol_maximum_still_makes_requests_that_encode
         count: 6
     }));
 }
+
+/// A Modbus TCP gateway answers exception 0x0B (or 0x0A) for a device behind it that does not
+/// answer: that is no answer from the device, which goes offline as a silent one does, and its
+/// registers are not taken for unsupported.
+#[test]
+fn a_gateway_exception_is_no_answer_from_the_device() {
+    for code in [
+        ExceptionCode::GATEWAY_TARGET_FAILED,
+        ExceptionCode::GATEWAY_PATH_UNAVAILABLE,
+    ] {
+        let reads = (0..3)
+            .map(|a| read(RegisterType::Holding, a, EventMode::Polled))
+            .collect();
+        let mut plan = device(7, reads);
+        plan.health = HealthPolicy {
+            max_fail_cycles: 2,
+            device_timeout: ms(100),
+            ..HealthPolicy::default()
+        };
+        let mut scheduler = PortScheduler::new(settings(115_200), vec![plan]);
+        let mut log = Log::default();
+        run(
+            &mut scheduler,
+            &mut log,
+            Duration::ZERO,
+            ms(1_000),
+            |_, request| exception(request, code),
+        );
+        let events: Vec<&PortEvent> = log.events.iter().map(|(_, e)| e).collect();
+        assert!(
+            events.contains(&&PortEvent::Offline { device: 0 }),
+            "{code}: {events:?}"
+        );
+        assert!(
+            !events.iter().any(|e| matches!(
+                e,
+                PortEvent::ReadFailed {
+                    unsupported: true,
+                    ..
+                } | PortEvent::Online { .. }
+            )),
+            "{code}: {events:?}"
+        );
+    }
+}
+
+/// Exceptions 4 and 6 (device failure, busy) say nothing of the registers: a merged read so
+/// refused is neither split nor any register of it excluded; it is asked again whole.
+#[test]
+fn a_busy_device_keeps_its_merged_reads() {
+    for code in [ExceptionCode::DEVICE_FAILURE, ExceptionCode::BUSY] {
+        let reads = (0..3)
+            .map(|a| read(RegisterType::Holding, a, EventMode::Polled))
+            .collect();
+        let mut scheduler = PortScheduler::new(settings(115_200), vec![device(7, reads)]);
+        let mut log = Log::default();
+        let mut answered = 0;
+        run(
+            &mut scheduler,
+            &mut log,
+            Duration::ZERO,
+            ms(300),
+            |_, request| {
+                answered += 1;
+                if answered <= 10 {
+                    exception(request, code)
+                } else {
+                    healthy(request)
+                }
+            },
+        );
+        let reads = holding_reads(&log, 7);
+        assert!(reads.len() > 20, "{reads:?}");
+        assert!(reads.iter().all(|&r| r == (0, 3)), "{code}: {reads:?}");
+        assert!(!log.events.iter().any(|(_, e)| matches!(
+            e,
+            PortEvent::ReadFailed {
+                unsupported: true,
+                ..
+            }
+        )));
+    }
+}
