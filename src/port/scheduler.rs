@@ -883,12 +883,15 @@ impl PortScheduler {
             Duration::ZERO
         };
         let request_time = line.wire_time(request_len);
-        let estimated = if device.health.is_offline() {
-            // An offline device costs its whole timeout and the late window after it.
-            request_time + response_timeout + late_window
-        } else {
-            line.transaction_time(request_len, self.settings.turnaround, reply_len)
-        };
+        // The silence the transport keeps before the device's requests takes the bus as long.
+        let guard = self.settings.guard_intervals.before(device.plan.address);
+        let estimated = guard
+            + if device.health.is_offline() {
+                // An offline device costs its whole timeout and the late window after it.
+                request_time + response_timeout + late_window
+            } else {
+                line.transaction_time(request_len, self.settings.turnaround, reply_len)
+            };
         Transaction {
             request,
             request_time,

@@ -5,7 +5,7 @@ use std::time::Duration;
 
 use super::*;
 use crate::port::health::HealthPolicy;
-use crate::port::plan::{EventMode, PlannedRead, SetupWrite};
+use crate::port::plan::{EventMode, GuardIntervals, PlannedRead, SetupWrite};
 use crate::port::read_plan::MergeLimits;
 use crate::protocol::{
     Event, EventPacket, EventPoll, FastRequest, LineSettings, Parity, RequestBody,
@@ -2484,4 +2484,38 @@ fn a_busy_device_keeps_its_merged_reads() {
             }
         )));
     }
+}
+
+/// A device with a guard interval: its requests are estimated with the silence kept before
+/// them, so a read of it does not start when only its wire time fits before the event slot.
+#[test]
+fn a_device_guard_interval_counts_in_its_transaction_time() {
+    let mut settings = settings(115_200);
+    settings.guard_intervals = GuardIntervals(vec![(7, ms(20))]);
+    let plans = vec![
+        device(7, vec![read(RegisterType::Holding, 0, EventMode::Polled)]),
+        device(8, vec![read(RegisterType::Coil, 0, EventMode::Sporadic)]),
+    ];
+    let mut scheduler = PortScheduler::new(settings, plans);
+    let mut now = Duration::ZERO;
+    let mut guarded = Vec::new();
+    let mut unguarded = Vec::new();
+    while now < ms(2_000) {
+        match scheduler.next(now) {
+            NextStep::Transmit(transaction) => {
+                match transaction.request.address {
+                    7 => guarded.push(transaction.estimated),
+                    8 => unguarded.push(transaction.estimated),
+                    _ => {}
+                }
+                let outcome = healthy(&transaction.request);
+                now += transaction.estimated;
+                scheduler.complete(now, outcome);
+            }
+            NextStep::Wait { until } => now = until.max(now + Duration::from_micros(1)),
+        }
+    }
+    assert!(guarded.len() > 5 && unguarded.len() > 1);
+    assert!(guarded.iter().all(|&e| e >= ms(20)), "{guarded:?}");
+    assert!(unguarded.iter().all(|&e| e < ms(20)), "{unguarded:?}");
 }
