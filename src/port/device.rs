@@ -412,9 +412,13 @@ impl DeviceState {
     /// After a reboot or a reconnection: setup, event setup and first reads all over again.
     /// Registers the device refused are asked again too: a device that restarted may have new
     /// firmware (an update reboots it), and one that was away may have been replaced.
+    /// What refused reads taught goes with them: reads split apart are merged again and holes
+    /// are tried again (wb-mqtt-serial turns holes back on when a device disconnects).
     pub(super) fn restart_preparation(&mut self) {
         self.events_active = false;
         self.preparation = self.first_preparation_step();
+        self.holes_off = false;
+        self.split_found_refused = false;
         for read in &mut self.reads {
             if matches!(
                 read.exclusion,
@@ -423,6 +427,8 @@ impl DeviceState {
                 read.exclusion = Exclusion::None;
             }
             read.initial_pending = true;
+            read.solo = false;
+            read.solo_unknown = false;
         }
     }
 
@@ -731,13 +737,8 @@ impl DeviceState {
     /// refused ones, which are no longer read), as wb-mqtt-serial marks only the refused
     /// register unavailable and goes on merging the rest (`UnavailableRegisterInTheMiddle`).
     /// A read over unconfigured registers is first tried again without holes.
-    pub(super) fn split_reads(&mut self, now: Duration, span: RegisterSpan, members: &[usize]) {
-        let covered: u32 = members
-            .iter()
-            .filter_map(|&m| self.read_span(m))
-            .map(|s| u32::from(s.count))
-            .sum();
-        let without_holes = covered < u32::from(span.count) && !self.holes_off;
+    pub(super) fn split_reads(&mut self, now: Duration, members: &[usize]) {
+        let without_holes = !self.holes_off && self.has_holes(members);
         self.holes_off |= without_holes;
         for &member in members {
             if let Some(read) = self.reads.get_mut(member) {
@@ -748,6 +749,23 @@ impl DeviceState {
                 read.next_due = now;
             }
         }
+    }
+
+    /// Whether the reads `members` leave registers between them unread (holes). Not the words a
+    /// read asks past its last member for `min_read_registers`, and reads that overlap (a value
+    /// and bit fields of its registers) do not hide a hole.
+    fn has_holes(&self, members: &[usize]) -> bool {
+        let mut spans: Vec<RegisterSpan> =
+            members.iter().filter_map(|&m| self.read_span(m)).collect();
+        spans.sort_unstable_by_key(|s| s.start);
+        let mut covered_to: Option<u32> = None;
+        for span in spans {
+            if covered_to.is_some_and(|end| u32::from(span.start) > end) {
+                return true;
+            }
+            covered_to = Some(covered_to.map_or(span.end(), |end| end.max(span.end())));
+        }
+        false
     }
 
     /// The merge limits in force: the plan's, without holes once a read over them was refused.

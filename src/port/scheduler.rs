@@ -1384,7 +1384,7 @@ impl PortScheduler {
                     );
                     if permanent && members.len() > 1 {
                         debug!(device = %state.plan.name, ?span, %code, "merged read refused: reading its parts one by one");
-                        state.split_reads(now, span, members);
+                        state.split_reads(now, members);
                     } else {
                         Self::reads_failed(state, device, now, members, permanent, out);
                     }

@@ -2486,6 +2486,49 @@ fn a_busy_device_keeps_its_merged_reads() {
     }
 }
 
+/// Channels sharing registers (a u32 at 0 and bit fields of 0 and 1) and register 3, with a
+/// hole at 2 the device does not have: the merged read across the hole is refused, which turns
+/// holes off (as wb-mqtt-serial's HolesAutoDisable), and 0…1 are read in one request again.
+/// The overlapping channels must not hide the hole.
+#[test]
+fn overlapping_reads_do_not_hide_a_hole_in_a_refused_read() {
+    let span_read = |start: u16, count: u16, period: Option<Duration>| PlannedRead {
+        span: RegisterSpan::new(RegisterType::Holding, start, count),
+        period,
+        events: EventMode::Polled,
+        min_firmware: None,
+    };
+    let reads = vec![
+        span_read(0, 2, None),
+        span_read(0, 1, None),
+        span_read(1, 1, None),
+        span_read(3, 1, None),
+    ];
+    let mut plan = device(7, reads);
+    plan.merge.max_register_hole = 2;
+    let mut scheduler = PortScheduler::new(settings(115_200), vec![plan]);
+    let mut log = Log::default();
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(1_000),
+        |_, request| match &request.body {
+            RequestBody::Classic(RequestPdu::ReadHoldingRegisters { start, count })
+                if *start <= 2 && start + count > 2 =>
+            {
+                exception(request, ExceptionCode::ILLEGAL_DATA_ADDRESS)
+            }
+            _ => healthy(request),
+        },
+    );
+    let reads = holding_reads(&log, 7);
+    let mut settled: Vec<(u16, u16)> = reads[reads.len() / 2..].to_vec();
+    settled.sort_unstable();
+    settled.dedup();
+    assert_eq!(settled, vec![(0, 2), (3, 1)], "{reads:?}");
+}
+
 /// A device with a guard interval: its requests are estimated with the silence kept before
 /// them, so a read of it does not start when only its wire time fits before the event slot.
 #[test]
@@ -2518,4 +2561,66 @@ fn a_device_guard_interval_counts_in_its_transaction_time() {
     assert!(guarded.len() > 5 && unguarded.len() > 1);
     assert!(guarded.iter().all(|&e| e >= ms(20)), "{guarded:?}");
     assert!(unguarded.iter().all(|&e| e < ms(20)), "{unguarded:?}");
+}
+
+/// Once a device reconnects, what it refused is asked again (a replaced or updated device may
+/// have it) and holes are tried again, as wb-mqtt-serial turns them back on when it
+/// disconnects (`SetDisconnected`): a device that refused a read across a hole and came back
+/// as one that has the register gets merged reads across it again.
+#[test]
+fn holes_are_tried_again_after_the_device_reconnects() {
+    let reads = vec![
+        read(RegisterType::Holding, 0, EventMode::Polled),
+        read(RegisterType::Holding, 2, EventMode::Polled),
+    ];
+    let mut plan = device(7, reads);
+    plan.merge.max_register_hole = 1;
+    plan.response_timeout = ms(5);
+    plan.health = HealthPolicy {
+        max_fail_cycles: 1,
+        device_timeout: ms(10),
+        retry_step: ms(20),
+        max_retry_delay: ms(50),
+        late_reply_holdoff: ms(10),
+    };
+    let mut scheduler = PortScheduler::new(settings(115_200), vec![plan]);
+    let mut log = Log::default();
+    // Refuses reads across 1 until 200 ms, is away until 400 ms, then has register 1.
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(1_000),
+        |now, request| match &request.body {
+            _ if now >= ms(200) && now < ms(400) => TransactionOutcome::NoReply,
+            RequestBody::Classic(RequestPdu::ReadHoldingRegisters { start, count })
+                if now < ms(200) && *start <= 1 && start + count > 1 =>
+            {
+                exception(request, ExceptionCode::ILLEGAL_DATA_ADDRESS)
+            }
+            _ => healthy(request),
+        },
+    );
+    assert!(
+        log.events
+            .iter()
+            .any(|(at, e)| *at > ms(400) && *e == PortEvent::Online { device: 0 }),
+        "{:?}",
+        log.events
+            .iter()
+            .filter(|(_, e)| matches!(e, PortEvent::Online { .. } | PortEvent::Offline { .. }))
+            .collect::<Vec<_>>()
+    );
+    let late: Vec<_> = log
+        .classic_to(7)
+        .into_iter()
+        .filter(|(at, _)| *at > ms(800))
+        .map(|(_, pdu)| pdu)
+        .collect();
+    assert!(!late.is_empty());
+    assert!(
+        late.iter()
+            .all(|pdu| *pdu == RequestPdu::ReadHoldingRegisters { start: 0, count: 3 }),
+        "{late:?}"
+    );
 }
