@@ -3,6 +3,8 @@
 
 use std::time::Duration;
 
+use tracing::warn;
+
 use super::health::{DeviceHealth, HealthChange};
 use super::plan::{DevicePlan, EventMode};
 use super::read_plan::RegisterSpan;
@@ -42,6 +44,8 @@ enum Exclusion {
     AwaitingFirmware,
     /// Needs newer firmware than the device has.
     NewerFirmware,
+    /// Wider than one request may carry (or empty): never read, whatever happens.
+    Unreadable,
 }
 
 impl Exclusion {
@@ -49,7 +53,10 @@ impl Exclusion {
     fn never_read(self) -> bool {
         matches!(
             self,
-            Exclusion::Unsupported | Exclusion::AwaitingFirmware | Exclusion::NewerFirmware
+            Exclusion::Unsupported
+                | Exclusion::AwaitingFirmware
+                | Exclusion::NewerFirmware
+                | Exclusion::Unreadable
         )
     }
 }
@@ -133,7 +140,12 @@ impl DeviceState {
             .map(|read| ReadState {
                 next_due: Duration::ZERO,
                 last_read: None,
-                exclusion: if read.min_firmware.is_some() {
+                exclusion: if !read.span.fits_one_read() {
+                    // Its request would not encode (and fail the port): a config the parser
+                    // should have refused.
+                    warn!(device = %plan.name, span = ?read.span, "a read no request can carry: never read");
+                    Exclusion::Unreadable
+                } else if read.min_firmware.is_some() {
                     Exclusion::AwaitingFirmware
                 } else {
                     Exclusion::None
@@ -447,6 +459,7 @@ impl DeviceState {
             };
             let has = crate::device::firmware::firmware_has(firmware, required);
             match read.exclusion {
+                Exclusion::Unreadable => {}
                 Exclusion::AwaitingFirmware | Exclusion::NewerFirmware if has => {
                     read.exclusion = Exclusion::None;
                     read.initial_pending = true;
@@ -520,7 +533,10 @@ impl DeviceState {
     fn due_from(&self, index: usize, keepalive: Option<usize>) -> Option<Duration> {
         let read = self.reads.get(index)?;
         match read.exclusion {
-            Exclusion::Unsupported | Exclusion::AwaitingFirmware | Exclusion::NewerFirmware => None,
+            Exclusion::Unsupported
+            | Exclusion::AwaitingFirmware
+            | Exclusion::NewerFirmware
+            | Exclusion::Unreadable => None,
             _ if read.initial_pending => Some(Duration::ZERO),
             Exclusion::None => Some(read.next_due),
             Exclusion::EventsOnly if keepalive == Some(index) => Some(read.next_due),

@@ -25,6 +25,12 @@ impl RegisterSpan {
         u32::from(self.start) + u32::from(self.count)
     }
 
+    /// Whether one read request can ask for this span: 1 to 125 registers (2000 bits), not
+    /// past the last address.
+    pub fn fits_one_read(&self) -> bool {
+        self.count >= 1 && self.count <= protocol_max(self.register_type) && self.end() <= 65_536
+    }
+
     pub fn contains(&self, other: &RegisterSpan) -> bool {
         self.register_type == other.register_type
             && self.start <= other.start

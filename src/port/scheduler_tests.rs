@@ -2624,3 +2624,30 @@ fn holes_are_tried_again_after_the_device_reconnects() {
         "{late:?}"
     );
 }
+
+/// A planned read wider than one request may carry (a long string) can never be read: it is
+/// not sent (its request would not encode, which fails the port), the others are read.
+#[test]
+fn a_read_wider_than_a_request_is_never_sent_and_the_others_go_on() {
+    let reads = vec![
+        PlannedRead {
+            span: RegisterSpan::new(RegisterType::Holding, 100, 130),
+            period: None,
+            events: EventMode::Polled,
+            min_firmware: None,
+        },
+        read(RegisterType::Holding, 0, EventMode::Polled),
+    ];
+    let mut scheduler = PortScheduler::new(settings(115_200), vec![device(7, reads)]);
+    let mut log = Log::default();
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(300),
+        |_, r| healthy(r),
+    );
+    let reads = holding_reads(&log, 7);
+    assert!(reads.len() > 10, "{reads:?}");
+    assert!(reads.iter().all(|&r| r == (0, 1)), "{reads:?}");
+}
