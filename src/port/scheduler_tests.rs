@@ -1953,7 +1953,7 @@ fn random_plan(rng: &mut Rng, address: u8) -> DevicePlan {
         max_read_registers: rng.below(6) as u16,
         max_register_hole: rng.below(3) as u16,
         max_bit_hole: rng.below(3) as u16,
-        min_read_registers: 1,
+        min_read_registers: rng.below(4) as u16,
     };
     if rng.chance(50) {
         plan.health = HealthPolicy {
@@ -1978,7 +1978,13 @@ fn random_outcome(rng: &mut Rng, request: &Request, addresses: &[u8]) -> Transac
                 request.address,
                 ResponsePdu::Exception {
                     function: pdu.function(),
-                    code: ExceptionCode::ILLEGAL_DATA_ADDRESS,
+                    code: [
+                        ExceptionCode::ILLEGAL_DATA_ADDRESS,
+                        ExceptionCode::ILLEGAL_DATA_ADDRESS,
+                        ExceptionCode::ILLEGAL_FUNCTION,
+                        ExceptionCode::BUSY,
+                        ExceptionCode::GATEWAY_TARGET_FAILED,
+                    ][rng.below(5) as usize],
                 },
             )),
             _ => TransactionOutcome::NoReply,
@@ -2059,6 +2065,13 @@ fn the_due_order_chooses_as_a_scan_of_every_device_would() {
                 }
                 // The clock of a test may go back; the scheduler must not care.
                 7 => now = now.saturating_sub(ms(rng.below(50))),
+                // A value read was the channel's `unsupported_value`.
+                8 => {
+                    let reads = scheduler.devices.get(device).map(|d| d.plan.reads.clone());
+                    if let Some(read) = reads.as_deref().and_then(|r| r.first()) {
+                        scheduler.stop_reading(now, device, read.span);
+                    }
+                }
                 _ => match scheduler.next(now) {
                     NextStep::Transmit(transaction) => {
                         transactions += 1;
