@@ -2394,13 +2394,9 @@ fn min_read_registers_past_the_protocol_maximum_still_makes_requests_that_encode
     let mut scheduler = PortScheduler::new(settings(115_200), vec![plan]);
     let mut log = Log::default();
     // `run` encodes every request it sends.
-    run(
-        &mut scheduler,
-        &mut log,
-        Duration::ZERO,
-        ms(300),
-        |_, r| healthy(r),
-    );
+    run(&mut scheduler, &mut log, Duration::ZERO, ms(300), |_, r| {
+        healthy(r)
+    });
     let pdus: Vec<RequestPdu> = log.classic_to(20).into_iter().map(|(_, p)| p).collect();
     assert!(pdus.contains(&RequestPdu::ReadHoldingRegisters {
         start: 10,
@@ -2653,13 +2649,9 @@ fn a_read_wider_than_a_request_is_never_sent_and_the_others_go_on() {
     ];
     let mut scheduler = PortScheduler::new(settings(115_200), vec![device(7, reads)]);
     let mut log = Log::default();
-    run(
-        &mut scheduler,
-        &mut log,
-        Duration::ZERO,
-        ms(300),
-        |_, r| healthy(r),
-    );
+    run(&mut scheduler, &mut log, Duration::ZERO, ms(300), |_, r| {
+        healthy(r)
+    });
     let reads = holding_reads(&log, 7);
     assert!(reads.len() > 10, "{reads:?}");
     assert!(reads.iter().all(|&r| r == (0, 1)), "{reads:?}");
