@@ -3,6 +3,8 @@
 
 use std::time::Duration;
 
+use tracing::warn;
+
 use super::health::{DeviceHealth, HealthChange};
 use super::plan::{DevicePlan, EventMode};
 use super::read_plan::RegisterSpan;
@@ -42,6 +44,8 @@ enum Exclusion {
     AwaitingFirmware,
     /// Needs newer firmware than the device has.
     NewerFirmware,
+    /// Wider than one request may carry (or empty): never read, whatever happens.
+    Unreadable,
 }
 
 impl Exclusion {
@@ -49,7 +53,10 @@ impl Exclusion {
     fn never_read(self) -> bool {
         matches!(
             self,
-            Exclusion::Unsupported | Exclusion::AwaitingFirmware | Exclusion::NewerFirmware
+            Exclusion::Unsupported
+                | Exclusion::AwaitingFirmware
+                | Exclusion::NewerFirmware
+                | Exclusion::Unreadable
         )
     }
 }
@@ -133,7 +140,12 @@ impl DeviceState {
             .map(|read| ReadState {
                 next_due: Duration::ZERO,
                 last_read: None,
-                exclusion: if read.min_firmware.is_some() {
+                exclusion: if !read.span.fits_one_read() {
+                    // Its request would not encode (and fail the port): a config the parser
+                    // should have refused.
+                    warn!(device = %plan.name, span = ?read.span, "a read no request can carry: never read");
+                    Exclusion::Unreadable
+                } else if read.min_firmware.is_some() {
                     Exclusion::AwaitingFirmware
                 } else {
                     Exclusion::None
@@ -412,9 +424,13 @@ impl DeviceState {
     /// After a reboot or a reconnection: setup, event setup and first reads all over again.
     /// Registers the device refused are asked again too: a device that restarted may have new
     /// firmware (an update reboots it), and one that was away may have been replaced.
+    /// What refused reads taught goes with them: reads split apart are merged again and holes
+    /// are tried again (wb-mqtt-serial turns holes back on when a device disconnects).
     pub(super) fn restart_preparation(&mut self) {
         self.events_active = false;
         self.preparation = self.first_preparation_step();
+        self.holes_off = false;
+        self.split_found_refused = false;
         for read in &mut self.reads {
             if matches!(
                 read.exclusion,
@@ -423,6 +439,8 @@ impl DeviceState {
                 read.exclusion = Exclusion::None;
             }
             read.initial_pending = true;
+            read.solo = false;
+            read.solo_unknown = false;
         }
     }
 
@@ -441,6 +459,7 @@ impl DeviceState {
             };
             let has = crate::device::firmware::firmware_has(firmware, required);
             match read.exclusion {
+                Exclusion::Unreadable => {}
                 Exclusion::AwaitingFirmware | Exclusion::NewerFirmware if has => {
                     read.exclusion = Exclusion::None;
                     read.initial_pending = true;
@@ -514,7 +533,10 @@ impl DeviceState {
     fn due_from(&self, index: usize, keepalive: Option<usize>) -> Option<Duration> {
         let read = self.reads.get(index)?;
         match read.exclusion {
-            Exclusion::Unsupported | Exclusion::AwaitingFirmware | Exclusion::NewerFirmware => None,
+            Exclusion::Unsupported
+            | Exclusion::AwaitingFirmware
+            | Exclusion::NewerFirmware
+            | Exclusion::Unreadable => None,
             _ if read.initial_pending => Some(Duration::ZERO),
             Exclusion::None => Some(read.next_due),
             Exclusion::EventsOnly if keepalive == Some(index) => Some(read.next_due),
@@ -731,13 +753,8 @@ impl DeviceState {
     /// refused ones, which are no longer read), as wb-mqtt-serial marks only the refused
     /// register unavailable and goes on merging the rest (`UnavailableRegisterInTheMiddle`).
     /// A read over unconfigured registers is first tried again without holes.
-    pub(super) fn split_reads(&mut self, now: Duration, span: RegisterSpan, members: &[usize]) {
-        let covered: u32 = members
-            .iter()
-            .filter_map(|&m| self.read_span(m))
-            .map(|s| u32::from(s.count))
-            .sum();
-        let without_holes = covered < u32::from(span.count) && !self.holes_off;
+    pub(super) fn split_reads(&mut self, now: Duration, members: &[usize]) {
+        let without_holes = !self.holes_off && self.has_holes(members);
         self.holes_off |= without_holes;
         for &member in members {
             if let Some(read) = self.reads.get_mut(member) {
@@ -748,6 +765,23 @@ impl DeviceState {
                 read.next_due = now;
             }
         }
+    }
+
+    /// Whether the reads `members` leave registers between them unread (holes). Not the words a
+    /// read asks past its last member for `min_read_registers`, and reads that overlap (a value
+    /// and bit fields of its registers) do not hide a hole.
+    fn has_holes(&self, members: &[usize]) -> bool {
+        let mut spans: Vec<RegisterSpan> =
+            members.iter().filter_map(|&m| self.read_span(m)).collect();
+        spans.sort_unstable_by_key(|s| s.start);
+        let mut covered_to: Option<u32> = None;
+        for span in spans {
+            if covered_to.is_some_and(|end| u32::from(span.start) > end) {
+                return true;
+            }
+            covered_to = Some(covered_to.map_or(span.end(), |end| end.max(span.end())));
+        }
+        false
     }
 
     /// The merge limits in force: the plan's, without holes once a read over them was refused.

@@ -25,6 +25,12 @@ impl RegisterSpan {
         u32::from(self.start) + u32::from(self.count)
     }
 
+    /// Whether one read request can ask for this span: 1 to 125 registers (2000 bits), not
+    /// past the last address.
+    pub fn fits_one_read(&self) -> bool {
+        self.count >= 1 && self.count <= protocol_max(self.register_type) && self.end() <= 65_536
+    }
+
     pub fn contains(&self, other: &RegisterSpan) -> bool {
         self.register_type == other.register_type
             && self.start <= other.start
@@ -40,6 +46,15 @@ impl RegisterSpan {
             RegisterType::Holding => RequestPdu::ReadHoldingRegisters { start, count },
             RegisterType::Input => RequestPdu::ReadInputRegisters { start, count },
         }
+    }
+}
+
+/// Most registers (or bits) one read request may ask for.
+pub fn protocol_max(register_type: RegisterType) -> u16 {
+    if register_type.is_bit() {
+        MAX_READ_BITS
+    } else {
+        MAX_READ_REGISTERS
     }
 }
 
@@ -71,21 +86,23 @@ impl Default for MergeLimits {
 }
 
 impl MergeLimits {
-    /// `span` read as the device needs it: at least `min_read_registers` long (not past the
-    /// end of the address space). The words beyond the span are read and not used
+    /// `span` read as the device needs it: at least `min_read_registers` long, but never
+    /// longer than one request may carry (125 registers, 2000 bits: the config takes any
+    /// number, and a request that does not encode would fail the port) nor past the end of the
+    /// address space. The words beyond the span are read and not used
     /// (`TModbusTest.MinReadRegisters`).
     pub fn at_least_min(&self, span: RegisterSpan) -> RegisterSpan {
         let room = u16::try_from(65_536 - u32::from(span.start)).unwrap_or(u16::MAX);
-        let count = span.count.max(self.min_read_registers.min(room));
+        let min = self
+            .min_read_registers
+            .min(room)
+            .min(protocol_max(span.register_type));
+        let count = span.count.max(min);
         RegisterSpan { count, ..span }
     }
 
     pub fn max_count(&self, register_type: RegisterType) -> u16 {
-        let protocol_max = if register_type.is_bit() {
-            MAX_READ_BITS
-        } else {
-            MAX_READ_REGISTERS
-        };
+        let protocol_max = protocol_max(register_type);
         match self.max_read_registers {
             0 => protocol_max,
             limit => limit.min(protocol_max),

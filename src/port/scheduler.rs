@@ -659,6 +659,23 @@ impl PortScheduler {
         timing: ReplyTiming,
         out: &mut Vec<PortEvent>,
     ) {
+        // A gateway's exception for the device behind it (0x0A: no path to it, 0x0B: it did not
+        // respond) is no answer from the device: silence, not a device that answered and
+        // refused (it would never go offline, and its setup never be written again when it came
+        // back). wb-mqtt-serial counts it a failed transfer too.
+        let outcome = match outcome {
+            TransactionOutcome::Reply(Reply {
+                body:
+                    ReplyBody::Classic(ResponsePdu::Exception {
+                        code:
+                            ExceptionCode::GATEWAY_PATH_UNAVAILABLE
+                            | ExceptionCode::GATEWAY_TARGET_FAILED,
+                        ..
+                    }),
+                ..
+            }) => TransactionOutcome::NoReply,
+            outcome => outcome,
+        };
         let device = match &self.in_flight {
             Some(InFlight::Setup { device, .. })
             | Some(InFlight::EnableEvents { device, .. })
@@ -866,12 +883,15 @@ impl PortScheduler {
             Duration::ZERO
         };
         let request_time = line.wire_time(request_len);
-        let estimated = if device.health.is_offline() {
-            // An offline device costs its whole timeout and the late window after it.
-            request_time + response_timeout + late_window
-        } else {
-            line.transaction_time(request_len, self.settings.turnaround, reply_len)
-        };
+        // The silence the transport keeps before the device's requests takes the bus as long.
+        let guard = self.settings.guard_intervals.before(device.plan.address);
+        let estimated = guard
+            + if device.health.is_offline() {
+                // An offline device costs its whole timeout and the late window after it.
+                request_time + response_timeout + late_window
+            } else {
+                line.transaction_time(request_len, self.settings.turnaround, reply_len)
+            };
         Transaction {
             request,
             request_time,
@@ -1150,6 +1170,8 @@ impl PortScheduler {
             let end = span.end().max(member_span.end());
             span.count = u16::try_from(end - u32::from(span.start)).ok()?;
         }
+        // As long as the device needs, as the whole read was (`read_of`).
+        let span = state.plan.merge.at_least_min(span);
         let request = Request::classic(state.plan.address, span.read_request());
         Some((self.classic_transaction(now, state, request), span))
     }
@@ -1362,7 +1384,7 @@ impl PortScheduler {
                     );
                     if permanent && members.len() > 1 {
                         debug!(device = %state.plan.name, ?span, %code, "merged read refused: reading its parts one by one");
-                        state.split_reads(now, span, members);
+                        state.split_reads(now, members);
                     } else {
                         Self::reads_failed(state, device, now, members, permanent, out);
                     }

@@ -5,7 +5,7 @@ use std::time::Duration;
 
 use super::*;
 use crate::port::health::HealthPolicy;
-use crate::port::plan::{EventMode, PlannedRead, SetupWrite};
+use crate::port::plan::{EventMode, GuardIntervals, PlannedRead, SetupWrite};
 use crate::port::read_plan::MergeLimits;
 use crate::protocol::{
     Event, EventPacket, EventPoll, FastRequest, LineSettings, Parity, RequestBody,
@@ -190,11 +190,16 @@ fn healthy(request: &Request) -> TransactionOutcome {
 
 fn classic_answer(pdu: &RequestPdu) -> ResponsePdu {
     match pdu {
+        // The address as the value (the low 16 bits of it past the last address).
         RequestPdu::ReadHoldingRegisters { start, count } => ResponsePdu::ReadHoldingRegisters {
-            values: (*start..start + count).collect(),
+            values: (u32::from(*start)..u32::from(*start) + u32::from(*count))
+                .map(|a| a as u16)
+                .collect(),
         },
         RequestPdu::ReadInputRegisters { start, count } => ResponsePdu::ReadInputRegisters {
-            values: (*start..start + count).collect(),
+            values: (u32::from(*start)..u32::from(*start) + u32::from(*count))
+                .map(|a| a as u16)
+                .collect(),
         },
         RequestPdu::ReadCoils { count, .. } => ResponsePdu::ReadCoils {
             packed: vec![0; usize::from(*count).div_ceil(8)],
@@ -1948,7 +1953,7 @@ fn random_plan(rng: &mut Rng, address: u8) -> DevicePlan {
         max_read_registers: rng.below(6) as u16,
         max_register_hole: rng.below(3) as u16,
         max_bit_hole: rng.below(3) as u16,
-        min_read_registers: 1,
+        min_read_registers: rng.below(4) as u16,
     };
     if rng.chance(50) {
         plan.health = HealthPolicy {
@@ -1973,7 +1978,13 @@ fn random_outcome(rng: &mut Rng, request: &Request, addresses: &[u8]) -> Transac
                 request.address,
                 ResponsePdu::Exception {
                     function: pdu.function(),
-                    code: ExceptionCode::ILLEGAL_DATA_ADDRESS,
+                    code: [
+                        ExceptionCode::ILLEGAL_DATA_ADDRESS,
+                        ExceptionCode::ILLEGAL_DATA_ADDRESS,
+                        ExceptionCode::ILLEGAL_FUNCTION,
+                        ExceptionCode::BUSY,
+                        ExceptionCode::GATEWAY_TARGET_FAILED,
+                    ][rng.below(5) as usize],
                 },
             )),
             _ => TransactionOutcome::NoReply,
@@ -2054,6 +2065,13 @@ fn the_due_order_chooses_as_a_scan_of_every_device_would() {
                 }
                 // The clock of a test may go back; the scheduler must not care.
                 7 => now = now.saturating_sub(ms(rng.below(50))),
+                // A value read was the channel's `unsupported_value`.
+                8 => {
+                    let reads = scheduler.devices.get(device).map(|d| d.plan.reads.clone());
+                    if let Some(read) = reads.as_deref().and_then(|r| r.first()) {
+                        scheduler.stop_reading(now, device, read.span);
+                    }
+                }
                 _ => match scheduler.next(now) {
                     NextStep::Transmit(transaction) => {
                         transactions += 1;
@@ -2293,4 +2311,348 @@ fn a_reboot_after_start_up_is_set_up_between_event_polls() {
     let polls: Vec<Duration> = log.event_polls().iter().map(|(at, _)| *at).collect();
     assert!(polls.iter().any(|&at| at < setups[2]));
     assert!(max_gap(&polls) <= ms(51), "{:?}", max_gap(&polls));
+}
+
+// ---------------------------------------------------------------------------------------------
+// Read planning under review: refused reads, min_read_registers, guards, gateways
+// ---------------------------------------------------------------------------------------------
+
+/// An exception reply to `request` (a classic one) from its device.
+fn exception(request: &Request, code: ExceptionCode) -> TransactionOutcome {
+    let function = match &request.body {
+        RequestBody::Classic(pdu) => pdu.function(),
+        RequestBody::Fast(_) => 0x46,
+    };
+    TransactionOutcome::Reply(Reply::classic(
+        request.address,
+        ResponsePdu::Exception { function, code },
+    ))
+}
+
+/// (start, count) of every holding read sent to `address`.
+fn holding_reads(log: &Log, address: u8) -> Vec<(u16, u16)> {
+    log.classic_to(address)
+        .into_iter()
+        .filter_map(|(_, pdu)| match pdu {
+            RequestPdu::ReadHoldingRegisters { start, count } => Some((start, count)),
+            _ => None,
+        })
+        .collect()
+}
+
+/// A device that refuses reads shorter than `min_read_registers`, on a port whose event polls
+/// cut long merged reads to what fits before the slot: the shortened reads are asked at least
+/// `min_read_registers` long too, and no register is taken for one the device lacks.
+#[test]
+fn a_read_shortened_for_the_event_slot_keeps_min_read_registers() {
+    let mut reads = vec![read(RegisterType::Coil, 0, EventMode::Sporadic)];
+    reads.extend((0..100).map(|a| read(RegisterType::Holding, 1000 + a, EventMode::Polled)));
+    let mut plan = device(20, reads);
+    plan.merge.min_read_registers = 4;
+    let mut scheduler = PortScheduler::new(settings(9600), vec![plan]);
+    let mut log = Log::default();
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(5_000),
+        |_, request| match &request.body {
+            RequestBody::Classic(RequestPdu::ReadHoldingRegisters { count, .. }) if *count < 4 => {
+                exception(request, ExceptionCode::ILLEGAL_DATA_VALUE)
+            }
+            _ => healthy(request),
+        },
+    );
+    let short: Vec<_> = holding_reads(&log, 20)
+        .into_iter()
+        .filter(|&(_, count)| count < 4)
+        .collect();
+    assert!(short.is_empty(), "{short:?}");
+    assert!(
+        !log.events.iter().any(|(_, e)| matches!(
+            e,
+            PortEvent::ReadFailed {
+                unsupported: true,
+                ..
+            }
+        )),
+        "a register taken for unsupported"
+    );
+}
+
+/// `min_read_registers` above what one request may carry (the config takes any number) is cut
+/// to the protocol's maximum: an unencodable request would fail the port and reopen it forever.
+#[test]
+fn min_read_registers_past_the_protocol_maximum_still_makes_requests_that_encode() {
+    let reads = vec![
+        read(RegisterType::Holding, 10, EventMode::Polled),
+        read(RegisterType::Coil, 10, EventMode::Polled),
+        read(RegisterType::Input, 65_530, EventMode::Polled),
+    ];
+    let mut plan = device(20, reads);
+    plan.merge.min_read_registers = 3000;
+    let mut scheduler = PortScheduler::new(settings(115_200), vec![plan]);
+    let mut log = Log::default();
+    // `run` encodes every request it sends.
+    run(&mut scheduler, &mut log, Duration::ZERO, ms(300), |_, r| {
+        healthy(r)
+    });
+    let pdus: Vec<RequestPdu> = log.classic_to(20).into_iter().map(|(_, p)| p).collect();
+    assert!(pdus.contains(&RequestPdu::ReadHoldingRegisters {
+        start: 10,
+        count: 125
+    }));
+    assert!(pdus.contains(&RequestPdu::ReadCoils {
+        start: 10,
+        count: 2000
+    }));
+    assert!(pdus.contains(&RequestPdu::ReadInputRegisters {
+        start: 65_530,
+        count: 6
+    }));
+}
+
+/// A Modbus TCP gateway answers exception 0x0B (or 0x0A) for a device behind it that does not
+/// answer: that is no answer from the device, which goes offline as a silent one does, and its
+/// registers are not taken for unsupported.
+#[test]
+fn a_gateway_exception_is_no_answer_from_the_device() {
+    for code in [
+        ExceptionCode::GATEWAY_TARGET_FAILED,
+        ExceptionCode::GATEWAY_PATH_UNAVAILABLE,
+    ] {
+        let reads = (0..3)
+            .map(|a| read(RegisterType::Holding, a, EventMode::Polled))
+            .collect();
+        let mut plan = device(7, reads);
+        plan.health = HealthPolicy {
+            max_fail_cycles: 2,
+            device_timeout: ms(100),
+            ..HealthPolicy::default()
+        };
+        let mut scheduler = PortScheduler::new(settings(115_200), vec![plan]);
+        let mut log = Log::default();
+        run(
+            &mut scheduler,
+            &mut log,
+            Duration::ZERO,
+            ms(1_000),
+            |_, request| exception(request, code),
+        );
+        let events: Vec<&PortEvent> = log.events.iter().map(|(_, e)| e).collect();
+        assert!(
+            events.contains(&&PortEvent::Offline { device: 0 }),
+            "{code}: {events:?}"
+        );
+        assert!(
+            !events.iter().any(|e| matches!(
+                e,
+                PortEvent::ReadFailed {
+                    unsupported: true,
+                    ..
+                } | PortEvent::Online { .. }
+            )),
+            "{code}: {events:?}"
+        );
+    }
+}
+
+/// Exceptions 4 and 6 (device failure, busy) say nothing of the registers: a merged read so
+/// refused is neither split nor any register of it excluded; it is asked again whole.
+#[test]
+fn a_busy_device_keeps_its_merged_reads() {
+    for code in [ExceptionCode::DEVICE_FAILURE, ExceptionCode::BUSY] {
+        let reads = (0..3)
+            .map(|a| read(RegisterType::Holding, a, EventMode::Polled))
+            .collect();
+        let mut scheduler = PortScheduler::new(settings(115_200), vec![device(7, reads)]);
+        let mut log = Log::default();
+        let mut answered = 0;
+        run(
+            &mut scheduler,
+            &mut log,
+            Duration::ZERO,
+            ms(300),
+            |_, request| {
+                answered += 1;
+                if answered <= 10 {
+                    exception(request, code)
+                } else {
+                    healthy(request)
+                }
+            },
+        );
+        let reads = holding_reads(&log, 7);
+        assert!(reads.len() > 20, "{reads:?}");
+        assert!(reads.iter().all(|&r| r == (0, 3)), "{code}: {reads:?}");
+        assert!(!log.events.iter().any(|(_, e)| matches!(
+            e,
+            PortEvent::ReadFailed {
+                unsupported: true,
+                ..
+            }
+        )));
+    }
+}
+
+/// Channels sharing registers (a u32 at 0 and bit fields of 0 and 1) and register 3, with a
+/// hole at 2 the device does not have: the merged read across the hole is refused, which turns
+/// holes off (as wb-mqtt-serial's HolesAutoDisable), and 0…1 are read in one request again.
+/// The overlapping channels must not hide the hole.
+#[test]
+fn overlapping_reads_do_not_hide_a_hole_in_a_refused_read() {
+    let span_read = |start: u16, count: u16, period: Option<Duration>| PlannedRead {
+        span: RegisterSpan::new(RegisterType::Holding, start, count),
+        period,
+        events: EventMode::Polled,
+        min_firmware: None,
+    };
+    let reads = vec![
+        span_read(0, 2, None),
+        span_read(0, 1, None),
+        span_read(1, 1, None),
+        span_read(3, 1, None),
+    ];
+    let mut plan = device(7, reads);
+    plan.merge.max_register_hole = 2;
+    let mut scheduler = PortScheduler::new(settings(115_200), vec![plan]);
+    let mut log = Log::default();
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(1_000),
+        |_, request| match &request.body {
+            RequestBody::Classic(RequestPdu::ReadHoldingRegisters { start, count })
+                if *start <= 2 && start + count > 2 =>
+            {
+                exception(request, ExceptionCode::ILLEGAL_DATA_ADDRESS)
+            }
+            _ => healthy(request),
+        },
+    );
+    let reads = holding_reads(&log, 7);
+    let mut settled: Vec<(u16, u16)> = reads[reads.len() / 2..].to_vec();
+    settled.sort_unstable();
+    settled.dedup();
+    assert_eq!(settled, vec![(0, 2), (3, 1)], "{reads:?}");
+}
+
+/// A device with a guard interval: its requests are estimated with the silence kept before
+/// them, so a read of it does not start when only its wire time fits before the event slot.
+#[test]
+fn a_device_guard_interval_counts_in_its_transaction_time() {
+    let mut settings = settings(115_200);
+    settings.guard_intervals = GuardIntervals(vec![(7, ms(20))]);
+    let plans = vec![
+        device(7, vec![read(RegisterType::Holding, 0, EventMode::Polled)]),
+        device(8, vec![read(RegisterType::Coil, 0, EventMode::Sporadic)]),
+    ];
+    let mut scheduler = PortScheduler::new(settings, plans);
+    let mut now = Duration::ZERO;
+    let mut guarded = Vec::new();
+    let mut unguarded = Vec::new();
+    while now < ms(2_000) {
+        match scheduler.next(now) {
+            NextStep::Transmit(transaction) => {
+                match transaction.request.address {
+                    7 => guarded.push(transaction.estimated),
+                    8 => unguarded.push(transaction.estimated),
+                    _ => {}
+                }
+                let outcome = healthy(&transaction.request);
+                now += transaction.estimated;
+                scheduler.complete(now, outcome);
+            }
+            NextStep::Wait { until } => now = until.max(now + Duration::from_micros(1)),
+        }
+    }
+    assert!(guarded.len() > 5 && unguarded.len() > 1);
+    assert!(guarded.iter().all(|&e| e >= ms(20)), "{guarded:?}");
+    assert!(unguarded.iter().all(|&e| e < ms(20)), "{unguarded:?}");
+}
+
+/// Once a device reconnects, what it refused is asked again (a replaced or updated device may
+/// have it) and holes are tried again, as wb-mqtt-serial turns them back on when it
+/// disconnects (`SetDisconnected`): a device that refused a read across a hole and came back
+/// as one that has the register gets merged reads across it again.
+#[test]
+fn holes_are_tried_again_after_the_device_reconnects() {
+    let reads = vec![
+        read(RegisterType::Holding, 0, EventMode::Polled),
+        read(RegisterType::Holding, 2, EventMode::Polled),
+    ];
+    let mut plan = device(7, reads);
+    plan.merge.max_register_hole = 1;
+    plan.response_timeout = ms(5);
+    plan.health = HealthPolicy {
+        max_fail_cycles: 1,
+        device_timeout: ms(10),
+        retry_step: ms(20),
+        max_retry_delay: ms(50),
+        late_reply_holdoff: ms(10),
+    };
+    let mut scheduler = PortScheduler::new(settings(115_200), vec![plan]);
+    let mut log = Log::default();
+    // Refuses reads across 1 until 200 ms, is away until 400 ms, then has register 1.
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(1_000),
+        |now, request| match &request.body {
+            _ if now >= ms(200) && now < ms(400) => TransactionOutcome::NoReply,
+            RequestBody::Classic(RequestPdu::ReadHoldingRegisters { start, count })
+                if now < ms(200) && *start <= 1 && start + count > 1 =>
+            {
+                exception(request, ExceptionCode::ILLEGAL_DATA_ADDRESS)
+            }
+            _ => healthy(request),
+        },
+    );
+    assert!(
+        log.events
+            .iter()
+            .any(|(at, e)| *at > ms(400) && *e == PortEvent::Online { device: 0 }),
+        "{:?}",
+        log.events
+            .iter()
+            .filter(|(_, e)| matches!(e, PortEvent::Online { .. } | PortEvent::Offline { .. }))
+            .collect::<Vec<_>>()
+    );
+    let late: Vec<_> = log
+        .classic_to(7)
+        .into_iter()
+        .filter(|(at, _)| *at > ms(800))
+        .map(|(_, pdu)| pdu)
+        .collect();
+    assert!(!late.is_empty());
+    assert!(
+        late.iter()
+            .all(|pdu| *pdu == RequestPdu::ReadHoldingRegisters { start: 0, count: 3 }),
+        "{late:?}"
+    );
+}
+
+/// A planned read wider than one request may carry (a long string) can never be read: it is
+/// not sent (its request would not encode, which fails the port), the others are read.
+#[test]
+fn a_read_wider_than_a_request_is_never_sent_and_the_others_go_on() {
+    let reads = vec![
+        PlannedRead {
+            span: RegisterSpan::new(RegisterType::Holding, 100, 130),
+            period: None,
+            events: EventMode::Polled,
+            min_firmware: None,
+        },
+        read(RegisterType::Holding, 0, EventMode::Polled),
+    ];
+    let mut scheduler = PortScheduler::new(settings(115_200), vec![device(7, reads)]);
+    let mut log = Log::default();
+    run(&mut scheduler, &mut log, Duration::ZERO, ms(300), |_, r| {
+        healthy(r)
+    });
+    let reads = holding_reads(&log, 7);
+    assert!(reads.len() > 10, "{reads:?}");
+    assert!(reads.iter().all(|&r| r == (0, 1)), "{reads:?}");
 }
