@@ -553,6 +553,32 @@ fn written_values_are_rounded_to_round_to() {
     assert_eq!(steps.encode("12.0", None).unwrap(), vec![10]);
 }
 
+/// A float or double that is not finite, as given or once scale and offset are undone, is
+/// refused: no infinity or NaN reaches the device for a text that asked for a number.
+#[test]
+fn non_finite_float_writes_are_refused() {
+    for format in [RegisterFormat::Float, RegisterFormat::Double] {
+        let plain = codec(format);
+        for text in ["nan", "NaN", "inf", "-inf", "infinity", "1e400"] {
+            assert!(
+                plain.encode(text, None).is_err(),
+                "{} {text}",
+                format.name()
+            );
+        }
+        let tiny_scale = ValueCodec {
+            scale: 1e-10,
+            ..codec(format)
+        };
+        assert!(
+            tiny_scale.encode("1e300", None).is_err(),
+            "{} 1e300 / 1e-10",
+            format.name()
+        );
+        assert!(tiny_scale.encode("1", None).is_ok(), "{}", format.name());
+    }
+}
+
 #[test]
 fn coils_are_single_bits() {
     let coil = ValueCodec::bit();
