@@ -128,3 +128,18 @@ fn a_pending_write_stands_for_its_register_until_done_or_given_up() {
     );
     assert_eq!(take(&mut model, "B0", "1"), vec![(72, vec![0x0083])]);
 }
+
+/// A bit field in a register no channel reads goes over what the device's setup wrote there
+/// (written on every connect), as wb-mqtt-serial's register cache holds the setup writes: not
+/// over zeros, which would clear the setup's bits.
+#[test]
+fn a_bit_field_in_a_write_only_register_keeps_the_setup_bits() {
+    let device = device_with(
+        json!([{"name": "Mode", "reg_type": "holding", "write_address": "100:4:4",
+            "format": "u16", "type": "value"}]),
+        json!({"setup": [{"title": "low", "address": "100:0:4", "value": 3}]}),
+    );
+    assert!(device.channels[0].write_only);
+    let mut model = model(device);
+    assert_eq!(take(&mut model, "Mode", "5"), vec![(100, vec![0x0053])]);
+}

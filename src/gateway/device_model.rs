@@ -787,16 +787,26 @@ impl DeviceModel {
                     })
                     .collect();
                 // A bit field in registers no channel reads (a `write_address` of its own) goes
-                // over what was last written there, and over zeros before that, as
-                // wb-mqtt-serial composes it from its register cache (`TModbusTest.
-                // WriteHoldingRegiterWithOffsetWriteOptions`). In a register that is read, its
-                // other bits must have been read first.
+                // over what was last written there, and before that over what the setup writes
+                // there on connect, or zeros, as wb-mqtt-serial composes it from its register
+                // cache (`TModbusTest.WriteHoldingRegiterWithOffsetWriteOptions`; the setup
+                // writes go through that cache too). In a register that is read, its other bits
+                // must have been read first.
                 let never_read = (0..count).all(|i| {
                     !self
                         .channel_index
                         .is_read((target.reg_type, target.address.wrapping_add(i)))
                 });
-                known.or_else(|| never_read.then(|| vec![0; usize::from(count)]))
+                known.or_else(|| {
+                    never_read.then(|| {
+                        (0..count)
+                            .map(|i| {
+                                let register = (target.reg_type, target.address.wrapping_add(i));
+                                self.setup_word(register).unwrap_or(0)
+                            })
+                            .collect()
+                    })
+                })
             })
             .collect();
         let current_refs: Vec<Option<&[u16]>> = current.iter().map(|c| c.as_deref()).collect();
@@ -864,6 +874,20 @@ impl DeviceModel {
             Err(_) => self.set_flags(|c| c.id == control_id, |flags| flags.write = true, out),
         }
         result
+    }
+
+    /// The word the device's setup leaves in `register` (the last setup item's that writes it).
+    fn setup_word(&self, (register_type, address): (RegisterType, u16)) -> Option<u16> {
+        self.device
+            .setup
+            .iter()
+            .rev()
+            .filter(|item| item.register.reg_type == register_type)
+            .find_map(|item| {
+                item.words
+                    .get(usize::from(address.checked_sub(item.register.address)?))
+                    .copied()
+            })
     }
 
     /// The word a write not yet done puts in `register` (the latest such write's).
