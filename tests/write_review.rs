@@ -143,3 +143,24 @@ fn a_bit_field_in_a_write_only_register_keeps_the_setup_bits() {
     let mut model = model(device);
     assert_eq!(take(&mut model, "Mode", "5"), vec![(100, vec![0x0053])]);
 }
+
+/// A bit field over two registers no channel reads, one of them with a write not yet done:
+/// that write's bits stay, the other register's unknown bits are zeros.
+#[test]
+fn a_wide_bit_field_keeps_a_pending_write_in_one_of_its_registers() {
+    let device = device_with(
+        json!([
+            {"name": "Low", "reg_type": "holding", "write_address": "101:0:4",
+             "format": "u16", "type": "value"},
+            {"name": "Wide", "reg_type": "holding", "write_address": "100:8:16",
+             "format": "u16", "type": "value"}
+        ]),
+        json!({}),
+    );
+    let mut model = model(device);
+    assert_eq!(take(&mut model, "Low", "5"), vec![(101, vec![0x0005])]);
+    assert_eq!(
+        take(&mut model, "Wide", "4660"),
+        vec![(100, vec![0x0012, 0x3405])]
+    );
+}

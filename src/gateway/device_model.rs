@@ -780,33 +780,25 @@ impl DeviceModel {
             .map(|register| {
                 let target = register.write.or(register.read)?;
                 let count = target.count.max(1);
-                let known: Option<Vec<u16>> = (0..count)
-                    .map(|i| {
-                        let register = (target.reg_type, target.address.wrapping_add(i));
-                        self.pending_word(register).or_else(|| self.word(register))
-                    })
-                    .collect();
                 // A bit field in registers no channel reads (a `write_address` of its own) goes
                 // over what was last written there, and before that over what the setup writes
                 // there on connect, or zeros, as wb-mqtt-serial composes it from its register
                 // cache (`TModbusTest.WriteHoldingRegiterWithOffsetWriteOptions`; the setup
                 // writes go through that cache too). In a register that is read, its other bits
-                // must have been read first.
+                // must have been read first. A write not yet done comes before either.
                 let never_read = (0..count).all(|i| {
                     !self
                         .channel_index
                         .is_read((target.reg_type, target.address.wrapping_add(i)))
                 });
-                known.or_else(|| {
-                    never_read.then(|| {
-                        (0..count)
-                            .map(|i| {
-                                let register = (target.reg_type, target.address.wrapping_add(i));
-                                self.setup_word(register).unwrap_or(0)
-                            })
-                            .collect()
+                (0..count)
+                    .map(|i| {
+                        let register = (target.reg_type, target.address.wrapping_add(i));
+                        self.pending_word(register)
+                            .or_else(|| self.word(register))
+                            .or_else(|| never_read.then(|| self.setup_word(register).unwrap_or(0)))
                     })
-                })
+                    .collect()
             })
             .collect();
         let current_refs: Vec<Option<&[u16]>> = current.iter().map(|c| c.as_deref()).collect();
