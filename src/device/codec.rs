@@ -388,9 +388,12 @@ impl ValueCodec {
         }
         match self.format {
             RegisterFormat::Char8 => Ok(u64::from(text.bytes().next().unwrap_or(0))),
+            // A number that is not finite once scale and offset are undone (`nan`, `inf` on a
+            // `text` control, 1e300 with a scale 1e-10) is refused rather than written as an
+            // IEEE infinity or NaN nobody asked for.
             RegisterFormat::Float => {
                 let value = self.unscale(self.rounded(parse_number(text)?));
-                if value.is_finite() && value.abs() > f64::from(f32::MAX) {
+                if !value.is_finite() || value.abs() > f64::from(f32::MAX) {
                     return Err(self.out_of_range(
                         text,
                         f32::MIN.to_string(),
@@ -399,7 +402,17 @@ impl ValueCodec {
                 }
                 Ok(u64::from((value as f32).to_bits()))
             }
-            RegisterFormat::Double => Ok(self.unscale(self.rounded(parse_number(text)?)).to_bits()),
+            RegisterFormat::Double => {
+                let value = self.unscale(self.rounded(parse_number(text)?));
+                if !value.is_finite() {
+                    return Err(self.out_of_range(
+                        text,
+                        f64::MIN.to_string(),
+                        f64::MAX.to_string(),
+                    ));
+                }
+                Ok(value.to_bits())
+            }
             format if format.is_bcd() => {
                 let digits = format.value_bits() / 4;
                 let max = 10i128.pow(digits) - 1;

@@ -553,6 +553,32 @@ fn written_values_are_rounded_to_round_to() {
     assert_eq!(steps.encode("12.0", None).unwrap(), vec![10]);
 }
 
+/// A float or double that is not finite, as given or once scale and offset are undone, is
+/// refused: no infinity or NaN reaches the device for a text that asked for a number.
+#[test]
+fn non_finite_float_writes_are_refused() {
+    for format in [RegisterFormat::Float, RegisterFormat::Double] {
+        let plain = codec(format);
+        for text in ["nan", "NaN", "inf", "-inf", "infinity", "1e400"] {
+            assert!(
+                plain.encode(text, None).is_err(),
+                "{} {text}",
+                format.name()
+            );
+        }
+        let tiny_scale = ValueCodec {
+            scale: 1e-10,
+            ..codec(format)
+        };
+        assert!(
+            tiny_scale.encode("1e300", None).is_err(),
+            "{} 1e300 / 1e-10",
+            format.name()
+        );
+        assert!(tiny_scale.encode("1", None).is_ok(), "{}", format.name());
+    }
+}
+
 #[test]
 fn coils_are_single_bits() {
     let coil = ValueCodec::bit();
@@ -594,6 +620,48 @@ mod properties {
                 prop_assert!(textual || !text.is_empty(), "{} gave an empty value", format.name());
             }
             let _ = codec.encode("12", Some(&words));
+        }
+
+        /// Whatever the payload and the register layout, a write is words or a refusal: the
+        /// words are as many as the registers, and a bit field's write changes no other bit.
+        #[test]
+        fn encoding_never_panics_and_keeps_the_other_bits(
+            text in prop_oneof![
+                "[-+0-9.eExXa-fA-F ]{0,24}",
+                Just("nan".to_string()),
+                Just("-0".to_string()),
+                Just("1e400".to_string()),
+                Just("18446744073709551616".to_string()),
+            ],
+            current in proptest::collection::vec(any::<u16>(), 4),
+            shift in 0u32..64, width in 0u32..65, fmt in 0usize..19,
+            scale in prop_oneof![Just(1.0), Just(0.1), Just(-3.0), Just(0.0), Just(1e-300)],
+            round_to in prop_oneof![Just(0.0), Just(0.5), Just(1e-300)],
+            little_words in any::<bool>(), little_bytes in any::<bool>(),
+        ) {
+            let format = RegisterFormat::ALL[fmt];
+            // A field within 64 bits, as the resolver allows.
+            let width = width % (65 - shift);
+            let count = format.registers().max((shift + width).div_ceil(16)).clamp(1, 4);
+            let codec = ValueCodec {
+                bit_shift: shift,
+                bit_width: if width == 0 { format.value_bits() } else { width },
+                word_count: count,
+                scale,
+                round_to,
+                word_order: if little_words { WordOrder::LittleEndian } else { WordOrder::BigEndian },
+                byte_order: if little_bytes { ByteOrder::LittleEndian } else { ByteOrder::BigEndian },
+                ..ValueCodec::plain(format)
+            };
+            let current = &current[..count as usize];
+            if let Ok(words) = codec.encode(&text, Some(current)) {
+                prop_assert_eq!(words.len(), count as usize);
+                if codec.is_partial() {
+                    for ((word, old), mask) in words.iter().zip(current).zip(codec.field_mask_words()) {
+                        prop_assert_eq!(word & !mask, old & !mask);
+                    }
+                }
+            }
         }
 
         #[test]

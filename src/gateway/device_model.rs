@@ -54,6 +54,11 @@ pub struct DeviceModel {
     /// Reads whose value was `unsupported_value`, for the scheduler to stop
     /// ([`Self::take_unsupported_reads`]).
     unsupported_reads: Vec<crate::port::RegisterSpan>,
+    /// The writes handed out by [`Self::take_write`] and not yet done: (table, first register,
+    /// words), the latest per first register as the scheduler keeps them. A bit field written
+    /// next goes over their words rather than over the words last read: the scheduler keeps
+    /// only the latest write of a register, so one composed over the read would undo them.
+    pending_writes: Vec<(RegisterType, u16, Vec<u16>)>,
 }
 
 /// Which channels read each register, and the channels' ids as updates carry them: built once
@@ -305,6 +310,7 @@ impl DeviceModel {
             word_buffer: Vec::new(),
             text: String::new(),
             unsupported_reads: Vec::new(),
+            pending_writes: Vec::new(),
         }
     }
 
@@ -330,6 +336,7 @@ impl DeviceModel {
         }
         match event {
             PortEvent::Values { span, values, .. } => {
+                self.settle_pending_writes(&span, &values);
                 self.store_words(span.register_type, span.start, &values);
                 let mut touched = std::mem::take(&mut self.touched);
                 self.channel_index
@@ -406,8 +413,14 @@ impl DeviceModel {
             PortEvent::WriteFailed {
                 register_type,
                 address,
+                permanent,
                 ..
             } => {
+                if permanent {
+                    // Given up: the device keeps what it had.
+                    self.pending_writes
+                        .retain(|&(t, a, _)| (t, a) != (register_type, address));
+                }
                 self.set_flags(
                     |c| writes_register(c, register_type, address),
                     |flags| flags.write = true,
@@ -767,20 +780,25 @@ impl DeviceModel {
             .map(|register| {
                 let target = register.write.or(register.read)?;
                 let count = target.count.max(1);
-                let known: Option<Vec<u16>> = (0..count)
-                    .map(|i| self.word((target.reg_type, target.address.wrapping_add(i))))
-                    .collect();
                 // A bit field in registers no channel reads (a `write_address` of its own) goes
-                // over what was last written there, and over zeros before that, as
-                // wb-mqtt-serial composes it from its register cache (`TModbusTest.
-                // WriteHoldingRegiterWithOffsetWriteOptions`). In a register that is read, its
-                // other bits must have been read first.
+                // over what was last written there, and before that over what the setup writes
+                // there on connect, or zeros, as wb-mqtt-serial composes it from its register
+                // cache (`TModbusTest.WriteHoldingRegiterWithOffsetWriteOptions`; the setup
+                // writes go through that cache too). In a register that is read, its other bits
+                // must have been read first. A write not yet done comes before either.
                 let never_read = (0..count).all(|i| {
                     !self
                         .channel_index
                         .is_read((target.reg_type, target.address.wrapping_add(i)))
                 });
-                known.or_else(|| never_read.then(|| vec![0; usize::from(count)]))
+                (0..count)
+                    .map(|i| {
+                        let register = (target.reg_type, target.address.wrapping_add(i));
+                        self.pending_word(register)
+                            .or_else(|| self.word(register))
+                            .or_else(|| never_read.then(|| self.setup_word(register).unwrap_or(0)))
+                    })
+                    .collect()
             })
             .collect();
         let current_refs: Vec<Option<&[u16]>> = current.iter().map(|c| c.as_deref()).collect();
@@ -833,10 +851,65 @@ impl DeviceModel {
         out: &mut Vec<DeviceUpdate>,
     ) -> Result<Vec<RegisterWrite>, WriteRejected> {
         let result = self.write(control_id, payload);
-        if result.is_err() {
-            self.set_flags(|c| c.id == control_id, |flags| flags.write = true, out);
+        match &result {
+            Ok(writes) => {
+                for write in writes {
+                    let start = (write.register_type, write.address);
+                    self.pending_writes.retain(|&(t, a, _)| (t, a) != start);
+                    self.pending_writes.push((
+                        write.register_type,
+                        write.address,
+                        write.values.clone(),
+                    ));
+                }
+            }
+            Err(_) => self.set_flags(|c| c.id == control_id, |flags| flags.write = true, out),
         }
         result
+    }
+
+    /// The word the device's setup leaves in `register` (the last setup item's that writes it).
+    fn setup_word(&self, (register_type, address): (RegisterType, u16)) -> Option<u16> {
+        self.device
+            .setup
+            .iter()
+            .rev()
+            .filter(|item| item.register.reg_type == register_type)
+            .find_map(|item| {
+                item.words
+                    .get(usize::from(address.checked_sub(item.register.address)?))
+                    .copied()
+            })
+    }
+
+    /// The word a write not yet done puts in `register` (the latest such write's).
+    fn pending_word(&self, (register_type, address): (RegisterType, u16)) -> Option<u16> {
+        self.pending_writes
+            .iter()
+            .rev()
+            .filter(|(t, _, _)| *t == register_type)
+            .find_map(|(_, start, words)| {
+                words
+                    .get(usize::from(address.checked_sub(*start)?))
+                    .copied()
+            })
+    }
+
+    /// Forgets the pending writes that `values`, read or written at `span`, show done: the
+    /// register holds their words now, and the cache has them.
+    fn settle_pending_writes(&mut self, span: &RegisterSpan, values: &[u16]) {
+        if self.pending_writes.is_empty() {
+            return;
+        }
+        self.pending_writes.retain(|(register_type, start, words)| {
+            let shown = *register_type == span.register_type
+                && start
+                    .checked_sub(span.start)
+                    .map(usize::from)
+                    .and_then(|offset| values.get(offset..offset + words.len()))
+                    .is_some_and(|held| held == words.as_slice());
+            !shown
+        });
     }
 }
 
