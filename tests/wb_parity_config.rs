@@ -837,3 +837,143 @@ fn port_defaults() {
     assert_eq!(port.read_rate_limit_ms, None);
     assert_eq!(ports[0].devices[0].timing.read_rate_limit, None);
 }
+
+// ---------------------------------------------------------------------------------------------
+// Subdevices (TConfigParserTest.UnsuccessfulParse with test/parser_test/templates/subdevice.json,
+// restated in tests/data/wb_parity/templates/subdevice.json)
+// ---------------------------------------------------------------------------------------------
+
+/// unsuccessful-4: slot `Sub1` takes only `subdevice1`; `subdevice2` is refused (wb: the
+/// schema's `device_type` enum of the slot).
+#[test]
+fn refuses_subdevice_type_the_slot_does_not_take() {
+    let err = refused(&one_port(json!([{
+        "device_type": "subdevice", "slave_id": 2,
+        "channels": [{"name": "Sub1", "device_type": "subdevice2"}]
+    }])));
+    assert!(err.contains("devices[0].channels[0].device_type"), "{err}");
+    assert!(err.contains("subdevice1"), "{err}");
+}
+
+/// unsuccessful-5 and unsuccessful-10 (the same config): slot `Sub2` may be `subdevice3`, whose
+/// `required` parameter `s12` is not given (wb: "Missing required property 's12'" at
+/// `[channels][0]`).
+#[test]
+fn refuses_missing_required_parameter_of_a_subdevice() {
+    let err = refused(&one_port(json!([{
+        "device_type": "subdevice", "slave_id": 2,
+        "channels": [{"name": "Sub2", "device_type": "subdevice3"}]
+    }])));
+    assert!(err.contains("devices[0].channels[0]"), "{err}");
+    assert!(err.contains("s12"), "{err}");
+}
+
+/// unsuccessful-5 with `s12` given: the same slot loads, and `s12` is written at its address
+/// shifted by the slot's `shift` (20000 + 100), in address order with the setup of `Sub1`'s
+/// own nested subdevice `c2` (shifted 100 + 200).
+#[test]
+fn subdevice_with_its_required_parameter_loads() {
+    let dev = device(&one_port(json!([{
+        "device_type": "subdevice", "slave_id": 2,
+        "channels": [{"name": "Sub2", "device_type": "subdevice3", "s12": 7}]
+    }])));
+    assert_eq!(
+        setup(&dev),
+        vec![
+            item("Sub1 c2 s22", 9992 + 300, &[2]),
+            item("Sub2 s12", 20000 + 100, &[7]),
+            item("Sub1 c2 s12", 20000 + 300, &[0xfff2]),
+        ]
+    );
+    assert!(dev.channel("Sub2 c12").is_some());
+}
+
+/// unsuccessful-6: a setup item without `value` in a subdevice (wb: `"Sub1 bad" bad value ""`).
+#[test]
+fn refuses_setup_item_without_value_in_subdevice() {
+    let err = refused(&one_port(json!([{
+        "device_type": "subdevice", "slave_id": 2,
+        "channels": [{"name": "Sub1", "device_type": "subdevice1",
+                      "setup": [{"title": "bad", "address": 10}]}]
+    }])));
+    assert!(err.contains("channels[0].setup[0]"), "{err}");
+}
+
+/// unsuccessful-8: slot `Sub2` (a `oneOf` slot) overridden without `device_type` (wb's schema
+/// requires `device_type` on every `oneOf` alternative), here with a setup item that has no
+/// address either.
+#[test]
+fn refuses_one_of_slot_override_without_device_type() {
+    let err = refused(&one_port(json!([{
+        "device_type": "subdevice", "slave_id": 2,
+        "channels": [{"name": "Sub2", "setup": [{"title": "bad", "value": 10}]}]
+    }])));
+    assert!(err.contains("devices[0].channels[0]"), "{err}");
+}
+
+/// unsuccessful-8 without the setup item: a `oneOf` slot overridden without `device_type` is
+/// refused on its own (wb: the slot's schema is a `oneOf` of objects that each require
+/// `device_type`).
+#[test]
+fn refuses_one_of_slot_override_without_device_type_alone() {
+    let err = refused(&one_port(json!([{
+        "device_type": "subdevice", "slave_id": 2,
+        "channels": [{"name": "Sub2", "enabled": true}]
+    }])));
+    assert!(err.contains("devices[0].channels[0]"), "{err}");
+    assert!(err.contains("device_type"), "{err}");
+}
+
+/// A slot of one subdevice type (`Sub1`) overridden without `device_type` takes that type.
+/// Deliberate difference (docs/migrating.md): wb-mqtt-serial refuses it (`CheckDeviceType`:
+/// `'"subdevice 2" channel "Sub1"' device_type must be 'subdevice1'`), though there is no
+/// choice to make.
+#[test]
+fn single_type_slot_override_without_device_type_takes_that_type() {
+    let dev = device(&one_port(json!([{
+        "device_type": "subdevice", "slave_id": 2,
+        "channels": [{"name": "Sub1", "enabled": false}]
+    }])));
+    assert!(dev.channels.iter().all(|c| !c.id.starts_with("Sub1")));
+    let dev = device(&one_port(json!([{
+        "device_type": "subdevice", "slave_id": 2,
+        "channels": [{"name": "Sub1", "setup": [{"title": "own", "address": 1, "value": 3}]}]
+    }])));
+    assert!(setup(&dev).contains(&item("Sub1 own", 101, &[3])));
+}
+
+/// unsuccessful-9: `c11`, a plain channel of subdevice1, given a `device_type` (wb:
+/// `'"subdevice 2" Sub1 channel "c11"' can't contain device_type`).
+#[test]
+fn refuses_device_type_on_a_plain_subdevice_channel() {
+    let err = refused(&one_port(json!([{
+        "device_type": "subdevice", "slave_id": 2,
+        "channels": [{"name": "Sub1", "device_type": "subdevice1",
+                      "channels": [{"name": "c11", "device_type": "subdevice1"}]}]
+    }])));
+    assert!(
+        err.contains("devices[0].channels[0].channels[0].device_type"),
+        "{err}"
+    );
+}
+
+/// unsuccessful-13: `param4` declared twice, unconditionally and with `param1==4`; with
+/// `param1` 4 both apply (wb: `duplicate definition of parameter "param4" in device
+/// template`).
+#[test]
+fn refuses_two_declarations_in_effect() {
+    let err = refused(&one_port(json!([
+        {"slave_id": 22, "device_type": "with conditions", "param1": 4}
+    ])));
+    assert!(err.contains("param4"), "{err}");
+}
+
+/// unsuccessful-13's template with `param1` 1: only the unconditional `param4` applies, so
+/// the template loads.
+#[test]
+fn two_declarations_one_in_effect_load() {
+    let dev = device(&one_port(json!([
+        {"slave_id": 22, "device_type": "with conditions", "param1": 1, "param2": 1, "param4": 5}
+    ])));
+    assert_eq!(setup_writes(&dev), vec![(4, vec![5]), (10, vec![1])]);
+}
