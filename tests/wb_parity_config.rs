@@ -899,33 +899,37 @@ fn refuses_setup_item_without_value_in_subdevice() {
     assert!(err.contains("channels[0].setup[0]"), "{err}");
 }
 
-/// unsuccessful-8: slot `Sub2` (a `oneOf` slot) overridden without `device_type` (wb's schema
-/// requires `device_type` on every `oneOf` alternative), here with a setup item that has no
-/// address either.
+/// unsuccessful-8: slot `Sub2` (a `oneOf` slot) overridden without `device_type`, with a
+/// setup item that has no address. wb-mqtt-serial refuses it for the missing `device_type`
+/// (schema); rtu2mqtt takes the slot's default subdevice (see below) and refuses the setup
+/// item.
 #[test]
-fn refuses_one_of_slot_override_without_device_type() {
+fn refuses_one_of_slot_override_with_setup_item_without_address() {
     let err = refused(&one_port(json!([{
         "device_type": "subdevice", "slave_id": 2,
         "channels": [{"name": "Sub2", "setup": [{"title": "bad", "value": 10}]}]
     }])));
-    assert!(err.contains("devices[0].channels[0]"), "{err}");
+    assert!(err.contains("devices[0].channels[0].setup[0]"), "{err}");
 }
 
-/// unsuccessful-8 without the setup item: a `oneOf` slot overridden without `device_type` is
-/// refused on its own (wb: the slot's schema is a `oneOf` of objects that each require
-/// `device_type`).
+/// unsuccessful-8 without the setup item: a `oneOf` slot overridden without `device_type`
+/// takes the slot's default subdevice (its `device_type`, here subdevice1). Deliberate
+/// difference (docs/migrating.md; `tests/templates_compat.rs` relies on it): wb-mqtt-serial
+/// refuses it (its schema requires `device_type` on every `oneOf` alternative, and
+/// `CheckDeviceType`: `'… channel "Sub2"' must contain device_type`).
 #[test]
-fn refuses_one_of_slot_override_without_device_type_alone() {
-    let err = refused(&one_port(json!([{
+fn one_of_slot_override_without_device_type_takes_the_default() {
+    let dev = device(&one_port(json!([{
         "device_type": "subdevice", "slave_id": 2,
-        "channels": [{"name": "Sub2", "enabled": true}]
+        "channels": [{"name": "Sub2", "channels": [{"name": "c11", "enabled": false}]}]
     }])));
-    assert!(err.contains("devices[0].channels[0]"), "{err}");
-    assert!(err.contains("device_type"), "{err}");
+    assert!(dev.channel("Sub2 c11").is_none());
+    assert!(dev.channel("Sub1 c11").is_some());
+    assert!(dev.channel("Sub2 c2 c12").is_some());
 }
 
 /// A slot of one subdevice type (`Sub1`) overridden without `device_type` takes that type.
-/// Deliberate difference (docs/migrating.md): wb-mqtt-serial refuses it (`CheckDeviceType`:
+/// Deliberate difference (docs/migrating.md), as for a `oneOf` slot: wb-mqtt-serial refuses it (`CheckDeviceType`:
 /// `'"subdevice 2" channel "Sub1"' device_type must be 'subdevice1'`), though there is no
 /// choice to make.
 #[test]

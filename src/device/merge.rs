@@ -838,22 +838,25 @@ fn override_channel(
             }
         }
     }
-    // wb-mqtt-serial's `CheckDeviceType` (`src/config_merge_template.cpp`) and its schema: a
-    // config object that overrides a `oneOf` slot names the subdevice, or the config is
-    // refused. (It refuses a missing `device_type` on a slot of one subdevice type too; there
-    // rtu2mqtt takes the only choice: docs/migrating.md.)
-    if let Some(list) = target.get("oneOf").and_then(Value::as_array) {
-        if !config.contains_key("device_type") {
-            let choices: Vec<&str> = list.iter().filter_map(Value::as_str).collect();
-            errors.push(MergeError {
-                origin: format!("c:{at}"),
-                problem: Problem::Invalid(format!(
-                    "subdevice slot `{}` takes one of several subdevices, so a channel overriding it says which: add \"device_type\": one of {}",
-                    target.get("name").and_then(Value::as_str).unwrap_or(""),
-                    choices.join(", ")
-                )),
-            });
-        }
+    if is_slot
+        && target.get("device_type").is_none()
+        && (config.contains_key("setup") || config.contains_key("channels"))
+    {
+        let choices: Vec<&str> = target
+            .get("oneOf")
+            .and_then(Value::as_array)
+            .into_iter()
+            .flatten()
+            .filter_map(Value::as_str)
+            .collect();
+        errors.push(MergeError {
+            origin: format!("c:{at}"),
+            problem: Problem::Invalid(format!(
+                "subdevice slot `{}` has no subdevice chosen, so its settings have nowhere to go; add \"device_type\": one of {}",
+                target.get("name").and_then(Value::as_str).unwrap_or(""),
+                choices.join(", ")
+            )),
+        });
     }
 }
 
