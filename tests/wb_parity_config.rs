@@ -837,3 +837,436 @@ fn port_defaults() {
     assert_eq!(port.read_rate_limit_ms, None);
     assert_eq!(ports[0].devices[0].timing.read_rate_limit, None);
 }
+
+// ---------------------------------------------------------------------------------------------
+// Subdevices (TConfigParserTest.UnsuccessfulParse with test/parser_test/templates/subdevice.json,
+// restated in tests/data/wb_parity/templates/subdevice.json)
+// ---------------------------------------------------------------------------------------------
+
+/// unsuccessful-4: slot `Sub1` takes only `subdevice1`; `subdevice2` is refused (wb: the
+/// schema's `device_type` enum of the slot).
+#[test]
+fn refuses_subdevice_type_the_slot_does_not_take() {
+    let err = refused(&one_port(json!([{
+        "device_type": "subdevice", "slave_id": 2,
+        "channels": [{"name": "Sub1", "device_type": "subdevice2"}]
+    }])));
+    assert!(err.contains("devices[0].channels[0].device_type"), "{err}");
+    assert!(err.contains("subdevice1"), "{err}");
+}
+
+/// unsuccessful-5 and unsuccessful-10 (the same config): slot `Sub2` may be `subdevice3`, whose
+/// `required` parameter `s12` is not given (wb: "Missing required property 's12'" at
+/// `[channels][0]`).
+#[test]
+fn refuses_missing_required_parameter_of_a_subdevice() {
+    let err = refused(&one_port(json!([{
+        "device_type": "subdevice", "slave_id": 2,
+        "channels": [{"name": "Sub2", "device_type": "subdevice3"}]
+    }])));
+    assert!(err.contains("devices[0].channels[0]"), "{err}");
+    assert!(err.contains("s12"), "{err}");
+}
+
+/// unsuccessful-5 with `s12` given: the same slot loads, and `s12` is written at its address
+/// shifted by the slot's `shift` (20000 + 100), in address order with the setup of `Sub1`'s
+/// own nested subdevice `c2` (shifted 100 + 200).
+#[test]
+fn subdevice_with_its_required_parameter_loads() {
+    let dev = device(&one_port(json!([{
+        "device_type": "subdevice", "slave_id": 2,
+        "channels": [{"name": "Sub2", "device_type": "subdevice3", "s12": 7}]
+    }])));
+    assert_eq!(
+        setup(&dev),
+        vec![
+            item("Sub1 c2 s22", 9992 + 300, &[2]),
+            item("Sub2 s12", 20000 + 100, &[7]),
+            item("Sub1 c2 s12", 20000 + 300, &[0xfff2]),
+        ]
+    );
+    assert!(dev.channel("Sub2 c12").is_some());
+}
+
+/// unsuccessful-6: a setup item without `value` in a subdevice (wb: `"Sub1 bad" bad value ""`).
+#[test]
+fn refuses_setup_item_without_value_in_subdevice() {
+    let err = refused(&one_port(json!([{
+        "device_type": "subdevice", "slave_id": 2,
+        "channels": [{"name": "Sub1", "device_type": "subdevice1",
+                      "setup": [{"title": "bad", "address": 10}]}]
+    }])));
+    assert!(err.contains("channels[0].setup[0]"), "{err}");
+}
+
+/// unsuccessful-8: slot `Sub2` (a `oneOf` slot) overridden without `device_type`, with a
+/// setup item that has no address. wb-mqtt-serial refuses it for the missing `device_type`
+/// (schema); rtu2mqtt takes the slot's default subdevice (see below) and refuses the setup
+/// item.
+#[test]
+fn refuses_one_of_slot_override_with_setup_item_without_address() {
+    let err = refused(&one_port(json!([{
+        "device_type": "subdevice", "slave_id": 2,
+        "channels": [{"name": "Sub2", "setup": [{"title": "bad", "value": 10}]}]
+    }])));
+    assert!(err.contains("devices[0].channels[0].setup[0]"), "{err}");
+}
+
+/// unsuccessful-8 without the setup item: a `oneOf` slot overridden without `device_type`
+/// takes the slot's default subdevice (its `device_type`, here subdevice1). Deliberate
+/// difference (docs/migrating.md; `tests/templates_compat.rs` relies on it): wb-mqtt-serial
+/// refuses it (its schema requires `device_type` on every `oneOf` alternative, and
+/// `CheckDeviceType`: `'… channel "Sub2"' must contain device_type`).
+#[test]
+fn one_of_slot_override_without_device_type_takes_the_default() {
+    let dev = device(&one_port(json!([{
+        "device_type": "subdevice", "slave_id": 2,
+        "channels": [{"name": "Sub2", "channels": [{"name": "c11", "enabled": false}]}]
+    }])));
+    assert!(dev.channel("Sub2 c11").is_none());
+    assert!(dev.channel("Sub1 c11").is_some());
+    assert!(dev.channel("Sub2 c2 c12").is_some());
+}
+
+/// A slot of one subdevice type (`Sub1`) overridden without `device_type` takes that type.
+/// Deliberate difference (docs/migrating.md), as for a `oneOf` slot: wb-mqtt-serial refuses it (`CheckDeviceType`:
+/// `'"subdevice 2" channel "Sub1"' device_type must be 'subdevice1'`), though there is no
+/// choice to make.
+#[test]
+fn single_type_slot_override_without_device_type_takes_that_type() {
+    let dev = device(&one_port(json!([{
+        "device_type": "subdevice", "slave_id": 2,
+        "channels": [{"name": "Sub1", "enabled": false}]
+    }])));
+    assert!(dev.channels.iter().all(|c| !c.id.starts_with("Sub1")));
+    let dev = device(&one_port(json!([{
+        "device_type": "subdevice", "slave_id": 2,
+        "channels": [{"name": "Sub1", "setup": [{"title": "own", "address": 1, "value": 3}]}]
+    }])));
+    assert!(setup(&dev).contains(&item("Sub1 own", 101, &[3])));
+}
+
+/// unsuccessful-9: `c11`, a plain channel of subdevice1, given a `device_type` (wb:
+/// `'"subdevice 2" Sub1 channel "c11"' can't contain device_type`).
+#[test]
+fn refuses_device_type_on_a_plain_subdevice_channel() {
+    let err = refused(&one_port(json!([{
+        "device_type": "subdevice", "slave_id": 2,
+        "channels": [{"name": "Sub1", "device_type": "subdevice1",
+                      "channels": [{"name": "c11", "device_type": "subdevice1"}]}]
+    }])));
+    assert!(
+        err.contains("devices[0].channels[0].channels[0].device_type"),
+        "{err}"
+    );
+}
+
+/// unsuccessful-13: `param4` declared twice, unconditionally and with `param1==4`; with
+/// `param1` 4 both apply (wb: `duplicate definition of parameter "param4" in device
+/// template`).
+#[test]
+fn refuses_two_declarations_in_effect() {
+    let err = refused(&one_port(json!([
+        {"slave_id": 22, "device_type": "with conditions", "param1": 4}
+    ])));
+    assert!(err.contains("param4"), "{err}");
+}
+
+/// unsuccessful-13's template with `param1` 1: only the unconditional `param4` applies, so
+/// the template loads.
+#[test]
+fn two_declarations_one_in_effect_load() {
+    let dev = device(&one_port(json!([
+        {"slave_id": 22, "device_type": "with conditions", "param1": 1, "param2": 1, "param4": 5}
+    ])));
+    assert_eq!(setup_writes(&dev), vec![(4, vec![5]), (10, vec![1])]);
+}
+
+// ---------------------------------------------------------------------------------------------
+// MergeDeviceConfigWithTemplate (test/parser_test/merge_template_ok*.json / res*.json), the
+// cases not restated above
+// ---------------------------------------------------------------------------------------------
+
+/// merge_template_ok1 / res1: a template device with nothing in the config: the template's
+/// channels, id and name with the slave id, no setup.
+#[test]
+fn merge_template_plain() {
+    let dev = device(&one_port(
+        json!([{"device_type": "merge simple", "slave_id": 2}]),
+    ));
+    assert_eq!(
+        (dev.id.as_str(), dev.name.as_str()),
+        ("merge-simple_2", "merge simple 2")
+    );
+    let ids: Vec<(&str, u16)> = dev
+        .channels
+        .iter()
+        .map(|c| (c.id.as_str(), c.registers[0].read.as_ref().unwrap().address))
+        .collect();
+    assert_eq!(ids, vec![("Voltage", 0x500), ("Temperature", 0x504)]);
+    assert!(dev.setup.is_empty());
+}
+
+/// merge_template_ok6 / res6: a subdevice inside a subdevice: `Sub` (shift 100) holds `c2`
+/// (subdevice2, shift 200): its channels and setup items are named with both prefixes and
+/// shifted by both shifts (wb's `LoadSubdeviceChannel` adds each `shift` to the base
+/// address it hands down).
+#[test]
+fn merge_template_nested_subdevices() {
+    let dev = device(&one_port(
+        json!([{"device_type": "merge subdevice2", "slave_id": 2}]),
+    ));
+    assert_eq!(dev.id, "merge-subdevice2_2");
+    let channels: Vec<(&str, u16)> = dev
+        .channels
+        .iter()
+        .map(|c| (c.id.as_str(), c.registers[0].read.as_ref().unwrap().address))
+        .collect();
+    assert_eq!(
+        channels,
+        vec![
+            ("Temperature", 0x504),
+            ("Sub c11", 0x501 + 100),
+            ("Sub c2 c12", 0x502 + 300),
+            ("Sub c2 c22", 0x506 + 300),
+        ]
+    );
+    assert_eq!(
+        setup(&dev),
+        vec![
+            item("Sub c2 s22", 9992 + 300, &[2]),
+            item("Sub c2 s12", 20000 + 300, &[0xfff2]),
+        ]
+    );
+}
+
+/// merge_template_ok7 / res7: overrides two levels down: `c12` gets `read_period_ms` 100,
+/// `c22` is disabled, and a setup item is added to `c2` (shifted like its own: 25000 + 300).
+#[test]
+fn merge_template_nested_subdevice_overrides() {
+    let dev = device(&one_port(json!([{
+        "device_type": "merge subdevice2", "slave_id": 2,
+        "channels": [{
+            "name": "Sub", "device_type": "subdevice1",
+            "channels": [{
+                "name": "c2", "device_type": "subdevice2",
+                "channels": [
+                    {"name": "c12", "read_period_ms": 100},
+                    {"enabled": false, "name": "c22"}
+                ],
+                "setup": [{"address": 25000, "title": "31", "value": "0xffff"}]
+            }]
+        }]
+    }])));
+    let ids: Vec<&str> = dev.channels.iter().map(|c| c.id.as_str()).collect();
+    assert_eq!(ids, vec!["Temperature", "Sub c11", "Sub c2 c12"]);
+    assert_eq!(channel(&dev, "Sub c2 c12").read_period, Some(MS(100)));
+    assert_eq!(
+        setup(&dev),
+        vec![
+            item("Sub c2 s22", 9992 + 300, &[2]),
+            item("Sub c2 s12", 20000 + 300, &[0xfff2]),
+            item("Sub c2 31", 25000 + 300, &[0xffff]),
+        ]
+    );
+}
+
+/// merge_template_ok11 / res11: `param1` 2 and `param2` 3: channels c4 (`param2==3`) and c5
+/// (`param1==2&&param2==3`) come in, c2/c3 (`param1==1`) stay out; both parameters written.
+#[test]
+fn merge_template_conditions_with_two_parameters() {
+    let dev = device(&one_port(json!([
+        {"device_type": "merge condition", "slave_id": 2, "param1": 2, "param2": 3}
+    ])));
+    let ids: Vec<&str> = dev.channels.iter().map(|c| c.id.as_str()).collect();
+    assert_eq!(ids, vec!["c1", "c4", "c5"]);
+    assert_eq!(
+        setup(&dev),
+        vec![item("p1", 0x401, &[2]), item("p2", 0x402, &[3])]
+    );
+}
+
+// ---------------------------------------------------------------------------------------------
+// TConfigParserTest.Parse: the gold print, restated
+// ---------------------------------------------------------------------------------------------
+
+/// The parts of a resolved device that `TConfigParserTest`'s `PrintConfig` prints and that
+/// rtu2mqtt models, one line per device, channel and register, in the gold's units (ms, µs).
+fn print_device(dev: &ResolvedDevice) -> Vec<String> {
+    let t = &dev.timing;
+    let ms = |d: Duration| d.as_millis();
+    let mut out = vec![format!(
+        "{} | {} | slave {} | reg hole {} bit hole {} max read {} | guard {} us | device timeout {} | response {} | frame {}",
+        dev.id,
+        dev.name,
+        dev.slave_id,
+        t.max_reg_hole,
+        t.max_bit_hole,
+        t.max_read_registers,
+        t.guard_interval.as_micros(),
+        t.device_timeout.map_or(-1, |d| d.as_millis() as i64),
+        ms(t.response_timeout),
+        ms(t.frame_timeout),
+    )];
+    for c in dev.channels.iter() {
+        let limit = c.read_rate_limit.or(t.read_rate_limit);
+        out.push(format!(
+            "  {} | {} | order {} | readonly {} | on {:?} | rate limit {:?}",
+            c.id,
+            c.control_type,
+            c.order,
+            c.readonly,
+            c.registers[0].codec.on_value,
+            limit.map(ms),
+        ));
+        for r in &c.registers {
+            let read = r.read.as_ref().expect("a polled register");
+            out.push(format!(
+                "    {:?} {} | {:?} | scale {} | error {:?} | written {}",
+                read.reg_type,
+                read.address,
+                r.codec.format,
+                r.codec.scale,
+                r.codec.error_value,
+                r.write.is_some(),
+            ));
+        }
+    }
+    out
+}
+
+/// TConfigParserTest.Parse (`test/configs/parse_test.json`, gold
+/// `test/TConfigParserTest.Parse.dat` at 03ac6ead, templates `test/device-templates/
+/// config-msu34.json`, `test-device-override.json`, `test-device-override2.json` restated in
+/// `tests/data/wb_parity/templates/`): every device of the gold on its two serial ports, with
+/// what the gold prints of it that rtu2mqtt models.
+///
+/// The config is the stored `parse_test.json` (04b88661) with what that gold shows it had
+/// besides (`frame_timeout_ms` 111, `response_timeout_ms` 222, `device_timeout_ms` 2000, the
+/// ErrorValueTest and TestDeviceOverride2 devices). Left out: the gold's TCP ports without
+/// devices (nothing to resolve), and ErrorValueTest's `str-uint64` / `str-hex-uint64` channels
+/// (64-bit `error_value`s that newer wb-mqtt-serial refuses too: unsuccessful-3).
+///
+/// Where the gold is of an older wb-mqtt-serial than the rules this project follows, the
+/// newer rule is asserted and the gold's value said here:
+/// - `poll_interval` is a read rate limit (the gold's `PollInterval`): the channel's, else the
+///   device's, else the port's. A `consists_of` register's own `poll_interval` (RGB's first,
+///   103 in the gold) is not read: newer `LoadSimpleChannel` gives every register of the
+///   channel the channel's limit (102).
+/// - Frame timeout 20 ms where unset (the gold: 0; newer `DefaultFrameTimeout`), as
+///   `template_device_defaults` asserts from the ParametersAsArray gold.
+/// - A channel without `type` is a `value` (the gold: `text`).
+/// - `Response timeout` is the device's: 500 ms unless the device or its port sets one (222 on
+///   the second port).
+#[test]
+fn parse_gold() {
+    let config = json!({"debug": false, "ports": [
+        {"path": "/dev/ttyNSC0", "baud_rate": 9600, "parity": "N", "data_bits": 8,
+         "stop_bits": 2, "poll_interval": 10, "enabled": true, "devices": [
+            {"device_type": "MSU34", "slave_id": 2, "enabled": true, "channels": [
+                {"name": "Illuminance", "poll_interval": 300},
+                {"name": "Pressure", "poll_interval": 10000}
+            ]},
+            {"name": "OnValueTest", "id": "OnValueTest", "enabled": true, "slave_id": "0x90",
+             "frame_timeout_ms": 111, "channels": [
+                {"name": "Relay 1", "reg_type": "holding", "address": "0x00", "type": "switch",
+                 "on_value": 500}
+            ]},
+            {"name": "ErrorValueTest", "id": "ErrorValueTest", "slave_id": "0x91", "channels": [
+                {"name": "uint16", "reg_type": "holding", "address": 0, "type": "switch",
+                 "error_value": 65535},
+                {"name": "uint32", "reg_type": "holding", "address": 1, "type": "switch",
+                 "error_value": 4_294_967_295_u32},
+                {"name": "str-uint32", "reg_type": "holding", "address": 2, "type": "switch",
+                 "error_value": "4294967295"},
+                {"name": "str-hex-uint32", "reg_type": "holding", "address": 3,
+                 "type": "switch", "error_value": "0xFFFFFFFF"}
+            ]}
+        ]},
+        {"path": "/dev/ttyNSC1", "baud_rate": 9600, "parity": "N", "data_bits": 8,
+         "stop_bits": 1, "poll_interval": 100, "guard_interval_us": 105,
+         "response_timeout_ms": 222, "enabled": true, "devices": [
+            {"name": "LC-103", "id": "lc103", "enabled": true, "slave_id": "0x04",
+             "guard_interval_us": 1000, "device_timeout_ms": 2000, "channels": [
+                {"name": "Relay 1", "reg_type": "coil", "address": "0x00", "type": "switch"},
+                {"name": "Relay 2", "reg_type": "coil", "address": "0x01", "type": "switch"},
+                {"name": "Relay 3", "reg_type": "coil", "address": "0x02", "type": "switch"},
+                {"name": "Switch AC In", "reg_type": "discrete", "address": "0x00"}
+            ]},
+            {"name": "WB-MRGB", "id": "wb-mrgb", "slave_id": 2, "poll_interval": 101,
+             "max_read_registers": 0, "channels": [
+                {"name": "RGB", "type": "rgb", "poll_interval": 102, "consists_of": [
+                    {"reg_type": "holding", "address": 1, "poll_interval": 103},
+                    {"reg_type": "holding", "address": 0},
+                    {"reg_type": "holding", "address": 2}
+                ]},
+                {"name": "Button 1 counter", "reg_type": "holding", "readonly": true,
+                 "address": 32, "type": "value"}
+            ]},
+            {"device_type": "TestDeviceOverride", "slave_id": 5,
+             "name": "TestDeviceOverride:config", "id": "TestDeviceOverride:config",
+             "max_reg_hole": 2, "max_bit_hole": 2, "max_read_registers": 42},
+            {"device_type": "TestDeviceOverride", "slave_id": 6},
+            {"device_type": "TestDeviceOverride2", "slave_id": 7, "channels": [
+                {"name": "Input", "poll_interval": 300},
+                {"name": "Holding", "readonly": true, "poll_interval": 10000},
+                {"name": "Holding readonly", "readonly": false, "poll_interval": 1000}
+            ]}
+        ]}
+    ]});
+    let got: Vec<String> = devices(&config).iter().flat_map(print_device).collect();
+    let gold = r#"
+msu34tlp_2 | MSU34+TLP 2 | slave 2 | reg hole 0 bit hole 0 max read 1 | guard 20000 us | device timeout 3000 | response 500 | frame 20
+  Temp 1 | temperature | order 1 | readonly true | on None | rate limit Some(10)
+    Input 0 | S8 | scale 1 | error None | written false
+  Illuminance | lux | order 2 | readonly true | on None | rate limit Some(300)
+    Input 1 | U16 | scale 1 | error None | written false
+  Pressure | pressure | order 3 | readonly true | on None | rate limit Some(10000)
+    Input 2 | U16 | scale 0.075 | error None | written false
+  Temp 2 | temperature | order 4 | readonly true | on None | rate limit Some(10)
+    Input 3 | S8 | scale 1 | error None | written false
+OnValueTest | OnValueTest | slave 144 | reg hole 0 bit hole 0 max read 1 | guard 0 us | device timeout 3000 | response 500 | frame 111
+  Relay 1 | switch | order 1 | readonly false | on Some(500) | rate limit Some(10)
+    Holding 0 | U16 | scale 1 | error None | written true
+ErrorValueTest | ErrorValueTest | slave 145 | reg hole 0 bit hole 0 max read 1 | guard 0 us | device timeout 3000 | response 500 | frame 20
+  uint16 | switch | order 1 | readonly false | on None | rate limit Some(10)
+    Holding 0 | U16 | scale 1 | error Some(65535) | written true
+  uint32 | switch | order 2 | readonly false | on None | rate limit Some(10)
+    Holding 1 | U16 | scale 1 | error Some(4294967295) | written true
+  str-uint32 | switch | order 3 | readonly false | on None | rate limit Some(10)
+    Holding 2 | U16 | scale 1 | error Some(4294967295) | written true
+  str-hex-uint32 | switch | order 4 | readonly false | on None | rate limit Some(10)
+    Holding 3 | U16 | scale 1 | error Some(4294967295) | written true
+lc103 | LC-103 | slave 4 | reg hole 0 bit hole 0 max read 1 | guard 1000 us | device timeout 2000 | response 222 | frame 20
+  Relay 1 | switch | order 1 | readonly false | on None | rate limit Some(100)
+    Coil 0 | U8 | scale 1 | error None | written true
+  Relay 2 | switch | order 2 | readonly false | on None | rate limit Some(100)
+    Coil 1 | U8 | scale 1 | error None | written true
+  Relay 3 | switch | order 3 | readonly false | on None | rate limit Some(100)
+    Coil 2 | U8 | scale 1 | error None | written true
+  Switch AC In | switch | order 4 | readonly true | on None | rate limit Some(100)
+    DiscreteInput 0 | U8 | scale 1 | error None | written false
+wb-mrgb | WB-MRGB | slave 2 | reg hole 0 bit hole 0 max read 0 | guard 105 us | device timeout 3000 | response 222 | frame 20
+  RGB | rgb | order 1 | readonly false | on None | rate limit Some(102)
+    Holding 1 | U16 | scale 1 | error None | written true
+    Holding 0 | U16 | scale 1 | error None | written true
+    Holding 2 | U16 | scale 1 | error None | written true
+  Button 1 counter | value | order 2 | readonly true | on None | rate limit Some(101)
+    Holding 32 | U16 | scale 1 | error None | written false
+TestDeviceOverride:config | TestDeviceOverride:config | slave 5 | reg hole 2 bit hole 2 max read 42 | guard 105 us | device timeout 3000 | response 222 | frame 20
+  Chan 1 | temperature | order 1 | readonly true | on None | rate limit Some(100)
+    Input 0 | S8 | scale 1 | error None | written false
+TestDeviceOverride:template_6 | TestDeviceOverride:template 6 | slave 6 | reg hole 1 bit hole 1 max read 1 | guard 105 us | device timeout 3000 | response 222 | frame 20
+  Chan 1 | temperature | order 1 | readonly true | on None | rate limit Some(100)
+    Input 0 | S8 | scale 1 | error None | written false
+TestDeviceOverride2:template_7 | TestDeviceOverride2:template 7 | slave 7 | reg hole 0 bit hole 0 max read 1 | guard 105 us | device timeout 3000 | response 222 | frame 20
+  Input | value | order 1 | readonly true | on None | rate limit Some(300)
+    Input 0 | U16 | scale 1 | error None | written false
+  Holding | value | order 2 | readonly true | on None | rate limit Some(10000)
+    Holding 1 | U16 | scale 1 | error None | written false
+  Holding readonly | value | order 3 | readonly true | on None | rate limit Some(1000)
+    Holding 2 | U16 | scale 1 | error None | written false
+"#;
+    let want: Vec<String> = gold.trim().lines().map(String::from).collect();
+    assert_eq!(got, want);
+}
