@@ -348,7 +348,7 @@ fn wb_mqtt_serial_unsuccessful_cases_are_rejected() {
         // 0–3: error_value that is negative, a negative string, not a number, too wide.
         (
             r#"{"slave_id": 1, "channels": [{"name": "x", "reg_type": "holding", "address": 0, "type": "switch", "error_value": -4}]}"#,
-            "error_value",
+            "error_value -4 is not raw register content of this 16-bit value: give the raw words as read, 0…4294967295",
         ),
         (
             r#"{"slave_id": 1, "channels": [{"name": "x", "reg_type": "holding", "address": 0, "type": "switch", "error_value": "-4"}]}"#,

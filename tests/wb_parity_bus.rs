@@ -709,6 +709,37 @@ fn unsupported_value_stops_reading_the_register() {
     assert_eq!(settled(&bus.reads(), 10), vec![(3, 8, 1), (3, 10, 2)]);
 }
 
+/// Bit fields of one register share its read: one field at its `unsupported_value` (the low
+/// byte 0xFE) stops only itself, the other field (the high byte, 0x12) goes on being read and
+/// published. wb-mqtt-serial keeps each field as a register of its own and stops only the
+/// unsupported one. Reading the register alone (no other field) stops it, as above.
+#[test]
+fn an_unsupported_bit_field_does_not_stop_the_other_fields_of_its_register() {
+    let port = port_with(
+        9600,
+        json!([{"slave_id": 1, "name": "Fields", "id": "fields",
+        "channels": [
+            {"name": "Low", "reg_type": "holding", "address": "20:0:8", "type": "value",
+             "unsupported_value": "0xFE"},
+            {"name": "High", "reg_type": "holding", "address": "20:8:8", "type": "value"},
+            {"name": "Other", "reg_type": "holding", "address": 30, "type": "value"}
+        ]}]),
+    );
+    let mut scheduler = scheduler(&port, false);
+    let device = FakeDevice::new(1)
+        .with(RegisterType::Holding, &[20], 0x12FE)
+        .with(RegisterType::Holding, &[30], 7);
+    let mut bus = Bus::with(vec![device]);
+    bus.run_with_models(&mut scheduler, &port, ms(1500));
+    let settled = settled(&bus.reads(), 10);
+    assert!(
+        settled
+            .iter()
+            .any(|&(_, start, count)| (start..start + count).contains(&20)),
+        "register 20 is no longer read: {settled:?}"
+    );
+}
+
 /// TModbusUnavailableRegistersAndHolesIntegrationTest.HolesAndUnavailable
 /// (configs/config-modbus-unavailable-registers-and-holes-test.json, `max_reg_hole` 10): 9 and
 /// 11 are refused, the read across the hole (7…12) is refused and turns holes off; what is

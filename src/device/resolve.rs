@@ -933,7 +933,9 @@ impl Walker {
                 if let Some(value) = value.map(|v| v.value()) {
                     if value < 0 || value > i128::from(widest) {
                         return Err(Problem::Invalid(format!(
-                            "{key} {value} is not raw register content of this {}-bit value: give it as 0…{widest:#X}",
+                            "{key} {value} is not raw register content of this {}-bit value: give \
+                             the raw words as read, 0…{widest} ({widest:#X}; wider than the value, \
+                             it never matches)",
                             codec.bit_width
                         )));
                     }

@@ -511,6 +511,8 @@ impl DeviceModel {
         out: &mut Vec<DeviceUpdate>,
     ) {
         let mut text = std::mem::take(&mut self.text);
+        // The channels that read their `unsupported_value` (rare: no allocation otherwise).
+        let mut unsupported = Vec::new();
         for &index in touched {
             if !self.gather_words(index) {
                 continue;
@@ -582,12 +584,7 @@ impl DeviceModel {
                 }
                 Ok(decoded @ (Decoded::DeviceError | Decoded::Unsupported)) => {
                     if decoded == Decoded::Unsupported {
-                        self.unsupported_reads.extend(
-                            channel
-                                .registers
-                                .iter()
-                                .filter_map(|register| register.read.map(|r| r.span())),
-                        );
+                        unsupported.push(index);
                     }
                     self.update_flags(
                         index,
@@ -612,6 +609,37 @@ impl DeviceModel {
             }
         }
         self.text = text;
+        if !unsupported.is_empty() {
+            self.stop_unsupported(&unsupported);
+        }
+    }
+
+    /// Hands the reads of the `unsupported` channels to the scheduler to stop, but not a read
+    /// another channel needs: bit fields of one register share its read, and one field at its
+    /// `unsupported_value` must not stop the others (wb-mqtt-serial stops that channel's
+    /// register alone, as each field is a register of its own there).
+    fn stop_unsupported(&mut self, unsupported: &[usize]) {
+        let read_spans = |channel: &ResolvedChannel| -> Vec<crate::port::RegisterSpan> {
+            channel
+                .registers
+                .iter()
+                .filter_map(|register| register.read.map(|r| r.span()))
+                .collect()
+        };
+        let channels = &self.device.channels;
+        for &index in unsupported {
+            let Some(channel) = channels.get(index) else {
+                continue;
+            };
+            for span in read_spans(channel) {
+                let needed_elsewhere = channels.iter().enumerate().any(|(other, channel)| {
+                    !unsupported.contains(&other) && read_spans(channel).contains(&span)
+                });
+                if !needed_elsewhere && !self.unsupported_reads.contains(&span) {
+                    self.unsupported_reads.push(span);
+                }
+            }
+        }
     }
 
     fn push_value(
