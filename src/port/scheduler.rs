@@ -1292,9 +1292,18 @@ impl PortScheduler {
                         continue;
                     }
                     if let crate::protocol::EventSource::Register(register_type) = event.source {
-                        let words = crate::protocol::event_payload_words(&event.payload).len();
+                        let words = crate::protocol::event_payload_words(&event.payload);
                         if let Some(state) = self.devices.get_mut(device) {
-                            state.read_partial_event_value(register_type, event.id, words);
+                            state.read_partial_event_value(register_type, event.id, words.len());
+                            // A one-register value is that register's word: setup writes that
+                            // keep bits of it keep these (a wider one's word order is the
+                            // channel's, unknown here: its next read tells).
+                            if let [_] = words.as_slice() {
+                                state.note_words(
+                                    RegisterSpan::new(register_type, event.id, 1),
+                                    &words,
+                                );
+                            }
                         }
                         out.push(PortEvent::EventValue {
                             device,

@@ -3028,3 +3028,72 @@ fn a_write_no_request_can_carry_is_refused_at_once() {
         .collect();
     assert_eq!(writes, [123, 1968]);
 }
+
+/// A register whose value comes by events (not polled): a setup write that keeps bits of it
+/// keeps them as the last event reported them, not as the first read after the setup found
+/// them.
+#[test]
+fn a_setup_write_keeps_the_bits_an_event_reported() {
+    let mut plan = device(
+        20,
+        vec![read(RegisterType::Holding, 5, EventMode::Sporadic)],
+    );
+    plan.setup = vec![SetupWrite {
+        register_type: RegisterType::Holding,
+        address: 5,
+        values: vec![0x0007],
+        force_multiple: false,
+        kept_bits: vec![0xFFF0],
+    }];
+    let mut scheduler = PortScheduler::new(settings(115_200), vec![plan]);
+    let mut log = Log::default();
+    let mut polls = 0;
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(500),
+        |_, request| match &request.body {
+            RequestBody::Classic(RequestPdu::ReadHoldingRegisters { start: 5, count: 1 }) => {
+                TransactionOutcome::Reply(Reply::classic(
+                    20,
+                    ResponsePdu::ReadHoldingRegisters {
+                        values: vec![0x1237],
+                    },
+                ))
+            }
+            RequestBody::Fast(FastRequest::PollEvents(_)) => {
+                polls += 1;
+                let event = match polls {
+                    3 => Event {
+                        source: crate::protocol::EventSource::Register(RegisterType::Holding),
+                        id: 5,
+                        payload: vec![0x67, 0x45],
+                    },
+                    6 => Event::reboot(),
+                    _ => return healthy(request),
+                };
+                TransactionOutcome::Reply(Reply::fast(
+                    20,
+                    FastReply::Events(EventPacket {
+                        flag: 0,
+                        event_count: 1,
+                        events: vec![event],
+                    }),
+                ))
+            }
+            _ => healthy(request),
+        },
+    );
+    let setup_values: Vec<u16> = log
+        .sent
+        .iter()
+        .filter_map(|(_, r)| match &r.body {
+            RequestBody::Classic(RequestPdu::WriteSingleRegister { address: 5, value }) => {
+                Some(*value)
+            }
+            _ => None,
+        })
+        .collect();
+    assert_eq!(setup_values, [0x0007, 0x4567]);
+}
