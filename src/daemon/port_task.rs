@@ -736,10 +736,13 @@ impl PortTask {
             return;
         };
         let mut updates = Vec::new();
+        // Writes the scheduler refuses (no request can carry them): their failure goes to the
+        // model as any given-up write's.
+        let mut refused = Vec::new();
         match model.take_write(&write.control_id, &write.payload, &mut updates) {
             Ok(register_writes) => {
                 for register_write in register_writes {
-                    self.scheduler.queue_write(now, register_write);
+                    refused.extend(self.scheduler.queue_write(now, register_write));
                 }
             }
             Err(reason) => {
@@ -750,6 +753,9 @@ impl PortTask {
             }
         }
         self.send(updates).await;
+        if !refused.is_empty() {
+            self.dispatch(&mut refused).await;
+        }
     }
 
     /// Turns `events` (emptied) into device updates and sends them.

@@ -118,10 +118,23 @@ pub fn device_plan(device: &ResolvedDevice) -> DevicePlan {
     }
     // Kept by the scheduler for as long as the port runs.
     reads.shrink_to_fit();
+    // Coils and holding registers, in the items' order (wb-mqtt-serial writes coils with 0x05
+    // as it writes holding registers). The other tables cannot be written: the resolver takes
+    // a setup item on them (`reg_type` `input` or `discrete`) for one to read, and it is left
+    // out here, as a device would refuse it.
     let setup = device
         .setup
         .iter()
-        .filter(|s| s.register.reg_type == RegisterType::Holding && !s.words.is_empty())
+        .filter(|s| {
+            let writable = matches!(
+                s.register.reg_type,
+                RegisterType::Holding | RegisterType::Coil
+            );
+            if !writable {
+                tracing::warn!(device = %device.id, item = %s.title, register_type = ?s.register.reg_type, "a setup item on a read-only register: not written");
+            }
+            writable && !s.words.is_empty()
+        })
         .flat_map(setup_writes)
         .collect();
     let defaults = HealthPolicy::default();
@@ -150,9 +163,18 @@ pub fn device_plan(device: &ResolvedDevice) -> DevicePlan {
 /// The writes of one setup item, with the function its `reg_type` asks for, as wb-mqtt-serial
 /// writes setup registers (`WriteRegister`): `holding_multi` 0x10 even for one register,
 /// `holding_single` one 0x06 per register, the last register first, `holding` 0x06 for one
-/// register and 0x10 for several.
+/// register and 0x10 for several, `coil` 0x05 (0/1 as 0000/FF00).
 fn setup_writes(item: &SetupItem) -> Vec<SetupWrite> {
     let address = item.register.address;
+    let register_type = item.register.reg_type;
+    // A coil is one bit: nothing of it to keep from a read.
+    let kept_bits = |kept: Vec<u16>| {
+        if register_type == RegisterType::Coil {
+            Vec::new()
+        } else {
+            kept
+        }
+    };
     match item.write_function {
         WriteFunction::Single if item.words.len() > 1 => item
             .words
@@ -160,21 +182,24 @@ fn setup_writes(item: &SetupItem) -> Vec<SetupWrite> {
             .enumerate()
             .rev()
             .map(|(i, &word)| SetupWrite {
+                register_type,
                 address: address.wrapping_add(u16::try_from(i).unwrap_or(u16::MAX)),
                 values: vec![word],
                 force_multiple: false,
-                kept_bits: item
-                    .kept_bits
-                    .get(i)
-                    .map(|&kept| vec![kept])
-                    .unwrap_or_default(),
+                kept_bits: kept_bits(
+                    item.kept_bits
+                        .get(i)
+                        .map(|&kept| vec![kept])
+                        .unwrap_or_default(),
+                ),
             })
             .collect(),
         function => vec![SetupWrite {
+            register_type,
             address,
             values: item.words.clone(),
             force_multiple: function == WriteFunction::Multiple,
-            kept_bits: item.kept_bits.clone(),
+            kept_bits: kept_bits(item.kept_bits.clone()),
         }],
     }
 }
@@ -350,6 +375,43 @@ mod tests {
                 (20, vec![7], true),
                 (30, vec![1, 2], false),
                 (40, vec![9], false),
+            ]
+        );
+    }
+
+    /// Setup items on coils are written (0x05), in the items' order among the holding
+    /// registers' (ONOKOM TCL-1-MB-B's parameters are coils 92, 94, 95 and 100); an item on a
+    /// read-only table is not.
+    #[test]
+    fn coil_setup_items_are_written_in_order() {
+        let template = json!({"device_type": "coil-setup", "device": {"name": "C", "id": "c",
+            "preserve_setup_order": true,
+            "setup": [
+                {"title": "swing", "reg_type": "coil", "address": 92, "value": 1},
+                {"title": "mode", "reg_type": "holding", "address": 10, "value": 3},
+                {"title": "beep", "reg_type": "coil", "address": 94, "value": 0},
+                {"title": "input", "reg_type": "input", "address": 5, "value": 1}
+            ],
+            "channels": []}});
+        let template = crate::config::TemplateFile::from_source(SourceText::from_text(
+            Path::new("coil-setup.json"),
+            &template.to_string(),
+        ))
+        .unwrap();
+        let device =
+            crate::device::configure::resolve_template_device(&template, &json!({"slave_id": 1}))
+                .unwrap();
+        let writes: Vec<(RegisterType, u16, Vec<u16>, Vec<u16>)> = device_plan(&device)
+            .setup
+            .into_iter()
+            .map(|w| (w.register_type, w.address, w.values, w.kept_bits))
+            .collect();
+        assert_eq!(
+            writes,
+            vec![
+                (RegisterType::Coil, 92, vec![1], vec![]),
+                (RegisterType::Holding, 10, vec![3], vec![]),
+                (RegisterType::Coil, 94, vec![0], vec![]),
             ]
         );
     }

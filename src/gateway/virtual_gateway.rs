@@ -267,14 +267,16 @@ impl VirtualGateway {
             return;
         };
         let mut updates = Vec::new();
+        let mut refused = Vec::new();
         if let Ok(register_writes) =
             model.take_write(&write.control_id, &write.payload, &mut updates)
         {
             for register_write in register_writes {
-                self.scheduler.queue_write(self.now, register_write);
+                refused.extend(self.scheduler.queue_write(self.now, register_write));
             }
         }
         self.sink(updates);
+        self.hand_to_models(refused);
     }
 
     /// The physical world changes a register of the simulated device at `address`.
@@ -427,5 +429,51 @@ impl VirtualGateway {
                 (None, None) => return (TransactionOutcome::NoReply, ReplyTiming::default(), now),
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A device whose setup writes coils among holding registers (as ONOKOM TCL-1-MB-B's
+    /// parameters on coils 92, 94): the simulated device holds every one of them after the
+    /// start-up, and again after it restarted with other values.
+    #[test]
+    fn coil_setup_items_reach_the_device_and_again_after_a_restart() {
+        let dir = tempfile::tempdir().expect("a template directory");
+        let template = json!({"device_type": "coil-setup", "device": {"name": "Coil setup",
+        "id": "coil-setup",
+        "setup": [
+            {"title": "swing", "reg_type": "coil", "address": 92, "value": 1},
+            {"title": "mode", "reg_type": "holding", "address": 10, "value": 3},
+            {"title": "beep", "reg_type": "coil", "address": 94, "value": 0}
+        ],
+        "channels": [
+            {"name": "Power", "reg_type": "coil", "address": 0, "type": "switch"}
+        ]}});
+        std::fs::write(dir.path().join("coil-setup.json"), template.to_string())
+            .expect("template written");
+        let entry = json!({"template": "coil-setup", "address": 7, "serial": 0xFE00_0007u32, "line": "9600 8N2"});
+        let mut gateway =
+            VirtualGateway::from_bus("9600 8N2", &[entry], dir.path(), true, 1, Repeats::All);
+        gateway.change(7, RegisterType::Coil, 94, &[1]);
+        gateway.run_for(Duration::from_millis(500));
+        let setup = |gateway: &VirtualGateway| {
+            [
+                gateway.register(7, RegisterType::Coil, 92),
+                gateway.register(7, RegisterType::Holding, 10),
+                gateway.register(7, RegisterType::Coil, 94),
+            ]
+        };
+        assert_eq!(setup(&gateway), [Some(1), Some(3), Some(0)]);
+        // Unplugged long enough to be taken offline, changed meanwhile: set up again on return.
+        gateway.set_plugged(7, false);
+        gateway.run_for(Duration::from_secs(8));
+        gateway.change(7, RegisterType::Coil, 92, &[0]);
+        gateway.change(7, RegisterType::Coil, 94, &[1]);
+        gateway.set_plugged(7, true);
+        gateway.run_for(Duration::from_secs(5));
+        assert_eq!(setup(&gateway), [Some(1), Some(3), Some(0)]);
     }
 }

@@ -127,8 +127,8 @@ pub(super) struct DeviceState {
     /// A read split off a refused merged read was refused on its own: the refusal is
     /// explained, and the others may be merged again once all are known.
     split_found_refused: bool,
-    /// The holding registers whose setup writes keep bits of what was read there, with the
-    /// last word read (empty on most devices).
+    /// The holding registers whose setup writes keep bits of what is there, with the last word
+    /// read or written there (empty on most devices).
     setup_reads: Vec<(u16, Option<u16>)>,
 }
 
@@ -164,6 +164,7 @@ impl DeviceState {
         let mut setup_reads: Vec<(u16, Option<u16>)> = plan
             .setup
             .iter()
+            .filter(|write| write.register_type == RegisterType::Holding)
             .flat_map(|write| {
                 write
                     .kept_bits
@@ -240,8 +241,15 @@ impl DeviceState {
         }
     }
 
-    /// Keeps what a read of holding registers found where setup writes keep bits.
-    pub(super) fn note_read(&mut self, span: RegisterSpan, values: &[u16]) {
+    /// Whether setup writes are due: the device's writes wait for them (a write that went
+    /// first would be undone by a setup write to its register).
+    pub(super) fn setup_pending(&self) -> bool {
+        matches!(self.preparation, Preparation::Setup { .. })
+    }
+
+    /// Keeps what a read of holding registers found, or a write put, where setup writes keep
+    /// bits (as wb-mqtt-serial's register cache takes both in).
+    pub(super) fn note_words(&mut self, span: RegisterSpan, values: &[u16]) {
         if self.setup_reads.is_empty() || span.register_type != RegisterType::Holding {
             return;
         }
@@ -255,8 +263,9 @@ impl DeviceState {
         }
     }
 
-    /// The words of setup write `index`: its values, with the bits it keeps from the last read
-    /// of the register (as wb-mqtt-serial writes setup over its register cache).
+    /// The words of setup write `index`: its values, with the bits it keeps from what was last
+    /// read or written of the register (as wb-mqtt-serial writes setup over its register
+    /// cache).
     pub(super) fn setup_words(&self, index: usize) -> Option<Vec<u16>> {
         let write = self.plan.setup.get(index)?;
         Some(write.words_over(|address| {
@@ -883,6 +892,7 @@ mod tests {
     fn a_device_with_setup_writes_keeps_its_reboot_event() {
         let mut plan = counter8().plan;
         plan.setup.push(crate::port::plan::SetupWrite {
+            register_type: RegisterType::Holding,
             address: 100,
             values: vec![7],
             force_multiple: false,

@@ -6,7 +6,7 @@ use std::time::Duration;
 
 use super::health::HealthPolicy;
 use super::read_plan::{MergeLimits, RegisterSpan};
-use crate::protocol::{LineSettings, RegisterType};
+use crate::protocol::{LineSettings, RegisterType, RequestPdu};
 
 /// Timing of one bus.
 #[derive(Debug, Clone, PartialEq)]
@@ -84,22 +84,26 @@ pub struct PlannedRead {
     pub min_firmware: Option<String>,
 }
 
-/// Holding registers written whenever the device (re)connects or reboots.
+/// Registers written whenever the device (re)connects or reboots, in the plan's order.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct SetupWrite {
+    /// Coil (0x05, or 0x0F for several) or Holding (0x06, or 0x10 for several); the port plan
+    /// holds no other.
+    pub register_type: RegisterType,
     pub address: u16,
+    /// One value per register (0/1 for coils).
     pub values: Vec<u16>,
-    /// Use 0x10 even for one value (`holding_multi`), as [`RegisterWrite::force_multiple`].
+    /// Use 0x0F/0x10 even for one value (`holding_multi`), as [`RegisterWrite::force_multiple`].
     pub force_multiple: bool,
-    /// Per value, the bits the setup does not define (empty: none): taken from what was last
-    /// read of the register, when it has been read ([`crate::device::SetupItem`]'s
-    /// `kept_bits`).
+    /// Per value, the bits the setup does not define (empty: none; always none for coils):
+    /// taken from what was last read or written of the register, when there is such
+    /// ([`crate::device::SetupItem`]'s `kept_bits`).
     pub kept_bits: Vec<u16>,
 }
 
 impl SetupWrite {
     /// The words to write: `values`, with the kept bits from `last_read` (per register, None
-    /// where it has not been read).
+    /// where it has been neither read nor written).
     pub fn words_over(&self, last_read: impl Fn(u16) -> Option<u16>) -> Vec<u16> {
         self.values
             .iter()
@@ -143,4 +147,49 @@ pub struct RegisterWrite {
     pub values: Vec<u16>,
     /// Use 0x0F/0x10 even for one value (`holding_multi`; some devices accept nothing else).
     pub force_multiple: bool,
+}
+
+/// The request that writes `values` from `address`: 0x05 or 0x06 for one value (unless
+/// `force_multiple`), 0x0F or 0x10 otherwise. May not encode (no values, or more than one
+/// request carries): see [`write_encodes`].
+pub(crate) fn write_pdu(
+    register_type: RegisterType,
+    address: u16,
+    values: &[u16],
+    force_multiple: bool,
+) -> RequestPdu {
+    match (register_type, values) {
+        (RegisterType::Coil, [value]) if !force_multiple => RequestPdu::WriteSingleCoil {
+            address,
+            value: *value != 0,
+        },
+        (RegisterType::Coil, values) => RequestPdu::WriteMultipleCoils {
+            start: address,
+            values: values.iter().map(|&v| v != 0).collect(),
+        },
+        (_, [value]) if !force_multiple => RequestPdu::WriteSingleRegister {
+            address,
+            value: *value,
+        },
+        (_, values) => RequestPdu::WriteMultipleRegisters {
+            start: address,
+            values: values.to_vec(),
+        },
+    }
+}
+
+/// Whether a write of `values` at `address` can go out: to a coil or holding register (the
+/// only writable tables), in a request that encodes (some values, no more than one request
+/// carries). A request that does not encode would fail the port: its driver takes an encode
+/// error for a broken port.
+pub(crate) fn write_encodes(
+    register_type: RegisterType,
+    address: u16,
+    values: &[u16],
+    force_multiple: bool,
+) -> bool {
+    matches!(register_type, RegisterType::Coil | RegisterType::Holding)
+        && write_pdu(register_type, address, values, force_multiple)
+            .encode(&mut Vec::new())
+            .is_ok()
 }

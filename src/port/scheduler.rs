@@ -3,7 +3,8 @@
 //!
 //! Order of precedence on the bus:
 //! 1. the Fast Modbus event request when its slot is due (every 50/100/200 ms by baud rate);
-//! 2. queued writes; 3. device preparation (setup writes, 0x18 event setup, first reads);
+//! 2. queued writes (a device's wait for its setup writes, which would undo them);
+//! 3. device preparation (setup writes, 0x18 event setup, first reads);
 //! 4. classic reads, periodic ones first, the rest round-robin.
 //!
 //! No transaction starts if its estimated wire time would make the next event request late:
@@ -18,15 +19,14 @@ use super::device::{DeviceState, ReadChoice, LOW_PRIORITY};
 use super::due_index::{DueIndex, Placement};
 use super::events::EventPoller;
 use super::health::DeadRetryBudget;
-use super::plan::{DevicePlan, PortSettings, RegisterWrite};
+use super::plan::{write_encodes, write_pdu, DevicePlan, PortSettings, RegisterWrite};
 use super::rate_limit::ReadRateLimit;
 use super::read_plan::RegisterSpan;
 use crate::protocol::fast::enabled_registers;
 use crate::protocol::timing::ADAPTER_LATENCY_ALLOWANCE;
 pub use crate::protocol::transaction::{ReplyTiming, Transaction, TransactionOutcome};
 use crate::protocol::{
-    EventRange, ExceptionCode, FastReply, RegisterType, Reply, ReplyBody, Request, RequestPdu,
-    ResponsePdu,
+    EventRange, ExceptionCode, FastReply, RegisterType, Reply, ReplyBody, Request, ResponsePdu,
 };
 
 /// How long a failed write keeps being retried.
@@ -281,7 +281,23 @@ impl PortScheduler {
             EventPollTiming::new(&settings, &Request::poll_events(events.request()));
         let devices: Vec<DeviceState> = plans
             .into_iter()
-            .map(|plan| DeviceState::new(plan, settings.fast_modbus, &settings.line))
+            .map(|mut plan| {
+                // Its request would not encode (and fail the port): a config the resolver should
+                // have refused.
+                plan.setup.retain(|write| {
+                    let encodes = write_encodes(
+                        write.register_type,
+                        write.address,
+                        &write.values,
+                        write.force_multiple,
+                    );
+                    if !encodes {
+                        warn!(device = %plan.name, register_type = ?write.register_type, address = write.address, count = write.values.len(), "a setup write no request can carry: never written");
+                    }
+                    encodes
+                });
+                DeviceState::new(plan, settings.fast_modbus, &settings.line)
+            })
             .collect();
         let mut by_address = vec![None; usize::from(u8::MAX) + 1];
         for (index, device) in devices.iter().enumerate() {
@@ -479,7 +495,34 @@ impl PortScheduler {
     }
 
     /// Queues a write; a queued write to the same register is replaced (the latest value wins).
-    pub fn queue_write(&mut self, now: Duration, write: RegisterWrite) {
+    /// A write no request can carry (no values, more than one request holds, a table that
+    /// cannot be written, an unknown device) is refused at once: its permanent
+    /// [`PortEvent::WriteFailed`] is returned, for the device model.
+    #[must_use = "a refused write's failure must reach the device model"]
+    pub fn queue_write(&mut self, now: Duration, write: RegisterWrite) -> Option<PortEvent> {
+        let known = write.device < self.devices.len();
+        if !known
+            || !write_encodes(
+                write.register_type,
+                write.address,
+                &write.values,
+                write.force_multiple,
+            )
+        {
+            warn!(
+                device = write.device,
+                register_type = ?write.register_type,
+                address = write.address,
+                count = write.values.len(),
+                "a write no request can carry: refused"
+            );
+            return Some(PortEvent::WriteFailed {
+                device: write.device,
+                register_type: write.register_type,
+                address: write.address,
+                permanent: true,
+            });
+        }
         let same_register = |p: &PendingWrite| {
             p.write.device == write.device
                 && p.write.register_type == write.register_type
@@ -490,6 +533,7 @@ impl PortScheduler {
             write,
             give_up_at: now + WRITE_RETRY_TIME,
         });
+        None
     }
 
     /// Whether events are polled (the index must be up to date).
@@ -909,33 +953,24 @@ impl PortScheduler {
             .or_else(|| self.choose_read(now))
     }
 
+    /// The first queued write whose device may be sent a request now. A device's writes wait
+    /// while its setup writes are due (after a (re)connection or a reboot), as wb-mqtt-serial
+    /// sets a device up before anything else: a write that went first would be undone by a
+    /// setup write to its register. Not while its polling is held, which holds its setup too.
     fn choose_write(&self, now: Duration) -> Option<(Transaction, InFlight)> {
         let pending = self.writes.iter().find(|p| {
             self.devices
                 .get(p.write.device)
-                .is_some_and(|d| self.may_transact(d, now))
+                .is_some_and(|d| (d.suspended || !d.setup_pending()) && self.may_transact(d, now))
         })?;
         let device = self.devices.get(pending.write.device)?;
         let write = &pending.write;
-        let single = |values: &[u16]| values.len() == 1 && !write.force_multiple;
-        let pdu = match (write.register_type, write.values.as_slice()) {
-            (RegisterType::Coil, [value]) if single(&write.values) => RequestPdu::WriteSingleCoil {
-                address: write.address,
-                value: *value != 0,
-            },
-            (RegisterType::Coil, values) => RequestPdu::WriteMultipleCoils {
-                start: write.address,
-                values: values.iter().map(|&v| v != 0).collect(),
-            },
-            (_, [value]) if single(&write.values) => RequestPdu::WriteSingleRegister {
-                address: write.address,
-                value: *value,
-            },
-            (_, values) => RequestPdu::WriteMultipleRegisters {
-                start: write.address,
-                values: values.to_vec(),
-            },
-        };
+        let pdu = write_pdu(
+            write.register_type,
+            write.address,
+            &write.values,
+            write.force_multiple,
+        );
         let transaction =
             self.classic_transaction(now, device, Request::classic(device.plan.address, pdu));
         Some((
@@ -983,16 +1018,12 @@ impl PortScheduler {
         if let Some(setup_index) = device.next_setup_write() {
             let write = device.plan.setup.get(setup_index)?;
             let words = device.setup_words(setup_index)?;
-            let pdu = match words.as_slice() {
-                [value] if !write.force_multiple => RequestPdu::WriteSingleRegister {
-                    address: write.address,
-                    value: *value,
-                },
-                _ => RequestPdu::WriteMultipleRegisters {
-                    start: write.address,
-                    values: words,
-                },
-            };
+            let pdu = write_pdu(
+                write.register_type,
+                write.address,
+                &words,
+                write.force_multiple,
+            );
             let transaction =
                 self.classic_transaction(now, device, Request::classic(device.plan.address, pdu));
             return Some((
@@ -1261,9 +1292,18 @@ impl PortScheduler {
                         continue;
                     }
                     if let crate::protocol::EventSource::Register(register_type) = event.source {
-                        let words = crate::protocol::event_payload_words(&event.payload).len();
+                        let words = crate::protocol::event_payload_words(&event.payload);
                         if let Some(state) = self.devices.get_mut(device) {
-                            state.read_partial_event_value(register_type, event.id, words);
+                            state.read_partial_event_value(register_type, event.id, words.len());
+                            // A one-register value is that register's word: setup writes that
+                            // keep bits of it keep these (a wider one's word order is the
+                            // channel's, unknown here: its next read tells).
+                            if let [_] = words.as_slice() {
+                                state.note_words(
+                                    RegisterSpan::new(register_type, event.id, 1),
+                                    &words,
+                                );
+                            }
                         }
                         out.push(PortEvent::EventValue {
                             device,
@@ -1307,7 +1347,37 @@ impl PortScheduler {
                 state.setup_write_done(index);
             }
             TransactionOutcome::NoReply | TransactionOutcome::Garbled => {
-                Self::health_failure(state, device, now, out)
+                Self::health_failure(state, device, now, out);
+                self.setup_failed_for_writes(now, device, out);
+            }
+        }
+    }
+
+    /// The device did not answer a setup write: its writes waiting for the setup (see
+    /// [`Self::choose_write`]) fail with it, as they would have failed had they gone, and are
+    /// given up at the time they would have been: the wait neither loses a write nor keeps one
+    /// past [`WRITE_RETRY_TIME`].
+    fn setup_failed_for_writes(&mut self, now: Duration, device: usize, out: &mut Vec<PortEvent>) {
+        let mut index = 0;
+        while let Some(pending) = self.writes.get(index) {
+            if pending.write.device != device {
+                index += 1;
+                continue;
+            }
+            let give_up = now >= pending.give_up_at;
+            out.push(PortEvent::WriteFailed {
+                device,
+                register_type: pending.write.register_type,
+                address: pending.write.address,
+                permanent: give_up,
+            });
+            if give_up {
+                if let Some(state) = self.devices.get(device) {
+                    warn!(device = %state.plan.name, address = pending.write.address, "write given up: the device did not answer its setup");
+                }
+                self.writes.remove(index);
+            } else {
+                index += 1;
             }
         }
     }
@@ -1400,7 +1470,7 @@ impl PortScheduler {
             return;
         }
         Self::health_success(state, device, now, out);
-        state.note_read(span, &values);
+        state.note_words(span, &values);
         let values = ReadWords::from(values);
         for &member in members {
             let Some(member_span) = state.read_span(member) else {
@@ -1467,6 +1537,9 @@ impl PortScheduler {
                     address,
                     u16::try_from(write.values.len()).unwrap_or(u16::MAX),
                 );
+                // The device holds these words now: a setup write that keeps bits of the
+                // register keeps these, not those of an older read.
+                state.note_words(span, &write.values);
                 out.push(PortEvent::WriteDone {
                     device,
                     register_type,

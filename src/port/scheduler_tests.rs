@@ -8,7 +8,7 @@ use crate::port::health::HealthPolicy;
 use crate::port::plan::{EventMode, GuardIntervals, PlannedRead, SetupWrite};
 use crate::port::read_plan::MergeLimits;
 use crate::protocol::{
-    Event, EventPacket, EventPoll, FastRequest, LineSettings, Parity, RequestBody,
+    Event, EventPacket, EventPoll, FastRequest, LineSettings, Parity, RequestBody, RequestPdu,
 };
 
 fn ms(ms: u64) -> Duration {
@@ -442,6 +442,7 @@ fn reboot_reported_at_poll(
 fn a_reboot_event_brings_setup_event_setup_and_a_fresh_read() {
     let mut plan = device(20, vec![read(RegisterType::Coil, 0, EventMode::Sporadic)]);
     plan.setup = vec![SetupWrite {
+        register_type: RegisterType::Holding,
         address: 5,
         values: vec![7],
         force_multiple: false,
@@ -510,6 +511,7 @@ fn a_bit_field_setup_write_keeps_the_bits_last_read() {
         ],
     );
     plan.setup = vec![SetupWrite {
+        register_type: RegisterType::Holding,
         address: 5,
         values: vec![0x0007],
         force_multiple: false,
@@ -832,8 +834,8 @@ fn a_write_goes_before_the_next_read_and_the_latest_value_wins() {
         values: vec![value],
         force_multiple: false,
     };
-    scheduler.queue_write(now, write(1));
-    scheduler.queue_write(now, write(2));
+    assert_eq!(scheduler.queue_write(now, write(1)), None);
+    assert_eq!(scheduler.queue_write(now, write(2)), None);
     let before = log.sent.len();
     run(&mut scheduler, &mut log, now, now + ms(20), |_, r| {
         healthy(r)
@@ -938,6 +940,7 @@ fn a_dead_device_backs_off_while_the_others_keep_their_rate() {
 fn an_unplugged_device_comes_back_with_its_setup() {
     let mut plan = device(4, vec![read(RegisterType::Holding, 0, EventMode::Polled)]);
     plan.setup = vec![SetupWrite {
+        register_type: RegisterType::Holding,
         address: 9,
         values: vec![1],
         force_multiple: false,
@@ -1137,7 +1140,7 @@ fn holding_multi_writes_one_register_with_function_16() {
         values: vec![9],
         force_multiple: true,
     };
-    scheduler.queue_write(Duration::ZERO, write);
+    assert_eq!(scheduler.queue_write(Duration::ZERO, write), None);
     let mut log = Log::default();
     run(&mut scheduler, &mut log, Duration::ZERO, ms(5), |_, r| {
         healthy(r)
@@ -1694,7 +1697,7 @@ fn a_suspended_device_is_not_polled_and_the_scheduler_does_not_spin() {
         other => panic!("{other:?}"),
     }
     // A write still goes.
-    only_held.queue_write(
+    let refused = only_held.queue_write(
         ms(10),
         RegisterWrite {
             device: 0,
@@ -1704,6 +1707,7 @@ fn a_suspended_device_is_not_polled_and_the_scheduler_does_not_spin() {
             force_multiple: false,
         },
     );
+    assert_eq!(refused, None);
     assert!(matches!(only_held.next(ms(10)), NextStep::Transmit(_)));
     scheduler.hold_polling(1, None);
     let mut log = Log::default();
@@ -1941,6 +1945,7 @@ fn random_plan(rng: &mut Rng, address: u8) -> DevicePlan {
         .collect();
     let setup = (0..rng.below(3))
         .map(|i| SetupWrite {
+            register_type: RegisterType::Holding,
             address: 100 + i as u16,
             values: vec![1; 1 + rng.below(2) as usize],
             force_multiple: false,
@@ -2048,16 +2053,19 @@ fn the_due_order_chooses_as_a_scan_of_every_device_would() {
                     };
                     scheduler.hold_polling(device, until);
                 }
-                3..=4 => scheduler.queue_write(
-                    now,
-                    RegisterWrite {
-                        device,
-                        register_type: RegisterType::Holding,
-                        address: rng.below(4) as u16,
-                        values: vec![rng.below(100) as u16],
-                        force_multiple: rng.chance(30),
-                    },
-                ),
+                3..=4 => {
+                    let refused = scheduler.queue_write(
+                        now,
+                        RegisterWrite {
+                            device,
+                            register_type: RegisterType::Holding,
+                            address: rng.below(4) as u16,
+                            values: vec![rng.below(100) as u16],
+                            force_multiple: rng.chance(30),
+                        },
+                    );
+                    assert_eq!(refused, None);
+                }
                 5 => scheduler.set_up_again(device),
                 6 => {
                     let since = now.saturating_sub(ms(rng.below(5000)));
@@ -2655,4 +2663,437 @@ fn a_read_wider_than_a_request_is_never_sent_and_the_others_go_on() {
     let reads = holding_reads(&log, 7);
     assert!(reads.len() > 10, "{reads:?}");
     assert!(reads.iter().all(|&r| r == (0, 1)), "{reads:?}");
+}
+
+/// A device that keeps what is written to it: holding registers and coils in `registers`
+/// (missing ones read as 0), writes echoed; silent while `silent(at)` says so.
+fn keeping_device(
+    address: u8,
+    registers: std::rc::Rc<
+        std::cell::RefCell<std::collections::BTreeMap<(RegisterType, u16), u16>>,
+    >,
+    silent: impl Fn(Duration) -> bool,
+) -> impl FnMut(Duration, &Request) -> TransactionOutcome {
+    move |at, request| {
+        if request.address != address {
+            return healthy(request);
+        }
+        if silent(at) {
+            return TransactionOutcome::NoReply;
+        }
+        let mut map = registers.borrow_mut();
+        match &request.body {
+            RequestBody::Classic(RequestPdu::ReadHoldingRegisters { start, count }) => {
+                let values = (*start..start + count)
+                    .map(|a| map.get(&(RegisterType::Holding, a)).copied().unwrap_or(0))
+                    .collect();
+                TransactionOutcome::Reply(Reply::classic(
+                    address,
+                    ResponsePdu::ReadHoldingRegisters { values },
+                ))
+            }
+            RequestBody::Classic(RequestPdu::WriteSingleRegister { address: at, value }) => {
+                map.insert((RegisterType::Holding, *at), *value);
+                healthy(request)
+            }
+            RequestBody::Classic(RequestPdu::WriteSingleCoil { address: at, value }) => {
+                map.insert((RegisterType::Coil, *at), u16::from(*value));
+                healthy(request)
+            }
+            _ => healthy(request),
+        }
+    }
+}
+
+fn holding_write(device: usize, address: u16, value: u16) -> RegisterWrite {
+    RegisterWrite {
+        device,
+        register_type: RegisterType::Holding,
+        address,
+        values: vec![value],
+        force_multiple: false,
+    }
+}
+
+/// Setup items on coils (ONOKOM TCL-1-MB-B's parameters on coils 92, 94, 95, 100) are written
+/// with 0x05 (FF00 / 0000), several coils with 0x0F, in the plan's order among the holding
+/// registers' writes, as wb-mqtt-serial writes them.
+#[test]
+fn coil_setup_writes_go_out_with_function_5_in_plan_order() {
+    let mut plan = device(7, vec![read(RegisterType::Holding, 0, EventMode::Polled)]);
+    let setup = |register_type, address, values: Vec<u16>| SetupWrite {
+        register_type,
+        address,
+        values,
+        force_multiple: false,
+        kept_bits: Vec::new(),
+    };
+    plan.setup = vec![
+        setup(RegisterType::Coil, 92, vec![1]),
+        setup(RegisterType::Holding, 10, vec![5]),
+        setup(RegisterType::Coil, 94, vec![0]),
+        setup(RegisterType::Coil, 100, vec![1, 0, 1]),
+    ];
+    let mut scheduler = PortScheduler::new(settings(115_200), vec![plan]);
+    let mut log = Log::default();
+    run(&mut scheduler, &mut log, Duration::ZERO, ms(20), |_, r| {
+        healthy(r)
+    });
+    let frames: Vec<String> = log
+        .classic_to(7)
+        .into_iter()
+        .take(4)
+        .map(|(_, pdu)| {
+            let frame = Request::classic(7, pdu).encode().unwrap();
+            crate::protocol::hex(frame.get(..frame.len() - 2).unwrap())
+        })
+        .collect();
+    let expected: Vec<String> = [
+        "07 05 00 5C FF 00",
+        "07 06 00 0A 00 05",
+        "07 05 00 5E 00 00",
+        "07 0F 00 64 00 03 01 05",
+    ]
+    .iter()
+    .map(|frame| crate::protocol::hex(&crate::protocol::parse_hex(frame).unwrap()))
+    .collect();
+    assert_eq!(frames, expected);
+}
+
+/// A channel write to a register whose setup write keeps bits (a bit field of it is a
+/// parameter): the device restarts before the register is read again, and the setup keeps the
+/// written bits, not those of the read before the write (wb-mqtt-serial's register cache takes
+/// writes in).
+#[test]
+fn a_setup_write_keeps_the_bits_a_channel_wrote_since_the_last_read() {
+    let mut plan = device(20, vec![read(RegisterType::Holding, 5, EventMode::Polled)]);
+    plan.setup = vec![SetupWrite {
+        register_type: RegisterType::Holding,
+        address: 5,
+        values: vec![0x0007],
+        force_multiple: false,
+        kept_bits: vec![0xFFF0],
+    }];
+    let registers = std::rc::Rc::new(std::cell::RefCell::new(std::collections::BTreeMap::from([
+        ((RegisterType::Holding, 5), 0x1230),
+    ])));
+    let mut scheduler = PortScheduler::new(settings(115_200), vec![plan]);
+    let mut log = Log::default();
+    let mut device = keeping_device(20, std::rc::Rc::clone(&registers), |_| false);
+    let mut now = run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(30),
+        &mut device,
+    );
+    assert_eq!(holding_reads(&log, 20).first(), Some(&(5, 1)), "read once");
+    assert_eq!(
+        scheduler.queue_write(now, holding_write(0, 5, 0xABC7)),
+        None
+    );
+    let write = next_classic(&mut scheduler, &mut now);
+    assert_eq!(
+        write.request.body,
+        RequestBody::Classic(RequestPdu::WriteSingleRegister {
+            address: 5,
+            value: 0xABC7
+        })
+    );
+    now += write.estimated;
+    let outcome = device(now, &write.request);
+    scheduler.complete(now, outcome);
+    // The device restarts with its defaults before the register is read again.
+    registers
+        .borrow_mut()
+        .insert((RegisterType::Holding, 5), 0x0000);
+    scheduler.set_up_again(0);
+    let setup = next_classic(&mut scheduler, &mut now);
+    assert_eq!(
+        setup.request.body,
+        RequestBody::Classic(RequestPdu::WriteSingleRegister {
+            address: 5,
+            value: 0xABC7
+        }),
+        "the setup's bits over the channel's, not over the read before the write (0x1237)"
+    );
+}
+
+/// A write queued while its device is offline goes after the device's setup writes when it
+/// comes back, not before them (a setup write to the same register would undo it), as
+/// wb-mqtt-serial sets a device up first. Other devices' writes do not wait.
+#[test]
+fn a_write_queued_while_the_device_is_away_goes_after_its_setup() {
+    let mut plan = device(4, vec![read(RegisterType::Holding, 0, EventMode::Polled)]);
+    plan.setup = vec![SetupWrite {
+        register_type: RegisterType::Holding,
+        address: 5,
+        values: vec![7],
+        force_multiple: false,
+        kept_bits: Vec::new(),
+    }];
+    let other = device(6, vec![read(RegisterType::Holding, 0, EventMode::Polled)]);
+    let mut scheduler = PortScheduler::new(settings(115_200), vec![plan, other]);
+    let registers = std::rc::Rc::new(std::cell::RefCell::new(std::collections::BTreeMap::new()));
+    let away = ms(1000)..ms(8000);
+    let mut log = Log::default();
+    let mut respond = keeping_device(4, std::rc::Rc::clone(&registers), {
+        let away = away.clone();
+        move |at| away.contains(&at)
+    });
+    let now = run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(6000),
+        &mut respond,
+    );
+    assert!(log
+        .events
+        .iter()
+        .any(|(_, e)| *e == PortEvent::Offline { device: 0 }));
+    assert_eq!(scheduler.queue_write(now, holding_write(0, 5, 9)), None);
+    assert_eq!(scheduler.queue_write(now, holding_write(1, 5, 3)), None);
+    let before = log.sent.len();
+    run(&mut scheduler, &mut log, now, ms(12_000), &mut respond);
+    let sent = log.sent.get(before..).unwrap();
+    // The other device's write goes at once.
+    assert_eq!(
+        sent.first().map(|(_, r)| r.clone()),
+        Some(Request::classic(
+            6,
+            RequestPdu::WriteSingleRegister {
+                address: 5,
+                value: 3
+            }
+        ))
+    );
+    let writes_to_5: Vec<(Duration, u16)> = sent
+        .iter()
+        .filter(|(_, r)| r.address == 4)
+        .filter_map(|(at, r)| match &r.body {
+            RequestBody::Classic(RequestPdu::WriteSingleRegister { address: 5, value }) => {
+                Some((*at, *value))
+            }
+            _ => None,
+        })
+        .collect();
+    let answered: Vec<u16> = writes_to_5
+        .iter()
+        .filter(|(at, _)| !away.contains(at))
+        .map(|(_, value)| *value)
+        .collect();
+    assert_eq!(
+        answered,
+        [7, 9],
+        "setup first, then the write: {writes_to_5:?}"
+    );
+    assert_eq!(
+        registers.borrow().get(&(RegisterType::Holding, 5)),
+        Some(&9)
+    );
+    assert!(log
+        .events
+        .iter()
+        .any(|(_, e)| *e == PortEvent::Online { device: 0 }));
+}
+
+/// A write that waits for its device's setup is retried (and reported failed) as each try of
+/// the setup fails, and given up when a write that went would have been: after
+/// `WRITE_RETRY_TIME`. It never goes out after that, however late the device comes back.
+#[test]
+fn a_write_waiting_for_setup_is_given_up_in_time() {
+    let mut plan = device(4, vec![read(RegisterType::Holding, 0, EventMode::Polled)]);
+    plan.setup = vec![SetupWrite {
+        register_type: RegisterType::Holding,
+        address: 5,
+        values: vec![7],
+        force_multiple: false,
+        kept_bits: Vec::new(),
+    }];
+    let mut scheduler = PortScheduler::new(settings(115_200), vec![plan]);
+    let registers = std::rc::Rc::new(std::cell::RefCell::new(std::collections::BTreeMap::new()));
+    let back = WRITE_RETRY_TIME + ms(60_000);
+    let mut respond = keeping_device(4, std::rc::Rc::clone(&registers), move |at| {
+        (ms(1000)..back).contains(&at)
+    });
+    let mut log = Log::default();
+    let now = run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(5000),
+        &mut respond,
+    );
+    assert_eq!(scheduler.queue_write(now, holding_write(0, 5, 9)), None);
+    let queued = now;
+    run(&mut scheduler, &mut log, now, back + ms(5000), &mut respond);
+    let failures: Vec<(Duration, bool)> = log
+        .events
+        .iter()
+        .filter_map(|(at, e)| match e {
+            PortEvent::WriteFailed {
+                address: 5,
+                permanent,
+                ..
+            } => Some((*at, *permanent)),
+            _ => None,
+        })
+        .collect();
+    assert!(
+        failures.len() > 2 && failures.iter().rev().skip(1).all(|(_, p)| !p),
+        "{failures:?}"
+    );
+    let (given_up_at, permanent) = *failures.last().unwrap();
+    assert!(permanent);
+    assert!(
+        given_up_at >= queued + WRITE_RETRY_TIME
+            && given_up_at < queued + WRITE_RETRY_TIME + ms(5000),
+        "given up at {given_up_at:?}"
+    );
+    assert!(
+        !log.sent.iter().any(|(_, r)| matches!(
+            r.body,
+            RequestBody::Classic(RequestPdu::WriteSingleRegister { value: 9, .. })
+        )),
+        "a write given up never goes out"
+    );
+    assert_eq!(
+        registers.borrow().get(&(RegisterType::Holding, 5)),
+        Some(&7)
+    );
+}
+
+/// A write no request can carry is refused at once with a permanent failure, never queued
+/// (its request would not encode, and the port would be taken for broken).
+#[test]
+fn a_write_no_request_can_carry_is_refused_at_once() {
+    let mut scheduler = PortScheduler::new(
+        settings(115_200),
+        vec![device(
+            3,
+            vec![read(RegisterType::Holding, 0, EventMode::Polled)],
+        )],
+    );
+    let write = |register_type, count: usize| RegisterWrite {
+        device: 0,
+        register_type,
+        address: 10,
+        values: vec![1; count],
+        force_multiple: false,
+    };
+    let refused = |register_type| {
+        Some(PortEvent::WriteFailed {
+            device: 0,
+            register_type,
+            address: 10,
+            permanent: true,
+        })
+    };
+    for (register_type, count) in [
+        (RegisterType::Holding, 124),
+        (RegisterType::Coil, 1969),
+        (RegisterType::Holding, 0),
+        (RegisterType::Coil, 0),
+        (RegisterType::Input, 1),
+    ] {
+        assert_eq!(
+            scheduler.queue_write(ms(0), write(register_type, count)),
+            refused(register_type),
+            "{register_type:?} × {count}"
+        );
+    }
+    for (register_type, count) in [(RegisterType::Holding, 123), (RegisterType::Coil, 1968)] {
+        assert_eq!(
+            scheduler.queue_write(ms(0), write(register_type, count)),
+            None
+        );
+    }
+    let mut log = Log::default();
+    run(&mut scheduler, &mut log, Duration::ZERO, ms(50), |_, r| {
+        healthy(r)
+    });
+    let writes: Vec<usize> = log
+        .sent
+        .iter()
+        .filter_map(|(_, r)| match &r.body {
+            RequestBody::Classic(RequestPdu::WriteMultipleRegisters { values, .. }) => {
+                Some(values.len())
+            }
+            RequestBody::Classic(RequestPdu::WriteMultipleCoils { values, .. }) => {
+                Some(values.len())
+            }
+            _ => None,
+        })
+        .collect();
+    assert_eq!(writes, [123, 1968]);
+}
+
+/// A register whose value comes by events (not polled): a setup write that keeps bits of it
+/// keeps them as the last event reported them, not as the first read after the setup found
+/// them.
+#[test]
+fn a_setup_write_keeps_the_bits_an_event_reported() {
+    let mut plan = device(
+        20,
+        vec![read(RegisterType::Holding, 5, EventMode::Sporadic)],
+    );
+    plan.setup = vec![SetupWrite {
+        register_type: RegisterType::Holding,
+        address: 5,
+        values: vec![0x0007],
+        force_multiple: false,
+        kept_bits: vec![0xFFF0],
+    }];
+    let mut scheduler = PortScheduler::new(settings(115_200), vec![plan]);
+    let mut log = Log::default();
+    let mut polls = 0;
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(500),
+        |_, request| match &request.body {
+            RequestBody::Classic(RequestPdu::ReadHoldingRegisters { start: 5, count: 1 }) => {
+                TransactionOutcome::Reply(Reply::classic(
+                    20,
+                    ResponsePdu::ReadHoldingRegisters {
+                        values: vec![0x1237],
+                    },
+                ))
+            }
+            RequestBody::Fast(FastRequest::PollEvents(_)) => {
+                polls += 1;
+                let event = match polls {
+                    3 => Event {
+                        source: crate::protocol::EventSource::Register(RegisterType::Holding),
+                        id: 5,
+                        payload: vec![0x67, 0x45],
+                    },
+                    6 => Event::reboot(),
+                    _ => return healthy(request),
+                };
+                TransactionOutcome::Reply(Reply::fast(
+                    20,
+                    FastReply::Events(EventPacket {
+                        flag: 0,
+                        event_count: 1,
+                        events: vec![event],
+                    }),
+                ))
+            }
+            _ => healthy(request),
+        },
+    );
+    let setup_values: Vec<u16> = log
+        .sent
+        .iter()
+        .filter_map(|(_, r)| match &r.body {
+            RequestBody::Classic(RequestPdu::WriteSingleRegister { address: 5, value }) => {
+                Some(*value)
+            }
+            _ => None,
+        })
+        .collect();
+    assert_eq!(setup_values, [0x0007, 0x4567]);
 }
