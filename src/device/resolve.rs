@@ -809,6 +809,20 @@ impl Walker {
             let Some(target) = register.write.or(register.read) else {
                 continue;
             };
+            if !matches!(target.reg_type, RegisterType::Holding | RegisterType::Coil) {
+                self.warnings.push(ResolveWarning {
+                    origin: item.origin.clone().unwrap_or_default(),
+                    message: format!(
+                        "a setup item on {} cannot be written (only holding registers and coils \
+                         can): it is left out",
+                        match target.reg_type {
+                            RegisterType::Input => "an input register",
+                            _ => "a discrete input",
+                        }
+                    ),
+                });
+                continue;
+            }
             let value = match &item.value {
                 Some(SetupValue::Number(n)) => format_g(*n, 15),
                 Some(SetupValue::Text(text)) => text.clone(),

@@ -119,21 +119,16 @@ pub fn device_plan(device: &ResolvedDevice) -> DevicePlan {
     // Kept by the scheduler for as long as the port runs.
     reads.shrink_to_fit();
     // Coils and holding registers, in the items' order (wb-mqtt-serial writes coils with 0x05
-    // as it writes holding registers). The other tables cannot be written: the resolver takes
-    // a setup item on them (`reg_type` `input` or `discrete`) for one to read, and it is left
-    // out here, as a device would refuse it.
+    // as it writes holding registers). The resolver leaves out, with a warning, items on the
+    // tables that cannot be written.
     let setup = device
         .setup
         .iter()
         .filter(|s| {
-            let writable = matches!(
+            matches!(
                 s.register.reg_type,
                 RegisterType::Holding | RegisterType::Coil
-            );
-            if !writable {
-                tracing::warn!(device = %device.id, item = %s.title, register_type = ?s.register.reg_type, "a setup item on a read-only register: not written");
-            }
-            writable && !s.words.is_empty()
+            ) && !s.words.is_empty()
         })
         .flat_map(setup_writes)
         .collect();
@@ -398,9 +393,19 @@ mod tests {
             &template.to_string(),
         ))
         .unwrap();
-        let device =
-            crate::device::configure::resolve_template_device(&template, &json!({"slave_id": 1}))
-                .unwrap();
+        let (device, warnings) = crate::device::configure::resolve_template_device_with_warnings(
+            &template,
+            &json!({"slave_id": 1}),
+        )
+        .unwrap();
+        // The input register cannot be written: left out by the resolver, which says so.
+        assert!(
+            warnings.iter().any(|w| w
+                .to_string()
+                .contains("a setup item on an input register cannot be written")),
+            "{warnings:?}"
+        );
+        assert_eq!(device.setup.len(), 3);
         let writes: Vec<(RegisterType, u16, Vec<u16>, Vec<u16>)> = device_plan(&device)
             .setup
             .into_iter()
