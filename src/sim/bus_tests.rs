@@ -1038,6 +1038,39 @@ fn write(wire: &mut Wire, bus: &mut Bus, frame: &[u8], at: Duration) -> bool {
     collided
 }
 
+/// A request whose bytes stop for more than 1.5 characters (less than the 3.5 that end a frame)
+/// is an incomplete frame to a Modbus RTU slave: discarded, with whatever follows it before the
+/// next frame gap. A pause of up to 1.5 characters is fine.
+#[test]
+fn a_frame_with_a_silence_over_one_and_a_half_characters_is_dropped() {
+    let request = read_holding(20, 128, 1);
+    let char_time = FAST_LINE.char_time();
+    let split = |gap: Duration| {
+        let mut bus = seed_bus();
+        let mut wire = Wire::new();
+        let mut respond = |request: &super::line::ReceivedRequest| bus.handle(request);
+        let start = Duration::from_millis(1);
+        wire.master_writes(&request[..3], start, master(), &mut respond);
+        let rest_at = start + FAST_LINE.wire_time(3) + gap;
+        wire.master_writes(&request[3..], rest_at, master(), &mut respond);
+        let deadline = wire.silence_deadline().unwrap();
+        wire.on_silence(deadline, &mut respond);
+        let answered = !wire.arrivals().is_empty();
+        // The next request, after a frame gap, is answered as usual.
+        let next_at = deadline + Duration::from_millis(5);
+        wire.master_writes(&request, next_at, master(), &mut respond);
+        let deadline = wire.silence_deadline().unwrap();
+        wire.on_silence(deadline, &mut respond);
+        assert!(wire.arrivals().iter().any(|&(at, _)| at > next_at));
+        answered
+    };
+    assert!(split(Duration::ZERO));
+    assert!(split(char_time));
+    assert!(split(char_time * 3 / 2));
+    assert!(!split(char_time * 2));
+    assert!(!split(char_time * 3));
+}
+
 #[test]
 fn requests_written_together_are_one_run_that_nobody_answers() {
     let first = read_holding(20, 128, 1);
