@@ -261,7 +261,9 @@ fn arbitration_is_timed_window_by_window() {
     let frame = Request::scan_start().encode().unwrap();
     let reply = bus.exchange(&frame, master(), at);
     let end = at + FAST_LINE.wire_time(frame.len());
-    let first_window = end + FAST_LINE.device_arbitration_wait();
+    let first_window = end + super::bus::device_arbitration_wait(&FAST_LINE);
+    // The article's figure at 115200: 93 bits.
+    assert_eq!(first_window - end, FAST_LINE.bits_time(93));
     let window = FAST_LINE.arbitration_window();
     // Window 0: both markers 0b0110 start with a 0 bit.
     assert_eq!(reply.bursts[0].start, first_window);
@@ -271,6 +273,40 @@ fn arbitration_is_timed_window_by_window() {
     let frame_burst = reply.bursts.last().unwrap();
     assert_eq!(frame_burst.start, first_window + window * 32);
     assert!(frame_burst.start <= end + FAST_LINE.scan_reply_timeout());
+}
+
+/// Below 52500 baud 3.5 characters outlast 800 µs, and a device counts them as 42 bits (3.5
+/// characters of 12 bits, as the article computes its wait), whatever its own framing: at 9600
+/// 8N1 the first window opens 4.375 ms after the request, not 3.65 ms (3.5 characters of 10 bits).
+#[test]
+fn arbitration_waits_42_bits_below_52500_baud() {
+    for (line, first_window_us) in [
+        (LineSettings::new(9600, Parity::None, 1), 4375),
+        (LineSettings::new(9600, Parity::None, 2), 4375),
+        (LineSettings::new(1200, Parity::Even, 1), 35_000),
+        (LineSettings::new(115_200, Parity::None, 1), 807),
+    ] {
+        let mut device = spec("slow", 20, MCM8_SERIAL);
+        device.line = line;
+        let mut bus = Bus::new(vec![VirtualDevice::new(device)], 1);
+        let frame = Request::scan_start().encode().unwrap();
+        let reply = bus.exchange(&frame, MasterLine::exact(line), Duration::ZERO);
+        let end = line.wire_time(frame.len());
+        let wait = reply.bursts[0].start - end;
+        assert_eq!(reply.bursts[0].bytes, vec![0xFF], "{line:?}");
+        assert_eq!(wait.as_micros(), first_window_us, "{line:?}");
+        let events = bus.exchange(
+            &poll(0, 0xFF, 0, 0).encode().unwrap(),
+            MasterLine::exact(line),
+            Duration::ZERO,
+        );
+        let end = line.wire_time(9);
+        assert_eq!(
+            (events.bursts[0].start - end).as_micros(),
+            first_window_us,
+            "{line:?}"
+        );
+    }
 }
 
 /// The three event rounds of seed 000, byte for byte.
@@ -1000,6 +1036,39 @@ fn write(wire: &mut Wire, bus: &mut Bus, frame: &[u8], at: Duration) -> bool {
     let deadline = wire.silence_deadline().unwrap();
     wire.on_silence(deadline, &mut respond);
     collided
+}
+
+/// A request whose bytes stop for more than 1.5 characters (less than the 3.5 that end a frame)
+/// is an incomplete frame to a Modbus RTU slave: discarded, with whatever follows it before the
+/// next frame gap. A pause of up to 1.5 characters is fine.
+#[test]
+fn a_frame_with_a_silence_over_one_and_a_half_characters_is_dropped() {
+    let request = read_holding(20, 128, 1);
+    let char_time = FAST_LINE.char_time();
+    let split = |gap: Duration| {
+        let mut bus = seed_bus();
+        let mut wire = Wire::new();
+        let mut respond = |request: &super::line::ReceivedRequest| bus.handle(request);
+        let start = Duration::from_millis(1);
+        wire.master_writes(&request[..3], start, master(), &mut respond);
+        let rest_at = start + FAST_LINE.wire_time(3) + gap;
+        wire.master_writes(&request[3..], rest_at, master(), &mut respond);
+        let deadline = wire.silence_deadline().unwrap();
+        wire.on_silence(deadline, &mut respond);
+        let answered = !wire.arrivals().is_empty();
+        // The next request, after a frame gap, is answered as usual.
+        let next_at = deadline + Duration::from_millis(5);
+        wire.master_writes(&request, next_at, master(), &mut respond);
+        let deadline = wire.silence_deadline().unwrap();
+        wire.on_silence(deadline, &mut respond);
+        assert!(wire.arrivals().iter().any(|&(at, _)| at > next_at));
+        answered
+    };
+    assert!(split(Duration::ZERO));
+    assert!(split(char_time));
+    assert!(split(char_time * 3 / 2));
+    assert!(!split(char_time * 2));
+    assert!(!split(char_time * 3));
 }
 
 #[test]

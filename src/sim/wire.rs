@@ -6,7 +6,8 @@
 //! - Devices see a frame only after 3.5 characters of silence on the line ([`crate::protocol::LineSettings::frame_gap`]). Master
 //!   bytes that follow sooner belong to the same frame, so two requests written at once (or before
 //!   the first has ended) are one run of bytes that is not a frame: noise, nobody answers (as a
-//!   Modbus RTU slave that delimits frames by silence).
+//!   Modbus RTU slave that delimits frames by silence). A silence of more than 1.5 characters
+//!   inside a run makes it noise too (a strict slave's t1.5: a frame must be sent back to back).
 //! - Whatever overlaps in time merges by wired AND (a 0 bit from any driver wins): device replies
 //!   with each other, and a master request with a reply still on the wire. Both are garbled then:
 //!   the master reads the merged reply bytes, and no device answers the collided request (bit skew
@@ -111,7 +112,19 @@ impl Wire {
         self.forget_delivered(at);
         let mut run = match self.run.take() {
             // New settings in the middle of a run: what came before is noise to everyone.
-            Some(run) if run.line == line => run,
+            Some(mut run) if run.line == line => {
+                // A silence of more than 1.5 characters inside a frame (but less than the 3.5
+                // that end it) makes the frame incomplete: a slave discards it, and what
+                // follows before the next frame gap belongs to the discarded frame (the Modbus
+                // RTU spec's t1.5; fast-modbus.md §1).
+                if start.saturating_sub(run.end) > settings.char_time() * 3 / 2 + ROUNDING {
+                    tracing::debug!(
+                        "sim: a silence of more than 1.5 characters inside a frame: nobody answers"
+                    );
+                    run.spoiled = true;
+                }
+                run
+            }
             _ => Run {
                 bytes: Vec::new(),
                 start,
