@@ -112,24 +112,21 @@ impl LineSettings {
     }
 
     /// Quiet time after a Fast Modbus broadcast request before the first arbitration window:
-    /// `max(3.5 characters, 12 bits + 800 µs)`.
+    /// `max(3.5 characters, 12 bits + 800 µs)`, a character being the extension's 12 bits
+    /// (start, 8 data, parity, 2 stop: the article's `3.5 × 12 = 42 bits`) whatever the line's
+    /// own framing, as the windows are.
     pub fn arbitration_wait(&self) -> Duration {
-        let three_and_half_chars = self
-            .bits_time(u64::from(self.bits_per_char()) * 7)
-            .div_f64(2.0);
-        three_and_half_chars.max(self.bits_time(12) + Duration::from_micros(800))
+        self.bits_time(ARBITRATION_WAIT_BITS)
+            .max(self.bits_time(12) + Duration::from_micros(800))
     }
 
     /// When a device opens the first arbitration window after the end of a broadcast request:
-    /// `max(3.5 characters, 800 µs rounded up to whole bits)`. This is the article's device-side
-    /// figure (807.3 µs at 115200), never later than [`Self::arbitration_wait`], which masters use
-    /// with its extra 12 bits as a margin.
+    /// `max(42 bits, 800 µs rounded up to whole bits)`. This is the article's device-side
+    /// figure (807.3 µs at 115200, 4.375 ms at 9600), never later than
+    /// [`Self::arbitration_wait`], which masters use with its extra 12 bits as a margin.
     pub fn device_arbitration_wait(&self) -> Duration {
-        let three_and_half_chars = self
-            .bits_time(u64::from(self.bits_per_char()) * 7)
-            .div_f64(2.0);
-        let floor = self.bits_time(self.bits_covering(Duration::from_micros(800)));
-        three_and_half_chars.max(floor)
+        let floor = self.bits_covering(Duration::from_micros(800));
+        self.bits_time(ARBITRATION_WAIT_BITS.max(floor))
     }
 
     /// One arbitration window: `max(13 bits, 12 bits + 50 µs rounded up to whole bits)`.
@@ -305,6 +302,10 @@ impl ResponseTimer {
 }
 
 /// Windows of a scan arbitration.
+/// 3.5 characters of the extension's 12 bits: the least wait before the first arbitration
+/// window, at any framing.
+pub const ARBITRATION_WAIT_BITS: u64 = 42;
+
 pub const ARBITRATION_WINDOWS_SCAN: u32 = 32;
 /// Windows of an event arbitration.
 pub const ARBITRATION_WINDOWS_EVENTS: u32 = 12;
@@ -378,6 +379,22 @@ mod tests {
         }
     }
 
+    /// Below 52500 baud the 3.5 characters rule, of the extension's 12-bit characters (the
+    /// article: "3.5 * (1 start + 8 data + 1 parity + 2 stop) = 42 bits") whatever the line's
+    /// framing: 4.375 ms at 9600, where 3.5 characters of 8N2 would be 4.01 ms and of 8N1 3.65.
+    #[test]
+    fn arbitration_waits_42_bits_on_slow_lines_at_any_framing() {
+        for (parity, stop_bits) in [(Parity::None, 1), (Parity::None, 2), (Parity::Even, 1)] {
+            let line = LineSettings::new(9600, parity, stop_bits);
+            assert!((micros(line.device_arbitration_wait()) - 4375.0).abs() < 0.01);
+            assert!((micros(line.arbitration_wait()) - 4375.0).abs() < 0.01);
+            assert!(
+                (micros(line.event_reply_timeout()) - (4375.0 + 12.0 * 13.0 * 104.1667)).abs()
+                    < 0.1
+            );
+        }
+    }
+
     #[test]
     fn slow_lines_use_thirteen_bit_windows() {
         let line = LineSettings::new(9600, Parity::None, 2);
@@ -385,7 +402,7 @@ mod tests {
         assert_eq!(line.arbitration_window(), line.bits_time(13));
         let line = LineSettings::new(1200, Parity::Even, 1);
         assert_eq!(line.arbitration_window(), line.bits_time(13));
-        // 3.5 chars at 1200 8E1 = 32 ms, more than 12 bits + 800 µs.
+        // 42 bits at 1200 = 35 ms, more than 12 bits + 800 µs.
         assert!(line.arbitration_wait() > Duration::from_millis(30));
     }
 

@@ -579,7 +579,7 @@ impl Bus {
         else {
             return;
         };
-        let first_window = received.end_on_wire(&line) + device_arbitration_wait(&line);
+        let first_window = received.end_on_wire(&line) + line.device_arbitration_wait();
         let window = line.arbitration_window();
         for (index, &dominant) in outcome.dominant_windows.iter().enumerate() {
             if dominant {
@@ -656,21 +656,6 @@ impl Bus {
         bursts.sort_by_key(|burst| burst.start);
         Transmission { bursts }
     }
-}
-
-/// When a device opens the first arbitration window after the end of a broadcast request:
-/// `max(3.5 characters, 800 µs rounded up to whole bits)`, where a character is always the
-/// 12 bits of the widest frame (start, 8 data, parity, 2 stop), as the article computes it
-/// ("3.5 * (1 start + 8 data + 1 parity + 2 stop) = 42 bits"; its arbitration window is 12 bits
-/// too): devices time arbitration with a timer counting bits, not characters of their own
-/// framing. 807.3 µs at 115200 (the 800 µs floor rules above 52500 baud); at 9600 42 bits are
-/// 4.375 ms, 0.36 ms later than 3.5 characters of 8N2 (0.73 ms later than 8N1).
-pub fn device_arbitration_wait(line: &LineSettings) -> Duration {
-    const WAIT_BITS: u64 = 42;
-    let baud = u64::from(line.baud.max(1));
-    // Whole bits covering 800 µs.
-    let floor_bits = (800 * baud).div_ceil(1_000_000);
-    line.bits_time(WAIT_BITS.max(floor_bits))
 }
 
 fn illegal_function(address: u8, function: u8) -> Reply {

@@ -261,7 +261,7 @@ fn arbitration_is_timed_window_by_window() {
     let frame = Request::scan_start().encode().unwrap();
     let reply = bus.exchange(&frame, master(), at);
     let end = at + FAST_LINE.wire_time(frame.len());
-    let first_window = end + super::bus::device_arbitration_wait(&FAST_LINE);
+    let first_window = end + FAST_LINE.device_arbitration_wait();
     // The article's figure at 115200: 93 bits.
     assert_eq!(first_window - end, FAST_LINE.bits_time(93));
     let window = FAST_LINE.arbitration_window();
