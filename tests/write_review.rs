@@ -1,22 +1,33 @@
 //! Write-path review: register writes as they reach the bus, for payloads and sequences the
 //! other suites do not cover (bit fields written one after another before the first is done,
-//! setup bits in a write-only register, values that overflow after scale).
+//! setup bits in a write-only register, values that overflow after scale, a bit the device
+//! changes while a write of another bit of its register waits).
 
+use std::collections::BTreeMap;
 use std::path::Path;
 use std::sync::Arc;
+use std::time::Duration;
 
 use rtu2mqtt::config::load::load_config_source;
 use rtu2mqtt::config::parse::SourceText;
 use rtu2mqtt::config::TemplateLibrary;
+use rtu2mqtt::device::model::ResolvedPort;
 use rtu2mqtt::device::{resolve_config, RegisterType, ResolvedDevice};
 use rtu2mqtt::device_updates::{DeviceUpdate, Repeats};
-use rtu2mqtt::gateway::device_model::DeviceModel;
-use rtu2mqtt::port::{PortEvent, RegisterSpan, RegisterWrite};
+use rtu2mqtt::gateway::device_model::{apply_port_events, DeviceModel};
+use rtu2mqtt::gateway::port_plan::port_plan;
+use rtu2mqtt::port::{NextStep, PortEvent, PortScheduler, RegisterSpan, RegisterWrite};
+use rtu2mqtt::protocol::{Reply, RequestBody, RequestPdu, ResponsePdu, TransactionOutcome};
 use serde_json::{json, Value};
 
 /// One Modbus device (slave 1) with `channels` inline and `settings` (setup …), resolved as
 /// the daemon would.
 fn device_with(channels: Value, settings: Value) -> ResolvedDevice {
+    port_with(channels, settings).devices.remove(0)
+}
+
+/// The port of [`device_with`]'s device.
+fn port_with(channels: Value, settings: Value) -> ResolvedPort {
     let mut device = json!({"name": "Review", "id": "review", "slave_id": 1, "channels": channels});
     if let (Some(device), Some(settings)) = (device.as_object_mut(), settings.as_object()) {
         for (key, value) in settings {
@@ -28,7 +39,7 @@ fn device_with(channels: Value, settings: Value) -> ResolvedDevice {
     let source = SourceText::from_text(Path::new("write_review.json"), &config.to_string());
     let loaded = load_config_source(source, false).expect("config loads");
     let mut ports = resolve_config(&loaded, &TemplateLibrary::default()).expect("config resolves");
-    ports.remove(0).devices.remove(0)
+    ports.remove(0)
 }
 
 fn model(device: ResolvedDevice) -> DeviceModel {
@@ -163,4 +174,129 @@ fn a_wide_bit_field_keeps_a_pending_write_in_one_of_its_registers() {
         take(&mut model, "Wide", "4660"),
         vec![(100, vec![0x0012, 0x3405])]
     );
+}
+
+/// The `/on` message for bit 1 of register 72 arrives while a read of the register is out,
+/// the write composed over the 0x0004 the model knows; the read shows that the device has set
+/// bit 4 meanwhile (0x0014). The write that goes out keeps bit 4 (0x0016): the one composed
+/// when the message arrived (0x0006) would clear it. The model then holds the words written,
+/// shows bit 4 still set, and its next write goes over them.
+#[test]
+fn a_bit_field_write_keeps_a_bit_the_device_set_while_it_waited() {
+    let port = port_with(
+        json!([
+            {"name": "B1", "reg_type": "holding", "address": "72:1:1", "type": "switch", "format": "u16"},
+            {"name": "B4", "reg_type": "holding", "address": "72:4:1", "type": "switch", "format": "u16"}
+        ]),
+        json!({}),
+    );
+    let plan = port_plan(&port, false);
+    let mut scheduler = PortScheduler::new(plan.settings, plan.devices);
+    let mut models = vec![DeviceModel::new(
+        Arc::new(port.devices[0].clone()),
+        0,
+        Repeats::All,
+    )];
+    let mut registers = BTreeMap::from([(72u16, 0x0004u16)]);
+    let mut written = Vec::new();
+    let mut published = Vec::new();
+    let mut reads = 0;
+    let mut now = Duration::ZERO;
+    let mut run = |scheduler: &mut PortScheduler,
+                   models: &mut Vec<DeviceModel>,
+                   registers: &mut BTreeMap<u16, u16>,
+                   until_writes: usize| {
+        for _ in 0..10_000 {
+            if written.len() >= until_writes {
+                return;
+            }
+            let transaction = match scheduler.next(now) {
+                NextStep::Transmit(transaction) => transaction,
+                NextStep::Wait { until } => {
+                    now = until.max(now + Duration::from_millis(1));
+                    continue;
+                }
+            };
+            let pdu = match &transaction.request.body {
+                RequestBody::Classic(RequestPdu::ReadHoldingRegisters { start, count }) => {
+                    reads += 1;
+                    if reads == 2 {
+                        // The message arrives while the second read is out; the device has
+                        // set bit 4 since the first.
+                        let writes = models[0]
+                            .take_write("B1", "1", &mut Vec::new())
+                            .expect("accepted");
+                        assert_eq!(writes.len(), 1);
+                        assert_eq!(writes[0].values, [0x0006], "composed over 0x0004");
+                        for write in writes {
+                            assert_eq!(scheduler.queue_write(now, write), None);
+                        }
+                        registers.insert(72, 0x0014);
+                    }
+                    ResponsePdu::ReadHoldingRegisters {
+                        values: (*start..*start + *count)
+                            .map(|a| registers.get(&a).copied().unwrap_or(0))
+                            .collect(),
+                    }
+                }
+                RequestBody::Classic(RequestPdu::WriteSingleRegister { address, value }) => {
+                    registers.insert(*address, *value);
+                    written.push(*value);
+                    ResponsePdu::WriteSingleRegister {
+                        address: *address,
+                        value: *value,
+                    }
+                }
+                other => panic!("unexpected request {other:?}"),
+            };
+            now += transaction.estimated;
+            let events = scheduler.complete(
+                now,
+                TransactionOutcome::Reply(Reply::classic(transaction.request.address, pdu)),
+            );
+            let mut out = Vec::new();
+            apply_port_events(models, events, &mut out);
+            published.extend(out.into_iter().filter_map(|update| match update {
+                DeviceUpdate::Value {
+                    control_id, value, ..
+                } => Some((control_id.to_string(), value.to_string())),
+                _ => None,
+            }));
+        }
+        panic!("no write went out");
+    };
+    run(&mut scheduler, &mut models, &mut registers, 1);
+    assert_eq!(written, [0x0016], "bit 4, set by the device, is kept");
+    assert_eq!(registers[&72], 0x0016);
+    assert_eq!(
+        published
+            .iter()
+            .rev()
+            .find(|(id, _)| id == "B4")
+            .map(|(_, v)| v.as_str()),
+        Some("1"),
+        "bit 4 shown as the device holds it"
+    );
+    // The model's next bit-field write goes over the words written, not over its own.
+    let next = models[0]
+        .take_write("B1", "0", &mut Vec::new())
+        .expect("accepted");
+    assert_eq!(next[0].values, [0x0014]);
+}
+
+/// A bit field's write carries the mask of its bits, and a read that shows its bits before it
+/// went does not settle it (the device may change them again before it goes): a bit field of
+/// the register written next goes over the pending write, not over that read, so the write
+/// that replaces both in the scheduler still sets the first field.
+#[test]
+fn a_read_showing_a_pending_bit_field_by_chance_does_not_settle_it() {
+    let mut model = model(three_bits());
+    apply(&mut model, values(RegisterType::Holding, 72, &[0x0000]));
+    let first = model.take_write("B1", "1", &mut Vec::new()).unwrap();
+    assert_eq!(first[0].values, [0x0002]);
+    assert_eq!(first[0].defined, [0x0002]);
+    // The device sets bit 1 itself, then clears it, before the write goes.
+    apply(&mut model, values(RegisterType::Holding, 72, &[0x0002]));
+    apply(&mut model, values(RegisterType::Holding, 72, &[0x0000]));
+    assert_eq!(take(&mut model, "B2", "1"), vec![(72, vec![0x0006])]);
 }

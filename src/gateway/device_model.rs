@@ -54,11 +54,15 @@ pub struct DeviceModel {
     /// Reads whose value was `unsupported_value`, for the scheduler to stop
     /// ([`Self::take_unsupported_reads`]).
     unsupported_reads: Vec<crate::port::RegisterSpan>,
-    /// The writes handed out by [`Self::take_write`] and not yet done: (table, first register,
-    /// words), the latest per first register as the scheduler keeps them. A bit field written
-    /// next goes over their words rather than over the words last read: the scheduler keeps
-    /// only the latest write of a register, so one composed over the read would undo them.
-    pending_writes: Vec<(RegisterType, u16, Vec<u16>)>,
+    /// The writes handed out by [`Self::take_write`] and not yet done, the latest per first
+    /// register as the scheduler keeps them, with the bits of both defined when one replaced
+    /// another (as the scheduler merges them). A bit field written next goes over their words
+    /// rather than over the words last read: the scheduler keeps only the latest write of a
+    /// register, so one composed over the read would undo them.
+    pending_writes: Vec<RegisterWrite>,
+    /// The register whose write was reported done by the event just applied: the words the
+    /// scheduler reports next ([`PortEvent::Values`]) are those it sent.
+    write_done: Option<(RegisterType, u16)>,
 }
 
 /// Which channels read each register, and the channels' ids as updates carry them: built once
@@ -311,6 +315,7 @@ impl DeviceModel {
             text: String::new(),
             unsupported_reads: Vec::new(),
             pending_writes: Vec::new(),
+            write_done: None,
         }
     }
 
@@ -334,9 +339,11 @@ impl DeviceModel {
             // Keep the order in which things happened.
             self.flush_events(out);
         }
+        let write_done = self.write_done.take();
         match event {
             PortEvent::Values { span, values, .. } => {
-                self.settle_pending_writes(&span, &values);
+                let written = write_done == Some((span.register_type, span.start));
+                self.settle_pending_writes(&span, &values, written);
                 self.store_words(span.register_type, span.start, &values);
                 let mut touched = std::mem::take(&mut self.touched);
                 self.channel_index
@@ -404,6 +411,7 @@ impl DeviceModel {
                 address,
                 ..
             } => {
+                self.write_done = Some((register_type, address));
                 self.set_flags(
                     |c| writes_register(c, register_type, address),
                     |flags| flags.write = false,
@@ -419,7 +427,7 @@ impl DeviceModel {
                 if permanent {
                     // Given up: the device keeps what it had.
                     self.pending_writes
-                        .retain(|&(t, a, _)| (t, a) != (register_type, address));
+                        .retain(|w| (w.register_type, w.address) != (register_type, address));
                 }
                 self.set_flags(
                     |c| writes_register(c, register_type, address),
@@ -841,6 +849,13 @@ impl DeviceModel {
             if !target.reg_type.is_writable() {
                 return Err(WriteRejected::ReadOnly(control_id.to_owned()));
             }
+            // A bit field defines only its bits: the scheduler puts the register's other bits,
+            // as the device holds them when the write goes, under them.
+            let defined = if register.codec.is_partial() {
+                register.codec.field_mask_words()
+            } else {
+                Vec::new()
+            };
             if register.write_function == WriteFunction::Single && values.len() > 1 {
                 // The last register first, as wb-mqtt-serial writes them
                 // (`TModbusTest.HoldingSingleMulti`): a device that acts on a write to the
@@ -855,6 +870,7 @@ impl DeviceModel {
                         address,
                         values: vec![value],
                         force_multiple: false,
+                        defined: defined.get(i).map(|&mask| vec![mask]).unwrap_or_default(),
                     });
                 }
             } else {
@@ -864,6 +880,7 @@ impl DeviceModel {
                     address: target.address,
                     values,
                     force_multiple: register.write_function == WriteFunction::Multiple,
+                    defined,
                 });
             }
         }
@@ -883,12 +900,20 @@ impl DeviceModel {
             Ok(writes) => {
                 for write in writes {
                     let start = (write.register_type, write.address);
-                    self.pending_writes.retain(|&(t, a, _)| (t, a) != start);
-                    self.pending_writes.push((
-                        write.register_type,
-                        write.address,
-                        write.values.clone(),
-                    ));
+                    let mut pending = write.clone();
+                    if let Some(older) = self
+                        .pending_writes
+                        .iter()
+                        .position(|w| (w.register_type, w.address) == start)
+                    {
+                        let older = self.pending_writes.remove(older);
+                        if !pending.defined.is_empty() {
+                            for (index, mask) in pending.defined.iter_mut().enumerate() {
+                                *mask |= older.defined_bits(index);
+                            }
+                        }
+                    }
+                    self.pending_writes.push(pending);
                 }
             }
             Err(_) => self.set_flags(|c| c.id == control_id, |flags| flags.write = true, out),
@@ -915,27 +940,40 @@ impl DeviceModel {
         self.pending_writes
             .iter()
             .rev()
-            .filter(|(t, _, _)| *t == register_type)
-            .find_map(|(_, start, words)| {
-                words
-                    .get(usize::from(address.checked_sub(*start)?))
+            .filter(|w| w.register_type == register_type)
+            .find_map(|w| {
+                w.values
+                    .get(usize::from(address.checked_sub(w.address)?))
                     .copied()
             })
     }
 
-    /// Forgets the pending writes that `values`, read or written at `span`, show done: the
-    /// register holds their words now, and the cache has them.
-    fn settle_pending_writes(&mut self, span: &RegisterSpan, values: &[u16]) {
+    /// Forgets the pending writes that `values`, read or (`written`) written at `span`, show
+    /// done: the register holds their words now, and the cache has them. A bit field's write is
+    /// shown done only by the words written, and by its bits there: the scheduler puts the
+    /// device's newest words under the others when it sends it, and a read that shows its
+    /// bits before it went shows them by chance (the device may change them again before).
+    fn settle_pending_writes(&mut self, span: &RegisterSpan, values: &[u16], written: bool) {
         if self.pending_writes.is_empty() {
             return;
         }
-        self.pending_writes.retain(|(register_type, start, words)| {
-            let shown = *register_type == span.register_type
-                && start
+        self.pending_writes.retain(|write| {
+            let shown = (written || write.defined.is_empty())
+                && write.register_type == span.register_type
+                && write
+                    .address
                     .checked_sub(span.start)
                     .map(usize::from)
-                    .and_then(|offset| values.get(offset..offset + words.len()))
-                    .is_some_and(|held| held == words.as_slice());
+                    .and_then(|offset| values.get(offset..offset + write.values.len()))
+                    .is_some_and(|held| {
+                        held.iter()
+                            .zip(&write.values)
+                            .enumerate()
+                            .all(|(i, (h, w))| {
+                                let mask = write.defined_bits(i);
+                                h & mask == w & mask
+                            })
+                    });
             !shown
         });
     }
@@ -1850,6 +1888,7 @@ mod tests {
                 address: 2,
                 values: vec![1],
                 force_multiple: false,
+                defined: Vec::new(),
             }])
         );
         assert!(matches!(

@@ -147,6 +147,22 @@ pub struct RegisterWrite {
     pub values: Vec<u16>,
     /// Use 0x0F/0x10 even for one value (`holding_multi`; some devices accept nothing else).
     pub force_multiple: bool,
+    /// The bits of each value word the write defines, one mask per word, for a bit field (a
+    /// field of some bits of its registers): when it is sent, the other bits are those of the
+    /// newest word of the register the scheduler has seen since it was queued (read, evented
+    /// or written), as the device holds them then. Empty: the whole words (every other write).
+    pub defined: Vec<u16>,
+}
+
+impl RegisterWrite {
+    /// The bits of value word `index` the write defines (none beyond its words).
+    pub(crate) fn defined_bits(&self, index: usize) -> u16 {
+        match self.defined.get(index) {
+            Some(&mask) => mask,
+            None if self.defined.is_empty() && index < self.values.len() => u16::MAX,
+            None => 0,
+        }
+    }
 }
 
 /// The request that writes `values` from `address`: 0x05 or 0x06 for one value (unless

@@ -245,6 +245,73 @@ impl EventPollTiming {
 struct PendingWrite {
     write: RegisterWrite,
     give_up_at: Duration,
+    /// A bit-field write's words (bit `i`: word `i`) whose other bits are those of a word seen
+    /// since it was queued, newer than the words the device model composed it over.
+    seen: u128,
+}
+
+impl PendingWrite {
+    /// Puts `word`, which the device holds now in the write's word `index`, under the bits the
+    /// write does not define.
+    fn see(&mut self, index: usize, word: u16) {
+        let mask = self.write.defined_bits(index);
+        if let Some(value) = self.write.values.get_mut(index) {
+            *value = (word & !mask) | (*value & mask);
+            self.seen |= 1u128.checked_shl(index as u32).unwrap_or(0);
+        }
+    }
+
+    /// Takes the place of `older`, a queued write of the same register. The device model
+    /// composed this one over it, so these words hold the fields of both: the bits either
+    /// defines are defined, and the other bits of the words `older` had seen newer are those.
+    fn take_over(&mut self, older: &PendingWrite) {
+        if self.write.defined.is_empty() {
+            return;
+        }
+        for index in 0..self.write.values.len() {
+            let mask = self.write.defined_bits(index) | older.write.defined_bits(index);
+            if let Some(defined) = self.write.defined.get_mut(index) {
+                *defined = mask;
+            }
+            let older_saw = older.seen & 1u128.checked_shl(index as u32).unwrap_or(0) != 0;
+            if let (true, Some(&word)) = (older_saw, older.write.values.get(index)) {
+                self.see(index, word);
+            }
+        }
+        if self.write.defined.iter().all(|&m| m == u16::MAX) {
+            self.write.defined = Vec::new();
+        }
+    }
+}
+
+/// What the device holds now in registers `span` of `device` (read, evented or written): the
+/// queued bit-field writes there keep it under the bits they do not define, so that a write
+/// composed over older words does not undo a change the device made since (see
+/// [`RegisterWrite::defined`]). Nothing to do, and no cost, while no such write is queued.
+fn see_words(writes: &mut [PendingWrite], device: usize, span: RegisterSpan, values: &[u16]) {
+    for pending in writes {
+        let write = &pending.write;
+        if write.defined.is_empty()
+            || write.device != device
+            || write.register_type != span.register_type
+        {
+            continue;
+        }
+        for index in 0..write.values.len() {
+            let Ok(offset) = u16::try_from(index) else {
+                break;
+            };
+            let word = pending
+                .write
+                .address
+                .checked_add(offset)
+                .and_then(|address| address.checked_sub(span.start))
+                .and_then(|at| values.get(usize::from(at)));
+            if let Some(&word) = word {
+                pending.see(index, word);
+            }
+        }
+    }
 }
 
 /// The scheduler of one port.
@@ -494,7 +561,8 @@ impl PortScheduler {
         }
     }
 
-    /// Queues a write; a queued write to the same register is replaced (the latest value wins).
+    /// Queues a write; a queued write to the same register is replaced (the latest value wins;
+    /// a bit field's write defines the bits either defined, see [`RegisterWrite::defined`]).
     /// A write no request can carry (no values, more than one request holds, a table that
     /// cannot be written, an unknown device) is refused at once: its permanent
     /// [`PortEvent::WriteFailed`] is returned, for the device model.
@@ -523,16 +591,27 @@ impl PortScheduler {
                 permanent: true,
             });
         }
-        let same_register = |p: &PendingWrite| {
-            p.write.device == write.device
-                && p.write.register_type == write.register_type
-                && p.write.address == write.address
-        };
-        self.writes.retain(|p| !same_register(p));
-        self.writes.push(PendingWrite {
+        let mut write = write;
+        // A mask that does not fit the words, or that defines them all: the whole words.
+        if write.defined.len() != write.values.len() || write.defined.iter().all(|&m| m == u16::MAX)
+        {
+            write.defined = Vec::new();
+        }
+        let mut pending = PendingWrite {
             write,
             give_up_at: now + WRITE_RETRY_TIME,
-        });
+            seen: 0,
+        };
+        let same_register = |p: &PendingWrite| {
+            p.write.device == pending.write.device
+                && p.write.register_type == pending.write.register_type
+                && p.write.address == pending.write.address
+        };
+        if let Some(replaced) = self.writes.iter().position(same_register) {
+            let replaced = self.writes.remove(replaced);
+            pending.take_over(&replaced);
+        }
+        self.writes.push(pending);
         None
     }
 
@@ -1299,10 +1378,9 @@ impl PortScheduler {
                             // keep bits of it keep these (a wider one's word order is the
                             // channel's, unknown here: its next read tells).
                             if let [_] = words.as_slice() {
-                                state.note_words(
-                                    RegisterSpan::new(register_type, event.id, 1),
-                                    &words,
-                                );
+                                let span = RegisterSpan::new(register_type, event.id, 1);
+                                state.note_words(span, &words);
+                                see_words(&mut self.writes, device, span, &words);
                             }
                         }
                         out.push(PortEvent::EventValue {
@@ -1344,6 +1422,16 @@ impl PortScheduler {
             }
             TransactionOutcome::Reply(_) => {
                 Self::health_success(state, device, now, out);
+                // A bit-field write waiting for the setup goes over what it wrote.
+                if self.writes.iter().any(|p| !p.write.defined.is_empty()) {
+                    if let Some((write, words)) =
+                        state.plan.setup.get(index).zip(state.setup_words(index))
+                    {
+                        let count = u16::try_from(words.len()).unwrap_or(u16::MAX);
+                        let span = RegisterSpan::new(write.register_type, write.address, count);
+                        see_words(&mut self.writes, device, span, &words);
+                    }
+                }
                 state.setup_write_done(index);
             }
             TransactionOutcome::NoReply | TransactionOutcome::Garbled => {
@@ -1471,6 +1559,7 @@ impl PortScheduler {
         }
         Self::health_success(state, device, now, out);
         state.note_words(span, &values);
+        see_words(&mut self.writes, device, span, &values);
         let values = ReadWords::from(values);
         for &member in members {
             let Some(member_span) = state.read_span(member) else {
@@ -1538,8 +1627,10 @@ impl PortScheduler {
                     u16::try_from(write.values.len()).unwrap_or(u16::MAX),
                 );
                 // The device holds these words now: a setup write that keeps bits of the
-                // register keeps these, not those of an older read.
+                // register keeps these, not those of an older read, and so does a bit-field
+                // write queued since.
                 state.note_words(span, &write.values);
+                see_words(&mut self.writes, device, span, &write.values);
                 out.push(PortEvent::WriteDone {
                     device,
                     register_type,

@@ -833,6 +833,7 @@ fn a_write_goes_before_the_next_read_and_the_latest_value_wins() {
         address: 10,
         values: vec![value],
         force_multiple: false,
+        defined: Vec::new(),
     };
     assert_eq!(scheduler.queue_write(now, write(1)), None);
     assert_eq!(scheduler.queue_write(now, write(2)), None);
@@ -1139,6 +1140,7 @@ fn holding_multi_writes_one_register_with_function_16() {
         address: 7,
         values: vec![9],
         force_multiple: true,
+        defined: Vec::new(),
     };
     assert_eq!(scheduler.queue_write(Duration::ZERO, write), None);
     let mut log = Log::default();
@@ -1705,6 +1707,7 @@ fn a_suspended_device_is_not_polled_and_the_scheduler_does_not_spin() {
             address: 5,
             values: vec![1],
             force_multiple: false,
+            defined: Vec::new(),
         },
     );
     assert_eq!(refused, None);
@@ -2062,6 +2065,7 @@ fn the_due_order_chooses_as_a_scan_of_every_device_would() {
                             address: rng.below(4) as u16,
                             values: vec![rng.below(100) as u16],
                             force_multiple: rng.chance(30),
+                            defined: Vec::new(),
                         },
                     );
                     assert_eq!(refused, None);
@@ -2712,6 +2716,7 @@ fn holding_write(device: usize, address: u16, value: u16) -> RegisterWrite {
         address,
         values: vec![value],
         force_multiple: false,
+        defined: Vec::new(),
     }
 }
 
@@ -2981,6 +2986,7 @@ fn a_write_no_request_can_carry_is_refused_at_once() {
         address: 10,
         values: vec![1; count],
         force_multiple: false,
+        defined: Vec::new(),
     };
     let refused = |register_type| {
         Some(PortEvent::WriteFailed {
@@ -3096,4 +3102,242 @@ fn a_setup_write_keeps_the_bits_an_event_reported() {
         })
         .collect();
     assert_eq!(setup_values, [0x0007, 0x4567]);
+}
+
+/// A port with fast Modbus off and one device (address 9) that polls holding register 72.
+fn register_72_port() -> PortScheduler {
+    let mut port = settings(115_200);
+    port.fast_modbus = false;
+    PortScheduler::new(
+        port,
+        vec![device(
+            9,
+            vec![read(RegisterType::Holding, 72, EventMode::Polled)],
+        )],
+    )
+}
+
+/// The next request, a read of register 72: `queue` is queued while it is out (an `/on`
+/// message arrives then), and the device answers `word`.
+fn read_72_while_queued(
+    scheduler: &mut PortScheduler,
+    now: &mut Duration,
+    queue: Vec<RegisterWrite>,
+    word: u16,
+) {
+    let read = next_classic(scheduler, now);
+    assert_eq!(
+        read.request.body,
+        RequestBody::Classic(RequestPdu::ReadHoldingRegisters {
+            start: 72,
+            count: 1
+        })
+    );
+    for write in queue {
+        assert_eq!(scheduler.queue_write(*now, write), None);
+    }
+    *now += read.estimated;
+    scheduler.complete(
+        *now,
+        TransactionOutcome::Reply(Reply::classic(
+            9,
+            ResponsePdu::ReadHoldingRegisters { values: vec![word] },
+        )),
+    );
+}
+
+fn field_write(value: u16, defined: u16) -> RegisterWrite {
+    RegisterWrite {
+        defined: vec![defined],
+        ..holding_write(0, 72, value)
+    }
+}
+
+/// The words of the next request, a write of register 72, and the `Values` its completion
+/// reports.
+fn send_write_72(scheduler: &mut PortScheduler, now: &mut Duration) -> (u16, Vec<PortEvent>) {
+    let write = next_classic(scheduler, now);
+    let RequestBody::Classic(RequestPdu::WriteSingleRegister { address: 72, value }) =
+        write.request.body
+    else {
+        panic!("not a write of register 72: {:?}", write.request);
+    };
+    *now += write.estimated;
+    let events = scheduler.complete(*now, healthy(&write.request));
+    (value, events)
+}
+
+/// A bit-field write (bit 1 of register 72) composed over the 0x0004 last read: the device sets
+/// bit 4 before the write goes, a read shows it (0x0014), and the write keeps it: 0x0016, not
+/// the 0x0006 composed when it was queued, which would clear the device's bit. Its completion
+/// reports the words sent.
+#[test]
+fn a_bit_field_write_keeps_the_bits_the_device_changed_after_it_was_queued() {
+    let mut scheduler = register_72_port();
+    let mut now = Duration::ZERO;
+    read_72_while_queued(&mut scheduler, &mut now, Vec::new(), 0x0004);
+    read_72_while_queued(
+        &mut scheduler,
+        &mut now,
+        vec![field_write(0x0006, 0x0002)],
+        0x0014,
+    );
+    let (sent, events) = send_write_72(&mut scheduler, &mut now);
+    assert_eq!(sent, 0x0016, "bit 4, set by the device since, is kept");
+    assert!(events.contains(&PortEvent::Values {
+        device: 0,
+        span: RegisterSpan::new(RegisterType::Holding, 72, 1),
+        values: vec![0x0016].into(),
+    }));
+}
+
+/// A write of the whole register (no mask) goes as queued, whatever a read shows since.
+#[test]
+fn a_whole_register_write_goes_as_queued_after_a_newer_read() {
+    let mut scheduler = register_72_port();
+    let mut now = Duration::ZERO;
+    read_72_while_queued(
+        &mut scheduler,
+        &mut now,
+        vec![holding_write(0, 72, 0x0006)],
+        0x0014,
+    );
+    assert_eq!(send_write_72(&mut scheduler, &mut now).0, 0x0006);
+}
+
+/// Two bit-field writes of register 72 (bit 1, then bit 2 composed over the first) with a read
+/// between them that shows bit 4 set by the device: the write that goes holds both fields and
+/// the device's bit. The second replaced the first, and the read's word carries over.
+#[test]
+fn two_bit_field_writes_of_a_register_both_survive_a_read_between_them() {
+    let mut scheduler = register_72_port();
+    let mut now = Duration::ZERO;
+    read_72_while_queued(&mut scheduler, &mut now, Vec::new(), 0x0000);
+    read_72_while_queued(
+        &mut scheduler,
+        &mut now,
+        vec![field_write(0x0002, 0x0002)],
+        0x0010,
+    );
+    // The device model composes bit 2 over its pending write (0x0002), not knowing the read.
+    assert_eq!(
+        scheduler.queue_write(now, field_write(0x0006, 0x0004)),
+        None
+    );
+    assert_eq!(send_write_72(&mut scheduler, &mut now).0, 0x0016);
+
+    // Both queued while one read is out, each read after: the same.
+    let mut scheduler = register_72_port();
+    let mut now = Duration::ZERO;
+    read_72_while_queued(&mut scheduler, &mut now, Vec::new(), 0x0000);
+    read_72_while_queued(
+        &mut scheduler,
+        &mut now,
+        vec![field_write(0x0002, 0x0002), field_write(0x0006, 0x0004)],
+        0x0010,
+    );
+    assert_eq!(send_write_72(&mut scheduler, &mut now).0, 0x0016);
+}
+
+/// A bit-field write queued while its device is to be set up again (it restarted) goes after
+/// the setup, over the words the setup wrote, not over those it was composed over.
+#[test]
+fn a_bit_field_write_waiting_for_the_setup_goes_over_what_the_setup_wrote() {
+    let mut port = settings(115_200);
+    port.fast_modbus = false;
+    let mut plan = device(9, vec![read(RegisterType::Holding, 72, EventMode::Polled)]);
+    plan.setup = vec![SetupWrite {
+        register_type: RegisterType::Holding,
+        address: 72,
+        values: vec![0x0100],
+        force_multiple: false,
+        kept_bits: Vec::new(),
+    }];
+    let mut scheduler = PortScheduler::new(port, vec![plan]);
+    let mut now = Duration::ZERO;
+    assert_eq!(
+        send_write_72(&mut scheduler, &mut now).0,
+        0x0100,
+        "the setup"
+    );
+    read_72_while_queued(&mut scheduler, &mut now, Vec::new(), 0x0104);
+    scheduler.set_up_again(0);
+    assert_eq!(
+        scheduler.queue_write(now, field_write(0x0106, 0x0002)),
+        None
+    );
+    assert_eq!(
+        send_write_72(&mut scheduler, &mut now).0,
+        0x0100,
+        "the setup"
+    );
+    assert_eq!(send_write_72(&mut scheduler, &mut now).0, 0x0102);
+}
+
+/// A one-register event value shows the device's word as a read does: a bit-field write queued
+/// before it keeps the bits it shows.
+#[test]
+fn a_bit_field_write_keeps_the_bits_an_event_showed_after_it_was_queued() {
+    let plan = device(
+        9,
+        vec![read(RegisterType::Holding, 72, EventMode::Sporadic)],
+    );
+    let mut scheduler = PortScheduler::new(settings(115_200), vec![plan]);
+    let mut now = Duration::ZERO;
+    let mut queued = false;
+    let mut sent = Vec::new();
+    for _ in 0..10_000 {
+        let transaction = match scheduler.next(now) {
+            NextStep::Transmit(transaction) => transaction,
+            NextStep::Wait { until } => {
+                now = until.max(now + ms(1));
+                continue;
+            }
+        };
+        let request = &transaction.request;
+        let outcome = match &request.body {
+            RequestBody::Classic(RequestPdu::ReadHoldingRegisters { start: 72, .. }) => {
+                TransactionOutcome::Reply(Reply::classic(
+                    9,
+                    ResponsePdu::ReadHoldingRegisters {
+                        values: vec![0x0004],
+                    },
+                ))
+            }
+            RequestBody::Fast(FastRequest::PollEvents(_))
+                if !queued && scheduler.events_active() =>
+            {
+                // The /on message arrives while the poll is out; the device set bit 4.
+                queued = true;
+                assert_eq!(
+                    scheduler.queue_write(now, field_write(0x0006, 0x0002)),
+                    None
+                );
+                TransactionOutcome::Reply(Reply::fast(
+                    9,
+                    FastReply::Events(EventPacket {
+                        flag: 0,
+                        event_count: 1,
+                        events: vec![Event {
+                            source: crate::protocol::EventSource::Register(RegisterType::Holding),
+                            id: 72,
+                            payload: vec![0x14, 0x00],
+                        }],
+                    }),
+                ))
+            }
+            RequestBody::Classic(RequestPdu::WriteSingleRegister { value, .. }) => {
+                sent.push(*value);
+                healthy(request)
+            }
+            _ => healthy(request),
+        };
+        now += transaction.estimated;
+        scheduler.complete(now, outcome);
+        if !sent.is_empty() {
+            break;
+        }
+    }
+    assert!(queued, "events were never polled");
+    assert_eq!(sent, [0x0016]);
 }
