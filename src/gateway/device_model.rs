@@ -627,21 +627,17 @@ impl DeviceModel {
     /// `unsupported_value` must not stop the others (wb-mqtt-serial stops that channel's
     /// register alone, as each field is a register of its own there).
     fn stop_unsupported(&mut self, unsupported: &[usize]) {
-        let read_spans = |channel: &ResolvedChannel| -> Vec<crate::port::RegisterSpan> {
+        fn read_spans(channel: &ResolvedChannel) -> impl Iterator<Item = RegisterSpan> + '_ {
             channel
                 .registers
                 .iter()
                 .filter_map(|register| register.read.map(|r| r.span()))
-                .collect()
-        };
+        }
         let channels = &self.device.channels;
-        for &index in unsupported {
-            let Some(channel) = channels.get(index) else {
-                continue;
-            };
+        for channel in unsupported.iter().filter_map(|&index| channels.get(index)) {
             for span in read_spans(channel) {
                 let needed_elsewhere = channels.iter().enumerate().any(|(other, channel)| {
-                    !unsupported.contains(&other) && read_spans(channel).contains(&span)
+                    !unsupported.contains(&other) && read_spans(channel).any(|s| s == span)
                 });
                 if !needed_elsewhere && !self.unsupported_reads.contains(&span) {
                     self.unsupported_reads.push(span);

@@ -119,17 +119,12 @@ pub fn device_plan(device: &ResolvedDevice) -> DevicePlan {
     // Kept by the scheduler for as long as the port runs.
     reads.shrink_to_fit();
     // Coils and holding registers, in the items' order (wb-mqtt-serial writes coils with 0x05
-    // as it writes holding registers). The resolver leaves out, with a warning, items on the
+    // as it writes holding registers): the resolver leaves out, with a warning, items on the
     // tables that cannot be written.
     let setup = device
         .setup
         .iter()
-        .filter(|s| {
-            matches!(
-                s.register.reg_type,
-                RegisterType::Holding | RegisterType::Coil
-            ) && !s.words.is_empty()
-        })
+        .filter(|s| !s.words.is_empty())
         .flat_map(setup_writes)
         .collect();
     let defaults = HealthPolicy::default();

@@ -53,6 +53,21 @@ struct Log {
 }
 
 impl Log {
+    /// The values written to holding register `address` with function 6, in order.
+    fn single_register_writes(&self, address: u16) -> Vec<u16> {
+        self.sent
+            .iter()
+            .filter_map(|(_, r)| match &r.body {
+                RequestBody::Classic(RequestPdu::WriteSingleRegister { address: a, value })
+                    if *a == address =>
+                {
+                    Some(*value)
+                }
+                _ => None,
+            })
+            .collect()
+    }
+
     fn event_polls(&self) -> Vec<(Duration, EventPoll)> {
         self.sent
             .iter()
@@ -537,16 +552,7 @@ fn a_bit_field_setup_write_keeps_the_bits_last_read() {
             _ => reboot(at, request),
         },
     );
-    let setup_values: Vec<u16> = log
-        .sent
-        .iter()
-        .filter_map(|(_, r)| match &r.body {
-            RequestBody::Classic(RequestPdu::WriteSingleRegister { address: 5, value }) => {
-                Some(*value)
-            }
-            _ => None,
-        })
-        .collect();
+    let setup_values = log.single_register_writes(5);
     assert_eq!(setup_values, [0x0007, 0x1237]);
 }
 
@@ -3091,16 +3097,7 @@ fn a_setup_write_keeps_the_bits_an_event_reported() {
             _ => healthy(request),
         },
     );
-    let setup_values: Vec<u16> = log
-        .sent
-        .iter()
-        .filter_map(|(_, r)| match &r.body {
-            RequestBody::Classic(RequestPdu::WriteSingleRegister { address: 5, value }) => {
-                Some(*value)
-            }
-            _ => None,
-        })
-        .collect();
+    let setup_values = log.single_register_writes(5);
     assert_eq!(setup_values, [0x0007, 0x4567]);
 }
 
