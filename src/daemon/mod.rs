@@ -353,19 +353,47 @@ impl BusControl {
     }
 }
 
-/// Resolves when SIGTERM or SIGINT arrives.
-pub async fn termination_signal() {
+/// Resolves when SIGTERM or SIGINT arrives. The handlers are installed by this call, not when
+/// the future is first polled: READY may reach systemd before the first poll, and a SIGTERM sent
+/// in between would otherwise kill the process with the default action instead of a clean stop.
+pub fn termination_signal() -> impl std::future::Future<Output = ()> {
     use tokio::signal::unix::{signal, SignalKind};
-    match (
+    let handlers = (
         signal(SignalKind::terminate()),
         signal(SignalKind::interrupt()),
-    ) {
-        (Ok(mut term), Ok(mut int)) => {
-            tokio::select! {
-                _ = term.recv() => {}
-                _ = int.recv() => {}
+    );
+    async move {
+        match handlers {
+            (Ok(mut term), Ok(mut int)) => {
+                tokio::select! {
+                    _ = term.recv() => {}
+                    _ = int.recv() => {}
+                }
             }
+            _ => std::future::pending().await,
         }
-        _ => std::future::pending().await,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::termination_signal;
+
+    /// A SIGTERM between the call and the first poll is caught, not fatal: `run` sends READY
+    /// before its main loop first polls the future (without the handlers installed by the call,
+    /// this test process dies of the signal).
+    #[test]
+    fn a_termination_signal_before_the_first_poll_is_caught() {
+        let runtime = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .unwrap();
+        runtime.block_on(async {
+            let terminate = termination_signal();
+            nix::sys::signal::raise(nix::sys::signal::Signal::SIGTERM).unwrap();
+            tokio::time::timeout(std::time::Duration::from_secs(10), terminate)
+                .await
+                .expect("the SIGTERM raised before the first poll is delivered");
+        });
     }
 }
