@@ -187,10 +187,17 @@ impl PublicationPlanner {
         }
         let mut controls = IdMap::default();
         for channel in &device.channels {
-            let state = previous
+            let mut state = previous
                 .as_mut()
                 .and_then(|p| p.controls.remove(&channel.id))
                 .unwrap_or_default();
+            // A device is announced again when its port restarts (a reload): its new device
+            // model starts with clear flags and reports only what it sets or clears itself, so
+            // a flag kept from the old model would never be cleared. Every control starts over
+            // with an empty `meta/error`, as wb-mqtt-serial starts it, and the new model sets
+            // the flags again as it learns (an offline device gets `r` at its first failure:
+            // a device never heard from goes offline at once).
+            state.errors = ErrorFlags::default();
             controls.insert(channel.id.clone(), state);
         }
         // The first channel of an id is the one values go to.
