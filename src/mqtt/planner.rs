@@ -523,6 +523,29 @@ impl PublicationPlanner {
     }
 }
 
+impl super::sweep::Served for PublicationPlanner {
+    fn device_ids(&self) -> std::collections::BTreeSet<String> {
+        PublicationPlanner::device_ids(self)
+    }
+
+    fn has_control(&self, device_id: &str, control_id: &str) -> bool {
+        self.devices
+            .get(device_id)
+            .is_some_and(|state| state.controls.contains_key(control_id))
+    }
+
+    fn has_discovery_config(&self, device_id: &str, topic: &str) -> bool {
+        let (Some(settings), Some(state)) = (&self.settings.discovery, self.devices.get(device_id))
+        else {
+            return false;
+        };
+        state.device.channels.iter().any(|channel| {
+            discovery::config_topic(settings, &self.settings.topics, device_id, channel)
+                .is_some_and(|t| t == topic)
+        })
+    }
+}
+
 /// By device or control id, hashed with [`IdHasher`].
 type IdMap<V> = HashMap<String, V, BuildHasherDefault<IdHasher>>;
 
