@@ -191,6 +191,11 @@ impl Sweeper {
                 filters.extend(self.kept_filters(&kept));
                 let mut out: Vec<MqttAction> =
                     filters.iter().cloned().map(MqttAction::Subscribe).collect();
+                if stale.is_empty() {
+                    // The record is right already: written now, as before the controls were
+                    // swept too, rather than lost if the driver stops before the sweep ends.
+                    out.push(MqttAction::Publish(self.record(configured)));
+                }
                 for id in &stale {
                     out.push(MqttAction::Publish(Publication::removal(
                         self.topics.device_availability(id),
@@ -488,6 +493,12 @@ mod tests {
         );
         // The marker goes after the subscriptions: their retained messages come before it.
         assert!(matches!(actions.last(), Some(MqttAction::Publish(p)) if p.topic == MARKER));
+        // Nothing stale: the record is written at once.
+        assert!(publications(&actions).contains(&(
+            RECORD.to_string(),
+            r#"["relay6_1"]"#.to_string(),
+            true
+        )));
 
         let k6 = "/devices/relay6_1/controls/K6/meta";
         let cleared = sweeper.on_message(k6, br#"{"type":"switch"}"#, true, &now);

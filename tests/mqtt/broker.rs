@@ -496,9 +496,8 @@ async fn a_control_dropped_while_the_daemon_was_down_is_cleared_at_the_next_star
     let broker = Mosquitto::start();
     let mut settings = settings(broker.port);
     settings.broker.clear_on_exit = false;
-    let mqtt = MqttUnderTest::start(settings.clone());
-    mqtt.send(DeviceUpdate::Added(template_device("rtu2mqtt-relay6", 1)))
-        .await;
+    let relay = DeviceUpdate::Added(template_device("rtu2mqtt-relay6", 1));
+    let mqtt = MqttUnderTest::start_with(settings.clone(), None, vec![relay]);
     mqtt.send(value(RELAY, "K6", "1")).await;
     let k6 = format!("/devices/{RELAY}/controls/K6");
     wait_for("K6 and its discovery config on the broker", || async {
@@ -509,8 +508,9 @@ async fn a_control_dropped_while_the_daemon_was_down_is_cleared_at_the_next_star
     .await;
     mqtt.stop().await;
 
-    let mqtt = MqttUnderTest::start(settings);
-    mqtt.send(relay_without_k6()).await;
+    // The device is known when the sweep starts, as the daemon announces its devices before
+    // the MQTT task starts.
+    let mqtt = MqttUnderTest::start_with(settings, None, vec![relay_without_k6()]);
     mqtt.send(value(RELAY, "K5", "1")).await;
     let k5 = format!("/devices/{RELAY}/controls/K5");
     wait_for("K6 gone, the other controls there", || async {
@@ -534,9 +534,8 @@ async fn a_control_dropped_while_the_broker_is_away_is_cleared_after_the_reconne
     let mut broker = Mosquitto::start_persistent();
     let port = broker.port;
     let health = std::sync::Arc::new(ServiceHealth::new(BrokerState::Connecting));
-    let mqtt = MqttUnderTest::start_reporting(settings(port), Some(health.clone()));
-    mqtt.send(DeviceUpdate::Added(template_device("rtu2mqtt-relay6", 1)))
-        .await;
+    let relay = DeviceUpdate::Added(template_device("rtu2mqtt-relay6", 1));
+    let mqtt = MqttUnderTest::start_with(settings(port), Some(health.clone()), vec![relay]);
     mqtt.send(value(RELAY, "K6", "1")).await;
     let k6 = format!("/devices/{RELAY}/controls/K6");
     wait_for("K6 and its discovery config on the broker", || async {

@@ -410,7 +410,22 @@ impl MqttUnderTest {
 
     /// [`Self::start`] reporting the broker's state into `health`, as the daemon runs it.
     pub fn start_reporting(settings: MqttSettings, health: Option<Arc<ServiceHealth>>) -> Self {
-        let (updates, updates_rx) = mpsc::channel(64);
+        Self::start_with(settings, health, Vec::new())
+    }
+
+    /// [`Self::start_reporting`] with `first` in the update queue before the task starts, as
+    /// the daemon starts it (every device's `Added` is there before the first connect).
+    pub fn start_with(
+        settings: MqttSettings,
+        health: Option<Arc<ServiceHealth>>,
+        first: Vec<DeviceUpdate>,
+    ) -> Self {
+        let (updates, updates_rx) = mpsc::channel(64.max(first.len()));
+        for update in first {
+            updates
+                .try_send(update)
+                .expect("room for the first updates");
+        }
         let (writes_tx, writes) = mpsc::channel(16);
         let (shutdown, shutdown_rx) = oneshot::channel::<()>();
         let stopped = async move {
