@@ -309,7 +309,14 @@ impl ValueCodec {
                 None => self.encode_string(text),
             };
         }
-        let field = self.text_to_field(text.trim())?;
+        // A character is taken as sent (a space is a character), as wb-mqtt-serial takes it;
+        // numbers are trimmed.
+        let text = if self.format == RegisterFormat::Char8 {
+            text
+        } else {
+            text.trim()
+        };
+        let field = self.text_to_field(text)?;
         if self.is_bit {
             return Ok(vec![u16::from(field != 0)]);
         }

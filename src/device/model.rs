@@ -245,8 +245,13 @@ impl ResolvedChannel {
     }
 
     fn check_limits(&self, text: &str) -> Result<(), CodecError> {
-        let Ok(value) = text.parse::<f64>() else {
-            return Ok(());
+        // An integer in hex (`0x64`) is held to the limits as well.
+        let value = match crate::config::values::parse_int_text(text) {
+            Some(integer) => integer as f64,
+            None => match text.parse::<f64>() {
+                Ok(value) => value,
+                Err(_) => return Ok(()),
+            },
         };
         let below = self.min.is_some_and(|min| value < min);
         let above = self.max.is_some_and(|max| value > max);

@@ -11,6 +11,7 @@ use std::sync::{Arc, Weak};
 
 use tracing::{debug, warn};
 
+use crate::config::values::parse_int_text;
 use crate::device::codec::Decoded;
 use crate::device::model::{ResolvedChannel, ResolvedDevice, SharedVec, WriteFunction};
 use crate::device_updates::{DeviceUpdate, ErrorFlags, Repeats};
@@ -1029,7 +1030,8 @@ pub fn stop_unsupported_reads(
 }
 
 /// Checks an `/on` payload against the control type (what wb-mqtt-serial accepts for it);
-/// returns it trimmed. Limits and format ranges are the codec's to check.
+/// returns what to write: a `text` payload as received (wb-mqtt-serial writes it as is), any
+/// other trimmed. Limits and format ranges are the codec's to check.
 fn check_payload<'a>(
     channel: &ResolvedChannel,
     payload: &'a str,
@@ -1049,16 +1051,18 @@ fn check_payload<'a>(
                 return Err(bad_format(channel, "R;G;B with each part 0…255", text));
             }
         }
-        "text" | "w1-id" => {}
+        "text" | "w1-id" => return Ok(payload),
         // Every other type takes a number, as wb-mqtt-serial converts any `/on` text with the
         // register's format whatever the control type: a switch's other numbers are positions
         // (ONOKOM's vanes 2…6 on a `switch`), a `range` with a scale takes fractions (a
-        // setpoint of 22.5 °C on `s16` with scale 0.01). "1" and "0" are `on_value` and
-        // `off_value` where the channel has them; the codec and the limits check the rest.
+        // setpoint of 22.5 °C on `s16` with scale 0.01), and an integer may come in hex
+        // (`0x1F`, `0X00FF`: `FromScaledTextValue` reads base 16 after `0x`). "1" and "0" are
+        // `on_value` and `off_value` where the channel has them; the codec and the limits
+        // check the rest.
         _ => {
-            let parts_are_numbers = text
-                .split(';')
-                .all(|p| p.trim().parse::<f64>().is_ok_and(f64::is_finite));
+            let parts_are_numbers = text.split(';').all(|p| {
+                parse_int_text(p).is_some() || p.trim().parse::<f64>().is_ok_and(f64::is_finite)
+            });
             if !parts_are_numbers {
                 return Err(bad_format(channel, "a number", text));
             }
@@ -1564,6 +1568,53 @@ mod tests {
             model_of(setpoint).write("Setpoint", "70000"),
             Err(WriteRejected::BadValue(_))
         ));
+    }
+
+    /// Review F4: wb-mqtt-serial reads an integer `/on` text after `0x` (or `0X`) in base 16
+    /// (`FromScaledTextValue`), whatever the control type; the limits still apply.
+    #[test]
+    fn a_hexadecimal_payload_is_written_as_wb_mqtt_serial_writes_it() {
+        let k1 = crate::mqtt::layout::tests::channel("K1", "switch");
+        let model = model_of(k1);
+        assert_eq!(model.write("K1", "0x1").unwrap()[0].values, [1]);
+        assert_eq!(model.write("K1", " 0X00FF ").unwrap()[0].values, [255]);
+        for bad in ["0x", "0xG1", "x1", "0x1.5"] {
+            assert!(model.write("K1", bad).is_err(), "{bad:?}");
+        }
+        let mut level = crate::mqtt::layout::tests::channel("Level", "range");
+        level.max = Some(100.0);
+        assert!(accepts(&level, "0x64"));
+        assert!(!accepts(&level, "0x65"), "over max in hex");
+        let setpoint = crate::mqtt::layout::tests::channel("Setpoint", "value");
+        assert!(matches!(
+            model_of(setpoint).write("Setpoint", "0x10000"),
+            Err(WriteRejected::BadValue(_))
+        ));
+    }
+
+    /// A `text` payload is written as received, spaces included, as wb-mqtt-serial writes it;
+    /// the string register is padded with zeros after it.
+    #[test]
+    fn a_text_payload_is_written_as_received() {
+        let mut text = crate::mqtt::layout::tests::channel("Text", "text");
+        text.registers[0].codec = crate::device::codec::ValueCodec {
+            word_count: 6,
+            ..crate::device::codec::ValueCodec::plain(crate::config::format::RegisterFormat::String)
+        };
+        let mut model = model_of(text);
+        let words = |model: &DeviceModel, payload: &str| -> Vec<u16> {
+            model.write("Text", payload).unwrap()[0].values.clone()
+        };
+        let spaced: Vec<u16> = "  ab \n".bytes().map(u16::from).collect();
+        assert_eq!(words(&model, "  ab \n"), spaced);
+        assert_eq!(words(&model, "   "), [0x20, 0x20, 0x20, 0, 0, 0]);
+        // A one-character register takes the first character as sent, a space too.
+        let mut char8 = crate::mqtt::layout::tests::channel("Char", "text");
+        char8.registers[0].codec =
+            crate::device::codec::ValueCodec::plain(crate::config::format::RegisterFormat::Char8);
+        model = model_of(char8);
+        assert_eq!(model.write("Char", " ").unwrap()[0].values, [0x20]);
+        assert_eq!(model.write("Char", "!").unwrap()[0].values, [0x21]);
     }
 
     #[test]

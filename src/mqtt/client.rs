@@ -206,7 +206,7 @@ pub async fn run_mqtt_reporting(
                 }
                 Some(ConnectionEvent::Message { topic, payload, size, retain }) => {
                     let is_ha_status = ha_status.as_deref() == Some(topic.as_str());
-                    if let Some(actions) = sweeper.on_message(&topic, &payload, retain, &planner.device_ids()) {
+                    if let Some(actions) = sweeper.on_message(&topic, &payload, retain, &planner) {
                         waiting.outbox.extend(actions);
                     } else if is_ha_status {
                         // Any client may publish this: many births give one resend.
@@ -499,18 +499,22 @@ async fn drive_connection(
             Ok(Event::Outgoing(Outgoing::Disconnect)) => disconnecting = true,
             Ok(_) => {}
             Err(error) => {
-                report(BrokerState::Unreachable);
                 if connected {
                     warn!(%broker, %error, "lost the MQTT broker; reconnecting");
                     connected = false;
+                    // Told to the client task before the health: whoever sees the broker
+                    // unreachable there knows the task hears it before any later update.
                     let _ = events.send(ConnectionEvent::Disconnected).await;
+                    report(BrokerState::Unreachable);
                     // The reconnects that follow start a new series: their first failure (a
                     // refusal of our credentials, say) is told at warning level again.
                     failures = 0;
                     tokio::time::sleep(delay).await;
                     delay = (delay * 2).min(MAX_RECONNECT_DELAY);
                     continue;
-                } else if let Some(refusal) = refusal_text(&error) {
+                }
+                report(BrokerState::Unreachable);
+                if let Some(refusal) = refusal_text(&error) {
                     if failures == 0 {
                         warn!(%broker, "{refusal}; retrying");
                     } else {

@@ -177,6 +177,34 @@ pub fn control_topics(
     out
 }
 
+/// The legacy meta subtopics a control may have (those of [`control_meta`], and `error`).
+const CONTROL_META_SUBTOPICS: [&str; 8] = [
+    "type",
+    "order",
+    "readonly",
+    "min",
+    "max",
+    "precision",
+    "units",
+    "error",
+];
+
+/// Every retained topic the driver may have published for a control of this id, whatever its
+/// channel was (the value, meta and every legacy meta subtopic): what to delete for a control
+/// found on the broker that the config no longer has.
+pub fn any_control_topics(topics: &TopicScheme, device_id: &str, control_id: &str) -> Vec<String> {
+    let mut out = vec![
+        topics.control(device_id, control_id),
+        topics.control_meta(device_id, control_id, None),
+    ];
+    out.extend(
+        CONTROL_META_SUBTOPICS
+            .iter()
+            .map(|sub| topics.control_meta(device_id, control_id, Some(sub))),
+    );
+    out
+}
+
 /// Every retained WB topic of a device, controls first and device meta last, so a reader that
 /// watches device meta sees the device disappear after its controls.
 pub fn device_topics(topics: &TopicScheme, device: &ResolvedDevice) -> Vec<String> {
@@ -230,6 +258,23 @@ pub(crate) mod tests {
             hidden: false,
             group: None,
         }
+    }
+
+    /// What a control found on the broker but not in the config gets deleted: everything
+    /// any channel of that id publishes.
+    #[test]
+    fn any_control_topics_cover_every_topic_of_a_control() {
+        let topics = TopicScheme::new("", "rtu2mqtt").unwrap();
+        let mut full = channel("Level", "range");
+        full.min = Some(0.0);
+        full.max = Some(100.0);
+        full.precision = Some(0.1);
+        full.units = Some("%".into());
+        let any = any_control_topics(&topics, "dev", "Level");
+        for topic in control_topics(&topics, "dev", &full) {
+            assert!(any.contains(&topic), "{topic}");
+        }
+        assert_eq!(any.len(), 10);
     }
 
     #[test]

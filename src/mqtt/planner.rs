@@ -187,10 +187,17 @@ impl PublicationPlanner {
         }
         let mut controls = IdMap::default();
         for channel in &device.channels {
-            let state = previous
+            let mut state = previous
                 .as_mut()
                 .and_then(|p| p.controls.remove(&channel.id))
                 .unwrap_or_default();
+            // A device is announced again when its port restarts (a reload): its new device
+            // model starts with clear flags and reports only what it sets or clears itself, so
+            // a flag kept from the old model would never be cleared. Every control starts over
+            // with an empty `meta/error`, as wb-mqtt-serial starts it, and the new model sets
+            // the flags again as it learns (an offline device gets `r` at its first failure:
+            // a device never heard from goes offline at once).
+            state.errors = ErrorFlags::default();
             controls.insert(channel.id.clone(), state);
         }
         // The first channel of an id is the one values go to.
@@ -513,6 +520,29 @@ impl PublicationPlanner {
         let mut topics: Vec<String> = self.on_topics.keys().cloned().collect();
         topics.sort();
         topics
+    }
+}
+
+impl super::sweep::Served for PublicationPlanner {
+    fn device_ids(&self) -> std::collections::BTreeSet<String> {
+        PublicationPlanner::device_ids(self)
+    }
+
+    fn has_control(&self, device_id: &str, control_id: &str) -> bool {
+        self.devices
+            .get(device_id)
+            .is_some_and(|state| state.controls.contains_key(control_id))
+    }
+
+    fn has_discovery_config(&self, device_id: &str, topic: &str) -> bool {
+        let (Some(settings), Some(state)) = (&self.settings.discovery, self.devices.get(device_id))
+        else {
+            return false;
+        };
+        state.device.channels.iter().any(|channel| {
+            discovery::config_topic(settings, &self.settings.topics, device_id, channel)
+                .is_some_and(|t| t == topic)
+        })
     }
 }
 

@@ -381,6 +381,142 @@ fn config_change_drops_removed_controls() {
     assert!(!text.contains(&format!("/devices/{id}/controls/K5/meta\t\n")));
 }
 
+/// Feeds the device model's updates to the planner; returns the publications.
+fn feed(planner: &mut PublicationPlanner, updates: Vec<DeviceUpdate>) -> Vec<(String, String)> {
+    updates
+        .into_iter()
+        .flat_map(|update| publications(&planner.handle(update, Instant::now())))
+        .map(|(topic, payload, _)| (topic, payload))
+        .collect()
+}
+
+/// The payload `topic` last got in `published` (None: never published).
+fn last_of<'a>(published: &'a [(String, String)], topic: &str) -> Option<&'a str> {
+    published
+        .iter()
+        .rev()
+        .find(|(t, _)| t == topic)
+        .map(|(_, p)| p.as_str())
+}
+
+/// What the daemon does on SIGHUP for a port whose config changed: the port restarts with a
+/// new device model per device (flags clear) and every device is announced again (`Added`).
+fn restart_port(
+    planner: &mut PublicationPlanner,
+    device: &Arc<ResolvedDevice>,
+    published: &mut Vec<(String, String)>,
+) -> crate::gateway::device_model::DeviceModel {
+    published.extend(feed(planner, vec![DeviceUpdate::Added(device.clone())]));
+    crate::gateway::device_model::DeviceModel::new(device.clone(), 0, Repeats::None)
+}
+
+/// Review F1: the planner kept a control's `w` when its device was announced again, and the
+/// new model (which never saw `w` set) reports nothing when its first write succeeds: the `w`
+/// stayed on the broker for good. The control starts over with an empty `meta/error`.
+#[test]
+fn a_w_flag_set_before_a_port_restart_is_cleared_by_the_next_good_write() {
+    use crate::port::PortEvent;
+    let mut planner = PublicationPlanner::new(settings(false));
+    let relay = template_device("rtu2mqtt-relay6", 1);
+    let error = format!("/devices/{}/controls/K1/meta/error", relay.id);
+    let mut published = feed(&mut planner, vec![DeviceUpdate::Added(relay.clone())]);
+    let mut model = crate::gateway::device_model::DeviceModel::new(relay.clone(), 0, Repeats::None);
+    let mut out = Vec::new();
+    assert!(model.take_write("K1", "not a number", &mut out).is_err());
+    published.extend(feed(&mut planner, out));
+    assert_eq!(last_of(&published, &error), Some("w"));
+
+    let mut model = restart_port(&mut planner, &relay, &mut published);
+    assert_eq!(last_of(&published, &error), Some(""));
+    let mut out = Vec::new();
+    for write in model.take_write("K1", "1", &mut out).expect("accepted") {
+        let done = PortEvent::WriteDone {
+            device: write.device,
+            register_type: write.register_type,
+            address: write.address,
+        };
+        model.apply(done, &mut out);
+    }
+    published.extend(feed(&mut planner, out));
+    assert_eq!(last_of(&published, &error), Some(""));
+    // And the new model's `w` goes out as before.
+    let mut out = Vec::new();
+    assert!(model.take_write("K1", "x", &mut out).is_err());
+    assert_eq!(feed(&mut planner, out), [(error, "w".to_string())]);
+}
+
+/// Review F1, for `r`: a control whose read failed before its port restarted loses `r` when
+/// its device is announced again; the new model's good reads publish the values.
+#[test]
+fn an_r_flag_set_before_a_port_restart_is_cleared_by_the_next_good_read() {
+    use crate::port::{PortEvent, RegisterSpan};
+    use crate::protocol::fast::RegisterType;
+    let mut planner = PublicationPlanner::new(settings(false));
+    let relay = template_device("rtu2mqtt-relay6", 1);
+    let id = relay.id.clone();
+    let error = format!("/devices/{id}/controls/K1/meta/error");
+    let coils = RegisterSpan::new(RegisterType::Coil, 0, 6);
+    let mut published = feed(&mut planner, vec![DeviceUpdate::Added(relay.clone())]);
+    let mut model = crate::gateway::device_model::DeviceModel::new(relay.clone(), 0, Repeats::None);
+    let mut out = Vec::new();
+    let failed = PortEvent::ReadFailed {
+        device: 0,
+        span: coils,
+        unsupported: false,
+    };
+    model.apply(failed, &mut out);
+    published.extend(feed(&mut planner, out));
+    assert_eq!(last_of(&published, &error), Some("r"));
+
+    let mut model = restart_port(&mut planner, &relay, &mut published);
+    let mut out = Vec::new();
+    let read = PortEvent::Values {
+        device: 0,
+        span: coils,
+        values: vec![1, 0, 0, 0, 0, 0].into(),
+    };
+    model.apply(read, &mut out);
+    published.extend(feed(&mut planner, out));
+    assert_eq!(
+        last_of(&published, &format!("/devices/{id}/controls/K1")),
+        Some("1")
+    );
+    assert_eq!(last_of(&published, &error), Some(""));
+}
+
+/// Review F1, what the reset costs: an offline device whose port restarts keeps `r` on its
+/// device `meta/error`; its controls start over empty and get `r` back from the new model's
+/// first failure (a device never heard from goes offline at its first failure), all at once.
+#[test]
+fn an_offline_device_whose_port_restarts_gets_r_back_at_its_first_failure() {
+    use crate::port::PortEvent;
+    let mut planner = PublicationPlanner::new(settings(false));
+    let relay = template_device("rtu2mqtt-relay6", 1);
+    let id = relay.id.clone();
+    let device_error = format!("/devices/{id}/meta/error");
+    let readable: Vec<String> = relay
+        .channels
+        .iter()
+        .filter(|c| c.registers.iter().any(|r| r.read.is_some()))
+        .map(|c| format!("/devices/{id}/controls/{}/meta/error", c.id))
+        .collect();
+    assert!(readable.len() > 6);
+    let mut published = feed(&mut planner, vec![DeviceUpdate::Added(relay.clone())]);
+    let mut model = crate::gateway::device_model::DeviceModel::new(relay.clone(), 0, Repeats::None);
+    let mut out = Vec::new();
+    model.apply(PortEvent::Offline { device: 0 }, &mut out);
+    published.extend(feed(&mut planner, out));
+
+    let mut model = restart_port(&mut planner, &relay, &mut published);
+    assert_eq!(last_of(&published, &device_error), Some("r"));
+    assert!(readable.iter().all(|t| last_of(&published, t) == Some("")));
+    let mut out = Vec::new();
+    model.apply(PortEvent::Offline { device: 0 }, &mut out);
+    published.extend(feed(&mut planner, out));
+    assert_eq!(last_of(&published, &device_error), Some("r"));
+    assert!(readable.iter().all(|t| last_of(&published, t) == Some("r")));
+}
+
 #[test]
 fn snapshot_republishes_state_with_errors_before_values() {
     let mut planner = PublicationPlanner::new(settings(false));

@@ -457,6 +457,126 @@ async fn a_device_dropped_from_the_config_is_cleared_at_the_next_start() {
     mqtt.stop().await;
 }
 
+/// Whether `state` has no topic of the relay's control `control` (value, meta, subtopics) nor
+/// its discovery config.
+fn control_gone(state: &BTreeMap<String, String>, control: &str) -> bool {
+    let value = format!("/devices/{RELAY}/controls/{control}");
+    let under = format!("{value}/");
+    let config = format!(
+        "homeassistant/switch/rtu2mqtt_{RELAY}/{}/config",
+        control.to_lowercase()
+    );
+    !state
+        .keys()
+        .any(|t| *t == value || t.starts_with(&under) || *t == config)
+}
+
+/// Whether `state` has the relay's control `control`: its meta and its discovery config.
+fn control_there(state: &BTreeMap<String, String>, control: &str) -> bool {
+    state.contains_key(&format!("/devices/{RELAY}/controls/{control}/meta"))
+        && state.contains_key(&format!(
+            "homeassistant/switch/rtu2mqtt_{RELAY}/{}/config",
+            control.to_lowercase()
+        ))
+}
+
+/// The relay without its channel K6 (dropped from the config or template).
+fn relay_without_k6() -> DeviceUpdate {
+    let mut smaller = (*template_device("rtu2mqtt-relay6", 1)).clone();
+    smaller.channels.make_mut().retain(|c| c.id != "K6");
+    DeviceUpdate::Added(std::sync::Arc::new(smaller))
+}
+
+/// Review F3: a control dropped from a device's config while the daemon was down (stopped
+/// with `clear_on_exit: false`, or crashed) loses its retained topics and its discovery config
+/// at the next start, as wb-mqtt-serial's `RemoveUnusedControls` deletes them; the device's
+/// other controls keep theirs.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_control_dropped_while_the_daemon_was_down_is_cleared_at_the_next_start() {
+    let broker = Mosquitto::start();
+    let mut settings = settings(broker.port);
+    settings.broker.clear_on_exit = false;
+    let relay = DeviceUpdate::Added(template_device("rtu2mqtt-relay6", 1));
+    let mqtt = MqttUnderTest::start_with(settings.clone(), None, vec![relay]);
+    mqtt.send(value(RELAY, "K6", "1")).await;
+    let k6 = format!("/devices/{RELAY}/controls/K6");
+    wait_for("K6 and its discovery config on the broker", || async {
+        retained(broker.port)
+            .await
+            .filter(|s| s.get(&k6).map(String::as_str) == Some("1") && control_there(s, "K6"))
+    })
+    .await;
+    mqtt.stop().await;
+
+    // The device is known when the sweep starts, as the daemon announces its devices before
+    // the MQTT task starts.
+    let mqtt = MqttUnderTest::start_with(settings, None, vec![relay_without_k6()]);
+    mqtt.send(value(RELAY, "K5", "1")).await;
+    let k5 = format!("/devices/{RELAY}/controls/K5");
+    wait_for("K6 gone, the other controls there", || async {
+        retained(broker.port).await.filter(|s| {
+            control_gone(s, "K6")
+                && s.get(&k5).map(String::as_str) == Some("1")
+                && ["K1", "K5"].iter().all(|c| control_there(s, c))
+        })
+    })
+    .await;
+    mqtt.stop().await;
+}
+
+/// Review F2: a reload that drops a control while the broker is away: the planner's deletions
+/// never reached the broker, which kept its retained messages (persistence, as on a Wiren
+/// Board controller). The sweep after the reconnect deletes the control's topics and its
+/// discovery config.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_control_dropped_while_the_broker_is_away_is_cleared_after_the_reconnect() {
+    use rtu2mqtt::service::{BrokerState, ServiceHealth};
+    let mut broker = Mosquitto::start_persistent();
+    let port = broker.port;
+    let health = std::sync::Arc::new(ServiceHealth::new(BrokerState::Connecting));
+    let relay = DeviceUpdate::Added(template_device("rtu2mqtt-relay6", 1));
+    let mqtt = MqttUnderTest::start_with(settings(port), Some(health.clone()), vec![relay]);
+    mqtt.send(value(RELAY, "K6", "1")).await;
+    let k6 = format!("/devices/{RELAY}/controls/K6");
+    wait_for("K6 and its discovery config on the broker", || async {
+        retained(port)
+            .await
+            .filter(|s| s.get(&k6).map(String::as_str) == Some("1") && control_there(s, "K6"))
+    })
+    .await;
+    let persisted = "rtu2mqtt-test/persisted";
+    publish(port, persisted, "x", true).await;
+
+    broker.stop();
+    // The client task hears of the disconnect before the health says so: the update sent
+    // next is taken while the broker is away.
+    wait_for("the client to see the broker gone", || async {
+        health
+            .status_line()
+            .ends_with("MQTT unreachable")
+            .then_some(())
+    })
+    .await;
+    mqtt.send(relay_without_k6()).await;
+    mqtt.send(value(RELAY, "K5", "1")).await;
+    broker.start_again();
+
+    let k5 = format!("/devices/{RELAY}/controls/K5");
+    wait_for(
+        "K6 gone after the reconnect, the other controls there",
+        || async {
+            retained(port).await.filter(|s| {
+                s.contains_key(persisted)
+                    && control_gone(s, "K6")
+                    && s.get(&k5).map(String::as_str) == Some("1")
+                    && ["K1", "K5"].iter().all(|c| control_there(s, c))
+            })
+        },
+    )
+    .await;
+    mqtt.stop().await;
+}
+
 /// Issue 15 defect 11: a publication the client refuses (here a channel named `Lvl#`, which
 /// the config loader should refuse too) is logged and dropped: it no longer blocks every later
 /// publication, and the exit flush still gets `offline` out.

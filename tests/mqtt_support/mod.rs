@@ -16,7 +16,8 @@ use rtu2mqtt::config::config_file::MqttConfig;
 use rtu2mqtt::config::TemplateFile;
 use rtu2mqtt::device::{resolve_template_device, ResolvedDevice};
 use rtu2mqtt::device_updates::{ControlWrite, DeviceUpdate};
-use rtu2mqtt::mqtt::{run_mqtt, MqttError, MqttSettings};
+use rtu2mqtt::mqtt::{run_mqtt_reporting, MqttError, MqttSettings};
+use rtu2mqtt::service::ServiceHealth;
 use rumqttc::{AsyncClient, Event, MqttOptions, Packet, QoS};
 use serde_json::json;
 use tokio::sync::{mpsc, oneshot};
@@ -48,6 +49,8 @@ pub struct Mosquitto {
     dir: tempfile::TempDir,
     /// `user:password` when anonymous clients are refused.
     credentials: Option<(String, String)>,
+    /// Keeps its retained messages on disk across a [`Self::stop`] and [`Self::start_again`].
+    persistent: bool,
 }
 
 impl Mosquitto {
@@ -70,12 +73,26 @@ impl Mosquitto {
         Self::start_on_a_free_port(Some((user.into(), password.into())))
     }
 
+    /// A broker that keeps its retained messages across a restart (persistence on, as on a
+    /// Wiren Board controller): [`Self::stop`] saves them, [`Self::start_again`] loads them.
+    pub fn start_persistent() -> Self {
+        let mut broker = Self::new(free_port(), None);
+        broker.persistent = true;
+        // Started as root, mosquitto drops to its own user: let it write its database.
+        use std::os::unix::fs::PermissionsExt;
+        std::fs::set_permissions(broker.dir.path(), std::fs::Permissions::from_mode(0o777))
+            .expect("temp dir permissions");
+        broker.launch();
+        broker
+    }
+
     fn new(port: u16, credentials: Option<(String, String)>) -> Self {
         Self {
             child: None,
             port,
             dir: tempfile::tempdir().expect("temp dir"),
             credentials,
+            persistent: false,
         }
     }
 
@@ -121,8 +138,16 @@ impl Mosquitto {
         std::fs::write(
             &config,
             format!(
-                "listener {} 127.0.0.1\n{access}persistence false\n{}",
+                "listener {} 127.0.0.1\n{access}{}\n{}",
                 self.port,
+                if self.persistent {
+                    format!(
+                        "persistence true\npersistence_location {}/",
+                        self.dir.path().display()
+                    )
+                } else {
+                    "persistence false".to_string()
+                },
                 std::env::var("MOSQUITTO_LOG")
                     .map(|f| format!("log_type all\nlog_dest file {f}\n"))
                     .unwrap_or_default()
@@ -169,6 +194,24 @@ impl Mosquitto {
             let _ = child.kill();
             let _ = child.wait();
         }
+    }
+
+    /// Stops the broker with SIGTERM and waits for it: a persistent broker saves its retained
+    /// messages first.
+    pub fn stop(&mut self) {
+        if let Some(mut child) = self.child.take() {
+            nix::sys::signal::kill(
+                nix::unistd::Pid::from_raw(child.id() as i32),
+                nix::sys::signal::Signal::SIGTERM,
+            )
+            .expect("SIGTERM to mosquitto");
+            let _ = child.wait();
+        }
+    }
+
+    /// Starts a stopped broker again on the same port (a persistent one with what it saved).
+    pub fn start_again(&mut self) {
+        self.launch();
     }
 
     /// Starts it again on the same port.
@@ -362,12 +405,35 @@ pub fn settings(port: u16) -> MqttSettings {
 
 impl MqttUnderTest {
     pub fn start(settings: MqttSettings) -> Self {
-        let (updates, updates_rx) = mpsc::channel(64);
+        Self::start_reporting(settings, None)
+    }
+
+    /// [`Self::start`] reporting the broker's state into `health`, as the daemon runs it.
+    pub fn start_reporting(settings: MqttSettings, health: Option<Arc<ServiceHealth>>) -> Self {
+        Self::start_with(settings, health, Vec::new())
+    }
+
+    /// [`Self::start_reporting`] with `first` in the update queue before the task starts, as
+    /// the daemon starts it (every device's `Added` is there before the first connect).
+    pub fn start_with(
+        settings: MqttSettings,
+        health: Option<Arc<ServiceHealth>>,
+        first: Vec<DeviceUpdate>,
+    ) -> Self {
+        let (updates, updates_rx) = mpsc::channel(64.max(first.len()));
+        for update in first {
+            updates
+                .try_send(update)
+                .expect("room for the first updates");
+        }
         let (writes_tx, writes) = mpsc::channel(16);
         let (shutdown, shutdown_rx) = oneshot::channel::<()>();
-        let task = tokio::spawn(run_mqtt(settings, updates_rx, writes_tx, async move {
+        let stopped = async move {
             let _ = shutdown_rx.await;
-        }));
+        };
+        let task = tokio::spawn(run_mqtt_reporting(
+            settings, updates_rx, writes_tx, stopped, health,
+        ));
         Self {
             updates,
             writes,
