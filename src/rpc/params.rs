@@ -1216,3 +1216,45 @@ mod tests {
         assert!(parse("device", "Probe", json!({"path": "/dev/x"})).is_err());
     }
 }
+
+/// Review (branch review-tools): wb-mqtt-serial parity of params that reach a device. These
+/// tests FAIL on the current code; each names the finding in /tmp/review-tools.md.
+#[cfg(test)]
+mod review_tests {
+    use super::*;
+    use serde_json::json;
+
+    /// wb-device-manager (the web UI's scan) sends every Fast Modbus `port/Scan` with
+    /// `"command": 96` (fast_modbus_scan.py / main.py: "Use 0x60 for scanning as the last device
+    /// with deprecated command only was sold 18.12.24"); wb-mqtt-serial serves it
+    /// (rpc_port_scan_serial_client_task.cpp: `ModbusExt::Scan(port, rpcRequest->ModbusExtCommand, …)`).
+    #[test]
+    fn review_port_scan_accepts_command_96_as_wb_device_manager_sends_it() {
+        let params = json!({"path": "/dev/ttyRS485-1", "baud_rate": 9600, "parity": "N",
+                            "data_bits": 8, "stop_bits": 2, "command": 96,
+                            "total_timeout": 10000});
+        let parsed = parse_method("port", "Scan", &params);
+        assert!(
+            matches!(parsed, Ok(Method::PortScan(_))),
+            "wb-device-manager's scan request refused: {parsed:?}"
+        );
+    }
+
+    /// wb-mqtt-serial-rpc-port-setup-request.schema.json: `cfg.baud_rate` is one of
+    /// 110..230400 (enum), validated before anything is written. rtu2mqtt takes any number
+    /// 110..1_000_000 and writes `baud / 100` to holding 110: 12345 → 123 (the device then
+    /// talks at 12300 baud and is lost), 9601 → 96.
+    #[test]
+    fn review_port_setup_refuses_a_baud_rate_no_device_can_take() {
+        for baud in [12_345_u32, 9601, 250_000, 1_000_000, 150] {
+            let params = json!({"path": "/dev/x",
+                                "items": [{"slave_id": 1, "cfg": {"baud_rate": baud}}]});
+            let parsed = parse_method("port", "Setup", &params);
+            assert!(
+                parsed.is_err(),
+                "cfg.baud_rate {baud} accepted (holding 110 would get {}): {parsed:?}",
+                baud / 100
+            );
+        }
+    }
+}
