@@ -1,5 +1,7 @@
-//! Review (branch review-tools): defects of the site tools and the MQTT RPC, each test FAILS on
-//! the code it was written against. Findings and evidence: /tmp/review-tools.md.
+//! wb-mqtt-serial parity of the MQTT RPC where wb-device-manager (the web UI's scan) depends on
+//! it, and scans that run beside each other: a daemon on the simulator, a real mosquitto. Each
+//! test came with a review of the site tools and the RPC (branch review-tools) and failed on
+//! the code before its fix.
 
 #[path = "daemon_support/mod.rs"]
 mod daemon_support;
@@ -8,48 +10,13 @@ mod mqtt_support;
 #[path = "sim_support/mod.rs"]
 mod sim_support;
 
-use std::process::{Command, Stdio};
+use std::process::Stdio;
 
 use daemon_support::{repo, DaemonProcess};
 use mqtt_support::{retained, wait_for, Mosquitto, TIMEOUT};
 use rumqttc::{AsyncClient, Event, MqttOptions, Packet, QoS};
 use serde_json::{json, Value};
 use sim_support::SimProcess;
-
-fn tool(args: &[&str]) -> (i32, String, String) {
-    let output = Command::new(env!("CARGO_BIN_EXE_rtu2mqtt"))
-        .args(args)
-        .output()
-        .unwrap();
-    (
-        output.status.code().unwrap_or(-1),
-        String::from_utf8_lossy(&output.stdout).into_owned(),
-        String::from_utf8_lossy(&output.stderr).into_owned(),
-    )
-}
-
-/// `write --address 10` with no port settings named: the tool scans, finds address 10 at 9600
-/// 8N2 (where the scan has just seen TWO devices with it, relay-a and relay-b of
-/// site-bus.json) and writes by address there, so both devices take the value. The scan knew;
-/// the tool should refuse (and point at --serial or fix-addresses) before writing anything.
-#[test]
-fn review_write_by_address_does_not_write_a_duplicate_the_scan_just_saw() {
-    let sim = SimProcess::start("site-bus.json", &[]);
-    let port = sim.pty.to_str().unwrap().to_owned();
-    let (code, stdout, stderr) = tool(&[
-        "write", "--port", &port, "--address", "10", "--type", "coil", "--reg", "2",
-        "--latency", "100", "1",
-    ]);
-    let a = sim.control(json!({"cmd": "get", "device": "relay-a", "type": "coil", "address": 2}));
-    let b = sim.control(json!({"cmd": "get", "device": "relay-b", "type": "coil", "address": 2}));
-    assert!(
-        a["value"] == 0 && b["value"] == 0,
-        "both devices at the duplicate address were written (relay-a coil 2 = {}, relay-b coil \
-         2 = {}); exit {code}\nstdout: {stdout}\nstderr: {stderr}",
-        a["value"],
-        b["value"]
-    );
-}
 
 async fn rpc(port: u16, service: &str, method: &str, params: Value) -> Value {
     static CALLS: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
@@ -71,7 +38,12 @@ async fn rpc(port: u16, service: &str, method: &str, params: Value) -> Value {
                 }
                 Event::Incoming(Packet::SubAck(_)) => {
                     client
-                        .publish(request_topic.as_str(), QoS::AtLeastOnce, false, payload.clone())
+                        .publish(
+                            request_topic.as_str(),
+                            QoS::AtLeastOnce,
+                            false,
+                            payload.clone(),
+                        )
                         .await
                         .unwrap();
                 }
@@ -128,7 +100,7 @@ async fn served(port: u16) {
 /// (bootloader_scan.py `is_in_bootloader_mode`: `except SerialTimeoutException: return True`).
 /// rtu2mqtt answers -32000: devices in bootloader are never found, timeouts look like failures.
 #[tokio::test(flavor = "multi_thread")]
-async fn review_port_load_silence_is_wb_request_timeout() {
+async fn port_load_silence_is_wb_request_timeout() {
     let (broker, sim, _daemon, _dir) = bench();
     served(broker.port).await;
     let path = sim.pty.to_str().unwrap();
@@ -141,16 +113,20 @@ async fn review_port_load_silence_is_wb_request_timeout() {
 /// wb-device-manager's Fast Modbus scan sends `"command": 96` (0x60) at every setting
 /// (main.py: "Use 0x60 for scanning as the last device with deprecated command only was sold
 /// 18.12.24"); wb-mqtt-serial scans with it. rtu2mqtt refuses: the web UI finds no device and
-/// lists every setting as a failed port.
+/// lists every setting as a failed port. rtu2mqtt scans with 0x60 then: its scan, and its
+/// reads by serial number of what it found (whose `sn` goes on to requests by serial number).
 #[tokio::test(flavor = "multi_thread")]
-async fn review_port_scan_with_command_96_finds_the_devices() {
+async fn port_scan_with_command_96_finds_the_devices_as_wb_device_manager_asks() {
     let (broker, sim, _daemon, _dir) = bench();
     served(broker.port).await;
     let path = sim.pty.to_str().unwrap();
     let params = json!({"path": path, "baud_rate": 115200, "parity": "N", "data_bits": 8,
                         "stop_bits": 2, "command": 96, "total_timeout": 10000});
     let reply = rpc(broker.port, "port", "Scan", params).await;
-    let devices = reply["result"]["devices"].as_array().cloned().unwrap_or_default();
+    let devices = reply["result"]["devices"]
+        .as_array()
+        .cloned()
+        .unwrap_or_default();
     assert_eq!(devices.len(), 2, "{reply}");
 }
 
@@ -158,18 +134,37 @@ async fn review_port_scan_with_command_96_finds_the_devices() {
 /// (rpc_port_scan_serial_client_task.cpp `GetSnFromRegister`: `^MAP[0-9]{1,2}.*` →
 /// `sn & 0x00FFFFFF`), the number on its sticker and the one wb-device-manager keys it by.
 #[tokio::test(flavor = "multi_thread")]
-async fn review_port_scan_reports_a_map_meter_serial_as_wb_mqtt_serial_does() {
+async fn port_scan_reports_a_map_meter_by_its_lower_24_bits_as_wb_mqtt_serial_does() {
     let (broker, sim, _daemon, _dir) = bench();
     served(broker.port).await;
     let path = sim.pty.to_str().unwrap();
     let reply = rpc(broker.port, "port", "Scan", json!({"path": path})).await;
-    let devices = reply["result"]["devices"].as_array().cloned().unwrap_or_default();
+    let devices = reply["result"]["devices"]
+        .as_array()
+        .cloned()
+        .unwrap_or_default();
     let meter = devices
         .iter()
         .find(|d| d["cfg"]["slave_id"] == 30)
         .unwrap_or_else(|| panic!("meter at 30 in {reply}"));
     assert_eq!(meter["device_signature"], "MAP12E", "{meter}");
-    assert_eq!(meter["sn"], (0xFE12_3456_u32 & 0x00FF_FFFF).to_string(), "{meter}");
+    assert_eq!(
+        meter["sn"],
+        (0xFE12_3456_u32 & 0x00FF_FFFF).to_string(),
+        "{meter}"
+    );
+    // rtu2mqtt's own field: the whole number, for requests by serial number.
+    assert_eq!(
+        meter["fast_modbus_sn"],
+        0xFE12_3456_u32.to_string(),
+        "{meter}"
+    );
+    let relay = devices
+        .iter()
+        .find(|d| d["cfg"]["slave_id"] == 20)
+        .unwrap_or_else(|| panic!("relay at 20 in {reply}"));
+    assert_eq!(relay["sn"], 0xFE00_0020_u32.to_string(), "{relay}");
+    assert!(relay.get("fast_modbus_sn").is_none(), "{relay}");
 }
 
 /// Two `port/Scan` requests on one port at once (the web UI's scan and `rtu2mqtt scan`, or the
@@ -179,12 +174,17 @@ async fn review_port_scan_reports_a_map_meter_serial_as_wb_mqtt_serial_does() {
 /// other: one of them ends early and lists fewer devices. wb-mqtt-serial runs a scan as one
 /// serial-client task (rpc_port_scan_serial_client_task.cpp), never interleaved.
 #[tokio::test(flavor = "multi_thread")]
-async fn review_two_scans_at_once_each_find_every_device() {
+async fn two_scans_at_once_each_find_every_device() {
     let (broker, sim, _daemon, _dir) = bench();
     served(broker.port).await;
     let path = sim.pty.to_str().unwrap().to_owned();
     for round in 0..5 {
-        let one = rpc(broker.port, "port", "Scan", json!({"path": path, "mode": "all"}));
+        let one = rpc(
+            broker.port,
+            "port",
+            "Scan",
+            json!({"path": path, "mode": "all"}),
+        );
         let two = async {
             let params = json!({"path": path, "mode": "all", "total_timeout": 9999});
             rpc(broker.port, "port", "Scan", params).await
@@ -192,7 +192,10 @@ async fn review_two_scans_at_once_each_find_every_device() {
         let (one, two) = tokio::join!(one, two);
         for reply in [&one, &two] {
             let found = reply["result"]["devices"].as_array().map_or(0, Vec::len);
-            assert_eq!(found, 2, "round {round}: a scan run beside another one: {reply}");
+            assert_eq!(
+                found, 2,
+                "round {round}: a scan run beside another one: {reply}"
+            );
         }
     }
 }
