@@ -269,11 +269,12 @@ async fn reads_scans_and_errors(bench: &Bench, baud: u32) {
     assert_eq!(probe["result"]["sn"], "4261412897", "{probe}");
     assert_eq!(probe["result"]["cfg"]["slave_id"], 21);
 
-    // Nobody at address 99: a server error that says so, well before total_timeout.
+    // Nobody at address 99: wb-mqtt-serial's E_RPC_REQUEST_TIMEOUT (-32600, which
+    // wb-device-manager's bootloader scan relies on) that says so, well before total_timeout.
     let silent = json!({"path": path, "protocol": "modbus", "slave_id": 99, "function": 3,
                         "address": 0, "count": 1, "format": "HEX", "response_timeout": 100});
     let silence = rpc(port, "port", "Load", silent).await;
-    assert_eq!(silence["error"]["code"], -32000, "{silence}");
+    assert_eq!(silence["error"]["code"], -32600, "{silence}");
     assert!(
         silence["error"]["message"]
             .as_str()

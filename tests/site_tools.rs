@@ -650,6 +650,84 @@ fn write_sets_registers_and_coils_and_reads_them_back() {
     assert_eq!(control["values"], json!([0xFFFF, 0xFFFB]));
 }
 
+/// Latency for a test whose check needs the first scan start's reply: a late one (a loaded
+/// test machine) would be taken for "nobody at this setting".
+const SLOW_START_MS: &str = "300";
+
+/// `write --address 10` (and `read`) with no single port setting named: the scan finds address
+/// 10 at 9600 8N2 held by TWO devices (relay-a and relay-b). A request by address would reach both
+/// (a write changes both, and their replies collide), so the tool refuses before sending
+/// anything and names `--serial` for each and `fix-addresses`.
+#[test]
+fn write_and_read_by_address_refuse_a_duplicate_the_scan_just_saw() {
+    let sim = sim();
+    let run = access(
+        &sim,
+        &[
+            "write",
+            "--address",
+            "10",
+            "--type",
+            "coil",
+            "--reg",
+            "2",
+            "--baud",
+            "9600,115200",
+            "--parity",
+            "N",
+            "--latency",
+            SLOW_START_MS,
+            "1",
+        ],
+    );
+    let a = sim.control(json!({"cmd": "get", "device": "relay-a", "type": "coil", "address": 2}));
+    let b = sim.control(json!({"cmd": "get", "device": "relay-b", "type": "coil", "address": 2}));
+    assert!(
+        a["value"] == 0 && b["value"] == 0,
+        "a device at the duplicate address was written (relay-a coil 2 = {}, relay-b coil 2 = \
+         {}); exit {}\nstdout: {}\nstderr: {}",
+        a["value"],
+        b["value"],
+        run.code,
+        run.stdout,
+        run.stderr
+    );
+    assert_eq!(run.code, 1, "{}{}", run.stdout, run.stderr);
+    for words in [
+        "address 10 at 9600 8N2 is used by 2 devices",
+        "--serial 4261412880",
+        "--serial 4261412881",
+        "fix-addresses",
+    ] {
+        assert!(run.stderr.contains(words), "{words:?} in {}", run.stderr);
+    }
+    let run = access(
+        &sim,
+        &[
+            "read",
+            "--address",
+            "10",
+            "--type",
+            "coil",
+            "--reg",
+            "2",
+            "--baud",
+            "9600,115200",
+            "--parity",
+            "N",
+            "--latency",
+            SLOW_START_MS,
+        ],
+    );
+    assert_eq!(run.code, 1, "{}{}", run.stdout, run.stderr);
+    assert!(
+        run.stderr.contains("is used by 2 devices") && run.stdout.is_empty(),
+        "{}{}",
+        run.stdout,
+        run.stderr
+    );
+}
+
 /// Runs `rtu2mqtt events` in the background; its stdout lines arrive on the channel.
 fn spawn_events(args: &[&str]) -> (std::process::Child, std::sync::mpsc::Receiver<String>) {
     use std::io::BufRead;
@@ -1521,4 +1599,89 @@ fn set_address_through_the_service_probes_the_new_address_there() {
         run.stdout
     );
     assert_eq!(address_of_relay(), 31);
+}
+
+/// Through the running service, `fix-addresses` keeps the address of the device the service
+/// polls there: the service reads its serial number (its identity read) and `port/Scan` names
+/// it (`configured_device`). A newcomer with a lower serial number (which would keep the
+/// address by the rule without the service) joins the configured relay at 20 and is the one
+/// moved; the tool says which device the service polls at 20.
+#[test]
+fn fix_addresses_through_the_service_keeps_the_device_it_polls() {
+    let broker = mqtt_support::Mosquitto::start();
+    let dir = tempfile::tempdir().unwrap();
+    let bus = dir.path().join("bus.json");
+    std::fs::write(
+        &bus,
+        json!({"devices": [
+            {"name": "relay", "template": "rtu2mqtt-relay6", "address": 20,
+             "serial": "0xFE000020", "line": "115200 8N2", "model": "WBMR6C", "firmware": "1.26.0"},
+            {"name": "newcomer", "template": "rtu2mqtt-relay6", "address": 21,
+             "serial": "0xFE000005", "line": "115200 8N2", "model": "WBMR6C", "firmware": "1.26.0"}
+        ]})
+        .to_string(),
+    )
+    .unwrap();
+    let sim = SimProcess::start_with(&bus, &daemon_support::repo("templates"), &[]);
+    let config = json!({
+        "mqtt": {"host": "127.0.0.1", "port": broker.port, "client_id": "rtu2mqtt-site-tools-fix"},
+        "ports": [{"path": sim.pty, "baud_rate": 115200, "stop_bits": 2,
+                   "devices": [{"device_type": "rtu2mqtt-relay6", "slave_id": 20}]}]
+    });
+    let _daemon = daemon_support::DaemonProcess::start(
+        &config,
+        &[],
+        std::process::Stdio::null(),
+        std::process::Stdio::null(),
+    );
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    // The service has read who is at 20 (the meta is published after the read is kept).
+    runtime.block_on(mqtt_support::wait_for(
+        "the relay's serial number in its meta",
+        || async {
+            let state = mqtt_support::retained(broker.port).await?;
+            let meta: Value = serde_json::from_str(state.get("/devices/relay6_20/meta")?).ok()?;
+            (meta["serial_number"] == "4261412896").then_some(())
+        },
+    ));
+    sim.control(json!({"cmd": "set_address", "serial": "0xFE000005", "new_address": 20}));
+    let port = port(&sim);
+    let broker_option = format!("127.0.0.1:{}", broker.port);
+    let run = tool(&[
+        "fix-addresses",
+        "--port",
+        &port,
+        "--baud",
+        "115200",
+        "--parity",
+        "N",
+        "--via-mqtt",
+        "--broker",
+        &broker_option,
+        "--apply",
+    ]);
+    let address_of = |serial: &str| {
+        sim.control(json!({"cmd": "get", "serial": serial, "type": "holding", "address": 128}))
+            ["value"]
+            .clone()
+    };
+    assert_eq!(
+        address_of("0xFE000020"),
+        20,
+        "the relay the service polls at 20 was moved\n{}{}",
+        run.stdout,
+        run.stderr
+    );
+    assert_eq!(address_of("0xFE000005"), 1, "{}{}", run.stdout, run.stderr);
+    assert_eq!(run.code, 0, "{}{}", run.stdout, run.stderr);
+    assert!(
+        run.stderr.contains(
+            "the service polls relay6_20 at 20, and it read serial 4261412896 (0xFE000020) there"
+        ),
+        "{}",
+        run.stderr
+    );
 }

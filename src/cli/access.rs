@@ -158,12 +158,21 @@ async fn resolve(
     for &line in &plan {
         let mut report = ScanReport::default();
         let seen = port.scan_setting(line, &mut report).await?;
-        if seen.iter().any(|(_, a)| *a == address) {
-            return Ok(Ok(Target {
-                line,
-                address: Some(address),
-                serial: None,
-            }));
+        let serials: Vec<u32> = seen
+            .iter()
+            .filter(|(_, a)| *a == address)
+            .map(|(serial, _)| *serial)
+            .collect();
+        match serials.as_slice() {
+            [] => continue,
+            [_] => {
+                return Ok(Ok(Target {
+                    line,
+                    address: Some(address),
+                    serial: None,
+                }))
+            }
+            several => return Ok(Err(duplicate_address(address, line, several))),
         }
     }
     Ok(Err(format!(
@@ -171,6 +180,28 @@ async fn resolve(
          a classic device give --baud, --parity and --stop-bits",
         plan.len()
     )))
+}
+
+/// Why a request by address is not sent where the scan has just seen several devices with that
+/// address: every one of them would carry it out (a write changes them all) and their replies
+/// collide.
+fn duplicate_address(address: u8, line: LineSettings, serials: &[u32]) -> String {
+    format!(
+        "address {address} at {line} is used by {} devices (serial {}): a request by address \
+         would reach all of them, so nothing was sent. Name one with {}, or give them distinct \
+         addresses first: rtu2mqtt fix-addresses --port …",
+        serials.len(),
+        serials
+            .iter()
+            .map(|s| serial_text(*s))
+            .collect::<Vec<_>>()
+            .join(", "),
+        serials
+            .iter()
+            .map(|s| format!("--serial {s}"))
+            .collect::<Vec<_>>()
+            .join(" or ")
+    )
 }
 
 async fn request(

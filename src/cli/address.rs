@@ -2,7 +2,7 @@
 //! (Fast Modbus 0x46 0x08), so devices that share an address are told apart without unplugging
 //! anything, and check the result with a new scan.
 
-use std::collections::BTreeSet;
+use std::collections::{BTreeMap, BTreeSet};
 use std::process::ExitCode;
 use std::time::Duration;
 
@@ -12,8 +12,8 @@ use crate::config::values::parse_int_text;
 use crate::protocol::{LineSettings, RequestPdu, ResponsePdu};
 use crate::tools::bus::{Answer, PortError, ToolBus, ToolPort, KNOWN_DEVICE_TIMEOUT};
 use crate::tools::exit;
-use crate::tools::plan::parse_range;
-use crate::tools::report::{serial_text, AddressChange, ScanReport};
+use crate::tools::plan::{parse_range, same_on_the_wire};
+use crate::tools::report::{same_serial, serial_text, AddressChange, ScanReport};
 
 use super::scan::{block_on_tool, port_failure, PortArgs};
 
@@ -284,35 +284,62 @@ async fn set_address_steps(
         from: old,
         to: args.address,
     };
-    if let Err(reason) = bus.write_address(&change).await? {
-        eprintln!("serial {serial} at {line}: {reason}; the address stays {old}");
-        return Ok(ExitCode::from(exit::NOT_FOUND));
-    }
+    let written = bus.write_address(&change).await?;
+    // Checked with a new scan whatever the write's answer: a device may take the address and
+    // its reply be lost (noise, a collision, a slow adapter), so a failed write proves nothing.
     let mut check = ScanReport::default();
     bus.scan(&[line], &mut check).await?;
     let scanned = address_at(&check);
-    if scanned == Some(args.address) {
-        println!(
-            "serial {serial} at {line}: address {old} -> {} (confirmed by a scan)",
-            args.address
-        );
-        Ok(ExitCode::SUCCESS)
-    } else {
-        eprintln!(
-            "serial {serial} at {line}: wrote address {} but the scan shows {}",
-            args.address,
-            scanned.map_or("nothing".into(), |a| a.to_string())
-        );
-        Ok(ExitCode::from(exit::NOT_FOUND))
+    let new = args.address;
+    match (written, scanned) {
+        (Ok(()), Some(now)) if now == new => {
+            println!("serial {serial} at {line}: address {old} -> {new} (confirmed by a scan)");
+            Ok(ExitCode::SUCCESS)
+        }
+        (Ok(()), scanned) => {
+            eprintln!(
+                "serial {serial} at {line}: wrote address {new} but the scan shows {}",
+                scanned.map_or("nothing".into(), |a| a.to_string())
+            );
+            Ok(ExitCode::from(exit::NOT_FOUND))
+        }
+        (Err(reason), Some(now)) if now == new => {
+            println!(
+                "serial {serial} at {line}: address {old} -> {new} (confirmed by a scan; the \
+                 write's reply was lost: {reason})"
+            );
+            Ok(ExitCode::SUCCESS)
+        }
+        (Err(reason), Some(now)) if now == old => {
+            eprintln!(
+                "serial {serial} at {line}: {reason}; a new scan shows it still at address {old}"
+            );
+            Ok(ExitCode::from(exit::NOT_FOUND))
+        }
+        (Err(reason), Some(now)) => {
+            eprintln!(
+                "serial {serial} at {line}: {reason}; a new scan shows it at address {now} \
+                 (neither {old} nor {new}): check with rtu2mqtt scan"
+            );
+            Ok(ExitCode::from(exit::NOT_FOUND))
+        }
+        (Err(reason), None) => {
+            eprintln!(
+                "serial {serial} at {line}: {reason}; the device no longer answers a scan at \
+                 {line}: it may have restarted or moved; check with rtu2mqtt scan"
+            );
+            Ok(ExitCode::from(exit::NOT_FOUND))
+        }
     }
 }
 
-/// The Fast Modbus devices at one setting of a port the service holds, as (serial, address).
+/// The Fast Modbus devices at one setting of a port the service holds, as (serial, address,
+/// the configured device at that address).
 async fn scan_via_service(
     session: &mut crate::rpc::client::RpcSession,
     path: &str,
     line: &LineSettings,
-) -> Result<Vec<(u32, u8)>, ExitCode> {
+) -> Result<Vec<(u32, u8, Option<ServiceDevice>)>, ExitCode> {
     let mut params = super::via_mqtt::line_params(line);
     params["path"] = serde_json::json!(path);
     let result = super::via_mqtt::service_call(
@@ -331,11 +358,25 @@ async fn scan_via_service(
         .into_iter()
         .flatten()
         .filter_map(|device| {
-            let serial = device["sn"].as_str()?.parse::<u32>().ok()?;
+            let serial = super::via_mqtt::scanned_serial(device)?;
             let address = u8::try_from(device["cfg"]["slave_id"].as_u64()?).ok()?;
-            Some((serial, address))
+            let configured = &device["configured_device"];
+            let configured = configured["id"].as_str().map(|id| ServiceDevice {
+                id: id.to_owned(),
+                serial: configured["sn"].as_str().and_then(|sn| sn.parse().ok()),
+            });
+            Some((serial, address, configured))
         })
         .collect())
+}
+
+/// A device in the running service's config, as its `port/Scan` names it
+/// (`configured_device`).
+#[derive(Debug, Clone, PartialEq, Eq)]
+struct ServiceDevice {
+    id: String,
+    /// The serial number the service read from it (its identity read), when it has.
+    serial: Option<u32>,
 }
 
 pub fn run_fix_addresses(args: FixAddressesArgs) -> anyhow::Result<ExitCode> {
@@ -361,6 +402,55 @@ fn print_changes(changes: &[AddressChange], applied: bool) {
     }
 }
 
+/// For every device moved off an address the service's config polls: which device keeps it
+/// (the one the service identified there), or that the config may need the new address.
+fn print_service_hints(
+    changes: &[AddressChange],
+    polled: &BTreeMap<u8, ServiceDevice>,
+    report: &ScanReport,
+    applied: bool,
+) {
+    for hint in service_hints(changes, polled, report, applied) {
+        eprintln!("{hint}");
+    }
+}
+
+fn service_hints(
+    changes: &[AddressChange],
+    polled: &BTreeMap<u8, ServiceDevice>,
+    report: &ScanReport,
+    applied: bool,
+) -> Vec<String> {
+    let mut hints = Vec::new();
+    for change in changes {
+        let Some(configured) = polled.get(&change.from) else {
+            continue;
+        };
+        let moved = serial_text(change.serial);
+        let (from, to, id) = (change.from, change.to, &configured.id);
+        let kept = report.devices.iter().find(|d| {
+            d.address == from
+                && same_on_the_wire(&d.line, &change.line)
+                && d.serial.is_some_and(|serial| report.keep.contains(&serial))
+        });
+        let verb = if applied { "moved" } else { "moves" };
+        hints.push(match kept.and_then(|d| d.serial) {
+            Some(kept) => format!(
+                "serial {moved} {verb} from address {from} to {to}: the service polls {id} at \
+                 {from}, and it read serial {} there, which keeps the address; if the service \
+                 should poll serial {moved} too, add it to its config at slave_id {to}",
+                serial_text(kept)
+            ),
+            None => format!(
+                "serial {moved} {verb} from address {from} to {to}: the service's config polls \
+                 {id} at {from}; if that is this device, change its slave_id to {to} in the \
+                 service's config"
+            ),
+        });
+    }
+    hints
+}
+
 /// What `fix-addresses` needs of a port: the port itself, or the running service that holds it.
 #[allow(async_fn_in_trait)]
 trait AddressBus {
@@ -378,6 +468,11 @@ trait AddressBus {
     ) -> Result<Result<(), String>, ExitCode>;
     /// A classic probe of `address` at `line`: what answered, None when nothing did (free).
     async fn probe(&mut self, line: LineSettings, address: u8) -> Result<Option<String>, ExitCode>;
+    /// The devices of the running service's config by address, as its scans named them (none
+    /// when the tool has the port itself).
+    fn service_devices(&self) -> BTreeMap<u8, ServiceDevice> {
+        BTreeMap::new()
+    }
 }
 
 impl AddressBus for ToolPort {
@@ -418,6 +513,8 @@ impl AddressBus for ToolPort {
 struct ServiceBus {
     session: crate::rpc::client::RpcSession,
     path: String,
+    /// The configured devices its scans named, by address.
+    configured: BTreeMap<u8, ServiceDevice>,
 }
 
 impl ServiceBus {
@@ -432,6 +529,7 @@ impl ServiceBus {
             Self {
                 session,
                 path: path.to_owned(),
+                configured: BTreeMap::new(),
             },
             home,
         ))
@@ -446,11 +544,19 @@ impl AddressBus for ServiceBus {
     ) -> Result<(), ExitCode> {
         for line in lines {
             report.settings_tried.push(*line);
-            for (serial, address) in scan_via_service(&mut self.session, &self.path, line).await? {
+            let found = scan_via_service(&mut self.session, &self.path, line).await?;
+            for (serial, address, configured) in found {
                 report.add_fast(*line, serial, address);
+                if let Some(configured) = configured {
+                    self.configured.insert(address, configured);
+                }
             }
         }
         Ok(())
+    }
+
+    fn service_devices(&self) -> BTreeMap<u8, ServiceDevice> {
+        self.configured.clone()
     }
 
     async fn write_address(
@@ -508,9 +614,8 @@ impl AddressBus for ServiceBus {
                     .unwrap_or_default(),
                 ))
             }
-            Err(crate::rpc::client::CallError::Refused(refused))
-                if refused.message.contains("no reply") =>
-            {
+            // Silence is -32600, as wb-mqtt-serial answers it (a total_timeout is not).
+            Err(crate::rpc::client::CallError::Refused(refused)) if refused.is_no_reply() => {
                 Ok(None)
             }
             Err(crate::rpc::client::CallError::Refused(refused))
@@ -601,6 +706,17 @@ async fn fix_addresses_steps(
     let plan = args.port.plan();
     let mut report = ScanReport::default();
     bus.scan(&plan, &mut report).await?;
+    // Through the service: the device it polls at an address (its identity read named it)
+    // keeps that address; the others move.
+    let polled = bus.service_devices();
+    report.keep = report
+        .devices
+        .iter()
+        .filter_map(|found| {
+            let known = polled.get(&found.address)?.serial?;
+            found.serial.filter(|&serial| same_serial(known, serial))
+        })
+        .collect();
     let duplicates = report.duplicates();
     if duplicates.is_empty() {
         println!(
@@ -616,6 +732,7 @@ async fn fix_addresses_steps(
     }
     if !args.apply {
         print_changes(&address_plan.changes, false);
+        print_service_hints(&address_plan.changes, &polled, &report, false);
         println!("dry run: nothing written; add --apply to write these addresses");
         return Ok(ExitCode::from(exit::NOT_FOUND));
     }
@@ -660,6 +777,7 @@ async fn fix_addresses_steps(
             );
         }
     }
+    print_service_hints(&address_plan.changes, &polled, &report, true);
     let left = check.duplicates();
     for duplicate in &left {
         eprintln!(
@@ -701,5 +819,234 @@ mod tests {
         assert!(probe_answer_text(&Answer::Garbled)
             .unwrap()
             .contains("unreadable reply"));
+    }
+}
+
+/// `set-address` and `fix-addresses` on a mock bus: what they write, scan and say.
+#[cfg(test)]
+mod steps_tests {
+    use super::*;
+    use crate::protocol::Parity;
+    use clap::Parser;
+
+    #[derive(Parser)]
+    struct SetAddress {
+        #[command(flatten)]
+        args: SetAddressArgs,
+    }
+
+    #[derive(Parser)]
+    struct FixAddresses {
+        #[command(flatten)]
+        args: FixAddressesArgs,
+    }
+
+    const HOME: LineSettings = LineSettings::new(9600, Parity::None, 2);
+
+    /// What a write of the address does to the device.
+    #[derive(Clone, Copy)]
+    enum Effect {
+        Moves,
+        Stays,
+        Vanishes,
+    }
+
+    /// Fast Modbus devices (serial, address) at 9600 8N2; every write of an address has
+    /// `effect` and gets `answer`.
+    struct MockBus {
+        devices: Vec<(u32, u8)>,
+        effect: Effect,
+        answer: Result<(), String>,
+        scans: usize,
+        writes: Vec<AddressChange>,
+        service: BTreeMap<u8, ServiceDevice>,
+    }
+
+    impl MockBus {
+        fn new(devices: &[(u32, u8)], effect: Effect, answer: Result<(), &str>) -> Self {
+            Self {
+                devices: devices.to_vec(),
+                effect,
+                answer: answer.map_err(str::to_owned),
+                scans: 0,
+                writes: Vec::new(),
+                service: BTreeMap::new(),
+            }
+        }
+    }
+
+    impl AddressBus for MockBus {
+        async fn scan(
+            &mut self,
+            lines: &[LineSettings],
+            report: &mut ScanReport,
+        ) -> Result<(), ExitCode> {
+            self.scans += 1;
+            for line in lines {
+                report.settings_tried.push(*line);
+                if same_on_the_wire(line, &HOME) {
+                    for &(serial, address) in &self.devices {
+                        report.add_fast(*line, serial, address);
+                    }
+                }
+            }
+            Ok(())
+        }
+
+        async fn write_address(
+            &mut self,
+            change: &AddressChange,
+        ) -> Result<Result<(), String>, ExitCode> {
+            self.writes.push(change.clone());
+            match self.effect {
+                Effect::Moves => {
+                    for device in &mut self.devices {
+                        if device.0 == change.serial {
+                            device.1 = change.to;
+                        }
+                    }
+                }
+                Effect::Stays => {}
+                Effect::Vanishes => self.devices.retain(|d| d.0 != change.serial),
+            }
+            Ok(self.answer.clone())
+        }
+
+        async fn probe(&mut self, _: LineSettings, _: u8) -> Result<Option<String>, ExitCode> {
+            Ok(None)
+        }
+
+        fn service_devices(&self) -> BTreeMap<u8, ServiceDevice> {
+            self.service.clone()
+        }
+    }
+
+    async fn set_address(bus: &mut MockBus) -> ExitCode {
+        let cli = SetAddress::parse_from([
+            "set-address",
+            "--port",
+            "/dev/null",
+            "--serial",
+            "5",
+            "--address",
+            "30",
+            "--baud",
+            "9600",
+            "--parity",
+            "N",
+        ]);
+        let plan = cli.args.port.plan();
+        set_address_steps(bus, &cli.args, &plan)
+            .await
+            .unwrap_or_else(|code| code)
+    }
+
+    /// The device takes the new address but the reply to the write is lost (noise, a
+    /// collision, a slow adapter): a new scan shows it at 30, which is what the tool reports.
+    #[tokio::test]
+    async fn set_address_checks_the_device_after_an_unanswered_write() {
+        for answer in [
+            "no reply to the write",
+            "unreadable reply to the write (bad CRC)",
+        ] {
+            let mut bus = MockBus::new(&[(5, 20)], Effect::Moves, Err(answer));
+            let code = set_address(&mut bus).await;
+            assert_eq!(bus.scans, 2, "no scan after the failed write ({answer})");
+            assert_eq!(
+                code,
+                ExitCode::SUCCESS,
+                "the device has address 30 ({answer})"
+            );
+        }
+    }
+
+    /// A failed write after which the device is still at its old address, or no longer
+    /// answers: checked by a scan, and exit 1.
+    #[tokio::test]
+    async fn set_address_reports_a_failed_write_as_the_new_scan_shows_it() {
+        for effect in [Effect::Stays, Effect::Vanishes] {
+            let mut bus = MockBus::new(&[(5, 20)], effect, Err("no reply to the write"));
+            let code = set_address(&mut bus).await;
+            assert_eq!(bus.scans, 2);
+            assert_eq!(code, ExitCode::from(exit::NOT_FOUND));
+        }
+        // A write answered as asked, confirmed by the scan.
+        let mut bus = MockBus::new(&[(5, 20)], Effect::Moves, Ok(()));
+        assert_eq!(set_address(&mut bus).await, ExitCode::SUCCESS);
+    }
+
+    fn fix_addresses_args() -> FixAddressesArgs {
+        FixAddresses::parse_from([
+            "fix-addresses",
+            "--port",
+            "/dev/null",
+            "--baud",
+            "9600",
+            "--parity",
+            "N",
+            "--apply",
+        ])
+        .args
+    }
+
+    /// Through the service, two devices share address 10, which the service's config polls;
+    /// its identity read named serial 9 there. Serial 9 keeps 10 (not the lower serial 5,
+    /// the rule without the service), and the tool says so for the device it moved.
+    #[tokio::test]
+    async fn fix_addresses_through_the_service_keeps_the_device_it_polls() {
+        let args = fix_addresses_args();
+        let mut bus = MockBus::new(&[(5, 10), (9, 10)], Effect::Moves, Ok(()));
+        let relay = ServiceDevice {
+            id: "relay_10".into(),
+            serial: Some(9),
+        };
+        bus.service.insert(10, relay.clone());
+        let code = fix_addresses_steps(&mut bus, &args)
+            .await
+            .unwrap_or_else(|code| code);
+        assert_eq!(code, ExitCode::SUCCESS);
+        let moved: Vec<u32> = bus.writes.iter().map(|w| w.serial).collect();
+        assert_eq!(
+            moved,
+            vec![5],
+            "the device the service polls at 10 was moved"
+        );
+
+        // The hint, for the moved device whose old address the config polls.
+        let mut report = ScanReport::default();
+        report.add_fast(HOME, 5, 10);
+        report.add_fast(HOME, 9, 10);
+        report.keep.insert(9);
+        let polled = BTreeMap::from([(10, relay)]);
+        let hints = service_hints(&bus.writes, &polled, &report, true);
+        assert_eq!(hints.len(), 1, "{hints:?}");
+        assert!(
+            hints[0].contains("relay_10") && hints[0].contains("which keeps the address"),
+            "{hints:?}"
+        );
+
+        // Serial number not read yet: the lowest serial keeps the address, and the hint says
+        // to change the config if the moved one is the polled device.
+        let mut bus = MockBus::new(&[(5, 10), (9, 10)], Effect::Moves, Ok(()));
+        let unknown = ServiceDevice {
+            id: "relay_10".into(),
+            serial: None,
+        };
+        bus.service.insert(10, unknown.clone());
+        fix_addresses_steps(&mut bus, &args)
+            .await
+            .unwrap_or_else(|code| code);
+        let moved: Vec<u32> = bus.writes.iter().map(|w| w.serial).collect();
+        assert_eq!(moved, vec![9]);
+        report.keep.clear();
+        let polled = BTreeMap::from([(10, unknown)]);
+        let hints = service_hints(&bus.writes, &polled, &report, true);
+        assert_eq!(hints.len(), 1, "{hints:?}");
+        assert!(
+            hints[0].contains("change its slave_id to 1 in the service's config"),
+            "{hints:?}"
+        );
+        // Addresses the config does not poll get no hint.
+        assert!(service_hints(&bus.writes, &BTreeMap::new(), &report, true).is_empty());
     }
 }

@@ -194,7 +194,7 @@ pub async fn scan_setting_via_service(
     }
     let mut seen = Vec::new();
     for device in result["devices"].as_array().into_iter().flatten() {
-        let serial = device["sn"].as_str().and_then(|sn| sn.parse::<u32>().ok());
+        let serial = scanned_serial(device);
         let address = device["cfg"]["slave_id"]
             .as_u64()
             .and_then(|a| u8::try_from(a).ok());
@@ -218,6 +218,16 @@ pub async fn scan_setting_via_service(
         }
     }
     Ok(seen)
+}
+
+/// The serial number a `port/Scan` result names a device by in requests by serial number: its
+/// `fast_modbus_sn` where the reported `sn` is not the whole number (a WB-MAP meter's lower 24
+/// bits, as wb-mqtt-serial reports it), else `sn`.
+pub fn scanned_serial(device: &Value) -> Option<u32> {
+    device["fast_modbus_sn"]
+        .as_str()
+        .or_else(|| device["sn"].as_str())
+        .and_then(|sn| sn.parse::<u32>().ok())
 }
 
 /// The port settings a device reported (`cfg` of a `port/Scan` result), when it read them.

@@ -4,11 +4,17 @@
 //! serves two queued transactions in a row while its scheduler has something to send.
 //!
 //! A caller that needs a sequence (a scan: start, continue, continue, ...) sends one transaction
-//! at a time and decides the next from the reply. The same queue carries the operator's holds
-//! on a device's polling (`device/SetPoll`), which take no bus time.
+//! at a time and decides the next from the reply. A scan holds the port's scan lease
+//! ([`BusQueue::scan_lease`]) from its start to its last read by serial number, so two scans
+//! never interleave (a scan start makes every device un-scanned again: the other scan would
+//! lose devices); the scheduler's own transactions still go between a scan's. The same queue
+//! carries the operator's holds on a device's polling (`device/SetPoll`), which take no bus
+//! time.
+
+use std::sync::Arc;
 
 use thiserror::Error;
-use tokio::sync::{mpsc, oneshot};
+use tokio::sync::{mpsc, oneshot, Mutex, OwnedMutexGuard};
 
 use crate::port::{Transaction, TransactionOutcome};
 use crate::protocol::LineSettings;
@@ -67,7 +73,16 @@ pub enum BusQueueError {
 #[derive(Clone, Debug)]
 pub struct BusQueue {
     sender: mpsc::Sender<QueuedJob>,
+    /// Held by the scan running on this port (see [`BusQueue::scan_lease`]).
+    scans: Arc<Mutex<()>>,
+    /// Per configured device of the port (by its index): the serial number the port's identity
+    /// read got last, for the RPC to tell which of several devices at one address is the one
+    /// the service polls.
+    identified: Arc<std::sync::Mutex<Vec<Option<u32>>>>,
 }
+
+/// The right to run a Fast Modbus scan on a port; the next scan starts when it is dropped.
+pub type ScanLease = OwnedMutexGuard<()>;
 
 /// The receiving side, owned by the port task.
 pub type BusQueueReceiver = mpsc::Receiver<QueuedJob>;
@@ -75,7 +90,49 @@ pub type BusQueueReceiver = mpsc::Receiver<QueuedJob>;
 impl BusQueue {
     pub fn new() -> (Self, BusQueueReceiver) {
         let (sender, receiver) = mpsc::channel(BUS_QUEUE_DEPTH);
-        (Self { sender }, receiver)
+        let scans = Arc::new(Mutex::new(()));
+        let identified = Arc::default();
+        (
+            Self {
+                sender,
+                scans,
+                identified,
+            },
+            receiver,
+        )
+    }
+
+    /// The port task read the serial number of its `device`-th device.
+    pub fn note_serial(&self, device: usize, serial: u32) {
+        let mut identified = self
+            .identified
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        if identified.len() <= device {
+            identified.resize(device + 1, None);
+        }
+        identified[device] = Some(serial);
+    }
+
+    /// The serial number last read from the port's `device`-th device (None: not read yet, or
+    /// the device has none).
+    pub fn identified_serial(&self, device: usize) -> Option<u32> {
+        self.identified
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .get(device)
+            .copied()
+            .flatten()
+    }
+
+    /// Waits until no other scan runs on this port (scans are served in the order they
+    /// asked), then holds the port for a scan: a scan chain (start, continue …, and the reads
+    /// by serial number of what it found) runs whole, as wb-mqtt-serial runs a scan as one
+    /// task. Only scans wait for each other; the scheduler and other queued requests go on
+    /// between the scan's transactions. Dropping the future (a total_timeout) gives up the
+    /// turn.
+    pub async fn scan_lease(&self) -> ScanLease {
+        Arc::clone(&self.scans).lock_owned().await
     }
 
     /// Sends `transaction` (at `line`, or the port's own settings) between the port's own
@@ -151,6 +208,39 @@ mod tests {
             late_window: Duration::ZERO,
             estimated: Duration::from_millis(10),
         }
+    }
+
+    #[test]
+    fn identified_serials_are_kept_per_device_for_every_clone() {
+        let (queue, _receiver) = BusQueue::new();
+        let rpc_side = queue.clone();
+        assert_eq!(rpc_side.identified_serial(2), None);
+        queue.note_serial(2, 0xFE00_0010);
+        assert_eq!(rpc_side.identified_serial(2), Some(0xFE00_0010));
+        assert_eq!(rpc_side.identified_serial(0), None);
+        queue.note_serial(2, 0xFE00_0011);
+        assert_eq!(rpc_side.identified_serial(2), Some(0xFE00_0011));
+    }
+
+    #[tokio::test]
+    async fn a_second_scan_waits_for_the_first_to_end() {
+        let (queue, _receiver) = BusQueue::new();
+        let first = queue.scan_lease().await;
+        let other = queue.clone();
+        let second = tokio::spawn(async move { other.scan_lease().await });
+        // Not granted while the first scan holds the port (one thread: the spawned task has
+        // run up to its wait) ...
+        for _ in 0..10 {
+            tokio::task::yield_now().await;
+        }
+        assert!(!second.is_finished());
+        drop(first);
+        // ... and granted once it ends.
+        drop(second.await.unwrap());
+        // Other ports scan on their own.
+        let (elsewhere, _receiver) = BusQueue::new();
+        let _held = queue.scan_lease().await;
+        drop(elsewhere.scan_lease().await);
     }
 
     #[tokio::test]

@@ -256,6 +256,10 @@ impl PortTask {
         }
         if let (Some(slot), Some(serial)) = (self.identity.serials.get_mut(device), read.serial) {
             *slot = Some(serial);
+            // For the RPC's scan: which device at an address is the one polled here.
+            if let Some(queue) = &self.queue {
+                queue.note_serial(device, serial);
+            }
         }
         // Channels held to a minimum firmware: read now, or never on this firmware. (An empty
         // read above keeps them waiting for the next one, when the device comes online.)

@@ -32,6 +32,10 @@ pub const MAX_EVENT_DATA_LEN: usize = MAX_FRAME_LEN - EVENT_PACKET_OVERHEAD;
 pub struct Request {
     pub address: u8,
     pub body: RequestBody,
+    /// The function code a Fast Modbus request goes out with: [`fast::FUNCTION`] (0x46), or
+    /// [`fast::LEGACY_FUNCTION`] (0x60) for a scan and its requests by serial number when a
+    /// client asks for the old command ([`Self::with_fast_function`]). Unused by classic requests.
+    pub fast_function: u8,
 }
 
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -60,6 +64,7 @@ impl Request {
         Self {
             address,
             body: RequestBody::Classic(pdu),
+            fast_function: fast::FUNCTION,
         }
     }
 
@@ -90,7 +95,15 @@ impl Request {
         Self {
             address,
             body: RequestBody::Fast(request),
+            fast_function: fast::FUNCTION,
         }
+    }
+
+    /// The same Fast Modbus request under another function code: 0x60, the deprecated scan
+    /// command that wb-device-manager still sends (its replies come under either code).
+    pub fn with_fast_function(mut self, function: u8) -> Self {
+        self.fast_function = function;
+        self
     }
 
     /// True when no reply may follow: a classic broadcast.
@@ -162,7 +175,7 @@ impl Request {
         match &self.body {
             RequestBody::Classic(pdu) => pdu.encode(&mut out)?,
             RequestBody::Fast(request) => {
-                out.push(fast::FUNCTION);
+                out.push(self.fast_function);
                 request.encode(&mut out)?;
             }
         }
@@ -172,11 +185,20 @@ impl Request {
     /// Decodes exactly one frame (CRC included).
     pub fn decode(frame: &[u8]) -> Result<Self, DecodeError> {
         let (address, body) = split_frame(frame)?;
-        let body = match body.split_first() {
-            Some((&fast::FUNCTION, rest)) => RequestBody::Fast(FastRequest::decode(rest)?),
-            _ => RequestBody::Classic(RequestPdu::decode(body)?),
+        let (body, fast_function) = match body.split_first() {
+            Some((&function, rest)) if fast::is_fast_function(function) => {
+                (RequestBody::Fast(FastRequest::decode(rest)?), function)
+            }
+            _ => (
+                RequestBody::Classic(RequestPdu::decode(body)?),
+                fast::FUNCTION,
+            ),
         };
-        Ok(Self { address, body })
+        Ok(Self {
+            address,
+            body,
+            fast_function,
+        })
     }
 
     /// The whole frame length (CRC included) judged from its first bytes.
@@ -186,7 +208,9 @@ impl Request {
         };
         let body_len = match pdu.split_first() {
             None => FrameLength::NeedMore,
-            Some((&fast::FUNCTION, rest)) => add(FastRequest::length_from_header(rest), 1),
+            Some((&function, rest)) if fast::is_fast_function(function) => {
+                add(FastRequest::length_from_header(rest), 1)
+            }
             Some(_) => RequestPdu::length_from_header(pdu),
         };
         add(body_len, 3)
@@ -297,6 +321,30 @@ mod tests {
 
     fn encoded_len(reply: &Reply) -> usize {
         reply.encode().map(|frame| frame.len()).unwrap_or(0)
+    }
+
+    #[test]
+    fn a_request_under_the_deprecated_0x60_keeps_its_code_both_ways() {
+        let request = Request::by_serial(
+            0xFE40_00AC,
+            RequestPdu::ReadHoldingRegisters {
+                start: 200,
+                count: 20,
+            },
+        )
+        .with_fast_function(fast::LEGACY_FUNCTION);
+        let frame = request.encode().unwrap();
+        assert_eq!(frame[..3], [0xFD, 0x60, 0x08]);
+        assert_eq!(
+            Request::length_from_header(&frame),
+            FrameLength::Known(frame.len())
+        );
+        assert_eq!(Request::decode(&frame), Ok(request));
+        // The usual code stays the default.
+        assert_eq!(
+            Request::scan_start().encode().unwrap(),
+            [0xFD, 0x46, 0x01, 0x13, 0x90]
+        );
     }
 
     #[test]

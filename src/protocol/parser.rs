@@ -191,7 +191,7 @@ pub fn answers(request: &Request, reply: &Reply) -> bool {
             matches!(reply, fast::FastReply::EventsConfigured { masks } if masks.len() == mask_len(ranges))
         }
         (RequestBody::Fast(_), ReplyBody::Classic(ResponsePdu::Exception { function, .. })) => {
-            *function == fast::FUNCTION
+            *function == request.fast_function
         }
         (RequestBody::Fast(_), ReplyBody::Fast { .. }) => true,
         _ => false,
@@ -416,7 +416,7 @@ impl RequestParser {
 fn rejected(frame: &[u8], exception: ExceptionCode) -> RejectedRequest {
     let at = |i: usize| frame.get(i).copied().unwrap_or(0);
     let by_serial =
-        (at(1) == fast::FUNCTION && at(2) == fast::BY_SERIAL_REQUEST && frame.len() >= 10)
+        (fast::is_fast_function(at(1)) && at(2) == fast::BY_SERIAL_REQUEST && frame.len() >= 10)
             .then(|| (u32::from_be_bytes([at(3), at(4), at(5), at(6)]), at(7)));
     RejectedRequest {
         address: at(0),

@@ -160,6 +160,22 @@ impl LineSettings {
         self.arbitration_wait() + self.arbitration_window()
     }
 
+    /// [`Self::scan_reply_timeout`] for the deprecated 0x60 scan: its first window opens 44
+    /// bits after the request and each is 20 bits long (32 windows), never shorter than the
+    /// 0x46 scan's.
+    pub fn legacy_scan_reply_timeout(&self) -> Duration {
+        let windows = u64::from(ARBITRATION_WINDOWS_SCAN) * LEGACY_SCAN_WINDOW_BITS;
+        self.bits_time(LEGACY_SCAN_WAIT_BITS + windows)
+            .max(self.scan_reply_timeout())
+    }
+
+    /// [`Self::scan_start_first_byte_timeout`] for the deprecated 0x60 scan: the end of its
+    /// first window (44 + 20 bits), never shorter than the 0x46 scan's.
+    pub fn legacy_scan_start_first_byte_timeout(&self) -> Duration {
+        self.bits_time(LEGACY_SCAN_WAIT_BITS + LEGACY_SCAN_WINDOW_BITS)
+            .max(self.scan_start_first_byte_timeout())
+    }
+
     /// How often the master asks for events: every 50 ms at 115200 baud and above, 100 ms from
     /// 38400, 200 ms below.
     pub fn event_poll_interval(&self) -> Duration {
@@ -307,6 +323,10 @@ impl ResponseTimer {
 pub const ARBITRATION_WAIT_BITS: u64 = 42;
 
 pub const ARBITRATION_WINDOWS_SCAN: u32 = 32;
+/// The deprecated 0x60 scan: bits from the end of the request to its first arbitration window.
+pub const LEGACY_SCAN_WAIT_BITS: u64 = 44;
+/// The deprecated 0x60 scan: bits of one arbitration window.
+pub const LEGACY_SCAN_WINDOW_BITS: u64 = 20;
 /// Windows of an event arbitration.
 pub const ARBITRATION_WINDOWS_EVENTS: u32 = 12;
 /// The window by which any event contender has sent a filler byte.
@@ -357,6 +377,21 @@ mod tests {
         );
         let at_9600 = LineSettings::new(9600, Parity::None, 2).frame_silence();
         assert!((micros(at_9600) - 4010.4).abs() < 0.1);
+    }
+
+    #[test]
+    fn the_legacy_scan_waits_for_its_longer_windows() {
+        // 9600: 44 + 32 × 20 bits = 684 bits = 71.25 ms (0x46: 47.7 ms); first byte by 64 bits.
+        let slow = LineSettings::new(9600, Parity::None, 2);
+        assert!((micros(slow.legacy_scan_reply_timeout()) - 71_250.0).abs() < 1.0);
+        assert!((micros(slow.legacy_scan_start_first_byte_timeout()) - 6_666.67).abs() < 1.0);
+        for baud in STANDARD_BAUD_RATES {
+            let line = LineSettings::new(baud, Parity::None, 2);
+            assert!(line.legacy_scan_reply_timeout() >= line.scan_reply_timeout());
+            assert!(
+                line.legacy_scan_start_first_byte_timeout() >= line.scan_start_first_byte_timeout()
+            );
+        }
     }
 
     #[test]

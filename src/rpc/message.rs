@@ -107,7 +107,17 @@ const NOT_SERVED_HERE: [&str; 3] = [
     "SerialClient wasn't found for requested port",
 ];
 
+/// How the message of a request that ran out of its `total_timeout` begins (code -32600, which
+/// `port/Load` also gives for a device that did not answer).
+pub const TOTAL_TIMEOUT_MESSAGE: &str = "RPC request timeout";
+
 impl RpcError {
+    /// A `port/Load` the device did not answer (wb-mqtt-serial's E_RPC_REQUEST_TIMEOUT), as
+    /// against a request that ran out of its `total_timeout` (same code).
+    pub fn is_no_reply(&self) -> bool {
+        self.code == code::REQUEST_TIMEOUT && !self.message.starts_with(TOTAL_TIMEOUT_MESSAGE)
+    }
+
     /// Whether the server said the port or device is not one it serves, so that another server
     /// on the same topics may still answer.
     pub fn is_not_served_here(&self) -> bool {
@@ -252,6 +262,15 @@ mod tests {
         let (id, error) = parse_request(br#"{"id": 3, "params": [1]}"#).unwrap_err();
         assert_eq!(id, json!(3));
         assert_eq!(error.code, code::SERVER_ERROR);
+    }
+
+    #[test]
+    fn silence_and_a_total_timeout_share_a_code_and_are_told_apart() {
+        let silence = RpcError::timeout("Port IO error: no reply from slave 99 on …");
+        assert!(silence.is_no_reply());
+        let total = RpcError::timeout(format!("{TOTAL_TIMEOUT_MESSAGE}: port/Load took longer"));
+        assert!(!total.is_no_reply());
+        assert!(!RpcError::server("Port IO error: no reply").is_no_reply());
     }
 
     #[test]

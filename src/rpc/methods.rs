@@ -25,7 +25,7 @@ use crate::protocol::timing::ADAPTER_LATENCY_ALLOWANCE;
 use crate::protocol::{LineSettings, Reply, ReplyBody, Request, RequestPdu, ResponsePdu};
 use crate::tools::adapter::Adapter;
 use crate::tools::bus::{scan_transaction, Answer, PortError, ToolBus};
-use crate::tools::report::ScanReport;
+use crate::tools::report::{same_serial, ScanReport};
 use crate::tools::values::standard_text;
 use crate::transport::fifo::sysfs_tty;
 use crate::transport::raw::RawRequest;
@@ -38,6 +38,8 @@ pub struct QueuedBus {
     latency: Duration,
     /// What the serial port is (a USB adapter or not), for requests at other settings.
     adapter: Option<Adapter>,
+    /// The function code of scans and requests by serial number (0x46, or 0x60 when asked).
+    fast_function: u8,
 }
 
 impl QueuedBus {
@@ -53,7 +55,14 @@ impl QueuedBus {
             home: access.line,
             latency: RPC_LATENCY,
             adapter,
+            fast_function: crate::protocol::fast::FUNCTION,
         }
+    }
+
+    /// Scans and requests by serial number under `function` (0x46 or 0x60).
+    fn with_fast_function(mut self, function: u8) -> Self {
+        self.fast_function = function;
+        self
     }
 
     /// Timeouts for requests at `line`: at other settings than the port's own (a client
@@ -77,6 +86,10 @@ const RPC_LATENCY: Duration = Duration::from_millis(50);
 impl ToolBus for QueuedBus {
     fn latency(&self) -> Duration {
         self.latency
+    }
+
+    fn fast_function(&self) -> u8 {
+        self.fast_function
     }
 
     async fn transact(
@@ -271,11 +284,18 @@ async fn port_load(ports: &PortDirectory, load: PortLoad) -> Result<Value, RpcEr
         (None, None) => String::new(),
     };
     load_result(&answer, load.format).map_err(|why| {
-        RpcError::server(format!(
+        let message = format!(
             "Port IO error: {why} from {target} on {} at {line} (response_timeout {} ms, tried twice)",
             access.name,
             load.response_timeout.as_millis()
-        ))
+        );
+        // wb-mqtt-serial answers silence with E_RPC_REQUEST_TIMEOUT (its
+        // TResponseTimeoutException), which wb-device-manager's bootloader scan relies on; any
+        // other failure is a server error.
+        match answer {
+            Answer::NoReply => RpcError::timeout(message),
+            _ => RpcError::server(message),
+        }
     })
 }
 
@@ -337,7 +357,12 @@ async fn port_scan(ports: &PortDirectory, scan: PortScan) -> Result<Value, RpcEr
         return Ok(json!({ "devices": [] }));
     }
     let line = request_line(&access, &scan.line);
-    let mut bus = QueuedBus::new(&access).for_line(line);
+    let mut bus = QueuedBus::new(&access)
+        .for_line(line)
+        .with_fast_function(scan.command);
+    // The whole scan (start … end, and the reads by serial number of what it found) is one
+    // turn on the port: another scan's start would make our devices un-scanned again.
+    let _lease = access.queue.scan_lease().await;
     let mut error = None;
     let found = match scan.mode {
         ScanMode::All => {
@@ -367,7 +392,8 @@ async fn port_scan(ports: &PortDirectory, scan: PortScan) -> Result<Value, RpcEr
                 Request::scan_start()
             } else {
                 Request::scan_continue()
-            };
+            }
+            .with_fast_function(scan.command);
             let transaction = scan_transaction(&line, request, start, bus.latency());
             match bus.transact(line, transaction).await.map_err(io_error)? {
                 TransactionOutcome::Reply(Reply {
@@ -402,9 +428,7 @@ async fn port_scan(ports: &PortDirectory, scan: PortScan) -> Result<Value, RpcEr
     for (serial, address) in found {
         let mut reader = Reader::BySerial(serial);
         let mut details = device_details(&mut bus, line, &mut reader, address, serial).await?;
-        if let Some(device_type) = configured_device_type(&access, address) {
-            details.insert("configured_device_type".into(), json!(device_type));
-        }
+        insert_configured(&mut details, &access, address, serial);
         devices.push(Value::Object(details));
     }
     let mut result = json!({ "devices": devices });
@@ -419,13 +443,38 @@ fn access_has_fast_modbus(access: &PortAccess) -> bool {
     config.port_type != PortType::ModbusTcp || config.connected_to_mge
 }
 
-fn configured_device_type(access: &PortAccess, address: u8) -> Option<String> {
-    access
+/// What a scan or probe result says of the configured device at `address` of a device found
+/// there with `serial`:
+/// - `configured_device_type`, as wb-mqtt-serial: the configured device's type, unless the
+///   service has read that device's serial number and it is another one;
+/// - `configured_device` (rtu2mqtt's own): `{"id": …, "sn": …}`, the configured device at this
+///   address and the serial number the service read from it (left out while unknown), so that
+///   `rtu2mqtt fix-addresses` keeps the address of the device the service polls.
+fn insert_configured(
+    details: &mut Map<String, Value>,
+    access: &PortAccess,
+    address: u8,
+    serial: u32,
+) {
+    let Some(index) = access
         .resolved
         .devices
         .iter()
-        .find(|d| d.slave_id == address)
-        .and_then(|d| d.device_type.clone())
+        .position(|d| d.slave_id == address)
+    else {
+        return;
+    };
+    let device = &access.resolved.devices[index];
+    let identified = access.queue.identified_serial(index);
+    let mut configured = json!({ "id": device.id });
+    if let Some(known) = identified {
+        configured["sn"] = json!(known.to_string());
+    }
+    details.insert("configured_device".into(), configured);
+    let this_one = identified.is_none_or(|known| same_serial(known, serial));
+    if let (Some(device_type), true) = (&device.device_type, this_one) {
+        details.insert("configured_device_type".into(), json!(device_type));
+    }
 }
 
 /// `device/Probe`: a Wiren Board device at a given address (classic requests): its serial
@@ -500,9 +549,7 @@ async fn device_probe(ports: &PortDirectory, probe: DeviceProbe) -> Result<Value
         }
     };
     let mut details = device_details(&mut bus, line, &mut reader, probe.slave_id, serial).await?;
-    if let Some(device_type) = configured_device_type(&access, probe.slave_id) {
-        details.insert("configured_device_type".into(), json!(device_type));
-    }
+    insert_configured(&mut details, &access, probe.slave_id, serial);
     Ok(Value::Object(details))
 }
 
@@ -1278,6 +1325,21 @@ async fn read_model(
     }
 }
 
+/// The serial number a device is reported by, as wb-mqtt-serial reports it
+/// (`GetSnFromRegister`): a WB-MAP energy meter's (signature `^MAP[0-9]{1,2}.*`) lower 24 bits,
+/// the number on its label; every other device's whole number. Requests by serial number
+/// still carry all 32 bits.
+pub fn reported_sn(serial: u32, signature: Option<&str>) -> u32 {
+    let map_meter = signature
+        .and_then(|signature| signature.strip_prefix("MAP"))
+        .is_some_and(|rest| rest.starts_with(|c: char| c.is_ascii_digit()));
+    if map_meter {
+        serial & 0x00FF_FFFF
+    } else {
+        serial
+    }
+}
+
 async fn device_details(
     bus: &mut QueuedBus,
     line: LineSettings,
@@ -1292,13 +1354,19 @@ async fn device_details(
         Err(answer) => Err(describe(&answer)),
     };
     let model = text(read_model(bus, line, reader).await?);
+    let reported = reported_sn(serial, model.as_deref().ok());
     match model {
         Ok(model) => {
             details.insert("device_signature".into(), json!(model));
         }
         Err(why) => errors.push(error_entry("read_device_signature", &why)),
     }
-    details.insert("sn".into(), json!(serial.to_string()));
+    details.insert("sn".into(), json!(reported.to_string()));
+    if reported != serial {
+        // rtu2mqtt's own: the whole number, which requests by serial number (`sn` of
+        // port/Load and port/Setup) need.
+        details.insert("fast_modbus_sn".into(), json!(serial.to_string()));
+    }
     match text(
         reader
             .read(bus, line, wb_register::SIGNATURE, 12)
@@ -1350,6 +1418,22 @@ async fn device_details(
 mod tests {
     use super::*;
     use crate::protocol::ExceptionCode;
+
+    #[test]
+    fn a_map_meter_is_reported_by_its_lower_24_bits_as_wb_mqtt_serial_does() {
+        assert_eq!(reported_sn(0xFE12_3456, Some("MAP12E")), 0x12_3456);
+        assert_eq!(reported_sn(0xFE12_3456, Some("MAP3EV")), 0x12_3456);
+        assert_eq!(reported_sn(0xFE12_3456, Some("MAP6S")), 0x12_3456);
+        for other in [
+            Some("WBMR6C"),
+            Some("MAP"),
+            Some("MAPX"),
+            Some("WB-MAP12E"),
+            None,
+        ] {
+            assert_eq!(reported_sn(0xFE12_3456, other), 0xFE12_3456, "{other:?}");
+        }
+    }
 
     #[test]
     fn values_are_numbers_where_the_text_is_one() {

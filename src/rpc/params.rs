@@ -129,6 +129,9 @@ pub struct PortScan {
     pub port: PortSelector,
     pub line: LineOverride,
     pub mode: ScanMode,
+    /// The Fast Modbus function code of the scan and its requests by serial number: 0x46, or
+    /// 0x60 (`"command": 96`, the deprecated one wb-device-manager sends for every scan).
+    pub command: u8,
     pub total_timeout: Duration,
 }
 
@@ -285,15 +288,18 @@ pub fn parse_method(service: &str, method: &str, params: &Value) -> Result<Metho
                     return Err(bad("mode", format!("{other:?}: use all, start or next")))
                 }
             },
+            command: match optional_uint(fields, "command")? {
+                None | Some(0x46) => crate::protocol::fast::FUNCTION,
+                Some(0x60) => crate::protocol::fast::LEGACY_FUNCTION,
+                Some(other) => {
+                    return Err(bad(
+                        "command",
+                        format!("{other}: use 70 (0x46) or 96 (0x60, the deprecated one)"),
+                    ))
+                }
+            },
             total_timeout: total_timeout(fields)?,
-        }))
-        .and_then(|method| match optional_uint(fields, "command")? {
-            None | Some(0x46) => Ok(method),
-            Some(0x60) => Err(RpcError::server(
-                "command 96 (0x60, the old scan command) is not supported: use 70 (0x46)",
-            )),
-            Some(other) => Err(bad("command", format!("{other}: use 70 (0x46)"))),
-        }),
+        })),
         ("device", "Probe") => Ok(Method::DeviceProbe(DeviceProbe {
             port: port_selector(fields)?,
             line: line_override(fields)?,
@@ -408,6 +414,12 @@ fn value_map(fields: &Map<String, Value>, name: &str) -> Result<Vec<(String, Str
         .collect()
 }
 
+/// The baud rates `port/Setup` writes (wb-mqtt-serial-rpc-port-setup-request.schema.json's
+/// `cfg.baud_rate` enum).
+pub const SETUP_BAUD_RATES: [u32; 12] = [
+    110, 300, 600, 1200, 2400, 4800, 9600, 19200, 38400, 57600, 115_200, 230_400,
+];
+
 fn setup_items(fields: &Map<String, Value>) -> Result<Vec<SetupItem>, RpcError> {
     let Some(Value::Array(items)) = fields.get("items") else {
         return Err(bad("items", "missing: a list of {slave_id, sn?, cfg: {…}}"));
@@ -428,6 +440,19 @@ fn setup_items(fields: &Map<String, Value>) -> Result<Vec<SetupItem>, RpcError> 
                 cfg_line.remove("parity");
             }
             let settings = line_override(&cfg_line)?;
+            if let Some(baud) = settings.baud_rate {
+                // Holding 110 takes baud / 100: only rates a device can be set to, as
+                // wb-mqtt-serial's schema lists them (checked before anything is written).
+                if !SETUP_BAUD_RATES.contains(&baud) {
+                    return Err(bad(
+                        "cfg.baud_rate",
+                        format!(
+                            "{baud}: a device can be set to {}",
+                            SETUP_BAUD_RATES.map(|b| b.to_string()).join(", ")
+                        ),
+                    ));
+                }
+            }
             let cfg_parity = match cfg.get("parity") {
                 // The register's own numbers are taken too: 0 N, 1 O, 2 E.
                 Some(Value::Number(n)) => match n.as_u64() {
@@ -1193,7 +1218,8 @@ mod tests {
         };
         assert_eq!(scan.mode, ScanMode::Start);
         assert_eq!(scan.total_timeout, DEFAULT_TOTAL_TIMEOUT);
-        assert!(parse("port", "Scan", json!({"path": "/dev/x", "command": 96})).is_err());
+        assert_eq!(scan.command, 0x46);
+        assert!(parse("port", "Scan", json!({"path": "/dev/x", "command": 71})).is_err());
         assert!(parse("port", "Scan", json!({"path": "/dev/x", "mode": "some"})).is_err());
         let probe = parse(
             "device",
@@ -1214,5 +1240,57 @@ mod tests {
             })
         );
         assert!(parse("device", "Probe", json!({"path": "/dev/x"})).is_err());
+    }
+
+    /// wb-device-manager (the web UI's scan) sends every Fast Modbus `port/Scan` with
+    /// `"command": 96` (fast_modbus_scan.py / main.py: "Use 0x60 for scanning as the last device
+    /// with deprecated command only was sold 18.12.24"); wb-mqtt-serial serves it
+    /// (rpc_port_scan_serial_client_task.cpp: `ModbusExt::Scan(port, rpcRequest->ModbusExtCommand, …)`).
+    #[test]
+    fn port_scan_takes_command_96_as_wb_device_manager_sends_it() {
+        let params = json!({"path": "/dev/ttyRS485-1", "baud_rate": 9600, "parity": "N",
+                            "data_bits": 8, "stop_bits": 2, "command": 96,
+                            "total_timeout": 10000});
+        let parsed = parse_method("port", "Scan", &params);
+        assert!(
+            matches!(parsed, Ok(Method::PortScan(PortScan { command: 0x60, .. }))),
+            "wb-device-manager's scan request refused: {parsed:?}"
+        );
+    }
+
+    /// wb-mqtt-serial-rpc-port-setup-request.schema.json: `cfg.baud_rate` is one of
+    /// 110..230400 (enum), validated before anything is written; holding 110 gets `baud / 100`,
+    /// so 12345 would become 123 (the device then talks at 12300 baud and is lost). The line
+    /// override beside `slave_id` keeps its own range.
+    #[test]
+    fn port_setup_refuses_a_baud_rate_no_device_can_take() {
+        for baud in [12_345_u32, 9601, 250_000, 1_000_000, 150] {
+            let params = json!({"path": "/dev/x",
+                                "items": [{"slave_id": 1, "cfg": {"baud_rate": baud}}]});
+            let parsed = parse_method("port", "Setup", &params);
+            assert!(
+                parsed.is_err(),
+                "cfg.baud_rate {baud} accepted (holding 110 would get {}): {parsed:?}",
+                baud / 100
+            );
+        }
+        let ok = parse_method(
+            "port",
+            "Setup",
+            &json!({"path": "/dev/x", "baud_rate": 250_000,
+                    "items": [{"slave_id": 1, "baud_rate": 250_000,
+                               "cfg": {"baud_rate": 230_400}}]}),
+        );
+        assert!(matches!(ok, Ok(Method::PortSetup(_))), "{ok:?}");
+        let refused = parse_method(
+            "port",
+            "Setup",
+            &json!({"path": "/dev/x", "items": [{"slave_id": 1, "cfg": {"baud_rate": 12345}}]}),
+        )
+        .unwrap_err();
+        assert!(
+            refused.message.contains("cfg.baud_rate") && refused.message.contains("115200"),
+            "{refused:?}"
+        );
     }
 }

@@ -12,6 +12,7 @@ use tracing::{debug, info, warn};
 
 use super::message::{
     advertised_topic, parse_request, reply_payload, RequestTopic, RpcError, REQUEST_FILTER,
+    TOTAL_TIMEOUT_MESSAGE,
 };
 use super::methods::{execute_with_templates, DeviceTemplates};
 use super::params::{parse_method, SERVED};
@@ -162,7 +163,7 @@ pub async fn serve(
     {
         Ok(outcome) => outcome,
         Err(_) => Err(RpcError::timeout(format!(
-            "RPC request timeout: {} took longer than total_timeout ({} ms)",
+            "{TOTAL_TIMEOUT_MESSAGE}: {} took longer than total_timeout ({} ms)",
             topic.name(),
             total_timeout.as_millis()
         ))),

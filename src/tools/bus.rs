@@ -16,7 +16,8 @@ use tracing::{debug, info, warn};
 
 use crate::port::{Transaction, TransactionOutcome};
 use crate::protocol::{
-    fast::FastReply, LineSettings, Parity, Reply, ReplyBody, Request, RequestPdu, ResponsePdu,
+    fast::{self, FastReply},
+    LineSettings, Parity, Reply, ReplyBody, Request, RequestPdu, ResponsePdu,
 };
 use crate::transport::fifo::{self, FifoForTool};
 use crate::transport::{Endpoint, Transport, TransportError};
@@ -211,6 +212,12 @@ pub trait ToolBus {
     /// Added to every timeout: what a USB adapter and a loaded machine add.
     fn latency(&self) -> Duration;
 
+    /// The function code of the scan and of requests by serial number: 0x46, or 0x60 for a
+    /// client that asks for the deprecated command (`port/Scan` `"command": 96`).
+    fn fast_function(&self) -> u8 {
+        fast::FUNCTION
+    }
+
     /// One transaction at `line`.
     async fn transact(
         &mut self,
@@ -229,7 +236,8 @@ pub trait ToolBus {
         let mut seen = Vec::new();
         let mut garbled_in_a_row = 0;
         let mut retried_silence = false;
-        let mut request = Request::scan_start();
+        let function = self.fast_function();
+        let mut request = Request::scan_start().with_fast_function(function);
         for round in 0..MAX_SCAN_ROUNDS {
             let transaction = scan_transaction(&line, request.clone(), round == 0, self.latency());
             match self.transact(line, transaction).await? {
@@ -248,7 +256,7 @@ pub trait ToolBus {
                             seen.push((serial, modbus_address));
                             report.add_fast(line, serial, modbus_address);
                         }
-                        request = Request::scan_continue();
+                        request = Request::scan_continue().with_fast_function(function);
                     }
                     FastReply::ScanEnd => return Ok(seen),
                     other => {
@@ -274,7 +282,7 @@ pub trait ToolBus {
                 // a late reply was lost to a busy adapter or machine. Ask once more.
                 TransactionOutcome::NoReply if !retried_silence => {
                     retried_silence = true;
-                    request = Request::scan_continue();
+                    request = Request::scan_continue().with_fast_function(function);
                 }
                 TransactionOutcome::NoReply => {
                     report.problems.push(SettingProblem {
@@ -300,7 +308,7 @@ pub trait ToolBus {
                         });
                         return Ok(seen);
                     }
-                    request = Request::scan_continue();
+                    request = Request::scan_continue().with_fast_function(function);
                 }
             }
         }
@@ -320,7 +328,7 @@ pub trait ToolBus {
         pdu: RequestPdu,
         timeout: Duration,
     ) -> Result<Answer, PortError> {
-        let request = Request::by_serial(serial, pdu);
+        let request = Request::by_serial(serial, pdu).with_fast_function(self.fast_function());
         let transaction = Transaction::to_device(&line, request, timeout + self.latency());
         Ok(match self.transact(line, transaction).await? {
             TransactionOutcome::Reply(Reply {
@@ -532,7 +540,8 @@ fn classify(path: &str, source: io::Error) -> PortError {
 
 /// Timeouts of a scan request: after a scan start every device takes part, so the first window
 /// already carries a byte when anyone uses this setting (an empty setting costs a few ms); after
-/// a continue the winner may need every window.
+/// a continue the winner may need every window. A request under the deprecated 0x60 is timed
+/// with its longer windows.
 pub fn scan_transaction(
     line: &LineSettings,
     request: Request,
@@ -540,13 +549,21 @@ pub fn scan_transaction(
     latency: Duration,
 ) -> Transaction {
     let request_time = line.wire_time(request.encode().map(|b| b.len()).unwrap_or(5));
-    let first_byte = if start {
-        line.scan_start_first_byte_timeout()
+    let legacy = request.fast_function == fast::LEGACY_FUNCTION;
+    let (scan_reply, start_first_byte) = if legacy {
+        (
+            line.legacy_scan_reply_timeout(),
+            line.legacy_scan_start_first_byte_timeout(),
+        )
     } else {
-        line.scan_reply_timeout()
+        (
+            line.scan_reply_timeout(),
+            line.scan_start_first_byte_timeout(),
+        )
     };
+    let first_byte = if start { start_first_byte } else { scan_reply };
     // 32 windows of filler bytes at most, then the 10-byte scan reply.
-    let reply_timeout = line.scan_reply_timeout() + line.wire_time(32 + 10);
+    let reply_timeout = scan_reply + line.wire_time(32 + 10);
     Transaction {
         estimated: request_time + reply_timeout,
         request_time,
@@ -632,5 +649,27 @@ mod tests {
             assert_eq!(next.late_window, latency);
             assert!(next.reply_timeout > line.scan_reply_timeout());
         }
+    }
+
+    #[test]
+    fn a_legacy_scan_goes_out_under_0x60_and_waits_for_its_windows() {
+        let line = LineSettings::new(9600, Parity::None, 2);
+        let request = Request::scan_start().with_fast_function(fast::LEGACY_FUNCTION);
+        assert_eq!(request.encode().unwrap()[..3], [0xFD, 0x60, 0x01]);
+        let start = scan_transaction(&line, request, true, Duration::ZERO);
+        assert_eq!(
+            start.first_byte_timeout,
+            Some(line.legacy_scan_start_first_byte_timeout())
+        );
+        let next = Request::scan_continue().with_fast_function(fast::LEGACY_FUNCTION);
+        let next = scan_transaction(&line, next, false, Duration::ZERO);
+        assert_eq!(
+            next.first_byte_timeout,
+            Some(line.legacy_scan_reply_timeout())
+        );
+        assert_eq!(
+            next.reply_timeout,
+            line.legacy_scan_reply_timeout() + line.wire_time(42)
+        );
     }
 }

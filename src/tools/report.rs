@@ -62,6 +62,9 @@ pub struct ScanReport {
     pub classic_probes: usize,
     /// The scan went through the running service (MQTT RPC), not the port.
     pub through_service: bool,
+    /// Serial numbers that keep their address when they share it: the devices the running
+    /// service polls there (its identity read named them), so a fix moves the others.
+    pub keep: BTreeSet<u32>,
 }
 
 /// Devices that share an address at one setting (stop bits aside: both hear the same request):
@@ -90,6 +93,13 @@ pub struct AddressChange {
 pub struct AddressPlan {
     pub changes: Vec<AddressChange>,
     pub unresolved: Vec<String>,
+}
+
+/// Whether a serial number read from a device's registers (the service's identity read) is
+/// the one a scan gave: the same number, or its lower 24 bits (a WB-MAP meter's, as
+/// wb-mqtt-serial reports it).
+pub fn same_serial(read: u32, scanned: u32) -> bool {
+    read == scanned || read == scanned & 0x00FF_FFFF
 }
 
 pub fn serialize_line<S: serde::Serializer>(
@@ -262,7 +272,8 @@ impl ScanReport {
 
     /// Free addresses for the second and later devices of every duplicate, lowest first within
     /// `range`. The device that keeps the address: a classic one (it cannot be moved by serial
-    /// number), else the lowest serial number (so the plan is the same on every run). Addresses
+    /// number), else one the service polls there ([`Self::keep`]), else the lowest serial
+    /// number (so the plan is the same on every run). Addresses
     /// in use at any setting count as taken, so devices stay unique if the bus is later moved to
     /// one setting.
     pub fn plan_addresses(&self, range: (u8, u8)) -> AddressPlan {
@@ -281,7 +292,10 @@ impl ScanReport {
                 .iter()
                 .filter_map(|&i| self.devices.get(i))
                 .collect();
-            members.sort_by_key(|d| (d.serial.is_some(), d.serial));
+            members.sort_by_key(|d| {
+                let polled = d.serial.is_some_and(|serial| self.keep.contains(&serial));
+                (d.serial.is_some(), !polled, d.serial)
+            });
             let classic = members.iter().filter(|d| d.serial.is_none()).count();
             if classic > 1 {
                 plan.unresolved.push(format!(
@@ -456,6 +470,34 @@ mod tests {
             ]
         );
         assert!(plan.unresolved.is_empty());
+    }
+
+    #[test]
+    fn a_serial_read_from_registers_matches_the_scanned_one_or_its_lower_24_bits() {
+        assert!(same_serial(0xFE00_0010, 0xFE00_0010));
+        assert!(same_serial(0x12_3456, 0xFE12_3456));
+        assert!(!same_serial(0xFE00_0011, 0xFE00_0010));
+    }
+
+    #[test]
+    fn the_device_the_service_polls_keeps_its_address_whatever_its_serial() {
+        let mut report = ScanReport::default();
+        report.add_fast(SLOW, 5, 10);
+        report.add_fast(SLOW, 9, 10);
+        report.add_fast(SLOW, 7, 10);
+        report.keep.insert(9);
+        let plan = report.plan_addresses((1, 247));
+        let moved: Vec<u32> = plan.changes.iter().map(|c| c.serial).collect();
+        assert_eq!(moved, vec![5, 7]);
+        // A polled serial elsewhere changes nothing here.
+        report.keep = BTreeSet::from([42]);
+        let moved: Vec<u32> = report
+            .plan_addresses((1, 247))
+            .changes
+            .iter()
+            .map(|c| c.serial)
+            .collect();
+        assert_eq!(moved, vec![7, 9]);
     }
 
     #[test]
