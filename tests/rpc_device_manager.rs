@@ -1,7 +1,6 @@
 //! wb-mqtt-serial parity of the MQTT RPC where wb-device-manager (the web UI's scan) depends on
 //! it, and scans that run beside each other: a daemon on the simulator, a real mosquitto. Each
-//! test came with a review of the site tools and the RPC (branch review-tools) and failed on
-//! the code before its fix.
+//! test came with a review of the site tools and the RPC and failed on the code before its fix.
 
 #[path = "daemon_support/mod.rs"]
 mod daemon_support;
@@ -21,7 +20,7 @@ use sim_support::SimProcess;
 async fn rpc(port: u16, service: &str, method: &str, params: Value) -> Value {
     static CALLS: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
     let n = CALLS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-    let client_id = format!("review-rpc-{}-{method}-{n}", std::process::id());
+    let client_id = format!("dm-rpc-{}-{method}-{n}", std::process::id());
     let request_topic = format!("/rpc/v1/wb-mqtt-serial/{service}/{method}/{client_id}");
     let reply_topic = format!("{request_topic}/reply");
     let payload = json!({"id": 1, "params": params}).to_string();
