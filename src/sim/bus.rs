@@ -12,8 +12,8 @@ use crate::protocol::frame::{CLASSIC_BROADCAST, MAX_DEVICE_ADDRESS};
 use crate::protocol::parser::ARBITRATION_FILLER;
 use crate::protocol::{
     arbitrate, ArbitrationWord, EventPoll, EventUrgency, ExceptionCode, FastReply, FastRequest,
-    LineSettings, ParsedRequest, RegisterType, RejectedRequest, Reply, RequestBody, RequestPdu,
-    ResponsePdu,
+    LineSettings, ParsedRequest, RegisterType, RejectedRequest, Reply, ReplyBody, RequestBody,
+    RequestPdu, ResponsePdu,
 };
 
 use super::device::{ValueChange, VirtualDevice};
@@ -257,6 +257,7 @@ impl Bus {
                         .collect();
                     self.fast_broadcast(
                         fast,
+                        request.fast_function,
                         &fast_listeners,
                         received,
                         &mut replies,
@@ -264,7 +265,14 @@ impl Bus {
                     );
                 }
                 RequestBody::Fast(fast) => {
-                    self.fast_addressed(request.address, fast, &listeners, received, &mut replies);
+                    self.fast_addressed(
+                        request.address,
+                        fast,
+                        request.fast_function,
+                        &listeners,
+                        received,
+                        &mut replies,
+                    );
                 }
             },
         }
@@ -402,6 +410,7 @@ impl Bus {
         &mut self,
         address: u8,
         request: &FastRequest,
+        function: u8,
         listeners: &[usize],
         received: &ReceivedRequest,
         replies: &mut Vec<PlannedReply>,
@@ -415,21 +424,25 @@ impl Bus {
             };
             let line = device.line();
             let reply = match request {
-                FastRequest::ConfigureEvents { ranges } if device.fast => Reply::fast(
+                FastRequest::ConfigureEvents { ranges } if device.fast => fast_reply(
+                    function,
                     address,
                     FastReply::EventsConfigured {
                         masks: device.configure_events(ranges),
                     },
                 ),
-                _ => illegal_function(address, crate::protocol::fast::FUNCTION),
+                _ => illegal_function(address, function),
             };
             replies.extend(self.plan(index, &reply, line, received));
         }
     }
 
+    /// `function`: 0x46, or the deprecated 0x60, which the devices answer under the code they
+    /// were asked with, and a scan under it with the legacy timing.
     fn fast_broadcast(
         &mut self,
         request: &FastRequest,
+        function: u8,
         listeners: &[usize],
         received: &ReceivedRequest,
         replies: &mut Vec<PlannedReply>,
@@ -451,12 +464,18 @@ impl Bus {
                         Some((i, ArbitrationWord::scan(d.serial, d.is_scanned())))
                     })
                     .collect();
-                self.arbitration_round(&contenders, received, replies, fillers, |device| {
+                let timing = if function == crate::protocol::fast::LEGACY_FUNCTION {
+                    ArbitrationTiming::LegacyScan
+                } else {
+                    ArbitrationTiming::Standard
+                };
+                self.arbitration_round(&contenders, timing, received, replies, fillers, |device| {
                     if device.is_scanned() {
-                        Reply::fast(BROADCAST_ADDRESS, FastReply::ScanEnd)
+                        fast_reply(function, BROADCAST_ADDRESS, FastReply::ScanEnd)
                     } else {
                         device.set_scanned(true);
-                        Reply::fast(
+                        fast_reply(
+                            function,
                             BROADCAST_ADDRESS,
                             FastReply::ScanFound {
                                 serial: device.serial,
@@ -467,7 +486,7 @@ impl Bus {
                 });
             }
             FastRequest::PollEvents(poll) => {
-                self.event_round(poll, listeners, received, replies, fillers)
+                self.event_round(poll, function, listeners, received, replies, fillers)
             }
             FastRequest::BySerial { serial, pdu } => {
                 for &index in listeners {
@@ -483,7 +502,8 @@ impl Bus {
                         received.end_on_wire(&line),
                         ChangeOrigin::Master,
                     );
-                    let reply = Reply::fast(
+                    let reply = fast_reply(
+                        function,
                         BROADCAST_ADDRESS,
                         FastReply::BySerial {
                             serial: *serial,
@@ -501,6 +521,7 @@ impl Bus {
     fn event_round(
         &mut self,
         poll: &EventPoll,
+        function: u8,
         listeners: &[usize],
         received: &ReceivedRequest,
         replies: &mut Vec<PlannedReply>,
@@ -537,12 +558,14 @@ impl Bus {
         }
         self.stats.max_event_contenders = self.stats.max_event_contenders.max(with_events);
         let max_data_len = poll.max_data_len;
-        self.arbitration_round(&contenders, received, replies, fillers, |device| {
+        let timing = ArbitrationTiming::Standard;
+        self.arbitration_round(&contenders, timing, received, replies, fillers, |device| {
             if device.event_urgency() == EventUrgency::Nothing {
-                Reply::fast(BROADCAST_ADDRESS, FastReply::NoEvents)
+                fast_reply(function, BROADCAST_ADDRESS, FastReply::NoEvents)
             } else {
                 let address = device.address();
-                Reply::fast(
+                fast_reply(
+                    function,
                     address,
                     FastReply::Events(device.event_packet(max_data_len)),
                 )
@@ -555,6 +578,7 @@ impl Bus {
     fn arbitration_round(
         &mut self,
         contenders: &[(usize, ArbitrationWord)],
+        timing: ArbitrationTiming,
         received: &ReceivedRequest,
         replies: &mut Vec<PlannedReply>,
         fillers: &mut Vec<Burst>,
@@ -579,8 +603,16 @@ impl Bus {
         else {
             return;
         };
-        let first_window = received.end_on_wire(&line) + line.device_arbitration_wait();
-        let window = line.arbitration_window();
+        let (wait, window) = match timing {
+            ArbitrationTiming::Standard => {
+                (line.device_arbitration_wait(), line.arbitration_window())
+            }
+            ArbitrationTiming::LegacyScan => (
+                line.bits_time(crate::protocol::timing::LEGACY_SCAN_WAIT_BITS),
+                line.bits_time(crate::protocol::timing::LEGACY_SCAN_WINDOW_BITS),
+            ),
+        };
+        let first_window = received.end_on_wire(&line) + wait;
         for (index, &dominant) in outcome.dominant_windows.iter().enumerate() {
             if dominant {
                 fillers.push(Burst {
@@ -655,6 +687,23 @@ impl Bus {
         }
         bursts.sort_by_key(|burst| burst.start);
         Transmission { bursts }
+    }
+}
+
+/// When a device's arbitration windows open and how long each lasts.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum ArbitrationTiming {
+    /// The extension's: 42 bits (and 800 µs) after the request, windows of 12 bits and a reserve.
+    Standard,
+    /// A scan under the deprecated 0x60: 44 bits after the request, windows of 20 bits.
+    LegacyScan,
+}
+
+/// A Fast Modbus reply under `function` (0x46, or 0x60 when asked under 0x60).
+fn fast_reply(function: u8, address: u8, reply: FastReply) -> Reply {
+    Reply {
+        address,
+        body: ReplyBody::Fast { function, reply },
     }
 }
 

@@ -275,6 +275,39 @@ fn arbitration_is_timed_window_by_window() {
     assert!(frame_burst.start <= end + FAST_LINE.scan_reply_timeout());
 }
 
+/// A scan under the deprecated 0x60 (what wb-device-manager sends) is answered under 0x60 with
+/// the legacy timing: the first window 44 bits after the request, windows of 20 bits; reads by
+/// serial number under 0x60 are answered under 0x60 too.
+#[test]
+fn a_legacy_scan_is_answered_under_0x60_with_its_own_windows() {
+    use crate::protocol::fast::LEGACY_FUNCTION;
+    let mut bus = seed_bus();
+    let at = Duration::from_millis(1);
+    let frame = Request::scan_start()
+        .with_fast_function(LEGACY_FUNCTION)
+        .encode()
+        .unwrap();
+    assert_eq!(frame[1], 0x60);
+    let reply = bus.exchange(&frame, master(), at);
+    let end = at + FAST_LINE.wire_time(frame.len());
+    let first_window = end + FAST_LINE.bits_time(44);
+    let window = FAST_LINE.bits_time(20);
+    assert_eq!(reply.bursts[0].start, first_window);
+    assert_eq!(reply.bursts[0].bytes, vec![0xFF]);
+    assert_eq!(reply.bursts[1].start, first_window + window * 3);
+    let found = reply.bursts.last().unwrap();
+    assert_eq!(found.start, first_window + window * 32);
+    assert_eq!(found.bytes, with_crc("FD 60 03 FE 40 00 AC 14"));
+
+    let read = Request::by_serial(
+        MCM8_SERIAL,
+        RequestPdu::ReadHoldingRegisters { start: 0, count: 1 },
+    )
+    .with_fast_function(LEGACY_FUNCTION);
+    let answer = send(&mut bus, &read);
+    assert_eq!(&answer[..3], &[0xFD, 0x60, 0x09], "{answer:02X?}");
+}
+
 /// Below 52500 baud 3.5 characters outlast 800 µs, and a device counts them as 42 bits (3.5
 /// characters of 12 bits, as the article computes its wait), whatever its own framing: at 9600
 /// 8N1 the first window opens 4.375 ms after the request, not 3.65 ms (3.5 characters of 10 bits).
