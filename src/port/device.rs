@@ -507,6 +507,22 @@ impl DeviceState {
         }
     }
 
+    /// A read of `members` was answered with values: if one of them had been refused (the
+    /// keep-alive of a device with nothing else to read), the device at this address is not the
+    /// one that refused it (replaced, or new firmware), so it is set up and read again from the
+    /// start, as after a reboot. True when that happened.
+    pub(super) fn refused_read_answered(&mut self, members: &[usize]) -> bool {
+        let refused_before = members.iter().any(|&member| {
+            self.reads
+                .get(member)
+                .is_some_and(|r| r.exclusion == Exclusion::Unsupported)
+        });
+        if refused_before {
+            self.restart_preparation();
+        }
+        refused_before
+    }
+
     /// True when the device came online.
     /// A Fast Modbus event came from this device: alive, whatever its own requests saw.
     pub(super) fn heard_from(&mut self, now: Duration) -> bool {
@@ -526,7 +542,11 @@ impl DeviceState {
         went_offline
     }
 
-    /// Whether nothing else keeps this device under watch, so one events-only read must.
+    /// Whether nothing else keeps this device under watch, so one read that is not polled
+    /// must: an events-only one, else one the device refused (its exception is an answer, so
+    /// silence still means the device is gone, and a device that answers it again was
+    /// replaced or updated). Without it a device that refuses every read (a wrong template at
+    /// that address) would never be asked anything again and stay "online" unwatched.
     fn keepalive_index(&self) -> Option<usize> {
         let any_polled = self.reads.iter().any(|r| r.exclusion == Exclusion::None);
         if any_polled {
@@ -535,6 +555,16 @@ impl DeviceState {
         self.reads
             .iter()
             .position(|r| r.exclusion == Exclusion::EventsOnly)
+            .or_else(|| {
+                self.reads
+                    .iter()
+                    .position(|r| r.exclusion == Exclusion::Unsupported)
+            })
+    }
+
+    /// Whether read `index` is only ever asked as the keep-alive.
+    fn is_keepalive_only(exclusion: Exclusion) -> bool {
+        matches!(exclusion, Exclusion::EventsOnly | Exclusion::Unsupported)
     }
 
     /// When read `index` is due: `Some(ZERO)` when it is due whatever the time, `None` when
@@ -542,6 +572,7 @@ impl DeviceState {
     fn due_from(&self, index: usize, keepalive: Option<usize>) -> Option<Duration> {
         let read = self.reads.get(index)?;
         match read.exclusion {
+            Exclusion::Unsupported if keepalive == Some(index) => Some(read.next_due),
             Exclusion::Unsupported
             | Exclusion::AwaitingFirmware
             | Exclusion::NewerFirmware
@@ -673,14 +704,14 @@ impl DeviceState {
         span
     }
 
-    /// Whether a read of `members` is only the keep-alive read of a device whose values all
-    /// come by events (not a first read, nothing polled).
+    /// Whether a read of `members` is only the keep-alive read of a device with nothing polled
+    /// (values all by events, or every read refused; not a first read).
     pub(super) fn is_keepalive_read(&self, members: &[usize]) -> bool {
         !members.is_empty()
             && members.iter().all(|&member| {
                 self.reads
                     .get(member)
-                    .is_some_and(|r| r.exclusion == Exclusion::EventsOnly && !r.initial_pending)
+                    .is_some_and(|r| Self::is_keepalive_only(r.exclusion) && !r.initial_pending)
             })
     }
 
@@ -826,7 +857,9 @@ impl DeviceState {
         let reads = (0..self.reads.len())
             .filter(|&i| match self.reads.get(i).map(|r| r.exclusion) {
                 Some(Exclusion::None) => true,
-                Some(Exclusion::EventsOnly) => self.keepalive_index() == Some(i),
+                Some(exclusion) if Self::is_keepalive_only(exclusion) => {
+                    self.keepalive_index() == Some(i)
+                }
                 _ => false,
             })
             .filter_map(|i| {

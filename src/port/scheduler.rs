@@ -157,6 +157,8 @@ pub enum PortEvent {
     Offline {
         device: usize,
     },
+    /// The device restarted (its reboot event), or answers a read it refused before (replaced
+    /// or updated): it is set up and read again from the start.
     Rebooted {
         device: usize,
     },
@@ -1558,6 +1560,10 @@ impl PortScheduler {
             return;
         }
         Self::health_success(state, device, now, out);
+        if state.refused_read_answered(members) {
+            info!(device = %state.plan.name, ?span, "device answers a read it refused before (replaced or updated?): setting it up again");
+            out.push(PortEvent::Rebooted { device });
+        }
         state.note_words(span, &values);
         see_words(&mut self.writes, device, span, &values);
         let values = ReadWords::from(values);

@@ -3338,3 +3338,135 @@ fn a_bit_field_write_keeps_the_bits_an_event_showed_after_it_was_queued() {
     assert!(queued, "events were never polled");
     assert_eq!(sent, [0x0016]);
 }
+
+/// A device that refuses every read (a wrong template at that address) is still asked one
+/// refused read a second: while it answers with its exception it stays online, once it falls
+/// silent it goes offline, and a device that answers the read (a replacement) is set up and
+/// read from the start.
+#[test]
+fn a_device_that_refuses_every_read_is_still_watched() {
+    let reads = vec![
+        read(RegisterType::Holding, 1, EventMode::Polled),
+        read(RegisterType::Holding, 5, EventMode::Polled),
+    ];
+    let mut plan = device(20, reads);
+    plan.setup = vec![SetupWrite {
+        register_type: RegisterType::Holding,
+        address: 9,
+        values: vec![3],
+        force_multiple: false,
+        kept_bits: Vec::new(),
+    }];
+    let mut scheduler = PortScheduler::new(settings(9600), vec![plan]);
+    let mut log = Log::default();
+    let refusing = |_: Duration, request: &Request| match &request.body {
+        RequestBody::Classic(RequestPdu::ReadHoldingRegisters { .. }) => {
+            exception(request, ExceptionCode::ILLEGAL_DATA_ADDRESS)
+        }
+        _ => healthy(request),
+    };
+    let now = run(&mut scheduler, &mut log, Duration::ZERO, ms(5000), refusing);
+    let reads_sent = |log: &Log, from: Duration, to: Duration| {
+        log.classic_to(20)
+            .iter()
+            .filter(|(at, pdu)| {
+                *at >= from && *at < to && matches!(pdu, RequestPdu::ReadHoldingRegisters { .. })
+            })
+            .count()
+    };
+    // Refused at start-up, then asked about once a second as the keep-alive.
+    let watched = reads_sent(&log, ms(1000), ms(5000));
+    assert!((3..=5).contains(&watched), "{watched} reads in 4 s");
+    assert!(!log
+        .events
+        .iter()
+        .any(|(_, e)| matches!(e, PortEvent::Offline { .. })));
+
+    // Unplugged: offline within the device timeout and its failed tries.
+    let now = run(&mut scheduler, &mut log, now, ms(15_000), |_, _| {
+        TransactionOutcome::NoReply
+    });
+    let offline_at = log
+        .events
+        .iter()
+        .find(|(_, e)| matches!(e, PortEvent::Offline { device: 0 }))
+        .map(|(at, _)| *at)
+        .expect("the silent device goes offline");
+    assert!(offline_at < ms(10_000), "offline at {offline_at:?}");
+
+    // The right device is plugged in: it is set up and both values are read.
+    let back = log.events.len();
+    let sent_back = log.sent.len();
+    run(&mut scheduler, &mut log, now, ms(25_000), |_, request| {
+        healthy(request)
+    });
+    let events: Vec<&PortEvent> = log.events[back..].iter().map(|(_, e)| e).collect();
+    assert!(
+        events.contains(&&PortEvent::Online { device: 0 }),
+        "{events:?}"
+    );
+    for start in [1, 5] {
+        assert!(
+            events.iter().any(|e| matches!(e,
+                PortEvent::Values { span, .. } if span.start == start)),
+            "register {start} read: {events:?}"
+        );
+    }
+    assert!(log.sent[sent_back..].iter().any(|(_, r)| matches!(
+        r.body,
+        RequestBody::Classic(RequestPdu::WriteSingleRegister {
+            address: 9,
+            value: 3
+        })
+    )));
+}
+
+/// The device that refused every read is replaced while it is online (no silence between):
+/// the new one answers the keep-alive read, and is set up and read from the start.
+#[test]
+fn a_device_answering_a_read_it_refused_is_set_up_again() {
+    let reads = vec![
+        read(RegisterType::Holding, 1, EventMode::Polled),
+        read(RegisterType::Holding, 5, EventMode::Polled),
+    ];
+    let mut plan = device(20, reads);
+    plan.setup = vec![SetupWrite {
+        register_type: RegisterType::Holding,
+        address: 9,
+        values: vec![3],
+        force_multiple: false,
+        kept_bits: Vec::new(),
+    }];
+    let mut scheduler = PortScheduler::new(settings(9600), vec![plan]);
+    let mut log = Log::default();
+    let now = run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(3000),
+        |_, request| match &request.body {
+            RequestBody::Classic(RequestPdu::ReadHoldingRegisters { .. }) => {
+                exception(request, ExceptionCode::ILLEGAL_DATA_ADDRESS)
+            }
+            _ => healthy(request),
+        },
+    );
+    let setups_before = log.single_register_writes(9).len();
+    let back = log.events.len();
+    run(&mut scheduler, &mut log, now, ms(6000), |_, request| {
+        healthy(request)
+    });
+    let events: Vec<&PortEvent> = log.events[back..].iter().map(|(_, e)| e).collect();
+    assert!(
+        events.contains(&&PortEvent::Rebooted { device: 0 }),
+        "{events:?}"
+    );
+    for start in [1, 5] {
+        assert!(
+            events.iter().any(|e| matches!(e,
+                PortEvent::Values { span, .. } if span.start == start)),
+            "register {start} read: {events:?}"
+        );
+    }
+    assert_eq!(log.single_register_writes(9).len(), setups_before + 1);
+}
