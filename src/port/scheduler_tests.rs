@@ -3473,7 +3473,7 @@ fn a_device_answering_a_read_it_refused_is_set_up_again() {
 }
 
 // The event path's review (docs/reliability.md, "Defects found by review"): F2 to F4 at the
-// scheduler's level (tests/review_ev.rs has the review's own tests).
+// scheduler's level (tests/event_path.rs has the review's own tests).
 
 /// How many 0x18 requests went to `address`.
 fn event_setups_to(log: &Log, address: u8) -> Vec<(Duration, Vec<EventRange>)> {

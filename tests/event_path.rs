@@ -1,6 +1,6 @@
-//! Fast Modbus event-path review (branch review-ev): each test states what the protocol (or
-//! wb-mqtt-serial, the reference master) requires; each failed on the code as reviewed
-//! (docs/reliability.md, "Defects found by review": the event path).
+//! The Fast Modbus event path against what the protocol (or wb-mqtt-serial, the reference
+//! master) requires, through the public scheduler and parser: each test failed on the code
+//! before its fix (docs/reliability.md, "Defects found by review": events lost or delayed).
 
 use std::time::Duration;
 
