@@ -12,62 +12,11 @@ mod sim_support;
 
 use rtu2mqtt::child::StopWithParent;
 use std::process::{Command, Stdio};
-use std::sync::atomic::{AtomicU32, Ordering};
 
 use daemon_support::{repo, DaemonProcess};
-use mqtt_support::{retained, wait_for, Mosquitto, TIMEOUT};
-use rumqttc::{AsyncClient, Event, MqttOptions, Packet, QoS};
+use mqtt_support::{retained, rpc, rpc_raw, wait_for, Mosquitto};
 use serde_json::{json, Value};
 use sim_support::SimProcess;
-
-static CALLS: AtomicU32 = AtomicU32::new(0);
-
-/// Publishes `payload` on `/rpc/v1/wb-mqtt-serial/<service>/<method>/<client>` and returns the
-/// reply payload, as a Wiren Board RPC client does.
-async fn rpc_raw(port: u16, service: &str, method: &str, payload: &str) -> String {
-    let client_id = format!(
-        "rpc-test-{}-{}",
-        std::process::id(),
-        CALLS.fetch_add(1, Ordering::Relaxed)
-    );
-    let request_topic = format!("/rpc/v1/wb-mqtt-serial/{service}/{method}/{client_id}");
-    let reply_topic = format!("{request_topic}/reply");
-    let (client, mut eventloop) =
-        AsyncClient::new(MqttOptions::new(&client_id, "127.0.0.1", port), 16);
-    let exchange = async {
-        loop {
-            match eventloop.poll().await.expect("test RPC client connection") {
-                Event::Incoming(Packet::ConnAck(_)) => {
-                    client
-                        .subscribe(reply_topic.as_str(), QoS::AtLeastOnce)
-                        .await
-                        .unwrap();
-                }
-                Event::Incoming(Packet::SubAck(_)) => {
-                    client
-                        .publish(request_topic.as_str(), QoS::AtLeastOnce, false, payload)
-                        .await
-                        .unwrap();
-                }
-                Event::Incoming(Packet::Publish(reply)) if reply.topic == reply_topic => {
-                    return String::from_utf8(reply.payload.to_vec()).unwrap();
-                }
-                _ => {}
-            }
-        }
-    };
-    let reply = tokio::time::timeout(TIMEOUT, exchange)
-        .await
-        .unwrap_or_else(|_| panic!("no reply to {service}/{method} {payload}"));
-    let _ = client.disconnect().await;
-    reply
-}
-
-async fn rpc(port: u16, service: &str, method: &str, params: Value) -> Value {
-    let payload = json!({"id": 1, "params": params}).to_string();
-    let reply = rpc_raw(port, service, method, &payload).await;
-    serde_json::from_str(&reply).unwrap_or_else(|e| panic!("reply {reply:?}: {e}"))
-}
 
 struct Bench {
     /// The line of the bus, e.g. "115200 8N2".

@@ -12,53 +12,9 @@ mod sim_support;
 use std::process::Stdio;
 
 use daemon_support::{repo, DaemonProcess};
-use mqtt_support::{retained, wait_for, Mosquitto, TIMEOUT};
-use rumqttc::{AsyncClient, Event, MqttOptions, Packet, QoS};
-use serde_json::{json, Value};
+use mqtt_support::{retained, rpc, wait_for, Mosquitto};
+use serde_json::json;
 use sim_support::SimProcess;
-
-async fn rpc(port: u16, service: &str, method: &str, params: Value) -> Value {
-    static CALLS: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
-    let n = CALLS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-    let client_id = format!("dm-rpc-{}-{method}-{n}", std::process::id());
-    let request_topic = format!("/rpc/v1/wb-mqtt-serial/{service}/{method}/{client_id}");
-    let reply_topic = format!("{request_topic}/reply");
-    let payload = json!({"id": 1, "params": params}).to_string();
-    let (client, mut eventloop) =
-        AsyncClient::new(MqttOptions::new(&client_id, "127.0.0.1", port), 16);
-    let exchange = async {
-        loop {
-            match eventloop.poll().await.expect("test RPC client") {
-                Event::Incoming(Packet::ConnAck(_)) => {
-                    client
-                        .subscribe(reply_topic.as_str(), QoS::AtLeastOnce)
-                        .await
-                        .unwrap();
-                }
-                Event::Incoming(Packet::SubAck(_)) => {
-                    client
-                        .publish(
-                            request_topic.as_str(),
-                            QoS::AtLeastOnce,
-                            false,
-                            payload.clone(),
-                        )
-                        .await
-                        .unwrap();
-                }
-                Event::Incoming(Packet::Publish(reply)) if reply.topic == reply_topic => {
-                    return String::from_utf8(reply.payload.to_vec()).unwrap();
-                }
-                _ => {}
-            }
-        }
-    };
-    let reply = tokio::time::timeout(TIMEOUT, exchange)
-        .await
-        .unwrap_or_else(|_| panic!("no reply to {service}/{method}"));
-    let _ = client.disconnect().await;
-    serde_json::from_str(&reply).unwrap()
-}
 
 /// A daemon on the simulator: a relay at 20 and a WB-MAP12E energy meter at 30 (serial
 /// 0xFE123456), 115200 8N2.

@@ -19,7 +19,7 @@ use rtu2mqtt::device_updates::{ControlWrite, DeviceUpdate};
 use rtu2mqtt::mqtt::{run_mqtt_reporting, MqttError, MqttSettings};
 use rtu2mqtt::service::ServiceHealth;
 use rumqttc::{AsyncClient, Event, MqttOptions, Packet, QoS};
-use serde_json::json;
+use serde_json::{json, Value};
 use tokio::sync::{mpsc, oneshot};
 use tokio::task::JoinHandle;
 
@@ -575,4 +575,53 @@ pub fn assert_golden(name: &str, actual: &str) {
     }, {
         insta::assert_snapshot!(name, actual);
     });
+}
+
+static RPC_CALLS: AtomicU32 = AtomicU32::new(0);
+
+/// Publishes `payload` on `/rpc/v1/wb-mqtt-serial/<service>/<method>/<client>` and returns the
+/// reply payload, as a Wiren Board RPC client does.
+pub async fn rpc_raw(port: u16, service: &str, method: &str, payload: &str) -> String {
+    let client_id = format!(
+        "rpc-test-{}-{}",
+        std::process::id(),
+        RPC_CALLS.fetch_add(1, Ordering::Relaxed)
+    );
+    let request_topic = format!("/rpc/v1/wb-mqtt-serial/{service}/{method}/{client_id}");
+    let reply_topic = format!("{request_topic}/reply");
+    let (client, mut eventloop) =
+        AsyncClient::new(MqttOptions::new(&client_id, "127.0.0.1", port), 16);
+    let exchange = async {
+        loop {
+            match eventloop.poll().await.expect("test RPC client connection") {
+                Event::Incoming(Packet::ConnAck(_)) => {
+                    client
+                        .subscribe(reply_topic.as_str(), QoS::AtLeastOnce)
+                        .await
+                        .unwrap();
+                }
+                Event::Incoming(Packet::SubAck(_)) => {
+                    client
+                        .publish(request_topic.as_str(), QoS::AtLeastOnce, false, payload)
+                        .await
+                        .unwrap();
+                }
+                Event::Incoming(Packet::Publish(reply)) if reply.topic == reply_topic => {
+                    return String::from_utf8(reply.payload.to_vec()).unwrap();
+                }
+                _ => {}
+            }
+        }
+    };
+    let reply = tokio::time::timeout(TIMEOUT, exchange)
+        .await
+        .unwrap_or_else(|_| panic!("no reply to {service}/{method} {payload}"));
+    let _ = client.disconnect().await;
+    reply
+}
+
+pub async fn rpc(port: u16, service: &str, method: &str, params: Value) -> Value {
+    let payload = json!({"id": 1, "params": params}).to_string();
+    let reply = rpc_raw(port, service, method, &payload).await;
+    serde_json::from_str(&reply).unwrap_or_else(|e| panic!("reply {reply:?}: {e}"))
 }
