@@ -3340,12 +3340,8 @@ fn a_bit_field_write_keeps_the_bits_an_event_showed_after_it_was_queued() {
     assert_eq!(sent, [0x0016]);
 }
 
-/// A device that refuses every read (a wrong template at that address) is still asked one
-/// refused read a second: while it answers with its exception it stays online, once it falls
-/// silent it goes offline, and a device that answers the read (a replacement) is set up and
-/// read from the start.
-#[test]
-fn a_device_that_refuses_every_read_is_still_watched() {
+/// Device 20 with two holding reads (1 and 5) and a setup write of 3 at 9.
+fn refusing_device_plan() -> DevicePlan {
     let reads = vec![
         read(RegisterType::Holding, 1, EventMode::Polled),
         read(RegisterType::Holding, 5, EventMode::Polled),
@@ -3358,15 +3354,34 @@ fn a_device_that_refuses_every_read_is_still_watched() {
         force_multiple: false,
         kept_bits: Vec::new(),
     }];
-    let mut scheduler = PortScheduler::new(settings(9600), vec![plan]);
-    let mut log = Log::default();
-    let refusing = |_: Duration, request: &Request| match &request.body {
+    plan
+}
+
+/// A device that refuses every holding read (illegal data address) and does the rest.
+fn refusing_reads(_: Duration, request: &Request) -> TransactionOutcome {
+    match &request.body {
         RequestBody::Classic(RequestPdu::ReadHoldingRegisters { .. }) => {
             exception(request, ExceptionCode::ILLEGAL_DATA_ADDRESS)
         }
         _ => healthy(request),
-    };
-    let now = run(&mut scheduler, &mut log, Duration::ZERO, ms(5000), refusing);
+    }
+}
+
+/// A device that refuses every read (a wrong template at that address) is still asked one
+/// refused read a second: while it answers with its exception it stays online, once it falls
+/// silent it goes offline, and a device that answers the read (a replacement) is set up and
+/// read from the start.
+#[test]
+fn a_device_that_refuses_every_read_is_still_watched() {
+    let mut scheduler = PortScheduler::new(settings(9600), vec![refusing_device_plan()]);
+    let mut log = Log::default();
+    let now = run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(5000),
+        refusing_reads,
+    );
     let reads_sent = |log: &Log, from: Duration, to: Duration| {
         log.classic_to(20)
             .iter()
@@ -3426,31 +3441,14 @@ fn a_device_that_refuses_every_read_is_still_watched() {
 /// the new one answers the keep-alive read, and is set up and read from the start.
 #[test]
 fn a_device_answering_a_read_it_refused_is_set_up_again() {
-    let reads = vec![
-        read(RegisterType::Holding, 1, EventMode::Polled),
-        read(RegisterType::Holding, 5, EventMode::Polled),
-    ];
-    let mut plan = device(20, reads);
-    plan.setup = vec![SetupWrite {
-        register_type: RegisterType::Holding,
-        address: 9,
-        values: vec![3],
-        force_multiple: false,
-        kept_bits: Vec::new(),
-    }];
-    let mut scheduler = PortScheduler::new(settings(9600), vec![plan]);
+    let mut scheduler = PortScheduler::new(settings(9600), vec![refusing_device_plan()]);
     let mut log = Log::default();
     let now = run(
         &mut scheduler,
         &mut log,
         Duration::ZERO,
         ms(3000),
-        |_, request| match &request.body {
-            RequestBody::Classic(RequestPdu::ReadHoldingRegisters { .. }) => {
-                exception(request, ExceptionCode::ILLEGAL_DATA_ADDRESS)
-            }
-            _ => healthy(request),
-        },
+        refusing_reads,
     );
     let setups_before = log.single_register_writes(9).len();
     let back = log.events.len();
