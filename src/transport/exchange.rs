@@ -2042,3 +2042,139 @@ mod tests {
         assert_eq!(finished.outcome, TransactionOutcome::NoReply);
     }
 }
+
+/// Adversarial review of the transport (branch review-tr): each test fails on the code as it was
+/// reviewed.
+#[cfg(test)]
+mod review_tr {
+    use super::*;
+    use crate::protocol::{Parity, RequestPdu, ResponsePdu};
+
+    fn ms(ms: u64) -> Duration {
+        Duration::from_millis(ms)
+    }
+
+    fn read_request(address: u8) -> Request {
+        Request::classic(
+            address,
+            RequestPdu::ReadInputRegisters {
+                start: 0x10,
+                count: 2,
+            },
+        )
+    }
+
+    /// A scheduler-like transaction: 500 ms to the first byte (a WB template's timeout).
+    fn transaction(request: Request) -> Transaction {
+        let line = LineSettings::new(9600, Parity::None, 2);
+        Transaction {
+            request_time: line.wire_time(request.encoded_len()),
+            reply_timeout: ms(500) + line.wire_time(request.expected_reply_len()) + ms(50),
+            first_byte_timeout: Some(ms(500)),
+            late_window: Duration::ZERO,
+            estimated: ms(20),
+            request,
+        }
+    }
+
+    /// Runs the exchange: `arrivals` (time, bytes) read as they come, timeouts in between.
+    fn run(exchange: &mut Exchange, transaction: &Transaction, arrivals: &[(Duration, Vec<u8>)]) -> TransactionOutcome {
+        exchange.start(transaction).expect("encodes");
+        let mut now = Duration::ZERO;
+        let transmit = exchange.poll_transmit(now).expect("sent at once");
+        assert!(!transmit.bytes.is_empty());
+        exchange.handle_sent(now);
+        let mut next = 0;
+        for _ in 0..1000 {
+            if let Some((outcome, _)) = exchange.poll_outcome() {
+                return outcome;
+            }
+            let timeout = exchange.poll_timeout().expect("timed");
+            match arrivals.get(next) {
+                Some((at, bytes)) if *at < timeout => {
+                    now = *at;
+                    exchange.handle_bytes(now, bytes);
+                    next += 1;
+                }
+                _ => {
+                    now = now.max(timeout);
+                    exchange.handle_timeout(now);
+                }
+            }
+        }
+        panic!("never finished");
+    }
+
+    /// wb-mqtt-serial (`TModbusTCPTraits::ReadFrame`, src/modbus_common.cpp): a reply whose
+    /// transaction id matches but whose unit identifier is not the request's is "request and
+    /// response unit identifier mismatch", never taken. Here `answers()` ignores the address,
+    /// so the reply of unit 7 is credited to unit 30.
+    #[test]
+    fn a_modbus_tcp_reply_from_another_unit_is_not_the_reply() {
+        let mut exchange = Exchange::new(LinkConfig::tcp(Framing::ModbusTcp));
+        let transaction = transaction(read_request(30));
+        // Transaction 1, unit 7 (not 30), a well-formed answer to the function and length.
+        let reply = vec![0, 1, 0, 0, 0, 7, 7, 4, 4, 0x12, 0x34, 0x56, 0x78];
+        let outcome = run(&mut exchange, &transaction, &[(ms(5), reply)]);
+        assert!(
+            !matches!(outcome, TransactionOutcome::Reply(_)),
+            "unit 7's registers taken as unit 30's: {outcome:?}"
+        );
+    }
+
+    /// A Modbus TCP reply whose second TCP segment comes 80 ms after the first (a retransmitted
+    /// segment on a real network, a gateway that forwards a slow serial line in pieces), well
+    /// within the 500 ms response timeout. wb-mqtt-serial waits frame_timeout + 150 ms
+    /// (`FrameTCPLag`, src/port/tcp_port.cpp) between bytes on TCP; here the fixed 50 ms
+    /// `quiet_gap` of `LinkConfig::tcp` gives the reply up as garbage.
+    #[test]
+    fn a_modbus_tcp_reply_in_two_segments_80_ms_apart_is_taken() {
+        let mut exchange = Exchange::new(LinkConfig::tcp(Framing::ModbusTcp));
+        let transaction = transaction(read_request(30));
+        let outcome = run(
+            &mut exchange,
+            &transaction,
+            &[
+                (ms(5), vec![0, 1, 0, 0, 0, 7, 30, 4, 4, 0x12]),
+                (ms(85), vec![0x34, 0x56, 0x78]),
+            ],
+        );
+        assert!(
+            matches!(outcome, TransactionOutcome::Reply(_)),
+            "a reply split across TCP segments lost: {outcome:?}"
+        );
+    }
+
+    /// The same on an RTU-over-TCP link: a transparent gateway on a 9600 line that forwards the
+    /// reply of a 40-register read (85 bytes, 97 ms on the wire) in two packets.
+    #[test]
+    fn an_rtu_over_tcp_reply_forwarded_in_two_packets_is_taken() {
+        let mut exchange = Exchange::new(LinkConfig::tcp(Framing::Rtu));
+        let request = Request::classic(
+            30,
+            RequestPdu::ReadInputRegisters {
+                start: 0,
+                count: 40,
+            },
+        );
+        let transaction = transaction(request);
+        let frame = Reply::classic(
+            30,
+            ResponsePdu::ReadInputRegisters {
+                values: (0..40).collect(),
+            },
+        )
+        .encode()
+        .expect("encodes");
+        let (first, rest) = frame.split_at(40);
+        let outcome = run(
+            &mut exchange,
+            &transaction,
+            &[(ms(60), first.to_vec()), (ms(120), rest.to_vec())],
+        );
+        assert!(
+            matches!(outcome, TransactionOutcome::Reply(_)),
+            "a reply forwarded in two packets lost: {outcome:?}"
+        );
+    }
+}
