@@ -1,0 +1,139 @@
+//! Adversarial review of the transport and the port task (branch review-tr): end-to-end tests
+//! that fail on the code as it was reviewed. `rtu2mqtt sim` on a pty, a real mosquitto,
+//! `rtu2mqtt run`.
+
+#[path = "daemon_support/mod.rs"]
+mod daemon_support;
+#[path = "mqtt_support/mod.rs"]
+mod mqtt_support;
+#[path = "sim_support/mod.rs"]
+mod sim_support;
+
+use std::process::Stdio;
+use std::sync::atomic::{AtomicU32, Ordering};
+use std::time::{Duration, Instant};
+
+use daemon_support::DaemonProcess;
+use mqtt_support::{retained, wait_for, Mosquitto, Recorder, TIMEOUT};
+use rumqttc::{AsyncClient, Event, MqttOptions, Packet, QoS};
+use serde_json::{json, Value};
+use sim_support::SimProcess;
+
+static CALLS: AtomicU32 = AtomicU32::new(0);
+
+async fn rpc(port: u16, service: &str, method: &str, params: Value) -> Value {
+    let client_id = format!("review-tr-{}-{}", std::process::id(), CALLS.fetch_add(1, Ordering::Relaxed));
+    let request_topic = format!("/rpc/v1/wb-mqtt-serial/{service}/{method}/{client_id}");
+    let reply_topic = format!("{request_topic}/reply");
+    let payload = json!({"id": 1, "params": params}).to_string();
+    let (client, mut eventloop) = AsyncClient::new(MqttOptions::new(&client_id, "127.0.0.1", port), 16);
+    let exchange = async {
+        loop {
+            match eventloop.poll().await.expect("RPC client") {
+                Event::Incoming(Packet::ConnAck(_)) => {
+                    client.subscribe(reply_topic.as_str(), QoS::AtLeastOnce).await.unwrap();
+                }
+                Event::Incoming(Packet::SubAck(_)) => {
+                    client
+                        .publish(request_topic.as_str(), QoS::AtLeastOnce, false, payload.as_str())
+                        .await
+                        .unwrap();
+                }
+                Event::Incoming(Packet::Publish(reply)) if reply.topic == reply_topic => {
+                    return String::from_utf8(reply.payload.to_vec()).unwrap();
+                }
+                _ => {}
+            }
+        }
+    };
+    let reply = tokio::time::timeout(TIMEOUT, exchange).await.expect("an RPC reply");
+    let _ = client.disconnect().await;
+    serde_json::from_str(&reply).unwrap()
+}
+
+/// A device with two input registers read apart (`max_read_registers` 1): input 0 holds 111,
+/// input 10 holds 222. It answers every request 300 ms late; the daemon's response timeout for it
+/// is 1000 ms, so its own reads all succeed. A `port/Load` read of input 10 with a 50 ms
+/// response timeout fails; its late reply (222) comes while the scheduler's next read of the same
+/// device (input 0, same function, same length) waits for its answer, and is taken as it: the
+/// control of input 0 is published as 222. The scheduler holds a device off after its *own*
+/// failed transactions (defect A), but a failed queued (RPC, identity) transaction tells it
+/// nothing (src/daemon/port_task.rs `serve_queued`).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_late_reply_to_an_rpc_read_is_never_published_as_a_polled_value() {
+    let broker = Mosquitto::start();
+    let dir = tempfile::tempdir().unwrap();
+    let template = json!({
+        "device_type": "review-two",
+        "device": {
+            "name": "Review two", "id": "review", "max_read_registers": 1,
+            "channels": [
+                {"name": "Zero", "reg_type": "input", "address": 0, "type": "value"},
+                {"name": "Ten", "reg_type": "input", "address": 10, "type": "value"}
+            ]
+        }
+    });
+    let templates = dir.path().join("templates");
+    std::fs::create_dir_all(&templates).unwrap();
+    std::fs::write(templates.join("review-two.json"), template.to_string()).unwrap();
+    let bus = dir.path().join("bus.json");
+    std::fs::write(
+        &bus,
+        json!({"devices": [{"name": "two", "template": "templates/review-two.json", "address": 40,
+            "serial": "0xFE000040", "line": "115200 8N2", "fast": false,
+            "values": {"input:0": 111, "input:10": 222}}]})
+        .to_string(),
+    )
+    .unwrap();
+    let sim = SimProcess::start_with(&bus, &templates, &[]);
+    let config = json!({
+        "mqtt": {"host": "127.0.0.1", "port": broker.port, "client_id": "rtu2mqtt-review-tr"},
+        "ports": [{"path": sim.pty, "baud_rate": 115200, "stop_bits": 2, "devices": [
+            {"device_type": "review-two", "slave_id": 40, "response_timeout_ms": 1000}
+        ]}]
+    });
+    let daemon = DaemonProcess::start(
+        &config,
+        &["--templates", templates.to_str().unwrap()],
+        Stdio::null(),
+        Stdio::null(),
+    );
+    let recorder = Recorder::start(broker.port, "/devices/+/controls/+").await;
+    wait_for("input 0 published", || async {
+        let state = retained(broker.port).await?;
+        state.iter().any(|(t, v)| t.ends_with("/controls/Zero") && v == "111").then_some(())
+    })
+    .await;
+    wait_for("the advertised port/Load method", || async {
+        let state = retained(broker.port).await?;
+        (state.get("/rpc/v1/wb-mqtt-serial/port/Load")? == "1").then_some(())
+    })
+    .await;
+    sim.control(json!({"cmd": "faults", "device": 40, "delay": 1.0, "delay_ms": 300}));
+    tokio::time::sleep(Duration::from_secs(1)).await;
+    let path = sim.pty.to_str().unwrap().to_owned();
+    let deadline = Instant::now() + Duration::from_secs(20);
+    let mut calls = 0;
+    while Instant::now() < deadline && calls < 10 {
+        calls += 1;
+        let answer = rpc(broker.port, "port", "Load", json!({"path": path, "protocol": "modbus",
+            "slave_id": 40, "function": 4, "address": 10, "count": 1, "format": "HEX",
+            "response_timeout": 50, "total_timeout": 5000})).await;
+        eprintln!("port/Load: {answer}");
+        tokio::time::sleep(Duration::from_millis(800)).await;
+        let wrong: Vec<String> = recorder
+            .messages
+            .lock()
+            .unwrap()
+            .iter()
+            .filter(|(t, v, _)| t.ends_with("/controls/Zero") && v != "111")
+            .map(|(t, v, _)| format!("{t} = {v}"))
+            .collect();
+        assert!(
+            wrong.is_empty(),
+            "input 0 (always 111) published with another value after {calls} RPC reads: \
+             {wrong:?}\n{}",
+            daemon.log().lines().rev().take(30).collect::<Vec<_>>().join("\n")
+        );
+    }
+}
