@@ -137,3 +137,51 @@ async fn a_late_reply_to_an_rpc_read_is_never_published_as_a_polled_value() {
         );
     }
 }
+
+/// An RTU-over-TCP gateway that stops answering but never closes the connection (powered off
+/// behind a NAT, a Wi-Fi bridge gone: no FIN, no RST). wb-mqtt-serial reconnects once no
+/// exchange succeeded for `connection_timeout_ms` (default 5000) over `connection_max_fail_cycles`
+/// (default 2) cycles (`TPortOpenCloseLogic::CloseIfNeeded`); rtu2mqtt parses both keys and uses
+/// neither, and sets no TCP keepalive: it keeps the dead socket until the kernel gives up
+/// retransmitting (about 15 minutes), so the port stays down after the gateway is back.
+#[test]
+fn a_gateway_that_stops_answering_without_closing_is_reconnected() {
+    use std::io::Read;
+    use std::net::TcpListener;
+    use std::sync::atomic::AtomicUsize;
+    use std::sync::Arc;
+    let listener = TcpListener::bind("127.0.0.1:0").unwrap();
+    let port = listener.local_addr().unwrap().port();
+    let connections = Arc::new(AtomicUsize::new(0));
+    let counted = connections.clone();
+    std::thread::spawn(move || {
+        for stream in listener.incoming() {
+            let Ok(mut stream) = stream else { return };
+            counted.fetch_add(1, Ordering::SeqCst);
+            // Reads every request, answers none, never closes.
+            std::thread::spawn(move || {
+                let mut buffer = [0u8; 256];
+                while matches!(stream.read(&mut buffer), Ok(n) if n > 0) {}
+            });
+        }
+    });
+    let config = json!({"ports": [{
+        "port_type": "tcp", "address": "127.0.0.1", "port": port,
+        "connection_timeout_ms": 2000, "connection_max_fail_cycles": 2,
+        "devices": [{"device_type": "rtu2mqtt-relay6", "slave_id": 20}],
+    }]});
+    let mut daemon = DaemonProcess::start(&config, &["--stdio"], Stdio::piped(), Stdio::null());
+    let deadline = Instant::now() + Duration::from_secs(20);
+    while Instant::now() < deadline && connections.load(Ordering::SeqCst) < 2 {
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let seen = connections.load(Ordering::SeqCst);
+    let log = daemon.log();
+    daemon.terminate();
+    assert!(
+        seen >= 2,
+        "{seen} connection(s) in 20 s with connection_timeout_ms 2000: the dead connection is \
+         kept\n{}",
+        log.lines().rev().take(20).collect::<Vec<_>>().join("\n")
+    );
+}
