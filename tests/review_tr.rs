@@ -22,20 +22,33 @@ use sim_support::SimProcess;
 static CALLS: AtomicU32 = AtomicU32::new(0);
 
 async fn rpc(port: u16, service: &str, method: &str, params: Value) -> Value {
-    let client_id = format!("review-tr-{}-{}", std::process::id(), CALLS.fetch_add(1, Ordering::Relaxed));
+    let client_id = format!(
+        "review-tr-{}-{}",
+        std::process::id(),
+        CALLS.fetch_add(1, Ordering::Relaxed)
+    );
     let request_topic = format!("/rpc/v1/wb-mqtt-serial/{service}/{method}/{client_id}");
     let reply_topic = format!("{request_topic}/reply");
     let payload = json!({"id": 1, "params": params}).to_string();
-    let (client, mut eventloop) = AsyncClient::new(MqttOptions::new(&client_id, "127.0.0.1", port), 16);
+    let (client, mut eventloop) =
+        AsyncClient::new(MqttOptions::new(&client_id, "127.0.0.1", port), 16);
     let exchange = async {
         loop {
             match eventloop.poll().await.expect("RPC client") {
                 Event::Incoming(Packet::ConnAck(_)) => {
-                    client.subscribe(reply_topic.as_str(), QoS::AtLeastOnce).await.unwrap();
+                    client
+                        .subscribe(reply_topic.as_str(), QoS::AtLeastOnce)
+                        .await
+                        .unwrap();
                 }
                 Event::Incoming(Packet::SubAck(_)) => {
                     client
-                        .publish(request_topic.as_str(), QoS::AtLeastOnce, false, payload.as_str())
+                        .publish(
+                            request_topic.as_str(),
+                            QoS::AtLeastOnce,
+                            false,
+                            payload.as_str(),
+                        )
                         .await
                         .unwrap();
                 }
@@ -46,7 +59,9 @@ async fn rpc(port: u16, service: &str, method: &str, params: Value) -> Value {
             }
         }
     };
-    let reply = tokio::time::timeout(TIMEOUT, exchange).await.expect("an RPC reply");
+    let reply = tokio::time::timeout(TIMEOUT, exchange)
+        .await
+        .expect("an RPC reply");
     let _ = client.disconnect().await;
     serde_json::from_str(&reply).unwrap()
 }
@@ -101,7 +116,10 @@ async fn a_late_reply_to_an_rpc_read_is_never_published_as_a_polled_value() {
     let recorder = Recorder::start(broker.port, "/devices/+/controls/+").await;
     wait_for("input 0 published", || async {
         let state = retained(broker.port).await?;
-        state.iter().any(|(t, v)| t.ends_with("/controls/Zero") && v == "111").then_some(())
+        state
+            .iter()
+            .any(|(t, v)| t.ends_with("/controls/Zero") && v == "111")
+            .then_some(())
     })
     .await;
     wait_for("the advertised port/Load method", || async {
@@ -116,9 +134,15 @@ async fn a_late_reply_to_an_rpc_read_is_never_published_as_a_polled_value() {
     let mut calls = 0;
     while Instant::now() < deadline && calls < 10 {
         calls += 1;
-        let answer = rpc(broker.port, "port", "Load", json!({"path": path, "protocol": "modbus",
+        let answer = rpc(
+            broker.port,
+            "port",
+            "Load",
+            json!({"path": path, "protocol": "modbus",
             "slave_id": 40, "function": 4, "address": 10, "count": 1, "format": "HEX",
-            "response_timeout": 50, "total_timeout": 5000})).await;
+            "response_timeout": 50, "total_timeout": 5000}),
+        )
+        .await;
         eprintln!("port/Load: {answer}");
         tokio::time::sleep(Duration::from_millis(800)).await;
         let wrong: Vec<String> = recorder
@@ -133,7 +157,13 @@ async fn a_late_reply_to_an_rpc_read_is_never_published_as_a_polled_value() {
             wrong.is_empty(),
             "input 0 (always 111) published with another value after {calls} RPC reads: \
              {wrong:?}\n{}",
-            daemon.log().lines().rev().take(30).collect::<Vec<_>>().join("\n")
+            daemon
+                .log()
+                .lines()
+                .rev()
+                .take(30)
+                .collect::<Vec<_>>()
+                .join("\n")
         );
     }
 }

@@ -2078,7 +2078,11 @@ mod review_tr {
     }
 
     /// Runs the exchange: `arrivals` (time, bytes) read as they come, timeouts in between.
-    fn run(exchange: &mut Exchange, transaction: &Transaction, arrivals: &[(Duration, Vec<u8>)]) -> TransactionOutcome {
+    fn run(
+        exchange: &mut Exchange,
+        transaction: &Transaction,
+        arrivals: &[(Duration, Vec<u8>)],
+    ) -> TransactionOutcome {
         exchange.start(transaction).expect("encodes");
         let mut now = Duration::ZERO;
         let transmit = exchange.poll_transmit(now).expect("sent at once");

@@ -418,3 +418,56 @@ async fn connect(address: &str, connect_timeout: Duration) -> Result<TcpStream, 
         })?;
     Ok(stream)
 }
+
+/// Adversarial review of the transport (branch review-tr): fails on the code as reviewed.
+#[cfg(test)]
+mod review_tr {
+    use super::*;
+    use crate::protocol::{Parity, Request, RequestPdu};
+    use std::io::Write;
+    use std::os::fd::AsFd;
+
+    /// A line that never falls quiet for 3.5 characters (a stuck transmitter, a babbling
+    /// device: a byte every 2 ms at 9600, whose frame gap is 4 ms). The request waits for the
+    /// silence before it with no bound (`quiet_until` then `line_was_busy`, again and again;
+    /// `MAX_DRAIN` bounds only the drain after a reply): `transact` never returns, so the
+    /// scheduler never learns the bus is unusable and the devices are never flagged.
+    #[tokio::test]
+    async fn a_babbling_line_ends_the_transaction_in_bounded_time() {
+        let pty = nix::pty::openpty(None, None).expect("a pty");
+        let path = nix::unistd::ttyname(pty.slave.as_fd()).expect("its name");
+        let line = LineSettings::new(9600, Parity::None, 2);
+        let endpoint = Endpoint::Serial {
+            path: path.to_string_lossy().into_owned(),
+            line,
+        };
+        let mut transport = Transport::open(&endpoint).await.expect("opens");
+        drop(pty.slave);
+        let mut master = std::fs::File::from(pty.master);
+        let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let stopped = stop.clone();
+        let babbler = std::thread::spawn(move || {
+            while !stopped.load(std::sync::atomic::Ordering::Relaxed) {
+                let _ = master.write_all(&[0x55]);
+                std::thread::sleep(Duration::from_millis(2));
+            }
+        });
+        let request = Request::classic(1, RequestPdu::ReadHoldingRegisters { start: 0, count: 1 });
+        let transaction = Transaction {
+            request_time: line.wire_time(8),
+            reply_timeout: Duration::from_millis(100),
+            first_byte_timeout: Some(Duration::from_millis(50)),
+            late_window: Duration::ZERO,
+            estimated: Duration::from_millis(100),
+            request,
+        };
+        let result =
+            tokio::time::timeout(Duration::from_secs(5), transport.transact(&transaction)).await;
+        stop.store(true, std::sync::atomic::Ordering::Relaxed);
+        let _ = babbler.join();
+        assert!(
+            result.is_ok(),
+            "transact still waiting for a quiet line after 5 s (100 ms timeouts)"
+        );
+    }
+}
