@@ -22,6 +22,18 @@ pub(super) const KEEPALIVE_PERIOD: Duration = Duration::from_secs(1);
 /// value at most 5 registers past the last one, `TModbusExtTest.EventsEnablerRangesWithHoles`).
 const MAX_EVENT_HOLE: u32 = 4;
 
+/// Event setups (0x18) in a row that may go unanswered (silence, a garbled reply) before the
+/// device is polled instead: each failure is transient (the request may have reached the
+/// device) and counts against its health, and the setup is tried again under its back-off, as
+/// wb-mqtt-serial's prepare is; a device that never answers 0x18 (no Fast Modbus, and silent
+/// about it) must still be read in the end.
+pub(super) const MAX_EVENT_SETUP_TRIES: u32 = 3;
+
+/// Registers whose events one device connection may have turned off (see
+/// [`DeviceState::unread_register_event`]): a device that reports ever new registers cannot
+/// make the list, or the bus time spent on it, grow without end.
+const MAX_EVENTS_TO_DISABLE: usize = 64;
+
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Preparation {
     /// Setup write `next` is due.
@@ -130,6 +142,19 @@ pub(super) struct DeviceState {
     /// The holding registers whose setup writes keep bits of what is there, with the last word
     /// read or written there (empty on most devices).
     setup_reads: Vec<(u16, Option<u16>)>,
+    /// Event setups in a row that got no readable reply (see [`MAX_EVENT_SETUP_TRIES`]);
+    /// cleared by a reply to one (or, once, when the device comes online after it was given up).
+    event_setup_failures: u32,
+    /// The event setup was given up and taken up again once when the device came online
+    /// (see [`Self::record_success`]); not again until a 0x18 is answered.
+    event_setup_taken_up_again: bool,
+    /// Registers that sent events no planned read covers, to be turned off (priority 0) by the
+    /// next 0x18; the first `events_disable_sent` of them went already, the others are in
+    /// (type, address) order. Kept for the
+    /// device's connection (cleared when its preparation starts over), so each is turned off
+    /// once whatever the device does after.
+    events_to_disable: Vec<(RegisterType, u16)>,
+    events_disable_sent: usize,
 }
 
 impl DeviceState {
@@ -190,6 +215,10 @@ impl DeviceState {
             holes_off: false,
             split_found_refused: false,
             setup_reads,
+            event_setup_failures: 0,
+            event_setup_taken_up_again: false,
+            events_to_disable: Vec::new(),
+            events_disable_sent: 0,
         };
         state.preparation = state.first_preparation_step();
         state
@@ -205,6 +234,7 @@ impl DeviceState {
 
     fn after_setup(&self) -> Preparation {
         if self.fast_modbus
+            && self.event_setup_failures < MAX_EVENT_SETUP_TRIES
             && self
                 .plan
                 .reads
@@ -232,6 +262,93 @@ impl DeviceState {
 
     pub(super) fn is_prepared(&self) -> bool {
         self.preparation == Preparation::Done
+    }
+
+    /// Whether a preparation step is due: setup, event setup, or turning off events nothing
+    /// reads (see [`Self::unread_register_event`]).
+    pub(super) fn needs_preparation(&self) -> bool {
+        !self.is_prepared() || self.has_events_to_disable()
+    }
+
+    /// An event came for `register_type`/`address`: when no planned read covers it (enabled by
+    /// an earlier config, another master or the firmware), it is queued to be turned off, as
+    /// wb-mqtt-serial's `DisableEventsFromRegs` does, once per device connection and for at
+    /// most [`MAX_EVENTS_TO_DISABLE`] registers. True when it was queued now.
+    pub(super) fn unread_register_event(
+        &mut self,
+        register_type: RegisterType,
+        address: u16,
+    ) -> bool {
+        let covered = self.plan.reads.iter().any(|read| {
+            read.span.register_type == register_type
+                && u32::from(address) >= u32::from(read.span.start)
+                && u32::from(address) < read.span.end()
+        });
+        let key = (register_type, address);
+        if covered
+            || self.events_to_disable.len() >= MAX_EVENTS_TO_DISABLE
+            || self.events_to_disable.contains(&key)
+        {
+            return false;
+        }
+        // The part not sent yet is kept in order, so that neighbours share a range.
+        let unsent = self
+            .events_to_disable
+            .get(self.events_disable_sent..)
+            .unwrap_or_default();
+        let at = self.events_disable_sent + unsent.partition_point(|&queued| queued < key);
+        self.events_to_disable.insert(at, key);
+        true
+    }
+
+    pub(super) fn has_events_to_disable(&self) -> bool {
+        self.events_disable_sent < self.events_to_disable.len()
+    }
+
+    /// The 0x18 ranges that turn off the events queued by [`Self::unread_register_event`] and
+    /// not sent yet (priority 0; neighbours share a range), as many as one request carries,
+    /// and how many of the queue they take.
+    pub(super) fn disable_ranges(&self) -> (Vec<EventRange>, usize) {
+        let pending = self
+            .events_to_disable
+            .get(self.events_disable_sent..)
+            .unwrap_or_default();
+        // address, 0x46, 0x18, list_len, CRC: the rest of the frame is the list.
+        let mut room = MAX_FRAME_LEN - 6;
+        let mut ranges: Vec<EventRange> = Vec::new();
+        let mut taken = 0;
+        // In order (see `unread_register_event`): what is taken is a prefix of the queue.
+        for &(register_type, address) in pending {
+            let source = EventSource::Register(register_type);
+            let next_to_last = ranges.last_mut().filter(|range| {
+                range.source == source
+                    && u32::from(range.start) + range.priorities.len() as u32 == u32::from(address)
+                    && range.priorities.len() < 255
+            });
+            if let (Some(range), true) = (next_to_last, room >= 1) {
+                range.priorities.push(EventPriority::Disabled);
+                room -= 1;
+            } else if room >= 5 {
+                ranges.push(EventRange::registers(
+                    register_type,
+                    address,
+                    vec![EventPriority::Disabled],
+                ));
+                room -= 5;
+            } else {
+                break;
+            }
+            taken += 1;
+        }
+        (ranges, taken)
+    }
+
+    /// The 0x18 of [`Self::disable_ranges`] went (answered or not: it is not sent again).
+    pub(super) fn events_disabled(&mut self, taken: usize) {
+        self.events_disable_sent = self
+            .events_disable_sent
+            .saturating_add(taken)
+            .min(self.events_to_disable.len());
     }
 
     pub(super) fn next_setup_write(&self) -> Option<usize> {
@@ -413,13 +530,34 @@ impl DeviceState {
             }
         }
         self.events_active = any;
+        self.event_setup_failures = 0;
+        self.event_setup_taken_up_again = false;
         self.finish_preparation(now);
     }
 
     /// The device has no (working) event support: poll everything.
     pub(super) fn events_refused(&mut self, now: Duration) {
         self.events_active = false;
+        self.event_setup_failures = 0;
+        self.event_setup_taken_up_again = false;
         self.finish_preparation(now);
+    }
+
+    /// The event setup got no readable reply (counted against the device's health by the
+    /// scheduler, which may have started its preparation over): it stays due, and is tried
+    /// again when the device's back-off lets it, up to [`MAX_EVENT_SETUP_TRIES`] in a row;
+    /// then the device is polled. True when it was given up.
+    pub(super) fn event_setup_failed(&mut self, now: Duration) -> bool {
+        self.event_setup_failures = self.event_setup_failures.saturating_add(1);
+        if self.event_setup_failures < MAX_EVENT_SETUP_TRIES {
+            return false;
+        }
+        // Still to come after setup writes (a restart): `after_setup` skips it now.
+        if self.preparation == Preparation::Events {
+            self.events_active = false;
+            self.finish_preparation(now);
+        }
+        true
     }
 
     fn finish_preparation(&mut self, now: Duration) {
@@ -437,6 +575,8 @@ impl DeviceState {
     /// are tried again (wb-mqtt-serial turns holes back on when a device disconnects).
     pub(super) fn restart_preparation(&mut self) {
         self.events_active = false;
+        self.events_to_disable.clear();
+        self.events_disable_sent = 0;
         self.preparation = self.first_preparation_step();
         self.holes_off = false;
         self.split_found_refused = false;
@@ -529,8 +669,21 @@ impl DeviceState {
         self.health.heard_from(now)
     }
 
+    /// True when the device came online. One whose event setup was given up for want of a
+    /// reply (it may not have been there at all) gets it again, once: a device powered up
+    /// after the gateway gets its events, and one that answers reads but never 0x18 costs
+    /// [`MAX_EVENT_SETUP_TRIES`] more requests, not a round of them at every reconnection.
     pub(super) fn record_success(&mut self, now: Duration) -> bool {
-        self.health.record_success(now) == HealthChange::CameOnline
+        let came_online = self.health.record_success(now) == HealthChange::CameOnline;
+        let given_up = self.event_setup_failures >= MAX_EVENT_SETUP_TRIES;
+        if came_online && given_up && !self.event_setup_taken_up_again {
+            self.event_setup_taken_up_again = true;
+            self.event_setup_failures = 0;
+            if self.preparation == Preparation::Done {
+                self.preparation = self.after_setup();
+            }
+        }
+        came_online
     }
 
     /// True when the device went offline (its preparation then starts over when it returns).

@@ -18,6 +18,11 @@ pub(super) struct EventPoller {
     min_address: u8,
     ack: Option<(u8, u8)>,
     max_data_len: u8,
+    /// The next request asks with the protocol's largest budget: a packet said it had events
+    /// and carried none (not even one fitted `max_data_len`).
+    wide_next: bool,
+    /// The request under way asks with the largest budget.
+    wide_in_flight: bool,
     burst: u32,
     /// When the round of requests under way began (its first request): rounds start an
     /// interval apart, however long the bursts in them take.
@@ -39,6 +44,8 @@ impl EventPoller {
             min_address: 0,
             ack: None,
             max_data_len: max_data_len(settings),
+            wide_next: false,
+            wide_in_flight: false,
             burst: 0,
             round_started: None,
             last_started: Duration::ZERO,
@@ -55,13 +62,18 @@ impl EventPoller {
         let (ack_address, ack_flag) = self.ack.unwrap_or((0, 0));
         EventPoll {
             min_address: self.min_address,
-            max_data_len: self.max_data_len,
+            max_data_len: if self.wide_next {
+                WIDE_DATA_LEN
+            } else {
+                self.max_data_len
+            },
             ack_address,
             ack_flag,
         }
     }
 
     pub(super) fn started(&mut self, now: Duration) {
+        self.wide_in_flight = std::mem::take(&mut self.wide_next);
         self.round_started.get_or_insert(now);
         self.last_started = now;
         self.next_at = now + self.interval;
@@ -102,6 +114,33 @@ impl EventPoller {
             self.burst = 0;
             self.end_round();
         }
+    }
+
+    /// A packet with events of which none fitted the request's `max_data_len` ("if not even one
+    /// fits, it sends the count with no payload", fast-modbus.md §6): an event wider than the
+    /// port's budget would never come. The packet is confirmed (the device cleared nothing, it
+    /// sent nothing), and the next request, at once, asks with the protocol's largest budget
+    /// without rotating past the sender, so that it takes part. Only once in a row: a packet
+    /// that had the large budget already and still carried nothing is a packet like any other
+    /// (confirmed and rotated past), so a device that always answers so cannot hold the bus.
+    /// False when that was the case.
+    pub(super) fn nothing_fitted(
+        &mut self,
+        now: Duration,
+        address: u8,
+        flag: u8,
+        highest_listener: u8,
+    ) -> bool {
+        if self.wide_in_flight {
+            self.packet_received(now, address, flag, highest_listener);
+            return false;
+        }
+        self.ack = Some((address, flag));
+        self.rotation_optional = false;
+        self.wide_next = true;
+        self.min_address = self.min_address.min(address);
+        self.next_at = now;
+        true
     }
 
     /// A packet that needs no quick follow-up (only the power-on "I rebooted" of a device that
@@ -180,6 +219,9 @@ impl EventPoller {
         self.end_round();
     }
 }
+
+/// The budget of a request after a packet in which nothing fitted: all a frame holds.
+pub(super) const WIDE_DATA_LEN: u8 = MAX_EVENT_DATA_LEN as u8;
 
 /// The most event data a reply may carry: what the line moves in one interval, less the frame
 /// overhead, within what one frame can hold.

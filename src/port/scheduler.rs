@@ -15,9 +15,9 @@ use std::time::Duration;
 
 use tracing::{debug, info, warn};
 
-use super::device::{DeviceState, ReadChoice, LOW_PRIORITY};
+use super::device::{DeviceState, ReadChoice, LOW_PRIORITY, MAX_EVENT_SETUP_TRIES};
 use super::due_index::{DueIndex, Placement};
-use super::events::EventPoller;
+use super::events::{EventPoller, WIDE_DATA_LEN};
 use super::health::DeadRetryBudget;
 use super::plan::{write_encodes, write_pdu, DevicePlan, PortSettings, RegisterWrite};
 use super::rate_limit::ReadRateLimit;
@@ -26,7 +26,8 @@ use crate::protocol::fast::enabled_registers;
 use crate::protocol::timing::ADAPTER_LATENCY_ALLOWANCE;
 pub use crate::protocol::transaction::{ReplyTiming, Transaction, TransactionOutcome};
 use crate::protocol::{
-    EventRange, ExceptionCode, FastReply, RegisterType, Reply, ReplyBody, Request, ResponsePdu,
+    EventPoll, EventRange, EventSource, ExceptionCode, FastReply, RegisterType, Reply, ReplyBody,
+    Request, ResponsePdu,
 };
 
 /// How long a failed write keeps being retried.
@@ -178,6 +179,12 @@ enum InFlight {
         ranges: Vec<EventRange>,
         members: Vec<usize>,
     },
+    /// A 0x18 turning off the events of registers nothing reads: the first `taken` of the
+    /// device's queue (see `DeviceState::unread_register_event`).
+    DisableEvents {
+        device: usize,
+        taken: usize,
+    },
     Read {
         device: usize,
         span: RegisterSpan,
@@ -198,7 +205,8 @@ enum Fit {
 }
 
 /// The timing of an event poll. Every poll of a port has the same length and the same longest
-/// reply (its `max_data_len` is the port's), so it is worked out once, not per poll.
+/// reply (its `max_data_len` is the port's, or the protocol's largest after a packet in which
+/// nothing fitted), so it is worked out once per budget, not per poll.
 #[derive(Debug, Clone, Copy, PartialEq)]
 struct EventPollTiming {
     estimated: Duration,
@@ -323,6 +331,9 @@ pub struct PortScheduler {
     devices: Vec<DeviceState>,
     events: EventPoller,
     event_poll_timing: EventPollTiming,
+    /// The timing of a poll with the protocol's largest budget (see `EventPoller::nothing_fitted`):
+    /// its reply may be longer, and its reply timeout covers it.
+    wide_event_poll_timing: EventPollTiming,
     writes: Vec<PendingWrite>,
     in_flight: Option<InFlight>,
     /// When the transaction in flight started.
@@ -348,6 +359,13 @@ impl PortScheduler {
         let events = EventPoller::new(&settings);
         let event_poll_timing =
             EventPollTiming::new(&settings, &Request::poll_events(events.request()));
+        let wide_event_poll_timing = EventPollTiming::new(
+            &settings,
+            &Request::poll_events(EventPoll {
+                max_data_len: WIDE_DATA_LEN,
+                ..events.request()
+            }),
+        );
         let devices: Vec<DeviceState> = plans
             .into_iter()
             .map(|mut plan| {
@@ -382,6 +400,7 @@ impl PortScheduler {
             devices,
             events,
             event_poll_timing,
+            wide_event_poll_timing,
             writes: Vec::new(),
             in_flight: None,
             in_flight_since: Duration::ZERO,
@@ -545,7 +564,7 @@ impl PortScheduler {
                 ..Placement::default()
             };
         }
-        if !state.is_prepared() {
+        if state.needs_preparation() {
             return Placement {
                 preparing: true,
                 seems_dead,
@@ -804,6 +823,7 @@ impl PortScheduler {
         let device = match &self.in_flight {
             Some(InFlight::Setup { device, .. })
             | Some(InFlight::EnableEvents { device, .. })
+            | Some(InFlight::DisableEvents { device, .. })
             | Some(InFlight::Read { device, .. }) => Some(*device),
             Some(InFlight::Write { write }) => Some(write.write.device),
             Some(InFlight::PollEvents { .. }) | None => None,
@@ -845,6 +865,9 @@ impl PortScheduler {
                 ranges,
                 members,
             }) => self.complete_enable_events(now, device, &ranges, &members, outcome, out),
+            Some(InFlight::DisableEvents { device, taken }) => {
+                self.complete_disable_events(now, device, taken, outcome, out)
+            }
             Some(InFlight::Read {
                 device,
                 span,
@@ -969,14 +992,20 @@ impl PortScheduler {
         if self.events.rotation_optional() && self.choose(now).is_none() {
             self.events.skip_rotation();
         }
-        let request = Request::poll_events(self.events.request());
+        let poll = self.events.request();
+        let timing = if poll.max_data_len == WIDE_DATA_LEN {
+            self.wide_event_poll_timing
+        } else {
+            self.event_poll_timing
+        };
+        let request = Request::poll_events(poll);
         #[cfg(test)]
         assert_eq!(
             EventPollTiming::new(&self.settings, &request),
-            self.event_poll_timing,
-            "an event poll timed as the first one"
+            timing,
+            "an event poll timed as the first one with its budget"
         );
-        let transaction = self.event_poll_timing.transaction(request);
+        let transaction = timing.transaction(request);
         self.events.started(now);
         self.commit(now, transaction, InFlight::PollEvents { started: now })
     }
@@ -1125,6 +1154,18 @@ impl PortScheduler {
                     device: index,
                     ranges,
                     members,
+                },
+            ));
+        }
+        if device.is_prepared() && device.has_events_to_disable() {
+            let (ranges, taken) = device.disable_ranges();
+            let request = Request::configure_events(device.plan.address, ranges);
+            let transaction = self.classic_transaction(now, device, request);
+            return Some((
+                transaction,
+                InFlight::DisableEvents {
+                    device: index,
+                    taken,
                 },
             ));
         }
@@ -1346,9 +1387,20 @@ impl PortScheduler {
                     && sender
                         .and_then(|d| self.devices.get(d))
                         .is_some_and(|d| !d.is_prepared());
+                let nothing_fitted = packet.events.is_empty() && packet.event_count > 0;
                 if reboot_before_setup {
                     self.events
                         .packet_received_at_leisure(address, packet.flag, highest_listener);
+                } else if nothing_fitted {
+                    let widened =
+                        self.events
+                            .nothing_fitted(now, address, packet.flag, highest_listener);
+                    debug!(
+                        address,
+                        event_count = packet.event_count,
+                        widened,
+                        "events that do not fit the poll's max_data_len: asking with the largest"
+                    );
                 } else {
                     self.events
                         .packet_received(now, address, packet.flag, highest_listener);
@@ -1372,9 +1424,13 @@ impl PortScheduler {
                         out.push(PortEvent::Rebooted { device });
                         continue;
                     }
-                    if let crate::protocol::EventSource::Register(register_type) = event.source {
+                    if let EventSource::Register(register_type) = event.source {
                         let words = crate::protocol::event_payload_words(&event.payload);
                         if let Some(state) = self.devices.get_mut(device) {
+                            if state.unread_register_event(register_type, event.id) {
+                                info!(device = %state.plan.name, ?register_type, address = event.id, "events from a register no channel reads: turning them off");
+                                self.index.mark_stale(device);
+                            }
                             state.read_partial_event_value(register_type, event.id, words.len());
                             // A one-register value is that register's word: setup writes that
                             // keep bits of it keep these (a wider one's word order is the
@@ -1502,9 +1558,37 @@ impl PortScheduler {
                 Self::health_success(state, device, now, out);
                 state.events_refused(now);
             }
+            // The request may have reached the device: transient, as wb-mqtt-serial's
+            // "Failed to enable events" fails the device's prepare and it is tried again.
             TransactionOutcome::NoReply | TransactionOutcome::Garbled => {
-                warn!(device = %state.plan.name, "no answer to the event setup: polling it");
-                state.events_refused(now);
+                Self::health_failure(state, device, now, out);
+                if state.event_setup_failed(now) {
+                    warn!(device = %state.plan.name, tries = MAX_EVENT_SETUP_TRIES, "no answer to the event setup: polling it");
+                } else {
+                    info!(device = %state.plan.name, "no answer to the event setup: trying it again");
+                }
+            }
+        }
+    }
+
+    /// The 0x18 that turned off events nothing reads: not sent again, whatever the outcome (a
+    /// device that keeps sending them costs one request per register and connection at most).
+    fn complete_disable_events(
+        &mut self,
+        now: Duration,
+        device: usize,
+        taken: usize,
+        outcome: TransactionOutcome,
+        out: &mut Vec<PortEvent>,
+    ) {
+        let Some(state) = self.devices.get_mut(device) else {
+            return;
+        };
+        state.events_disabled(taken);
+        match outcome {
+            TransactionOutcome::Reply(_) => Self::health_success(state, device, now, out),
+            TransactionOutcome::NoReply | TransactionOutcome::Garbled => {
+                Self::health_failure(state, device, now, out)
             }
         }
     }
@@ -1716,7 +1800,7 @@ impl PortScheduler {
 impl PortScheduler {
     fn choose_preparation_by_scan(&self, now: Duration) -> Option<(Transaction, InFlight)> {
         for (index, device) in self.devices.iter().enumerate() {
-            if device.is_prepared() || device.suspended || !self.may_transact(device, now) {
+            if !device.needs_preparation() || device.suspended || !self.may_transact(device, now) {
                 continue;
             }
             if let Some(choice) = self.preparation_of(now, index) {
@@ -1731,7 +1815,7 @@ impl PortScheduler {
             .devices
             .iter()
             .enumerate()
-            .filter(|(_, d)| d.is_prepared() && !d.suspended && self.may_transact(d, now))
+            .filter(|(_, d)| !d.needs_preparation() && !d.suspended && self.may_transact(d, now))
             .filter_map(|(index, d)| d.choose_read(now).map(|choice| (index, choice)))
             .min_by_key(|(_, choice)| choice.urgency)?;
         if self.held_by_rate_limit(now, &choice) {

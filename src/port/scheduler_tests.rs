@@ -8,7 +8,8 @@ use crate::port::health::HealthPolicy;
 use crate::port::plan::{EventMode, GuardIntervals, PlannedRead, SetupWrite};
 use crate::port::read_plan::MergeLimits;
 use crate::protocol::{
-    Event, EventPacket, EventPoll, FastRequest, LineSettings, Parity, RequestBody, RequestPdu,
+    Event, EventPacket, EventPoll, EventPriority, FastRequest, LineSettings, Parity, RequestBody,
+    RequestPdu,
 };
 
 fn ms(ms: u64) -> Duration {
@@ -3469,4 +3470,283 @@ fn a_device_answering_a_read_it_refused_is_set_up_again() {
         );
     }
     assert_eq!(log.single_register_writes(9).len(), setups_before + 1);
+}
+
+// The event path's review (docs/reliability.md, "Defects found by review"): F2 to F4 at the
+// scheduler's level (tests/event_path.rs has the review's own tests).
+
+/// How many 0x18 requests went to `address`.
+fn event_setups_to(log: &Log, address: u8) -> Vec<(Duration, Vec<EventRange>)> {
+    log.sent
+        .iter()
+        .filter_map(|(at, r)| match &r.body {
+            RequestBody::Fast(FastRequest::ConfigureEvents { ranges }) if r.address == address => {
+                Some((*at, ranges.clone()))
+            }
+            _ => None,
+        })
+        .collect()
+}
+
+/// A device that answers reads but never its event setup (no Fast Modbus, and silent about
+/// it): each try counts against its health and is tried again under its back-off, a bounded
+/// number of times (once more when it comes online, it may have been absent), then it is
+/// polled. The other devices' event polls do not wait for it.
+#[test]
+fn an_event_setup_never_answered_gives_way_to_polling_after_a_few_tries() {
+    let a = device(1, vec![read(RegisterType::Coil, 0, EventMode::Sporadic)]);
+    let b = device(2, vec![read(RegisterType::Coil, 0, EventMode::Sporadic)]);
+    let mut scheduler = PortScheduler::new(settings(115_200), vec![a, b]);
+    let mut log = Log::default();
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(30_000),
+        |_, request| match &request.body {
+            RequestBody::Fast(FastRequest::ConfigureEvents { .. }) if request.address == 1 => {
+                TransactionOutcome::NoReply
+            }
+            _ => healthy(request),
+        },
+    );
+    let tries = event_setups_to(&log, 1);
+    let max = usize::try_from(MAX_EVENT_SETUP_TRIES).unwrap();
+    assert!(
+        (max..=2 * max).contains(&tries.len()),
+        "{} tries of the event setup",
+        tries.len()
+    );
+    let reads = log.classic_to(1).len();
+    assert!(reads > 100, "device 1 is polled: {reads} reads");
+    let report = scheduler.device_report(0, ms(30_000)).unwrap();
+    assert!(!report.events_active);
+    assert_eq!(report.setup, "ready");
+    // The start-up sweep does not wait for device 1's next try.
+    let first_poll = log.event_polls()[0].0;
+    assert!(
+        first_poll < tries[1].0,
+        "{first_poll:?} vs {:?}",
+        tries[1].0
+    );
+    assert!(
+        log.events
+            .iter()
+            .any(|(_, e)| *e == PortEvent::Offline { device: 0 }),
+        "the failures count against its health"
+    );
+}
+
+/// A device absent at start-up: its event setup is given up after a few tries, and taken up
+/// again when it appears, so it gets its events.
+#[test]
+fn an_event_setup_given_up_on_an_absent_device_is_tried_again_when_it_appears() {
+    let a = device(1, vec![read(RegisterType::Coil, 0, EventMode::Sporadic)]);
+    let mut scheduler = PortScheduler::new(settings(115_200), vec![a]);
+    let mut log = Log::default();
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(15_000),
+        |at, request| {
+            if at < ms(8000) {
+                TransactionOutcome::NoReply
+            } else {
+                healthy(request)
+            }
+        },
+    );
+    let tries = event_setups_to(&log, 1);
+    assert!(
+        tries.iter().filter(|(at, _)| *at < ms(8000)).count()
+            == usize::try_from(MAX_EVENT_SETUP_TRIES).unwrap(),
+        "{tries:?}"
+    );
+    assert!(tries.iter().any(|(at, _)| *at >= ms(8000)), "{tries:?}");
+    let report = scheduler.device_report(0, ms(15_000)).unwrap();
+    assert!(report.events_active, "{report:?}");
+}
+
+/// An exception to the event setup is final: polled at once, never asked again.
+#[test]
+fn an_exception_to_the_event_setup_is_final() {
+    let a = device(1, vec![read(RegisterType::Coil, 0, EventMode::Sporadic)]);
+    let mut scheduler = PortScheduler::new(settings(115_200), vec![a]);
+    let mut log = Log::default();
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(5000),
+        |_, request| match &request.body {
+            RequestBody::Fast(FastRequest::ConfigureEvents { .. }) => {
+                TransactionOutcome::Reply(Reply::classic(
+                    1,
+                    ResponsePdu::Exception {
+                        function: 0x46,
+                        code: ExceptionCode::ILLEGAL_FUNCTION,
+                    },
+                ))
+            }
+            _ => healthy(request),
+        },
+    );
+    assert_eq!(event_setups_to(&log, 1).len(), 1);
+    assert!(!log
+        .events
+        .iter()
+        .any(|(_, e)| matches!(e, PortEvent::Offline { .. })));
+}
+
+/// Events from registers no planned read covers are turned off with priority 0: one 0x18 per
+/// device, each register once per connection (the device keeps sending them here), again after
+/// a reboot; never for a covered register or a device not in the config.
+#[test]
+fn events_of_unread_registers_are_turned_off_once_per_connection() {
+    let mut plan = device(3, vec![read(RegisterType::Coil, 0, EventMode::Sporadic)]);
+    plan.reads.push(PlannedRead {
+        span: RegisterSpan::new(RegisterType::Holding, 10, 2),
+        period: None,
+        events: EventMode::Sporadic,
+        min_firmware: None,
+    });
+    let mut scheduler = PortScheduler::new(settings(115_200), vec![plan]);
+    let mut log = Log::default();
+    let register = |register_type, id| Event {
+        source: crate::protocol::EventSource::Register(register_type),
+        id,
+        payload: vec![1, 0],
+    };
+    let (mut flag, mut stranger_flag, mut rebooted) = (0u8, 0u8, false);
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(3000),
+        |at, request| match &request.body {
+            RequestBody::Fast(FastRequest::PollEvents(poll)) => {
+                if poll.ack_address == 3 {
+                    flag ^= 1;
+                }
+                if poll.ack_address == 7 {
+                    stranger_flag ^= 1;
+                }
+                let reboot = at > ms(1500) && !rebooted;
+                if poll.min_address <= 3 {
+                    let mut events = vec![
+                        register(RegisterType::Holding, 999),
+                        register(RegisterType::Input, 501),
+                        register(RegisterType::Input, 500),
+                        register(RegisterType::Coil, 0),
+                        register(RegisterType::Holding, 11),
+                    ];
+                    if reboot {
+                        rebooted = true;
+                        events = vec![Event::reboot()];
+                    }
+                    TransactionOutcome::Reply(Reply::fast(
+                        3,
+                        FastReply::Events(EventPacket {
+                            flag,
+                            event_count: events.len() as u8,
+                            events,
+                        }),
+                    ))
+                } else if poll.min_address <= 7 {
+                    TransactionOutcome::Reply(Reply::fast(
+                        7,
+                        FastReply::Events(EventPacket {
+                            flag: stranger_flag,
+                            event_count: 1,
+                            events: vec![register(RegisterType::Holding, 5)],
+                        }),
+                    ))
+                } else {
+                    healthy(request)
+                }
+            }
+            _ => healthy(request),
+        },
+    );
+    assert!(rebooted);
+    let disabled = |ranges: &Vec<EventRange>| {
+        ranges
+            .iter()
+            .all(|r| r.priorities.iter().all(|p| *p == EventPriority::Disabled))
+    };
+    let disables: Vec<Vec<EventRange>> = event_setups_to(&log, 3)
+        .into_iter()
+        .map(|(_, ranges)| ranges)
+        .filter(|ranges| disabled(ranges))
+        .collect();
+    let expected = vec![
+        EventRange::registers(RegisterType::Holding, 999, vec![EventPriority::Disabled]),
+        EventRange::registers(
+            RegisterType::Input,
+            500,
+            vec![EventPriority::Disabled, EventPriority::Disabled],
+        ),
+    ];
+    // Input 501 came before 500: they still share a range.
+    assert_eq!(disables, vec![expected.clone(), expected]);
+    assert!(event_setups_to(&log, 7).is_empty());
+}
+
+/// A device that answers "events, none fitted" even to the largest budget cannot hold the
+/// bus: the largest budget goes once, then its packet is rotated past as any other, and the
+/// device above it is heard.
+#[test]
+fn a_device_that_never_fits_any_budget_cannot_hold_the_bus() {
+    let mut port = settings(9600);
+    port.event_interval = ms(20);
+    let a = device(5, vec![read(RegisterType::Coil, 0, EventMode::Sporadic)]);
+    let b = device(9, vec![read(RegisterType::Coil, 0, EventMode::Sporadic)]);
+    let mut scheduler = PortScheduler::new(port, vec![a, b]);
+    let mut log = Log::default();
+    let (mut flag, mut nine_pending) = (0u8, true);
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(3000),
+        |_, request| match &request.body {
+            RequestBody::Fast(FastRequest::PollEvents(poll)) => {
+                if poll.ack_address == 5 {
+                    flag ^= 1;
+                }
+                nine_pending &= poll.ack_address != 9;
+                if poll.min_address <= 5 {
+                    TransactionOutcome::Reply(Reply::fast(
+                        5,
+                        FastReply::Events(EventPacket {
+                            flag,
+                            event_count: 1,
+                            events: Vec::new(),
+                        }),
+                    ))
+                } else if nine_pending {
+                    coil_0_went_on(9, 0)
+                } else {
+                    healthy(request)
+                }
+            }
+            _ => healthy(request),
+        },
+    );
+    assert!(!nine_pending, "device 9 was never heard");
+    let budgets: Vec<u8> = log
+        .event_polls()
+        .iter()
+        .map(|(_, p)| p.max_data_len)
+        .collect();
+    let normal = budgets[0];
+    assert!(normal < WIDE_DATA_LEN);
+    assert!(budgets.contains(&WIDE_DATA_LEN));
+    assert!(
+        budgets
+            .windows(2)
+            .all(|pair| pair[0] == normal || pair[1] == normal),
+        "{budgets:?}"
+    );
 }

@@ -498,19 +498,7 @@ impl FastReply {
                 let flag = reader.u8()?;
                 let event_count = reader.u8()?;
                 let data_len = reader.u8()?;
-                let mut data = Reader::new(reader.take(usize::from(data_len))?);
-                let mut events = Vec::new();
-                while !data.is_empty() {
-                    let payload_len = data.u8()?;
-                    let source = EventSource::from_wire(data.u8()?);
-                    let id = data.u16_be()?;
-                    let payload = data.take(usize::from(payload_len))?.to_vec();
-                    events.push(Event {
-                        source,
-                        id,
-                        payload,
-                    });
-                }
+                let (events, _dropped) = decode_events(reader.take(usize::from(data_len))?);
                 Self::Events(EventPacket {
                     flag,
                     event_count,
@@ -552,6 +540,38 @@ impl FastReply {
             _ => FrameLength::Unknown,
         }
     }
+}
+
+/// The events in a 0x11 packet's `data_len` bytes, and how many bytes at their end were dropped
+/// (0: all of them were events). An event whose length overruns the data ends the list: the
+/// events before it (each complete and within the data) are kept, it and the rest are dropped.
+/// The packet still names its sender and flag, so it can be confirmed: wb-mqtt-serial
+/// (`ModbusExt::ReadEvents`) takes both from the header before its events throw "invalid event
+/// data size", and a packet never confirmed would be sent again for ever.
+pub fn decode_events(data: &[u8]) -> (Vec<Event>, usize) {
+    let mut reader = Reader::new(data);
+    let mut events = Vec::new();
+    let mut rest = data.len();
+    while !reader.is_empty() {
+        let Ok(event) = decode_event(&mut reader) else {
+            return (events, rest);
+        };
+        rest = rest.saturating_sub(event.wire_len());
+        events.push(event);
+    }
+    (events, 0)
+}
+
+fn decode_event(data: &mut Reader<'_>) -> Result<Event, DecodeError> {
+    let payload_len = data.u8()?;
+    let source = EventSource::from_wire(data.u8()?);
+    let id = data.u16_be()?;
+    let payload = data.take(usize::from(payload_len))?.to_vec();
+    Ok(Event {
+        source,
+        id,
+        payload,
+    })
 }
 
 /// Splits the bitmask bytes of a 0x18 reply into one bitmask per requested range.
@@ -603,6 +623,48 @@ mod tests {
         assert_eq!(event_payload_words(&[1]), [1]);
         assert_eq!(event_payload_words(&[0x34, 0x12, 0x56]), [0x0056, 0x1234]);
         assert!(event_payload_words(&[]).is_empty());
+    }
+
+    /// An event whose length overruns the packet's data ends the list: the events before it are
+    /// kept (each complete), it and what follows are dropped, and the packet's sender and flag
+    /// survive so the next 0x10 confirms it.
+    #[test]
+    fn an_event_overrunning_the_data_drops_only_itself_and_what_follows() {
+        let coil = Event {
+            source: EventSource::Register(RegisterType::Coil),
+            id: 0,
+            payload: vec![1],
+        };
+        let data = |hex: &str| parse_hex(hex).unwrap();
+        // payload_len 5, no byte left
+        assert_eq!(
+            decode_events(&data("01 01 0000 01 05 0F 0000")),
+            (vec![coil.clone()], 4)
+        );
+        // a header cut short after the first event
+        assert_eq!(
+            decode_events(&data("01 01 0000 01 02 03")),
+            (vec![coil.clone()], 2)
+        );
+        // the first event already overruns
+        assert_eq!(decode_events(&data("09 03 0001 0102")), (Vec::new(), 6));
+        assert_eq!(decode_events(&[]), (Vec::new(), 0));
+        assert_eq!(
+            decode_events(&data("01 01 0000 01 00 0F 0000")),
+            (vec![coil.clone(), Event::reboot()], 0)
+        );
+
+        let body = data("11 01 02 09 01 01 0000 01 05 0F 0000");
+        assert_eq!(
+            FastReply::decode(&body),
+            Ok(FastReply::Events(EventPacket {
+                flag: 1,
+                event_count: 2,
+                events: vec![coil],
+            }))
+        );
+        // The data itself must still be there: a frame shorter than its data_len is no packet.
+        assert!(FastReply::decode(&data("11 01 02 09 01 01 0000 01")).is_err());
     }
 
     /// wb-mqtt-serial's enable request: holding 1 at low priority, then the reboot event disabled

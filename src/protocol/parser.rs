@@ -13,6 +13,7 @@ use super::fast::{self, EventRange, FastRequest};
 use super::frame::{Reply, ReplyBody, Request, RequestBody, MAX_DEVICE_ADDRESS, MAX_FRAME_LEN};
 use super::pdu::{ExceptionCode, FrameLength, RequestPdu, ResponsePdu, EXCEPTION_FLAG};
 use super::DecodeError;
+use tracing::warn;
 
 /// No valid frame starts with 0xFF (255 is not an address): devices send it during arbitration.
 pub const ARBITRATION_FILLER: u8 = 0xFF;
@@ -136,6 +137,9 @@ impl ReplyParser {
             return ParseStatus::Error(ParseError::BadCrc);
         }
         let decoded = Reply::decode(candidate);
+        if let Ok(reply) = &decoded {
+            warn_of_dropped_events(reply, candidate);
+        }
         self.buffer.drain(..len);
         match decoded {
             Err(err) => ParseStatus::Error(ParseError::Malformed(err)),
@@ -169,6 +173,34 @@ impl ReplyParser {
             Expected::Any => true,
             Expected::ReplyTo(request) => answers(request, reply),
         }
+    }
+}
+
+/// An event packet whose events overran its `data_len` keeps the events before the bad one
+/// (see [`fast::decode_events`]): the rest are lost, which the log tells.
+fn warn_of_dropped_events(reply: &Reply, frame: &[u8]) {
+    let ReplyBody::Fast {
+        reply: fast::FastReply::Events(packet),
+        ..
+    } = &reply.body
+    else {
+        return;
+    };
+    // address, function, sub-command, flag, event_count, data_len
+    let Some(&data_len) = frame.get(5) else {
+        return;
+    };
+    let kept: usize = packet.events.iter().map(fast::Event::wire_len).sum();
+    if kept != usize::from(data_len) {
+        warn!(
+            address = reply.address,
+            flag = packet.flag,
+            event_count = packet.event_count,
+            kept = packet.events.len(),
+            dropped_bytes = usize::from(data_len).saturating_sub(kept),
+            "event packet with an event longer than its data: the events after it are dropped, \
+             the packet is confirmed"
+        );
     }
 }
 
@@ -439,4 +471,70 @@ fn is_plausible_request_start(bytes: &[u8]) -> bool {
         FrameLength::NeedMore | FrameLength::Unknown => true,
     };
     address_ok && function_ok && length_ok
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::protocol::{crc16, parse_hex, EventPoll};
+
+    fn with_crc(hex: &str) -> Vec<u8> {
+        let mut frame = parse_hex(hex).unwrap();
+        let crc = crc16(&frame);
+        frame.extend(crc.to_le_bytes());
+        frame
+    }
+
+    fn poll() -> Request {
+        Request::poll_events(EventPoll {
+            min_address: 0,
+            max_data_len: 248,
+            ack_address: 0,
+            ack_flag: 0,
+        })
+    }
+
+    /// A CRC-valid event packet whose second event overruns `data_len` is still a frame from
+    /// its sender with its flag (so it is confirmed), carrying the event before the bad one.
+    #[test]
+    fn an_event_packet_with_a_bad_event_length_is_a_frame_with_the_events_before_it() {
+        let mut parser = ReplyParser::for_request(&poll());
+        let mut bytes = vec![0xFF, 0xFF];
+        bytes.extend(with_crc("F1 46 11 01 02 09 01 01 0000 01 05 0F 0000"));
+        let ParseStatus::Frame(parsed) = parser.feed(&bytes) else {
+            panic!("no frame");
+        };
+        assert_eq!(parsed.filler_bytes, 2);
+        assert_eq!(parsed.reply.address, 241);
+        let ReplyBody::Fast {
+            reply: fast::FastReply::Events(packet),
+            ..
+        } = &parsed.reply.body
+        else {
+            panic!("not an event packet: {:?}", parsed.reply);
+        };
+        assert_eq!((packet.flag, packet.event_count), (1, 2));
+        assert_eq!(packet.events.len(), 1);
+        assert_eq!(packet.events[0].payload, vec![1]);
+        assert_eq!(parser.poll(), ParseStatus::NeedMore);
+        // It re-encodes (with the data it kept) and decodes to itself.
+        let encoded = parsed.reply.encode().unwrap();
+        assert_eq!(Reply::decode(&encoded), Ok(parsed.reply.clone()));
+    }
+
+    /// Every event overruns: the packet has none, but its sender and flag still arrive.
+    #[test]
+    fn an_event_packet_whose_first_event_overruns_is_confirmable_with_no_events() {
+        let mut parser = ReplyParser::for_request(&poll());
+        let ParseStatus::Frame(parsed) =
+            parser.feed(&with_crc("14 46 11 00 01 06 08 03 0001 0102"))
+        else {
+            panic!("no frame");
+        };
+        assert_eq!(parsed.reply.address, 20);
+        assert!(matches!(
+            &parsed.reply.body,
+            ReplyBody::Fast { reply: fast::FastReply::Events(p), .. } if p.flag == 0 && p.events.is_empty()
+        ));
+    }
 }
