@@ -641,7 +641,17 @@ impl PortTask {
         debug!(port = %self.plan_name, away = ?bus.away, "queued transaction");
         let started = self.now();
         transport.set_guard_interval(self.guard_intervals.before(job.transaction.request.address));
-        match transport.transact(&job.transaction).await {
+        let result = transport.transact(&job.transaction).await;
+        // The scheduler holds a device whose transaction failed off until a late reply to it
+        // could no longer come (`PortScheduler::queued_done`), as after its own failures.
+        let (outcome, timing) = match &result {
+            Ok((outcome, timing)) => (outcome.clone(), *timing),
+            Err(_) => (TransactionOutcome::NoReply, ReplyTiming::default()),
+        };
+        let now = self.now();
+        self.scheduler
+            .queued_done(now, &job.transaction.request, outcome, timing);
+        match result {
             Ok((outcome, _timing)) => {
                 // The status page counts it with the scheduler's own: the line was as busy.
                 self.record_transaction(started, &job.transaction, &outcome);

@@ -3750,3 +3750,85 @@ fn a_device_that_never_fits_any_budget_cannot_hold_the_bus() {
         "{budgets:?}"
     );
 }
+
+/// Review of the transport and port task, finding 1: a queued transaction (an RPC's, an
+/// identity read) that failed holds its device off exactly as the scheduler's own failures do,
+/// so that a late reply to it can only land in another device's window. Silence in time adds the
+/// skipped late window (the device's configured timeout); a reply that began in time does not.
+/// The device's health is untouched (no failure counted, it stays online), and requests by
+/// serial number or to addresses no device has hold nobody off.
+#[test]
+fn a_failed_queued_transaction_holds_its_device_off_as_the_schedulers_own_failures_do() {
+    let holdoff = HealthPolicy::default().late_reply_holdoff;
+    let read = |address| {
+        Request::classic(
+            address,
+            RequestPdu::ReadInputRegisters {
+                start: 10,
+                count: 1,
+            },
+        )
+    };
+    let silent = ReplyTiming::default();
+    let began_in_time = ReplyTiming {
+        first_byte: Some(ms(2)),
+        late_byte: None,
+    };
+    for (outcome, timing, window) in [
+        (TransactionOutcome::NoReply, silent, true),
+        (TransactionOutcome::Garbled, began_in_time, false),
+    ] {
+        let (mut scheduler, mut now) = two_answering_devices();
+        let floor = scheduler.devices[0].response.floor();
+        let failed_at = now;
+        scheduler.queued_done(now, &read(30), outcome.clone(), timing);
+        // Neither of these holds anybody off.
+        scheduler.queued_done(now, &read(77), TransactionOutcome::NoReply, silent);
+        let by_serial = Request::by_serial(
+            0xFE00_0030,
+            RequestPdu::ReadInputRegisters {
+                start: 10,
+                count: 1,
+            },
+        );
+        scheduler.queued_done(now, &by_serial, TransactionOutcome::NoReply, silent);
+        let next_to_31 = next_classic(&mut scheduler, &mut now);
+        assert_eq!(next_to_31.request.address, 31, "31 goes on at once");
+        assert_eq!(now, failed_at);
+        now += ms(5);
+        scheduler.complete(now, healthy(&next_to_31.request));
+        let again = answer_until(&mut scheduler, &mut now, 30);
+        let expected = failed_at + holdoff + if window { floor } else { Duration::ZERO };
+        assert!(
+            now >= expected,
+            "{outcome:?}: asked again {:?} after the failure",
+            now - failed_at
+        );
+        assert!(
+            now < expected + ms(50),
+            "{outcome:?}: held off {:?}",
+            now - failed_at
+        );
+        assert!(
+            scheduler.devices[0].health.answered_last(),
+            "no failure counted"
+        );
+        // It answered its last request: its own next request skips the late window as usual.
+        assert_eq!(again.late_window, Duration::ZERO);
+    }
+    // A queued transaction that was answered holds nobody off; nor does a broadcast.
+    let (mut scheduler, mut now) = two_answering_devices();
+    let start = now;
+    let reply = healthy(&read(30));
+    scheduler.queued_done(now, &read(30), reply, began_in_time);
+    let broadcast = Request::classic(
+        0,
+        RequestPdu::WriteSingleRegister {
+            address: 1,
+            value: 1,
+        },
+    );
+    scheduler.queued_done(now, &broadcast, TransactionOutcome::NoReply, silent);
+    answer_until(&mut scheduler, &mut now, 30);
+    assert!(now < start + ms(50), "held off {:?}", now - start);
+}

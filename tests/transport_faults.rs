@@ -1,6 +1,6 @@
-//! Adversarial review of the transport and the port task (branch review-tr): end-to-end tests
-//! that fail on the code as it was reviewed. `rtu2mqtt sim` on a pty, a real mosquitto,
-//! `rtu2mqtt run`.
+//! Faults of the transport and the port task, end to end (found by the review of both,
+//! docs/reliability.md "Defects found by review"): `rtu2mqtt sim` on a pty, a real mosquitto,
+//! `rtu2mqtt run`, or a TCP gateway that misbehaves.
 
 #[path = "daemon_support/mod.rs"]
 mod daemon_support;
@@ -23,7 +23,7 @@ static CALLS: AtomicU32 = AtomicU32::new(0);
 
 async fn rpc(port: u16, service: &str, method: &str, params: Value) -> Value {
     let client_id = format!(
-        "review-tr-{}-{}",
+        "transport-faults-{}-{}",
         std::process::id(),
         CALLS.fetch_add(1, Ordering::Relaxed)
     );
@@ -71,9 +71,9 @@ async fn rpc(port: u16, service: &str, method: &str, params: Value) -> Value {
 /// is 1000 ms, so its own reads all succeed. A `port/Load` read of input 10 with a 50 ms
 /// response timeout fails; its late reply (222) comes while the scheduler's next read of the same
 /// device (input 0, same function, same length) waits for its answer, and is taken as it: the
-/// control of input 0 is published as 222. The scheduler holds a device off after its *own*
-/// failed transactions (defect A), but a failed queued (RPC, identity) transaction tells it
-/// nothing (src/daemon/port_task.rs `serve_queued`).
+/// control of input 0 was published as 222: the scheduler held a device off after its *own*
+/// failed transactions (defect A) only. A failed queued (RPC, identity) transaction now holds
+/// the device off too (`PortScheduler::queued_done`).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_late_reply_to_an_rpc_read_is_never_published_as_a_polled_value() {
     let broker = Mosquitto::start();
@@ -102,7 +102,7 @@ async fn a_late_reply_to_an_rpc_read_is_never_published_as_a_polled_value() {
     .unwrap();
     let sim = SimProcess::start_with(&bus, &templates, &[]);
     let config = json!({
-        "mqtt": {"host": "127.0.0.1", "port": broker.port, "client_id": "rtu2mqtt-review-tr"},
+        "mqtt": {"host": "127.0.0.1", "port": broker.port, "client_id": "rtu2mqtt-transport-faults"},
         "ports": [{"path": sim.pty, "baud_rate": 115200, "stop_bits": 2, "devices": [
             {"device_type": "review-two", "slave_id": 40, "response_timeout_ms": 1000}
         ]}]
@@ -171,9 +171,9 @@ async fn a_late_reply_to_an_rpc_read_is_never_published_as_a_polled_value() {
 /// An RTU-over-TCP gateway that stops answering but never closes the connection (powered off
 /// behind a NAT, a Wi-Fi bridge gone: no FIN, no RST). wb-mqtt-serial reconnects once no
 /// exchange succeeded for `connection_timeout_ms` (default 5000) over `connection_max_fail_cycles`
-/// (default 2) cycles (`TPortOpenCloseLogic::CloseIfNeeded`); rtu2mqtt parses both keys and uses
-/// neither, and sets no TCP keepalive: it keeps the dead socket until the kernel gives up
-/// retransmitting (about 15 minutes), so the port stays down after the gateway is back.
+/// (default 2) cycles (`TPortOpenCloseLogic::CloseIfNeeded`). Without that rule the dead socket
+/// is kept until the kernel gives up retransmitting (about 15 minutes), and the port stays down
+/// after the gateway is back.
 #[test]
 fn a_gateway_that_stops_answering_without_closing_is_reconnected() {
     use std::io::Read;
