@@ -402,6 +402,8 @@ impl PortScheduler {
                     }
                     encodes
                 });
+                // A TCP gateway's lag is part of the device's floor, as in wb-mqtt-serial.
+                plan.response_timeout = plan.response_timeout.saturating_add(settings.response_lag);
                 DeviceState::new(plan, settings.fast_modbus, &settings.line)
             })
             .collect();

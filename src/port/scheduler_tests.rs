@@ -3832,3 +3832,40 @@ fn a_failed_queued_transaction_holds_its_device_off_as_the_schedulers_own_failur
     answer_until(&mut scheduler, &mut now, 30);
     assert!(now < start + ms(50), "held off {:?}", now - start);
 }
+
+/// A TCP gateway's response lag (wb-mqtt-serial's `ResponseTCPLag`) is part of every device's
+/// response timeout: the wait for the first byte, the late window watched after it, and what an
+/// offline device's retry is estimated to take, so the event slots stay where they were planned.
+#[test]
+fn a_tcp_gateways_response_lag_is_part_of_every_timeout_and_estimate() {
+    let lag = crate::port::plan::TCP_RESPONSE_LAG;
+    let mut port = settings(9600);
+    port.fast_modbus = false;
+    let plans = || {
+        vec![device(
+            30,
+            vec![read(RegisterType::Input, 0, EventMode::Polled)],
+        )]
+    };
+    let first_and_retry = |port: PortSettings| {
+        let mut scheduler = PortScheduler::new(port, plans());
+        let mut now = Duration::ZERO;
+        let first = next_classic(&mut scheduler, &mut now);
+        now += first.request_time + first.first_byte_timeout.unwrap();
+        scheduler.complete(now, TransactionOutcome::NoReply);
+        let retry = next_classic(&mut scheduler, &mut now);
+        (first, retry)
+    };
+    let (first, retry) = first_and_retry(port.clone());
+    port.response_lag = lag;
+    let (lagged_first, lagged_retry) = first_and_retry(port);
+    assert_eq!(
+        lagged_first.first_byte_timeout,
+        first.first_byte_timeout.map(|t| t + lag)
+    );
+    assert_eq!(lagged_first.late_window, first.late_window + lag);
+    assert_eq!(lagged_first.reply_timeout, first.reply_timeout + lag);
+    // Offline: its whole timeout (and the late window when watched) counts in the estimate.
+    let watched = if retry.late_window.is_zero() { 1 } else { 2 };
+    assert_eq!(lagged_retry.estimated, retry.estimated + lag * watched);
+}
