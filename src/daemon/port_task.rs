@@ -16,7 +16,7 @@ use super::event_log::EventLog;
 use super::identity::{read_identity, IdentityPlan, IdentityRead};
 use crate::device_updates::{ControlWrite, DeviceUpdate};
 use crate::gateway::device_model::{apply_port_events, DeviceModel};
-use crate::gateway::port_plan::PortPlan;
+use crate::gateway::port_plan::{PortPlan, ReconnectRule};
 use crate::mqtt::throttle::{LogBudget, LogDecision};
 use crate::port::{
     GuardIntervals, NextStep, PortEvent, PortScheduler, ReplyTiming, Transaction,
@@ -65,6 +65,41 @@ pub struct PortTask {
     /// allocates no lists: its events, then the updates made of them.
     port_events: Vec<PortEvent>,
     update_buffer: Vec<DeviceUpdate>,
+    /// A TCP gateway's connection is closed after this long without a successful transaction.
+    reconnect: Option<ReconnectRule>,
+    /// The open connection's transactions under that rule.
+    connection: Option<ConnectionWatch>,
+}
+
+/// wb-mqtt-serial's `TPortOpenCloseLogic::CloseIfNeeded` over one open connection, a cycle
+/// being one transaction: a gateway that keeps its connection but answers nothing (its serial
+/// side stuck, a path that broke without a FIN) is closed and reopened.
+#[derive(Debug, Clone, Copy)]
+struct ConnectionWatch {
+    rule: ReconnectRule,
+    last_success: Duration,
+    /// Failed transactions still allowed before the connection may be closed.
+    remaining: u32,
+}
+
+impl ConnectionWatch {
+    fn opened(rule: ReconnectRule, now: Duration) -> Self {
+        Self {
+            rule,
+            last_success: now,
+            remaining: rule.failed_cycles,
+        }
+    }
+
+    /// A transaction ended at `now`, answered or not: true when the connection is to be closed.
+    fn transaction_done(&mut self, now: Duration, answered: bool) -> bool {
+        if answered {
+            self.last_success = now;
+            self.remaining = self.rule.failed_cycles;
+        }
+        self.remaining = self.remaining.saturating_sub(1);
+        self.remaining == 0 && now.saturating_sub(self.last_success) > self.rule.after
+    }
 }
 
 /// Who each device is (model, serial number, firmware), read when it comes online or restarts,
@@ -156,6 +191,8 @@ impl PortTask {
             event_log: None,
             port_events: Vec::new(),
             update_buffer: Vec::new(),
+            reconnect: plan.reconnect,
+            connection: None,
         }
     }
 
@@ -464,6 +501,10 @@ impl PortTask {
             transport: Some(transport),
             away: None,
         };
+        let now = self.now();
+        self.connection = self
+            .reconnect
+            .map(|rule| ConnectionWatch::opened(rule, now));
         // A queued transaction may go before the scheduler's next one, never two in a row while
         // the scheduler has something to send: event polls keep their slots.
         let mut queued_turn = true;
@@ -522,6 +563,7 @@ impl PortTask {
                             Some(err),
                         ),
                     };
+                    let answered = matches!(outcome, TransactionOutcome::Reply(_));
                     let recorded = self.status.as_ref().map(|_| outcome.clone());
                     if let (Some(log), Some((address, packet))) =
                         (&self.event_log, outcome.event_packet())
@@ -539,6 +581,7 @@ impl PortTask {
                     if let Some(err) = failure {
                         return Err(err);
                     }
+                    self.watch_connection(&transaction, answered)?;
                 }
                 NextStep::Wait { until } => {
                     let wake = (self.epoch + until).min(Instant::now() + HEARTBEAT);
@@ -641,12 +684,23 @@ impl PortTask {
         debug!(port = %self.plan_name, away = ?bus.away, "queued transaction");
         let started = self.now();
         transport.set_guard_interval(self.guard_intervals.before(job.transaction.request.address));
-        match transport.transact(&job.transaction).await {
+        let result = transport.transact(&job.transaction).await;
+        // The scheduler holds a device whose transaction failed off until a late reply to it
+        // could no longer come (`PortScheduler::queued_done`), as after its own failures.
+        let (outcome, timing) = match &result {
+            Ok((outcome, timing)) => (outcome.clone(), *timing),
+            Err(_) => (TransactionOutcome::NoReply, ReplyTiming::default()),
+        };
+        let now = self.now();
+        self.scheduler
+            .queued_done(now, &job.transaction.request, outcome, timing);
+        match result {
             Ok((outcome, _timing)) => {
                 // The status page counts it with the scheduler's own: the line was as busy.
                 self.record_transaction(started, &job.transaction, &outcome);
+                let answered = matches!(outcome, TransactionOutcome::Reply(_));
                 let _ = job.reply.send(Ok(outcome));
-                Ok(())
+                self.watch_connection(&job.transaction, answered)
             }
             Err(err) => {
                 let _ = job
@@ -655,6 +709,26 @@ impl PortTask {
                 Err(err)
             }
         }
+    }
+
+    /// Counts a transaction against the connection's reconnection rule (a broadcast, which
+    /// nobody answers, not at all): an error when the connection is to be closed and reopened.
+    fn watch_connection(
+        &mut self,
+        transaction: &Transaction,
+        answered: bool,
+    ) -> Result<(), TransportError> {
+        let now = self.now();
+        let Some(watch) = self.connection.as_mut() else {
+            return Ok(());
+        };
+        if !transaction.request.expects_reply() || !watch.transaction_done(now, answered) {
+            return Ok(());
+        }
+        Err(TransportError::Unanswered {
+            name: self.plan_name.clone(),
+            after: now.saturating_sub(watch.last_success),
+        })
     }
 
     /// The serial settings of the port (none for TCP gateways).
@@ -861,6 +935,35 @@ fn held_by_another_program(err: &TransportError) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// wb-mqtt-serial's `TPortOpenCloseLogic`: closed once no transaction succeeded for the
+    /// timeout and over the cycles; a success starts both over.
+    #[test]
+    fn a_connection_is_closed_after_its_timeout_and_cycles_without_an_answer() {
+        let ms = Duration::from_millis;
+        let rule = ReconnectRule {
+            after: ms(2000),
+            failed_cycles: 3,
+        };
+        let mut watch = ConnectionWatch::opened(rule, ms(0));
+        // Time alone is not enough: 3 failed transactions are.
+        assert!(!watch.transaction_done(ms(2500), false));
+        assert!(!watch.transaction_done(ms(2600), false));
+        assert!(watch.transaction_done(ms(2700), false));
+        // Cycles alone are not enough: the timeout is.
+        let mut watch = ConnectionWatch::opened(rule, ms(0));
+        for at in 1..=20 {
+            assert!(!watch.transaction_done(ms(at * 100), false), "at {at}");
+        }
+        assert!(watch.transaction_done(ms(2001), false));
+        // A success starts both over.
+        let mut watch = ConnectionWatch::opened(rule, ms(0));
+        assert!(!watch.transaction_done(ms(1900), false));
+        assert!(!watch.transaction_done(ms(1950), true));
+        assert!(!watch.transaction_done(ms(3000), false));
+        assert!(!watch.transaction_done(ms(3900), false));
+        assert!(watch.transaction_done(ms(3951), false));
+    }
 
     #[test]
     fn a_port_another_program_holds_is_told_apart() {

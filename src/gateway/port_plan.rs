@@ -5,11 +5,13 @@ use std::time::Duration;
 
 use crate::config::config_file::{PortConfig, PortType};
 use crate::device::model::{ResolvedDevice, ResolvedPort, SetupItem, WriteFunction};
+use crate::port::plan::TCP_RESPONSE_LAG;
 use crate::port::{
     DevicePlan, GuardIntervals, HealthPolicy, MergeLimits, PlannedRead, PortSettings, SetupWrite,
     MIN_LATE_REPLY_HOLDOFF,
 };
 use crate::protocol::{LineSettings, Parity, RegisterType};
+use crate::transport::exchange::DEFAULT_FRAME_TIMEOUT;
 use crate::transport::Endpoint;
 
 /// Everything one port task needs.
@@ -19,6 +21,31 @@ pub struct PortPlan {
     pub endpoint: Endpoint,
     pub settings: PortSettings,
     pub devices: Vec<DevicePlan>,
+    /// When a TCP gateway's connection is closed and opened again (none: never, and for serial
+    /// ports).
+    pub reconnect: Option<ReconnectRule>,
+}
+
+/// wb-mqtt-serial's rule for a connection that stopped answering without closing
+/// (`TPortOpenCloseLogic`): closed and reopened once no transaction has succeeded for `after`
+/// (`connection_timeout_ms`, default 5 s) and over `failed_cycles` transactions
+/// (`connection_max_fail_cycles`, default 2). Either at -1 turns it off.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ReconnectRule {
+    pub after: Duration,
+    pub failed_cycles: u32,
+}
+
+fn reconnect_rule(port: &PortConfig) -> Option<ReconnectRule> {
+    if port.port_type == PortType::Serial {
+        return None;
+    }
+    let after = u64::try_from(port.connection_timeout_ms).ok()?;
+    let failed_cycles = u32::try_from(port.connection_max_fail_cycles).ok()?;
+    Some(ReconnectRule {
+        after: Duration::from_millis(after),
+        failed_cycles,
+    })
 }
 
 /// Serial settings of a port; TCP gateways are modelled at 9600 8N2 as wb-mqtt-serial does.
@@ -34,7 +61,26 @@ pub fn line_settings(port: &PortConfig) -> LineSettings {
     }
 }
 
-fn endpoint(port: &PortConfig) -> Endpoint {
+/// The pause a reply on a TCP link may make between two bytes (before the TCP lag): the
+/// longest frame timeout of the port's devices (each the device's `frame_timeout_ms`, else the
+/// port's, else 20 ms). A longer pause than a device needs costs nothing on a reply that
+/// completes; it only delays giving up a broken one, within its reply timeout.
+fn frame_timeout(port: &ResolvedPort) -> Duration {
+    port.devices
+        .iter()
+        .map(|device| device.timing.frame_timeout)
+        .max()
+        .unwrap_or_else(|| {
+            port.config
+                .frame_timeout_ms
+                .filter(|ms| *ms >= 0)
+                .map_or(DEFAULT_FRAME_TIMEOUT, |ms| Duration::from_millis(ms as u64))
+        })
+}
+
+fn endpoint(port: &ResolvedPort) -> Endpoint {
+    let frame_timeout = frame_timeout(port);
+    let port = &port.config;
     let address = format!(
         "{}:{}",
         port.address.as_deref().unwrap_or("127.0.0.1"),
@@ -49,10 +95,12 @@ fn endpoint(port: &PortConfig) -> Endpoint {
         PortType::Tcp => Endpoint::RtuOverTcp {
             address,
             connect_timeout,
+            frame_timeout,
         },
         PortType::ModbusTcp => Endpoint::ModbusTcp {
             address,
             connect_timeout,
+            frame_timeout,
         },
     }
 }
@@ -68,6 +116,9 @@ pub fn port_plan(port: &ResolvedPort, fast_modbus: bool) -> PortPlan {
         settings.event_interval = Duration::from_millis(interval.clamp(5, 10_000));
     }
     settings.low_priority_reads_per_second = port.low_priority_read_limit;
+    if port.config.port_type != PortType::Serial {
+        settings.response_lag = TCP_RESPONSE_LAG;
+    }
     settings.guard_intervals = GuardIntervals(
         port.devices
             .iter()
@@ -75,12 +126,13 @@ pub fn port_plan(port: &ResolvedPort, fast_modbus: bool) -> PortPlan {
             .map(|d| (d.slave_id, d.timing.guard_interval))
             .collect(),
     );
-    let endpoint = endpoint(&port.config);
+    let endpoint = endpoint(port);
     PortPlan {
         name: endpoint.name(),
         endpoint,
         settings,
         devices: port.devices.iter().map(device_plan).collect(),
+        reconnect: reconnect_rule(&port.config),
     }
 }
 
@@ -257,6 +309,62 @@ mod tests {
             !port_plan(&resolved(mge), false).settings.fast_modbus,
             "the site-wide switch wins"
         );
+    }
+
+    /// On TCP gateways: the configured frame timeout (the longest of the devices') with the TCP
+    /// lag the transport adds, wb-mqtt-serial's response lag on every device's timeout, and its
+    /// reconnection rule; none of these on a serial port.
+    #[test]
+    fn tcp_gateways_carry_their_timeouts_and_reconnection_rule() {
+        let tcp = resolved(
+            json!({"port_type": "tcp", "address": "10.0.0.5", "port": 23,
+            "frame_timeout_ms": 70, "connection_timeout_ms": 2000,
+            "connection_max_fail_cycles": 3}),
+        );
+        let plan = port_plan(&tcp, true);
+        let Endpoint::RtuOverTcp { frame_timeout, .. } = plan.endpoint else {
+            panic!("{:?}", plan.endpoint);
+        };
+        // The relay module's template sets its own.
+        assert_eq!(frame_timeout, tcp.devices[0].timing.frame_timeout);
+        let mut no_devices = tcp.clone();
+        no_devices.devices.clear();
+        let Endpoint::RtuOverTcp { frame_timeout, .. } = port_plan(&no_devices, true).endpoint
+        else {
+            unreachable!()
+        };
+        assert_eq!(frame_timeout, Duration::from_millis(70));
+        assert_eq!(plan.settings.response_lag, TCP_RESPONSE_LAG);
+        assert_eq!(
+            plan.reconnect,
+            Some(ReconnectRule {
+                after: Duration::from_secs(2),
+                failed_cycles: 3
+            })
+        );
+        let mut defaults =
+            resolved(json!({"port_type": "modbus tcp", "address": "10.0.0.5", "port": 502}));
+        defaults.devices.clear();
+        let defaults = port_plan(&defaults, true);
+        let Endpoint::ModbusTcp { frame_timeout, .. } = defaults.endpoint else {
+            panic!("{:?}", defaults.endpoint);
+        };
+        assert_eq!(frame_timeout, DEFAULT_FRAME_TIMEOUT);
+        assert_eq!(
+            defaults.reconnect,
+            Some(ReconnectRule {
+                after: Duration::from_secs(5),
+                failed_cycles: 2
+            })
+        );
+        let never = resolved(
+            json!({"port_type": "tcp", "address": "10.0.0.5", "port": 23,
+            "connection_timeout_ms": -1}),
+        );
+        assert_eq!(port_plan(&never, true).reconnect, None);
+        let serial = port_plan(&resolved(json!({"path": "/dev/ttyRS485-1"})), true);
+        assert_eq!(serial.reconnect, None);
+        assert_eq!(serial.settings.response_lag, Duration::ZERO);
     }
 
     #[test]

@@ -229,6 +229,19 @@ impl DeviceHealth {
         self.quiet_until = self.quiet_until.saturating_add(by);
     }
 
+    /// A transaction to this device that the scheduler did not send (an RPC's, an identity
+    /// read) failed at `now`: the device is left alone as after a failure of its own (the
+    /// [`HealthPolicy::late_reply_holdoff`], and `skipped_window` more: the late window that
+    /// transaction did not watch), so that a late reply to it cannot be taken as the reply to
+    /// the scheduler's next request. Its failures and state are untouched: that transaction ran
+    /// on its caller's timeout, not the device's.
+    pub fn hold_off_after_foreign_failure(&mut self, now: Duration, skipped_window: Duration) {
+        let until = now
+            .saturating_add(self.policy.late_reply_holdoff)
+            .saturating_add(skipped_window);
+        self.quiet_until = self.quiet_until.max(until);
+    }
+
     /// When a disconnected device may be tried again.
     pub fn retry_at(&self) -> Option<Duration> {
         match self.state {

@@ -29,7 +29,16 @@ pub struct PortSettings {
     /// Reads of channels without a read period, at most this many a second (the config's
     /// `rate_limit`, this port's share); `None`: as many as the bus carries.
     pub low_priority_reads_per_second: Option<u32>,
+    /// Added to every device's configured response timeout: [`TCP_RESPONSE_LAG`] on a TCP
+    /// gateway, nothing on a serial line. The scheduler adds it to the floor of each device's
+    /// response timeout, so its late window, hold-offs and estimates include it.
+    pub response_lag: Duration,
 }
+
+/// What a TCP gateway adds to a device's response timeout, as wb-mqtt-serial does
+/// (`ResponseTCPLag`, src/port/tcp_port.cpp): the network and the gateway's own turnaround.
+/// Configs written for wb-mqtt-serial set `response_timeout_ms` with it silently added.
+pub const TCP_RESPONSE_LAG: Duration = Duration::from_millis(500);
 
 impl PortSettings {
     pub fn for_line(line: LineSettings) -> Self {
@@ -41,6 +50,7 @@ impl PortSettings {
             turnaround: Duration::from_millis(1),
             guard_intervals: GuardIntervals::default(),
             low_priority_reads_per_second: None,
+            response_lag: Duration::ZERO,
         }
     }
 }

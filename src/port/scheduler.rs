@@ -27,7 +27,7 @@ use crate::protocol::timing::ADAPTER_LATENCY_ALLOWANCE;
 pub use crate::protocol::transaction::{ReplyTiming, Transaction, TransactionOutcome};
 use crate::protocol::{
     EventPoll, EventRange, EventSource, ExceptionCode, FastReply, RegisterType, Reply, ReplyBody,
-    Request, ResponsePdu,
+    Request, RequestBody, ResponsePdu,
 };
 
 /// How long a failed write keeps being retried.
@@ -298,6 +298,25 @@ impl PendingWrite {
 /// queued bit-field writes there keep it under the bits they do not define, so that a write
 /// composed over older words does not undo a change the device made since (see
 /// [`RegisterWrite::defined`]). Nothing to do, and no cost, while no such write is queued.
+/// An outcome as the device gave it: a gateway's exception for the device behind it (0x0A: no
+/// path to it, 0x0B: it did not respond) is no answer from the device: silence, not a device
+/// that answered and refused (it would never go offline, and its setup never be written again
+/// when it came back). wb-mqtt-serial counts it a failed transfer too.
+fn device_outcome(outcome: TransactionOutcome) -> TransactionOutcome {
+    match outcome {
+        TransactionOutcome::Reply(Reply {
+            body:
+                ReplyBody::Classic(ResponsePdu::Exception {
+                    code:
+                        ExceptionCode::GATEWAY_PATH_UNAVAILABLE | ExceptionCode::GATEWAY_TARGET_FAILED,
+                    ..
+                }),
+            ..
+        }) => TransactionOutcome::NoReply,
+        outcome => outcome,
+    }
+}
+
 fn see_words(writes: &mut [PendingWrite], device: usize, span: RegisterSpan, values: &[u16]) {
     for pending in writes {
         let write = &pending.write;
@@ -383,6 +402,8 @@ impl PortScheduler {
                     }
                     encodes
                 });
+                // A TCP gateway's lag is part of the device's floor, as in wb-mqtt-serial.
+                plan.response_timeout = plan.response_timeout.saturating_add(settings.response_lag);
                 DeviceState::new(plan, settings.fast_modbus, &settings.line)
             })
             .collect();
@@ -803,23 +824,7 @@ impl PortScheduler {
         timing: ReplyTiming,
         out: &mut Vec<PortEvent>,
     ) {
-        // A gateway's exception for the device behind it (0x0A: no path to it, 0x0B: it did not
-        // respond) is no answer from the device: silence, not a device that answered and
-        // refused (it would never go offline, and its setup never be written again when it came
-        // back). wb-mqtt-serial counts it a failed transfer too.
-        let outcome = match outcome {
-            TransactionOutcome::Reply(Reply {
-                body:
-                    ReplyBody::Classic(ResponsePdu::Exception {
-                        code:
-                            ExceptionCode::GATEWAY_PATH_UNAVAILABLE
-                            | ExceptionCode::GATEWAY_TARGET_FAILED,
-                        ..
-                    }),
-                ..
-            }) => TransactionOutcome::NoReply,
-            outcome => outcome,
-        };
+        let outcome = device_outcome(outcome);
         let device = match &self.in_flight {
             Some(InFlight::Setup { device, .. })
             | Some(InFlight::EnableEvents { device, .. })
@@ -912,6 +917,49 @@ impl PortScheduler {
         }
         if let Some(device) = device {
             self.index.mark_stale(device);
+        }
+    }
+
+    /// A transaction the scheduler did not send (a queued one: an RPC's, an identity read) ended
+    /// at `now` with `outcome`. When it failed, the devices at its address are held off as
+    /// after a failure of their own (`complete_into`): an RTU reply carries no transaction
+    /// number, and a late reply to it would otherwise be taken as the reply to the scheduler's
+    /// next request to that device with the same function and length (a wrong value). Held
+    /// off, their late reply can only land in another device's window, where its address gives
+    /// it away. Only the hold-off: the device's health and learned response time stay as they
+    /// were (the transaction ran on its caller's timeout). Requests by serial number (address
+    /// 0xFD) hold off nobody: their reply carries the 0xFD address and the by-serial command,
+    /// which no reply to the scheduler's requests (by address, or event polls and scans, whose
+    /// commands differ) can be taken for; broadcasts have no reply.
+    pub fn queued_done(
+        &mut self,
+        now: Duration,
+        request: &Request,
+        outcome: TransactionOutcome,
+        timing: ReplyTiming,
+    ) {
+        if !request.expects_reply() || !matches!(request.body, RequestBody::Classic(_)) {
+            return;
+        }
+        if matches!(device_outcome(outcome), TransactionOutcome::Reply(_)) {
+            return;
+        }
+        // Silence in time: the late window it did not watch counts too, at the device's
+        // configured timeout (as for the scheduler's own failures that skipped it).
+        let heard_nothing_in_time = timing.first_byte.is_none() && timing.late_byte.is_none();
+        for (index, state) in self.devices.iter_mut().enumerate() {
+            if state.plan.address != request.address {
+                continue;
+            }
+            let skipped_window = if heard_nothing_in_time {
+                state.response.floor()
+            } else {
+                Duration::ZERO
+            };
+            state
+                .health
+                .hold_off_after_foreign_failure(now, skipped_window);
+            self.index.mark_stale(index);
         }
     }
 

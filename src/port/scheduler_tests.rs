@@ -3748,3 +3748,122 @@ fn a_device_that_never_fits_any_budget_cannot_hold_the_bus() {
         "{budgets:?}"
     );
 }
+
+/// Review of the transport and port task, finding 1: a queued transaction (an RPC's, an
+/// identity read) that failed holds its device off exactly as the scheduler's own failures do,
+/// so that a late reply to it can only land in another device's window. Silence in time adds the
+/// skipped late window (the device's configured timeout); a reply that began in time does not.
+/// The device's health is untouched (no failure counted, it stays online), and requests by
+/// serial number or to addresses no device has hold nobody off.
+#[test]
+fn a_failed_queued_transaction_holds_its_device_off_as_the_schedulers_own_failures_do() {
+    let holdoff = HealthPolicy::default().late_reply_holdoff;
+    let read = |address| {
+        Request::classic(
+            address,
+            RequestPdu::ReadInputRegisters {
+                start: 10,
+                count: 1,
+            },
+        )
+    };
+    let silent = ReplyTiming::default();
+    let began_in_time = ReplyTiming {
+        first_byte: Some(ms(2)),
+        late_byte: None,
+    };
+    for (outcome, timing, window) in [
+        (TransactionOutcome::NoReply, silent, true),
+        (TransactionOutcome::Garbled, began_in_time, false),
+    ] {
+        let (mut scheduler, mut now) = two_answering_devices();
+        let floor = scheduler.devices[0].response.floor();
+        let failed_at = now;
+        scheduler.queued_done(now, &read(30), outcome.clone(), timing);
+        // Neither of these holds anybody off.
+        scheduler.queued_done(now, &read(77), TransactionOutcome::NoReply, silent);
+        let by_serial = Request::by_serial(
+            0xFE00_0030,
+            RequestPdu::ReadInputRegisters {
+                start: 10,
+                count: 1,
+            },
+        );
+        scheduler.queued_done(now, &by_serial, TransactionOutcome::NoReply, silent);
+        let next_to_31 = next_classic(&mut scheduler, &mut now);
+        assert_eq!(next_to_31.request.address, 31, "31 goes on at once");
+        assert_eq!(now, failed_at);
+        now += ms(5);
+        scheduler.complete(now, healthy(&next_to_31.request));
+        let again = answer_until(&mut scheduler, &mut now, 30);
+        let expected = failed_at + holdoff + if window { floor } else { Duration::ZERO };
+        assert!(
+            now >= expected,
+            "{outcome:?}: asked again {:?} after the failure",
+            now - failed_at
+        );
+        assert!(
+            now < expected + ms(50),
+            "{outcome:?}: held off {:?}",
+            now - failed_at
+        );
+        assert!(
+            scheduler.devices[0].health.answered_last(),
+            "no failure counted"
+        );
+        // It answered its last request: its own next request skips the late window as usual.
+        assert_eq!(again.late_window, Duration::ZERO);
+    }
+    // A queued transaction that was answered holds nobody off; nor does a broadcast.
+    let (mut scheduler, mut now) = two_answering_devices();
+    let start = now;
+    let reply = healthy(&read(30));
+    scheduler.queued_done(now, &read(30), reply, began_in_time);
+    let broadcast = Request::classic(
+        0,
+        RequestPdu::WriteSingleRegister {
+            address: 1,
+            value: 1,
+        },
+    );
+    scheduler.queued_done(now, &broadcast, TransactionOutcome::NoReply, silent);
+    answer_until(&mut scheduler, &mut now, 30);
+    assert!(now < start + ms(50), "held off {:?}", now - start);
+}
+
+/// A TCP gateway's response lag (wb-mqtt-serial's `ResponseTCPLag`) is part of every device's
+/// response timeout: the wait for the first byte, the late window watched after it, and what an
+/// offline device's retry is estimated to take, so the event slots stay where they were planned.
+#[test]
+fn a_tcp_gateways_response_lag_is_part_of_every_timeout_and_estimate() {
+    let lag = crate::port::plan::TCP_RESPONSE_LAG;
+    let mut port = settings(9600);
+    port.fast_modbus = false;
+    let plans = || {
+        vec![device(
+            30,
+            vec![read(RegisterType::Input, 0, EventMode::Polled)],
+        )]
+    };
+    let first_and_retry = |port: PortSettings| {
+        let mut scheduler = PortScheduler::new(port, plans());
+        let mut now = Duration::ZERO;
+        let first = next_classic(&mut scheduler, &mut now);
+        now += first.request_time + first.first_byte_timeout.unwrap();
+        scheduler.complete(now, TransactionOutcome::NoReply);
+        let retry = next_classic(&mut scheduler, &mut now);
+        (first, retry)
+    };
+    let (first, retry) = first_and_retry(port.clone());
+    port.response_lag = lag;
+    let (lagged_first, lagged_retry) = first_and_retry(port);
+    assert_eq!(
+        lagged_first.first_byte_timeout,
+        first.first_byte_timeout.map(|t| t + lag)
+    );
+    assert_eq!(lagged_first.late_window, first.late_window + lag);
+    assert_eq!(lagged_first.reply_timeout, first.reply_timeout + lag);
+    // Offline: its whole timeout (and the late window when watched) counts in the estimate.
+    let watched = if retry.late_window.is_zero() { 1 } else { 2 };
+    assert_eq!(lagged_retry.estimated, retry.estimated + lag * watched);
+}

@@ -148,12 +148,13 @@ impl LinkConfig {
     }
 
     /// A TCP link: the far side's serial timing is unknown, so no early bytes are thrown away
-    /// and a frame may pause for a network's delay.
+    /// and a frame may pause for a network's delay: the default frame timeout and
+    /// [`TCP_FRAME_LAG`] (see [`Self::with_frame_timeout`]).
     pub fn tcp(framing: Framing) -> Self {
         Self {
             framing,
             serial: None,
-            quiet_gap: Duration::from_millis(50),
+            quiet_gap: DEFAULT_FRAME_TIMEOUT.saturating_add(TCP_FRAME_LAG),
             guard_interval: Duration::ZERO,
             frame_gap: Duration::ZERO,
             receive_timeout: Duration::ZERO,
@@ -161,6 +162,31 @@ impl LinkConfig {
         }
     }
 }
+
+/// wb-mqtt-serial's frame timeout when neither the port nor the device sets `frame_timeout_ms`.
+pub const DEFAULT_FRAME_TIMEOUT: Duration = Duration::from_millis(20);
+
+/// What a TCP link adds to the frame timeout between two bytes of a reply, as wb-mqtt-serial
+/// does (`FrameTCPLag`, src/port/tcp_port.cpp): a reply may come in several segments (a
+/// gateway that packetises a slow serial line, a retransmitted segment, a radio link).
+pub const TCP_FRAME_LAG: Duration = Duration::from_millis(150);
+
+impl LinkConfig {
+    /// On a TCP link, a reply may pause `frame_timeout` (the config's `frame_timeout_ms`) and
+    /// [`TCP_FRAME_LAG`] between bytes. No effect on a serial line, whose pause is worked out
+    /// from its characters' time.
+    pub fn with_frame_timeout(mut self, frame_timeout: Duration) -> Self {
+        if self.serial.is_none() {
+            self.quiet_gap = frame_timeout.saturating_add(TCP_FRAME_LAG);
+        }
+        self
+    }
+}
+
+/// How much longer than its reply timeout a request waits for a quiet line before its
+/// transaction is given up (see [`Exchange::line_was_busy`]): as long as a failed
+/// transaction's drain may last.
+pub const MAX_QUIET_WAIT_BEYOND_REPLY: Duration = window::MAX_DRAIN;
 
 /// A request to put on the line.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -174,10 +200,13 @@ pub struct Transmit {
 #[derive(Debug)]
 enum State {
     Idle,
-    /// Waiting for the guard interval, then for [`Exchange::poll_transmit`].
+    /// Waiting for the guard interval, then for [`Exchange::poll_transmit`]. `waiting_since`:
+    /// the first time the driver asked for the request (the wait for a quiet line is bounded
+    /// from there, [`Exchange::line_was_busy`]).
     Pending {
         request: Request,
         frame: Vec<u8>,
+        waiting_since: Option<Duration>,
     },
     /// Handed to the driver; waiting for [`Exchange::handle_sent`].
     Sending {
@@ -312,6 +341,7 @@ impl Exchange {
         self.state = State::Pending {
             request: transaction.request.clone(),
             frame,
+            waiting_since: None,
         };
         Ok(())
     }
@@ -329,10 +359,15 @@ impl Exchange {
 
     /// The request, once the guard interval since the line was last busy has passed.
     pub fn poll_transmit(&mut self, now: Duration) -> Option<Transmit> {
-        if !matches!(self.state, State::Pending { .. }) || now < self.transmit_at() {
+        let transmit_at = self.transmit_at();
+        let State::Pending { waiting_since, .. } = &mut self.state else {
+            return None;
+        };
+        waiting_since.get_or_insert(now);
+        if now < transmit_at {
             return None;
         }
-        let State::Pending { request, frame } = std::mem::replace(&mut self.state, State::Idle)
+        let State::Pending { request, frame, .. } = std::mem::replace(&mut self.state, State::Idle)
         else {
             return None;
         };
@@ -361,10 +396,35 @@ impl Exchange {
         }
     }
 
-    /// Something outside this exchange (a raw transfer) kept the line busy until `until`: the
-    /// guard interval of the next request counts from there.
+    /// Something outside this exchange (a raw transfer, bytes the driver saw on the line while
+    /// the request waited for silence) kept the line busy until `until`: the guard interval of
+    /// the next request counts from there.
+    ///
+    /// The wait for a quiet line is bounded: once the request has waited the reply's timeout
+    /// and [`MAX_QUIET_WAIT_BEYOND_REPLY`] more (a stuck transmitter, a device in a reply loop),
+    /// the transaction ends `Garbled` without sending. Sending into the noise would collide
+    /// with it, and a request that waits for ever stalls the port: no device would be flagged
+    /// or go offline, stale values would stay published, writes would neither go nor fail. As a
+    /// failure, the scheduler's rules apply as for any garbled reply: its devices go offline
+    /// after their timeout, its writes are retried and then given up.
     pub fn line_was_busy(&mut self, until: Duration) {
         self.line_busy_until = Some(self.line_busy_until.map_or(until, |busy| busy.max(until)));
+        let State::Pending {
+            waiting_since: Some(since),
+            ..
+        } = &self.state
+        else {
+            return;
+        };
+        let reply_timeout = self
+            .transaction
+            .as_ref()
+            .map_or(Duration::ZERO, |transaction| transaction.reply_timeout);
+        if until.saturating_sub(*since) >= reply_timeout.saturating_add(MAX_QUIET_WAIT_BEYOND_REPLY)
+        {
+            debug!("the line never fell quiet before the request: not sent");
+            self.state = State::Done(TransactionOutcome::Garbled, ReplyTiming::default());
+        }
     }
 
     /// The driver's `write` of the request returned at `now`: the reply window opens.
@@ -629,7 +689,10 @@ impl Receiving {
         }
     }
 
-    /// The first decoded Modbus TCP reply that answers the request.
+    /// The first decoded Modbus TCP reply that answers the request. Its unit identifier must be
+    /// the request's, as wb-mqtt-serial checks it ("request and response unit identifier
+    /// mismatch"): a gateway that mixes up its units' replies gives one unit's registers under
+    /// another's transaction id. (A broadcast expects no reply and never gets here.)
     fn take_mbap(
         &mut self,
         replies: Vec<Result<Reply, crate::protocol::DecodeError>>,
@@ -637,7 +700,11 @@ impl Receiving {
         for reply in replies {
             match reply {
                 // The length serves only a serial line's timing.
-                Ok(reply) if answers(&self.request, &reply) => return Some((reply, 0)),
+                Ok(reply)
+                    if reply.address == self.request.address && answers(&self.request, &reply) =>
+                {
+                    return Some((reply, 0))
+                }
                 Ok(reply) => {
                     debug!(
                         address = reply.address,
@@ -687,7 +754,7 @@ mod window {
 
     /// Longest a babbling line may keep the transport draining after a failed transaction, so that a
     /// stuck transmitter cannot stall the port forever.
-    const MAX_DRAIN: Duration = Duration::from_secs(1);
+    pub const MAX_DRAIN: Duration = Duration::from_secs(1);
 
     #[derive(Debug, Clone, Copy, PartialEq, Eq)]
     enum Phase {
@@ -2040,5 +2107,245 @@ mod tests {
         assert_eq!(exchange.poll_outcome(), None);
         let finished = run(&mut exchange, &transaction, ms(2), &[]);
         assert_eq!(finished.outcome, TransactionOutcome::NoReply);
+    }
+
+    /// A line that never falls quiet for a frame gap (a byte every 2 ms at 9600, whose gap is
+    /// 4 ms): the request waits its reply timeout and the drain window at most, then the
+    /// transaction is over as garbled, never sent. The next one waits again from its own start.
+    #[test]
+    fn a_line_that_never_falls_quiet_fails_the_request_unsent_in_bounded_time() {
+        let line = line(9600);
+        let transaction = transaction(&line, read_request());
+        let bound = transaction.reply_timeout + MAX_QUIET_WAIT_BEYOND_REPLY;
+        let mut exchange = Exchange::new(serial(line));
+        for _ in 0..2 {
+            exchange.line_was_busy(ms(0));
+            exchange.start(&transaction).expect("encodes");
+            let started = exchange.line_busy_until().unwrap();
+            let mut now = started;
+            let outcome = loop {
+                assert_eq!(exchange.poll_transmit(now), None, "sent into the noise");
+                if let Some((outcome, _)) = exchange.poll_outcome() {
+                    break outcome;
+                }
+                assert!(
+                    now <= started + bound,
+                    "still waiting after {:?}",
+                    now - started
+                );
+                now += ms(2);
+                exchange.line_was_busy(now);
+            };
+            assert_eq!(outcome, TransactionOutcome::Garbled);
+            assert!(now >= started + bound, "given up after {:?}", now - started);
+        }
+        // A line that falls quiet in time sends the request as usual.
+        exchange.start(&transaction).expect("encodes");
+        let busy = exchange.line_busy_until().unwrap();
+        assert_eq!(exchange.poll_transmit(busy), None);
+        exchange.line_was_busy(busy + ms(500));
+        assert!(exchange
+            .poll_transmit(busy + ms(500) + line.frame_gap())
+            .is_some());
+    }
+}
+
+/// Replies on TCP links (found by the review of the transport, docs/reliability.md): the unit
+/// identifier of a Modbus TCP reply, and replies that come in several segments.
+#[cfg(test)]
+mod tcp_replies {
+    use super::*;
+    use crate::protocol::{Parity, RequestPdu, ResponsePdu};
+
+    fn ms(ms: u64) -> Duration {
+        Duration::from_millis(ms)
+    }
+
+    fn read_request(address: u8) -> Request {
+        Request::classic(
+            address,
+            RequestPdu::ReadInputRegisters {
+                start: 0x10,
+                count: 2,
+            },
+        )
+    }
+
+    /// A scheduler-like transaction: 500 ms to the first byte (a WB template's timeout).
+    fn transaction(request: Request) -> Transaction {
+        let line = LineSettings::new(9600, Parity::None, 2);
+        Transaction {
+            request_time: line.wire_time(request.encoded_len()),
+            reply_timeout: ms(500) + line.wire_time(request.expected_reply_len()) + ms(50),
+            first_byte_timeout: Some(ms(500)),
+            late_window: Duration::ZERO,
+            estimated: ms(20),
+            request,
+        }
+    }
+
+    /// Runs the exchange: `arrivals` (time, bytes) read as they come, timeouts in between.
+    fn run(
+        exchange: &mut Exchange,
+        transaction: &Transaction,
+        arrivals: &[(Duration, Vec<u8>)],
+    ) -> TransactionOutcome {
+        exchange.start(transaction).expect("encodes");
+        let mut now = Duration::ZERO;
+        let transmit = exchange.poll_transmit(now).expect("sent at once");
+        assert!(!transmit.bytes.is_empty());
+        exchange.handle_sent(now);
+        let mut next = 0;
+        for _ in 0..1000 {
+            if let Some((outcome, _)) = exchange.poll_outcome() {
+                return outcome;
+            }
+            let timeout = exchange.poll_timeout().expect("timed");
+            match arrivals.get(next) {
+                Some((at, bytes)) if *at < timeout => {
+                    now = *at;
+                    exchange.handle_bytes(now, bytes);
+                    next += 1;
+                }
+                _ => {
+                    now = now.max(timeout);
+                    exchange.handle_timeout(now);
+                }
+            }
+        }
+        panic!("never finished");
+    }
+
+    /// wb-mqtt-serial (`TModbusTCPTraits::ReadFrame`, src/modbus_common.cpp): a reply whose
+    /// transaction id matches but whose unit identifier is not the request's is "request and
+    /// response unit identifier mismatch", never taken (`answers()` does not compare addresses:
+    /// on RTU the parser's header check does). The right unit's reply after it is still taken.
+    #[test]
+    fn a_modbus_tcp_reply_from_another_unit_is_not_the_reply() {
+        let mut exchange = Exchange::new(LinkConfig::tcp(Framing::ModbusTcp));
+        let transaction = transaction(read_request(30));
+        // Transaction 1, unit 7 (not 30), a well-formed answer to the function and length.
+        let reply = vec![0, 1, 0, 0, 0, 7, 7, 4, 4, 0x12, 0x34, 0x56, 0x78];
+        let outcome = run(&mut exchange, &transaction, &[(ms(5), reply)]);
+        assert_eq!(
+            outcome,
+            TransactionOutcome::Garbled,
+            "unit 7's registers taken as unit 30's"
+        );
+        // Then unit 30's own, in the same transaction (id 2).
+        let transaction = transaction_to(30);
+        let other = vec![0, 2, 0, 0, 0, 7, 7, 4, 4, 0x12, 0x34, 0x56, 0x78];
+        let own = vec![0, 2, 0, 0, 0, 7, 30, 4, 4, 0, 1, 0, 2];
+        let outcome = run(&mut exchange, &transaction, &[(ms(5), other), (ms(6), own)]);
+        let TransactionOutcome::Reply(reply) = outcome else {
+            panic!("unit 30's reply lost: {outcome:?}");
+        };
+        assert_eq!(reply.address, 30);
+    }
+
+    /// A broadcast (unit 0) expects no reply: it is over once sent, whatever comes back.
+    #[test]
+    fn a_modbus_tcp_broadcast_takes_no_reply() {
+        let mut exchange = Exchange::new(LinkConfig::tcp(Framing::ModbusTcp));
+        let request = Request::classic(
+            0,
+            RequestPdu::WriteSingleRegister {
+                address: 1,
+                value: 7,
+            },
+        );
+        let echo = vec![0, 1, 0, 0, 0, 6, 0, 6, 0, 1, 0, 7];
+        let outcome = run(&mut exchange, &transaction(request), &[(ms(1), echo)]);
+        assert_eq!(outcome, TransactionOutcome::NoReply);
+    }
+
+    fn transaction_to(address: u8) -> Transaction {
+        transaction(read_request(address))
+    }
+
+    /// The configured `frame_timeout_ms` counts on TCP, with wb-mqtt-serial's 150 ms
+    /// (`FrameTCPLag`) on top: a reply that pauses 300 ms between two segments is taken under a
+    /// frame timeout of 200 ms, and given up under the default 20 ms.
+    #[test]
+    fn a_tcp_reply_may_pause_the_configured_frame_timeout_and_the_tcp_lag() {
+        let segments = [
+            (ms(5), vec![0, 1, 0, 0, 0, 7, 30, 4, 4, 0x12]),
+            (ms(305), vec![0x34, 0x56, 0x78]),
+        ];
+        let mut transaction = transaction(read_request(30));
+        transaction.reply_timeout = ms(2000);
+        let config = LinkConfig::tcp(Framing::ModbusTcp).with_frame_timeout(ms(200));
+        assert_eq!(config.quiet_gap, ms(350));
+        let outcome = run(&mut Exchange::new(config), &transaction, &segments);
+        assert!(
+            matches!(outcome, TransactionOutcome::Reply(_)),
+            "{outcome:?}"
+        );
+        let default = LinkConfig::tcp(Framing::ModbusTcp);
+        assert_eq!(default.quiet_gap, ms(170));
+        let outcome = run(&mut Exchange::new(default), &transaction, &segments);
+        assert_eq!(outcome, TransactionOutcome::Garbled);
+        // A serial line's pause comes from its characters, not from the frame timeout.
+        let line = LineSettings::new(9600, Parity::None, 2);
+        assert_eq!(
+            LinkConfig::serial(line).with_frame_timeout(ms(200)),
+            LinkConfig::serial(line)
+        );
+    }
+
+    /// A Modbus TCP reply whose second TCP segment comes 80 ms after the first (a retransmitted
+    /// segment on a real network, a gateway that forwards a slow serial line in pieces), well
+    /// within the 500 ms response timeout. wb-mqtt-serial waits frame_timeout + 150 ms
+    /// (`FrameTCPLag`, src/port/tcp_port.cpp) between bytes on TCP; here the fixed 50 ms
+    /// `quiet_gap` of `LinkConfig::tcp` gives the reply up as garbage.
+    #[test]
+    fn a_modbus_tcp_reply_in_two_segments_80_ms_apart_is_taken() {
+        let mut exchange = Exchange::new(LinkConfig::tcp(Framing::ModbusTcp));
+        let transaction = transaction(read_request(30));
+        let outcome = run(
+            &mut exchange,
+            &transaction,
+            &[
+                (ms(5), vec![0, 1, 0, 0, 0, 7, 30, 4, 4, 0x12]),
+                (ms(85), vec![0x34, 0x56, 0x78]),
+            ],
+        );
+        assert!(
+            matches!(outcome, TransactionOutcome::Reply(_)),
+            "a reply split across TCP segments lost: {outcome:?}"
+        );
+    }
+
+    /// The same on an RTU-over-TCP link: a transparent gateway on a 9600 line that forwards the
+    /// reply of a 40-register read (85 bytes, 97 ms on the wire) in two packets.
+    #[test]
+    fn an_rtu_over_tcp_reply_forwarded_in_two_packets_is_taken() {
+        let mut exchange = Exchange::new(LinkConfig::tcp(Framing::Rtu));
+        let request = Request::classic(
+            30,
+            RequestPdu::ReadInputRegisters {
+                start: 0,
+                count: 40,
+            },
+        );
+        let transaction = transaction(request);
+        let frame = Reply::classic(
+            30,
+            ResponsePdu::ReadInputRegisters {
+                values: (0..40).collect(),
+            },
+        )
+        .encode()
+        .expect("encodes");
+        let (first, rest) = frame.split_at(40);
+        let outcome = run(
+            &mut exchange,
+            &transaction,
+            &[(ms(60), first.to_vec()), (ms(120), rest.to_vec())],
+        );
+        assert!(
+            matches!(outcome, TransactionOutcome::Reply(_)),
+            "a reply forwarded in two packets lost: {outcome:?}"
+        );
     }
 }

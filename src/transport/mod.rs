@@ -42,6 +42,8 @@ pub enum TransportError {
     Io { name: String, source: io::Error },
     #[error("{name} closed the connection")]
     Closed { name: String },
+    #[error("no transaction on {name} succeeded for {after:?}: closing the connection")]
+    Unanswered { name: String, after: Duration },
     #[error("cannot send: {0}")]
     Encode(#[from] protocol::EncodeError),
 }
@@ -57,11 +59,15 @@ pub enum Endpoint {
     RtuOverTcp {
         address: String,
         connect_timeout: Duration,
+        /// The pause a reply may make between two bytes, before the TCP lag
+        /// ([`exchange::LinkConfig::with_frame_timeout`]): the config's `frame_timeout_ms`.
+        frame_timeout: Duration,
     },
     /// Modbus TCP: MBAP header instead of address and CRC.
     ModbusTcp {
         address: String,
         connect_timeout: Duration,
+        frame_timeout: Duration,
     },
 }
 
@@ -117,16 +123,18 @@ impl Transport {
             Endpoint::RtuOverTcp {
                 address,
                 connect_timeout,
+                frame_timeout,
             } => (
                 Link::Tcp(connect(address, *connect_timeout).await?),
-                LinkConfig::tcp(Framing::Rtu),
+                LinkConfig::tcp(Framing::Rtu).with_frame_timeout(*frame_timeout),
             ),
             Endpoint::ModbusTcp {
                 address,
                 connect_timeout,
+                frame_timeout,
             } => (
                 Link::Tcp(connect(address, *connect_timeout).await?),
-                LinkConfig::tcp(Framing::ModbusTcp),
+                LinkConfig::tcp(Framing::ModbusTcp).with_frame_timeout(*frame_timeout),
             ),
         };
         let mut exchange = Exchange::new(config);
@@ -416,5 +424,84 @@ async fn connect(address: &str, connect_timeout: Duration) -> Result<TcpStream, 
             address: address.to_owned(),
             source,
         })?;
+    // A path that breaks without a FIN or RST (a NAT's timeout, a bridge powered off) is found
+    // by the kernel: keepalive probes while the link is idle, and a bound on unacknowledged
+    // requests while it is not (else ~15 minutes of retransmissions). The port task's own rule
+    // (`connection_timeout_ms`) reconnects a gateway that keeps the connection but answers
+    // nothing. Best effort: a socket that refuses these options still works.
+    let socket = socket2::SockRef::from(&stream);
+    let keepalive = socket2::TcpKeepalive::new()
+        .with_time(TCP_KEEPALIVE_IDLE)
+        .with_interval(TCP_KEEPALIVE_INTERVAL)
+        .with_retries(TCP_KEEPALIVE_PROBES);
+    if let Err(err) = socket.set_tcp_keepalive(&keepalive) {
+        debug!(%address, %err, "TCP keepalive not set");
+    }
+    if let Err(err) = socket.set_tcp_user_timeout(Some(TCP_USER_TIMEOUT)) {
+        debug!(%address, %err, "TCP user timeout not set");
+    }
     Ok(stream)
+}
+
+/// Idle time before the first keepalive probe of a gateway connection, the time between probes,
+/// and how many unanswered probes drop it: a dead idle path is noticed within 25 s.
+const TCP_KEEPALIVE_IDLE: Duration = Duration::from_secs(10);
+const TCP_KEEPALIVE_INTERVAL: Duration = Duration::from_secs(5);
+const TCP_KEEPALIVE_PROBES: u32 = 3;
+/// How long sent data may stay unacknowledged before the kernel drops the connection.
+const TCP_USER_TIMEOUT: Duration = Duration::from_secs(30);
+
+/// The transport on a pseudo-terminal that misbehaves (found by the review of the transport,
+/// docs/reliability.md).
+#[cfg(test)]
+mod line_faults {
+    use super::*;
+    use crate::protocol::{Parity, Request, RequestPdu};
+    use std::io::Write;
+    use std::os::fd::AsFd;
+
+    /// A line that never falls quiet for 3.5 characters (a stuck transmitter, a babbling
+    /// device: a byte every 2 ms at 9600, whose frame gap is 4 ms). The request used to wait
+    /// for the silence before it with no bound: `transact` never returned, so the scheduler
+    /// never learned the bus was unusable and the devices were never flagged. Now the wait ends
+    /// after the reply timeout and the drain window (1.1 s here) with a garbled transaction.
+    /// (The 5 s bound only stops a hanging test.)
+    #[tokio::test]
+    async fn a_babbling_line_fails_the_transaction_as_garbled() {
+        let pty = nix::pty::openpty(None, None).expect("a pty");
+        let path = nix::unistd::ttyname(pty.slave.as_fd()).expect("its name");
+        let line = LineSettings::new(9600, Parity::None, 2);
+        let endpoint = Endpoint::Serial {
+            path: path.to_string_lossy().into_owned(),
+            line,
+        };
+        let mut transport = Transport::open(&endpoint).await.expect("opens");
+        drop(pty.slave);
+        let mut master = std::fs::File::from(pty.master);
+        let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let stopped = stop.clone();
+        let babbler = std::thread::spawn(move || {
+            while !stopped.load(std::sync::atomic::Ordering::Relaxed) {
+                let _ = master.write_all(&[0x55]);
+                std::thread::sleep(Duration::from_millis(2));
+            }
+        });
+        let request = Request::classic(1, RequestPdu::ReadHoldingRegisters { start: 0, count: 1 });
+        let transaction = Transaction {
+            request_time: line.wire_time(8),
+            reply_timeout: Duration::from_millis(100),
+            first_byte_timeout: Some(Duration::from_millis(50)),
+            late_window: Duration::ZERO,
+            estimated: Duration::from_millis(100),
+            request,
+        };
+        let result =
+            tokio::time::timeout(Duration::from_secs(5), transport.transact(&transaction)).await;
+        stop.store(true, std::sync::atomic::Ordering::Relaxed);
+        let _ = babbler.join();
+        let outcome = result
+            .expect("transact still waiting for a quiet line after 5 s (100 ms timeouts)")
+            .expect("the port works");
+        assert_eq!(outcome.0, TransactionOutcome::Garbled);
+    }
 }
