@@ -10,91 +10,60 @@ mod mqtt_support;
 mod sim_support;
 
 use std::process::Stdio;
-use std::sync::atomic::{AtomicU32, Ordering};
+use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 
 use daemon_support::DaemonProcess;
-use mqtt_support::{retained, wait_for, Mosquitto, Recorder, TIMEOUT};
-use rumqttc::{AsyncClient, Event, MqttOptions, Packet, QoS};
+use mqtt_support::{retained, rpc, wait_for, Mosquitto, Recorder};
 use serde_json::{json, Value};
 use sim_support::SimProcess;
 
-static CALLS: AtomicU32 = AtomicU32::new(0);
-
-async fn rpc(port: u16, service: &str, method: &str, params: Value) -> Value {
-    let client_id = format!(
-        "transport-faults-{}-{}",
-        std::process::id(),
-        CALLS.fetch_add(1, Ordering::Relaxed)
-    );
-    let request_topic = format!("/rpc/v1/wb-mqtt-serial/{service}/{method}/{client_id}");
-    let reply_topic = format!("{request_topic}/reply");
-    let payload = json!({"id": 1, "params": params}).to_string();
-    let (client, mut eventloop) =
-        AsyncClient::new(MqttOptions::new(&client_id, "127.0.0.1", port), 16);
-    let exchange = async {
-        loop {
-            match eventloop.poll().await.expect("RPC client") {
-                Event::Incoming(Packet::ConnAck(_)) => {
-                    client
-                        .subscribe(reply_topic.as_str(), QoS::AtLeastOnce)
-                        .await
-                        .unwrap();
-                }
-                Event::Incoming(Packet::SubAck(_)) => {
-                    client
-                        .publish(
-                            request_topic.as_str(),
-                            QoS::AtLeastOnce,
-                            false,
-                            payload.as_str(),
-                        )
-                        .await
-                        .unwrap();
-                }
-                Event::Incoming(Packet::Publish(reply)) if reply.topic == reply_topic => {
-                    return String::from_utf8(reply.payload.to_vec()).unwrap();
-                }
-                _ => {}
-            }
-        }
-    };
-    let reply = tokio::time::timeout(TIMEOUT, exchange)
-        .await
-        .expect("an RPC reply");
-    let _ = client.disconnect().await;
-    serde_json::from_str(&reply).unwrap()
-}
-
-/// A device with two input registers read apart (`max_read_registers` 1): input 0 holds 111,
-/// input 10 holds 222. It answers every request 300 ms late; the daemon's response timeout for it
-/// is 1000 ms, so its own reads all succeed. A `port/Load` read of input 10 with a 50 ms
-/// response timeout fails; its late reply (222) comes while the scheduler's next read of the same
-/// device (input 0, same function, same length) waits for its answer, and is taken as it: the
-/// control of input 0 was published as 222: the scheduler held a device off after its *own*
-/// failed transactions (defect A) only. A failed queued (RPC, identity) transaction now holds
-/// the device off too (`PortScheduler::queued_done`).
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_late_reply_to_an_rpc_read_is_never_published_as_a_polled_value() {
+/// Device 40 in the simulator with input 0 = 111 and input 10 = 222, behind a daemon whose
+/// response timeout for it is `timeout_ms` and that polls input 0 (`Zero`), and input 10
+/// (`Ten`) with `poll_input_10`. Returns the broker, simulator, daemon and a recorder of the
+/// controls, once `Zero` is published.
+async fn late_device(
+    timeout_ms: u64,
+    poll_input_10: bool,
+) -> (
+    Mosquitto,
+    SimProcess,
+    DaemonProcess,
+    Recorder,
+    tempfile::TempDir,
+) {
     let broker = Mosquitto::start();
     let dir = tempfile::tempdir().unwrap();
-    let template = json!({
-        "device_type": "review-two",
-        "device": {
-            "name": "Review two", "id": "review", "max_read_registers": 1,
-            "channels": [
-                {"name": "Zero", "reg_type": "input", "address": 0, "type": "value"},
-                {"name": "Ten", "reg_type": "input", "address": 10, "type": "value"}
-            ]
-        }
-    });
+    let zero = json!({"name": "Zero", "reg_type": "input", "address": 0, "type": "value"});
+    let ten = json!({"name": "Ten", "reg_type": "input", "address": 10, "type": "value"});
+    let template = |channels: Value| {
+        json!({
+            "device_type": "late-two",
+            "device": {"name": "Late two", "id": "late", "max_read_registers": 1,
+                       "channels": channels}
+        })
+        .to_string()
+    };
+    // The simulated device has both registers; the daemon polls what it is told to.
     let templates = dir.path().join("templates");
     std::fs::create_dir_all(&templates).unwrap();
-    std::fs::write(templates.join("review-two.json"), template.to_string()).unwrap();
+    std::fs::write(
+        templates.join("late-two.json"),
+        template(json!([zero, ten])),
+    )
+    .unwrap();
+    let daemon_templates = dir.path().join("daemon-templates");
+    std::fs::create_dir_all(&daemon_templates).unwrap();
+    let polled = if poll_input_10 {
+        json!([zero, ten])
+    } else {
+        json!([zero])
+    };
+    std::fs::write(daemon_templates.join("late-two.json"), template(polled)).unwrap();
     let bus = dir.path().join("bus.json");
     std::fs::write(
         &bus,
-        json!({"devices": [{"name": "two", "template": "templates/review-two.json", "address": 40,
+        json!({"devices": [{"name": "two", "template": "templates/late-two.json", "address": 40,
             "serial": "0xFE000040", "line": "115200 8N2", "fast": false,
             "values": {"input:0": 111, "input:10": 222}}]})
         .to_string(),
@@ -104,12 +73,12 @@ async fn a_late_reply_to_an_rpc_read_is_never_published_as_a_polled_value() {
     let config = json!({
         "mqtt": {"host": "127.0.0.1", "port": broker.port, "client_id": "rtu2mqtt-transport-faults"},
         "ports": [{"path": sim.pty, "baud_rate": 115200, "stop_bits": 2, "devices": [
-            {"device_type": "review-two", "slave_id": 40, "response_timeout_ms": 1000}
+            {"device_type": "late-two", "slave_id": 40, "response_timeout_ms": timeout_ms}
         ]}]
     });
     let daemon = DaemonProcess::start(
         &config,
-        &["--templates", templates.to_str().unwrap()],
+        &["--templates", daemon_templates.to_str().unwrap()],
         Stdio::null(),
         Stdio::null(),
     );
@@ -127,36 +96,92 @@ async fn a_late_reply_to_an_rpc_read_is_never_published_as_a_polled_value() {
         (state.get("/rpc/v1/wb-mqtt-serial/port/Load")? == "1").then_some(())
     })
     .await;
+    (broker, sim, daemon, recorder, dir)
+}
+
+/// `port/Load` of input 10 (222) of device 40 on the simulator's port.
+fn load_input_10(sim: &SimProcess, response_timeout_ms: u64) -> Value {
+    json!({"path": sim.pty.to_str().unwrap(), "protocol": "modbus",
+        "slave_id": 40, "function": 4, "address": 10, "count": 1, "format": "HEX",
+        "response_timeout": response_timeout_ms, "total_timeout": 10_000})
+}
+
+/// The device answers every request 300 ms late; the daemon's response timeout for it is
+/// 1000 ms, so its own reads (input 0 = 111, then 112, 113 …) all succeed. A `port/Load` read
+/// of input 10 with a 50 ms response timeout fails; its late reply (222) came while the
+/// scheduler's next read of the same device (same function, same length) waited for its answer,
+/// and was taken as it: input 0 was published as 222 (the scheduler held a device off after its
+/// *own* failed transactions only, defect A). A failed queued (RPC, identity) transaction now
+/// holds the device off too (`PortScheduler::queued_done`). Each round changes input 0 and waits
+/// for the new value, so a read of input 0 after the RPC has been published before the check.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_late_reply_to_an_rpc_read_is_never_published_as_a_polled_value() {
+    let (broker, sim, daemon, recorder, _dir) = late_device(1000, true).await;
     sim.control(json!({"cmd": "faults", "device": 40, "delay": 1.0, "delay_ms": 300}));
-    tokio::time::sleep(Duration::from_secs(1)).await;
-    let path = sim.pty.to_str().unwrap().to_owned();
-    let deadline = Instant::now() + Duration::from_secs(20);
-    let mut calls = 0;
-    while Instant::now() < deadline && calls < 10 {
-        calls += 1;
-        let answer = rpc(
-            broker.port,
-            "port",
-            "Load",
-            json!({"path": path, "protocol": "modbus",
-            "slave_id": 40, "function": 4, "address": 10, "count": 1, "format": "HEX",
-            "response_timeout": 50, "total_timeout": 5000}),
-        )
+    for round in 1..=4u32 {
+        let answer = rpc(broker.port, "port", "Load", load_input_10(&sim, 50)).await;
+        assert!(answer["error"].is_object(), "round {round}: {answer}");
+        let expected = (111 + round).to_string();
+        sim.control(
+            json!({"cmd": "set", "device": 40, "type": "input", "address": 0,
+            "value": 111 + round}),
+        );
+        wait_for("input 0's new value published", || async {
+            let state = retained(broker.port).await?;
+            state
+                .iter()
+                .any(|(t, v)| t.ends_with("/controls/Zero") && *v == expected)
+                .then_some(())
+        })
         .await;
-        eprintln!("port/Load: {answer}");
-        tokio::time::sleep(Duration::from_millis(800)).await;
         let wrong: Vec<String> = recorder
             .messages
             .lock()
             .unwrap()
             .iter()
-            .filter(|(t, v, _)| t.ends_with("/controls/Zero") && v != "111")
+            .filter(|(t, v, _)| {
+                t.ends_with("/controls/Zero")
+                    && v.parse::<u32>()
+                        .map_or(true, |v| !(111..=111 + round).contains(&v))
+            })
             .map(|(t, v, _)| format!("{t} = {v}"))
             .collect();
         assert!(
             wrong.is_empty(),
-            "input 0 (always 111) published with another value after {calls} RPC reads: \
-             {wrong:?}\n{}",
+            "input 0 published with a value it never held after {round} RPC reads: {wrong:?}\n{}",
+            daemon
+                .log()
+                .lines()
+                .rev()
+                .take(30)
+                .collect::<Vec<_>>()
+                .join("\n")
+        );
+    }
+}
+
+/// The other way round: the device polls only input 0 (111) and answers half its requests
+/// 300 ms late, past the daemon's 100 ms response timeout. A `port/Load` of input 10 (222) with
+/// a 1000 ms timeout that went right after one of the scheduler's reads failed took that read's
+/// late reply (input 0: 111, same function, same length) as its own answer. A queued
+/// transaction now waits for the device's hold-off after a failure
+/// (`PortScheduler::queued_may_go_from`): every answer is 222.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_late_reply_to_a_polled_read_is_never_an_rpc_reads_answer() {
+    let (broker, sim, daemon, _recorder, _dir) = late_device(100, false).await;
+    sim.control(json!({"cmd": "faults", "device": 40, "delay": 0.5, "delay_ms": 300}));
+    // A failure comes about every other read and holds the device off a second; an RPC at a
+    // random moment lands in the 200 ms before such a late reply about one time in six (without the
+    // wait, the first round mostly failed).
+    for round in 1..=12 {
+        let answer = rpc(broker.port, "port", "Load", load_input_10(&sim, 1000)).await;
+        if answer["error"].is_object() {
+            continue;
+        }
+        assert_eq!(
+            answer["result"]["response"],
+            "00de",
+            "round {round}: input 10 read as {answer}\n{}",
             daemon
                 .log()
                 .lines()

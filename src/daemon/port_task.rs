@@ -54,6 +54,10 @@ pub struct PortTask {
     fifo_held_reported: bool,
     /// Transactions asked from outside the scheduler (RPC), served between its own.
     queued: Option<BusQueueReceiver>,
+    /// A queued transaction waiting for its device's hold-off after a failure to end (from
+    /// when it may go: [`PortScheduler::queued_may_go_from`]); the queue waits behind it, so
+    /// jobs keep their order.
+    deferred: Option<(Duration, BusWork)>,
     /// The sending side of that queue, for this port's identity reads.
     queue: Option<BusQueue>,
     identity: IdentityState,
@@ -185,6 +189,7 @@ impl PortTask {
             transacted: false,
             fifo_held_reported: false,
             queued: None,
+            deferred: None,
             queue: None,
             identity: IdentityState::default(),
             status: None,
@@ -522,10 +527,7 @@ impl PortTask {
                 self.identity_read(device, read).await;
             }
             if queued_turn {
-                if let Some(job) = self.queued.as_mut().and_then(|q| q.try_recv().ok()) {
-                    let Some(job) = self.take_job(job) else {
-                        continue;
-                    };
+                if let Some(job) = self.next_queued_job() {
                     queued_turn = false;
                     tokio::select! {
                         result = self.serve_queued(&mut bus, job) => result?,
@@ -535,7 +537,20 @@ impl PortTask {
                 }
             }
             self.apply_status_commands();
-            match self.scheduler.next(self.now()) {
+            let next = self.scheduler.next(self.now());
+            if matches!(next, NextStep::Wait { .. }) {
+                // Nothing of the scheduler's to send: a deferred job whose time has come goes
+                // now, whoever went last.
+                if let Some(job) = self.ready_deferred_job() {
+                    queued_turn = false;
+                    tokio::select! {
+                        result = self.serve_queued(&mut bus, job) => result?,
+                        _ = shutdown.changed() => return Ok(()),
+                    }
+                    continue;
+                }
+            }
+            match next {
                 NextStep::Transmit(transaction) => {
                     let started = self.now();
                     queued_turn = true;
@@ -584,6 +599,8 @@ impl PortTask {
                     self.watch_connection(&transaction, answered)?;
                 }
                 NextStep::Wait { until } => {
+                    let deferred_from = self.deferred.as_ref().map(|(from, _)| *from);
+                    let until = deferred_from.map_or(until, |from| until.min(from));
                     let wake = (self.epoch + until).min(Instant::now() + HEARTBEAT);
                     tokio::select! {
                         _ = tokio::time::sleep_until(wake) => {}
@@ -594,9 +611,9 @@ impl PortTask {
                         Some((device, read)) = next_identity(&mut self.identity.results) => {
                             self.identity_read(device, read).await;
                         }
-                        job = next_queued(&mut self.queued) => match job {
+                        job = next_queued(&mut self.queued), if self.deferred.is_none() => match job {
                             Some(job) => {
-                                if let Some(job) = self.take_job(job) {
+                                if let Some(job) = self.take_job(job).and_then(|job| self.defer_if_held(job)) {
                                     queued_turn = false;
                                     tokio::select! {
                                         result = self.serve_queued(&mut bus, job) => result?,
@@ -616,6 +633,48 @@ impl PortTask {
 
     /// Carries out at once what a queued job asks that takes no bus time (a hold on a
     /// device's polling); the transaction to serve, if it is one.
+    /// The next queued job that may go now: the deferred one once its time has come (nothing
+    /// else before it), else the next from the queue unless its device is held off (then it is
+    /// deferred). Jobs that take no bus time are carried out on the way.
+    fn next_queued_job(&mut self) -> Option<BusWork> {
+        if self.deferred.is_some() {
+            return self.ready_deferred_job();
+        }
+        while let Some(job) = self.queued.as_mut().and_then(|q| q.try_recv().ok()) {
+            if let Some(work) = self.take_job(job) {
+                return self.defer_if_held(work);
+            }
+        }
+        None
+    }
+
+    fn ready_deferred_job(&mut self) -> Option<BusWork> {
+        let now = self.now();
+        match self.deferred.take() {
+            Some((from, job)) if from <= now => Some(job),
+            held => {
+                self.deferred = held;
+                None
+            }
+        }
+    }
+
+    /// `work` if it may go now, else `None` with it kept as the deferred job.
+    fn defer_if_held(&mut self, work: BusWork) -> Option<BusWork> {
+        let from = match &work {
+            BusWork::Transaction(job) => {
+                self.scheduler.queued_may_go_from(&job.transaction.request)
+            }
+            BusWork::Raw(_) => Duration::ZERO,
+        };
+        if from <= self.now() {
+            return Some(work);
+        }
+        debug!(port = %self.plan_name, "queued transaction waits for its device's hold-off after a failure");
+        self.deferred = Some((from, work));
+        None
+    }
+
     fn take_job(&mut self, job: QueuedJob) -> Option<BusWork> {
         match job {
             QueuedJob::Transaction(transaction) => Some(BusWork::Transaction(transaction)),
@@ -772,6 +831,9 @@ impl PortTask {
 
     /// Answers every queued transaction with "port closed" (the port is being reopened).
     fn refuse_queued(&mut self, why: &str) {
+        if let Some((_, job)) = self.deferred.take() {
+            job.refuse(BusQueueError::PortClosed(why.to_owned()));
+        }
         let Some(queued) = self.queued.as_mut() else {
             return;
         };

@@ -242,6 +242,12 @@ impl DeviceHealth {
         self.quiet_until = self.quiet_until.max(until);
     }
 
+    /// Until when a late reply to this device's last failed transaction may still come (its
+    /// hold-off; the past when there is none).
+    pub fn quiet_until(&self) -> Duration {
+        self.quiet_until
+    }
+
     /// When a disconnected device may be tried again.
     pub fn retry_at(&self) -> Option<Duration> {
         match self.state {

@@ -963,6 +963,25 @@ impl PortScheduler {
         }
     }
 
+    /// From when a queued transaction carrying `request` may go: not before every device at
+    /// its address is past its hold-off after a failure. The rule of [`Self::queued_done`] the
+    /// other way round: a late reply to the scheduler's failed request to that device, still
+    /// on its way, would otherwise be taken as the queued request's reply (same address, and
+    /// often the same function and length) and handed to its caller (an RPC `port/Load`, an
+    /// identity read) as the device's answer. `Duration::ZERO` for requests no late reply
+    /// can be taken for (by serial number, broadcasts).
+    pub fn queued_may_go_from(&self, request: &Request) -> Duration {
+        if !request.expects_reply() || !matches!(request.body, RequestBody::Classic(_)) {
+            return Duration::ZERO;
+        }
+        self.devices
+            .iter()
+            .filter(|state| state.plan.address == request.address)
+            .map(|state| state.health.quiet_until())
+            .max()
+            .unwrap_or(Duration::ZERO)
+    }
+
     fn learn_response_time(
         &mut self,
         now: Duration,

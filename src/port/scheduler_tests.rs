@@ -3867,3 +3867,47 @@ fn a_tcp_gateways_response_lag_is_part_of_every_timeout_and_estimate() {
     let watched = if retry.late_window.is_zero() { 1 } else { 2 };
     assert_eq!(lagged_retry.estimated, retry.estimated + lag * watched);
 }
+
+/// The other way round: after the scheduler's own request to a device failed, a queued
+/// transaction to that device (an RPC read) waits until a late reply to the failed request could
+/// no longer come, so that reply is never handed to the RPC as its answer. Requests that no
+/// late reply can be taken for, and other devices, go at once.
+#[test]
+fn a_queued_transaction_waits_for_its_devices_hold_off_after_the_schedulers_failure() {
+    let holdoff = HealthPolicy::default().late_reply_holdoff;
+    let read_10 = |address| {
+        Request::classic(
+            address,
+            RequestPdu::ReadInputRegisters {
+                start: 10,
+                count: 1,
+            },
+        )
+    };
+    let (mut scheduler, mut now) = two_answering_devices();
+    assert!(scheduler.queued_may_go_from(&read_10(30)) <= now);
+    let failed = answer_until(&mut scheduler, &mut now, 30);
+    now += failed.request_time + failed.reply_timeout;
+    scheduler.complete(now, TransactionOutcome::NoReply);
+    let failed_at = now;
+    let from = scheduler.queued_may_go_from(&read_10(30));
+    assert!(
+        from >= failed_at + holdoff,
+        "an RPC to 30 may go {:?} after the failure",
+        from.saturating_sub(failed_at)
+    );
+    assert!(scheduler.queued_may_go_from(&read_10(31)) <= now);
+    let by_serial = Request::by_serial(
+        0xFE00_0030,
+        RequestPdu::ReadInputRegisters {
+            start: 10,
+            count: 1,
+        },
+    );
+    assert_eq!(scheduler.queued_may_go_from(&by_serial), Duration::ZERO);
+    // Once 30 has answered again, nothing holds.
+    let again = answer_until(&mut scheduler, &mut now, 30);
+    now += ms(5);
+    scheduler.complete(now, healthy(&again.request));
+    assert!(scheduler.queued_may_go_from(&read_10(30)) <= now);
+}
