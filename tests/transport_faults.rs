@@ -149,13 +149,7 @@ async fn a_late_reply_to_an_rpc_read_is_never_published_as_a_polled_value() {
         assert!(
             wrong.is_empty(),
             "input 0 published with a value it never held after {round} RPC reads: {wrong:?}\n{}",
-            daemon
-                .log()
-                .lines()
-                .rev()
-                .take(30)
-                .collect::<Vec<_>>()
-                .join("\n")
+            daemon.log_tail(30)
         );
     }
 }
@@ -182,13 +176,7 @@ async fn a_late_reply_to_a_polled_read_is_never_an_rpc_reads_answer() {
             answer["result"]["response"],
             "00de",
             "round {round}: input 10 read as {answer}\n{}",
-            daemon
-                .log()
-                .lines()
-                .rev()
-                .take(30)
-                .collect::<Vec<_>>()
-                .join("\n")
+            daemon.log_tail(30)
         );
     }
 }
@@ -231,12 +219,12 @@ fn a_gateway_that_stops_answering_without_closing_is_reconnected() {
         std::thread::sleep(Duration::from_millis(100));
     }
     let seen = connections.load(Ordering::SeqCst);
-    let log = daemon.log();
+    let log = daemon.log_tail(20);
     daemon.terminate();
     assert!(
         seen >= 2,
         "{seen} connection(s) in 20 s with connection_timeout_ms 2000: the dead connection is \
          kept\n{}",
-        log.lines().rev().take(20).collect::<Vec<_>>().join("\n")
+        log
     );
 }

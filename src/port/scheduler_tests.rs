@@ -3357,6 +3357,17 @@ fn refusing_device_plan() -> DevicePlan {
     plan
 }
 
+/// Both of [`refusing_device_plan`]'s registers were read among `events`.
+fn assert_both_registers_read(events: &[&PortEvent]) {
+    for start in [1, 5] {
+        assert!(
+            events.iter().any(|e| matches!(e,
+                PortEvent::Values { span, .. } if span.start == start)),
+            "register {start} read: {events:?}"
+        );
+    }
+}
+
 /// A device that refuses every holding read (illegal data address) and does the rest.
 fn refusing_reads(_: Duration, request: &Request) -> TransactionOutcome {
     match &request.body {
@@ -3421,13 +3432,7 @@ fn a_device_that_refuses_every_read_is_still_watched() {
         events.contains(&&PortEvent::Online { device: 0 }),
         "{events:?}"
     );
-    for start in [1, 5] {
-        assert!(
-            events.iter().any(|e| matches!(e,
-                PortEvent::Values { span, .. } if span.start == start)),
-            "register {start} read: {events:?}"
-        );
-    }
+    assert_both_registers_read(&events);
     assert!(log.sent[sent_back..].iter().any(|(_, r)| matches!(
         r.body,
         RequestBody::Classic(RequestPdu::WriteSingleRegister {
@@ -3460,13 +3465,7 @@ fn a_device_answering_a_read_it_refused_is_set_up_again() {
         events.contains(&&PortEvent::Rebooted { device: 0 }),
         "{events:?}"
     );
-    for start in [1, 5] {
-        assert!(
-            events.iter().any(|e| matches!(e,
-                PortEvent::Values { span, .. } if span.start == start)),
-            "register {start} read: {events:?}"
-        );
-    }
+    assert_both_registers_read(&events);
     assert_eq!(log.single_register_writes(9).len(), setups_before + 1);
 }
 

@@ -56,6 +56,12 @@ impl DaemonProcess {
         std::fs::read_to_string(self.dir.path().join("daemon.log")).unwrap_or_default()
     }
 
+    /// The last `lines` lines of the daemon's log, newest first (for failure messages).
+    pub fn log_tail(&self, lines: usize) -> String {
+        let log = self.log();
+        log.lines().rev().take(lines).collect::<Vec<_>>().join("\n")
+    }
+
     /// SIGTERM, as systemd stops the service; returns the exit status.
     pub fn terminate(&mut self) -> ExitStatus {
         let pid = nix::unistd::Pid::from_raw(self.child.id() as i32);
