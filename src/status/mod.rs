@@ -8,6 +8,7 @@
 
 pub mod auth;
 pub mod hub;
+pub mod limits;
 pub mod server;
 pub mod stats;
 

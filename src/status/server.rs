@@ -117,7 +117,7 @@ impl StatusServer {
         if let Some(address) = address {
             info!(url = %format!("http://{address}/"), "status page serving");
         }
-        let served = axum::serve(self.listener, app)
+        let served = axum::serve(super::limits::LimitedListener::new(self.listener), app)
             .with_graceful_shutdown(async move {
                 let _ = stop.wait_for(|stop| *stop).await;
             })

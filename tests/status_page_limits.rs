@@ -1,0 +1,196 @@
+//! What a client of the status page may hold (src/status/limits.rs): a request head that never
+//! ends is dropped, and connections without a password cannot take the daemon's file
+//! descriptors (its serial port then could not be opened). Both failed before the limits.
+
+#[path = "daemon_support/mod.rs"]
+mod daemon_support;
+#[path = "mqtt_support/mod.rs"]
+mod mqtt_support;
+#[path = "sim_support/mod.rs"]
+mod sim_support;
+
+use rtu2mqtt::child::StopWithParent;
+use std::io::{Read, Write};
+use std::net::TcpStream;
+use std::path::Path;
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use daemon_support::repo;
+use mqtt_support::free_port;
+use serde_json::{json, Value};
+use sim_support::SimProcess;
+
+/// bcrypt of "s3cret" at cost 4 (made with bcrypt::hash; valid for the config check).
+fn hash() -> String {
+    bcrypt::hash("s3cret", 4).unwrap()
+}
+
+fn config(port_path: &Path, http: Value) -> Value {
+    json!({
+        "http": http,
+        "ports": [{"path": port_path, "baud_rate": 9600, "stop_bits": 2,
+                   "devices": [{"device_type": "rtu2mqtt-relay6", "slave_id": 20}]}]
+    })
+}
+
+/// The daemon under `prlimit --nofile=N` (a controller's service may well run with 1024; a small
+/// number keeps the test quick), `--stdio`, its log in `dir`.
+struct Daemon {
+    child: Child,
+    log: std::path::PathBuf,
+}
+
+impl Daemon {
+    fn start(dir: &Path, config: &Value, nofile: Option<u32>) -> Self {
+        let config_path = dir.join("config.json");
+        std::fs::write(&config_path, config.to_string()).unwrap();
+        let log = dir.join("daemon.log");
+        let mut command = match nofile {
+            Some(n) => {
+                let mut c = Command::new("prlimit");
+                c.arg(format!("--nofile={n}:{n}"))
+                    .arg("--")
+                    .arg(env!("CARGO_BIN_EXE_rtu2mqtt"));
+                c
+            }
+            None => Command::new(env!("CARGO_BIN_EXE_rtu2mqtt")),
+        };
+        let child = command
+            .stop_with_parent()
+            .arg("run")
+            .arg("--stdio")
+            .arg("--templates")
+            .arg(repo("templates"))
+            .arg("-c")
+            .arg(&config_path)
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(std::fs::File::create(&log).unwrap())
+            .spawn()
+            .unwrap();
+        Self { child, log }
+    }
+
+    fn log(&self) -> String {
+        std::fs::read_to_string(&self.log).unwrap_or_default()
+    }
+}
+
+impl Drop for Daemon {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn wait_for_listen(port: u16) {
+    let started = Instant::now();
+    while TcpStream::connect(("127.0.0.1", port)).is_err() {
+        assert!(started.elapsed() < Duration::from_secs(30), "page never listened");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+}
+
+fn basic(user: &str, password: &str) -> String {
+    use base64::Engine as _;
+    format!(
+        "Basic {}",
+        base64::engine::general_purpose::STANDARD.encode(format!("{user}:{password}"))
+    )
+}
+
+/// One GET with a 5 s read timeout: the status code, or None.
+fn get(port: u16, path: &str, auth: Option<&str>) -> Option<u16> {
+    let address = std::net::SocketAddr::from(([127, 0, 0, 1], port));
+    let mut stream = TcpStream::connect_timeout(&address, Duration::from_secs(5)).ok()?;
+    stream.set_read_timeout(Some(Duration::from_secs(5))).ok()?;
+    let mut request =
+        format!("GET {path} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nConnection: close\r\n");
+    if let Some(auth) = auth {
+        request.push_str(&format!("Authorization: {auth}\r\n"));
+    }
+    request.push_str("\r\n");
+    stream.write_all(request.as_bytes()).ok()?;
+    let mut response = Vec::new();
+    stream.read_to_end(&mut response).ok()?;
+    let text = String::from_utf8_lossy(&response);
+    text.split(' ').nth(1)?.parse().ok()
+}
+
+/// Slowloris: a client that sends part of its request head and then nothing holds its connection
+/// (a task and a file descriptor of the daemon) for ever. axum::serve sets no hyper timer, so
+/// hyper's default 30 s header-read timeout never applies. No password needed: the guard runs
+/// only once the head is complete.
+#[test]
+fn a_request_head_that_never_ends_is_dropped() {
+    let dir = tempfile::tempdir().unwrap();
+    let http_port = free_port();
+    let http = json!({"listen": format!("127.0.0.1:{http_port}"), "user": "admin",
+                      "password_hash": hash()});
+    let daemon = Daemon::start(dir.path(), &config(&dir.path().join("none"), http), None);
+    wait_for_listen(http_port);
+    let mut stream = TcpStream::connect(("127.0.0.1", http_port)).unwrap();
+    stream
+        .write_all(format!("GET / HTTP/1.1\r\nHost: 127.0.0.1:{http_port}\r\nX-Slow: a").as_bytes())
+        .unwrap();
+    stream
+        .set_read_timeout(Some(Duration::from_secs(40)))
+        .unwrap();
+    let started = Instant::now();
+    let mut buffer = [0u8; 256];
+    let outcome = stream.read(&mut buffer);
+    let waited = started.elapsed();
+    assert!(
+        waited < Duration::from_secs(39),
+        "the daemon still held a half-sent request head after {waited:?} ({outcome:?})\n{}",
+        daemon.log()
+    );
+}
+
+/// File-descriptor exhaustion without the password: idle TCP connections are never limited nor
+/// closed, so someone on the LAN who does not know the password opens enough of them and the
+/// daemon has no descriptor left: it cannot open (or reopen) its serial port, so the bus stops.
+/// Here the port appears after the flood (as a USB adapter that was replugged, or a port that
+/// failed and is reopened); it never opens.
+#[test]
+fn idle_connections_without_a_password_cannot_stop_the_bus() {
+    let dir = tempfile::tempdir().unwrap();
+    let http_port = free_port();
+    let http = json!({"listen": format!("127.0.0.1:{http_port}"), "user": "admin",
+                      "password_hash": hash()});
+    let tty = dir.path().join("tty");
+    let daemon = Daemon::start(dir.path(), &config(&tty, http), Some(128));
+    wait_for_listen(http_port);
+    // Well over the limit: nothing sent on them, no password.
+    let flood: Vec<TcpStream> = (0..160)
+        .filter_map(|_| {
+            let address = std::net::SocketAddr::from(([127, 0, 0, 1], http_port));
+            TcpStream::connect_timeout(&address, Duration::from_secs(2)).ok()
+        })
+        .collect();
+    let open = flood.len();
+    // The port appears (the simulator's pty under the configured path).
+    let bus = dir.path().join("bus.json");
+    std::fs::write(
+        &bus,
+        r#"{"devices": [{"name": "relay", "template": "rtu2mqtt-relay6", "address": 20,
+             "serial": "0xFE000020", "line": "9600 8N2"}]}"#,
+    )
+    .unwrap();
+    let sim = SimProcess::start_with(&bus, &repo("templates"), &[]);
+    std::os::unix::fs::symlink(&sim.pty, &tty).unwrap();
+    let started = Instant::now();
+    while !daemon.log().contains("port open") && started.elapsed() < Duration::from_secs(25) {
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    let log = daemon.log();
+    let page = get(http_port, "/api/status", Some(&basic("admin", "s3cret")));
+    drop(flood);
+    assert!(
+        log.contains("port open"),
+        "with {open} idle connections open (no password), the port never opened; the page \
+         answered {page:?}\n--- daemon log (tail) ---\n{}",
+        log.lines().rev().take(8).collect::<Vec<_>>().join("\n")
+    );
+}
