@@ -87,7 +87,10 @@ impl Drop for Daemon {
 fn wait_for_listen(port: u16) {
     let started = Instant::now();
     while TcpStream::connect(("127.0.0.1", port)).is_err() {
-        assert!(started.elapsed() < Duration::from_secs(30), "page never listened");
+        assert!(
+            started.elapsed() < Duration::from_secs(30),
+            "page never listened"
+        );
         std::thread::sleep(Duration::from_millis(100));
     }
 }
