@@ -9,14 +9,13 @@ mod mqtt_support;
 #[path = "sim_support/mod.rs"]
 mod sim_support;
 
-use rtu2mqtt::child::StopWithParent;
 use std::io::{Read, Write};
 use std::net::TcpStream;
 use std::path::Path;
-use std::process::{Child, Command, Stdio};
+use std::process::Stdio;
 use std::time::{Duration, Instant};
 
-use daemon_support::repo;
+use daemon_support::{repo, DaemonProcess};
 use mqtt_support::free_port;
 use serde_json::{json, Value};
 use sim_support::SimProcess;
@@ -32,56 +31,6 @@ fn config(port_path: &Path, http: Value) -> Value {
         "ports": [{"path": port_path, "baud_rate": 9600, "stop_bits": 2,
                    "devices": [{"device_type": "rtu2mqtt-relay6", "slave_id": 20}]}]
     })
-}
-
-/// The daemon under `prlimit --nofile=N` (a controller's service may well run with 1024; a small
-/// number keeps the test quick), `--stdio`, its log in `dir`.
-struct Daemon {
-    child: Child,
-    log: std::path::PathBuf,
-}
-
-impl Daemon {
-    fn start(dir: &Path, config: &Value, nofile: Option<u32>) -> Self {
-        let config_path = dir.join("config.json");
-        std::fs::write(&config_path, config.to_string()).unwrap();
-        let log = dir.join("daemon.log");
-        let mut command = match nofile {
-            Some(n) => {
-                let mut c = Command::new("prlimit");
-                c.arg(format!("--nofile={n}:{n}"))
-                    .arg("--")
-                    .arg(env!("CARGO_BIN_EXE_rtu2mqtt"));
-                c
-            }
-            None => Command::new(env!("CARGO_BIN_EXE_rtu2mqtt")),
-        };
-        let child = command
-            .stop_with_parent()
-            .arg("run")
-            .arg("--stdio")
-            .arg("--templates")
-            .arg(repo("templates"))
-            .arg("-c")
-            .arg(&config_path)
-            .stdin(Stdio::null())
-            .stdout(Stdio::null())
-            .stderr(std::fs::File::create(&log).unwrap())
-            .spawn()
-            .unwrap();
-        Self { child, log }
-    }
-
-    fn log(&self) -> String {
-        std::fs::read_to_string(&self.log).unwrap_or_default()
-    }
-}
-
-impl Drop for Daemon {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
 }
 
 fn wait_for_listen(port: u16) {
@@ -131,7 +80,12 @@ fn a_request_head_that_never_ends_is_dropped() {
     let http_port = free_port();
     let http = json!({"listen": format!("127.0.0.1:{http_port}"), "user": "admin",
                       "password_hash": hash()});
-    let daemon = Daemon::start(dir.path(), &config(&dir.path().join("none"), http), None);
+    let daemon = DaemonProcess::start(
+        &config(&dir.path().join("none"), http),
+        &["--stdio"],
+        Stdio::null(),
+        Stdio::null(),
+    );
     wait_for_listen(http_port);
     let mut stream = TcpStream::connect(("127.0.0.1", http_port)).unwrap();
     stream
@@ -163,7 +117,7 @@ fn idle_connections_without_a_password_cannot_stop_the_bus() {
     let http = json!({"listen": format!("127.0.0.1:{http_port}"), "user": "admin",
                       "password_hash": hash()});
     let tty = dir.path().join("tty");
-    let daemon = Daemon::start(dir.path(), &config(&tty, http), Some(128));
+    let daemon = DaemonProcess::start_with_file_limit(&config(&tty, http), &["--stdio"], 128);
     wait_for_listen(http_port);
     // Well over the limit: nothing sent on them, no password.
     let flood: Vec<TcpStream> = (0..160)
@@ -187,13 +141,13 @@ fn idle_connections_without_a_password_cannot_stop_the_bus() {
     while !daemon.log().contains("port open") && started.elapsed() < Duration::from_secs(25) {
         std::thread::sleep(Duration::from_millis(200));
     }
-    let log = daemon.log();
+    let opened = daemon.log().contains("port open");
     let page = get(http_port, "/api/status", Some(&basic("admin", "s3cret")));
     drop(flood);
     assert!(
-        log.contains("port open"),
+        opened,
         "with {open} idle connections open (no password), the port never opened; the page \
          answered {page:?}\n--- daemon log (tail) ---\n{}",
-        log.lines().rev().take(8).collect::<Vec<_>>().join("\n")
+        daemon.log_tail(8)
     );
 }

@@ -31,10 +31,39 @@ impl DaemonProcess {
         stdout: Stdio,
         env: &[(&str, &str)],
     ) -> Self {
+        Self::spawn(
+            Command::new(env!("CARGO_BIN_EXE_rtu2mqtt")),
+            config,
+            extra,
+            stdin,
+            stdout,
+            env,
+        )
+    }
+
+    /// [`start`](Self::start) under `prlimit --nofile=N`: the daemon may hold at most `nofile`
+    /// file descriptors (a small number makes running out of them quick to reach).
+    pub fn start_with_file_limit(config: &Value, extra: &[&str], nofile: u32) -> Self {
+        let mut prlimit = Command::new("prlimit");
+        prlimit
+            .arg(format!("--nofile={nofile}:{nofile}"))
+            .arg("--")
+            .arg(env!("CARGO_BIN_EXE_rtu2mqtt"));
+        Self::spawn(prlimit, config, extra, Stdio::null(), Stdio::null(), &[])
+    }
+
+    fn spawn(
+        mut command: Command,
+        config: &Value,
+        extra: &[&str],
+        stdin: Stdio,
+        stdout: Stdio,
+        env: &[(&str, &str)],
+    ) -> Self {
         let dir = tempfile::tempdir().unwrap();
         let config_path = dir.path().join("config.json");
         std::fs::write(&config_path, config.to_string()).unwrap();
-        let child = Command::new(env!("CARGO_BIN_EXE_rtu2mqtt"))
+        let child = command
             .stop_with_parent()
             .arg("run")
             .args(extra)
