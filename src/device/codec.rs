@@ -81,6 +81,8 @@ pub enum CodecError {
     StringTooLong { text: String, capacity: u32 },
     #[error("writing a bit field needs the current register contents to keep the other bits")]
     NeedsCurrentWords,
+    #[error("`{0}` does not fit a char8 register: it holds one character from U+0000 to U+00FF")]
+    NotOneByteCharacter(String),
 }
 
 impl ValueCodec {
@@ -394,7 +396,15 @@ impl ValueCodec {
             return Ok(u64::from(self.integer_for(text)? != 0));
         }
         match self.format {
-            RegisterFormat::Char8 => Ok(u64::from(text.bytes().next().unwrap_or(0))),
+            // The inverse of the read, which shows the byte as the character of that code point
+            // (Latin-1): what was read is written back as the same byte. The first byte of the
+            // text's UTF-8 (what wb-mqtt-serial writes) would turn a read `é` (0xE9) into 0xC3.
+            RegisterFormat::Char8 => match text.chars().next() {
+                None => Ok(0),
+                Some(c) => u8::try_from(c)
+                    .map(u64::from)
+                    .map_err(|_| CodecError::NotOneByteCharacter(text.to_string())),
+            },
             // A number that is not finite once scale and offset are undone (`nan`, `inf` on a
             // `text` control, 1e300 with a scale 1e-10) is refused rather than written as an
             // IEEE infinity or NaN nobody asked for.

@@ -448,6 +448,24 @@ fn strings_one_and_two_characters_per_register() {
     );
 }
 
+/// A char8 read shows the byte as the character of that code point; writing back what was
+/// read must give the same byte, never the first byte of its UTF-8 form.
+#[test]
+fn char8_writes_back_the_byte_it_read() {
+    let char8 = codec(RegisterFormat::Char8);
+    for byte in [0x41u16, 0x20, 0x7F, 0x80, 0xE9, 0xFF] {
+        let text = value(char8.decode(&[byte]).unwrap());
+        assert_eq!(char8.encode(&text, None).unwrap(), vec![byte], "{text:?}");
+    }
+    assert_eq!(char8.encode("é", None).unwrap(), vec![0xE9]);
+    assert_eq!(char8.encode("AB", None).unwrap(), vec![0x41]);
+    assert_eq!(char8.encode(" ", None).unwrap(), vec![0x20]);
+    assert!(matches!(
+        char8.encode("Ж", None),
+        Err(CodecError::NotOneByteCharacter(_))
+    ));
+}
+
 #[test]
 fn writes_check_the_format_range() {
     let cases: &[(RegisterFormat, &str, bool)] = &[
