@@ -1,6 +1,7 @@
 //! What a client of the status page may hold (src/status/limits.rs): a request head that never
 //! ends is dropped, and connections without a password cannot take the daemon's file
-//! descriptors (its serial port then could not be opened). Both failed before the limits.
+//! descriptors (its serial port then could not be opened). Both failed before the limits. And
+//! wrong passwords sent together are answered at once, not queued for bcrypt (src/status/auth.rs).
 
 #[path = "daemon_support/mod.rs"]
 mod daemon_support;
@@ -54,6 +55,11 @@ fn basic(user: &str, password: &str) -> String {
 
 /// One GET with a 5 s read timeout: the status code, or None.
 fn get(port: u16, path: &str, auth: Option<&str>) -> Option<u16> {
+    answer(send_get(port, path, auth)?).map(|(code, _)| code)
+}
+
+/// Sends a GET without waiting for the answer.
+fn send_get(port: u16, path: &str, auth: Option<&str>) -> Option<TcpStream> {
     let address = std::net::SocketAddr::from(([127, 0, 0, 1], port));
     let mut stream = TcpStream::connect_timeout(&address, Duration::from_secs(5)).ok()?;
     stream.set_read_timeout(Some(Duration::from_secs(5))).ok()?;
@@ -64,10 +70,16 @@ fn get(port: u16, path: &str, auth: Option<&str>) -> Option<u16> {
     }
     request.push_str("\r\n");
     stream.write_all(request.as_bytes()).ok()?;
+    Some(stream)
+}
+
+/// The status code and the whole answer of a request sent with [`send_get`].
+fn answer(mut stream: TcpStream) -> Option<(u16, String)> {
     let mut response = Vec::new();
     stream.read_to_end(&mut response).ok()?;
-    let text = String::from_utf8_lossy(&response);
-    text.split(' ').nth(1)?.parse().ok()
+    let text = String::from_utf8_lossy(&response).into_owned();
+    let code = text.split(' ').nth(1)?.parse().ok()?;
+    Some((code, text))
 }
 
 /// Slowloris: a client that sends part of its request head and then nothing holds its connection
@@ -148,6 +160,74 @@ fn idle_connections_without_a_password_cannot_stop_the_bus() {
         opened,
         "with {open} idle connections open (no password), the port never opened; the page \
          answered {page:?}\n--- daemon log (tail) ---\n{}",
+        daemon.log_tail(8)
+    );
+}
+
+/// Wrong passwords queued: each costs a bcrypt check (slow on purpose, on a blocking thread) and
+/// one that arrived while another ran waited its turn, so a burst of guesses kept the CPU from
+/// the buses and a real login waited behind all of them. Now one check runs at a time and the
+/// others are answered at once with 429 and `Retry-After`; a browser that logged in before is
+/// not held up. The test hash's cost 4 is named in the log, once.
+#[test]
+fn wrong_passwords_sent_together_are_answered_at_once_not_queued() {
+    let dir = tempfile::tempdir().unwrap();
+    let http_port = free_port();
+    let http = json!({"listen": format!("127.0.0.1:{http_port}"), "user": "admin",
+                      "password_hash": hash()});
+    let daemon = DaemonProcess::start(
+        &config(&dir.path().join("none"), http),
+        &["--stdio"],
+        Stdio::null(),
+        Stdio::null(),
+    );
+    wait_for_listen(http_port);
+    let good = basic("admin", "s3cret");
+    assert_eq!(get(http_port, "/api/status", Some(&good)), Some(200));
+    // All sent before any answer is read.
+    let guesses: Vec<TcpStream> = (0..20)
+        .filter_map(|i| {
+            send_get(
+                http_port,
+                "/metrics",
+                Some(&basic("admin", &format!("guess{i}"))),
+            )
+        })
+        .collect();
+    assert_eq!(guesses.len(), 20);
+    // The browser that logged in before, during the burst.
+    assert_eq!(get(http_port, "/api/status", Some(&good)), Some(200));
+    let answers: Vec<(u16, String)> = guesses.into_iter().filter_map(answer).collect();
+    let codes: Vec<u16> = answers.iter().map(|(code, _)| *code).collect();
+    assert_eq!(answers.len(), 20, "answers: {codes:?}");
+    assert!(
+        codes.iter().all(|code| [401, 429].contains(code)),
+        "answers: {codes:?}"
+    );
+    let busy: Vec<&String> = answers
+        .iter()
+        .filter(|(code, _)| *code == 429)
+        .map(|(_, text)| text)
+        .collect();
+    assert!(
+        !busy.is_empty(),
+        "20 wrong passwords sent together were all checked in turn (answers {codes:?})"
+    );
+    for text in busy {
+        let retry_after = text
+            .lines()
+            .find_map(|line| {
+                line.to_ascii_lowercase()
+                    .strip_prefix("retry-after: ")
+                    .map(str::to_string)
+            })
+            .and_then(|value| value.trim().parse::<u64>().ok());
+        assert!(retry_after.is_some_and(|s| s >= 1), "{text}");
+    }
+    assert_eq!(
+        daemon.log().matches("cheap to guess").count(),
+        1,
+        "{}",
         daemon.log_tail(8)
     );
 }

@@ -26,6 +26,15 @@ pub enum PortCommand {
     Suspend { device: usize, suspended: bool },
 }
 
+impl PortCommand {
+    /// The device it is for: a newer command for the same device replaces a waiting one.
+    fn device(&self) -> usize {
+        match self {
+            Self::Suspend { device, .. } => *device,
+        }
+    }
+}
+
 /// One port as the status page shows it: what it was configured with, and its counters, which
 /// its port task updates.
 #[derive(Debug)]
@@ -37,6 +46,8 @@ pub struct PortStatus {
     /// The port task's clock starts here: the stats' times count from it.
     pub epoch: Instant,
     pub stats: Mutex<PortStats>,
+    /// At most one per device, the latest: while the port is closed its task takes none, and
+    /// clicks must neither pile up nor be replayed when it reopens.
     commands: Mutex<Vec<PortCommand>>,
     /// Commands are waiting: the port task looks at the lock only then.
     commands_pending: AtomicBool,
@@ -59,8 +70,12 @@ impl PortStatus {
         }
     }
 
+    /// Queues `command` in place of one still waiting for the same device.
     fn push_command(&self, command: PortCommand) {
-        lock(&self.commands).push(command);
+        let mut commands = lock(&self.commands);
+        commands.retain(|waiting| waiting.device() != command.device());
+        commands.push(command);
+        drop(commands);
         self.commands_pending.store(true, Ordering::Release);
     }
 
@@ -607,4 +622,74 @@ fn port_json(port: &PortStatus) -> Value {
         },
         "devices": devices,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::TemplateFile;
+    use crate::device::resolve_template_device;
+
+    fn device(template: &str, slave_id: u8) -> Arc<ResolvedDevice> {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join(format!("templates/{template}.json"));
+        let file = TemplateFile::load(&path).unwrap_or_else(|e| panic!("{e}"));
+        Arc::new(
+            resolve_template_device(&file, &json!({ "slave_id": slave_id }))
+                .unwrap_or_else(|e| panic!("{e}")),
+        )
+    }
+
+    fn hub_with_one_port() -> (StatusHub, Arc<PortStatus>, String, String) {
+        let relay = device("rtu2mqtt-relay6", 20);
+        let climate = device("rtu2mqtt-climate", 21);
+        let (relay_id, climate_id) = (relay.id.clone(), climate.id.clone());
+        let port = Arc::new(PortStatus::new(
+            "/dev/ttyRS485-1",
+            json!({}),
+            vec![relay, climate],
+        ));
+        let hub = StatusHub::new();
+        hub.add_port(Arc::clone(&port));
+        (hub, port, relay_id, climate_id)
+    }
+
+    /// While the port cannot open, its task takes no commands: clicks on suspend / resume must
+    /// not pile up (memory) nor be replayed when it reopens; the latest per device waits.
+    #[test]
+    fn only_the_latest_suspend_per_device_waits_for_the_port() {
+        let (hub, port, relay, climate) = hub_with_one_port();
+        for click in 0..1000 {
+            assert!(hub.suspend(&relay, click % 2 == 0));
+        }
+        assert!(hub.suspend(&climate, true));
+        assert!(hub.suspend(&relay, true));
+        assert!(hub.suspend(&climate, false));
+        assert!(!hub.suspend("no_such_device", true));
+        let mut taken = port.take_commands();
+        taken.sort_by_key(|PortCommand::Suspend { device, .. }| *device);
+        assert_eq!(
+            taken,
+            [
+                PortCommand::Suspend {
+                    device: 0,
+                    suspended: true
+                },
+                PortCommand::Suspend {
+                    device: 1,
+                    suspended: false
+                },
+            ]
+        );
+        // Taken: nothing waits, and a new click is taken next time.
+        assert_eq!(port.take_commands(), []);
+        assert!(hub.suspend(&climate, true));
+        assert_eq!(
+            port.take_commands(),
+            [PortCommand::Suspend {
+                device: 1,
+                suspended: true
+            }]
+        );
+    }
 }

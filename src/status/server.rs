@@ -20,7 +20,7 @@ use tokio::net::TcpListener;
 use tokio::sync::watch;
 use tracing::{info, warn};
 
-use super::auth::BasicAuth;
+use super::auth::{BasicAuth, Verdict};
 use super::hub::{StatusHub, WriteRefused};
 use crate::config::config_file::HttpConfig;
 
@@ -136,16 +136,31 @@ async fn guard(State(state): State<AppState>, request: Request, next: Next) -> R
             let header = headers
                 .get(header::AUTHORIZATION)
                 .and_then(|v| v.to_str().ok());
-            if !auth.check(header).await {
-                return (
-                    StatusCode::UNAUTHORIZED,
-                    [(
-                        header::WWW_AUTHENTICATE,
-                        HeaderValue::from_static("Basic realm=\"rtu2mqtt\", charset=\"UTF-8\""),
-                    )],
-                    "user name and password needed (http.user / http.password_hash)\n",
-                )
-                    .into_response();
+            match auth.check(header).await {
+                Verdict::Accepted => {}
+                Verdict::Refused => {
+                    return (
+                        StatusCode::UNAUTHORIZED,
+                        [(
+                            header::WWW_AUTHENTICATE,
+                            HeaderValue::from_static("Basic realm=\"rtu2mqtt\", charset=\"UTF-8\""),
+                        )],
+                        "user name and password needed (http.user / http.password_hash)\n",
+                    )
+                        .into_response();
+                }
+                Verdict::Busy { retry_after } => {
+                    let seconds = retry_after.as_secs();
+                    return (
+                        StatusCode::TOO_MANY_REQUESTS,
+                        [(header::RETRY_AFTER, HeaderValue::from(seconds))],
+                        format!(
+                            "another password check is running (one at a time, slower after \
+                             wrong passwords); try again in {seconds} s\n"
+                        ),
+                    )
+                        .into_response();
+                }
             }
         }
         None => {
