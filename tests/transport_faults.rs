@@ -228,3 +228,68 @@ fn a_gateway_that_stops_answering_without_closing_is_reconnected() {
         log
     );
 }
+
+/// A slow device (a meter's MCU, a radio modem) that stops 40 ms in the middle of every reply,
+/// on its factory line, 9600 8N2. wb-mqtt-serial reads a frame with the device's frame timeout
+/// between bytes (`ReadFrame`), so a config with `frame_timeout_ms: 60` serves it; rtu2mqtt
+/// gave every such reply up after its own 20 ms (the site tools still do: `rtu2mqtt read` of
+/// this device says "unreadable reply"), so the device never published a value.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_device_that_pauses_mid_reply_is_read_with_its_frame_timeout() {
+    let broker = Mosquitto::start();
+    let dir = tempfile::tempdir().unwrap();
+    let templates = dir.path().join("templates");
+    std::fs::create_dir_all(&templates).unwrap();
+    std::fs::write(
+        templates.join("slow-meter.json"),
+        json!({"device_type": "slow-meter", "device": {"name": "Slow meter", "id": "slow",
+            "response_timeout_ms": 100, "channels": [
+                {"name": "Energy", "reg_type": "input", "address": 0, "type": "value",
+                 "format": "u32"}]}})
+        .to_string(),
+    )
+    .unwrap();
+    let bus = dir.path().join("bus.json");
+    std::fs::write(
+        &bus,
+        json!({"devices": [
+            {"name": "paced", "template": "templates/slow-meter.json", "address": 41,
+             "serial": "0xFE000041", "line": "9600 8N2", "fast": false, "reply_pause_us": 40000,
+             "values": {"input:0": [1, 2]}}]})
+        .to_string(),
+    )
+    .unwrap();
+    let sim = SimProcess::start_with(&bus, &templates, &[]);
+    let config = json!({
+        "mqtt": {"host": "127.0.0.1", "port": broker.port, "client_id": "rtu2mqtt-slow-meter"},
+        "ports": [{"path": sim.pty, "baud_rate": 9600, "stop_bits": 2, "devices": [
+            {"device_type": "slow-meter", "slave_id": 41, "frame_timeout_ms": 60}
+        ]}]
+    });
+    let daemon = DaemonProcess::start(
+        &config,
+        &["--templates", templates.to_str().unwrap()],
+        Stdio::null(),
+        Stdio::null(),
+    );
+    wait_for("the paused device's value", || async {
+        let state = retained(broker.port).await?;
+        (state.get("/devices/slow_41/controls/Energy")? == "65538").then_some(())
+    })
+    .await;
+    sim.control(json!({"cmd": "set", "device": 41, "type": "input", "address": 1, "value": 3}));
+    wait_for("its next value", || async {
+        let state = retained(broker.port).await?;
+        (state.get("/devices/slow_41/controls/Energy")? == "65539").then_some(())
+    })
+    .await;
+    let state = retained(broker.port).await.unwrap();
+    assert_eq!(
+        state
+            .get("/devices/slow_41/controls/Energy/meta/error")
+            .map_or("", String::as_str),
+        "",
+        "{}",
+        daemon.log_tail(30)
+    );
+}

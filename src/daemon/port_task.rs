@@ -805,7 +805,12 @@ impl PortTask {
         bus: &mut OpenBus,
         away: Option<LineSettings>,
     ) -> Result<(), TransportError> {
-        let Endpoint::Serial { path, line } = &self.endpoint else {
+        let Endpoint::Serial {
+            path,
+            line,
+            frame_timeout,
+        } = &self.endpoint
+        else {
             return Ok(());
         };
         let busy_until = bus.transport.as_ref().and_then(Transport::line_busy_until);
@@ -814,6 +819,7 @@ impl PortTask {
         let endpoint = Endpoint::Serial {
             path: path.clone(),
             line: away.unwrap_or(*line),
+            frame_timeout: *frame_timeout,
         };
         let mut transport = Transport::open(&endpoint).await?;
         transport.continues(busy_until);

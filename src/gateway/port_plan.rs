@@ -61,10 +61,11 @@ pub fn line_settings(port: &PortConfig) -> LineSettings {
     }
 }
 
-/// The pause a reply on a TCP link may make between two bytes (before the TCP lag): the
-/// longest frame timeout of the port's devices (each the device's `frame_timeout_ms`, else the
-/// port's, else 20 ms). A longer pause than a device needs costs nothing on a reply that
-/// completes; it only delays giving up a broken one, within its reply timeout.
+/// The pause a reply may make between two bytes (on a TCP link before the TCP lag; on a serial
+/// line where it is longer than the line's own allowance): the longest frame timeout of the
+/// port's devices (each the device's `frame_timeout_ms`, else the port's, else 20 ms). A longer
+/// pause than a device needs costs nothing on a reply that completes; it only delays giving up
+/// a broken one, within its reply timeout.
 fn frame_timeout(port: &ResolvedPort) -> Duration {
     port.devices
         .iter()
@@ -91,6 +92,7 @@ fn endpoint(port: &ResolvedPort) -> Endpoint {
         PortType::Serial => Endpoint::Serial {
             path: port.path.clone().unwrap_or_default(),
             line: line_settings(port),
+            frame_timeout,
         },
         PortType::Tcp => Endpoint::RtuOverTcp {
             address,
@@ -365,6 +367,22 @@ mod tests {
         let serial = port_plan(&resolved(json!({"path": "/dev/ttyRS485-1"})), true);
         assert_eq!(serial.reconnect, None);
         assert_eq!(serial.settings.response_lag, Duration::ZERO);
+    }
+
+    /// A serial port's replies may pause its slowest device's `frame_timeout_ms` between bytes,
+    /// as wb-mqtt-serial reads a frame.
+    #[test]
+    fn a_serial_port_carries_its_devices_frame_timeout() {
+        let mut port = resolved(json!({"path": "/dev/ttyRS485-1"}));
+        let Endpoint::Serial { frame_timeout, .. } = port_plan(&port, true).endpoint else {
+            unreachable!()
+        };
+        assert_eq!(frame_timeout, port.devices[0].timing.frame_timeout);
+        port.devices[0].timing.frame_timeout = Duration::from_millis(60);
+        let Endpoint::Serial { frame_timeout, .. } = port_plan(&port, true).endpoint else {
+            unreachable!()
+        };
+        assert_eq!(frame_timeout, Duration::from_millis(60));
     }
 
     #[test]

@@ -679,15 +679,46 @@ impl Bus {
                 .collect();
             bursts.extend(collide(&frames));
         } else {
-            bursts.extend(sent.into_iter().map(|reply| Burst {
-                start: reply.start,
-                char_time: reply.line.char_time(),
-                bytes: reply.frame,
-            }));
+            for reply in sent {
+                let pause = self
+                    .devices
+                    .get(reply.device)
+                    .map_or(Duration::ZERO, |d| d.reply_pause);
+                bursts.extend(paused_reply(reply, pause));
+            }
         }
         bursts.sort_by_key(|burst| burst.start);
         Transmission { bursts }
     }
+}
+
+/// A reply as one burst, or, from a slow device (`pause` > 0) that was addressed, its first
+/// half, `pause` of silence, then the rest. A reply after an arbitration is never paused: the
+/// windows are timed.
+fn paused_reply(reply: PlannedReply, pause: Duration) -> Vec<Burst> {
+    let char_time = reply.line.char_time();
+    if pause.is_zero() || reply.after_arbitration || reply.frame.len() < 2 {
+        return vec![Burst {
+            start: reply.start,
+            char_time,
+            bytes: reply.frame,
+        }];
+    }
+    let mut first = reply.frame;
+    let rest = first.split_off(first.len() / 2);
+    let rest_start = reply.start + char_time * first.len() as u32 + pause;
+    vec![
+        Burst {
+            start: reply.start,
+            char_time,
+            bytes: first,
+        },
+        Burst {
+            start: rest_start,
+            char_time,
+            bytes: rest,
+        },
+    ]
 }
 
 /// When a device's arbitration windows open and how long each lasts.

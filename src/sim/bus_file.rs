@@ -54,6 +54,9 @@ pub struct DeviceEntry {
     pub fast: bool,
     #[serde(default = "default_turnaround_us")]
     pub turnaround_us: u64,
+    /// A slow device: the silence in the middle of each of its addressed replies.
+    #[serde(default)]
+    pub reply_pause_us: u64,
     pub model: Option<String>,
     pub firmware: Option<String>,
     pub signature: Option<String>,
@@ -301,6 +304,7 @@ pub fn build_device(
         firmware: entry.firmware.clone().unwrap_or_else(|| "1.0.0".into()),
         registers,
     });
+    device.reply_pause = Duration::from_micros(entry.reply_pause_us);
     for (key, values) in &entry.values {
         let (register_type, address) = parse_register_key(key).map_err(bad)?;
         let values = match values {

@@ -69,6 +69,9 @@ pub struct VirtualDevice {
     pub serial: u32,
     pub fast: bool,
     pub turnaround: Duration,
+    /// A slow device's pause in the middle of each addressed reply (zero: none): the first
+    /// half of the frame, this silence, then the rest.
+    pub reply_pause: Duration,
     /// False while unplugged: hears nothing, says nothing.
     pub plugged: bool,
     pub faults: Faults,
@@ -120,6 +123,7 @@ impl VirtualDevice {
             serial: spec.serial,
             fast: spec.fast,
             turnaround: spec.turnaround,
+            reply_pause: Duration::ZERO,
             plugged: true,
             faults: Faults::default(),
             registers,

@@ -171,9 +171,11 @@ impl ToolPort {
                 .as_ref()
                 .and_then(|(_, transport)| transport.line_busy_until());
             self.current = None;
+            // Devices the tools meet are unknown: wb-mqtt-serial's default frame timeout.
             let endpoint = Endpoint::Serial {
                 path: self.path.clone(),
                 line,
+                frame_timeout: crate::transport::exchange::DEFAULT_FRAME_TIMEOUT,
             };
             let mut transport = Transport::open(&endpoint).await.map_err(|err| match err {
                 TransportError::Open { source, .. } => classify(&self.path, source),

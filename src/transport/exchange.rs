@@ -80,6 +80,11 @@ pub struct LinkConfig {
     /// arbitration (filler bytes a window apart, the line never quiet for long) only when the
     /// whole reply is in. See [`LinkConfig::first_byte_hold`].
     pub receive_fifo: u32,
+    /// How far past its reply deadline a reply whose bytes keep coming no more than
+    /// `quiet_gap` apart may go: the frame timeout on a serial line where a device's
+    /// `frame_timeout_ms` makes it longer than the line's own allowance (see
+    /// [`Self::with_frame_timeout`]); zero otherwise.
+    pub frame_pause: Duration,
 }
 
 /// How much later than the line says a reply's first byte may reach the reader, because the
@@ -111,6 +116,7 @@ impl LinkConfig {
             frame_gap: line.frame_gap(),
             receive_timeout: line.receive_timeout(),
             receive_fifo: 1,
+            frame_pause: Duration::ZERO,
         }
     }
 
@@ -159,6 +165,7 @@ impl LinkConfig {
             frame_gap: Duration::ZERO,
             receive_timeout: Duration::ZERO,
             receive_fifo: 1,
+            frame_pause: Duration::ZERO,
         }
     }
 }
@@ -172,12 +179,18 @@ pub const DEFAULT_FRAME_TIMEOUT: Duration = Duration::from_millis(20);
 pub const TCP_FRAME_LAG: Duration = Duration::from_millis(150);
 
 impl LinkConfig {
-    /// On a TCP link, a reply may pause `frame_timeout` (the config's `frame_timeout_ms`) and
-    /// [`TCP_FRAME_LAG`] between bytes. No effect on a serial line, whose pause is worked out
-    /// from its characters' time.
+    /// A reply may pause `frame_timeout` (the config's `frame_timeout_ms`) between bytes, as
+    /// wb-mqtt-serial reads a frame (`ReadFrame`: the frame timeout between bytes): on a TCP
+    /// link with [`TCP_FRAME_LAG`] on top; on a serial line when that is longer than the
+    /// pause its characters' time allows already (a slow device that stops mid-reply, whose
+    /// template says so); such a reply may then run past its deadline by a pause, as
+    /// wb-mqtt-serial bounds only the first byte by the response timeout.
     pub fn with_frame_timeout(mut self, frame_timeout: Duration) -> Self {
         if self.serial.is_none() {
             self.quiet_gap = frame_timeout.saturating_add(TCP_FRAME_LAG);
+        } else if frame_timeout > self.quiet_gap {
+            self.quiet_gap = frame_timeout;
+            self.frame_pause = frame_timeout;
         }
         self
     }
@@ -446,6 +459,7 @@ impl Exchange {
             self.config.serial.is_some(),
         );
         window.allow_later(self.config.receive_timeout);
+        window.allow_pause_past_deadline(self.config.frame_pause);
         window.hold_first_byte(self.config.first_byte_hold(&request));
         self.line_busy_until = Some(window.clock_start());
         let batch_read_at = self.plan_batch_read(&request, &window);
@@ -788,6 +802,8 @@ mod window {
         discard_early: bool,
         first_byte_deadline: Option<Duration>,
         deadline: Duration,
+        /// How far past `deadline` a reply whose bytes keep coming may go.
+        pause_past_deadline: Duration,
         late_window: Duration,
         quiet_gap: Duration,
         phase: Phase,
@@ -819,6 +835,7 @@ mod window {
                     .first_byte_timeout
                     .map(|timeout| clock_start.saturating_add(timeout)),
                 deadline: clock_start.saturating_add(transaction.reply_timeout),
+                pause_past_deadline: Duration::ZERO,
                 late_window: transaction.late_window,
                 quiet_gap,
                 phase: Phase::Waiting,
@@ -836,6 +853,12 @@ mod window {
                 .first_byte_deadline
                 .map(|deadline| deadline.saturating_add(by));
             self.deadline = self.deadline.saturating_add(by);
+        }
+
+        /// Lets a reply whose bytes keep coming (each within the quiet gap of the one before)
+        /// end up to `by` past its deadline: a device that pauses mid-reply.
+        pub fn allow_pause_past_deadline(&mut self, by: Duration) {
+            self.pause_past_deadline = by;
         }
 
         /// Lets the first byte come later, as the port's receive FIFO may hand it over
@@ -890,7 +913,9 @@ mod window {
         pub fn wake_at(&self) -> Duration {
             match self.phase {
                 Phase::Waiting => match (self.last_byte_at, self.first_byte_deadline) {
-                    (Some(last), _) => last.saturating_add(self.quiet_gap).min(self.deadline),
+                    (Some(last), _) => last
+                        .saturating_add(self.quiet_gap)
+                        .min(self.deadline.saturating_add(self.pause_past_deadline)),
                     (None, Some(first)) => first.min(self.deadline),
                     (None, None) => self.deadline,
                 },
@@ -2047,6 +2072,7 @@ mod tests {
             frame_gap: Duration::ZERO,
             receive_timeout: Duration::ZERO,
             receive_fifo: 1,
+            frame_pause: Duration::ZERO,
         };
         let line = line(115_200);
         let transaction = transaction(&line, read_request());
@@ -2084,6 +2110,7 @@ mod tests {
             frame_gap: Duration::ZERO,
             receive_timeout: Duration::ZERO,
             receive_fifo: 1,
+            frame_pause: Duration::ZERO,
         };
         let line = line(115_200);
         let transaction = transaction(&line, read_request());
@@ -2285,10 +2312,44 @@ mod tcp_replies {
         assert_eq!(default.quiet_gap, ms(170));
         let outcome = run(&mut Exchange::new(default), &transaction, &segments);
         assert_eq!(outcome, TransactionOutcome::Garbled);
-        // A serial line's pause comes from its characters, not from the frame timeout.
+    }
+
+    /// On a serial line too a reply may pause the frame timeout between bytes (wb-mqtt-serial's
+    /// `ReadFrame`): a device whose template sets `frame_timeout_ms: 60` and stops 45 ms in the
+    /// middle of its reply is read, not given up as garbled; a shorter frame timeout than the
+    /// line's own allowance changes nothing.
+    #[test]
+    fn a_serial_reply_may_pause_the_configured_frame_timeout() {
         let line = LineSettings::new(9600, Parity::None, 2);
+        let frame = Reply::classic(
+            30,
+            ResponsePdu::ReadInputRegisters {
+                values: vec![0x1234, 0x5678],
+            },
+        )
+        .encode()
+        .expect("encodes");
+        let (first, rest) = frame.split_at(4);
+        let segments = [(ms(15), first.to_vec()), (ms(60), rest.to_vec())];
+        // A template's short response timeout (the reply's deadline comes during the pause).
+        let mut transaction = transaction(read_request(30));
+        transaction.first_byte_timeout = Some(ms(8));
+        transaction.reply_timeout = ms(8) + line.wire_time(9) + ms(24);
+        let slow = LinkConfig::serial(line).with_frame_timeout(ms(60));
+        assert_eq!(slow.quiet_gap, ms(60));
+        let outcome = run(&mut Exchange::new(slow), &transaction, &segments);
+        assert!(
+            matches!(outcome, TransactionOutcome::Reply(_)),
+            "{outcome:?}"
+        );
+        let outcome = run(
+            &mut Exchange::new(LinkConfig::serial(line)),
+            &transaction,
+            &segments,
+        );
+        assert_eq!(outcome, TransactionOutcome::Garbled);
         assert_eq!(
-            LinkConfig::serial(line).with_frame_timeout(ms(200)),
+            LinkConfig::serial(line).with_frame_timeout(ms(8)),
             LinkConfig::serial(line)
         );
     }

@@ -54,6 +54,10 @@ pub enum Endpoint {
     Serial {
         path: String,
         line: LineSettings,
+        /// The pause a reply may make between two bytes when longer than the line's own
+        /// allowance ([`exchange::LinkConfig::with_frame_timeout`]): the config's
+        /// `frame_timeout_ms`.
+        frame_timeout: Duration,
     },
     /// RTU frames over a TCP socket (a transparent gateway).
     RtuOverTcp {
@@ -74,7 +78,7 @@ pub enum Endpoint {
 impl Endpoint {
     pub fn name(&self) -> String {
         match self {
-            Self::Serial { path, line } => format!("{path} ({line})"),
+            Self::Serial { path, line, .. } => format!("{path} ({line})"),
             Self::RtuOverTcp { address, .. } => format!("tcp://{address}"),
             Self::ModbusTcp { address, .. } => format!("modbus-tcp://{address}"),
         }
@@ -108,7 +112,11 @@ impl Transport {
     pub async fn open(endpoint: &Endpoint) -> Result<Self, TransportError> {
         let name = endpoint.name();
         let (link, config) = match endpoint {
-            Endpoint::Serial { path, line } => {
+            Endpoint::Serial {
+                path,
+                line,
+                frame_timeout,
+            } => {
                 let link = SerialLink::open(path, line).map_err(|source| TransportError::Open {
                     path: path.clone(),
                     source,
@@ -117,7 +125,9 @@ impl Transport {
                 if let Some(trigger) = trigger.filter(|&trigger| trigger > 1) {
                     debug!(%path, trigger, "the receive FIFO hands bytes over {trigger} at a time");
                 }
-                let config = LinkConfig::serial(*line).with_receive_fifo(trigger.unwrap_or(1));
+                let config = LinkConfig::serial(*line)
+                    .with_receive_fifo(trigger.unwrap_or(1))
+                    .with_frame_timeout(*frame_timeout);
                 (Link::Serial(link), config)
             }
             Endpoint::RtuOverTcp {
@@ -474,6 +484,7 @@ mod line_faults {
         let endpoint = Endpoint::Serial {
             path: path.to_string_lossy().into_owned(),
             line,
+            frame_timeout: exchange::DEFAULT_FRAME_TIMEOUT,
         };
         let mut transport = Transport::open(&endpoint).await.expect("opens");
         drop(pty.slave);
