@@ -228,3 +228,37 @@ fn a_bad_environment_override_names_its_variable() {
     );
     assert_no_rust_words(&text);
 }
+
+#[test]
+fn a_missing_template_names_the_searched_directories_that_are_not_there() {
+    // A typo in --templates (or wb-mqtt-serial's library absent on a laptop): the list of
+    // directories searched says which of them do not exist.
+    let dir = tempfile::tempdir().unwrap();
+    let typo = dir.path().join("tempaltes");
+    let config = dir.path().join("config.json");
+    std::fs::write(
+        &config,
+        r#"{"ports": [{"path": "/dev/x", "devices": [{"slave_id": 1, "device_type": "WB-MR6C"}]}]}"#,
+    )
+    .unwrap();
+    let out = bin()
+        .arg("check-config")
+        .arg("-c")
+        .arg(&config)
+        .arg("--templates")
+        .arg(&typo)
+        .arg("--templates")
+        .arg(repo("templates"))
+        .output()
+        .unwrap();
+    let (ok, text) = report(out);
+    assert!(!ok);
+    assert!(
+        text.contains(&format!("{} (not there)", typo.display())),
+        "{text}"
+    );
+    assert!(
+        !text.contains(&format!("{} (not there)", repo("templates").display())),
+        "{text}"
+    );
+}
