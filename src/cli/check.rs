@@ -7,6 +7,7 @@ use std::process::ExitCode;
 use crate::config::error::Problem;
 use crate::config::library::TemplateLibrary;
 use crate::config::load::{load_config, LoadedConfig, DEFAULT_CONFIG_PATH};
+use crate::config::values::parse_int_text;
 use crate::config::{LocatedError, TemplateFile};
 use crate::device::check_template;
 use crate::device::configure::{resolve_config_checked, template_key_warnings};
@@ -229,7 +230,7 @@ pub struct DescribeArgs {
     /// Config file.
     #[arg(short = 'c', long = "config", default_value = DEFAULT_CONFIG_PATH)]
     pub config: PathBuf,
-    /// Only this device: its MQTT id, its name or its slave_id.
+    /// Only this device: its MQTT id, its name or its slave_id (16 or 0x10).
     pub device: Option<String>,
     /// More template directories (searched after the system and user ones; later wins).
     #[arg(long = "templates", value_name = "DIR")]
@@ -270,6 +271,8 @@ pub fn run_describe(args: DescribeArgs) -> anyhow::Result<ExitCode> {
                 device.id == wanted
                     || device.name == wanted
                     || device.slave_id.to_string() == wanted
+                    // As the config may write it: "0x10", "016".
+                    || parse_int_text(wanted) == Some(i128::from(device.slave_id))
             })
         })
         .collect();

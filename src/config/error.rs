@@ -101,6 +101,9 @@ fn unknown_key_hint(key: &str, valid: &[String]) -> String {
         out.push_str(&format!("; did you mean {}?", labels.join(" or ")));
     }
     if valid.len() <= LIST_VALID_KEYS_UP_TO {
+        if suggestions.is_empty() {
+            out.push('.');
+        }
         out.push_str(&format!(" Valid keys: {}", valid.join(", ")));
     } else if suggestions.is_empty() {
         out.push_str(&format!(

@@ -222,7 +222,19 @@ impl TemplateLibrary {
 
     /// The directories searched, for messages ("searched: …").
     pub fn searched(&self) -> String {
-        let mut names: Vec<String> = self.dirs.iter().map(|d| d.display().to_string()).collect();
+        // A directory that is not there is said so: a typo in `--templates`, or wb-mqtt-serial's
+        // library looked for on a laptop.
+        let mut names: Vec<String> = self
+            .dirs
+            .iter()
+            .map(|d| {
+                if d.is_dir() {
+                    d.display().to_string()
+                } else {
+                    format!("{} (not there)", d.display())
+                }
+            })
+            .collect();
         if !self.entries.is_empty() || names.is_empty() {
             names.insert(0, BUILT_IN_DIR.to_string());
         }

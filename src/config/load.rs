@@ -11,7 +11,7 @@ use serde_json::Value;
 use super::config_file::{Config, PortType};
 use super::error::{ErrorList, LocatedError, Problem};
 use super::json_path::JsonPath;
-use super::parse::{deserialize_at, schema_keys_at, SourceText};
+use super::parse::{deserialize_at, schema_keys_at, value_at, SourceText};
 use super::values::SlaveId;
 
 /// Default config path of the Debian package.
@@ -55,6 +55,7 @@ pub fn load_config_source(source: SourceText, apply_env: bool) -> Result<LoadedC
     let mut config = typed.value;
     let mut ignored = typed.ignored;
     if apply_env {
+        let file_raw = raw.clone();
         raw = Figment::from(Serialized::defaults(&raw))
             .merge(Env::prefixed(ENV_PREFIX).split("__"))
             .extract::<Value>()
@@ -66,13 +67,7 @@ pub fn load_config_source(source: SourceText, apply_env: bool) -> Result<LoadedC
             })?;
         let merged =
             deserialize_at::<Config>(&source, &without_foreign_devices(&raw), &JsonPath::root())
-                .map_err(|err| LocatedError {
-                    problem: Problem::Invalid(format!(
-                        "{} (set by an {ENV_PREFIX}* environment variable)",
-                        err.problem
-                    )),
-                    ..err
-                })?;
+                .map_err(|err| env_error(err, &file_raw))?;
         config = merged.value;
         ignored = merged.ignored;
     }
@@ -93,6 +88,59 @@ pub fn load_config_source(source: SourceText, apply_env: bool) -> Result<LoadedC
         })
     } else {
         Err(ErrorList(errors))
+    }
+}
+
+/// An error in the config once the `RTU2MQTT_*` environment is applied: it comes from the
+/// variables that set that place (the file alone loaded), so they are named, and no line and
+/// column of the file are given.
+fn env_error(err: LocatedError, file_raw: &Value) -> LocatedError {
+    let variables: Vec<(String, Vec<String>)> = std::env::vars()
+        .filter_map(|(key, _)| {
+            let rest = key.strip_prefix(ENV_PREFIX)?;
+            let segments = rest.split("__").map(str::to_lowercase).collect();
+            Some((key, segments))
+        })
+        .collect();
+    let error_segments: Vec<String> = err
+        .path
+        .segments()
+        .iter()
+        .map(|segment| match segment {
+            super::json_path::PathSegment::Key(key) => key.to_lowercase(),
+            super::json_path::PathSegment::Index(index) => index.to_string(),
+        })
+        .collect();
+    let common = |env: &[String]| {
+        let n = env.len().min(error_segments.len());
+        env[..n] == error_segments[..n]
+    };
+    let named: Vec<&(String, Vec<String>)> =
+        variables.iter().filter(|(_, env)| common(env)).collect();
+    let names: Vec<&str> = named.iter().map(|(key, _)| key.as_str()).collect();
+    let by = match names.as_slice() {
+        [] => format!("an {ENV_PREFIX}* environment variable"),
+        [one] => format!("the environment variable {one}"),
+        several => format!("the environment variables {}", several.join(", ")),
+    };
+    // A variable that reaches inside a list (`RTU2MQTT_PORTS__0__BAUD_RATE`) replaces the list.
+    let into_a_list = named
+        .iter()
+        .any(|(_, env)| env.len() > error_segments.len())
+        && value_at(file_raw, &err.path).is_some_and(Value::is_array);
+    let hint = if into_a_list {
+        format!(
+            "; the environment sets only scalar settings (such as {ENV_PREFIX}MQTT__HOST), \
+             not entries of lists such as `{}`: change those in the file",
+            err.path
+        )
+    } else {
+        String::new()
+    };
+    LocatedError {
+        problem: Problem::Invalid(format!("{} (set by {by}{hint})", err.problem)),
+        line_column: None,
+        ..err
     }
 }
 

@@ -25,6 +25,10 @@ impl SourceText {
     }
 
     pub fn from_text(path: &Path, text: &str) -> Self {
+        // A byte order mark (Windows editors save UTF-8 with one) is skipped, as jsoncpp, which
+        // wb-mqtt-serial reads its files with, skips it; lines and columns are then those an
+        // editor shows, which does not show the mark.
+        let text = text.strip_prefix('\u{feff}').unwrap_or(text);
         Self {
             path: path.to_path_buf(),
             text: strip_comments(text),
@@ -38,6 +42,13 @@ impl SourceText {
 
     /// Parses the JSON syntax; errors carry serde_json's line and column.
     pub fn parse_json(&self) -> Result<Value, LocatedError> {
+        if self.text.trim().is_empty() {
+            // serde_json would say "EOF while parsing a value" at line 1, column 0.
+            return Err(LocatedError::file_level(
+                &self.path,
+                Problem::Syntax("the file is empty (or holds only comments)".into()),
+            ));
+        }
         serde_json::from_str(&self.text).map_err(|err| LocatedError {
             file: self.path.clone(),
             path: JsonPath::root(),
@@ -112,7 +123,94 @@ fn problem_from_serde(message: &str) -> Problem {
             ));
         }
     }
-    Problem::Invalid(message.to_string())
+    Problem::Invalid(plain_type_error(message).unwrap_or_else(|| message.to_string()))
+}
+
+/// serde's "invalid type: string \"9600\", expected u32" in the integrator's words: JSON kinds
+/// and ranges instead of Rust's type names, and a hint when a number or `true`/`false` was
+/// written in quotes. `None` for other messages.
+fn plain_type_error(message: &str) -> Option<String> {
+    let (kind, rest) = if let Some(rest) = message.strip_prefix("invalid type: ") {
+        ("type", rest)
+    } else if let Some(rest) = message.strip_prefix("invalid value: ") {
+        ("value", rest)
+    } else if let Some(rest) = message.strip_prefix("invalid length ") {
+        ("length", rest)
+    } else {
+        return None;
+    };
+    let (found, expected) = rest.rsplit_once(", expected ")?;
+    let expected_words = expected_in_words(expected);
+    if kind == "length" {
+        return Some(format!("{found} entries, expected {expected_words}"));
+    }
+    let quoted = found
+        .strip_prefix("string ")
+        .and_then(|s| serde_json::from_str::<String>(s).ok());
+    let found_words = match &quoted {
+        Some(text) => format!("the text {}", serde_json::Value::from(text.as_str())),
+        None => found_in_words(found),
+    };
+    let numeric = expected_words.starts_with("a whole number") || expected_words == "a number";
+    let hint = match &quoted {
+        Some(text) if numeric && text.trim().parse::<f64>().is_ok() => {
+            "; write the number without the quotes"
+        }
+        Some(text)
+            if expected_words == "true or false" && matches!(text.trim(), "true" | "false") =>
+        {
+            "; write it without the quotes"
+        }
+        _ => "",
+    };
+    Some(if kind == "value" && found.starts_with("integer ") {
+        format!("{found_words} is out of range: expected {expected_words}")
+    } else {
+        format!("expected {expected_words}, found {found_words}{hint}")
+    })
+}
+
+fn expected_in_words(expected: &str) -> String {
+    match expected {
+        "u8" => "a whole number from 0 to 255".into(),
+        "u16" => "a whole number from 0 to 65535".into(),
+        "u32" => "a whole number from 0 to 4294967295".into(),
+        "u64" | "u128" | "usize" => "a whole number, 0 or more".into(),
+        "i8" | "i16" | "i32" | "i64" | "i128" | "isize" => "a whole number".into(),
+        "f32" | "f64" => "a number".into(),
+        "a boolean" => "true or false".into(),
+        "a sequence" => "a list `[…]`".into(),
+        "a map" => "an object `{…}`".into(),
+        "a string" => "a string in quotes".into(),
+        other if other.starts_with("struct ") || other.starts_with("a map ") => {
+            "an object `{…}`".into()
+        }
+        other if other.starts_with("a sequence ") || other.starts_with("a tuple") => {
+            "a list `[…]`".into()
+        }
+        other => other.to_string(),
+    }
+}
+
+/// serde's `Unexpected` (`integer \`5\``, `floating point \`1.5\``, `map` …) as JSON says it.
+fn found_in_words(found: &str) -> String {
+    let ticked = |prefix: &str| {
+        found
+            .strip_prefix(prefix)
+            .map(|v| v.trim_matches('`').to_string())
+    };
+    if let Some(value) = ticked("integer ").or_else(|| ticked("floating point ")) {
+        return value;
+    }
+    if let Some(value) = ticked("boolean ") {
+        return value;
+    }
+    match found {
+        "map" => "an object `{…}`".into(),
+        "sequence" => "a list `[…]`".into(),
+        "unit value" | "null" | "Option value" => "null".into(),
+        other => other.to_string(),
+    }
 }
 
 fn error_path(path: &serde_path_to_error::Path) -> JsonPath {
