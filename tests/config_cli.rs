@@ -743,7 +743,7 @@ fn describe_shows_what_was_resolved() {
         r#"{"ports": [{"path": "/dev/x", "devices": [
             {"slave_id": 7, "device_type": "WB-TEST-INPUTS", "baud_rate": 192,
              "channels": [{"name": "Input 1", "device_type": "in1_discrete"}]},
-            {"slave_id": 8, "device_type": "WB-TEST-SENSOR",
+            {"slave_id": 8, "device_type": "WB-TEST-SENSOR", "poll_interval": 2000,
              "channels": [{"name": "Input 2 counter", "read_period_ms": 250}]},
             {"slave_id": "1:2", "device_type": "TEST-WBIO"}]}]}"#,
     )
@@ -787,6 +787,8 @@ fn describe_shows_what_was_resolved() {
         .find(|c| c["name"] == "Input 2 counter")
         .unwrap();
     assert_eq!(counter["read_period_ms"], 250);
+    // The device's old `poll_interval` is its channels' read rate limit.
+    assert_eq!(counter["read_rate_limit_ms"], 2000);
     // The template's 1 ms is what wb-mqtt-serial's templates say; the port task waits the 24 ms
     // adapter allowance and one character (1.04 ms at 9600 8N1, the port default) on top, as wb-mqtt-serial.
     assert_eq!(devices[0]["response_timeout_ms"], 1);

@@ -29,6 +29,7 @@ fn sporadic(register_type: RegisterType, start: u16, count: u16) -> PlannedRead 
     PlannedRead {
         span: RegisterSpan::new(register_type, start, count),
         period: None,
+        rate_limit: None,
         events: EventMode::Sporadic,
         min_firmware: None,
     }

@@ -865,6 +865,7 @@ fn sporadic_device(address: u8, reads: &[(RegisterType, u16, bool)]) -> DevicePl
             .map(|&(register_type, start, high)| PlannedRead {
                 span: RegisterSpan::new(register_type, start, 1),
                 period: high.then(|| ms(1000)),
+                rate_limit: None,
                 events: EventMode::Sporadic,
                 min_firmware: None,
             })

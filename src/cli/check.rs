@@ -397,10 +397,11 @@ fn describe_table(port: &ResolvedPort, device: &ResolvedDevice) -> String {
                 register_text(place),
                 register.codec.format.name().to_string(),
                 format_g(register.codec.scale, 6),
-                channel
-                    .read_period
-                    .map(|p| format!("{} ms", p.as_millis()))
-                    .unwrap_or_else(|| "-".into()),
+                match (channel.read_period, device.read_rate_limit(channel)) {
+                    (Some(period), _) => format!("{} ms", period.as_millis()),
+                    (None, Some(limit)) => format!(">= {} ms", limit.as_millis()),
+                    (None, None) => "-".into(),
+                },
                 events_name(channel.events).into(),
                 access.into(),
             ]);
@@ -469,6 +470,7 @@ fn describe_json(port: &ResolvedPort, device: &ResolvedDevice) -> serde_json::Va
                 "units": channel.units,
                 "registers": registers,
                 "read_period_ms": channel.read_period.map(|p| p.as_millis() as u64),
+                "read_rate_limit_ms": device.read_rate_limit(channel).map(|l| l.as_millis() as u64),
                 "events": events_name(channel.events),
                 "readonly": channel.readonly,
                 "write_only": channel.write_only,

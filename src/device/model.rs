@@ -404,6 +404,15 @@ pub struct ResolvedDevice {
 }
 
 impl ResolvedDevice {
+    /// The `read_rate_limit_ms` in force for one of its channels: the channel's own, else the
+    /// device's (itself else the port's), as wb-mqtt-serial; zero limits nothing.
+    pub fn read_rate_limit(&self, channel: &ResolvedChannel) -> Option<Duration> {
+        channel
+            .read_rate_limit
+            .or(self.timing.read_rate_limit)
+            .filter(|limit| !limit.is_zero())
+    }
+
     /// All enabled channels use events only (`sporadic`): one of them is kept in polling to
     /// notice a lost device.
     pub fn is_sporadic_only(&self) -> bool {

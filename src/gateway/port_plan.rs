@@ -149,13 +149,17 @@ pub fn device_plan(device: &ResolvedDevice) -> DevicePlan {
             let read = PlannedRead {
                 span: register.span(),
                 period: channel.read_period,
+                rate_limit: device.read_rate_limit(channel),
                 events,
                 min_firmware: min_firmware.clone(),
             };
             // Bit fields of one register share a read, held to the oldest firmware any of them
             // needs (none when one needs none).
             let shared = reads.iter_mut().find(|r| {
-                r.span == read.span && r.period == read.period && r.events == read.events
+                r.span == read.span
+                    && r.period == read.period
+                    && r.rate_limit == read.rate_limit
+                    && r.events == read.events
             });
             match shared {
                 Some(shared) => {
@@ -367,6 +371,44 @@ mod tests {
         let serial = port_plan(&resolved(json!({"path": "/dev/ttyRS485-1"})), true);
         assert_eq!(serial.reconnect, None);
         assert_eq!(serial.settings.response_lag, Duration::ZERO);
+    }
+
+    /// `read_rate_limit_ms` (or the old `poll_interval`) of a port or device reaches every
+    /// read of its devices; a channel's own wins (wb-mqtt-serial's order).
+    #[test]
+    fn read_rate_limits_reach_the_reads() {
+        let limits = |port: &ResolvedPort| -> Vec<Option<Duration>> {
+            port.devices
+                .iter()
+                .flat_map(|d| device_plan(d).reads)
+                .map(|r| r.rate_limit)
+                .collect()
+        };
+        let port = resolved(json!({"path": "/dev/x"}));
+        assert!(limits(&port).iter().all(Option::is_none));
+        let port = resolved(json!({"path": "/dev/x", "poll_interval": 1000}));
+        let all = limits(&port);
+        assert!(!all.is_empty());
+        assert!(
+            all.iter().all(|l| *l == Some(Duration::from_secs(1))),
+            "{all:?}"
+        );
+        let mut config = json!({"path": "/dev/x", "read_rate_limit_ms": 200});
+        config["devices"] = json!([{"device_type": "rtu2mqtt-relay6", "slave_id": 20,
+            "channels": [{"name": "K1", "read_rate_limit_ms": 5000}]}]);
+        let loaded = crate::config::load::load_config_source(
+            SourceText::from_text(Path::new("c.json"), &json!({"ports": [config]}).to_string()),
+            false,
+        )
+        .unwrap();
+        let library =
+            TemplateLibrary::load_dirs(&[Path::new(env!("CARGO_MANIFEST_DIR")).join("templates")]);
+        let port = crate::device::resolve_config(&loaded, &library)
+            .unwrap()
+            .remove(0);
+        let all = limits(&port);
+        assert!(all.contains(&Some(Duration::from_secs(5))), "{all:?}");
+        assert!(all.contains(&Some(Duration::from_millis(200))), "{all:?}");
     }
 
     /// A serial port's replies may pause its slowest device's `frame_timeout_ms` between bytes,

@@ -874,13 +874,16 @@ impl DeviceState {
 
     fn reschedule(&mut self, now: Duration, index: usize) {
         let keepalive = self.keepalive_index() == Some(index);
-        let period = self.plan.reads.get(index).and_then(|p| p.period);
+        let planned = self.plan.reads.get(index);
+        let period = planned.and_then(|p| p.period);
+        let rate_limit = planned.and_then(|p| p.rate_limit);
         if let Some(read) = self.reads.get_mut(index) {
             read.next_due = match (keepalive, period) {
                 (true, _) => now + KEEPALIVE_PERIOD,
                 (false, Some(period)) => now + period,
-                // Round-robin: due again at once, ordered by when it was last read.
-                (false, None) => now,
+                // Round-robin: due again at once (or when its rate limit allows), ordered by
+                // when it was last read.
+                (false, None) => now + rate_limit.unwrap_or(Duration::ZERO),
             };
         }
     }

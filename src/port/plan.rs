@@ -87,6 +87,9 @@ pub struct PlannedRead {
     pub span: RegisterSpan,
     /// Read at this period with high priority; None: round-robin in the remaining time.
     pub period: Option<Duration>,
+    /// A round-robin read (no `period`) is read again no sooner than this after it was last
+    /// read: wb-mqtt-serial's `read_rate_limit_ms` (`poll_interval` in old configs).
+    pub rate_limit: Option<Duration>,
     pub events: EventMode,
     /// The oldest firmware that has these registers (a template's `fw`, on a device whose
     /// firmware is read): not read until the device's firmware is known

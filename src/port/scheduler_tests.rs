@@ -24,6 +24,7 @@ fn read(register_type: RegisterType, start: u16, events: EventMode) -> PlannedRe
     PlannedRead {
         span: RegisterSpan::new(register_type, start, 1),
         period: None,
+        rate_limit: None,
         events,
         min_firmware: None,
     }
@@ -1105,6 +1106,64 @@ fn rate_limit_holds_round_robin_reads_and_not_periodic_ones() {
     assert!(low.iter().all(|&n| n > 200), "without a limit: {low:?}");
 }
 
+/// wb-mqtt-serial's `read_rate_limit_ms` (`poll_interval` in old configs): a round-robin read
+/// with a limit is read no more often than that, the others as fast as the bus allows; the
+/// port sleeps when only limited reads are left.
+#[test]
+fn a_read_rate_limit_holds_its_read_and_no_other() {
+    let mut limited = read(RegisterType::Holding, 100, EventMode::Polled);
+    limited.rate_limit = Some(ms(500));
+    let free = read(RegisterType::Holding, 0, EventMode::Polled);
+    let mut scheduler = PortScheduler::new(settings(9600), vec![device(5, vec![free, limited])]);
+    let mut log = Log::default();
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(3000),
+        |_, r| healthy(r),
+    );
+    let times = |start: u16| -> Vec<Duration> {
+        log.classic_to(5)
+            .iter()
+            .filter(|(_, pdu)| {
+                matches!(pdu, RequestPdu::ReadHoldingRegisters { start: s, .. } if *s == start)
+            })
+            .map(|(at, _)| *at)
+            .collect()
+    };
+    let limited_reads = times(100);
+    assert!(
+        (6..=7).contains(&limited_reads.len()),
+        "limited reads in 3 s: {limited_reads:?}"
+    );
+    for pair in limited_reads.windows(2) {
+        assert!(pair[1] - pair[0] >= ms(500), "{limited_reads:?}");
+    }
+    assert!(times(0).len() > 50, "free reads: {}", times(0).len());
+
+    // Only limited reads: the port sleeps until the next is due.
+    let mut limited = read(RegisterType::Holding, 100, EventMode::Polled);
+    limited.rate_limit = Some(ms(500));
+    let mut scheduler = PortScheduler::new(settings(9600), vec![device(5, vec![limited])]);
+    let mut now = Duration::ZERO;
+    let mut sent = Vec::new();
+    while sent.len() < 3 {
+        match scheduler.next(now) {
+            NextStep::Transmit(transaction) => {
+                sent.push(now);
+                now += transaction.estimated;
+                scheduler.complete(now, healthy(&transaction.request));
+            }
+            NextStep::Wait { until } => {
+                assert!(until > now, "spinning at {now:?}");
+                now = until;
+            }
+        }
+    }
+    assert!(sent[2] - sent[1] >= ms(500), "{sent:?}");
+}
+
 #[test]
 fn a_periodic_read_that_cannot_keep_its_period_is_flagged() {
     // At 9600 baud one read takes ~17 ms: a 5 ms period cannot be kept, a 1 s period can.
@@ -1401,6 +1460,7 @@ fn a_read_that_just_misses_the_slot_after_a_poll_still_goes() {
             vec![PlannedRead {
                 span: RegisterSpan::new(RegisterType::Holding, 0, 110),
                 period: None,
+                rate_limit: None,
                 events: EventMode::Polled,
                 min_firmware: None,
             }],
@@ -1949,6 +2009,7 @@ fn random_plan(rng: &mut Rng, address: u8) -> DevicePlan {
                 1 + rng.below(3) as u16,
             ),
             period: rng.chance(40).then(|| ms(5 + rng.below(200))),
+            rate_limit: None,
             events: modes[rng.below(3) as usize],
             min_firmware: None,
         })
@@ -2523,6 +2584,7 @@ fn overlapping_reads_do_not_hide_a_hole_in_a_refused_read() {
     let span_read = |start: u16, count: u16, period: Option<Duration>| PlannedRead {
         span: RegisterSpan::new(RegisterType::Holding, start, count),
         period,
+        rate_limit: None,
         events: EventMode::Polled,
         min_firmware: None,
     };
@@ -2661,6 +2723,7 @@ fn a_read_wider_than_a_request_is_never_sent_and_the_others_go_on() {
         PlannedRead {
             span: RegisterSpan::new(RegisterType::Holding, 100, 130),
             period: None,
+            rate_limit: None,
             events: EventMode::Polled,
             min_firmware: None,
         },
@@ -3605,6 +3668,7 @@ fn events_of_unread_registers_are_turned_off_once_per_connection() {
     plan.reads.push(PlannedRead {
         span: RegisterSpan::new(RegisterType::Holding, 10, 2),
         period: None,
+        rate_limit: None,
         events: EventMode::Sporadic,
         min_firmware: None,
     });
