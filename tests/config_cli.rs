@@ -1079,3 +1079,28 @@ fn a_short_max_unchanged_interval_is_said_to_be_raised() {
     );
     assert!(ok && !text.contains("max_unchanged_interval"), "{text}");
 }
+
+/// A config channel override whose name the template does not have (a typo, or a channel a
+/// newer template renamed) and that has no register of its own: wb-mqtt-serial loads it, fails
+/// and ignores it with a warning (`LoadSimpleChannel`), so such a config runs there. It is a
+/// warning here too, naming the template's closest channel; the rest of the device is kept.
+#[test]
+fn an_override_of_a_channel_the_template_lacks_is_a_warning_with_the_closest_name() {
+    let config = r#"{"ports": [{"path": "/dev/x", "devices": [
+        {"device_type": "rtu2mqtt-energy-meter", "slave_id": 30,
+         "channels": [{"name": "Voltag", "enabled": false}]}]}]}"#;
+    let (ok, text) = check_config(config);
+    assert!(ok, "{text}");
+    assert!(
+        text.contains("the template has no channel `Voltag` (did you mean `Voltage`?)"),
+        "{text}"
+    );
+    assert!(text.contains("ignored"), "{text}");
+    // A channel of the config's own (with an address) is still taken as one.
+    let own = r#"{"ports": [{"path": "/dev/x", "devices": [
+        {"device_type": "rtu2mqtt-energy-meter", "slave_id": 30,
+         "channels": [{"name": "Extra", "reg_type": "input", "address": 500}]}]}]}"#;
+    let (ok, text) = check_config(own);
+    assert!(ok, "{text}");
+    assert!(!text.contains("no channel `Extra`"), "{text}");
+}

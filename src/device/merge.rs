@@ -728,6 +728,31 @@ fn merge_channels(
                     "there is no subdevice slot named `{name}` in the template, so this channel cannot set `device_type`"
                 )),
             }),
+            // A channel of the config's own needs a register. One that has none names a
+            // channel the template does not have (a typo, or one an update of the template
+            // renamed): wb-mqtt-serial loads it, fails, and ignores it with a warning
+            // (`LoadSimpleChannel`), so a config that runs there must not stop here.
+            false if !["address", "write_address", "consists_of"]
+                .iter()
+                .any(|key| object.contains_key(*key)) =>
+            {
+                let names = channels
+                    .iter()
+                    .filter_map(|(c, _)| c.get("name").and_then(Value::as_str));
+                let suggestions = crate::config::library::suggest_keys(name, names);
+                let hint = match suggestions.as_slice() {
+                    [] => String::new(),
+                    [one] => format!(" (did you mean `{one}`?)"),
+                    many => format!(" (did you mean one of `{}`?)", many.join("`, `")),
+                };
+                errors.push(warning(
+                    format!("c:{}", at.key("name")),
+                    format!(
+                        "the template has no channel `{name}`{hint}, and without `address` it \
+                         cannot be a channel of its own: ignored, as wb-mqtt-serial ignores it"
+                    ),
+                ));
+            }
             false => channels.push((with_origin(item, &format!("c:{at}")), None)),
         }
     }
