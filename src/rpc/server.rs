@@ -26,7 +26,10 @@ use crate::mqtt::MqttError;
 pub const MAX_REQUESTS_AT_ONCE: usize = 8;
 /// The most of a request payload read (a request is a few hundred bytes).
 const MAX_REQUEST_BYTES: usize = 64 * 1024;
-const RECONNECT_DELAY: Duration = Duration::from_secs(2);
+/// The wait before reconnecting, doubled after each failure in a row up to the most: a broker
+/// that refuses us must not be asked every 2 s for ever.
+const FIRST_RECONNECT_DELAY: Duration = Duration::from_secs(2);
+const MAX_RECONNECT_DELAY: Duration = Duration::from_secs(30);
 const EXIT_FLUSH_TIMEOUT: Duration = Duration::from_secs(2);
 
 /// Serves wb-mqtt-serial's RPC for the ports in `ports` until `shutdown` completes.
@@ -46,6 +49,7 @@ pub async fn run_rpc_server(
     let address = format!("{}:{}", broker.host, broker.port);
     let mut unreachable_told = false;
     let mut ever_connected = false;
+    let mut reconnect_delay = FIRST_RECONNECT_DELAY;
     tokio::pin!(shutdown);
     loop {
         let event = tokio::select! {
@@ -56,6 +60,7 @@ pub async fn run_rpc_server(
             Ok(Event::Incoming(Packet::ConnAck(_))) => {
                 unreachable_told = false;
                 ever_connected = true;
+                reconnect_delay = FIRST_RECONNECT_DELAY;
                 info!(broker = %address, "MQTT RPC: serving /rpc/v1/wb-mqtt-serial/…");
                 let _ = client.try_subscribe(REQUEST_FILTER, QoS::AtLeastOnce);
                 for (service, method) in SERVED {
@@ -109,8 +114,9 @@ pub async fn run_rpc_server(
                 }
                 tokio::select! {
                     () = &mut shutdown => break,
-                    () = tokio::time::sleep(RECONNECT_DELAY) => {}
+                    () = tokio::time::sleep(reconnect_delay) => {}
                 }
+                reconnect_delay = (reconnect_delay * 2).min(MAX_RECONNECT_DELAY);
             }
         }
     }

@@ -195,7 +195,12 @@ impl BasicAuth {
 
 /// `Basic base64(user:password)` → (user, password).
 fn decode_basic(header: &str) -> Option<(String, String)> {
-    let encoded = header.strip_prefix("Basic ")?.trim();
+    // The scheme's name is case-insensitive (RFC 7617).
+    let (scheme, encoded) = header.trim_start().split_once(' ')?;
+    if !scheme.eq_ignore_ascii_case("basic") {
+        return None;
+    }
+    let encoded = encoded.trim();
     let decoded = base64::engine::general_purpose::STANDARD
         .decode(encoded)
         .ok()?;
@@ -235,6 +240,21 @@ mod tests {
         assert_eq!(auth.check(Some("Bearer x")).await, refused);
         assert_eq!(auth.check(Some("Basic !!!")).await, refused);
         assert_eq!(auth.check(None).await, refused);
+    }
+
+    /// The scheme's name is case-insensitive (RFC 7617): `basic` and `BASIC` are Basic.
+    #[test]
+    fn the_scheme_name_is_case_insensitive() {
+        let encoded = base64::engine::general_purpose::STANDARD.encode("admin:s3cret");
+        for scheme in ["Basic", "basic", "BASIC"] {
+            assert_eq!(
+                decode_basic(&format!("{scheme} {encoded}")),
+                Some(("admin".to_string(), "s3cret".to_string())),
+                "{scheme}"
+            );
+        }
+        assert_eq!(decode_basic(&format!("Bearer {encoded}")), None);
+        assert_eq!(decode_basic("Basic"), None);
     }
 
     /// While a check runs, a request with credentials not seen before is answered at once

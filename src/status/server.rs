@@ -79,10 +79,7 @@ impl StatusServer {
             (Some(user), Some(hash)) => Some(Arc::new(BasicAuth::new(user, hash))),
             _ => None,
         };
-        let local_hosts = ["127.0.0.1", "localhost", "[::1]"]
-            .iter()
-            .map(|host| format!("{host}:{port}"))
-            .collect();
+        let local_hosts = local_hosts(port);
         Ok(Self {
             listener,
             state: AppState {
@@ -165,7 +162,12 @@ async fn guard(State(state): State<AppState>, request: Request, next: Next) -> R
         }
         None => {
             let host = headers.get(header::HOST).and_then(|v| v.to_str().ok());
-            if host.is_some_and(|host| !state.local_hosts.iter().any(|h| h == host)) {
+            if host.is_some_and(|host| {
+                !state
+                    .local_hosts
+                    .iter()
+                    .any(|h| h.eq_ignore_ascii_case(host))
+            }) {
                 return (
                     StatusCode::FORBIDDEN,
                     "this status page answers on its loopback address only (127.0.0.1, localhost)\n",
@@ -175,6 +177,17 @@ async fn guard(State(state): State<AppState>, request: Request, next: Next) -> R
         }
     }
     next.run(request).await
+}
+
+/// The `Host` headers of a loopback request to `port`: with the port, and without it on 80,
+/// where a browser leaves it out.
+fn local_hosts(port: u16) -> Vec<String> {
+    let names = ["127.0.0.1", "localhost", "[::1]"];
+    let mut hosts: Vec<String> = names.iter().map(|host| format!("{host}:{port}")).collect();
+    if port == 80 {
+        hosts.extend(names.iter().map(|host| (*host).to_string()));
+    }
+    hosts
 }
 
 async fn page() -> Response {
@@ -405,6 +418,14 @@ mod tests {
         }
         // Its own requests are relative, so it also works behind a reverse proxy's sub-path.
         assert!(PAGE.contains(r#"new EventSource("api/events")"#));
+    }
+
+    /// A browser leaves the port out of `Host` on port 80.
+    #[test]
+    fn loopback_hosts_include_the_bare_names_on_port_80() {
+        assert!(local_hosts(80).iter().any(|h| h == "localhost"));
+        assert!(local_hosts(80).iter().any(|h| h == "localhost:80"));
+        assert!(!local_hosts(8080).iter().any(|h| h == "localhost"));
     }
 
     #[test]
