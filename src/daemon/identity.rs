@@ -35,8 +35,9 @@ pub struct IdentityPlan {
 }
 
 /// What to read for `device`; `None` when neither the template nor the WB registers say who
-/// it is.
-pub fn identity_plan(device: &ResolvedDevice) -> Option<IdentityPlan> {
+/// it is. `response_lag`: what the port adds to every device's response timeout (a TCP
+/// gateway's 500 ms, as for the device's polled reads).
+pub fn identity_plan(device: &ResolvedDevice, response_lag: Duration) -> Option<IdentityPlan> {
     let template_serial = device
         .serial_number
         .as_ref()
@@ -54,7 +55,7 @@ pub fn identity_plan(device: &ResolvedDevice) -> Option<IdentityPlan> {
         address: device.slave_id,
         texts: device.is_wb,
         serial,
-        response_timeout: device.timing.response_timeout,
+        response_timeout: device.timing.response_timeout.saturating_add(response_lag),
     })
 }
 
@@ -151,6 +152,34 @@ fn read_transaction(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Behind a TCP gateway the identity reads wait the gateway's lag too, as the device's
+    /// polled reads do: a WB device whose firmware was never read never gets its `fw` channels.
+    #[test]
+    fn identity_reads_behind_a_tcp_gateway_wait_its_lag() {
+        use std::path::Path;
+        let config = serde_json::json!({"ports": [{"port_type": "tcp", "address": "10.0.0.5",
+            "port": 23, "devices": [{"device_type": "rtu2mqtt-relay6", "slave_id": 20}]}]});
+        let loaded = crate::config::load::load_config_source(
+            crate::config::parse::SourceText::from_text(Path::new("c.json"), &config.to_string()),
+            false,
+        )
+        .unwrap();
+        let library = crate::config::library::TemplateLibrary::load_dirs(&[Path::new(env!(
+            "CARGO_MANIFEST_DIR"
+        ))
+        .join("templates")]);
+        let port = crate::device::resolve_config(&loaded, &library)
+            .unwrap()
+            .remove(0);
+        let plan = crate::gateway::port_plan::port_plan(&port, true);
+        let device = &port.devices[0];
+        let identity = identity_plan(device, plan.settings.response_lag).unwrap();
+        assert_eq!(
+            identity.response_timeout,
+            device.timing.response_timeout + Duration::from_millis(500)
+        );
+    }
 
     #[test]
     fn serial_numbers_from_one_or_two_words() {

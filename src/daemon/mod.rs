@@ -213,7 +213,11 @@ impl BusControl {
                 events: Arc::clone(&events),
             },
         );
-        let identity_plans = port.devices.iter().map(identity::identity_plan).collect();
+        let identity_plans = port
+            .devices
+            .iter()
+            .map(|device| identity::identity_plan(device, plan.settings.response_lag))
+            .collect();
         let status = self.status.as_ref().map(|hub| {
             let mut settings = serde_json::to_value(&port.config).unwrap_or_default();
             if let Some(settings) = settings.as_object_mut() {

@@ -470,6 +470,12 @@ impl PortTask {
                         warn!(port = %self.plan_name, %err, retry_in = ?delay,
                             "cannot open the port: another program holds it (wb-mqtt-serial \
                              still running? `systemctl stop wb-mqtt-serial`)");
+                    } else if permission_denied(&err) {
+                        warn!(port = %self.plan_name, %err, retry_in = ?delay,
+                            "cannot open the port: no permission. The service's unit gives it \
+                             the dialout group; run by hand, add your user to the group that \
+                             owns the port (usually dialout: `sudo usermod -aG dialout $USER`, \
+                             then log in again)");
                     } else {
                         warn!(port = %self.plan_name, %err, retry_in = ?delay, "cannot open the port");
                     }
@@ -1000,6 +1006,13 @@ fn held_by_another_program(err: &TransportError) -> bool {
     }
 }
 
+/// Whether opening failed for want of permission on the device node.
+fn permission_denied(err: &TransportError) -> bool {
+    matches!(err, TransportError::Open { source, .. }
+        if source.kind() == std::io::ErrorKind::PermissionDenied
+            || source.raw_os_error() == Some(nix::libc::EACCES))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -1048,6 +1061,12 @@ mod tests {
         ))));
         assert!(!held_by_another_program(&open(
             std::io::Error::from_raw_os_error(nix::libc::ENOENT)
+        )));
+        assert!(permission_denied(&open(std::io::Error::from_raw_os_error(
+            nix::libc::EACCES
+        ))));
+        assert!(!permission_denied(&open(
+            std::io::Error::from_raw_os_error(nix::libc::EBUSY)
         )));
     }
 }
