@@ -41,6 +41,11 @@ pub enum DeviceUpdate {
     },
     /// The device answers again (`true`) or stopped answering.
     Online { device_id: String, online: bool },
+    /// The device's bus is this gateway's: its port opened here (or cannot be opened for a
+    /// reason other than another program holding it). Until then its Wiren Board topics may be
+    /// another gateway's (wb-mqtt-serial still running on that port): they are not deleted for
+    /// it, at exit or when a reload drops it.
+    BusServed { device_id: String },
 }
 
 /// Which values the device model reports when they repeat the one it reported before (a

@@ -14,7 +14,7 @@ use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 
 use daemon_support::DaemonProcess;
-use mqtt_support::{retained, rpc, wait_for, Mosquitto, Recorder};
+use mqtt_support::{publish, retained, rpc, wait_for, Mosquitto, Recorder};
 use serde_json::{json, Value};
 use sim_support::SimProcess;
 
@@ -292,4 +292,105 @@ async fn a_device_that_pauses_mid_reply_is_read_with_its_frame_timeout() {
         "{}",
         daemon.log_tail(30)
     );
+}
+
+/// A second gateway on the same broker while the first holds the port: an integrator trying
+/// `rtu2mqtt run` by hand while the service (or wb-mqtt-serial) runs. The second cannot open
+/// the port ("another program holds it"); it used to mark the first's devices `r` once their
+/// timeout passed, and on its exit (`clear_on_exit`) delete every retained topic of theirs,
+/// values and meta, while the first went on serving them. A port that was never this
+/// gateway's leaves its devices' Wiren Board topics alone.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_second_gateway_that_cannot_open_the_port_leaves_the_first_ones_topics_alone() {
+    let broker = Mosquitto::start();
+    let dir = tempfile::tempdir().unwrap();
+    let templates = dir.path().join("templates");
+    std::fs::create_dir_all(&templates).unwrap();
+    std::fs::write(
+        templates.join("meter.json"),
+        json!({"device_type": "meter", "device": {"name": "Meter", "id": "meter",
+            "channels": [{"name": "Energy", "reg_type": "input", "address": 0,
+                          "type": "value", "format": "u32"}]}})
+        .to_string(),
+    )
+    .unwrap();
+    let bus = dir.path().join("bus.json");
+    std::fs::write(
+        &bus,
+        json!({"devices": [{"name": "meter", "template": "templates/meter.json", "address": 41,
+            "serial": "0xFE000041", "line": "115200 8N2", "fast": false,
+            "values": {"input:0": [1, 2]}}]})
+        .to_string(),
+    )
+    .unwrap();
+    let sim = SimProcess::start_with(&bus, &templates, &[]);
+    let config = |client_id: &str| {
+        json!({
+            "mqtt": {"host": "127.0.0.1", "port": broker.port, "client_id": client_id},
+            "ports": [{"path": sim.pty, "baud_rate": 115200, "stop_bits": 2, "devices": [
+                {"device_type": "meter", "slave_id": 41, "device_timeout_ms": 100}
+            ]}]
+        })
+    };
+    let templates_arg = ["--templates", templates.to_str().unwrap()];
+    let first = DaemonProcess::start(
+        &config("rtu2mqtt-first"),
+        &templates_arg,
+        Stdio::null(),
+        Stdio::null(),
+    );
+    wait_for("the first gateway's value", || async {
+        let state = retained(broker.port).await?;
+        (state.get("/devices/meter_41/controls/Energy")? == "65538").then_some(())
+    })
+    .await;
+    let recorder = Recorder::start(broker.port, "/devices/meter_41/#").await;
+    let mut second = DaemonProcess::start(
+        &config("rtu2mqtt-second"),
+        &templates_arg,
+        Stdio::null(),
+        Stdio::null(),
+    );
+    // Three refusals: the port was tried over 1.5 s, fifteen times the device timeout.
+    wait_for(
+        "the second gateway finding the port held three times",
+        || async { (second.log().matches("another program holds it").count() >= 3).then_some(()) },
+    )
+    .await;
+    assert!(second.terminate().success());
+    wait_for(
+        "the first gateway's value after the second left",
+        || async {
+            let state = retained(broker.port).await?;
+            (state.get("/devices/meter_41/controls/Energy")? == "65538"
+                && state.contains_key("/devices/meter_41/meta/name"))
+            .then_some(())
+        },
+    )
+    .await;
+    // Everything the second gateway sent reached the broker before it exited: a marker sent
+    // now comes to the recorder after all of it.
+    publish(broker.port, "/devices/meter_41/test-marker", "x", false).await;
+    wait_for(
+        "the recorder to have everything before the marker",
+        || async { (recorder.count("test-marker") > 0).then_some(()) },
+    )
+    .await;
+    let harmful: Vec<String> = recorder
+        .messages
+        .lock()
+        .unwrap()
+        .iter()
+        .filter(|(topic, payload, _)| {
+            payload.contains('r') && topic.ends_with("/meta/error")
+                || payload.is_empty() && !topic.ends_with("/meta/error")
+        })
+        .map(|(topic, payload, _)| format!("{topic} = {payload:?}"))
+        .collect();
+    assert!(
+        harmful.is_empty(),
+        "the second gateway flagged or deleted the first's topics: {harmful:?}\n{}",
+        second.log_tail(20)
+    );
+    drop(first);
 }

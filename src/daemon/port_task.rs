@@ -50,6 +50,11 @@ pub struct PortTask {
     /// opens and fails at once (a gateway that accepts connections and drops them) is still
     /// unusable, its devices go offline and the reopen delay keeps growing.
     transacted: bool,
+    /// The port has been this task's: opened, or failed for another reason than another
+    /// program holding it. Until then its devices may be that program's (wb-mqtt-serial still
+    /// running): they are not marked offline, and MQTT leaves their Wiren Board topics alone
+    /// ([`DeviceUpdate::BusServed`]).
+    bus_served: bool,
     /// The port's receive FIFO could not be set to 1 byte: said once, not at every reopen.
     fifo_held_reported: bool,
     /// Transactions asked from outside the scheduler (RPC), served between its own.
@@ -187,6 +192,7 @@ impl PortTask {
             vitals: None,
             online: Vec::new(),
             transacted: false,
+            bus_served: false,
             fifo_held_reported: false,
             queued: None,
             deferred: None,
@@ -453,6 +459,7 @@ impl PortTask {
             match opened {
                 Ok(transport) => {
                     info!(port = %self.plan_name, "port open");
+                    self.serve_bus().await;
                     self.set_open(true);
                     self.transacted = false;
                     match self.serve(transport, &mut shutdown).await {
@@ -470,14 +477,17 @@ impl PortTask {
                         warn!(port = %self.plan_name, %err, retry_in = ?delay,
                             "cannot open the port: another program holds it (wb-mqtt-serial \
                              still running? `systemctl stop wb-mqtt-serial`)");
-                    } else if permission_denied(&err) {
-                        warn!(port = %self.plan_name, %err, retry_in = ?delay,
-                            "cannot open the port: no permission. The service's unit gives it \
-                             the dialout group; run by hand, add your user to the group that \
-                             owns the port (usually dialout: `sudo usermod -aG dialout $USER`, \
-                             then log in again)");
                     } else {
-                        warn!(port = %self.plan_name, %err, retry_in = ?delay, "cannot open the port");
+                        self.serve_bus().await;
+                        if permission_denied(&err) {
+                            warn!(port = %self.plan_name, %err, retry_in = ?delay,
+                                "cannot open the port: no permission. The service's unit gives \
+                                 it the dialout group; run by hand, add your user to the group \
+                                 that owns the port (usually dialout: `sudo usermod -aG dialout \
+                                 $USER`, then log in again)");
+                        } else {
+                            warn!(port = %self.plan_name, %err, retry_in = ?delay, "cannot open the port");
+                        }
                     }
                     self.set_open(false);
                 }
@@ -487,8 +497,10 @@ impl PortTask {
             let reopen_at = Instant::now() + delay;
             loop {
                 self.beat();
-                let mut events = self.scheduler.port_unavailable(self.now(), closed_since);
-                self.dispatch(&mut events).await;
+                if self.bus_served {
+                    let mut events = self.scheduler.port_unavailable(self.now(), closed_since);
+                    self.dispatch(&mut events).await;
+                }
                 self.refuse_queued("it failed and is being reopened");
                 let wake = reopen_at.min(Instant::now() + FIRST_REOPEN_DELAY);
                 tokio::select! {
@@ -944,6 +956,22 @@ impl PortTask {
         );
         self.send_all(&mut updates).await;
         self.update_buffer = updates;
+    }
+
+    /// The port is this task's from now on: its devices' topics are this gateway's (once).
+    async fn serve_bus(&mut self) {
+        if self.bus_served {
+            return;
+        }
+        self.bus_served = true;
+        let served = self
+            .models
+            .iter()
+            .map(|model| DeviceUpdate::BusServed {
+                device_id: model.id().to_string(),
+            })
+            .collect();
+        self.send(served).await;
     }
 
     async fn send(&self, mut updates: Vec<DeviceUpdate>) {

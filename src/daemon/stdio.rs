@@ -48,6 +48,7 @@ pub fn update_line(update: &DeviceUpdate) -> serde_json::Value {
         DeviceUpdate::Online { device_id, online } => {
             json!({ "device": device_id, "online": online })
         }
+        DeviceUpdate::BusServed { device_id } => json!({ "device": device_id, "bus_served": true }),
     }
 }
 

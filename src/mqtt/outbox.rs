@@ -206,7 +206,8 @@ fn device_of(update: &DeviceUpdate) -> &str {
         DeviceUpdate::Identity { device_id, .. }
         | DeviceUpdate::Removed { device_id }
         | DeviceUpdate::ControlError { device_id, .. }
-        | DeviceUpdate::Online { device_id, .. } => device_id,
+        | DeviceUpdate::Online { device_id, .. }
+        | DeviceUpdate::BusServed { device_id } => device_id,
     }
 }
 

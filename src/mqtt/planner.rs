@@ -96,6 +96,9 @@ struct PublishedDevice {
     device: Arc<ResolvedDevice>,
     identity: DeviceIdentity,
     online: bool,
+    /// Its port has been this gateway's ([`DeviceUpdate::BusServed`]): its Wiren Board topics
+    /// are deleted with it; before, only what is this gateway's own (discovery configs).
+    bus_served: bool,
     controls: IdMap<PublishedControl>,
 }
 
@@ -150,6 +153,12 @@ impl PublicationPlanner {
                 errors,
             } => self.set_errors(&device_id, &control_id, errors),
             DeviceUpdate::Online { device_id, online } => self.set_online(&device_id, online),
+            DeviceUpdate::BusServed { device_id } => {
+                if let Some(state) = self.devices.get_mut(&device_id) {
+                    state.bus_served = true;
+                }
+                Vec::new()
+            }
         }
     }
 
@@ -160,7 +169,7 @@ impl PublicationPlanner {
             // A config change: delete what the new device no longer has.
             let keep: std::collections::HashSet<String> =
                 self.device_topics(&device).into_iter().collect();
-            for topic in self.device_topics(&old.device) {
+            for topic in self.own_device_topics(old) {
                 if !keep.contains(&topic) {
                     out.push(MqttAction::Publish(Publication::removal(topic)));
                 }
@@ -207,13 +216,14 @@ impl PublicationPlanner {
                 control.pushbutton = layout::is_pushbutton(channel);
             }
         }
-        let (identity, online) = previous
-            .map(|p| (p.identity, p.online))
-            .unwrap_or((DeviceIdentity::default(), true));
+        let (identity, online, bus_served) = previous
+            .map(|p| (p.identity, p.online, p.bus_served))
+            .unwrap_or((DeviceIdentity::default(), true, false));
         let mut state = PublishedDevice {
             device: device.clone(),
             identity,
             online,
+            bus_served,
             controls,
         };
         out.extend(self.device_actions(&mut state, false));
@@ -298,6 +308,18 @@ impl PublicationPlanner {
         topics
     }
 
+    /// The device's topics that are this gateway's to delete: all of them once its bus has been
+    /// served here; before, only its availability topic (in the driver's own tree): the Wiren
+    /// Board tree may be another gateway's that holds the port.
+    fn own_device_topics(&self, state: &PublishedDevice) -> Vec<String> {
+        let mut topics = self.device_topics(&state.device);
+        if !state.bus_served {
+            let availability = self.settings.topics.device_availability(&state.device.id);
+            topics.retain(|t| *t == availability);
+        }
+        topics
+    }
+
     fn set_identity(&mut self, device_id: &str, identity: DeviceIdentity) -> Vec<MqttAction> {
         let Some(state) = self.devices.get(device_id) else {
             debug!(device_id, "identity of a device not announced yet, ignored");
@@ -340,7 +362,7 @@ impl PublicationPlanner {
         if with_discovery {
             topics.extend(self.discovery_topics(&state.device));
         }
-        topics.extend(self.device_topics(&state.device));
+        topics.extend(self.own_device_topics(state));
         topics
             .into_iter()
             .map(|t| MqttAction::Publish(Publication::removal(t)))

@@ -11,6 +11,19 @@ use super::*;
 use crate::config::TemplateFile;
 use crate::device::resolve_template_device;
 
+/// Announces `device` and marks its bus served (its port opened): what the daemon sends for a
+/// device whose topics are the gateway's to delete. Returns the announcement's actions.
+fn add_served(
+    planner: &mut PublicationPlanner,
+    device: Arc<ResolvedDevice>,
+    now: Instant,
+) -> Vec<MqttAction> {
+    let device_id = device.id.clone();
+    let out = planner.handle(DeviceUpdate::Added(device), now);
+    planner.handle(DeviceUpdate::BusServed { device_id }, now);
+    out
+}
+
 fn repo(path: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join(path)
 }
@@ -333,7 +346,7 @@ fn removal_clears_every_topic_it_published() {
     let mut planner = PublicationPlanner::new(settings(true));
     let relay = template_device("rtu2mqtt-relay6", 1);
     let id = relay.id.clone();
-    let added = planner.handle(DeviceUpdate::Added(relay), Instant::now());
+    let added = add_served(&mut planner, relay, Instant::now());
     planner.handle(value(&id, "K1", "1"), Instant::now());
     let removed = planner.handle(
         DeviceUpdate::Removed {
@@ -366,7 +379,7 @@ fn config_change_drops_removed_controls() {
     let mut planner = PublicationPlanner::new(settings(true));
     let relay = template_device("rtu2mqtt-relay6", 1);
     let id = relay.id.clone();
-    planner.handle(DeviceUpdate::Added(relay.clone()), Instant::now());
+    add_served(&mut planner, relay.clone(), Instant::now());
     let mut smaller = (*relay).clone();
     smaller.channels.make_mut().retain(|c| c.id != "K6");
     let out = planner.handle(DeviceUpdate::Added(Arc::new(smaller)), Instant::now());
@@ -553,7 +566,7 @@ fn clear_on_exit_keeps_discovery_unless_asked() {
             clear_discovery_on_exit: clear_discovery,
             ..settings(true)
         });
-        planner.handle(DeviceUpdate::Added(relay.clone()), Instant::now());
+        add_served(&mut planner, relay.clone(), Instant::now());
         let text = render(&planner.clear_all());
         assert!(text.contains("/meta/error\t\n"));
         assert_eq!(text.contains("homeassistant/"), clear_discovery);
@@ -600,10 +613,7 @@ fn everything_published_for_all_devices_goes_in_the_order_of_their_ids() {
     let now = Instant::now();
     let slaves = [7, 3, 12, 1, 9];
     for slave in slaves {
-        planner.handle(
-            DeviceUpdate::Added(template_device("rtu2mqtt-relay6", slave)),
-            now,
-        );
+        add_served(&mut planner, template_device("rtu2mqtt-relay6", slave), now);
     }
     let mut ids: Vec<String> = slaves
         .iter()
@@ -797,8 +807,8 @@ fn a_config_change_while_waiting_deletes_dropped_topics_at_once() {
     let first = template_device("rtu2mqtt-relay6", 1);
     let relay = template_device("rtu2mqtt-relay6", 2);
     let id = relay.id.clone();
-    planner.handle(DeviceUpdate::Added(first), now);
-    planner.handle(DeviceUpdate::Added(relay.clone()), now);
+    add_served(&mut planner, first, now);
+    add_served(&mut planner, relay.clone(), now);
     let mut waiting = Waiting::default();
     waiting.connected(Vec::new(), planner.device_order());
     let mut smaller = (*relay).clone();
@@ -945,5 +955,56 @@ fn an_unchanged_value_goes_out_as_max_unchanged_interval_says() {
             (1, k1(false)),
             (1, k1(false))
         ]
+    );
+}
+
+/// A device whose port never opened here (another program holds it: wb-mqtt-serial still
+/// running) may be that program's on the broker: its Wiren Board topics are not deleted at exit
+/// nor when a reload drops it; only this gateway's own (discovery configs, availability) are.
+/// Once its bus is served, all of them are.
+#[test]
+fn a_device_whose_bus_was_never_served_keeps_its_wiren_board_topics() {
+    let relay = template_device("rtu2mqtt-relay6", 1);
+    let id = relay.id.clone();
+    let settings = || PlannerSettings {
+        clear_discovery_on_exit: true,
+        ..settings(true)
+    };
+    let wb_topics = |actions: &[MqttAction]| -> Vec<String> {
+        publications(actions)
+            .into_iter()
+            .map(|(topic, _, _)| topic)
+            .filter(|topic| topic.starts_with("/devices/"))
+            .collect()
+    };
+    let mut planner = PublicationPlanner::new(settings());
+    planner.handle(DeviceUpdate::Added(relay.clone()), Instant::now());
+    let cleared = planner.clear_all();
+    assert!(wb_topics(&cleared).is_empty(), "{}", render(&cleared));
+    assert!(
+        render(&cleared).contains("homeassistant/"),
+        "{}",
+        render(&cleared)
+    );
+    let removed = planner.handle(
+        DeviceUpdate::Removed {
+            device_id: id.clone(),
+        },
+        Instant::now(),
+    );
+    assert!(wb_topics(&removed).is_empty(), "{}", render(&removed));
+
+    let mut planner = PublicationPlanner::new(settings());
+    add_served(&mut planner, relay.clone(), Instant::now());
+    // Announced again by a reload: still served.
+    planner.handle(DeviceUpdate::Added(relay), Instant::now());
+    let cleared = wb_topics(&planner.clear_all());
+    assert!(
+        cleared.contains(&format!("/devices/{id}/meta/name")),
+        "{cleared:?}"
+    );
+    assert!(
+        cleared.contains(&format!("/devices/{id}/controls/K1")),
+        "{cleared:?}"
     );
 }
