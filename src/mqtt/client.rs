@@ -42,6 +42,10 @@ const UPDATE_BATCH: usize = 128;
 const RETRY_FULL_QUEUE: Duration = Duration::from_millis(10);
 const FIRST_RECONNECT_DELAY: Duration = Duration::from_millis(500);
 const MAX_RECONNECT_DELAY: Duration = Duration::from_secs(30);
+/// A connection that lasted this long was a good one: the reconnect delay starts over after it.
+pub(crate) const STABLE_CONNECTION: Duration = Duration::from_secs(10);
+/// Short-lived connections in a row after which the log names the likely cause.
+const SHORT_LIVED_BEFORE_HINT: u32 = 3;
 /// Longest wait on exit for the broker to take the last publications.
 const EXIT_FLUSH_TIMEOUT: Duration = Duration::from_secs(5);
 /// Largest packet sent (rumqttc's default of 10 KiB is too small for some configs); larger
@@ -467,8 +471,10 @@ async fn drive_connection(
         }
     };
     let mut delay = FIRST_RECONNECT_DELAY;
-    let mut connected = false;
+    let mut connected_at: Option<tokio::time::Instant> = None;
     let mut failures: u32 = 0;
+    // Connections in a row that the broker closed soon after accepting them.
+    let mut short_lived: u32 = 0;
     let mut disconnecting = false;
     loop {
         let event = eventloop.poll().await;
@@ -479,9 +485,8 @@ async fn drive_connection(
             Ok(Event::Incoming(Packet::ConnAck(_))) => {
                 info!(%broker, "connected to the MQTT broker");
                 report(BrokerState::Connected);
-                connected = true;
+                connected_at = Some(tokio::time::Instant::now());
                 failures = 0;
-                delay = FIRST_RECONNECT_DELAY;
                 let _ = events.send(ConnectionEvent::Connected).await;
             }
             Ok(Event::Incoming(Packet::Publish(publish))) => {
@@ -499,9 +504,25 @@ async fn drive_connection(
             Ok(Event::Outgoing(Outgoing::Disconnect)) => disconnecting = true,
             Ok(_) => {}
             Err(error) => {
-                if connected {
-                    warn!(%broker, %error, "lost the MQTT broker; reconnecting");
-                    connected = false;
+                if let Some(since) = connected_at.take() {
+                    // The delay starts over only after a connection that held: a broker that
+                    // closes each connection at once (another client took our client id, and
+                    // ours takes it back) must not be reconnected to, and everything
+                    // republished, twice a second.
+                    if since.elapsed() >= STABLE_CONNECTION {
+                        delay = FIRST_RECONNECT_DELAY;
+                        short_lived = 0;
+                    } else {
+                        short_lived = short_lived.saturating_add(1);
+                    }
+                    warn!(%broker, %error, retry_in = ?delay, "lost the MQTT broker; reconnecting");
+                    if short_lived == SHORT_LIVED_BEFORE_HINT {
+                        warn!(%broker,
+                            "the broker closed {SHORT_LIVED_BEFORE_HINT} connections in a row soon \
+                             after accepting them: another client with the same mqtt.client_id \
+                             may be connected (a second rtu2mqtt, a `rtu2mqtt run` beside the \
+                             service?); give each gateway its own mqtt.client_id");
+                    }
                     // Told to the client task before the health: whoever sees the broker
                     // unreachable there knows the task hears it before any later update.
                     let _ = events.send(ConnectionEvent::Disconnected).await;
@@ -535,7 +556,7 @@ async fn drive_connection(
 
 /// What to tell the integrator when the broker answered but refused the connection (the
 /// broker is reachable: the fix is in the config or the broker's ACLs, not the network).
-fn refusal_text(error: &rumqttc::ConnectionError) -> Option<&'static str> {
+pub(crate) fn refusal_text(error: &rumqttc::ConnectionError) -> Option<&'static str> {
     use rumqttc::ConnectReturnCode as Code;
     let rumqttc::ConnectionError::ConnectionRefused(code) = error else {
         return None;

@@ -18,7 +18,7 @@ use super::methods::{execute_with_templates, DeviceTemplates};
 use super::params::{parse_method, SERVED};
 use crate::config::config_file::MqttConfig;
 use crate::daemon::PortDirectory;
-use crate::mqtt::client::connection_options;
+use crate::mqtt::client::{connection_options, refusal_text, STABLE_CONNECTION};
 use crate::mqtt::MqttError;
 
 /// Requests served at the same time; more get an error at once. Each holds a task and, while
@@ -50,6 +50,7 @@ pub async fn run_rpc_server(
     let mut unreachable_told = false;
     let mut ever_connected = false;
     let mut reconnect_delay = FIRST_RECONNECT_DELAY;
+    let mut connected_at: Option<tokio::time::Instant> = None;
     tokio::pin!(shutdown);
     loop {
         let event = tokio::select! {
@@ -60,7 +61,7 @@ pub async fn run_rpc_server(
             Ok(Event::Incoming(Packet::ConnAck(_))) => {
                 unreachable_told = false;
                 ever_connected = true;
-                reconnect_delay = FIRST_RECONNECT_DELAY;
+                connected_at = Some(tokio::time::Instant::now());
                 info!(broker = %address, "MQTT RPC: serving /rpc/v1/wb-mqtt-serial/…");
                 let _ = client.try_subscribe(REQUEST_FILTER, QoS::AtLeastOnce);
                 for (service, method) in SERVED {
@@ -104,8 +105,18 @@ pub async fn run_rpc_server(
             }
             Ok(_) => {}
             Err(error) => {
+                // The delay starts over only after a connection that held (see the MQTT
+                // client's rule: a client id taken by another client closes each at once).
+                if connected_at
+                    .take()
+                    .is_some_and(|since| since.elapsed() >= STABLE_CONNECTION)
+                {
+                    reconnect_delay = FIRST_RECONNECT_DELAY;
+                }
                 if !unreachable_told {
-                    if ever_connected {
+                    if let Some(refusal) = refusal_text(&error) {
+                        warn!(broker = %address, "MQTT RPC: {refusal}; retrying");
+                    } else if ever_connected {
                         warn!(broker = %address, %error, "MQTT RPC: lost the broker; reconnecting");
                     } else {
                         warn!(broker = %address, %error, "MQTT RPC: cannot reach the broker; retrying");
