@@ -16,6 +16,13 @@ async fn feed_two_devices(mqtt: &MqttUnderTest) {
         .await;
     mqtt.send(DeviceUpdate::Added(template_device("rtu2mqtt-climate", 2)))
         .await;
+    // Their port opened: their topics are this gateway's.
+    for device_id in [RELAY, CLIMATE] {
+        mqtt.send(DeviceUpdate::BusServed {
+            device_id: device_id.into(),
+        })
+        .await;
+    }
     for (device, control, text) in [
         (RELAY, "K1", "1"),
         (RELAY, "K2", "0"),
@@ -591,6 +598,10 @@ async fn a_topic_the_client_refuses_does_not_block_the_others() {
     relay.channels.make_mut().insert(0, level);
     mqtt.send(DeviceUpdate::Added(std::sync::Arc::new(relay)))
         .await;
+    mqtt.send(DeviceUpdate::BusServed {
+        device_id: RELAY.into(),
+    })
+    .await;
     mqtt.send(value(RELAY, "Lvl#", "1")).await;
     mqtt.send(value(RELAY, "K1", "1")).await;
     let k1 = format!("/devices/{RELAY}/controls/K1");
