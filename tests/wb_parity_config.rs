@@ -1380,3 +1380,27 @@ fn a_read_period_of_two_days_from_the_web_ui_loads() {
     ])));
     assert_eq!(rate_limit(&dev, "Temperature"), Some(MS(172_800_000)));
 }
+
+/// A parameter given as no number while no declaration of it is in effect (its `condition` is
+/// false over the config's values): wb-mqtt-serial's device schema has no entry for it
+/// (`MakeDeviceParametersSchema` adds only the declarations whose condition holds), and
+/// `AppendSetupItems` logs "… is not an integer" and writes nothing. The device runs there, so
+/// it runs here, with a warning; in effect, such a value is still refused (as by its schema).
+#[test]
+fn a_parameter_that_is_no_number_is_ignored_while_its_condition_is_false() {
+    let config = one_port(json!([
+        {"device_type": "parameters array", "slave_id": 1, "p1": 5, "p2": "auto"}
+    ]));
+    let dev = device(&config);
+    assert_eq!(setup_writes(&dev), vec![(9992, vec![5])]);
+    let said = warnings_of(&config);
+    assert!(
+        said.iter()
+            .any(|w| w.contains("devices[0].p2") && w.contains("ignored")),
+        "{said:?}"
+    );
+    let err = refused(&one_port(json!([
+        {"device_type": "parameters array", "slave_id": 1, "p1": 0, "p2": "auto"}
+    ])));
+    assert!(err.contains("p2"), "{err}");
+}

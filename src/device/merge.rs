@@ -138,6 +138,7 @@ pub fn merge_device(input: &DeviceMergeInput) -> Result<(Value, Vec<MergeError>)
     // Config device keys: settings override, anything else must be a template parameter.
     let parameters = template_device.get("parameters");
     let mut values = BTreeMap::new();
+    let mut not_numbers = Vec::new();
     for (key, value) in input.device {
         if key == "max_publish_interval" {
             errors.push(warning(
@@ -158,12 +159,7 @@ pub fn merge_device(input: &DeviceMergeInput) -> Result<(Value, Vec<MergeError>)
                 Some(number) => {
                     values.insert(key.clone(), number);
                 }
-                None => errors.push(MergeError {
-                    origin: format!("c:{}", input.device_path.key(key)),
-                    problem: Problem::Invalid(format!(
-                        "parameter `{key}` needs a number, not {value}"
-                    )),
-                }),
+                None => not_numbers.push((key, value)),
             },
             // wb-mqtt-serial's device schema has no `additionalProperties` and its merge copies
             // the key into the device, where nothing reads it (a parameter a newer template
@@ -186,6 +182,28 @@ pub fn merge_device(input: &DeviceMergeInput) -> Result<(Value, Vec<MergeError>)
         }
     }
 
+    // wb-mqtt-serial's device schema has an entry (type number) only for the declarations whose
+    // condition holds over the config's values (`MakeDeviceParametersSchema`); for another,
+    // `AppendSetupItems` logs "… is not an integer" and writes nothing.
+    for (key, value) in not_numbers {
+        let origin = format!("c:{}", input.device_path.key(key));
+        let in_effect = parameter_declarations(parameters, key)
+            .iter()
+            .any(|(_, p)| condition_true(p, &values));
+        errors.push(match in_effect {
+            true => MergeError {
+                origin,
+                problem: Problem::Invalid(format!("parameter `{key}` needs a number, not {value}")),
+            },
+            false => warning(
+                origin,
+                format!(
+                    "parameter `{key}` is {value}, not a number, and its condition does not \
+                     hold: ignored, as wb-mqtt-serial ignores it"
+                ),
+            ),
+        });
+    }
     let level = Level {
         parameters,
         values: &values,
