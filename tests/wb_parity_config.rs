@@ -1270,3 +1270,137 @@ TestDeviceOverride2:template_7 | TestDeviceOverride2:template 7 | slave 7 | reg 
     let want: Vec<String> = gold.trim().lines().map(String::from).collect();
     assert_eq!(got, want);
 }
+
+// ---------------------------------------------------------------------------------------------
+// Configs wb-mqtt-serial accepts though a key means nothing to it (review of 26 Nov, evening)
+// ---------------------------------------------------------------------------------------------
+
+/// The warnings `resolve_config_checked` gives for `config`, as text.
+fn warnings_of(config: &Value) -> Vec<String> {
+    let source = SourceText::from_text(Path::new("wb_parity_config.json"), &config.to_string());
+    let loaded = load_config_source(source, false).expect("loads");
+    let library = TemplateLibrary::load_dirs(&[templates_dir()]);
+    let (result, warnings) = rtu2mqtt::device::configure::resolve_config_checked(&loaded, &library);
+    result.unwrap_or_else(|err| panic!("config is refused: {err}"));
+    warnings.iter().map(|w| w.to_string()).collect()
+}
+
+/// A device key that is neither a device setting nor a parameter of the template (a parameter
+/// a newer template dropped or renamed, kept in a config the web UI saved): wb-mqtt-serial's
+/// device schema (`AddDeviceSchema`, `src/config_schema_generator.cpp`) has no
+/// `additionalProperties`, and `MergeDeviceConfigWithTemplate` copies the key into the device
+/// where nothing reads it. The device runs there; here too, with a warning naming the key.
+#[test]
+fn a_device_key_the_template_does_not_know_is_ignored_with_a_warning() {
+    let config = one_port(json!([
+        {"device_type": "parameters array", "slave_id": 1, "p1": 0, "old_param": 3}
+    ]));
+    let dev = device(&config);
+    assert_eq!(setup_writes(&dev), vec![(9992, vec![0])]);
+    let said = warnings_of(&config);
+    assert!(
+        said.iter().any(|w| w.contains("devices[0].old_param")
+            && w.contains("ignored")
+            && w.contains("wb-mqtt-serial")),
+        "{said:?}"
+    );
+    // A misspelt parameter is still named.
+    let said = warnings_of(&one_port(json!([
+        {"device_type": "parameters array", "slave_id": 1, "p3": 0}
+    ])));
+    assert!(said.iter().any(|w| w.contains("`p3`")), "{said:?}");
+}
+
+/// The same in a subdevice slot's override: `MergeChannelConfigWithTemplate` takes `name`,
+/// `shift`, `stride`, `id`, the subdevice's parameters and `channels`, nothing else, and the
+/// slot's schema (`MakeSubDeviceSchema`) has no `additionalProperties`.
+#[test]
+fn a_subdevice_key_the_template_does_not_know_is_ignored_with_a_warning() {
+    let config = one_port(json!([
+        {"device_type": "merge subdevice", "slave_id": 1,
+         "channels": [{"name": "Sub", "device_type": "subdevice1", "old_param": 1}]}
+    ]));
+    let dev = device(&config);
+    assert!(
+        dev.channels.iter().any(|c| c.id == "Sub c1"),
+        "{:?}",
+        dev.channels
+    );
+    let said = warnings_of(&config);
+    assert!(
+        said.iter()
+            .any(|w| w.contains("channels[0].old_param") && w.contains("ignored")),
+        "{said:?}"
+    );
+}
+
+/// Keys of a port or of the file's top level that wb-mqtt-serial does not read: its ports
+/// schema (`wb-mqtt-serial-ports.schema.json`) has no `additionalProperties`, so a `title` or
+/// a note on a port loads there. A warning here, naming the closest key for a typo.
+#[test]
+fn unknown_port_and_top_level_keys_are_ignored_with_a_warning() {
+    let config = json!({
+        "note": "site A",
+        "ports": [{"path": "/dev/ttyNSC0", "title": "Bus 1", "baudrate": 19200, "devices": [
+            {"device_type": "parameters array", "slave_id": 1}
+        ]}]
+    });
+    let ports = load(&config);
+    assert_eq!(ports[0].devices.len(), 1);
+    // The misspelt key does nothing, as there: the default speed stays.
+    assert_eq!(ports[0].config.baud_rate, 9600);
+    let said = warnings_of(&config);
+    for key in ["note", "ports[0].title", "ports[0].baudrate"] {
+        assert!(
+            said.iter()
+                .any(|w| w.contains(&format!("at {key}:")) && w.contains("ignored")),
+            "{key}: {said:?}"
+        );
+    }
+    assert!(said.iter().any(|w| w.contains("`baud_rate`")), "{said:?}");
+}
+
+/// The web UI's "custom period" of a channel goes up to 172800000 ms (2 days,
+/// `tableChannelSettings.period` in `wb-mqtt-serial-confed-common.schema.json`) and is saved
+/// as the channel's `read_period_ms` (`HomeuiToConfigChannel`, `src/confed_channel_modes.cpp`),
+/// its "not faster than" mode as `read_rate_limit_ms`: such a config must load.
+#[test]
+fn a_read_period_of_two_days_from_the_web_ui_loads() {
+    let dev = device(&one_port(json!([
+        {"device_type": "parameters array", "slave_id": 1,
+         "channels": [{"name": "Temperature", "read_period_ms": 172_800_000_u64}]}
+    ])));
+    assert_eq!(
+        channel(&dev, "Temperature").read_period,
+        Some(MS(172_800_000))
+    );
+    let dev = device(&one_port(json!([
+        {"device_type": "parameters array", "slave_id": 1,
+         "channels": [{"name": "Temperature", "read_rate_limit_ms": 172_800_000_u64}]}
+    ])));
+    assert_eq!(rate_limit(&dev, "Temperature"), Some(MS(172_800_000)));
+}
+
+/// A parameter given as no number while no declaration of it is in effect (its `condition` is
+/// false over the config's values): wb-mqtt-serial's device schema has no entry for it
+/// (`MakeDeviceParametersSchema` adds only the declarations whose condition holds), and
+/// `AppendSetupItems` logs "… is not an integer" and writes nothing. The device runs there, so
+/// it runs here, with a warning; in effect, such a value is still refused (as by its schema).
+#[test]
+fn a_parameter_that_is_no_number_is_ignored_while_its_condition_is_false() {
+    let config = one_port(json!([
+        {"device_type": "parameters array", "slave_id": 1, "p1": 5, "p2": "auto"}
+    ]));
+    let dev = device(&config);
+    assert_eq!(setup_writes(&dev), vec![(9992, vec![5])]);
+    let said = warnings_of(&config);
+    assert!(
+        said.iter()
+            .any(|w| w.contains("devices[0].p2") && w.contains("ignored")),
+        "{said:?}"
+    );
+    let err = refused(&one_port(json!([
+        {"device_type": "parameters array", "slave_id": 1, "p1": 0, "p2": "auto"}
+    ])));
+    assert!(err.contains("p2"), "{err}");
+}

@@ -1,8 +1,9 @@
 //! The rtu2mqtt config file: MQTT broker, global switches, and the ports with their devices.
 //!
 //! Port and device keys are those of wb-mqtt-serial (reference §1.1–1.3), so a `ports` section
-//! can be carried over from `/etc/wb-mqtt-serial.conf`. Unknown keys are errors (typos), except
-//! at device level, where a key may be the value of a template parameter.
+//! can be carried over from `/etc/wb-mqtt-serial.conf`. Unknown keys at the top level, on a port
+//! or a device are warnings (wb-mqtt-serial ignores them; at device level a key may be the value
+//! of a template parameter); in the `mqtt` and `http` sections they are errors (typos).
 
 use std::path::PathBuf;
 
@@ -13,8 +14,12 @@ use super::template::{with_device_settings, ChannelSpec, SetupItemSpec};
 use super::values::{SerialInt, SlaveId};
 
 /// The whole config file.
+///
+/// Unknown keys here and on a port are warnings, not errors (`load::split_ignored`):
+/// wb-mqtt-serial's ports schema has no `additionalProperties`, so a config it runs may carry
+/// them. The schema still flags them, for editors.
 #[derive(Debug, Clone, Deserialize, Serialize, JsonSchema)]
-#[serde(deny_unknown_fields)]
+#[schemars(deny_unknown_fields)]
 pub struct Config {
     #[serde(default)]
     pub mqtt: MqttConfig,
@@ -300,9 +305,9 @@ mod parity_letter {
     }
 }
 
-/// One bus.
+/// One bus. Unknown keys are warnings (see [`Config`]).
 #[derive(Debug, Clone, Deserialize, Serialize, JsonSchema)]
-#[serde(deny_unknown_fields)]
+#[schemars(deny_unknown_fields)]
 pub struct PortConfig {
     #[serde(default)]
     pub port_type: PortType,
@@ -336,14 +341,14 @@ pub struct PortConfig {
     #[schemars(range(min = -1, max = 1000000))]
     pub guard_interval_us: Option<i64>,
     /// Default minimum interval between reads of one register (deprecated upstream).
-    #[schemars(range(min = -1, max = 86400000))]
+    #[schemars(range(min = -1, max = 172800000))]
     pub read_rate_limit_ms: Option<i64>,
     /// Longest time between two Fast Modbus event requests, in ms. Default by baud rate: 50 ms
     /// at 115200 and above, 100 ms from 38400, 200 ms below. Events are polled sooner whenever
     /// the bus has nothing else to do.
     #[schemars(range(min = 5, max = 10000))]
     pub event_interval_ms: Option<u64>,
-    #[schemars(range(min = -1, max = 86400000))]
+    #[schemars(range(min = -1, max = 172800000))]
     pub poll_interval: Option<i64>,
     /// TCP connect timeout in ms.
     #[serde(default = "default_connect_timeout")]

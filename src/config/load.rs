@@ -28,6 +28,9 @@ pub struct LoadedConfig {
     /// Device-level keys that are no device setting: values of template parameters, or typos
     /// (decided against the template when devices are resolved).
     pub device_extra_keys: Vec<JsonPath>,
+    /// Settings that do nothing (unknown keys at the top level or on a port, which
+    /// wb-mqtt-serial ignores too): reported with the resolve warnings.
+    pub warnings: Vec<LocatedError>,
 }
 
 impl LoadedConfig {
@@ -76,14 +79,16 @@ pub fn load_config_source(source: SourceText, apply_env: bool) -> Result<LoadedC
         source,
         raw,
         device_extra_keys: Vec::new(),
+        warnings: Vec::new(),
     };
-    let (device_extra_keys, mut errors) = split_ignored(&loaded, ignored);
+    let (device_extra_keys, warnings, mut errors) = split_ignored(&loaded, ignored);
     errors.splice(0..0, foreign);
     errors.extend(check_ports(&loaded));
     errors.extend(check_http(&loaded));
     if errors.is_empty() {
         Ok(LoadedConfig {
             device_extra_keys,
+            warnings,
             ..loaded
         })
     } else {
@@ -211,38 +216,54 @@ fn without_foreign_devices(raw: &Value) -> std::borrow::Cow<'_, Value> {
     std::borrow::Cow::Owned(out)
 }
 
-/// Unknown keys: at device level (and in channel overrides) they may be parameter values;
-/// anywhere else they are typos.
+/// Unknown keys: at device level (and in channel overrides) they may be parameter values; at the
+/// top level and on a port they are ignored with a warning, as wb-mqtt-serial ignores them (its
+/// ports schema, `wb-mqtt-serial-ports.schema.json`, has no `additionalProperties`, and
+/// `LoadConfig`/`LoadPort` read only the keys they know); anywhere else they are typos.
 fn split_ignored(
     loaded: &LoadedConfig,
     ignored: Vec<JsonPath>,
-) -> (Vec<JsonPath>, Vec<LocatedError>) {
+) -> (Vec<JsonPath>, Vec<LocatedError>, Vec<LocatedError>) {
+    use super::json_path::PathSegment;
     let schema = config_schema();
     let mut device_keys = Vec::new();
+    let mut warnings = Vec::new();
     let mut errors = Vec::new();
     for path in ignored {
         let segments = path.segments();
+        let in_ports = matches!(segments.first(), Some(PathSegment::Key(k)) if k == "ports");
         let is_device_level = segments.len() >= 5
-            && matches!(&segments[0], super::json_path::PathSegment::Key(k) if k == "ports")
-            && matches!(&segments[2], super::json_path::PathSegment::Key(k) if k == "devices");
+            && in_ports
+            && matches!(&segments[2], PathSegment::Key(k) if k == "devices");
         if is_device_level {
             device_keys.push(path);
             continue;
         }
         let parent = JsonPath(segments[..segments.len().saturating_sub(1)].to_vec());
         let key = match segments.last() {
-            Some(super::json_path::PathSegment::Key(k)) => k.clone(),
+            Some(PathSegment::Key(k)) => k.clone(),
             _ => continue,
         };
-        errors.push(loaded.error(
-            path,
-            Problem::UnknownKey {
-                key,
-                valid: schema_keys_at(&schema, &parent),
-            },
-        ));
+        let valid = schema_keys_at(&schema, &parent);
+        let what = match segments.len() {
+            1 => "top-level key",
+            3 if in_ports => "port key",
+            _ => {
+                errors.push(loaded.error(path, Problem::UnknownKey { key, valid }));
+                continue;
+            }
+        };
+        let suggestions = super::library::suggest_keys(&key, valid.iter().map(String::as_str));
+        let mut message =
+            super::library::unknown_key_warning(what, &key, &suggestions, parent.find(&loaded.raw));
+        message.push_str(if message.ends_with(['.', '?']) {
+            " wb-mqtt-serial ignores it too."
+        } else {
+            "; wb-mqtt-serial ignores it too"
+        });
+        warnings.push(loaded.error(path, Problem::Warning(message)));
     }
-    (device_keys, errors)
+    (device_keys, warnings, errors)
 }
 
 /// Why a `slave_id` cannot be used, if it cannot. 0 is the broadcast address (every device of
@@ -291,9 +312,11 @@ pub const DURATION_LIMITS: [(&str, i64, &str); 12] = [
     ("min_request_interval", 3_600_000, "1 hour"),
     ("device_timeout_ms", 3_600_000, "1 hour"),
     ("max_write_fail_time_s", 86_400, "1 day"),
-    ("read_rate_limit_ms", 86_400_000, "1 day"),
-    ("poll_interval", 86_400_000, "1 day"),
-    ("read_period_ms", 86_400_000, "1 day"),
+    // 2 days: the longest period wb-mqtt-serial's web UI saves (`tableChannelSettings.period`,
+    // as `read_period_ms` or `read_rate_limit_ms`).
+    ("read_rate_limit_ms", 172_800_000, "2 days"),
+    ("poll_interval", 172_800_000, "2 days"),
+    ("read_period_ms", 172_800_000, "2 days"),
     ("connection_timeout_ms", 3_600_000, "1 hour"),
     ("event_interval_ms", 86_400_000, "1 day"),
     ("connect_timeout_ms", 3_600_000, "1 hour"),

@@ -57,10 +57,10 @@ macro_rules! with_device_settings {
             /// Write setup items in the given order instead of by register.
             pub preserve_setup_order: Option<bool>,
             /// Default minimum interval between reads of a register (deprecated upstream).
-            #[schemars(range(min = -1, max = 86400000))]
+            #[schemars(range(min = -1, max = 172800000))]
             pub read_rate_limit_ms: Option<i64>,
             /// Legacy name of `read_rate_limit_ms`.
-            #[schemars(range(min = -1, max = 86400000))]
+            #[schemars(range(min = -1, max = 172800000))]
             pub poll_interval: Option<i64>,
             /// wb-mqtt-serial's republish interval of unchanged values, in s, per device or
             /// channel: accepted, not applied (the top-level `max_unchanged_interval` is).
@@ -187,11 +187,11 @@ pub struct ChannelSpec {
     #[serde(rename = "semi-sporadic")]
     pub semi_sporadic: Option<bool>,
     /// Fixed read period (high priority), in ms.
-    #[schemars(range(min = -1, max = 86400000))]
+    #[schemars(range(min = -1, max = 172800000))]
     pub read_period_ms: Option<i64>,
-    #[schemars(range(min = -1, max = 86400000))]
+    #[schemars(range(min = -1, max = 172800000))]
     pub read_rate_limit_ms: Option<i64>,
-    #[schemars(range(min = -1, max = 86400000))]
+    #[schemars(range(min = -1, max = 172800000))]
     pub poll_interval: Option<i64>,
     pub enabled: Option<bool>,
     pub hidden: Option<bool>,

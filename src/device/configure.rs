@@ -37,7 +37,7 @@ pub fn resolve_config_checked(
     loaded: &LoadedConfig,
     library: &TemplateLibrary,
 ) -> (Result<Vec<ResolvedPort>, ErrorList>, Vec<LocatedError>) {
-    let mut warnings = Vec::new();
+    let mut warnings = loaded.warnings.clone();
     let mut used_templates: Vec<&TemplateFile> = Vec::new();
     let mut errors = Vec::new();
     let mut ports = Vec::new();

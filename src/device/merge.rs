@@ -138,6 +138,7 @@ pub fn merge_device(input: &DeviceMergeInput) -> Result<(Value, Vec<MergeError>)
     // Config device keys: settings override, anything else must be a template parameter.
     let parameters = template_device.get("parameters");
     let mut values = BTreeMap::new();
+    let mut not_numbers = Vec::new();
     for (key, value) in input.device {
         if key == "max_publish_interval" {
             errors.push(warning(
@@ -158,13 +159,11 @@ pub fn merge_device(input: &DeviceMergeInput) -> Result<(Value, Vec<MergeError>)
                 Some(number) => {
                     values.insert(key.clone(), number);
                 }
-                None => errors.push(MergeError {
-                    origin: format!("c:{}", input.device_path.key(key)),
-                    problem: Problem::Invalid(format!(
-                        "parameter `{key}` needs a number, not {value}"
-                    )),
-                }),
+                None => not_numbers.push((key, value)),
             },
+            // wb-mqtt-serial's device schema has no `additionalProperties` and its merge copies
+            // the key into the device, where nothing reads it (a parameter a newer template
+            // dropped, kept in a config the web UI saved): the device runs there, so here too.
             None => {
                 let mut valid: Vec<String> = known_device_keys()
                     .iter()
@@ -172,22 +171,39 @@ pub fn merge_device(input: &DeviceMergeInput) -> Result<(Value, Vec<MergeError>)
                     .cloned()
                     .collect();
                 valid.extend(["channels", "setup", "name"].map(String::from));
-                valid.extend(
-                    parameter_ids(parameters)
-                        .into_iter()
-                        .map(|id| format!("{id} (parameter)")),
-                );
-                errors.push(MergeError {
-                    origin: format!("c:{}", input.device_path.key(key)),
-                    problem: Problem::UnknownKey {
-                        key: key.clone(),
-                        valid,
-                    },
-                });
+                valid.extend(parameter_ids(parameters));
+                errors.push(unknown_key(
+                    format!("c:{}", input.device_path.key(key)),
+                    "device",
+                    key,
+                    &valid,
+                ));
             }
         }
     }
 
+    // wb-mqtt-serial's device schema has an entry (type number) only for the declarations whose
+    // condition holds over the config's values (`MakeDeviceParametersSchema`); for another,
+    // `AppendSetupItems` logs "… is not an integer" and writes nothing.
+    for (key, value) in not_numbers {
+        let origin = format!("c:{}", input.device_path.key(key));
+        let in_effect = parameter_declarations(parameters, key)
+            .iter()
+            .any(|(_, p)| condition_true(p, &values));
+        errors.push(match in_effect {
+            true => MergeError {
+                origin,
+                problem: Problem::Invalid(format!("parameter `{key}` needs a number, not {value}")),
+            },
+            false => warning(
+                origin,
+                format!(
+                    "parameter `{key}` is {value}, not a number, and its condition does not \
+                     hold: ignored, as wb-mqtt-serial ignores it"
+                ),
+            ),
+        });
+    }
     let level = Level {
         parameters,
         values: &values,
@@ -225,6 +241,23 @@ pub fn merge_device(input: &DeviceMergeInput) -> Result<(Value, Vec<MergeError>)
     } else {
         Err(errors)
     }
+}
+
+/// A config key that is neither a setting nor a parameter of the template: a warning that it
+/// is ignored, as wb-mqtt-serial ignores it, with the closest valid keys for a typo.
+fn unknown_key(origin: String, what: &str, key: &str, valid: &[String]) -> MergeError {
+    let suggestions = crate::config::library::suggest_keys(key, valid.iter().map(String::as_str));
+    let hint = match suggestions.as_slice() {
+        [] => String::new(),
+        some => format!(" (did you mean `{}`?)", some.join("` or `")),
+    };
+    warning(
+        origin,
+        format!(
+            "`{key}` is neither a {what} setting nor a parameter of the template{hint}: \
+             ignored, as wb-mqtt-serial ignores it"
+        ),
+    )
 }
 
 fn warning(origin: String, message: String) -> MergeError {
@@ -936,20 +969,16 @@ fn expand_subdevice(
                 origin: format!("c:{}", config_path.key(key)),
                 problem: Problem::Invalid(format!("parameter `{key}` needs a number, not {value}")),
             }),
+            // Ignored by wb-mqtt-serial's `MergeChannelConfigWithTemplate`, as on a device.
             (None, _) => {
                 let mut valid = known_channel_keys().clone();
-                valid.extend(
-                    parameter_ids(parameters)
-                        .into_iter()
-                        .map(|id| format!("{id} (parameter)")),
-                );
-                errors.push(MergeError {
-                    origin: format!("c:{}", config_path.key(key)),
-                    problem: Problem::UnknownKey {
-                        key: key.clone(),
-                        valid,
-                    },
-                });
+                valid.extend(parameter_ids(parameters));
+                errors.push(unknown_key(
+                    format!("c:{}", config_path.key(key)),
+                    "subdevice",
+                    key,
+                    &valid,
+                ));
             }
         }
     }
