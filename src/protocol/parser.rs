@@ -176,6 +176,12 @@ impl ReplyParser {
     }
 }
 
+/// Event packets with an event past their `data_len` seen by this process (see
+/// [`warn_of_dropped_events`]).
+static BAD_EVENT_PACKETS: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+/// How many of them are told at warning level before only one in a thousand is.
+const BAD_EVENT_PACKETS_TOLD: u64 = 5;
+
 /// An event packet whose events overran its `data_len` keeps the events before the bad one
 /// (see [`fast::decode_events`]): the rest are lost, which the log tells.
 fn warn_of_dropped_events(reply: &Reply, frame: &[u8]) {
@@ -192,7 +198,20 @@ fn warn_of_dropped_events(reply: &Reply, frame: &[u8]) {
     };
     let kept: usize = packet.events.iter().map(fast::Event::wire_len).sum();
     if kept != usize::from(data_len) {
+        // A device with this firmware bug sends such a packet with every change: the first
+        // few are told, then one in a thousand (a log on a controller's flash is not to be
+        // filled at the event rate).
+        let seen = BAD_EVENT_PACKETS.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+        if seen > BAD_EVENT_PACKETS_TOLD && seen % 1000 != 0 {
+            tracing::debug!(
+                address = reply.address,
+                seen,
+                "another event packet with an event longer than its data"
+            );
+            return;
+        }
         warn!(
+            seen,
             address = reply.address,
             flag = packet.flag,
             event_count = packet.event_count,
