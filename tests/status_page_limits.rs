@@ -45,6 +45,23 @@ fn wait_for_listen(port: u16) {
     }
 }
 
+/// A daemon whose status page asks for `admin` / `s3cret`, on a port that does not exist;
+/// returns it, once its page listens, with the page's port (and the directory to keep).
+fn daemon_with_password() -> (DaemonProcess, u16, tempfile::TempDir) {
+    let dir = tempfile::tempdir().unwrap();
+    let http_port = free_port();
+    let http = json!({"listen": format!("127.0.0.1:{http_port}"), "user": "admin",
+                      "password_hash": hash()});
+    let daemon = DaemonProcess::start(
+        &config(&dir.path().join("none"), http),
+        &["--stdio"],
+        Stdio::null(),
+        Stdio::null(),
+    );
+    wait_for_listen(http_port);
+    (daemon, http_port, dir)
+}
+
 fn basic(user: &str, password: &str) -> String {
     use base64::Engine as _;
     format!(
@@ -88,17 +105,7 @@ fn answer(mut stream: TcpStream) -> Option<(u16, String)> {
 /// only once the head is complete.
 #[test]
 fn a_request_head_that_never_ends_is_dropped() {
-    let dir = tempfile::tempdir().unwrap();
-    let http_port = free_port();
-    let http = json!({"listen": format!("127.0.0.1:{http_port}"), "user": "admin",
-                      "password_hash": hash()});
-    let daemon = DaemonProcess::start(
-        &config(&dir.path().join("none"), http),
-        &["--stdio"],
-        Stdio::null(),
-        Stdio::null(),
-    );
-    wait_for_listen(http_port);
+    let (daemon, http_port, _dir) = daemon_with_password();
     let mut stream = TcpStream::connect(("127.0.0.1", http_port)).unwrap();
     stream
         .write_all(format!("GET / HTTP/1.1\r\nHost: 127.0.0.1:{http_port}\r\nX-Slow: a").as_bytes())
@@ -171,17 +178,7 @@ fn idle_connections_without_a_password_cannot_stop_the_bus() {
 /// not held up. The test hash's cost 4 is named in the log, once.
 #[test]
 fn wrong_passwords_sent_together_are_answered_at_once_not_queued() {
-    let dir = tempfile::tempdir().unwrap();
-    let http_port = free_port();
-    let http = json!({"listen": format!("127.0.0.1:{http_port}"), "user": "admin",
-                      "password_hash": hash()});
-    let daemon = DaemonProcess::start(
-        &config(&dir.path().join("none"), http),
-        &["--stdio"],
-        Stdio::null(),
-        Stdio::null(),
-    );
-    wait_for_listen(http_port);
+    let (daemon, http_port, _dir) = daemon_with_password();
     let good = basic("admin", "s3cret");
     assert_eq!(get(http_port, "/api/status", Some(&good)), Some(200));
     // All sent before any answer is read.

@@ -229,6 +229,37 @@ fn a_gateway_that_stops_answering_without_closing_is_reconnected() {
     );
 }
 
+/// A simulator with one classic meter (template `meter`, id `meter`: `Energy`, a `u32` at input
+/// 0 holding 0x0001_0002) at address 41 on `line`, pausing `reply_pause_us` in the middle of
+/// each reply; `device` adds keys to the template's device (a response timeout). Returns the
+/// simulator and the template directory, for the daemon too.
+fn one_meter(
+    dir: &std::path::Path,
+    line: &str,
+    reply_pause_us: u64,
+    device: Value,
+) -> (SimProcess, std::path::PathBuf) {
+    let templates = dir.join("templates");
+    std::fs::create_dir_all(&templates).unwrap();
+    let mut template = json!({"device_type": "meter", "device": {"name": "Meter", "id": "meter",
+        "channels": [{"name": "Energy", "reg_type": "input", "address": 0,
+                      "type": "value", "format": "u32"}]}});
+    for (key, value) in device.as_object().into_iter().flatten() {
+        template["device"][key] = value.clone();
+    }
+    std::fs::write(templates.join("meter.json"), template.to_string()).unwrap();
+    let bus = dir.join("bus.json");
+    std::fs::write(
+        &bus,
+        json!({"devices": [{"name": "meter", "template": "templates/meter.json", "address": 41,
+            "serial": "0xFE000041", "line": line, "fast": false,
+            "reply_pause_us": reply_pause_us, "values": {"input:0": [1, 2]}}]})
+        .to_string(),
+    )
+    .unwrap();
+    (SimProcess::start_with(&bus, &templates, &[]), templates)
+}
+
 /// A slow device (a meter's MCU, a radio modem) that stops 40 ms in the middle of every reply,
 /// on its factory line, 9600 8N2. wb-mqtt-serial reads a frame with the device's frame timeout
 /// between bytes (`ReadFrame`), so a config with `frame_timeout_ms: 60` serves it; rtu2mqtt
@@ -238,32 +269,16 @@ fn a_gateway_that_stops_answering_without_closing_is_reconnected() {
 async fn a_device_that_pauses_mid_reply_is_read_with_its_frame_timeout() {
     let broker = Mosquitto::start();
     let dir = tempfile::tempdir().unwrap();
-    let templates = dir.path().join("templates");
-    std::fs::create_dir_all(&templates).unwrap();
-    std::fs::write(
-        templates.join("slow-meter.json"),
-        json!({"device_type": "slow-meter", "device": {"name": "Slow meter", "id": "slow",
-            "response_timeout_ms": 100, "channels": [
-                {"name": "Energy", "reg_type": "input", "address": 0, "type": "value",
-                 "format": "u32"}]}})
-        .to_string(),
-    )
-    .unwrap();
-    let bus = dir.path().join("bus.json");
-    std::fs::write(
-        &bus,
-        json!({"devices": [
-            {"name": "paced", "template": "templates/slow-meter.json", "address": 41,
-             "serial": "0xFE000041", "line": "9600 8N2", "fast": false, "reply_pause_us": 40000,
-             "values": {"input:0": [1, 2]}}]})
-        .to_string(),
-    )
-    .unwrap();
-    let sim = SimProcess::start_with(&bus, &templates, &[]);
+    let (sim, templates) = one_meter(
+        dir.path(),
+        "9600 8N2",
+        40_000,
+        json!({"response_timeout_ms": 100}),
+    );
     let config = json!({
         "mqtt": {"host": "127.0.0.1", "port": broker.port, "client_id": "rtu2mqtt-slow-meter"},
         "ports": [{"path": sim.pty, "baud_rate": 9600, "stop_bits": 2, "devices": [
-            {"device_type": "slow-meter", "slave_id": 41, "frame_timeout_ms": 60}
+            {"device_type": "meter", "slave_id": 41, "frame_timeout_ms": 60}
         ]}]
     });
     let daemon = DaemonProcess::start(
@@ -274,19 +289,19 @@ async fn a_device_that_pauses_mid_reply_is_read_with_its_frame_timeout() {
     );
     wait_for("the paused device's value", || async {
         let state = retained(broker.port).await?;
-        (state.get("/devices/slow_41/controls/Energy")? == "65538").then_some(())
+        (state.get("/devices/meter_41/controls/Energy")? == "65538").then_some(())
     })
     .await;
     sim.control(json!({"cmd": "set", "device": 41, "type": "input", "address": 1, "value": 3}));
     wait_for("its next value", || async {
         let state = retained(broker.port).await?;
-        (state.get("/devices/slow_41/controls/Energy")? == "65539").then_some(())
+        (state.get("/devices/meter_41/controls/Energy")? == "65539").then_some(())
     })
     .await;
     let state = retained(broker.port).await.unwrap();
     assert_eq!(
         state
-            .get("/devices/slow_41/controls/Energy/meta/error")
+            .get("/devices/meter_41/controls/Energy/meta/error")
             .map_or("", String::as_str),
         "",
         "{}",
@@ -304,26 +319,7 @@ async fn a_device_that_pauses_mid_reply_is_read_with_its_frame_timeout() {
 async fn a_second_gateway_that_cannot_open_the_port_leaves_the_first_ones_topics_alone() {
     let broker = Mosquitto::start();
     let dir = tempfile::tempdir().unwrap();
-    let templates = dir.path().join("templates");
-    std::fs::create_dir_all(&templates).unwrap();
-    std::fs::write(
-        templates.join("meter.json"),
-        json!({"device_type": "meter", "device": {"name": "Meter", "id": "meter",
-            "channels": [{"name": "Energy", "reg_type": "input", "address": 0,
-                          "type": "value", "format": "u32"}]}})
-        .to_string(),
-    )
-    .unwrap();
-    let bus = dir.path().join("bus.json");
-    std::fs::write(
-        &bus,
-        json!({"devices": [{"name": "meter", "template": "templates/meter.json", "address": 41,
-            "serial": "0xFE000041", "line": "115200 8N2", "fast": false,
-            "values": {"input:0": [1, 2]}}]})
-        .to_string(),
-    )
-    .unwrap();
-    let sim = SimProcess::start_with(&bus, &templates, &[]);
+    let (sim, templates) = one_meter(dir.path(), "115200 8N2", 0, json!({}));
     let config = |client_id: &str| {
         json!({
             "mqtt": {"host": "127.0.0.1", "port": broker.port, "client_id": client_id},
