@@ -235,7 +235,22 @@ fn run_into(
                     .all(|d| d["events_enabled"].as_u64() >= Some(u64::from(layout.events)))
             });
             if all_enabled {
-                result.events_enabled = Some(Duration::from_nanos(now.saturating_sub(started)));
+                // When the last device's events were configured, on the simulator's clock
+                // (`t_us` is its clock at this answer, taken at `now`): exact to the control
+                // socket's round trip, where the moment of this poll is up to POLL late.
+                let configured_t_us = list["devices"]
+                    .as_array()
+                    .into_iter()
+                    .flatten()
+                    .filter_map(|d| d["events_configured_t_us"].as_u64())
+                    .max();
+                let at = match (configured_t_us, list["t_us"].as_u64()) {
+                    (Some(configured), Some(sim_now)) => {
+                        now.saturating_sub(sim_now.saturating_sub(configured).saturating_mul(1000))
+                    }
+                    _ => now,
+                };
+                result.events_enabled = Some(Duration::from_nanos(at.saturating_sub(started)));
                 enabling_done = true;
             }
         }

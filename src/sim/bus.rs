@@ -424,13 +424,16 @@ impl Bus {
             };
             let line = device.line();
             let reply = match request {
-                FastRequest::ConfigureEvents { ranges } if device.fast => fast_reply(
-                    function,
-                    address,
-                    FastReply::EventsConfigured {
-                        masks: device.configure_events(ranges),
-                    },
-                ),
+                FastRequest::ConfigureEvents { ranges } if device.fast => {
+                    device.events_configured_at = Some(received.end_on_wire(&line));
+                    fast_reply(
+                        function,
+                        address,
+                        FastReply::EventsConfigured {
+                            masks: device.configure_events(ranges),
+                        },
+                    )
+                }
                 _ => illegal_function(address, function),
             };
             replies.extend(self.plan(index, &reply, line, received));

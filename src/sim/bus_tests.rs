@@ -555,10 +555,14 @@ fn configure_events_replies_with_mixed_bitmasks() {
     // The wb-mqtt-serial frame with the reboot record (§7.4 of the reference) answers alike.
     let wb = hex("01 46 18 0A 03 00 01 01 01 0F 00 00 01 00 28 7D");
     let mut one = Bus::new(vec![VirtualDevice::new(spec("one", 1, 1))], 1);
+    assert_eq!(one.devices()[0].events_configured_at, None);
     assert_eq!(
         one.exchange(&wb, master(), Duration::ZERO).bytes(),
         hex("01 46 18 02 00 00 2F 65")
     );
+    // When (the end of the request on the wire), for the benchmark of event enabling.
+    let configured = one.devices()[0].events_configured_at.expect("stamped");
+    assert!(configured > Duration::ZERO, "{configured:?}");
     // A bad priority is an illegal data value.
     assert_eq!(
         bus.exchange(

@@ -118,7 +118,10 @@ fn run(bus: &mut Bus, now: Duration, command: &ControlCommand) -> Result<Value, 
                 "max_event_contenders": stats.max_event_contenders,
             }))
         }
-        "list" => Ok(json!({ "devices": list(bus) })),
+        "list" => Ok(json!({
+            "devices": list(bus),
+            "t_us": u64::try_from(now.as_micros()).unwrap_or(u64::MAX),
+        })),
         "get" => {
             let index = find_device(bus, command)?;
             let (register_type, address) = register(command)?;
@@ -317,6 +320,9 @@ pub fn list(bus: &Bus) -> Vec<Value> {
                 "starts": d.starts,
                 "pending_events": d.events().pending_count(),
                 "events_enabled": d.events().enabled().count(),
+                "events_configured_t_us": d
+                    .events_configured_at
+                    .map(|at| u64::try_from(at.as_micros()).unwrap_or(u64::MAX)),
             })
         })
         .collect()

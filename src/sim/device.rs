@@ -72,6 +72,9 @@ pub struct VirtualDevice {
     /// A slow device's pause in the middle of each addressed reply (zero: none): the first
     /// half of the frame, this silence, then the rest.
     pub reply_pause: Duration,
+    /// When the master last configured its events (0x18), on the simulator's clock: when it has
+    /// them all enabled, for the benchmark of event enabling.
+    pub events_configured_at: Option<Duration>,
     /// False while unplugged: hears nothing, says nothing.
     pub plugged: bool,
     pub faults: Faults,
@@ -124,6 +127,7 @@ impl VirtualDevice {
             fast: spec.fast,
             turnaround: spec.turnaround,
             reply_pause: Duration::ZERO,
+            events_configured_at: None,
             plugged: true,
             faults: Faults::default(),
             registers,
