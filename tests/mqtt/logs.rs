@@ -4,7 +4,7 @@
 use rtu2mqtt::child::StopWithParent;
 use std::process::{Command, Stdio};
 
-use crate::daemon_support::repo;
+use crate::daemon_support::{repo, DaemonProcess};
 use crate::mqtt_support::{wait_for, Mosquitto};
 use serde_json::json;
 
@@ -65,40 +65,21 @@ async fn wrong_credentials_are_named_and_logs_have_no_colour_codes() {
 async fn two_gateways_with_one_client_id_are_told_and_back_off() {
     let broker = Mosquitto::start();
     let dir = tempfile::tempdir().unwrap();
-    let config_path = dir.path().join("config.json");
     let config = json!({
         "mqtt": {"host": "127.0.0.1", "port": broker.port, "client_id": "rtu2mqtt-clash"},
         "ports": [{"path": dir.path().join("no-such-tty"), "baud_rate": 9600, "stop_bits": 2,
                    "devices": [{"device_type": "rtu2mqtt-relay6", "slave_id": 20}]}]
     });
-    std::fs::write(&config_path, config.to_string()).unwrap();
-    let start = |log: &std::path::Path| {
-        Command::new(env!("CARGO_BIN_EXE_rtu2mqtt"))
-            .stop_with_parent()
-            .arg("run")
-            .arg("--templates")
-            .arg(repo("templates"))
-            .arg("-c")
-            .arg(&config_path)
-            .env_remove("RUST_LOG")
-            .stdin(Stdio::null())
-            .stdout(Stdio::null())
-            .stderr(std::fs::File::create(log).unwrap())
-            .spawn()
-            .unwrap()
-    };
-    let logs = [dir.path().join("a.log"), dir.path().join("b.log")];
-    let mut daemons = [start(&logs[0]), start(&logs[1])];
+    let start = || DaemonProcess::start(&config, &[], Stdio::null(), Stdio::null());
+    let daemons = [start(), start()];
     let log = wait_for("the hint about the client id", || async {
-        logs.iter()
-            .map(|path| std::fs::read_to_string(path).unwrap_or_default())
+        daemons
+            .iter()
+            .map(DaemonProcess::log)
             .find(|log| log.contains("same mqtt.client_id"))
     })
     .await;
-    for daemon in &mut daemons {
-        let _ = daemon.kill();
-        let _ = daemon.wait();
-    }
+    drop(daemons);
     // The delays before the reconnects grew: not every one was the first delay.
     let delays: Vec<&str> = log
         .lines()
