@@ -52,6 +52,27 @@ struct Daemon {
 }
 
 impl Daemon {
+    /// `rtu2mqtt run` with the repository's templates, logging at `filter` to `dir`/daemon.log.
+    fn start(dir: &Path, config_path: &Path, filter: &str) -> Self {
+        let log = dir.join("daemon.log");
+        Daemon {
+            child: Command::new(env!("CARGO_BIN_EXE_rtu2mqtt"))
+                .stop_with_parent()
+                .arg("run")
+                .arg("--templates")
+                .arg(repo("templates"))
+                .arg("-c")
+                .arg(config_path)
+                .env("RUST_LOG", filter)
+                .stdin(Stdio::null())
+                .stdout(Stdio::null())
+                .stderr(std::fs::File::create(&log).unwrap())
+                .spawn()
+                .unwrap(),
+            log,
+        }
+    }
+
     fn log(&self) -> String {
         std::fs::read_to_string(&self.log).unwrap_or_default()
     }
@@ -88,23 +109,7 @@ async fn sighup_applies_the_new_config_port_by_port() {
         std::fs::write(&config_path, text).unwrap();
     };
     write_config(json!([{"device_type": "rtu2mqtt-climate", "slave_id": 21}]));
-    let log = dir.path().join("daemon.log");
-    let daemon = Daemon {
-        child: Command::new(env!("CARGO_BIN_EXE_rtu2mqtt"))
-            .stop_with_parent()
-            .arg("run")
-            .arg("--templates")
-            .arg(repo("templates"))
-            .arg("-c")
-            .arg(&config_path)
-            .env("RUST_LOG", "info")
-            .stdin(Stdio::null())
-            .stdout(Stdio::null())
-            .stderr(std::fs::File::create(&log).unwrap())
-            .spawn()
-            .unwrap(),
-        log,
-    };
+    let daemon = Daemon::start(dir.path(), &config_path, "info");
     let temperature = "/devices/climate_21/controls/Temperature";
     wait_for("the climate sensor's temperature", || async {
         (topic_value(port, temperature).await? == "21.5").then_some(())
@@ -215,4 +220,68 @@ async fn sighup_applies_the_new_config_port_by_port() {
     daemon.signal(nix::sys::signal::Signal::SIGTERM);
     let status = daemon.child.wait().unwrap();
     assert!(status.success(), "exit status {status}");
+}
+
+/// A write that waits for its port (which cannot be opened yet) is not lost when a reload
+/// restarts that port: the stopping task hands it to the new one, which sends it once the port
+/// opens. (Without that, the write died with the old task's queue.)
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_write_waiting_for_its_port_survives_a_reload_that_restarts_the_port() {
+    let broker = Mosquitto::start();
+    let port = broker.port;
+    let dir = tempfile::tempdir().unwrap();
+    let tty = dir.path().join("ttyRS485-later");
+    let config_path = dir.path().join("config.json");
+    let write_config = |response_timeout_ms: u64| {
+        let config = json!({
+            "mqtt": {"host": "127.0.0.1", "port": port, "client_id": "rtu2mqtt-reload-write"},
+            "ports": [{"path": &tty, "baud_rate": 115200, "stop_bits": 2,
+                       "response_timeout_ms": response_timeout_ms,
+                       "devices": [{"device_type": "rtu2mqtt-relay6", "slave_id": 20}]}]
+        });
+        std::fs::write(&config_path, config.to_string()).unwrap();
+    };
+    write_config(500);
+    let daemon = Daemon::start(
+        dir.path(),
+        &config_path,
+        "info,rtu2mqtt::mqtt::client=debug",
+    );
+    // Subscriptions go before a device's meta: once K3's meta is there, its /on is heard.
+    wait_for("K3 announced", || async {
+        topic_value(port, "/devices/relay6_20/controls/K3/meta").await
+    })
+    .await;
+    wait_for("the port found missing", || async {
+        daemon.log().contains("cannot open the port").then_some(())
+    })
+    .await;
+    publish(port, "/devices/relay6_20/controls/K3/on", "1", false).await;
+    wait_for("the write taken for the bus", || async {
+        daemon
+            .log()
+            .lines()
+            .any(|l| l.contains("write") && l.contains("control_id=K3"))
+            .then_some(())
+    })
+    .await;
+
+    write_config(600);
+    daemon.signal(nix::sys::signal::Signal::SIGHUP);
+    wait_for("the port restarted by the reload", || async {
+        daemon
+            .log()
+            .lines()
+            .any(|l| l.contains("reload applied") && l.contains("ttyRS485-later"))
+            .then_some(())
+    })
+    .await;
+
+    let sim = sim(dir.path(), "bus.json", BUS_A);
+    std::os::unix::fs::symlink(&sim.pty, &tty).unwrap();
+    wait_for("K3 switched once the port opened", || async {
+        let reply = sim.control(json!({"cmd": "get", "device": 20, "type": "coil", "address": 2}));
+        (reply["value"] == 1).then_some(())
+    })
+    .await;
 }

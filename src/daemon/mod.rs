@@ -40,6 +40,18 @@ pub struct BusSide {
 /// Which device ids route to which port task's write queue.
 type Routes = Arc<Mutex<HashMap<String, mpsc::Sender<ControlWrite>>>>;
 
+/// A port task's write queue, both ends.
+type WriteQueue = (mpsc::Sender<ControlWrite>, mpsc::Receiver<ControlWrite>);
+
+/// A port task ready to run.
+struct PreparedPort {
+    task: PortTask,
+    /// The `Added` announcements that must reach the sink before any of its values.
+    added: Vec<DeviceUpdate>,
+    /// Its write queue.
+    writes: mpsc::Sender<ControlWrite>,
+}
+
 /// What users outside the port tasks (MQTT RPC, the status page) may know and use of a running
 /// port: its configuration and the queue of its bus.
 #[derive(Clone, Debug)]
@@ -63,7 +75,10 @@ struct RunningPort {
     resolved: ResolvedPort,
     config: serde_json::Value,
     stop: watch::Sender<bool>,
-    task: JoinHandle<()>,
+    /// Hands back the writes the task left unsent when it stops.
+    task: JoinHandle<Vec<ControlWrite>>,
+    /// Its write queue, where its devices' routes lead.
+    writes: mpsc::Sender<ControlWrite>,
     vitals: Arc<PortVitals>,
     status: Option<Arc<PortStatus>>,
 }
@@ -130,13 +145,19 @@ pub fn start_bus_side_with_status(
     let routes: Routes = Arc::default();
     let router_routes = Arc::clone(&routes);
     let router = tokio::spawn(async move {
-        while let Some(write) = write_rx.recv().await {
-            let port = lock(&router_routes).get(&write.device_id).cloned();
-            match port {
-                Some(port) => {
-                    let _ = port.send(write).await;
+        while let Some(mut write) = write_rx.recv().await {
+            // A queue closes when its port task stops; a reload that restarts the port has
+            // routed the device to the new task's queue by then: look again.
+            for _ in 0..2 {
+                let port = lock(&router_routes).get(&write.device_id).cloned();
+                let Some(port) = port else {
+                    warn!(device = %write.device_id, "write for an unknown device");
+                    break;
+                };
+                match port.send(write).await {
+                    Ok(()) => break,
+                    Err(mpsc::error::SendError(unsent)) => write = unsent,
                 }
-                None => warn!(device = %write.device_id, "write for an unknown device"),
             }
         }
     });
@@ -153,12 +174,12 @@ pub fn start_bus_side_with_status(
         channel_indexes: ChannelIndexes::default(),
     };
     for port in ports {
-        let (task, added) = control.prepare_port(&port);
-        for update in added {
+        let prepared = control.prepare_port(&port);
+        for update in prepared.added {
             // Nothing consumes yet and the queue is empty: these never wait.
             let _ = control.updates.try_send(update);
         }
-        control.spawn_port(port, task);
+        control.spawn_port(port, prepared.task, prepared.writes);
     }
     BusSide {
         updates: update_rx,
@@ -176,18 +197,35 @@ fn lock<T>(mutex: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
 impl BusControl {
     /// Sets up a port's device models and write route; returns the port task, not yet running,
     /// and the `Added` announcements that must reach the sink before any of its values.
-    fn prepare_port(&mut self, port: &ResolvedPort) -> (PortTask, Vec<DeviceUpdate>) {
+    fn prepare_port(&mut self, port: &ResolvedPort) -> PreparedPort {
+        let queue = self.write_queue_for(port);
+        self.prepare_port_with(port, queue)
+    }
+
+    /// A write queue for `port`, its devices' routes leading there from now on: writes sent
+    /// while its task is still being prepared wait in it.
+    fn write_queue_for(&self, port: &ResolvedPort) -> WriteQueue {
+        let (sender, receiver) = mpsc::channel(WRITE_QUEUE);
+        let mut routes = lock(&self.routes);
+        for device in &port.devices {
+            routes.insert(device.id.clone(), sender.clone());
+        }
+        (sender, receiver)
+    }
+
+    fn prepare_port_with(
+        &mut self,
+        port: &ResolvedPort,
+        (port_write_tx, port_write_rx): WriteQueue,
+    ) -> PreparedPort {
         let plan = port_plan(port, self.fast_modbus);
         let vitals = self.health.add_port(&plan.name, port.devices.len());
         info!(port = %plan.name, devices = plan.devices.len(), fast_modbus = plan.settings.fast_modbus, "serving port");
-        let (port_write_tx, port_write_rx) = mpsc::channel(WRITE_QUEUE);
         let mut models = Vec::new();
         let mut added = Vec::new();
-        let mut routes = lock(&self.routes);
         let mut devices = Vec::new();
         for (index, device) in port.devices.iter().enumerate() {
             let device = Arc::new(device.clone());
-            routes.insert(device.id.clone(), port_write_tx.clone());
             added.push(DeviceUpdate::Added(Arc::clone(&device)));
             devices.push(Arc::clone(&device));
             models.push(DeviceModel::sharing(
@@ -235,7 +273,11 @@ impl BusControl {
         if let Some(status) = status {
             task = task.with_status(status);
         }
-        (task, added)
+        PreparedPort {
+            task,
+            added,
+            writes: port_write_tx,
+        }
     }
 
     /// The running ports and their bus queues, for MQTT RPC and the status page.
@@ -243,7 +285,12 @@ impl BusControl {
         Arc::clone(&self.directory)
     }
 
-    fn spawn_port(&mut self, port: ResolvedPort, task: PortTask) {
+    fn spawn_port(
+        &mut self,
+        port: ResolvedPort,
+        task: PortTask,
+        writes: mpsc::Sender<ControlWrite>,
+    ) {
         let vitals = task.vitals();
         let status = task.status();
         let (stop, stopped) = watch::channel(false);
@@ -256,44 +303,52 @@ impl BusControl {
                 config,
                 stop,
                 task,
+                writes,
                 vitals,
                 status,
             },
         );
     }
 
-    /// Stops a port task after its transaction in flight; its devices stop taking writes.
-    async fn stop_port(&mut self, key: &str) -> Option<ResolvedPort> {
+    /// Stops a port task (a transaction in flight is abandoned); its devices stop taking
+    /// writes, unless a route to another queue was set up for them already. Returns the port
+    /// and the writes its task left unsent.
+    async fn stop_port(&mut self, key: &str) -> Option<(ResolvedPort, Vec<ControlWrite>)> {
         let running = self.ports.remove(key)?;
         lock(&self.directory).remove(key);
         let _ = running.stop.send(true);
-        let _ = running.task.await;
+        let unsent = running.task.await.unwrap_or_default();
         self.health.remove_port(&running.vitals);
         if let (Some(hub), Some(status)) = (&self.status, &running.status) {
             hub.remove_port(status);
         }
         let mut routes = lock(&self.routes);
         for device in &running.resolved.devices {
-            routes.remove(&device.id);
+            if routes
+                .get(&device.id)
+                .is_some_and(|route| route.same_channel(&running.writes))
+            {
+                routes.remove(&device.id);
+            }
         }
-        Some(running.resolved)
+        Some((running.resolved, unsent))
     }
 
     /// Applies a new configuration: unchanged ports keep running untouched; removed ports stop
     /// and their devices' topics are cleared; new ports start; changed ports restart (their
-    /// devices are set up again), and devices no longer configured are cleared.
+    /// devices are set up again), and devices no longer configured are cleared. Writes a
+    /// stopped task left unsent go to the task that serves their device now, before any newer
+    /// write; those of devices no longer configured are dropped.
     pub async fn reload(&mut self, ports: Vec<ResolvedPort>, fast_modbus: bool) -> ReloadSummary {
         let mut summary = ReloadSummary::default();
         let switch_changed = fast_modbus != self.fast_modbus;
         self.fast_modbus = fast_modbus;
         let mut new_ports: BTreeMap<String, ResolvedPort> =
             ports.into_iter().map(|p| (port_key(&p), p)).collect();
-        let keys: Vec<String> = self.ports.keys().cloned().collect();
-        let mut restart = Vec::new();
-        for key in keys {
+        let mut changed = Vec::new();
+        for (key, old) in &self.ports {
             let unchanged = !switch_changed
-                && new_ports.get(&key).is_some_and(|new| {
-                    let old = &self.ports[&key];
+                && new_ports.get(key).is_some_and(|new| {
                     old.resolved.devices == new.devices
                         && old.config == serde_json::to_value(&new.config).unwrap_or_default()
                         // Its share of `rate_limit` (which another port's channels change too).
@@ -301,19 +356,29 @@ impl BusControl {
                 });
             if unchanged {
                 // Same port, same devices: the running task stays as it is.
-                new_ports.remove(&key);
-                summary.ports_unchanged.push(key);
-                continue;
+                new_ports.remove(key);
+                summary.ports_unchanged.push(key.clone());
+            } else {
+                changed.push(key.clone());
             }
-            let Some(old) = self.stop_port(&key).await else {
+        }
+        // The new queues first: a write sent while the old tasks stop waits there.
+        let queues: BTreeMap<String, WriteQueue> = new_ports
+            .iter()
+            .map(|(key, port)| (key.clone(), self.write_queue_for(port)))
+            .collect();
+        let still_configured: Vec<String> = new_ports
+            .values()
+            .flat_map(|p| p.devices.iter().map(|d| d.id.clone()))
+            .collect();
+        let mut unsent = Vec::new();
+        for key in changed {
+            let Some((old, left)) = self.stop_port(&key).await else {
                 continue;
             };
-            let still_configured: Vec<&str> = new_ports
-                .values()
-                .flat_map(|p| p.devices.iter().map(|d| d.id.as_str()))
-                .collect();
+            unsent.extend(left);
             for device in &old.devices {
-                if !still_configured.contains(&device.id.as_str()) {
+                if !still_configured.contains(&device.id) {
                     let _ = self
                         .updates
                         .send(DeviceUpdate::Removed {
@@ -324,22 +389,33 @@ impl BusControl {
                 }
             }
             if new_ports.contains_key(&key) {
-                restart.push(key);
+                summary.ports_restarted.push(key);
             } else {
                 summary.ports_stopped.push(key);
             }
         }
-        for (key, port) in new_ports {
-            if restart.contains(&key) {
-                summary.ports_restarted.push(key);
-            } else {
+        for write in unsent
+            .iter()
+            .filter(|w| !still_configured.contains(&w.device_id))
+        {
+            info!(device = %write.device_id, control = %write.control_id,
+                "a write not yet sent is dropped: its device is no longer configured");
+        }
+        for ((key, port), queue) in new_ports.into_iter().zip(queues.into_values()) {
+            if !summary.ports_restarted.contains(&key) {
                 summary.ports_started.push(key);
             }
-            let (task, added) = self.prepare_port(&port);
-            for update in added {
+            let carried: Vec<ControlWrite> = unsent
+                .iter()
+                .filter(|write| port.devices.iter().any(|d| d.id == write.device_id))
+                .cloned()
+                .collect();
+            let prepared = self.prepare_port_with(&port, queue);
+            for update in prepared.added {
                 let _ = self.updates.send(update).await;
             }
-            self.spawn_port(port, task);
+            let task = prepared.task.with_carried_writes(carried);
+            self.spawn_port(port, task, prepared.writes);
         }
         summary
     }

@@ -1,6 +1,7 @@
 //! The task that owns one bus: it opens the transport (again, with a growing delay, when it
 //! fails), asks the scheduler what to do, does it, and turns what happened into device updates.
 
+use std::collections::VecDeque;
 use std::path::Path;
 use std::sync::Arc;
 use std::time::Duration;
@@ -18,6 +19,7 @@ use crate::device_updates::{ControlWrite, DeviceUpdate};
 use crate::gateway::device_model::{apply_port_events, DeviceModel};
 use crate::gateway::port_plan::{PortPlan, ReconnectRule};
 use crate::mqtt::throttle::{LogBudget, LogDecision};
+use crate::port::scheduler::{write_key, WriteKey};
 use crate::port::{
     GuardIntervals, NextStep, PortEvent, PortScheduler, ReplyTiming, Transaction,
     TransactionOutcome,
@@ -40,6 +42,12 @@ pub struct PortTask {
     models: Vec<DeviceModel>,
     updates: mpsc::Sender<DeviceUpdate>,
     writes: mpsc::Receiver<ControlWrite>,
+    /// Writes handed on by the task this one replaces (a reload restarted the port): older
+    /// than anything in `writes`, so they go first.
+    carried: VecDeque<ControlWrite>,
+    /// The writes taken from `writes` and the registers each was queued as, for as long as one
+    /// of those may still be unsent: handed on if the task stops before they go.
+    taken: Vec<(ControlWrite, Vec<WriteKey>)>,
     /// Refused `/on` payloads are logged a few per minute: any MQTT client can send them.
     refused_log: LogBudget,
     epoch: Instant,
@@ -187,6 +195,8 @@ impl PortTask {
             models,
             updates,
             writes,
+            carried: VecDeque::new(),
+            taken: Vec::new(),
             refused_log: LogBudget::new(REFUSED_WRITE_LOG_LINES),
             epoch: Instant::now(),
             vitals: None,
@@ -205,6 +215,13 @@ impl PortTask {
             reconnect: plan.reconnect,
             connection: None,
         }
+    }
+
+    /// Writes that a stopped task of this port left unsent ([`Self::run`]'s result), to go
+    /// before any new one.
+    pub fn with_carried_writes(mut self, writes: Vec<ControlWrite>) -> Self {
+        self.carried.extend(writes);
+        self
     }
 
     /// Serves the transactions sent through `queue` (RPC, the status page), between its own.
@@ -445,7 +462,32 @@ impl PortTask {
     }
 
     /// Serves the bus until `shutdown` turns true.
-    pub async fn run(mut self, mut shutdown: watch::Receiver<bool>) {
+    /// Serves the port until `shutdown`; then hands back the writes it took or was given and
+    /// never put on the wire, oldest first, for the task that replaces it (a reload that
+    /// restarts the port must not lose a user's command).
+    pub async fn run(mut self, shutdown: watch::Receiver<bool>) -> Vec<ControlWrite> {
+        self.serve_until_stopped(shutdown).await;
+        self.unsent_writes()
+    }
+
+    fn unsent_writes(&mut self) -> Vec<ControlWrite> {
+        let unsent: Vec<WriteKey> = self.scheduler.unsent_writes().collect();
+        let mut writes: Vec<ControlWrite> = self.carried.drain(..).collect();
+        writes.extend(
+            self.taken
+                .drain(..)
+                .filter(|(_, keys)| keys.iter().any(|key| unsent.contains(key)))
+                .map(|(write, _)| write),
+        );
+        // Closed first, so that no write can come in after the last one is taken.
+        self.writes.close();
+        while let Ok(write) = self.writes.try_recv() {
+            writes.push(write);
+        }
+        writes
+    }
+
+    async fn serve_until_stopped(&mut self, mut shutdown: watch::Receiver<bool>) {
         self.start_identity_worker();
         let mut delay = FIRST_REOPEN_DELAY;
         // Since when the port has been unusable: its devices go offline after their timeout.
@@ -536,6 +578,9 @@ impl PortTask {
                 return Ok(());
             }
             self.beat();
+            while let Some(write) = self.carried.pop_front() {
+                self.handle_write(write).await;
+            }
             while let Ok(write) = self.writes.try_recv() {
                 self.handle_write(write).await;
             }
@@ -905,9 +950,15 @@ impl PortTask {
         let mut refused = Vec::new();
         match model.take_write(&write.control_id, &write.payload, &mut updates) {
             Ok(register_writes) => {
+                let keys = register_writes.iter().map(write_key).collect();
                 for register_write in register_writes {
                     refused.extend(self.scheduler.queue_write(now, register_write));
                 }
+                // Only what may still be unsent is kept (the scheduler's queue bounds it).
+                let unsent: Vec<WriteKey> = self.scheduler.unsent_writes().collect();
+                self.taken
+                    .retain(|(_, keys)| keys.iter().any(|key| unsent.contains(key)));
+                self.taken.push((write, keys));
             }
             Err(reason) => {
                 let decision = self.refused_log.check(std::time::Instant::now());
@@ -1072,6 +1123,94 @@ mod tests {
         assert!(!watch.transaction_done(ms(3000), false));
         assert!(!watch.transaction_done(ms(3900), false));
         assert!(watch.transaction_done(ms(3951), false));
+    }
+
+    /// A port task for a relay module at 20 on a port nobody answers on.
+    fn relay_task(writes: mpsc::Receiver<ControlWrite>) -> PortTask {
+        use crate::config::parse::SourceText;
+        let config = serde_json::json!({"ports": [{
+            "path": "/dev/rtu2mqtt-test-no-such-port", "baud_rate": 115200, "stop_bits": 2,
+            "devices": [{"device_type": "rtu2mqtt-relay6", "slave_id": 20}]
+        }]});
+        let loaded = crate::config::load::load_config_source(
+            SourceText::from_text(Path::new("c.json"), &config.to_string()),
+            false,
+        )
+        .unwrap();
+        let templates = Path::new(env!("CARGO_MANIFEST_DIR")).join("templates");
+        let library = crate::config::TemplateLibrary::load_dirs(&[templates]);
+        let port = crate::device::resolve_config(&loaded, &library)
+            .unwrap()
+            .remove(0);
+        let plan = crate::gateway::port_plan::port_plan(&port, true);
+        let models = port
+            .devices
+            .iter()
+            .enumerate()
+            .map(|(index, device)| {
+                DeviceModel::new(
+                    Arc::new(device.clone()),
+                    index,
+                    crate::device_updates::Repeats::None,
+                )
+            })
+            .collect();
+        let (updates, _) = mpsc::channel(64);
+        PortTask::new(plan, models, updates, writes)
+    }
+
+    fn write(control: &str, payload: &str) -> ControlWrite {
+        ControlWrite {
+            device_id: "relay6_20".into(),
+            control_id: control.into(),
+            payload: payload.into(),
+        }
+    }
+
+    /// A reload that restarts the port must not lose a user's command: what the task took and
+    /// never sent, what it was handed and never took up, and what still waits in its queue are
+    /// handed back, oldest first; a write to an unknown control is not.
+    #[tokio::test]
+    async fn a_stopping_task_hands_back_the_writes_it_never_sent() {
+        let (sender, receiver) = mpsc::channel(8);
+        let mut task = relay_task(receiver);
+        // Taken into the scheduler: the device is not set up yet, so they wait.
+        task.handle_write(write("K1", "1")).await;
+        task.handle_write(write("No such control", "1")).await;
+        task.handle_write(write("K2", "1")).await;
+        sender.send(write("K3", "1")).await.unwrap();
+        let mut task = task.with_carried_writes(vec![write("K4", "1")]);
+        let handed: Vec<(String, String)> = task
+            .unsent_writes()
+            .into_iter()
+            .map(|w| (w.control_id, w.payload))
+            .collect();
+        let expected: Vec<(String, String)> = ["K4", "K1", "K2", "K3"]
+            .into_iter()
+            .map(|c| (c.to_owned(), "1".to_owned()))
+            .collect();
+        assert_eq!(handed, expected);
+        assert!(
+            sender.send(write("K5", "1")).await.is_err(),
+            "the queue is closed once the task has stopped taking writes"
+        );
+    }
+
+    /// Two writes to one register: both are handed on, in order (the second only replaced the
+    /// first in the queue; replayed, the same happens again). What the scheduler no longer
+    /// holds as unsent is left out: `unsent_writes_leave_out_the_one_in_flight_and_those_done`.
+    #[tokio::test]
+    async fn only_writes_still_queued_are_handed_back() {
+        let (_sender, receiver) = mpsc::channel(8);
+        let mut task = relay_task(receiver);
+        task.handle_write(write("K1", "1")).await;
+        task.handle_write(write("K1", "0")).await;
+        let handed: Vec<String> = task
+            .unsent_writes()
+            .into_iter()
+            .map(|w| w.payload)
+            .collect();
+        assert_eq!(handed, ["1", "0"]);
     }
 
     #[test]

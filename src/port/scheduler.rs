@@ -251,6 +251,14 @@ impl EventPollTiming {
     }
 }
 
+/// A write's register (device, table, address): a newer write to it replaces a queued one.
+pub type WriteKey = (usize, RegisterType, u16);
+
+/// The register `write` goes to.
+pub fn write_key(write: &RegisterWrite) -> WriteKey {
+    (write.device, write.register_type, write.address)
+}
+
 #[derive(Debug, Clone, PartialEq)]
 struct PendingWrite {
     write: RegisterWrite,
@@ -644,17 +652,28 @@ impl PortScheduler {
             give_up_at: now + WRITE_RETRY_TIME,
             seen: 0,
         };
-        let same_register = |p: &PendingWrite| {
-            p.write.device == pending.write.device
-                && p.write.register_type == pending.write.register_type
-                && p.write.address == pending.write.address
-        };
+        let same_register = |p: &PendingWrite| write_key(&p.write) == write_key(&pending.write);
         if let Some(replaced) = self.writes.iter().position(same_register) {
             let replaced = self.writes.remove(replaced);
             pending.take_over(&replaced);
         }
         self.writes.push(pending);
         None
+    }
+
+    /// The registers of the queued writes that have not gone on the wire (device, table,
+    /// address): what a stopping port task hands on to the task that replaces it. The write in
+    /// flight, if any, is not among them: it may have reached the device, and repeating it
+    /// (a pushbutton, a counter reset) would act twice.
+    pub fn unsent_writes(&self) -> impl Iterator<Item = WriteKey> + '_ {
+        let in_flight = match &self.in_flight {
+            Some(InFlight::Write { write }) => Some(write_key(&write.write)),
+            _ => None,
+        };
+        self.writes
+            .iter()
+            .map(|pending| write_key(&pending.write))
+            .filter(move |key| Some(*key) != in_flight)
     }
 
     /// Whether events are polled (the index must be up to date).

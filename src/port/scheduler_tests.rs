@@ -878,6 +878,54 @@ fn a_write_goes_before_the_next_read_and_the_latest_value_wins() {
         }));
 }
 
+/// What a stopping port task hands on: the queued writes not yet on the wire. The write in
+/// flight is left out (it may have reached the device), and a write done is gone.
+#[test]
+fn unsent_writes_leave_out_the_one_in_flight_and_those_done() {
+    let reads = vec![read(RegisterType::Holding, 0, EventMode::Polled)];
+    let mut scheduler = PortScheduler::new(settings(115_200), vec![device(3, reads)]);
+    let mut log = Log::default();
+    let now = run(&mut scheduler, &mut log, Duration::ZERO, ms(50), |_, r| {
+        healthy(r)
+    });
+    let write = |address| RegisterWrite {
+        device: 0,
+        register_type: RegisterType::Holding,
+        address,
+        values: vec![7],
+        force_multiple: false,
+        defined: Vec::new(),
+    };
+    assert_eq!(scheduler.queue_write(now, write(10)), None);
+    assert_eq!(scheduler.queue_write(now, write(11)), None);
+    let unsent = |scheduler: &PortScheduler| scheduler.unsent_writes().collect::<Vec<_>>();
+    assert_eq!(
+        unsent(&scheduler),
+        [
+            (0, RegisterType::Holding, 10),
+            (0, RegisterType::Holding, 11)
+        ]
+    );
+    let NextStep::Transmit(first) = scheduler.next(now) else {
+        panic!("the first write goes now");
+    };
+    assert_eq!(
+        first.request,
+        Request::classic(
+            3,
+            RequestPdu::WriteSingleRegister {
+                address: 10,
+                value: 7
+            }
+        )
+    );
+    assert_eq!(unsent(&scheduler), [(0, RegisterType::Holding, 11)]);
+    let answer = healthy(&first.request);
+    let mut events = Vec::new();
+    scheduler.complete_into(now + ms(2), answer, ReplyTiming::default(), &mut events);
+    assert_eq!(unsent(&scheduler), [(0, RegisterType::Holding, 11)]);
+}
+
 /// `gaps` after retries of a dead device: each in `timeout_only` or `with_late_window` (but
 /// `stray` of them), the late window on about one retry in four (`DEAD_LATE_WATCH_EVERY`).
 fn assert_late_window_on_one_retry_in_four(
