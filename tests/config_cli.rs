@@ -1137,3 +1137,23 @@ fn an_override_of_a_channel_the_template_lacks_is_a_warning_with_the_closest_nam
     assert!(ok, "{text}");
     assert!(!text.contains("no channel `Extra`"), "{text}");
 }
+
+/// A period out of range in a channel override is the config's mistake: the error points at
+/// the config's line, not at the template channel it would land on.
+#[test]
+fn an_out_of_range_period_override_is_reported_where_the_config_has_it() {
+    let config = r#"{"ports": [{"path": "/dev/x", "devices": [
+        {"device_type": "rtu2mqtt-relay6", "slave_id": 20,
+         "channels": [
+           {"name": "K1", "read_period_ms": -5}]}]}]}"#;
+    let (ok, text) = check_config(config);
+    assert!(!ok, "{text}");
+    assert!(
+        text.contains("`read_period_ms` -5 is out of range"),
+        "{text}"
+    );
+    assert!(
+        text.contains("config.json:4:27:") && !text.contains("rtu2mqtt-relay6.json"),
+        "the config's line and column, not the template's: {text}"
+    );
+}

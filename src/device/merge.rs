@@ -14,7 +14,7 @@ use serde_json::{Map, Value};
 use crate::config::condition::Condition;
 use crate::config::error::Problem;
 use crate::config::json_path::JsonPath;
-use crate::config::load::config_schema;
+use crate::config::load::{config_schema, duration_problem};
 use crate::config::parse::schema_keys_at;
 
 /// An error found while merging, before it is turned into a located error.
@@ -892,6 +892,18 @@ fn override_channel(
             )),
             _ if is_slot && !known_channel_keys().contains(key) => {} // a subdevice parameter value
             _ => {
+                // A duration out of range is the config's mistake: said where the config has it,
+                // not at the template's channel it lands on.
+                if let Some(problem) = value
+                    .as_i64()
+                    .and_then(|duration| duration_problem(key, duration))
+                {
+                    errors.push(MergeError {
+                        origin: format!("c:{}", at.key(key)),
+                        problem,
+                    });
+                    continue;
+                }
                 target.insert(key.clone(), value.clone());
             }
         }
