@@ -389,22 +389,31 @@ struct PtyReader<'a> {
 impl LinkReader for PtyReader<'_> {
     fn read_timeout(&mut self, buf: &mut [u8], timeout: Duration) -> io::Result<Option<usize>> {
         // ppoll, not poll: a frame gap at 115200 is 334 µs, and poll counts in whole ms.
-        let master_ready = {
-            let mut fds = vec![PollFd::new(self.master.as_fd(), PollFlags::POLLIN)];
-            if let Some(inotify) = self.listeners.inotify_fd() {
-                fds.push(PollFd::new(inotify, PollFlags::POLLIN));
-            }
-            match ppoll(&mut fds, Some(TimeSpec::from_duration(timeout)), None) {
+        let (master_ready, watch_ready) = {
+            let inotify = self.listeners.inotify_fd();
+            let master = self.master.as_fd();
+            let mut fds = [
+                PollFd::new(master, PollFlags::POLLIN),
+                PollFd::new(inotify.unwrap_or(master), PollFlags::POLLIN),
+            ];
+            let watched = if inotify.is_some() { 2 } else { 1 };
+            let fds = fds.get_mut(..watched).unwrap_or_default();
+            match ppoll(fds, Some(TimeSpec::from_duration(timeout)), None) {
                 Ok(0) | Err(nix::Error::EINTR) => return Ok(None),
                 Ok(_) => {}
                 Err(err) => return Err(nix_err(err)),
             }
-            fds.first()
-                .and_then(PollFd::revents)
-                .is_some_and(|events| !events.is_empty())
+            let ready = |fd: Option<&PollFd>| {
+                fd.and_then(PollFd::revents)
+                    .is_some_and(|events| !events.is_empty())
+            };
+            (ready(fds.first()), ready(fds.get(1)))
         };
-        // Opens and closes first: a master's open comes before its request.
-        self.listeners.update();
+        // Opens and closes first: a master's open comes before its request, so when the
+        // request is readable the open's event is too (poll reports every ready descriptor).
+        if watch_ready {
+            self.listeners.update();
+        }
         if !master_ready {
             return Ok(None);
         }
