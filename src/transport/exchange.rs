@@ -57,9 +57,16 @@ pub enum Framing {
 pub struct LinkConfig {
     pub framing: Framing,
     /// A serial line and its settings: the bytes' timing on the wire is known, so bytes before
-    /// the request has left the wire are not its reply, and a reply's end can be predicted.
-    /// `None` for TCP, whose far side's timing is unknown.
+    /// the request has left the wire are not its reply (see [`Self::wire_timed`]), and a reply's
+    /// end can be predicted. `None` for TCP, whose far side's timing is unknown.
     pub serial: Option<LineSettings>,
+    /// The port's bytes cross a wire at the line's settings (a UART, a USB adapter): a request
+    /// takes its wire time to leave, and bytes read before then are not its reply (an echo, a
+    /// collision, a straggler). False on a pseudo-terminal, which has no wire: its other end
+    /// (a device stack on a pty pair, a virtual port bridged to a gateway) may answer a request
+    /// as soon as it was written, before its bytes would have crossed a real line, and the
+    /// baud rate is only a setting there. See [`Self::discards_early_bytes`].
+    pub wire_timed: bool,
     /// Silence between bytes after which a started reply is given up, and after which the line
     /// counts as quiet again.
     pub quiet_gap: Duration,
@@ -117,7 +124,22 @@ impl LinkConfig {
             receive_timeout: line.receive_timeout(),
             receive_fifo: 1,
             frame_pause: Duration::ZERO,
+            wire_timed: true,
         }
+    }
+
+    /// The serial port is a pseudo-terminal: no wire times its bytes
+    /// ([`Self::wire_timed`]), so none that come after the request was written is thrown away
+    /// for coming too early, as on TCP.
+    pub fn on_pseudo_terminal(mut self) -> Self {
+        self.wire_timed = false;
+        self
+    }
+
+    /// Bytes read before the request can have left the wire are not its reply: on a serial
+    /// line whose bytes cross a wire at its settings only.
+    pub fn discards_early_bytes(&self) -> bool {
+        self.serial.is_some() && self.wire_timed
     }
 
     /// The port's receive FIFO hands bytes over `trigger` at a time (or after its receive
@@ -166,6 +188,7 @@ impl LinkConfig {
             receive_timeout: Duration::ZERO,
             receive_fifo: 1,
             frame_pause: Duration::ZERO,
+            wire_timed: false,
         }
     }
 }
@@ -456,7 +479,7 @@ impl Exchange {
             transaction,
             (write_started, now),
             self.config.quiet_gap,
-            self.config.serial.is_some(),
+            self.config.discards_early_bytes(),
         );
         window.allow_later(self.config.receive_timeout);
         window.allow_pause_past_deadline(self.config.frame_pause);
@@ -757,7 +780,8 @@ mod window {
     //! - the reply clock starts when the request has left the wire (its wire time after `write`
     //!   returned), not when `write` returned;
     //! - on a serial line, bytes that arrive before the request has left the wire cannot be its reply
-    //!   (echo, a collision, a straggler) and are thrown away;
+    //!   (echo, a collision, a straggler) and are thrown away (not on a pseudo-terminal, which has
+    //!   no wire: [`super::LinkConfig::wire_timed`]);
     //! - after a timeout the line is watched a while longer (the late window): whatever arrives then
     //!   is thrown away and reported as a late reply (the scheduler learns a longer timeout for the
     //!   device), and the next request waits until the line has been quiet for a frame gap.
@@ -818,7 +842,7 @@ mod window {
     impl ReplyWindow {
         /// `write_started`/`write_returned`: around the `write` of the request. `quiet_gap`: the
         /// silence that ends a frame (and after which the line counts as quiet). `discard_early`: a
-        /// serial line, whose timing is known.
+        /// serial line whose bytes cross a wire ([`super::LinkConfig::discards_early_bytes`]).
         pub fn new(
             transaction: &Transaction,
             (write_started, write_returned): (Duration, Duration),
@@ -1771,6 +1795,26 @@ mod tests {
         assert_eq!(finished.timing.first_byte, Some(ms(1) + line.wire_time(1)));
     }
 
+    /// A pseudo-terminal has no wire: its other end may answer as soon as the request was
+    /// written, before the request would have left a line at 9600. That reply is taken there
+    /// (and thrown away on a line with a wire, as above).
+    #[test]
+    fn a_reply_before_the_request_left_the_wire_is_taken_on_a_pseudo_terminal() {
+        let line = line(9600);
+        let transaction = transaction(&line, read_request());
+        let arrivals: Vec<(Duration, u8)> = reply_frame()
+            .into_iter()
+            .map(|byte| (ms(1), byte))
+            .collect();
+        let mut pty = Exchange::new(serial(line).on_pseudo_terminal());
+        let finished = run(&mut pty, &transaction, ms(0), &arrivals);
+        assert_eq!(finished.outcome, read_reply());
+        assert_eq!(finished.at, ms(1));
+        let mut wire = Exchange::new(serial(line));
+        let finished = run(&mut wire, &transaction, ms(0), &arrivals);
+        assert_eq!(finished.outcome, TransactionOutcome::NoReply);
+    }
+
     #[test]
     fn the_guard_interval_keeps_the_line_quiet_before_a_request() {
         let line = line(115_200);
@@ -2073,6 +2117,7 @@ mod tests {
             receive_timeout: Duration::ZERO,
             receive_fifo: 1,
             frame_pause: Duration::ZERO,
+            wire_timed: false,
         };
         let line = line(115_200);
         let transaction = transaction(&line, read_request());
@@ -2111,6 +2156,7 @@ mod tests {
             receive_timeout: Duration::ZERO,
             receive_fifo: 1,
             frame_pause: Duration::ZERO,
+            wire_timed: false,
         };
         let line = line(115_200);
         let transaction = transaction(&line, read_request());

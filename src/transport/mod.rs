@@ -125,9 +125,13 @@ impl Transport {
                 if let Some(trigger) = trigger.filter(|&trigger| trigger > 1) {
                     debug!(%path, trigger, "the receive FIFO hands bytes over {trigger} at a time");
                 }
-                let config = LinkConfig::serial(*line)
+                let mut config = LinkConfig::serial(*line)
                     .with_receive_fifo(trigger.unwrap_or(1))
                     .with_frame_timeout(*frame_timeout);
+                if link.is_pseudo_terminal() {
+                    debug!(%path, "a pseudo-terminal: no wire times its bytes");
+                    config = config.on_pseudo_terminal();
+                }
                 (Link::Serial(link), config)
             }
             Endpoint::RtuOverTcp {
@@ -514,5 +518,54 @@ mod line_faults {
             .expect("transact still waiting for a quiet line after 5 s (100 ms timeouts)")
             .expect("the port works");
         assert_eq!(outcome.0, TransactionOutcome::Garbled);
+    }
+
+    /// A device stack on the other end of a pty pair (pymodbus's serial server behind socat,
+    /// tests/interop_device.rs) answers as soon as the request is written: long before the
+    /// request's 8 bytes would have crossed a wire at 9600 (9.2 ms). Its reply was thrown away
+    /// as "bytes before the request left the wire" (an echo or a straggler on a real line) and
+    /// every read of such a device ended in "no reply", `rtu2mqtt read` and `run` alike. A pty
+    /// has no wire: the reply is taken.
+    #[tokio::test]
+    async fn a_reply_written_at_once_on_a_pty_is_taken() {
+        use std::io::Read;
+        let pty = nix::pty::openpty(None, None).expect("a pty");
+        let path = nix::unistd::ttyname(pty.slave.as_fd()).expect("its name");
+        let line = LineSettings::new(9600, Parity::None, 2);
+        let endpoint = Endpoint::Serial {
+            path: path.to_string_lossy().into_owned(),
+            line,
+            frame_timeout: exchange::DEFAULT_FRAME_TIMEOUT,
+        };
+        let mut transport = Transport::open(&endpoint).await.expect("opens");
+        drop(pty.slave);
+        let mut device = std::fs::File::from(pty.master);
+        let reply = crate::protocol::Reply::classic(
+            1,
+            crate::protocol::ResponsePdu::ReadHoldingRegisters { values: vec![1234] },
+        );
+        let frame = reply.encode().expect("encodes");
+        let answering = std::thread::spawn(move || {
+            let mut request = [0u8; 8];
+            device.read_exact(&mut request).expect("the request");
+            device.write_all(&frame).expect("the reply");
+            device
+        });
+        let request = Request::classic(1, RequestPdu::ReadHoldingRegisters { start: 0, count: 1 });
+        let transaction = Transaction {
+            request_time: line.wire_time(8),
+            reply_timeout: Duration::from_millis(200),
+            first_byte_timeout: Some(Duration::from_millis(150)),
+            late_window: Duration::ZERO,
+            estimated: Duration::from_millis(20),
+            request,
+        };
+        let (outcome, _) =
+            tokio::time::timeout(Duration::from_secs(5), transport.transact(&transaction))
+                .await
+                .expect("in time")
+                .expect("the port works");
+        let _device = answering.join().expect("the device thread");
+        assert_eq!(outcome, TransactionOutcome::Reply(reply));
     }
 }

@@ -104,7 +104,7 @@ impl RawTransfer {
         else {
             return;
         };
-        if self.link.serial.is_some() && now < *clock_start && last_byte.is_none() {
+        if self.link.discards_early_bytes() && now < *clock_start && last_byte.is_none() {
             return;
         }
         let room = self

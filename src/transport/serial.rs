@@ -102,6 +102,14 @@ impl SerialLink {
         })
     }
 
+    /// The port is the end of a pseudo-terminal (a Unix 98 pty, `/dev/pts/N`, whatever link
+    /// names it), not a UART or an adapter: no wire times its bytes. Told by the device's major
+    /// number, as the kernel assigns it (136–143).
+    pub fn is_pseudo_terminal(&self) -> bool {
+        nix::sys::stat::fstat(&self.port)
+            .is_ok_and(|stat| is_pty_slave_major(nix::sys::stat::major(stat.st_rdev)))
+    }
+
     /// Throws away what the line delivered and nobody read yet.
     pub fn flush_input(&mut self) -> io::Result<()> {
         // A registration from the last transaction would carry its readiness over.
@@ -252,6 +260,12 @@ impl SerialLink {
     }
 }
 
+/// The majors of Unix 98 pseudo-terminal slaves (`UNIX98_PTY_SLAVE_MAJOR` and the seven after
+/// it, Documentation/admin-guide/devices.txt).
+fn is_pty_slave_major(major: u64) -> bool {
+    (136..=143).contains(&major)
+}
+
 #[cfg(test)]
 mod tests {
     use std::os::fd::AsFd;
@@ -269,6 +283,16 @@ mod tests {
         let link = SerialLink::open(&path.to_string_lossy(), &line).expect("opens");
         drop(pty.slave);
         (link, File::from(pty.master))
+    }
+
+    #[tokio::test]
+    async fn a_pty_is_told_from_a_serial_port() {
+        let (link, _devices) = pty();
+        assert!(link.is_pseudo_terminal());
+        // A tty of another kind (/dev/ttyS*, ttyUSB*, ttyAMA*: majors 4, 188, 204) is not.
+        assert!(!is_pty_slave_major(4));
+        assert!(!is_pty_slave_major(188));
+        assert!(!is_pty_slave_major(204));
     }
 
     #[tokio::test]
