@@ -176,7 +176,7 @@ impl PyProcess {
         std::thread::spawn(move || {
             for line in BufReader::new(stdout).lines().map_while(Result::ok) {
                 let value = serde_json::from_str(&line).unwrap_or(json!({ "raw": line }));
-                sink.lock().unwrap().push(value);
+                sink.lock().unwrap_or_else(|e| e.into_inner()).push(value);
             }
         });
         let process = Self {
@@ -190,8 +190,12 @@ impl PyProcess {
         process
     }
 
+    fn lines(&self) -> std::sync::MutexGuard<'_, Vec<Value>> {
+        self.lines.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
     fn len(&self) -> usize {
-        self.lines.lock().unwrap().len()
+        self.lines().len()
     }
 
     /// The first line from index `from` on that matches; fails after `WAIT` with the tail.
@@ -213,8 +217,9 @@ impl PyProcess {
     ) -> (usize, Value) {
         let deadline = Instant::now() + timeout;
         loop {
-            {
-                let lines = self.lines.lock().unwrap();
+            let expired = Instant::now() >= deadline;
+            let tail: Vec<String> = {
+                let lines = self.lines();
                 if let Some((i, line)) = lines
                     .iter()
                     .enumerate()
@@ -223,16 +228,19 @@ impl PyProcess {
                 {
                     return (i, line.clone());
                 }
-                if Instant::now() >= deadline {
-                    let tail: Vec<String> =
-                        lines.iter().rev().take(40).map(Value::to_string).collect();
-                    panic!(
-                        "{}: no {what} within {timeout:?}; its last lines (newest first):\n{}",
-                        self.name,
-                        tail.join("\n")
-                    );
+                if !expired {
+                    Vec::new()
+                } else {
+                    lines.iter().rev().take(40).map(Value::to_string).collect()
                 }
-            }
+            };
+            // (the lock is released: a panic here poisons nothing)
+            assert!(
+                !expired,
+                "{}: no {what} within {timeout:?}; its last lines (newest first):\n{}",
+                self.name,
+                tail.join("\n")
+            );
             std::thread::sleep(Duration::from_millis(5));
         }
     }
@@ -278,7 +286,7 @@ impl Drop for PyProcess {
         let _ = self.child.kill();
         let _ = self.child.wait();
         if std::thread::panicking() {
-            let lines = self.lines.lock().unwrap();
+            let lines = self.lines();
             let tail: Vec<String> = lines.iter().rev().take(60).map(Value::to_string).collect();
             eprintln!(
                 "--- {} (last lines, newest first) ---\n{}",
@@ -949,6 +957,34 @@ async fn daemon_enables_every_register_of_a_wide_value() {
     rig.bus
         .cmd(json!({"cmd": "set", "device": 20, "type": "input", "address": 8, "value": 5}));
     wait_value(rig.port, 20, "Energy", "65541").await;
+}
+
+/// A device that takes 0x18 ranges of the four register tables only (§6: "<reg_type(1)>
+/// <address(2, BE)> …", "Priority per register") and refuses any other type with exception 3.
+/// rtu2mqtt appends wb-mqtt-serial's record for the reboot event (`0F 0000 01 00`, type 15,
+/// which §6 defines for events, not for 0x18) to the event setup of a device without setup
+/// writes, and takes the exception as "no Fast Modbus events": the device is polled for good and
+/// never asked for events. The fix is in src/port/scheduler.rs (`complete_enable_events`) and
+/// src/port/device.rs (`event_ranges`): after an exception to a request that carried the
+/// record, send it again without it before giving up.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[ignore = "rtu2mqtt too strict: a device refusing the reboot record in 0x18 never gets events (src/port/scheduler.rs, src/port/device.rs)"]
+async fn daemon_gets_events_from_a_device_that_refuses_the_reboot_record() {
+    let _one = one_at_a_time();
+    let mut rig = Rig::start(
+        &["--registers-only", "20"],
+        json!([{"name": "Input 0", "reg_type": "discrete", "address": 0, "type": "switch",
+                "sporadic": true}]),
+        &[],
+    );
+    wait_value(rig.port, 20, "Input 0", "0").await;
+    let from = rig.bus.len();
+    rig.bus
+        .cmd(json!({"cmd": "toggle", "device": 20, "type": "discrete", "address": 0}));
+    rig.bus.wait_line("the toggle sent by event", from, |l| {
+        is_log(l, "event_packet", 20) && l["events"] == json!([["discrete", 0]])
+    });
+    wait_value(rig.port, 20, "Input 0", "1").await;
 }
 
 // ---------------------------------------------------------------------------------------------

@@ -28,7 +28,8 @@ device holds, also those that did not fit the packet). Devices may share an addr
 answers, and the replies collide (wired AND), as on a real pair. --wide
 ADDRESS:TYPE:REG:WORDS[:little]: a value over WORDS registers (word order big, or little): one
 event at REG carries the whole value as a little-endian number; without it every register is
-an event source of its own (2-byte payloads).
+an event source of its own (2-byte payloads). --registers-only ADDRESS: that device refuses a
+0x18 with a range of another type than the four register tables (exception 3).
 "device" is the Modbus address or {"serial": N}. Replies: {"id":…, "ok": true, …}.
 stdout also carries the log, one JSON object a line with a "log" key: "rx" (every frame heard,
 hex), "tx" (every reply, hex with its 0xFF fillers), "confirmed" (a 0x11 packet confirmed),
@@ -53,7 +54,7 @@ Where the document is ambiguous, this device chose (docs/reliability.md, "Indepe
   data_len; events go high priority first, the reboot event last;
 - every register is an event source of its own unless --wide makes a value of several;
 - every device takes the confirmation of every 0x10, min_address or not;
-- the reboot event (type 15, id 0) is accepted in 0x18 ranges.
+- the reboot event (type 15, id 0) is accepted in 0x18 ranges (refused: --registers-only).
 """
 
 import argparse
@@ -105,6 +106,9 @@ class Device:
         # event at the base register carries the whole value, little-endian; the other
         # registers of the value are no event sources of their own.
         self.wide = {}
+        # A stricter reading of 0x18 ("<reg_type(1)>", "Priority per register"): a range of any
+        # other type than the four register tables is refused with exception 3.
+        self.registers_only = False
         # Test fault: the next confirmation for this device is lost (not heard); `lost_then`
         # is a change made at that moment, which the re-sent packet then carries as well.
         self.lose_ack = False
@@ -581,6 +585,8 @@ class Bus:
                 priorities = list(data[i + 4 : i + 4 + count])
                 if len(priorities) != count:
                     raise ModbusException(3)
+                if device.registers_only and ev_type not in (EV_COIL, EV_DISCRETE, EV_HOLDING, EV_INPUT):
+                    raise ModbusException(3)
                 ranges.append((ev_type, start, priorities))
                 i += 4 + count
         except ModbusException as e:
@@ -765,6 +771,7 @@ def main():
     )
     parser.add_argument("--legacy-code", action="append", default=[], type=lambda s: int(s, 0), metavar="ADDRESS", help="this device replies under the deprecated code 0x60 (old firmware)")
     parser.add_argument("--no-events", action="append", default=[], metavar="ADDRESS:TYPE:REG", help="this register of this device cannot send events")
+    parser.add_argument("--registers-only", action="append", default=[], type=lambda s: int(s, 0), metavar="ADDRESS", help="this device refuses a 0x18 with a range of another type than 1..4 (exception 3)")
     parser.add_argument("--realtime", action="store_true", help="ask for SCHED_FIFO (root): windows kept more closely; falls back quietly")
     parser.add_argument("--wide", action="append", default=[], metavar="ADDRESS:TYPE:REG:WORDS[:little]", help="a value of WORDS registers from REG (word order big unless little): one event carries it whole")
     parser.add_argument("--count-pending", action="append", default=[], type=lambda s: int(s, 0), metavar="ADDRESS", help="event_count of this device's packets: every event it holds, not only those in the packet")
@@ -784,6 +791,8 @@ def main():
         parts = spec.split(":")
         order = parts[4] if len(parts) > 4 else "big"
         by_address[int(parts[0], 0)].wide[(parts[1], int(parts[2], 0))] = (int(parts[3]), order)
+    for address in args.registers_only:
+        by_address[address].registers_only = True
     for address in args.count_pending:
         by_address[address].count_pending = True
     for spec in args.no_events:
