@@ -1230,9 +1230,11 @@ fn address_tools_keep_off_an_address_a_classic_device_answers() {
     assert_eq!(address_of("0xFE000040"), 11);
 }
 
-/// A value wider than a register (u32, big and little word order) comes in one event: the
-/// command splits it into the channel's registers as the daemon does and decodes it with the
-/// channel's codec. Such channels are enabled from the config too, at their first register.
+/// A value wider than a register (u32, big and little word order) comes in one event whose
+/// payload is the value, little-endian, whatever the word order (fast-modbus.md §6: "payload =
+/// the register's new value"): the command puts it into the channel's registers in the
+/// channel's word order and decodes it with the channel's codec. Such channels are enabled from
+/// the config too, at their first register.
 #[test]
 fn events_decode_values_wider_than_a_register_in_their_word_order() {
     let dir = tempfile::tempdir().unwrap();
@@ -1314,7 +1316,8 @@ fn events_decode_values_wider_than_a_register_in_their_word_order() {
         (&json!(9), &json!(65538), &json!("Big"), &json!("655.38")),
         "{big}"
     );
-    // Low word first: the same value. The payload is the registers in order (0x0002_0001).
+    // Low word first: the same value, and the same payload (it used to be the registers taken
+    // most significant first, 0x0002_0001: docs/reliability.md, "Independent peers").
     sim.control(
         json!({"cmd": "set", "device": "wide", "type": "input", "address": 20, "value": [2, 1]}),
     );
@@ -1328,7 +1331,7 @@ fn events_decode_values_wider_than_a_register_in_their_word_order() {
         ),
         (
             &json!(20),
-            &json!(0x0002_0001),
+            &json!(65538),
             &json!("Little"),
             &json!("655.38")
         ),

@@ -13,6 +13,7 @@ use std::time::Duration;
 
 use serde_json::json;
 
+use crate::config::format::WordOrder;
 use crate::config::load::load_config;
 use crate::config::TemplateLibrary;
 use crate::device::codec::{Reading, ValueCodec};
@@ -534,16 +535,21 @@ fn print_repeat(origin: PacketOrigin, json_output: bool) {
     }
 }
 
-/// The words of a channel `width` registers wide, in register order, from an event's payload,
-/// as the daemon stores them: the payload is the value's number, little-endian, its most
-/// significant word in the first register (the channel's codec then applies its word order).
-/// A payload padded beyond the value gives its low words; one shorter than the value gives
-/// None (the daemon reads the rest; this command cannot tell it).
-fn value_words(payload: &[u8], width: u16) -> Option<Vec<u16>> {
+/// The words of a channel `width` registers wide, in register order, from an event's payload:
+/// the payload is the value's number, little-endian (fast-modbus.md §6: "payload = the
+/// register's new value"), and the registers hold it in the channel's word order, most
+/// significant word first unless `word_order` is little_endian (the channel's codec then puts
+/// them back in order). A payload padded beyond the value gives its low words; one shorter
+/// than the value gives None (the daemon reads the rest; this command cannot tell it).
+fn value_words(payload: &[u8], width: u16, word_order: WordOrder) -> Option<Vec<u16>> {
     let carried = crate::protocol::event_payload_words(payload);
     let width = usize::from(width.max(1));
     let skip = carried.len().checked_sub(width)?;
-    carried.get(skip..).map(<[u16]>::to_vec)
+    let mut words = carried.get(skip..)?.to_vec();
+    if word_order == WordOrder::LittleEndian {
+        words.reverse();
+    }
+    Some(words)
 }
 
 /// One event, in words or as JSON.
@@ -557,8 +563,9 @@ fn print_event(origin: PacketOrigin, event: &Event, view: Option<&ConfigView>, j
     };
     let name = register_type.and_then(|t| view.and_then(|v| v.names.get(&(address, t, event.id))));
     let decoded = name.and_then(|n| {
-        let words = value_words(&event.payload, n.width)?;
-        match n.codec.as_ref()?.decode(&words) {
+        let codec = n.codec.as_ref()?;
+        let words = value_words(&event.payload, n.width, codec.word_order)?;
+        match codec.decode(&words) {
             Ok(Reading::Value(text)) => Some(text),
             _ => None,
         }
@@ -715,16 +722,32 @@ mod tests {
     }
 
     #[test]
-    fn an_event_value_is_split_into_its_registers_as_the_daemon_does() {
+    fn an_event_value_is_split_into_its_registers_in_their_word_order() {
+        let big = WordOrder::BigEndian;
         // 0x0001_0002 little-endian: the high word in the first register.
         let payload = [0x02, 0x00, 0x01, 0x00];
-        assert_eq!(value_words(&payload, 2), Some(vec![0x0001, 0x0002]));
+        assert_eq!(value_words(&payload, 2, big), Some(vec![0x0001, 0x0002]));
         // A 16-bit register padded to 32 bits: its low word.
-        assert_eq!(value_words(&payload, 1), Some(vec![0x0002]));
+        assert_eq!(value_words(&payload, 1, big), Some(vec![0x0002]));
         // Shorter than the value: not decoded.
-        assert_eq!(value_words(&payload[..2], 2), None);
+        assert_eq!(value_words(&payload[..2], 2, big), None);
         // A bit: one byte.
-        assert_eq!(value_words(&[1], 1), Some(vec![1]));
+        assert_eq!(value_words(&[1], 1, big), Some(vec![1]));
+    }
+
+    /// A u32 kept least significant word first: the event carries the value 262150
+    /// (0x0004_0006, fast-modbus.md §6); its registers are 0x0006, 0x0004, which the channel's
+    /// codec decodes back to 262150. Taken high word first, they decoded to 393220.
+    #[test]
+    fn a_wide_event_value_of_a_low_word_first_channel_decodes_to_the_value() {
+        let payload = [0x06, 0x00, 0x04, 0x00];
+        let words = value_words(&payload, 2, WordOrder::LittleEndian).unwrap();
+        assert_eq!(words, vec![0x0006, 0x0004]);
+        let codec = ValueCodec {
+            word_order: WordOrder::LittleEndian,
+            ..ValueCodec::plain(crate::config::format::RegisterFormat::U32)
+        };
+        assert_eq!(codec.decode(&words), Ok(Reading::Value("262150".into())));
     }
 
     #[test]

@@ -12,6 +12,7 @@ use std::path::Path;
 
 use serde_json::{json, Map, Value};
 
+use crate::config::format::WordOrder;
 use crate::config::parse::SourceText;
 use crate::config::template::parameter_declarations;
 use crate::config::{TemplateFile, TemplateLibrary};
@@ -140,9 +141,15 @@ pub fn add_device(registers: &mut RegisterMap, device: &ResolvedDevice) {
         .iter()
         .filter(|c| c.events != EventMode::Polled)
     {
-        for read in channel.registers.iter().filter_map(|r| r.read.as_ref()) {
+        for register in &channel.registers {
+            let Some(read) = register.read.as_ref() else {
+                continue;
+            };
             let width = u8::try_from(read.count).unwrap_or(u8::MAX);
             registers.mark_event_source(read.reg_type, read.address, width);
+            if width > 1 && register.codec.word_order == WordOrder::LittleEndian {
+                registers.mark_low_word_first(read.reg_type, read.address);
+            }
         }
     }
 }
@@ -230,6 +237,29 @@ mod tests {
         let source = SourceText::from_text(Path::new("test.json"), text);
         let template = TemplateFile::from_source(source).unwrap();
         template_registers(&template, 1).unwrap()
+    }
+
+    /// A sporadic u32 kept least significant word first sends its value (fast-modbus.md §6,
+    /// "payload = the register's new value", little-endian), whatever its word order; one
+    /// kept most significant word first sends the same bytes for the same value.
+    #[test]
+    fn wide_event_payloads_are_the_value_in_either_word_order() {
+        let mut t = registers(
+            r#"{"device_type": "t", "device": {"name": "T", "channels": [
+                {"name": "BE", "reg_type": "input", "address": 7, "format": "u32", "sporadic": true},
+                {"name": "LE", "reg_type": "input", "address": 9, "format": "u32",
+                 "word_order": "little_endian", "sporadic": true}
+            ]}}"#,
+        );
+        let r = &mut t.registers;
+        // 0x0004_0006 in both
+        r.set(RegisterType::Input, 7, 0x0004);
+        r.set(RegisterType::Input, 8, 0x0006);
+        r.set(RegisterType::Input, 9, 0x0006);
+        r.set(RegisterType::Input, 10, 0x0004);
+        let value = vec![0x06, 0x00, 0x04, 0x00];
+        assert_eq!(r.event_payload(RegisterType::Input, 7), value);
+        assert_eq!(r.event_payload(RegisterType::Input, 9), value);
     }
 
     #[test]

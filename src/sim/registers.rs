@@ -1,7 +1,7 @@
 //! The register tables of one virtual device: per table, address → value, whether the master may
 //! write it, and which registers can send Fast Modbus events.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 
 use crate::protocol::RegisterType;
 
@@ -21,6 +21,9 @@ pub struct RegisterMap {
     /// Base address of an event-capable value → its width in registers (1 for bits and 16-bit
     /// registers, 2 for 32-bit values, 4 for 64-bit ones). The event payload is the whole value.
     event_sources: BTreeMap<(RegisterType, u16), u8>,
+    /// Event-capable values whose registers hold the least significant word first
+    /// (`word_order` little_endian). The payload is the value's number all the same.
+    low_word_first: BTreeSet<(RegisterType, u16)>,
 }
 
 fn table_index(register_type: RegisterType) -> usize {
@@ -101,6 +104,13 @@ impl RegisterMap {
         self.event_sources.insert((register_type, base), width);
     }
 
+    /// The event-capable value at `base` keeps its least significant word first: its event
+    /// payload is still the value (fast-modbus.md §6: "payload = the register's new value",
+    /// little-endian), so its words are taken in that order.
+    pub fn mark_low_word_first(&mut self, register_type: RegisterType, base: u16) {
+        self.low_word_first.insert((register_type, base));
+    }
+
     pub fn cell(&self, register_type: RegisterType, address: u16) -> Option<RegisterCell> {
         self.table(register_type)?.get(&address).copied()
     }
@@ -143,13 +153,18 @@ impl RegisterMap {
     }
 
     /// The event payload of the value at `base`: 1 byte for bits; for registers the value
-    /// assembled big-endian from its registers, sent little-endian.
+    /// assembled from its registers in the value's word order (most significant word first
+    /// unless marked by [`Self::mark_low_word_first`]), sent little-endian.
     pub fn event_payload(&self, register_type: RegisterType, base: u16) -> Vec<u8> {
         let width = self.event_width(register_type, base).unwrap_or(1);
         if register_type.is_bit() {
             return vec![u8::from(self.get(register_type, base).unwrap_or(0) != 0)];
         }
-        let value = (0..u16::from(width)).fold(0u64, |acc, offset| {
+        let mut offsets: Vec<u16> = (0..u16::from(width)).collect();
+        if self.low_word_first.contains(&(register_type, base)) {
+            offsets.reverse();
+        }
+        let value = offsets.into_iter().fold(0u64, |acc, offset| {
             let word = base
                 .checked_add(offset)
                 .and_then(|address| self.get(register_type, address))
@@ -208,6 +223,23 @@ mod tests {
         map.define(RegisterType::Coil, 0, 1, true);
         map.set(RegisterType::Coil, 0, 7);
         assert_eq!(map.get(RegisterType::Coil, 0), Some(1));
+    }
+
+    /// A u32 kept least significant word first (registers 70 = 0x0006, 71 = 0x0004: the value
+    /// 0x0004_0006) sends its value, little-endian (fast-modbus.md §6), not its registers
+    /// taken most significant first (which made 0x0006_0004 of it).
+    #[test]
+    fn a_wide_event_value_kept_low_word_first_is_sent_as_its_value() {
+        let mut map = RegisterMap::new();
+        map.define(RegisterType::Input, 70, 2, false);
+        map.mark_event_source(RegisterType::Input, 70, 2);
+        map.mark_low_word_first(RegisterType::Input, 70);
+        map.set(RegisterType::Input, 70, 0x0006);
+        map.set(RegisterType::Input, 71, 0x0004);
+        assert_eq!(
+            map.event_payload(RegisterType::Input, 70),
+            vec![0x06, 0x00, 0x04, 0x00]
+        );
     }
 
     #[test]
