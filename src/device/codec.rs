@@ -155,8 +155,10 @@ impl ValueCodec {
         Ok(((joined >> self.bit_shift.min(127)) & self.mask()) as u64)
     }
 
-    /// Words most significant first, bytes swapped where `byte_order` says so.
-    fn ordered_words<'a>(&self, words: &'a [u16]) -> impl Iterator<Item = u16> + 'a {
+    /// Words most significant first, bytes swapped where `byte_order` says so. The same order
+    /// taken twice is where it started: given a value's words most significant first, it gives
+    /// the registers that hold the value (what an event's payload, the value itself, becomes).
+    pub fn ordered_words<'a>(&self, words: &'a [u16]) -> impl Iterator<Item = u16> + 'a {
         let swap = self.byte_order == ByteOrder::LittleEndian;
         let reverse = self.word_order == WordOrder::LittleEndian;
         let count = words.len();

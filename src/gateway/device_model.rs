@@ -375,7 +375,9 @@ impl DeviceModel {
                     .extend((0..width).map(|offset| (register_type, address.wrapping_add(offset))));
                 // The value's low words: a device may pad the payload beyond the register.
                 let skip = carried.len().saturating_sub(usize::from(width));
-                self.store_words(register_type, address, carried.get(skip..).unwrap_or(&[]));
+                let value = carried.get(skip..).unwrap_or(&[]);
+                let registers = self.registers_holding(register_type, address, value);
+                self.store_words(register_type, address, &registers);
                 // Part of a wider value: its other words, as last read, may be older than this
                 // one (a device updates a value at once). Forgotten, so that the value waits for
                 // the read the scheduler makes at once rather than being published half updated.
@@ -496,6 +498,41 @@ impl DeviceModel {
             .find(|r| r.reg_type == register_type && r.address == address)
             .map(|r| r.count.max(1));
         channel_width.map_or(carried, |width| width.min(carried))
+    }
+
+    /// The registers from `address` on that hold the value an event carried (`value`, words
+    /// most significant first): the payload is the value itself, whatever order the device
+    /// keeps its words and bytes in (wb-mqtt-serial takes the payload as the register's value),
+    /// so a channel with `word_order` or `byte_order` little_endian gets them reordered.
+    fn registers_holding<'a>(
+        &self,
+        register_type: RegisterType,
+        address: u16,
+        value: &'a [u16],
+    ) -> std::borrow::Cow<'a, [u16]> {
+        use crate::config::format::{ByteOrder, WordOrder};
+        let codec = self
+            .device
+            .channels
+            .iter()
+            .flat_map(|c| c.registers.iter())
+            .find(|r| {
+                r.read.is_some_and(|read| {
+                    read.reg_type == register_type
+                        && read.address == address
+                        && usize::from(read.count.max(1)) == value.len()
+                })
+            })
+            .map(|r| &r.codec);
+        match codec {
+            Some(codec)
+                if codec.word_order == WordOrder::LittleEndian
+                    || codec.byte_order == ByteOrder::LittleEndian =>
+            {
+                std::borrow::Cow::Owned(codec.ordered_words(value).collect())
+            }
+            _ => std::borrow::Cow::Borrowed(value),
+        }
     }
 
     /// Registers of the value read at `address` (1 when no channel reads one there).
@@ -1369,6 +1406,45 @@ mod tests {
             feed_packet(&mut model, "14 46 11 01 01 08 04 04 003C 0900 0200"),
             one("Input 1 counter", "131081")
         );
+    }
+
+    /// An event's payload is the value itself, little-endian (the protocol's §6; wb-mqtt-serial
+    /// copies it into the register's value), whatever order the device keeps its words in: a
+    /// counter kept low word first publishes what one kept high word first does, and its
+    /// registers hold what a read would bring. (Found by an independent device stack,
+    /// tests/interop_fast.rs: the words were stored high word first whatever the order.)
+    #[test]
+    fn a_wide_event_is_the_value_whatever_the_word_order() {
+        use crate::config::format::WordOrder;
+        for (word_order, registers) in [
+            (WordOrder::BigEndian, [4, 6]),
+            (WordOrder::LittleEndian, [6, 4]),
+        ] {
+            let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+                .join("templates/rtu2mqtt-counter8.json");
+            let template = TemplateFile::load(&path).unwrap();
+            let mut device =
+                resolve_template_device(&template, &serde_json::json!({ "slave_id": 20 })).unwrap();
+            let mut channels: Vec<ResolvedChannel> = device.channels.iter().cloned().collect();
+            for channel in &mut channels {
+                for register in &mut channel.registers {
+                    register.codec.word_order = word_order;
+                }
+            }
+            device.channels = channels.into();
+            let mut model = DeviceModel::new(Arc::new(device), 0, Repeats::All);
+            // Input 60/61 = 262150 (0x0004_0006): payload 06 00 04 00.
+            assert_eq!(
+                feed_packet(&mut model, "14 46 11 01 01 08 04 04 003C 0600 0400"),
+                one("Input 1 counter", "262150"),
+                "{word_order:?}"
+            );
+            assert_eq!(
+                poll(&mut model, 60, &registers),
+                one("Input 1 counter", "262150"),
+                "{word_order:?}: the registers as a read brings them"
+            );
+        }
     }
 
     /// Issue 15 defect 1: illuminance, u32 x 0.01 at input 9/10, polled as 655.36.
