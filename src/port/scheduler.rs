@@ -1639,6 +1639,23 @@ impl PortScheduler {
                 let enabled = enabled_registers(&masks, ranges).unwrap_or_default();
                 state.events_configured(now, members, &enabled);
             }
+            // An exception other than "illegal function" to a request that carried the reboot
+            // event's record: the device may take only the four register tables in 0x18 (the
+            // protocol defines its ranges by register type). Asked again without the record
+            // before it is taken for a device without events.
+            TransactionOutcome::Reply(Reply {
+                body: ReplyBody::Classic(ResponsePdu::Exception { code, .. }),
+                ..
+            }) if code != ExceptionCode::ILLEGAL_FUNCTION
+                && !state.reboot_record_refused
+                && ranges
+                    .iter()
+                    .any(|range| range.source == EventSource::System) =>
+            {
+                info!(device = %state.plan.name, %code, "event setup refused: asking again without the reboot event's record");
+                Self::health_success(state, device, now, out);
+                state.reboot_record_refused = true;
+            }
             TransactionOutcome::Reply(_) => {
                 info!(device = %state.plan.name, "device does not support Fast Modbus events: polling it");
                 Self::health_success(state, device, now, out);

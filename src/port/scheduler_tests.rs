@@ -623,6 +623,62 @@ fn registers_and_devices_without_events_fall_back_to_polling() {
     assert!(coil_reads(2, 0) > 20, "device 2 is polled");
 }
 
+/// A device that takes only the four register tables in 0x18 (the protocol defines its ranges
+/// by register type) and refuses the reboot event's record with an exception: asked again
+/// without the record, it gets events (it was polled for good). An "illegal function" still
+/// means no Fast Modbus at all (the test above). Found by an independent device stack
+/// (tests/interop_fast.rs).
+#[test]
+fn a_device_that_refuses_the_reboot_record_gets_events_without_it() {
+    let a = device(1, vec![read(RegisterType::Coil, 0, EventMode::Sporadic)]);
+    let mut scheduler = PortScheduler::new(settings(115_200), vec![a]);
+    let mut log = Log::default();
+    let mut setups = Vec::new();
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(2000),
+        |_, request| match &request.body {
+            RequestBody::Fast(FastRequest::ConfigureEvents { ranges }) => {
+                let with_record = ranges
+                    .iter()
+                    .any(|r| r.source == crate::protocol::EventSource::System);
+                setups.push(with_record);
+                if with_record {
+                    TransactionOutcome::Reply(Reply::classic(
+                        1,
+                        ResponsePdu::Exception {
+                            function: 0x46,
+                            code: ExceptionCode::ILLEGAL_DATA_VALUE,
+                        },
+                    ))
+                } else {
+                    healthy(request)
+                }
+            }
+            _ => healthy(request),
+        },
+    );
+    assert_eq!(setups, [true, false], "once with the record, once without");
+    let coil_reads = log
+        .classic_to(1)
+        .iter()
+        .filter(|(_, pdu)| matches!(pdu, RequestPdu::ReadCoils { .. }))
+        .count();
+    // Polled, it would be read every few ms (the test above: over 20 reads in these 2 s).
+    assert!(
+        coil_reads <= 2,
+        "read {coil_reads} times: events are not in use"
+    );
+    assert!(
+        log.sent
+            .iter()
+            .any(|(_, r)| matches!(r.body, RequestBody::Fast(FastRequest::PollEvents(_)))),
+        "events are polled"
+    );
+}
+
 #[test]
 fn a_refused_merged_read_is_split_and_only_the_bad_register_dropped() {
     let reads = (0..3)
