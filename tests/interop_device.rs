@@ -19,6 +19,8 @@
 
 mod daemon_support;
 mod mqtt_support;
+#[path = "tool_support/mod.rs"]
+mod tool_support;
 
 use std::collections::BTreeMap;
 use std::io::{BufRead, BufReader, Write};
@@ -26,6 +28,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, ChildStdin, Command, Stdio};
 use std::sync::mpsc::{self, Receiver};
 use std::time::{Duration, Instant};
+use tool_support::Run;
 
 use daemon_support::{repo, DaemonProcess};
 use mqtt_support::{publish, retained, Mosquitto, Recorder};
@@ -727,36 +730,15 @@ async fn rtu_over_tcp() {
 // ---------------------------------------------------------------------------------------------
 // Site tools.
 
-struct Run {
-    code: i32,
-    stdout: String,
-    stderr: String,
-}
-
 /// `rtu2mqtt <tool> --port <port> --baud <baud> --parity N --stop-bits 2 <args>`.
 fn tool(name: &str, port: &Path, baud: u32, args: &[&str]) -> Run {
-    let output = Command::new(env!("CARGO_BIN_EXE_rtu2mqtt"))
-        .arg(name)
-        .arg("--port")
-        .arg(port)
-        .args([
-            "--baud",
-            &baud.to_string(),
-            "--parity",
-            "N",
-            "--stop-bits",
-            "2",
-        ])
-        // Generous for a loaded test machine; values are asserted, never timings.
-        .args(["--latency", "100"])
-        .args(args)
-        .output()
-        .expect("run the tool");
-    Run {
-        code: output.status.code().unwrap_or(-1),
-        stdout: String::from_utf8_lossy(&output.stdout).into_owned(),
-        stderr: String::from_utf8_lossy(&output.stderr).into_owned(),
-    }
+    let port = port.to_str().expect("a UTF-8 path");
+    let baud = baud.to_string();
+    let mut all = vec![name, "--port", port, "--baud", &baud, "--parity", "N"];
+    // Generous for a loaded test machine; values are asserted, never timings.
+    all.extend(["--stop-bits", "2", "--latency", "100"]);
+    all.extend_from_slice(args);
+    tool_support::tool(&all)
 }
 
 /// `read --json` of the device: (raw words or bits, decoded values).

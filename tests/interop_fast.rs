@@ -17,12 +17,15 @@
 mod daemon_support;
 mod mqtt_support;
 mod sim_support;
+#[path = "tool_support/mod.rs"]
+mod tool_support;
 
 use std::io::{BufRead, BufReader, Write};
 use std::path::{Path, PathBuf};
 use std::process::{Child, ChildStdin, Command, Stdio};
 use std::sync::{Arc, Condvar, Mutex};
 use std::time::{Duration, Instant};
+use tool_support::tool;
 
 use daemon_support::{repo, DaemonProcess};
 use mqtt_support::{publish, retained, wait_for, Mosquitto};
@@ -961,24 +964,6 @@ impl Drop for KillOnDrop {
     fn drop(&mut self) {
         let _ = self.0.kill();
         let _ = self.0.wait();
-    }
-}
-
-struct Run {
-    code: i32,
-    stdout: String,
-    stderr: String,
-}
-
-fn tool(args: &[&str]) -> Run {
-    let output = Command::new(env!("CARGO_BIN_EXE_rtu2mqtt"))
-        .args(args)
-        .output()
-        .unwrap();
-    Run {
-        code: output.status.code().unwrap_or(-1),
-        stdout: String::from_utf8_lossy(&output.stdout).into_owned(),
-        stderr: String::from_utf8_lossy(&output.stderr).into_owned(),
     }
 }
 

@@ -11,8 +11,11 @@
 mod daemon_support;
 mod mqtt_support;
 mod sim_support;
+#[path = "tool_support/mod.rs"]
+mod tool_support;
 
 use std::process::Command;
+use tool_support::{tool, Run};
 
 use nix::sys::termios::{self, BaudRate, ControlFlags, SetArg};
 use serde_json::{json, Value};
@@ -20,24 +23,6 @@ use sim_support::SimProcess;
 
 /// Generous for a loaded test machine; values are asserted, never timings.
 const LATENCY_MS: &str = "100";
-
-struct Run {
-    code: i32,
-    stdout: String,
-    stderr: String,
-}
-
-fn tool(args: &[&str]) -> Run {
-    let output = Command::new(env!("CARGO_BIN_EXE_rtu2mqtt"))
-        .args(args)
-        .output()
-        .unwrap();
-    Run {
-        code: output.status.code().unwrap_or(-1),
-        stdout: String::from_utf8_lossy(&output.stdout).into_owned(),
-        stderr: String::from_utf8_lossy(&output.stderr).into_owned(),
-    }
-}
 
 fn sim() -> SimProcess {
     SimProcess::start("site-bus.json", &[])

@@ -474,6 +474,34 @@ mod line_faults {
     use std::io::Write;
     use std::os::fd::AsFd;
 
+    const LINE: LineSettings = LineSettings::new(9600, Parity::None, 2);
+
+    /// A transport on a fresh pty's slave, and the pty's master as the far end of the line.
+    async fn transport_on_a_pty(line: LineSettings) -> (Transport, std::fs::File) {
+        let pty = nix::pty::openpty(None, None).expect("a pty");
+        let path = nix::unistd::ttyname(pty.slave.as_fd()).expect("its name");
+        let endpoint = Endpoint::Serial {
+            path: path.to_string_lossy().into_owned(),
+            line,
+            frame_timeout: exchange::DEFAULT_FRAME_TIMEOUT,
+        };
+        let transport = Transport::open(&endpoint).await.expect("opens");
+        drop(pty.slave);
+        (transport, std::fs::File::from(pty.master))
+    }
+
+    /// Holding register 0 of device 1, with these timeouts.
+    fn read_one_register(reply_timeout: Duration, first_byte_timeout: Duration) -> Transaction {
+        Transaction {
+            request_time: LINE.wire_time(8),
+            reply_timeout,
+            first_byte_timeout: Some(first_byte_timeout),
+            late_window: Duration::ZERO,
+            estimated: reply_timeout,
+            request: Request::classic(1, RequestPdu::ReadHoldingRegisters { start: 0, count: 1 }),
+        }
+    }
+
     /// A line that never falls quiet for 3.5 characters (a stuck transmitter, a babbling
     /// device: a byte every 2 ms at 9600, whose frame gap is 4 ms). The request used to wait
     /// for the silence before it with no bound: `transact` never returned, so the scheduler
@@ -482,17 +510,7 @@ mod line_faults {
     /// (The 5 s bound only stops a hanging test.)
     #[tokio::test]
     async fn a_babbling_line_fails_the_transaction_as_garbled() {
-        let pty = nix::pty::openpty(None, None).expect("a pty");
-        let path = nix::unistd::ttyname(pty.slave.as_fd()).expect("its name");
-        let line = LineSettings::new(9600, Parity::None, 2);
-        let endpoint = Endpoint::Serial {
-            path: path.to_string_lossy().into_owned(),
-            line,
-            frame_timeout: exchange::DEFAULT_FRAME_TIMEOUT,
-        };
-        let mut transport = Transport::open(&endpoint).await.expect("opens");
-        drop(pty.slave);
-        let mut master = std::fs::File::from(pty.master);
+        let (mut transport, mut master) = transport_on_a_pty(LINE).await;
         let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
         let stopped = stop.clone();
         let babbler = std::thread::spawn(move || {
@@ -501,15 +519,7 @@ mod line_faults {
                 std::thread::sleep(Duration::from_millis(2));
             }
         });
-        let request = Request::classic(1, RequestPdu::ReadHoldingRegisters { start: 0, count: 1 });
-        let transaction = Transaction {
-            request_time: line.wire_time(8),
-            reply_timeout: Duration::from_millis(100),
-            first_byte_timeout: Some(Duration::from_millis(50)),
-            late_window: Duration::ZERO,
-            estimated: Duration::from_millis(100),
-            request,
-        };
+        let transaction = read_one_register(Duration::from_millis(100), Duration::from_millis(50));
         let result =
             tokio::time::timeout(Duration::from_secs(5), transport.transact(&transaction)).await;
         stop.store(true, std::sync::atomic::Ordering::Relaxed);
@@ -529,17 +539,7 @@ mod line_faults {
     #[tokio::test]
     async fn a_reply_written_at_once_on_a_pty_is_taken() {
         use std::io::Read;
-        let pty = nix::pty::openpty(None, None).expect("a pty");
-        let path = nix::unistd::ttyname(pty.slave.as_fd()).expect("its name");
-        let line = LineSettings::new(9600, Parity::None, 2);
-        let endpoint = Endpoint::Serial {
-            path: path.to_string_lossy().into_owned(),
-            line,
-            frame_timeout: exchange::DEFAULT_FRAME_TIMEOUT,
-        };
-        let mut transport = Transport::open(&endpoint).await.expect("opens");
-        drop(pty.slave);
-        let mut device = std::fs::File::from(pty.master);
+        let (mut transport, mut device) = transport_on_a_pty(LINE).await;
         let reply = crate::protocol::Reply::classic(
             1,
             crate::protocol::ResponsePdu::ReadHoldingRegisters { values: vec![1234] },
@@ -551,15 +551,7 @@ mod line_faults {
             device.write_all(&frame).expect("the reply");
             device
         });
-        let request = Request::classic(1, RequestPdu::ReadHoldingRegisters { start: 0, count: 1 });
-        let transaction = Transaction {
-            request_time: line.wire_time(8),
-            reply_timeout: Duration::from_millis(200),
-            first_byte_timeout: Some(Duration::from_millis(150)),
-            late_window: Duration::ZERO,
-            estimated: Duration::from_millis(20),
-            request,
-        };
+        let transaction = read_one_register(Duration::from_millis(200), Duration::from_millis(150));
         let (outcome, _) =
             tokio::time::timeout(Duration::from_secs(5), transport.transact(&transaction))
                 .await
