@@ -1,7 +1,9 @@
 //! SIGHUP reloads the config with real processes (two simulated buses, the daemon, mosquitto):
 //! a device removed from one port loses its retained topics, a device added there is set up and
 //! published, the other port keeps running untouched (its task is not restarted and still takes
-//! writes), and a config that does not load leaves everything running as it was.
+//! writes), and a config that does not load leaves everything running as it was. Also what
+//! becomes of a write while its port is away: carried over a reload that restarts the port,
+//! given up after the device's write retry time.
 
 #[path = "daemon_support/mod.rs"]
 mod daemon_support;
@@ -284,4 +286,58 @@ async fn a_write_waiting_for_its_port_survives_a_reload_that_restarts_the_port()
         (reply["value"] == 1).then_some(())
     })
     .await;
+}
+
+/// A write asked for while its port is unavailable is given up once the device's
+/// `max_write_fail_time_s` is over (flagged `w`), as a write the device never answered is, and
+/// is not sent when the port comes back: a relay switched at 10:00 must not click at 14:00,
+/// when the adapter is plugged in again. (It waited in the port's queue for as long as the port
+/// was away, and went out first thing once it opened.)
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_write_its_port_could_not_take_in_time_is_given_up_not_sent_late() {
+    let broker = Mosquitto::start();
+    let port = broker.port;
+    let dir = tempfile::tempdir().unwrap();
+    let tty = dir.path().join("ttyRS485-away");
+    let config_path = dir.path().join("config.json");
+    let config = json!({
+        "mqtt": {"host": "127.0.0.1", "port": port, "client_id": "rtu2mqtt-write-away"},
+        "ports": [{"path": &tty, "baud_rate": 115200, "stop_bits": 2,
+                   "devices": [{"device_type": "rtu2mqtt-relay6", "slave_id": 20,
+                                "max_write_fail_time_s": 1}]}]
+    });
+    std::fs::write(&config_path, config.to_string()).unwrap();
+    let daemon = Daemon::start(dir.path(), &config_path, "info");
+    wait_for("K3 announced", || async {
+        topic_value(port, "/devices/relay6_20/controls/K3/meta").await
+    })
+    .await;
+    wait_for("the port found missing", || async {
+        daemon.log().contains("cannot open the port").then_some(())
+    })
+    .await;
+    publish(port, "/devices/relay6_20/controls/K3/on", "1", false).await;
+    wait_for("the write given up and flagged", || async {
+        topic_value(port, "/devices/relay6_20/controls/K3/meta/error")
+            .await
+            .filter(|flags| flags.contains('w'))
+    })
+    .await;
+    assert!(
+        daemon
+            .log()
+            .contains("write given up: the port has been unavailable"),
+        "{}",
+        daemon.log()
+    );
+
+    let sim = sim(dir.path(), "bus.json", BUS_A);
+    std::os::unix::fs::symlink(&sim.pty, &tty).unwrap();
+    // Set up, then read: a write still queued would have gone before the first read.
+    wait_for("K3 read once the port opened", || async {
+        (topic_value(port, "/devices/relay6_20/controls/K3").await? == "0").then_some(())
+    })
+    .await;
+    let reply = sim.control(json!({"cmd": "get", "device": 20, "type": "coil", "address": 2}));
+    assert_eq!(reply["value"], 0, "the given-up write went out late");
 }

@@ -540,7 +540,17 @@ impl PortTask {
             loop {
                 self.beat();
                 if self.bus_served {
-                    let mut events = self.scheduler.port_unavailable(self.now(), closed_since);
+                    // Writes wait in the scheduler, their retry time running: given up when it
+                    // is over, not sent hours later when the port is back.
+                    while let Some(write) = self.carried.pop_front() {
+                        self.handle_write(write).await;
+                    }
+                    while let Ok(write) = self.writes.try_recv() {
+                        self.handle_write(write).await;
+                    }
+                    let now = self.now();
+                    let mut events = self.scheduler.port_unavailable(now, closed_since);
+                    events.extend(self.scheduler.expire_writes(now));
                     self.dispatch(&mut events).await;
                 }
                 self.refuse_queued("it failed and is being reopened");

@@ -187,6 +187,7 @@ pub fn device_plan(device: &ResolvedDevice) -> DevicePlan {
         .collect();
     let defaults = HealthPolicy::default();
     DevicePlan {
+        write_retry_time: device.timing.max_write_fail_time,
         name: device.id.clone(),
         address: device.slave_id,
         response_timeout: device.timing.response_timeout,

@@ -146,6 +146,9 @@ pub struct DevicePlan {
     pub health: HealthPolicy,
     pub reads: Vec<PlannedRead>,
     pub setup: Vec<SetupWrite>,
+    /// How long a write that cannot go (no answer, the port unavailable) keeps being tried
+    /// before it is given up (`max_write_fail_time_s`, 600 s by default as in wb-mqtt-serial).
+    pub write_retry_time: Duration,
 }
 
 /// A write requested from outside (MQTT, RPC). The latest value per register wins.

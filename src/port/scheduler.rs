@@ -30,7 +30,9 @@ use crate::protocol::{
     Request, RequestBody, ResponsePdu,
 };
 
-/// How long a failed write keeps being retried.
+/// How long a failed write keeps being retried unless its device says otherwise
+/// (`DevicePlan::write_retry_time`, `max_write_fail_time_s`).
+#[cfg(test)]
 const WRITE_RETRY_TIME: Duration = Duration::from_secs(600);
 
 /// What the driver does next.
@@ -647,9 +649,13 @@ impl PortScheduler {
         {
             write.defined = Vec::new();
         }
+        let retry_time = self
+            .devices
+            .get(write.device)
+            .map_or(Duration::ZERO, |d| d.plan.write_retry_time);
         let mut pending = PendingWrite {
             write,
-            give_up_at: now + WRITE_RETRY_TIME,
+            give_up_at: now.saturating_add(retry_time),
             seen: 0,
         };
         let same_register = |p: &PendingWrite| write_key(&p.write) == write_key(&pending.write);
@@ -1585,10 +1591,38 @@ impl PortScheduler {
         }
     }
 
+    /// Gives up the queued writes whose retry time is over without their having gone (the
+    /// port unavailable all that time: nothing tried and failed them), as a failed write is
+    /// given up then: a command never goes out long after it was given, when the port is back.
+    pub fn expire_writes(&mut self, now: Duration) -> Vec<PortEvent> {
+        let in_flight = match &self.in_flight {
+            Some(InFlight::Write { write }) => Some(write_key(&write.write)),
+            _ => None,
+        };
+        let mut out = Vec::new();
+        let devices = &self.devices;
+        self.writes.retain(|pending| {
+            if now < pending.give_up_at || Some(write_key(&pending.write)) == in_flight {
+                return true;
+            }
+            if let Some(state) = devices.get(pending.write.device) {
+                warn!(device = %state.plan.name, address = pending.write.address, "write given up: the port has been unavailable since it was asked for");
+            }
+            out.push(PortEvent::WriteFailed {
+                device: pending.write.device,
+                register_type: pending.write.register_type,
+                address: pending.write.address,
+                permanent: true,
+            });
+            false
+        });
+        out
+    }
+
     /// The device did not answer a setup write: its writes waiting for the setup (see
     /// [`Self::choose_write`]) fail with it, as they would have failed had they gone, and are
     /// given up at the time they would have been: the wait neither loses a write nor keeps one
-    /// past [`WRITE_RETRY_TIME`].
+    /// past its retry time.
     fn setup_failed_for_writes(&mut self, now: Duration, device: usize, out: &mut Vec<PortEvent>) {
         let mut index = 0;
         while let Some(pending) = self.writes.get(index) {

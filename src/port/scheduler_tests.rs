@@ -44,6 +44,7 @@ fn device(address: u8, reads: Vec<PlannedRead>) -> DevicePlan {
         health: HealthPolicy::default(),
         reads,
         setup: Vec::new(),
+        write_retry_time: Duration::from_secs(600),
     }
 }
 
@@ -980,6 +981,48 @@ fn unsent_writes_leave_out_the_one_in_flight_and_those_done() {
     let mut events = Vec::new();
     scheduler.complete_into(now + ms(2), answer, ReplyTiming::default(), &mut events);
     assert_eq!(unsent(&scheduler), [(0, RegisterType::Holding, 11)]);
+}
+
+/// A write that could not go (the port away) is given up once its device's retry time
+/// (`max_write_fail_time_s`) is over, and never sent after.
+#[test]
+fn a_write_that_never_went_is_given_up_at_its_devices_retry_time() {
+    let plan = DevicePlan {
+        write_retry_time: ms(1000),
+        ..device(3, vec![read(RegisterType::Holding, 0, EventMode::Polled)])
+    };
+    let mut scheduler = PortScheduler::new(settings(115_200), vec![plan]);
+    let write = RegisterWrite {
+        device: 0,
+        register_type: RegisterType::Holding,
+        address: 10,
+        values: vec![7],
+        force_multiple: false,
+        defined: Vec::new(),
+    };
+    assert_eq!(scheduler.queue_write(ms(0), write), None);
+    assert!(scheduler.expire_writes(ms(999)).is_empty());
+    assert_eq!(
+        scheduler.expire_writes(ms(1000)),
+        vec![PortEvent::WriteFailed {
+            device: 0,
+            register_type: RegisterType::Holding,
+            address: 10,
+            permanent: true
+        }]
+    );
+    assert_eq!(scheduler.unsent_writes().count(), 0);
+    let mut log = Log::default();
+    run(&mut scheduler, &mut log, ms(1000), ms(1100), |_, r| {
+        healthy(r)
+    });
+    assert!(
+        !log.sent.iter().any(|(_, r)| matches!(
+            r.body,
+            RequestBody::Classic(RequestPdu::WriteSingleRegister { .. })
+        )),
+        "the given-up write went out"
+    );
 }
 
 /// `gaps` after retries of a dead device: each in `timeout_only` or `with_late_window` (but
