@@ -319,7 +319,11 @@ async fn a_device_that_pauses_mid_reply_is_read_with_its_frame_timeout() {
 async fn a_second_gateway_that_cannot_open_the_port_leaves_the_first_ones_topics_alone() {
     let broker = Mosquitto::start();
     let dir = tempfile::tempdir().unwrap();
-    let (sim, templates) = one_meter(dir.path(), "115200 8N2", 0, json!({}));
+    // A writable limit besides the energy: a write sent now is the first gateway's to carry out.
+    let channels = json!({"channels": [
+        {"name": "Energy", "reg_type": "input", "address": 0, "type": "value", "format": "u32"},
+        {"name": "Limit", "reg_type": "holding", "address": 5, "type": "value"}]});
+    let (sim, templates) = one_meter(dir.path(), "115200 8N2", 0, channels);
     let config = |client_id: &str| {
         json!({
             "mqtt": {"host": "127.0.0.1", "port": broker.port, "client_id": client_id},
@@ -352,6 +356,29 @@ async fn a_second_gateway_that_cannot_open_the_port_leaves_the_first_ones_topics
         "the second gateway finding the port held three times",
         || async { (second.log().matches("another program holds it").count() >= 3).then_some(()) },
     )
+    .await;
+    // A write while the second gateway waits for the port: the first carries it out; the
+    // second drops it rather than sending it again, late, should the port become its own.
+    // (Sent until the second has heard one: its subscription is not observable otherwise.)
+    wait_for("the second gateway dropping a write it heard", || async {
+        publish(
+            broker.port,
+            "/devices/meter_41/controls/Limit/on",
+            "7",
+            false,
+        )
+        .await;
+        second
+            .log()
+            .contains("writes dropped: another program holds the port")
+            .then_some(())
+    })
+    .await;
+    wait_for("the first gateway's write of the limit", || async {
+        let limit =
+            sim.control(json!({"cmd": "get", "device": 41, "type": "holding", "address": 5}));
+        (limit["value"] == 7).then_some(())
+    })
     .await;
     assert!(second.terminate().success());
     wait_for(

@@ -552,6 +552,18 @@ impl PortTask {
                     let mut events = self.scheduler.port_unavailable(now, closed_since);
                     events.extend(self.scheduler.expire_writes(now));
                     self.dispatch(&mut events).await;
+                } else {
+                    // Another program holds the port, and its devices' topics are that
+                    // program's: it carries out the writes sent to them (it hears the same
+                    // `/on`). Kept, they would go out again, late, once the port is ours.
+                    let mut dropped = self.carried.len();
+                    self.carried.clear();
+                    while self.writes.try_recv().is_ok() {
+                        dropped += 1;
+                    }
+                    if dropped > 0 {
+                        info!(port = %self.plan_name, dropped, "writes dropped: another program holds the port and serves its devices");
+                    }
                 }
                 self.refuse_queued("it failed and is being reopened");
                 let wake = reopen_at.min(Instant::now() + FIRST_REOPEN_DELAY);
