@@ -70,9 +70,21 @@ const RUST_WORDS: [&str; 12] = [
     "Os {",
 ];
 
+/// `text` with the temporary directories' names taken out: a random name (`.tmpu85ZCR`) may
+/// hold a word the check looks for.
 fn assert_no_rust_words(text: &str) {
+    let words: String = text
+        .split_inclusive(char::is_whitespace)
+        .map(|word| {
+            if word.contains("/tmp/") {
+                "PATH "
+            } else {
+                word
+            }
+        })
+        .collect();
     for word in RUST_WORDS {
-        assert!(!text.contains(word), "`{word}` in: {text}");
+        assert!(!words.contains(word), "`{word}` in: {text}");
     }
 }
 
