@@ -224,6 +224,20 @@ async fn sighup_applies_the_new_config_port_by_port() {
     assert!(status.success(), "exit status {status}");
 }
 
+/// Once the daemon has announced relay6_20's K3 and found its port missing, `/on` 1 to K3.
+/// Subscriptions go before a device's meta: once K3's meta is there, its `/on` is heard.
+async fn switch_k3_on_while_the_port_is_missing(port: u16, daemon: &Daemon) {
+    wait_for("K3 announced", || async {
+        topic_value(port, "/devices/relay6_20/controls/K3/meta").await
+    })
+    .await;
+    wait_for("the port found missing", || async {
+        daemon.log().contains("cannot open the port").then_some(())
+    })
+    .await;
+    publish(port, "/devices/relay6_20/controls/K3/on", "1", false).await;
+}
+
 /// A write that waits for its port (which cannot be opened yet) is not lost when a reload
 /// restarts that port: the stopping task hands it to the new one, which sends it once the port
 /// opens. (Without that, the write died with the old task's queue.)
@@ -249,16 +263,7 @@ async fn a_write_waiting_for_its_port_survives_a_reload_that_restarts_the_port()
         &config_path,
         "info,rtu2mqtt::mqtt::client=debug",
     );
-    // Subscriptions go before a device's meta: once K3's meta is there, its /on is heard.
-    wait_for("K3 announced", || async {
-        topic_value(port, "/devices/relay6_20/controls/K3/meta").await
-    })
-    .await;
-    wait_for("the port found missing", || async {
-        daemon.log().contains("cannot open the port").then_some(())
-    })
-    .await;
-    publish(port, "/devices/relay6_20/controls/K3/on", "1", false).await;
+    switch_k3_on_while_the_port_is_missing(port, &daemon).await;
     wait_for("the write taken for the bus", || async {
         daemon
             .log()
@@ -308,15 +313,7 @@ async fn a_write_its_port_could_not_take_in_time_is_given_up_not_sent_late() {
     });
     std::fs::write(&config_path, config.to_string()).unwrap();
     let daemon = Daemon::start(dir.path(), &config_path, "info");
-    wait_for("K3 announced", || async {
-        topic_value(port, "/devices/relay6_20/controls/K3/meta").await
-    })
-    .await;
-    wait_for("the port found missing", || async {
-        daemon.log().contains("cannot open the port").then_some(())
-    })
-    .await;
-    publish(port, "/devices/relay6_20/controls/K3/on", "1", false).await;
+    switch_k3_on_while_the_port_is_missing(port, &daemon).await;
     wait_for("the write given up and flagged", || async {
         topic_value(port, "/devices/relay6_20/controls/K3/meta/error")
             .await

@@ -542,12 +542,7 @@ impl PortTask {
                 if self.bus_served {
                     // Writes wait in the scheduler, their retry time running: given up when it
                     // is over, not sent hours later when the port is back.
-                    while let Some(write) = self.carried.pop_front() {
-                        self.handle_write(write).await;
-                    }
-                    while let Ok(write) = self.writes.try_recv() {
-                        self.handle_write(write).await;
-                    }
+                    self.take_waiting_writes().await;
                     let now = self.now();
                     let mut events = self.scheduler.port_unavailable(now, closed_since);
                     events.extend(self.scheduler.expire_writes(now));
@@ -600,12 +595,7 @@ impl PortTask {
                 return Ok(());
             }
             self.beat();
-            while let Some(write) = self.carried.pop_front() {
-                self.handle_write(write).await;
-            }
-            while let Ok(write) = self.writes.try_recv() {
-                self.handle_write(write).await;
-            }
+            self.take_waiting_writes().await;
             while let Some(Ok((device, read))) =
                 self.identity.results.as_mut().map(mpsc::Receiver::try_recv)
             {
@@ -957,6 +947,17 @@ impl PortTask {
         if let Some(status) = &self.status {
             let report = self.scheduler.device_report(device, now);
             status.record(|stats| stats.set_schedule(device, report));
+        }
+    }
+
+    /// Takes the writes handed on by the task this one replaced, then those in the queue, in
+    /// that order (oldest first).
+    async fn take_waiting_writes(&mut self) {
+        while let Some(write) = self.carried.pop_front() {
+            self.handle_write(write).await;
+        }
+        while let Ok(write) = self.writes.try_recv() {
+            self.handle_write(write).await;
         }
     }
 
