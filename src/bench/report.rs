@@ -94,7 +94,9 @@ fn scenario5(out: &mut String, scans: &[ScanRun]) {
     }
     let _ = writeln!(
         out,
-        "## 5. Scan\n\n`rtu2mqtt scan --json` as its own process on the simulator's pty, all 48 \
+        "## 5. Scan\n\n`rtu2mqtt scan --json --fifo-trigger 1` as its own process on the \
+         simulator's pty (told what the kernel says of a controller's port once the tool has \
+         set it to hand bytes over one at a time, which a pty cannot say), all 48 \
          port settings (8 baud rates × N/E/O × 1/2 stop bits) covered by 24 transmissions (one per \
          baud rate and parity, sent with 2 stop bits: a receiver checks only the first stop bit, \
          so devices at 1 and 2 hear it alike; each device's stop bits come from its registers). \

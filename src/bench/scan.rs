@@ -189,6 +189,10 @@ fn scan_into(
         .arg("--port")
         .arg(harness.pty())
         .arg("--json")
+        // The simulator plays the UART as the tools leave a controller's own port (each byte
+        // handed over as it comes); there the tool reads that back from the kernel, which a
+        // pseudo-terminal cannot tell.
+        .args(["--fifo-trigger", "1"])
         .output()?;
     run.elapsed = started.elapsed();
     let report: Value = serde_json::from_slice(&output.stdout).map_err(|err| {

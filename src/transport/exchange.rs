@@ -79,7 +79,8 @@ pub struct LinkConfig {
     pub frame_gap: Duration,
     /// How much later than the wire says a reply's end may reach the reader: a UART's receive
     /// timeout on a serial line (`LineSettings::receive_timeout`), added to every reply
-    /// deadline; nothing on TCP.
+    /// deadline, unless the port is known to hand every byte over as it comes (see
+    /// [`Self::with_receive_fifo`]); nothing on TCP.
     pub receive_timeout: Duration,
     /// How many bytes the serial port's receive FIFO collects before it hands them over (its
     /// trigger level; 1: each byte as it comes). Below the trigger, bytes wait for the receive
@@ -146,12 +147,20 @@ impl LinkConfig {
     /// timeout). Until a burst is handed over, each of its bytes may follow the one before by
     /// almost the receive timeout (arbitration fillers a window apart, which never leave the
     /// line quiet for that long): bursts may come `trigger` receive timeouts apart, and the
-    /// silence that ends a frame grows to cover them. No effect on TCP.
+    /// silence that ends a frame grows to cover them. At 1 (the kernel says so, or the
+    /// operator), a frame's end comes at its stop bit too, and reply deadlines no longer allow
+    /// for the receive timeout; a port that says nothing (a USB adapter, a pseudo-terminal)
+    /// keeps that allowance. No effect on TCP.
     pub fn with_receive_fifo(mut self, trigger: u32) -> Self {
-        if self.serial.is_none() {
+        let Some(line) = self.serial else {
             return self;
-        }
+        };
         self.receive_fifo = trigger.max(1);
+        self.receive_timeout = if self.receive_fifo == 1 {
+            Duration::ZERO
+        } else {
+            line.receive_timeout()
+        };
         if self.receive_fifo > 1 {
             let burst_gap = self
                 .receive_timeout
@@ -1908,11 +1917,43 @@ mod tests {
             serial(line).with_receive_fifo(8).quiet_gap,
             line.receive_timeout() * 9
         );
-        assert_eq!(serial(line).with_receive_fifo(1), serial(line));
         assert_eq!(
             LinkConfig::tcp(Framing::Rtu).with_receive_fifo(8),
             LinkConfig::tcp(Framing::Rtu)
         );
+    }
+
+    #[test]
+    fn a_port_that_hands_every_byte_over_at_once_waits_for_no_receive_timeout() {
+        for baud in [1200, 9600, 115_200] {
+            let line = line(baud);
+            let transaction = transaction(&line, read_request());
+            let silent_until = |config: LinkConfig| {
+                let mut exchange = Exchange::new(config);
+                let finished = run(&mut exchange, &transaction, ms(0), &[]);
+                assert_eq!(finished.outcome, TransactionOutcome::NoReply, "at {baud}");
+                finished.at
+            };
+            // A port that says nothing of its FIFO (a USB adapter, a pseudo-terminal) may be a
+            // UART at the kernel's trigger, which hands a lone byte over a receive timeout late.
+            let unknown = silent_until(serial(line));
+            let one_byte = silent_until(serial(line).with_receive_fifo(1));
+            assert_eq!(unknown - one_byte, line.receive_timeout(), "at {baud}");
+            assert_eq!(serial(line).with_receive_fifo(1).receive_timeout, ms(0));
+            assert_eq!(
+                serial(line).with_receive_fifo(8).receive_timeout,
+                line.receive_timeout()
+            );
+            // Nothing else changes: the frame's silence and the reply's own timing.
+            let one = serial(line).with_receive_fifo(1);
+            assert_eq!(
+                LinkConfig {
+                    receive_timeout: line.receive_timeout(),
+                    ..one
+                },
+                serial(line)
+            );
+        }
     }
 
     #[test]

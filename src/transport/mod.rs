@@ -125,9 +125,10 @@ impl Transport {
                 if let Some(trigger) = trigger.filter(|&trigger| trigger > 1) {
                     debug!(%path, trigger, "the receive FIFO hands bytes over {trigger} at a time");
                 }
-                let mut config = LinkConfig::serial(*line)
-                    .with_receive_fifo(trigger.unwrap_or(1))
-                    .with_frame_timeout(*frame_timeout);
+                let mut config = LinkConfig::serial(*line).with_frame_timeout(*frame_timeout);
+                if let Some(trigger) = trigger {
+                    config = config.with_receive_fifo(trigger);
+                }
                 if link.is_pseudo_terminal() {
                     debug!(%path, "a pseudo-terminal: no wire times its bytes");
                     config = config.on_pseudo_terminal();
