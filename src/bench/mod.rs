@@ -11,6 +11,8 @@ pub mod library;
 pub mod matching;
 
 #[cfg(feature = "bench")]
+pub mod bare_master;
+#[cfg(feature = "bench")]
 pub mod floor;
 #[cfg(feature = "bench")]
 pub mod plots;

@@ -4,6 +4,7 @@
 use std::fmt::Write as _;
 use std::time::Duration;
 
+use super::bare_master::BareMasterRun;
 use super::scan::ScanRun;
 use super::scenarios::{classic_read_wire_time, RunResult};
 
@@ -62,7 +63,12 @@ pub struct Environment {
     pub quick: bool,
 }
 
-pub fn markdown(runs: &[RunResult], scans: &[ScanRun], env: &Environment) -> String {
+pub fn markdown(
+    runs: &[RunResult],
+    scans: &[ScanRun],
+    bare: &[BareMasterRun],
+    env: &Environment,
+) -> String {
     let mut out = String::new();
     let _ = writeln!(out, "# rtu2mqtt benchmarks\n");
     let _ = writeln!(
@@ -79,6 +85,7 @@ pub fn markdown(runs: &[RunResult], scans: &[ScanRun], env: &Environment) -> Str
     );
     scenario2(&mut out, runs);
     scenario7(&mut out, runs);
+    bare_master(&mut out, bare);
     scenario1(&mut out, runs);
     scenario4(&mut out, runs);
     scenario5(&mut out, scans);
@@ -239,6 +246,46 @@ fn scenario7(out: &mut String, runs: &[RunResult]) {
          reply, and on this shared VM it moves from minute to minute. `wake-ups/transaction` \
          counts the daemon's sleeps (voluntary context switches).\n"
     );
+}
+
+/// The floor under scenario 7: the simplest master on the same bus ([`super::bare_master`]).
+fn bare_master(out: &mut String, runs: &[BareMasterRun]) {
+    if runs.is_empty() {
+        return;
+    }
+    let _ = writeln!(
+        out,
+        "### The floor: the simplest master on the same bus\n\nA loop in the bench process \
+         (`src/bench/bare_master.rs`) reads the 60 input registers of 8 of these devices round \
+         robin and does nothing else: write, sleep until the reply is due, read, keep the \
+         3.5-character gap, ask the kernel whether the line stayed quiet. No MQTT, no events, \
+         no scheduler: what any master that sleeps through replies pays here. With 1 sleep it \
+         reads 3.5 characters after the reply's predicted end and writes the next request at \
+         once (a design the daemon does not use: a late reply would then be followed too \
+         closely). CPU is the loop thread's own clock.\n"
+    );
+    let _ = writeln!(
+        out,
+        "| line | sleeps per transaction | transactions | answered | CPU µs/transaction | wake-ups/transaction | one wake-up µs | notes |\n|---|---|---|---|---|---|---|---|"
+    );
+    for run in runs {
+        let _ = writeln!(
+            out,
+            "| {} 8N2 | {} | {} | {} | {} | {} | {} | {} |",
+            run.baud,
+            run.sleeps,
+            run.transactions,
+            run.answered,
+            num(run.cpu_per_transaction_us(), 0),
+            num(run.wake_ups_per_transaction(), 2),
+            num(run.wake_up_cost.map(|cost| cost.as_secs_f64() * 1e6), 1),
+            run.problem
+                .as_deref()
+                .and_then(|p| p.lines().next())
+                .unwrap_or(""),
+        );
+    }
+    let _ = writeln!(out);
 }
 
 /// Scenario 7's notes: a template library on the search path, then any problem.

@@ -7,6 +7,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context;
 
+use crate::bench::bare_master::run_bare_master;
 use crate::bench::plots;
 use crate::bench::report::{markdown, Environment};
 use crate::bench::scan::{devices_at_three_settings, run_scan};
@@ -108,6 +109,39 @@ pub fn run_bench(args: Args) -> anyhow::Result<ExitCode> {
             scans.push(scan);
         }
     }
+    let mut bare = Vec::new();
+    if args.only.is_empty() || args.only.contains(&7) {
+        // The floor under scenario 7's CPU per transaction, on the same bus, in the same run.
+        for &baud in &args.baud {
+            let rounds: &[(u8, usize)] = match (baud, args.quick) {
+                (115_200, false) => &[(2, 500), (1, 500)],
+                (115_200, true) => &[(2, 100), (1, 100)],
+                (_, false) => &[(2, 40)],
+                (_, true) => &[(2, 8)],
+            };
+            for &(sleeps, transactions) in rounds {
+                eprintln!(
+                    "[{:>3.0} s] bare master at {baud}, {sleeps} sleep(s) per transaction",
+                    started.elapsed().as_secs_f64()
+                );
+                let run = run_bare_master(&binary, &args.mosquitto, baud, 8, sleeps, transactions);
+                eprintln!(
+                    "        {} of {} answered, {} µs and {} wake-ups per transaction{}",
+                    run.answered,
+                    run.transactions,
+                    run.cpu_per_transaction_us()
+                        .map_or("–".into(), |v| format!("{v:.0}")),
+                    run.wake_ups_per_transaction()
+                        .map_or("–".into(), |v| format!("{v:.2}")),
+                    run.problem
+                        .as_deref()
+                        .map(|p| format!(" — {}", p.lines().next().unwrap_or("")))
+                        .unwrap_or_default()
+                );
+                bare.push(run);
+            }
+        }
+    }
     let plotted = if plots::load_font() {
         write_plots(&args.out, &results)
     } else {
@@ -122,7 +156,7 @@ pub fn run_bench(args: Args) -> anyhow::Result<ExitCode> {
         total: started.elapsed(),
         quick: args.quick,
     };
-    let mut text = markdown(&results, &scans, &environment);
+    let mut text = markdown(&results, &scans, &bare, &environment);
     if let Err(err) = &plotted {
         text.push_str(&format!("\nPlots: {err:#}\n"));
     }
