@@ -213,10 +213,7 @@ async fn broker_restart_gets_everything_again() {
 
     let mut expected = before;
     expected.insert(temperature, "22.25".into());
-    wait_for("the whole retained state again", || async {
-        retained(broker.port).await.filter(|s| *s == expected)
-    })
-    .await;
+    wait_for_retained(broker.port, &expected, "the whole retained state again").await;
     assert!(mqtt.is_running());
     mqtt.stop().await;
 }

@@ -250,6 +250,38 @@ where
     }
 }
 
+/// Waits until the broker's retained state is exactly `expected`; after `TIMEOUT`, panics
+/// naming what the last state read had missing, different or extra.
+pub async fn wait_for_retained(port: u16, expected: &BTreeMap<String, String>, what: &str) {
+    let deadline = Instant::now() + TIMEOUT;
+    loop {
+        let state = retained(port).await;
+        if state.as_ref() == Some(expected) {
+            return;
+        }
+        if Instant::now() >= deadline {
+            let Some(state) = state else {
+                panic!("timed out waiting for {what}: the broker's retained state was unreadable");
+            };
+            let differences: Vec<String> = expected
+                .iter()
+                .filter(|(topic, value)| state.get(*topic) != Some(value))
+                .map(|(topic, value)| {
+                    format!("{topic}: want {value:?}, got {:?}", state.get(topic))
+                })
+                .chain(
+                    state
+                        .iter()
+                        .filter(|(topic, _)| !expected.contains_key(*topic))
+                        .map(|(topic, value)| format!("{topic}: not wanted, got {value:?}")),
+                )
+                .collect();
+            panic!("timed out waiting for {what}: {differences:#?}");
+        }
+        tokio::time::sleep(Duration::from_millis(25)).await;
+    }
+}
+
 static CLIENTS: AtomicU32 = AtomicU32::new(0);
 
 fn test_client(port: u16) -> (AsyncClient, rumqttc::EventLoop) {
