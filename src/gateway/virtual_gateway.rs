@@ -222,7 +222,7 @@ impl VirtualGateway {
                     let (outcome, timing, done) = self.transact(&transaction);
                     if self.trace {
                         eprintln!(
-                            "TX {:.6}..{:.6} {} to={:?} late={:?} -> {} {:?} (left on line {})",
+                            "TX {:.6}..{:.6} {} to={:?} late={:?} -> {} {:?} (on the line: {})",
                             self.now.as_secs_f64(),
                             done.as_secs_f64(),
                             transaction
@@ -237,7 +237,7 @@ impl VirtualGateway {
                                 other => format!("{other:?}"),
                             },
                             timing,
-                            self.late_bytes.len()
+                            self.late_bytes_summary()
                         );
                     }
                     self.wire_log.push(WireRecord {
@@ -310,6 +310,28 @@ impl VirtualGateway {
         }
         self.sink(updates);
         self.hand_to_models(refused);
+    }
+
+    /// The bytes still on their way to the master: per run of bytes less than 5 ms apart, when
+    /// its first arrives and the bytes ("at+hex").
+    fn late_bytes_summary(&self) -> String {
+        // (first, last, bytes)
+        let mut runs: Vec<(Duration, Duration, Vec<u8>)> = Vec::new();
+        for &(at, byte) in &self.late_bytes {
+            match runs.last_mut() {
+                Some((_, last, bytes)) if at <= *last + Duration::from_millis(5) => {
+                    *last = at;
+                    bytes.push(byte);
+                }
+                _ => runs.push((at, at, vec![byte])),
+            }
+        }
+        runs.iter()
+            .map(|(first, _, bytes)| {
+                format!("{:.4}+{}", first.as_secs_f64(), crate::protocol::hex(bytes))
+            })
+            .collect::<Vec<_>>()
+            .join(" ")
     }
 
     /// The physical world changes a register of the simulated device at `address`.
