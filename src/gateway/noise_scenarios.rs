@@ -1057,8 +1057,9 @@ fn sweep_run(devices: u8, baud: u32, seed: u64, mix: &SweepMix) -> (Vec<String>,
 /// probability tripled; one heavy on corruption, garbage and replies late by 150 ms to 1.3 s;
 /// and one per delay of `SWEEP_DELAYS` (ms, comma-separated) with 15 % of replies that late.
 /// `SWEEP_SEEDS` (default 300) runs per bus and mix from seed `SWEEP_FROM` (1); `SWEEP_MIX`
-/// (a name prefix) and `SWEEP_BUS` (`8x115200`) pick some. About 3 minutes for everything in
-/// release: `cargo test --release --lib fault_sweep -- --ignored --nocapture --test-threads=1`.
+/// (a name prefix) and `SWEEP_BUS` (`8x115200`) pick some. About 5 minutes for everything in
+/// release: `cargo test --release --lib gateway::noise_scenarios::fault_sweep -- --exact
+/// --ignored --nocapture --test-threads=1`.
 #[test]
 #[ignore = "long: many seeds of the noise run"]
 fn fault_sweep() {
@@ -1145,6 +1146,13 @@ fn fault_sweep_trace() {
     }
     let since = bus.gateway.now;
     bus.drive(FAULT_TIME);
+    bus.faults_on_all(Faults::default());
+    let ended = bus.gateway.now;
+    let recovery = bus.run_until_converged(Duration::from_secs(90));
+    eprintln!(
+        "FAULTS ENDED {:.6} recovery {recovery:?}",
+        ended.as_secs_f64()
+    );
     for p in bus.gateway.published.iter().filter(|p| p.at >= since) {
         eprintln!("PUB {:.6} {} = {}", p.at.as_secs_f64(), p.topic, p.payload);
     }
