@@ -63,6 +63,16 @@ pub struct VirtualGateway {
     port_closed_since: Option<Duration>,
     /// Every transaction on the wire, in order.
     pub wire_log: Vec<WireRecord>,
+    /// Bytes that reach the master after their transaction ended (a reply later than its
+    /// window) stay on the line for the next one, as on a real port: those that arrive before
+    /// the next request is written are flushed (or seen in the silence before it), the others
+    /// land in its reply window. Off by default: each transaction then hears only its own
+    /// request's answer, and bytes after its end are lost.
+    pub carry_late_bytes: bool,
+    /// What is still on its way to the master (see [`Self::carry_late_bytes`]), in time order.
+    late_bytes: std::collections::VecDeque<(Duration, u8)>,
+    /// Prints every transaction (diagnosis).
+    pub trace: bool,
 }
 
 /// One transaction on the virtual wire.
@@ -180,6 +190,9 @@ impl VirtualGateway {
             updates: Vec::new(),
             port_closed_since: None,
             wire_log: Vec::new(),
+            carry_late_bytes: false,
+            late_bytes: std::collections::VecDeque::new(),
+            trace: false,
         };
         // As the daemon builds them: one register index per channel list.
         let mut indexes = ChannelIndexes::default();
@@ -207,6 +220,26 @@ impl VirtualGateway {
             match self.scheduler.next(self.now) {
                 NextStep::Transmit(transaction) => {
                     let (outcome, timing, done) = self.transact(&transaction);
+                    if self.trace {
+                        eprintln!(
+                            "TX {:.6}..{:.6} {} to={:?} late={:?} -> {} {:?} (on the line: {})",
+                            self.now.as_secs_f64(),
+                            done.as_secs_f64(),
+                            transaction
+                                .request
+                                .encode()
+                                .map(|b| crate::protocol::hex(&b))
+                                .unwrap_or_default(),
+                            transaction.first_byte_timeout,
+                            transaction.late_window,
+                            match &outcome {
+                                TransactionOutcome::Reply(r) => format!("{r:?}"),
+                                other => format!("{other:?}"),
+                            },
+                            timing,
+                            self.late_bytes_summary()
+                        );
+                    }
                     self.wire_log.push(WireRecord {
                         at: self.now,
                         ended: done,
@@ -277,6 +310,28 @@ impl VirtualGateway {
         }
         self.sink(updates);
         self.hand_to_models(refused);
+    }
+
+    /// The bytes still on their way to the master: per run of bytes less than 5 ms apart, when
+    /// its first arrives and the bytes ("at+hex").
+    fn late_bytes_summary(&self) -> String {
+        // (first, last, bytes)
+        let mut runs: Vec<(Duration, Duration, Vec<u8>)> = Vec::new();
+        for &(at, byte) in &self.late_bytes {
+            match runs.last_mut() {
+                Some((_, last, bytes)) if at <= *last + Duration::from_millis(5) => {
+                    *last = at;
+                    bytes.push(byte);
+                }
+                _ => runs.push((at, at, vec![byte])),
+            }
+        }
+        runs.iter()
+            .map(|(first, _, bytes)| {
+                format!("{:.4}+{}", first.as_secs_f64(), crate::protocol::hex(bytes))
+            })
+            .collect::<Vec<_>>()
+            .join(" ")
     }
 
     /// The physical world changes a register of the simulated device at `address`.
@@ -390,10 +445,36 @@ impl VirtualGateway {
                 // receive timeout.
                 let received = self.bus.exchange(&transmit.bytes, line, now).received();
                 arrivals = crate::sim::pacing::handed_over_at(&received).into();
+                if self.carry_late_bytes {
+                    // The input is flushed before the request: what came before is gone, what
+                    // comes after mixes with the answer.
+                    let late: Vec<(Duration, u8)> = std::mem::take(&mut self.late_bytes)
+                        .into_iter()
+                        .filter(|&(t, _)| t > now)
+                        .collect();
+                    let mut merged: Vec<(Duration, u8)> =
+                        late.into_iter().chain(arrivals).collect();
+                    merged.sort_by_key(|&(t, _)| t);
+                    arrivals = merged.into();
+                }
                 self.exchange.handle_sent(now);
             }
             if let Some((outcome, timing)) = self.exchange.poll_outcome() {
+                if self.carry_late_bytes {
+                    self.late_bytes = std::mem::take(&mut arrivals);
+                }
                 return (outcome, timing, now);
+            }
+            if self.carry_late_bytes && self.exchange.awaits_transmit() {
+                // As the serial transport: the silence before the request is checked at its
+                // end; bytes that came meanwhile are flushed and the silence starts again.
+                let at = self.exchange.transmit_at().max(now);
+                now = at;
+                if self.late_bytes.front().is_some_and(|&(t, _)| t <= at) {
+                    self.late_bytes.retain(|&(t, _)| t > at);
+                    self.exchange.line_was_busy(at);
+                }
+                continue;
             }
             let timeout = self.exchange.poll_timeout();
             // As the serial transport: a reply whose timing the exchange has learned is read in
@@ -426,7 +507,12 @@ impl VirtualGateway {
                     now = now.max(timeout);
                     self.exchange.handle_timeout(now);
                 }
-                (None, None) => return (TransactionOutcome::NoReply, ReplyTiming::default(), now),
+                (None, None) => {
+                    if self.carry_late_bytes {
+                        self.late_bytes = std::mem::take(&mut arrivals);
+                    }
+                    return (TransactionOutcome::NoReply, ReplyTiming::default(), now);
+                }
             }
         }
     }

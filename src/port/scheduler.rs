@@ -367,6 +367,9 @@ pub struct PortScheduler {
     in_flight: Option<InFlight>,
     /// When the transaction in flight started.
     in_flight_since: Duration,
+    /// When that transaction's wait for its reply would end in silence, at the earliest: the
+    /// request's wire time and the first-byte timeout after it started.
+    in_flight_reply_by: Duration,
     /// The bus time retries of devices that seem dead may still take.
     dead_retries: DeadRetryBudget,
     /// When the last event poll ended and how long it took.
@@ -435,6 +438,7 @@ impl PortScheduler {
             writes: Vec::new(),
             in_flight: None,
             in_flight_since: Duration::ZERO,
+            in_flight_reply_by: Duration::ZERO,
             dead_retries: DeadRetryBudget::default(),
             last_event_poll: (Duration::ZERO, Duration::ZERO),
             sent_since_event_poll: false,
@@ -818,6 +822,11 @@ impl PortScheduler {
         }
         self.in_flight = Some(in_flight);
         self.in_flight_since = now;
+        self.in_flight_reply_by = now
+            + transaction.request_time
+            + transaction
+                .first_byte_timeout
+                .unwrap_or(transaction.reply_timeout);
         NextStep::Transmit(transaction)
     }
 
@@ -923,6 +932,21 @@ impl PortScheduler {
                 // would hold the device back three times its worst lateness and more.
                 let window = state.response.floor();
                 state.health.hold_off_longer(window);
+            }
+        }
+        // Bytes that could not begin its reply (another device's late reply, noise) ended the
+        // wait before its timeout, but its own reply may still be on its way: the hold-off counts
+        // from when silence would have ended the wait, as after silence. Counted from now, a
+        // reply later than the hold-off from here would be taken as the answer to its next
+        // request of the same function and length (another range's values).
+        if let (true, Some(state)) = (
+            timing.foreign_bytes_only && timing.late_byte.is_none(),
+            device.and_then(|d| self.devices.get_mut(d)),
+        ) {
+            if !state.health.answered_last() {
+                state
+                    .health
+                    .hold_off_longer(self.in_flight_reply_by.saturating_sub(now));
             }
         }
         let still_offline = device

@@ -146,6 +146,7 @@ fn run_timed(
                             first_byte: None,
                             late_byte: (latency <= response_timeout + transaction.late_window)
                                 .then_some(latency),
+                            ..ReplyTiming::default()
                         };
                         let reply_end = transaction.request_time
                             + latency
@@ -166,6 +167,7 @@ fn run_timed(
                         let timing = ReplyTiming {
                             first_byte: Some(latency + arbitration),
                             late_byte: None,
+                            ..ReplyTiming::default()
                         };
                         let took =
                             line.transaction_time(request_len, latency + arbitration, reply_len);
@@ -1788,6 +1790,7 @@ fn a_garbled_reply_in_time_holds_the_device_off_without_a_skipped_window() {
         ReplyTiming {
             first_byte: Some(first_byte),
             late_byte: None,
+            ..ReplyTiming::default()
         },
     );
     answer_until(&mut scheduler, &mut now, 30);
@@ -1797,6 +1800,43 @@ fn a_garbled_reply_in_time_holds_the_device_off_without_a_skipped_window() {
         now < failed_at + holdoff + ms(50),
         "asked again {:?} after the failure",
         now - failed_at
+    );
+}
+
+/// Bytes in time that could not begin the reply (another device's late reply) end the wait
+/// early, but the device's own reply may still come: its hold-off counts from its timeout, as
+/// after silence, not from the early end. Counted from there, a reply a little more than the
+/// hold-off late would be taken as the answer to its next request.
+#[test]
+fn bytes_of_another_device_hold_the_device_off_from_its_timeout() {
+    let (mut scheduler, mut now) = two_answering_devices();
+    let garbled = answer_until(&mut scheduler, &mut now, 30);
+    let sent = now;
+    let timeout = garbled
+        .first_byte_timeout
+        .expect("a classic read's timeout");
+    now += garbled.request_time + ms(60);
+    scheduler.complete_timed(
+        now,
+        TransactionOutcome::Garbled,
+        ReplyTiming {
+            first_byte: Some(ms(40)),
+            late_byte: None,
+            foreign_bytes_only: true,
+        },
+    );
+    answer_until(&mut scheduler, &mut now, 30);
+    let holdoff = HealthPolicy::default().late_reply_holdoff;
+    let silence_ends = sent + garbled.request_time + timeout;
+    assert!(
+        now >= silence_ends + holdoff,
+        "asked again {:?} after the request",
+        now - sent
+    );
+    assert!(
+        now < silence_ends + holdoff + ms(50),
+        "asked again {:?} after the request",
+        now - sent
     );
 }
 
@@ -1821,6 +1861,7 @@ fn a_window_skipped_counts_at_the_configured_timeout_after_a_late_reply() {
         ReplyTiming {
             first_byte: None,
             late_byte: Some(ms(700)),
+            ..ReplyTiming::default()
         },
     );
     // Answers again, then an isolated silence at the raised timeout.
@@ -2309,6 +2350,7 @@ fn the_due_order_chooses_as_a_scan_of_every_device_would() {
                                 .then(|| ms(1 + rng.below(20))),
                             late_byte: late
                                 .filter(|_| !matches!(outcome, TransactionOutcome::Reply(_))),
+                            ..ReplyTiming::default()
                         };
                         now += transaction.estimated.min(ms(300)) + ms(rng.below(3));
                         scheduler.complete_timed(now, outcome, timing);
@@ -3981,6 +4023,7 @@ fn a_failed_queued_transaction_holds_its_device_off_as_the_schedulers_own_failur
     let began_in_time = ReplyTiming {
         first_byte: Some(ms(2)),
         late_byte: None,
+        ..ReplyTiming::default()
     };
     for (outcome, timing, window) in [
         (TransactionOutcome::NoReply, silent, true),

@@ -273,6 +273,9 @@ struct Receiving {
     parser: ReplyParser,
     /// Bytes came that were not the reply (garbage, a bad CRC, another device's frame).
     garbled: bool,
+    /// A frame with the header of a reply to the request came, its CRC or body bad: see
+    /// [`ReplyTiming::foreign_bytes_only`].
+    reply_began: bool,
     /// When the reply should be complete if it comes as the device's last ones did: the driver
     /// may sleep until then and read it in one go ([`Exchange::batch_read_at`]). `None` once
     /// tried, or when nothing is known of the device yet.
@@ -501,6 +504,7 @@ impl Exchange {
                 request,
                 window,
                 garbled: false,
+                reply_began: false,
                 batch_read_at,
             }))
         } else {
@@ -657,7 +661,16 @@ impl Exchange {
                 } else {
                     TransactionOutcome::NoReply
                 };
-                let timing = receiving.window.timing();
+                let mut timing = receiving.window.timing();
+                // A reply cut short once its header was in began too. Over Modbus TCP a gateway
+                // answers each request once: its bytes are its reply.
+                let began = receiving.reply_began
+                    || matches!(
+                        Reply::length_from_header(receiving.parser.buffered()),
+                        FrameLength::Known(_)
+                    );
+                timing.foreign_bytes_only =
+                    self.mbap.is_none() && timing.first_byte.is_some() && !began;
                 self.state = State::Done(outcome, timing);
             }
             _ => {}
@@ -730,6 +743,14 @@ impl Receiving {
                 ParseStatus::Error(err) => {
                     debug!(%err, "dropped reply bytes");
                     self.garbled = true;
+                    // A frame with the header of the reply, its CRC or body bad: the reply,
+                    // damaged. Not bytes that cannot start it, nor a valid frame that does not
+                    // answer the request (another request's reply: this one's may follow).
+                    self.reply_began |= matches!(
+                        err,
+                        crate::protocol::ParseError::BadCrc
+                            | crate::protocol::ParseError::Malformed(_)
+                    );
                 }
             }
         }
@@ -1037,6 +1058,8 @@ mod window {
             ReplyTiming {
                 first_byte: self.first_byte_at.map(since_end),
                 late_byte: self.late_byte_at.map(since_end),
+                // The window cannot tell: the exchange's parser does.
+                foreign_bytes_only: false,
             }
         }
     }
@@ -1758,6 +1781,51 @@ mod tests {
         let mut exchange = Exchange::new(serial(line));
         let finished = run(&mut exchange, &transaction, ms(0), &arrivals);
         assert_eq!(finished.outcome, TransactionOutcome::Garbled);
+    }
+
+    /// Another device's reply landing early in the window (a late one of its own request)
+    /// ends the transaction garbled after the quiet gap, but none of its bytes could begin the
+    /// reply (though some looked like a start for a byte or two): reported as such, since the
+    /// device's own reply may still come. Its own reply damaged (a bad CRC, cut short once its
+    /// header was in) began in time.
+    #[test]
+    fn bytes_that_cannot_begin_the_reply_are_reported_as_foreign() {
+        let line = line(115_200);
+        let transaction = transaction(&line, read_request());
+        let start = transaction.request_time + ms(3);
+        let other = Reply::classic(
+            0x07,
+            ResponsePdu::ReadInputRegisters {
+                values: vec![0x1E04, 0x0500, 0x1E04, 0x0001],
+            },
+        )
+        .encode()
+        .unwrap_or_default();
+        let mut bad_crc = reply_frame();
+        if let Some(crc) = bad_crc.last_mut() {
+            *crc ^= 0x55;
+        }
+        let reply = reply_frame();
+        for (bytes, foreign) in [
+            (other, true),
+            (bad_crc, false),
+            (reply.get(..5).unwrap_or(&[]).to_vec(), false),
+        ] {
+            let arrivals = on_the_wire(&line, start, &bytes);
+            let mut exchange = Exchange::new(serial(line));
+            let finished = run(&mut exchange, &transaction, ms(0), &arrivals);
+            assert_eq!(
+                finished.outcome,
+                TransactionOutcome::Garbled,
+                "{bytes:02X?}"
+            );
+            assert!(finished.timing.first_byte.is_some());
+            assert!(
+                finished.at < transaction.request_time + RESPONSE_TIMEOUT,
+                "ended by the quiet gap"
+            );
+            assert_eq!(finished.timing.foreign_bytes_only, foreign, "{bytes:02X?}");
+        }
     }
 
     #[test]
