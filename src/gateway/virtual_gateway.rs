@@ -73,6 +73,8 @@ pub struct VirtualGateway {
     late_bytes: std::collections::VecDeque<(Duration, u8)>,
     /// Prints every transaction (diagnosis).
     pub trace: bool,
+    /// Times the scheduler said to wait until a time already come (a driver would spin).
+    pub spins: u64,
 }
 
 /// One transaction on the virtual wire.
@@ -193,6 +195,7 @@ impl VirtualGateway {
             carry_late_bytes: false,
             late_bytes: std::collections::VecDeque::new(),
             trace: false,
+            spins: 0,
         };
         // As the daemon builds them: one register index per channel list.
         let mut indexes = ChannelIndexes::default();
@@ -261,6 +264,12 @@ impl VirtualGateway {
                     self.hand_to_models(events);
                 }
                 NextStep::Wait { until } => {
+                    if until <= self.now {
+                        self.spins += 1;
+                        if self.trace && self.spins % 10_000 == 1 {
+                            eprintln!("SPIN at {:?} until {until:?}", self.now);
+                        }
+                    }
                     self.now = until.clamp(self.now + Duration::from_micros(1), end);
                 }
             }

@@ -1457,15 +1457,24 @@ impl PortScheduler {
             }
         };
         let held_until = self.read_rate_limit.held_until(now);
+        // A device held off after a failure (its late-reply hold-off) is due no sooner than the
+        // hold-off's end, online or not: waiting "until now" would have the port spin.
         let devices = self
             .devices
             .iter()
             .filter(|d| !d.suspended)
-            .filter_map(|d| d.next_deadline(held_until).map(|at| offline_gate(d, at)));
+            .filter_map(|d| {
+                d.next_deadline(held_until)
+                    .map(|at| offline_gate(d, at.max(d.health.may_transact_from())))
+            });
         let writes = self.writes.iter().filter_map(|p| {
-            self.devices
-                .get(p.write.device)
-                .and_then(|d| d.health.retry_at().map(|at| offline_gate(d, at)))
+            self.devices.get(p.write.device).and_then(|d| {
+                let held_off = Some(d.health.may_transact_from()).filter(|&from| from > now);
+                d.health
+                    .retry_at()
+                    .or(held_off)
+                    .map(|at| offline_gate(d, at))
+            })
         });
         devices
             .chain(writes)

@@ -1975,6 +1975,50 @@ fn a_suspended_device_is_not_polled_and_the_scheduler_does_not_spin() {
     assert!(!log.classic_to(2).is_empty());
 }
 
+/// A device held off after a failure (its late-reply hold-off) with its reads overdue, on a
+/// bus with nothing else to do (no events to poll): the scheduler waits for the hold-off's end
+/// instead of returning "now" again and again, which the port task sleeps until at once (it
+/// spun through every hold-off on a bus without Fast Modbus events).
+#[test]
+fn a_device_held_off_after_a_failure_does_not_make_the_scheduler_spin() {
+    for fast_modbus in [false, true] {
+        let mut port = settings(115_200);
+        port.fast_modbus = fast_modbus;
+        let plans = vec![device(
+            30,
+            vec![read(RegisterType::Holding, 0, EventMode::Polled)],
+        )];
+        let mut scheduler = PortScheduler::new(port, plans);
+        let mut now = Duration::ZERO;
+        for _ in 0..3 {
+            let transaction = answer_until(&mut scheduler, &mut now, 30);
+            now += ms(5);
+            scheduler.complete(now, healthy(&transaction.request));
+        }
+        let failed = answer_until(&mut scheduler, &mut now, 30);
+        now += failed.request_time + failed.first_byte_timeout.unwrap();
+        scheduler.complete(now, TransactionOutcome::NoReply);
+        let failed_at = now;
+        let asked_again = loop {
+            match scheduler.next(now) {
+                NextStep::Transmit(transaction) => break transaction,
+                NextStep::Wait { until } => {
+                    assert!(
+                        until > now,
+                        "fast_modbus {fast_modbus}: spinning {:?} after the failure",
+                        now - failed_at
+                    );
+                    now = until;
+                }
+            }
+        };
+        assert_eq!(asked_again.request.address, 30);
+        let holdoff = HealthPolicy::default().late_reply_holdoff;
+        assert!(now >= failed_at + holdoff, "{:?}", now - failed_at);
+        assert!(now < failed_at + holdoff * 2, "{:?}", now - failed_at);
+    }
+}
+
 /// Noise got a device marked offline, but it still sends Fast Modbus events: the first event
 /// from it gets it retried at once (after the late-reply hold-off of its last failure), not
 /// after its retry delay.
