@@ -26,9 +26,7 @@ use super::floor::WakeUpMeter;
 use super::harness::{Harness, HarnessOptions};
 use super::layout::BenchLayout;
 use crate::protocol::{LineSettings, Parity, Request, RequestPdu};
-
-// How many received bytes wait to be read (FIONREAD, `int *`).
-nix::ioctl_read_bad!(input_queue_len, nix::libc::FIONREAD, nix::libc::c_int);
+use crate::transport::input_queue_len;
 
 /// The simulator's devices answer this long after a request has ended (the layout's
 /// `turnaround_us`).

@@ -1103,66 +1103,7 @@ fn sweep_run(devices: u8, baud: u32, seed: u64, mix: &SweepMix) -> (Vec<String>,
 #[test]
 #[ignore = "long: many seeds of the noise run"]
 fn fault_sweep() {
-    let env = |name: &str| std::env::var(name).ok();
-    let seeds: u64 = env("SWEEP_SEEDS")
-        .and_then(|s| s.parse().ok())
-        .unwrap_or(300);
-    let from: u64 = env("SWEEP_FROM").and_then(|s| s.parse().ok()).unwrap_or(1);
-    let only_mix = env("SWEEP_MIX");
-    let only_bus = env("SWEEP_BUS");
-    let mut total = 0;
-    for (devices, baud) in [(8u8, 115_200u32), (32, 115_200), (8, 9600)] {
-        if only_bus
-            .as_ref()
-            .is_some_and(|b| *b != format!("{devices}x{baud}"))
-        {
-            continue;
-        }
-        for mix in &sweep_mixes() {
-            if only_mix
-                .as_ref()
-                .is_some_and(|m| !mix.name.starts_with(m.as_str()))
-            {
-                continue;
-            }
-            let started = std::time::Instant::now();
-            let mut bad_runs = 0;
-            for seed in from..from + seeds {
-                let run = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-                    sweep_run(devices, baud, seed, mix)
-                }));
-                let case = format!("SWEEP {}x{baud} {} seed={seed}", devices, mix.name);
-                match run {
-                    Ok((violations, figures)) => {
-                        if !violations.is_empty() {
-                            bad_runs += 1;
-                        }
-                        eprintln!("{case} violations={} {figures}", violations.len());
-                        for violation in violations.iter().take(20) {
-                            eprintln!("  VIOLATION {case}: {violation}");
-                        }
-                    }
-                    Err(panic) => {
-                        bad_runs += 1;
-                        let message = panic
-                            .downcast_ref::<String>()
-                            .cloned()
-                            .or_else(|| panic.downcast_ref::<&str>().map(|s| s.to_string()))
-                            .unwrap_or_default();
-                        eprintln!("  PANIC {case}: {message}");
-                    }
-                }
-            }
-            total += bad_runs;
-            eprintln!(
-                "SWEEP SUMMARY {devices}x{baud} {} seeds {from}..{} bad_runs={bad_runs} in {:?}",
-                mix.name,
-                from + seeds,
-                started.elapsed()
-            );
-        }
-    }
-    assert_eq!(total, 0, "runs with violations or panics");
+    sweep_seeds("SWEEP", 300, sweep_run);
 }
 
 /// One run of [`fault_sweep`] (`SWEEP_BUS`, `SWEEP_MIX` its exact name, `SWEEP_FROM` the seed,
@@ -1431,10 +1372,24 @@ fn writes_under_noise_reach_the_devices_in_order_and_the_port_never_spins() {
 #[test]
 #[ignore = "long: many seeds of writes under noise"]
 fn write_sweep() {
+    sweep_seeds("WRITES", 100, |devices, baud, seed, mix| {
+        write_run(devices, baud, seed, &*mix.faults, mix.carry_late_bytes)
+    });
+}
+
+/// Runs `run` over seeds, buses and the mixes of [`sweep_mixes`] as the environment picks them
+/// (`SWEEP_SEEDS`, default `default_seeds`; `SWEEP_FROM`, `SWEEP_MIX`, `SWEEP_BUS`: see
+/// [`fault_sweep`]), printing each run's violations or panic under `label`; fails if any run had
+/// either.
+fn sweep_seeds(
+    label: &str,
+    default_seeds: u64,
+    run: impl Fn(u8, u32, u64, &SweepMix) -> (Vec<String>, String),
+) {
     let env = |name: &str| std::env::var(name).ok();
     let seeds: u64 = env("SWEEP_SEEDS")
         .and_then(|s| s.parse().ok())
-        .unwrap_or(100);
+        .unwrap_or(default_seeds);
     let from: u64 = env("SWEEP_FROM").and_then(|s| s.parse().ok()).unwrap_or(1);
     let only_mix = env("SWEEP_MIX");
     let only_bus = env("SWEEP_BUS");
@@ -1456,11 +1411,11 @@ fn write_sweep() {
             let started = std::time::Instant::now();
             let mut bad_runs = 0;
             for seed in from..from + seeds {
-                let case = format!("WRITES {devices}x{baud} {} seed={seed}", mix.name);
-                let run = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-                    write_run(devices, baud, seed, &*mix.faults, mix.carry_late_bytes)
+                let case = format!("{label} {devices}x{baud} {} seed={seed}", mix.name);
+                let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                    run(devices, baud, seed, mix)
                 }));
-                match run {
+                match outcome {
                     Ok((violations, figures)) => {
                         bad_runs += usize::from(!violations.is_empty());
                         eprintln!("{case} violations={} {figures}", violations.len());
@@ -1481,7 +1436,7 @@ fn write_sweep() {
             }
             total += bad_runs;
             eprintln!(
-                "WRITES SUMMARY {devices}x{baud} {} seeds {from}..{} bad_runs={bad_runs} in {:?}",
+                "{label} SUMMARY {devices}x{baud} {} seeds {from}..{} bad_runs={bad_runs} in {:?}",
                 mix.name,
                 from + seeds,
                 started.elapsed()

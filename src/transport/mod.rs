@@ -9,6 +9,9 @@ pub mod fifo;
 mod mbap;
 pub mod raw;
 mod serial;
+/// FIONREAD, shared with the bench's bare master (`src/bench/bare_master.rs`).
+#[cfg(feature = "bench")]
+pub(crate) use serial::input_queue_len;
 
 use std::io;
 use std::path::Path;
