@@ -827,7 +827,7 @@ impl PortTask {
         };
         let now = self.now();
         self.scheduler
-            .queued_done(now, &job.transaction.request, outcome, timing);
+            .queued_done(now, &job.transaction, started, outcome, timing);
         match result {
             Ok((outcome, _timing)) => {
                 // The status page counts it with the scheduler's own: the line was as busy.

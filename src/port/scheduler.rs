@@ -822,11 +822,7 @@ impl PortScheduler {
         }
         self.in_flight = Some(in_flight);
         self.in_flight_since = now;
-        self.in_flight_reply_by = now
-            + transaction.request_time
-            + transaction
-                .first_byte_timeout
-                .unwrap_or(transaction.reply_timeout);
+        self.in_flight_reply_by = transaction.silence_ends_wait_at(now);
         NextStep::Transmit(transaction)
     }
 
@@ -980,19 +976,30 @@ impl PortScheduler {
     /// 0xFD) hold off nobody: their reply carries the 0xFD address and the by-serial command,
     /// which no reply to the scheduler's requests (by address, or event polls and scans, whose
     /// commands differ) can be taken for; broadcasts have no reply.
+    ///
+    /// `sent_at` is when the transaction was handed to the transport: bytes that could not begin
+    /// its reply may have ended the wait early, and then the hold-off counts from when silence
+    /// would have ended it ([`Transaction::silence_ends_wait_at`]), as for the scheduler's own.
     pub fn queued_done(
         &mut self,
         now: Duration,
-        request: &Request,
+        transaction: &Transaction,
+        sent_at: Duration,
         outcome: TransactionOutcome,
         timing: ReplyTiming,
     ) {
+        let request = &transaction.request;
         if !request.expects_reply() || !matches!(request.body, RequestBody::Classic(_)) {
             return;
         }
         if matches!(device_outcome(outcome), TransactionOutcome::Reply(_)) {
             return;
         }
+        let failed_at = if timing.foreign_bytes_only && timing.late_byte.is_none() {
+            now.max(transaction.silence_ends_wait_at(sent_at))
+        } else {
+            now
+        };
         // Silence in time: the late window it did not watch counts too, at the device's
         // configured timeout (as for the scheduler's own failures that skipped it).
         let heard_nothing_in_time = timing.first_byte.is_none() && timing.late_byte.is_none();
@@ -1007,7 +1014,7 @@ impl PortScheduler {
             };
             state
                 .health
-                .hold_off_after_foreign_failure(now, skipped_window);
+                .hold_off_after_foreign_failure(failed_at, skipped_window);
             self.index.mark_stale(index);
         }
     }

@@ -4063,6 +4063,7 @@ fn a_failed_queued_transaction_holds_its_device_off_as_the_schedulers_own_failur
             },
         )
     };
+    let queued = |request| Transaction::to_device(&settings(115_200).line, request, ms(100));
     let silent = ReplyTiming::default();
     let began_in_time = ReplyTiming {
         first_byte: Some(ms(2)),
@@ -4076,9 +4077,15 @@ fn a_failed_queued_transaction_holds_its_device_off_as_the_schedulers_own_failur
         let (mut scheduler, mut now) = two_answering_devices();
         let floor = scheduler.devices[0].response.floor();
         let failed_at = now;
-        scheduler.queued_done(now, &read(30), outcome.clone(), timing);
+        scheduler.queued_done(now, &queued(read(30)), now, outcome.clone(), timing);
         // Neither of these holds anybody off.
-        scheduler.queued_done(now, &read(77), TransactionOutcome::NoReply, silent);
+        scheduler.queued_done(
+            now,
+            &queued(read(77)),
+            now,
+            TransactionOutcome::NoReply,
+            silent,
+        );
         let by_serial = Request::by_serial(
             0xFE00_0030,
             RequestPdu::ReadInputRegisters {
@@ -4086,7 +4093,13 @@ fn a_failed_queued_transaction_holds_its_device_off_as_the_schedulers_own_failur
                 count: 1,
             },
         );
-        scheduler.queued_done(now, &by_serial, TransactionOutcome::NoReply, silent);
+        scheduler.queued_done(
+            now,
+            &queued(by_serial),
+            now,
+            TransactionOutcome::NoReply,
+            silent,
+        );
         let next_to_31 = next_classic(&mut scheduler, &mut now);
         assert_eq!(next_to_31.request.address, 31, "31 goes on at once");
         assert_eq!(now, failed_at);
@@ -4115,7 +4128,7 @@ fn a_failed_queued_transaction_holds_its_device_off_as_the_schedulers_own_failur
     let (mut scheduler, mut now) = two_answering_devices();
     let start = now;
     let reply = healthy(&read(30));
-    scheduler.queued_done(now, &read(30), reply, began_in_time);
+    scheduler.queued_done(now, &queued(read(30)), now, reply, began_in_time);
     let broadcast = Request::classic(
         0,
         RequestPdu::WriteSingleRegister {
@@ -4123,9 +4136,65 @@ fn a_failed_queued_transaction_holds_its_device_off_as_the_schedulers_own_failur
             value: 1,
         },
     );
-    scheduler.queued_done(now, &broadcast, TransactionOutcome::NoReply, silent);
+    scheduler.queued_done(
+        now,
+        &queued(broadcast),
+        now,
+        TransactionOutcome::NoReply,
+        silent,
+    );
     answer_until(&mut scheduler, &mut now, 30);
     assert!(now < start + ms(50), "held off {:?}", now - start);
+}
+
+/// Defect E's rule for queued transactions: bytes that could not begin a queued request's
+/// reply (another device's late reply) ended its wait early; its device's own reply may still
+/// come until its timeout, so the hold-off counts from there, not from the early end.
+#[test]
+fn a_queued_transaction_ended_early_by_foreign_bytes_holds_its_device_off_from_its_timeout() {
+    let holdoff = HealthPolicy::default().late_reply_holdoff;
+    let transaction = Transaction::to_device(
+        &settings(115_200).line,
+        Request::classic(
+            30,
+            RequestPdu::ReadInputRegisters {
+                start: 10,
+                count: 1,
+            },
+        ),
+        ms(500),
+    );
+    let foreign = ReplyTiming {
+        first_byte: Some(ms(2)),
+        late_byte: None,
+        foreign_bytes_only: true,
+    };
+    let (mut scheduler, mut now) = two_answering_devices();
+    let sent_at = now;
+    now += transaction.request_time + ms(3);
+    scheduler.queued_done(
+        now,
+        &transaction,
+        sent_at,
+        TransactionOutcome::NoReply,
+        foreign,
+    );
+    let silence_end = transaction.silence_ends_wait_at(sent_at);
+    assert_eq!(silence_end, sent_at + transaction.request_time + ms(500));
+    let from = scheduler.queued_may_go_from(&transaction.request);
+    assert!(
+        from >= silence_end + holdoff,
+        "held off until {:?} after the send, its timeout ends {:?} after it",
+        from - sent_at,
+        silence_end - sent_at
+    );
+    let again = answer_until(&mut scheduler, &mut now, 30);
+    assert!(
+        now >= silence_end + holdoff,
+        "asked again {:?} after the send",
+        now - sent_at
+    );
+    assert_eq!(again.request.address, 30);
 }
 
 /// A TCP gateway's response lag (wb-mqtt-serial's `ResponseTCPLag`) is part of every device's

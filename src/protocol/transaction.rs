@@ -75,6 +75,14 @@ impl TransactionOutcome {
 }
 
 impl Transaction {
+    /// When silence would have ended the wait for its reply, the request sent at `sent_at`:
+    /// the first byte's timeout after the request, or the whole reply's when there is none.
+    /// Bytes that could not begin the reply may end the wait sooner
+    /// ([`ReplyTiming::foreign_bytes_only`]); a late reply to it can still come until then.
+    pub fn silence_ends_wait_at(&self, sent_at: Duration) -> Duration {
+        sent_at + self.request_time + self.first_byte_timeout.unwrap_or(self.reply_timeout)
+    }
+
     /// A request to one device outside the scheduler (site tools, identity reads, RPC): the
     /// first byte within `response_timeout` (the device's time and the adapter's, counted from
     /// the end of the request), then the longest reply the request allows, with some slack.

@@ -1295,3 +1295,61 @@ fn a_late_reply_merges_with_the_next_reply_by_wired_and() {
     let merged = and(&hex("14 03 02 00 14 B5 88"), &with_crc("F1 03 02 00 F1"));
     assert_eq!(wire.arrivals(), arrivals_from(start, FAST_LINE, &merged));
 }
+
+/// Overlapping device bytes merge by wired AND with every byte they overlap, whatever the
+/// order they were put on the wire in: checked against a scan of every byte already there
+/// (what `Wire::transmit` did before it looked only where overlaps can be).
+#[test]
+fn overlapping_device_bytes_merge_as_a_scan_of_the_whole_wire_would_merge_them() {
+    use super::transmission::{Burst, Transmission};
+    const ROUNDING: Duration = Duration::from_nanos(100);
+    let mut state = 0x2545_F491_4F6C_DD1Du64;
+    let mut next = move |bound: u64| {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        state % bound
+    };
+    for _ in 0..200 {
+        let mut wire = Wire::new();
+        // (start, char time, byte) as the naive scan keeps them.
+        let mut expected: Vec<(Duration, Duration, u8)> = Vec::new();
+        for _ in 0..1 + next(6) {
+            let char_time = [
+                FAST_LINE.char_time(),
+                LineSettings::new(9600, Parity::None, 2).char_time(),
+            ][usize::from(next(4) == 0)];
+            let burst = Burst {
+                start: Duration::from_micros(next(20_000)),
+                char_time,
+                bytes: (0..1 + next(40)).map(|_| next(256) as u8).collect(),
+            };
+            for (index, &byte) in burst.bytes.iter().enumerate() {
+                let start = burst.start + char_time * index as u32;
+                let end = start + char_time;
+                let mut merged = false;
+                for other in expected.iter_mut() {
+                    let shared = (other.0 + other.1)
+                        .min(end)
+                        .saturating_sub(other.0.max(start));
+                    if shared > ROUNDING {
+                        other.2 &= byte;
+                        merged = true;
+                    }
+                }
+                if !merged {
+                    let at = expected.partition_point(|other| other.0 <= start);
+                    expected.insert(at, (start, char_time, byte));
+                }
+            }
+            wire.transmit(&Transmission {
+                bursts: vec![burst],
+            });
+        }
+        let expected: Vec<(Duration, u8)> = expected
+            .iter()
+            .map(|&(start, char_time, byte)| (start + char_time, byte))
+            .collect();
+        assert_eq!(wire.arrivals(), expected);
+    }
+}

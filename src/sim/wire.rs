@@ -216,11 +216,22 @@ impl Wire {
                     self.devices_quiet_from
                         .map_or(slot.end(), |quiet| quiet.max(slot.end())),
                 );
+                // `pending` never overlaps, so its ends are in start order too: only the
+                // slots between the first ending after this one's start and the first
+                // starting after its end can overlap it (a scan of all of them was the
+                // simulator's largest cost: quadratic in a reply's length).
+                let end = slot.end();
+                let from = self
+                    .pending
+                    .partition_point(|other| other.end() <= slot.start);
+                let to = self.pending.partition_point(|other| other.start < end);
                 let mut merged = false;
                 for other in self
                     .pending
+                    .get_mut(from..to.max(from))
+                    .unwrap_or_default()
                     .iter_mut()
-                    .filter(|other| other.overlaps(slot.start, slot.end()))
+                    .filter(|other| other.overlaps(slot.start, end))
                 {
                     other.byte &= byte;
                     merged = true;
