@@ -1,7 +1,8 @@
 //! Benchmarks and the process harness they share with end-to-end tests (docs/bench.md).
 //!
 //! Always built: [`harness`] (broker, simulator, daemon and subscriber as processes),
-//! [`matching`] (changes ↔ publications), [`history`] (was each published value ever held), [`layout`] (the benchmark bus) and [`library`] (a template library of a controller's size). With the `bench`
+//! [`matching`] (changes ↔ publications), [`history`] (was each published value ever held), [`layout`] (the benchmark bus) and [`library`] (a template library of a controller's size), and the pure parts of the report
+//! ([`report_date`], [`scan_floor`]). With the `bench`
 //! feature: the scenarios, the Markdown report and the PNG plots behind `rtu2mqtt bench`.
 
 pub mod harness;
@@ -9,6 +10,8 @@ pub mod history;
 pub mod layout;
 pub mod library;
 pub mod matching;
+pub mod report_date;
+pub mod scan_floor;
 
 #[cfg(feature = "bench")]
 pub mod bare_master;
