@@ -1150,9 +1150,14 @@ mod tests {
 
     /// A port task for a relay module at 20 on a port nobody answers on.
     fn relay_task(writes: mpsc::Receiver<ControlWrite>) -> PortTask {
+        relay_task_at("/dev/rtu2mqtt-test-no-such-port", writes)
+    }
+
+    /// [`relay_task`] on the serial port at `path`.
+    fn relay_task_at(path: &str, writes: mpsc::Receiver<ControlWrite>) -> PortTask {
         use crate::config::parse::SourceText;
         let config = serde_json::json!({"ports": [{
-            "path": "/dev/rtu2mqtt-test-no-such-port", "baud_rate": 115200, "stop_bits": 2,
+            "path": path, "baud_rate": 115200, "stop_bits": 2,
             "devices": [{"device_type": "rtu2mqtt-relay6", "slave_id": 20}]
         }]});
         let loaded = crate::config::load::load_config_source(
@@ -1258,5 +1263,98 @@ mod tests {
         assert!(!permission_denied(&open(
             std::io::Error::from_raw_os_error(nix::libc::EBUSY)
         )));
+    }
+
+    /// Review of the port task (branch review-port): the port is lost while it is switched
+    /// back from a queued transaction's settings to its own. `serve` asks the scheduler for its
+    /// next step first (which puts that transaction in flight), then reopens the port at its own
+    /// settings; when that reopen fails, `?` leaves `serve` with the transaction still in flight
+    /// in the scheduler and never completed. After the port is reopened, `next()` answers
+    /// `Wait { until: now }` for ever: the port task spins, sends nothing again (no poll, no
+    /// write: a write in flight is never sent nor given up, `expire_writes` keeps it), and its
+    /// devices are never marked offline (no transaction fails).
+    ///
+    /// Sequence, on a pty behind a symlink: a queued transaction at 9600 on the 115200 port
+    /// (the port is switched away); once its request is on the line, the symlink is removed;
+    /// the transaction times out; the scheduler's next transaction cannot switch back (ENOENT).
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_port_lost_while_switching_back_leaves_nothing_in_flight() {
+        use crate::protocol::{Parity, Request, RequestPdu};
+        use std::io::Read;
+        use std::os::fd::AsFd;
+
+        let pty = nix::pty::openpty(None, None).expect("a pty");
+        let slave = nix::unistd::ttyname(pty.slave.as_fd()).expect("its name");
+        let dir = tempfile::tempdir().unwrap();
+        let link = dir.path().join("ttyTEST");
+        std::os::unix::fs::symlink(&slave, &link).unwrap();
+        let (_write_tx, writes) = mpsc::channel(8);
+        let (queue, queued) = BusQueue::new();
+        let mut task =
+            relay_task_at(link.to_str().unwrap(), writes).with_bus_queue(queue.clone(), queued);
+        let transport = Transport::open(&task.endpoint).await.expect("opens");
+        drop(pty.slave);
+
+        // The far end of the line: everything the port sends, as it comes.
+        let (bytes_tx, mut bytes_rx) = mpsc::unbounded_channel::<Vec<u8>>();
+        let mut master = std::fs::File::from(pty.master);
+        let stop_reader = Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let stopped = stop_reader.clone();
+        let reader = std::thread::spawn(move || {
+            let mut buffer = [0u8; 256];
+            while !stopped.load(std::sync::atomic::Ordering::Relaxed) {
+                match master.read(&mut buffer) {
+                    Ok(n) if n > 0 => {
+                        let _ = bytes_tx.send(buffer[..n].to_vec());
+                    }
+                    // No slave open (between two opens of the port): EIO until one is.
+                    _ => std::thread::sleep(Duration::from_millis(5)),
+                }
+            }
+        });
+
+        let away = LineSettings::new(9600, Parity::None, 2);
+        let request = Request::classic(
+            0x33,
+            RequestPdu::ReadHoldingRegisters { start: 0, count: 1 },
+        );
+        let frame = request.encode().unwrap();
+        let transaction = Transaction::to_device(&away, request, Duration::from_millis(500));
+        let rpc = tokio::spawn(async move { queue.transact(Some(away), transaction).await });
+        let unlink = tokio::spawn(async move {
+            let mut seen = Vec::new();
+            while let Some(chunk) = bytes_rx.recv().await {
+                seen.extend(chunk);
+                if seen.windows(frame.len()).any(|w| w == frame.as_slice()) {
+                    // The port is at 9600 and waits for the reply: it goes away now.
+                    std::fs::remove_file(&link).unwrap();
+                    return true;
+                }
+            }
+            false
+        });
+        let (_stop, mut shutdown) = watch::channel(false);
+        let served = tokio::time::timeout(
+            Duration::from_secs(20),
+            task.serve(transport, &mut shutdown),
+        )
+        .await
+        .expect("serve ends once the port cannot be reopened");
+        stop_reader.store(true, std::sync::atomic::Ordering::Relaxed);
+        assert!(unlink.await.unwrap(), "the queued request reached the line");
+        assert!(served.is_err(), "the port could not be switched back");
+        let _ = rpc.await;
+        let _ = reader.join();
+
+        // What `serve` does once the port is open again: ask the scheduler, well after every
+        // hold-off. A transaction must go; `Wait { until: now }` is a scheduler that still
+        // waits for the outcome of a transaction that never went.
+        let later = task.now() + Duration::from_secs(60);
+        let next = task.scheduler.next(later);
+        assert!(
+            matches!(next, NextStep::Transmit(_)),
+            "after the port was lost switching back, the scheduler answers {next:?} at {later:?}: \
+             the transaction it was given is still in flight, and the port task spins for ever"
+        );
     }
 }
