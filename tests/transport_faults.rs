@@ -154,6 +154,65 @@ async fn a_late_reply_to_an_rpc_read_is_never_published_as_a_polled_value() {
     }
 }
 
+/// Review of the port task (branch review-port): defect A's rule for raw transfers. A raw
+/// `port/Load` (no `protocol`: bytes out as given, wb-mqtt-serial's scripts' usual way to read
+/// a register) carries a Modbus read of input 10 (222) of device 40, which the daemon polls
+/// (input 0, 111, with a 1000 ms response timeout). The device answers 300 ms late; the raw
+/// transfer waits 50 ms (+ 50 ms allowance) and returns nothing. The port task serves raw jobs
+/// without `PortScheduler::queued_done` (src/daemon/port_task.rs `serve_queued`, the `Raw` arm
+/// returns before it), so the device is not held off: the scheduler's next read of input 0
+/// (same address, function and length) goes at once and takes the raw request's late reply
+/// (222) as its own: `Zero` is published as 222, a value input 0 never held.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_late_reply_to_a_raw_rpc_transfer_is_never_published_as_a_polled_value() {
+    let (broker, sim, daemon, recorder, _dir) = late_device(1000, false).await;
+    sim.control(json!({"cmd": "faults", "device": 40, "delay": 1.0, "delay_ms": 300}));
+    for round in 1..=4u32 {
+        // Read input registers from 10, one: 28 04 000a 0001, CRC 1631.
+        let answer = rpc(
+            broker.port,
+            "port",
+            "Load",
+            json!({"path": sim.pty.to_str().unwrap(), "msg": "2804000a00011631",
+                "format": "HEX", "response_size": 7, "response_timeout": 50,
+                "total_timeout": 10_000}),
+        )
+        .await;
+        assert!(answer["result"].is_object(), "round {round}: {answer}");
+        let expected = (111 + round).to_string();
+        sim.control(
+            json!({"cmd": "set", "device": 40, "type": "input", "address": 0,
+            "value": 111 + round}),
+        );
+        wait_for("input 0's new value published", || async {
+            let state = retained(broker.port).await?;
+            state
+                .iter()
+                .any(|(t, v)| t.ends_with("/controls/Zero") && *v == expected)
+                .then_some(())
+        })
+        .await;
+        let wrong: Vec<String> = recorder
+            .messages
+            .lock()
+            .unwrap()
+            .iter()
+            .filter(|(t, v, _)| {
+                t.ends_with("/controls/Zero")
+                    && v.parse::<u32>()
+                        .map_or(true, |v| !(111..=111 + round).contains(&v))
+            })
+            .map(|(t, v, _)| format!("{t} = {v}"))
+            .collect();
+        assert!(
+            wrong.is_empty(),
+            "input 0 published with a value it never held after {round} raw RPC transfers: \
+             {wrong:?}\n{}",
+            daemon.log_tail(30)
+        );
+    }
+}
+
 /// The other way round: the device polls only input 0 (111) and answers half its requests
 /// 300 ms late, past the daemon's 100 ms response timeout. A `port/Load` of input 10 (222) with
 /// a 1000 ms timeout that went right after one of the scheduler's reads failed took that read's

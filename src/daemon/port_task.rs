@@ -1357,4 +1357,57 @@ mod tests {
              the transaction it was given is still in flight, and the port task spins for ever"
         );
     }
+
+    /// Review of the port task (branch review-port): a deferred queued transaction goes once
+    /// the time it was deferred to has come, without looking again at its device's hold-off.
+    /// The hold-off may have moved meanwhile: `serve` serves the deferred job only when it is
+    /// the queue's turn, and when the last job was a queued one (`queued_turn` false) the
+    /// scheduler goes first at that time, to the same device (its reads are due at the end of
+    /// the same hold-off). When that read fails, its late reply is on its way, and the
+    /// deferred job goes right after it (`ready_deferred_job`: `from <= now`), and takes that
+    /// late reply as its answer (an RPC's `port/Load` of input 10 answered with input 0's
+    /// value: defect A's second direction, `a_late_reply_to_a_polled_read_is_never_an_rpc_reads_answer`).
+    /// Here the device's hold-off is moved after the job was deferred; the job must wait for
+    /// it again.
+    #[tokio::test]
+    async fn a_deferred_queued_transaction_waits_for_a_hold_off_that_moved() {
+        use crate::protocol::{Request, RequestPdu};
+        let (_write_tx, writes) = mpsc::channel(8);
+        let mut task = relay_task(writes);
+        let line = LineSettings::new(115200, crate::protocol::Parity::None, 2);
+        let read = |start| {
+            Transaction::to_device(
+                &line,
+                Request::classic(20, RequestPdu::ReadInputRegisters { start, count: 1 }),
+                Duration::from_millis(100),
+            )
+        };
+        let (reply, _outcome) = tokio::sync::oneshot::channel();
+        let job = BusWork::Transaction(QueuedTransaction {
+            line: None,
+            transaction: read(10),
+            reply,
+        });
+        // Deferred until the device's hold-off at the time, which has ended now.
+        task.deferred = Some((Duration::ZERO, job));
+        // Meanwhile another transaction to the device failed (the scheduler's own, or, as
+        // here, a queued one): its late reply may still come, for a second and more.
+        let now = task.now();
+        task.scheduler.queued_done(
+            now,
+            &read(0),
+            now,
+            TransactionOutcome::NoReply,
+            ReplyTiming::default(),
+        );
+        let held_until = task.scheduler.queued_may_go_from(&read(10).request);
+        assert!(held_until > task.now() + Duration::from_millis(500));
+        let taken = task.next_queued_job();
+        assert!(
+            taken.is_none(),
+            "the deferred transaction to device 20 goes at {:?}, while the device is held off \
+             until {held_until:?} after a failure: a late reply may be taken as its answer",
+            task.now()
+        );
+    }
 }
