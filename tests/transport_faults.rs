@@ -154,15 +154,16 @@ async fn a_late_reply_to_an_rpc_read_is_never_published_as_a_polled_value() {
     }
 }
 
-/// Review of the port task (branch review-port): defect A's rule for raw transfers. A raw
+/// Review of the port task (27 Nov 2026), finding 2: defect A's rule for raw transfers. A raw
 /// `port/Load` (no `protocol`: bytes out as given, wb-mqtt-serial's scripts' usual way to read
 /// a register) carries a Modbus read of input 10 (222) of device 40, which the daemon polls
 /// (input 0, 111, with a 1000 ms response timeout). The device answers 300 ms late; the raw
-/// transfer waits 50 ms (+ 50 ms allowance) and returns nothing. The port task serves raw jobs
-/// without `PortScheduler::queued_done` (src/daemon/port_task.rs `serve_queued`, the `Raw` arm
-/// returns before it), so the device is not held off: the scheduler's next read of input 0
-/// (same address, function and length) goes at once and takes the raw request's late reply
-/// (222) as its own: `Zero` is published as 222, a value input 0 never held.
+/// transfer waits 50 ms (+ 50 ms allowance) and returns nothing. The port task served raw jobs
+/// without any hold-off (its `Raw` arm returned before `PortScheduler::queued_done`), so the
+/// scheduler's next read of input 0 (same address, function and length) went at once and took
+/// the raw request's late reply (222) as its own: `Zero` was published as 222, a value input 0
+/// never held. Now a raw transfer that is a Modbus request holds its device off unless the whole
+/// reply came (`PortScheduler::raw_done`), and waits for its device's hold-off.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_late_reply_to_a_raw_rpc_transfer_is_never_published_as_a_polled_value() {
     let (broker, sim, daemon, recorder, _dir) = late_device(1000, false).await;

@@ -29,6 +29,7 @@ use crate::service::{BrokerState, PortVitals, ServiceHealth};
 use crate::status::hub::PortCommand;
 use crate::status::PortStatus;
 use crate::transport::fifo::{self, TriggerChange};
+use crate::transport::raw::RawRequest;
 use crate::transport::{Endpoint, Transport, TransportError};
 
 const FIRST_REOPEN_DELAY: Duration = Duration::from_millis(500);
@@ -629,20 +630,28 @@ impl PortTask {
                 NextStep::Transmit(transaction) => {
                     let started = self.now();
                     queued_turn = true;
-                    if bus.away.is_some() {
-                        self.switch_line(&mut bus, None).await?;
-                    }
-                    let Some(transport) = bus.transport.as_mut() else {
-                        return Err(self.lost_port());
+                    // The transaction is the scheduler's in flight from here: a port lost on
+                    // the way back to its own settings fails it like a port lost during it
+                    // (left in flight, the scheduler would wait for its outcome for ever).
+                    let back_home = if bus.away.is_some() {
+                        self.switch_line(&mut bus, None).await
+                    } else {
+                        Ok(())
                     };
-                    // Shutdown never waits for the bus: a transaction may take seconds (long
-                    // timeouts, a guard interval, a babbling line).
-                    transport.set_guard_interval(
-                        self.guard_intervals.before(transaction.request.address),
-                    );
-                    let result = tokio::select! {
-                        result = transport.transact(&transaction) => result,
-                        _ = shutdown.changed() => return Ok(()),
+                    let result = match (back_home, bus.transport.as_mut()) {
+                        (Err(err), _) => Err(err),
+                        (Ok(()), None) => Err(self.lost_port()),
+                        (Ok(()), Some(transport)) => {
+                            // Shutdown never waits for the bus: a transaction may take seconds
+                            // (long timeouts, a guard interval, a babbling line).
+                            transport.set_guard_interval(
+                                self.guard_intervals.before(transaction.request.address),
+                            );
+                            tokio::select! {
+                                result = transport.transact(&transaction) => result,
+                                _ = shutdown.changed() => return Ok(()),
+                            }
+                        }
                     };
                     self.transacted |= result.is_ok();
                     let (outcome, timing, failure) = match result {
@@ -723,10 +732,13 @@ impl PortTask {
         None
     }
 
+    /// The deferred job once its time has come and its device's hold-off has not moved since
+    /// it was deferred (a failure of the scheduler's own request to it in the meantime starts
+    /// a new one: its late reply must not be the job's answer); deferred again if it has.
     fn ready_deferred_job(&mut self) -> Option<BusWork> {
         let now = self.now();
         match self.deferred.take() {
-            Some((from, job)) if from <= now => Some(job),
+            Some((from, job)) if from <= now => self.defer_if_held(job),
             held => {
                 self.deferred = held;
                 None
@@ -740,7 +752,12 @@ impl PortTask {
             BusWork::Transaction(job) => {
                 self.scheduler.queued_may_go_from(&job.transaction.request)
             }
-            BusWork::Raw(_) => Duration::ZERO,
+            BusWork::Raw(raw) => raw
+                .request
+                .modbus_address()
+                .map_or(Duration::ZERO, |address| {
+                    self.scheduler.address_may_go_from(address)
+                }),
         };
         if from <= self.now() {
             return Some(work);
@@ -801,7 +818,17 @@ impl PortTask {
             BusWork::Transaction(job) => job,
             BusWork::Raw(raw) => {
                 debug!(port = %self.plan_name, away = ?bus.away, "queued raw transfer");
-                return match transport.transfer_raw(&raw.request).await {
+                let result = transport.transfer_raw(&raw.request).await;
+                // A Modbus request sent raw: the scheduler holds its device off unless its
+                // whole reply came, as after any queued transaction that failed.
+                if let Some(address) = raw.request.modbus_address() {
+                    let answered = result
+                        .as_ref()
+                        .is_ok_and(|answer| RawRequest::answered_by(answer, address));
+                    let now = self.now();
+                    self.scheduler.raw_done(now, address, answered);
+                }
+                return match result {
                     Ok(answer) => {
                         let _ = raw.reply.send(Ok(answer));
                         Ok(())
@@ -1265,14 +1292,15 @@ mod tests {
         )));
     }
 
-    /// Review of the port task (branch review-port): the port is lost while it is switched
+    /// Review of the port task (27 Nov 2026), finding 1: the port is lost while it is switched
     /// back from a queued transaction's settings to its own. `serve` asks the scheduler for its
     /// next step first (which puts that transaction in flight), then reopens the port at its own
-    /// settings; when that reopen fails, `?` leaves `serve` with the transaction still in flight
-    /// in the scheduler and never completed. After the port is reopened, `next()` answers
-    /// `Wait { until: now }` for ever: the port task spins, sends nothing again (no poll, no
-    /// write: a write in flight is never sent nor given up, `expire_writes` keeps it), and its
-    /// devices are never marked offline (no transaction fails).
+    /// settings; when that reopen failed, `?` left `serve` with the transaction still in flight
+    /// in the scheduler and never completed (now it fails as if lost during the transaction).
+    /// After the port was reopened, `next()` answered
+    /// `Wait { until: now }` for ever: the port task spun, sent nothing again (no poll, no
+    /// write: a write in flight was never sent nor given up, `expire_writes` kept it), and its
+    /// devices were never marked offline (no transaction failed).
     ///
     /// Sequence, on a pty behind a symlink: a queued transaction at 9600 on the 115200 port
     /// (the port is switched away); once its request is on the line, the symlink is removed;
@@ -1358,8 +1386,8 @@ mod tests {
         );
     }
 
-    /// Review of the port task (branch review-port): a deferred queued transaction goes once
-    /// the time it was deferred to has come, without looking again at its device's hold-off.
+    /// Review of the port task (27 Nov 2026), finding 3: a deferred queued transaction went once
+    /// the time it was deferred to had come, without looking again at its device's hold-off.
     /// The hold-off may have moved meanwhile: `serve` serves the deferred job only when it is
     /// the queue's turn, and when the last job was a queued one (`queued_turn` false) the
     /// scheduler goes first at that time, to the same device (its reads are due at the end of

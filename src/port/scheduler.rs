@@ -1003,11 +1003,28 @@ impl PortScheduler {
         // Silence in time: the late window it did not watch counts too, at the device's
         // configured timeout (as for the scheduler's own failures that skipped it).
         let heard_nothing_in_time = timing.first_byte.is_none() && timing.late_byte.is_none();
+        self.hold_off_address(failed_at, request.address, heard_nothing_in_time);
+    }
+
+    /// A raw transfer (`port/Load` without `protocol`) whose bytes were a Modbus request to
+    /// `address` ([`RawRequest::modbus_address`](crate::transport::raw::RawRequest::modbus_address))
+    /// ended at `now`: unless the device's whole reply came, the devices at that address are
+    /// held off as after a queued transaction that heard nothing in time (a raw transfer does
+    /// not tell when bytes came, so its late window counts as skipped).
+    pub fn raw_done(&mut self, now: Duration, address: u8, answered: bool) {
+        if !answered {
+            self.hold_off_address(now, address, true);
+        }
+    }
+
+    /// Holds every device at `address` off after a failure at `failed_at` of a transaction the
+    /// scheduler did not send; `window_skipped` adds the device's late window.
+    fn hold_off_address(&mut self, failed_at: Duration, address: u8, window_skipped: bool) {
         for (index, state) in self.devices.iter_mut().enumerate() {
-            if state.plan.address != request.address {
+            if state.plan.address != address {
                 continue;
             }
-            let skipped_window = if heard_nothing_in_time {
+            let skipped_window = if window_skipped {
                 state.response.floor()
             } else {
                 Duration::ZERO
@@ -1030,9 +1047,16 @@ impl PortScheduler {
         if !request.expects_reply() || !matches!(request.body, RequestBody::Classic(_)) {
             return Duration::ZERO;
         }
+        self.address_may_go_from(request.address)
+    }
+
+    /// From when a request to `address` may go: not before every device there is past its
+    /// hold-off after a failure (see [`Self::queued_may_go_from`]; raw transfers that are Modbus
+    /// requests wait for it too).
+    pub fn address_may_go_from(&self, address: u8) -> Duration {
         self.devices
             .iter()
-            .filter(|state| state.plan.address == request.address)
+            .filter(|state| state.plan.address == address)
             .map(|state| state.health.quiet_until())
             .max()
             .unwrap_or(Duration::ZERO)

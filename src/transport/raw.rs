@@ -9,6 +9,7 @@
 use std::time::Duration;
 
 use super::exchange::{LinkConfig, Transmit};
+use crate::protocol::crc::crc_is_valid;
 
 /// What the caller asks.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -20,6 +21,25 @@ pub struct RawRequest {
     pub response_timeout: Duration,
     /// Silence after a byte that ends the answer.
     pub frame_timeout: Duration,
+}
+
+impl RawRequest {
+    /// The device address of a Modbus RTU frame these bytes make (an address 1…247, at least
+    /// a function code, a valid CRC): a raw transfer is often one (wb-mqtt-serial's scripts
+    /// read registers that way), and a late reply to it is then as dangerous to the scheduler's
+    /// next request to that device as any other ([`PortScheduler::raw_done`](crate::port::scheduler::PortScheduler::raw_done)).
+    /// `None` for other protocols' bytes, broadcasts and requests by serial number.
+    pub fn modbus_address(&self) -> Option<u8> {
+        let address = *self.bytes.first()?;
+        ((1..=247).contains(&address) && self.bytes.len() >= 4 && crc_is_valid(&self.bytes))
+            .then_some(address)
+    }
+
+    /// Whether `answer` is a whole Modbus RTU frame from `address` (a reply, or an exception):
+    /// nothing of the device's answer can still be on its way.
+    pub fn answered_by(answer: &[u8], address: u8) -> bool {
+        answer.len() >= 4 && answer.first() == Some(&address) && crc_is_valid(answer)
+    }
 }
 
 #[derive(Debug)]
@@ -156,6 +176,34 @@ impl RawTransfer {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_raw_modbus_request_is_known_by_its_address_and_crc() {
+        let request = |bytes: Vec<u8>| RawRequest {
+            bytes,
+            response_size: 7,
+            response_timeout: Duration::from_millis(50),
+            frame_timeout: Duration::from_millis(20),
+        };
+        // Read input 10 of device 40.
+        let read = vec![0x28, 0x04, 0x00, 0x0A, 0x00, 0x01, 0x16, 0x31];
+        assert_eq!(request(read.clone()).modbus_address(), Some(40));
+        let mut bad_crc = read.clone();
+        bad_crc[7] ^= 1;
+        assert_eq!(request(bad_crc).modbus_address(), None);
+        let mut broadcast = read.clone();
+        broadcast[0] = 0;
+        assert_eq!(request(broadcast).modbus_address(), None);
+        assert_eq!(request(b"/?!\r\n".to_vec()).modbus_address(), None);
+        assert_eq!(request(Vec::new()).modbus_address(), None);
+        // Its reply: 28 04 02 00 DE + CRC.
+        let mut reply = vec![0x28, 0x04, 0x02, 0x00, 0xDE];
+        crate::protocol::crc::append_crc(&mut reply);
+        assert!(RawRequest::answered_by(&reply, 40));
+        assert!(!RawRequest::answered_by(&reply, 41));
+        assert!(!RawRequest::answered_by(&reply[..6], 40));
+        assert!(!RawRequest::answered_by(&[], 40));
+    }
     use crate::protocol::{LineSettings, Parity};
 
     fn ms(n: u64) -> Duration {
