@@ -130,8 +130,58 @@ struct IdentityState {
     serials: Vec<Option<u32>>,
     /// Per device: a read is asked for or running.
     reading: Vec<bool>,
+    /// Per device: after a read that got nothing (noise, a full bus queue, a reopen), when to
+    /// try again and the delay that led there.
+    retries: IdentityRetries,
     requests: Option<mpsc::UnboundedSender<usize>>,
     results: Option<mpsc::Receiver<(usize, IdentityRead)>>,
+}
+
+/// When to read a device's identity again after a read that got nothing: channels held to a
+/// minimum firmware wait for it, and a device that stays online is otherwise never asked again
+/// (reads start when it comes online or restarts). 10 s, doubling to 10 minutes.
+#[derive(Debug, Default)]
+struct IdentityRetries {
+    /// Per device: (when, the delay that led there).
+    due: Vec<Option<(Duration, Duration)>>,
+}
+
+const FIRST_IDENTITY_RETRY: Duration = Duration::from_secs(10);
+const MAX_IDENTITY_RETRY: Duration = Duration::from_secs(600);
+
+impl IdentityRetries {
+    fn with_devices(count: usize) -> Self {
+        Self {
+            due: vec![None; count],
+        }
+    }
+
+    /// The read of `device` at `now` got nothing: tried again later, each time later still.
+    fn failed(&mut self, device: usize, now: Duration) {
+        if let Some(slot) = self.due.get_mut(device) {
+            let delay = slot.map_or(FIRST_IDENTITY_RETRY, |(_, last)| {
+                (last * 2).min(MAX_IDENTITY_RETRY)
+            });
+            *slot = Some((now + delay, delay));
+        }
+    }
+
+    /// The read of `device` got an answer: no retry.
+    fn succeeded(&mut self, device: usize) {
+        if let Some(slot) = self.due.get_mut(device) {
+            *slot = None;
+        }
+    }
+
+    /// Devices whose retry is due at `now` (their entries stay, for the next delay, until the
+    /// read's result comes).
+    fn due_at(&self, now: Duration) -> impl Iterator<Item = usize> + '_ {
+        self.due
+            .iter()
+            .enumerate()
+            .filter(move |(_, slot)| slot.is_some_and(|(at, _)| at <= now))
+            .map(|(device, _)| device)
+    }
 }
 
 /// A queued job that takes bus time.
@@ -239,6 +289,7 @@ impl PortTask {
         self.identity.plans = plans;
         self.identity.serials = vec![None; count];
         self.identity.reading = vec![false; count];
+        self.identity.retries = IdentityRetries::with_devices(count);
         self
     }
 
@@ -295,9 +346,12 @@ impl PortTask {
         };
         let device_id = model.id().to_owned();
         if read.is_empty() {
-            debug!(port = %self.plan_name, device = %device_id, "identity not readable now");
+            debug!(port = %self.plan_name, device = %device_id, "identity not readable now: tried again later");
+            let now = self.now();
+            self.identity.retries.failed(device, now);
             return;
         }
+        self.identity.retries.succeeded(device);
         let previous = self.identity.serials.get(device).copied().flatten();
         match (previous, read.serial) {
             (Some(old), Some(new)) if old != new => {
@@ -601,6 +655,11 @@ impl PortTask {
                 self.identity.results.as_mut().map(mpsc::Receiver::try_recv)
             {
                 self.identity_read(device, read).await;
+            }
+            let now = self.now();
+            let retries: Vec<usize> = self.identity.retries.due_at(now).collect();
+            for device in retries {
+                self.ask_identity(device);
             }
             if queued_turn {
                 if let Some(job) = self.next_queued_job() {
@@ -1248,6 +1307,84 @@ mod tests {
         assert!(
             sender.send(write("K5", "1")).await.is_err(),
             "the queue is closed once the task has stopped taking writes"
+        );
+    }
+
+    /// Review of the port task (27 Nov 2026), finding 6: an identity read that got nothing (a
+    /// full bus queue, a reopen, noise) left the device's channels held to a minimum firmware
+    /// unread until it next came online or restarted, which a stable device never does. It is
+    /// tried again, 10 s later, then later each time up to 10 minutes, until one is answered.
+    #[test]
+    fn an_identity_read_that_got_nothing_is_tried_again_later_each_time() {
+        let mut retries = IdentityRetries::with_devices(2);
+        let at = |s: u64| Duration::from_secs(s);
+        assert_eq!(retries.due_at(at(1000)).count(), 0, "nothing failed yet");
+        retries.failed(1, at(100));
+        assert_eq!(retries.due_at(at(109)).count(), 0);
+        assert_eq!(retries.due_at(at(110)).collect::<Vec<_>>(), [1]);
+        // Asked again at 110; still due until its result comes (asking twice is harmless:
+        // `ask_identity` asks once while a read runs).
+        retries.failed(1, at(111));
+        assert_eq!(retries.due_at(at(130)).count(), 0);
+        assert_eq!(retries.due_at(at(131)).collect::<Vec<_>>(), [1]);
+        let mut now = at(131);
+        for _ in 0..10 {
+            retries.failed(1, now);
+            now += MAX_IDENTITY_RETRY;
+        }
+        assert_eq!(
+            retries.due[1].map(|(_, delay)| delay),
+            Some(MAX_IDENTITY_RETRY)
+        );
+        retries.succeeded(1);
+        assert_eq!(
+            retries.due_at(at(1_000_000)).count(),
+            0,
+            "answered: no more retries"
+        );
+        // Out-of-range devices are ignored.
+        retries.failed(7, now);
+        retries.succeeded(7);
+    }
+
+    /// The port task's side of finding 6: an empty identity read schedules the retry, an
+    /// answered one clears it.
+    #[tokio::test]
+    async fn an_empty_identity_read_schedules_a_retry_and_an_answer_clears_it() {
+        let (_write_tx, writes) = mpsc::channel(8);
+        let plan = IdentityPlan {
+            address: 20,
+            texts: true,
+            serial: None,
+            response_timeout: Duration::from_millis(100),
+        };
+        let mut task = relay_task_at("/dev/null", writes).with_identity(vec![Some(plan)]);
+        task.identity_read(0, IdentityRead::default()).await;
+        let now = task.now();
+        assert_eq!(
+            task.identity
+                .retries
+                .due_at(now + FIRST_IDENTITY_RETRY)
+                .collect::<Vec<_>>(),
+            [0],
+            "nothing read: tried again later"
+        );
+        let answered = IdentityRead {
+            identity: crate::device_updates::DeviceIdentity {
+                model: Some("WBMR6C".into()),
+                serial_number: None,
+                firmware: Some("1.26.0".into()),
+            },
+            serial: None,
+        };
+        task.identity_read(0, answered).await;
+        assert_eq!(
+            task.identity
+                .retries
+                .due_at(now + MAX_IDENTITY_RETRY * 2)
+                .count(),
+            0,
+            "answered: no retry"
         );
     }
 
