@@ -46,9 +46,15 @@ pub struct PortTask {
     /// Writes handed on by the task this one replaces (a reload restarted the port): older
     /// than anything in `writes`, so they go first.
     carried: VecDeque<ControlWrite>,
-    /// The writes taken from `writes` and the registers each was queued as, for as long as one
-    /// of those may still be unsent: handed on if the task stops before they go.
-    taken: Vec<(ControlWrite, Vec<WriteKey>)>,
+    /// The writes taken from `writes`, the registers each was queued as and the order it was
+    /// taken in, for as long as one of those may still be unsent: handed on if the task stops
+    /// before they go. A register leaves an entry once a write to it that carried the entry
+    /// (queued writes to one register merge) has been done or given up.
+    taken: Vec<(ControlWrite, Vec<WriteKey>, u64)>,
+    /// The order number the next taken write gets.
+    next_taken: u64,
+    /// The register of the write in flight and the order numbers it carries (those below).
+    write_sent: Option<(WriteKey, u64)>,
     /// Refused `/on` payloads are logged a few per minute: any MQTT client can send them.
     refused_log: LogBudget,
     epoch: Instant,
@@ -248,6 +254,8 @@ impl PortTask {
             writes,
             carried: VecDeque::new(),
             taken: Vec::new(),
+            next_taken: 0,
+            write_sent: None,
             refused_log: LogBudget::new(REFUSED_WRITE_LOG_LINES),
             epoch: Instant::now(),
             vitals: None,
@@ -531,8 +539,8 @@ impl PortTask {
         writes.extend(
             self.taken
                 .drain(..)
-                .filter(|(_, keys)| keys.iter().any(|key| unsent.contains(key)))
-                .map(|(write, _)| write),
+                .filter(|(_, keys, _)| keys.iter().any(|key| unsent.contains(key)))
+                .map(|(write, _, _)| write),
         );
         // Closed first, so that no write can come in after the last one is taken.
         self.writes.close();
@@ -689,6 +697,7 @@ impl PortTask {
                 NextStep::Transmit(transaction) => {
                     let started = self.now();
                     queued_turn = true;
+                    self.note_write_sent();
                     // The transaction is the scheduler's in flight from here: a port lost on
                     // the way back to its own settings fails it like a port lost during it
                     // (left in flight, the scheduler would wait for its outcome for ever).
@@ -731,6 +740,7 @@ impl PortTask {
                     let mut events = std::mem::take(&mut self.port_events);
                     self.scheduler
                         .complete_into(self.now(), outcome, timing, &mut events);
+                    self.note_writes_completed(&events);
                     self.dispatch(&mut events).await;
                     self.port_events = events;
                     if let Some(outcome) = recorded {
@@ -1047,6 +1057,48 @@ impl PortTask {
         }
     }
 
+    /// Called with the scheduler's transaction in flight: if it is a write, it carries every
+    /// write taken so far for its register (queued writes to one register merge).
+    fn note_write_sent(&mut self) {
+        self.write_sent = self
+            .scheduler
+            .write_in_flight()
+            .map(|key| (key, self.next_taken));
+    }
+
+    /// After the transaction in flight completed with `events`: a write done or given up is no
+    /// longer owed for the writes it carried. Kept as owed, they would be handed on at a reload
+    /// together with a later write to the same register and written again (a bit field's other
+    /// bits set back to what they were, a command bit acting twice).
+    fn note_writes_completed(&mut self, events: &[PortEvent]) {
+        let Some((sent, carried_below)) = self.write_sent.take() else {
+            return;
+        };
+        let finished = events.iter().any(|event| match *event {
+            PortEvent::WriteDone {
+                device,
+                register_type,
+                address,
+            }
+            | PortEvent::WriteFailed {
+                device,
+                register_type,
+                address,
+                permanent: true,
+            } => (device, register_type, address) == sent,
+            _ => false,
+        });
+        if !finished {
+            return;
+        }
+        for (_, keys, order) in &mut self.taken {
+            if *order < carried_below {
+                keys.retain(|key| *key != sent);
+            }
+        }
+        self.taken.retain(|(_, keys, _)| !keys.is_empty());
+    }
+
     async fn handle_write(&mut self, write: ControlWrite) {
         let now = self.now();
         let Some(model) = self.models.iter_mut().find(|m| m.id() == write.device_id) else {
@@ -1066,8 +1118,9 @@ impl PortTask {
                 // Only what may still be unsent is kept (the scheduler's queue bounds it).
                 let unsent: Vec<WriteKey> = self.scheduler.unsent_writes().collect();
                 self.taken
-                    .retain(|(_, keys)| keys.iter().any(|key| unsent.contains(key)));
-                self.taken.push((write, keys));
+                    .retain(|(_, keys, _)| keys.iter().any(|key| unsent.contains(key)));
+                self.taken.push((write, keys, self.next_taken));
+                self.next_taken += 1;
             }
             Err(reason) => {
                 let decision = self.refused_log.check(std::time::Instant::now());
@@ -1308,6 +1361,55 @@ mod tests {
             sender.send(write("K5", "1")).await.is_err(),
             "the queue is closed once the task has stopped taking writes"
         );
+    }
+
+    /// Review of the port task (27 Nov 2026), finding 4: a write that went and was answered
+    /// stayed among the writes owed to a replacing task as long as a later write to the same
+    /// register was queued; a reload then handed on both, and the first was written again
+    /// (merged into the second: its bits of a bit field set back, a command bit acting twice).
+    /// Only writes taken after the one in flight are owed once it is done.
+    #[tokio::test]
+    async fn a_write_done_is_not_handed_on_with_a_later_one_to_the_same_register() {
+        let (_sender, receiver) = mpsc::channel(8);
+        let mut task = relay_task(receiver);
+        task.handle_write(write("K1", "1")).await;
+        let key = task.scheduler.unsent_writes().next().expect("K1 queued");
+        // As `note_write_sent` records it when the scheduler puts K1's write in flight.
+        task.write_sent = Some((key, task.next_taken));
+        task.handle_write(write("K1", "0")).await;
+        task.note_writes_completed(&[PortEvent::WriteDone {
+            device: key.0,
+            register_type: key.1,
+            address: key.2,
+        }]);
+        let handed: Vec<(String, String)> = task
+            .unsent_writes()
+            .into_iter()
+            .map(|w| (w.control_id, w.payload))
+            .collect();
+        assert_eq!(handed, [("K1".to_owned(), "0".to_owned())]);
+    }
+
+    /// A write that failed and will be tried again is still owed.
+    #[tokio::test]
+    async fn a_write_that_failed_for_now_is_still_handed_on() {
+        let (_sender, receiver) = mpsc::channel(8);
+        let mut task = relay_task(receiver);
+        task.handle_write(write("K1", "1")).await;
+        let key = task.scheduler.unsent_writes().next().expect("K1 queued");
+        task.write_sent = Some((key, task.next_taken));
+        task.note_writes_completed(&[PortEvent::WriteFailed {
+            device: key.0,
+            register_type: key.1,
+            address: key.2,
+            permanent: false,
+        }]);
+        let handed: Vec<String> = task
+            .unsent_writes()
+            .into_iter()
+            .map(|w| w.payload)
+            .collect();
+        assert_eq!(handed, ["1"]);
     }
 
     /// Review of the port task (27 Nov 2026), finding 6: an identity read that got nothing (a

@@ -671,6 +671,14 @@ impl PortScheduler {
         None
     }
 
+    /// The register of the write in flight, if the transaction in flight is one.
+    pub fn write_in_flight(&self) -> Option<WriteKey> {
+        match &self.in_flight {
+            Some(InFlight::Write { write }) => Some(write_key(&write.write)),
+            _ => None,
+        }
+    }
+
     /// The registers of the queued writes that have not gone on the wire (device, table,
     /// address): what a stopping port task hands on to the task that replaces it. The write in
     /// flight, if any, is not among them: it may have reached the device, and repeating it
