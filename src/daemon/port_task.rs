@@ -715,10 +715,19 @@ impl PortTask {
                             transport.set_guard_interval(
                                 self.guard_intervals.before(transaction.request.address),
                             );
-                            tokio::select! {
-                                result = transport.transact(&transaction) => result,
-                                _ = shutdown.changed() => return Ok(()),
-                            }
+                            let finished = tokio::select! {
+                                result = transport.transact(&transaction) => Some(result),
+                                _ = shutdown.changed() => None,
+                            };
+                            let Some(result) = finished else {
+                                // Stopping. A request still waiting for the line never went:
+                                // a write in it is handed on with the unsent ones.
+                                if transport.request_not_sent() {
+                                    self.scheduler.forget_unsent_in_flight();
+                                }
+                                return Ok(());
+                            };
+                            result
                         }
                     };
                     self.transacted |= result.is_ok();

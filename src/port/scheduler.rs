@@ -671,6 +671,13 @@ impl PortScheduler {
         None
     }
 
+    /// The port task stops while the transaction in flight still waits for the line (its
+    /// request never went): forgotten, so that a write in it is among [`Self::unsent_writes`]
+    /// and handed on to the task that replaces this one, not lost.
+    pub fn forget_unsent_in_flight(&mut self) {
+        self.in_flight = None;
+    }
+
     /// The register of the write in flight, if the transaction in flight is one.
     pub fn write_in_flight(&self) -> Option<WriteKey> {
         match &self.in_flight {

@@ -983,6 +983,22 @@ fn unsent_writes_leave_out_the_one_in_flight_and_those_done() {
     let mut events = Vec::new();
     scheduler.complete_into(now + ms(2), answer, ReplyTiming::default(), &mut events);
     assert_eq!(unsent(&scheduler), [(0, RegisterType::Holding, 11)]);
+    // A write in flight whose request never went (the task stopped while it waited for the
+    // line) is unsent again once forgotten.
+    let NextStep::Transmit(second) = scheduler.next(now + ms(3)) else {
+        panic!("the second write goes now");
+    };
+    assert!(matches!(
+        second.request.body,
+        crate::protocol::RequestBody::Classic(_)
+    ));
+    assert_eq!(
+        scheduler.write_in_flight(),
+        Some((0, RegisterType::Holding, 11))
+    );
+    assert_eq!(unsent(&scheduler), []);
+    scheduler.forget_unsent_in_flight();
+    assert_eq!(unsent(&scheduler), [(0, RegisterType::Holding, 11)]);
 }
 
 /// A write that could not go (the port away) is given up once its device's retry time

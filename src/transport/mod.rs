@@ -167,6 +167,12 @@ impl Transport {
         })
     }
 
+    /// True while the transaction started last still waits for the silence before its request:
+    /// nothing of it went on the wire (a transaction given up now can be sent again later).
+    pub fn request_not_sent(&self) -> bool {
+        self.exchange.awaits_transmit()
+    }
+
     /// Keeps this much silence on the bus before every request.
     pub fn set_guard_interval(&mut self, guard_interval: Duration) {
         self.exchange.set_guard_interval(guard_interval);
