@@ -420,7 +420,8 @@ impl BusControl {
         summary
     }
 
-    /// Stops every port task (a transaction in flight is abandoned; a write whose request never went is handed on with the unsent ones) and the write router.
+    /// Stops every port task (a transaction in flight is abandoned; a write whose request never
+    /// went is handed on with the unsent ones) and the write router.
     pub async fn stop(mut self) {
         for running in self.ports.values() {
             let _ = running.stop.send(true);
