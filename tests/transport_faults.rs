@@ -106,21 +106,21 @@ fn load_input_10(sim: &SimProcess, response_timeout_ms: u64) -> Value {
         "response_timeout": response_timeout_ms, "total_timeout": 10_000})
 }
 
-/// The device answers every request 300 ms late; the daemon's response timeout for it is
-/// 1000 ms, so its own reads (input 0 = 111, then 112, 113 …) all succeed. A `port/Load` read
-/// of input 10 with a 50 ms response timeout fails; its late reply (222) came while the
-/// scheduler's next read of the same device (same function, same length) waited for its answer,
-/// and was taken as it: input 0 was published as 222 (the scheduler held a device off after its
-/// *own* failed transactions only, defect A). A failed queued (RPC, identity) transaction now
-/// holds the device off too (`PortScheduler::queued_done`). Each round changes input 0 and waits
-/// for the new value, so a read of input 0 after the RPC has been published before the check.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_late_reply_to_an_rpc_read_is_never_published_as_a_polled_value() {
-    let (broker, sim, daemon, recorder, _dir) = late_device(1000, true).await;
-    sim.control(json!({"cmd": "faults", "device": 40, "delay": 1.0, "delay_ms": 300}));
+/// Four rounds of: the `port/Load` `params` (its answer checked by `answered`), then a new
+/// value of input 0 (112, 113, …), waited for on the broker; after each, no value input 0 never
+/// held may have been published (`what` names the requests in the message).
+async fn rounds_publish_only_held_values(
+    broker: &Mosquitto,
+    sim: &SimProcess,
+    daemon: &DaemonProcess,
+    recorder: &Recorder,
+    params: Value,
+    answered: fn(&Value) -> bool,
+    what: &str,
+) {
     for round in 1..=4u32 {
-        let answer = rpc(broker.port, "port", "Load", load_input_10(&sim, 50)).await;
-        assert!(answer["error"].is_object(), "round {round}: {answer}");
+        let answer = rpc(broker.port, "port", "Load", params.clone()).await;
+        assert!(answered(&answer), "round {round}: {answer}");
         let expected = (111 + round).to_string();
         sim.control(
             json!({"cmd": "set", "device": 40, "type": "input", "address": 0,
@@ -148,10 +148,34 @@ async fn a_late_reply_to_an_rpc_read_is_never_published_as_a_polled_value() {
             .collect();
         assert!(
             wrong.is_empty(),
-            "input 0 published with a value it never held after {round} RPC reads: {wrong:?}\n{}",
+            "input 0 published with a value it never held after {round} {what}: {wrong:?}\n{}",
             daemon.log_tail(30)
         );
     }
+}
+
+/// The device answers every request 300 ms late; the daemon's response timeout for it is
+/// 1000 ms, so its own reads (input 0 = 111, then 112, 113 …) all succeed. A `port/Load` read
+/// of input 10 with a 50 ms response timeout fails; its late reply (222) came while the
+/// scheduler's next read of the same device (same function, same length) waited for its answer,
+/// and was taken as it: input 0 was published as 222 (the scheduler held a device off after its
+/// *own* failed transactions only, defect A). A failed queued (RPC, identity) transaction now
+/// holds the device off too (`PortScheduler::queued_done`). Each round changes input 0 and waits
+/// for the new value, so a read of input 0 after the RPC has been published before the check.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_late_reply_to_an_rpc_read_is_never_published_as_a_polled_value() {
+    let (broker, sim, daemon, recorder, _dir) = late_device(1000, true).await;
+    sim.control(json!({"cmd": "faults", "device": 40, "delay": 1.0, "delay_ms": 300}));
+    rounds_publish_only_held_values(
+        &broker,
+        &sim,
+        &daemon,
+        &recorder,
+        load_input_10(&sim, 50),
+        |answer| answer["error"].is_object(),
+        "RPC reads",
+    )
+    .await;
 }
 
 /// Review of the port task (27 Nov 2026), finding 2: defect A's rule for raw transfers. A raw
@@ -168,50 +192,19 @@ async fn a_late_reply_to_an_rpc_read_is_never_published_as_a_polled_value() {
 async fn a_late_reply_to_a_raw_rpc_transfer_is_never_published_as_a_polled_value() {
     let (broker, sim, daemon, recorder, _dir) = late_device(1000, false).await;
     sim.control(json!({"cmd": "faults", "device": 40, "delay": 1.0, "delay_ms": 300}));
-    for round in 1..=4u32 {
-        // Read input registers from 10, one: 28 04 000a 0001, CRC 1631.
-        let answer = rpc(
-            broker.port,
-            "port",
-            "Load",
-            json!({"path": sim.pty.to_str().unwrap(), "msg": "2804000a00011631",
-                "format": "HEX", "response_size": 7, "response_timeout": 50,
-                "total_timeout": 10_000}),
-        )
-        .await;
-        assert!(answer["result"].is_object(), "round {round}: {answer}");
-        let expected = (111 + round).to_string();
-        sim.control(
-            json!({"cmd": "set", "device": 40, "type": "input", "address": 0,
-            "value": 111 + round}),
-        );
-        wait_for("input 0's new value published", || async {
-            let state = retained(broker.port).await?;
-            state
-                .iter()
-                .any(|(t, v)| t.ends_with("/controls/Zero") && *v == expected)
-                .then_some(())
-        })
-        .await;
-        let wrong: Vec<String> = recorder
-            .messages
-            .lock()
-            .unwrap()
-            .iter()
-            .filter(|(t, v, _)| {
-                t.ends_with("/controls/Zero")
-                    && v.parse::<u32>()
-                        .map_or(true, |v| !(111..=111 + round).contains(&v))
-            })
-            .map(|(t, v, _)| format!("{t} = {v}"))
-            .collect();
-        assert!(
-            wrong.is_empty(),
-            "input 0 published with a value it never held after {round} raw RPC transfers: \
-             {wrong:?}\n{}",
-            daemon.log_tail(30)
-        );
-    }
+    // Read input registers from 10, one: 28 04 000a 0001, CRC 1631.
+    let raw = json!({"path": sim.pty.to_str().unwrap(), "msg": "2804000a00011631",
+        "format": "HEX", "response_size": 7, "response_timeout": 50, "total_timeout": 10_000});
+    rounds_publish_only_held_values(
+        &broker,
+        &sim,
+        &daemon,
+        &recorder,
+        raw,
+        |answer| answer["result"].is_object(),
+        "raw RPC transfers",
+    )
+    .await;
 }
 
 /// The other way round: the device polls only input 0 (111) and answers half its requests
