@@ -343,6 +343,16 @@ impl PortTask {
         }
     }
 
+    /// Asks again for the identities whose retry is due (a read still running is not asked
+    /// twice).
+    fn ask_due_identity_retries(&mut self) {
+        let now = self.now();
+        let due: Vec<usize> = self.identity.retries.due_at(now).collect();
+        for device in due {
+            self.ask_identity(device);
+        }
+    }
+
     /// A device's identity came: published; a serial number other than the last one means
     /// another device took its place, which is set up afresh.
     async fn identity_read(&mut self, device: usize, read: IdentityRead) {
@@ -664,11 +674,7 @@ impl PortTask {
             {
                 self.identity_read(device, read).await;
             }
-            let now = self.now();
-            let retries: Vec<usize> = self.identity.retries.due_at(now).collect();
-            for device in retries {
-                self.ask_identity(device);
-            }
+            self.ask_due_identity_retries();
             if queued_turn {
                 if let Some(job) = self.next_queued_job() {
                     queued_turn = false;
@@ -1497,6 +1503,32 @@ mod tests {
             0,
             "answered: no retry"
         );
+    }
+
+    /// The serve loop's step: a due retry asks the identity worker again, once while it runs.
+    #[tokio::test]
+    async fn a_due_identity_retry_asks_the_worker_again_once() {
+        let (_write_tx, writes) = mpsc::channel(8);
+        let plan = IdentityPlan {
+            address: 20,
+            texts: true,
+            serial: None,
+            response_timeout: Duration::from_millis(100),
+        };
+        let mut task = relay_task_at("/dev/null", writes).with_identity(vec![Some(plan)]);
+        let (requests, mut asked) = mpsc::unbounded_channel();
+        task.identity.requests = Some(requests);
+        task.ask_due_identity_retries();
+        assert!(asked.try_recv().is_err(), "nothing failed: nothing asked");
+        task.identity_read(0, IdentityRead::default()).await;
+        task.ask_due_identity_retries();
+        assert!(asked.try_recv().is_err(), "not due yet");
+        // Due now (as 10 s later).
+        task.identity.retries.due[0] = Some((Duration::ZERO, FIRST_IDENTITY_RETRY));
+        task.ask_due_identity_retries();
+        task.ask_due_identity_retries();
+        assert_eq!(asked.try_recv().ok(), Some(0));
+        assert!(asked.try_recv().is_err(), "asked once while the read runs");
     }
 
     /// Two writes to one register: both are handed on, in order (the second only replaced the
