@@ -1464,10 +1464,8 @@ mod tests {
         retries.succeeded(7);
     }
 
-    /// The port task's side of finding 6: an empty identity read schedules the retry, an
-    /// answered one clears it.
-    #[tokio::test]
-    async fn an_empty_identity_read_schedules_a_retry_and_an_answer_clears_it() {
+    /// The relay task with an identity plan for its device (WB texts, no serial number).
+    fn relay_task_with_identity() -> PortTask {
         let (_write_tx, writes) = mpsc::channel(8);
         let plan = IdentityPlan {
             address: 20,
@@ -1475,7 +1473,14 @@ mod tests {
             serial: None,
             response_timeout: Duration::from_millis(100),
         };
-        let mut task = relay_task_at("/dev/null", writes).with_identity(vec![Some(plan)]);
+        relay_task_at("/dev/null", writes).with_identity(vec![Some(plan)])
+    }
+
+    /// The port task's side of finding 6: an empty identity read schedules the retry, an
+    /// answered one clears it.
+    #[tokio::test]
+    async fn an_empty_identity_read_schedules_a_retry_and_an_answer_clears_it() {
+        let mut task = relay_task_with_identity();
         task.identity_read(0, IdentityRead::default()).await;
         let now = task.now();
         assert_eq!(
@@ -1508,14 +1513,7 @@ mod tests {
     /// The serve loop's step: a due retry asks the identity worker again, once while it runs.
     #[tokio::test]
     async fn a_due_identity_retry_asks_the_worker_again_once() {
-        let (_write_tx, writes) = mpsc::channel(8);
-        let plan = IdentityPlan {
-            address: 20,
-            texts: true,
-            serial: None,
-            response_timeout: Duration::from_millis(100),
-        };
-        let mut task = relay_task_at("/dev/null", writes).with_identity(vec![Some(plan)]);
+        let mut task = relay_task_with_identity();
         let (requests, mut asked) = mpsc::unbounded_channel();
         task.identity.requests = Some(requests);
         task.ask_due_identity_retries();

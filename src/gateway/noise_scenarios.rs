@@ -44,6 +44,27 @@ fn noise() -> Faults {
     }
 }
 
+/// The simulator's change log since the last call, as the harness's `watch` records it.
+fn taken_changes(gateway: &mut VirtualGateway) -> Vec<Change> {
+    gateway
+        .bus
+        .take_changes()
+        .into_iter()
+        .map(|change| Change {
+            mono_ns: nanos(change.at),
+            address: change.address,
+            register_type: register_type_name(change.change.register_type).to_string(),
+            register: change.change.address,
+            value: change.change.new,
+            origin: match change.origin {
+                ChangeOrigin::Master => "master",
+                ChangeOrigin::Control => "control",
+            }
+            .to_string(),
+        })
+        .collect()
+}
+
 fn nanos(at: Duration) -> u64 {
     u64::try_from(at.as_nanos()).unwrap_or(u64::MAX)
 }
@@ -208,20 +229,7 @@ impl NoiseBus {
 
     /// Moves the simulator's change log into [`Self::changes`], as the harness's `watch` does.
     fn collect_changes(&mut self) {
-        for change in self.gateway.bus.take_changes() {
-            self.changes.push(Change {
-                mono_ns: nanos(change.at),
-                address: change.address,
-                register_type: register_type_name(change.change.register_type).to_string(),
-                register: change.change.address,
-                value: change.change.new,
-                origin: match change.origin {
-                    ChangeOrigin::Master => "master",
-                    ChangeOrigin::Control => "control",
-                }
-                .to_string(),
-            });
-        }
+        self.changes.extend(taken_changes(&mut self.gateway));
     }
 
     fn topic(&self, address: u8, register_type: &str, register: u16) -> String {
@@ -1212,20 +1220,7 @@ fn write_run(
     let mut next_value: u16 = 1000;
     let mut changes = Vec::new();
     let collect = |gateway: &mut VirtualGateway, changes: &mut Vec<Change>| {
-        for change in gateway.bus.take_changes() {
-            changes.push(Change {
-                mono_ns: nanos(change.at),
-                address: change.address,
-                register_type: register_type_name(change.change.register_type).to_string(),
-                register: change.change.address,
-                value: change.change.new,
-                origin: match change.origin {
-                    ChangeOrigin::Master => "master",
-                    ChangeOrigin::Control => "control",
-                }
-                .to_string(),
-            });
-        }
+        changes.extend(taken_changes(gateway));
     };
     let end = gateway.now + Duration::from_secs(20);
     while gateway.now < end {

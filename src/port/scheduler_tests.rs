@@ -1782,12 +1782,17 @@ fn two_answering_devices() -> (PortScheduler, Duration) {
     ];
     let mut scheduler = PortScheduler::new(port, plans);
     let mut now = Duration::ZERO;
-    for _ in 0..3 {
-        let transaction = answer_until(&mut scheduler, &mut now, 30);
-        now += ms(5);
-        scheduler.complete(now, healthy(&transaction.request));
-    }
+    answer_three_reads_of_30(&mut scheduler, &mut now);
     (scheduler, now)
+}
+
+/// Device 30 answers its next three requests, 5 ms each.
+fn answer_three_reads_of_30(scheduler: &mut PortScheduler, now: &mut Duration) {
+    for _ in 0..3 {
+        let transaction = answer_until(scheduler, now, 30);
+        *now += ms(5);
+        scheduler.complete(*now, healthy(&transaction.request));
+    }
 }
 
 /// Issue 15: a reply that began in time but was unreadable (a CRC error) skipped no late
@@ -2006,11 +2011,7 @@ fn a_device_held_off_after_a_failure_does_not_make_the_scheduler_spin() {
         )];
         let mut scheduler = PortScheduler::new(port, plans);
         let mut now = Duration::ZERO;
-        for _ in 0..3 {
-            let transaction = answer_until(&mut scheduler, &mut now, 30);
-            now += ms(5);
-            scheduler.complete(now, healthy(&transaction.request));
-        }
+        answer_three_reads_of_30(&mut scheduler, &mut now);
         let failed = answer_until(&mut scheduler, &mut now, 30);
         now += failed.request_time + failed.first_byte_timeout.unwrap();
         scheduler.complete(now, TransactionOutcome::NoReply);
