@@ -7,7 +7,9 @@
 //! gateway that sleeps through replies and keeps the frame gap can cost less here. A second
 //! round sleeps once per transaction (the reply read 3.5 characters after its predicted end,
 //! the next request written at once, as the daemon does not: see docs/performance.md), for the
-//! floor of that design.
+//! floor of that design. A third round goes through the daemon's own transport (the exchange,
+//! the serial link blocking for short waits, as a port task on its own thread runs it): what
+//! the daemon's bus code adds to the floor before any scheduling, device model or MQTT.
 
 use std::fs::{File, OpenOptions};
 use std::io::{Read, Write};
@@ -37,13 +39,34 @@ const READ_SLACK: Duration = Duration::from_micros(300);
 /// A reply not complete at its predicted end is waited for this long at most.
 const REPLY_WAIT: Duration = Duration::from_millis(100);
 
+/// Which loop a round runs.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub enum FloorMaster {
+    /// Two sleeps per transaction: the reply, then the frame gap.
+    #[default]
+    TwoSleeps,
+    /// One sleep: the reply and the gap in one.
+    OneSleep,
+    /// The daemon's transport, its short waits blocking the thread.
+    DaemonTransport,
+}
+
+impl std::fmt::Display for FloorMaster {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Self::TwoSleeps => "bare, 2 sleeps",
+            Self::OneSleep => "bare, 1 sleep",
+            Self::DaemonTransport => "the daemon's transport",
+        })
+    }
+}
+
 /// One round of the bare master.
 #[derive(Debug, Clone, Default)]
 pub struct BareMasterRun {
     pub baud: u32,
     pub devices: u8,
-    /// Sleeps per transaction it was built for (2: reply, then frame gap; 1: both in one).
-    pub sleeps: u8,
+    pub master: FloorMaster,
     pub transactions: usize,
     /// Transactions whose reply came whole with a good CRC.
     pub answered: usize,
@@ -67,19 +90,19 @@ impl BareMasterRun {
 }
 
 /// Runs `transactions` reads of 60 input registers on a bus of `devices` bench devices at
-/// `baud`, sleeping `sleeps` (1 or 2) times per transaction.
+/// `baud` with `master`.
 pub fn run_bare_master(
     binary: &Path,
     mosquitto: &Path,
     baud: u32,
     devices: u8,
-    sleeps: u8,
+    master: FloorMaster,
     transactions: usize,
 ) -> BareMasterRun {
     let mut run = BareMasterRun {
         baud,
         devices,
-        sleeps,
+        master,
         ..BareMasterRun::default()
     };
     if let Err(err) = measure_into(&mut run, binary, mosquitto, transactions) {
@@ -123,8 +146,11 @@ fn measure_into(
     let plan = Plan {
         line,
         reply_len,
-        one_sleep: run.sleeps == 1,
+        one_sleep: run.master == FloorMaster::OneSleep,
     };
+    if run.master == FloorMaster::DaemonTransport {
+        return through_transport(run, &harness, &layout, transactions);
+    }
     // A few rounds first: the simulator's and this thread's first transactions pay for pages
     // and caches.
     for request in requests.iter().cycle().take(16) {
@@ -141,6 +167,72 @@ fn measure_into(
     run.cpu = cpu_after.saturating_sub(cpu_before);
     run.wake_ups = sleeps_after.saturating_sub(sleeps_before);
     Ok(())
+}
+
+/// The same round robin through the daemon's own transport (the exchange, the serial link, its
+/// short waits blocking the thread) on a current-thread runtime, as a port task runs it.
+fn through_transport(
+    run: &mut BareMasterRun,
+    harness: &Harness,
+    layout: &BenchLayout,
+    transactions: usize,
+) -> anyhow::Result<()> {
+    use crate::protocol::Transaction;
+    use crate::transport::{Endpoint, Transport};
+    let line = LineSettings::new(run.baud, Parity::None, 2);
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()?;
+    runtime.block_on(async {
+        let endpoint = Endpoint::Serial {
+            path: harness.pty().to_string_lossy().into_owned(),
+            line,
+            frame_timeout: Duration::ZERO,
+        };
+        let mut transport = Transport::open(&endpoint)
+            .await
+            .map_err(|err| anyhow::anyhow!("{err}"))?;
+        transport.block_short_waits();
+        let transactions_of: Vec<Transaction> = (1..=run.devices)
+            .map(|address| {
+                Transaction::to_device(
+                    &line,
+                    Request::classic(
+                        address,
+                        RequestPdu::ReadInputRegisters {
+                            start: 0,
+                            count: layout.registers,
+                        },
+                    ),
+                    Duration::from_millis(100),
+                )
+            })
+            .collect();
+        for transaction in transactions_of.iter().cycle().take(16) {
+            transport
+                .transact(transaction)
+                .await
+                .map_err(|err| anyhow::anyhow!("{err}"))?;
+        }
+        let meter = WakeUpMeter::start(Duration::from_millis(5));
+        let (cpu_before, sleeps_before) = thread_usage()?;
+        for transaction in transactions_of.iter().cycle().take(transactions) {
+            let (outcome, _) = transport
+                .transact(transaction)
+                .await
+                .map_err(|err| anyhow::anyhow!("{err}"))?;
+            run.answered += usize::from(matches!(
+                outcome,
+                crate::protocol::TransactionOutcome::Reply(_)
+            ));
+            run.transactions += 1;
+        }
+        let (cpu_after, sleeps_after) = thread_usage()?;
+        run.wake_up_cost = meter.finish();
+        run.cpu = cpu_after.saturating_sub(cpu_before);
+        run.wake_ups = sleeps_after.saturating_sub(sleeps_before);
+        Ok(())
+    })
 }
 
 struct Plan {

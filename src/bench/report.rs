@@ -262,18 +262,21 @@ fn bare_master(out: &mut String, runs: &[BareMasterRun]) {
          no scheduler: what any master that sleeps through replies pays here. With 1 sleep it \
          reads 3.5 characters after the reply's predicted end and writes the next request at \
          once (a design the daemon does not use: a late reply would then be followed too \
-         closely). CPU is the loop thread's own clock.\n"
+         closely). \"the daemon's transport\" is the same loop through the daemon's exchange \
+         and serial link, its short waits blocking the thread as a port task's do: what the \
+         daemon's bus code adds before any scheduling, device model or MQTT. CPU is the loop \
+         thread's own clock.\n"
     );
     let _ = writeln!(
         out,
-        "| line | sleeps per transaction | transactions | answered | CPU µs/transaction | wake-ups/transaction | one wake-up µs | notes |\n|---|---|---|---|---|---|---|---|"
+        "| line | master | transactions | answered | CPU µs/transaction | wake-ups/transaction | one wake-up µs | notes |\n|---|---|---|---|---|---|---|---|"
     );
     for run in runs {
         let _ = writeln!(
             out,
             "| {} 8N2 | {} | {} | {} | {} | {} | {} | {} |",
             run.baud,
-            run.sleeps,
+            run.master,
             run.transactions,
             run.answered,
             num(run.cpu_per_transaction_us(), 0),

@@ -10,7 +10,7 @@ pub mod stdio;
 use std::collections::{BTreeMap, HashMap};
 use std::sync::{Arc, Mutex};
 
-use tokio::sync::{mpsc, watch};
+use tokio::sync::{mpsc, oneshot, watch};
 use tokio::task::JoinHandle;
 use tracing::{info, warn};
 
@@ -76,7 +76,7 @@ struct RunningPort {
     config: serde_json::Value,
     stop: watch::Sender<bool>,
     /// Hands back the writes the task left unsent when it stops.
-    task: JoinHandle<Vec<ControlWrite>>,
+    task: oneshot::Receiver<Vec<ControlWrite>>,
     /// Its write queue, where its devices' routes lead.
     writes: mpsc::Sender<ControlWrite>,
     vitals: Arc<PortVitals>,
@@ -294,7 +294,7 @@ impl BusControl {
         let vitals = task.vitals();
         let status = task.status();
         let (stop, stopped) = watch::channel(false);
-        let task = tokio::spawn(task.run(stopped));
+        let task = run_on_own_thread(&port_key(&port), task, stopped);
         let config = serde_json::to_value(&port.config).unwrap_or_default();
         self.ports.insert(
             port_key(&port),
@@ -317,6 +317,7 @@ impl BusControl {
         let running = self.ports.remove(key)?;
         lock(&self.directory).remove(key);
         let _ = running.stop.send(true);
+        // A task that panicked hands back nothing.
         let unsent = running.task.await.unwrap_or_default();
         self.health.remove_port(&running.vitals);
         if let (Some(hub), Some(status)) = (&self.status, &running.status) {
@@ -432,6 +433,57 @@ impl BusControl {
         }
         self.router.abort();
     }
+}
+
+/// Runs a port task on a thread and runtime of its own, so that its transport may block the
+/// thread for the short waits of a transaction (one system call and one wake-up each, not the
+/// reactor's rounds: docs/performance.md, 27 Nov). Its channels to the rest of the daemon work
+/// across runtimes. Should no thread be had, it runs on the caller's runtime, not blocking.
+fn run_on_own_thread(
+    key: &str,
+    task: PortTask,
+    stopped: watch::Receiver<bool>,
+) -> oneshot::Receiver<Vec<ControlWrite>> {
+    let (done, unsent) = oneshot::channel();
+    // The caller's runtime runs the task's helpers; without one, its own does.
+    let helpers = tokio::runtime::Handle::try_current().ok();
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build();
+    let runtime = match runtime {
+        Ok(runtime) => runtime,
+        Err(err) => {
+            warn!(port = %key, %err, "no runtime of its own for the port task; it shares the main one");
+            tokio::spawn(async move {
+                let _ = done.send(task.run(stopped).await);
+            });
+            return unsent;
+        }
+    };
+    // Taken by the thread, or back by the caller if no thread could be started (the closure
+    // is dropped then, with whatever it owns).
+    let task_slot = Arc::new(Mutex::new(Some((task, stopped, done))));
+    let in_thread = Arc::clone(&task_slot);
+    let spawned = std::thread::Builder::new()
+        // Linux keeps 15 bytes of a thread's name.
+        .name("rtu2mqtt-port".into())
+        .spawn(move || {
+            let Some((task, stopped, done)) = lock(&in_thread).take() else {
+                return;
+            };
+            let helpers = helpers.unwrap_or_else(|| runtime.handle().clone());
+            let unsent = runtime.block_on(task.owning_its_thread(helpers).run(stopped));
+            let _ = done.send(unsent);
+        });
+    if let Err(err) = spawned {
+        warn!(port = %key, %err, "no thread of its own for the port task; it shares the main one");
+        if let Some((task, stopped, done)) = lock(&task_slot).take() {
+            tokio::spawn(async move {
+                let _ = done.send(task.run(stopped).await);
+            });
+        }
+    }
+    unsent
 }
 
 /// Resolves when SIGTERM or SIGINT arrives. The handlers are installed by this call, not when

@@ -91,6 +91,10 @@ pub struct PortTask {
     update_buffer: Vec<DeviceUpdate>,
     /// A TCP gateway's connection is closed after this long without a successful transaction.
     reconnect: Option<ReconnectRule>,
+    /// The task has its thread and runtime to itself: its serial transports block the thread
+    /// for short waits ([`Transport::block_short_waits`]), and its helper tasks run on this
+    /// other runtime (a blocked thread would hold them up for as long as the bus is busy).
+    own_thread: Option<tokio::runtime::Handle>,
     /// The open connection's transactions under that rule.
     connection: Option<ConnectionWatch>,
 }
@@ -273,7 +277,24 @@ impl PortTask {
             update_buffer: Vec::new(),
             reconnect: plan.reconnect,
             connection: None,
+            own_thread: None,
         }
+    }
+
+    /// The task will run alone on its thread and runtime: its serial transports may block the
+    /// thread for short waits, which costs nothing else there and saves the reactor's rounds.
+    /// Its helper tasks (the identity reader) run on `helpers`.
+    pub fn owning_its_thread(mut self, helpers: tokio::runtime::Handle) -> Self {
+        self.own_thread = Some(helpers);
+        self
+    }
+
+    async fn open_transport(&self, endpoint: &Endpoint) -> Result<Transport, TransportError> {
+        let mut transport = Transport::open(endpoint).await?;
+        if self.own_thread.is_some() {
+            transport.block_short_waits();
+        }
+        Ok(transport)
     }
 
     /// Writes that a stopped task of this port left unsent ([`Self::run`]'s result), to go
@@ -315,7 +336,7 @@ impl PortTask {
         let line = self
             .home_line()
             .unwrap_or(LineSettings::WIREN_BOARD_DEFAULT);
-        tokio::spawn(async move {
+        let worker = async move {
             while let Some(device) = pending.recv().await {
                 let Some(Some(plan)) = plans.get(device) else {
                     continue;
@@ -325,7 +346,11 @@ impl PortTask {
                     return;
                 }
             }
-        });
+        };
+        match &self.own_thread {
+            Some(helpers) => drop(helpers.spawn(worker)),
+            None => drop(tokio::spawn(worker)),
+        }
         self.identity.requests = Some(requests);
         self.identity.results = Some(results);
     }
@@ -568,7 +593,7 @@ impl PortTask {
         loop {
             self.lower_receive_fifo_trigger();
             let opened = tokio::select! {
-                opened = Transport::open(&self.endpoint) => opened,
+                opened = self.open_transport(&self.endpoint) => opened,
                 _ = shutdown.changed() => return,
             };
             match opened {
@@ -1007,7 +1032,7 @@ impl PortTask {
             line: away.unwrap_or(*line),
             frame_timeout: *frame_timeout,
         };
-        let mut transport = Transport::open(&endpoint).await?;
+        let mut transport = self.open_transport(&endpoint).await?;
         transport.continues(busy_until);
         debug!(port = %self.plan_name, settings = %endpoint.name(), "port settings switched");
         bus.transport = Some(transport);
@@ -1376,6 +1401,27 @@ mod tests {
             sender.send(write("K5", "1")).await.is_err(),
             "the queue is closed once the task has stopped taking writes"
         );
+    }
+
+    /// The daemon runs each port task on a thread and runtime of its own (no runtime here: a
+    /// task put on the caller's would panic). Stopped, it hands back the writes it never sent.
+    #[test]
+    fn a_port_task_on_its_own_thread_runs_stops_and_hands_back_its_writes() {
+        let (sender, receiver) = mpsc::channel(8);
+        let task = relay_task(receiver).with_carried_writes(vec![write("K4", "1")]);
+        let (stop, stopped) = watch::channel(false);
+        let unsent = crate::daemon::run_on_own_thread("test port", task, stopped);
+        sender
+            .blocking_send(write("K1", "0"))
+            .expect("the task takes writes");
+        stop.send(true).expect("the task listens");
+        let handed: Vec<String> = unsent
+            .blocking_recv()
+            .expect("the task ran and stopped")
+            .into_iter()
+            .map(|w| w.control_id)
+            .collect();
+        assert_eq!(handed, ["K4", "K1"]);
     }
 
     /// Review of the port task (27 Nov 2026), finding 4: a write that went and was answered

@@ -188,6 +188,15 @@ impl Transport {
         self.exchange.set_receive_fifo(trigger);
     }
 
+    /// Short waits on a serial line block the thread from now on
+    /// ([`SerialLink::block_short_waits`]): only for a transport whose task has its thread
+    /// and runtime to itself.
+    pub fn block_short_waits(&mut self) {
+        if let Link::Serial(link) = &mut self.link {
+            link.block_short_waits();
+        }
+    }
+
     /// When the line was last busy, for the handle that replaces this one.
     pub fn line_busy_until(&self) -> Option<Instant> {
         self.exchange

@@ -59,11 +59,18 @@ fn register<T: AsRawFd>(fd: T, interest: Interest) -> io::Result<AsyncFd<T>> {
     Ok(unsafe { AsyncFd::register_with_interest(fd, interest) }?)
 }
 
+/// The longest wait that blocks the thread when the link may block
+/// ([`SerialLink::block_short_waits`]); longer ones go through the reactor, where the port
+/// task's other work (a shutdown, a reload) can end them.
+const BLOCKING_WAIT_LIMIT: std::time::Duration = std::time::Duration::from_millis(50);
+
 pub struct SerialLink {
     /// Declared before `port`: a registration is removed before the port is closed.
     watch: Option<AsyncFd<WatchedFd>>,
     timer: AsyncFd<Timer>,
     port: File,
+    /// Waits of up to [`BLOCKING_WAIT_LIMIT`] block the thread (see [`Self::block_short_waits`]).
+    blocking_waits: bool,
 }
 
 impl SerialLink {
@@ -99,7 +106,22 @@ impl SerialLink {
             watch: None,
             timer: register(Timer(timer), Interest::READABLE)?,
             port,
+            blocking_waits: false,
         })
+    }
+
+    /// From now on, waits of up to [`BLOCKING_WAIT_LIMIT`] block the calling thread: a
+    /// `clock_nanosleep` or a `ppoll`, one system call and one wake-up, instead of arming the
+    /// link's timerfd and waking through the reactor (two system calls and the reactor's
+    /// rounds: ~45 µs more per transaction here, docs/performance.md). Only for a link whose
+    /// port task has its thread and runtime to itself: a blocked thread runs nothing else.
+    pub fn block_short_waits(&mut self) {
+        self.blocking_waits = true;
+    }
+
+    /// A wait until `at` blocks the thread.
+    fn blocks_until(&self, at: Instant) -> bool {
+        self.blocking_waits && at.saturating_duration_since(Instant::now()) <= BLOCKING_WAIT_LIMIT
     }
 
     /// The port is the end of a pseudo-terminal (a Unix 98 pty, `/dev/pts/N`, whatever link
@@ -143,6 +165,12 @@ impl SerialLink {
         deadline: Instant,
         buffer: &mut [u8],
     ) -> io::Result<Option<usize>> {
+        if self.blocks_until(deadline) {
+            // A reply trickling in forever (a babbling line) must still let the task's other
+            // work run now and then.
+            tokio::task::coop::consume_budget().await;
+            return self.read_blocking(deadline, buffer);
+        }
         if !self.arm_timer(deadline)? {
             return self.read_now(buffer);
         }
@@ -182,6 +210,31 @@ impl SerialLink {
                         return Ok(None);
                     }
                 }
+            }
+        }
+    }
+
+    /// [`Self::read_until`], blocking the thread.
+    fn read_blocking(&mut self, deadline: Instant, buffer: &mut [u8]) -> io::Result<Option<usize>> {
+        // Asked first, read then: bytes this wait is for have mostly not come yet, and a read
+        // that finds nothing is the costly kind on a tty.
+        loop {
+            let left = deadline.saturating_duration_since(Instant::now());
+            if left.is_zero() {
+                return self.read_now(buffer);
+            }
+            let mut fds = [nix::poll::PollFd::new(
+                self.port.as_fd(),
+                nix::poll::PollFlags::POLLIN,
+            )];
+            match nix::poll::ppoll(&mut fds, Some(TimeSpec::from_duration(left)), None) {
+                Ok(0) | Err(nix::errno::Errno::EINTR) => {}
+                Ok(_) => {
+                    if let Some(count) = self.read_now(buffer)? {
+                        return Ok(Some(count));
+                    }
+                }
+                Err(err) => return Err(err.into()),
             }
         }
     }
@@ -246,6 +299,10 @@ impl SerialLink {
 
     /// Sleeps until `at`, to within the kernel's timer slack.
     async fn sleep_until(&mut self, at: Instant) -> io::Result<()> {
+        if self.blocks_until(at) {
+            tokio::task::coop::consume_budget().await;
+            return sleep_blocking(at);
+        }
         if !self.arm_timer(at)? {
             return Ok(());
         }
@@ -256,6 +313,24 @@ impl SerialLink {
             if Instant::now() >= at {
                 return Ok(());
             }
+        }
+    }
+}
+
+/// Blocks the thread until `at`.
+fn sleep_blocking(at: Instant) -> io::Result<()> {
+    loop {
+        let left = at.saturating_duration_since(Instant::now());
+        if left.is_zero() {
+            return Ok(());
+        }
+        match nix::time::clock_nanosleep(
+            nix::time::ClockId::CLOCK_MONOTONIC,
+            nix::time::ClockNanosleepFlags::empty(),
+            &TimeSpec::from_duration(left),
+        ) {
+            Ok(_) | Err(nix::errno::Errno::EINTR) => {}
+            Err(err) => return Err(err.into()),
         }
     }
 }
@@ -293,6 +368,84 @@ mod tests {
         assert!(!is_pty_slave_major(4));
         assert!(!is_pty_slave_major(188));
         assert!(!is_pty_slave_major(204));
+    }
+
+    /// A link that may block waits out a short wait on the thread: a task of the same runtime
+    /// does not run meanwhile (here the "device" that would answer at once, so nothing comes
+    /// before the deadline); a wait beyond the limit goes through the reactor, where it does.
+    #[test]
+    fn short_waits_block_the_thread_and_long_ones_do_not() {
+        let runtime = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .expect("a runtime");
+        runtime.block_on(async {
+            let (mut link, mut devices) = pty();
+            link.block_short_waits();
+            let answer = tokio::spawn(async move {
+                devices.write_all(&[0x14, 0x03, 0x02]).expect("written");
+                devices
+            });
+            let mut buffer = [0u8; 16];
+            let short = Instant::now() + BLOCKING_WAIT_LIMIT / 2;
+            assert_eq!(
+                link.read_until(short, &mut buffer).await.expect("io"),
+                None,
+                "the answering task ran during a wait that blocks"
+            );
+            let long = Instant::now() + Duration::from_secs(30);
+            assert_eq!(
+                link.read_until(long, &mut buffer).await.expect("io"),
+                Some(3)
+            );
+            assert!(Instant::now() < long, "the bytes ended the wait");
+            assert_eq!(&buffer[..3], &[0x14, 0x03, 0x02]);
+            let _devices = answer.await.expect("the task ran");
+        });
+    }
+
+    /// The blocking waits keep the link's rules: bytes that came during a blocked silence are
+    /// noticed and thrown away; a blocked read returns what came, or nothing at its deadline.
+    #[tokio::test]
+    async fn blocked_waits_notice_bytes_as_the_reactor_does() {
+        let (mut link, mut devices) = pty();
+        link.block_short_waits();
+        let silence = Duration::from_millis(40);
+        assert!(link
+            .quiet_until(Instant::now() + silence)
+            .await
+            .expect("io"));
+        devices.write_all(&[0x01, 0x03]).expect("written");
+        assert!(!link
+            .quiet_until(Instant::now() + silence)
+            .await
+            .expect("io"));
+        assert!(link
+            .quiet_until(Instant::now() + silence)
+            .await
+            .expect("io"));
+        let mut buffer = [0u8; 16];
+        let deadline = Instant::now() + silence;
+        assert_eq!(
+            link.read_until(deadline, &mut buffer).await.expect("io"),
+            None
+        );
+        assert!(Instant::now() >= deadline, "gave up before its deadline");
+        devices.write_all(&[0x05, 0x06]).expect("written");
+        assert_eq!(
+            link.read_until(Instant::now() + silence, &mut buffer)
+                .await
+                .expect("io"),
+            Some(2)
+        );
+        devices.write_all(&[0x07]).expect("written");
+        assert_eq!(
+            link.read_at(Instant::now() + silence, &mut buffer)
+                .await
+                .expect("io"),
+            Some(1)
+        );
+        assert_eq!(buffer[0], 0x07);
     }
 
     #[tokio::test]
