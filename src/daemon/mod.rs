@@ -465,8 +465,7 @@ fn run_on_own_thread(
     let task_slot = Arc::new(Mutex::new(Some((task, stopped, done))));
     let in_thread = Arc::clone(&task_slot);
     let spawned = std::thread::Builder::new()
-        // Linux keeps 15 bytes of a thread's name.
-        .name("rtu2mqtt-port".into())
+        .name(thread_name(key))
         .spawn(move || {
             let Some((task, stopped, done)) = lock(&in_thread).take() else {
                 return;
@@ -484,6 +483,17 @@ fn run_on_own_thread(
         }
     }
     unsent
+}
+
+/// A port thread's name as `top -H` and `ps -L` show it: the port's last path component
+/// (`ttyRS485-1`, `192.168.1.5:502`), cut to the 15 bytes Linux keeps.
+fn thread_name(key: &str) -> String {
+    let name = key.rsplit('/').next().unwrap_or(key);
+    let mut end = name.len().min(15);
+    while !name.is_char_boundary(end) {
+        end -= 1;
+    }
+    name.get(..end).unwrap_or("port").to_owned()
 }
 
 /// Resolves when SIGTERM or SIGINT arrives. The handlers are installed by this call, not when
@@ -511,6 +521,18 @@ pub fn termination_signal() -> impl std::future::Future<Output = ()> {
 #[cfg(test)]
 mod tests {
     use super::termination_signal;
+
+    /// Named after the port, as Linux can keep it (15 bytes, cut on a character boundary).
+    #[test]
+    fn a_port_thread_is_named_after_its_port() {
+        assert_eq!(super::thread_name("/dev/ttyRS485-1"), "ttyRS485-1");
+        assert_eq!(super::thread_name("192.168.1.5:502"), "192.168.1.5:502");
+        assert_eq!(
+            super::thread_name("/dev/serial/by-id/usb-FTDI_FT232R"),
+            "usb-FTDI_FT232R"
+        );
+        assert_eq!(super::thread_name("/dev/ttyПорт-номер"), "ttyПорт-н");
+    }
 
     /// A SIGTERM between the call and the first poll is caught, not fatal: `run` sends READY
     /// before its main loop first polls the future (without the handlers installed by the call,
