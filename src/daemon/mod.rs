@@ -460,14 +460,15 @@ fn run_on_own_thread(
             return unsent;
         }
     };
-    // Taken by the thread, or back by the caller if no thread could be started (the closure
-    // is dropped then, with whatever it owns).
-    let task_slot = Arc::new(Mutex::new(Some((task, stopped, done))));
-    let in_thread = Arc::clone(&task_slot);
+    // Taken by the thread, or back by the caller if no thread could be started: the closure
+    // is dropped then, and must not own the runtime (dropping a runtime inside another one
+    // panics; `shutdown_background` below is the way).
+    let slot = Arc::new(Mutex::new(Some((runtime, task, stopped, done))));
+    let in_thread = Arc::clone(&slot);
     let spawned = std::thread::Builder::new()
         .name(thread_name(key))
         .spawn(move || {
-            let Some((task, stopped, done)) = lock(&in_thread).take() else {
+            let Some((runtime, task, stopped, done)) = lock(&in_thread).take() else {
                 return;
             };
             let helpers = helpers.unwrap_or_else(|| runtime.handle().clone());
@@ -476,7 +477,9 @@ fn run_on_own_thread(
         });
     if let Err(err) = spawned {
         warn!(port = %key, %err, "no thread of its own for the port task; it shares the main one");
-        if let Some((task, stopped, done)) = lock(&task_slot).take() {
+        let taken = lock(&slot).take();
+        if let Some((runtime, task, stopped, done)) = taken {
+            runtime.shutdown_background();
             tokio::spawn(async move {
                 let _ = done.send(task.run(stopped).await);
             });
@@ -488,7 +491,9 @@ fn run_on_own_thread(
 /// A port thread's name as `top -H` and `ps -L` show it: the port's last path component
 /// (`ttyRS485-1`, `192.168.1.5:502`), cut to the 15 bytes Linux keeps.
 fn thread_name(key: &str) -> String {
-    let name = key.rsplit('/').next().unwrap_or(key);
+    // A NUL (a config path can hold one) would make the thread's start panic.
+    let key = key.replace('\0', "");
+    let name = key.rsplit('/').next().unwrap_or(&key);
     let mut end = name.len().min(15);
     while !name.is_char_boundary(end) {
         end -= 1;
@@ -532,6 +537,7 @@ mod tests {
             "usb-FTDI_FT232R"
         );
         assert_eq!(super::thread_name("/dev/ttyПорт-номер"), "ttyПорт-н");
+        assert_eq!(super::thread_name("/dev/tty\0S1"), "ttyS1");
     }
 
     /// A SIGTERM between the call and the first poll is caught, not fatal: `run` sends READY

@@ -140,6 +140,9 @@ struct IdentityState {
     serials: Vec<Option<u32>>,
     /// Per device: a read is asked for or running.
     reading: Vec<bool>,
+    /// Per device: a read was wanted while its polling was held (an operator, a site tool
+    /// changing its address); asked once the hold ends.
+    held_back: Vec<bool>,
     /// Per device: after a read that got nothing (noise, a full bus queue, a reopen), when to
     /// try again and the delay that led there.
     retries: IdentityRetries,
@@ -318,6 +321,7 @@ impl PortTask {
         self.identity.plans = plans;
         self.identity.serials = vec![None; count];
         self.identity.reading = vec![false; count];
+        self.identity.held_back = vec![false; count];
         self.identity.retries = IdentityRetries::with_devices(count);
         self
     }
@@ -356,6 +360,14 @@ impl PortTask {
     }
 
     fn ask_identity(&mut self, device: usize) {
+        if self.scheduler.polling_held(device) {
+            // Its hold says no reads: a site tool may be changing its address, or an operator
+            // working on it.
+            if let Some(held_back) = self.identity.held_back.get_mut(device) {
+                *held_back = true;
+            }
+            return;
+        }
         let (Some(requests), Some(Some(_)), Some(reading)) = (
             &self.identity.requests,
             self.identity.plans.get(device),
@@ -368,11 +380,17 @@ impl PortTask {
         }
     }
 
-    /// Asks again for the identities whose retry is due (a read still running is not asked
-    /// twice).
+    /// Asks again for the identities whose retry is due, and for those held back by a hold
+    /// that has ended (a read still running is not asked twice).
     fn ask_due_identity_retries(&mut self) {
         let now = self.now();
-        let due: Vec<usize> = self.identity.retries.due_at(now).collect();
+        let mut due: Vec<usize> = self.identity.retries.due_at(now).collect();
+        for (device, held_back) in self.identity.held_back.iter_mut().enumerate() {
+            if *held_back && !self.scheduler.polling_held(device) {
+                *held_back = false;
+                due.push(device);
+            }
+        }
         for device in due {
             self.ask_identity(device);
         }
@@ -1410,10 +1428,29 @@ mod tests {
         let (sender, receiver) = mpsc::channel(8);
         let task = relay_task(receiver).with_carried_writes(vec![write("K4", "1")]);
         let (stop, stopped) = watch::channel(false);
-        let unsent = crate::daemon::run_on_own_thread("test port", task, stopped);
+        let key = "/dev/rtu2mqtt-test-own-thread";
+        let unsent = crate::daemon::run_on_own_thread(key, task, stopped);
         sender
             .blocking_send(write("K1", "0"))
             .expect("the task takes writes");
+        // Named after its port, as `top -H` shows it (a poll on the kernel's thread list: the
+        // thread may not have started yet).
+        let named = |name: &str| {
+            std::fs::read_dir("/proc/self/task").is_ok_and(|tasks| {
+                tasks.flatten().any(|task| {
+                    std::fs::read_to_string(task.path().join("comm"))
+                        .is_ok_and(|comm| comm.trim_end() == name)
+                })
+            })
+        };
+        let deadline = std::time::Instant::now() + Duration::from_secs(10);
+        while !named("rtu2mqtt-test-o") {
+            assert!(
+                std::time::Instant::now() < deadline,
+                "no thread named after the port"
+            );
+            std::thread::yield_now();
+        }
         stop.send(true).expect("the task listens");
         let handed: Vec<String> = unsent
             .blocking_recv()
@@ -1422,6 +1459,86 @@ mod tests {
             .map(|w| w.control_id)
             .collect();
         assert_eq!(handed, ["K4", "K1"]);
+    }
+
+    /// A task that owns its thread opens its serial transports with blocking short waits; one
+    /// on a shared runtime does not.
+    #[tokio::test]
+    async fn a_task_on_its_own_thread_opens_its_transports_with_blocking_waits() {
+        use std::os::fd::AsFd;
+        let pty = nix::pty::openpty(None, None).expect("a pty");
+        let path = nix::unistd::ttyname(pty.slave.as_fd()).expect("its name");
+        let path = path.to_string_lossy();
+        for owning in [false, true] {
+            let (_sender, receiver) = mpsc::channel(8);
+            let mut task = relay_task_at(&path, receiver);
+            if owning {
+                task = task.owning_its_thread(tokio::runtime::Handle::current());
+            }
+            let transport = task.open_transport(&task.endpoint).await.expect("opens");
+            assert_eq!(transport.blocks_short_waits(), owning);
+        }
+    }
+
+    /// Review of the port threads (27 Nov 2026): when no thread can be started (EAGAIN: the
+    /// process or user thread limit, memory on a small controller), `run_on_own_thread` means
+    /// to run the task on the caller's runtime. But the failed `spawn` drops its closure, and
+    /// with it the port's current-thread runtime, inside the caller's runtime: tokio panics
+    /// ("Cannot drop a runtime in a context where blocking is not allowed") in `spawn_port`,
+    /// i.e. in the daemon's start or reload. Run in a child process that may start no thread
+    /// (another user, RLIMIT_NPROC 1).
+    #[test]
+    fn a_port_task_that_gets_no_thread_runs_on_the_callers_runtime() {
+        const CHILD: &str = "RTU2MQTT_REVIEW_NO_THREADS";
+        const NAME: &str =
+            "daemon::port_task::tests::a_port_task_that_gets_no_thread_runs_on_the_callers_runtime";
+        if std::env::var_os(CHILD).is_none() {
+            let output = std::process::Command::new(std::env::current_exe().unwrap())
+                .args(["--exact", NAME, "--test-threads=1", "--nocapture"])
+                .env(CHILD, "1")
+                .env("RUST_BACKTRACE", "0")
+                .output()
+                .expect("the child runs");
+            assert!(
+                output.status.success(),
+                "the child failed:\n{}{}",
+                String::from_utf8_lossy(&output.stdout),
+                String::from_utf8_lossy(&output.stderr)
+            );
+            return;
+        }
+        let runtime = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .expect("a runtime");
+        // Root is not bound by RLIMIT_NPROC: the child becomes nobody. Another user is, and
+        // already runs more than one process.
+        // SAFETY: geteuid only reads the process's credentials.
+        if unsafe { nix::libc::geteuid() } == 0 {
+            // SAFETY: plain system calls; glibc applies setuid/setgid to every thread.
+            unsafe {
+                assert_eq!(nix::libc::setgroups(0, std::ptr::null()), 0);
+                assert_eq!(nix::libc::setgid(65534), 0);
+                assert_eq!(nix::libc::setuid(65534), 0);
+            }
+        }
+        nix::sys::resource::setrlimit(nix::sys::resource::Resource::RLIMIT_NPROC, 1, 1)
+            .expect("the limit");
+        assert!(
+            std::thread::Builder::new().spawn(|| {}).is_err(),
+            "threads still start: the test cannot show anything here"
+        );
+        let handed = runtime.block_on(async {
+            let (_sender, receiver) = mpsc::channel(8);
+            let task = relay_task(receiver).with_carried_writes(vec![write("K4", "1")]);
+            let (stop, stopped) = watch::channel(false);
+            let unsent = crate::daemon::run_on_own_thread("test port", task, stopped);
+            tokio::task::yield_now().await;
+            stop.send(true).expect("the task listens");
+            unsent.await.expect("the task ran and stopped")
+        });
+        let handed: Vec<String> = handed.into_iter().map(|w| w.control_id).collect();
+        assert_eq!(handed, ["K4"]);
     }
 
     /// Review of the port task (27 Nov 2026), finding 4: a write that went and was answered
@@ -1573,6 +1690,25 @@ mod tests {
         task.ask_due_identity_retries();
         assert_eq!(asked.try_recv().ok(), Some(0));
         assert!(asked.try_recv().is_err(), "asked once while the read runs");
+    }
+
+    /// A device whose polling is held (a site tool changing its address, an operator) is not
+    /// read for its identity, though it came online or restarted meanwhile: asked once, when
+    /// the hold ends.
+    #[tokio::test]
+    async fn an_identity_read_waits_for_the_end_of_a_hold() {
+        let mut task = relay_task_with_identity();
+        let (requests, mut asked) = mpsc::unbounded_channel();
+        task.identity.requests = Some(requests);
+        task.hold_polling(0, Some(Duration::MAX));
+        task.ask_identity(0);
+        task.ask_due_identity_retries();
+        assert!(asked.try_recv().is_err(), "read while held");
+        task.hold_polling(0, None);
+        task.ask_due_identity_retries();
+        task.ask_due_identity_retries();
+        assert_eq!(asked.try_recv().ok(), Some(0));
+        assert!(asked.try_recv().is_err(), "asked once");
     }
 
     /// Two writes to one register: both are handed on, in order (the second only replaced the

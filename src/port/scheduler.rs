@@ -504,6 +504,13 @@ impl PortScheduler {
         self.devices.len()
     }
 
+    /// The device's polling is held ([`Self::hold_polling`]), as of its last expiry check.
+    pub fn polling_held(&self, device: usize) -> bool {
+        self.devices
+            .get(device)
+            .is_some_and(|state| state.suspended)
+    }
+
     /// What the status page shows of a device's schedule.
     pub fn device_report(&self, device: usize, now: Duration) -> Option<DeviceReport> {
         let state = self.devices.get(device)?;

@@ -102,6 +102,20 @@ const MAX_PACED_READS: u32 = 3;
 /// no saving in CPU; docs/performance.md).
 const PACING_SLACK: Duration = Duration::from_micros(20);
 
+/// A transaction or raw transfer that has run this long yields to its task's other work at
+/// every step: with a link that blocks for short waits ([`SerialLink::block_short_waits`]) it
+/// would otherwise never return `Pending` while a line that never falls quiet keeps it going,
+/// and the port task's `select!` would not see a shutdown or reload. A transaction at 115200
+/// takes ~15 ms: the steps of ordinary ones never yield.
+const YIELD_AFTER: Duration = Duration::from_millis(100);
+
+/// Yields once `started` is [`YIELD_AFTER`] ago.
+async fn yield_if_long(started: Instant) {
+    if started.elapsed() >= YIELD_AFTER {
+        tokio::task::yield_now().await;
+    }
+}
+
 /// An open bus: plain reads, writes and timers around the pure [`Exchange`].
 pub struct Transport {
     name: String,
@@ -197,6 +211,11 @@ impl Transport {
         }
     }
 
+    /// Whether short waits block the thread ([`Self::block_short_waits`]).
+    pub fn blocks_short_waits(&self) -> bool {
+        matches!(&self.link, Link::Serial(link) if link.blocks_short_waits())
+    }
+
     /// When the line was last busy, for the handle that replaces this one.
     pub fn line_busy_until(&self) -> Option<Instant> {
         self.exchange
@@ -232,11 +251,13 @@ impl Transport {
         transaction: &Transaction,
     ) -> Result<(TransactionOutcome, ReplyTiming), TransportError> {
         self.exchange.start(transaction)?;
+        let started = Instant::now();
         let mut buffer = [0u8; 512];
         let mut paced_reads = 0;
         // The serial line was found quiet and its input empty just now: no flush needed.
         let mut input_empty = false;
         loop {
+            yield_if_long(started).await;
             if let Some(transmit) = self.exchange.poll_transmit(self.now()) {
                 if transmit.flush_input && !input_empty {
                     self.flush_input()?;
@@ -319,8 +340,10 @@ impl Transport {
         // The same silence before it as before any request.
         tokio::time::sleep_until(self.epoch + self.exchange.transmit_at()).await;
         let mut transfer = RawTransfer::new(request.clone(), *self.exchange.config());
+        let started = Instant::now();
         let mut buffer = [0u8; 512];
         loop {
+            yield_if_long(started).await;
             if let Some(transmit) = transfer.poll_transmit(self.now()) {
                 if transmit.flush_input {
                     self.flush_input()?;
@@ -547,6 +570,47 @@ mod line_faults {
             .expect("transact still waiting for a quiet line after 5 s (100 ms timeouts)")
             .expect("the port works");
         assert_eq!(outcome.0, TransactionOutcome::Garbled);
+    }
+
+    /// Review of the blocking short waits (27 Nov 2026): the port task abandons a transaction
+    /// for a shutdown or a reload through `select!` (`serve`: "Shutdown never waits for the
+    /// bus: ... a babbling line"), which only works when `transact` returns `Pending`. On a
+    /// babbling line the request waits for silence in short `quiet_until`s (here the 40 ms
+    /// guard interval), which block the thread: `transact` yields only when its coop budget
+    /// (128) is spent, ~5 s here, and the port's `shutdown.changed()` (cooperative too) is
+    /// then polled first only half the time. Without blocking waits it is abandoned at once.
+    #[tokio::test]
+    async fn a_transaction_waiting_for_a_quiet_line_is_abandoned_at_once() {
+        for blocking in [false, true] {
+            let (mut transport, mut master) = transport_on_a_pty(LINE).await;
+            if blocking {
+                transport.block_short_waits();
+            }
+            transport.set_guard_interval(Duration::from_millis(40));
+            let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+            let stopped = stop.clone();
+            let babbler = std::thread::spawn(move || {
+                while !stopped.load(std::sync::atomic::Ordering::Relaxed) {
+                    let _ = master.write_all(&[0x55]);
+                    std::thread::sleep(Duration::from_millis(10));
+                }
+            });
+            let transaction = read_one_register(Duration::from_secs(60), Duration::from_secs(60));
+            let started = std::time::Instant::now();
+            tokio::select! {
+                biased;
+                () = tokio::time::sleep(Duration::from_millis(100)) => {}
+                result = transport.transact(&transaction) => panic!("ended: {result:?}"),
+            }
+            let took = started.elapsed();
+            stop.store(true, std::sync::atomic::Ordering::Relaxed);
+            let _ = babbler.join();
+            assert!(
+                took < Duration::from_secs(1),
+                "blocking waits {blocking}: a 100 ms shutdown abandoned the transaction after \
+                 {took:?}"
+            );
+        }
     }
 
     /// A device stack on the other end of a pty pair (pymodbus's serial server behind socat,

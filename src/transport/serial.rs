@@ -115,8 +115,15 @@ impl SerialLink {
     /// link's timerfd and waking through the reactor (two system calls and the reactor's
     /// rounds: ~45 µs more per transaction here, docs/performance.md). Only for a link whose
     /// port task has its thread and runtime to itself: a blocked thread runs nothing else.
+    /// A blocked wait returns no `Pending`: the transport yields by itself in a transaction
+    /// that goes on ([`super::Transport::transact`]), so that a shutdown still ends it.
     pub fn block_short_waits(&mut self) {
         self.blocking_waits = true;
+    }
+
+    /// Whether [`Self::block_short_waits`] was called.
+    pub fn blocks_short_waits(&self) -> bool {
+        self.blocking_waits
     }
 
     /// A wait until `at` blocks the thread.
@@ -166,9 +173,6 @@ impl SerialLink {
         buffer: &mut [u8],
     ) -> io::Result<Option<usize>> {
         if self.blocks_until(deadline) {
-            // A reply trickling in forever (a babbling line) must still let the task's other
-            // work run now and then.
-            tokio::task::coop::consume_budget().await;
             return self.read_blocking(deadline, buffer);
         }
         if !self.arm_timer(deadline)? {
@@ -300,7 +304,6 @@ impl SerialLink {
     /// Sleeps until `at`, to within the kernel's timer slack.
     async fn sleep_until(&mut self, at: Instant) -> io::Result<()> {
         if self.blocks_until(at) {
-            tokio::task::coop::consume_budget().await;
             return sleep_blocking(at);
         }
         if !self.arm_timer(at)? {
@@ -411,10 +414,9 @@ mod tests {
         let (mut link, mut devices) = pty();
         link.block_short_waits();
         let silence = Duration::from_millis(40);
-        assert!(link
-            .quiet_until(Instant::now() + silence)
-            .await
-            .expect("io"));
+        let end = Instant::now() + silence;
+        assert!(link.quiet_until(end).await.expect("io"));
+        assert!(Instant::now() >= end, "the silence was not waited out");
         devices.write_all(&[0x01, 0x03]).expect("written");
         assert!(!link
             .quiet_until(Instant::now() + silence)
