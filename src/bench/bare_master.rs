@@ -156,17 +156,36 @@ fn measure_into(
     for request in requests.iter().cycle().take(16) {
         plan.transact(&mut port, request)?;
     }
-    let meter = WakeUpMeter::start(Duration::from_millis(5));
-    let (cpu_before, sleeps_before) = thread_usage()?;
+    let window = Window::open()?;
     for request in requests.iter().cycle().take(transactions) {
         run.answered += usize::from(plan.transact(&mut port, request)?);
         run.transactions += 1;
     }
-    let (cpu_after, sleeps_after) = thread_usage()?;
-    run.wake_up_cost = meter.finish();
-    run.cpu = cpu_after.saturating_sub(cpu_before);
-    run.wake_ups = sleeps_after.saturating_sub(sleeps_before);
-    Ok(())
+    window.close_into(run)
+}
+
+/// The measured stretch of a round: this thread's CPU clock and sleeps, and a bare wake-up's
+/// cost measured beside it.
+struct Window {
+    meter: WakeUpMeter,
+    cpu: Duration,
+    sleeps: u64,
+}
+
+impl Window {
+    fn open() -> anyhow::Result<Self> {
+        let meter = WakeUpMeter::start(Duration::from_millis(5));
+        let (cpu, sleeps) = thread_usage()?;
+        Ok(Self { meter, cpu, sleeps })
+    }
+
+    fn close_into(self, run: &mut BareMasterRun) -> anyhow::Result<()> {
+        let (cpu, sleeps) = thread_usage()?;
+        run.wake_up_cost = self.meter.finish();
+        run.cpu = cpu.saturating_sub(self.cpu);
+        run.wake_ups = sleeps.saturating_sub(self.sleeps);
+        Ok(())
+    }
 }
 
 /// The same round robin through the daemon's own transport (the exchange, the serial link, its
@@ -214,8 +233,7 @@ fn through_transport(
                 .await
                 .map_err(|err| anyhow::anyhow!("{err}"))?;
         }
-        let meter = WakeUpMeter::start(Duration::from_millis(5));
-        let (cpu_before, sleeps_before) = thread_usage()?;
+        let window = Window::open()?;
         for transaction in transactions_of.iter().cycle().take(transactions) {
             let (outcome, _) = transport
                 .transact(transaction)
@@ -227,11 +245,7 @@ fn through_transport(
             ));
             run.transactions += 1;
         }
-        let (cpu_after, sleeps_after) = thread_usage()?;
-        run.wake_up_cost = meter.finish();
-        run.cpu = cpu_after.saturating_sub(cpu_before);
-        run.wake_ups = sleeps_after.saturating_sub(sleeps_before);
-        Ok(())
+        window.close_into(run)
     })
 }
 
