@@ -438,54 +438,66 @@ impl BusControl {
 /// Runs a port task on a thread and runtime of its own, so that its transport may block the
 /// thread for the short waits of a transaction (one system call and one wake-up each, not the
 /// reactor's rounds: docs/performance.md, 27 Nov). Its channels to the rest of the daemon work
-/// across runtimes. Should no thread be had, it runs on the caller's runtime, not blocking.
+/// across runtimes; its helper tasks run on the caller's runtime. Should no thread or runtime
+/// be had, it runs on the caller's runtime, not blocking.
 fn run_on_own_thread(
     key: &str,
     task: PortTask,
     stopped: watch::Receiver<bool>,
 ) -> oneshot::Receiver<Vec<ControlWrite>> {
     let (done, unsent) = oneshot::channel();
-    // The caller's runtime runs the task's helpers; without one, its own does.
-    let helpers = tokio::runtime::Handle::try_current().ok();
-    let runtime = tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build();
-    let runtime = match runtime {
-        Ok(runtime) => runtime,
-        Err(err) => {
-            warn!(port = %key, %err, "no runtime of its own for the port task; it shares the main one");
-            tokio::spawn(async move {
-                let _ = done.send(task.run(stopped).await);
-            });
-            return unsent;
-        }
-    };
-    // Taken by the thread, or back by the caller if no thread could be started: the closure
-    // is dropped then, and must not own the runtime (dropping a runtime inside another one
-    // panics; `shutdown_background` below is the way).
-    let slot = Arc::new(Mutex::new(Some((runtime, task, stopped, done))));
+    let callers = tokio::runtime::Handle::try_current().ok();
+    // Taken by the thread, or back by the caller if no thread could be started (the failed
+    // spawn drops the closure, and the task would go with it).
+    let slot = Arc::new(Mutex::new(Some((task, stopped, done))));
     let in_thread = Arc::clone(&slot);
+    let helpers = callers.clone();
+    let port = key.to_owned();
     let spawned = std::thread::Builder::new()
         .name(thread_name(key))
         .spawn(move || {
-            let Some((runtime, task, stopped, done)) = lock(&in_thread).take() else {
+            let Some((task, stopped, done)) = lock(&in_thread).take() else {
                 return;
             };
-            let helpers = helpers.unwrap_or_else(|| runtime.handle().clone());
-            let unsent = runtime.block_on(task.owning_its_thread(helpers).run(stopped));
-            let _ = done.send(unsent);
+            match tokio::runtime::Builder::new_current_thread()
+                .enable_all()
+                .build()
+            {
+                Ok(runtime) => {
+                    let helpers = helpers.unwrap_or_else(|| runtime.handle().clone());
+                    let unsent = runtime.block_on(task.owning_its_thread(helpers).run(stopped));
+                    let _ = done.send(unsent);
+                }
+                Err(err) => {
+                    warn!(%port, %err, "no runtime of its own for the port task; it shares the main one");
+                    run_on_shared_runtime(helpers.as_ref(), task, stopped, done);
+                }
+            }
         });
     if let Err(err) = spawned {
         warn!(port = %key, %err, "no thread of its own for the port task; it shares the main one");
         let taken = lock(&slot).take();
-        if let Some((runtime, task, stopped, done)) = taken {
-            runtime.shutdown_background();
-            tokio::spawn(async move {
-                let _ = done.send(task.run(stopped).await);
-            });
+        if let Some((task, stopped, done)) = taken {
+            run_on_shared_runtime(callers.as_ref(), task, stopped, done);
         }
     }
     unsent
+}
+
+/// The fallback of [`run_on_own_thread`]: the task on `runtime`, its waits through the reactor.
+/// Without a runtime (never in the daemon) it cannot run: its writes are dropped, logged.
+fn run_on_shared_runtime(
+    runtime: Option<&tokio::runtime::Handle>,
+    task: PortTask,
+    stopped: watch::Receiver<bool>,
+    done: oneshot::Sender<Vec<ControlWrite>>,
+) {
+    match runtime {
+        Some(runtime) => drop(runtime.spawn(async move {
+            let _ = done.send(task.run(stopped).await);
+        })),
+        None => warn!("the port task has no runtime to run on: its port is not served"),
+    }
 }
 
 /// A port thread's name as `top -H` and `ps -L` show it: the port's last path component

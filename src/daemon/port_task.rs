@@ -1639,6 +1639,14 @@ mod tests {
         relay_task_at("/dev/null", writes).with_identity(vec![Some(plan)])
     }
 
+    /// [`relay_task_with_identity`], its identity reads asked on the channel returned.
+    fn relay_task_asking_identity() -> (PortTask, mpsc::UnboundedReceiver<usize>) {
+        let mut task = relay_task_with_identity();
+        let (requests, asked) = mpsc::unbounded_channel();
+        task.identity.requests = Some(requests);
+        (task, asked)
+    }
+
     /// The port task's side of finding 6: an empty identity read schedules the retry, an
     /// answered one clears it.
     #[tokio::test]
@@ -1676,9 +1684,7 @@ mod tests {
     /// The serve loop's step: a due retry asks the identity worker again, once while it runs.
     #[tokio::test]
     async fn a_due_identity_retry_asks_the_worker_again_once() {
-        let mut task = relay_task_with_identity();
-        let (requests, mut asked) = mpsc::unbounded_channel();
-        task.identity.requests = Some(requests);
+        let (mut task, mut asked) = relay_task_asking_identity();
         task.ask_due_identity_retries();
         assert!(asked.try_recv().is_err(), "nothing failed: nothing asked");
         task.identity_read(0, IdentityRead::default()).await;
@@ -1697,9 +1703,7 @@ mod tests {
     /// the hold ends.
     #[tokio::test]
     async fn an_identity_read_waits_for_the_end_of_a_hold() {
-        let mut task = relay_task_with_identity();
-        let (requests, mut asked) = mpsc::unbounded_channel();
-        task.identity.requests = Some(requests);
+        let (mut task, mut asked) = relay_task_asking_identity();
         task.hold_polling(0, Some(Duration::MAX));
         task.ask_identity(0);
         task.ask_due_identity_retries();

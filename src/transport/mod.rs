@@ -212,6 +212,7 @@ impl Transport {
     }
 
     /// Whether short waits block the thread ([`Self::block_short_waits`]).
+    #[cfg(test)]
     pub fn blocks_short_waits(&self) -> bool {
         matches!(&self.link, Link::Serial(link) if link.blocks_short_waits())
     }

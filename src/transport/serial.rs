@@ -122,6 +122,7 @@ impl SerialLink {
     }
 
     /// Whether [`Self::block_short_waits`] was called.
+    #[cfg(test)]
     pub fn blocks_short_waits(&self) -> bool {
         self.blocking_waits
     }
