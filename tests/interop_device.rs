@@ -1,9 +1,12 @@
-//! rtu2mqtt as the master against an independent Modbus device stack: pymodbus 3.0 (Debian's
-//! python3-pymodbus), played by tests/interop/pymodbus_server.py. Every other integration test
-//! runs the daemon against our own simulator; here the device side is written by others.
+//! rtu2mqtt as the master against independent Modbus device stacks: pymodbus 3.0 (Debian's
+//! python3-pymodbus), played by tests/interop/pymodbus_server.py, and libmodbus 3.1 (Debian's
+//! libmodbus5, the C stack of mbpoll and of many Linux devices), its own RTU server driven by
+//! tests/interop/libmodbus_server.py. Every other integration test runs the daemon against our
+//! own simulator; here the device side is written by others.
 //!
 //! - Modbus RTU on a serial line: two ptys joined by socat like a cable, pymodbus's serial
-//!   server (RTU framer) on one end, `rtu2mqtt run` on the other, at 9600 8N2 and 115200 8N2.
+//!   server (RTU framer) or libmodbus's RTU server on one end, `rtu2mqtt run` on the other, at
+//!   9600 8N2 and 115200 8N2.
 //! - Modbus TCP (MBAP): pymodbus's TCP server against a `"port_type": "modbus tcp"` port.
 //! - RTU over TCP: pymodbus's TCP server with the RTU framer against a `"port_type": "tcp"` port.
 //! - The site tools `read` and `write` against the serial server.
@@ -11,10 +14,11 @@
 //! The device has known values in all four tables; a template in the test's temp dir reads them
 //! as wb-mqtt-serial's formats decode them, and the published values are compared as exact
 //! strings. Writes through `/on` are checked in the device's registers, with the function code
-//! it was written with. A register the device does not have (pymodbus answers exception 2) and a
+//! it was written with. A register the device does not have (both answer exception 2) and a
 //! slave id nobody answers must give `r`, never a value.
 //!
-//! Needs mosquitto, socat and /usr/bin/python3 with pymodbus (scripts/test installs them): a
+//! Needs mosquitto, socat, libmodbus5 and /usr/bin/python3 with pymodbus (scripts/test installs
+//! them): a
 //! missing one fails the test, saying what to install.
 
 mod daemon_support;
@@ -39,7 +43,7 @@ use serde_json::{json, Value};
 /// another one without it).
 const PYTHON: &str = "/usr/bin/python3";
 const PATIENCE: Duration = Duration::from_secs(20);
-/// The unit id pymodbus answers; any other gets no reply.
+/// The unit id the device answers; any other gets no reply.
 const UNIT: u8 = 1;
 /// A slave id nobody on the bus has.
 const ABSENT: u8 = 7;
@@ -203,7 +207,7 @@ fn kill(child: &mut Child) {
 /// Two ptys joined by socat like a cable: what one end writes, the other reads.
 struct Cable {
     child: Child,
-    /// Where the device (pymodbus) sits, and where the master (rtu2mqtt).
+    /// Where the device (the stack under test's peer) sits, and where the master (rtu2mqtt).
     device_end: PathBuf,
     master_end: PathBuf,
     _dir: tempfile::TempDir,
@@ -256,7 +260,32 @@ impl Drop for Cable {
     }
 }
 
-/// How pymodbus is reached.
+/// Which device stack plays the device.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Stack {
+    Pymodbus,
+    /// Serial only (its TCP server answers every unit id, so the absent device would answer).
+    Libmodbus,
+}
+
+impl Stack {
+    fn helper(self) -> &'static str {
+        match self {
+            Stack::Pymodbus => "tests/interop/pymodbus_server.py",
+            Stack::Libmodbus => "tests/interop/libmodbus_server.py",
+        }
+    }
+
+    /// What to install when the helper does not start.
+    fn packages(self) -> &'static str {
+        match self {
+            Stack::Pymodbus => "python3-pymodbus",
+            Stack::Libmodbus => "libmodbus5",
+        }
+    }
+}
+
+/// How the device is reached.
 enum Mode<'a> {
     /// Its serial server (RTU framer) on a pty at `baud` 8N2.
     RtuSerial { port: &'a Path, baud: u32 },
@@ -267,8 +296,9 @@ enum Mode<'a> {
     RtuOverTcp,
 }
 
-/// The pymodbus device: its process, its control lines, and what it said when it was ready.
-struct PyModbus {
+/// The device: its stack's process, its control lines, and what it said when it was ready.
+struct Peer {
+    stack: Stack,
     child: Child,
     stdin: ChildStdin,
     lines: Receiver<String>,
@@ -277,19 +307,20 @@ struct PyModbus {
     _dir: tempfile::TempDir,
 }
 
-impl PyModbus {
-    fn start(mode: Mode) -> Self {
+impl Peer {
+    fn start(stack: Stack, mode: Mode) -> Self {
         let python = Path::new(PYTHON);
         assert!(
             python.is_file(),
-            "the interop tests need {PYTHON} with pymodbus (apt-get install python3-pymodbus)"
+            "the interop tests need {PYTHON} (apt-get install python3 {})",
+            stack.packages()
         );
         let dir = tempfile::tempdir().unwrap();
-        let stderr = dir.path().join("pymodbus.log");
+        let stderr = dir.path().join("device.log");
         let mut command = Command::new(python);
         command
             .stop_with_parent()
-            .arg(repo("tests/interop/pymodbus_server.py"))
+            .arg(repo(stack.helper()))
             .arg("--unit")
             .arg(UNIT.to_string())
             .arg("--store")
@@ -301,6 +332,9 @@ impl PyModbus {
                 .arg(baud.to_string())
                 .arg("--port")
                 .arg(port),
+            Mode::ModbusTcp { .. } | Mode::RtuOverTcp if stack == Stack::Libmodbus => {
+                panic!("the libmodbus device is serial only")
+            }
             Mode::ModbusTcp { gateway: false } => command.args(["--mode", "tcp"]),
             Mode::ModbusTcp { gateway: true } => command.args(["--mode", "tcp", "--gateway"]),
             Mode::RtuOverTcp => command.args(["--mode", "rtu-tcp"]),
@@ -310,10 +344,11 @@ impl PyModbus {
             .stdout(Stdio::piped())
             .stderr(std::fs::File::create(&stderr).unwrap())
             .spawn()
-            .expect("start the pymodbus helper");
+            .unwrap_or_else(|e| panic!("start {}: {e}", stack.helper()));
         let stdin = child.stdin.take().unwrap();
         let lines = lines_of(child.stdout.take().unwrap());
         let mut device = Self {
+            stack,
             child,
             stdin,
             lines,
@@ -329,19 +364,22 @@ impl PyModbus {
     fn next_line(&mut self, what: &str) -> Value {
         match self.lines.recv_timeout(PATIENCE) {
             Ok(line) => serde_json::from_str(&line)
-                .unwrap_or_else(|e| panic!("pymodbus said {line:?}: {e}")),
+                .unwrap_or_else(|e| panic!("{:?} said {line:?}: {e}", self.stack)),
             Err(_) => {
                 let exited = self.child.try_wait().ok().flatten();
                 panic!(
-                    "no {what} line from the pymodbus helper (exited: {exited:?}); is \
-                     python3-pymodbus installed (apt-get install python3-pymodbus)? Its stderr:\n{}",
+                    "no {what} line from {} (exited: {exited:?}); is {} installed \
+                     (apt-get install {})? Its stderr:\n{}",
+                    self.stack.helper(),
+                    self.stack.packages(),
+                    self.stack.packages(),
                     std::fs::read_to_string(&self.stderr).unwrap_or_default()
                 )
             }
         }
     }
 
-    /// What pymodbus logged so far (its errors: exceptions it answered, unknown units).
+    /// What the device logged so far (pymodbus: exceptions it answered, unknown units).
     fn log(&self) -> String {
         std::fs::read_to_string(&self.stderr).unwrap_or_default()
     }
@@ -427,12 +465,13 @@ impl PyModbus {
     }
 }
 
-impl Drop for PyModbus {
+impl Drop for Peer {
     fn drop(&mut self) {
         kill(&mut self.child);
         if std::thread::panicking() {
             eprintln!(
-                "--- pymodbus helper ({}) stderr ---\n{}",
+                "--- {} ({}) stderr ---\n{}",
+                self.stack.helper(),
                 self.ready,
                 std::fs::read_to_string(&self.stderr).unwrap_or_default()
             );
@@ -525,7 +564,7 @@ fn pairs(items: &[(&str, &str)], device: &str) -> Vec<(String, String)> {
 
 /// The whole check of one transport: values of every format, writes through `/on` (with the
 /// function code the device saw), exception 2 and an absent slave as `r` without a value.
-async fn values_writes_and_errors(mode: Mode<'_>, device: &mut PyModbus) {
+async fn values_writes_and_errors(mode: Mode<'_>, device: &mut Peer) {
     let dir = tempfile::tempdir().unwrap();
     let templates = templates_dir(dir.path());
     let broker = Mosquitto::start();
@@ -548,7 +587,7 @@ async fn values_writes_and_errors(mode: Mode<'_>, device: &mut PyModbus) {
         )
     }));
     expected.push((format!("/devices/{DEVICE}/meta/error"), String::new()));
-    // The register pymodbus does not have (exception 2): `r` on its control, the device stays.
+    // The register the device does not have (exception 2): `r` on its control, the device stays.
     expected.push((
         format!("{}/meta/error", control(DEVICE, "Missing")),
         "r".into(),
@@ -671,13 +710,16 @@ async fn values_writes_and_errors(mode: Mode<'_>, device: &mut PyModbus) {
 // ---------------------------------------------------------------------------------------------
 // The tests.
 
-async fn over_a_serial_line(baud: u32) {
+async fn over_a_serial_line(stack: Stack, baud: u32) {
     let cable = Cable::new();
-    let mut device = PyModbus::start(Mode::RtuSerial {
-        port: &cable.device_end,
-        baud,
-    });
-    // pymodbus set its end of the line as asked.
+    let mut device = Peer::start(
+        stack,
+        Mode::RtuSerial {
+            port: &cable.device_end,
+            baud,
+        },
+    );
+    // The stack set its end of the line as asked.
     assert_eq!(
         (
             device.ready["baudrate"].clone(),
@@ -699,17 +741,27 @@ async fn over_a_serial_line(baud: u32) {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn rtu_on_a_serial_line_at_9600_8n2() {
-    over_a_serial_line(9600).await;
+    over_a_serial_line(Stack::Pymodbus, 9600).await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn rtu_on_a_serial_line_at_115200_8n2() {
-    over_a_serial_line(115_200).await;
+    over_a_serial_line(Stack::Pymodbus, 115_200).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn libmodbus_rtu_on_a_serial_line_at_9600_8n2() {
+    over_a_serial_line(Stack::Libmodbus, 9600).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn libmodbus_rtu_on_a_serial_line_at_115200_8n2() {
+    over_a_serial_line(Stack::Libmodbus, 115_200).await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn modbus_tcp() {
-    let mut device = PyModbus::start(Mode::ModbusTcp { gateway: false });
+    let mut device = Peer::start(Stack::Pymodbus, Mode::ModbusTcp { gateway: false });
     values_writes_and_errors(Mode::ModbusTcp { gateway: false }, &mut device).await;
 }
 
@@ -717,13 +769,13 @@ async fn modbus_tcp() {
 /// 0x0B for the absent unit, which must count as silence (offline, `r`), not as an answer.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn modbus_tcp_gateway_answering_0x0b_for_the_absent_unit() {
-    let mut device = PyModbus::start(Mode::ModbusTcp { gateway: true });
+    let mut device = Peer::start(Stack::Pymodbus, Mode::ModbusTcp { gateway: true });
     values_writes_and_errors(Mode::ModbusTcp { gateway: true }, &mut device).await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn rtu_over_tcp() {
-    let mut device = PyModbus::start(Mode::RtuOverTcp);
+    let mut device = Peer::start(Stack::Pymodbus, Mode::RtuOverTcp);
     values_writes_and_errors(Mode::RtuOverTcp, &mut device).await;
 }
 
@@ -754,12 +806,24 @@ fn read_json(port: &Path, baud: u32, args: &[&str]) -> (Value, Value) {
 
 #[test]
 fn site_tools_read_and_write_a_pymodbus_device() {
+    site_tools_read_and_write(Stack::Pymodbus);
+}
+
+#[test]
+fn site_tools_read_and_write_a_libmodbus_device() {
+    site_tools_read_and_write(Stack::Libmodbus);
+}
+
+fn site_tools_read_and_write(stack: Stack) {
     for baud in [9600, 115_200] {
         let cable = Cable::new();
-        let mut device = PyModbus::start(Mode::RtuSerial {
-            port: &cable.device_end,
-            baud,
-        });
+        let mut device = Peer::start(
+            stack,
+            Mode::RtuSerial {
+                port: &cable.device_end,
+                baud,
+            },
+        );
         let port = cable.master_end.as_path();
 
         // Raw words and decoded values, each format and word order.
@@ -850,7 +914,7 @@ fn site_tools_read_and_write_a_pymodbus_device() {
         assert_eq!(run.code, 0, "{}{}", run.stdout, run.stderr);
         assert!(run.stdout.contains("[0]: 0x10E1  4321"), "{}", run.stdout);
 
-        // pymodbus's exception 2, and a slave id nobody answers.
+        // The stack's exception 2 (a slave id nobody answers comes last, see there).
         let run = tool(
             "read",
             port,
@@ -864,29 +928,6 @@ fn site_tools_read_and_write_a_pymodbus_device() {
             "{}",
             run.stderr
         );
-        let run = tool(
-            "read",
-            port,
-            baud,
-            &[
-                "--address",
-                "7",
-                "--type",
-                "holding",
-                "--reg",
-                "0",
-                "--timeout",
-                "200",
-            ],
-        );
-        assert_eq!(run.code, 1, "{}{}", run.stdout, run.stderr);
-        assert!(
-            run.stderr
-                .contains(&format!("no reply from address 7 at {baud} 8N2")),
-            "{}",
-            run.stderr
-        );
-
         // Writes, read back by the tool and checked in the device, with their function codes.
         let write = |args: &[&str], shown: &str| {
             let mut all = vec!["--address", "1"];
@@ -933,6 +974,31 @@ fn site_tools_read_and_write_a_pymodbus_device() {
             addresses,
             vec![(16, 16), (16, 18), (6, 14), (5, 3), (15, 0)],
             "at {baud}"
+        );
+        // Last: a libmodbus device takes the first frame after a request for another address for
+        // that address's reply, for up to its response timeout (0.5 s), so a request right
+        // after this one would go unanswered (libmodbus's "confirmation to ignore").
+        let run = tool(
+            "read",
+            port,
+            baud,
+            &[
+                "--address",
+                "7",
+                "--type",
+                "holding",
+                "--reg",
+                "0",
+                "--timeout",
+                "200",
+            ],
+        );
+        assert_eq!(run.code, 1, "{}{}", run.stdout, run.stderr);
+        assert!(
+            run.stderr
+                .contains(&format!("no reply from address 7 at {baud} 8N2")),
+            "{}",
+            run.stderr
         );
     }
 }
