@@ -44,7 +44,7 @@ fn all_fixtures_load_and_resolve() {
         );
         count += 1;
     }
-    assert_eq!(count, 20);
+    assert_eq!(count, 21);
 }
 
 /// Asserts a channel's first register: table, address, format and event mode.
@@ -1217,4 +1217,63 @@ fn bit_shift_above_255_leaves_the_channel_out() {
     .unwrap_err()
     .to_string();
     assert!(err.contains("300"), "{err}");
+}
+
+/// WB-MAO4's light scenes: a `required` parameter with a `default` behind a condition must be
+/// given once the condition holds over the config's values, as wb-mqtt-serial's validator
+/// requires it (`MakeDeviceParametersSchema` in `src/config_schema_generator.cpp` adds it to the
+/// schema's `required`; `IsRequiredSetupRegister` reads `required` alone, `default` is not in
+/// that schema). Bounds and enums are checked for the declarations whose condition holds over
+/// the config's own values, without defaults, as that schema has them (one whose condition
+/// holds only while a parameter is not given is checked, and not written), and also for the
+/// declaration in effect once the defaults are in, the one written: a value outside it is
+/// refused where wb-mqtt-serial, which merges the defaults in after validating, writes it.
+#[test]
+fn parameter_rules_over_the_configs_own_values() {
+    let fixture = "config-test-light-scenes.json";
+    let refused = |config: serde_json::Value| {
+        resolve_template_device(&template(fixture), &config)
+            .unwrap_err()
+            .to_string()
+    };
+
+    let err = refused(json!({"slave_id": 1, "ls_1_ch_1_action_off": 2}));
+    assert!(
+        err.contains("requires parameter `ls_1_ch_1_fading_off`"),
+        "{err}"
+    );
+    assert!(!err.contains("ls_1_ch_1_level_off"), "{err}");
+    let d = device(
+        fixture,
+        json!({"slave_id": 1, "ls_1_ch_1_action_off": 3, "ls_1_ch_1_fading_off": 0, "ls_1_ch_1_level_off": 100}),
+    );
+    assert_eq!(
+        setup_writes(&d),
+        vec![(1280, vec![3]), (1288, vec![0]), (1296, vec![100])]
+    );
+    let d = device(fixture, json!({"slave_id": 1, "ls_1_ch_1_action_off": 0}));
+    assert_eq!(setup_writes(&d), vec![(1280, vec![0])]);
+
+    // `input_1_mode==0` holds only through the default: wb-mqtt-serial's validator does not
+    // check the value but the value is written, so its bounds apply; within them it is written.
+    let err = refused(json!({"slave_id": 1, "input_1_hold_time": 300}));
+    assert!(err.contains("outside its range 500…5000"), "{err}");
+    let d = device(fixture, json!({"slave_id": 1, "input_1_hold_time": 700}));
+    assert_eq!(setup_writes(&d), vec![(1100, vec![700])]);
+    let err = refused(json!({"slave_id": 1, "input_1_mode": 0, "input_1_hold_time": 300}));
+    assert!(err.contains("outside its range 500…5000"), "{err}");
+    // Another mode: the declaration is not in effect either way, the value neither checked nor
+    // written.
+    let d = device(
+        fixture,
+        json!({"slave_id": 1, "input_1_mode": 1, "input_1_hold_time": 300}),
+    );
+    assert_eq!(setup_writes(&d), vec![(416, vec![1])]);
+
+    // `isDefined(input_1_mode)==0` holds over the config's values: checked; with the defaults
+    // merged in it does not: not written.
+    let err = refused(json!({"slave_id": 1, "input_1_legacy_time": 300}));
+    assert!(err.contains("outside its range 0…250"), "{err}");
+    let d = device(fixture, json!({"slave_id": 1, "input_1_legacy_time": 200}));
+    assert_eq!(setup_writes(&d), vec![]);
 }

@@ -467,89 +467,112 @@ impl Level<'_> {
     /// wb-mqtt-serial's parameter rules: one declaration in effect per id, values within
     /// `enum` / `min`…`max`, and every `required` parameter in effect given (checked only where
     /// the config chose this level: `check_required`).
+    ///
+    /// wb-mqtt-serial's validator decides "in effect" over the config's own values, without
+    /// defaults: `MakeDeviceParametersSchema` (`src/config_schema_generator.cpp`) evaluates each
+    /// declaration's condition over `TJsonParams(config)` (the device config as written) and puts
+    /// only those that hold into the schema, with their `enum`, `minimum`, `maximum` and
+    /// `required`; `default` is not part of it. Defaults are added later, by
+    /// `MergeDeviceConfigWithTemplate`, for what is written and polled. A value is checked here
+    /// both ways: against the declaration wb-mqtt-serial's validator sees (so the configs it
+    /// refuses are refused) and against the one in effect once the defaults are in, which is the
+    /// one written (so no value outside its declaration's bounds reaches a device, where
+    /// wb-mqtt-serial writes one whose condition holds only through a default unchecked).
     fn check_rules(&self, check_required: bool, errors: &mut Vec<MergeError>) {
-        let conditions = self.condition_values();
+        let with_defaults = self.condition_values();
         for id in parameter_ids(self.parameters) {
             let declarations = parameter_declarations(self.parameters, &id);
-            let active: Vec<&(Option<usize>, &Value)> = declarations
-                .iter()
-                .filter(|(_, p)| condition_true(p, &conditions))
-                .collect();
-            let specs: Vec<&Value> = active.iter().map(|(_, p)| *p).collect();
-            if active.len() > 1 && !are_fw_variants(&specs) {
-                let at = match active[1].0 {
-                    Some(i) => self.template_path.key("parameters").index(i),
-                    None => self.template_path.key("parameters").key(&id),
-                };
-                errors.push(MergeError {
-                    origin: format!("t:{at}"),
-                    problem: Problem::Invalid(format!(
-                        "parameter `{id}` is declared {} times and more than one applies; give each declaration a `condition` that excludes the others",
-                        declarations.len()
-                    )),
-                });
+            let as_validated = self.check_value(&id, &declarations, self.values);
+            let as_written = self.check_value(&id, &declarations, &with_defaults);
+            if let Some(error) = as_validated.or(as_written) {
+                errors.push(error);
                 continue;
             }
-            let Some(spec) = self.active_spec(&id, &conditions) else {
+            if self.values.contains_key(&id) || !check_required {
+                continue;
+            }
+            // Over the config's own values too: a leak controller's `zone1_type` is required
+            // only once the config gives `zone1_enable`, whose default would make its condition
+            // hold. A `default` does not stand in for a `required` parameter whose condition
+            // holds (WB-MAO4's `ls_1_ch_1_fading_off` once `ls_1_ch_1_action_off` is given):
+            // `IsRequiredSetupRegister` reads `required` alone.
+            let Some(required) = declarations.iter().map(|(_, p)| *p).find(|p| {
+                p.get("required").and_then(Value::as_bool) == Some(true)
+                    && condition_true(p, self.values)
+            }) else {
                 continue;
             };
-            let origin = format!("c:{}", self.value_path.key(&id));
-            match self.values.get(&id) {
-                // Not written while its condition is false; wb-mqtt-serial's validator does not
-                // know such a declaration either (WB-LED declares one id per dimmer mode, each
-                // with its own `enum`).
-                Some(_) if !condition_true(spec, &conditions) => {}
-                Some(value) => {
-                    if let Some(allowed) = allowed_values(spec) {
-                        if !allowed.is_empty() && !allowed.contains(value) {
-                            errors.push(MergeError {
-                                origin,
-                                problem: Problem::Invalid(format!(
-                                    "parameter `{id}` cannot be {value}; allowed: {}",
-                                    describe_choices(spec, &allowed)
-                                )),
-                            });
-                            continue;
-                        }
-                    }
-                    let min = number_of(spec, "min");
-                    let max = number_of(spec, "max");
-                    if min.is_some_and(|m| *value < m) || max.is_some_and(|m| *value > m) {
-                        errors.push(MergeError {
-                            origin,
-                            problem: Problem::Invalid(format!(
-                                "parameter `{id}` is {value}, outside its range {}…{}",
-                                min.map(|m| m.to_string()).unwrap_or_default(),
-                                max.map(|m| m.to_string()).unwrap_or_default()
-                            )),
-                        });
-                    }
-                }
-                // wb-mqtt-serial's validator evaluates the conditions of `required` parameters
-                // over the config's own values, without defaults (`TJsonParams(config)`): a
-                // leak controller's `zone1_type` is required only once the config gives
-                // `zone1_enable`, whose default would make its condition hold.
-                None if check_required => {
-                    let Some(required) = declarations.iter().map(|(_, p)| *p).find(|p| {
-                        p.get("required").and_then(Value::as_bool) == Some(true)
-                            && condition_true(p, self.values)
-                    }) else {
-                        continue;
-                    };
-                    let choices = allowed_values(required)
-                        .filter(|a| !a.is_empty())
-                        .map(|a| format!(" (one of {})", describe_choices(required, &a)))
-                        .unwrap_or_default();
-                    errors.push(MergeError {
-                        origin: format!("c:{}", self.value_path),
-                        problem: Problem::Invalid(format!(
-                            "the template requires parameter `{id}`: add `\"{id}\": <value>`{choices}"
-                        )),
-                    });
-                }
-                None => {}
+            let choices = allowed_values(required)
+                .filter(|a| !a.is_empty())
+                .map(|a| format!(" (one of {})", describe_choices(required, &a)))
+                .unwrap_or_default();
+            errors.push(MergeError {
+                origin: format!("c:{}", self.value_path),
+                problem: Problem::Invalid(format!(
+                    "the template requires parameter `{id}`: add `\"{id}\": <value>`{choices}"
+                )),
+            });
+        }
+    }
+
+    /// One declaration of `id` in effect over `conditions`, and the config's value of `id`
+    /// within that declaration's `enum` and `min`…`max`; the first rule broken, if any.
+    fn check_value(
+        &self,
+        id: &str,
+        declarations: &[(Option<usize>, &Value)],
+        conditions: &BTreeMap<String, f64>,
+    ) -> Option<MergeError> {
+        let active: Vec<&(Option<usize>, &Value)> = declarations
+            .iter()
+            .filter(|(_, p)| condition_true(p, conditions))
+            .collect();
+        let specs: Vec<&Value> = active.iter().map(|(_, p)| *p).collect();
+        if active.len() > 1 && !are_fw_variants(&specs) {
+            let at = match active[1].0 {
+                Some(i) => self.template_path.key("parameters").index(i),
+                None => self.template_path.key("parameters").key(id),
+            };
+            return Some(MergeError {
+                origin: format!("t:{at}"),
+                problem: Problem::Invalid(format!(
+                    "parameter `{id}` is declared {} times and more than one applies; give each declaration a `condition` that excludes the others",
+                    declarations.len()
+                )),
+            });
+        }
+        let spec = self.active_spec(id, conditions)?;
+        let value = self.values.get(id)?;
+        // No declaration in effect: nothing is checked (WB-LED declares one id per dimmer mode,
+        // each with its own `enum`), and, with the defaults in, nothing is written.
+        if !condition_true(spec, conditions) {
+            return None;
+        }
+        let origin = format!("c:{}", self.value_path.key(id));
+        if let Some(allowed) = allowed_values(spec) {
+            if !allowed.is_empty() && !allowed.contains(value) {
+                return Some(MergeError {
+                    origin,
+                    problem: Problem::Invalid(format!(
+                        "parameter `{id}` cannot be {value}; allowed: {}",
+                        describe_choices(spec, &allowed)
+                    )),
+                });
             }
         }
+        let min = number_of(spec, "min");
+        let max = number_of(spec, "max");
+        if min.is_some_and(|m| *value < m) || max.is_some_and(|m| *value > m) {
+            return Some(MergeError {
+                origin,
+                problem: Problem::Invalid(format!(
+                    "parameter `{id}` is {value}, outside its range {}…{}",
+                    min.map(|m| m.to_string()).unwrap_or_default(),
+                    max.map(|m| m.to_string()).unwrap_or_default()
+                )),
+            });
+        }
+        None
     }
 
     /// Parameter values for conditions: defaults, then the config's values.
