@@ -23,6 +23,7 @@
 
 mod daemon_support;
 mod mqtt_support;
+mod sim_support;
 #[path = "tool_support/mod.rs"]
 mod tool_support;
 
@@ -1001,4 +1002,145 @@ fn site_tools_read_and_write(stack: Stack) {
             run.stderr
         );
     }
+}
+
+// ---------------------------------------------------------------------------------------------
+// A libmodbus device on a bus with Fast Modbus devices.
+
+/// One bus joining the simulator's pty (its Fast Modbus devices), the daemon's port and the
+/// libmodbus device's port: tests/interop/bus_hub.py.
+struct Hub {
+    child: Child,
+    _stdin: ChildStdin,
+    daemon_end: PathBuf,
+    device_end: PathBuf,
+    _dir: tempfile::TempDir,
+}
+
+impl Hub {
+    fn join(sim_pty: &Path, baud: u32) -> Self {
+        let dir = tempfile::tempdir().unwrap();
+        let daemon_end = dir.path().join("daemon");
+        let device_end = dir.path().join("device");
+        let mut child = Command::new(PYTHON)
+            .stop_with_parent()
+            .arg(repo("tests/interop/bus_hub.py"))
+            .arg("--baud")
+            .arg(baud.to_string())
+            .arg("--join")
+            .arg(sim_pty)
+            .arg("--new")
+            .arg(&daemon_end)
+            .arg("--new")
+            .arg(&device_end)
+            .stdin(Stdio::piped())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit())
+            .spawn()
+            .expect("start tests/interop/bus_hub.py");
+        let stdin = child.stdin.take().unwrap();
+        let lines = lines_of(child.stdout.take().unwrap());
+        match lines.recv_timeout(PATIENCE) {
+            Ok(line) if line.contains("ready") => {}
+            other => {
+                kill(&mut child);
+                panic!("the bus hub did not get ready: {other:?}");
+            }
+        }
+        Self {
+            child,
+            _stdin: stdin,
+            daemon_end,
+            device_end,
+            _dir: dir,
+        }
+    }
+}
+
+impl Drop for Hub {
+    fn drop(&mut self) {
+        kill(&mut self.child);
+    }
+}
+
+/// A libmodbus device (address 1) beside a Fast Modbus relay of the simulator (address 241) on
+/// one bus. libmodbus frames requests by their length, so the event polls' broadcast frames and
+/// arbitration bytes put it out of step and it misses the requests after them (with events on,
+/// most of its values are not published within `PATIENCE`: this test fails without the port's
+/// switch). The port's own `fast_modbus: false` polls that bus classically:
+/// every value of the libmodbus device and of the relay is published, each of 10 changes made
+/// in the libmodbus device too, and neither device is ever marked in error.
+async fn a_libmodbus_device_beside_fast_modbus_devices(baud: u32) {
+    let dir = tempfile::tempdir().unwrap();
+    let bus = dir.path().join("bus.json");
+    std::fs::write(
+        &bus,
+        json!({"devices": [{"name": "relay", "template": "sim-relay", "address": 241,
+                            "serial": "0xFED2A3A6", "line": format!("{baud} 8N2")}]})
+        .to_string(),
+    )
+    .unwrap();
+    let sim_templates = repo("tests/data/sim");
+    let sim = sim_support::SimProcess::start_with(&bus, &sim_templates, &[]);
+    let hub = Hub::join(&sim.pty, baud);
+    let mut device = Peer::start(
+        Stack::Libmodbus,
+        Mode::RtuSerial {
+            port: &hub.device_end,
+            baud,
+        },
+    );
+    let templates = templates_dir(dir.path());
+    std::fs::copy(
+        sim_templates.join("relay.json"),
+        templates.join("relay.json"),
+    )
+    .unwrap();
+    let broker = Mosquitto::start();
+    let recorder = Recorder::start(broker.port, "/devices/#").await;
+    let port = json!({
+        "path": hub.daemon_end, "baud_rate": baud, "parity": "N", "data_bits": 8, "stop_bits": 2,
+        "fast_modbus": false,
+        "devices": [
+            {"device_type": "sim-relay", "slave_id": 241},
+            {"device_type": "interop-pymodbus", "slave_id": UNIT},
+        ],
+    });
+    let daemon = start_daemon(&broker, port, &templates);
+
+    let mut expected = pairs(EXPECTED, DEVICE);
+    expected.extend(pairs(&[("K1", "0"), ("Input 0", "0")], "relay_241"));
+    wait_for_topics(&broker, &daemon, &expected).await;
+    for value in 1..=10u64 {
+        device.command(json!({"cmd": "set", "table": "holding", "address": 0, "values": [value]}));
+        sim.control(json!({"cmd": "toggle", "device": 241, "type": "coil", "address": 0}));
+        let relay = if value % 2 == 1 { "1" } else { "0" };
+        let mut changed = pairs(&[("U16", &value.to_string())], DEVICE);
+        changed.extend(pairs(&[("K1", relay)], "relay_241"));
+        wait_for_topics(&broker, &daemon, &changed).await;
+    }
+
+    let errors: Vec<(String, String)> = recorder
+        .messages
+        .lock()
+        .unwrap()
+        .iter()
+        .filter(|(topic, payload, _)| {
+            topic.ends_with("/meta/error")
+                && !payload.is_empty()
+                && !topic.contains("/controls/Missing/")
+        })
+        .map(|(topic, payload, _)| (topic.clone(), payload.clone()))
+        .collect();
+    assert_eq!(errors, vec![], "at {baud}: errors published on a mixed bus");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_libmodbus_device_beside_fast_modbus_devices_at_9600() {
+    a_libmodbus_device_beside_fast_modbus_devices(9600).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_libmodbus_device_beside_fast_modbus_devices_at_115200() {
+    a_libmodbus_device_beside_fast_modbus_devices(115_200).await;
 }

@@ -331,6 +331,12 @@ pub struct PortConfig {
     /// Modbus TCP: the gateway is a WB-MGE v.3, which passes Fast Modbus through.
     #[serde(default)]
     pub connected_to_mge: bool,
+    /// `false`: no Fast Modbus on this bus (every register polled), whatever the site-wide
+    /// `fast_modbus` says; the site-wide `false` turns it off on every port. For a bus with a
+    /// device whose Modbus stack frames requests by length instead of by silence (libmodbus's
+    /// server): the event polls' broadcast frames and arbitration bytes throw it out of step,
+    /// and it misses the requests that follow them.
+    pub fast_modbus: Option<bool>,
     /// Minimum response timeout for every device on this port, in ms (default 500).
     #[schemars(range(min = -1, max = 60000))]
     pub response_timeout_ms: Option<i64>,

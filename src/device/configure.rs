@@ -415,6 +415,7 @@ fn default_port() -> PortConfig {
         address: None,
         port: None,
         connected_to_mge: false,
+        fast_modbus: None,
         response_timeout_ms: None,
         frame_timeout_ms: None,
         guard_interval_us: None,

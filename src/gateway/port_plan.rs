@@ -107,12 +107,13 @@ fn endpoint(port: &ResolvedPort) -> Endpoint {
     }
 }
 
-/// `fast_modbus` is the site-wide switch; Modbus TCP gateways pass the extension only when they
-/// say so (`connected_to_mge`).
+/// `fast_modbus` is the site-wide switch, which a port's own `fast_modbus: false` narrows;
+/// Modbus TCP gateways pass the extension only when they say so (`connected_to_mge`).
 pub fn port_plan(port: &ResolvedPort, fast_modbus: bool) -> PortPlan {
     let line = line_settings(&port.config);
     let mut settings = PortSettings::for_line(line);
     settings.fast_modbus = fast_modbus
+        && port.config.fast_modbus != Some(false)
         && (port.config.port_type != PortType::ModbusTcp || port.config.connected_to_mge);
     if let Some(interval) = port.config.event_interval_ms {
         settings.event_interval = Duration::from_millis(interval.clamp(5, 10_000));
@@ -316,6 +317,18 @@ mod tests {
             !port_plan(&resolved(mge), false).settings.fast_modbus,
             "the site-wide switch wins"
         );
+    }
+
+    /// A port's own `fast_modbus: false` turns the extension off there only; its `true` does
+    /// not override the site-wide `false`.
+    #[test]
+    fn a_port_can_turn_fast_modbus_off_for_its_bus() {
+        let port =
+            |value: Value| resolved(json!({"path": "/dev/ttyRS485-1", "fast_modbus": value}));
+        assert!(!port_plan(&port(json!(false)), true).settings.fast_modbus);
+        assert!(port_plan(&port(json!(true)), true).settings.fast_modbus);
+        assert!(port_plan(&port(Value::Null), true).settings.fast_modbus);
+        assert!(!port_plan(&port(json!(true)), false).settings.fast_modbus);
     }
 
     /// On TCP gateways: the configured frame timeout (the longest of the devices') with the TCP
