@@ -973,7 +973,18 @@ fn site_tools_against_python_devices(line: &str, baud: &str) {
     let socat = Socat::start();
     let mut bus = py_bus(&socat.a, line);
     let port = socat.b.to_str().unwrap();
-    let settings = ["--baud", baud, "--parity", "N", "--stop-bits", "2"];
+    // `--latency`: generous for a loaded test machine, where the Python devices' real-time
+    // pacing can answer some ms late; values are asserted, never timings.
+    let settings = [
+        "--baud",
+        baud,
+        "--parity",
+        "N",
+        "--stop-bits",
+        "2",
+        "--latency",
+        "50",
+    ];
 
     let mut args = vec!["scan", "--port", port, "--json"];
     args.extend(settings);
@@ -1219,7 +1230,17 @@ fn fix_addresses_separates_python_devices_that_share_an_address() {
         ],
     );
     let port = socat.b.to_str().unwrap();
-    let settings = ["--baud", "115200", "--parity", "N", "--stop-bits", "2"];
+    // `--latency`: as in `site_tools_against_python_devices`.
+    let settings = [
+        "--baud",
+        "115200",
+        "--parity",
+        "N",
+        "--stop-bits",
+        "2",
+        "--latency",
+        "50",
+    ];
     let mut args = vec!["fix-addresses", "--port", port, "--apply"];
     args.extend(settings);
     let run = tool(&args);
