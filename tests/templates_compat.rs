@@ -1277,3 +1277,47 @@ fn parameter_rules_over_the_configs_own_values() {
     let d = device(fixture, json!({"slave_id": 1, "input_1_legacy_time": 200}));
     assert_eq!(setup_writes(&d), vec![]);
 }
+
+/// A value refused by both checks (the declaration wb-mqtt-serial's validator sees and the one
+/// written), each with its own `enum`: both are said. Saying only the first sent the user to a
+/// value the second refuses (`input_1_action: 1`, "allowed: 0, 1", then "allowed: 0, 2").
+#[test]
+fn a_value_refused_by_both_declarations_names_both() {
+    let fixture = "config-test-light-scenes.json";
+    let refused = |config: serde_json::Value| {
+        resolve_template_device(&template(fixture), &config)
+            .unwrap_err()
+            .to_string()
+    };
+    let err = refused(json!({"slave_id": 1, "input_1_action": 3}));
+    assert!(err.contains("allowed: 0, 1"), "{err}");
+    assert!(err.contains("allowed: 0, 2"), "{err}");
+    // Within the one the validator sees, outside the one written: refused, that one named.
+    let err = refused(json!({"slave_id": 1, "input_1_action": 1}));
+    assert!(err.contains("allowed: 0, 2"), "{err}");
+    let err = refused(json!({"slave_id": 1, "input_1_action": 2}));
+    assert!(err.contains("allowed: 0, 1"), "{err}");
+    let d = device(fixture, json!({"slave_id": 1, "input_1_action": 0}));
+    assert_eq!(setup_writes(&d), vec![(1130, vec![0])]);
+    let d = device(
+        fixture,
+        json!({"slave_id": 1, "input_1_mode": 0, "input_1_action": 2}),
+    );
+    assert_eq!(setup_writes(&d), vec![(416, vec![0]), (1130, vec![2])]);
+}
+
+/// A subdevice's parameter is written whatever its condition (wb-mqtt-serial's
+/// `AppendSetupItems` without an expression cache; `conditions_inside_a_subdevice_are_not_evaluated`),
+/// so its bounds apply whatever its condition: `curve_shift` (`min` -20, `max` 20, behind
+/// `curve>0` with `curve` at its default 0) at 50 was written to the device unchecked.
+#[test]
+fn a_subdevice_parameter_written_whatever_its_condition_is_checked() {
+    let fixture = "config-test-subdevice-conditions.json";
+    let config = |shift: i64| json!({"slave_id": 1, "channels": [{"name": "Boiler", "device_type": "boiler_gas", "curve_shift": shift}]});
+    let err = resolve_template_device(&template(fixture), &config(50))
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("outside its range -20…20"), "{err}");
+    let d = device(fixture, config(-5));
+    assert_eq!(setup_writes(&d), vec![(203, vec![1]), (207, vec![0xFFFB])]);
+}

@@ -477,15 +477,37 @@ impl Level<'_> {
     /// both ways: against the declaration wb-mqtt-serial's validator sees (so the configs it
     /// refuses are refused) and against the one in effect once the defaults are in, which is the
     /// one written (so no value outside its declaration's bounds reaches a device, where
-    /// wb-mqtt-serial writes one whose condition holds only through a default unchecked).
+    /// wb-mqtt-serial writes one whose condition holds only through a default unchecked). In a
+    /// subdevice every declaration given is written whatever its condition: a lone declaration
+    /// is checked whatever its condition too.
     fn check_rules(&self, check_required: bool, errors: &mut Vec<MergeError>) {
         let with_defaults = self.condition_values();
         for id in parameter_ids(self.parameters) {
             let declarations = parameter_declarations(self.parameters, &id);
             let as_validated = self.check_value(&id, &declarations, self.values);
             let as_written = self.check_value(&id, &declarations, &with_defaults);
-            if let Some(error) = as_validated.or(as_written) {
-                errors.push(error);
+            // A subdevice's parameter is written whatever its condition (`setup_items`, as
+            // wb-mqtt-serial's `AppendSetupItems` without an expression cache): a lone
+            // declaration's bounds apply whatever its condition.
+            let in_subdevice = match (declarations.as_slice(), self.values.get(&id)) {
+                ([(_, spec)], Some(value)) if !self.evaluate_conditions => {
+                    self.bounds_error(&id, spec, *value)
+                }
+                _ => None,
+            };
+            // Both said when they differ: the first alone would send the user to a value the
+            // other refuses (two declarations of one id, each with its own `enum`).
+            let mut found: Vec<MergeError> = Vec::new();
+            for error in [as_validated, as_written, in_subdevice]
+                .into_iter()
+                .flatten()
+            {
+                if !found.iter().any(|e| e.problem == error.problem) {
+                    found.push(error);
+                }
+            }
+            if !found.is_empty() {
+                errors.extend(found);
                 continue;
             }
             if self.values.contains_key(&id) || !check_required {
@@ -548,6 +570,12 @@ impl Level<'_> {
         if !condition_true(spec, conditions) {
             return None;
         }
+        self.bounds_error(id, spec, *value)
+    }
+
+    /// The value of `id` within its declaration `spec`'s `enum` and `min`…`max`, or the error.
+    fn bounds_error(&self, id: &str, spec: &Value, value: f64) -> Option<MergeError> {
+        let value = &value;
         let origin = format!("c:{}", self.value_path.key(id));
         if let Some(allowed) = allowed_values(spec) {
             if !allowed.is_empty() && !allowed.contains(value) {

@@ -100,7 +100,12 @@ def main():
             except BlockingIOError:
                 continue
             except OSError:
-                # A station closed its end (EIO on a pty master): nothing to pass on.
+                data = b""
+            if not data:
+                # The other side of this port is gone for good (a joined port whose pty master
+                # closed: the simulator ended): EIO or end of file from now on, and select()
+                # reports it readable every time. Stop listening to it, or the loop spins.
+                ports.remove(fd)
                 continue
             start = max(now, wire_free)
             wire_free = start + len(data) * char_time
