@@ -842,6 +842,68 @@ fn describe_shows_what_was_resolved() {
     assert!(!ok && text.contains("devices: wb-test-inputs_7"), "{text}");
 }
 
+/// `describe` says when a port polls without Fast Modbus (its own `fast_modbus: false`, the
+/// site-wide switch, a Modbus TCP gateway that does not pass it): every channel polled there,
+/// sporadic ones too.
+#[test]
+fn describe_says_where_fast_modbus_is_off() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = dir.path().join("config.json");
+    let describe = |config_text: &str| {
+        std::fs::write(&config, config_text).unwrap();
+        let text = |extra: &[&str]| {
+            let out = bin()
+                .arg("describe")
+                .arg("-c")
+                .arg(&config)
+                .arg("--templates")
+                .arg(repo("tests/data/wb-templates"))
+                .args(extra)
+                .output()
+                .unwrap();
+            let (ok, text) = report(out);
+            assert!(ok, "{text}");
+            text
+        };
+        let json: serde_json::Value = serde_json::from_str(&text(&["--json"])).unwrap();
+        let flags: Vec<bool> = json["devices"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|d| d["fast_modbus"].as_bool().unwrap())
+            .collect();
+        (
+            text(&[]).matches("Fast Modbus is off on this port").count(),
+            flags,
+        )
+    };
+    let device = r#"[{"slave_id": 8, "device_type": "WB-TEST-SENSOR"}]"#;
+    let other = r#"[{"slave_id": 9, "device_type": "WB-TEST-SENSOR"}]"#;
+    let two_ports = |site: &str, second: &str| {
+        format!(
+            r#"{{{site} "ports": [{{"path": "/dev/x", "devices": {device}}},
+                {{"path": "/dev/y", {second} "devices": {other}}}]}}"#
+        )
+    };
+    assert_eq!(describe(&two_ports("", "")), (0, vec![true, true]));
+    assert_eq!(
+        describe(&two_ports("", r#""fast_modbus": false,"#)),
+        (1, vec![true, false])
+    );
+    assert_eq!(
+        describe(&two_ports(
+            r#""fast_modbus": false,"#,
+            r#""fast_modbus": true,"#
+        )),
+        (2, vec![false, false])
+    );
+    let gateway = format!(
+        r#"{{"ports": [{{"port_type": "modbus tcp", "address": "10.0.0.5", "port": 502,
+            "devices": {device}}}]}}"#
+    );
+    assert_eq!(describe(&gateway), (1, vec![false]));
+}
+
 /// `prepare-ports` sets each serial port's receive FIFO trigger to 1 byte (on a fake
 /// `/sys/class/tty`), says so per port, leaves ports without the attribute and TCP ports alone,
 /// and succeeds where it cannot (the service must start anyway).

@@ -13,7 +13,7 @@ use crate::device::check_template;
 use crate::device::configure::{resolve_config_checked, template_key_warnings};
 use crate::device::model::{EventMode, RegisterRef, RegisterType, ResolvedDevice, ResolvedPort};
 use crate::device::number_text::format_g;
-use crate::gateway::port_plan::line_settings;
+use crate::gateway::port_plan::{fast_modbus_on, line_settings};
 use crate::protocol::timing::ADAPTER_LATENCY_ALLOWANCE;
 
 #[derive(Debug, clap::Args)]
@@ -293,7 +293,7 @@ pub fn run_describe(args: DescribeArgs) -> anyhow::Result<ExitCode> {
     if args.json {
         let json: Vec<serde_json::Value> = devices
             .iter()
-            .map(|(port, device)| describe_json(port, device))
+            .map(|(port, device)| describe_json(port, device, loaded.config.fast_modbus))
             .collect();
         println!(
             "{}",
@@ -304,7 +304,10 @@ pub fn run_describe(args: DescribeArgs) -> anyhow::Result<ExitCode> {
             if i > 0 {
                 println!();
             }
-            print!("{}", describe_table(port, device));
+            print!(
+                "{}",
+                describe_table(port, device, loaded.config.fast_modbus)
+            );
         }
     }
     Ok(ExitCode::SUCCESS)
@@ -351,7 +354,7 @@ fn port_text(port: &ResolvedPort) -> String {
     port.config.describe()
 }
 
-fn describe_table(port: &ResolvedPort, device: &ResolvedDevice) -> String {
+fn describe_table(port: &ResolvedPort, device: &ResolvedDevice, site_fast_modbus: bool) -> String {
     let mut out = format!(
         "{} \"{}\" (slave_id {}, template {}, {})\n",
         device.id,
@@ -360,6 +363,12 @@ fn describe_table(port: &ResolvedPort, device: &ResolvedDevice) -> String {
         device.device_type.as_deref().unwrap_or("none"),
         port_text(port)
     );
+    if !fast_modbus_on(&port.config, site_fast_modbus) {
+        out.push_str(
+            "  Fast Modbus is off on this port: every channel is polled, sporadic and \
+             semi-sporadic ones too (EVENTS shows the template's mode)\n",
+        );
+    }
     out.push_str(&format!(
         "  response timeout: {} ms configured, {} ms in force (the adapter allowance of \
          {} ms and one character are added, as wb-mqtt-serial does; a slow device's learned \
@@ -445,7 +454,11 @@ fn register_json(register: &RegisterRef) -> serde_json::Value {
     })
 }
 
-fn describe_json(port: &ResolvedPort, device: &ResolvedDevice) -> serde_json::Value {
+fn describe_json(
+    port: &ResolvedPort,
+    device: &ResolvedDevice,
+    site_fast_modbus: bool,
+) -> serde_json::Value {
     let channels: Vec<serde_json::Value> = device
         .channels
         .iter()
@@ -495,6 +508,8 @@ fn describe_json(port: &ResolvedPort, device: &ResolvedDevice) -> serde_json::Va
         "device_type": device.device_type,
         "slave_id": device.slave_id,
         "port": port_text(port),
+        // Off: every channel is polled, whatever its `events`.
+        "fast_modbus": fast_modbus_on(&port.config, site_fast_modbus),
         "response_timeout_ms": device.timing.response_timeout.as_millis() as u64,
         "response_timeout_in_force_ms": response_timeout_in_force_ms(port, device),
         "channels": channels,

@@ -107,14 +107,19 @@ fn endpoint(port: &ResolvedPort) -> Endpoint {
     }
 }
 
-/// `fast_modbus` is the site-wide switch, which a port's own `fast_modbus: false` narrows;
-/// Modbus TCP gateways pass the extension only when they say so (`connected_to_mge`).
+/// Whether the port polls Fast Modbus events: `site` is the site-wide switch, which a port's
+/// own `fast_modbus: false` narrows; Modbus TCP gateways pass the extension only when they say
+/// so (`connected_to_mge`).
+pub fn fast_modbus_on(port: &PortConfig, site: bool) -> bool {
+    site && port.fast_modbus != Some(false)
+        && (port.port_type != PortType::ModbusTcp || port.connected_to_mge)
+}
+
+/// `fast_modbus` is the site-wide switch (see [`fast_modbus_on`]).
 pub fn port_plan(port: &ResolvedPort, fast_modbus: bool) -> PortPlan {
     let line = line_settings(&port.config);
     let mut settings = PortSettings::for_line(line);
-    settings.fast_modbus = fast_modbus
-        && port.config.fast_modbus != Some(false)
-        && (port.config.port_type != PortType::ModbusTcp || port.config.connected_to_mge);
+    settings.fast_modbus = fast_modbus_on(&port.config, fast_modbus);
     if let Some(interval) = port.config.event_interval_ms {
         settings.event_interval = Duration::from_millis(interval.clamp(5, 10_000));
     }
