@@ -1306,6 +1306,38 @@ fn a_value_refused_by_both_declarations_names_both() {
     assert_eq!(setup_writes(&d), vec![(416, vec![0]), (1130, vec![2])]);
 }
 
+/// Two declarations of one id that both hold only once the defaults are in: a config that
+/// leaves the parameter out is accepted (nothing of it is written, and wb-mqtt-serial's
+/// validator, over the config's own values, sees neither); one that gives it is refused, since
+/// rtu2mqtt would not know which register to write.
+#[test]
+fn declarations_that_clash_only_through_defaults_matter_only_for_a_value_given() {
+    let fixture = "config-test-light-scenes.json";
+    let d = device(fixture, json!({"slave_id": 1}));
+    assert_eq!(setup_writes(&d), vec![]);
+    let err = resolve_template_device(
+        &template(fixture),
+        &json!({"slave_id": 1, "input_1_repeat": 3}),
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(
+        err.contains("parameter `input_1_repeat` is declared 2 times and more than one applies"),
+        "{err}"
+    );
+    // The mode given: both hold over the config's own values too, refused either way.
+    let err = resolve_template_device(
+        &template(fixture),
+        &json!({"slave_id": 1, "repeat_mode": 0}),
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(
+        err.contains("`input_1_repeat` is declared 2 times"),
+        "{err}"
+    );
+}
+
 /// A subdevice's parameter is written whatever its condition (wb-mqtt-serial's
 /// `AppendSetupItems` without an expression cache; `conditions_inside_a_subdevice_are_not_evaluated`),
 /// so its bounds apply whatever its condition: `curve_shift` (`min` -20, `max` 20, behind

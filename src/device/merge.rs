@@ -485,7 +485,14 @@ impl Level<'_> {
         for id in parameter_ids(self.parameters) {
             let declarations = parameter_declarations(self.parameters, &id);
             let as_validated = self.check_value(&id, &declarations, self.values);
-            let as_written = self.check_value(&id, &declarations, &with_defaults);
+            // Only a value given is written: a parameter left out whose declarations hold two at
+            // once only with the defaults in is nothing to choose between (wb-mqtt-serial's
+            // validator does not see them either).
+            let as_written = if self.values.contains_key(&id) {
+                self.check_value(&id, &declarations, &with_defaults)
+            } else {
+                None
+            };
             // A subdevice's parameter is written whatever its condition (`setup_items`, as
             // wb-mqtt-serial's `AppendSetupItems` without an expression cache): a lone
             // declaration's bounds apply whatever its condition.
