@@ -1338,6 +1338,25 @@ fn declarations_that_clash_only_through_defaults_matter_only_for_a_value_given()
     );
 }
 
+/// A parameter left out takes, for conditions, the `default` of its first declaration that has
+/// one (`MergeDeviceConfigWithTemplate` fills it in so), not nothing because the first
+/// declaration has none: `LED Blinking` (condition `led_mode==2`) is polled with nothing given.
+#[test]
+fn a_missing_value_takes_the_first_default_declared() {
+    let fixture = "config-test-light-scenes.json";
+    let names = |config: serde_json::Value| -> Vec<String> {
+        device(fixture, config)
+            .channels
+            .iter()
+            .map(|c| c.name.clone())
+            .collect()
+    };
+    assert!(names(json!({"slave_id": 1})).contains(&"LED Blinking".to_string()));
+    assert!(!names(json!({"slave_id": 1, "led_mode": 1})).contains(&"LED Blinking".to_string()));
+    // The default is filled in whatever its declaration's condition, as there.
+    assert!(names(json!({"slave_id": 1, "repeat_mode": 2})).contains(&"LED Blinking".to_string()));
+}
+
 /// A subdevice's parameter is written whatever its condition (wb-mqtt-serial's
 /// `AppendSetupItems` without an expression cache; `conditions_inside_a_subdevice_are_not_evaluated`),
 /// so its bounds apply whatever its condition: `curve_shift` (`min` -20, `max` 20, behind

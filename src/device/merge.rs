@@ -614,8 +614,11 @@ impl Level<'_> {
     fn condition_values(&self) -> BTreeMap<String, f64> {
         let mut out = BTreeMap::new();
         for id in parameter_ids(self.parameters) {
-            if let Some(default) = parameter_spec(self.parameters, &id)
-                .and_then(|p| p.get("default"))
+            // The first declaration that has a `default`, as `MergeDeviceConfigWithTemplate`
+            // fills a missing value in (an earlier declaration without one does not stop it).
+            if let Some(default) = parameter_declarations(self.parameters, &id)
+                .into_iter()
+                .find_map(|(_, p)| p.get("default"))
                 .and_then(Value::as_f64)
             {
                 out.insert(id, default);
