@@ -1251,3 +1251,66 @@ async fn bad_requests_get_json_rpc_errors_and_the_daemon_lives_on() {
         bench.daemon.log()
     );
 }
+
+/// A port whose config turns Fast Modbus off (`"fast_modbus": false`) never carries a Fast
+/// Modbus frame: no event poll, no event setup, and port/Scan (the web UI's scan, `rtu2mqtt scan`
+/// through the service) is refused with the reason instead of broadcasting there. Its devices
+/// are polled classically.
+async fn no_fast_modbus_frame_on_a_port_that_turns_it_off(line: &str, baud: u32) {
+    let broker = Mosquitto::start();
+    let dir = tempfile::tempdir().unwrap();
+    let bus = dir.path().join("bus.json");
+    std::fs::write(
+        &bus,
+        json!({"devices": [{"name": "relay", "template": "rtu2mqtt-relay6", "address": 20,
+                            "serial": "0xFE000020", "line": line}]})
+        .to_string(),
+    )
+    .unwrap();
+    let sim = SimProcess::start_with(&bus, &repo("templates"), &[]);
+    let config = json!({
+        "mqtt": {"host": "127.0.0.1", "port": broker.port, "client_id": "rtu2mqtt-rpc-test"},
+        "ports": [{"path": sim.pty, "baud_rate": baud, "stop_bits": 2, "fast_modbus": false,
+                   "devices": [{"device_type": "rtu2mqtt-relay6", "slave_id": 20}]}]
+    });
+    let daemon = DaemonProcess::start(&config, &[], Stdio::null(), Stdio::null());
+    let port = broker.port;
+    wait_until_served(port).await;
+    let path = sim.pty.to_str().unwrap().to_owned();
+
+    // The relay is polled (its sporadic inputs too), and nothing of Fast Modbus ever reached
+    // the bus.
+    wait_for("the relay's inputs polled", || async {
+        let state = retained(port).await?;
+        state.get("/devices/relay6_20/controls/Input 1")?;
+        let stats = sim.control(json!({"cmd": "stats"}));
+        (stats["classic_requests"].as_u64()? >= 20).then_some(())
+    })
+    .await;
+    let stats = sim.control(json!({"cmd": "stats"}));
+    assert_eq!(stats["fast_requests"], 0, "{stats}");
+    assert_eq!(stats["event_polls"], 0, "{stats}");
+    let scan = rpc(port, "port", "Scan", json!({"path": path})).await;
+    assert_eq!(scan["error"]["code"], -32000, "{scan}");
+    let message = scan["error"]["message"].as_str().unwrap();
+    assert!(
+        message.contains("Fast Modbus is off") && message.contains("\"fast_modbus\": false"),
+        "{message}"
+    );
+    let stats = sim.control(json!({"cmd": "stats"}));
+    assert_eq!(
+        stats["fast_requests"], 0,
+        "the refused scan sent nothing: {stats}"
+    );
+    assert!(!daemon.log().contains("panicked"), "{}", daemon.log());
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn no_fast_modbus_frame_on_a_port_that_turns_it_off_at_115200() {
+    no_fast_modbus_frame_on_a_port_that_turns_it_off("115200 8N2", 115_200).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn no_fast_modbus_frame_on_a_port_that_turns_it_off_at_9600() {
+    no_fast_modbus_frame_on_a_port_that_turns_it_off("9600 8N2", 9600).await;
+}

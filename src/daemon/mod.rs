@@ -64,6 +64,9 @@ pub struct PortAccess {
     pub queue: BusQueue,
     /// Its event packets, for a watcher (a port restarted by a reload starts a new log).
     pub events: Arc<EventLog>,
+    /// Whether its config lets it send Fast Modbus frames
+    /// ([`fast_modbus_on`](crate::gateway::port_plan::fast_modbus_on)).
+    pub fast_modbus: bool,
 }
 
 /// The running ports, by [`port_key`] (the device path, or `address:port`); kept up to date
@@ -249,6 +252,7 @@ impl BusControl {
                 line,
                 queue: queue.clone(),
                 events: Arc::clone(&events),
+                fast_modbus: plan.settings.fast_modbus,
             },
         );
         let identity_plans = port

@@ -352,9 +352,19 @@ pub fn load_result(answer: &Answer, format: MessageFormat) -> Result<Value, &'st
 /// `port/Scan`: the Fast Modbus scan at one setting, then each device's details.
 async fn port_scan(ports: &PortDirectory, scan: PortScan) -> Result<Value, RpcError> {
     let (access, _) = find_port(ports, &scan.port)?;
-    if !access_has_fast_modbus(&access) {
-        // wb-mqtt-serial: Modbus TCP without a WB-MGE gateway finds nothing.
-        return Ok(json!({ "devices": [] }));
+    if !access.fast_modbus {
+        let config = &access.resolved.config;
+        if config.port_type == PortType::ModbusTcp && !config.connected_to_mge {
+            // wb-mqtt-serial: Modbus TCP without a WB-MGE gateway finds nothing.
+            return Ok(json!({ "devices": [] }));
+        }
+        // The config's own switch (the site's or the port's): a site that forbids the
+        // extension, or a bus with a device Fast Modbus frames throw out of step.
+        return Err(RpcError::server(format!(
+            "Fast Modbus is off for {} in the service's config (\"fast_modbus\": false): no \
+             scan is sent there; scan it with classic Modbus, or turn the switch on",
+            access.name
+        )));
     }
     let line = request_line(&access, &scan.line);
     let mut bus = QueuedBus::new(&access)
@@ -436,11 +446,6 @@ async fn port_scan(ports: &PortDirectory, scan: PortScan) -> Result<Value, RpcEr
         result["error"] = json!(error);
     }
     Ok(result)
-}
-
-fn access_has_fast_modbus(access: &PortAccess) -> bool {
-    let config = &access.resolved.config;
-    config.port_type != PortType::ModbusTcp || config.connected_to_mge
 }
 
 /// What a scan or probe result says of the configured device at `address` of a device found
