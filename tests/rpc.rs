@@ -1254,8 +1254,8 @@ async fn bad_requests_get_json_rpc_errors_and_the_daemon_lives_on() {
 
 /// A port whose config turns Fast Modbus off (`"fast_modbus": false`) never carries a Fast
 /// Modbus frame: no event poll, no event setup, and port/Scan (the web UI's scan, `rtu2mqtt scan`
-/// through the service) is refused with the reason instead of broadcasting there. Its devices
-/// are polled classically.
+/// through the service) and requests by serial number (port/Load and port/Setup with `sn`) are
+/// refused with the reason. Its devices are polled classically, and served by address.
 async fn no_fast_modbus_frame_on_a_port_that_turns_it_off(line: &str, baud: u32) {
     let broker = Mosquitto::start();
     let dir = tempfile::tempdir().unwrap();
@@ -1297,10 +1297,46 @@ async fn no_fast_modbus_frame_on_a_port_that_turns_it_off(line: &str, baud: u32)
         message.contains("Fast Modbus is off") && message.contains("\"fast_modbus\": false"),
         "{message}"
     );
+    // Requests by serial number (Fast Modbus 0x46 0x08): refused too.
+    let by_serial = rpc(
+        port,
+        "port",
+        "Load",
+        json!({"path": path, "protocol": "modbus", "sn": 4261412896u64, "function": 3,
+               "address": 128, "count": 1}),
+    )
+    .await;
+    assert_eq!(by_serial["error"]["code"], -32000, "{by_serial}");
+    let setup = rpc(
+        port,
+        "port",
+        "Setup",
+        json!({"path": path, "items": [{"slave_id": 20, "sn": 4261412896u64,
+                                        "cfg": {"slave_id": 31}}]}),
+    )
+    .await;
+    assert_eq!(setup["error"]["code"], -32000, "{setup}");
+    for refused in [&by_serial, &setup] {
+        let message = refused["error"]["message"].as_str().unwrap();
+        assert!(
+            message.contains("no Fast Modbus request by serial number is sent"),
+            "{message}"
+        );
+    }
+    // By address, classic Modbus: served.
+    let classic = rpc(
+        port,
+        "port",
+        "Load",
+        json!({"path": path, "protocol": "modbus", "slave_id": 20, "function": 3,
+               "address": 128, "count": 1, "format": "HEX"}),
+    )
+    .await;
+    assert_eq!(classic["result"]["response"], "0014", "{classic}");
     let stats = sim.control(json!({"cmd": "stats"}));
     assert_eq!(
         stats["fast_requests"], 0,
-        "the refused scan sent nothing: {stats}"
+        "the refused requests sent nothing: {stats}"
     );
     assert!(!daemon.log().contains("panicked"), "{}", daemon.log());
 }

@@ -255,6 +255,9 @@ fn io_error(err: PortError) -> RpcError {
 /// `port/Load` with a Modbus protocol: one request, the reply's data as wb-mqtt-serial gives it.
 async fn port_load(ports: &PortDirectory, load: PortLoad) -> Result<Value, RpcError> {
     let (access, device_slave_id) = find_port(ports, &load.port)?;
+    if load.serial.is_some() {
+        refuse_if_the_config_forbids_fast_modbus(&access, "request by serial number")?;
+    }
     let line = request_line(&access, &load.line);
     let mut bus = QueuedBus::new(&access);
     let slave_id = load.slave_id.or(device_slave_id);
@@ -352,20 +355,11 @@ pub fn load_result(answer: &Answer, format: MessageFormat) -> Result<Value, &'st
 /// `port/Scan`: the Fast Modbus scan at one setting, then each device's details.
 async fn port_scan(ports: &PortDirectory, scan: PortScan) -> Result<Value, RpcError> {
     let (access, _) = find_port(ports, &scan.port)?;
-    if !access.fast_modbus {
-        let config = &access.resolved.config;
-        if config.port_type == PortType::ModbusTcp && !config.connected_to_mge {
-            // wb-mqtt-serial: Modbus TCP without a WB-MGE gateway finds nothing.
-            return Ok(json!({ "devices": [] }));
-        }
-        // The config's own switch (the site's or the port's): a site that forbids the
-        // extension, or a bus with a device Fast Modbus frames throw out of step.
-        return Err(RpcError::server(format!(
-            "Fast Modbus is off for {} in the service's config (\"fast_modbus\": false): no \
-             scan is sent there; scan it with classic Modbus, or turn the switch on",
-            access.name
-        )));
+    if tcp_without_mge(&access) {
+        // wb-mqtt-serial: Modbus TCP without a WB-MGE gateway finds nothing.
+        return Ok(json!({ "devices": [] }));
     }
+    refuse_if_the_config_forbids_fast_modbus(&access, "scan")?;
     let line = request_line(&access, &scan.line);
     let mut bus = QueuedBus::new(&access)
         .for_line(line)
@@ -446,6 +440,28 @@ async fn port_scan(ports: &PortDirectory, scan: PortScan) -> Result<Value, RpcEr
         result["error"] = json!(error);
     }
     Ok(result)
+}
+
+fn tcp_without_mge(access: &PortAccess) -> bool {
+    let config = &access.resolved.config;
+    config.port_type == PortType::ModbusTcp && !config.connected_to_mge
+}
+
+/// The config's own switch (the site's or the port's `"fast_modbus": false`: a site that
+/// forbids the extension, or a bus with a device Fast Modbus frames throw out of step) holds
+/// for what is asked of the service too: no Fast Modbus frame is sent on such a port.
+fn refuse_if_the_config_forbids_fast_modbus(
+    access: &PortAccess,
+    what: &str,
+) -> Result<(), RpcError> {
+    if access.fast_modbus || tcp_without_mge(access) {
+        return Ok(());
+    }
+    Err(RpcError::server(format!(
+        "Fast Modbus is off for {} in the service's config (\"fast_modbus\": false): no Fast \
+         Modbus {what} is sent there; use classic Modbus (by address), or turn the switch on",
+        access.name
+    )))
 }
 
 /// What a scan or probe result says of the configured device at `address` of a device found
@@ -562,6 +578,9 @@ async fn device_probe(ports: &PortDirectory, probe: DeviceProbe) -> Result<Value
 /// number. The result is `null`, as wb-mqtt-serial's.
 async fn port_setup(ports: &PortDirectory, setup: PortSetup) -> Result<Value, RpcError> {
     let (access, _) = find_port(ports, &setup.port)?;
+    if setup.items.iter().any(|item| item.serial.is_some()) {
+        refuse_if_the_config_forbids_fast_modbus(&access, "request by serial number")?;
+    }
     let mut bus = QueuedBus::new(&access);
     for item in &setup.items {
         let line = request_line(&access, &item.line);
