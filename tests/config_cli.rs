@@ -756,6 +756,18 @@ fn a_foreign_protocol_is_named_in_check_config() {
     assert!(!text.contains("reg_type"), "{text}");
 }
 
+/// `rtu2mqtt describe -c CONFIG --templates tests/data/wb-templates`.
+fn describe_command(config: &Path) -> Command {
+    let mut command = bin();
+    command
+        .arg("describe")
+        .arg("-c")
+        .arg(config)
+        .arg("--templates")
+        .arg(repo("tests/data/wb-templates"));
+    command
+}
+
 #[test]
 fn describe_shows_what_was_resolved() {
     let dir = tempfile::tempdir().unwrap();
@@ -771,12 +783,7 @@ fn describe_shows_what_was_resolved() {
     )
     .unwrap();
     let describe = |extra: &[&str]| {
-        let out = bin()
-            .arg("describe")
-            .arg("-c")
-            .arg(&config)
-            .arg("--templates")
-            .arg(repo("tests/data/wb-templates"))
+        let out = describe_command(&config)
             .arg("--templates")
             .arg(repo("tests/data/wb-rules"))
             .args(extra)
@@ -852,15 +859,7 @@ fn describe_says_where_fast_modbus_is_off() {
     let describe = |config_text: &str| {
         std::fs::write(&config, config_text).unwrap();
         let text = |extra: &[&str]| {
-            let out = bin()
-                .arg("describe")
-                .arg("-c")
-                .arg(&config)
-                .arg("--templates")
-                .arg(repo("tests/data/wb-templates"))
-                .args(extra)
-                .output()
-                .unwrap();
+            let out = describe_command(&config).args(extra).output().unwrap();
             let (ok, text) = report(out);
             assert!(ok, "{text}");
             text

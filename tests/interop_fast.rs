@@ -967,15 +967,11 @@ impl Drop for KillOnDrop {
     }
 }
 
-fn site_tools_against_python_devices(line: &str, baud: &str) {
-    require_tools();
-    let _one = one_at_a_time();
-    let socat = Socat::start();
-    let mut bus = py_bus(&socat.a, line);
-    let port = socat.b.to_str().unwrap();
-    // `--latency`: generous for a loaded test machine, where the Python devices' real-time
-    // pacing can answer some ms late; values are asserted, never timings.
-    let settings = [
+/// The site tools' line settings at `baud` 8N2, with a `--latency` generous for a loaded test
+/// machine, where the Python devices' real-time pacing can answer some ms late (values are
+/// asserted, never timings).
+fn line_args(baud: &str) -> [&str; 8] {
+    [
         "--baud",
         baud,
         "--parity",
@@ -984,7 +980,16 @@ fn site_tools_against_python_devices(line: &str, baud: &str) {
         "2",
         "--latency",
         "50",
-    ];
+    ]
+}
+
+fn site_tools_against_python_devices(line: &str, baud: &str) {
+    require_tools();
+    let _one = one_at_a_time();
+    let socat = Socat::start();
+    let mut bus = py_bus(&socat.a, line);
+    let port = socat.b.to_str().unwrap();
+    let settings = line_args(baud);
 
     let mut args = vec!["scan", "--port", port, "--json"];
     args.extend(settings);
@@ -1230,17 +1235,7 @@ fn fix_addresses_separates_python_devices_that_share_an_address() {
         ],
     );
     let port = socat.b.to_str().unwrap();
-    // `--latency`: as in `site_tools_against_python_devices`.
-    let settings = [
-        "--baud",
-        "115200",
-        "--parity",
-        "N",
-        "--stop-bits",
-        "2",
-        "--latency",
-        "50",
-    ];
+    let settings = line_args("115200");
     let mut args = vec!["fix-addresses", "--port", port, "--apply"];
     args.extend(settings);
     let run = tool(&args);

@@ -23,6 +23,14 @@ fn device(name: &str, config: serde_json::Value) -> ResolvedDevice {
     resolve_template_device(&template(name), &config).unwrap_or_else(|e| panic!("{e}"))
 }
 
+/// Why the fixture `name` refuses `config` (fails if it does not).
+fn refused(name: &str, config: serde_json::Value) -> String {
+    match resolve_template_device(&template(name), &config) {
+        Ok(_) => panic!("{name} accepted {config}"),
+        Err(err) => err.to_string(),
+    }
+}
+
 #[test]
 fn all_fixtures_load_and_resolve() {
     let mut count = 0;
@@ -1231,13 +1239,8 @@ fn bit_shift_above_255_leaves_the_channel_out() {
 #[test]
 fn parameter_rules_over_the_configs_own_values() {
     let fixture = "config-test-light-scenes.json";
-    let refused = |config: serde_json::Value| {
-        resolve_template_device(&template(fixture), &config)
-            .unwrap_err()
-            .to_string()
-    };
 
-    let err = refused(json!({"slave_id": 1, "ls_1_ch_1_action_off": 2}));
+    let err = refused(fixture, json!({"slave_id": 1, "ls_1_ch_1_action_off": 2}));
     assert!(
         err.contains("requires parameter `ls_1_ch_1_fading_off`"),
         "{err}"
@@ -1256,11 +1259,14 @@ fn parameter_rules_over_the_configs_own_values() {
 
     // `input_1_mode==0` holds only through the default: wb-mqtt-serial's validator does not
     // check the value but the value is written, so its bounds apply; within them it is written.
-    let err = refused(json!({"slave_id": 1, "input_1_hold_time": 300}));
+    let err = refused(fixture, json!({"slave_id": 1, "input_1_hold_time": 300}));
     assert!(err.contains("outside its range 500…5000"), "{err}");
     let d = device(fixture, json!({"slave_id": 1, "input_1_hold_time": 700}));
     assert_eq!(setup_writes(&d), vec![(1100, vec![700])]);
-    let err = refused(json!({"slave_id": 1, "input_1_mode": 0, "input_1_hold_time": 300}));
+    let err = refused(
+        fixture,
+        json!({"slave_id": 1, "input_1_mode": 0, "input_1_hold_time": 300}),
+    );
     assert!(err.contains("outside its range 500…5000"), "{err}");
     // Another mode: the declaration is not in effect either way, the value neither checked nor
     // written.
@@ -1272,7 +1278,7 @@ fn parameter_rules_over_the_configs_own_values() {
 
     // `isDefined(input_1_mode)==0` holds over the config's values: checked; with the defaults
     // merged in it does not: not written.
-    let err = refused(json!({"slave_id": 1, "input_1_legacy_time": 300}));
+    let err = refused(fixture, json!({"slave_id": 1, "input_1_legacy_time": 300}));
     assert!(err.contains("outside its range 0…250"), "{err}");
     let d = device(fixture, json!({"slave_id": 1, "input_1_legacy_time": 200}));
     assert_eq!(setup_writes(&d), vec![]);
@@ -1284,18 +1290,13 @@ fn parameter_rules_over_the_configs_own_values() {
 #[test]
 fn a_value_refused_by_both_declarations_names_both() {
     let fixture = "config-test-light-scenes.json";
-    let refused = |config: serde_json::Value| {
-        resolve_template_device(&template(fixture), &config)
-            .unwrap_err()
-            .to_string()
-    };
-    let err = refused(json!({"slave_id": 1, "input_1_action": 3}));
+    let err = refused(fixture, json!({"slave_id": 1, "input_1_action": 3}));
     assert!(err.contains("allowed: 0, 1"), "{err}");
     assert!(err.contains("allowed: 0, 2"), "{err}");
     // Within the one the validator sees, outside the one written: refused, that one named.
-    let err = refused(json!({"slave_id": 1, "input_1_action": 1}));
+    let err = refused(fixture, json!({"slave_id": 1, "input_1_action": 1}));
     assert!(err.contains("allowed: 0, 2"), "{err}");
-    let err = refused(json!({"slave_id": 1, "input_1_action": 2}));
+    let err = refused(fixture, json!({"slave_id": 1, "input_1_action": 2}));
     assert!(err.contains("allowed: 0, 1"), "{err}");
     let d = device(fixture, json!({"slave_id": 1, "input_1_action": 0}));
     assert_eq!(setup_writes(&d), vec![(1130, vec![0])]);
@@ -1315,23 +1316,13 @@ fn declarations_that_clash_only_through_defaults_matter_only_for_a_value_given()
     let fixture = "config-test-light-scenes.json";
     let d = device(fixture, json!({"slave_id": 1}));
     assert_eq!(setup_writes(&d), vec![]);
-    let err = resolve_template_device(
-        &template(fixture),
-        &json!({"slave_id": 1, "input_1_repeat": 3}),
-    )
-    .unwrap_err()
-    .to_string();
+    let err = refused(fixture, json!({"slave_id": 1, "input_1_repeat": 3}));
     assert!(
         err.contains("parameter `input_1_repeat` is declared 2 times and more than one applies"),
         "{err}"
     );
     // The mode given: both hold over the config's own values too, refused either way.
-    let err = resolve_template_device(
-        &template(fixture),
-        &json!({"slave_id": 1, "repeat_mode": 0}),
-    )
-    .unwrap_err()
-    .to_string();
+    let err = refused(fixture, json!({"slave_id": 1, "repeat_mode": 0}));
     assert!(
         err.contains("`input_1_repeat` is declared 2 times"),
         "{err}"
