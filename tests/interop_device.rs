@@ -1190,3 +1190,42 @@ fn the_bus_hub_rests_when_a_joined_port_goes_away() {
     );
     assert_eq!(hub.child_exited(), None, "the hub ended");
 }
+
+/// `scan --classic` and a libmodbus device: the Fast Modbus scan's broadcast, like any request
+/// to another address, has libmodbus take the next frame for its reply for 0.5 s, so the probe
+/// of address 1 right after goes unheard with the default 100 ms timeout (the tool then says
+/// how to find such a device); with `--timeout 600` the device is found.
+#[test]
+fn classic_scan_finds_a_libmodbus_device_with_a_600_ms_timeout() {
+    let cable = Cable::new();
+    let _device = Peer::start(
+        Stack::Libmodbus,
+        Mode::RtuSerial {
+            port: &cable.device_end,
+            baud: 9600,
+        },
+    );
+    let scan = |extra: &[&str]| {
+        let mut args = vec!["--classic", "--range", "1-3", "--json"];
+        args.extend_from_slice(extra);
+        tool("scan", &cable.master_end, 9600, &args)
+    };
+    let run = scan(&[]);
+    assert_eq!(run.code, 1, "nothing found: {}{}", run.stdout, run.stderr);
+    assert!(
+        run.stderr
+            .contains("a device built on libmodbus (Linux-based) answers a classic scan only with --timeout 600"),
+        "{}",
+        run.stderr
+    );
+    let run = scan(&["--timeout", "600"]);
+    assert_eq!(run.code, 0, "{}{}", run.stdout, run.stderr);
+    let report: Value = serde_json::from_str(&run.stdout).unwrap();
+    let found: Vec<u64> = report["devices"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|d| d["address"].as_u64().unwrap())
+        .collect();
+    assert_eq!(found, vec![u64::from(UNIT)], "{}", run.stdout);
+}

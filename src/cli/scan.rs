@@ -108,7 +108,9 @@ pub struct Args {
     /// Addresses the classic scan probes.
     #[arg(long, default_value = "1-247", value_parser = parse_range)]
     pub range: (u8, u8),
-    /// Reply timeout of a classic probe, in ms.
+    /// Reply timeout of a classic probe, in ms. 600 finds devices built on libmodbus (a Linux
+    /// device's Modbus stack), which take the frame after a request to another address for
+    /// that address's reply for 0.5 s and so miss a probe that follows a silent one sooner.
     #[arg(long, default_value_t = 100, value_name = "MS")]
     pub timeout: u64,
     /// Print JSON instead of a table.
@@ -216,15 +218,26 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         eprintln!(
             "no device answered at {} setting(s) of {}: check wiring (A/B swapped?), power, and \
              that the devices speak Fast Modbus (else add --classic); behind a slow USB adapter or \
-             converter, give replies more time with --latency 40",
+             converter, give replies more time with --latency 40{}",
             report.settings_covered(),
-            args.port.port
+            args.port.port,
+            if args.classic && args.timeout < LIBMODBUS_CONFIRMATION_WAIT_MS {
+                "; a device built on libmodbus (Linux-based) answers a classic scan only with \
+                 --timeout 600"
+            } else {
+                ""
+            }
         );
         ExitCode::from(exit::NOT_FOUND)
     } else {
         ExitCode::SUCCESS
     })
 }
+
+/// How long a libmodbus-based device takes the frame after a request to another address for
+/// that address's reply (libmodbus's default response timeout, 0.5 s): a classic probe sooner
+/// after a silent one goes unheard by it.
+const LIBMODBUS_CONFIRMATION_WAIT_MS: u64 = 500;
 
 /// The `fix-addresses` command for the port this scan went to (through the service: with the
 /// options that reach it).
@@ -360,6 +373,12 @@ async fn classic_scan(
         let silent = line.wire_time(8)
             + reply_wait
             + reply_wait.min(crate::protocol::transaction::MAX_LATE_WINDOW);
+        // The line was last used by another request (the Fast Modbus scan's broadcast, or
+        // probes at another setting, garbage at this one): a silence of a probe's timeout before
+        // the first probe, as after every silent one. A device built on libmodbus takes the
+        // frame after a request to another address for that address's reply, for 0.5 s, and
+        // hears the first probe with `--timeout 600` only so.
+        tokio::time::sleep(timeout).await;
         for address in range.0..=range.1 {
             done += 1;
             let known = report
