@@ -1057,13 +1057,6 @@ impl Hub {
     }
 }
 
-impl Hub {
-    /// The hub's exit status, if it has ended.
-    fn child_exited(&mut self) -> Option<std::process::ExitStatus> {
-        self.child.try_wait().unwrap()
-    }
-}
-
 impl Drop for Hub {
     fn drop(&mut self) {
         kill(&mut self.child);
@@ -1151,44 +1144,6 @@ async fn a_libmodbus_device_beside_fast_modbus_devices_at_9600() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_libmodbus_device_beside_fast_modbus_devices_at_115200() {
     a_libmodbus_device_beside_fast_modbus_devices(115_200).await;
-}
-
-/// CPU time (user + system, in clock ticks) a process has used so far.
-fn cpu_ticks(pid: u32) -> u64 {
-    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).unwrap();
-    // The fields after the command's closing parenthesis; utime and stime are 14th and 15th.
-    let rest = &stat[stat.rfind(')').unwrap() + 2..];
-    let fields: Vec<&str> = rest.split(' ').collect();
-    fields[11].parse::<u64>().unwrap() + fields[12].parse::<u64>().unwrap()
-}
-
-/// The hub must not spin when a joined port goes away (the simulator ended: its pty master
-/// closed, so the hub's end reads EIO and select() reports it readable every time). It spun at a
-/// whole core, on a test machine of two, for as long as the test took to fail.
-#[test]
-fn the_bus_hub_rests_when_a_joined_port_goes_away() {
-    let dir = tempfile::tempdir().unwrap();
-    let bus = dir.path().join("bus.json");
-    std::fs::write(
-        &bus,
-        json!({"devices": [{"name": "relay", "template": "sim-relay", "address": 241,
-                            "serial": "0xFED2A3A6", "line": "9600 8N2"}]})
-        .to_string(),
-    )
-    .unwrap();
-    let sim = sim_support::SimProcess::start_with(&bus, &repo("tests/data/sim"), &[]);
-    let mut hub = Hub::join(&sim.pty, 9600);
-    drop(sim);
-    std::thread::sleep(Duration::from_millis(300));
-    let before = cpu_ticks(hub.child.id());
-    std::thread::sleep(Duration::from_secs(1));
-    let used = cpu_ticks(hub.child.id()) - before;
-    // Resting, it uses none; spinning, most of a core (about 100 ticks a second).
-    assert!(
-        used < 20,
-        "the hub used {used} ticks in 1 s after its joined port closed"
-    );
-    assert_eq!(hub.child_exited(), None, "the hub ended");
 }
 
 /// `scan --classic` and a libmodbus device: the Fast Modbus scan's broadcast, like any request
