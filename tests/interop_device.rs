@@ -1,13 +1,13 @@
 //! rtu2mqtt as the master against independent Modbus device stacks: pymodbus 3.0 (Debian's
 //! python3-pymodbus), played by tests/interop/pymodbus_server.py, and libmodbus 3.1 (Debian's
-//! libmodbus5, the C stack of mbpoll and of many Linux devices), its own RTU server driven by
-//! tests/interop/libmodbus_server.py. Every other integration test runs the daemon against our
+//! libmodbus5, the C stack of mbpoll and of many Linux devices), its own RTU and Modbus TCP
+//! servers driven by tests/interop/libmodbus_server.py. Every other integration test runs the daemon against our
 //! own simulator; here the device side is written by others.
 //!
 //! - Modbus RTU on a serial line: two ptys joined by socat like a cable, pymodbus's serial
 //!   server (RTU framer) or libmodbus's RTU server on one end, `rtu2mqtt run` on the other, at
 //!   9600 8N2 and 115200 8N2.
-//! - Modbus TCP (MBAP): pymodbus's TCP server against a `"port_type": "modbus tcp"` port.
+//! - Modbus TCP (MBAP): pymodbus's or libmodbus's TCP server against a `"port_type": "modbus tcp"` port.
 //! - RTU over TCP: pymodbus's TCP server with the RTU framer against a `"port_type": "tcp"` port.
 //! - The site tools `read` and `write` against the serial server.
 //!
@@ -265,7 +265,7 @@ impl Drop for Cable {
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Stack {
     Pymodbus,
-    /// Serial only (its TCP server answers every unit id, so the absent device would answer).
+    /// Its TCP server answers every unit id: no absent device beside it there.
     Libmodbus,
 }
 
@@ -333,8 +333,8 @@ impl Peer {
                 .arg(baud.to_string())
                 .arg("--port")
                 .arg(port),
-            Mode::ModbusTcp { .. } | Mode::RtuOverTcp if stack == Stack::Libmodbus => {
-                panic!("the libmodbus device is serial only")
+            Mode::ModbusTcp { gateway: true } | Mode::RtuOverTcp if stack == Stack::Libmodbus => {
+                panic!("libmodbus has no gateway mode and no RTU-over-TCP server")
             }
             Mode::ModbusTcp { gateway: false } => command.args(["--mode", "tcp"]),
             Mode::ModbusTcp { gateway: true } => command.args(["--mode", "tcp", "--gateway"]),
@@ -484,11 +484,11 @@ impl Drop for Peer {
 // The daemon and what the broker holds.
 
 /// The daemon's port for the device: the serial line, or a TCP port of either kind.
-fn port_config(mode: &Mode, tcp_port: Option<u16>) -> Value {
-    let devices = json!([
-        {"device_type": "interop-pymodbus", "slave_id": UNIT},
-        {"device_type": "interop-absent", "slave_id": ABSENT},
-    ]);
+fn port_config(mode: &Mode, tcp_port: Option<u16>, absent: bool) -> Value {
+    let mut devices = vec![json!({"device_type": "interop-pymodbus", "slave_id": UNIT})];
+    if absent {
+        devices.push(json!({"device_type": "interop-absent", "slave_id": ABSENT}));
+    }
     match mode {
         Mode::RtuSerial { port, baud } => json!({
             "path": port, "baud_rate": baud, "parity": "N", "data_bits": 8, "stop_bits": 2,
@@ -564,8 +564,10 @@ fn pairs(items: &[(&str, &str)], device: &str) -> Vec<(String, String)> {
 }
 
 /// The whole check of one transport: values of every format, writes through `/on` (with the
-/// function code the device saw), exception 2 and an absent slave as `r` without a value.
+/// function code the device saw), exception 2 and an absent slave as `r` without a value (no
+/// absent slave where the device answers every unit id: libmodbus's Modbus TCP server).
 async fn values_writes_and_errors(mode: Mode<'_>, device: &mut Peer) {
+    let absent = !(device.stack == Stack::Libmodbus && matches!(mode, Mode::ModbusTcp { .. }));
     let dir = tempfile::tempdir().unwrap();
     let templates = templates_dir(dir.path());
     let broker = Mosquitto::start();
@@ -576,7 +578,7 @@ async fn values_writes_and_errors(mode: Mode<'_>, device: &mut Peer) {
         Mode::RtuSerial { .. } => None,
         _ => Some(device.tcp_port()),
     };
-    let daemon = start_daemon(&broker, port_config(&mode, tcp_port), &templates);
+    let daemon = start_daemon(&broker, port_config(&mode, tcp_port, absent), &templates);
 
     // Every value as wb-mqtt-serial decodes it; the device answers, each readable control
     // without an error.
@@ -594,15 +596,17 @@ async fn values_writes_and_errors(mode: Mode<'_>, device: &mut Peer) {
         "r".into(),
     ));
     // The slave id nobody answers: `r` on the device and its control, offline for HA.
-    expected.push((format!("/devices/{ABSENT_DEVICE}/meta/error"), "r".into()));
-    expected.push((
-        format!("{}/meta/error", control(ABSENT_DEVICE, "Value")),
-        "r".into(),
-    ));
-    expected.push((
-        format!("/rtu2mqtt/rtu2mqtt-interop/availability/{ABSENT_DEVICE}"),
-        "offline".into(),
-    ));
+    if absent {
+        expected.push((format!("/devices/{ABSENT_DEVICE}/meta/error"), "r".into()));
+        expected.push((
+            format!("{}/meta/error", control(ABSENT_DEVICE, "Value")),
+            "r".into(),
+        ));
+        expected.push((
+            format!("/rtu2mqtt/rtu2mqtt-interop/availability/{ABSENT_DEVICE}"),
+            "offline".into(),
+        ));
+    }
     expected.push((
         format!("/rtu2mqtt/rtu2mqtt-interop/availability/{DEVICE}"),
         "online".into(),
@@ -768,6 +772,12 @@ async fn modbus_tcp() {
 
 /// As a Modbus TCP gateway answers for a device behind it that does not respond: exception
 /// 0x0B for the absent unit, which must count as silence (offline, `r`), not as an answer.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn libmodbus_modbus_tcp() {
+    let mut device = Peer::start(Stack::Libmodbus, Mode::ModbusTcp { gateway: false });
+    values_writes_and_errors(Mode::ModbusTcp { gateway: false }, &mut device).await;
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn modbus_tcp_gateway_answering_0x0b_for_the_absent_unit() {
     let mut device = Peer::start(Stack::Pymodbus, Mode::ModbusTcp { gateway: true });

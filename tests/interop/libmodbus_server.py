@@ -1,6 +1,8 @@
 #!/usr/bin/python3
-"""A Modbus RTU device played by libmodbus (Debian's libmodbus5, the C stack behind mbpoll and
-many Linux devices), for tests/interop_device.rs.
+"""A Modbus device played by libmodbus (Debian's libmodbus5, the C stack behind mbpoll and many
+Linux devices), for tests/interop_device.rs: RTU on a serial port (`--mode rtu-serial`), or
+Modbus TCP on 127.0.0.1, a free port (`--mode tcp`; libmodbus's TCP server answers every unit
+id, as many Modbus TCP devices do).
 
 The stack under test (rtu2mqtt) is the master; this is an independent slave. libmodbus's own
 server does the work: `modbus_receive` reads and checks a request (it drops one for another
@@ -10,7 +12,8 @@ Python only loads the library (ctypes, no compiler needed) and relays the test's
 
 Speaks the same lines as pymodbus_server.py (--store, stdin commands, stdout JSON): first
 {"event": "ready", "baudrate": B, "stopbits": S, ...} with the settings read back from the
-port's termios after libmodbus set them, then one reply per command:
+port's termios after libmodbus set them (serial) or {"event": "listening", "port": N} (TCP),
+then one reply per command:
   {"cmd": "get", "table": "holding", "address": A, "count": N} -> {"ok": true, "values": [...]}
   {"cmd": "set", "table": "holding", "address": A, "values": [...]} -> {"ok": true}
   {"cmd": "writes"} -> {"ok": true, "writes": [{"fc": 16, "address": A, "values": [...]}, ...]}
@@ -25,6 +28,7 @@ import ctypes
 import errno
 import json
 import os
+import socket
 import sys
 import termios
 import threading
@@ -73,6 +77,10 @@ def load():
         getattr(lib, name).argtypes = [ctypes.c_void_p, ctypes.c_int]
     for name in ("modbus_connect", "modbus_get_socket", "modbus_get_header_length"):
         getattr(lib, name).argtypes = [ctypes.c_void_p]
+    lib.modbus_new_tcp.restype = ctypes.c_void_p
+    lib.modbus_new_tcp.argtypes = [ctypes.c_char_p, ctypes.c_int]
+    lib.modbus_tcp_listen.argtypes = [ctypes.c_void_p, ctypes.c_int]
+    lib.modbus_tcp_accept.argtypes = [ctypes.c_void_p, ctypes.POINTER(ctypes.c_int)]
     lib.modbus_mapping_new.restype = ctypes.POINTER(Mapping)
     lib.modbus_mapping_new.argtypes = [ctypes.c_int] * 4
     lib.modbus_receive.argtypes = [ctypes.c_void_p, ctypes.POINTER(ctypes.c_uint8)]
@@ -93,9 +101,11 @@ def version(lib):
 
 
 class Device:
-    def __init__(self, lib, ctx, store):
+    def __init__(self, lib, ctx, store, checksum):
         self.lib = lib
         self.ctx = ctx
+        # Bytes after the PDU: the CRC on a serial line, none over TCP.
+        self.checksum = checksum
         self.lock = threading.Lock()
         self.writes = []
         sizes = [len(store[t]) for t in ("coils", "discrete", "holding", "input")]
@@ -128,7 +138,7 @@ class Device:
     def record_write(self, query, length):
         """The write a request asks for, if libmodbus will carry it out (in the table)."""
         header = self.lib.modbus_get_header_length(self.ctx)
-        pdu = bytes(query[header : length - 2])  # no CRC
+        pdu = bytes(query[header : length - self.checksum])
         if len(pdu) < 5 or pdu[0] not in WRITE_FUNCTIONS:
             return
         fc = pdu[0]
@@ -164,8 +174,8 @@ class Device:
                     # A bad frame (CRC, length) or no reply to a request for another slave:
                     # the device waits for the next request.
                     continue
-                # The line is gone (the test stopped the cable).
-                sys.exit(f"modbus_receive: {self.lib.modbus_strerror(error).decode()}")
+                # The line is gone (the test stopped the cable) or the client hung up.
+                return self.lib.modbus_strerror(error).decode()
             with self.lock:
                 self.record_write(query, length)
                 self.lib.modbus_reply(self.ctx, query, length, self.mapping)
@@ -207,8 +217,8 @@ BAUDS = {getattr(termios, f"B{b}"): b for b in (9600, 19200, 38400, 57600, 11520
 
 def main():
     parser = argparse.ArgumentParser()
-    parser.add_argument("--mode", choices=["rtu-serial"], required=True)
-    parser.add_argument("--port", required=True)
+    parser.add_argument("--mode", choices=["rtu-serial", "tcp"], required=True)
+    parser.add_argument("--port", help="serial port (rtu-serial)")
     parser.add_argument("--baud", type=int, default=9600)
     parser.add_argument("--parity", default="N")
     parser.add_argument("--stopbits", type=int, default=2)
@@ -217,6 +227,10 @@ def main():
     args = parser.parse_args()
 
     lib = load()
+    store = json.loads(args.store)
+    if args.mode == "tcp":
+        serve_tcp(lib, args, store)
+        return
     ctx = lib.modbus_new_rtu(
         args.port.encode(), args.baud, args.parity.encode(), 8, args.stopbits
     )
@@ -227,7 +241,7 @@ def main():
     if lib.modbus_connect(ctx) != 0:
         error = lib.modbus_strerror(ctypes.get_errno()).decode()
         sys.exit(f"cannot open {args.port}: {error}")
-    device = Device(lib, ctx, json.loads(args.store))
+    device = Device(lib, ctx, store, checksum=2)
 
     # What libmodbus set the line to, read back from the port itself.
     attrs = termios.tcgetattr(lib.modbus_get_socket(ctx))
@@ -241,7 +255,31 @@ def main():
         }
     )
     threading.Thread(target=control, args=(device,), daemon=True).start()
-    device.serve()
+    sys.exit(f"modbus_receive: {device.serve()}")
+
+
+def serve_tcp(lib, args, store):
+    """libmodbus's TCP server on 127.0.0.1, a free port; one client at a time, the next one
+    accepted when it hangs up (a master reconnecting)."""
+    ctx = lib.modbus_new_tcp(b"127.0.0.1", 0)
+    if not ctx:
+        sys.exit("modbus_new_tcp failed")
+    lib.modbus_set_debug(ctx, 1 if os.environ.get("LIBMODBUS_DEBUG") else 0)
+    lib.modbus_set_slave(ctx, args.unit)
+    listening = lib.modbus_tcp_listen(ctx, 1)
+    if listening < 0:
+        sys.exit(f"modbus_tcp_listen: {lib.modbus_strerror(ctypes.get_errno()).decode()}")
+    with socket.socket(fileno=os.dup(listening)) as sock:
+        port = sock.getsockname()[1]
+    device = Device(lib, ctx, store, checksum=0)
+    out({"event": "listening", "port": port, "libmodbus": version(lib)})
+    threading.Thread(target=control, args=(device,), daemon=True).start()
+    server = ctypes.c_int(listening)
+    while True:
+        if lib.modbus_tcp_accept(ctx, ctypes.byref(server)) < 0:
+            sys.exit(f"modbus_tcp_accept: {lib.modbus_strerror(ctypes.get_errno()).decode()}")
+        device.serve()
+        os.close(lib.modbus_get_socket(ctx))
 
 
 if __name__ == "__main__":
