@@ -7,7 +7,8 @@
 //! - Modbus RTU on a serial line: two ptys joined by socat like a cable, pymodbus's serial
 //!   server (RTU framer) or libmodbus's RTU server on one end, `rtu2mqtt run` on the other, at
 //!   9600 8N2 and 115200 8N2.
-//! - Modbus TCP (MBAP): pymodbus's or libmodbus's TCP server against a `"port_type": "modbus tcp"` port.
+//! - Modbus TCP (MBAP): pymodbus's or libmodbus's TCP server against a
+//!   `"port_type": "modbus tcp"` port.
 //! - RTU over TCP: pymodbus's TCP server with the RTU framer against a `"port_type": "tcp"` port.
 //! - The site tools `read` and `write` against the serial server.
 //!
