@@ -520,6 +520,40 @@ mod line_faults {
     const LINE: LineSettings = LineSettings::new(9600, Parity::None, 2);
 
     /// A transport on a fresh pty's slave, and the pty's master as the far end of the line.
+    /// A line that never falls quiet: a byte every `every` from the pty's other end, until
+    /// dropped.
+    struct Babbler {
+        stop: std::sync::Arc<std::sync::atomic::AtomicBool>,
+        thread: Option<std::thread::JoinHandle<()>>,
+    }
+
+    impl Babbler {
+        fn start(mut master: std::fs::File, every: Duration) -> Self {
+            let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+            let stopped = stop.clone();
+            let thread = std::thread::spawn(move || {
+                while !stopped.load(std::sync::atomic::Ordering::Relaxed) {
+                    let _ = master.write_all(&[0x55]);
+                    // Paces the bytes; it synchronises nothing.
+                    std::thread::sleep(every);
+                }
+            });
+            Self {
+                stop,
+                thread: Some(thread),
+            }
+        }
+    }
+
+    impl Drop for Babbler {
+        fn drop(&mut self) {
+            self.stop.store(true, std::sync::atomic::Ordering::Relaxed);
+            if let Some(thread) = self.thread.take() {
+                let _ = thread.join();
+            }
+        }
+    }
+
     async fn transport_on_a_pty(line: LineSettings) -> (Transport, std::fs::File) {
         let pty = nix::pty::openpty(None, None).expect("a pty");
         let path = nix::unistd::ttyname(pty.slave.as_fd()).expect("its name");
@@ -553,20 +587,12 @@ mod line_faults {
     /// (The 5 s bound only stops a hanging test.)
     #[tokio::test]
     async fn a_babbling_line_fails_the_transaction_as_garbled() {
-        let (mut transport, mut master) = transport_on_a_pty(LINE).await;
-        let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
-        let stopped = stop.clone();
-        let babbler = std::thread::spawn(move || {
-            while !stopped.load(std::sync::atomic::Ordering::Relaxed) {
-                let _ = master.write_all(&[0x55]);
-                std::thread::sleep(Duration::from_millis(2));
-            }
-        });
+        let (mut transport, master) = transport_on_a_pty(LINE).await;
+        let babbler = Babbler::start(master, Duration::from_millis(2));
         let transaction = read_one_register(Duration::from_millis(100), Duration::from_millis(50));
         let result =
             tokio::time::timeout(Duration::from_secs(5), transport.transact(&transaction)).await;
-        stop.store(true, std::sync::atomic::Ordering::Relaxed);
-        let _ = babbler.join();
+        drop(babbler);
         let outcome = result
             .expect("transact still waiting for a quiet line after 5 s (100 ms timeouts)")
             .expect("the port works");
@@ -583,19 +609,12 @@ mod line_faults {
     #[tokio::test]
     async fn a_transaction_waiting_for_a_quiet_line_is_abandoned_at_once() {
         for blocking in [false, true] {
-            let (mut transport, mut master) = transport_on_a_pty(LINE).await;
+            let (mut transport, master) = transport_on_a_pty(LINE).await;
             if blocking {
                 transport.block_short_waits();
             }
             transport.set_guard_interval(Duration::from_millis(40));
-            let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
-            let stopped = stop.clone();
-            let babbler = std::thread::spawn(move || {
-                while !stopped.load(std::sync::atomic::Ordering::Relaxed) {
-                    let _ = master.write_all(&[0x55]);
-                    std::thread::sleep(Duration::from_millis(10));
-                }
-            });
+            let babbler = Babbler::start(master, Duration::from_millis(10));
             let transaction = read_one_register(Duration::from_secs(60), Duration::from_secs(60));
             let started = std::time::Instant::now();
             tokio::select! {
@@ -604,8 +623,7 @@ mod line_faults {
                 result = transport.transact(&transaction) => panic!("ended: {result:?}"),
             }
             let took = started.elapsed();
-            stop.store(true, std::sync::atomic::Ordering::Relaxed);
-            let _ = babbler.join();
+            drop(babbler);
             assert!(
                 took < Duration::from_secs(1),
                 "blocking waits {blocking}: a 100 ms shutdown abandoned the transaction after \

@@ -33,6 +33,8 @@ import sys
 import termios
 import threading
 
+from device_commands import answer, out
+
 LIBRARY = "libmodbus.so.5"
 # MODBUS_RTU_MAX_ADU_LENGTH
 MAX_ADU = 256
@@ -181,27 +183,9 @@ class Device:
                 self.lib.modbus_reply(self.ctx, query, length, self.mapping)
 
 
-def out(message):
-    sys.stdout.write(json.dumps(message) + "\n")
-    sys.stdout.flush()
-
-
 def handle(device, line):
-    try:
-        request = json.loads(line)
-        cmd = request["cmd"]
-        with device.lock:
-            if cmd == "get":
-                values = device.get(request["table"], request["address"], request.get("count", 1))
-                return {"ok": True, "values": values}
-            if cmd == "set":
-                device.set(request["table"], request["address"], request["values"])
-                return {"ok": True}
-            if cmd == "writes":
-                return {"ok": True, "writes": list(device.writes)}
-        return {"ok": False, "error": f"unknown cmd {cmd!r}"}
-    except Exception as exc:  # a bad command is answered, never fatal
-        return {"ok": False, "error": repr(exc)}
+    with device.lock:
+        return answer(line, device.get, device.set, lambda: device.writes)
 
 
 def control(device):

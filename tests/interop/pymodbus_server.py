@@ -30,6 +30,7 @@ import os
 import sys
 import threading
 
+from device_commands import answer, out
 import pymodbus_version  # noqa: F401 (stops on a pymodbus it was not written for)
 
 import pymodbus
@@ -64,29 +65,16 @@ def block(values):
     return ModbusSequentialDataBlock(0, [int(v) for v in values])
 
 
-def out(message):
-    sys.stdout.write(json.dumps(message) + "\n")
-    sys.stdout.flush()
-
-
 def handle(slave, line):
-    try:
-        request = json.loads(line)
-        cmd = request["cmd"]
-        if cmd == "get":
-            table = request["table"]
-            store = slave.store[TABLES[table]]
-            values = store.getValues(request["address"], request.get("count", 1))
-            return {"ok": True, "values": [int(v) for v in values]}
-        if cmd == "set":
-            store = slave.store[TABLES[request["table"]]]
-            store.setValues(request["address"], request["values"])
-            return {"ok": True}
-        if cmd == "writes":
-            return {"ok": True, "writes": slave.writes}
-        return {"ok": False, "error": f"unknown cmd {cmd!r}"}
-    except Exception as exc:  # a bad command is answered, never fatal
-        return {"ok": False, "error": repr(exc)}
+    def store(table):
+        return slave.store[TABLES[table]]
+
+    return answer(
+        line,
+        lambda table, address, count: store(table).getValues(address, count),
+        lambda table, address, values: store(table).setValues(address, values),
+        lambda: slave.writes,
+    )
 
 
 def control(loop, slave, done):
