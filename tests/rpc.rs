@@ -1350,3 +1350,154 @@ async fn no_fast_modbus_frame_on_a_port_that_turns_it_off_at_115200() {
 async fn no_fast_modbus_frame_on_a_port_that_turns_it_off_at_9600() {
     no_fast_modbus_frame_on_a_port_that_turns_it_off("9600 8N2", 9600).await;
 }
+
+/// wb-mqtt-dali (Wiren Board's DALI service) drives its WB-MDALI gateways through the serial
+/// service: it waits for `config/Load` to be advertised (it gives up after 5 s otherwise),
+/// finds its gateways by `device_type` in `config.ports[].devices[]` (the MQTT id is `id`, else
+/// `wb-mdali_<slave_id>`), then writes the gateway's queue with `port/Load` naming the device
+/// by `device_id`, without `protocol`, and reads the replies from the device's controls.
+/// Here as it does it, against a generic simulated device standing in for the gateway.
+async fn a_dali_gateway_as_wb_mqtt_dali_drives_it(line: &str, baud: u32) {
+    let broker = Mosquitto::start();
+    let dir = tempfile::tempdir().unwrap();
+    let bus = dir.path().join("bus.json");
+    std::fs::write(
+        &bus,
+        json!({"devices": [{"name": "gateway", "template": "rtu2mqtt-generic", "address": 22,
+                            "serial": "0xFE000022", "line": line, "fast": false}]})
+        .to_string(),
+    )
+    .unwrap();
+    let templates = dir.path().join("templates");
+    std::fs::create_dir_all(&templates).unwrap();
+    let gateway_template = json!({
+        "title": "WB-MDALI gateway", "device_type": "WB-MDALI", "group": "g-wb",
+        "hw": [{"signature": "WBMDALI", "fw": "1.5.0"}],
+        "device": {
+            "name": "WB-MDALI", "id": "wb-mdali", "max_read_registers": 10,
+            "translations": {"ru": {"WB-MDALI gateway": "Шлюз WB-MDALI"}},
+            "channels": [
+                {"name": "bus_1_bulk_send_pointer", "reg_type": "holding", "address": 0,
+                 "type": "value"},
+                {"name": "bus_1_bulk_send_frame", "reg_type": "holding", "address": 2,
+                 "format": "u32", "type": "value"}
+            ]
+        }
+    });
+    std::fs::write(
+        templates.join("config-wb-mdali.json"),
+        gateway_template.to_string(),
+    )
+    .unwrap();
+    let sim = SimProcess::start_with(&bus, &repo("templates"), &[]);
+    let config = json!({
+        "mqtt": {"host": "127.0.0.1", "port": broker.port, "client_id": "rtu2mqtt-rpc-test",
+                 "password": "never-published"},
+        "ports": [{"path": sim.pty, "baud_rate": baud, "stop_bits": 2, "poll_interval": 15,
+                   "devices": [{"device_type": "WB-MDALI", "slave_id": 22,
+                                "channels": [{"name": "from an older template"}]}]}]
+    });
+    let daemon = DaemonProcess::start(
+        &config,
+        &["--templates", templates.to_str().unwrap()],
+        Stdio::null(),
+        Stdio::null(),
+    );
+    let port = broker.port;
+
+    // What wb-mqtt-dali waits for before anything else.
+    wait_for("the advertised config/Load method", || async {
+        let state = retained(port).await?;
+        (state.get("/rpc/v1/wb-mqtt-serial/config/Load")? == "1").then_some(())
+    })
+    .await;
+    let loaded = rpc(port, "config", "Load", json!({})).await;
+    let result = &loaded["result"];
+    let config = &result["config"];
+    assert_eq!(
+        config.get("mqtt"),
+        None,
+        "credentials are never published: {loaded}"
+    );
+    assert_eq!(config["ports"][0]["read_rate_limit_ms"], 15, "{loaded}");
+    let gateways: Vec<String> = config["ports"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|port| port["enabled"].as_bool().unwrap_or(true))
+        .flat_map(|port| port["devices"].as_array().unwrap())
+        .filter(|device| device["device_type"] == "WB-MDALI")
+        .map(|device| match device["id"].as_str() {
+            Some(id) => id.to_owned(),
+            None => format!("wb-mdali_{}", device["slave_id"].as_str().unwrap()),
+        })
+        .collect();
+    assert_eq!(gateways, ["wb-mdali_22"], "{loaded}");
+    assert_eq!(
+        config["ports"][0]["devices"][0],
+        json!({"device_type": "WB-MDALI", "slave_id": "22"}),
+        "the channel the template no longer has is left out, as wb-mqtt-serial does"
+    );
+    // The device types of the library (the built-in ones too), the Wiren Board group first.
+    let listed = |result: &Value| -> Value {
+        assert_eq!(result["types"][0]["name"], "g-wb", "{result}");
+        result["types"][0]["types"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|listed| listed["type"] == "WB-MDALI")
+            .cloned()
+            .unwrap_or_else(|| panic!("no WB-MDALI in {result}"))
+    };
+    assert_eq!(
+        listed(result),
+        json!({"name": "WB-MDALI gateway", "deprecated": false, "type": "WB-MDALI",
+               "protocol": "modbus", "mqtt-id": "wb-mdali",
+               "hw": [{"signature": "WBMDALI", "fw": "1.5.0"}]})
+    );
+    assert!(result["schema"].is_object(), "{loaded}");
+    let russian = rpc(port, "config", "Load", json!({"lang": "ru"})).await;
+    assert_eq!(listed(&russian["result"])["name"], "Шлюз WB-MDALI");
+
+    // The gateway's queue, written as wb-mqtt-dali writes it: one register, then a frame of
+    // two (function 16), by device id and without "protocol".
+    let gateway = "wb-mdali_22";
+    let write = |function: u64, address: u64, count: u64, msg: &str| {
+        json!({"device_id": gateway, "function": function, "address": address, "count": count,
+               "total_timeout": 1000, "frame_timeout": 0, "format": "HEX", "msg": msg})
+    };
+    let written = rpc(port, "port", "Load", write(6, 0, 1, "002a")).await;
+    assert_eq!(written["result"], json!({"response": ""}), "{written}");
+    let written = rpc(port, "port", "Load", write(16, 2, 2, "0001e240")).await;
+    assert_eq!(written["result"], json!({"response": ""}), "{written}");
+    let held = |address: u64| {
+        sim.control(json!({"cmd": "get", "device": 22, "type": "holding", "address": address}))
+            ["value"]
+            .clone()
+    };
+    assert_eq!(held(0), 42);
+    assert_eq!(held(2), 1);
+    assert_eq!(held(3), 0xE240);
+    // A read by device id answers with the registers.
+    let read = rpc(port, "port", "Load", write(3, 2, 2, "")).await;
+    assert_eq!(read["result"], json!({"response": "0001e240"}), "{read}");
+    // And the service publishes the gateway's registers where wb-mqtt-dali reads them.
+    wait_for("the gateway's registers on MQTT", || async {
+        let state = retained(port).await?;
+        let pointer = state.get("/devices/wb-mdali_22/controls/bus_1_bulk_send_pointer")?;
+        let frame = state.get("/devices/wb-mdali_22/controls/bus_1_bulk_send_frame")?;
+        (pointer == "42" && frame == "123456").then_some(())
+    })
+    .await;
+    assert!(!daemon.log().contains("panicked"), "{}", daemon.log());
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_dali_gateway_as_wb_mqtt_dali_drives_it_at_115200() {
+    a_dali_gateway_as_wb_mqtt_dali_drives_it("115200 8N2", 115_200).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_dali_gateway_as_wb_mqtt_dali_drives_it_at_9600() {
+    a_dali_gateway_as_wb_mqtt_dali_drives_it("9600 8N2", 9600).await;
+}

@@ -16,6 +16,7 @@ use crate::daemon::{start_bus_side_with_status, stdio, termination_signal, BusCo
 use crate::device::model::ResolvedPort;
 use crate::device::resolve_config;
 use crate::mqtt::{run_mqtt_reporting, MqttSettings, UnchangedPolicy};
+use crate::rpc::config_load::TypeListing;
 use crate::rpc::{run_rpc_server, DeviceTemplates};
 use crate::service::{notify_systemd, BrokerState, ServiceHealth};
 use crate::status::{StatusHub, StatusServer};
@@ -41,7 +42,16 @@ pub struct Args {
 
 /// Loads the config and resolves its devices against the templates; the errors as the
 /// integrator reads them otherwise. Also the templates the devices use (for the RPC).
-fn load(args: &Args) -> Result<(LoadedConfig, Vec<ResolvedPort>, TemplateLibrary), Vec<String>> {
+/// The config, its ports resolved, the templates its devices use, and the device types of the
+/// whole library (for the RPC's `config/Load`).
+type Loaded = (
+    LoadedConfig,
+    Vec<ResolvedPort>,
+    TemplateLibrary,
+    Vec<TypeListing>,
+);
+
+fn load(args: &Args) -> Result<Loaded, Vec<String>> {
     let loaded = load_config(&args.config)
         .map_err(|errors| errors.0.iter().map(ToString::to_string).collect::<Vec<_>>())?;
     let mut dirs = loaded.config.template_dirs.clone();
@@ -55,12 +65,12 @@ fn load(args: &Args) -> Result<(LoadedConfig, Vec<ResolvedPort>, TemplateLibrary
             .flat_map(|port| &port.devices)
             .filter_map(|device| device.device_type.as_deref()),
     );
-    Ok((loaded, ports, used))
+    Ok((loaded, ports, used, library.listings()))
 }
 
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     super::init_logging();
-    let (loaded, ports, templates) = match load(&args) {
+    let (loaded, ports, templates, types) = match load(&args) {
         Ok(loaded) => loaded,
         Err(errors) => {
             for error in &errors {
@@ -78,7 +88,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let fast_modbus = loaded.config.fast_modbus;
     let running_mqtt = restart_only(&loaded.config);
     let http = loaded.config.http.clone();
-    let templates = DeviceTemplates::new(templates);
+    let templates = DeviceTemplates::new(templates, types, args.config.clone());
     let result = runtime.block_on(async move {
         // Installed first: from here on SIGHUP reloads instead of killing the process.
         let mut hangups = signal(SignalKind::hangup()).context("cannot handle SIGHUP")?;
@@ -221,7 +231,7 @@ async fn reload(
     running_http: &Option<HttpConfig>,
 ) {
     info!(config = %args.config.display(), "SIGHUP: reloading the config and templates");
-    let (loaded, ports, used_templates) = match load(args) {
+    let (loaded, ports, used_templates, types) = match load(args) {
         Ok(loaded) => loaded,
         Err(errors) => {
             error!(
@@ -241,7 +251,7 @@ async fn reload(
     if loaded.config.http != *running_http {
         warn!("the http section changed: it takes effect when the service restarts");
     }
-    templates.replace(used_templates);
+    templates.replace(used_templates, types);
     let summary = bus.reload(ports, loaded.config.fast_modbus).await;
     info!(
         started = ?summary.ports_started,

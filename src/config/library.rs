@@ -135,7 +135,82 @@ pub struct TemplateEntry {
     pub signatures: Vec<String>,
     /// Earlier files of the same `device_type` that this one replaced, for messages.
     pub shadowed: Vec<PathBuf>,
+    /// What a list of device types shows of it (the RPC's `config/Load`).
+    pub listing: TemplateListing,
     loaded: OnceLock<Result<TemplateFile, LocatedError>>,
+}
+
+/// What wb-mqtt-serial's list of device types (`config/Load`'s `types`) shows of a template,
+/// read as its `TTemplateMap::MakeTemplateFromJson` reads it.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct TemplateListing {
+    /// The title by language: `title` in English, its entries in `device.translations`.
+    pub titles: Vec<(String, String)>,
+    /// `group` (`g-wb`, `g-wb-old`, …); empty when the template has none.
+    pub group: String,
+    /// `device.id`: the MQTT device id before `_<slave_id>`.
+    pub mqtt_id: String,
+    /// `device.protocol`, `modbus` when left out.
+    pub protocol: String,
+    /// `hw`: each signature and its minimum firmware.
+    pub hardware: Vec<(String, Option<String>)>,
+}
+
+impl TemplateListing {
+    /// Read from a template's JSON.
+    pub fn from_template(raw: &Value) -> Self {
+        let text = |value: Option<&Value>| value.and_then(Value::as_str).unwrap_or("").to_owned();
+        let device = raw.get("device");
+        let title = text(raw.get("title"));
+        let mut titles: Vec<(String, String)> = device
+            .and_then(|d| d.get("translations"))
+            .and_then(Value::as_object)
+            .into_iter()
+            .flatten()
+            .filter_map(|(lang, words)| {
+                let word = words.get(&title).and_then(Value::as_str)?;
+                (!word.is_empty()).then(|| (lang.clone(), word.to_owned()))
+            })
+            .collect();
+        if !titles.iter().any(|(lang, _)| lang == "en") {
+            titles.push(("en".to_owned(), title));
+        }
+        let hardware = raw
+            .get("hw")
+            .and_then(Value::as_array)
+            .into_iter()
+            .flatten()
+            .map(|hw| {
+                (
+                    text(hw.get("signature")),
+                    hw.get("fw").and_then(Value::as_str).map(str::to_owned),
+                )
+            })
+            .collect();
+        let protocol = device
+            .and_then(|d| d.get("protocol"))
+            .and_then(Value::as_str)
+            .unwrap_or("modbus");
+        Self {
+            titles,
+            group: text(raw.get("group")),
+            mqtt_id: text(device.and_then(|d| d.get("id"))),
+            protocol: protocol.to_owned(),
+            hardware,
+        }
+    }
+
+    /// The title in `lang`, else in English, else the device type (wb-mqtt-serial's
+    /// `TDeviceTemplate::GetTitle`).
+    pub fn title<'a>(&'a self, lang: &str, device_type: &'a str) -> &'a str {
+        let find = |wanted: &str| {
+            self.titles
+                .iter()
+                .find(|(lang, _)| lang == wanted)
+                .map(|(_, title)| title.as_str())
+        };
+        find(lang).or_else(|| find("en")).unwrap_or(device_type)
+    }
 }
 
 impl TemplateEntry {
@@ -320,6 +395,7 @@ impl TemplateLibrary {
                     .map(|hw| hw.signature)
                     .collect(),
                 shadowed,
+                listing: TemplateListing::from_template(&raw),
                 loaded: OnceLock::new(),
             },
         );
@@ -339,6 +415,7 @@ impl TemplateLibrary {
                 .map(|hw| hw.signature.clone())
                 .collect(),
             shadowed: Vec::new(),
+            listing: TemplateListing::from_template(&template.raw),
             loaded: OnceLock::from(Ok(template)),
         };
         self.entries.insert(device_type, entry);
@@ -381,6 +458,19 @@ impl TemplateLibrary {
 
     pub fn len(&self) -> usize {
         self.entries.len()
+    }
+
+    /// What a list of device types shows of every template (nothing is read).
+    pub fn listings(&self) -> Vec<(String, bool, TemplateListing)> {
+        self.entries()
+            .map(|(device_type, entry)| {
+                (
+                    device_type.to_owned(),
+                    entry.deprecated,
+                    entry.listing.clone(),
+                )
+            })
+            .collect()
     }
 
     pub fn is_empty(&self) -> bool {

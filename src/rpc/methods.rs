@@ -2,18 +2,22 @@
 //! [`BusQueue`], one transaction at a time, between the port's own transactions.
 
 use std::cmp::Ordering;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Duration;
 
 use serde_json::{json, Map, Value};
 
+use super::config_load::{
+    config_for_clients, device_types, TypeListing, WB_GROUP_NAMES, WB_PORTS_SCHEMA,
+};
 use super::message::RpcError;
 use super::params::{
     DeviceLoad, DeviceLoadConfig, DeviceProbe, DeviceSet, DeviceSetPoll, MessageFormat, Method,
     PortEventLog, PortLoad, PortLoadRaw, PortScan, PortSelector, PortSetup, ScanMode, POLL_HOLD,
 };
 use crate::config::config_file::PortType;
+use crate::config::parse::SourceText;
 use crate::config::{TemplateFile, TemplateLibrary};
 use crate::daemon::bus_queue::BusQueue;
 use crate::daemon::{PortAccess, PortDirectory};
@@ -102,30 +106,71 @@ impl ToolBus for QueuedBus {
     }
 }
 
-/// The templates the running config was resolved with (those its devices use), replaced on a
-/// reload: `device/LoadConfig` reads a template's parameter list from them.
+/// What the RPC knows of the service's files: the templates the running config was resolved
+/// with (those its devices use; `device/LoadConfig` reads a template's parameter list from
+/// them), the device types of the whole library, and the config file (`config/Load` reads it
+/// at each request, as wb-mqtt-serial). Replaced on a reload.
 #[derive(Debug, Clone, Default)]
-pub struct DeviceTemplates(Arc<std::sync::RwLock<TemplateLibrary>>);
+pub struct DeviceTemplates(Arc<std::sync::RwLock<ServiceFiles>>);
+
+#[derive(Debug, Default)]
+struct ServiceFiles {
+    used: TemplateLibrary,
+    types: Vec<TypeListing>,
+    config: Option<PathBuf>,
+}
 
 impl DeviceTemplates {
-    pub fn new(templates: TemplateLibrary) -> Self {
-        Self(Arc::new(std::sync::RwLock::new(templates)))
+    pub fn new(used: TemplateLibrary, types: Vec<TypeListing>, config: PathBuf) -> Self {
+        Self(Arc::new(std::sync::RwLock::new(ServiceFiles {
+            used,
+            types,
+            config: Some(config),
+        })))
     }
 
-    pub fn replace(&self, templates: TemplateLibrary) {
-        *self
+    pub fn replace(&self, used: TemplateLibrary, types: Vec<TypeListing>) {
+        let mut files = self
             .0
             .write()
-            .unwrap_or_else(std::sync::PoisonError::into_inner) = templates;
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        files.used = used;
+        files.types = types;
     }
 
-    fn get(&self, device_type: &str) -> Option<TemplateFile> {
+    fn files(&self) -> std::sync::RwLockReadGuard<'_, ServiceFiles> {
         self.0
             .read()
             .unwrap_or_else(std::sync::PoisonError::into_inner)
-            .get(device_type)
-            .cloned()
     }
+
+    fn get(&self, device_type: &str) -> Option<TemplateFile> {
+        self.files().used.get(device_type).cloned()
+    }
+}
+
+/// `config/Load`: the config file as wb-mqtt-serial hands it out, its ports schema when its
+/// package is installed (else `{}`), and the device types of the library.
+fn config_load(templates: &DeviceTemplates, lang: &str) -> Result<Value, RpcError> {
+    let (path, types) = {
+        let files = templates.files();
+        (files.config.clone(), files.types.clone())
+    };
+    let path = path.ok_or_else(|| RpcError::server("this service has no config file"))?;
+    let source = SourceText::read(&path).map_err(|err| RpcError::server(err.to_string()))?;
+    let root = source
+        .parse_json()
+        .map_err(|err| RpcError::server(err.to_string()))?;
+    let installed = |file: &str| SourceText::read(Path::new(file)).ok()?.parse_json().ok();
+    let config = config_for_clients(root, |device_type| {
+        templates.get(device_type).map(|template| template.raw)
+    });
+    let group_names = installed(WB_GROUP_NAMES).unwrap_or(Value::Null);
+    Ok(json!({
+        "config": config,
+        "schema": installed(WB_PORTS_SCHEMA).unwrap_or_else(|| json!({})),
+        "types": device_types(&types, &group_names, lang),
+    }))
 }
 
 /// Runs a request that needs no template (the status page's scan); `Err` is the JSON-RPC error
@@ -152,6 +197,7 @@ pub async fn execute_with_templates(
         Method::DeviceSetPoll(set_poll) => device_set_poll(ports, set_poll).await,
         Method::DeviceLoadConfig(load) => device_load_config(ports, templates, load).await,
         Method::PortEventLog(read) => port_event_log(ports, read).await,
+        Method::ConfigLoad { lang } => config_load(templates, &lang),
     }
 }
 

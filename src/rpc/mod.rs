@@ -4,9 +4,10 @@
 //!
 //! [`message`] (the envelope) and [`params`] (each method's params) are pure; [`methods`] runs
 //! a request through the port's bus queue ([`crate::daemon::bus_queue`]); [`server`] is the
-//! broker connection; [`client`] is the CLI's caller.
+//! broker connection; [`client`] is the CLI's caller; [`config_load`] answers `config/Load`.
 
 pub mod client;
+pub mod config_load;
 pub mod message;
 pub mod methods;
 pub mod parameters;

@@ -27,9 +27,9 @@ pub const SERVED: &[(&str, &str)] = &[
     ("device", "Load"),
     ("device", "Set"),
     ("device", "SetPoll"),
+    ("config", "Load"),
 ];
 pub const NOT_SERVED: &[(&str, &str)] = &[
-    ("config", "Load"),
     ("config", "GetSchema"),
     ("templates", "Upload"),
     ("templates", "Delete"),
@@ -246,6 +246,10 @@ pub enum Method {
     DeviceSetPoll(DeviceSetPoll),
     DeviceLoadConfig(DeviceLoadConfig),
     PortEventLog(PortEventLog),
+    /// `config/Load` in `lang` (titles and group names).
+    ConfigLoad {
+        lang: String,
+    },
 }
 
 impl Method {
@@ -263,6 +267,7 @@ impl Method {
             Self::DeviceSetPoll(_) => DEFAULT_TOTAL_TIMEOUT,
             Self::DeviceLoadConfig(p) => p.total_timeout,
             Self::PortEventLog(p) => p.total_timeout,
+            Self::ConfigLoad { .. } => DEFAULT_TOTAL_TIMEOUT,
         }
     }
 }
@@ -273,9 +278,18 @@ pub fn parse_method(service: &str, method: &str, params: &Value) -> Result<Metho
     let fields = params.as_object().unwrap_or(&empty);
     match (service, method) {
         ("ports", "Load") => Ok(Method::PortsLoad),
+        ("config", "Load") => Ok(Method::ConfigLoad {
+            lang: optional_str(fields, "lang")?.unwrap_or("en").to_owned(),
+        }),
+        // A configured device named by `device_id` is asked in its own protocol, whatever
+        // `protocol` says (wb-mqtt-serial's `PortLoad`): wb-mqtt-dali writes to its WB-MDALI
+        // gateways with `device_id`, `function` and `msg`, and no `protocol`.
+        ("port", "Load") if names_a_device(fields) => {
+            parse_port_load(fields, true).map(Method::PortLoad)
+        }
         ("port", "Load") => match optional_str(fields, "protocol")? {
             None => parse_port_load_raw(fields).map(Method::PortLoadRaw),
-            Some(_) => parse_port_load(fields).map(Method::PortLoad),
+            Some(_) => parse_port_load(fields, false).map(Method::PortLoad),
         },
         ("port", "Scan") => Ok(Method::PortScan(PortScan {
             port: port_selector(fields)?,
@@ -528,15 +542,8 @@ fn parse_port_load_raw(fields: &Map<String, Value>) -> Result<PortLoadRaw, RpcEr
             format!("{response_size} is above {MAX_RAW_RESPONSE}"),
         ));
     }
-    let port = port_selector(fields)?;
-    if matches!(port, PortSelector::Device(_)) {
-        return Err(bad(
-            "device_id",
-            "a raw transfer goes to a port: give \"path\" (or \"ip\" and \"port\")",
-        ));
-    }
     Ok(PortLoadRaw {
-        port,
+        port: port_selector(fields)?,
         line: line_override(fields)?,
         message,
         format,
@@ -549,8 +556,16 @@ fn parse_port_load_raw(fields: &Map<String, Value>) -> Result<PortLoadRaw, RpcEr
     })
 }
 
-fn parse_port_load(fields: &Map<String, Value>) -> Result<PortLoad, RpcError> {
+/// `device_id` names the port: no `path` or `ip` comes first (see [`port_selector`]).
+fn names_a_device(fields: &Map<String, Value>) -> bool {
+    matches!(port_selector(fields), Ok(PortSelector::Device(_)))
+}
+
+/// The Modbus form of `port/Load`; `by_device`: the port is named by a configured device,
+/// whose own protocol (Modbus, every device rtu2mqtt drives) is used whatever `protocol` says.
+fn parse_port_load(fields: &Map<String, Value>, by_device: bool) -> Result<PortLoad, RpcError> {
     match optional_str(fields, "protocol")? {
+        _ if by_device => {}
         Some("modbus" | "modbus-tcp") => {}
         None => {
             return Err(bad("protocol", "missing"));
@@ -984,6 +999,44 @@ mod tests {
     }
 
     #[test]
+    fn port_load_by_device_id_is_modbus_whatever_protocol_says() {
+        // wb-mqtt-dali's write to a WB-MDALI gateway's queue pointer, as it sends it.
+        let dali = json!({"device_id": "wb-mdali_1", "function": 6, "address": 1432,
+                          "count": 1, "total_timeout": 1000, "frame_timeout": 0,
+                          "format": "HEX", "msg": "0000"});
+        let Method::PortLoad(load) = parse("port", "Load", dali.clone()).unwrap() else {
+            panic!("not Modbus");
+        };
+        assert_eq!(load.port, PortSelector::Device("wb-mdali_1".into()));
+        assert_eq!(load.slave_id, None, "the device's own address is used");
+        assert_eq!(
+            load.pdu,
+            RequestPdu::WriteSingleRegister {
+                address: 1432,
+                value: 0
+            }
+        );
+        assert_eq!(load.total_timeout, Duration::from_millis(1000));
+        // As wb-mqtt-serial, the device's protocol wins over the request's.
+        for protocol in ["raw", "modbus"] {
+            let mut request = dali.clone();
+            request["protocol"] = json!(protocol);
+            assert!(
+                matches!(parse("port", "Load", request), Ok(Method::PortLoad(_))),
+                "{protocol}"
+            );
+        }
+        // A port named by its path is still a raw transfer without "protocol".
+        let mut by_path = dali;
+        by_path["path"] = json!("/dev/ttyRS485-1");
+        by_path["response_size"] = json!(8);
+        assert!(matches!(
+            parse("port", "Load", by_path),
+            Ok(Method::PortLoadRaw(_))
+        ));
+    }
+
+    #[test]
     fn port_load_without_protocol_is_a_raw_transfer() {
         let method = parse(
             "port",
@@ -1038,9 +1091,10 @@ mod tests {
                 json!({"path": "/dev/x", "msg": "010", "format": "HEX", "response_size": 8}),
                 "msg",
             ),
+            // A configured device is asked in Modbus, with or without "protocol".
             (
                 json!({"device_id": "relay", "msg": "x", "response_size": 8}),
-                "device_id",
+                "function",
             ),
             (
                 json!({"path": "/dev/x", "protocol": "dlms", "slave_id": 1, "function": 3}),
@@ -1103,7 +1157,7 @@ mod tests {
         let unknown = parse("port", "Explode", json!({})).unwrap_err();
         assert!(unknown.message.contains("unknown method port/Explode"));
         assert!(unknown.message.contains("port/Scan"));
-        let later = parse("config", "Load", json!({})).unwrap_err();
+        let later = parse("config", "GetSchema", json!({"type": "WB-MR6C"})).unwrap_err();
         assert!(later.message.contains("not served"), "{}", later.message);
     }
 
