@@ -294,6 +294,15 @@ mod tests {
         assert_eq!(config_for_clients(json!([1]), templates), json!([1]));
     }
 
+    /// The `name` of each entry of a list.
+    fn names(list: &Value) -> Vec<&str> {
+        list.as_array()
+            .unwrap()
+            .iter()
+            .map(|entry| entry["name"].as_str().unwrap())
+            .collect()
+    }
+
     #[test]
     fn device_types_are_grouped_and_ordered_as_wb_mqtt_serial_lists_them() {
         let mut relay = listing("WB-MR6C", "g-wb", "wb-mr6c");
@@ -326,15 +335,9 @@ mod tests {
                 TemplateListing::from_template(&json!({"device_type": "untitled"})),
             ),
         ];
-        let names = json!({"ru": {"g-wb": "Wiren Board", "g-meters": "Счётчики"}});
-        let listed = device_types(&types, &names, "en");
-        let groups: Vec<&str> = listed
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|group| group["name"].as_str().unwrap())
-            .collect();
-        assert_eq!(groups, ["g-wb", "g-wb-old", "g-custom", "g-meters"]);
+        let group_names = json!({"ru": {"g-wb": "Wiren Board", "g-meters": "Счётчики"}});
+        let listed = device_types(&types, &group_names, "en");
+        assert_eq!(names(&listed), ["g-wb", "g-wb-old", "g-custom", "g-meters"]);
         assert_eq!(
             listed[0]["types"],
             json!([
@@ -347,22 +350,13 @@ mod tests {
         );
         assert_eq!(listed[1]["types"][0]["deprecated"], true);
         // No title: named "" (wb-mqtt-serial's GetTranslations gives English the empty title).
-        let custom: Vec<&str> = listed[2]["types"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|t| t["name"].as_str().unwrap())
-            .collect();
-        assert_eq!(custom, ["", "Alpha"]);
+        assert_eq!(names(&listed[2]["types"]), ["", "Alpha"]);
         // In Russian: translated titles and group names; the groups sorted by those.
-        let listed = device_types(&types, &names, "ru");
-        let groups: Vec<&str> = listed
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|group| group["name"].as_str().unwrap())
-            .collect();
-        assert_eq!(groups, ["Wiren Board", "g-wb-old", "g-custom", "Счётчики"]);
+        let listed = device_types(&types, &group_names, "ru");
+        assert_eq!(
+            names(&listed),
+            ["Wiren Board", "g-wb-old", "g-custom", "Счётчики"]
+        );
         assert_eq!(listed[0]["types"][1]["name"], "Реле WB-MR6C");
         assert_eq!(
             listed[0]["types"][0]["name"], "WB-MAI6",
