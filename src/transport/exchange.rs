@@ -276,6 +276,9 @@ struct Receiving {
     /// A frame with the header of a reply to the request came, its CRC or body bad: see
     /// [`ReplyTiming::foreign_bytes_only`].
     reply_began: bool,
+    /// The parser dropped bytes (they could not start the reply, or a candidate failed): what
+    /// looks like the reply's header after them is no proof that the reply began.
+    dropped: bool,
     /// When the reply should be complete if it comes as the device's last ones did: the driver
     /// may sleep until then and read it in one go ([`Exchange::batch_read_at`]). `None` once
     /// tried, or when nothing is known of the device yet.
@@ -505,6 +508,7 @@ impl Exchange {
                 window,
                 garbled: false,
                 reply_began: false,
+                dropped: false,
                 batch_read_at,
             }))
         } else {
@@ -662,13 +666,15 @@ impl Exchange {
                     TransactionOutcome::NoReply
                 };
                 let mut timing = receiving.window.timing();
-                // A reply cut short once its header was in began too. Over Modbus TCP a gateway
-                // answers each request once: its bytes are its reply.
+                // A reply cut short once its header was in began too, when nothing was dropped
+                // before it. Over Modbus TCP a gateway answers each request once: its bytes are
+                // its reply.
                 let began = receiving.reply_began
-                    || matches!(
-                        Reply::length_from_header(receiving.parser.buffered()),
-                        FrameLength::Known(_)
-                    );
+                    || (!receiving.dropped
+                        && matches!(
+                            Reply::length_from_header(receiving.parser.buffered()),
+                            FrameLength::Known(_)
+                        ));
                 timing.foreign_bytes_only =
                     self.mbap.is_none() && timing.first_byte.is_some() && !began;
                 self.state = State::Done(outcome, timing);
@@ -743,14 +749,20 @@ impl Receiving {
                 ParseStatus::Error(err) => {
                     debug!(%err, "dropped reply bytes");
                     self.garbled = true;
-                    // A frame with the header of the reply, its CRC or body bad: the reply,
-                    // damaged. Not bytes that cannot start it, nor a valid frame that does not
-                    // answer the request (another request's reply: this one's may follow).
-                    self.reply_began |= matches!(
-                        err,
-                        crate::protocol::ParseError::BadCrc
-                            | crate::protocol::ParseError::Malformed(_)
-                    );
+                    // A frame with the header of the reply, its CRC or body bad, as the first
+                    // thing heard: the reply, damaged. Not bytes that cannot start it, nor a
+                    // valid frame that does not answer the request (another request's reply:
+                    // this one's may follow), nor a reply-shaped run of bytes after such bytes:
+                    // inside another device's frame `1E 84 …` reads as the header of an
+                    // exception from 0x1E, and taken for its reply it let the device's own reply,
+                    // 1.3 s late, answer its next read (fault sweep, seed 5358).
+                    self.reply_began |= !self.dropped
+                        && matches!(
+                            err,
+                            crate::protocol::ParseError::BadCrc
+                                | crate::protocol::ParseError::Malformed(_)
+                        );
+                    self.dropped = true;
                 }
             }
         }
@@ -1806,8 +1818,23 @@ mod tests {
             *crc ^= 0x55;
         }
         let reply = reply_frame();
+        // Another device's reply whose data holds `1E 84`: the header of an exception from
+        // 0x1E, four bytes in; its CRC fails. Not the reply beginning (fault sweep, seed 5358).
+        let exception_shaped = Reply::classic(
+            0x07,
+            ResponsePdu::ReadInputRegisters {
+                values: vec![0x1E84, 0x8C21],
+            },
+        )
+        .encode()
+        .unwrap_or_default();
+        // Noise, then the reply cut short: noise ended the wait, not the reply.
+        let mut noise_then_cut = vec![0x00];
+        noise_then_cut.extend(reply.get(..5).unwrap_or(&[]));
         for (bytes, foreign) in [
             (other, true),
+            (exception_shaped, true),
+            (noise_then_cut, true),
             (bad_crc, false),
             (reply.get(..5).unwrap_or(&[]).to_vec(), false),
         ] {
