@@ -1389,13 +1389,29 @@ async fn a_dali_gateway_as_wb_mqtt_dali_drives_it(line: &str, baud: u32) {
         gateway_template.to_string(),
     )
     .unwrap();
+    // A WBIO module behind the same address: its registers are not the host's.
+    let module_template = json!({
+        "device_type": "WBIO-TEST",
+        "device": {"name": "WBIO", "id": "wbio-test", "protocol": "modbus_io",
+                   "channels": [{"name": "K1", "reg_type": "coil", "address": 0,
+                                 "type": "switch"}]}
+    });
+    std::fs::write(
+        templates.join("config-wbio-test.json"),
+        module_template.to_string(),
+    )
+    .unwrap();
     let sim = SimProcess::start_with(&bus, &repo("templates"), &[]);
     let config = json!({
         "mqtt": {"host": "127.0.0.1", "port": broker.port, "client_id": "rtu2mqtt-rpc-test",
                  "password": "never-published"},
         "ports": [{"path": sim.pty, "baud_rate": baud, "stop_bits": 2, "poll_interval": 15,
                    "devices": [{"device_type": "WB-MDALI", "slave_id": 22,
-                                "channels": [{"name": "from an older template"}]}]}]
+                                "channels": [{"name": "from an older template"}]},
+                               {"device_type": "WBIO-TEST", "slave_id": "22:1",
+                                "id": "module"},
+                               {"device_type": "rtu2mqtt-relay6", "slave_id": 30,
+                                "enabled": false, "poll_interval": 9}]}]
     });
     let daemon = DaemonProcess::start(
         &config,
@@ -1437,6 +1453,13 @@ async fn a_dali_gateway_as_wb_mqtt_dali_drives_it(line: &str, baud: u32) {
         config["ports"][0]["devices"][0],
         json!({"device_type": "WB-MDALI", "slave_id": "22"}),
         "the channel the template no longer has is left out, as wb-mqtt-serial does"
+    );
+    // A disabled device is converted too, though the running config does not use its template.
+    assert_eq!(
+        config["ports"][0]["devices"][2],
+        json!({"device_type": "rtu2mqtt-relay6", "slave_id": "30", "enabled": false,
+               "read_rate_limit_ms": 9}),
+        "{loaded}"
     );
     // The device types of the library (the built-in ones too), the Wiren Board group first.
     let listed = |result: &Value| -> Value {
@@ -1481,6 +1504,20 @@ async fn a_dali_gateway_as_wb_mqtt_dali_drives_it(line: &str, baud: u32) {
     // A read by device id answers with the registers.
     let read = rpc(port, "port", "Load", write(3, 2, 2, "")).await;
     assert_eq!(read["result"], json!({"response": "0001e240"}), "{read}");
+    // A module behind a WB-MIO is refused by device id, as wb-mqtt-serial refuses devices of
+    // other protocols (its registers are not the host's at these addresses).
+    let mut to_module = write(6, 0, 1, "0007");
+    to_module["device_id"] = json!("module");
+    let refused = rpc(port, "port", "Load", to_module).await;
+    assert_eq!(refused["error"]["code"], -32000, "{refused}");
+    assert!(
+        refused["error"]["message"]
+            .as_str()
+            .unwrap()
+            .contains("modbus_io"),
+        "{refused}"
+    );
+    assert_eq!(held(0), 42, "nothing written");
     // And the service publishes the gateway's registers where wb-mqtt-dali reads them.
     wait_for("the gateway's registers on MQTT", || async {
         let state = retained(port).await?;
@@ -1489,6 +1526,41 @@ async fn a_dali_gateway_as_wb_mqtt_dali_drives_it(line: &str, baud: u32) {
         (pointer == "42" && frame == "123456").then_some(())
     })
     .await;
+
+    // A write whose reply is lost is sent once, as wb-mqtt-serial sends it (a queue would
+    // carry it out twice); a read is tried again. Polling held (the gateway's and the
+    // module's, at the same address), so the requests the device hears are the RPC's only.
+    for device in [gateway, "module"] {
+        let held_off = rpc(
+            port,
+            "device",
+            "SetPoll",
+            json!({"device_id": device, "poll": false}),
+        )
+        .await;
+        assert_eq!(held_off["result"], json!({}), "{held_off}");
+    }
+    sim.control(json!({"cmd": "faults", "device": 22, "drop": 1.0}));
+    let classic_requests = || sim.control(json!({"cmd": "stats"}))["classic_requests"].clone();
+    let before = classic_requests().as_u64().unwrap();
+    // The time to try again is given: a try waits out the hold-off after a failure (a late
+    // reply to the request before must not pass for its answer).
+    let patient = |mut request: Value| {
+        request["total_timeout"] = json!(10_000);
+        request
+    };
+    let unanswered = rpc(port, "port", "Load", patient(write(6, 0, 1, "0063"))).await;
+    assert_eq!(unanswered["error"]["code"], -32600, "{unanswered}");
+    assert_eq!(held(0), 99, "the write was carried out");
+    assert_eq!(classic_requests(), before + 1, "sent once");
+    let unanswered = rpc(port, "port", "Load", patient(write(3, 0, 1, ""))).await;
+    assert_eq!(unanswered["error"]["code"], -32600, "{unanswered}");
+    assert_eq!(
+        classic_requests(),
+        before + 3,
+        "a read is tried twice: {unanswered}"
+    );
+    sim.control(json!({"cmd": "faults", "device": 22, "drop": 0.0}));
     assert!(!daemon.log().contains("panicked"), "{}", daemon.log());
 }
 
@@ -1500,4 +1572,46 @@ async fn a_dali_gateway_as_wb_mqtt_dali_drives_it_at_115200() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_dali_gateway_as_wb_mqtt_dali_drives_it_at_9600() {
     a_dali_gateway_as_wb_mqtt_dali_drives_it("9600 8N2", 9600).await;
+}
+
+/// A reply too large for one MQTT packet (config/Load of a config with 300 KB of notes) is an
+/// error that says so, and the server goes on: sent as it was, the client would refuse the
+/// packet and drop the connection with every reply in flight.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_reply_too_large_for_one_packet_is_an_error_and_the_server_goes_on() {
+    let broker = Mosquitto::start();
+    let dir = tempfile::tempdir().unwrap();
+    let bus = dir.path().join("bus.json");
+    std::fs::write(
+        &bus,
+        json!({"devices": [{"name": "relay", "template": "rtu2mqtt-relay6", "address": 20,
+                            "serial": "0xFE000020", "line": "115200 8N2"}]})
+        .to_string(),
+    )
+    .unwrap();
+    let sim = SimProcess::start_with(&bus, &repo("templates"), &[]);
+    let config = json!({
+        "mqtt": {"host": "127.0.0.1", "port": broker.port, "client_id": "rtu2mqtt-rpc-test"},
+        "notes": "x".repeat(300_000),
+        "ports": [{"path": sim.pty, "baud_rate": 115_200, "stop_bits": 2,
+                   "devices": [{"device_type": "rtu2mqtt-relay6", "slave_id": 20}]}]
+    });
+    let daemon = DaemonProcess::start(&config, &[], Stdio::null(), Stdio::null());
+    let port = broker.port;
+    wait_until_served(port).await;
+    let loaded = rpc(port, "config", "Load", json!({})).await;
+    assert_eq!(
+        loaded["error"]["code"],
+        -32000,
+        "{:.300}",
+        loaded.to_string()
+    );
+    let message = loaded["error"]["message"].as_str().unwrap();
+    assert!(
+        message.starts_with("the reply is ") && message.contains("at most"),
+        "{message}"
+    );
+    let ports = rpc(port, "ports", "Load", json!({})).await;
+    assert_eq!(ports["result"][0]["baud_rate"], 115_200, "{ports}");
+    assert!(!daemon.log().contains("panicked"), "{}", daemon.log());
 }

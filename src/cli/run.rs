@@ -10,13 +10,13 @@ use tokio::sync::watch;
 use tracing::{error, info, warn};
 
 use crate::config::config_file::HttpConfig;
+use crate::config::library::ListedTemplate;
 use crate::config::library::TemplateLibrary;
 use crate::config::load::{load_config, LoadedConfig, DEFAULT_CONFIG_PATH};
 use crate::daemon::{start_bus_side_with_status, stdio, termination_signal, BusControl, BusSide};
 use crate::device::model::ResolvedPort;
 use crate::device::resolve_config;
 use crate::mqtt::{run_mqtt_reporting, MqttSettings, UnchangedPolicy};
-use crate::rpc::config_load::TypeListing;
 use crate::rpc::{run_rpc_server, DeviceTemplates};
 use crate::service::{notify_systemd, BrokerState, ServiceHealth};
 use crate::status::{StatusHub, StatusServer};
@@ -48,7 +48,7 @@ type Loaded = (
     LoadedConfig,
     Vec<ResolvedPort>,
     TemplateLibrary,
-    Vec<TypeListing>,
+    Vec<ListedTemplate>,
 );
 
 fn load(args: &Args) -> Result<Loaded, Vec<String>> {

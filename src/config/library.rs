@@ -140,6 +140,51 @@ pub struct TemplateEntry {
     loaded: OnceLock<Result<TemplateFile, LocatedError>>,
 }
 
+/// One template of the library as a list of device types shows it, and where to read it
+/// again: `config/Load` reads the templates of the config's devices at each request, without
+/// keeping them.
+#[derive(Debug, Clone)]
+pub struct ListedTemplate {
+    pub device_type: String,
+    pub deprecated: bool,
+    pub listing: TemplateListing,
+    origin: TemplateOrigin,
+}
+
+impl ListedTemplate {
+    /// The template's JSON, read again; `None` when it no longer reads.
+    pub fn read_json(&self) -> Option<Value> {
+        let source = match &self.origin {
+            TemplateOrigin::File(path) => SourceText::read(path).ok()?,
+            TemplateOrigin::BuiltIn { path, text } => SourceText::from_text(path, text),
+        };
+        source.parse_json().ok()
+    }
+}
+
+/// A template's title by language, as wb-mqtt-serial's `GetTranslations` reads it: the
+/// translations of `title` in `device.translations`, the title itself in English when not
+/// translated there; none at all for an empty title.
+fn titles(title: &str, device: Option<&Value>) -> Vec<(String, String)> {
+    if title.is_empty() {
+        return Vec::new();
+    }
+    let mut titles: Vec<(String, String)> = device
+        .and_then(|d| d.get("translations"))
+        .and_then(Value::as_object)
+        .into_iter()
+        .flatten()
+        .filter_map(|(lang, words)| {
+            let word = words.get(title).and_then(Value::as_str)?;
+            (!word.is_empty()).then(|| (lang.clone(), word.to_owned()))
+        })
+        .collect();
+    if !titles.iter().any(|(lang, _)| lang == "en") {
+        titles.push(("en".to_owned(), title.to_owned()));
+    }
+    titles
+}
+
 /// What wb-mqtt-serial's list of device types (`config/Load`'s `types`) shows of a template,
 /// read as its `TTemplateMap::MakeTemplateFromJson` reads it.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
@@ -161,20 +206,6 @@ impl TemplateListing {
     pub fn from_template(raw: &Value) -> Self {
         let text = |value: Option<&Value>| value.and_then(Value::as_str).unwrap_or("").to_owned();
         let device = raw.get("device");
-        let title = text(raw.get("title"));
-        let mut titles: Vec<(String, String)> = device
-            .and_then(|d| d.get("translations"))
-            .and_then(Value::as_object)
-            .into_iter()
-            .flatten()
-            .filter_map(|(lang, words)| {
-                let word = words.get(&title).and_then(Value::as_str)?;
-                (!word.is_empty()).then(|| (lang.clone(), word.to_owned()))
-            })
-            .collect();
-        if !titles.iter().any(|(lang, _)| lang == "en") {
-            titles.push(("en".to_owned(), title));
-        }
         let hardware = raw
             .get("hw")
             .and_then(Value::as_array)
@@ -183,7 +214,10 @@ impl TemplateListing {
             .map(|hw| {
                 (
                     text(hw.get("signature")),
-                    hw.get("fw").and_then(Value::as_str).map(str::to_owned),
+                    hw.get("fw")
+                        .and_then(Value::as_str)
+                        .filter(|fw| !fw.is_empty())
+                        .map(str::to_owned),
                 )
             })
             .collect();
@@ -192,7 +226,7 @@ impl TemplateListing {
             .and_then(Value::as_str)
             .unwrap_or("modbus");
         Self {
-            titles,
+            titles: titles(&text(raw.get("title")), device),
             group: text(raw.get("group")),
             mqtt_id: text(device.and_then(|d| d.get("id"))),
             protocol: protocol.to_owned(),
@@ -460,15 +494,16 @@ impl TemplateLibrary {
         self.entries.len()
     }
 
-    /// What a list of device types shows of every template (nothing is read).
-    pub fn listings(&self) -> Vec<(String, bool, TemplateListing)> {
-        self.entries()
-            .map(|(device_type, entry)| {
-                (
-                    device_type.to_owned(),
-                    entry.deprecated,
-                    entry.listing.clone(),
-                )
+    /// What a list of device types shows of every template, and where each is (nothing is
+    /// read).
+    pub fn listings(&self) -> Vec<ListedTemplate> {
+        self.entries
+            .iter()
+            .map(|(device_type, entry)| ListedTemplate {
+                device_type: device_type.clone(),
+                deprecated: entry.deprecated,
+                listing: entry.listing.clone(),
+                origin: entry.origin.clone(),
             })
             .collect()
     }

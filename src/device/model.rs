@@ -390,6 +390,9 @@ pub struct ResolvedDevice {
     pub name: String,
     pub device_type: Option<String>,
     pub slave_id: u8,
+    /// A WBIO module behind a WB-MIO (`modbus_io`, `slave_id` "address:module"): its registers
+    /// are shifted from the host's at `slave_id`.
+    pub modbus_io: bool,
     /// WB device (template has `hw` or continuous read): WB-specific behaviour applies.
     pub is_wb: bool,
     pub hw: Vec<HardwareSignature>,

@@ -198,6 +198,7 @@ pub fn resolve_device(
         name: device.name.clone().unwrap_or_default(),
         device_type: input.device_type.clone(),
         slave_id: input.slave_id,
+        modbus_io: input.module.is_some(),
         is_wb,
         hw: input.hw.clone(),
         timing,

@@ -50,7 +50,7 @@ const SHORT_LIVED_BEFORE_HINT: u32 = 3;
 const EXIT_FLUSH_TIMEOUT: Duration = Duration::from_secs(5);
 /// Largest packet sent (rumqttc's default of 10 KiB is too small for some configs); larger
 /// publications are refused by the outbox, not sent.
-const MAX_OUTGOING_PACKET: usize = 256 * 1024;
+pub(crate) const MAX_OUTGOING_PACKET: usize = 256 * 1024;
 /// Largest packet accepted: the largest MQTT 3.1.1 allows (remaining length 268,435,455 and a
 /// 5-byte fixed header). rumqttc drops the connection on a larger incoming packet, and MQTT
 /// 3.1.1 has no way to tell the broker a smaller limit, so any lower value lets any client

@@ -129,6 +129,17 @@ pub enum ResponsePdu {
 }
 
 impl RequestPdu {
+    /// A write (functions 5, 6, 15, 16): it changes the device.
+    pub fn is_write(&self) -> bool {
+        matches!(
+            self,
+            Self::WriteSingleCoil { .. }
+                | Self::WriteSingleRegister { .. }
+                | Self::WriteMultipleCoils { .. }
+                | Self::WriteMultipleRegisters { .. }
+        )
+    }
+
     pub fn function(&self) -> u8 {
         match self {
             Self::ReadCoils { .. } => READ_COILS,

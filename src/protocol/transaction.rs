@@ -41,9 +41,11 @@ pub struct ReplyTiming {
     /// Nothing came in time, but bytes came this long after the request, after the timeout: a
     /// late reply, thrown away.
     pub late_byte: Option<Duration>,
-    /// Bytes came in time (`first_byte`), but none of them could begin a reply to the request:
-    /// the parser dropped them all (another device's late reply, noise). They ended the wait,
-    /// yet the device's own reply may still be on its way, as after silence.
+    /// Bytes came in time (`first_byte`), but none of them began a reply to the request: the
+    /// parser dropped them all (another device's late reply, noise), or what looked like the
+    /// reply's header came only after bytes that were dropped (a run of another device's frame
+    /// can read as one). They ended the wait, yet the device's own reply may still be on its
+    /// way, as after silence.
     pub foreign_bytes_only: bool,
 }
 

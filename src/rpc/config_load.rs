@@ -3,9 +3,11 @@
 //! advertised before it starts and finds its WB-MDALI gateways in `config.ports[].devices[]`;
 //! scripts list the templates from `types`. Pure, but for the files it is handed.
 
+use std::collections::BTreeMap;
+
 use serde_json::{json, Map, Value};
 
-use crate::config::library::TemplateListing;
+use crate::config::library::ListedTemplate;
 
 /// wb-mqtt-serial's schema of the ports section, sent as `schema` when its package is installed.
 pub const WB_PORTS_SCHEMA: &str = "/usr/share/wb-mqtt-serial/wb-mqtt-serial-ports.schema.json";
@@ -21,17 +23,61 @@ const WB_GROUP: &str = "g-wb";
 const WB_OLD_GROUP: &str = "g-wb-old";
 const CUSTOM_GROUP: &str = "g-custom";
 
-/// One device type of the library: its `device_type`, `deprecated`, and what a list shows.
-pub type TypeListing = (String, bool, TemplateListing);
+/// What the conversion needs of a device's template.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct TemplateShape {
+    /// The names of its channels.
+    pub channels: Vec<String>,
+    /// It has subdevices: its parameters go under `parameters`.
+    pub subdevices: bool,
+    /// The ids of its parameters (object form).
+    pub parameters: Vec<String>,
+}
+
+impl TemplateShape {
+    pub fn of(template: &Value) -> Self {
+        let device = template.get("device").unwrap_or(&Value::Null);
+        Self {
+            channels: device
+                .get("channels")
+                .and_then(Value::as_array)
+                .into_iter()
+                .flatten()
+                .filter_map(|channel| channel.get("name").and_then(Value::as_str))
+                .map(str::to_owned)
+                .collect(),
+            subdevices: device.get("subdevices").is_some(),
+            parameters: device
+                .get("parameters")
+                .and_then(Value::as_object)
+                .into_iter()
+                .flatten()
+                .map(|(id, _)| id.clone())
+                .collect(),
+        }
+    }
+}
+
+/// The `device_type`s of the config's devices.
+pub fn device_types_used(root: &Value) -> Vec<&str> {
+    root.get("ports")
+        .and_then(Value::as_array)
+        .into_iter()
+        .flatten()
+        .filter_map(|port| port.get("devices").and_then(Value::as_array))
+        .flatten()
+        .filter_map(|device| device.get("device_type").and_then(Value::as_str))
+        .collect()
+}
 
 /// The config as wb-mqtt-serial's `MakeJsonForConfed` returns it: `poll_interval` renamed
 /// `read_rate_limit_ms` (ports and devices), a device's `slave_id` as a string (left out when
 /// empty), and of a device's channels only those its template declares or that carry their own
-/// `address`/`consists_of`. `template_of` gives a device type's template (`None`: the device
-/// is left as written). A template with subdevices also gets its parameters moved under
-/// `parameters`; its channels are left as written (wb-mqtt-serial regroups them for its
-/// editor, which rtu2mqtt does not serve).
-pub fn config_for_clients(mut root: Value, template_of: impl Fn(&str) -> Option<Value>) -> Value {
+/// `address`/`consists_of`. `templates` has the shape of each device type's template (a
+/// device whose template is not there is left as written). A template with subdevices also
+/// gets its parameters moved under `parameters`; its channels are left as written
+/// (wb-mqtt-serial regroups them for its editor, which rtu2mqtt does not serve).
+pub fn config_for_clients(mut root: Value, templates: &BTreeMap<String, TemplateShape>) -> Value {
     if let Some(fields) = root.as_object_mut() {
         for section in PRIVATE_SECTIONS {
             fields.remove(section);
@@ -53,7 +99,7 @@ pub fn config_for_clients(mut root: Value, template_of: impl Fn(&str) -> Option<
             let Some(template) = device
                 .get("device_type")
                 .and_then(Value::as_str)
-                .and_then(&template_of)
+                .and_then(|device_type| templates.get(device_type))
             else {
                 continue;
             };
@@ -61,11 +107,10 @@ pub fn config_for_clients(mut root: Value, template_of: impl Fn(&str) -> Option<
             let Some(fields) = device.as_object_mut() else {
                 continue;
             };
-            let template_device = template.get("device").unwrap_or(&Value::Null);
-            if template_device.get("subdevices").is_some() {
-                move_parameters(fields, template_device);
+            if template.subdevices {
+                move_parameters(fields, template);
             } else {
-                keep_known_channels(fields, template_device);
+                keep_known_channels(fields, template);
             }
             match fields.get("slave_id") {
                 Some(Value::Number(number)) => {
@@ -93,17 +138,10 @@ fn rename_poll_interval(node: &mut Value) {
 
 /// wb-mqtt-serial's `UpdateDeviceChannels`: channels of older templates, unknown to this one,
 /// are dropped; the `channels` key goes when none is left.
-fn keep_known_channels(device: &mut Map<String, Value>, template_device: &Value) {
+fn keep_known_channels(device: &mut Map<String, Value>, template: &TemplateShape) {
     let Some(channels) = device.remove("channels") else {
         return;
     };
-    let declared: Vec<&str> = template_device
-        .get("channels")
-        .and_then(Value::as_array)
-        .into_iter()
-        .flatten()
-        .filter_map(|channel| channel.get("name").and_then(Value::as_str))
-        .collect();
     let kept: Vec<Value> = channels
         .as_array()
         .into_iter()
@@ -114,7 +152,7 @@ fn keep_known_channels(device: &mut Map<String, Value>, template_device: &Value)
                 || channel
                     .get("name")
                     .and_then(Value::as_str)
-                    .is_some_and(|name| declared.contains(&name))
+                    .is_some_and(|name| template.channels.iter().any(|known| known == name))
         })
         .cloned()
         .collect();
@@ -124,11 +162,8 @@ fn keep_known_channels(device: &mut Map<String, Value>, template_device: &Value)
 }
 
 /// Parameters the template declares (object form) move from the device into `parameters`.
-fn move_parameters(device: &mut Map<String, Value>, template_device: &Value) {
-    let Some(declared) = template_device.get("parameters").and_then(Value::as_object) else {
-        return;
-    };
-    for id in declared.keys() {
+fn move_parameters(device: &mut Map<String, Value>, template: &TemplateShape) {
+    for id in &template.parameters {
         if let Some(value) = device.remove(id) {
             let parameters = device
                 .entry("parameters")
@@ -146,7 +181,7 @@ fn move_parameters(device: &mut Map<String, Value>, template_device: &Value) {
 /// template is in it); within a group by title. `group_names` is wb-mqtt-serial's
 /// `groups.json` (`{lang: {group: name}}`). wb-mqtt-serial also lists its protocols in the
 /// custom group (`protocol:…`, for devices without a template); rtu2mqtt does not.
-pub fn device_types(types: &[TypeListing], group_names: &Value, lang: &str) -> Value {
+pub fn device_types(types: &[ListedTemplate], group_names: &Value, lang: &str) -> Value {
     let group_name = |group: &str| -> String {
         group_names
             .get(lang)
@@ -156,19 +191,20 @@ pub fn device_types(types: &[TypeListing], group_names: &Value, lang: &str) -> V
             .unwrap_or(group)
             .to_owned()
     };
-    let mut by_group: std::collections::BTreeMap<&str, Vec<&TypeListing>> = Default::default();
+    let mut by_group: BTreeMap<&str, Vec<&ListedTemplate>> = BTreeMap::new();
     for listed in types {
-        let group = match listed.2.group.as_str() {
+        let group = match listed.listing.group.as_str() {
             "" => CUSTOM_GROUP,
             group => group,
         };
         by_group.entry(group).or_default().push(listed);
     }
-    let type_json = |(device_type, deprecated, listing): &TypeListing| {
+    let type_json = |listed: &ListedTemplate| {
+        let listing = &listed.listing;
         let mut entry = json!({
-            "name": listing.title(lang, device_type),
-            "deprecated": deprecated,
-            "type": device_type,
+            "name": listing.title(lang, &listed.device_type),
+            "deprecated": listed.deprecated,
+            "type": listed.device_type,
             "protocol": listing.protocol,
             "mqtt-id": listing.mqtt_id,
         });
@@ -185,9 +221,12 @@ pub fn device_types(types: &[TypeListing], group_names: &Value, lang: &str) -> V
         }
         entry
     };
-    let group_json = |group: &str, members: Vec<&TypeListing>| {
+    let group_json = |group: &str, members: Vec<&ListedTemplate>| {
         let mut members = members;
-        members.sort_by(|a, b| a.2.title(lang, &a.0).cmp(b.2.title(lang, &b.0)));
+        members.sort_by(|a, b| {
+            let a_title = a.listing.title(lang, &a.device_type);
+            a_title.cmp(b.listing.title(lang, &b.device_type))
+        });
         let types: Vec<Value> = members.into_iter().map(type_json).collect();
         json!({"name": group_name(group), "types": types})
     };
@@ -211,14 +250,23 @@ pub fn device_types(types: &[TypeListing], group_names: &Value, lang: &str) -> V
 mod tests {
     use super::*;
 
-    fn listing(title: &str, group: &str, id: &str) -> TemplateListing {
-        TemplateListing {
-            titles: vec![("en".into(), title.into())],
-            group: group.into(),
-            mqtt_id: id.into(),
-            protocol: "modbus".into(),
-            hardware: Vec::new(),
+    /// A library of these templates (a title, a group and an id each, and more given), as
+    /// the list of device types sees it.
+    fn library(templates: &[(&str, Value)]) -> Vec<ListedTemplate> {
+        let mut library = crate::config::TemplateLibrary::default();
+        for (device_type, extra) in templates {
+            let mut template = json!({
+                "device_type": device_type,
+                "device": {"name": device_type, "id": device_type.to_lowercase(), "channels": []}
+            });
+            for (key, value) in extra.as_object().unwrap() {
+                template[key] = value.clone();
+            }
+            let path = std::path::PathBuf::from(format!("config-{device_type}.json"));
+            let source = crate::config::parse::SourceText::from_text(&path, &template.to_string());
+            library.insert(crate::config::TemplateFile::from_source(source).unwrap());
         }
+        library.listings()
     }
 
     #[test]
@@ -246,16 +294,28 @@ mod tests {
                 ]
             }]
         });
-        let templates = |device_type: &str| match device_type {
-            "WB-MDALI" => Some(json!({"device": {"channels": [{"name": "Bus 1 Status"}]}})),
-            "heater" => Some(json!({"device": {
-                "parameters": {"mode": {"address": 1}},
-                "subdevices": [],
-                "channels": []
-            }})),
-            _ => None,
-        };
-        let out = config_for_clients(config, templates);
+        assert_eq!(
+            device_types_used(&config),
+            ["WB-MDALI", "WB-MDALI", "no-such-template", "heater"]
+        );
+        let templates: BTreeMap<String, TemplateShape> = [
+            (
+                "WB-MDALI",
+                json!({"device": {"channels": [{"name": "Bus 1 Status"}]}}),
+            ),
+            (
+                "heater",
+                json!({"device": {
+                    "parameters": {"mode": {"address": 1}},
+                    "subdevices": [],
+                    "channels": []
+                }}),
+            ),
+        ]
+        .into_iter()
+        .map(|(device_type, template)| (device_type.to_owned(), TemplateShape::of(&template)))
+        .collect();
+        let out = config_for_clients(config, &templates);
         assert_eq!(out.get("mqtt"), None, "credentials never go out");
         assert_eq!(out.get("http"), None);
         assert_eq!(out["debug"], false);
@@ -291,7 +351,7 @@ mod tests {
             json!({"slave_id": 4, "protocol": "modbus", "channels": []})
         );
         // Anything else is no config, and is handed back as it is.
-        assert_eq!(config_for_clients(json!([1]), templates), json!([1]));
+        assert_eq!(config_for_clients(json!([1]), &templates), json!([1]));
     }
 
     /// The `name` of each entry of a list.
@@ -305,36 +365,24 @@ mod tests {
 
     #[test]
     fn device_types_are_grouped_and_ordered_as_wb_mqtt_serial_lists_them() {
-        let mut relay = listing("WB-MR6C", "g-wb", "wb-mr6c");
-        relay.hardware = vec![
-            ("WBMR6C".into(), Some("1.2.0".into())),
-            ("MR6C".into(), None),
-        ];
-        relay.titles.push(("ru".into(), "Реле WB-MR6C".into()));
-        let types = vec![
+        let types = library(&[
+            ("zeta", json!({"title": "Zeta meter", "group": "g-meters"})),
             (
-                "zeta".to_string(),
-                false,
-                listing("Zeta meter", "g-meters", "zeta"),
-            ),
-            ("WB-MR6C".to_string(), false, relay),
-            (
-                "WB-MAP3".to_string(),
-                true,
-                listing("WB-MAP3 old", "g-wb-old", "map3"),
-            ),
-            ("alpha".to_string(), false, listing("Alpha", "", "alpha")),
-            (
-                "WB-MAI6".to_string(),
-                false,
-                listing("WB-MAI6", "g-wb", "wb-mai6"),
+                "WB-MR6C",
+                json!({"title": "WB-MR6C", "group": "g-wb",
+                       "hw": [{"signature": "WBMR6C", "fw": "1.2.0"},
+                              {"signature": "MR6C", "fw": ""}],
+                       "device": {"name": "MR6C", "id": "wb-mr6c", "channels": [],
+                                  "translations": {"ru": {"WB-MR6C": "Реле WB-MR6C"}}}}),
             ),
             (
-                "untitled".to_string(),
-                false,
-                TemplateListing::from_template(&json!({"device_type": "untitled"})),
+                "WB-MAP3",
+                json!({"title": "WB-MAP3 old", "group": "g-wb-old", "deprecated": true}),
             ),
-        ];
+            ("alpha", json!({"title": "Alpha"})),
+            ("WB-MAI6", json!({"title": "WB-MAI6", "group": "g-wb"})),
+            ("untitled", json!({})),
+        ]);
         let group_names = json!({"ru": {"g-wb": "Wiren Board", "g-meters": "Счётчики"}});
         let listed = device_types(&types, &group_names, "en");
         assert_eq!(names(&listed), ["g-wb", "g-wb-old", "g-custom", "g-meters"]);
@@ -349,8 +397,9 @@ mod tests {
             ])
         );
         assert_eq!(listed[1]["types"][0]["deprecated"], true);
-        // No title: named "" (wb-mqtt-serial's GetTranslations gives English the empty title).
-        assert_eq!(names(&listed[2]["types"]), ["", "Alpha"]);
+        // No title: the device type names it (wb-mqtt-serial's GetTranslations gives an empty
+        // title no translation, and GetTitle falls back to the type).
+        assert_eq!(names(&listed[2]["types"]), ["Alpha", "untitled"]);
         // In Russian: translated titles and group names; the groups sorted by those.
         let listed = device_types(&types, &group_names, "ru");
         assert_eq!(
@@ -364,9 +413,13 @@ mod tests {
         );
         // The Wiren Board groups and the custom group are there even when empty, the custom
         // group last then.
-        let meters = &types[..1];
+        let meters: Vec<ListedTemplate> = types
+            .iter()
+            .filter(|listed| listed.device_type == "zeta")
+            .cloned()
+            .collect();
         assert_eq!(
-            device_types(meters, &Value::Null, "en"),
+            device_types(&meters, &Value::Null, "en"),
             json!([{"name": "g-wb", "types": []}, {"name": "g-wb-old", "types": []},
                    {"name": "g-meters", "types": [
                        {"name": "Zeta meter", "deprecated": false, "type": "zeta",

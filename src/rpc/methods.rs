@@ -2,6 +2,7 @@
 //! [`BusQueue`], one transaction at a time, between the port's own transactions.
 
 use std::cmp::Ordering;
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Duration;
@@ -9,7 +10,8 @@ use std::time::Duration;
 use serde_json::{json, Map, Value};
 
 use super::config_load::{
-    config_for_clients, device_types, TypeListing, WB_GROUP_NAMES, WB_PORTS_SCHEMA,
+    config_for_clients, device_types, device_types_used, TemplateShape, WB_GROUP_NAMES,
+    WB_PORTS_SCHEMA,
 };
 use super::message::RpcError;
 use super::params::{
@@ -17,6 +19,7 @@ use super::params::{
     PortEventLog, PortLoad, PortLoadRaw, PortScan, PortSelector, PortSetup, ScanMode, POLL_HOLD,
 };
 use crate::config::config_file::PortType;
+use crate::config::library::ListedTemplate;
 use crate::config::parse::SourceText;
 use crate::config::{TemplateFile, TemplateLibrary};
 use crate::daemon::bus_queue::BusQueue;
@@ -116,12 +119,12 @@ pub struct DeviceTemplates(Arc<std::sync::RwLock<ServiceFiles>>);
 #[derive(Debug, Default)]
 struct ServiceFiles {
     used: TemplateLibrary,
-    types: Vec<TypeListing>,
+    types: Vec<ListedTemplate>,
     config: Option<PathBuf>,
 }
 
 impl DeviceTemplates {
-    pub fn new(used: TemplateLibrary, types: Vec<TypeListing>, config: PathBuf) -> Self {
+    pub fn new(used: TemplateLibrary, types: Vec<ListedTemplate>, config: PathBuf) -> Self {
         Self(Arc::new(std::sync::RwLock::new(ServiceFiles {
             used,
             types,
@@ -129,7 +132,7 @@ impl DeviceTemplates {
         })))
     }
 
-    pub fn replace(&self, used: TemplateLibrary, types: Vec<TypeListing>) {
+    pub fn replace(&self, used: TemplateLibrary, types: Vec<ListedTemplate>) {
         let mut files = self
             .0
             .write()
@@ -152,24 +155,48 @@ impl DeviceTemplates {
 /// `config/Load`: the config file as wb-mqtt-serial hands it out, its ports schema when its
 /// package is installed (else `{}`), and the device types of the library.
 fn config_load(templates: &DeviceTemplates, lang: &str) -> Result<Value, RpcError> {
-    let (path, types) = {
-        let files = templates.files();
-        (files.config.clone(), files.types.clone())
-    };
-    let path = path.ok_or_else(|| RpcError::server("this service has no config file"))?;
-    let source = SourceText::read(&path).map_err(|err| RpcError::server(err.to_string()))?;
+    let files = templates.files();
+    let path = files
+        .config
+        .as_deref()
+        .ok_or_else(|| RpcError::server("this service has no config file"))?;
+    let source = SourceText::read(path).map_err(|err| RpcError::server(err.to_string()))?;
     let root = source
         .parse_json()
         .map_err(|err| RpcError::server(err.to_string()))?;
+    if !root.is_object() {
+        return Err(RpcError::server(format!(
+            "{}: the config is not a JSON object",
+            path.display()
+        )));
+    }
+    // Every device's template, the running config's or not (a disabled device, one added
+    // since the last reload): the ones in use as loaded, the others read again, not kept.
+    let mut shapes = BTreeMap::new();
+    for device_type in device_types_used(&root) {
+        if shapes.contains_key(device_type) {
+            continue;
+        }
+        let shape = match files.used.get(device_type) {
+            Some(template) => Some(TemplateShape::of(&template.raw)),
+            None => files
+                .types
+                .iter()
+                .find(|listed| listed.device_type == device_type)
+                .and_then(ListedTemplate::read_json)
+                .map(|raw| TemplateShape::of(&raw)),
+        };
+        if let Some(shape) = shape {
+            shapes.insert(device_type.to_owned(), shape);
+        }
+    }
     let installed = |file: &str| SourceText::read(Path::new(file)).ok()?.parse_json().ok();
-    let config = config_for_clients(root, |device_type| {
-        templates.get(device_type).map(|template| template.raw)
-    });
     let group_names = installed(WB_GROUP_NAMES).unwrap_or(Value::Null);
+    let types = device_types(&files.types, &group_names, lang);
     Ok(json!({
-        "config": config,
+        "config": config_for_clients(root, &shapes),
         "schema": installed(WB_PORTS_SCHEMA).unwrap_or_else(|| json!({})),
-        "types": device_types(&types, &group_names, lang),
+        "types": types,
     }))
 }
 
@@ -304,14 +331,32 @@ async fn port_load(ports: &PortDirectory, load: PortLoad) -> Result<Value, RpcEr
     if load.serial.is_some() {
         refuse_if_the_config_forbids_fast_modbus(&access, "request by serial number")?;
     }
+    if let PortSelector::Device(id) = &load.port {
+        // wb-mqtt-serial asks a device named by `device_id` in its own protocol and refuses
+        // the others; a WBIO module's registers are not the host's at these addresses.
+        if access
+            .resolved
+            .devices
+            .iter()
+            .any(|d| d.id == *id && d.modbus_io)
+        {
+            return Err(RpcError::server(format!(
+                "The device's protocol is not supported: {id:?} is a modbus_io module; name its \
+                 WB-MIO's port and address instead"
+            )));
+        }
+    }
     let line = request_line(&access, &load.line);
     let mut bus = QueuedBus::new(&access);
-    let slave_id = load.slave_id.or(device_slave_id);
-    // A garbled reply or silence is tried once more (Modbus reads and register writes are
-    // idempotent): between the port's own transactions, a late reply to one of them can spoil
-    // the first try on a loaded line.
+    // A device named by `device_id` is asked at its own address, as wb-mqtt-serial does.
+    let slave_id = device_slave_id.or(load.slave_id);
+    // A read that meets a garbled reply or silence is tried once more: between the port's own
+    // transactions, a late reply to one of them can spoil the first try on a loaded line. A
+    // write is sent once, as wb-mqtt-serial sends it: its reply lost is no proof that it was
+    // not carried out, and a device's queue or command register would carry it out twice.
+    let tries = if load.pdu.is_write() { 1 } else { 2 };
     let mut answer = Answer::NoReply;
-    for _ in 0..2 {
+    for _ in 0..tries {
         answer = match (load.serial, slave_id) {
             (Some(serial), _) => bus
                 .by_serial(line, serial, load.pdu.clone(), load.response_timeout)

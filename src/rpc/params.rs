@@ -556,7 +556,7 @@ fn parse_port_load_raw(fields: &Map<String, Value>) -> Result<PortLoadRaw, RpcEr
     })
 }
 
-/// `device_id` names the port: no `path` or `ip` comes first (see [`port_selector`]).
+/// `device_id` names the port (it comes before `path` and `ip`: see [`port_selector`]).
 fn names_a_device(fields: &Map<String, Value>) -> bool {
     matches!(port_selector(fields), Ok(PortSelector::Device(_)))
 }
@@ -733,7 +733,11 @@ fn parse_hex_message(text: &str) -> Result<Vec<u8>, RpcError> {
         .collect()
 }
 
+/// `device_id` first, as wb-mqtt-serial looks the device up before the port.
 fn port_selector(fields: &Map<String, Value>) -> Result<PortSelector, RpcError> {
+    if let Some(device) = optional_str(fields, "device_id")? {
+        return Ok(PortSelector::Device(device.to_owned()));
+    }
     if let Some(path) = optional_str(fields, "path")? {
         return Ok(PortSelector::Path(path.to_owned()));
     }
@@ -744,9 +748,6 @@ fn port_selector(fields: &Map<String, Value>) -> Result<PortSelector, RpcError> 
             ip: ip.to_owned(),
             port,
         });
-    }
-    if let Some(device) = optional_str(fields, "device_id")? {
-        return Ok(PortSelector::Device(device.to_owned()));
     }
     Err(RpcError::server(
         "Port is not defined: give \"path\" (serial), \"ip\" and \"port\" (TCP), or \"device_id\"",
@@ -1026,12 +1027,18 @@ mod tests {
                 "{protocol}"
             );
         }
-        // A port named by its path is still a raw transfer without "protocol".
-        let mut by_path = dali;
-        by_path["path"] = json!("/dev/ttyRS485-1");
-        by_path["response_size"] = json!(8);
+        // The device comes before a path (wb-mqtt-serial looks it up first); a port named by
+        // its path alone is still a raw transfer without "protocol".
+        let mut with_path = dali;
+        with_path["path"] = json!("/dev/ttyRS485-1");
+        with_path["response_size"] = json!(8);
+        let Ok(Method::PortLoad(load)) = parse("port", "Load", with_path.clone()) else {
+            panic!("not Modbus");
+        };
+        assert_eq!(load.port, PortSelector::Device("wb-mdali_1".into()));
+        with_path.as_object_mut().unwrap().remove("device_id");
         assert!(matches!(
-            parse("port", "Load", by_path),
+            parse("port", "Load", with_path),
             Ok(Method::PortLoadRaw(_))
         ));
     }

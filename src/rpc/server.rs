@@ -18,7 +18,9 @@ use super::methods::{execute_with_templates, DeviceTemplates};
 use super::params::{parse_method, SERVED};
 use crate::config::config_file::MqttConfig;
 use crate::daemon::PortDirectory;
-use crate::mqtt::client::{connection_options, refusal_text, STABLE_CONNECTION};
+use crate::mqtt::client::{
+    connection_options, refusal_text, MAX_OUTGOING_PACKET, STABLE_CONNECTION,
+};
 use crate::mqtt::MqttError;
 
 /// Requests served at the same time; more get an error at once. Each holds a task and, while
@@ -31,6 +33,8 @@ const MAX_REQUEST_BYTES: usize = 64 * 1024;
 const FIRST_RECONNECT_DELAY: Duration = Duration::from_secs(2);
 const MAX_RECONNECT_DELAY: Duration = Duration::from_secs(30);
 const EXIT_FLUSH_TIMEOUT: Duration = Duration::from_secs(2);
+/// A PUBLISH packet's bytes besides its topic and payload (fixed header, topic length).
+const PUBLISH_OVERHEAD: usize = 8;
 
 /// Serves wb-mqtt-serial's RPC for the ports in `ports` until `shutdown` completes.
 pub async fn run_rpc_server(
@@ -197,15 +201,26 @@ async fn send_reply(
     id: &serde_json::Value,
     outcome: &Result<serde_json::Value, RpcError>,
 ) {
-    let payload = reply_payload(id, outcome);
+    let mut payload = reply_payload(id, outcome);
+    // A packet the client would refuse drops the connection, and every reply in flight with
+    // it: the caller gets an error instead (a config/Load of a very large config, say).
+    let reply_topic = topic.reply_topic();
+    if payload.len() + reply_topic.len() + PUBLISH_OVERHEAD > MAX_OUTGOING_PACKET {
+        let too_large = Err(RpcError::server(format!(
+            "the reply is {} bytes; at most {} are sent",
+            payload.len(),
+            MAX_OUTGOING_PACKET - reply_topic.len() - PUBLISH_OVERHEAD
+        )));
+        payload = reply_payload(id, &too_large);
+    }
     // QoS 0: with QoS 1 the broker's PUBACK would be the last packet to us before the next
     // request, and a broker without TCP_NODELAY (mosquitto's default) holds that request
     // until our delayed ACK (some 40 ms a call). A reply is lost only with the connection,
     // which the caller's timeout covers.
     if let Err(error) = client
-        .publish(topic.reply_topic(), QoS::AtMostOnce, false, payload)
+        .publish(reply_topic.clone(), QoS::AtMostOnce, false, payload)
         .await
     {
-        debug!(%error, topic = %topic.reply_topic(), "RPC reply not sent");
+        debug!(%error, topic = %reply_topic, "RPC reply not sent");
     }
 }

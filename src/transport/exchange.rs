@@ -276,8 +276,9 @@ struct Receiving {
     /// A frame with the header of a reply to the request came, its CRC or body bad: see
     /// [`ReplyTiming::foreign_bytes_only`].
     reply_began: bool,
-    /// The parser dropped bytes (they could not start the reply, or a candidate failed): what
-    /// looks like the reply's header after them is no proof that the reply began.
+    /// Bytes were dropped (the parser's: they could not start the reply, or a candidate failed;
+    /// or heard before the request had left the wire): what looks like the reply's header after
+    /// them is no proof that the reply began.
     dropped: bool,
     /// When the reply should be complete if it comes as the device's last ones did: the driver
     /// may sleep until then and read it in one go ([`Exchange::batch_read_at`]). `None` once
@@ -597,6 +598,9 @@ impl Exchange {
                 count = bytes.len(),
                 "bytes outside the reply window dropped"
             );
+            // Bytes heard while the request was still on the wire (a collision): what follows
+            // them may be the rest of another device's frame, not the start of the reply.
+            receiving.dropped = true;
             return;
         }
         self.take_reply(now, bytes);
@@ -1831,13 +1835,26 @@ mod tests {
         // Noise, then the reply cut short: noise ended the wait, not the reply.
         let mut noise_then_cut = vec![0x00];
         noise_then_cut.extend(reply.get(..5).unwrap_or(&[]));
-        for (bytes, foreign) in [
-            (other, true),
-            (exception_shaped, true),
-            (noise_then_cut, true),
-            (bad_crc, false),
-            (reply.get(..5).unwrap_or(&[]).to_vec(), false),
+        // The same frame colliding with the request: its first three bytes are heard while the
+        // request is still on the wire (thrown away), so the window hears `1E 84 …` first.
+        let collision = line.wire_time(4);
+        for (bytes, early, foreign) in [
+            (other, Duration::ZERO, true),
+            (exception_shaped.clone(), Duration::ZERO, true),
+            (exception_shaped, collision, true),
+            (noise_then_cut, Duration::ZERO, true),
+            (bad_crc, Duration::ZERO, false),
+            (
+                reply.get(..5).unwrap_or(&[]).to_vec(),
+                Duration::ZERO,
+                false,
+            ),
         ] {
+            let start = if early.is_zero() {
+                start
+            } else {
+                transaction.request_time - early
+            };
             let arrivals = on_the_wire(&line, start, &bytes);
             let mut exchange = Exchange::new(serial(line));
             let finished = run(&mut exchange, &transaction, ms(0), &arrivals);
