@@ -1256,8 +1256,8 @@ async fn bad_requests_get_json_rpc_errors_and_the_daemon_lives_on() {
 /// Modbus frame: no event poll, no event setup, and port/Scan (the web UI's scan, `rtu2mqtt scan`
 /// through the service) and requests by serial number (port/Load and port/Setup with `sn`) are
 /// refused with the reason. Its devices are polled classically, and served by address.
-async fn no_fast_modbus_frame_on_a_port_that_turns_it_off(line: &str, baud: u32) {
-    let broker = Mosquitto::start();
+/// The simulator with one relay at address 20 on `line` (and the directory of its bus file).
+fn relay_bus(line: &str) -> (tempfile::TempDir, SimProcess) {
     let dir = tempfile::tempdir().unwrap();
     let bus = dir.path().join("bus.json");
     std::fs::write(
@@ -1268,6 +1268,12 @@ async fn no_fast_modbus_frame_on_a_port_that_turns_it_off(line: &str, baud: u32)
     )
     .unwrap();
     let sim = SimProcess::start_with(&bus, &repo("templates"), &[]);
+    (dir, sim)
+}
+
+async fn no_fast_modbus_frame_on_a_port_that_turns_it_off(line: &str, baud: u32) {
+    let broker = Mosquitto::start();
+    let (_dir, sim) = relay_bus(line);
     let config = json!({
         "mqtt": {"host": "127.0.0.1", "port": broker.port, "client_id": "rtu2mqtt-rpc-test"},
         "ports": [{"path": sim.pty, "baud_rate": baud, "stop_bits": 2, "fast_modbus": false,
@@ -1580,16 +1586,7 @@ async fn a_dali_gateway_as_wb_mqtt_dali_drives_it_at_9600() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_reply_too_large_for_one_packet_is_an_error_and_the_server_goes_on() {
     let broker = Mosquitto::start();
-    let dir = tempfile::tempdir().unwrap();
-    let bus = dir.path().join("bus.json");
-    std::fs::write(
-        &bus,
-        json!({"devices": [{"name": "relay", "template": "rtu2mqtt-relay6", "address": 20,
-                            "serial": "0xFE000020", "line": "115200 8N2"}]})
-        .to_string(),
-    )
-    .unwrap();
-    let sim = SimProcess::start_with(&bus, &repo("templates"), &[]);
+    let (_dir, sim) = relay_bus("115200 8N2");
     let config = json!({
         "mqtt": {"host": "127.0.0.1", "port": broker.port, "client_id": "rtu2mqtt-rpc-test"},
         "notes": "x".repeat(300_000),
