@@ -224,7 +224,13 @@ pub async fn execute_with_templates(
         Method::DeviceSetPoll(set_poll) => device_set_poll(ports, set_poll).await,
         Method::DeviceLoadConfig(load) => device_load_config(ports, templates, load).await,
         Method::PortEventLog(read) => port_event_log(ports, read).await,
-        Method::ConfigLoad { lang } => config_load(templates, &lang),
+        Method::ConfigLoad { lang } => {
+            // Files are read (the config, templates not in use): off the async workers.
+            let templates = templates.clone();
+            tokio::task::spawn_blocking(move || config_load(&templates, &lang))
+                .await
+                .map_err(|err| RpcError::server(format!("config/Load failed: {err}")))?
+        }
     }
 }
 
