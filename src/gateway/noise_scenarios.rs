@@ -1105,7 +1105,8 @@ fn sweep_run(devices: u8, baud: u32, seed: u64, mix: &SweepMix) -> (Vec<String>,
 /// tripled; one heavy on corruption, garbage and replies late by 150 ms to 1.3 s; and one per
 /// delay of `SWEEP_DELAYS` (ms, comma-separated) with 15 % of replies that late.
 /// `SWEEP_SEEDS` (default 300) runs per bus and mix from seed `SWEEP_FROM` (1); `SWEEP_MIX`
-/// (a name prefix) and `SWEEP_BUS` (`8x115200`) pick some. About 5 minutes for everything in
+/// (a name prefix) and `SWEEP_BUS` (`8x115200`; any devices and baud rate, `32x9600` too) pick
+/// some. About 5 minutes for everything in
 /// release: `cargo test --release --lib gateway::noise_scenarios::fault_sweep -- --exact
 /// --ignored --nocapture --test-threads=1`.
 #[test]
@@ -1387,15 +1388,18 @@ fn sweep_seeds(
         .unwrap_or(default_seeds);
     let from: u64 = env("SWEEP_FROM").and_then(|s| s.parse().ok()).unwrap_or(1);
     let only_mix = env("SWEEP_MIX");
-    let only_bus = env("SWEEP_BUS");
-    let mut total = 0;
-    for (devices, baud) in [(8u8, 115_200u32), (32, 115_200), (8, 9600)] {
-        if only_bus
-            .as_ref()
-            .is_some_and(|b| *b != format!("{devices}x{baud}"))
-        {
-            continue;
+    // One bus when asked for (any `<devices>x<baud>`, 32x9600 too), else the usual three.
+    let buses: Vec<(u8, u32)> = match env("SWEEP_BUS") {
+        Some(bus) => {
+            let parsed = bus
+                .split_once('x')
+                .and_then(|(devices, baud)| Some((devices.parse().ok()?, baud.parse().ok()?)));
+            vec![parsed.unwrap_or_else(|| panic!("SWEEP_BUS={bus:?}: write e.g. 8x115200"))]
         }
+        None => vec![(8, 115_200), (32, 115_200), (8, 9600)],
+    };
+    let mut total = 0;
+    for (devices, baud) in buses {
         for mix in &sweep_mixes() {
             if only_mix
                 .as_ref()
