@@ -461,10 +461,8 @@ impl VirtualGateway {
                         .into_iter()
                         .filter(|&(t, _)| t > now)
                         .collect();
-                    let mut merged: Vec<(Duration, u8)> =
-                        late.into_iter().chain(arrivals).collect();
-                    merged.sort_by_key(|&(t, _)| t);
-                    arrivals = merged.into();
+                    arrivals =
+                        merge_on_the_wire(late, arrivals.into(), self.line.char_time()).into();
                 }
                 self.exchange.handle_sent(now);
             }
@@ -527,6 +525,42 @@ impl VirtualGateway {
     }
 }
 
+/// Two byte streams on one wire (each byte at the end of its character, `char_time` long), as
+/// the simulator's wire merges overlapping transmissions: a byte of one that overlaps a byte of
+/// the other becomes one byte, their wired AND (a 0 bit from either driver wins), at the later
+/// end; the others keep their times. Sorted into one stream instead, two replies would reach
+/// the master interleaved byte by byte, each byte intact, which no RS-485 pair does (a chance
+/// CRC match on such an interleaving once published a wrong value in the fault sweep).
+fn merge_on_the_wire(
+    first: Vec<(Duration, u8)>,
+    second: Vec<(Duration, u8)>,
+    char_time: Duration,
+) -> Vec<(Duration, u8)> {
+    // Characters whose ends are a whole character apart (less rounding) do not overlap.
+    let apart = char_time.saturating_sub(Duration::from_nanos(100));
+    let mut wire = Vec::with_capacity(first.len() + second.len());
+    let mut second = second.into_iter().peekable();
+    for (at, byte) in first {
+        while let Some(&(other_at, other)) = second.peek() {
+            if other_at + apart > at {
+                break;
+            }
+            wire.push((other_at, other));
+            second.next();
+        }
+        match second.peek() {
+            Some(&(other_at, other)) if other_at < at + apart => {
+                wire.push((at.max(other_at), byte & other));
+                second.next();
+            }
+            _ => wire.push((at, byte)),
+        }
+    }
+    wire.extend(second);
+    wire.sort_by_key(|&(at, _)| at);
+    wire
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -570,5 +604,31 @@ mod tests {
         gateway.set_plugged(7, true);
         gateway.run_for(Duration::from_secs(5));
         assert_eq!(setup(&gateway), [Some(1), Some(3), Some(0)]);
+    }
+
+    #[test]
+    fn overlapping_characters_merge_by_wired_and_not_interleave() {
+        let char_time = Duration::from_micros(573);
+        let at = |n: u64| Duration::from_micros(10_000 + 573 * n);
+        let late = vec![(at(1), 0x06), (at(2), 0x04), (at(3), 0x0C)];
+        // Half a character later: every byte overlaps one of the other stream.
+        let half = Duration::from_micros(286);
+        let reply = vec![(at(1) + half, 0xE9), (at(2) + half, 0x1B), (at(5), 0x4C)];
+        assert_eq!(
+            merge_on_the_wire(late, reply, char_time),
+            vec![
+                (at(1) + half, 0x06 & 0xE9),
+                (at(2) + half, 0x04 & 0x1B),
+                (at(3), 0x0C),
+                (at(5), 0x4C)
+            ]
+        );
+        // Back to back, nothing overlaps: both kept, in time order.
+        let first = vec![(at(1), 1), (at(2), 2)];
+        let second = vec![(at(3), 3), (at(4), 4)];
+        assert_eq!(
+            merge_on_the_wire(first, second, char_time),
+            vec![(at(1), 1), (at(2), 2), (at(3), 3), (at(4), 4)]
+        );
     }
 }
