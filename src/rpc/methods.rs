@@ -272,12 +272,12 @@ fn ports_load(ports: &PortDirectory) -> Value {
     Value::Array(list)
 }
 
-/// The running port a request names, and the slave id of the device it names (if it names
-/// one by `device_id`).
+/// The running port a request names, and the index among its devices of the device it names
+/// (if it names one by `device_id`).
 fn find_port(
     ports: &PortDirectory,
     selector: &PortSelector,
-) -> Result<(PortAccess, Option<u8>), RpcError> {
+) -> Result<(PortAccess, Option<usize>), RpcError> {
     let running = snapshot(ports);
     let found = running.iter().find_map(|access| {
         let config = &access.resolved.config;
@@ -292,8 +292,8 @@ fn find_port(
                 .resolved
                 .devices
                 .iter()
-                .find(|d| d.id == *id)
-                .map(|d| (access.clone(), Some(d.slave_id))),
+                .position(|d| d.id == *id)
+                .map(|index| (access.clone(), Some(index))),
         }
     });
     found.ok_or_else(|| {
@@ -333,29 +333,24 @@ fn io_error(err: PortError) -> RpcError {
 
 /// `port/Load` with a Modbus protocol: one request, the reply's data as wb-mqtt-serial gives it.
 async fn port_load(ports: &PortDirectory, load: PortLoad) -> Result<Value, RpcError> {
-    let (access, device_slave_id) = find_port(ports, &load.port)?;
+    let (access, named_device) = find_port(ports, &load.port)?;
+    let named_device = named_device.and_then(|index| access.resolved.devices.get(index));
     if load.serial.is_some() {
         refuse_if_the_config_forbids_fast_modbus(&access, "request by serial number")?;
     }
-    if let PortSelector::Device(id) = &load.port {
+    if let Some(device) = named_device.filter(|device| device.modbus_io) {
         // wb-mqtt-serial asks a device named by `device_id` in its own protocol and refuses
         // the others; a WBIO module's registers are not the host's at these addresses.
-        if access
-            .resolved
-            .devices
-            .iter()
-            .any(|d| d.id == *id && d.modbus_io)
-        {
-            return Err(RpcError::server(format!(
-                "The device's protocol is not supported: {id:?} is a modbus_io module; name its \
-                 WB-MIO's port and address instead"
-            )));
-        }
+        return Err(RpcError::server(format!(
+            "The device's protocol is not supported: {:?} is a modbus_io module; name its \
+             WB-MIO's port and address instead",
+            device.id
+        )));
     }
     let line = request_line(&access, &load.line);
     let mut bus = QueuedBus::new(&access);
     // A device named by `device_id` is asked at its own address, as wb-mqtt-serial does.
-    let slave_id = device_slave_id.or(load.slave_id);
+    let slave_id = named_device.map(|device| device.slave_id).or(load.slave_id);
     // A read that meets a garbled reply or silence is tried once more: between the port's own
     // transactions, a late reply to one of them can spoil the first try on a loaded line. A
     // write is sent once, as wb-mqtt-serial sends it: its reply lost is no proof that it was
@@ -780,20 +775,11 @@ fn find_device(
     selector: &PortSelector,
     slave_id: Option<u8>,
 ) -> Result<(PortAccess, usize), RpcError> {
-    let (access, device_slave_id) = find_port(ports, selector)?;
-    let address = match (selector, slave_id.or(device_slave_id)) {
-        (PortSelector::Device(id), _) => {
-            let index = access
-                .resolved
-                .devices
-                .iter()
-                .position(|d| d.id == *id)
-                .ok_or_else(|| RpcError::server("Port or device not found"))?;
-            return Ok((access, index));
-        }
-        (_, Some(address)) => address,
-        (_, None) => return Err(RpcError::server("bad \"slave_id\": missing")),
-    };
+    let (access, named_device) = find_port(ports, selector)?;
+    if let Some(index) = named_device {
+        return Ok((access, index));
+    }
+    let address = slave_id.ok_or_else(|| RpcError::server("bad \"slave_id\": missing"))?;
     let index = access
         .resolved
         .devices
