@@ -1487,6 +1487,19 @@ async fn a_dali_gateway_as_wb_mqtt_dali_drives_it(line: &str, baud: u32) {
     assert!(result["schema"].is_object(), "{loaded}");
     let russian = rpc(port, "config", "Load", json!({"lang": "ru"})).await;
     assert_eq!(listed(&russian["result"])["name"], "Шлюз WB-MDALI");
+    // A `lang` that is not text is read as wb-mqtt-serial reads it: a number as its text (no
+    // such language: English titles); an object is refused.
+    let numbered = rpc(port, "config", "Load", json!({"lang": 7})).await;
+    assert_eq!(listed(&numbered["result"])["name"], "WB-MDALI gateway");
+    let refused = rpc(port, "config", "Load", json!({"lang": {"ru": true}})).await;
+    assert_eq!(refused["error"]["code"], -32000, "{refused}");
+    assert!(
+        refused["error"]["message"]
+            .as_str()
+            .unwrap()
+            .contains("lang"),
+        "{refused}"
+    );
 
     // The gateway's queue, written as wb-mqtt-dali writes it: one register, then a frame of
     // two (function 16), by device id and without "protocol".
@@ -1524,6 +1537,25 @@ async fn a_dali_gateway_as_wb_mqtt_dali_drives_it(line: &str, baud: u32) {
         "{refused}"
     );
     assert_eq!(held(0), 42, "nothing written");
+    // A `device_id` that names no configured device gives way to the port the request names
+    // (wb-mqtt-serial looks the device up, then the port); without one it is reported.
+    let mut by_path = write(3, 2, 2, "");
+    by_path["device_id"] = json!("wb-mdali_7");
+    by_path["path"] = json!(sim.pty);
+    by_path["slave_id"] = json!(22);
+    by_path["protocol"] = json!("modbus");
+    let read = rpc(port, "port", "Load", by_path.clone()).await;
+    assert_eq!(read["result"], json!({"response": "0001e240"}), "{read}");
+    by_path.as_object_mut().unwrap().remove("path");
+    let unknown = rpc(port, "port", "Load", by_path).await;
+    assert_eq!(unknown["error"]["code"], -32000, "{unknown}");
+    assert!(
+        unknown["error"]["message"]
+            .as_str()
+            .unwrap()
+            .contains("\"wb-mdali_7\""),
+        "{unknown}"
+    );
     // And the service publishes the gateway's registers where wb-mqtt-dali reads them.
     wait_for("the gateway's registers on MQTT", || async {
         let state = retained(port).await?;

@@ -41,6 +41,7 @@ fn noise() -> Faults {
         delay: Duration::from_millis(700),
         exception: 0.02,
         garbage: 0.02,
+        ..Faults::default()
     }
 }
 
@@ -1021,6 +1022,30 @@ fn sweep_mixes() -> Vec<SweepMix> {
                 delay: spread_delay(address, seed),
                 exception: 0.02,
                 garbage: 0.12,
+                ..Faults::default()
+            }),
+        ),
+        mix(
+            "line_errors_carry",
+            true,
+            Box::new(|_, _| Faults {
+                flip_bit: 0.08,
+                truncate: 0.04,
+                glitch: 0.08,
+                ..Faults::default()
+            }),
+        ),
+        mix(
+            "line_errors_late_carry",
+            true,
+            Box::new(|address, seed| Faults {
+                delay_reply: 0.05,
+                delay: spread_delay(address, seed),
+                garbage: 0.03,
+                flip_bit: 0.08,
+                truncate: 0.04,
+                glitch: 0.08,
+                ..Faults::default()
             }),
         ),
     ];
@@ -1102,7 +1127,9 @@ fn sweep_run(devices: u8, baud: u32, seed: u64, mix: &SweepMix) -> (Vec<String>,
 /// time already come) and every panic, with its seed; the recovery time is printed, not
 /// checked. Mixes: the suite's noise; the same with late bytes left on the line for the next
 /// transactions ([`VirtualGateway::carry_late_bytes`], as on a real port); every probability
-/// tripled; one heavy on corruption, garbage and replies late by 150 ms to 1.3 s; and one per
+/// tripled; one heavy on corruption, garbage and replies late by 150 ms to 1.3 s; line errors
+/// (a flipped bit anywhere in a reply, a reply cut short, a stray byte beside it), alone and
+/// with late replies and garbage; and one per
 /// delay of `SWEEP_DELAYS` (ms, comma-separated) with 15 % of replies that late.
 /// `SWEEP_SEEDS` (default 300) runs per bus and mix from seed `SWEEP_FROM` (1); `SWEEP_MIX`
 /// (a name prefix) and `SWEEP_BUS` (`8x115200`; any devices and baud rate, `32x9600` too) pick

@@ -243,6 +243,27 @@ fn snapshot(ports: &PortDirectory) -> Vec<PortAccess> {
         .collect()
 }
 
+/// `params` as the request is to be read: a `device_id` that names no configured device is
+/// left out when the request also names a port by `path` or `ip`, which then decides (as
+/// wb-mqtt-serial does: it looks the device up first and goes on with the port when there is
+/// none). Without a port to fall back on, the `device_id` stays and is reported as unknown.
+pub fn without_unknown_device_id(ports: &PortDirectory, params: &Value) -> Option<Value> {
+    let fields = params.as_object()?;
+    let id = fields.get("device_id")?.as_str()?;
+    if !(fields.contains_key("path") || fields.contains_key("ip")) {
+        return None;
+    }
+    let configured = snapshot(ports)
+        .iter()
+        .any(|access| access.resolved.devices.iter().any(|d| d.id == id));
+    if configured {
+        return None;
+    }
+    let mut fields = fields.clone();
+    fields.remove("device_id");
+    Some(Value::Object(fields))
+}
+
 /// `ports/Load`: the configured ports, as wb-mqtt-serial lists them.
 fn ports_load(ports: &PortDirectory) -> Value {
     let list: Vec<Value> = snapshot(ports)

@@ -279,7 +279,7 @@ pub fn parse_method(service: &str, method: &str, params: &Value) -> Result<Metho
     match (service, method) {
         ("ports", "Load") => Ok(Method::PortsLoad),
         ("config", "Load") => Ok(Method::ConfigLoad {
-            lang: optional_str(fields, "lang")?.unwrap_or("en").to_owned(),
+            lang: language(fields)?,
         }),
         // A configured device named by `device_id` is asked in its own protocol, whatever
         // `protocol` says (wb-mqtt-serial's `PortLoad`): wb-mqtt-dali writes to its WB-MDALI
@@ -816,6 +816,18 @@ fn optional_str<'a>(
     }
 }
 
+/// `config/Load`'s `lang`, read as wb-mqtt-serial reads it (JSON's `asString`): a number or a
+/// boolean as its text, null as no language (titles fall back to English), "en" when absent.
+fn language(fields: &Map<String, Value>) -> Result<String, RpcError> {
+    match fields.get("lang") {
+        None => Ok("en".to_owned()),
+        Some(Value::Null) => Ok(String::new()),
+        Some(Value::String(text)) => Ok(text.clone()),
+        Some(scalar @ (Value::Number(_) | Value::Bool(_))) => Ok(scalar.to_string()),
+        Some(other) => Err(bad("lang", format!("{other} is not a language code"))),
+    }
+}
+
 /// A non-negative integer, as a number or a decimal / `0x` hex string.
 fn optional_uint(fields: &Map<String, Value>, name: &str) -> Result<Option<u64>, RpcError> {
     match fields.get(name) {
@@ -959,6 +971,21 @@ mod tests {
         assert!(pdu(5, 1, &[1]).is_err());
         assert!(pdu(16, 2, &[0, 1]).is_err());
         assert!(pdu(15, 9, &[0xFF]).is_err());
+    }
+
+    #[test]
+    fn lang_is_read_as_wb_mqtt_serial_reads_it() {
+        let lang = |params: Value| match parse_method("config", "Load", &params) {
+            Ok(Method::ConfigLoad { lang }) => Ok(lang),
+            Ok(other) => panic!("{other:?}"),
+            Err(error) => Err(error.message),
+        };
+        assert_eq!(lang(json!({})), Ok("en".to_owned()));
+        assert_eq!(lang(json!({"lang": "ru"})), Ok("ru".to_owned()));
+        assert_eq!(lang(json!({"lang": 7})), Ok("7".to_owned()));
+        assert_eq!(lang(json!({"lang": true})), Ok("true".to_owned()));
+        assert_eq!(lang(json!({"lang": null})), Ok(String::new()));
+        assert!(lang(json!({"lang": ["ru"]})).unwrap_err().contains("lang"));
     }
 
     #[test]

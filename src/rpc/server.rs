@@ -14,7 +14,7 @@ use super::message::{
     advertised_topic, parse_request, reply_payload, RequestTopic, RpcError, REQUEST_FILTER,
     TOTAL_TIMEOUT_MESSAGE,
 };
-use super::methods::{execute_with_templates, DeviceTemplates};
+use super::methods::{execute_with_templates, without_unknown_device_id, DeviceTemplates};
 use super::params::{parse_method, SERVED};
 use crate::config::config_file::MqttConfig;
 use crate::daemon::PortDirectory;
@@ -167,7 +167,13 @@ pub async fn serve(
         Ok(request) => request,
         Err((id, error)) => return (id, Err(error)),
     };
-    let method = match parse_method(&topic.service, &topic.method, &request.params) {
+    let fallback = without_unknown_device_id(ports, &request.params);
+    if fallback.is_some() {
+        debug!(method = %topic.name(), client = %topic.client,
+            "device_id names no configured device: the request goes to the port it names");
+    }
+    let params = fallback.as_ref().unwrap_or(&request.params);
+    let method = match parse_method(&topic.service, &topic.method, params) {
         Ok(method) => method,
         Err(error) => {
             debug!(method = %topic.name(), client = %topic.client, %error, "RPC request refused");

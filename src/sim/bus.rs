@@ -17,7 +17,7 @@ use crate::protocol::{
 };
 
 use super::device::{ValueChange, VirtualDevice};
-use super::faults::{busy_exception, garbage, FaultAction, XorShift64};
+use super::faults::{busy_exception, flip_bit, garbage, glitch, truncate, FaultAction, XorShift64};
 use super::line::{MasterLine, ReceivedRequest};
 pub use super::transmission::Transmission;
 use super::transmission::{collide, Burst, TimedFrame};
@@ -667,6 +667,9 @@ impl Bus {
                     }
                 }
                 FaultAction::Garbage(seed) => reply.frame = garbage(seed, reply.frame.len()),
+                FaultAction::FlipBit(seed) => flip_bit(&mut reply.frame, seed),
+                FaultAction::Truncate(seed) => truncate(&mut reply.frame, seed),
+                FaultAction::Glitch(seed) => glitch(&mut reply.frame, seed),
             }
             sent.push(reply);
         }

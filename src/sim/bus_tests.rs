@@ -956,6 +956,60 @@ fn faults_drop_corrupt_and_delay() {
 }
 
 #[test]
+fn line_errors_reach_the_wire_as_drawn() {
+    let mut bus = seed_bus();
+    let read = Request::classic(
+        20,
+        RequestPdu::ReadHoldingRegisters {
+            start: 128,
+            count: 1,
+        },
+    );
+    let clean = hex("14 03 02 00 14 B5 88");
+    let faulty = |bus: &mut Bus, faults: Faults| {
+        bus.device_mut(0).unwrap().faults = faults;
+        send(bus, &read)
+    };
+    for _ in 0..20 {
+        let flipped = faulty(
+            &mut bus,
+            Faults {
+                flip_bit: 1.0,
+                ..Faults::default()
+            },
+        );
+        let differing: u32 = flipped
+            .iter()
+            .zip(&clean)
+            .map(|(a, b)| (a ^ b).count_ones())
+            .sum();
+        assert_eq!(
+            (flipped.len(), differing),
+            (clean.len(), 1),
+            "{flipped:02X?}"
+        );
+        let cut = faulty(
+            &mut bus,
+            Faults {
+                truncate: 1.0,
+                ..Faults::default()
+            },
+        );
+        assert!(!cut.is_empty() && cut.len() < clean.len());
+        assert_eq!(cut[..], clean[..cut.len()]);
+        let stray = faulty(
+            &mut bus,
+            Faults {
+                glitch: 1.0,
+                ..Faults::default()
+            },
+        );
+        assert_eq!(stray.len(), clean.len() + 1);
+        assert!(stray[1..] == clean[..] || stray[..clean.len()] == clean[..]);
+    }
+}
+
+#[test]
 fn unplugged_devices_are_silent() {
     let mut bus = seed_bus();
     bus.device_mut(0).unwrap().plugged = false;

@@ -53,6 +53,12 @@ pub struct ControlCommand {
     pub exception: Option<f64>,
     #[serde(default)]
     pub garbage: Option<f64>,
+    #[serde(default)]
+    pub flip_bit: Option<f64>,
+    #[serde(default)]
+    pub truncate: Option<f64>,
+    #[serde(default)]
+    pub glitch: Option<f64>,
 }
 
 /// What the caller should do after replying.
@@ -238,6 +244,9 @@ fn run(bus: &mut Bus, now: Duration, command: &ControlCommand) -> Result<Value, 
                     .map_or(defaults.delay, Duration::from_millis),
                 exception: command.exception.unwrap_or(0.0),
                 garbage: command.garbage.unwrap_or(0.0),
+                flip_bit: command.flip_bit.unwrap_or(0.0),
+                truncate: command.truncate.unwrap_or(0.0),
+                glitch: command.glitch.unwrap_or(0.0),
             };
             Ok(json!({}))
         }

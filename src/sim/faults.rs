@@ -1,6 +1,7 @@
 //! Injected faults: lost replies, corrupted CRCs, late replies, busy exceptions, line noise
-//! (garbage in place of a reply). Decided by a tiny seeded
-//! xorshift generator so that a run is reproducible.
+//! (garbage in place of a reply), line errors (a flipped bit anywhere in a reply, a reply cut
+//! short, a stray byte beside it). Decided by a tiny seeded xorshift generator so that a run is
+//! reproducible.
 
 use std::time::Duration;
 
@@ -19,6 +20,14 @@ pub struct Faults {
     pub exception: f64,
     /// The reply is replaced by as many random bytes (noise on the line).
     pub garbage: f64,
+    /// One bit of one byte of the reply is inverted: the commonest line error, and unlike
+    /// `corrupt_crc` it can hit the address, the function code or the byte count.
+    pub flip_bit: f64,
+    /// The reply stops after part of it (a device reset mid-reply, a line dropout).
+    pub truncate: f64,
+    /// A stray byte (0x00, 0xFF or any) right before or right after the reply, as a
+    /// transceiver switching its driver on or off can put on an unbiased line.
+    pub glitch: f64,
 }
 
 impl Default for Faults {
@@ -30,6 +39,9 @@ impl Default for Faults {
             delay: Duration::from_secs(1),
             exception: 0.0,
             garbage: 0.0,
+            flip_bit: 0.0,
+            truncate: 0.0,
+            glitch: 0.0,
         }
     }
 }
@@ -44,6 +56,12 @@ pub enum FaultAction {
     Exception,
     /// Replace the reply by random bytes drawn from this seed.
     Garbage(u64),
+    /// [`flip_bit`] with this seed.
+    FlipBit(u64),
+    /// [`truncate`] with this seed.
+    Truncate(u64),
+    /// [`glitch`] with this seed.
+    Glitch(u64),
 }
 
 impl Faults {
@@ -53,9 +71,13 @@ impl Faults {
             && self.delay_reply <= 0.0
             && self.exception <= 0.0
             && self.garbage <= 0.0
+            && self.flip_bit <= 0.0
+            && self.truncate <= 0.0
+            && self.glitch <= 0.0
     }
 
-    /// Draws the fate of one reply (at most one fault at a time, in this order).
+    /// Draws the fate of one reply (at most one fault at a time, in this order). A fault whose
+    /// probability is 0 draws nothing, so adding one keeps the runs of the others as they were.
     pub fn draw(&self, rng: &mut XorShift64) -> FaultAction {
         if self.is_none() {
             FaultAction::None
@@ -69,6 +91,12 @@ impl Faults {
             FaultAction::Exception
         } else if rng.chance(self.garbage) {
             FaultAction::Garbage(rng.next_u64())
+        } else if rng.chance(self.flip_bit) {
+            FaultAction::FlipBit(rng.next_u64())
+        } else if rng.chance(self.truncate) {
+            FaultAction::Truncate(rng.next_u64())
+        } else if rng.chance(self.glitch) {
+            FaultAction::Glitch(rng.next_u64())
         } else {
             FaultAction::None
         }
@@ -130,6 +158,38 @@ pub fn garbage(seed: u64, length: usize) -> Vec<u8> {
     (0..length.max(1)).map(|_| rng.next_u64() as u8).collect()
 }
 
+/// Inverts bit `seed % 8` of the byte `seed / 8` (modulo the length) of `frame`.
+pub fn flip_bit(frame: &mut [u8], seed: u64) {
+    if frame.is_empty() {
+        return;
+    }
+    let index = ((seed >> 3) % frame.len() as u64) as usize;
+    frame[index] ^= 1 << (seed & 7);
+}
+
+/// Cuts `frame` to 1 … len − 1 bytes (a frame of one byte or none is left as it is).
+pub fn truncate(frame: &mut Vec<u8>, seed: u64) {
+    if frame.len() > 1 {
+        let keep = 1 + (seed % (frame.len() as u64 - 1)) as usize;
+        frame.truncate(keep);
+    }
+}
+
+/// Puts a stray byte right before `frame` (even seeds) or right after it (odd ones): 0x00 or
+/// 0xFF (a line pulled low or left high while the driver switches) or, one time in three, any.
+pub fn glitch(frame: &mut Vec<u8>, seed: u64) {
+    let byte = match (seed >> 1) % 3 {
+        0 => 0x00,
+        1 => 0xFF,
+        _ => (seed >> 8) as u8,
+    };
+    if seed & 1 == 0 {
+        frame.insert(0, byte);
+    } else {
+        frame.push(byte);
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -153,5 +213,74 @@ mod tests {
         assert_eq!(busy_exception(&[0x14, 0x46, 0x11, 0, 0]), None);
         assert_eq!(garbage(7, 5).len(), 5);
         assert_eq!(garbage(7, 5), garbage(7, 5));
+    }
+
+    #[test]
+    fn line_errors_change_what_they_say() {
+        let reply = vec![0x14, 0x03, 0x02, 0x00, 0x14, 0xB5, 0x76];
+        let mut flipped = reply.clone();
+        flip_bit(&mut flipped, (2 << 3) | 3);
+        assert_eq!(flipped, vec![0x14, 0x03, 0x0A, 0x00, 0x14, 0xB5, 0x76]);
+        for seed in 0..200 {
+            let mut flipped = reply.clone();
+            flip_bit(&mut flipped, seed);
+            let differing: u32 = flipped
+                .iter()
+                .zip(&reply)
+                .map(|(a, b)| (a ^ b).count_ones())
+                .sum();
+            assert_eq!(differing, 1, "seed {seed}");
+
+            let mut cut = reply.clone();
+            truncate(&mut cut, seed);
+            assert!((1..reply.len()).contains(&cut.len()), "seed {seed}");
+            assert_eq!(cut[..], reply[..cut.len()]);
+
+            let mut stray = reply.clone();
+            glitch(&mut stray, seed);
+            assert_eq!(stray.len(), reply.len() + 1);
+            let kept = if seed & 1 == 0 {
+                &stray[1..]
+            } else {
+                &stray[..reply.len()]
+            };
+            assert_eq!(kept, &reply[..], "seed {seed}");
+        }
+        let mut empty = Vec::new();
+        flip_bit(&mut empty, 5);
+        truncate(&mut empty, 5);
+        assert!(empty.is_empty());
+        let mut one = vec![0x14];
+        truncate(&mut one, 5);
+        assert_eq!(one, vec![0x14]);
+    }
+
+    #[test]
+    fn a_fault_left_at_zero_draws_nothing() {
+        // The draws of a mix of two faults, as they were before the line errors existed: the
+        // sweep's seeds must give the same runs.
+        let two = Faults {
+            corrupt_crc: 0.3,
+            garbage: 0.3,
+            ..Faults::default()
+        };
+        let mut drawn = XorShift64::new(9);
+        let mut reference = XorShift64::new(9);
+        for _ in 0..100 {
+            let expected = if reference.chance(0.3) {
+                FaultAction::CorruptCrc
+            } else if reference.chance(0.3) {
+                FaultAction::Garbage(reference.next_u64())
+            } else {
+                FaultAction::None
+            };
+            assert_eq!(two.draw(&mut drawn), expected);
+        }
+        let mut rng = XorShift64::new(3);
+        let only_glitch = Faults {
+            glitch: 1.0,
+            ..Faults::default()
+        };
+        assert!(matches!(only_glitch.draw(&mut rng), FaultAction::Glitch(_)));
     }
 }
