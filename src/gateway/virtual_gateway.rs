@@ -71,6 +71,12 @@ pub struct VirtualGateway {
     pub carry_late_bytes: bool,
     /// What is still on its way to the master (see [`Self::carry_late_bytes`]), in time order.
     late_bytes: std::collections::VecDeque<(Duration, u8)>,
+    /// A second master on the bus (with [`Self::carry_late_bytes`]): its requests and the
+    /// devices' answers to them reach this master's port as any bytes on the line.
+    pub other_master: Option<OtherMaster>,
+    /// When this master's last transaction ended (the other master's requests before it
+    /// collided with it).
+    line_free_at: Duration,
     /// Prints every transaction (diagnosis).
     pub trace: bool,
     /// Times the scheduler said to wait until a time already come (a driver would spin).
@@ -194,6 +200,8 @@ impl VirtualGateway {
             wire_log: Vec::new(),
             carry_late_bytes: false,
             late_bytes: std::collections::VecDeque::new(),
+            other_master: None,
+            line_free_at: Duration::ZERO,
             trace: false,
             spins: 0,
         };
@@ -270,7 +278,9 @@ impl VirtualGateway {
                             eprintln!("SPIN at {:?} until {until:?}", self.now);
                         }
                     }
-                    self.now = until.clamp(self.now + Duration::from_micros(1), end);
+                    // At least a microsecond on, never past `end` (which may be less than a
+                    // microsecond away: `clamp` would panic).
+                    self.now = until.max(self.now + Duration::from_micros(1)).min(end);
                 }
             }
         }
@@ -441,6 +451,12 @@ impl VirtualGateway {
         transaction: &Transaction,
     ) -> (TransactionOutcome, ReplyTiming, Duration) {
         let mut now = self.now;
+        // Where this master's traffic leaves no silence for the other master's requests: all
+        // before the last transaction's end, then this request and its answer.
+        let mut busy = vec![(Duration::ZERO, self.line_free_at)];
+        let mut late_bytes = std::mem::take(&mut self.late_bytes);
+        self.other_master_until(now, &busy, &mut late_bytes);
+        self.late_bytes = late_bytes;
         self.exchange
             .set_guard_interval(self.guard_intervals.before(transaction.request.address));
         if self.exchange.start(transaction).is_err() {
@@ -454,13 +470,22 @@ impl VirtualGateway {
                 // receive timeout.
                 let received = self.bus.exchange(&transmit.bytes, line, now).received();
                 arrivals = crate::sim::pacing::handed_over_at(&received).into();
+                busy.push((now, now + self.line.wire_time(transmit.bytes.len())));
+                if let (Some(&(first, _)), Some(&(last, _))) = (arrivals.front(), arrivals.back()) {
+                    busy.push((first.saturating_sub(self.line.char_time()), last));
+                }
                 if self.carry_late_bytes {
-                    // The input is flushed before the request: what came before is gone, what
-                    // comes after mixes with the answer.
-                    let late: Vec<(Duration, u8)> = std::mem::take(&mut self.late_bytes)
-                        .into_iter()
-                        .filter(|&(t, _)| t > now)
-                        .collect();
+                    // The input is emptied before the request: what came before is read (and
+                    // looked at for another master's request), what comes after mixes with the
+                    // answer.
+                    let (before, late): (Vec<TimedByte>, Vec<TimedByte>) =
+                        std::mem::take(&mut self.late_bytes)
+                            .into_iter()
+                            .partition(|&(t, _)| t <= now);
+                    if !before.is_empty() {
+                        let bytes: Vec<u8> = before.iter().map(|&(_, byte)| byte).collect();
+                        self.exchange.handle_bytes(now, &bytes);
+                    }
                     arrivals =
                         merge_on_the_wire(late, arrivals.into(), self.line.char_time()).into();
                 }
@@ -470,15 +495,27 @@ impl VirtualGateway {
                 if self.carry_late_bytes {
                     self.late_bytes = std::mem::take(&mut arrivals);
                 }
+                self.line_free_at = now;
                 return (outcome, timing, now);
             }
             if self.carry_late_bytes && self.exchange.awaits_transmit() {
                 // As the serial transport: the silence before the request is checked at its
-                // end; bytes that came meanwhile are flushed and the silence starts again.
+                // end; bytes that came meanwhile are read (another master's request may be
+                // among them) and the silence starts again.
                 let at = self.exchange.transmit_at().max(now);
                 now = at;
+                let mut late_bytes = std::mem::take(&mut self.late_bytes);
+                self.other_master_until(at, &busy, &mut late_bytes);
+                self.late_bytes = late_bytes;
                 if self.late_bytes.front().is_some_and(|&(t, _)| t <= at) {
-                    self.late_bytes.retain(|&(t, _)| t > at);
+                    let mut heard = Vec::new();
+                    while let Some((_, byte)) =
+                        self.late_bytes.front().copied().filter(|&(t, _)| t <= at)
+                    {
+                        self.late_bytes.pop_front();
+                        heard.push(byte);
+                    }
+                    self.exchange.handle_bytes(at, &heard);
                     self.exchange.line_was_busy(at);
                 }
                 continue;
@@ -492,6 +529,7 @@ impl VirtualGateway {
                 .filter(|&at| timeout.is_none_or(|t| at <= t))
             {
                 now = now.max(at);
+                self.other_master_until(now, &busy, &mut arrivals);
                 let mut batch = Vec::new();
                 while let Some((_, byte)) = arrivals.front().copied().filter(|&(a, _)| a <= now) {
                     arrivals.pop_front();
@@ -500,10 +538,25 @@ impl VirtualGateway {
                 self.exchange.handle_batch(now, &batch);
                 continue;
             }
+            // The other master's requests up to now (never later: this transaction may end
+            // before, and what comes after it must be checked against the next one's traffic).
+            if self.other_master_until(now, &busy, &mut arrivals) {
+                continue;
+            }
             let next_byte = arrivals
                 .front()
                 .copied()
                 .filter(|&(at, _)| timeout.is_none_or(|t| at <= t));
+            // Its next request, if it comes first, is the next thing to happen.
+            let other_next = self.other_master.as_ref().map(|other| other.next_at);
+            if let Some(at) = other_next.filter(|&at| {
+                at > now
+                    && next_byte.is_none_or(|(byte_at, _)| at < byte_at)
+                    && timeout.is_none_or(|t| at < t)
+            }) {
+                now = at;
+                continue;
+            }
             match (next_byte, timeout) {
                 (Some((at, byte)), _) => {
                     arrivals.pop_front();
@@ -518,10 +571,127 @@ impl VirtualGateway {
                     if self.carry_late_bytes {
                         self.late_bytes = std::mem::take(&mut arrivals);
                     }
+                    self.line_free_at = now;
                     return (TransactionOutcome::NoReply, ReplyTiming::default(), now);
                 }
             }
         }
+    }
+}
+
+/// A byte as it reaches the master's port, at the end of its character.
+type TimedByte = (Duration, u8);
+
+/// A second master on the bus: every `every` or so (between half and one and a half times
+/// that, seeded; never before its last answer has come) it reads 1–4 holding or input
+/// registers 0–15 of one of the bus's devices, as wb-mqtt-serial left running beside rtu2mqtt
+/// would. It does not listen before it talks: a request of its that overlaps this master's
+/// request or a reply to it is garbled on the wire and nobody answers it; one that falls into a
+/// silence (between transactions, or in a reply window while the device is still silent) is
+/// answered, and its bytes and the answer reach this master's port.
+pub struct OtherMaster {
+    every: Duration,
+    next_at: Duration,
+    rng: crate::sim::faults::XorShift64,
+}
+
+impl OtherMaster {
+    /// Its first request at `from`.
+    pub fn new(every: Duration, from: Duration, seed: u64) -> Self {
+        Self {
+            every,
+            next_at: from,
+            rng: crate::sim::faults::XorShift64::new(seed),
+        }
+    }
+}
+
+impl VirtualGateway {
+    /// Merges the other master's traffic due until `until` into `stream`; true if there was any.
+    fn other_master_until(
+        &mut self,
+        until: Duration,
+        busy: &[(Duration, Duration)],
+        stream: &mut std::collections::VecDeque<(Duration, u8)>,
+    ) -> bool {
+        if self.other_master.is_none() {
+            return false;
+        }
+        // Whatever else is on the wire garbles the other master's request too.
+        let char_time = self.line.char_time();
+        let mut taken: Vec<(Duration, Duration)> = busy.to_vec();
+        taken.extend(
+            stream
+                .iter()
+                .map(|&(at, _)| (at.saturating_sub(char_time), at)),
+        );
+        let theirs = self.other_master_traffic(until, &taken);
+        if theirs.is_empty() {
+            return false;
+        }
+        let ours = std::mem::take(stream).into();
+        *stream = merge_on_the_wire(ours, theirs, self.line.char_time()).into();
+        true
+    }
+
+    /// The other master's requests due until `until`, and the devices' answers to those not
+    /// garbled by other traffic (`busy`: times on the wire taken by it), as they reach this
+    /// master's port, in time order.
+    fn other_master_traffic(
+        &mut self,
+        until: Duration,
+        busy: &[(Duration, Duration)],
+    ) -> Vec<(Duration, u8)> {
+        let Some(mut other) = self.other_master.take() else {
+            return Vec::new();
+        };
+        let addresses: Vec<u8> = self.bus.devices().iter().map(|d| d.address()).collect();
+        let char_time = self.line.char_time();
+        let mut traffic = Vec::new();
+        while other.next_at <= until && !addresses.is_empty() {
+            let at = other.next_at;
+            let pick = other.rng.next_u64();
+            let address = addresses[(pick % addresses.len() as u64) as usize];
+            let start = ((pick >> 8) % 16) as u16;
+            let count = 1 + ((pick >> 16) % 4) as u16;
+            let pdu = if pick & (1 << 24) == 0 {
+                RequestPdu::ReadHoldingRegisters { start, count }
+            } else {
+                RequestPdu::ReadInputRegisters { start, count }
+            };
+            let mut done_at = at;
+            if let Ok(frame) = crate::protocol::Request::classic(address, pdu).encode() {
+                let mut heard: Vec<(Duration, u8)> = (1u32..)
+                    .zip(&frame)
+                    .map(|(n, &byte)| (at + char_time * n, byte))
+                    .collect();
+                let end = heard.last().map_or(at, |&(t, _)| t);
+                let garbled = busy.iter().any(|&(from, to)| at < to && from < end);
+                if !garbled {
+                    let answer = self
+                        .bus
+                        .exchange(&frame, MasterLine::exact(self.line), at)
+                        .received();
+                    heard.extend(crate::sim::pacing::handed_over_at(&answer));
+                }
+                done_at = heard.last().map_or(end, |&(t, _)| t);
+                if self.trace {
+                    let bytes: Vec<u8> = heard.iter().map(|&(_, b)| b).collect();
+                    eprintln!(
+                        "OTHER {:.6} garbled={garbled} {}",
+                        at.as_secs_f64(),
+                        crate::protocol::hex(&bytes)
+                    );
+                }
+                traffic = merge_on_the_wire(traffic, heard, char_time);
+            }
+            let spread = other.every.as_micros().max(1) as u64;
+            other.next_at =
+                (at + other.every / 2 + Duration::from_micros(other.rng.next_u64() % spread))
+                    .max(done_at + char_time);
+        }
+        self.other_master = Some(other);
+        traffic
     }
 }
 

@@ -1844,6 +1844,7 @@ fn bytes_of_another_device_hold_the_device_off_from_its_timeout() {
             first_byte: Some(ms(40)),
             late_byte: None,
             foreign_bytes_only: true,
+            another_master: false,
         },
     );
     answer_until(&mut scheduler, &mut now, 30);
@@ -4185,6 +4186,7 @@ fn a_queued_transaction_ended_early_by_foreign_bytes_holds_its_device_off_from_i
         first_byte: Some(ms(2)),
         late_byte: None,
         foreign_bytes_only: true,
+        another_master: false,
     };
     let (mut scheduler, mut now) = two_answering_devices();
     let sent_at = now;

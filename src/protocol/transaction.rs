@@ -47,6 +47,9 @@ pub struct ReplyTiming {
     /// can read as one). They ended the wait, yet the device's own reply may still be on its
     /// way, as after silence.
     pub foreign_bytes_only: bool,
+    /// A reply came, but another master's request was heard shortly before it or in its
+    /// window: it may answer that request, so it was not taken (the outcome is `Garbled`).
+    pub another_master: bool,
 }
 
 /// What came back for a transaction.

@@ -35,6 +35,7 @@ use std::time::Duration;
 use tracing::debug;
 
 use super::mbap::MbapCodec;
+use super::other_master::OtherMasters;
 use crate::protocol::parser::answers;
 use crate::protocol::pdu::FrameLength;
 use crate::protocol::{
@@ -352,6 +353,12 @@ pub struct Exchange {
     line_busy_until: Option<Duration>,
     /// What the link learned of each kind of reply's delay.
     reply_delays: HashMap<ReplyKind, ReplyDelay>,
+    /// Requests heard that this master did not send ([`super::other_master`]); RTU framing only
+    /// (over Modbus TCP each reply names its request).
+    other_masters: OtherMasters,
+    /// Every byte of the current reply window handed to the parser (reused): what came before
+    /// the frame taken for the reply is looked at for another master's request.
+    window_bytes: Vec<u8>,
     state: State,
 }
 
@@ -363,6 +370,8 @@ impl Exchange {
             transaction: None,
             line_busy_until: None,
             reply_delays: HashMap::new(),
+            other_masters: OtherMasters::default(),
+            window_bytes: Vec::new(),
             state: State::Idle,
         }
     }
@@ -423,6 +432,9 @@ impl Exchange {
         else {
             return None;
         };
+        if self.mbap.is_none() {
+            self.other_masters.sent(&frame);
+        }
         self.state = State::Sending {
             request,
             write_started: now,
@@ -501,6 +513,7 @@ impl Exchange {
         window.allow_pause_past_deadline(self.config.frame_pause);
         window.hold_first_byte(self.config.first_byte_hold(&request));
         self.line_busy_until = Some(window.clock_start());
+        self.window_bytes.clear();
         let batch_read_at = self.plan_batch_read(&request, &window);
         self.state = if request.expects_reply() {
             State::Receiving(Box::new(Receiving {
@@ -577,6 +590,7 @@ impl Exchange {
         }
         self.line_busy_until = Some(self.line_busy_until.map_or(now, |busy| busy.max(now)));
         if receiving.window.receive_batch(now) == Received::Discard {
+            self.heard_stray(now, bytes);
             return;
         }
         self.take_reply(now, bytes);
@@ -591,6 +605,7 @@ impl Exchange {
         let State::Receiving(receiving) = &mut self.state else {
             // Before the request or after the outcome: not a reply to anything.
             debug!(count = bytes.len(), "bytes outside a transaction dropped");
+            self.heard_stray(now, bytes);
             return;
         };
         if receiving.window.receive(now) == Received::Discard {
@@ -601,9 +616,32 @@ impl Exchange {
             // Bytes heard while the request was still on the wire (a collision): what follows
             // them may be the rest of another device's frame, not the start of the reply.
             receiving.dropped = true;
+            self.heard_stray(now, bytes);
             return;
         }
         self.take_reply(now, bytes);
+    }
+
+    /// This master sent `frame` outside a transaction (a raw transfer): heard again, it is
+    /// not another master's request.
+    pub fn sent_elsewhere(&mut self, frame: &[u8]) {
+        if self.mbap.is_none() {
+            self.other_masters.sent(frame);
+        }
+    }
+
+    /// Bytes that are no reply, looked at for another master's request.
+    fn heard_stray(&mut self, now: Duration, bytes: &[u8]) {
+        if self.mbap.is_none() {
+            self.other_masters.stray(now, bytes);
+        }
+    }
+
+    /// Another master's request heard since the last call: a reply taken soon after it is not
+    /// trusted (its outcome is `Garbled`, [`ReplyTiming::another_master`]). For the operator's
+    /// log: two masters on one bus each take the other's replies for their own.
+    pub fn take_other_master_request(&mut self) -> Option<Vec<u8>> {
+        self.other_masters.take_heard()
     }
 
     /// Hands reply bytes (read at `now`) to the parser; finishes the transaction on a complete
@@ -614,12 +652,38 @@ impl Exchange {
         };
         let reply = match &mut self.mbap {
             Some(mbap) => receiving.take_mbap(mbap.unwrap(bytes)),
-            None => receiving.take_rtu(bytes),
+            None => {
+                self.window_bytes.extend_from_slice(bytes);
+                receiving.take_rtu(bytes)
+            }
         };
         let Some((reply, frame_len)) = reply else {
             return;
         };
         let mut timing = receiving.window.timing();
+        if self.mbap.is_none() {
+            if receiving.dropped {
+                let frame_start = self
+                    .window_bytes
+                    .len()
+                    .saturating_sub(receiving.parser.buffered().len())
+                    .saturating_sub(frame_len);
+                let before = self.window_bytes.get(..frame_start).unwrap_or_default();
+                self.other_masters.in_window(now, before);
+            }
+            // Bytes after the frame, read with it: no reply to anything.
+            self.other_masters.stray(now, receiving.parser.buffered());
+            if self
+                .other_masters
+                .distrusts_reply_after(reply.address, receiving.window.clock_start())
+            {
+                debug!("another master's request was heard: its reply may be this one");
+                timing.foreign_bytes_only = true;
+                timing.another_master = true;
+                self.state = State::Done(TransactionOutcome::Garbled, timing);
+                return;
+            }
+        }
         if !receiving.window.first_byte_exact() {
             // Read in one go after a sleep: when the reply began is unknown, and its read
             // time would teach a response time longer with every batch read.
@@ -681,6 +745,10 @@ impl Exchange {
                         ));
                 timing.foreign_bytes_only =
                     self.mbap.is_none() && timing.first_byte.is_some() && !began;
+                if self.mbap.is_none() && !self.window_bytes.is_empty() {
+                    // No reply among them: another master's request and its answer may be.
+                    self.other_masters.in_window(now, &self.window_bytes);
+                }
                 self.state = State::Done(outcome, timing);
             }
             _ => {}
@@ -1076,6 +1144,7 @@ mod window {
                 late_byte: self.late_byte_at.map(since_end),
                 // The window cannot tell: the exchange's parser does.
                 foreign_bytes_only: false,
+                another_master: false,
             }
         }
     }
@@ -1882,6 +1951,113 @@ mod tests {
         let mut exchange = Exchange::new(serial(line));
         let finished = run(&mut exchange, &transaction, ms(0), &arrivals);
         assert!(matches!(finished.outcome, TransactionOutcome::Reply(_)));
+    }
+
+    /// Another master's request to the same device, then the device's answer to it: a valid
+    /// reply to this request by address, function and length, but of other registers.
+    fn other_masters_exchange() -> Vec<u8> {
+        let mut bytes = Request::classic(
+            0x1E,
+            RequestPdu::ReadInputRegisters {
+                start: 0x00,
+                count: 2,
+            },
+        )
+        .encode()
+        .unwrap_or_default();
+        bytes.extend(
+            Reply::classic(
+                0x1E,
+                ResponsePdu::ReadInputRegisters {
+                    values: vec![0x0A0B, 0x0C0D],
+                },
+            )
+            .encode()
+            .unwrap_or_default(),
+        );
+        bytes
+    }
+
+    #[test]
+    fn a_reply_after_another_masters_request_in_its_window_is_not_taken() {
+        for baud in [9600, 115_200] {
+            let line = line(baud);
+            let transaction = transaction(&line, read_request());
+            let theirs = other_masters_exchange();
+            let arrivals = on_the_wire(&line, transaction.request_time + ms(1), &theirs);
+            let mut exchange = Exchange::new(serial(line));
+            let finished = run(&mut exchange, &transaction, ms(0), &arrivals);
+            assert_eq!(finished.outcome, TransactionOutcome::Garbled, "at {baud}");
+            assert!(finished.timing.another_master && finished.timing.foreign_bytes_only);
+            assert_eq!(
+                exchange.take_other_master_request(),
+                theirs.get(..8).map(<[u8]>::to_vec)
+            );
+            assert_eq!(exchange.take_other_master_request(), None, "told once");
+            // Batched, as the serial transport reads a reply it has learned the timing of.
+            let mut batched = Exchange::new(serial(line));
+            let (finished, _) = drive(&mut batched, &transaction, ms(0), &arrivals, true);
+            assert_eq!(finished.outcome, TransactionOutcome::Garbled, "at {baud}");
+        }
+    }
+
+    #[test]
+    fn a_reply_soon_after_another_masters_request_before_the_request_is_not_taken() {
+        let line = line(115_200);
+        let transaction = transaction(&line, read_request());
+        let mut exchange = Exchange::new(serial(line));
+        // Heard during the silence before the request, then the device answers it in this
+        // request's window (this request lost in its turnaround).
+        let theirs = other_masters_exchange();
+        let (request, answer) = theirs.split_at(8);
+        exchange.handle_bytes(ms(10), request);
+        let start = ms(11);
+        let arrivals = on_the_wire(&line, start + transaction.request_time + ms(1), answer);
+        let finished = run(&mut exchange, &transaction, start, &arrivals);
+        assert_eq!(finished.outcome, TransactionOutcome::Garbled);
+        assert!(finished.timing.another_master);
+        // Once the other master has been silent for longer than any device takes to answer
+        // it, replies are taken again; this master's own echo is no other master.
+        let later = ms(11) + super::super::other_master::REPLY_HORIZON + ms(100);
+        let mut echoed = read_request().encode().unwrap_or_default();
+        echoed.extend(reply_frame());
+        let arrivals = on_the_wire(&line, later + transaction.request_time + ms(1), &echoed);
+        let finished = run(&mut exchange, &transaction, later, &arrivals);
+        assert_eq!(finished.outcome, read_reply());
+        assert!(!finished.timing.another_master);
+        assert_eq!(exchange.take_other_master_request(), Some(request.to_vec()));
+        assert_eq!(exchange.take_other_master_request(), None);
+        // A request to another device: this device's reply cannot answer it.
+        let theirs = Request::classic(
+            0x07,
+            RequestPdu::ReadInputRegisters {
+                start: 0x10,
+                count: 2,
+            },
+        )
+        .encode()
+        .unwrap_or_default();
+        let start = later + ms(100);
+        exchange.handle_bytes(start - ms(1), &theirs);
+        let arrivals = on_the_wire(
+            &line,
+            start + transaction.request_time + ms(1),
+            &reply_frame(),
+        );
+        let finished = run(&mut exchange, &transaction, start, &arrivals);
+        assert_eq!(finished.outcome, read_reply());
+        assert_eq!(exchange.take_other_master_request(), Some(theirs));
+    }
+
+    #[test]
+    fn over_modbus_tcp_no_request_is_looked_for() {
+        // Each Modbus TCP reply names its request by transaction id.
+        let mut exchange = Exchange::new(LinkConfig::tcp(Framing::ModbusTcp));
+        exchange.handle_bytes(ms(1), &other_masters_exchange());
+        assert_eq!(exchange.take_other_master_request(), None);
+        let mut rtu_over_tcp = Exchange::new(LinkConfig::tcp(Framing::Rtu));
+        rtu_over_tcp.handle_bytes(ms(1), &other_masters_exchange());
+        assert!(rtu_over_tcp.take_other_master_request().is_some());
     }
 
     #[test]

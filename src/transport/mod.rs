@@ -7,6 +7,7 @@
 pub mod exchange;
 pub mod fifo;
 mod mbap;
+mod other_master;
 pub mod raw;
 mod serial;
 /// FIONREAD, shared with the bench's bare master (`src/bench/bare_master.rs`).
@@ -25,7 +26,7 @@ use tokio::time::{timeout_at, Instant};
 use exchange::{Exchange, Framing, LinkConfig};
 use raw::{RawRequest, RawTransfer};
 use serial::SerialLink;
-use tracing::debug;
+use tracing::{debug, warn};
 
 use crate::protocol::{self, LineSettings};
 use crate::protocol::{ReplyTiming, Transaction, TransactionOutcome};
@@ -123,7 +124,14 @@ pub struct Transport {
     exchange: Exchange,
     /// The clock of the exchange: its times are durations since this instant.
     epoch: Instant,
+    /// When the operator was last told of another master on this bus, and how many of its
+    /// requests were heard since.
+    other_master_told: Option<Instant>,
+    other_master_requests: u64,
 }
+
+/// How often at most the log repeats that another master is heard on a bus.
+const OTHER_MASTER_REPEAT: Duration = Duration::from_secs(60);
 
 impl Transport {
     pub async fn open(endpoint: &Endpoint) -> Result<Self, TransportError> {
@@ -178,7 +186,35 @@ impl Transport {
             link,
             exchange,
             epoch: Instant::now(),
+            other_master_told: None,
+            other_master_requests: 0,
         })
+    }
+
+    /// Tells the operator, at most every [`OTHER_MASTER_REPEAT`], that requests this service
+    /// did not send are heard on the bus.
+    fn tell_of_other_master(&mut self) {
+        let Some(frame) = self.exchange.take_other_master_request() else {
+            return;
+        };
+        self.other_master_requests += 1;
+        if self
+            .other_master_told
+            .is_some_and(|told| told.elapsed() < OTHER_MASTER_REPEAT)
+        {
+            return;
+        }
+        warn!(
+            port = %self.name,
+            request = %protocol::hex(&frame),
+            heard = self.other_master_requests,
+            "another master is polling this bus (requests rtu2mqtt did not send): replies heard \
+             near its requests are not trusted, so its devices may show errors. One master per \
+             bus: stop the other one (wb-mqtt-serial: systemctl mask --now wb-mqtt-serial; a \
+             laptop's Modbus tool on the same pair)"
+        );
+        self.other_master_told = Some(Instant::now());
+        self.other_master_requests = 0;
     }
 
     /// True while the transaction started last still waits for the silence before its request:
@@ -261,7 +297,7 @@ impl Transport {
             yield_if_long(started).await;
             if let Some(transmit) = self.exchange.poll_transmit(self.now()) {
                 if transmit.flush_input && !input_empty {
-                    self.flush_input()?;
+                    self.take_input(&mut buffer)?;
                 }
                 input_empty = false;
                 debug!(port = %self.name, tx = %protocol::hex(&transmit.bytes), "request");
@@ -269,6 +305,7 @@ impl Transport {
                 self.exchange.handle_sent(self.now());
             }
             if let Some(result) = self.exchange.poll_outcome() {
+                self.tell_of_other_master();
                 return Ok(result);
             }
             if let (Some(at), Link::Serial(link)) = (self.exchange.batch_read_at(), &mut self.link)
@@ -302,19 +339,23 @@ impl Transport {
             let wake = self.epoch + timeout;
             if let (true, Link::Serial(link)) = (self.exchange.awaits_transmit(), &mut self.link) {
                 // The silence before the request: checked at its end rather than watched.
-                let quiet = link
-                    .quiet_until(wake)
+                let heard = link
+                    .quiet_until(wake, &mut buffer)
                     .await
                     .map_err(|source| TransportError::Io {
                         name: self.name.clone(),
                         source,
                     })?;
-                if quiet {
-                    input_empty = true;
-                } else {
-                    debug!(port = %self.name, "bytes during the silence before a request");
-                    let now = self.now();
-                    self.exchange.line_was_busy(now);
+                match heard {
+                    None => input_empty = true,
+                    Some(count) => {
+                        let bytes = buffer.get(..count).unwrap_or(&[]);
+                        debug!(port = %self.name, rx = %protocol::hex(bytes),
+                            "bytes during the silence before a request");
+                        let now = self.now();
+                        self.exchange.handle_bytes(now, bytes);
+                        self.exchange.line_was_busy(now);
+                    }
                 }
                 continue;
             }
@@ -347,8 +388,10 @@ impl Transport {
             yield_if_long(started).await;
             if let Some(transmit) = transfer.poll_transmit(self.now()) {
                 if transmit.flush_input {
-                    self.flush_input()?;
+                    self.take_input(&mut buffer)?;
                 }
+                // Its echo, or a device's echo of a write in it, is no other master's request.
+                self.exchange.sent_elsewhere(&transmit.bytes);
                 debug!(port = %self.name, tx = %protocol::hex(&transmit.bytes), "raw request");
                 self.write_all(&transmit.bytes).await?;
                 transfer.handle_sent(self.now());
@@ -423,13 +466,20 @@ impl Transport {
     }
 
     /// Drops whatever arrived unasked (late replies, noise) so it cannot pass for the next reply.
-    fn flush_input(&mut self) -> Result<(), TransportError> {
-        match &mut self.link {
-            Link::Serial(link) => link.flush_input().map_err(|source| TransportError::Io {
-                name: self.name.clone(),
-                source,
-            }),
+    /// Empties the input before a request, handing what came meanwhile (up to `buffer`'s
+    /// size; the rest is dropped) to the exchange: not a reply to anything, but another
+    /// master's request may be among it.
+    fn take_input(&mut self, buffer: &mut [u8]) -> Result<(), TransportError> {
+        let io_error = |name: &str, source| TransportError::Io {
+            name: name.to_owned(),
+            source,
+        };
+        let count = match &mut self.link {
+            Link::Serial(link) => link
+                .take_input(buffer)
+                .map_err(|source| io_error(&self.name, source))?,
             Link::Tcp(stream) => {
+                let mut count = 0;
                 let mut scratch = [0u8; 256];
                 loop {
                     match stream.try_read(&mut scratch) {
@@ -438,18 +488,26 @@ impl Transport {
                                 name: self.name.clone(),
                             })
                         }
-                        Ok(_) => continue,
-                        Err(err) if err.kind() == io::ErrorKind::WouldBlock => return Ok(()),
-                        Err(source) => {
-                            return Err(TransportError::Io {
-                                name: self.name.clone(),
-                                source,
-                            })
+                        Ok(read) => {
+                            let kept = read.min(buffer.len() - count);
+                            if let (Some(to), Some(from)) =
+                                (buffer.get_mut(count..count + kept), scratch.get(..kept))
+                            {
+                                to.copy_from_slice(from);
+                            }
+                            count += kept;
                         }
+                        Err(err) if err.kind() == io::ErrorKind::WouldBlock => break count,
+                        Err(source) => return Err(io_error(&self.name, source)),
                     }
                 }
             }
+        };
+        if let Some(bytes) = buffer.get(..count).filter(|bytes| !bytes.is_empty()) {
+            debug!(port = %self.name, rx = %protocol::hex(bytes), "bytes before a request");
+            self.exchange.handle_bytes(self.now(), bytes);
         }
+        Ok(())
     }
 
     async fn write_all(&mut self, bytes: &[u8]) -> Result<(), TransportError> {

@@ -14,7 +14,8 @@
 //! ([`Exchange::batch_read_at`](super::exchange::Exchange::batch_read_at)): one wake-up per
 //! reply. The silence before a request is not watched either: the transport sleeps through it
 //! and asks the kernel once at its end whether anything came meanwhile
-//! ([`SerialLink::quiet_until`]); if nothing did, the input needs no flush.
+//! ([`SerialLink::quiet_until`]); if nothing did, the input needs no flush, and what did is read
+//! (another master's request may be among it).
 
 use std::fs::File;
 use std::io::{self, Read, Write};
@@ -141,10 +142,19 @@ impl SerialLink {
     }
 
     /// Throws away what the line delivered and nobody read yet.
-    pub fn flush_input(&mut self) -> io::Result<()> {
+    /// Empties the input before a request: what came since the line was last read is read
+    /// into `buffer` (another master's request may be among it) and the count returned; what a
+    /// full buffer leaves is flushed. One `read` when nothing came, as one `tcflush` was.
+    pub fn take_input(&mut self, buffer: &mut [u8]) -> io::Result<usize> {
         // A registration from the last transaction would carry its readiness over.
         self.watch = None;
-        tcflush(&self.port, FlushArg::TCIFLUSH).map_err(io::Error::from)
+        match self.read_now(buffer)? {
+            None | Some(0) => Ok(0),
+            Some(count) => {
+                tcflush(&self.port, FlushArg::TCIFLUSH).map_err(io::Error::from)?;
+                Ok(count)
+            }
+        }
     }
 
     pub async fn write_all(&mut self, mut bytes: &[u8]) -> io::Result<()> {
@@ -270,24 +280,32 @@ impl SerialLink {
         self.read_now(buffer)
     }
 
-    /// Sleeps until `at` without watching the line, then tells whether it stayed quiet: true
+    /// Sleeps until `at` without watching the line, then tells whether it stayed quiet: `None`
     /// when nothing arrived meanwhile (the input is then empty: no flush needed before a
-    /// request); false when something did, which is thrown away. The silence before a request
-    /// checked once at its end: one `ioctl` instead of a registration with the reactor, its
-    /// removal and a flush, two system calls less per transaction.
-    pub async fn quiet_until(&mut self, at: Instant) -> io::Result<bool> {
+    /// request); the count of bytes read into `buffer` when something did (another master's
+    /// request may be among them: the exchange looks). The silence before a request checked
+    /// once at its end: one `ioctl` instead of a registration with the reactor and its removal.
+    pub async fn quiet_until(
+        &mut self,
+        at: Instant,
+        buffer: &mut [u8],
+    ) -> io::Result<Option<usize>> {
         self.watch = None;
         self.sleep_until(at).await?;
         let mut pending: nix::libc::c_int = 0;
         // SAFETY: FIONREAD writes one int through the pointer, which outlives the call.
         let counted = unsafe { input_queue_len(self.port.as_raw_fd(), &mut pending) };
-        if counted.is_ok() && pending == 0 {
-            return Ok(true);
+        if counted.is_err() {
+            // A driver that cannot count its input: flushed, and taken as quiet, as before the
+            // silence was checked at its end.
+            tcflush(&self.port, FlushArg::TCIFLUSH).map_err(io::Error::from)?;
+            return Ok(None);
         }
-        tcflush(&self.port, FlushArg::TCIFLUSH).map_err(io::Error::from)?;
-        // A driver that cannot count its input: flushed, and taken as quiet, as before the
-        // silence was checked at its end.
-        Ok(counted.is_err())
+        if pending == 0 {
+            return Ok(None);
+        }
+        // What a full buffer leaves is flushed before the request is written.
+        Ok(Some(self.read_now(buffer)?.unwrap_or(0)))
     }
 
     /// Reads whatever has arrived, without waiting: `Ok(None)` when nothing has.
@@ -409,25 +427,29 @@ mod tests {
     }
 
     /// The blocking waits keep the link's rules: bytes that came during a blocked silence are
-    /// noticed and thrown away; a blocked read returns what came, or nothing at its deadline.
+    /// noticed and read; a blocked read returns what came, or nothing at its deadline.
     #[tokio::test]
     async fn blocked_waits_notice_bytes_as_the_reactor_does() {
         let (mut link, mut devices) = pty();
         link.block_short_waits();
         let silence = Duration::from_millis(40);
         let end = Instant::now() + silence;
-        assert!(link.quiet_until(end).await.expect("io"));
+        let mut buffer = [0u8; 16];
+        assert_eq!(link.quiet_until(end, &mut buffer).await.expect("io"), None);
         assert!(Instant::now() >= end, "the silence was not waited out");
         devices.write_all(&[0x01, 0x03]).expect("written");
-        assert!(!link
-            .quiet_until(Instant::now() + silence)
-            .await
-            .expect("io"));
-        assert!(link
-            .quiet_until(Instant::now() + silence)
-            .await
-            .expect("io"));
-        let mut buffer = [0u8; 16];
+        assert_eq!(
+            link.quiet_until(Instant::now() + silence, &mut buffer)
+                .await
+                .expect("io"),
+            Some(2)
+        );
+        assert_eq!(
+            link.quiet_until(Instant::now() + silence, &mut buffer)
+                .await
+                .expect("io"),
+            None
+        );
         let deadline = Instant::now() + silence;
         assert_eq!(
             link.read_until(deadline, &mut buffer).await.expect("io"),
@@ -452,27 +474,32 @@ mod tests {
     }
 
     #[tokio::test]
-    async fn bytes_during_the_silence_before_a_request_are_noticed_and_thrown_away() {
+    async fn bytes_during_the_silence_before_a_request_are_noticed_and_read() {
         let (mut link, mut devices) = pty();
         let silence = Duration::from_millis(200);
-        assert!(link
-            .quiet_until(Instant::now() + silence)
-            .await
-            .expect("io"));
-        devices.write_all(&[0x01, 0x03, 0x02]).expect("written");
-        assert!(
-            !link
-                .quiet_until(Instant::now() + silence)
+        let mut buffer = [0u8; 16];
+        assert_eq!(
+            link.quiet_until(Instant::now() + silence, &mut buffer)
                 .await
                 .expect("io"),
+            None
+        );
+        devices.write_all(&[0x01, 0x03, 0x02]).expect("written");
+        assert_eq!(
+            link.quiet_until(Instant::now() + silence, &mut buffer)
+                .await
+                .expect("io"),
+            Some(3),
             "the bytes that came during the silence"
         );
-        // They were thrown away: the line is quiet again, and nothing is left to read.
-        assert!(link
-            .quiet_until(Instant::now() + silence)
-            .await
-            .expect("io"));
-        let mut buffer = [0u8; 16];
+        assert_eq!(buffer[..3], [0x01, 0x03, 0x02]);
+        // They were read: the line is quiet again, and nothing is left to read.
+        assert_eq!(
+            link.quiet_until(Instant::now() + silence, &mut buffer)
+                .await
+                .expect("io"),
+            None
+        );
         assert_eq!(link.read_now(&mut buffer).expect("io"), None);
     }
 }
