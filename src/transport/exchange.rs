@@ -433,7 +433,7 @@ impl Exchange {
             return None;
         };
         if self.mbap.is_none() {
-            self.other_masters.sent(&frame);
+            self.other_masters.sent(now, &frame);
         }
         self.state = State::Sending {
             request,
@@ -624,9 +624,9 @@ impl Exchange {
 
     /// This master sent `frame` outside a transaction (a raw transfer): heard again, it is
     /// not another master's request.
-    pub fn sent_elsewhere(&mut self, frame: &[u8]) {
+    pub fn sent_elsewhere(&mut self, now: Duration, frame: &[u8]) {
         if self.mbap.is_none() {
-            self.other_masters.sent(frame);
+            self.other_masters.sent(now, frame);
         }
     }
 
@@ -1994,10 +1994,29 @@ mod tests {
                 theirs.get(..8).map(<[u8]>::to_vec)
             );
             assert_eq!(exchange.take_other_master_request(), None, "told once");
-            // Batched, as the serial transport reads a reply it has learned the timing of.
+            // Batched, as the serial transport reads a reply once it has learned its timing (a
+            // clean reply first teaches it).
             let mut batched = Exchange::new(serial(line));
-            let (finished, _) = drive(&mut batched, &transaction, ms(0), &arrivals, true);
-            assert_eq!(finished.outcome, TransactionOutcome::Garbled, "at {baud}");
+            let clean = on_the_wire(&line, transaction.request_time + ms(1), &reply_frame());
+            let (first, _) = drive(&mut batched, &transaction, ms(0), &clean, true);
+            assert_eq!(first.outcome, read_reply());
+            let start = ms(3000);
+            let theirs_later =
+                on_the_wire(&line, start + transaction.request_time + ms(1), &theirs);
+            batched.start(&transaction).expect("encodes");
+            assert!(batched.poll_transmit(start).is_some());
+            batched.handle_sent(start);
+            assert!(batched.batch_read_at().is_some(), "read in one go");
+            batched.handle_batch(
+                start + ms(20),
+                &theirs_later
+                    .iter()
+                    .map(|&(_, byte)| byte)
+                    .collect::<Vec<u8>>(),
+            );
+            let (outcome, timing) = batched.poll_outcome().expect("finished by the batch");
+            assert_eq!(outcome, TransactionOutcome::Garbled, "at {baud}");
+            assert!(timing.another_master);
         }
     }
 

@@ -391,7 +391,8 @@ impl Transport {
                     self.take_input(&mut buffer)?;
                 }
                 // Its echo, or a device's echo of a write in it, is no other master's request.
-                self.exchange.sent_elsewhere(&transmit.bytes);
+                let now = self.now();
+                self.exchange.sent_elsewhere(now, &transmit.bytes);
                 debug!(port = %self.name, tx = %protocol::hex(&transmit.bytes), "raw request");
                 self.write_all(&transmit.bytes).await?;
                 transfer.handle_sent(self.now());

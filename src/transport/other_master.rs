@@ -11,7 +11,8 @@
 //!
 //! What counts as another master's request: a complete frame with a valid CRC that decodes as a
 //! request (classic functions 1–6, 15, 16; Fast Modbus scan, event poll, request by serial) and
-//! is none of this master's own last requests (an adapter's echo, or a device's echo of a write,
+//! is none of this master's own requests of the last seconds (an adapter's echo, or a device's
+//! late echo of a write,
 //! reads as one). Noise forms such a frame once in 65,536 tries of a position; a device's reply
 //! does not decode as a request, except a write's echo, which is this master's own frame.
 
@@ -29,9 +30,13 @@ use crate::protocol::{Request, RequestBody};
 /// master is heard; narrower could let its reply through.
 pub const REPLY_HORIZON: Duration = Duration::from_secs(1);
 
-/// How many of this master's own requests are remembered (a late echo of a write comes within
-/// a few transactions).
-const OWN_REQUESTS: usize = 4;
+/// How long this master's own requests are remembered: a device's echo of a write may come
+/// as late as its timeout and late window allow (seconds), and must not pass for another
+/// master's request then.
+const OWN_MEMORY: Duration = Duration::from_secs(10);
+
+/// At most this many of them (the oldest are let go first).
+const OWN_REQUESTS: usize = 256;
 
 /// The longest request frame (a write of 123 registers): stray bytes beyond it cannot complete
 /// a request and are let go.
@@ -40,7 +45,9 @@ const LONGEST_REQUEST: usize = 9 + 246;
 /// What the exchange heard of other masters.
 #[derive(Debug, Default)]
 pub struct OtherMasters {
-    own: VecDeque<Vec<u8>>,
+    /// This master's requests of the last [`OWN_MEMORY`]: when, and a hash of the frame (no
+    /// copy of it per request).
+    own: VecDeque<(Duration, u64)>,
     /// Bytes heard outside any reply since the last request found in them (at most
     /// [`LONGEST_REQUEST`]).
     stray: Vec<u8>,
@@ -53,23 +60,32 @@ pub struct OtherMasters {
 }
 
 impl OtherMasters {
-    /// This master sends `frame`.
-    pub fn sent(&mut self, frame: &[u8]) {
-        if self.own.len() == OWN_REQUESTS {
+    /// This master sends `frame` at `now`.
+    pub fn sent(&mut self, now: Duration, frame: &[u8]) {
+        while self.own.front().is_some_and(|&(at, _)| {
+            self.own.len() >= OWN_REQUESTS || at.saturating_add(OWN_MEMORY) < now
+        }) {
             self.own.pop_front();
         }
-        self.own.push_back(frame.to_vec());
+        self.own.push_back((now, frame_hash(frame)));
     }
 
     /// Bytes heard at `now` outside any reply: before a request, while it was on the wire, in a
     /// late window, after the reply.
     pub fn stray(&mut self, now: Duration, bytes: &[u8]) {
+        // Called after every reply taken, mostly with nothing: no scan then.
+        if bytes.is_empty() {
+            return;
+        }
         self.stray.extend_from_slice(bytes);
-        // Every request among them counts now, once: left in the buffer, one would be found
-        // again with a later time by the next stray byte.
-        while let Some((range, target)) = foreign_request(&self.stray, &self.own) {
-            let frame = self.stray.get(range.clone()).unwrap_or_default().to_vec();
-            self.heard(now, target, frame);
+        // Every request among them counts now, once, and this master's own are let go too:
+        // left in the buffer, one would be found again later (a request of its own, once it
+        // is no longer among the last few sent, would pass for another master's).
+        while let Some((range, foreign)) = any_request(&self.stray, &self.own) {
+            if let Some(target) = foreign {
+                let frame = self.stray.get(range.clone()).unwrap_or_default().to_vec();
+                self.heard(now, target, frame);
+            }
             self.stray.drain(..range.end);
         }
         let excess = self.stray.len().saturating_sub(LONGEST_REQUEST);
@@ -116,7 +132,27 @@ impl OtherMasters {
 
 /// The first complete request in `bytes` that is none of `own`, and the device it asks
 /// (`None`: a broadcast, or a Fast Modbus request that any device may answer).
-fn foreign_request(bytes: &[u8], own: &VecDeque<Vec<u8>>) -> Option<(Range<usize>, Option<u8>)> {
+fn foreign_request(
+    bytes: &[u8],
+    own: &VecDeque<(Duration, u64)>,
+) -> Option<(Range<usize>, Option<u8>)> {
+    let mut from = 0;
+    while let Some((range, foreign)) = any_request(bytes.get(from..)?, own) {
+        let range = from + range.start..from + range.end;
+        match foreign {
+            Some(target) => return Some((range, target)),
+            None => from = range.end,
+        }
+    }
+    None
+}
+
+/// The first complete request in `bytes`, and, when it is none of `own`, the device it asks
+/// (`Some(None)`: a broadcast, or a Fast Modbus request that any device may answer).
+fn any_request(
+    bytes: &[u8],
+    own: &VecDeque<(Duration, u64)>,
+) -> Option<(Range<usize>, Option<Option<u8>>)> {
     (0..bytes.len()).find_map(|start| {
         let rest = bytes.get(start..)?;
         let FrameLength::Known(len) = Request::length_from_header(rest) else {
@@ -133,10 +169,17 @@ fn foreign_request(bytes: &[u8], own: &VecDeque<Vec<u8>>) -> Option<(Range<usize
                 .contains(&request.address)
                 .then_some(request.address),
         };
-        if own.iter().any(|sent| sent.as_slice() == frame) {
-            return None;
-        }
-        Some((start..start + len, target))
+        let hash = frame_hash(frame);
+        let own_frame = own.iter().any(|&(_, sent)| sent == hash);
+        Some((start..start + len, (!own_frame).then_some(target)))
+    })
+}
+
+/// FNV-1a over a frame: enough to tell this master's own frames (a collision would only let
+/// one other master's request pass unnoticed among thousands).
+fn frame_hash(frame: &[u8]) -> u64 {
+    frame.iter().fold(0xCBF2_9CE4_8422_2325, |hash, &byte| {
+        (hash ^ u64::from(byte)).wrapping_mul(0x0000_0100_0000_01B3)
     })
 }
 
@@ -172,7 +215,7 @@ mod tests {
     #[test]
     fn another_masters_request_is_found_among_stray_bytes_in_pieces() {
         let mut heard = OtherMasters::default();
-        heard.sent(&read(5, 10));
+        heard.sent(ms(0), &read(5, 10));
         let theirs = read(5, 0);
         let (head, tail) = theirs.split_at(3);
         heard.stray(ms(100), &[0x00, 0xFF]);
@@ -190,7 +233,7 @@ mod tests {
     fn own_requests_replies_and_noise_are_no_other_master() {
         let mut heard = OtherMasters::default();
         let ours = read(5, 10);
-        heard.sent(&ours);
+        heard.sent(ms(0), &ours);
         // An adapter's echo of the request, or a device's echo of a write: ours.
         heard.stray(ms(1), &ours);
         // A late reply, another device's reply, noise.
@@ -200,18 +243,23 @@ mod tests {
         heard.in_window(ms(5), &[0x05, 0x03, 0x00, 0x00]);
         assert!(!heard.distrusts_reply_after(5, ms(5)));
         assert_eq!(heard.take_heard(), None);
-        // A request this master sent five requests ago is no longer remembered as its own.
-        for start in 20..24 {
-            heard.sent(&read(5, start));
+        // A late echo of it, many requests later, is still its own; once it is older than
+        // any echo can be, it is no longer remembered as such.
+        for start in 20..100 {
+            heard.sent(ms(u64::from(start)), &read(5, start));
         }
-        heard.stray(ms(6), &ours);
-        assert!(heard.distrusts_reply_after(5, ms(6)));
+        heard.stray(ms(900), &ours);
+        assert!(!heard.distrusts_reply_after(5, ms(900)));
+        let much_later = OWN_MEMORY + ms(1000);
+        heard.sent(much_later, &read(5, 200));
+        heard.stray(much_later, &ours);
+        assert!(heard.distrusts_reply_after(5, much_later));
     }
 
     #[test]
     fn a_request_in_a_reply_window_is_found() {
         let mut heard = OtherMasters::default();
-        heard.sent(&read(5, 10));
+        heard.sent(ms(0), &read(5, 10));
         let mut window = vec![0x00];
         window.extend(read(5, 0));
         heard.in_window(ms(50), &window);
@@ -257,6 +305,21 @@ mod tests {
         assert!(heard.distrusts_reply_after(5, ms(21)));
         assert!(heard.distrusts_reply_after(0xFD, ms(21)));
         assert!(!heard.distrusts_reply_after(5, ms(21) + REPLY_HORIZON));
+    }
+
+    #[test]
+    fn an_own_request_heard_is_let_go_not_found_later() {
+        let mut heard = OtherMasters::default();
+        let ours = read(5, 10);
+        heard.sent(ms(0), &ours);
+        heard.stray(ms(1), &ours);
+        // Once it is no longer remembered as sent, the stray bytes that come next must not
+        // bring it back as another master's.
+        let much_later = OWN_MEMORY + ms(1000);
+        heard.sent(much_later, &read(5, 20));
+        heard.stray(much_later, &[0x00]);
+        assert!(!heard.distrusts_reply_after(5, much_later));
+        assert_eq!(heard.take_heard(), None);
     }
 
     #[test]
