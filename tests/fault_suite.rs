@@ -193,9 +193,10 @@ impl Run {
     /// values by separate events (2-byte payloads), as the independent bus emulator of issue 15
     /// did, where the others send each value whole at its first register.
     fn start_with(devices: u8, baud: u32, link: Link, tls: bool, word_events: bool) -> Self {
-        let layout = BenchLayout::fault_bus(devices, baud);
-        let (name, template, mut entries) = layout.fault_bus_files();
-        if word_events {
+        Self::start_edited(devices, baud, link, tls, &json!({}), |entries| {
+            if !word_events {
+                return;
+            }
             let blocks: Vec<Value> = FAULT_BUS_WIDE
                 .iter()
                 .filter(|wide| wide.sporadic)
@@ -207,7 +208,22 @@ impl Run {
             for entry in entries.iter_mut().filter(|e| e["address"] == 3) {
                 entry["registers"] = json!(blocks);
             }
-        }
+        })
+    }
+
+    /// As [`Run::start_with`], the simulator's device entries (its bus file) edited first, and
+    /// `port_extra`'s settings added to the daemon's port.
+    fn start_edited(
+        devices: u8,
+        baud: u32,
+        link: Link,
+        tls: bool,
+        port_extra: &Value,
+        edit_devices: impl FnOnce(&mut [Value]),
+    ) -> Self {
+        let layout = BenchLayout::fault_bus(devices, baud);
+        let (name, template, mut entries) = layout.fault_bus_files();
+        edit_devices(&mut entries);
         let mut bus = layout.bus();
         bus["devices"] = json!(entries);
         let mut options =
@@ -266,7 +282,7 @@ impl Run {
         for slot in run.awaited_slots.clone() {
             run.change_slot(slot);
         }
-        let mut ports = run.layout.ports(run.harness.pty(), &json!({}));
+        let mut ports = run.layout.ports(run.harness.pty(), port_extra);
         if let Some(kind) = listen {
             let listening = run
                 .harness
@@ -907,6 +923,76 @@ fn device_answering_sometimes_late_never_publishes_an_older_value() {
     run.faults(3, &json!({}));
     run.wait_converged("after the late answers");
     run.assert_no_bad_value(since, "sometimes late answers");
+}
+
+/// Scenario 2c: a second master on the pair (wb-mqtt-serial started again by the web UI's
+/// config editor, a laptop's Modbus tool) reads registers 10–15 of the classic device at 2,
+/// the same shape as the daemon's read of its registers 0–5, while the world changes. The
+/// device takes its time to answer (15 ms; 40 ms at 9600), so the daemon's request can go in
+/// between the other master's request and its reply, which then looks like the answer to the
+/// daemon's. The other master's request is also byte for byte one the daemon sends itself
+/// (wb-mqtt-serial with the same template polls exactly so). A bus the daemon keeps busy
+/// (Fast Modbus events polled back to back) leaves a second master nothing but collisions;
+/// here the daemon reads each register at most every 100 ms (1 s at 9600), classic only, so
+/// the bus has silences and most of the other master's requests are answered; at 9600 it also
+/// waits for silence before it talks. None of its replies may be published as the daemon's
+/// values; the log names the other master; once it stops, everything converges.
+fn second_master_scenario(baud: u32) {
+    let slow = baud < 19_200;
+    let turnaround_us = if slow { 40_000 } else { 15_000 };
+    let port = json!({"fast_modbus": false, "read_rate_limit_ms": if slow { 1000 } else { 100 }});
+    let mut run = Run::start_edited(4, baud, Link::Pty, false, &port, |entries| {
+        for entry in entries.iter_mut().filter(|e| e["address"] == 2) {
+            entry["turnaround_us"] = json!(turnaround_us);
+        }
+    });
+    let since = monotonic_ns();
+    let sim_before = run.harness.bus_stats().expect("stats");
+    let other = run
+        .harness
+        .control(
+            &json!({"cmd": "other_master", "device": 2, "type": "input", "address": 10,
+                         "count": 6, "every_ms": 150, "listen": slow}),
+        )
+        .expect("other_master");
+    assert_eq!(other["ok"], true, "{other}");
+    run.drive(Duration::from_secs(20));
+    run.harness
+        .control(&json!({"cmd": "other_master"}))
+        .expect("other_master off");
+    run.wait_converged("after the other master stopped");
+    let sim = run.harness.bus_stats().expect("stats");
+    let answered = sim["other_master_answered"].as_u64().unwrap_or(0)
+        - sim_before["other_master_answered"].as_u64().unwrap_or(0);
+    // The other master's requests really reached device 2 and were answered, or the run proves
+    // nothing.
+    assert!(
+        answered >= 20,
+        "the other master got {answered} answers: {sim}"
+    );
+    let checked = run.assert_no_bad_value(since, &format!("a second master at {baud}"));
+    let log = run.harness.daemon_log();
+    eprintln!(
+        "FIGURES second_master baud={baud} other_master_requests={} answered={answered} \
+         publications_checked={checked} wrong_values=0",
+        sim["other_master_requests"].as_u64().unwrap_or(0)
+            - sim_before["other_master_requests"].as_u64().unwrap_or(0),
+    );
+    assert!(
+        log.contains("another master is polling this bus"),
+        "the log does not name the other master\n{}",
+        run.log_tail()
+    );
+}
+
+#[test]
+fn a_second_master_at_115200_never_has_its_replies_published() {
+    second_master_scenario(115_200);
+}
+
+#[test]
+fn a_second_master_at_9600_never_has_its_replies_published() {
+    second_master_scenario(9600);
 }
 
 /// Scenario 4: a short soak under noise, sampling the daemon's RSS, CPU and open file

@@ -691,6 +691,40 @@ fn errors_count_by_kind(baud: u32) {
         .clone();
     assert!(climate["errors"]["bad_crc"].as_u64().unwrap() > 0);
     assert!(climate["errors"]["timeout"].as_u64().unwrap() > 0);
+    assert_eq!(status["ports"][0]["another_master_ms_ago"], Value::Null);
+
+    // A second master on the pair reads the climate sensor every 100 ms: its replies near
+    // those requests are counted as not taken, and the port says when it was last heard.
+    setup.sim.control(json!({"cmd": "faults", "device": 21}));
+    let other = setup
+        .sim
+        .control(json!({"cmd": "other_master", "device": 21, "type": "input",
+                                         "address": 0, "count": 2, "every_ms": 100}));
+    assert_eq!(other["ok"], true, "{other}");
+    wait_for("replies counted as another master's", &setup.daemon, || {
+        let samples = metrics(port)?;
+        (metric(
+            &samples,
+            "rtu2mqtt_device_errors_total",
+            &labels("another_master"),
+        )? > 0.0
+            && metric(
+                &samples,
+                "rtu2mqtt_errors_total",
+                &[("kind", "another_master")],
+            )? > 0.0)
+            .then_some(())
+    });
+    let status = crate::status(port).unwrap();
+    assert!(
+        status["ports"][0]["another_master_ms_ago"]
+            .as_u64()
+            .is_some(),
+        "{status}"
+    );
+    setup.sim.control(json!({"cmd": "other_master"}));
+    let sim = setup.sim.control(json!({"cmd": "stats"}));
+    assert!(sim["other_master_answered"].as_u64().unwrap() > 0, "{sim}");
 }
 
 #[test]

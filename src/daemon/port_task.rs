@@ -493,13 +493,16 @@ impl PortTask {
         started: Duration,
         transaction: &Transaction,
         outcome: &TransactionOutcome,
+        timing: ReplyTiming,
     ) {
         let Some(status) = &self.status else {
             return;
         };
         let now = self.now();
         status.record(|stats| {
-            if let Some(device) = stats.transaction_done(started, now, transaction, outcome) {
+            if let Some(device) =
+                stats.transaction_done(started, now, transaction, outcome, timing.another_master)
+            {
                 stats.events_published(device, now);
             }
             if stats.schedule_due(now) {
@@ -802,7 +805,7 @@ impl PortTask {
                     self.dispatch(&mut events).await;
                     self.port_events = events;
                     if let Some(outcome) = recorded {
-                        self.record_transaction(started, &transaction, &outcome);
+                        self.record_transaction(started, &transaction, &outcome, timing);
                     }
                     if let Some(err) = failure {
                         return Err(err);
@@ -983,9 +986,9 @@ impl PortTask {
         self.scheduler
             .queued_done(now, &job.transaction, started, outcome, timing);
         match result {
-            Ok((outcome, _timing)) => {
+            Ok((outcome, timing)) => {
                 // The status page counts it with the scheduler's own: the line was as busy.
-                self.record_transaction(started, &job.transaction, &outcome);
+                self.record_transaction(started, &job.transaction, &outcome, timing);
                 let answered = matches!(outcome, TransactionOutcome::Reply(_));
                 let _ = job.reply.send(Ok(outcome));
                 self.watch_connection(&job.transaction, answered)

@@ -230,6 +230,9 @@ impl VirtualGateway {
             }
             match self.scheduler.next(self.now) {
                 NextStep::Transmit(transaction) => {
+                    if let Some(other) = &mut self.other_master {
+                        other.heard(&transaction.request);
+                    }
                     let (outcome, timing, done) = self.transact(&transaction);
                     if self.trace {
                         eprintln!(
@@ -470,7 +473,11 @@ impl VirtualGateway {
                 // receive timeout.
                 let received = self.bus.exchange(&transmit.bytes, line, now).received();
                 arrivals = crate::sim::pacing::handed_over_at(&received).into();
-                busy.push((now, now + self.line.wire_time(transmit.bytes.len())));
+                let sent_until = now + self.line.wire_time(transmit.bytes.len());
+                busy.push((now, sent_until));
+                if let Some(other) = &mut self.other_master {
+                    other.transmits(now, sent_until);
+                }
                 if let (Some(&(first, _)), Some(&(last, _))) = (arrivals.front(), arrivals.back()) {
                     busy.push((first.saturating_sub(self.line.char_time()), last));
                 }
@@ -593,7 +600,16 @@ pub struct OtherMaster {
     every: Duration,
     next_at: Duration,
     rng: crate::sim::faults::XorShift64,
+    /// This master's last classic requests: half of the other master's requests are copies of
+    /// them, as wb-mqtt-serial's are when it polls the same devices with the same templates.
+    copies: std::collections::VecDeque<Vec<u8>>,
+    /// When this master's last requests were on the wire: its transceiver does not listen
+    /// while it talks (no echo), so the other master's bytes sent meanwhile never reach it.
+    transmitting: std::collections::VecDeque<(Duration, Duration)>,
 }
+
+/// How many of this master's requests the other master picks its copies from.
+const OTHER_MASTER_COPIES: usize = 16;
 
 impl OtherMaster {
     /// Its first request at `from`.
@@ -602,6 +618,31 @@ impl OtherMaster {
             every,
             next_at: from,
             rng: crate::sim::faults::XorShift64::new(seed),
+            copies: std::collections::VecDeque::new(),
+            transmitting: std::collections::VecDeque::new(),
+        }
+    }
+
+    /// This master's request is on the wire from `from` to `to`.
+    fn transmits(&mut self, from: Duration, to: Duration) {
+        if self.transmitting.len() == OTHER_MASTER_COPIES {
+            self.transmitting.pop_front();
+        }
+        self.transmitting.push_back((from, to));
+    }
+
+    /// This master sends `request`: the other master may copy it.
+    fn heard(&mut self, request: &crate::protocol::Request) {
+        if !matches!(request.body, crate::protocol::RequestBody::Classic(_))
+            || !(1..=crate::protocol::frame::MAX_DEVICE_ADDRESS).contains(&request.address)
+        {
+            return;
+        }
+        if let Ok(frame) = request.encode() {
+            if self.copies.len() == OTHER_MASTER_COPIES {
+                self.copies.pop_front();
+            }
+            self.copies.push_back(frame);
         }
     }
 }
@@ -659,14 +700,32 @@ impl VirtualGateway {
             } else {
                 RequestPdu::ReadInputRegisters { start, count }
             };
+            let copy = (pick & (1 << 25) != 0)
+                .then(|| {
+                    let index = (pick >> 32) as usize % other.copies.len().max(1);
+                    other.copies.get(index).cloned()
+                })
+                .flatten();
             let mut done_at = at;
-            if let Ok(frame) = crate::protocol::Request::classic(address, pdu).encode() {
+            if let Some(frame) = copy.or_else(|| {
+                crate::protocol::Request::classic(address, pdu)
+                    .encode()
+                    .ok()
+            }) {
                 let mut heard: Vec<(Duration, u8)> = (1u32..)
                     .zip(&frame)
                     .map(|(n, &byte)| (at + char_time * n, byte))
                     .collect();
                 let end = heard.last().map_or(at, |&(t, _)| t);
                 let garbled = busy.iter().any(|&(from, to)| at < to && from < end);
+                // What this master's transceiver does not hear: bytes sent while it talked.
+                heard.retain(|&(byte_end, _)| {
+                    let byte_start = byte_end.saturating_sub(char_time);
+                    !other
+                        .transmitting
+                        .iter()
+                        .any(|&(from, to)| byte_start < to && from < byte_end)
+                });
                 if !garbled {
                     let answer = self
                         .bus

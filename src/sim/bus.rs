@@ -19,6 +19,7 @@ use crate::protocol::{
 use super::device::{ValueChange, VirtualDevice};
 use super::faults::{busy_exception, flip_bit, garbage, glitch, truncate, FaultAction, XorShift64};
 use super::line::{MasterLine, ReceivedRequest};
+use super::other_master::OtherMaster;
 pub use super::transmission::Transmission;
 use super::transmission::{collide, Burst, TimedFrame};
 use super::wire::Wire;
@@ -62,6 +63,8 @@ pub struct Bus {
     /// When the outside world (the control interface, a script) last acted on or looked at
     /// the bus: see [`Bus::outside_acts`].
     outside_acted_at: Duration,
+    /// A second master sending on this bus (the `other_master` control command).
+    other_master: Option<OtherMaster>,
 }
 
 /// Whether the master's links (the pty, TCP connections) are there: the `link_down`,
@@ -97,6 +100,11 @@ pub struct BusStats {
     pub contended_event_polls: u64,
     /// The most devices with events that arbitrated in one poll.
     pub max_event_contenders: u64,
+    /// Requests a second master sent ([`OtherMaster`]; counted in `requests` too when they
+    /// reached the devices intact).
+    pub other_master_requests: u64,
+    /// Those the devices answered.
+    pub other_master_answered: u64,
 }
 
 impl Bus {
@@ -111,7 +119,27 @@ impl Bus {
                 generation: 0,
             },
             outside_acted_at: Duration::ZERO,
+            other_master: None,
         }
+    }
+
+    /// A second master on the bus from now on, or none.
+    pub fn set_other_master(&mut self, other: Option<OtherMaster>) {
+        self.other_master = other;
+    }
+
+    /// When the second master sends next, and whether it waits for silence first.
+    pub fn other_master_due(&self) -> Option<(Duration, bool)> {
+        self.other_master
+            .as_ref()
+            .map(|other| (other.due(), other.listens))
+    }
+
+    /// The second master's request if it is due at `now` (counted as sent).
+    pub fn other_master_turn(&mut self, now: Duration) -> Option<Vec<u8>> {
+        let frame = self.other_master.as_mut()?.turn(now)?.to_vec();
+        self.stats.other_master_requests += 1;
+        Some(frame)
     }
 
     pub fn link(&self) -> LinkState {
@@ -281,6 +309,9 @@ impl Bus {
         if reply_bytes > 0 {
             self.stats.answered += 1;
             self.stats.reply_bytes += reply_bytes;
+            if received.from_other_master {
+                self.stats.other_master_answered += 1;
+            }
         }
         transmission
     }

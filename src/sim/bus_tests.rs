@@ -1407,3 +1407,163 @@ fn overlapping_device_bytes_merge_as_a_scan_of_the_whole_wire_would_merge_them()
         assert_eq!(wire.arrivals(), expected);
     }
 }
+
+// A second master on the bus (the `other_master` control command): its bytes reach the master
+// as the wire carries them, the devices answer it, and it collides like anyone else.
+
+/// The other master sends `frame` at `at`, then the line falls silent: (collided, answered).
+fn other_master_sends(wire: &mut Wire, bus: &mut Bus, frame: &[u8], at: Duration) -> (bool, bool) {
+    let mut respond = |request: &super::line::ReceivedRequest| bus.handle(request);
+    let collided = wire.other_master_sends(frame, at, master(), &mut respond);
+    let gap_over = at + FAST_LINE.wire_time(frame.len()) + FAST_LINE.frame_gap();
+    (collided, wire.on_silence(gap_over, &mut respond))
+}
+
+#[test]
+fn another_masters_request_and_its_answer_reach_the_master() {
+    let mut bus = seed_bus();
+    let mut wire = Wire::new();
+    let theirs = read_holding(241, 128, 1);
+    let at = Duration::from_millis(1);
+    assert_eq!(
+        other_master_sends(&mut wire, &mut bus, &theirs, at),
+        (false, true)
+    );
+    let reply_start = at + FAST_LINE.wire_time(8) + Duration::from_micros(500);
+    let expected = [
+        arrivals_from(at, FAST_LINE, &theirs),
+        arrivals_from(reply_start, FAST_LINE, &with_crc("F1 03 02 00 F1")),
+    ]
+    .concat();
+    assert_eq!(wire.arrivals(), expected);
+    // The master's own request a frame gap after that reply is answered as usual.
+    let after = expected.last().unwrap().0 + FAST_LINE.frame_gap();
+    wire.forget_delivered(after);
+    assert!(!write(
+        &mut wire,
+        &mut bus,
+        &read_holding(20, 128, 1),
+        after
+    ));
+    assert_eq!(
+        wire.arrivals().iter().map(|&(_, b)| b).collect::<Vec<_>>(),
+        hex("14 03 02 00 14 B5 88")
+    );
+}
+
+#[test]
+fn another_master_talking_over_the_masters_request_garbles_both() {
+    let mut bus = seed_bus();
+    let mut wire = Wire::new();
+    let mut respond = |request: &super::line::ReceivedRequest| bus.handle(request);
+    let ours = read_holding(20, 128, 1);
+    assert!(
+        !wire
+            .master_writes(&ours, Duration::ZERO, master(), &mut respond)
+            .collided
+    );
+    // Their first byte goes out with our third.
+    let at = FAST_LINE.wire_time(2);
+    let theirs = read_holding(241, 128, 1);
+    assert!(wire.other_master_sends(&theirs, at, master(), &mut respond));
+    // Nobody answers either; the master hears their bytes merged with its own.
+    assert!(!wire.on_silence(Duration::MAX, &mut respond));
+    let merged = [and(&theirs[..6], &ours[2..]), theirs[6..].to_vec()].concat();
+    assert_eq!(wire.arrivals(), arrivals_from(at, FAST_LINE, &merged));
+}
+
+#[test]
+fn another_master_talking_over_a_reply_garbles_it_and_gets_no_answer() {
+    let mut bus = seed_bus();
+    let mut wire = Wire::new();
+    assert!(!write(
+        &mut wire,
+        &mut bus,
+        &read_holding(20, 128, 1),
+        Duration::ZERO
+    ));
+    let reply_start = FAST_LINE.wire_time(8) + Duration::from_micros(500);
+    let reply = hex("14 03 02 00 14 B5 88");
+    let at = reply_start + FAST_LINE.char_time() * 3;
+    let theirs = read_holding(241, 128, 1);
+    assert_eq!(
+        other_master_sends(&mut wire, &mut bus, &theirs, at),
+        (true, false)
+    );
+    // The reply's first three bytes had reached the master by then; the rest merge.
+    let merged = [and(&reply[3..], &theirs[..4]), theirs[4..].to_vec()].concat();
+    assert_eq!(wire.arrivals(), arrivals_from(at, FAST_LINE, &merged));
+    // Right behind a reply (within 3.5 characters) is the reply's continuation to the devices.
+    let mut wire = Wire::new();
+    assert!(!write(
+        &mut wire,
+        &mut bus,
+        &read_holding(20, 128, 1),
+        Duration::ZERO
+    ));
+    let reply_end = wire.arrivals().last().unwrap().0;
+    let too_soon = reply_end + FAST_LINE.frame_gap() - FAST_LINE.char_time();
+    assert_eq!(
+        other_master_sends(&mut wire, &mut bus, &theirs, too_soon),
+        (true, false)
+    );
+}
+
+#[test]
+fn the_masters_request_in_another_masters_frame_gap_garbles_both() {
+    // The simulator may read the master's bytes after it has put the other master's request on
+    // the wire, though they went out before that request's frame gap ended: nobody may have
+    // answered it then.
+    let mut bus = seed_bus();
+    let mut wire = Wire::new();
+    let mut respond = |request: &super::line::ReceivedRequest| bus.handle(request);
+    let theirs = read_holding(241, 128, 1);
+    assert!(!wire.other_master_sends(&theirs, Duration::ZERO, master(), &mut respond));
+    let ours = read_holding(20, 128, 1);
+    let within_gap = FAST_LINE.wire_time(8) + FAST_LINE.char_time();
+    assert!(
+        !wire
+            .master_writes(&ours, within_gap, master(), &mut respond)
+            .answered
+    );
+    assert!(!wire.on_silence(Duration::MAX, &mut respond));
+    // Their bytes had reached the master by then; no answer follows to either.
+    assert_eq!(wire.arrivals(), []);
+    assert_eq!(bus.stats().answered, 0);
+    assert_eq!(bus.stats().other_master_answered, 0);
+}
+
+#[test]
+fn a_master_that_listens_may_talk_a_frame_gap_after_the_last_byte_on_the_wire() {
+    let mut bus = seed_bus();
+    let mut wire = Wire::new();
+    assert_eq!(wire.quiet_at(master()), FAST_LINE.frame_gap());
+    let request = read_holding(20, 128, 1);
+    let mut respond = |request: &super::line::ReceivedRequest| bus.handle(request);
+    wire.master_writes(&request, Duration::ZERO, master(), &mut respond);
+    // The request's frame gap, before the reply is known.
+    assert_eq!(
+        wire.quiet_at(master()),
+        FAST_LINE.wire_time(8) + FAST_LINE.frame_gap()
+    );
+    wire.on_silence(Duration::MAX, &mut respond);
+    let reply_end = wire.arrivals().last().unwrap().0;
+    assert_eq!(wire.quiet_at(master()), reply_end + FAST_LINE.frame_gap());
+}
+
+#[test]
+fn the_masters_request_during_another_masters_exchange_collides() {
+    let mut bus = seed_bus();
+    let mut wire = Wire::new();
+    let theirs = read_holding(241, 128, 1);
+    assert_eq!(
+        other_master_sends(&mut wire, &mut bus, &theirs, Duration::ZERO),
+        (false, true)
+    );
+    // Ours goes out while device 241 answers them: no answer to ours.
+    let their_reply_start = FAST_LINE.wire_time(8) + Duration::from_micros(500);
+    let at = their_reply_start + FAST_LINE.char_time();
+    assert!(write(&mut wire, &mut bus, &read_holding(20, 128, 1), at));
+    assert!(wire.arrivals().iter().all(|&(arrival, _)| arrival
+        < their_reply_start + FAST_LINE.wire_time(7) + FAST_LINE.char_time()));
+}

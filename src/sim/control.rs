@@ -10,12 +10,14 @@ use std::time::Duration;
 use serde::Deserialize;
 use serde_json::{json, Value};
 
-use crate::protocol::RegisterType;
+use crate::protocol::frame::MAX_DEVICE_ADDRESS;
+use crate::protocol::{RegisterType, RequestPdu};
 
 use super::bus::Bus;
 use super::bus_file::{parse_line, parse_register_type, parse_serial};
 use super::device::wb;
 use super::faults::Faults;
+use super::other_master::OtherMaster;
 
 /// The fields any command may carry; which ones matter depends on `cmd`.
 #[derive(Debug, Clone, Default, Deserialize)]
@@ -59,6 +61,12 @@ pub struct ControlCommand {
     pub truncate: Option<f64>,
     #[serde(default)]
     pub glitch: Option<f64>,
+    /// `other_master`: its pace; left out or 0 stops it.
+    #[serde(default)]
+    pub every_ms: Option<u64>,
+    /// `other_master`: it waits for a frame gap of silence before it talks.
+    #[serde(default)]
+    pub listen: Option<bool>,
 }
 
 /// What the caller should do after replying.
@@ -122,6 +130,8 @@ fn run(bus: &mut Bus, now: Duration, command: &ControlCommand) -> Result<Value, 
                 "event_polls": stats.event_polls,
                 "contended_event_polls": stats.contended_event_polls,
                 "max_event_contenders": stats.max_event_contenders,
+                "other_master_requests": stats.other_master_requests,
+                "other_master_answered": stats.other_master_answered,
             }))
         }
         "list" => Ok(json!({
@@ -250,9 +260,41 @@ fn run(bus: &mut Bus, now: Duration, command: &ControlCommand) -> Result<Value, 
             };
             Ok(json!({}))
         }
+        "other_master" => {
+            let Some(every) = command.every_ms.filter(|&ms| ms > 0) else {
+                bus.set_other_master(None);
+                return Ok(json!({}));
+            };
+            // Any address: the other master may ask for a device that is not there.
+            let address = match &command.device {
+                Some(Value::Number(n)) => n
+                    .as_u64()
+                    .and_then(|a| u8::try_from(a).ok())
+                    .filter(|a| (1..=MAX_DEVICE_ADDRESS).contains(a))
+                    .ok_or("bad address (1..247)")?,
+                _ => {
+                    let index = find_device(bus, command)?;
+                    bus.devices().get(index).ok_or("no such device")?.address()
+                }
+            };
+            let (register_type, start) = register(command)?;
+            let count = command.count.unwrap_or(1);
+            let pdu = match register_type {
+                RegisterType::Coil => RequestPdu::ReadCoils { start, count },
+                RegisterType::DiscreteInput => RequestPdu::ReadDiscreteInputs { start, count },
+                RegisterType::Holding => RequestPdu::ReadHoldingRegisters { start, count },
+                RegisterType::Input => RequestPdu::ReadInputRegisters { start, count },
+            };
+            let mut other = OtherMaster::reading(address, pdu, Duration::from_millis(every), now)?;
+            other.listens = command.listen.unwrap_or(false);
+            let frame = crate::protocol::hex(other.frame());
+            bus.set_other_master(Some(other));
+            Ok(json!({ "frame": frame }))
+        }
         other => Err(format!(
             "unknown command {other:?} (ping, list, get, set, toggle, reboot, unplug, replug, \
-             set_address, set_line, replace, faults, link_down, link_up, link_drop, stats, watch)"
+             set_address, set_line, replace, faults, other_master, link_down, link_up, \
+             link_drop, stats, watch)"
         )),
     }
 }
@@ -515,5 +557,59 @@ mod tests {
         assert_eq!(reply["answered"], 1);
         // 30 01 01 <bits> CRC CRC
         assert_eq!(reply["reply_bytes"], 6);
+    }
+
+    #[test]
+    fn another_master_is_set_paced_and_stopped() {
+        let mut bus = bus();
+        let reply = execute_line(
+            &mut bus,
+            Duration::from_secs(2),
+            r#"{"cmd":"other_master","device":30,"type":"coil","address":0,"count":2,"every_ms":200}"#,
+        )
+        .reply;
+        assert_eq!(reply["ok"], json!(true), "{reply}");
+        let frame = crate::protocol::parse_hex(reply["frame"].as_str().unwrap()).unwrap();
+        let read = crate::protocol::Request::classic(
+            30,
+            crate::protocol::RequestPdu::ReadCoils { start: 0, count: 2 },
+        );
+        assert_eq!(frame, read.encode().unwrap());
+        assert_eq!(
+            bus.other_master_due(),
+            Some((Duration::from_millis(2200), false))
+        );
+        assert_eq!(bus.other_master_turn(Duration::from_millis(2100)), None);
+        assert_eq!(
+            bus.other_master_turn(Duration::from_millis(2200)),
+            Some(frame)
+        );
+        assert_eq!(
+            run_line(&mut bus, r#"{"cmd":"stats"}"#)["other_master_requests"],
+            1
+        );
+        // An address no device has is a request all the same.
+        assert_eq!(
+            run_line(
+                &mut bus,
+                r#"{"cmd":"other_master","device":99,"type":"input","address":0,"every_ms":50,"listen":true}"#
+            )["ok"],
+            json!(true)
+        );
+        assert_eq!(
+            bus.other_master_due(),
+            Some((Duration::from_millis(50), true))
+        );
+        for bad in [
+            r#"{"cmd":"other_master","device":0,"type":"input","address":0,"every_ms":50}"#,
+            r#"{"cmd":"other_master","device":30,"address":0,"every_ms":50}"#,
+        ] {
+            assert_eq!(run_line(&mut bus, bad)["ok"], json!(false), "{bad}");
+        }
+        assert_eq!(
+            run_line(&mut bus, r#"{"cmd":"other_master","every_ms":0}"#)["ok"],
+            json!(true)
+        );
+        assert_eq!(bus.other_master_due(), None);
     }
 }

@@ -75,6 +75,8 @@ pub struct ReceivedRequest {
     /// When its last byte was read.
     pub last_byte_at: Duration,
     pub line: MasterLine,
+    /// Sent by a second master on the bus ([`super::other_master`]), not the one served.
+    pub from_other_master: bool,
 }
 
 impl ReceivedRequest {
@@ -182,6 +184,7 @@ impl RequestAssembler {
                         first_byte_at: self.frame_started_at.unwrap_or(at),
                         last_byte_at: at,
                         line,
+                        from_other_master: false,
                     });
                     self.frame_started_at = Some(at);
                 }

@@ -10,6 +10,7 @@ use crate::protocol::hex;
 use super::line::{MasterLine, ReceivedRequest};
 use super::pacing::Pacer;
 use super::runtime::SimRuntime;
+use super::transmission::Transmission;
 use super::wire::Wire;
 
 /// The master's side of a link, as the simulator reads it.
@@ -43,10 +44,13 @@ pub fn serve(
     };
     while !runtime.stopped() && runtime.link_generation() == generation {
         let now = runtime.clock.now();
-        let timeout = wire.silence_deadline().map_or(IDLE_POLL, |deadline| {
-            deadline.saturating_sub(now).min(IDLE_POLL)
-        });
-        let changed = match reader.read_timeout(&mut buf, timeout)? {
+        let timeout = wire
+            .silence_deadline()
+            .into_iter()
+            .chain(other_master_at(&wire, runtime, reader.master_line()))
+            .map(|deadline| deadline.saturating_sub(now))
+            .fold(IDLE_POLL, Duration::min);
+        let mut changed = match reader.read_timeout(&mut buf, timeout)? {
             Some(0) => return Ok(()),
             Some(len) => {
                 let at = runtime.clock.now();
@@ -61,9 +65,44 @@ pub fn serve(
             }
             None => wire.on_silence(runtime.clock.now(), respond),
         };
+        if other_master_at(&wire, runtime, reader.master_line())
+            .is_some_and(|at| at <= runtime.clock.now())
+        {
+            changed |= other_master_turn(&mut wire, runtime, reader.master_line(), respond);
+        }
         if changed {
             pacer.replace(&wire.received());
         }
     }
     Ok(())
+}
+
+/// When the second master, if any, sends next: when it is due, or once the wire has been
+/// quiet for a frame gap if it listens before it talks.
+fn other_master_at(wire: &Wire, runtime: &SimRuntime, line: MasterLine) -> Option<Duration> {
+    let (due, listens) = runtime.other_master_due()?;
+    Some(if listens {
+        due.max(wire.quiet_at(line))
+    } else {
+        due
+    })
+}
+
+/// The second master's request, if it is due (the `other_master` control command): on the
+/// wire now. True if it changed what the master receives.
+fn other_master_turn(
+    wire: &mut Wire,
+    runtime: &SimRuntime,
+    line: MasterLine,
+    respond: impl FnMut(&ReceivedRequest) -> Transmission,
+) -> bool {
+    let Some((frame, at)) = runtime.with_bus(|bus, now| Some((bus.other_master_turn(now)?, now)))
+    else {
+        return false;
+    };
+    tracing::debug!("sim: another master sends {}", hex(&frame));
+    if wire.other_master_sends(&frame, at, line, respond) {
+        tracing::debug!("sim: the other master's request collided");
+    }
+    true
 }

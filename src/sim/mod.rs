@@ -12,6 +12,7 @@
 //! | [`line`]         | settings the master used; timestamped bytes → requests                 |
 //! | [`wire`]         | the half-duplex timeline: frame gaps, request/reply collisions          |
 //! | [`faults`]       | dropped / corrupted / late replies, seeded                             |
+//! | [`other_master`] | a second master that does not listen before it talks                   |
 //!
 //! Set-up and IO: [`bus_file`] and [`from_template`] (through the shared template loader) build
 //! devices; [`control`] is the JSON-lines control protocol; [`pacing`] sends bytes on time;
@@ -22,6 +23,7 @@ pub mod device;
 pub mod events;
 pub mod faults;
 pub mod line;
+pub mod other_master;
 pub mod registers;
 pub mod transmission;
 pub mod wire;

@@ -178,6 +178,10 @@ pub struct SimRuntime {
     /// transports' loops read it without taking the bus's lock.
     link_up: AtomicBool,
     link_generation: AtomicU64,
+    /// When the bus's second master sends next (ns on [`Clock`], `u64::MAX`: none), mirrored
+    /// like the links so that the transports' loops wait for it without the bus's lock.
+    other_master_due_ns: AtomicU64,
+    other_master_listens: AtomicBool,
     /// How the pty's master receives the devices' bytes: its UART's FIFO, a USB adapter's
     /// delay.
     pub receiver: Receiver,
@@ -192,6 +196,8 @@ impl SimRuntime {
             stop: AtomicBool::new(false),
             link_up: AtomicBool::new(true),
             link_generation: AtomicU64::new(0),
+            other_master_due_ns: AtomicU64::new(u64::MAX),
+            other_master_listens: AtomicBool::new(false),
             receiver: Receiver::default(),
         }
     }
@@ -216,7 +222,18 @@ impl SimRuntime {
         let result = f(&mut bus, self.clock.now());
         let changes = bus.take_changes();
         let link = bus.link();
+        let other_master_due = bus.other_master_due();
         drop(bus);
+        self.other_master_due_ns.store(
+            other_master_due.map_or(u64::MAX, |(due, _)| {
+                u64::try_from(due.as_nanos()).unwrap_or(u64::MAX - 1)
+            }),
+            Ordering::SeqCst,
+        );
+        self.other_master_listens.store(
+            other_master_due.is_some_and(|(_, listens)| listens),
+            Ordering::SeqCst,
+        );
         self.link_up.store(link.up, Ordering::SeqCst);
         self.link_generation
             .store(link.generation, Ordering::SeqCst);
@@ -235,6 +252,18 @@ impl SimRuntime {
     /// Whether the master may have a link now (see [`super::bus::LinkState`]).
     pub fn link_up(&self) -> bool {
         self.link_up.load(Ordering::SeqCst)
+    }
+
+    /// When the bus's second master sends next, if there is one, and whether it waits for
+    /// silence first.
+    pub fn other_master_due(&self) -> Option<(Duration, bool)> {
+        match self.other_master_due_ns.load(Ordering::SeqCst) {
+            u64::MAX => None,
+            ns => Some((
+                Duration::from_nanos(ns),
+                self.other_master_listens.load(Ordering::SeqCst),
+            )),
+        }
     }
 
     /// The links' generation: a link opened under another one must end.

@@ -22,7 +22,7 @@ use crate::protocol::{ParseStatus, RequestParser};
 
 use super::line::{MasterLine, ReceivedRequest};
 use super::pacing::Arrival;
-use super::transmission::Transmission;
+use super::transmission::{Burst, Transmission};
 
 /// Byte times are whole nanoseconds computed two ways (per character, per frame): bytes that
 /// touch within this much are back to back, not overlapping. A bit lasts 1 µs at 1 Mbaud.
@@ -59,6 +59,16 @@ struct Run {
     line: MasterLine,
     /// Overlapped a device's transmission, or outgrew any frame: noise whatever it holds.
     spoiled: bool,
+    /// Sent by a second master ([`Wire::other_master_sends`]): its bytes are on the wire as
+    /// the master hears them too.
+    other_master: bool,
+}
+
+impl Run {
+    /// When its frame gap ends: the devices answer it then.
+    fn deadline(&self) -> Duration {
+        self.end + self.line.settings().frame_gap()
+    }
 }
 
 /// What the wire did with bytes the master wrote.
@@ -80,6 +90,9 @@ pub struct Wire {
     /// When the master's UART has sent everything it was given.
     master_free_at: Duration,
     run: Option<Run>,
+    /// A second master's request not yet followed by a frame gap (answered then, unless
+    /// something overlapped it).
+    other_run: Option<Run>,
 }
 
 impl Wire {
@@ -103,11 +116,13 @@ impl Wire {
         }
         let settings = line.settings();
         let start = at.max(self.master_free_at);
-        if self
-            .silence_deadline()
-            .is_some_and(|deadline| start >= deadline)
-        {
-            outcome.answered = self.end_run(respond);
+        outcome.answered = self.on_silence(start, respond);
+        // Bytes within a second master's request or its frame gap: the devices hear one run
+        // of noise (this run is spoiled by its bytes below).
+        if let Some(other) = &mut self.other_run {
+            if start < other.deadline() {
+                other.spoiled = true;
+            }
         }
         self.forget_delivered(at);
         let mut run = match self.run.take() {
@@ -137,6 +152,7 @@ impl Wire {
                 spoiled: self.devices_quiet_from.is_some_and(|quiet| {
                     start >= quiet.saturating_sub(ROUNDING) && start < quiet + settings.frame_gap()
                 }),
+                other_master: false,
             },
         };
         if run.spoiled && run.bytes.is_empty() {
@@ -171,30 +187,127 @@ impl Wire {
         outcome
     }
 
-    /// When the master's current run will have been followed by a frame gap.
-    pub fn silence_deadline(&self) -> Option<Duration> {
-        let run = self.run.as_ref()?;
-        Some(run.end + run.line.settings().frame_gap())
+    /// A second master ([`super::other_master`]) sends `frame` from `at` at the settings of
+    /// `line`, whatever is on the wire. Its bytes go on the wire as a device's do, so the master
+    /// receives them, and merge by AND with whatever they overlap. It collides with the master's
+    /// request still on the wire or not yet followed by a frame gap (the devices hear one run:
+    /// noise, nobody answers either), with device bytes it overlaps or follows within a frame
+    /// gap, and with master bytes written before its own frame gap has passed. Otherwise the
+    /// devices answer it once that gap has passed, like the master's. Runs that silence had
+    /// already ended are answered first, so this may land on their replies. True if it
+    /// collided.
+    pub fn other_master_sends(
+        &mut self,
+        frame: &[u8],
+        at: Duration,
+        line: MasterLine,
+        respond: impl FnMut(&ReceivedRequest) -> Transmission,
+    ) -> bool {
+        if frame.is_empty() {
+            return false;
+        }
+        self.on_silence(at, respond);
+        self.forget_delivered(at);
+        let settings = line.settings();
+        let end = at + settings.wire_time(frame.len());
+        let mut collided = false;
+        let mut bytes = frame.to_vec();
+        if let Some(run) = &mut self.run {
+            run.spoiled = true;
+            collided = true;
+            // Where the two masters' bytes overlap, each is heard merged with the other's.
+            let run_settings = run.line.settings();
+            for (index, byte) in bytes.iter_mut().enumerate() {
+                let byte_start = at + settings.wire_time(index);
+                let byte_end = at + settings.wire_time(index + 1);
+                for (position, heard) in run.bytes.iter_mut().enumerate() {
+                    let heard_start = run.start + run_settings.wire_time(position);
+                    let heard_end = run.start + run_settings.wire_time(position + 1);
+                    let shared = byte_end
+                        .min(heard_end)
+                        .saturating_sub(byte_start.max(heard_start));
+                    if shared > ROUNDING {
+                        *heard &= *byte;
+                        *byte = *heard;
+                    }
+                }
+            }
+        }
+        if let Some(other) = &mut self.other_run {
+            other.spoiled = true;
+            collided = true;
+        }
+        collided |= self.pending.iter().any(|slot| slot.overlaps(at, end))
+            || self
+                .devices_quiet_from
+                .is_some_and(|quiet| at + ROUNDING >= quiet && at < quiet + settings.frame_gap());
+        self.transmit(&Transmission {
+            bursts: vec![Burst {
+                start: at,
+                char_time: settings.char_time(),
+                bytes: bytes.clone(),
+            }],
+        });
+        self.other_run = Some(Run {
+            bytes,
+            start: at,
+            end,
+            line,
+            spoiled: collided,
+            other_master: true,
+        });
+        collided
     }
 
-    /// Time has reached `now`: ends the master's run if its frame gap has passed and answers it.
-    /// True if it was a request that got an answer on the wire.
+    /// When a master that listens before it talks may start: a frame gap after the last
+    /// byte anyone put on the wire (at `line`'s settings).
+    pub fn quiet_at(&self, line: MasterLine) -> Duration {
+        let busy_until = self
+            .devices_quiet_from
+            .unwrap_or_default()
+            .max(self.master_free_at);
+        busy_until + line.settings().frame_gap()
+    }
+
+    /// When the master's current run, or a second master's request, will have been followed by
+    /// a frame gap (the earlier of the two).
+    pub fn silence_deadline(&self) -> Option<Duration> {
+        [&self.run, &self.other_run]
+            .into_iter()
+            .flatten()
+            .map(Run::deadline)
+            .min()
+    }
+
+    /// Time has reached `now`: ends the runs whose frame gap has passed and answers them, in
+    /// the order they ended. True if one was a request that got an answer on the wire.
     pub fn on_silence(
         &mut self,
         now: Duration,
-        respond: impl FnMut(&ReceivedRequest) -> Transmission,
+        mut respond: impl FnMut(&ReceivedRequest) -> Transmission,
     ) -> bool {
-        match self.silence_deadline() {
-            Some(deadline) if now >= deadline => self.end_run(respond),
-            _ => false,
+        let mut answered = false;
+        while let Some(deadline) = self.silence_deadline().filter(|&deadline| now >= deadline) {
+            let run = if self
+                .run
+                .as_ref()
+                .is_some_and(|run| run.deadline() == deadline)
+            {
+                self.run.take()
+            } else {
+                self.other_run.take()
+            };
+            answered |= run.is_some_and(|run| self.answer(&run, &mut respond));
         }
+        answered
     }
 
-    fn end_run(&mut self, mut respond: impl FnMut(&ReceivedRequest) -> Transmission) -> bool {
-        let Some(run) = self.run.take() else {
-            return false;
-        };
-        let Some(request) = run_as_request(&run) else {
+    fn answer(
+        &mut self,
+        run: &Run,
+        mut respond: impl FnMut(&ReceivedRequest) -> Transmission,
+    ) -> bool {
+        let Some(request) = run_as_request(run) else {
             return false;
         };
         let transmission = respond(&request);
@@ -273,7 +386,7 @@ impl Wire {
 
     /// No device byte pending and no master run open.
     pub fn is_idle(&self) -> bool {
-        self.pending.is_empty() && self.run.is_none()
+        self.pending.is_empty() && self.run.is_none() && self.other_run.is_none()
     }
 }
 
@@ -297,6 +410,7 @@ fn run_as_request(run: &Run) -> Option<ReceivedRequest> {
             first_byte_at: run.start,
             last_byte_at: run.end,
             line: run.line,
+            from_other_master: run.other_master,
         }),
         ParseStatus::Frame(_) => {
             tracing::debug!(

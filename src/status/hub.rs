@@ -355,7 +355,8 @@ impl StatusHub {
         family(
             "rtu2mqtt_errors_total",
             "counter",
-            "Failed transactions by kind: timeout, bad_crc, exception.",
+            "Failed transactions by kind: timeout, bad_crc, exception, another_master (a reply not \
+             taken: another master had just asked the device).",
             &mut |out| {
                 for (port, stats, _) in &views {
                     error_samples(
@@ -453,7 +454,7 @@ impl StatusHub {
         family(
             "rtu2mqtt_device_errors_total",
             "counter",
-            "Failed requests to the device by kind: timeout, bad_crc, exception.",
+            "Failed requests to the device by kind: timeout, bad_crc, exception, another_master.",
             &mut |out| {
                 for (port, stats, _) in &views {
                     for (device, dstats) in port.devices.iter().zip(&stats.devices) {
@@ -519,6 +520,7 @@ fn error_samples(out: &mut String, name: &str, labels: &[(&str, &str)], errors: 
         ("timeout", errors.timeout),
         ("bad_crc", errors.bad_crc),
         ("exception", errors.exception),
+        ("another_master", errors.another_master),
     ] {
         let mut all = labels.to_vec();
         all.push(("kind", kind));
@@ -535,7 +537,8 @@ fn hex(bytes: &[u8]) -> String {
 }
 
 fn errors_json(errors: &ErrorCounts) -> Value {
-    json!({"timeout": errors.timeout, "bad_crc": errors.bad_crc, "exception": errors.exception})
+    json!({"timeout": errors.timeout, "bad_crc": errors.bad_crc, "exception": errors.exception,
+           "another_master": errors.another_master})
 }
 
 fn millis(duration: Duration) -> f64 {
@@ -611,6 +614,9 @@ fn port_json(port: &PortStatus) -> Value {
         "transactions": totals.transactions,
         "event_rounds": totals.event_rounds,
         "errors": errors_json(&totals.errors),
+        "another_master_ms_ago": totals
+            .another_master_at
+            .map(|at| now.saturating_sub(at).as_millis() as u64),
         "event_latency": {
             "buckets": per_bucket,
             "count": latency.count,

@@ -29,6 +29,9 @@ pub struct ErrorCounts {
     pub bad_crc: u64,
     /// The device answered with a Modbus exception.
     pub exception: u64,
+    /// A reply came, but another master had just asked that device: it was not taken (it may
+    /// answer the other master's request).
+    pub another_master: u64,
 }
 
 impl ErrorCounts {
@@ -37,6 +40,7 @@ impl ErrorCounts {
             Some(ErrorKind::Timeout) => self.timeout += 1,
             Some(ErrorKind::BadCrc) => self.bad_crc += 1,
             Some(ErrorKind::Exception) => self.exception += 1,
+            Some(ErrorKind::AnotherMaster) => self.another_master += 1,
             None => {}
         }
     }
@@ -47,11 +51,13 @@ enum ErrorKind {
     Timeout,
     BadCrc,
     Exception,
+    AnotherMaster,
 }
 
-fn error_kind(outcome: &TransactionOutcome) -> Option<ErrorKind> {
+fn error_kind(outcome: &TransactionOutcome, another_master: bool) -> Option<ErrorKind> {
     match outcome {
         TransactionOutcome::NoReply => Some(ErrorKind::Timeout),
+        TransactionOutcome::Garbled if another_master => Some(ErrorKind::AnotherMaster),
         TransactionOutcome::Garbled => Some(ErrorKind::BadCrc),
         TransactionOutcome::Reply(Reply {
             body: ReplyBody::Classic(ResponsePdu::Exception { .. }),
@@ -83,6 +89,8 @@ pub struct PortTotals {
     pub errors: ErrorCounts,
     /// Time the line was busy with transactions (request, waiting, reply).
     pub busy: Duration,
+    /// When a reply was last not taken because another master had just asked its device.
+    pub another_master_at: Option<Duration>,
 }
 
 #[derive(Debug, Clone, Copy, Default)]
@@ -252,16 +260,22 @@ impl PortStats {
     }
 
     /// A transaction ended: count it, its errors and its wire time; keep it in its device's log.
-    /// Returns the device whose events it brought, if any, for [`Self::events_published`].
+    /// `another_master`: its reply was not taken because another master had just asked the
+    /// device ([`crate::protocol::ReplyTiming::another_master`]). Returns the device whose
+    /// events it brought, if any, for [`Self::events_published`].
     pub fn transaction_done(
         &mut self,
         started: Duration,
         now: Duration,
         transaction: &Transaction,
         outcome: &TransactionOutcome,
+        another_master: bool,
     ) -> Option<usize> {
         let took = now.saturating_sub(started);
-        let kind = error_kind(outcome);
+        let kind = error_kind(outcome, another_master);
+        if kind == Some(ErrorKind::AnotherMaster) {
+            self.totals.another_master_at = Some(now);
+        }
         let event_round = matches!(
             transaction.request.body,
             RequestBody::Fast(FastRequest::PollEvents(_))
@@ -487,8 +501,14 @@ mod tests {
     #[test]
     fn errors_are_counted_by_kind_for_port_and_device() {
         let mut stats = stats();
-        stats.transaction_done(ms(0), ms(10), &read(1), &TransactionOutcome::NoReply);
-        stats.transaction_done(ms(10), ms(20), &read(2), &TransactionOutcome::Garbled);
+        stats.transaction_done(ms(0), ms(10), &read(1), &TransactionOutcome::NoReply, false);
+        stats.transaction_done(
+            ms(10),
+            ms(20),
+            &read(2),
+            &TransactionOutcome::Garbled,
+            false,
+        );
         let exception = TransactionOutcome::Reply(Reply {
             address: 2,
             body: ReplyBody::Classic(ResponsePdu::Exception {
@@ -496,15 +516,20 @@ mod tests {
                 code: crate::protocol::ExceptionCode(2),
             }),
         });
-        stats.transaction_done(ms(20), ms(30), &read(2), &exception);
+        stats.transaction_done(ms(20), ms(30), &read(2), &exception, false);
+        // A reply not taken because another master had just asked the device: no bad CRC.
+        stats.transaction_done(ms(30), ms(40), &read(1), &TransactionOutcome::Garbled, true);
         assert_eq!(
             stats.totals.errors,
             ErrorCounts {
                 timeout: 1,
                 bad_crc: 1,
-                exception: 1
+                exception: 1,
+                another_master: 1,
             }
         );
+        assert_eq!(stats.devices[0].errors.another_master, 1);
+        assert_eq!(stats.totals.another_master_at, Some(ms(40)));
         assert_eq!(stats.devices[0].errors.timeout, 1);
         assert_eq!(stats.devices[1].errors.bad_crc, 1);
         assert_eq!(stats.devices[1].errors.exception, 1);
@@ -525,6 +550,7 @@ mod tests {
                 start + ms(100),
                 &read(1),
                 &TransactionOutcome::NoReply,
+                false,
             );
         }
         let rates = stats.rates(ms(11_500));
@@ -539,7 +565,7 @@ mod tests {
         let mut stats = stats();
         let nothing = TransactionOutcome::Reply(Reply::fast(0xFD, FastReply::NoEvents));
         assert_eq!(
-            stats.transaction_done(ms(0), ms(5), &event_poll(), &nothing),
+            stats.transaction_done(ms(0), ms(5), &event_poll(), &nothing, false),
             None
         );
         // Round at 100 ms: device 2 wins, device 1 still has its change pending.
@@ -551,7 +577,7 @@ mod tests {
                 events: Vec::new(),
             }),
         ));
-        let from = stats.transaction_done(ms(100), ms(110), &event_poll(), &events);
+        let from = stats.transaction_done(ms(100), ms(110), &event_poll(), &events, false);
         assert_eq!(from, Some(1));
         stats.events_published(1, ms(112));
         let events_of_1 = TransactionOutcome::Reply(Reply::fast(
@@ -563,7 +589,7 @@ mod tests {
             }),
         ));
         assert_eq!(
-            stats.transaction_done(ms(200), ms(210), &event_poll(), &events_of_1),
+            stats.transaction_done(ms(200), ms(210), &event_poll(), &events_of_1, false),
             Some(0)
         );
         stats.events_published(0, ms(215));

@@ -433,7 +433,7 @@ impl Exchange {
             return None;
         };
         if self.mbap.is_none() {
-            self.other_masters.sent(now, &frame);
+            self.other_masters.writing(&frame, request.expects_reply());
         }
         self.state = State::Sending {
             request,
@@ -503,6 +503,9 @@ impl Exchange {
         let Some(transaction) = &self.transaction else {
             return;
         };
+        if self.mbap.is_none() {
+            self.other_masters.sent(now);
+        }
         let mut window = ReplyWindow::new(
             transaction,
             (write_started, now),
@@ -582,10 +585,16 @@ impl Exchange {
             return;
         }
         let mut bytes = bytes;
-        if let Ok(request) = receiving.request.encode() {
-            if bytes.len() > request.len() && bytes.starts_with(&request) {
-                debug!(count = request.len(), "the request's echo dropped");
-                bytes = bytes.get(request.len()..).unwrap_or(&[]);
+        // Only on a line known to echo: elsewhere a copy of the request is another master's,
+        // and what follows it may be the answer to it.
+        if self.other_masters.line_echoes() {
+            if let Ok(request) = receiving.request.encode() {
+                if bytes.len() > request.len() && bytes.starts_with(&request) {
+                    debug!(count = request.len(), "the request's echo dropped");
+                    let (echo, rest) = bytes.split_at(request.len());
+                    self.other_masters.stray(now, echo);
+                    bytes = rest;
+                }
             }
         }
         self.line_busy_until = Some(self.line_busy_until.map_or(now, |busy| busy.max(now)));
@@ -616,8 +625,22 @@ impl Exchange {
             // Bytes heard while the request was still on the wire (a collision): what follows
             // them may be the rest of another device's frame, not the start of the reply.
             receiving.dropped = true;
-            self.heard_stray(now, bytes);
+            if self.mbap.is_none() {
+                self.other_masters.stray_while_sending(now, bytes);
+            }
             return;
+        }
+        let mut bytes = bytes;
+        // The rest of an echo begun while the request went out (a USB adapter hands it over a
+        // little after the request has left the wire).
+        let echo_tail = self.other_masters.echo_continues(bytes);
+        if echo_tail > 0 {
+            let (tail, rest) = bytes.split_at(echo_tail);
+            self.other_masters.stray_while_sending(now, tail);
+            bytes = rest;
+            if bytes.is_empty() {
+                return;
+            }
         }
         self.take_reply(now, bytes);
     }
@@ -626,7 +649,9 @@ impl Exchange {
     /// not another master's request.
     pub fn sent_elsewhere(&mut self, now: Duration, frame: &[u8]) {
         if self.mbap.is_none() {
-            self.other_masters.sent(now, frame);
+            // Its reply, if any, is the transfer's to read: an echo may be left over.
+            self.other_masters.writing(frame, false);
+            self.other_masters.sent(now);
         }
     }
 
@@ -764,6 +789,7 @@ impl Exchange {
         match std::mem::replace(&mut self.state, State::Idle) {
             State::Done(outcome, timing) => {
                 self.transaction = None;
+                self.other_masters.transaction_over();
                 Some((outcome, timing))
             }
             _ => None,
@@ -1651,19 +1677,36 @@ mod tests {
     }
 
     #[test]
-    fn an_echo_of_the_request_in_front_of_a_batch_is_dropped() {
+    fn an_echo_of_the_request_in_front_of_a_batch_is_dropped_once_the_line_is_known_to_echo() {
         let line = line(115_200);
         let (mut exchange, transaction, _, start) = taught(&line, ms(1));
         let request = read_request().encode().unwrap_or_default();
         // The adapter hears its own request while it goes out, then the device answers.
-        let mut arrivals = on_the_wire(&line, start, &request);
-        arrivals.extend(on_the_wire(
-            &line,
-            start + transaction.request_time + ms(1),
-            &reply_frame(),
-        ));
-        let (finished, wakes) = drive(&mut exchange, &transaction, start, &arrivals, true);
+        let echoed = |start: Duration| {
+            let mut arrivals = on_the_wire(&line, start, &request);
+            arrivals.extend(on_the_wire(
+                &line,
+                start + transaction.request_time + ms(1),
+                &reply_frame(),
+            ));
+            arrivals
+        };
+        // Read in one go before the line is known to echo: a copy of the request in front of
+        // the reply may be another master's, and the reply the answer to it.
+        let (finished, _) = drive(&mut exchange, &transaction, start, &echoed(start), true);
+        assert_eq!(finished.outcome, TransactionOutcome::Garbled);
+        assert!(finished.timing.another_master);
+        // Read as it comes, the echo is heard while the request goes out: after a few, the
+        // line is known to echo.
+        let mut start = start + super::super::other_master::REPLY_HORIZON + ms(100);
+        for _ in 0..3 {
+            let (finished, _) = drive(&mut exchange, &transaction, start, &echoed(start), false);
+            assert_eq!(finished.outcome, read_reply());
+            start = finished.at + ms(5);
+        }
+        let (finished, wakes) = drive(&mut exchange, &transaction, start, &echoed(start), true);
         assert_eq!(finished.outcome, read_reply());
+        assert!(!finished.timing.another_master);
         assert_eq!(wakes, 1);
     }
 
@@ -2036,11 +2079,15 @@ mod tests {
         assert_eq!(finished.outcome, TransactionOutcome::Garbled);
         assert!(finished.timing.another_master);
         // Once the other master has been silent for longer than any device takes to answer
-        // it, replies are taken again; this master's own echo is no other master.
+        // it, replies are taken again; this master's own echo, heard while the request goes
+        // out, is no other master.
         let later = ms(11) + super::super::other_master::REPLY_HORIZON + ms(100);
-        let mut echoed = read_request().encode().unwrap_or_default();
-        echoed.extend(reply_frame());
-        let arrivals = on_the_wire(&line, later + transaction.request_time + ms(1), &echoed);
+        let mut arrivals = on_the_wire(&line, later, &read_request().encode().unwrap_or_default());
+        arrivals.extend(on_the_wire(
+            &line,
+            later + transaction.request_time + ms(1),
+            &reply_frame(),
+        ));
         let finished = run(&mut exchange, &transaction, later, &arrivals);
         assert_eq!(finished.outcome, read_reply());
         assert!(!finished.timing.another_master);
