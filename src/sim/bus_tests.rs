@@ -1118,6 +1118,20 @@ fn and(a: &[u8], b: &[u8]) -> Vec<u8> {
     a.iter().zip(b).map(|(x, y)| x & y).collect()
 }
 
+/// The seed bus after the master's read of holding 128 of device 20 at 0 and the silence after
+/// it: the device's reply is on the wire.
+fn answered_read_of_20() -> (Bus, Wire) {
+    let mut bus = seed_bus();
+    let mut wire = Wire::new();
+    assert!(!write(
+        &mut wire,
+        &mut bus,
+        &read_holding(20, 128, 1),
+        Duration::ZERO
+    ));
+    (bus, wire)
+}
+
 /// Writes `frame` at `at`, then lets the line fall silent; returns whether it collided.
 fn write(wire: &mut Wire, bus: &mut Bus, frame: &[u8], at: Duration) -> bool {
     let mut respond = |request: &super::line::ReceivedRequest| bus.handle(request);
@@ -1225,14 +1239,7 @@ fn a_request_after_the_reply_is_answered_after_it() {
 fn a_request_right_behind_a_reply_is_its_continuation_to_the_devices() {
     // Device 241 heard device 20's reply: a request that follows it within 3.5 characters is
     // more bytes of that frame to it (a slave delimits frames by silence), so nobody answers.
-    let mut bus = seed_bus();
-    let mut wire = Wire::new();
-    assert!(!write(
-        &mut wire,
-        &mut bus,
-        &read_holding(20, 128, 1),
-        Duration::ZERO
-    ));
+    let (mut bus, mut wire) = answered_read_of_20();
     let reply_end = wire.arrivals().last().unwrap().0;
     let gap = FAST_LINE.frame_gap();
     let too_soon = reply_end + gap - FAST_LINE.char_time();
@@ -1257,14 +1264,7 @@ fn a_request_right_behind_a_reply_is_its_continuation_to_the_devices() {
 
 #[test]
 fn a_request_written_during_a_reply_collides_with_it() {
-    let mut bus = seed_bus();
-    let mut wire = Wire::new();
-    assert!(!write(
-        &mut wire,
-        &mut bus,
-        &read_holding(20, 128, 1),
-        Duration::ZERO
-    ));
+    let (mut bus, mut wire) = answered_read_of_20();
     let char_time = FAST_LINE.char_time();
     let reply_start = FAST_LINE.wire_time(8) + Duration::from_micros(500);
     let reply = hex("14 03 02 00 14 B5 88");
@@ -1286,14 +1286,7 @@ fn a_request_written_during_a_reply_collides_with_it() {
 
 #[test]
 fn a_request_after_the_frame_gap_but_before_the_reply_collides() {
-    let mut bus = seed_bus();
-    let mut wire = Wire::new();
-    assert!(!write(
-        &mut wire,
-        &mut bus,
-        &read_holding(20, 128, 1),
-        Duration::ZERO
-    ));
+    let (mut bus, mut wire) = answered_read_of_20();
     // 400 µs after the request: past its frame gap (334 µs), 100 µs before the reply starts.
     let at = FAST_LINE.wire_time(8) + Duration::from_micros(400);
     assert!(write(&mut wire, &mut bus, &read_holding(241, 128, 1), at));
@@ -1474,14 +1467,7 @@ fn another_master_talking_over_the_masters_request_garbles_both() {
 
 #[test]
 fn another_master_talking_over_a_reply_garbles_it_and_gets_no_answer() {
-    let mut bus = seed_bus();
-    let mut wire = Wire::new();
-    assert!(!write(
-        &mut wire,
-        &mut bus,
-        &read_holding(20, 128, 1),
-        Duration::ZERO
-    ));
+    let (mut bus, mut wire) = answered_read_of_20();
     let reply_start = FAST_LINE.wire_time(8) + Duration::from_micros(500);
     let reply = hex("14 03 02 00 14 B5 88");
     let at = reply_start + FAST_LINE.char_time() * 3;
