@@ -1459,10 +1459,14 @@ fn another_master_talking_over_the_masters_request_garbles_both() {
     let at = FAST_LINE.wire_time(2);
     let theirs = read_holding(241, 128, 1);
     assert!(wire.other_master_sends(&theirs, at, master(), &mut respond));
-    // Nobody answers either; the master hears their bytes merged with its own.
+    // Nobody answers either; the master, deaf while it talks, hears only their bytes after
+    // its own.
     assert!(!wire.on_silence(Duration::MAX, &mut respond));
-    let merged = [and(&theirs[..6], &ours[2..]), theirs[6..].to_vec()].concat();
-    assert_eq!(wire.arrivals(), arrivals_from(at, FAST_LINE, &merged));
+    let after_ours = arrivals_from(at, FAST_LINE, &theirs)
+        .into_iter()
+        .skip(6)
+        .collect::<Vec<_>>();
+    assert_eq!(wire.arrivals(), after_ours);
 }
 
 #[test]
@@ -1516,6 +1520,29 @@ fn the_masters_request_in_another_masters_frame_gap_garbles_both() {
     // Their bytes had reached the master by then; no answer follows to either.
     assert_eq!(wire.arrivals(), []);
     assert_eq!(bus.stats().answered, 0);
+    assert_eq!(bus.stats().other_master_answered, 0);
+}
+
+#[test]
+fn another_masters_request_followed_within_its_frame_gap_by_a_reply_gets_no_answer() {
+    // Device 20 answers the master 5 ms after its request; the other master's read of 241 ends
+    // a character before that reply starts: to 241 the reply is more bytes of that frame.
+    let mut bus = seed_bus();
+    bus.device_mut(0).unwrap().turnaround = Duration::from_millis(5);
+    let mut wire = Wire::new();
+    assert!(!write(
+        &mut wire,
+        &mut bus,
+        &read_holding(20, 128, 1),
+        Duration::ZERO
+    ));
+    let reply_start = FAST_LINE.wire_time(8) + Duration::from_millis(5);
+    let theirs = read_holding(241, 128, 1);
+    let at = reply_start - FAST_LINE.char_time() - FAST_LINE.wire_time(8);
+    assert_eq!(
+        other_master_sends(&mut wire, &mut bus, &theirs, at),
+        (false, false)
+    );
     assert_eq!(bus.stats().other_master_answered, 0);
 }
 

@@ -189,7 +189,8 @@ impl Wire {
 
     /// A second master ([`super::other_master`]) sends `frame` from `at` at the settings of
     /// `line`, whatever is on the wire. Its bytes go on the wire as a device's do, so the master
-    /// receives them, and merge by AND with whatever they overlap. It collides with the master's
+    /// receives them (except while it talks itself: its transceiver does not listen then), and
+    /// merge by AND with whatever they overlap. It collides with the master's
     /// request still on the wire or not yet followed by a frame gap (the devices hear one run:
     /// noise, nobody answers either), with device bytes it overlaps or follows within a frame
     /// gap, and with master bytes written before its own frame gap has passed. Otherwise the
@@ -212,12 +213,14 @@ impl Wire {
         let end = at + settings.wire_time(frame.len());
         let mut collided = false;
         let mut bytes = frame.to_vec();
+        // Bytes sent while the master itself talks: its transceiver does not listen then (no
+        // echo), so it never hears them; the devices hear both merged.
+        let mut unheard = vec![false; bytes.len()];
         if let Some(run) = &mut self.run {
             run.spoiled = true;
             collided = true;
-            // Where the two masters' bytes overlap, each is heard merged with the other's.
             let run_settings = run.line.settings();
-            for (index, byte) in bytes.iter_mut().enumerate() {
+            for ((index, byte), unheard) in bytes.iter_mut().enumerate().zip(&mut unheard) {
                 let byte_start = at + settings.wire_time(index);
                 let byte_end = at + settings.wire_time(index + 1);
                 for (position, heard) in run.bytes.iter_mut().enumerate() {
@@ -229,6 +232,7 @@ impl Wire {
                     if shared > ROUNDING {
                         *heard &= *byte;
                         *byte = *heard;
+                        *unheard = true;
                     }
                 }
             }
@@ -241,13 +245,18 @@ impl Wire {
             || self
                 .devices_quiet_from
                 .is_some_and(|quiet| at + ROUNDING >= quiet && at < quiet + settings.frame_gap());
-        self.transmit(&Transmission {
-            bursts: vec![Burst {
-                start: at,
+        let bursts = bytes
+            .iter()
+            .zip(&unheard)
+            .enumerate()
+            .filter(|(_, (_, &unheard))| !unheard)
+            .map(|(index, (&byte, _))| Burst {
+                start: at + settings.char_time() * u32::try_from(index).unwrap_or(u32::MAX),
                 char_time: settings.char_time(),
-                bytes: bytes.clone(),
-            }],
-        });
+                bytes: vec![byte],
+            })
+            .collect();
+        self.transmit(&Transmission { bursts });
         self.other_run = Some(Run {
             bytes,
             start: at,
@@ -307,6 +316,17 @@ impl Wire {
         run: &Run,
         mut respond: impl FnMut(&ReceivedRequest) -> Transmission,
     ) -> bool {
+        // Device bytes put on the wire within a second master's frame gap (a
+        // reply to the master scheduled before that request was known) are, to every device,
+        // more bytes of that frame.
+        if run.other_master
+            && self
+                .pending
+                .iter()
+                .any(|slot| slot.overlaps(run.end, run.deadline()))
+        {
+            return false;
+        }
         let Some(request) = run_as_request(run) else {
             return false;
         };

@@ -433,7 +433,7 @@ impl Exchange {
             return None;
         };
         if self.mbap.is_none() {
-            self.other_masters.writing(&frame, request.expects_reply());
+            self.other_masters.writing(&frame);
         }
         self.state = State::Sending {
             request,
@@ -503,9 +503,6 @@ impl Exchange {
         let Some(transaction) = &self.transaction else {
             return;
         };
-        if self.mbap.is_none() {
-            self.other_masters.sent(now);
-        }
         let mut window = ReplyWindow::new(
             transaction,
             (write_started, now),
@@ -516,6 +513,9 @@ impl Exchange {
         window.allow_pause_past_deadline(self.config.frame_pause);
         window.hold_first_byte(self.config.first_byte_hold(&request));
         self.line_busy_until = Some(window.clock_start());
+        if self.mbap.is_none() {
+            self.other_masters.sent(now, window.clock_start());
+        }
         self.window_bytes.clear();
         let batch_read_at = self.plan_batch_read(&request, &window);
         self.state = if request.expects_reply() {
@@ -585,16 +585,16 @@ impl Exchange {
             return;
         }
         let mut bytes = bytes;
-        // Only on a line known to echo: elsewhere a copy of the request is another master's,
-        // and what follows it may be the answer to it.
-        if self.other_masters.line_echoes() {
-            if let Ok(request) = receiving.request.encode() {
-                if bytes.len() > request.len() && bytes.starts_with(&request) {
-                    debug!(count = request.len(), "the request's echo dropped");
-                    let (echo, rest) = bytes.split_at(request.len());
-                    self.other_masters.stray(now, echo);
-                    bytes = rest;
-                }
+        if self.mbap.is_none() {
+            self.other_masters.observe(now, bytes);
+            // Only on a line known to echo: elsewhere a copy of the request is another
+            // master's, and what follows it may be the answer to it.
+            let echo = self.other_masters.known_echo_in_front(bytes);
+            if echo > 0 {
+                debug!(count = echo, "the request's echo dropped");
+                let (echo, rest) = bytes.split_at(echo);
+                self.other_masters.stray(now, echo);
+                bytes = rest;
             }
         }
         self.line_busy_until = Some(self.line_busy_until.map_or(now, |busy| busy.max(now)));
@@ -609,6 +609,9 @@ impl Exchange {
     pub fn handle_bytes(&mut self, now: Duration, bytes: &[u8]) {
         if bytes.is_empty() {
             return;
+        }
+        if self.mbap.is_none() {
+            self.other_masters.observe(now, bytes);
         }
         self.line_busy_until = Some(self.line_busy_until.map_or(now, |busy| busy.max(now)));
         let State::Receiving(receiving) = &mut self.state else {
@@ -625,22 +628,8 @@ impl Exchange {
             // Bytes heard while the request was still on the wire (a collision): what follows
             // them may be the rest of another device's frame, not the start of the reply.
             receiving.dropped = true;
-            if self.mbap.is_none() {
-                self.other_masters.stray_while_sending(now, bytes);
-            }
+            self.heard_stray(now, bytes);
             return;
-        }
-        let mut bytes = bytes;
-        // The rest of an echo begun while the request went out (a USB adapter hands it over a
-        // little after the request has left the wire).
-        let echo_tail = self.other_masters.echo_continues(bytes);
-        if echo_tail > 0 {
-            let (tail, rest) = bytes.split_at(echo_tail);
-            self.other_masters.stray_while_sending(now, tail);
-            bytes = rest;
-            if bytes.is_empty() {
-                return;
-            }
         }
         self.take_reply(now, bytes);
     }
@@ -650,8 +639,8 @@ impl Exchange {
     pub fn sent_elsewhere(&mut self, now: Duration, frame: &[u8]) {
         if self.mbap.is_none() {
             // Its reply, if any, is the transfer's to read: an echo may be left over.
-            self.other_masters.writing(frame, false);
-            self.other_masters.sent(now);
+            self.other_masters.writing(frame);
+            self.other_masters.sent(now, now);
         }
     }
 
@@ -789,7 +778,6 @@ impl Exchange {
         match std::mem::replace(&mut self.state, State::Idle) {
             State::Done(outcome, timing) => {
                 self.transaction = None;
-                self.other_masters.transaction_over();
                 Some((outcome, timing))
             }
             _ => None,

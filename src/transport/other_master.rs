@@ -18,14 +18,17 @@
 //! templates sends exactly this master's reads, and the reply to its copy of this master's
 //! last read lands in the window of this master's next one.
 //!
-//! An echo and another master's copy that comes before the reply look alike; only their time
-//! tells them apart: an echo is heard while the request is still on the wire. A copy heard
-//! then is the echo, and after three such requests in a row the line is known to echo
-//! ([`OtherMasters::line_echoes`], until bytes heard while a request goes out are no echo):
-//! only on such a line is a copy of the request in progress heard later (its echo handed over
-//! late, in a batch read, after a request without reply) taken for the echo, once. On a line
-//! that does not echo (a controller's own ports) every copy heard after the request has left
-//! the wire is another master's.
+//! An echo and another master's copy that comes before the reply look alike. What tells them
+//! apart is when and how regularly they come: an adapter echoes every request, as the first
+//! bytes heard after it, within its latency of the request's end on the wire
+//! ([`ECHO_LATENCY`]); another master cannot copy each of this master's requests that quickly.
+//! So a copy heard first and in time counts as the echo only if the request before was echoed
+//! in time too (the first such copy is distrusted without telling the operator), and after
+//! [`ECHOES_TO_KNOW`] such requests, with few misses, the line is known to echo
+//! ([`OtherMasters::line_echoes`]): only then is a copy heard first but read late (a batch read,
+//! a broadcast's echo read before the next request) taken for the echo. Any other copy (a
+//! second one, one after other bytes, one late on a line not known to echo) is another master's:
+//! on a controller's own ports and on a pty, which do not echo, every copy is.
 //!
 //! Noise forms such a frame once in 65,536 tries of a position; a device's reply does not
 //! decode as a request, except a single write's echo.
@@ -52,8 +55,9 @@ const OWN_MEMORY: Duration = Duration::from_secs(10);
 /// At most this many of them (the oldest are let go first).
 const OWN_WRITES: usize = 256;
 
-/// Echoes heard in a row before the line is known to echo: one may be another master's copy
-/// that happened to start just as this master's request ended, three in a row cannot.
+/// Requests echoed in time (less those whose first bytes heard were no echo) before the line
+/// is known to echo: one may be another master's copy sent just after this master's request,
+/// three in a row cannot.
 const ECHOES_TO_KNOW: u8 = 3;
 
 /// The longest request frame (a write of 123 registers): stray bytes beyond it cannot complete
@@ -63,8 +67,10 @@ const LONGEST_REQUEST: usize = 9 + 246;
 /// What the exchange heard of other masters.
 #[derive(Debug, Default)]
 pub struct OtherMasters {
-    /// This master's own frames, to tell them from another master's when heard.
-    own: OwnFrames,
+    /// Single writes (functions 5, 6) of the last [`OWN_MEMORY`]: when sent, and their hash.
+    writes: VecDeque<(Duration, u64)>,
+    /// What was heard first after this master's last request: its echo or not.
+    echo: EchoWatch,
     /// Bytes heard outside any reply since the last request found in them (at most
     /// [`LONGEST_REQUEST`]).
     stray: Vec<u8>,
@@ -74,66 +80,125 @@ pub struct OtherMasters {
     heard_at: BTreeMap<Option<u8>, Duration>,
     /// The last such request, until the driver has taken it ([`Self::take_heard`]).
     unreported: Option<Vec<u8>>,
-    /// The line echoes this master's requests (an echo was heard while a request went out).
-    line_echoes: bool,
-    /// The request in progress, and how much of its echo has been heard since it was sent
-    /// (`usize::MAX`: what came first was no echo); the request being written. Buffers reused
-    /// from request to request.
-    echo_bytes: Vec<u8>,
-    echo_heard: usize,
-    writing_bytes: Vec<u8>,
-    /// Requests in a row whose echo was heard while they went out.
-    echoes_in_a_row: u8,
 }
 
-/// This master's own frames that may be heard again (see the module's documentation).
+/// The first bytes heard after each request this master writes, as evidence of an echo (see
+/// the module's documentation). Buffers reused from request to request.
 #[derive(Debug, Default)]
-struct OwnFrames {
-    /// The request whose echo may still come: the transaction in progress's, or the last one
-    /// sent if it expects no reply, until heard once. A hash of the frame (no copy of it).
-    echo: Option<u64>,
-    /// Whether `echo` expects a reply (its echo comes before the reply, within its
-    /// transaction).
-    echo_expects_reply: bool,
-    /// The request being written: its hash, whether it expects a reply, whether it is a
-    /// single write. It becomes `echo` once written: bytes read before (the input emptied
-    /// before writing it) may still hold the echo of the one before.
-    writing: Option<(u64, bool, bool)>,
-    /// Single writes (functions 5, 6) of the last [`OWN_MEMORY`]: when sent, and their hash.
-    writes: VecDeque<(Duration, u64)>,
+struct EchoWatch {
+    /// The last request written, and the one being written (it becomes `last` once written:
+    /// bytes read before, when the input is emptied before writing it, may still hold the
+    /// echo of the one before).
+    last: Vec<u8>,
+    next: Vec<u8>,
+    /// An echo complete by then came in time: the request's end on the wire and an adapter's
+    /// latency.
+    in_time_by: Duration,
+    /// How many of the first bytes heard since `last` was written match it.
+    matched: usize,
+    verdict: Verdict,
+    /// Evidence that the line echoes: up for each request echoed in time, down for each whose
+    /// first bytes heard were something else; [`ECHOES_TO_KNOW`] makes the line known to echo.
+    score: u8,
 }
 
-impl OwnFrames {
-    fn sent(&mut self, now: Duration) {
-        let Some((hash, expects_reply, single_write)) = self.writing.take() else {
-            return;
-        };
-        self.echo = Some(hash);
-        self.echo_expects_reply = expects_reply;
-        while self.writes.front().is_some_and(|&(at, _)| {
-            self.writes.len() >= OWN_WRITES || at.saturating_add(OWN_MEMORY) < now
-        }) {
-            self.writes.pop_front();
-        }
-        if single_write {
-            self.writes.push_back((now, hash));
-        }
+#[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
+enum Verdict {
+    /// Nothing, or only a beginning of the request, heard since it was written.
+    #[default]
+    Open,
+    /// The first bytes heard were no copy of it.
+    NotEcho,
+    /// The first bytes heard were a copy of it. `own`: taken for its echo (once); else it
+    /// counts as another master's, told to the operator unless `quiet` (a first echo in time
+    /// on a line not yet seen to echo: most likely an echo, it is not trusted but not told).
+    Copy { own: bool, quiet: bool },
+}
+
+/// An adapter hands an echo over at most this long after the request has left the wire (a
+/// USB adapter's latency timer is 16 ms by default; a receive FIFO's timeout is a few
+/// characters).
+const ECHO_LATENCY: Duration = Duration::from_millis(20);
+
+/// Evidence kept at most: a line known to echo stays known through a few transactions whose
+/// first bytes were noise.
+const MAX_ECHO_SCORE: u8 = 2 * ECHOES_TO_KNOW;
+
+impl EchoWatch {
+    fn sent(&mut self, now: Duration, on_the_wire_until: Duration) {
+        std::mem::swap(&mut self.last, &mut self.next);
+        self.in_time_by = on_the_wire_until.max(now) + ECHO_LATENCY;
+        self.matched = 0;
+        self.verdict = Verdict::Open;
     }
 
-    /// Whether `frame`, a request heard at `now`, is this master's own; `echo_possible`: it may
-    /// be the echo of the request in progress.
-    fn claims(&mut self, now: Duration, frame: &[u8], echo_possible: bool) -> bool {
-        let hash = frame_hash(frame);
-        if echo_possible && self.echo == Some(hash) {
-            self.echo = None;
-            return true;
-        }
-        is_single_write(frame)
-            && self
-                .writes
-                .iter()
-                .any(|&(at, sent)| sent == hash && at.saturating_add(OWN_MEMORY) >= now)
+    fn known(&self) -> bool {
+        self.score >= ECHOES_TO_KNOW
     }
+
+    /// Bytes heard at `now`, in the order heard.
+    fn observe(&mut self, now: Duration, bytes: &[u8]) {
+        if self.verdict != Verdict::Open || bytes.is_empty() || self.last.is_empty() {
+            return;
+        }
+        let rest = self.last.get(self.matched..).unwrap_or_default();
+        let count = rest.len().min(bytes.len());
+        if bytes.get(..count) != rest.get(..count) {
+            self.verdict = Verdict::NotEcho;
+            self.score = self.score.saturating_sub(1);
+            return;
+        }
+        self.matched += count;
+        if self.matched < self.last.len() {
+            return;
+        }
+        self.verdict = if now <= self.in_time_by {
+            // An echo in time, or another master's copy sent right after this request: taken
+            // for the echo only if the request before was echoed in time too (another master
+            // cannot copy each of this master's requests that quickly).
+            let own = self.score >= 1;
+            self.score = (self.score + 1).min(MAX_ECHO_SCORE);
+            Verdict::Copy { own, quiet: true }
+        } else {
+            // Read late (a batch read, the next request's emptied input): when it came is
+            // unknown. On a line known to echo it is the echo, and one more sign of it.
+            let own = self.known();
+            if own {
+                self.score = (self.score + 1).min(MAX_ECHO_SCORE);
+            }
+            Verdict::Copy { own, quiet: false }
+        };
+    }
+
+    /// Whether `frame`, a request heard, is a copy of the last request, and then whether it is
+    /// its echo (once) or another master's.
+    fn claims(&mut self, frame: &[u8]) -> Option<Heard> {
+        if frame != self.last.as_slice() {
+            return None;
+        }
+        let heard = match self.verdict {
+            Verdict::Copy { own: true, .. } => Heard::Own,
+            Verdict::Copy { quiet: true, .. } => Heard::Foreign { quiet: true },
+            Verdict::Open | Verdict::NotEcho | Verdict::Copy { .. } => {
+                return Some(Heard::Foreign { quiet: false })
+            }
+        };
+        // Only the first copy heard can be the echo.
+        self.verdict = Verdict::Copy {
+            own: false,
+            quiet: false,
+        };
+        Some(heard)
+    }
+}
+
+/// What a request heard is.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Heard {
+    /// This master's own frame heard again.
+    Own,
+    /// Another master's; told to the operator unless `quiet`.
+    Foreign { quiet: bool },
 }
 
 /// A write of one coil or register: the device's reply is the request itself.
@@ -143,120 +208,123 @@ fn is_single_write(frame: &[u8]) -> bool {
 
 impl OtherMasters {
     /// This master is about to write the request `frame` ([`Self::sent`] once written).
-    pub fn writing(&mut self, frame: &[u8], expects_reply: bool) {
-        self.own.writing = Some((frame_hash(frame), expects_reply, is_single_write(frame)));
-        self.writing_bytes.clear();
-        self.writing_bytes.extend_from_slice(frame);
+    pub fn writing(&mut self, frame: &[u8]) {
+        self.echo.next.clear();
+        self.echo.next.extend_from_slice(frame);
     }
 
-    /// The request of [`Self::writing`] has been written, at `now`.
-    pub fn sent(&mut self, now: Duration) {
-        if self.own.writing.is_some() {
-            std::mem::swap(&mut self.echo_bytes, &mut self.writing_bytes);
-            self.echo_heard = 0;
+    /// The request of [`Self::writing`] has been written at `now`, and is on the wire until
+    /// `on_the_wire_until`.
+    pub fn sent(&mut self, now: Duration, on_the_wire_until: Duration) {
+        self.echo.sent(now, on_the_wire_until);
+        while self.writes.front().is_some_and(|&(at, _)| {
+            self.writes.len() >= OWN_WRITES || at.saturating_add(OWN_MEMORY) < now
+        }) {
+            self.writes.pop_front();
         }
-        self.own.sent(now);
+        if is_single_write(&self.echo.last) {
+            self.writes.push_back((now, frame_hash(&self.echo.last)));
+        }
     }
 
-    /// How many of `bytes`, heard once the request in progress has left the wire, continue
-    /// its echo begun while it went out (0 if none began, or these do not continue it).
-    pub fn echo_continues(&self, bytes: &[u8]) -> usize {
-        let rest = match self.echo_heard {
-            0 | usize::MAX => return 0,
-            heard => self.echo_bytes.get(heard..).unwrap_or_default(),
-        };
-        let count = rest.len().min(bytes.len());
-        if bytes.get(..count) == rest.get(..count) {
-            count
+    /// Bytes heard at `now`, every one in the order heard, before anything else is done with
+    /// them: the first after a request tell whether it was echoed.
+    pub fn observe(&mut self, now: Duration, bytes: &[u8]) {
+        self.echo.observe(now, bytes);
+    }
+
+    /// Whether the line is known to echo this master's requests (see the module's
+    /// documentation).
+    #[cfg(test)]
+    pub fn line_echoes(&self) -> bool {
+        self.echo.known()
+    }
+
+    /// On a line known to echo, the length of the last request's copy in front of `bytes`
+    /// (more bytes follow it), else 0.
+    pub fn known_echo_in_front(&self, bytes: &[u8]) -> usize {
+        let last = &self.echo.last;
+        if self.echo.known() && bytes.len() > last.len() && bytes.starts_with(last) {
+            last.len()
         } else {
             0
         }
     }
 
-    /// The transaction in progress is over: an echo of its request would have come by now
-    /// (before its reply, or within its reply window); a copy heard later is another
-    /// master's. A request that expects no reply keeps its echo until the next one is sent.
-    pub fn transaction_over(&mut self) {
-        if self.own.echo_expects_reply {
-            self.own.echo = None;
-        }
-    }
-
-    /// Whether the line echoes this master's requests (see the module's documentation).
-    pub fn line_echoes(&self) -> bool {
-        self.line_echoes
-    }
-
-    /// Bytes heard at `now` while this master's request was still on the wire: its echo, or a
-    /// collision.
-    pub fn stray_while_sending(&mut self, now: Duration, bytes: &[u8]) {
-        if let Some(rest) = self.echo_bytes.get(self.echo_heard..) {
-            let count = rest.len().min(bytes.len());
-            let before = self.echo_heard;
-            self.echo_heard = if bytes.get(..count) == rest.get(..count) {
-                before + count
-            } else {
-                usize::MAX
-            };
-            if before < self.echo_bytes.len() && self.echo_heard == self.echo_bytes.len() {
-                self.echoes_in_a_row = self.echoes_in_a_row.saturating_add(1);
-            }
-        }
-        if self.echo_heard == usize::MAX {
-            // Heard while the request went out, and not its echo: a collision.
-            self.echoes_in_a_row = 0;
-        }
-        self.line_echoes = self.echoes_in_a_row >= ECHOES_TO_KNOW;
-        self.scan_stray(now, bytes, true);
-    }
-
-    /// Bytes heard at `now` outside any reply: before a request, in a late window, after the
-    /// reply.
+    /// Bytes heard at `now` outside any reply: before a request, while it was on the wire, in a
+    /// late window, after the reply ([`Self::observe`] first).
     pub fn stray(&mut self, now: Duration, bytes: &[u8]) {
-        self.scan_stray(now, bytes, self.line_echoes);
-    }
-
-    fn scan_stray(&mut self, now: Duration, bytes: &[u8], echo_possible: bool) {
         // Called after every reply taken, mostly with nothing: no scan then.
         if bytes.is_empty() {
             return;
         }
-        self.stray.extend_from_slice(bytes);
+        let mut stray = std::mem::take(&mut self.stray);
+        stray.extend_from_slice(bytes);
         // Every request among them counts now, once, and this master's own are let go too:
         // left in the buffer, one would be found again later, when it is no longer its own.
-        while let Some((range, foreign)) =
-            any_request(&self.stray, now, &mut self.own, echo_possible)
-        {
-            if let Some(target) = foreign {
-                let frame = self.stray.get(range.clone()).unwrap_or_default().to_vec();
-                self.heard(now, target, frame);
+        while let Some((range, heard)) = self.any_request(&stray, now) {
+            if let Some((target, quiet)) = heard {
+                let frame = stray.get(range.clone()).unwrap_or_default().to_vec();
+                self.heard(now, target, frame, quiet);
             }
-            self.stray.drain(..range.end);
+            stray.drain(..range.end);
         }
-        let excess = self.stray.len().saturating_sub(LONGEST_REQUEST);
-        self.stray.drain(..excess);
+        let excess = stray.len().saturating_sub(LONGEST_REQUEST);
+        stray.drain(..excess);
+        self.stray = stray;
     }
 
     /// Bytes heard in a reply window (by `now`) that were not the reply: before the frame taken
-    /// for it, or all of them when none was.
+    /// for it, or all of them when none was ([`Self::observe`] first, as they came).
     pub fn in_window(&mut self, now: Duration, mut bytes: &[u8]) {
-        while let Some((range, target)) =
-            foreign_request(bytes, now, &mut self.own, self.line_echoes)
-        {
-            self.heard(
-                now,
-                target,
-                bytes.get(range.clone()).unwrap_or_default().to_vec(),
-            );
+        while let Some((range, heard)) = self.any_request(bytes, now) {
+            if let Some((target, quiet)) = heard {
+                let frame = bytes.get(range.clone()).unwrap_or_default().to_vec();
+                self.heard(now, target, frame, quiet);
+            }
             bytes = bytes.get(range.end..).unwrap_or_default();
         }
     }
 
-    fn heard(&mut self, now: Duration, target: Option<u8>, frame: Vec<u8>) {
+    /// The first complete request in `bytes`, and, unless it is this master's own frame heard
+    /// again, the device it asks (`None`: a broadcast, or a Fast Modbus request that any device
+    /// may answer) and whether the operator is not to be told.
+    #[allow(clippy::type_complexity)]
+    fn any_request(
+        &mut self,
+        bytes: &[u8],
+        now: Duration,
+    ) -> Option<(Range<usize>, Option<(Option<u8>, bool)>)> {
+        let (range, target) = first_request(bytes)?;
+        let frame = bytes.get(range.clone()).unwrap_or_default();
+        let heard = match self.echo.claims(frame) {
+            Some(Heard::Own) => None,
+            Some(Heard::Foreign { quiet }) => Some((target, quiet)),
+            None if self.is_recent_single_write(now, frame) => None,
+            None => Some((target, false)),
+        };
+        Some((range, heard))
+    }
+
+    /// A device's reply to one of this master's single writes of the last [`OWN_MEMORY`]: the
+    /// request itself.
+    fn is_recent_single_write(&self, now: Duration, frame: &[u8]) -> bool {
+        if !is_single_write(frame) {
+            return false;
+        }
+        let hash = frame_hash(frame);
+        self.writes
+            .iter()
+            .any(|&(at, sent)| sent == hash && at.saturating_add(OWN_MEMORY) >= now)
+    }
+
+    fn heard(&mut self, now: Duration, target: Option<u8>, frame: Vec<u8>, quiet: bool) {
         self.heard_at
             .retain(|_, &mut at| at.saturating_add(REPLY_HORIZON) >= now);
         self.heard_at.insert(target, now);
-        self.unreported = Some(frame);
+        if !quiet {
+            self.unreported = Some(frame);
+        }
     }
 
     /// Whether a reply from `address` whose clock started at `clock_start` may answer another
@@ -277,33 +345,9 @@ impl OtherMasters {
     }
 }
 
-/// The first complete request in `bytes` that `own` does not claim, and the device it asks
-/// (`None`: a broadcast, or a Fast Modbus request that any device may answer).
-fn foreign_request(
-    bytes: &[u8],
-    now: Duration,
-    own: &mut OwnFrames,
-    echo_possible: bool,
-) -> Option<(Range<usize>, Option<u8>)> {
-    let mut from = 0;
-    while let Some((range, foreign)) = any_request(bytes.get(from..)?, now, own, echo_possible) {
-        let range = from + range.start..from + range.end;
-        match foreign {
-            Some(target) => return Some((range, target)),
-            None => from = range.end,
-        }
-    }
-    None
-}
-
-/// The first complete request in `bytes`, and, when `own` does not claim it, the device it
-/// asks (`Some(None)`: a broadcast, or a Fast Modbus request that any device may answer).
-fn any_request(
-    bytes: &[u8],
-    now: Duration,
-    own: &mut OwnFrames,
-    echo_possible: bool,
-) -> Option<(Range<usize>, Option<Option<u8>>)> {
+/// The first complete request in `bytes` and the device it asks (`None`: a broadcast, or a
+/// Fast Modbus request that any device may answer).
+fn first_request(bytes: &[u8]) -> Option<(Range<usize>, Option<u8>)> {
     (0..bytes.len()).find_map(|start| {
         let rest = bytes.get(start..)?;
         let FrameLength::Known(len) = Request::length_from_header(rest) else {
@@ -320,10 +364,7 @@ fn any_request(
                 .contains(&request.address)
                 .then_some(request.address),
         };
-        Some((
-            start..start + len,
-            (!own.claims(now, frame, echo_possible)).then_some(target),
-        ))
+        Some((start..start + len, target))
     })
 }
 
@@ -353,19 +394,24 @@ mod tests {
         .unwrap_or_default()
     }
 
-    /// This master writes `frame` at `at`, expecting a reply.
+    /// This master writes `frame` at `at`; it is on the wire until then too (an instant line).
     fn send(heard: &mut OtherMasters, at: Duration, frame: &[u8]) {
-        heard.writing(frame, true);
-        heard.sent(at);
+        heard.writing(frame);
+        heard.sent(at, at);
     }
 
-    /// Requests echoed while they go out, as many as make the line known to echo.
+    /// `bytes` heard at `at`, outside any reply.
+    fn hear(heard: &mut OtherMasters, at: Duration, bytes: &[u8]) {
+        heard.observe(at, bytes);
+        heard.stray(at, bytes);
+    }
+
+    /// Requests each echoed at once, as many as make the line known to echo.
     fn echo_a_few(heard: &mut OtherMasters, from: Duration) {
         for n in 0..ECHOES_TO_KNOW {
             let at = from + ms(u64::from(n) * 10);
             send(heard, at, &read(9, u16::from(n)));
-            heard.stray_while_sending(at, &read(9, u16::from(n)));
-            heard.transaction_over();
+            hear(heard, at + ms(1), &read(9, u16::from(n)));
         }
     }
 
@@ -412,81 +458,129 @@ mod tests {
     #[test]
     fn own_requests_replies_and_noise_are_no_other_master() {
         let mut heard = OtherMasters::default();
+        echo_a_few(&mut heard, ms(0));
         let ours = read(5, 10);
-        send(&mut heard, ms(0), &ours);
-        // An adapter's echo of the request while it goes out: ours.
-        heard.stray_while_sending(ms(1), &ours);
+        send(&mut heard, ms(100), &ours);
+        // The adapter's echo of the request, heard first and in time: ours.
+        hear(&mut heard, ms(101), &ours);
         // A late reply, another device's reply, noise.
-        heard.stray(ms(2), &reply(5));
-        heard.stray(ms(3), &reply(7));
-        heard.stray(ms(4), &[0x00, 0x13, 0xFF, 0x05, 0x03]);
-        heard.in_window(ms(5), &[0x05, 0x03, 0x00, 0x00]);
-        heard.transaction_over();
-        assert!(!heard.distrusts_reply_after(5, ms(5)));
+        hear(&mut heard, ms(102), &reply(5));
+        hear(&mut heard, ms(103), &reply(7));
+        hear(&mut heard, ms(104), &[0x00, 0x13, 0xFF, 0x05, 0x03]);
+        heard.in_window(ms(105), &[0x05, 0x03, 0x00, 0x00]);
+        assert!(!heard.distrusts_reply_after(5, ms(105)));
         assert_eq!(heard.take_heard(), None);
         // A device's reply to a single write is the request itself, and may come late, many
         // requests later: ours, until it is older than any reply can be.
+        let mut heard = OtherMasters::default();
         let write = write_register(5, 3);
         send(&mut heard, ms(10), &write);
-        heard.transaction_over();
         for start in 20..100 {
             send(&mut heard, ms(u64::from(start)), &read(5, start));
-            heard.transaction_over();
         }
-        heard.stray(ms(900), &write);
+        hear(&mut heard, ms(900), &write);
         assert!(!heard.distrusts_reply_after(5, ms(900)));
         let much_later = OWN_MEMORY + ms(1000);
         send(&mut heard, much_later, &read(5, 200));
-        heard.transaction_over();
-        heard.stray(much_later, &write);
+        hear(&mut heard, much_later, &write);
         assert!(heard.distrusts_reply_after(5, much_later));
     }
 
     #[test]
-    fn a_copy_of_an_own_read_heard_after_its_echo_or_transaction_is_another_masters() {
+    fn a_copy_of_an_own_read_is_another_masters_unless_an_echo_the_line_has_shown() {
         // wb-mqtt-serial polling the same device with the same template sends exactly this
         // master's reads: the reply to its copy of the read of 10–15 answers this master's
         // read of 0–5 of the same shape.
-        let mut heard = OtherMasters::default();
         let ours = read(5, 10);
+        // On a line that has never echoed, a copy heard first and in time is not trusted,
+        // though not told (it may be a first echo); any later one is another master's.
+        let mut heard = OtherMasters::default();
         send(&mut heard, ms(0), &ours);
-        heard.transaction_over();
-        heard.stray(ms(100), &ours);
+        hear(&mut heard, ms(13), &ours);
+        assert!(heard.distrusts_reply_after(5, ms(14)));
+        assert_eq!(heard.take_heard(), None);
+        let mut heard = OtherMasters::default();
+        send(&mut heard, ms(0), &ours);
+        hear(&mut heard, ms(100), &ours);
         assert!(heard.distrusts_reply_after(5, ms(101)));
         assert_eq!(heard.take_heard(), Some(ours.clone()));
-        // Heard while the request goes out, a copy is its echo (in two pieces: the adapter
-        // hands the rest over after the request has left the wire); a second one is another
-        // master's. Three such echoes in a row make the line known to echo; bytes heard while
-        // a request goes out that are no echo (a collision) unmake it.
+        // After other bytes (the reply), or a second copy: another master's.
+        let mut heard = OtherMasters::default();
+        echo_a_few(&mut heard, ms(0));
+        send(&mut heard, ms(100), &ours);
+        hear(&mut heard, ms(105), &reply(5));
+        heard.in_window(ms(106), &ours);
+        assert!(heard.distrusts_reply_after(5, ms(106)));
+        let mut heard = OtherMasters::default();
+        echo_a_few(&mut heard, ms(0));
+        send(&mut heard, ms(100), &ours);
+        hear(&mut heard, ms(101), &ours);
+        assert!(!heard.distrusts_reply_after(5, ms(101)));
+        hear(&mut heard, ms(102), &ours);
+        assert!(heard.distrusts_reply_after(5, ms(102)));
+    }
+
+    #[test]
+    fn a_line_is_known_to_echo_from_echoes_in_time_and_stays_so_through_a_little_noise() {
+        let ours = read(5, 10);
         let mut heard = OtherMasters::default();
         for n in 0..ECHOES_TO_KNOW {
             assert!(!heard.line_echoes());
             let at = ms(u64::from(n) * 100);
             send(&mut heard, at, &ours);
-            heard.stray_while_sending(at + ms(1), &ours[..5]);
-            assert_eq!(heard.echo_continues(&ours[5..]), 3);
-            heard.stray_while_sending(at + ms(2), &ours[5..]);
-            assert!(!heard.distrusts_reply_after(5, at + ms(5)));
-            if n + 1 < ECHOES_TO_KNOW {
-                heard.transaction_over();
-            }
+            // In two pieces, the second after the request has left the wire (a USB adapter).
+            hear(&mut heard, at + ms(1), &ours[..5]);
+            hear(&mut heard, at + ECHO_LATENCY, &ours[5..]);
         }
         assert!(heard.line_echoes());
-        heard.in_window(ms(306), &ours);
-        assert!(heard.distrusts_reply_after(5, ms(306)));
-        heard.transaction_over();
-        send(&mut heard, ms(400), &ours);
-        heard.stray_while_sending(ms(401), &[0x00, 0x13]);
+        // The first echo on a line never seen to echo was not trusted (quietly) for a horizon.
+        assert!(heard.distrusts_reply_after(5, ms(300)));
+        assert_eq!(heard.take_heard(), None);
+        // A batch read: the echo in front of the reply, read late.
+        let t = ms(1500);
+        send(&mut heard, t, &ours);
+        let mut batch = ours.clone();
+        batch.extend(reply(5));
+        heard.observe(t + ms(50), &batch);
+        assert_eq!(heard.known_echo_in_front(&batch), ours.len());
+        heard.stray(t + ms(50), &ours);
+        assert!(!heard.distrusts_reply_after(5, t + ms(50)));
+        // Noise heard first after a request: still known; a run of requests whose first bytes
+        // are no echo: no longer.
+        send(&mut heard, t + ms(100), &ours);
+        hear(&mut heard, t + ms(101), &[0x00]);
+        assert!(heard.line_echoes());
+        for n in 0..MAX_ECHO_SCORE {
+            let at = t + ms(200 + u64::from(n) * 10);
+            send(&mut heard, at, &ours);
+            hear(&mut heard, at + ms(1), &reply(5));
+        }
         assert!(!heard.line_echoes());
-        // On a line that does not echo, even the first copy in the window is another master's.
-        let mut heard = OtherMasters::default();
-        send(&mut heard, ms(0), &ours);
-        heard.in_window(ms(5), &ours);
-        assert!(heard.distrusts_reply_after(5, ms(5)));
+        assert_eq!(heard.known_echo_in_front(&batch), 0);
+        // A copy heard late on a line not known to echo: another master's, told.
+        send(&mut heard, t + ms(400), &ours);
+        hear(&mut heard, t + ms(500), &ours);
+        assert!(heard.distrusts_reply_after(5, t + ms(500)));
+        assert_eq!(heard.take_heard(), Some(ours));
     }
 
     #[test]
-    fn on_a_line_that_echoes_a_request_without_reply_keeps_its_echo_until_the_next_is_written() {
+    fn another_master_copying_late_never_makes_the_line_known_to_echo() {
+        // The device does not answer this master; another master's identical read comes 40 ms
+        // after each of its requests, again and again.
+        let ours = read(5, 10);
+        let mut heard = OtherMasters::default();
+        for n in 0..20 {
+            let at = ms(n * 600);
+            send(&mut heard, at, &ours);
+            hear(&mut heard, at + ms(40), &ours);
+            assert!(heard.distrusts_reply_after(5, at + ms(41)));
+        }
+        assert!(!heard.line_echoes());
+    }
+
+    #[test]
+    fn on_a_line_that_echoes_a_request_without_reply_has_its_echo_read_before_the_next() {
         let mut heard = OtherMasters::default();
         echo_a_few(&mut heard, ms(0));
         assert!(heard.line_echoes());
@@ -499,19 +593,17 @@ mod tests {
         )
         .encode()
         .unwrap_or_default();
-        heard.writing(&broadcast, false);
-        heard.sent(ms(0));
-        heard.transaction_over();
-        // Its echo comes after its transaction, in the input emptied before the next request.
-        heard.writing(&read(5, 0), true);
-        heard.stray(ms(20), &broadcast);
-        heard.sent(ms(21));
-        assert!(!heard.distrusts_reply_after(5, ms(21)));
+        send(&mut heard, ms(100), &broadcast);
+        // Its echo comes after its transaction, in the input emptied before the next request
+        // (being written, not yet sent), late.
+        heard.writing(&read(5, 0));
+        hear(&mut heard, ms(200), &broadcast);
+        heard.sent(ms(201), ms(201));
+        assert!(!heard.distrusts_reply_after(5, ms(201)));
         assert_eq!(heard.take_heard(), None);
         // Heard once more: another master's, and any device's reply may answer a broadcast.
-        heard.transaction_over();
-        heard.stray(ms(30), &broadcast);
-        assert!(heard.distrusts_reply_after(7, ms(31)));
+        hear(&mut heard, ms(230), &broadcast);
+        assert!(heard.distrusts_reply_after(7, ms(231)));
         assert_eq!(heard.take_heard(), Some(broadcast));
     }
 
@@ -569,9 +661,10 @@ mod tests {
     #[test]
     fn an_own_request_heard_is_let_go_not_found_later() {
         let mut heard = OtherMasters::default();
+        echo_a_few(&mut heard, ms(0));
         let ours = read(5, 10);
-        send(&mut heard, ms(0), &ours);
-        heard.stray_while_sending(ms(1), &ours);
+        send(&mut heard, ms(100), &ours);
+        hear(&mut heard, ms(101), &ours);
         // Once it is no longer remembered as sent, the stray bytes that come next must not
         // bring it back as another master's.
         let much_later = OWN_MEMORY + ms(1000);
