@@ -541,7 +541,7 @@ impl Exchange {
     /// Replies after an arbitration are read up to an event packet's length field.
     fn plan_batch_read(&mut self, request: &Request, window: &ReplyWindow) -> Option<Duration> {
         let line = self.config.serial?;
-        if !request.expects_reply() {
+        if !request.expects_reply() || self.other_masters.echo_undecided() {
             return None;
         }
         let learned = self.reply_delays.get_mut(&ReplyKind::of(request))?;
@@ -639,8 +639,7 @@ impl Exchange {
     pub fn sent_elsewhere(&mut self, now: Duration, frame: &[u8]) {
         if self.mbap.is_none() {
             // Its reply, if any, is the transfer's to read: an echo may be left over.
-            self.other_masters.writing(frame);
-            self.other_masters.sent(now, now);
+            self.other_masters.sent_raw(now, frame);
         }
     }
 

@@ -23,8 +23,11 @@
 //! bytes heard after it, within its latency of the request's end on the wire
 //! ([`ECHO_LATENCY`]); another master cannot copy each of this master's requests that quickly.
 //! So a copy heard first and in time counts as the echo only if the request before was echoed
-//! in time too (the first such copy is distrusted without telling the operator), and after
-//! [`ECHOES_TO_KNOW`] such requests, with few misses, the line is known to echo
+//! in time too (the first such copy is distrusted without telling the operator; until the line
+//! is decided, replies are read as they come, since a batch read loses the time), and after
+//! [`ECHOES_TO_KNOW`] such requests, with few misses (first bytes that were something else, or
+//! nothing heard at all; a single write's copy is its reply and says nothing), the line is
+//! known to echo
 //! ([`OtherMasters::line_echoes`]): only then is a copy heard first but read late (a batch read,
 //! a broadcast's echo read before the next request) taken for the echo. Any other copy (a
 //! second one, one after other bytes, one late on a line not known to echo) is another master's:
@@ -126,6 +129,11 @@ const MAX_ECHO_SCORE: u8 = 2 * ECHOES_TO_KNOW;
 
 impl EchoWatch {
     fn sent(&mut self, now: Duration, on_the_wire_until: Duration) {
+        if self.verdict == Verdict::Open && !self.last.is_empty() {
+            // Nothing at all was heard after the last request: no echo (an echoing adapter
+            // echoes every request).
+            self.score = self.score.saturating_sub(1);
+        }
         std::mem::swap(&mut self.last, &mut self.next);
         self.in_time_by = on_the_wire_until.max(now) + ECHO_LATENCY;
         self.matched = 0;
@@ -134,6 +142,11 @@ impl EchoWatch {
 
     fn known(&self) -> bool {
         self.score >= ECHOES_TO_KNOW
+    }
+
+    /// Some echo was heard in time lately, but not enough to know the line echoes.
+    fn undecided(&self) -> bool {
+        self.score > 0 && !self.known()
     }
 
     /// Bytes heard at `now`, in the order heard.
@@ -150,6 +163,14 @@ impl EchoWatch {
         }
         self.matched += count;
         if self.matched < self.last.len() {
+            return;
+        }
+        if is_single_write(&self.last) {
+            // A device's reply to a single write is the request itself: no sign of an echo.
+            self.verdict = Verdict::Copy {
+                own: true,
+                quiet: false,
+            };
             return;
         }
         self.verdict = if now <= self.in_time_by {
@@ -231,6 +252,20 @@ impl OtherMasters {
     /// them: the first after a request tell whether it was echoed.
     pub fn observe(&mut self, now: Duration, bytes: &[u8]) {
         self.echo.observe(now, bytes);
+    }
+
+    /// An echo was heard in time lately, but not often enough to know the line echoes: replies
+    /// are to be read as they come (a batch read loses the time that tells an echo).
+    pub fn echo_undecided(&self) -> bool {
+        self.echo.undecided()
+    }
+
+    /// This master's raw transfer `frame` was written at `now`: its reply is the transfer's to
+    /// read, so any copy of it heard first after it is its own (its echo, read late).
+    pub fn sent_raw(&mut self, now: Duration, frame: &[u8]) {
+        self.writing(frame);
+        self.sent(now, now);
+        self.echo.in_time_by = Duration::MAX;
     }
 
     /// Whether the line is known to echo this master's requests (see the module's
@@ -562,6 +597,34 @@ mod tests {
         hear(&mut heard, t + ms(500), &ours);
         assert!(heard.distrusts_reply_after(5, t + ms(500)));
         assert_eq!(heard.take_heard(), Some(ours));
+    }
+
+    #[test]
+    fn answered_single_writes_and_silent_requests_are_no_sign_of_an_echo() {
+        // A device's reply to a single write is the request itself, and comes in time: on a
+        // line without echo, writes in a row must not make it "known to echo".
+        let mut heard = OtherMasters::default();
+        for n in 0..10 {
+            let write = write_register(5, n);
+            let at = ms(u64::from(n) * 10);
+            send(&mut heard, at, &write);
+            hear(&mut heard, at + ms(2), &write);
+            assert!(!heard.echo_undecided());
+        }
+        assert!(!heard.line_echoes());
+        assert!(!heard.distrusts_reply_after(5, ms(100)));
+        // On a line known to echo, a request after which nothing at all was heard lowers the
+        // evidence (an echoing adapter echoes every request).
+        let mut heard = OtherMasters::default();
+        echo_a_few(&mut heard, ms(0));
+        assert!(heard.line_echoes());
+        send(&mut heard, ms(100), &read(5, 0));
+        send(&mut heard, ms(700), &read(5, 0));
+        assert!(!heard.line_echoes());
+        assert!(
+            heard.echo_undecided(),
+            "replies read as they come until decided"
+        );
     }
 
     #[test]
