@@ -403,11 +403,6 @@ impl Wire {
     pub fn forget_delivered(&mut self, now: Duration) {
         self.pending.retain(|slot| slot.end() > now);
     }
-
-    /// No device byte pending and no master run open.
-    pub fn is_idle(&self) -> bool {
-        self.pending.is_empty() && self.run.is_none() && self.other_run.is_none()
-    }
 }
 
 /// A run is a request only if it is exactly one frame: anything before, after or inside it

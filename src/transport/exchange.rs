@@ -1668,7 +1668,7 @@ mod tests {
         let line = line(115_200);
         let (mut exchange, transaction, _, start) = taught(&line, ms(1));
         let request = read_request().encode().unwrap_or_default();
-        // The adapter hears its own request while it goes out, then the device answers.
+        // The adapter echoes the request as it goes out, then the device answers.
         let echoed = |start: Duration| {
             let mut arrivals = on_the_wire(&line, start, &request);
             arrivals.extend(on_the_wire(
