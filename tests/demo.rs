@@ -417,3 +417,34 @@ fn the_demo_leaves_the_rpc_methods_another_server_advertised() {
         "the demo's own advertisement of the same methods stays with the other server's"
     );
 }
+
+/// A port where something that is not a broker listens (a web server, a stale tunnel): the demo
+/// says so instead of a bare "Network timeout", and leaves nothing behind.
+#[test]
+fn a_demo_pointed_at_a_port_that_is_not_a_broker_says_so() {
+    // Accepts the TCP connection (the listen backlog does) and never answers MQTT's CONNECT.
+    let listener = TcpListener::bind("127.0.0.1:0").unwrap();
+    let port = listener.local_addr().unwrap().port();
+    let mut demo = Demo::start(&["--mqtt-port", &port.to_string()]);
+    let mut said = Vec::new();
+    let status = demo.child.wait().unwrap();
+    while let Ok(line) = demo.stderr.recv_timeout(Duration::from_secs(5)) {
+        said.push(line);
+    }
+    assert!(!status.success(), "{status}; it said {said:?}");
+    let said = said.join("\n");
+    assert!(
+        said.contains(&format!(
+            "127.0.0.1:{port} takes connections but does not answer as an MQTT broker"
+        )) && said.contains("--mqtt-port"),
+        "{said}"
+    );
+    let dir = said
+        .lines()
+        .find_map(|line| line.trim().strip_prefix("files:"))
+        .map(|dir| PathBuf::from(dir.trim()));
+    if let Some(dir) = dir {
+        assert!(!dir.exists(), "{} is left behind", dir.display());
+    }
+    drop(listener);
+}

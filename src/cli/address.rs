@@ -13,7 +13,7 @@ use crate::protocol::{LineSettings, RequestPdu, ResponsePdu};
 use crate::tools::bus::{Answer, PortError, ToolBus, ToolPort, KNOWN_DEVICE_TIMEOUT};
 use crate::tools::exit;
 use crate::tools::plan::{parse_range, same_on_the_wire};
-use crate::tools::report::{same_serial, serial_text, AddressChange, ScanReport};
+use crate::tools::report::{same_serial, serial_text, AddressChange, FoundDevice, ScanReport};
 
 use super::scan::{block_on_tool, port_failure, PortArgs};
 
@@ -242,8 +242,16 @@ async fn set_address_steps(
         );
         return Ok(ExitCode::from(exit::NOT_FOUND));
     };
+    let shown = shown_settings(
+        report
+            .devices
+            .iter()
+            .find(|d| d.serial == Some(args.serial)),
+        line,
+        &args.port.stop_bits,
+    );
     if old == args.address {
-        println!("serial {serial} already has address {old} ({line}); nothing to do");
+        println!("serial {serial} already has address {old} ({shown}); nothing to do");
         return Ok(ExitCode::SUCCESS);
     }
     let taken_by: Vec<String> = report
@@ -254,7 +262,7 @@ async fn set_address_steps(
         .collect();
     if !taken_by.is_empty() && !args.force {
         eprintln!(
-            "address {} is already used at {line} by serial {}: choose another (rtu2mqtt scan \
+            "address {} is already used at {shown} by serial {}: choose another (rtu2mqtt scan \
              lists the used ones) or add --force",
             args.address,
             taken_by.join(", ")
@@ -266,14 +274,14 @@ async fn set_address_steps(
         if let Some(what) = bus.probe(line, args.address).await? {
             if !args.force {
                 eprintln!(
-                    "address {} is already used at {line}: {what}; choose another (rtu2mqtt scan \
+                    "address {} is already used at {shown}: {what}; choose another (rtu2mqtt scan \
                      --classic lists devices without Fast Modbus) or add --force",
                     args.address
                 );
                 return Ok(ExitCode::from(exit::NOT_FOUND));
             }
             eprintln!(
-                "address {} at {line}: {what}; changing anyway (--force)",
+                "address {} at {shown}: {what}; changing anyway (--force)",
                 args.address
             );
         }
@@ -283,6 +291,7 @@ async fn set_address_steps(
         line,
         from: old,
         to: args.address,
+        settings: shown.clone(),
     };
     let written = bus.write_address(&change).await?;
     // Checked with a new scan whatever the write's answer: a device may take the address and
@@ -293,40 +302,40 @@ async fn set_address_steps(
     let new = args.address;
     match (written, scanned) {
         (Ok(()), Some(now)) if now == new => {
-            println!("serial {serial} at {line}: address {old} -> {new} (confirmed by a scan)");
+            println!("serial {serial} at {shown}: address {old} -> {new} (confirmed by a scan)");
             Ok(ExitCode::SUCCESS)
         }
         (Ok(()), scanned) => {
             eprintln!(
-                "serial {serial} at {line}: wrote address {new} but the scan shows {}",
+                "serial {serial} at {shown}: wrote address {new} but the scan shows {}",
                 scanned.map_or("nothing".into(), |a| a.to_string())
             );
             Ok(ExitCode::from(exit::NOT_FOUND))
         }
         (Err(reason), Some(now)) if now == new => {
             println!(
-                "serial {serial} at {line}: address {old} -> {new} (confirmed by a scan; the \
+                "serial {serial} at {shown}: address {old} -> {new} (confirmed by a scan; the \
                  write's reply was lost: {reason})"
             );
             Ok(ExitCode::SUCCESS)
         }
         (Err(reason), Some(now)) if now == old => {
             eprintln!(
-                "serial {serial} at {line}: {reason}; a new scan shows it still at address {old}"
+                "serial {serial} at {shown}: {reason}; a new scan shows it still at address {old}"
             );
             Ok(ExitCode::from(exit::NOT_FOUND))
         }
         (Err(reason), Some(now)) => {
             eprintln!(
-                "serial {serial} at {line}: {reason}; a new scan shows it at address {now} \
+                "serial {serial} at {shown}: {reason}; a new scan shows it at address {now} \
                  (neither {old} nor {new}): check with rtu2mqtt scan"
             );
             Ok(ExitCode::from(exit::NOT_FOUND))
         }
         (Err(reason), None) => {
             eprintln!(
-                "serial {serial} at {line}: {reason}; the device no longer answers a scan at \
-                 {line}: it may have restarted or moved; check with rtu2mqtt scan"
+                "serial {serial} at {shown}: {reason}; the device no longer answers a scan at \
+                 {shown}: it may have restarted or moved; check with rtu2mqtt scan"
             );
             Ok(ExitCode::from(exit::NOT_FOUND))
         }
@@ -389,12 +398,31 @@ pub fn run_fix_addresses(args: FixAddressesArgs) -> anyhow::Result<ExitCode> {
     .context("fix-addresses")
 }
 
+/// A device's settings as the tools say them: what the scan knows (the setting it was heard at
+/// says nothing of its stop bits, as a device at 1 or 2 answers alike: `9600 8N?`), or the stop
+/// bits the user named.
+fn shown_settings(
+    device: Option<&FoundDevice>,
+    line: LineSettings,
+    named_stop_bits: &[u8],
+) -> String {
+    match (named_stop_bits, device) {
+        ([stop_bits], _) => LineSettings {
+            stop_bits: *stop_bits,
+            ..line
+        }
+        .to_string(),
+        (_, Some(device)) => device.settings_text(),
+        (_, None) => line.to_string(),
+    }
+}
+
 fn print_changes(changes: &[AddressChange], applied: bool) {
     for change in changes {
         println!(
             "serial {} at {}: address {} -> {}{}",
             serial_text(change.serial),
-            change.line,
+            change.settings,
             change.from,
             change.to,
             if applied { "" } else { " (planned)" }
@@ -667,12 +695,20 @@ async fn plan_free_addresses(
     bus: &mut impl AddressBus,
     report: &ScanReport,
     range: (u8, u8),
+    named_stop_bits: &[u8],
 ) -> Result<crate::tools::report::AddressPlan, ExitCode> {
     let mut occupied = BTreeSet::new();
     let mut free: Vec<(LineSettings, u8)> = Vec::new();
     // Each round takes at least one more address, so there are at most as many as addresses.
     loop {
-        let plan = report.plan_addresses_avoiding(range, &occupied);
+        let mut plan = report.plan_addresses_avoiding(range, &occupied);
+        for change in &mut plan.changes {
+            let device = report
+                .devices
+                .iter()
+                .find(|d| d.serial == Some(change.serial));
+            change.settings = shown_settings(device, change.line, named_stop_bits);
+        }
         let mut changed = false;
         for change in &plan.changes {
             if free.contains(&(change.line, change.to)) {
@@ -685,7 +721,7 @@ async fn plan_free_addresses(
                 Some(what) => {
                     eprintln!(
                         "address {} at {} is not free: {what}",
-                        change.to, change.line
+                        change.to, change.settings
                     );
                     occupied.insert(change.to);
                     changed = true;
@@ -726,7 +762,7 @@ async fn fix_addresses_steps(
         );
         return Ok(ExitCode::SUCCESS);
     }
-    let address_plan = plan_free_addresses(bus, &report, args.range).await?;
+    let address_plan = plan_free_addresses(bus, &report, args.range, &args.port.stop_bits).await?;
     for problem in &address_plan.unresolved {
         eprintln!("cannot fix: {problem}");
     }
@@ -743,7 +779,7 @@ async fn fix_addresses_steps(
             eprintln!(
                 "serial {} at {}: {reason}",
                 serial_text(change.serial),
-                change.line
+                change.settings
             );
         }
     }
@@ -762,7 +798,7 @@ async fn fix_addresses_steps(
             println!(
                 "serial {} at {}: address {} -> {} (confirmed by a new scan)",
                 serial_text(change.serial),
-                change.line,
+                change.settings,
                 change.from,
                 change.to
             );
@@ -771,7 +807,7 @@ async fn fix_addresses_steps(
             eprintln!(
                 "serial {} at {}: expected address {} after the change, the scan shows {}",
                 serial_text(change.serial),
-                change.line,
+                change.settings,
                 change.to,
                 now.map_or("no device".into(), |a| a.to_string())
             );

@@ -277,17 +277,8 @@ fn live_view(port: u16) -> std::thread::JoinHandle<()> {
             loop {
                 match eventloop.poll().await {
                     Ok(Event::Incoming(Packet::Publish(p))) if !p.retain => {
-                        let parts: Vec<&str> = p.topic.split('/').collect();
-                        // Only the demo's devices: the broker may serve a real gateway too.
-                        if let [_, _, device, _, control] = parts.as_slice() {
-                            if !device.starts_with(DEVICE_ID_PREFIX) {
-                                continue;
-                            }
-                            println!(
-                                "{:>9.3} s  {device:<20} {control:<24} {}",
-                                started.elapsed().as_secs_f64(),
-                                String::from_utf8_lossy(&p.payload)
-                            );
+                        if let Some(line) = view_line(started.elapsed(), &p.topic, &p.payload) {
+                            println!("{line}");
                         }
                     }
                     Ok(_) => {}
@@ -297,6 +288,23 @@ fn live_view(port: u16) -> std::thread::JoinHandle<()> {
             }
         });
     })
+}
+
+/// The live view's line for a publication: a value of one of the demo's controls. An empty
+/// payload deletes a retained topic (the daemon tidying up as the demo ends): not a value to
+/// show. The broker may serve a real gateway too, whose devices are not the demo's.
+fn view_line(elapsed: Duration, topic: &str, payload: &[u8]) -> Option<String> {
+    let [_, _, device, _, control] = topic.split('/').collect::<Vec<_>>()[..] else {
+        return None;
+    };
+    if !device.starts_with(DEVICE_ID_PREFIX) || payload.is_empty() {
+        return None;
+    }
+    Some(format!(
+        "{:>9.3} s  {device:<20} {control:<24} {}",
+        elapsed.as_secs_f64(),
+        String::from_utf8_lossy(payload)
+    ))
 }
 
 /// `rtu2mqtt sim` as a child process; returns once it printed "ready".
@@ -471,9 +479,21 @@ async fn tidy(port: u16, base_ids: &[String], when: Tidy) -> anyhow::Result<bool
     let mut found = Vec::new();
     // The marker back, and its acknowledgement (which must not count as a deletion's).
     let (mut marker_back, mut marker_acked) = (false, false);
+    let mut connected = false;
     while !(marker_back && marker_acked) {
-        match eventloop.poll().await.context("MQTT")? {
+        let event = match eventloop.poll().await {
+            Ok(event) => event,
+            // Something took the TCP connection but never answered MQTT's CONNECT.
+            Err(err) if !connected => anyhow::bail!(
+                "127.0.0.1:{port} takes connections but does not answer as an MQTT broker \
+                 ({err}): is another program listening there? Give the demo a free port with \
+                 --mqtt-port (it starts its own broker there) or a running broker's"
+            ),
+            Err(err) => return Err(anyhow::Error::new(err).context("MQTT")),
+        };
+        match event {
             Event::Incoming(Packet::ConnAck(_)) => {
+                connected = true;
                 client.subscribe_many(filters.clone()).await?;
             }
             Event::Incoming(Packet::SubAck(_)) => {
@@ -542,5 +562,30 @@ async fn tidy(port: u16, base_ids: &[String], when: Tidy) -> anyhow::Result<bool
             }
             Ok(_) => {}
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_live_view_shows_the_demos_values_and_not_the_deletions_at_its_end() {
+        let at = Duration::from_millis(1500);
+        let line = view_line(at, "/devices/demo_relay6_20/controls/K2", b"1").unwrap();
+        assert!(
+            line.contains("demo_relay6_20") && line.contains("K2"),
+            "{line}"
+        );
+        assert!(
+            line.starts_with("    1.500 s") && line.ends_with(" 1"),
+            "{line}"
+        );
+        assert_eq!(
+            view_line(at, "/devices/demo_relay6_20/controls/K2", b""),
+            None
+        );
+        assert_eq!(view_line(at, "/devices/relay6_20/controls/K2", b"1"), None);
+        assert_eq!(view_line(at, "/devices/demo_relay6_20/meta", b"{}"), None);
     }
 }

@@ -529,9 +529,17 @@ pub fn table(report: &ScanReport, elapsed: Duration, fix_command: &str) -> Strin
     use std::fmt::Write as _;
     let duplicates = report.duplicates();
     let mut out = String::new();
+    // A model or firmware text takes up to 20 characters (its registers): the columns widen to
+    // what this bus holds rather than push the next column out of line.
+    let width = |least: usize, cell: &dyn Fn(&FoundDevice) -> usize| {
+        report.devices.iter().map(cell).fold(least, usize::max)
+    };
+    let text_len = |text: &Option<String>| text.as_deref().map_or(1, |t| t.chars().count());
+    let model_width = width(14, &|d| text_len(&d.identity.model));
+    let firmware_width = width(10, &|d| text_len(&d.identity.firmware));
     let _ = writeln!(
         out,
-        "{:<24} {:>4}  {:<12} {:<5} {:<14} {:<10} NOTES",
+        "{:<24} {:>4}  {:<12} {:<5} {:<model_width$} {:<firmware_width$} NOTES",
         "SERIAL", "ADDR", "SETTINGS", "FAST", "MODEL", "FIRMWARE"
     );
     for (index, device) in report.devices.iter().enumerate() {
@@ -553,7 +561,7 @@ pub fn table(report: &ScanReport, elapsed: Duration, fix_command: &str) -> Strin
         }
         let _ = writeln!(
             out,
-            "{:<24} {:>4}  {:<12} {:<5} {:<14} {:<10} {}",
+            "{:<24} {:>4}  {:<12} {:<5} {:<model_width$} {:<firmware_width$} {}",
             serial_cell(device),
             device.address,
             device.settings_text(),
@@ -909,6 +917,26 @@ mod tests {
         assert_eq!(json["devices"][0]["settings"], "9600 8N1");
         assert_eq!(json["devices"][1]["stop_bits"], Value::Null);
         assert_eq!(json["devices"][1]["settings"], "9600 8N?");
+    }
+
+    #[test]
+    fn a_long_model_name_widens_its_column_and_keeps_the_others_in_line() {
+        let mut report = report();
+        report.devices[0].identity.model = Some("rtu2mqtt-energy-mete".into());
+        report.devices[0].identity.firmware = Some("1.2.3".into());
+        report.devices[1].identity.firmware = Some("10.20.30-rc1".into());
+        let text = table(&report, Duration::from_millis(700), "x");
+        let lines: Vec<&str> = text.lines().collect();
+        let column = |line: &str, what: &str| line.find(what).unwrap_or_else(|| panic!("{text}"));
+        let firmware_at = column(lines[0], "FIRMWARE");
+        let notes_at = column(lines[0], "NOTES");
+        assert_eq!(column(lines[1], "1.2.3"), firmware_at, "{text}");
+        assert_eq!(column(lines[2], "10.20.30-rc1"), firmware_at, "{text}");
+        assert_eq!(column(lines[2], "stop bits 1 or 2"), notes_at, "{text}");
+        assert!(
+            column(lines[1], "rtu2mqtt-energy-mete") < firmware_at,
+            "{text}"
+        );
     }
 
     #[test]

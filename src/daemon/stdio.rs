@@ -3,7 +3,8 @@
 //!
 //! Out: `{"added":"relay6_20"}`, `{"device":"relay6_20","control":"K1","value":"1"}`,
 //! `{"device":…,"control":…,"error":"r"}`, `{"device":…,"online":false}`, `{"removed":…}`.
-//! In: `{"device":"relay6_20","control":"K1","value":"1"}`.
+//! In: `{"device":"relay6_20","control":"K1","value":"1"}` (the value may also be a JSON number
+//! or boolean).
 
 use serde_json::json;
 use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
@@ -84,33 +85,41 @@ fn printed(update: &DeviceUpdate) -> bool {
 pub async fn read_writes(writes: mpsc::Sender<ControlWrite>) {
     let mut lines = BufReader::new(tokio::io::stdin()).lines();
     while let Ok(Some(line)) = lines.next_line().await {
-        let parsed: Result<serde_json::Value, _> = serde_json::from_str(&line);
-        let field = |v: &serde_json::Value, key: &str| {
-            v.get(key).and_then(|f| f.as_str()).map(str::to_owned)
-        };
-        match parsed {
-            Ok(v) => match (
-                field(&v, "device"),
-                field(&v, "control"),
-                field(&v, "value"),
-            ) {
-                (Some(device_id), Some(control_id), Some(payload)) => {
-                    if writes
-                        .send(ControlWrite {
-                            device_id,
-                            control_id,
-                            payload,
-                        })
-                        .await
-                        .is_err()
-                    {
-                        return;
-                    }
+        match write_of_line(&line) {
+            Ok(write) => {
+                if writes.send(write).await.is_err() {
+                    return;
                 }
-                _ => warn!(%line, "a write needs \"device\", \"control\" and \"value\" strings"),
-            },
-            Err(err) => warn!(%line, %err, "not a JSON line"),
+            }
+            Err(why) => warn!(%line, "{why}"),
         }
+    }
+}
+
+/// One input line as a control write. The value is the `/on` payload: a string as it is, a
+/// number or boolean as its text (`1`, `22.5`; `true` is `1`), so that a script need not quote
+/// numbers.
+fn write_of_line(line: &str) -> Result<ControlWrite, String> {
+    let parsed: serde_json::Value =
+        serde_json::from_str(line).map_err(|err| format!("not a JSON line: {err}"))?;
+    let text = |key: &str| parsed.get(key).and_then(|f| f.as_str()).map(str::to_owned);
+    let payload = match parsed.get("value") {
+        Some(serde_json::Value::String(text)) => Some(text.clone()),
+        Some(serde_json::Value::Number(number)) => Some(number.to_string()),
+        Some(serde_json::Value::Bool(on)) => Some(if *on { "1" } else { "0" }.to_owned()),
+        _ => None,
+    };
+    match (text("device"), text("control"), payload) {
+        (Some(device_id), Some(control_id), Some(payload)) => Ok(ControlWrite {
+            device_id,
+            control_id,
+            payload,
+        }),
+        _ => Err(
+            "a write needs \"device\" and \"control\" strings and a \"value\" (a string, number \
+             or boolean)"
+                .to_owned(),
+        ),
     }
 }
 
@@ -138,5 +147,44 @@ mod tests {
             update_line(&value(true, false)).to_string(),
             r#"{"device":"relay6_20","control":"K1","value":"1","event":true}"#
         );
+    }
+
+    #[test]
+    fn a_write_value_may_be_a_string_a_number_or_a_boolean() {
+        let payload = |line: &str| write_of_line(line).map(|w| w.payload);
+        assert_eq!(
+            payload(r#"{"device":"relay6_20","control":"K3","value":"1"}"#),
+            Ok("1".to_owned())
+        );
+        assert_eq!(
+            payload(r#"{"device":"relay6_20","control":"K3","value":1}"#),
+            Ok("1".to_owned())
+        );
+        assert_eq!(
+            payload(r#"{"device":"d","control":"T","value":22.5}"#),
+            Ok("22.5".to_owned())
+        );
+        assert_eq!(
+            payload(r#"{"device":"d","control":"T","value":-3}"#),
+            Ok("-3".to_owned())
+        );
+        assert_eq!(
+            payload(r#"{"device":"d","control":"K1","value":true}"#),
+            Ok("1".to_owned())
+        );
+        assert_eq!(
+            payload(r#"{"device":"d","control":"K1","value":false}"#),
+            Ok("0".to_owned())
+        );
+        let write = write_of_line(r#"{"device":"relay6_20","control":"K3","value":1}"#).unwrap();
+        assert_eq!(
+            (write.device_id.as_str(), write.control_id.as_str()),
+            ("relay6_20", "K3")
+        );
+        assert!(payload(r#"{"device":"d","control":"K1","value":null}"#)
+            .unwrap_err()
+            .contains("a \"value\""));
+        assert!(payload(r#"{"device":"d","value":"1"}"#).is_err());
+        assert!(payload("K1=1").unwrap_err().contains("not a JSON line"));
     }
 }

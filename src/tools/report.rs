@@ -86,6 +86,10 @@ pub struct AddressChange {
     pub line: LineSettings,
     pub from: u8,
     pub to: u8,
+    /// The device's settings as the scan knows them (`9600 8N?` while its stop bits are not
+    /// known): `line` is the setting the scan heard it at, which for stop bits says nothing.
+    #[serde(skip)]
+    pub settings: String,
 }
 
 /// The plan for a bus with duplicates: changes, and what cannot be fixed by serial number.
@@ -317,6 +321,7 @@ impl ScanReport {
                             line: device.line,
                             from: device.address,
                             to,
+                            settings: device.settings_text(),
                         });
                     }
                     None => plan.unresolved.push(format!(
@@ -459,13 +464,15 @@ mod tests {
                     serial: 7,
                     line: SLOW,
                     from: 1,
-                    to: 3
+                    to: 3,
+                    settings: "9600 8N?".into(),
                 },
                 AddressChange {
                     serial: 9,
                     line: SLOW,
                     from: 1,
-                    to: 4
+                    to: 4,
+                    settings: "9600 8N?".into(),
                 },
             ]
         );
