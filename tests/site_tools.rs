@@ -713,6 +713,388 @@ fn write_and_read_by_address_refuse_a_duplicate_the_scan_just_saw() {
     );
 }
 
+/// `write` takes a value as typed: a fraction into an integer format, or a negative number into
+/// an unsigned one, is a bad argument (exit 2) that names the format to use, and nothing is
+/// written; the daemon's codec would round 55.7 to 56 and wrap -5 to 0xFFFB.
+#[test]
+fn write_refuses_values_an_integer_format_cannot_hold_exactly() {
+    let sim = sim();
+    let holding_1000 = || {
+        sim.control(json!({"cmd": "get", "device": "fast-relay", "type": "holding", "address": 1000, "count": 2}))
+            ["values"]
+            .clone()
+    };
+    sim.control(json!({"cmd": "set", "device": "fast-relay", "type": "holding", "address": 1000, "value": [7, 7]}));
+    let write = |format: &str, value: &str| {
+        let mut args = vec![
+            "write",
+            "--address",
+            "20",
+            "--type",
+            "holding",
+            "--reg",
+            "1000",
+            "--format",
+            format,
+        ];
+        args.extend_from_slice(&AT_115200);
+        args.extend_from_slice(&["--", value]);
+        access(&sim, &args)
+    };
+    for (format, value, words) in [
+        (
+            "u16",
+            "55.7",
+            vec!["55.7 is not a whole number", "--format float"],
+        ),
+        (
+            "s16",
+            "2.5",
+            vec!["2.5 is not a whole number", "--format float"],
+        ),
+        (
+            "u32",
+            "0.5",
+            vec!["0.5 is not a whole number", "--format double"],
+        ),
+        (
+            "u16",
+            "-5",
+            vec!["-5 is negative", "0 … 65535", "--format s16"],
+        ),
+        (
+            "u16",
+            "70000",
+            vec!["70000 is out of range for u16: allowed 0 … 65535"],
+        ),
+        ("s16", "40000", vec!["allowed -32768 … 32767"]),
+    ] {
+        let run = write(format, value);
+        assert_eq!(
+            run.code, 2,
+            "{format} {value}: {}{}",
+            run.stdout, run.stderr
+        );
+        for words in words {
+            assert!(
+                run.stderr.contains(words),
+                "{format} {value}: {words:?} in {}",
+                run.stderr
+            );
+        }
+        assert_eq!(
+            holding_1000(),
+            json!([7, 7]),
+            "{format} {value} was written"
+        );
+    }
+    // Hex is a whole number; a whole number written with a point is that number.
+    let run = write("u16", "0xFFFF");
+    assert_eq!(run.code, 0, "{}{}", run.stdout, run.stderr);
+    assert_eq!(holding_1000(), json!([0xFFFF, 7]));
+    let run = write("s32", "-70000.0");
+    assert_eq!(run.code, 0, "{}{}", run.stdout, run.stderr);
+    assert_eq!(holding_1000(), json!([0xFFFE, 0xEE90]));
+}
+
+/// The write is answered, but the read-back is not (the device took a new address from the
+/// write, so nothing answers at the old one): the value is not verified, exit 1.
+#[test]
+fn write_whose_read_back_fails_is_not_verified() {
+    let sim = sim();
+    let mut args = vec![
+        "write",
+        "--address",
+        "40",
+        "--type",
+        "holding",
+        "--reg",
+        "128",
+        "--timeout",
+        "100",
+    ];
+    args.extend_from_slice(&AT_115200);
+    args.push("41");
+    let run = access(&sim, &args);
+    let address = sim
+        .control(json!({"cmd": "get", "serial": "0xFE000040", "type": "holding", "address": 128}));
+    assert_eq!(address["value"], 41, "the write was carried out");
+    assert_eq!(run.code, 1, "{}{}", run.stdout, run.stderr);
+    assert!(
+        run.stderr.contains(
+            "written, but reading back failed: no reply from address 40 at 115200 8N2 within \
+             100 ms"
+        ),
+        "{}",
+        run.stderr
+    );
+}
+
+/// A simulator on a bus of these devices.
+fn bus_of(devices: Value) -> (tempfile::TempDir, SimProcess) {
+    let dir = tempfile::tempdir().unwrap();
+    let bus = dir.path().join("bus.json");
+    std::fs::write(&bus, json!({ "devices": devices }).to_string()).unwrap();
+    let sim = SimProcess::start_with(&bus, &sim_support::data(""), &[]);
+    (dir, sim)
+}
+
+/// A string value takes the registers its text needs from `--reg` on (`string`: one character
+/// per register, `string8`: two), and reads those back; more than one request carries is a bad
+/// argument.
+#[test]
+fn write_string_takes_the_registers_its_text_needs() {
+    let relay = sim_support::data("relay.json");
+    let (_dir, sim) = bus_of(json!([
+        {"name": "relay", "template": relay.to_str().unwrap(), "address": 20,
+         "serial": "0xFE000020", "line": "115200 8N2",
+         "registers": [{"type": "holding", "address": 1000, "count": 8}],
+         "values": {"holding:1000": [9, 9, 9, 9, 9, 9, 9, 9]}}
+    ]));
+    let holding = || {
+        sim.control(json!({"cmd": "get", "device": "relay", "type": "holding", "address": 1000, "count": 8}))
+            ["values"]
+            .clone()
+    };
+    let write = |format: &str, value: &str| {
+        let mut args = vec![
+            "write",
+            "--address",
+            "20",
+            "--type",
+            "holding",
+            "--reg",
+            "1000",
+            "--format",
+            format,
+        ];
+        args.extend_from_slice(&AT_115200);
+        args.push(value);
+        access(&sim, &args)
+    };
+    let run = write("string", "hello");
+    assert_eq!(run.code, 0, "{}{}", run.stdout, run.stderr);
+    assert!(run.stdout.contains("[1004]: 0x006F  111"), "{}", run.stdout);
+    assert!(run.stdout.contains("string: hello"), "{}", run.stdout);
+    assert_eq!(holding(), json!([104, 101, 108, 108, 111, 9, 9, 9]));
+
+    let run = write("string8", "hello");
+    assert_eq!(run.code, 0, "{}{}", run.stdout, run.stderr);
+    assert!(run.stdout.contains("string8: hello"), "{}", run.stdout);
+    assert_eq!(
+        holding(),
+        json!([0x6865, 0x6C6C, 0x6F00, 108, 111, 9, 9, 9])
+    );
+
+    let long = "x".repeat(124);
+    let run = write("string", &long);
+    assert_eq!(run.code, 2, "{}{}", run.stdout, run.stderr);
+    assert!(
+        run.stderr
+            .contains("124 registers to write: one Modbus request carries 1..=123 registers"),
+        "{}",
+        run.stderr
+    );
+}
+
+/// `write --address 20` with no single port setting named: the scan of the whole plan sees
+/// address 20 at 9600 8N2 (relay "near") and at 115200 8N2 (relay "far"). The request is not
+/// sent to the first one found: the tool names both with their settings and how to pick one.
+/// Address 21 is one device seen at two settings (the pty cannot tell N from E): one device.
+#[test]
+fn a_request_by_address_refuses_devices_with_that_address_at_different_settings() {
+    let relay = sim_support::data("relay.json");
+    let relay = relay.to_str().unwrap();
+    let (_dir, sim) = bus_of(json!([
+        {"name": "near", "template": relay, "address": 20, "serial": "0xFE000020",
+         "line": "9600 8N2"},
+        {"name": "far", "template": relay, "address": 20, "serial": "0xFE000021",
+         "line": "115200 8N2"},
+        {"name": "single", "template": relay, "address": 21, "serial": "0xFE000022",
+         "line": "115200 8N2", "values": {"input:123": 3300}}
+    ]));
+    let plan = [
+        "--baud",
+        "9600,115200",
+        "--parity",
+        "N,E",
+        "--latency",
+        SLOW_START_MS,
+    ];
+    let mut args = vec!["write", "--address", "20", "--type", "coil", "--reg", "2"];
+    args.extend_from_slice(&plan);
+    args.push("1");
+    let run = access(&sim, &args);
+    let coil = |device: &str| {
+        sim.control(json!({"cmd": "get", "device": device, "type": "coil", "address": 2}))["value"]
+            .clone()
+    };
+    assert!(
+        coil("near") == 0 && coil("far") == 0,
+        "a device with address 20 was written; exit {}\nstdout: {}\nstderr: {}",
+        run.code,
+        run.stdout,
+        run.stderr
+    );
+    assert_eq!(run.code, 1, "{}{}", run.stdout, run.stderr);
+    for words in [
+        "address 20 is used by 2 devices at different port settings",
+        "serial 4261412896 (0xFE000020) at 9600 8N2",
+        "serial 4261412897 (0xFE000021) at 115200 8N2",
+        "--serial 4261412896 or --serial 4261412897",
+        "--baud, --parity and --stop-bits",
+    ] {
+        assert!(run.stderr.contains(words), "{words:?} in {}", run.stderr);
+    }
+
+    let mut args = vec![
+        "read",
+        "--address",
+        "21",
+        "--type",
+        "input",
+        "--reg",
+        "123",
+        "--json",
+    ];
+    args.extend_from_slice(&plan);
+    let run = access(&sim, &args);
+    assert_eq!(run.code, 0, "{}{}", run.stdout, run.stderr);
+    let body: Value = serde_json::from_str(&run.stdout).unwrap();
+    assert_eq!(body["settings"], "115200 8N2", "{body}");
+    assert_eq!(body["registers"], json!([3300]), "{body}");
+}
+
+/// Through the running service, `read` and `write` say what failed in the words they use on the
+/// port itself: an exception as `refused: exception 2 (illegal data address)`, silence as "no
+/// reply … within N ms" (not "the service refused", not the settings twice); a read-back that
+/// fails leaves the write not verified (exit 1); a value the format cannot hold is refused as
+/// on the port.
+#[test]
+fn read_and_write_through_the_service_explain_failures_as_on_the_port() {
+    let broker = mqtt_support::Mosquitto::start();
+    let relay = sim_support::data("relay.json");
+    let (_dir, sim) = bus_of(json!([
+        {"name": "relay", "template": relay.to_str().unwrap(), "address": 20,
+         "serial": "0xFE000020", "line": "115200 8N2", "model": "WBMR6C", "firmware": "1.26.0",
+         "registers": [{"type": "holding", "address": 1000, "count": 2}]},
+        {"name": "meter", "address": 30, "serial": "0x0D00001E", "line": "115200 8N2",
+         "fast": false, "registers": [{"type": "holding", "address": 0, "count": 8}]}
+    ]));
+    let config = json!({
+        "mqtt": {"host": "127.0.0.1", "port": broker.port, "client_id": "rtu2mqtt-site-tools-rw"},
+        "ports": [{"path": sim.pty, "baud_rate": 115200, "stop_bits": 2,
+                   "devices": [{"device_type": "sim-relay", "slave_id": 20}]}]
+    });
+    let data = sim_support::data("");
+    let _daemon = daemon_support::DaemonProcess::start(
+        &config,
+        &["--templates", data.to_str().unwrap()],
+        std::process::Stdio::null(),
+        std::process::Stdio::null(),
+    );
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    runtime.block_on(mqtt_support::wait_for(
+        "the advertised port/Load method",
+        || async {
+            let state = mqtt_support::retained(broker.port).await?;
+            (state.get("/rpc/v1/wb-mqtt-serial/port/Load")? == "1").then_some(())
+        },
+    ));
+    let broker_option = format!("127.0.0.1:{}", broker.port);
+    let via_service = |args: &[&str]| {
+        let mut all = args.to_vec();
+        all.extend_from_slice(&["--via-mqtt", "--broker", &broker_option]);
+        access(&sim, &all)
+    };
+
+    let run = via_service(&[
+        "read",
+        "--address",
+        "20",
+        "--type",
+        "holding",
+        "--reg",
+        "5000",
+    ]);
+    assert_eq!(run.code, 1, "{}{}", run.stdout, run.stderr);
+    assert!(
+        run.stderr
+            .contains("address 20 at 115200 8N2 refused: exception 2 (illegal data address)"),
+        "{}",
+        run.stderr
+    );
+
+    let run = via_service(&[
+        "read",
+        "--address",
+        "99",
+        "--type",
+        "holding",
+        "--reg",
+        "0",
+        "--timeout",
+        "100",
+    ]);
+    assert_eq!(run.code, 1, "{}{}", run.stdout, run.stderr);
+    assert!(
+        run.stderr.contains(
+            "no reply from address 99 at 115200 8N2 within 100 ms: check the address/serial"
+        ) && !run.stderr.contains("refused"),
+        "{}",
+        run.stderr
+    );
+
+    let run = via_service(&[
+        "write",
+        "--address",
+        "20",
+        "--type",
+        "holding",
+        "--reg",
+        "1000",
+        "55.7",
+    ]);
+    assert_eq!(run.code, 2, "{}{}", run.stdout, run.stderr);
+    assert!(
+        run.stderr.contains("55.7 is not a whole number"),
+        "{}",
+        run.stderr
+    );
+    let holding =
+        sim.control(json!({"cmd": "get", "device": "relay", "type": "holding", "address": 1000}));
+    assert_eq!(holding["value"], 0, "nothing written");
+
+    // The meter takes a new address from the write: nothing answers the read-back at 30.
+    let run = via_service(&[
+        "write",
+        "--address",
+        "30",
+        "--type",
+        "holding",
+        "--reg",
+        "128",
+        "--timeout",
+        "100",
+        "31",
+    ]);
+    let meter =
+        sim.control(json!({"cmd": "get", "device": "meter", "type": "holding", "address": 128}));
+    assert_eq!(meter["value"], 31, "the write was carried out");
+    assert_eq!(run.code, 1, "{}{}", run.stdout, run.stderr);
+    assert!(
+        run.stderr.contains(
+            "written, but reading back failed: no reply from address 30 at 115200 8N2 within \
+             100 ms"
+        ),
+        "{}",
+        run.stderr
+    );
+}
+
 /// Runs `rtu2mqtt events` in the background; its stdout lines arrive on the channel.
 fn spawn_events(args: &[&str]) -> (std::process::Child, std::sync::mpsc::Receiver<String>) {
     use std::io::BufRead;

@@ -8,6 +8,7 @@ use serde_json::json;
 
 use crate::config::format::{RegisterFormat, WordOrder};
 use crate::config::values::parse_int_text;
+use crate::protocol::pdu::ExceptionCode;
 use crate::protocol::{pdu, LineSettings, RegisterType, RequestPdu, ResponsePdu};
 use crate::tools::bus::{Answer, PortError, ToolBus, ToolPort};
 use crate::tools::exit;
@@ -17,9 +18,10 @@ use crate::tools::values::{decode_words, encode_value, parse_format, value_width
 use super::address::{locate, parse_serial};
 use super::scan::{block_on_tool, port_failure, PortArgs};
 use super::via_mqtt::{
-    connect_service, line_params, response_words, served_line, service_call, ViaMqttArgs,
+    call_failure, connect_service, line_params, response_words, served_line, ViaMqttArgs,
 };
-use crate::rpc::client::RpcSession;
+use crate::rpc::client::{CallError, RpcSession};
+use crate::rpc::message::RpcError;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum TypeArg {
@@ -155,31 +157,75 @@ async fn resolve(
         });
     }
     let address = args.address.unwrap_or(0);
+    // The whole plan: a device with this address at a later setting would otherwise be missed,
+    // and the request would go to the first one found without a word about the other.
+    let mut scans = Vec::with_capacity(plan.len());
     for &line in &plan {
         let mut report = ScanReport::default();
         let seen = port.scan_setting(line, &mut report).await?;
-        let serials: Vec<u32> = seen
+        let serials = seen
             .iter()
             .filter(|(_, a)| *a == address)
             .map(|(serial, _)| *serial)
             .collect();
-        match serials.as_slice() {
-            [] => continue,
-            [_] => {
-                return Ok(Ok(Target {
-                    line,
-                    address: Some(address),
-                    serial: None,
-                }))
+        scans.push((line, serials));
+    }
+    Ok(setting_of_address(address, &scans).map(|line| Target {
+        line,
+        address: Some(address),
+        serial: None,
+    }))
+}
+
+/// The setting a request by `address` goes to, from the serial numbers a scan of each setting
+/// of the plan saw with that address; `Err` says why none is taken.
+fn setting_of_address(
+    address: u8,
+    scans: &[(LineSettings, Vec<u32>)],
+) -> Result<LineSettings, String> {
+    if let Some((line, serials)) = scans.iter().find(|(_, serials)| serials.len() > 1) {
+        return Err(duplicate_address(address, *line, serials));
+    }
+    // A device that answers at several settings (a parity bit its receiver takes for a stop
+    // bit, a pseudo-terminal that has no parity) is one device: its first setting.
+    let mut found: Vec<(u32, LineSettings)> = Vec::new();
+    for (line, serials) in scans {
+        for serial in serials {
+            if !found.iter().any(|(s, _)| s == serial) {
+                found.push((*serial, *line));
             }
-            several => return Ok(Err(duplicate_address(address, line, several))),
         }
     }
-    Ok(Err(format!(
-        "no Fast Modbus device with address {address} answered a scan at {} port setting(s); for \
-         a classic device give --baud, --parity and --stop-bits",
-        plan.len()
-    )))
+    match found.as_slice() {
+        [] => Err(format!(
+            "no Fast Modbus device with address {address} answered a scan at {} port setting(s) \
+             (a device without Fast Modbus does not answer a scan): for a classic device give \
+             --baud, --parity and --stop-bits",
+            scans.len()
+        )),
+        [(_, line)] => Ok(*line),
+        several => Err(address_at_several_settings(address, several)),
+    }
+}
+
+/// Why a request by address is not sent when the scan saw that address at several port
+/// settings, on different devices: which one was meant is for the integrator to say.
+fn address_at_several_settings(address: u8, found: &[(u32, LineSettings)]) -> String {
+    format!(
+        "address {address} is used by {} devices at different port settings ({}): nothing was \
+         sent. Name one with {}, or give its settings with --baud, --parity and --stop-bits",
+        found.len(),
+        found
+            .iter()
+            .map(|(serial, line)| format!("serial {} at {line}", serial_text(*serial)))
+            .collect::<Vec<_>>()
+            .join(", "),
+        found
+            .iter()
+            .map(|(serial, _)| format!("--serial {serial}"))
+            .collect::<Vec<_>>()
+            .join(" or ")
+    )
 }
 
 /// Why a request by address is not sent where the scan has just seen several devices with that
@@ -442,15 +488,9 @@ fn encode_all(args: &WriteArgs) -> Result<Vec<u16>, String> {
             })
             .collect();
     }
-    let width = value_width(target.format, 1);
     let mut words = Vec::new();
     for value in &args.values {
-        words.extend(encode_value(
-            target.format,
-            word_order(target),
-            value,
-            width,
-        )?);
+        words.extend(encode_value(target.format, word_order(target), value)?);
     }
     Ok(words)
 }
@@ -549,12 +589,13 @@ async fn write(args: &WriteArgs) -> Result<ExitCode, PortError> {
             }
             Ok(ExitCode::SUCCESS)
         }
+        // The write was answered, but what the device holds now is not known: not verified.
         None => {
             eprintln!(
                 "written, but reading back failed: {}",
                 failure(&target, &back, timeout)
             );
-            Ok(ExitCode::SUCCESS)
+            Ok(ExitCode::from(exit::NOT_FOUND))
         }
     }
 }
@@ -589,7 +630,9 @@ async fn service_target(args: &TargetArgs, session: &mut RpcSession) -> Result<T
     })
 }
 
-/// One Modbus request through the service's `port/Load`; the data words of the reply.
+/// One Modbus request through the service's `port/Load`: the data words of the reply (none for
+/// a write), or why there are none in the words the direct path uses (`failure`). `Err` is the
+/// exit code when the service itself could not be asked (the reason printed).
 async fn load_via_service(
     args: &TargetArgs,
     session: &mut RpcSession,
@@ -597,7 +640,7 @@ async fn load_via_service(
     pdu: &RequestPdu,
     count: u16,
     message: &[u8],
-) -> Result<Option<Vec<u16>>, ExitCode> {
+) -> Result<Result<Vec<u16>, String>, ExitCode> {
     let timeout = Duration::from_millis(args.timeout);
     let mut params = line_params(&target.line);
     params["path"] = json!(args.port.port);
@@ -612,21 +655,46 @@ async fn load_via_service(
         (Some(serial), _) => params["sn"] = json!(serial),
         (None, address) => params["slave_id"] = json!(address),
     }
-    let result = service_call(session, "port", "Load", params, timeout + SERVICE_MARGIN).await?;
+    let called = session
+        .call("port", "Load", params, timeout + SERVICE_MARGIN)
+        .await;
+    let result = match called {
+        Ok(result) => result,
+        Err(CallError::Refused(refused)) => match service_answer(&refused) {
+            Some(answer) => return Ok(Err(failure(target, &answer, timeout))),
+            None => return Err(call_failure(&CallError::Refused(refused))),
+        },
+        Err(err) => return Err(call_failure(&err)),
+    };
     if let Some(exception) = result.get("exception") {
-        eprintln!(
-            "{} at {} refused: {} (exception {})",
-            target.name(),
-            target.line,
-            exception["msg"].as_str().unwrap_or("?"),
-            exception["code"]
-        );
-        return Err(ExitCode::from(exit::NOT_FOUND));
+        let code = exception["code"]
+            .as_u64()
+            .and_then(|code| u8::try_from(code).ok())
+            .unwrap_or(0);
+        let refused = Answer::Pdu(ResponsePdu::Exception {
+            function: pdu.function(),
+            code: ExceptionCode(code),
+        });
+        return Ok(Err(failure(target, &refused, timeout)));
     }
     let bits = args.register_type.register_type().is_bit();
     Ok(result["response"]
         .as_str()
-        .and_then(|response| response_words(response, bits, count)))
+        .and_then(|response| response_words(response, bits, count))
+        .ok_or_else(|| "the service's reply holds no register data".to_owned()))
+}
+
+/// The bus answer behind a `port/Load` error, when it is one the direct path also meets: the
+/// service words it for its RPC clients (as wb-mqtt-serial does), the tool as it words its own.
+fn service_answer(refused: &RpcError) -> Option<Answer> {
+    // Silence is -32600, as wb-mqtt-serial answers it (a total_timeout that ran out is not).
+    if refused.is_no_reply() {
+        return Some(Answer::NoReply);
+    }
+    refused
+        .message
+        .contains("unreadable reply")
+        .then_some(Answer::Garbled)
 }
 
 /// Time a request through the service may take beyond its reply timeout: its turn on the bus.
@@ -643,9 +711,9 @@ async fn read_via_service(args: &TargetArgs, count: u16) -> ExitCode {
     };
     let pdu = read_pdu(args.register_type.register_type(), args.reg, count);
     let words = match load_via_service(args, &mut session, &target, &pdu, count, &[]).await {
-        Ok(Some(words)) => words,
-        Ok(None) => {
-            eprintln!("the service's reply holds no register data");
+        Ok(Ok(words)) => words,
+        Ok(Err(why)) => {
+            eprintln!("{why}");
             return ExitCode::from(exit::NOT_FOUND);
         }
         Err(code) => return code,
@@ -682,12 +750,17 @@ async fn write_via_service(args: &TargetArgs, pdu: &RequestPdu, words: &[u16]) -
         }
         _ => words.iter().flat_map(|w| w.to_be_bytes()).collect(),
     };
-    if let Err(code) = load_via_service(args, &mut session, &target, pdu, count, &message).await {
-        return code;
+    match load_via_service(args, &mut session, &target, pdu, count, &message).await {
+        Ok(Ok(_)) => {}
+        Ok(Err(why)) => {
+            eprintln!("{why}");
+            return ExitCode::from(exit::NOT_FOUND);
+        }
+        Err(code) => return code,
     }
     let read = read_pdu(args.register_type.register_type(), args.reg, count);
     match load_via_service(args, &mut session, &target, &read, count, &[]).await {
-        Ok(Some(now)) => {
+        Ok(Ok(now)) => {
             if !args.json {
                 println!("written; read back:");
             }
@@ -703,9 +776,14 @@ async fn write_via_service(args: &TargetArgs, pdu: &RequestPdu, words: &[u16]) -
             }
             ExitCode::SUCCESS
         }
-        Ok(None) | Err(_) => {
+        // The write was answered, but what the device holds now is not known: not verified.
+        Ok(Err(why)) => {
+            eprintln!("written, but reading back failed: {why}");
+            ExitCode::from(exit::NOT_FOUND)
+        }
+        Err(_) => {
             eprintln!("written, but reading back through the service failed");
-            ExitCode::SUCCESS
+            ExitCode::from(exit::NOT_FOUND)
         }
     }
 }
@@ -713,6 +791,45 @@ async fn write_via_service(args: &TargetArgs, pdu: &RequestPdu, words: &[u16]) -
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_request_by_address_goes_where_exactly_one_device_has_it() {
+        let n9600 = LineSettings::new(9600, crate::protocol::Parity::None, 2);
+        let e9600 = LineSettings::new(9600, crate::protocol::Parity::Even, 2);
+        let n115200 = LineSettings::new(115_200, crate::protocol::Parity::None, 2);
+        // Seen at two settings, one serial number: one device, at its first setting.
+        let scans = [
+            (n9600, vec![]),
+            (n115200, vec![0xFE00_0020]),
+            (e9600, vec![0xFE00_0020]),
+        ];
+        assert_eq!(setting_of_address(20, &scans), Ok(n115200));
+        // Two devices at different settings: neither is picked.
+        let scans = [(n9600, vec![0xFE00_0020]), (n115200, vec![0xFE00_0021])];
+        let refused = setting_of_address(20, &scans).unwrap_err();
+        for words in [
+            "address 20 is used by 2 devices at different port settings",
+            "serial 4261412896 (0xFE000020) at 9600 8N2",
+            "serial 4261412897 (0xFE000021) at 115200 8N2",
+            "--serial 4261412896 or --serial 4261412897",
+            "--baud, --parity and --stop-bits",
+        ] {
+            assert!(refused.contains(words), "{words:?} in {refused}");
+        }
+        // Two devices at one setting: the duplicate refusal, whatever comes later.
+        let scans = [
+            (n9600, vec![0xFE00_0010, 0xFE00_0011]),
+            (n115200, vec![0xFE00_0020]),
+        ];
+        assert!(setting_of_address(10, &scans)
+            .unwrap_err()
+            .contains("address 10 at 9600 8N2 is used by 2 devices"));
+        let refused = setting_of_address(40, &[(n9600, vec![]), (n115200, vec![])]).unwrap_err();
+        assert!(
+            refused.contains("at 2 port setting(s)") && refused.contains("without Fast Modbus"),
+            "{refused}"
+        );
+    }
 
     #[test]
     fn request_spans_are_checked_as_modbus_allows() {

@@ -70,7 +70,7 @@ impl ViaMqttArgs {
 }
 
 /// Why the service could not be asked, for the integrator; the exit code.
-fn call_failure(err: &CallError) -> ExitCode {
+pub fn call_failure(err: &CallError) -> ExitCode {
     match err {
         CallError::Refused(_) => {
             eprintln!("{err}");

@@ -3,6 +3,7 @@
 //! registers (model, firmware, signature).
 
 use crate::config::format::{RegisterFormat, WordOrder};
+use crate::config::values::parse_int_text;
 use crate::device::codec::{Reading, ValueCodec};
 
 /// A format by its template name (`u16`, `s32`, `float`, ...).
@@ -64,16 +65,68 @@ pub fn decode_words(
         .collect()
 }
 
-/// The words that write `text` as one value of `format` (`count` registers for strings).
+/// The words that write `text` as one value of `format`; a string takes the registers its text
+/// needs (`string`: one character per register, `string8`: two).
+///
+/// Stricter than the daemon's codec, which takes an MQTT `/on` payload as wb-mqtt-serial does
+/// (a fraction rounded, a negative number on an unsigned format wrapped): on site a value typed
+/// by hand that is not what the register can hold is a mistake to point out, not to guess at.
 pub fn encode_value(
     format: RegisterFormat,
     word_order: WordOrder,
     text: &str,
-    count: u16,
 ) -> Result<Vec<u16>, String> {
+    let count = if format.is_string() {
+        let characters = u32::try_from(text.len()).unwrap_or(u32::MAX);
+        u16::try_from(format.string_registers(characters)).unwrap_or(u16::MAX)
+    } else {
+        1
+    };
+    if format.is_integer() {
+        check_integer(format, text.trim())?;
+    }
     codec(format, word_order, count)
         .encode(text, None)
         .map_err(|err| err.to_string())
+}
+
+/// Refuses what an integer format cannot hold exactly: a fraction, and on an unsigned format a
+/// negative number or one above its range. Signed and BCD ranges are the codec's.
+fn check_integer(format: RegisterFormat, text: &str) -> Result<(), String> {
+    let name = format.name();
+    let value = match parse_int_text(text) {
+        Some(value) => value,
+        None => match text.parse::<f64>() {
+            // A whole number written as a fraction (`56.0`, `1e3`) is that number.
+            Ok(number) if number.is_finite() && number.fract() == 0.0 => number as i128,
+            Ok(_) => {
+                return Err(format!(
+                    "{text} is not a whole number: a {name} register holds whole numbers, and \
+                     nothing is rounded. For a register that holds fractions give --format \
+                     float (or --format double for 64 bits)"
+                ))
+            }
+            // Not a number at all: the codec says so.
+            Err(_) => return Ok(()),
+        },
+    };
+    if format.is_signed() || format.is_bcd() {
+        return Ok(());
+    }
+    let bits = format.value_bits();
+    let max = (1i128 << bits) - 1;
+    if value < 0 {
+        return Err(format!(
+            "{text} is negative: a {name} register holds 0 … {max}. For a signed register give \
+             --format s{bits}"
+        ));
+    }
+    if value > max {
+        return Err(format!(
+            "{text} is out of range for {name}: allowed 0 … {max}"
+        ));
+    }
+    Ok(())
 }
 
 /// A Wiren Board text register block (model at 200, firmware at 250, signature at 290): one
@@ -134,15 +187,94 @@ mod tests {
     fn values_encode_to_words() {
         let be = WordOrder::BigEndian;
         assert_eq!(
-            encode_value(RegisterFormat::S16, be, "-2", 1),
+            encode_value(RegisterFormat::S16, be, "-2"),
             Ok(vec![0xFFFE])
         );
         assert_eq!(
-            encode_value(RegisterFormat::U32, be, "65538", 2),
+            encode_value(RegisterFormat::U32, be, "65538"),
             Ok(vec![1, 2])
         );
-        assert!(encode_value(RegisterFormat::U16, be, "70000", 1).is_err());
-        assert!(encode_value(RegisterFormat::U16, be, "abc", 1).is_err());
+        assert_eq!(
+            encode_value(RegisterFormat::U16, be, "0xFFFF"),
+            Ok(vec![0xFFFF])
+        );
+        assert_eq!(encode_value(RegisterFormat::U16, be, "56.0"), Ok(vec![56]));
+        assert_eq!(
+            encode_value(RegisterFormat::Float, be, "1.5"),
+            Ok(vec![0x3FC0, 0])
+        );
+        assert!(encode_value(RegisterFormat::U16, be, "abc")
+            .unwrap_err()
+            .contains("not a number"));
+    }
+
+    #[test]
+    fn integer_formats_refuse_fractions_instead_of_rounding() {
+        let be = WordOrder::BigEndian;
+        for (format, text) in [
+            (RegisterFormat::U16, "55.7"),
+            (RegisterFormat::S16, "2.5"),
+            (RegisterFormat::S16, "-0.5"),
+            (RegisterFormat::U32, "1e-3"),
+            (RegisterFormat::Bcd16, "12.5"),
+            (RegisterFormat::U64, "inf"),
+        ] {
+            let refused = encode_value(format, be, text).unwrap_err();
+            assert!(
+                refused.contains(&format!("{text} is not a whole number"))
+                    && refused.contains("--format float"),
+                "{format:?} {text}: {refused}"
+            );
+        }
+    }
+
+    #[test]
+    fn unsigned_formats_take_their_own_range_only() {
+        let be = WordOrder::BigEndian;
+        let refused = encode_value(RegisterFormat::U16, be, "-5").unwrap_err();
+        assert!(
+            refused.contains("-5 is negative") && refused.contains("--format s16"),
+            "{refused}"
+        );
+        assert!(encode_value(RegisterFormat::U16, be, "-5.0")
+            .unwrap_err()
+            .contains("--format s16"));
+        assert!(encode_value(RegisterFormat::U32, be, "-0x1")
+            .unwrap_err()
+            .contains("--format s32"));
+        assert_eq!(
+            encode_value(RegisterFormat::U16, be, "70000").unwrap_err(),
+            "70000 is out of range for u16: allowed 0 … 65535"
+        );
+        assert!(encode_value(RegisterFormat::U8, be, "256")
+            .unwrap_err()
+            .contains("allowed 0 … 255"));
+        assert_eq!(
+            encode_value(RegisterFormat::U64, be, "18446744073709551615"),
+            Ok(vec![0xFFFF; 4])
+        );
+        // Signed formats keep their signed range.
+        assert_eq!(
+            encode_value(RegisterFormat::S16, be, "-32768"),
+            Ok(vec![0x8000])
+        );
+        assert!(encode_value(RegisterFormat::S16, be, "32768")
+            .unwrap_err()
+            .contains("allowed -32768 … 32767"));
+    }
+
+    #[test]
+    fn strings_take_the_registers_their_text_needs() {
+        let be = WordOrder::BigEndian;
+        assert_eq!(
+            encode_value(RegisterFormat::String, be, "hello"),
+            Ok("hello".bytes().map(u16::from).collect())
+        );
+        assert_eq!(
+            encode_value(RegisterFormat::String8, be, "hello"),
+            Ok(vec![0x6865, 0x6C6C, 0x6F00])
+        );
+        assert_eq!(encode_value(RegisterFormat::String, be, ""), Ok(vec![0]));
     }
 
     #[test]
