@@ -1218,3 +1218,126 @@ fn an_out_of_range_period_override_is_reported_where_the_config_has_it() {
         "the config's line and column, not the template's: {text}"
     );
 }
+
+/// A device with neither a template nor channels of its own (`device_type` forgotten) would run
+/// and never be polled: a warning names it, and `--strict` fails on it. wb-mqtt-serial accepts
+/// it too (its schema of a device without template requires only `slave_id`), only logging
+/// "the device has no channels".
+#[test]
+fn a_device_without_device_type_or_channels_is_a_warning_that_names_it() {
+    let config = r#"{"ports": [{"path": "/dev/ttyRS485-1", "devices": [
+        {"slave_id": 20, "device_type": "rtu2mqtt-relay6"},
+        {"slave_id": 23},
+        {"slave_id": 24, "channels": [{"name": "T", "address": 1}]}]}]}"#;
+    let (ok, text) = check_config(config);
+    assert!(ok, "a warning alone does not fail: {text}");
+    assert!(
+        text.contains(
+            "config.json:3:9: at ports[0].devices[1]: warning: the device with slave_id 23 on \
+             port /dev/ttyRS485-1 has neither `device_type` nor `channels`: nothing will be \
+             polled for it. `device_type` (the name of its template, e.g. \"WB-MR6C\") is \
+             probably missing."
+        ),
+        "{text}"
+    );
+    assert_eq!(text.matches("warning:").count(), 1, "{text}");
+    assert!(text.contains(": ok (1 port, 3 devices"), "{text}");
+    let (ok, text) = check_config_strict(config);
+    assert!(
+        !ok && text.contains("1 warning(s), which --strict counts as errors"),
+        "{text}"
+    );
+}
+
+/// `"host": "mqtt://localhost"` or `"port": 0` would have `run` retry the broker forever with a
+/// resolver error: refused where the config has them, saying what to write instead.
+#[test]
+fn a_broker_url_as_host_and_port_0_are_refused() {
+    let (ok, text) = check_config(r#"{"mqtt": {"host": "mqtt://localhost"}}"#);
+    assert!(!ok, "{text}");
+    assert!(
+        text.contains(
+            "config.json:1:11: at mqtt.host: `mqtt://localhost` is a URL, not a host: write the \
+             host name or IP address alone, \"host\": \"localhost\""
+        ),
+        "{text}"
+    );
+    assert!(!text.contains("TLS"), "plain mqtt:// needs no TLS: {text}");
+    let (ok, text) = check_config(r#"{"mqtt": {"host": "mqtts://broker.lan"}}"#);
+    assert!(!ok, "{text}");
+    assert!(
+        text.contains(
+            "\"host\": \"broker.lan\"; TLS is set apart: add \"tls\": {} to the `mqtt` section"
+        ) && text.contains("\"port\": 8883"),
+        "{text}"
+    );
+    let (ok, text) = check_config(r#"{"mqtt": {"host": "localhost", "port": 0}}"#);
+    assert!(!ok, "{text}");
+    assert!(
+        text.contains(
+            "config.json:1:32: at mqtt.port: port 0 is no port a broker listens on: write the \
+             broker's TCP port, \"port\": 1883"
+        ),
+        "{text}"
+    );
+    let (ok, text) = check_config(r#"{"mqtt": {"host": "192.168.1.10", "port": 8883}}"#);
+    assert!(ok, "{text}");
+}
+
+/// A baud rate none of a bus's devices is likely set to (9601, 96000) shows on site only as
+/// devices that do not answer: a warning names the port; an odd rate a device really uses is
+/// still accepted.
+#[test]
+fn an_unusual_baud_rate_is_a_warning_that_names_the_port() {
+    for baud in [9601, 96000] {
+        let config = format!(
+            r#"{{"ports": [{{"path": "/dev/ttyRS485-2", "baud_rate": {baud}, "devices": [
+            {{"slave_id": 20, "device_type": "rtu2mqtt-relay6"}}]}}]}}"#
+        );
+        let (ok, text) = check_config(&config);
+        assert!(ok, "{baud}: {text}");
+        assert!(
+            text.contains(&format!(
+                "config.json:1:40: at ports[0].baud_rate: warning: baud_rate {baud} of port \
+                 /dev/ttyRS485-2 is not a usual serial speed (110, 300, 600, 1200, 2400, 4800, \
+                 9600, 19200, 38400, 57600, 115200, 230400, 460800, 921600): a typo?"
+            )),
+            "{baud}: {text}"
+        );
+        let (ok, text) = check_config_strict(&config);
+        assert!(
+            !ok && text.contains("1 warning(s), which --strict counts as errors"),
+            "{baud}: {text}"
+        );
+    }
+    for baud in [9600, 115200, 921600] {
+        let config = format!(
+            r#"{{"ports": [{{"path": "/dev/x", "baud_rate": {baud}, "devices": [
+            {{"slave_id": 20, "device_type": "rtu2mqtt-relay6"}}]}}]}}"#
+        );
+        let (ok, text) = check_config_strict(&config);
+        assert!(ok && !text.contains("warning"), "{baud}: {text}");
+    }
+    // Out of the loader's bounds it is no serial speed at all: refused.
+    let (ok, text) = check_config(r#"{"ports": [{"path": "/dev/x", "baud_rate": 10000000}]}"#);
+    assert!(
+        !ok && text.contains(
+            "at ports[0].baud_rate: baud_rate 10000000 is not a serial speed: the usual ones are \
+             110, 300"
+        ),
+        "{text}"
+    );
+}
+
+/// The count after "ok" is of the template library searched, not of the templates the config
+/// uses: said so.
+#[test]
+fn the_template_count_is_of_the_library() {
+    let (ok, text) = check_config(r#"{"ports": []}"#);
+    assert!(ok, "{text}");
+    assert!(
+        text.contains(": ok (0 ports, 0 devices, 0 channels; ")
+            && text.contains(" templates in the library)"),
+        "{text}"
+    );
+}

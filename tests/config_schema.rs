@@ -90,3 +90,71 @@ fn output_into_a_closed_pipe_ends_quietly() {
         output.status
     );
 }
+
+/// An editor using the schema agrees with `check-config` on the port's line settings and the
+/// broker's address: each config is valid in the schema exactly when the loader takes it.
+#[test]
+fn config_schema_agrees_with_the_loader() {
+    use rtu2mqtt::config::load::load_config_source;
+    use rtu2mqtt::config::parse::SourceText;
+    let validator = jsonschema::validator_for(&schema_json(SchemaKind::Config)).unwrap();
+    let port = |key: &str, value: serde_json::Value| serde_json::json!({"ports": [{"path": "/dev/ttyRS485-1", key: value}]});
+    let mut configs = Vec::new();
+    for stop_bits in [0, 1, 2, 3, 255] {
+        configs.push(port("stop_bits", stop_bits.into()));
+    }
+    for data_bits in [0, 4, 5, 7, 8, 9, 255] {
+        configs.push(port("data_bits", data_bits.into()));
+    }
+    for baud in [0, 1, 109, 110, 9600, 9601, 921_600, 4_000_000, 4_000_001] {
+        configs.push(port("baud_rate", baud.into()));
+    }
+    for host in [
+        "localhost",
+        "192.168.1.10",
+        "::1",
+        "mqtt://localhost",
+        "mqtts://broker.lan:8883",
+        "localhost:1883",
+        "broker/x",
+        "",
+    ] {
+        configs.push(serde_json::json!({"mqtt": {"host": host}}));
+    }
+    for mqtt_port in [0, 1, 1883] {
+        configs.push(serde_json::json!({"mqtt": {"port": mqtt_port}}));
+    }
+    for config in configs {
+        let text = config.to_string();
+        let loaded = load_config_source(
+            SourceText::from_text(std::path::Path::new("config.json"), &text),
+            false,
+        );
+        assert_eq!(
+            validator.is_valid(&config),
+            loaded.is_ok(),
+            "{text}: the schema and the loader disagree ({:?})",
+            loaded.err().map(|e| e.to_string())
+        );
+    }
+}
+
+/// What the schema says of the settings an integrator looks up most: the defaults are the
+/// loader's, and the texts are for users, not the code's names.
+#[test]
+fn config_schema_describes_defaults_for_users() {
+    let schema = schema_json(SchemaKind::Config);
+    let port = &schema["$defs"]["PortConfig"]["properties"];
+    assert_eq!(port["stop_bits"]["default"], 1);
+    assert_eq!(port["data_bits"]["default"], 8);
+    assert_eq!(port["baud_rate"]["default"], 9600);
+    assert!(port["stop_bits"]["description"]
+        .as_str()
+        .is_some_and(|d| d.contains("Default 1")));
+    let description = schema["description"].as_str().unwrap();
+    assert!(
+        !description.contains("::") && !description.contains("split_ignored"),
+        "{description}"
+    );
+    assert!(description.contains("warning"), "{description}");
+}

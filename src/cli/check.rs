@@ -24,7 +24,8 @@ pub struct CheckConfigArgs {
     /// More template directories (searched after the system and user ones; later wins).
     #[arg(long = "templates", value_name = "DIR")]
     pub templates: Vec<PathBuf>,
-    /// Treat warnings (misspelt keys, overrides the template does not allow) as errors.
+    /// Treat warnings (misspelt keys, overrides the template does not allow, a device without
+    /// channels, an unusual baud rate) as errors.
     #[arg(long)]
     pub strict: bool,
 }
@@ -100,7 +101,7 @@ pub fn run_check_config(args: CheckConfigArgs) -> anyhow::Result<ExitCode> {
             let count =
                 |n: usize, what: &str| format!("{n} {what}{}", if n == 1 { "" } else { "s" });
             println!(
-                "{}: ok ({}, {}, {}; {})",
+                "{}: ok ({}, {}, {}; {} in the library)",
                 args.config.display(),
                 count(ports.len(), "port"),
                 count(devices, "device"),

@@ -15,9 +15,9 @@ use super::values::{SerialInt, SlaveId};
 
 /// The whole config file.
 ///
-/// Unknown keys here and on a port are warnings, not errors (`load::split_ignored`):
-/// wb-mqtt-serial's ports schema has no `additionalProperties`, so a config it runs may carry
-/// them. The schema still flags them, for editors.
+/// Unknown keys here and on a port are ignored with a warning (`check-config --strict` makes them
+/// errors), as wb-mqtt-serial ignores them: a config it runs may carry them. This schema flags
+/// them, so that an editor shows the typos.
 #[derive(Debug, Clone, Deserialize, Serialize, JsonSchema)]
 #[schemars(deny_unknown_fields)]
 pub struct Config {
@@ -158,9 +158,14 @@ fn yes() -> bool {
 #[derive(Debug, Clone, Deserialize, Serialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct MqttConfig {
+    /// The broker's host name or IP address alone, without a scheme or a port: `localhost`,
+    /// `192.168.1.10`, `broker.example.com`. TLS is set with `tls`, the port with `port`.
     #[serde(default = "default_host")]
+    #[schemars(length(min = 1), regex(pattern = r"^([^/:]+|[^/:]*:[^/:]*:[^/]*)$"))]
     pub host: String,
+    /// The broker's TCP port: 1883, usually 8883 with TLS.
     #[serde(default = "default_mqtt_port")]
+    #[schemars(range(min = 1))]
     pub port: u16,
     #[serde(default = "default_client_id")]
     pub client_id: String,
@@ -315,14 +320,22 @@ pub struct PortConfig {
     pub enabled: bool,
     /// Serial: device path, e.g. `/dev/ttyRS485-1` or `/dev/serial/by-id/...`.
     pub path: Option<String>,
+    /// Serial: bits per second, 110…4000000 (default 9600). `check-config` warns about a rate
+    /// other than 110, 300, 600, 1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200, 230400,
+    /// 460800 or 921600: most likely a typo.
     #[serde(default = "default_baud_rate")]
+    #[schemars(range(min = MIN_BAUD_RATE, max = MAX_BAUD_RATE))]
     pub baud_rate: u32,
     #[serde(default = "parity_letter::none", with = "parity_letter")]
     #[schemars(schema_with = "parity_letter::schema")]
     pub parity: Parity,
+    /// Serial: 5, 6, 7 or 8 (default 8).
     #[serde(default = "default_data_bits")]
+    #[schemars(range(min = 5, max = 8))]
     pub data_bits: u8,
+    /// Serial: 1 or 2. Default 1, whatever the parity (as in wb-mqtt-serial).
     #[serde(default = "default_stop_bits")]
+    #[schemars(range(min = 1, max = 2))]
     pub stop_bits: u8,
     /// TCP and Modbus TCP: host name or IP address of the gateway …
     pub address: Option<String>,
@@ -369,6 +382,10 @@ pub struct PortConfig {
     #[serde(default)]
     pub devices: Vec<DeviceConfig>,
 }
+
+/// The baud rates the loader takes; outside them a `baud_rate` is no serial speed at all.
+pub const MIN_BAUD_RATE: u32 = 110;
+pub const MAX_BAUD_RATE: u32 = 4_000_000;
 
 fn default_baud_rate() -> u32 {
     9600

@@ -8,11 +8,12 @@ use figment::providers::{Env, Serialized};
 use figment::Figment;
 use serde_json::Value;
 
-use super::config_file::{Config, PortType};
+use super::config_file::{Config, PortType, MAX_BAUD_RATE, MIN_BAUD_RATE};
 use super::error::{ErrorList, LocatedError, Problem};
 use super::json_path::JsonPath;
 use super::parse::{deserialize_at, schema_keys_at, value_at, SourceText};
 use super::values::SlaveId;
+use crate::protocol::timing::{is_usual_baud_rate, usual_baud_rates_text};
 
 /// Default config path of the Debian package.
 pub const DEFAULT_CONFIG_PATH: &str = "/etc/rtu2mqtt/config.json";
@@ -81,8 +82,10 @@ pub fn load_config_source(source: SourceText, apply_env: bool) -> Result<LoadedC
         device_extra_keys: Vec::new(),
         warnings: Vec::new(),
     };
-    let (device_extra_keys, warnings, mut errors) = split_ignored(&loaded, ignored);
+    let (device_extra_keys, mut warnings, mut errors) = split_ignored(&loaded, ignored);
+    warnings.extend(unusual_baud_rates(&loaded));
     errors.splice(0..0, foreign);
+    errors.extend(check_mqtt(&loaded));
     errors.extend(check_ports(&loaded));
     errors.extend(check_http(&loaded));
     if errors.is_empty() {
@@ -395,6 +398,136 @@ fn check_tls(loaded: &LoadedConfig) -> Vec<LocatedError> {
     errors
 }
 
+/// A broker address that cannot work is refused here: `run` would otherwise retry it forever
+/// with a resolver error that does not say what is wrong in the config.
+fn check_mqtt(loaded: &LoadedConfig) -> Vec<LocatedError> {
+    let mqtt = &loaded.config.mqtt;
+    let at = JsonPath::root().key("mqtt");
+    let mut errors = Vec::new();
+    if let Some(message) = broker_host_problem(&mqtt.host, mqtt.tls.is_some()) {
+        errors.push(loaded.error(at.key("host"), Problem::Invalid(message)));
+    }
+    if mqtt.port == 0 {
+        errors.push(loaded.error(
+            at.key("port"),
+            Problem::Invalid(format!(
+                "port 0 is no port a broker listens on: write the broker's TCP port, \"port\": {}",
+                if mqtt.tls.is_some() {
+                    "8883 (the usual MQTT port with TLS)"
+                } else {
+                    "1883 (the usual MQTT port; 8883 with TLS)"
+                }
+            )),
+        ));
+    }
+    errors
+}
+
+/// What is wrong with `host` as the broker's address, if anything. A host name or an IP address
+/// has no `/`, and no single `:` (an IPv6 address has several).
+fn broker_host_problem(host: &str, tls: bool) -> Option<String> {
+    if host.trim().is_empty() {
+        return Some(
+            "the broker's host is empty: write its host name or IP address, e.g. \"host\": \
+             \"localhost\""
+                .into(),
+        );
+    }
+    if let Some((scheme, rest)) = host.split_once("://") {
+        let address = rest.split('/').next().unwrap_or_default();
+        let (name, port) = split_port(address);
+        let name = if name.is_empty() { "localhost" } else { name };
+        let port_hint = port
+            .map(|port| format!(" and \"port\": {port}"))
+            .unwrap_or_default();
+        let tls_scheme = matches!(
+            scheme.to_ascii_lowercase().as_str(),
+            "mqtts" | "ssl" | "tls" | "wss"
+        );
+        let tls_hint = match (tls_scheme && !tls, port) {
+            (false, _) => "",
+            (true, Some(_)) => {
+                "; TLS is set apart: add \"tls\": {} to the `mqtt` section (with `ca_file` … \
+                 as docs/mqtt.md says)"
+            }
+            (true, None) => {
+                "; TLS is set apart: add \"tls\": {} to the `mqtt` section (with `ca_file` … \
+                 as docs/mqtt.md says) and the broker's TLS port, usually \"port\": 8883"
+            }
+        };
+        return Some(format!(
+            "`{host}` is a URL, not a host: write the host name or IP address alone, \
+             \"host\": \"{name}\"{port_hint}{tls_hint}"
+        ));
+    }
+    if host.contains('/') {
+        return Some(format!(
+            "`{host}` is not a host name or IP address (no `/` in one): write e.g. \"host\": \
+             \"localhost\" or \"192.168.1.10\""
+        ));
+    }
+    if let (name, Some(port)) = split_port(host) {
+        return Some(format!(
+            "`{host}` has the port in it: write \"host\": \"{name}\" and \"port\": {port}"
+        ));
+    }
+    if host.matches(':').count() == 1 {
+        return Some(format!(
+            "`{host}` is not a host name or IP address (one `:` in it): write the host alone, \
+             and the port in `port`"
+        ));
+    }
+    None
+}
+
+/// `name:port` or `[v6]:port` as (name, port); an address without a port (an IPv6 one has
+/// several `:`) as (address, None).
+fn split_port(address: &str) -> (&str, Option<u16>) {
+    if let Some(rest) = address.strip_prefix('[') {
+        if let Some((name, tail)) = rest.split_once(']') {
+            let port = tail.strip_prefix(':').and_then(|p| p.parse().ok());
+            return (name, port);
+        }
+    }
+    match address.split_once(':') {
+        Some((name, port)) if !port.contains(':') => match port.parse() {
+            Ok(port) => (name, Some(port)),
+            Err(_) => (address, None),
+        },
+        _ => (address, None),
+    }
+}
+
+/// An enabled serial port at a speed none of its devices is likely set to: a typo (9601, 96000)
+/// would otherwise show only as devices that do not answer. Not refused: some devices do use
+/// odd rates.
+fn unusual_baud_rates(loaded: &LoadedConfig) -> Vec<LocatedError> {
+    loaded
+        .config
+        .ports
+        .iter()
+        .enumerate()
+        .filter(|(_, port)| port.enabled && port.port_type == PortType::Serial)
+        .filter(|(_, port)| {
+            (MIN_BAUD_RATE..=MAX_BAUD_RATE).contains(&port.baud_rate)
+                && !is_usual_baud_rate(port.baud_rate)
+        })
+        .map(|(index, port)| {
+            loaded.error(
+                JsonPath::root().key("ports").index(index).key("baud_rate"),
+                Problem::Warning(format!(
+                    "baud_rate {} of port {} is not a usual serial speed ({}): a typo? Devices \
+                     set to another speed do not answer. If they really use {}, leave it.",
+                    port.baud_rate,
+                    port.describe(),
+                    usual_baud_rates_text(),
+                    port.baud_rate
+                )),
+            )
+        })
+        .collect()
+}
+
 /// The status page may only be reachable from other machines behind a password.
 fn check_http(loaded: &LoadedConfig) -> Vec<LocatedError> {
     let Some(http) = &loaded.config.http else {
@@ -443,12 +576,13 @@ fn check_ports(loaded: &LoadedConfig) -> Vec<LocatedError> {
                         format!("stop_bits {} is not 1 or 2", port.stop_bits),
                     );
                 }
-                if !(110..=4_000_000).contains(&port.baud_rate) {
+                if !(MIN_BAUD_RATE..=MAX_BAUD_RATE).contains(&port.baud_rate) {
                     invalid(
                         "baud_rate",
                         format!(
-                            "baud_rate {} is not a serial speed (110…115200 usual)",
-                            port.baud_rate
+                            "baud_rate {} is not a serial speed: the usual ones are {}",
+                            port.baud_rate,
+                            usual_baud_rates_text()
                         ),
                     );
                 }
@@ -622,6 +756,46 @@ mod tests {
             paths,
             vec!["ports[0].port", "ports[1].stop_bits", "ports[2]"]
         );
+    }
+
+    #[test]
+    fn a_broker_host_is_a_name_or_an_address_alone() {
+        for fine in [
+            "localhost",
+            "192.168.1.10",
+            "broker.example.com",
+            "::1",
+            "fe80::1",
+        ] {
+            assert_eq!(broker_host_problem(fine, false), None, "{fine}");
+        }
+        let problem = |host: &str, tls: bool| broker_host_problem(host, tls).unwrap();
+        let url = problem("mqtt://localhost", false);
+        assert!(
+            url.contains(r#""host": "localhost""#) && !url.contains("tls"),
+            "{url}"
+        );
+        let with_port = problem("tcp://10.0.0.5:1884/", false);
+        assert!(
+            with_port.contains(r#""host": "10.0.0.5" and "port": 1884"#),
+            "{with_port}"
+        );
+        let tls = problem("mqtts://broker.lan", false);
+        assert!(
+            tls.contains(r#"add "tls": {}"#) && tls.contains(r#""port": 8883"#),
+            "{tls}"
+        );
+        // TLS already set: only the host is to fix.
+        assert!(!problem("mqtts://broker.lan", true).contains("tls"));
+        let v6 = problem("mqtt://[::1]:1883", false);
+        assert!(v6.contains(r#""host": "::1" and "port": 1883"#), "{v6}");
+        let glued = problem("localhost:1883", false);
+        assert!(
+            glued.contains(r#"write "host": "localhost" and "port": 1883"#),
+            "{glued}"
+        );
+        assert!(problem("", false).contains("empty"));
+        assert!(problem("broker/mqtt", false).contains("no `/`"));
     }
 
     #[test]

@@ -11,7 +11,7 @@ use super::model::{ResolvedDevice, ResolvedPort};
 use super::resolve::{
     resolve_device, topic_level_problem, ResolveError, ResolveInput, SharedResolutions,
 };
-use crate::config::config_file::PortConfig;
+use crate::config::config_file::{DeviceConfig, PortConfig};
 use crate::config::error::{ErrorList, LocatedError, Problem};
 use crate::config::json_path::JsonPath;
 use crate::config::load::LoadedConfig;
@@ -141,6 +141,12 @@ pub fn resolve_config_checked(
                     if resolved.id.is_empty() {
                         resolved.id = format!("wb-modbus-{port_index}-{device_index}");
                     }
+                    if resolved.channels.is_empty() {
+                        warnings.push(loaded.error(
+                            path.clone(),
+                            Problem::Warning(no_channels_warning(port, device)),
+                        ));
+                    }
                     if let Some(message) = topic_level_problem("device id", &resolved.id) {
                         errors.push(loaded.error(
                             if device.id.is_some() {
@@ -192,6 +198,30 @@ pub fn resolve_config_checked(
     let mut seen = std::collections::BTreeSet::new();
     warnings.retain(|w| seen.insert(w.to_string()));
     (result, warnings)
+}
+
+/// A device that resolves to no channel is accepted, as wb-mqtt-serial accepts it (its schema
+/// of a device without template requires only `slave_id`; loading it logs "the device has no
+/// channels"), but nothing is ever read from it: most often `device_type` was left out.
+fn no_channels_warning(port: &PortConfig, device: &DeviceConfig) -> String {
+    let which = format!(
+        "the device with slave_id {} on port {}",
+        device
+            .slave_id
+            .map(|id| id.to_string())
+            .unwrap_or_else(|| "(none)".into()),
+        port.describe()
+    );
+    match &device.device_type {
+        None => format!(
+            "{which} has neither `device_type` nor `channels`: nothing will be polled for it. \
+             `device_type` (the name of its template, e.g. \"WB-MR6C\") is probably missing."
+        ),
+        Some(device_type) => format!(
+            "{which} has no channels (its template `{device_type}` gives it none with the \
+             parameters as given): nothing will be polled for it."
+        ),
+    }
 }
 
 /// Splits `rate_limit` (low-priority channel reads per second, all ports together) across the

@@ -32,8 +32,39 @@ pub struct LineSettings {
     pub stop_bits: u8,
 }
 
-/// Baud rates a scan tries, slowest first.
-pub const STANDARD_BAUD_RATES: [u32; 8] = [1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200];
+/// The baud rates a serial port is usually set to, slowest first: the series wb-mqtt-serial's
+/// port settings offer (110 … 115200) and the faster standard UART rates. Any other rate is legal
+/// but far more often a typo (9601, 96000) than a device's real setting.
+pub const USUAL_BAUD_RATES: [u32; 14] = [
+    110, 300, 600, 1200, 2400, 4800, 9600, 19200, 38400, 57600, 115_200, 230_400, 460_800, 921_600,
+];
+
+/// Baud rates a scan tries, slowest first: the usual ones from 1200 to 115200.
+pub const STANDARD_BAUD_RATES: [u32; 8] = usual_baud_rates_from(3);
+
+const fn usual_baud_rates_from<const N: usize>(first: usize) -> [u32; N] {
+    let mut out = [0; N];
+    let mut i = 0;
+    while i < N {
+        out[i] = USUAL_BAUD_RATES[first + i];
+        i += 1;
+    }
+    out
+}
+
+/// Whether `baud` is one of [`USUAL_BAUD_RATES`].
+pub fn is_usual_baud_rate(baud: u32) -> bool {
+    USUAL_BAUD_RATES.contains(&baud)
+}
+
+/// The usual baud rates as a config check lists them: "110, 300, …, 921600".
+pub fn usual_baud_rates_text() -> String {
+    USUAL_BAUD_RATES
+        .iter()
+        .map(u32::to_string)
+        .collect::<Vec<_>>()
+        .join(", ")
+}
 
 const NANOS_PER_SECOND: u64 = 1_000_000_000;
 
@@ -377,6 +408,16 @@ mod tests {
         );
         let at_9600 = LineSettings::new(9600, Parity::None, 2).frame_silence();
         assert!((micros(at_9600) - 4010.4).abs() < 0.1);
+    }
+
+    #[test]
+    fn a_scan_tries_the_eight_usual_rates_from_1200_to_115200() {
+        assert_eq!(
+            STANDARD_BAUD_RATES,
+            [1200, 2400, 4800, 9600, 19200, 38400, 57600, 115_200]
+        );
+        assert!(STANDARD_BAUD_RATES.iter().all(|&b| is_usual_baud_rate(b)));
+        assert!(!is_usual_baud_rate(9601) && !is_usual_baud_rate(96_000));
     }
 
     #[test]
