@@ -169,6 +169,9 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             return Ok(ExitCode::from(exit::USAGE));
         }
     }
+    if let Some(note) = unusual_baud_note(&args.port.baud) {
+        eprintln!("{note}");
+    }
     let mut report = ScanReport::default();
     let started = Instant::now();
     let mut interrupted = false;
@@ -278,6 +281,23 @@ fn shell_word(text: &str) -> String {
 }
 
 /// The scan itself, filling `report` as it goes (an interrupted scan keeps what it found).
+/// A baud rate no device is set to is far more often a typo (9601, 96000) than a real setting:
+/// said before the scan rather than left to its "no device answered".
+fn unusual_baud_note(bauds: &[u32]) -> Option<String> {
+    let unusual: Vec<String> = bauds
+        .iter()
+        .filter(|baud| !crate::protocol::timing::is_usual_baud_rate(**baud))
+        .map(u32::to_string)
+        .collect();
+    (!unusual.is_empty()).then(|| {
+        format!(
+            "note: --baud {} is not a usual rate (usual: {}); scanning it anyway",
+            unusual.join(","),
+            crate::protocol::timing::usual_baud_rates_text()
+        )
+    })
+}
+
 pub async fn scan(args: &Args, report: &mut ScanReport) -> Result<(), PortError> {
     let mut port = if args.service.via_mqtt {
         return scan_via_service(args, report).await;
@@ -962,6 +982,17 @@ mod tests {
         assert_eq!(
             report_json(&report, Duration::from_millis(700))["classic_probes"],
             30
+        );
+    }
+
+    #[test]
+    fn an_unusual_baud_rate_is_said_before_the_scan() {
+        assert_eq!(unusual_baud_note(&[]), None);
+        assert_eq!(unusual_baud_note(&[9600, 115_200]), None);
+        let note = unusual_baud_note(&[9600, 9601, 96_000]).unwrap();
+        assert!(
+            note.starts_with("note: --baud 9601,96000 is not a usual rate (usual: 110, 300"),
+            "{note}"
         );
     }
 
