@@ -1247,7 +1247,63 @@ fn a_device_without_device_type_or_channels_is_a_warning_that_names_it() {
         !ok && text.contains("1 warning(s), which --strict counts as errors"),
         "{text}"
     );
+
+    // A device whose config turns off every channel of its template (kept for its setup
+    // writes) is as asked: no warning, --strict passes.
+    let all_off: Vec<String> = RELAY6_CHANNELS
+        .iter()
+        .map(|name| format!(r#"{{"name": "{name}", "enabled": false}}"#))
+        .collect();
+    let config = format!(
+        r#"{{"ports": [{{"path": "/dev/ttyRS485-1", "devices": [
+        {{"slave_id": 20, "device_type": "rtu2mqtt-relay6", "channels": [{}]}}]}}]}}"#,
+        all_off.join(", ")
+    );
+    let (ok, text) = check_config_strict(&config);
+    assert!(ok && !text.contains("warning:"), "{text}");
 }
+
+/// Every channel of templates/rtu2mqtt-relay6.json.
+const RELAY6_CHANNELS: &[&str] = &[
+    "K1",
+    "K2",
+    "K3",
+    "K4",
+    "K5",
+    "K6",
+    "Input 0",
+    "Input 1",
+    "Input 2",
+    "Input 3",
+    "Input 4",
+    "Input 5",
+    "Input 6",
+    "Input 0 counter",
+    "Input 1 counter",
+    "Input 2 counter",
+    "Input 3 counter",
+    "Input 4 counter",
+    "Input 5 counter",
+    "Input 6 counter",
+    "Input 0 single press counter",
+    "Input 0 long press counter",
+    "Input 1 single press counter",
+    "Input 1 long press counter",
+    "Input 2 single press counter",
+    "Input 2 long press counter",
+    "Input 3 single press counter",
+    "Input 3 long press counter",
+    "Input 4 single press counter",
+    "Input 4 long press counter",
+    "Input 5 single press counter",
+    "Input 5 long press counter",
+    "Input 6 single press counter",
+    "Input 6 long press counter",
+    "Serial",
+    "FW Version",
+    "Uptime",
+    "MCU Voltage",
+];
 
 /// `"host": "mqtt://localhost"` or `"port": 0` would have `run` retry the broker forever with a
 /// resolver error: refused where the config has them, saying what to write instead.

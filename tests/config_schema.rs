@@ -118,6 +118,11 @@ fn config_schema_agrees_with_the_loader() {
         "localhost:1883",
         "broker/x",
         "",
+        "   ",
+        " localhost",
+        "[::1]",
+        "[::1]:1883",
+        "fe80::1%eth0",
     ] {
         configs.push(serde_json::json!({"mqtt": {"host": host}}));
     }

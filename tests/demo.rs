@@ -448,3 +448,25 @@ fn a_demo_pointed_at_a_port_that_is_not_a_broker_says_so() {
     }
     drop(listener);
 }
+
+/// A broker that takes no anonymous client: the demo says it was refused, not that nothing
+/// answered.
+#[test]
+fn a_demo_refused_by_a_broker_says_so() {
+    let broker = Mosquitto::start_with_password("site", "secret");
+    let mut demo = Demo::start(&["--mqtt-port", &broker.port.to_string()]);
+    let status = demo.child.wait().unwrap();
+    let mut said = Vec::new();
+    while let Ok(line) = demo.stderr.recv_timeout(Duration::from_secs(5)) {
+        said.push(line);
+    }
+    let said = said.join("\n");
+    assert!(!status.success(), "{status}; it said {said}");
+    assert!(
+        said.contains(&format!(
+            "the MQTT broker on 127.0.0.1:{} refused the demo's connection",
+            broker.port
+        )) && !said.contains("does not answer as an MQTT broker"),
+        "{said}"
+    );
+}

@@ -828,6 +828,34 @@ fn write_whose_read_back_fails_is_not_verified() {
         "{}",
         run.stderr
     );
+
+    // A command register: the acknowledgement is the result, nothing is read back.
+    let mut args = vec![
+        "write",
+        "--address",
+        "41",
+        "--type",
+        "holding",
+        "--reg",
+        "128",
+        "--timeout",
+        "100",
+        "--no-read-back",
+    ];
+    args.extend_from_slice(&AT_115200);
+    args.push("42");
+    let run = access(&sim, &args);
+    let address = sim
+        .control(json!({"cmd": "get", "serial": "0xFE000040", "type": "holding", "address": 128}));
+    assert_eq!(address["value"], 42, "the write was carried out");
+    assert_eq!(run.code, 0, "{}{}", run.stdout, run.stderr);
+    assert!(
+        run.stdout
+            .contains("written: the device acknowledged it (not read back: --no-read-back)"),
+        "{}",
+        run.stdout
+    );
+    assert!(!run.stderr.contains("reading back"), "{}", run.stderr);
 }
 
 /// A simulator on a bus of these devices.
@@ -884,6 +912,60 @@ fn write_string_takes_the_registers_its_text_needs() {
     assert_eq!(
         holding(),
         json!([0x6865, 0x6C6C, 0x6F00, 108, 111, 9, 9, 9])
+    );
+
+    assert!(
+        run.stderr
+            .contains("note: only the 3 register(s) the text needs are written"),
+        "{}",
+        run.stderr
+    );
+
+    // Over the field's size: the rest of the field is cleared, as wb-mqtt-serial writes a
+    // string channel.
+    let mut padded = vec![
+        "write",
+        "--address",
+        "20",
+        "--type",
+        "holding",
+        "--reg",
+        "1000",
+        "--format",
+        "string",
+        "--count",
+        "8",
+    ];
+    padded.extend_from_slice(&AT_115200);
+    padded.push("hi");
+    let run = access(&sim, &padded);
+    assert_eq!(run.code, 0, "{}{}", run.stdout, run.stderr);
+    assert!(!run.stderr.contains("note:"), "{}", run.stderr);
+    assert_eq!(holding(), json!([104, 105, 0, 0, 0, 0, 0, 0]));
+    let mut not_a_string = vec![
+        "write",
+        "--address",
+        "20",
+        "--type",
+        "holding",
+        "--reg",
+        "1000",
+        "--count",
+        "2",
+    ];
+    not_a_string.extend_from_slice(&AT_115200);
+    not_a_string.push("7");
+    let run = access(&sim, &not_a_string);
+    assert_eq!(run.code, 2, "{}{}", run.stdout, run.stderr);
+    assert!(
+        run.stderr.contains("--count is for a string value"),
+        "{}",
+        run.stderr
+    );
+    assert_eq!(
+        holding(),
+        json!([104, 105, 0, 0, 0, 0, 0, 0]),
+        "nothing written"
     );
 
     let long = "x".repeat(124);
@@ -1092,6 +1174,31 @@ fn read_and_write_through_the_service_explain_failures_as_on_the_port() {
         ),
         "{}",
         run.stderr
+    );
+
+    // --no-read-back: the acknowledgement is the result, through the service too.
+    let run = via_service(&[
+        "write",
+        "--address",
+        "31",
+        "--type",
+        "holding",
+        "--reg",
+        "128",
+        "--timeout",
+        "100",
+        "--no-read-back",
+        "32",
+    ]);
+    let meter =
+        sim.control(json!({"cmd": "get", "device": "meter", "type": "holding", "address": 128}));
+    assert_eq!(meter["value"], 32, "the write was carried out");
+    assert_eq!(run.code, 0, "{}{}", run.stdout, run.stderr);
+    assert!(
+        run.stdout
+            .contains("written: the device acknowledged it (not read back: --no-read-back)"),
+        "{}",
+        run.stdout
     );
 }
 

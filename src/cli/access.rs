@@ -13,7 +13,9 @@ use crate::protocol::{pdu, LineSettings, RegisterType, RequestPdu, ResponsePdu};
 use crate::tools::bus::{Answer, PortError, ToolBus, ToolPort};
 use crate::tools::exit;
 use crate::tools::report::{serial_text, ScanReport};
-use crate::tools::values::{decode_words, encode_value, parse_format, value_width};
+use crate::tools::values::{
+    decode_words, encode_string_field, encode_value, parse_format, value_width,
+};
 
 use super::address::{locate, parse_serial};
 use super::scan::{block_on_tool, port_failure, PortArgs};
@@ -21,7 +23,6 @@ use super::via_mqtt::{
     call_failure, connect_service, line_params, response_words, served_line, ViaMqttArgs,
 };
 use crate::rpc::client::{CallError, RpcSession};
-use crate::rpc::message::RpcError;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum TypeArg {
@@ -108,6 +109,16 @@ pub struct WriteArgs {
     /// for coils 0/1 (or on/off).
     #[arg(required = true, num_args = 1.., allow_negative_numbers = true)]
     pub values: Vec<String>,
+    /// For a string value: the registers its field takes (20 for a Wiren Board model); the text
+    /// is padded with zeros to fill them, as wb-mqtt-serial writes a string channel, so no
+    /// character of a longer old text stays. Default: the registers the text needs.
+    #[arg(long, value_name = "REGISTERS")]
+    pub count: Option<u16>,
+    /// Take the device's acknowledgement as the result and read nothing back: for a command
+    /// register (a restart, a calibration start) whose device then falls silent or reads it
+    /// back as something else.
+    #[arg(long)]
+    pub no_read_back: bool,
 }
 
 /// The device a request goes to, at its port setting.
@@ -468,6 +479,9 @@ pub fn run_write(args: WriteArgs) -> anyhow::Result<ExitCode> {
     })
 }
 
+/// What `write --no-read-back` says once the device acknowledged the write.
+const NOT_READ_BACK: &str = "written: the device acknowledged it (not read back: --no-read-back)";
+
 /// The words `values` encode to in `args`' type and format.
 fn encode_all(args: &WriteArgs) -> Result<Vec<u16>, String> {
     let target = &args.target;
@@ -490,7 +504,20 @@ fn encode_all(args: &WriteArgs) -> Result<Vec<u16>, String> {
     }
     let mut words = Vec::new();
     for value in &args.values {
-        words.extend(encode_value(target.format, word_order(target), value)?);
+        words.extend(match args.count {
+            Some(registers) if target.format.is_string() => {
+                encode_string_field(target.format, value, registers)?
+            }
+            Some(_) => {
+                return Err(
+                    "--count is for a string value (the registers its field takes); a value of \
+                     another format takes its format's registers: give several values for \
+                     consecutive registers"
+                        .to_owned(),
+                )
+            }
+            None => encode_value(target.format, word_order(target), value)?,
+        });
     }
     Ok(words)
 }
@@ -527,6 +554,13 @@ async fn write(args: &WriteArgs) -> Result<ExitCode, PortError> {
             return Ok(ExitCode::from(exit::USAGE));
         }
     };
+    if target_args.format.is_string() && args.count.is_none() {
+        eprintln!(
+            "note: only the {} register(s) the text needs are written: characters of a longer \
+             old text after them stay (give --count with the field's size to clear them)",
+            words.len()
+        );
+    }
     let Some(pdu) = write_pdu(register_type, target_args.reg, &words) else {
         eprintln!(
             "input registers and discrete inputs are read-only: write holding registers or coils"
@@ -539,7 +573,7 @@ async fn write(args: &WriteArgs) -> Result<ExitCode, PortError> {
         return Ok(ExitCode::from(exit::USAGE));
     }
     let Some(mut port) = open_or_service(target_args)? else {
-        return Ok(write_via_service(target_args, &pdu, &words).await);
+        return Ok(write_via_service(target_args, &pdu, &words, args.no_read_back).await);
     };
     let target = match resolve(&mut port, target_args).await? {
         Ok(target) => target,
@@ -562,6 +596,11 @@ async fn write(args: &WriteArgs) -> Result<ExitCode, PortError> {
     if !written {
         eprintln!("{}", failure(&target, &answer, timeout));
         return Ok(ExitCode::from(exit::NOT_FOUND));
+    }
+    if args.no_read_back {
+        port.restore();
+        println!("{NOT_READ_BACK}");
+        return Ok(ExitCode::SUCCESS);
     }
     // Read back: what the device holds now (a device may clamp or refuse silently).
     let back = request(
@@ -660,7 +699,7 @@ async fn load_via_service(
         .await;
     let result = match called {
         Ok(result) => result,
-        Err(CallError::Refused(refused)) => match service_answer(&refused) {
+        Err(CallError::Refused(refused)) => match super::via_mqtt::answer_of_refusal(&refused) {
             Some(answer) => return Ok(Err(failure(target, &answer, timeout))),
             None => return Err(call_failure(&CallError::Refused(refused))),
         },
@@ -682,19 +721,6 @@ async fn load_via_service(
         .as_str()
         .and_then(|response| response_words(response, bits, count))
         .ok_or_else(|| "the service's reply holds no register data".to_owned()))
-}
-
-/// The bus answer behind a `port/Load` error, when it is one the direct path also meets: the
-/// service words it for its RPC clients (as wb-mqtt-serial does), the tool as it words its own.
-fn service_answer(refused: &RpcError) -> Option<Answer> {
-    // Silence is -32600, as wb-mqtt-serial answers it (a total_timeout that ran out is not).
-    if refused.is_no_reply() {
-        return Some(Answer::NoReply);
-    }
-    refused
-        .message
-        .contains("unreadable reply")
-        .then_some(Answer::Garbled)
 }
 
 /// Time a request through the service may take beyond its reply timeout: its turn on the bus.
@@ -725,7 +751,12 @@ async fn read_via_service(args: &TargetArgs, count: u16) -> ExitCode {
     ExitCode::SUCCESS
 }
 
-async fn write_via_service(args: &TargetArgs, pdu: &RequestPdu, words: &[u16]) -> ExitCode {
+async fn write_via_service(
+    args: &TargetArgs,
+    pdu: &RequestPdu,
+    words: &[u16],
+    no_read_back: bool,
+) -> ExitCode {
     let mut session = match connect_service(&args.service).await {
         Ok(session) => session,
         Err(code) => return code,
@@ -757,6 +788,10 @@ async fn write_via_service(args: &TargetArgs, pdu: &RequestPdu, words: &[u16]) -
             return ExitCode::from(exit::NOT_FOUND);
         }
         Err(code) => return code,
+    }
+    if no_read_back {
+        println!("{NOT_READ_BACK}");
+        return ExitCode::SUCCESS;
     }
     let read = read_pdu(args.register_type.register_type(), args.reg, count);
     match load_via_service(args, &mut session, &target, &read, count, &[]).await {

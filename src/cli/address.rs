@@ -642,14 +642,12 @@ impl AddressBus for ServiceBus {
                     .unwrap_or_default(),
                 ))
             }
-            // Silence is -32600, as wb-mqtt-serial answers it (a total_timeout is not).
-            Err(crate::rpc::client::CallError::Refused(refused)) if refused.is_no_reply() => {
-                Ok(None)
-            }
             Err(crate::rpc::client::CallError::Refused(refused))
-                if refused.message.contains("unreadable reply") =>
+                if super::via_mqtt::answer_of_refusal(&refused).is_some() =>
             {
-                Ok(probe_answer_text(&Answer::Garbled))
+                Ok(super::via_mqtt::answer_of_refusal(&refused)
+                    .as_ref()
+                    .and_then(probe_answer_text))
             }
             Err(err) => {
                 eprintln!("error: asking the service whether address {address} is free: {err}");

@@ -483,6 +483,12 @@ async fn tidy(port: u16, base_ids: &[String], when: Tidy) -> anyhow::Result<bool
     while !(marker_back && marker_acked) {
         let event = match eventloop.poll().await {
             Ok(event) => event,
+            // A broker that answered, and said no (a password required, say).
+            Err(rumqttc::ConnectionError::ConnectionRefused(code)) => anyhow::bail!(
+                "the MQTT broker on 127.0.0.1:{port} refused the demo's connection ({code:?}): \
+                 it may take no anonymous clients. Give the demo a free port with --mqtt-port \
+                 (it starts its own broker there)"
+            ),
             // Something took the TCP connection but never answered MQTT's CONNECT.
             Err(err) if !connected => anyhow::bail!(
                 "127.0.0.1:{port} takes connections but does not answer as an MQTT broker \

@@ -280,7 +280,6 @@ fn shell_word(text: &str) -> String {
     }
 }
 
-/// The scan itself, filling `report` as it goes (an interrupted scan keeps what it found).
 /// A baud rate no device is set to is far more often a typo (9601, 96000) than a real setting:
 /// said before the scan rather than left to its "no device answered".
 fn unusual_baud_note(bauds: &[u32]) -> Option<String> {
@@ -298,6 +297,7 @@ fn unusual_baud_note(bauds: &[u32]) -> Option<String> {
     })
 }
 
+/// The scan itself, filling `report` as it goes (an interrupted scan keeps what it found).
 pub async fn scan(args: &Args, report: &mut ScanReport) -> Result<(), PortError> {
     let mut port = if args.service.via_mqtt {
         return scan_via_service(args, report).await;

@@ -12,6 +12,8 @@ use crate::config::config_file::MqttConfig;
 use crate::config::load::{load_config, DEFAULT_CONFIG_PATH};
 use crate::protocol::{LineSettings, Parity};
 use crate::rpc::client::{CallError, RpcSession};
+use crate::rpc::message::RpcError;
+use crate::tools::bus::Answer;
 use crate::tools::exit;
 
 /// How to reach the running service.
@@ -67,6 +69,19 @@ impl ViaMqttArgs {
     pub fn can_reach_service(&self) -> bool {
         self.via_mqtt || self.broker.is_some() || self.service_config.exists()
     }
+}
+
+/// What a `port/Load` refusal says of the device, as the port would have said it: silence is
+/// -32600, as wb-mqtt-serial answers it (a `total_timeout` that ran out is not), and an
+/// unreadable reply is named so; anything else is the service's own trouble (None).
+pub fn answer_of_refusal(refused: &RpcError) -> Option<Answer> {
+    if refused.is_no_reply() {
+        return Some(Answer::NoReply);
+    }
+    refused
+        .message
+        .contains("unreadable reply")
+        .then_some(Answer::Garbled)
 }
 
 /// Why the service could not be asked, for the integrator; the exit code.

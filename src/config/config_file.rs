@@ -161,7 +161,10 @@ pub struct MqttConfig {
     /// The broker's host name or IP address alone, without a scheme or a port: `localhost`,
     /// `192.168.1.10`, `broker.example.com`. TLS is set with `tls`, the port with `port`.
     #[serde(default = "default_host")]
-    #[schemars(length(min = 1), regex(pattern = r"^([^/:]+|[^/:]*:[^/:]*:[^/]*)$"))]
+    #[schemars(
+        length(min = 1),
+        regex(pattern = r"^([^/:\s\[\]]+|[^/:\s\[\]]*:[^/:\s\[\]]*:[^/\s\[\]]*)$")
+    )]
     pub host: String,
     /// The broker's TCP port: 1883, usually 8883 with TLS.
     #[serde(default = "default_mqtt_port")]

@@ -471,6 +471,22 @@ fn broker_host_problem(host: &str, tls: bool) -> Option<String> {
             "`{host}` has the port in it: write \"host\": \"{name}\" and \"port\": {port}"
         ));
     }
+    if host.trim() != host || host.contains(char::is_whitespace) {
+        return Some(format!(
+            "`{host}` has spaces in it: write the host name or IP address alone, \
+             \"host\": \"{}\"",
+            host.trim()
+        ));
+    }
+    // The resolver takes a bare IPv6 address, not the bracketed form of a URL.
+    if let Some(inner) = host
+        .strip_prefix('[')
+        .and_then(|rest| rest.strip_suffix(']'))
+    {
+        return Some(format!(
+            "`{host}`: write an IPv6 address without brackets, \"host\": \"{inner}\""
+        ));
+    }
     if host.matches(':').count() == 1 {
         return Some(format!(
             "`{host}` is not a host name or IP address (one `:` in it): write the host alone, \
@@ -796,6 +812,11 @@ mod tests {
         );
         assert!(problem("", false).contains("empty"));
         assert!(problem("broker/mqtt", false).contains("no `/`"));
+        assert!(problem(" localhost", false).contains(
+            r#"has spaces in it: write the host name or IP address alone, "host": "localhost""#
+        ));
+        assert!(problem("broker lan", false).contains("has spaces in it"));
+        assert!(problem("[::1]", false).contains(r#"without brackets, "host": "::1""#));
     }
 
     #[test]

@@ -141,7 +141,10 @@ pub fn resolve_config_checked(
                     if resolved.id.is_empty() {
                         resolved.id = format!("wb-modbus-{port_index}-{device_index}");
                     }
-                    if resolved.channels.is_empty() {
+                    // Only a device with nothing to go on: one whose config turns off every
+                    // channel of its template (kept for its setup writes, say) is left as asked,
+                    // as wb-mqtt-serial leaves it.
+                    if resolved.channels.is_empty() && device.device_type.is_none() {
                         warnings.push(loaded.error(
                             path.clone(),
                             Problem::Warning(no_channels_warning(port, device)),
@@ -204,24 +207,16 @@ pub fn resolve_config_checked(
 /// of a device without template requires only `slave_id`; loading it logs "the device has no
 /// channels"), but nothing is ever read from it: most often `device_type` was left out.
 fn no_channels_warning(port: &PortConfig, device: &DeviceConfig) -> String {
-    let which = format!(
-        "the device with slave_id {} on port {}",
+    format!(
+        "the device with slave_id {} on port {} has neither `device_type` nor `channels`: \
+         nothing will be polled for it. `device_type` (the name of its template, e.g. \
+         \"WB-MR6C\") is probably missing.",
         device
             .slave_id
             .map(|id| id.to_string())
             .unwrap_or_else(|| "(none)".into()),
         port.describe()
-    );
-    match &device.device_type {
-        None => format!(
-            "{which} has neither `device_type` nor `channels`: nothing will be polled for it. \
-             `device_type` (the name of its template, e.g. \"WB-MR6C\") is probably missing."
-        ),
-        Some(device_type) => format!(
-            "{which} has no channels (its template `{device_type}` gives it none with the \
-             parameters as given): nothing will be polled for it."
-        ),
-    }
+    )
 }
 
 /// Splits `rate_limit` (low-priority channel reads per second, all ports together) across the

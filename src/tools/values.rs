@@ -90,6 +90,19 @@ pub fn encode_value(
         .map_err(|err| err.to_string())
 }
 
+/// A string `text` written over a field of `registers` registers, padded with zeros as
+/// wb-mqtt-serial writes a string channel, so that no character of a longer old text stays
+/// behind it.
+pub fn encode_string_field(
+    format: RegisterFormat,
+    text: &str,
+    registers: u16,
+) -> Result<Vec<u16>, String> {
+    codec(format, WordOrder::BigEndian, registers.max(1))
+        .encode(text, None)
+        .map_err(|err| err.to_string())
+}
+
 /// Refuses what an integer format cannot hold exactly: a fraction, and on an unsigned format a
 /// negative number or one above its range. Signed and BCD ranges are the codec's.
 fn check_integer(format: RegisterFormat, text: &str) -> Result<(), String> {
@@ -98,7 +111,10 @@ fn check_integer(format: RegisterFormat, text: &str) -> Result<(), String> {
         Some(value) => value,
         None => match text.parse::<f64>() {
             // A whole number written as a fraction (`56.0`, `1e3`) is that number.
-            Ok(number) if number.is_finite() && number.fract() == 0.0 => number as i128,
+            Ok(number) if !number.is_finite() => {
+                return Err(format!("{text} is not a number a register can hold"))
+            }
+            Ok(number) if number.fract() == 0.0 => number as i128,
             Ok(_) => {
                 return Err(format!(
                     "{text} is not a whole number: a {name} register holds whole numbers, and \
@@ -217,7 +233,6 @@ mod tests {
             (RegisterFormat::S16, "-0.5"),
             (RegisterFormat::U32, "1e-3"),
             (RegisterFormat::Bcd16, "12.5"),
-            (RegisterFormat::U64, "inf"),
         ] {
             let refused = encode_value(format, be, text).unwrap_err();
             assert!(
@@ -275,6 +290,25 @@ mod tests {
             Ok(vec![0x6865, 0x6C6C, 0x6F00])
         );
         assert_eq!(encode_value(RegisterFormat::String, be, ""), Ok(vec![0]));
+        for text in ["inf", "-inf", "nan", "NaN"] {
+            let refused = encode_value(RegisterFormat::U16, be, text).unwrap_err();
+            assert!(
+                refused.contains("is not a number a register can hold")
+                    && !refused.contains("float"),
+                "{refused}"
+            );
+        }
+        assert_eq!(
+            encode_string_field(RegisterFormat::String, "hi", 4),
+            Ok(vec![u16::from(b'h'), u16::from(b'i'), 0, 0])
+        );
+        assert_eq!(
+            encode_string_field(RegisterFormat::String8, "abc", 3),
+            Ok(vec![0x6162, 0x6300, 0])
+        );
+        assert!(encode_string_field(RegisterFormat::String, "hello", 4)
+            .unwrap_err()
+            .contains("longer than the 4 characters"));
     }
 
     #[test]
