@@ -72,16 +72,22 @@ pub async fn locate(
     plan: &[LineSettings],
     serial: u32,
 ) -> Result<Option<(LineSettings, u8, ScanReport)>, PortError> {
-    for &line in plan {
-        let mut report = ScanReport::default();
-        report.settings_tried.push(line);
-        let seen = port.scan_setting(line, &mut report).await?;
-        if let Some((_, address)) = seen.iter().find(|(s, _)| *s == serial) {
-            return Ok(Some((line, *address, report)));
+    for _ in 0..SEARCH_PASSES {
+        for &line in plan {
+            let mut report = ScanReport::default();
+            report.settings_tried.push(line);
+            let seen = port.scan_setting(line, &mut report).await?;
+            if let Some((_, address)) = seen.iter().find(|(s, _)| *s == serial) {
+                return Ok(Some((line, *address, report)));
+            }
         }
     }
     Ok(None)
 }
+
+/// Passes over the plan a search for one serial number makes before it says the device is not
+/// there (only a device that is not found costs the second).
+pub const SEARCH_PASSES: usize = 2;
 
 /// Writes the address register by serial number; Err with the reason when the device refuses.
 async fn write_address(
@@ -225,18 +231,22 @@ async fn set_address_steps(
             .map(|d| d.address)
     };
     let mut found = None;
-    for &line in plan {
-        let mut report = ScanReport::default();
-        bus.scan(&[line], &mut report).await?;
-        if let Some(address) = address_at(&report) {
-            found = Some((line, address, report));
-            break;
+    // A second pass before giving up: one scan round lost to noise or a collision must not
+    // pass for a device that is not there.
+    'passes: for _ in 0..SEARCH_PASSES {
+        for &line in plan {
+            let mut report = ScanReport::default();
+            bus.scan(&[line], &mut report).await?;
+            if let Some(address) = address_at(&report) {
+                found = Some((line, address, report));
+                break 'passes;
+            }
         }
     }
     let Some((line, old, report)) = found else {
         eprintln!(
             "no device with serial {serial} answered a Fast Modbus scan at {} port setting(s) of \
-             {}: check the number (decimal or 0x hex) and the wiring",
+             {} ({SEARCH_PASSES} passes): check the number (decimal or 0x hex) and the wiring",
             plan.len(),
             args.port.port
         );
@@ -892,6 +902,8 @@ mod steps_tests {
         effect: Effect,
         answer: Result<(), String>,
         scans: usize,
+        /// Scans that see nothing, first (rounds lost to noise).
+        missed_scans: usize,
         writes: Vec<AddressChange>,
         service: BTreeMap<u8, ServiceDevice>,
     }
@@ -903,6 +915,7 @@ mod steps_tests {
                 effect,
                 answer: answer.map_err(str::to_owned),
                 scans: 0,
+                missed_scans: 0,
                 writes: Vec::new(),
                 service: BTreeMap::new(),
             }
@@ -918,7 +931,7 @@ mod steps_tests {
             self.scans += 1;
             for line in lines {
                 report.settings_tried.push(*line);
-                if same_on_the_wire(line, &HOME) {
+                if same_on_the_wire(line, &HOME) && self.scans > self.missed_scans {
                     for &(serial, address) in &self.devices {
                         report.add_fast(*line, serial, address);
                     }
@@ -953,6 +966,23 @@ mod steps_tests {
         fn service_devices(&self) -> BTreeMap<u8, ServiceDevice> {
             self.service.clone()
         }
+    }
+
+    /// A device missed by one scan (its round lost to noise) is found by the second pass; a
+    /// serial number nobody has is said after both.
+    #[tokio::test]
+    async fn set_address_looks_twice_before_it_says_the_device_is_not_there() {
+        let mut bus = MockBus::new(&[(5, 20)], Effect::Moves, Ok(()));
+        bus.missed_scans = 1;
+        assert_eq!(set_address(&mut bus).await, ExitCode::SUCCESS);
+        assert_eq!(bus.writes.len(), 1, "written once found");
+        let mut bus = MockBus::new(&[(6, 20)], Effect::Moves, Ok(()));
+        assert_eq!(set_address(&mut bus).await, ExitCode::from(exit::NOT_FOUND));
+        assert_eq!(
+            bus.scans, SEARCH_PASSES,
+            "one scan per pass over the one setting"
+        );
+        assert!(bus.writes.is_empty());
     }
 
     async fn set_address(bus: &mut MockBus) -> ExitCode {
