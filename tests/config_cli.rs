@@ -903,6 +903,50 @@ fn describe_says_where_fast_modbus_is_off() {
     assert_eq!(describe(&gateway), (1, vec![false]));
 }
 
+/// A port another process holds open (wb-mqtt-serial, which takes no lock, still running on
+/// it) is named by `prepare-ports`, which the unit runs as root before the daemon: the only
+/// place that can see it. The service still starts.
+#[test]
+fn prepare_ports_names_another_process_that_has_the_port_open() {
+    let dir = tempfile::tempdir().unwrap();
+    let held = dir.path().join("ttyS9");
+    let free = dir.path().join("ttyS10");
+    std::fs::write(&held, "").unwrap();
+    std::fs::write(&free, "").unwrap();
+    let _holder = std::fs::File::open(&held).unwrap();
+    let config = dir.path().join("config.json");
+    let port = |path: &Path| serde_json::json!({"path": path, "devices": []});
+    std::fs::write(
+        &config,
+        serde_json::json!({"ports": [port(&held), port(&free)]}).to_string(),
+    )
+    .unwrap();
+    let out = bin()
+        .arg("prepare-ports")
+        .arg("-c")
+        .arg(&config)
+        .arg("--sysfs-tty")
+        .arg(dir.path().join("sys"))
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{stdout}");
+    let warning = format!("{}: warning: also open in ", held.display());
+    let line = stdout
+        .lines()
+        .find(|line| line.starts_with(&warning))
+        .unwrap_or_else(|| panic!("no warning for the held port: {stdout}"));
+    assert!(
+        line.contains(&format!("(pid {})", std::process::id()))
+            && line.contains("systemctl mask --now wb-mqtt-serial"),
+        "{line}"
+    );
+    assert!(
+        !stdout.contains(&format!("{}: warning", free.display())),
+        "{stdout}"
+    );
+}
+
 /// `prepare-ports` sets each serial port's receive FIFO trigger to 1 byte (on a fake
 /// `/sys/class/tty`), says so per port, leaves ports without the attribute and TCP ports alone,
 /// and succeeds where it cannot (the service must start anyway).

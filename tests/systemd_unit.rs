@@ -43,8 +43,12 @@ fn unit_is_a_notify_service_with_watchdog_and_reload() {
         "WatchdogSec=30s",
         "Restart=on-failure",
         "ExecReload=/bin/kill -HUP $MAINPID",
-        "ExecStartPre=+/usr/bin/rtu2mqtt prepare-ports -c /etc/rtu2mqtt/config.json",
-        "ExecReload=-+/usr/bin/rtu2mqtt prepare-ports -c /etc/rtu2mqtt/config.json",
+        "Environment=CONFIG_FILE=/etc/rtu2mqtt/config.json",
+        "EnvironmentFile=-/etc/rtu2mqtt/environment",
+        "ExecStartPre=/usr/bin/rtu2mqtt check-config -c ${CONFIG_FILE}",
+        "ExecStartPre=+/usr/bin/rtu2mqtt prepare-ports -c ${CONFIG_FILE}",
+        "ExecStart=/usr/bin/rtu2mqtt run -c ${CONFIG_FILE}",
+        "ExecReload=-+/usr/bin/rtu2mqtt prepare-ports -c ${CONFIG_FILE}",
         "SupplementaryGroups=dialout",
         "NoNewPrivileges=yes",
         "ProtectSystem=strict",
@@ -53,6 +57,15 @@ fn unit_is_a_notify_service_with_watchdog_and_reload() {
         assert!(
             unit.lines().any(|l| l.trim() == line),
             "systemd/rtu2mqtt.service lacks `{line}`"
+        );
+    } // One place names the config: a drop-in that sets CONFIG_FILE moves every step to it.
+    for line in unit
+        .lines()
+        .filter(|l| l.starts_with("Exec") && l.contains(" -c "))
+    {
+        assert!(
+            line.ends_with("-c ${CONFIG_FILE}"),
+            "`{line}` names its own config"
         );
     }
 }

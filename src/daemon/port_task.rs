@@ -636,8 +636,10 @@ impl PortTask {
                 Err(err) => {
                     if held_by_another_program(&err) {
                         warn!(port = %self.plan_name, %err, retry_in = ?delay,
-                            "cannot open the port: another program holds it (wb-mqtt-serial \
-                             still running? `systemctl stop wb-mqtt-serial`)");
+                            "cannot open the port: another program holds it locked (another \
+                             rtu2mqtt, a `rtu2mqtt run` in a terminal, or a tool built on the \
+                             same serial library; wb-mqtt-serial takes no lock and is not seen \
+                             here, see `rtu2mqtt prepare-ports`)");
                     } else {
                         self.serve_bus().await;
                         if permission_denied(&err) {

@@ -70,6 +70,10 @@ pub enum CodecError {
     InvalidBcd(u64),
     #[error("`{0}` is not a number")]
     NotANumber(String),
+    /// A control's own `min`/`max` (either may be absent): `at most 100`, `at least 5`,
+    /// `allowed 5 … 100`.
+    #[error("{value} is outside this control's limits: {limits}")]
+    OutsideLimits { value: String, limits: String },
     #[error("{value} is out of range for {format}: allowed {min} … {max}")]
     OutOfRange {
         value: String,

@@ -256,15 +256,16 @@ impl ResolvedChannel {
         let below = self.min.is_some_and(|min| value < min);
         let above = self.max.is_some_and(|max| value > max);
         if below || above {
-            let show = |v: Option<f64>| {
-                v.map(|v| super::number_text::format_g(v, 15))
-                    .unwrap_or_else(|| "…".into())
+            let show = |v: f64| super::number_text::format_g(v, 15);
+            let limits = match (self.min, self.max) {
+                (Some(min), Some(max)) => format!("allowed {} … {}", show(min), show(max)),
+                (Some(min), None) => format!("at least {}", show(min)),
+                (None, Some(max)) => format!("at most {}", show(max)),
+                (None, None) => String::new(),
             };
-            return Err(CodecError::OutOfRange {
+            return Err(CodecError::OutsideLimits {
                 value: text.to_string(),
-                format: "this control",
-                min: show(self.min),
-                max: show(self.max),
+                limits,
             });
         }
         Ok(())

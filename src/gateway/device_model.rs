@@ -1626,6 +1626,28 @@ mod tests {
         assert!(!accepts(&level, "101"));
         assert!(!accepts(&level, "-1"));
         assert!(!accepts(&level, "half"));
+        let refusal = |level: &ResolvedChannel, text: &str| match model_of(level.clone())
+            .write("Level", text)
+        {
+            Err(WriteRejected::BadValue(why)) => why,
+            other => panic!("{text}: {other:?}"),
+        };
+        assert_eq!(
+            refusal(&level, "101"),
+            "101 is outside this control's limits: allowed 0 … 100"
+        );
+        let mut only_max = level.clone();
+        only_max.min = None;
+        assert_eq!(
+            refusal(&only_max, "150"),
+            "150 is outside this control's limits: at most 100"
+        );
+        let mut only_min = level.clone();
+        only_min.max = None;
+        assert_eq!(
+            refusal(&only_min, "-3"),
+            "-3 is outside this control's limits: at least 0"
+        );
         level.registers[0].codec.scale = 0.01;
         assert_eq!(
             model_of(level).write("Level", "22.5").unwrap()[0].values,
