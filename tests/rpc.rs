@@ -39,7 +39,7 @@ fn start_with_generic(line: &str, baud: u32, generic: bool) -> Bench {
     let bus = dir.path().join("bus.json");
     let mut sim_devices = vec![
         json!({"name": "relay", "template": "rtu2mqtt-relay6", "address": 20,
-               "serial": "0xFE000020", "line": line, "model": "WBMR6C", "firmware": "1.26.0"}),
+               "serial": "0xFE000020", "line": line, "model": "R2M-RELAY6", "firmware": "1.26.0"}),
         json!({"name": "climate", "template": "rtu2mqtt-climate", "address": 21,
                "serial": "0xFE000021", "line": line, "values": {"input:4": 2150}}),
     ];
@@ -201,7 +201,7 @@ async fn reads_scans_and_errors(bench: &Bench, baud: u32) {
         relay["cfg"],
         json!({"slave_id": 20, "data_bits": 8, "baud_rate": baud, "parity": "N", "stop_bits": 2})
     );
-    assert_eq!(relay["device_signature"], "WBMR6C");
+    assert_eq!(relay["device_signature"], "R2M-RELAY6");
     assert_eq!(relay["fw"]["version"], "1.26.0");
     assert_eq!(relay["configured_device_type"], "rtu2mqtt-relay6");
     assert!(relay.get("errors").is_none(), "{relay}");
@@ -860,7 +860,7 @@ async fn device_methods(bench: &Bench) {
         &json!({"id": 5, "params": {"device_id": "relay6_20"}}).to_string(),
     )
     .await;
-    let expected = json!({"id": 5, "result": {"parameters": relay_parameters, "model": "WBMR6C",
+    let expected = json!({"id": 5, "result": {"parameters": relay_parameters, "model": "R2M-RELAY6",
                           "fw": "1.26.0"}, "error": null});
     assert_eq!(config, expected.to_string());
 
@@ -885,7 +885,7 @@ async fn device_methods(bench: &Bench) {
         climate,
         json!({"id": 1, "result": {"parameters": {
             "baud_rate": baud / 100, "co2_sensor_enabled": 1, "motion_filter_time_const_s": 15,
-            "selfheating_compensation_deg": -1}, "model": "WBMSW4", "fw": "1.0.0"}, "error": null})
+            "selfheating_compensation_deg": -1}, "model": "R2M-CLIMATE", "fw": "1.0.0"}, "error": null})
     );
     // A device that is no Wiren Board one: parameters only. The one on a register the device
     // does not have is left out (its neighbour, read with it at first, is read again alone),
@@ -954,7 +954,7 @@ async fn site_tools_through_the_daemon(line: &str, baud: u32) {
     let bus = dir.path().join("bus.json");
     let devices = json!({"devices": [
         {"name": "relay", "template": "rtu2mqtt-relay6", "address": 20, "serial": "0xFE000020",
-         "line": line, "model": "WBMR6C", "firmware": "1.26.0"},
+         "line": line, "model": "R2M-RELAY6", "firmware": "1.26.0"},
         {"name": "climate", "template": "rtu2mqtt-climate", "address": 21, "serial": "0xFE000021",
          "line": line},
         {"name": "spare-a", "template": "rtu2mqtt-climate", "address": 30, "serial": "0xFE000030",
