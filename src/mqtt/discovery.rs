@@ -219,14 +219,22 @@ fn number_limits(channel: &ResolvedChannel, config: &mut Map<String, Value>) {
         .max
         .filter(|v| v.is_finite() && *v > min)
         .unwrap_or(default_max.max(min + 1.0));
-    let integer_codec = channel
-        .registers
-        .iter()
-        .all(|r| r.codec.format.is_integer() && r.codec.scale == 1.0 && r.codec.offset == 0.0);
+    // An integer register holds values a `scale` apart (22.5 on a scale of 0.5): a coarser step
+    // would keep HA from setting them, a finer one offers values the device cannot hold.
+    let integer_step = match channel.registers.as_slice() {
+        [register] if register.codec.format.is_integer() => {
+            let scale = register.codec.scale.abs();
+            (scale.is_finite() && scale > 0.0).then_some(scale)
+        }
+        _ => None,
+    };
     let step = match channel.precision {
         Some(p) if p.is_finite() && p > 0.0 => p.max(0.001),
-        _ if is_range || integer_codec => 1.0,
-        _ => 0.001,
+        _ => match integer_step {
+            Some(scale) => scale.max(0.001),
+            None if is_range => 1.0,
+            None => 0.001,
+        },
     };
     config.insert("min".into(), json!(min));
     config.insert("max".into(), json!(max));
@@ -353,6 +361,26 @@ mod tests {
         let mut ro_value = channel("T", "temperature");
         ro_value.readonly = true;
         assert_eq!(component_for(&ro_value), Some("sensor"));
+    }
+
+    #[test]
+    fn a_number_steps_by_what_its_register_can_hold() {
+        let step = |channel: &ResolvedChannel| {
+            let mut config = Map::new();
+            number_limits(channel, &mut config);
+            config["step"].as_f64().unwrap()
+        };
+        let mut setpoint = channel("Setpoint", "range");
+        assert_eq!(step(&setpoint), 1.0);
+        setpoint.registers[0].codec.scale = 0.5;
+        assert_eq!(step(&setpoint), 0.5, "22.5 must be settable");
+        setpoint.registers[0].codec.scale = 10.0;
+        assert_eq!(step(&setpoint), 10.0);
+        setpoint.precision = Some(0.1);
+        assert_eq!(step(&setpoint), 0.1, "precision, when given, decides");
+        let mut float = channel("Level", "value");
+        float.registers[0].codec.format = crate::config::format::RegisterFormat::Float;
+        assert_eq!(step(&float), 0.001);
     }
 
     #[test]
