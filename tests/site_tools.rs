@@ -858,6 +858,39 @@ fn write_whose_read_back_fails_is_not_verified() {
     assert!(!run.stderr.contains("reading back"), "{}", run.stderr);
 }
 
+/// The service (the real daemon) on the simulator's pty, polling the `sim-relay` at 20, once it
+/// has advertised `port/Load`: what the site tools go through when the port is busy.
+fn service_polling_the_relay(
+    broker: &mqtt_support::Mosquitto,
+    sim: &SimProcess,
+    client_id: &str,
+) -> daemon_support::DaemonProcess {
+    let config = json!({
+        "mqtt": {"host": "127.0.0.1", "port": broker.port, "client_id": client_id},
+        "ports": [{"path": sim.pty, "baud_rate": 115200, "stop_bits": 2,
+                   "devices": [{"device_type": "sim-relay", "slave_id": 20}]}]
+    });
+    let data = sim_support::data("");
+    let daemon = daemon_support::DaemonProcess::start(
+        &config,
+        &["--templates", data.to_str().unwrap()],
+        std::process::Stdio::null(),
+        std::process::Stdio::null(),
+    );
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    runtime.block_on(mqtt_support::wait_for(
+        "the advertised port/Load method",
+        || async {
+            let state = mqtt_support::retained(broker.port).await?;
+            (state.get("/rpc/v1/wb-mqtt-serial/port/Load")? == "1").then_some(())
+        },
+    ));
+    daemon
+}
+
 /// A simulator on a bus of these devices.
 fn bus_of(devices: Value) -> (tempfile::TempDir, SimProcess) {
     let dir = tempfile::tempdir().unwrap();
@@ -1063,29 +1096,7 @@ fn read_and_write_through_the_service_explain_failures_as_on_the_port() {
         {"name": "meter", "address": 30, "serial": "0x0D00001E", "line": "115200 8N2",
          "fast": false, "registers": [{"type": "holding", "address": 0, "count": 8}]}
     ]));
-    let config = json!({
-        "mqtt": {"host": "127.0.0.1", "port": broker.port, "client_id": "rtu2mqtt-site-tools-rw"},
-        "ports": [{"path": sim.pty, "baud_rate": 115200, "stop_bits": 2,
-                   "devices": [{"device_type": "sim-relay", "slave_id": 20}]}]
-    });
-    let data = sim_support::data("");
-    let _daemon = daemon_support::DaemonProcess::start(
-        &config,
-        &["--templates", data.to_str().unwrap()],
-        std::process::Stdio::null(),
-        std::process::Stdio::null(),
-    );
-    let runtime = tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-        .unwrap();
-    runtime.block_on(mqtt_support::wait_for(
-        "the advertised port/Load method",
-        || async {
-            let state = mqtt_support::retained(broker.port).await?;
-            (state.get("/rpc/v1/wb-mqtt-serial/port/Load")? == "1").then_some(())
-        },
-    ));
+    let _daemon = service_polling_the_relay(&broker, &sim, "rtu2mqtt-site-tools-rw");
     let broker_option = format!("127.0.0.1:{}", broker.port);
     let via_service = |args: &[&str]| {
         let mut all = args.to_vec();
@@ -2007,29 +2018,7 @@ fn set_address_through_the_service_probes_the_new_address_there() {
     )
     .unwrap();
     let sim = SimProcess::start_with(&bus, &sim_support::data(""), &[]);
-    let config = json!({
-        "mqtt": {"host": "127.0.0.1", "port": broker.port, "client_id": "rtu2mqtt-site-tools-test"},
-        "ports": [{"path": sim.pty, "baud_rate": 115200, "stop_bits": 2,
-                   "devices": [{"device_type": "sim-relay", "slave_id": 20}]}]
-    });
-    let data = sim_support::data("");
-    let _daemon = daemon_support::DaemonProcess::start(
-        &config,
-        &["--templates", data.to_str().unwrap()],
-        std::process::Stdio::null(),
-        std::process::Stdio::null(),
-    );
-    let runtime = tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-        .unwrap();
-    runtime.block_on(mqtt_support::wait_for(
-        "the advertised port/Load method",
-        || async {
-            let state = mqtt_support::retained(broker.port).await?;
-            (state.get("/rpc/v1/wb-mqtt-serial/port/Load")? == "1").then_some(())
-        },
-    ));
+    let _daemon = service_polling_the_relay(&broker, &sim, "rtu2mqtt-site-tools-test");
     let port = port(&sim);
     let broker_option = format!("127.0.0.1:{}", broker.port);
     let set = |address: &str| {
