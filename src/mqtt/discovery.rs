@@ -48,6 +48,7 @@ pub fn component_for(channel: &ResolvedChannel) -> Option<&'static str> {
         "pushbutton" => return None,
         "text" | "rgb" if writable => "text",
         "text" | "rgb" | "unixtime" | "w1-id" => "sensor",
+        _ if writable && select_options(channel).is_some() => "select",
         _ if writable => "number",
         _ => "sensor",
     })
@@ -157,6 +158,36 @@ pub fn control_config(
                 config.insert("pattern".into(), json!(r"^\d{1,3};\d{1,3};\d{1,3}$"));
             }
         }
+        "select" => {
+            config.insert("state_topic".into(), json!(state_topic));
+            config.insert("command_topic".into(), json!(command_topic));
+            let options = select_options(channel).unwrap_or_default();
+            // HA shows and sends the titles; the control's topics carry the values. A value
+            // with no title (a device state the template does not name) shows as itself.
+            let to_title: Map<String, Value> = options
+                .iter()
+                .map(|(value, title)| (value.clone(), json!(title)))
+                .collect();
+            let to_value: Map<String, Value> = options
+                .iter()
+                .map(|(value, title)| (title.clone(), json!(value)))
+                .collect();
+            config.insert(
+                "options".into(),
+                json!(options.iter().map(|(_, title)| title).collect::<Vec<_>>()),
+            );
+            config.insert(
+                "value_template".into(),
+                json!(format!(
+                    "{{{{ {}.get(value, value) }}}}",
+                    Value::Object(to_title)
+                )),
+            );
+            config.insert(
+                "command_template".into(),
+                json!(format!("{{{{ {}[value] }}}}", Value::Object(to_value))),
+            );
+        }
         "number" => {
             config.insert("state_topic".into(), json!(state_topic));
             config.insert("command_topic".into(), json!(command_topic));
@@ -204,6 +235,29 @@ fn device_block(topics: &TopicScheme, device: &ResolvedDevice, identity: &Device
         block.insert("sw_version".into(), json!(firmware));
     }
     Value::Object(block)
+}
+
+/// The (value, English title) pairs of a control's `enum`, in its order, when they make a
+/// select: every value titled, no title twice (HA's options are the titles).
+fn select_options(channel: &ResolvedChannel) -> Option<Vec<(String, String)>> {
+    if channel.enum_titles.is_empty() {
+        return None;
+    }
+    let options: Vec<(String, String)> = channel
+        .enum_titles
+        .iter()
+        .map(|entry| {
+            let title = entry
+                .title
+                .get("en")
+                .cloned()
+                .unwrap_or_else(|| entry.value.clone());
+            (entry.value.clone(), title)
+        })
+        .collect();
+    let titles: std::collections::BTreeSet<&str> =
+        options.iter().map(|(_, title)| title.as_str()).collect();
+    (titles.len() == options.len() && !titles.contains("")).then_some(options)
 }
 
 /// HA's number defaults (1…100, step 1) do not fit WB controls: always send min, max, step.
@@ -361,6 +415,59 @@ mod tests {
         let mut ro_value = channel("T", "temperature");
         ro_value.readonly = true;
         assert_eq!(component_for(&ro_value), Some("sensor"));
+    }
+
+    #[test]
+    fn a_writable_enum_is_a_select_of_its_titles() {
+        use crate::device::{EnumTitle, Titles};
+        let titled = |pairs: &[(&str, &str)]| -> Vec<EnumTitle> {
+            pairs
+                .iter()
+                .map(|(value, title)| EnumTitle {
+                    value: (*value).into(),
+                    title: Titles::from([("en".into(), (*title).into())]),
+                })
+                .collect()
+        };
+        let mut fan = channel("Fan speed", "value");
+        fan.enum_titles = titled(&[("0", "Auto"), ("1", "Low"), ("3", "High \"max\"")]);
+        assert_eq!(component_for(&fan), Some("select"));
+        let topics = TopicScheme::new("", "rtu2mqtt").unwrap();
+        let settings = DiscoverySettings {
+            prefix: "homeassistant".into(),
+        };
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("templates/rtu2mqtt-climate.json");
+        let file = crate::config::TemplateFile::load(&path).unwrap();
+        let device =
+            crate::device::resolve_template_device(&file, &json!({ "slave_id": 21 })).unwrap();
+        let config = control_config(
+            &settings,
+            &topics,
+            &device,
+            &DeviceIdentity::default(),
+            &fan,
+        )
+        .unwrap();
+        assert_eq!(config.component, "select");
+        let payload = &config.payload;
+        assert_eq!(payload["options"], json!(["Auto", "Low", "High \"max\""]));
+        assert_eq!(
+            payload["value_template"],
+            r#"{{ {"0":"Auto","1":"Low","3":"High \"max\""}.get(value, value) }}"#
+        );
+        assert_eq!(
+            payload["command_template"],
+            r#"{{ {"Auto":"0","Low":"1","High \"max\"":"3"}[value] }}"#
+        );
+        assert!(payload["command_topic"].as_str().unwrap().ends_with("/on"));
+        // Read-only, it stays a sensor; two values under one title cannot be told apart.
+        let mut shown = fan.clone();
+        shown.readonly = true;
+        assert_eq!(component_for(&shown), Some("sensor"));
+        let mut clash = fan;
+        clash.enum_titles = titled(&[("0", "Off"), ("1", "Off")]);
+        assert_eq!(component_for(&clash), Some("number"));
     }
 
     #[test]

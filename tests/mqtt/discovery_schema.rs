@@ -4,7 +4,7 @@
 use std::collections::BTreeSet;
 
 use crate::mqtt_support::{repo, template_device};
-use rtu2mqtt::device::ResolvedDevice;
+use rtu2mqtt::device::{EnumTitle, ResolvedDevice, Titles};
 use rtu2mqtt::device_updates::DeviceIdentity;
 use rtu2mqtt::mqtt::discovery::{device_configs, DiscoverySettings};
 use rtu2mqtt::mqtt::TopicScheme;
@@ -61,6 +61,20 @@ fn every_control_type() -> ResolvedDevice {
             device.channels.make_mut().push(channel);
         }
     }
+    // A writable value with titled values: a select.
+    let mut mode = base.clone();
+    mode.id = "mode".to_string();
+    mode.control_type = "value".to_string();
+    mode.readonly = false;
+    mode.enum_titles = ["Auto", "Low", "High"]
+        .iter()
+        .enumerate()
+        .map(|(value, title)| EnumTitle {
+            value: value.to_string(),
+            title: Titles::from([("en".to_string(), (*title).to_string())]),
+        })
+        .collect();
+    device.channels.make_mut().push(mode);
     for (units, id) in [
         ("kWh", "energy"),
         ("m^3", "water"),
@@ -106,6 +120,7 @@ fn every_control_type_validates() {
             "binary_sensor",
             "button",
             "number",
+            "select",
             "sensor",
             "switch",
             "text"
