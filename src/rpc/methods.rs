@@ -266,7 +266,10 @@ pub fn without_unknown_device_id(ports: &PortDirectory, params: &Value) -> Optio
 
 /// `ports/Load`: the configured ports, as wb-mqtt-serial lists them.
 fn ports_load(ports: &PortDirectory) -> Value {
-    let list: Vec<Value> = snapshot(ports)
+    // In the config's order, as wb-mqtt-serial lists them (the directory is keyed by name).
+    let mut running = snapshot(ports);
+    running.sort_by_key(|access| access.resolved.index);
+    let list: Vec<Value> = running
         .iter()
         .map(|access| {
             let config = &access.resolved.config;
@@ -1561,6 +1564,48 @@ mod tests {
         ] {
             assert_eq!(reported_sn(0xFE12_3456, other), 0xFE12_3456, "{other:?}");
         }
+    }
+
+    /// The directory is keyed by port name; `ports/Load` lists the ports as the config does.
+    #[test]
+    fn ports_are_listed_in_the_configs_order() {
+        let access = |index: usize, config: Value| {
+            let config: crate::config::config_file::PortConfig =
+                serde_json::from_value(config).unwrap();
+            let (queue, _receiver) = crate::daemon::bus_queue::BusQueue::new();
+            crate::daemon::PortAccess {
+                name: format!("port {index}"),
+                resolved: Arc::new(crate::device::ResolvedPort {
+                    index,
+                    config,
+                    devices: Vec::new(),
+                    low_priority_read_limit: None,
+                }),
+                line: None,
+                queue,
+                events: Arc::default(),
+                fast_modbus: false,
+            }
+        };
+        let directory: PortDirectory = Arc::default();
+        {
+            let mut ports = directory.lock().unwrap();
+            // Names that sort against the config's order.
+            ports.insert(
+                "a".into(),
+                access(
+                    1,
+                    json!({"port_type": "tcp", "address": "10.0.0.5", "port": 502}),
+                ),
+            );
+            ports.insert(
+                "b".into(),
+                access(0, json!({"path": "/dev/ttyRS485-2", "devices": []})),
+            );
+        }
+        let listed = ports_load(&directory);
+        assert_eq!(listed[0]["path"], "/dev/ttyRS485-2", "{listed}");
+        assert_eq!(listed[1]["address"], "10.0.0.5", "{listed}");
     }
 
     #[test]
