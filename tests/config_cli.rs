@@ -903,6 +903,33 @@ fn describe_says_where_fast_modbus_is_off() {
     assert_eq!(describe(&gateway), (1, vec![false]));
 }
 
+/// A TCP gateway's port adds its 500 ms to every device's timeout, as the port task does and
+/// wb-mqtt-serial does; `describe` says so (it showed the serial figure and no gateway).
+#[test]
+fn describe_counts_a_tcp_gateways_allowance_in_the_timeout_in_force() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = dir.path().join("config.json");
+    std::fs::write(
+        &config,
+        r#"{"ports": [{"port_type": "tcp", "address": "127.0.0.1", "port": 5020,
+            "devices": [{"device_type": "rtu2mqtt-relay6", "slave_id": 20}]}]}"#,
+    )
+    .unwrap();
+    let (ok, text) = report(describe_command(&config).output().unwrap());
+    assert!(ok, "{text}");
+    assert!(
+        text.contains("in force (the TCP gateway's 500 ms, the adapter allowance of 24 ms"),
+        "{text}"
+    );
+    let (ok, text) = report(describe_command(&config).arg("--json").output().unwrap());
+    assert!(ok, "{text}");
+    let json: serde_json::Value = serde_json::from_str(&text).unwrap();
+    let device = &json["devices"][0];
+    let added = device["response_timeout_in_force_ms"].as_f64().unwrap()
+        - device["response_timeout_ms"].as_f64().unwrap();
+    assert!((524.0..527.0).contains(&added), "{added}: {text}");
+}
+
 /// A port another process holds open (wb-mqtt-serial, which takes no lock, still running on
 /// it) is named by `prepare-ports`, which the unit runs as root before the daemon: the only
 /// place that can see it. The service still starts.

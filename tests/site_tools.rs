@@ -1353,6 +1353,83 @@ fn events_are_decoded_named_from_the_config_and_acknowledged() {
     assert_eq!(after.stdout, "", "the acknowledged events came again");
 }
 
+/// A device that takes no events (nobody at the address, or a classic device) is said and left
+/// out; the tool goes on watching the others (it stopped at the first such device).
+#[test]
+fn events_watch_the_devices_that_took_them_when_another_did_not() {
+    let sim = sim();
+    let port = port(&sim);
+    let run = tool(&[
+        "events",
+        "--port",
+        &port,
+        "--baud",
+        "19200",
+        "--parity",
+        "O",
+        "--stop-bits",
+        "1",
+        "--enable",
+        "30:coil:2",
+        "--enable",
+        "99:coil:0",
+        "--json",
+        "--duration",
+        "0.5",
+        "--latency",
+        LATENCY_MS,
+    ]);
+    assert_eq!(run.code, 0, "{}{}", run.stdout, run.stderr);
+    let enabled: Vec<Value> = run
+        .stdout
+        .lines()
+        .filter_map(|line| serde_json::from_str::<Value>(line).ok())
+        .filter(|line| line.get("enabled").is_some())
+        .collect();
+    // (Again after the device's start-up report: a reboot is answered by enabling anew.)
+    assert!(
+        !enabled.is_empty()
+            && enabled.iter().all(|line| *line
+                == json!({"enabled": true, "address": 30, "type": "coil", "register": 2})),
+        "{}",
+        run.stdout
+    );
+    assert!(
+        run.stderr.contains(
+            "address 99 at 19200 8O1: events not enabled (no reply, twice: not connected, or \
+             another address?); watching the others"
+        ),
+        "{}",
+        run.stderr
+    );
+    // Nobody took them: nothing to watch.
+    let run = tool(&[
+        "events",
+        "--port",
+        &port,
+        "--baud",
+        "19200",
+        "--parity",
+        "O",
+        "--stop-bits",
+        "1",
+        "--enable",
+        "99:coil:0",
+        "--json",
+        "--duration",
+        "0.5",
+        "--latency",
+        LATENCY_MS,
+    ]);
+    assert_eq!(run.code, 1, "{}{}", run.stdout, run.stderr);
+    assert!(
+        run.stderr
+            .contains("events were enabled on no device: nothing to watch"),
+        "{}",
+        run.stderr
+    );
+}
+
 #[test]
 fn events_at_19200_8o1_with_enable_options() {
     let sim = sim();

@@ -347,8 +347,18 @@ fn register_text(register: &RegisterRef) -> String {
 /// The timeout the port task starts from (what the status page shows before the device's
 /// response time is learned): the configured one plus the adapter allowance and a character.
 fn response_timeout_in_force_ms(port: &ResolvedPort, device: &ResolvedDevice) -> f64 {
-    let floor = line_settings(&port.config).response_timeout_floor(device.timing.response_timeout);
+    let floor = line_settings(&port.config)
+        .response_timeout_floor(device.timing.response_timeout + tcp_lag(port));
     (floor.as_secs_f64() * 10_000.0).round() / 10.0
+}
+
+/// What a TCP gateway's port adds to every device's timeout (the port task adds it too).
+fn tcp_lag(port: &ResolvedPort) -> std::time::Duration {
+    if port.config.port_type == crate::config::config_file::PortType::Serial {
+        std::time::Duration::ZERO
+    } else {
+        crate::port::plan::TCP_RESPONSE_LAG
+    }
 }
 
 fn port_text(port: &ResolvedPort) -> String {
@@ -370,9 +380,14 @@ fn describe_table(port: &ResolvedPort, device: &ResolvedDevice, site_fast_modbus
              semi-sporadic ones too (EVENTS shows the template's mode)\n",
         );
     }
+    let gateway = if tcp_lag(port).is_zero() {
+        String::new()
+    } else {
+        format!("the TCP gateway's {} ms, ", tcp_lag(port).as_millis())
+    };
     out.push_str(&format!(
-        "  response timeout: {} ms configured, {} ms in force (the adapter allowance of \
-         {} ms and one character are added, as wb-mqtt-serial does; a slow device's learned \
+        "  response timeout: {} ms configured, {} ms in force ({gateway}the adapter allowance \
+         of {} ms and one character are added, as wb-mqtt-serial does; a slow device's learned \
          response time may raise it)\n",
         device.timing.response_timeout.as_millis(),
         format_g(response_timeout_in_force_ms(port, device), 4),

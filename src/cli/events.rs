@@ -23,7 +23,7 @@ use crate::port::TransactionOutcome;
 use crate::protocol::fast::{split_event_masks, FastReply};
 use crate::protocol::{
     Event, EventPoll, EventPriority, EventRange, EventSource, LineSettings, RegisterType, Reply,
-    ReplyBody, Request,
+    ReplyBody, Request, ResponsePdu,
 };
 use crate::sim::control::register_type_name;
 use crate::tools::bus::{PortError, ToolBus, ToolPort};
@@ -418,7 +418,8 @@ fn logged_event(event: &serde_json::Value) -> Option<Event> {
     })
 }
 
-/// Sends the 0x18 request for one device's registers; prints which were enabled.
+/// Sends the 0x18 request for one device's registers (once more after silence or noise); prints
+/// which were enabled. False when the device took none: it is said, and the others go on.
 async fn enable(
     port: &mut ToolPort,
     line: LineSettings,
@@ -431,14 +432,25 @@ async fn enable(
         .map(|s| EventRange::registers(s.register_type, s.register, vec![s.priority]))
         .collect();
     let request = Request::configure_events(address, ranges.clone());
-    let outcome = port
-        .fast(
-            line,
-            request,
-            Duration::from_millis(500),
-            Duration::from_millis(600),
-        )
-        .await?;
+    let mut outcome = TransactionOutcome::NoReply;
+    // Once more after silence or a garbled reply (noise): the request only sets what it names,
+    // so a second one does no harm.
+    for _ in 0..2 {
+        outcome = port
+            .fast(
+                line,
+                request.clone(),
+                Duration::from_millis(500),
+                Duration::from_millis(600),
+            )
+            .await?;
+        if !matches!(
+            outcome,
+            TransactionOutcome::NoReply | TransactionOutcome::Garbled
+        ) {
+            break;
+        }
+    }
     let masks = match &outcome {
         TransactionOutcome::Reply(Reply {
             body:
@@ -452,11 +464,22 @@ async fn enable(
     };
     let Some(masks) = masks else {
         let why = match outcome {
-            TransactionOutcome::NoReply => "no reply".to_owned(),
-            TransactionOutcome::Garbled => "unreadable reply".to_owned(),
-            TransactionOutcome::Reply(reply) => format!("{:?}", reply.body),
+            TransactionOutcome::NoReply => {
+                "no reply, twice: not connected, or another address?".to_owned()
+            }
+            TransactionOutcome::Garbled => {
+                "unreadable reply, twice: noise, or two devices at this address?".to_owned()
+            }
+            TransactionOutcome::Reply(Reply {
+                body: ReplyBody::Classic(ResponsePdu::Exception { code, .. }),
+                ..
+            }) => format!(
+                "the device refused, {code}: it has no Fast Modbus events (the daemon polls such \
+                 a device classically)"
+            ),
+            TransactionOutcome::Reply(_) => "a reply that is no answer to it".to_owned(),
         };
-        eprintln!("address {address} at {line}: enabling events failed ({why})");
+        eprintln!("address {address} at {line}: events not enabled ({why}); watching the others");
         return Ok(false);
     };
     for (spec, mask) in specs.iter().zip(masks) {
@@ -493,11 +516,11 @@ async fn enable_all(
     for spec in specs.iter().filter(|s| only.is_none_or(|a| a == s.address)) {
         by_address.entry(spec.address).or_default().push(spec);
     }
-    let mut all = true;
+    let mut any = false;
     for (address, specs) in by_address {
-        all &= enable(port, line, address, &specs, json_output).await?;
+        any |= enable(port, line, address, &specs, json_output).await?;
     }
-    Ok(all)
+    Ok(any)
 }
 
 /// Where an event came from, for its line.
@@ -615,7 +638,10 @@ async fn stream(
     } else {
         args.enable.clone()
     };
+    // A device that cannot take events (a classic one on a mixed bus, one unplugged) is said
+    // and left out; the others are watched. Nothing to watch is a failure.
     if !specs.is_empty() && !enable_all(&mut port, line, &specs, None, args.json).await? {
+        eprintln!("events were enabled on no device: nothing to watch");
         return Ok(ExitCode::from(exit::NOT_FOUND));
     }
     if !args.json {
