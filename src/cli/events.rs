@@ -612,7 +612,13 @@ fn print_event(origin: PacketOrigin, event: &Event, view: Option<&ConfigView>, j
         return;
     }
     if event.is_reboot() {
-        println!("address {address}: restarted (event settings lost; enabled again where asked)");
+        // Through the service, the service sets the device up again (this tool enables nothing).
+        let after = if origin.via_service {
+            "the service sets it up again"
+        } else {
+            "enabled again where asked"
+        };
+        println!("address {address}: restarted (event settings lost; {after})");
         return;
     }
     let value = raw.map_or_else(|| crate::protocol::hex(&event.payload), |v| v.to_string());

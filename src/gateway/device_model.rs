@@ -268,6 +268,8 @@ pub enum WriteRejected {
     /// The MQTT side hands non-UTF-8 payloads over with U+FFFD in place of the bad bytes.
     #[error("the payload is not UTF-8 text")]
     NotText,
+    #[error("the payload is {0} bytes long; a control takes at most {MAX_PAYLOAD}")]
+    TooLong(usize),
     #[error("a {control_type} takes {expected}, got `{payload}`")]
     BadFormat {
         control_type: String,
@@ -1074,7 +1076,7 @@ fn check_payload<'a>(
     payload: &'a str,
 ) -> Result<&'a str, WriteRejected> {
     if payload.len() > MAX_PAYLOAD {
-        return Err(bad_format(channel, "a short text", "(too long)"));
+        return Err(WriteRejected::TooLong(payload.len()));
     }
     if payload.contains(char::REPLACEMENT_CHARACTER) {
         return Err(WriteRejected::NotText);
@@ -1728,10 +1730,13 @@ mod tests {
     #[test]
     fn huge_payloads_are_refused() {
         let text = crate::mqtt::layout::tests::channel("Text", "text");
-        assert!(matches!(
-            model_of(text).write("Text", &"a".repeat(MAX_PAYLOAD + 1)),
-            Err(WriteRejected::BadFormat { .. })
-        ));
+        let refused = model_of(text)
+            .write("Text", &"a".repeat(MAX_PAYLOAD + 1))
+            .unwrap_err();
+        assert_eq!(
+            refused.to_string(),
+            "the payload is 4097 bytes long; a control takes at most 4096"
+        );
     }
 
     /// A refused payload sets `w` once; the next successful write clears it.
