@@ -423,6 +423,24 @@ fn access(sim: &SimProcess, args: &[&str]) -> Run {
     tool(&all)
 }
 
+/// `write` of `value` to holding `reg` of the device at `address`, at 115200 8N2, with
+/// `options` (`--format`, `--timeout`, ...).
+fn write_holding(sim: &SimProcess, address: &str, reg: &str, options: &[&str], value: &str) -> Run {
+    let mut args = vec![
+        "write",
+        "--address",
+        address,
+        "--type",
+        "holding",
+        "--reg",
+        reg,
+    ];
+    args.extend_from_slice(options);
+    args.extend_from_slice(&AT_115200);
+    args.extend_from_slice(&["--", value]);
+    access(sim, &args)
+}
+
 #[test]
 fn read_prints_raw_and_decoded_values_by_address_and_by_serial() {
     let sim = sim();
@@ -725,22 +743,8 @@ fn write_refuses_values_an_integer_format_cannot_hold_exactly() {
             .clone()
     };
     sim.control(json!({"cmd": "set", "device": "fast-relay", "type": "holding", "address": 1000, "value": [7, 7]}));
-    let write = |format: &str, value: &str| {
-        let mut args = vec![
-            "write",
-            "--address",
-            "20",
-            "--type",
-            "holding",
-            "--reg",
-            "1000",
-            "--format",
-            format,
-        ];
-        args.extend_from_slice(&AT_115200);
-        args.extend_from_slice(&["--", value]);
-        access(&sim, &args)
-    };
+    let write =
+        |format: &str, value: &str| write_holding(&sim, "20", "1000", &["--format", format], value);
     for (format, value, words) in [
         (
             "u16",
@@ -802,20 +806,7 @@ fn write_refuses_values_an_integer_format_cannot_hold_exactly() {
 #[test]
 fn write_whose_read_back_fails_is_not_verified() {
     let sim = sim();
-    let mut args = vec![
-        "write",
-        "--address",
-        "40",
-        "--type",
-        "holding",
-        "--reg",
-        "128",
-        "--timeout",
-        "100",
-    ];
-    args.extend_from_slice(&AT_115200);
-    args.push("41");
-    let run = access(&sim, &args);
+    let run = write_holding(&sim, "40", "128", &["--timeout", "100"], "41");
     let address = sim
         .control(json!({"cmd": "get", "serial": "0xFE000040", "type": "holding", "address": 128}));
     assert_eq!(address["value"], 41, "the write was carried out");
@@ -830,21 +821,13 @@ fn write_whose_read_back_fails_is_not_verified() {
     );
 
     // A command register: the acknowledgement is the result, nothing is read back.
-    let mut args = vec![
-        "write",
-        "--address",
+    let run = write_holding(
+        &sim,
         "41",
-        "--type",
-        "holding",
-        "--reg",
         "128",
-        "--timeout",
-        "100",
-        "--no-read-back",
-    ];
-    args.extend_from_slice(&AT_115200);
-    args.push("42");
-    let run = access(&sim, &args);
+        &["--timeout", "100", "--no-read-back"],
+        "42",
+    );
     let address = sim
         .control(json!({"cmd": "get", "serial": "0xFE000040", "type": "holding", "address": 128}));
     assert_eq!(address["value"], 42, "the write was carried out");
@@ -917,22 +900,8 @@ fn write_string_takes_the_registers_its_text_needs() {
             ["values"]
             .clone()
     };
-    let write = |format: &str, value: &str| {
-        let mut args = vec![
-            "write",
-            "--address",
-            "20",
-            "--type",
-            "holding",
-            "--reg",
-            "1000",
-            "--format",
-            format,
-        ];
-        args.extend_from_slice(&AT_115200);
-        args.push(value);
-        access(&sim, &args)
-    };
+    let write =
+        |format: &str, value: &str| write_holding(&sim, "20", "1000", &["--format", format], value);
     let run = write("string", "hello");
     assert_eq!(run.code, 0, "{}{}", run.stdout, run.stderr);
     assert!(run.stdout.contains("[1004]: 0x006F  111"), "{}", run.stdout);
@@ -946,7 +915,6 @@ fn write_string_takes_the_registers_its_text_needs() {
         holding(),
         json!([0x6865, 0x6C6C, 0x6F00, 108, 111, 9, 9, 9])
     );
-
     assert!(
         run.stderr
             .contains("note: only the 3 register(s) the text needs are written"),
@@ -956,39 +924,17 @@ fn write_string_takes_the_registers_its_text_needs() {
 
     // Over the field's size: the rest of the field is cleared, as wb-mqtt-serial writes a
     // string channel.
-    let mut padded = vec![
-        "write",
-        "--address",
+    let run = write_holding(
+        &sim,
         "20",
-        "--type",
-        "holding",
-        "--reg",
         "1000",
-        "--format",
-        "string",
-        "--count",
-        "8",
-    ];
-    padded.extend_from_slice(&AT_115200);
-    padded.push("hi");
-    let run = access(&sim, &padded);
+        &["--format", "string", "--count", "8"],
+        "hi",
+    );
     assert_eq!(run.code, 0, "{}{}", run.stdout, run.stderr);
     assert!(!run.stderr.contains("note:"), "{}", run.stderr);
     assert_eq!(holding(), json!([104, 105, 0, 0, 0, 0, 0, 0]));
-    let mut not_a_string = vec![
-        "write",
-        "--address",
-        "20",
-        "--type",
-        "holding",
-        "--reg",
-        "1000",
-        "--count",
-        "2",
-    ];
-    not_a_string.extend_from_slice(&AT_115200);
-    not_a_string.push("7");
-    let run = access(&sim, &not_a_string);
+    let run = write_holding(&sim, "20", "1000", &["--count", "2"], "7");
     assert_eq!(run.code, 2, "{}{}", run.stdout, run.stderr);
     assert!(
         run.stderr.contains("--count is for a string value"),

@@ -13,7 +13,7 @@ use crate::device::check_template;
 use crate::device::configure::{resolve_config_checked, template_key_warnings};
 use crate::device::model::{EventMode, RegisterRef, RegisterType, ResolvedDevice, ResolvedPort};
 use crate::device::number_text::format_g;
-use crate::gateway::port_plan::{fast_modbus_on, line_settings};
+use crate::gateway::port_plan::{fast_modbus_on, line_settings, response_lag};
 use crate::protocol::timing::ADAPTER_LATENCY_ALLOWANCE;
 
 #[derive(Debug, clap::Args)]
@@ -345,20 +345,12 @@ fn register_text(register: &RegisterRef) -> String {
 }
 
 /// The timeout the port task starts from (what the status page shows before the device's
-/// response time is learned): the configured one plus the adapter allowance and a character.
+/// response time is learned): the configured one, a TCP gateway's lag, the adapter allowance and
+/// a character.
 fn response_timeout_in_force_ms(port: &ResolvedPort, device: &ResolvedDevice) -> f64 {
     let floor = line_settings(&port.config)
-        .response_timeout_floor(device.timing.response_timeout + tcp_lag(port));
+        .response_timeout_floor(device.timing.response_timeout + response_lag(&port.config));
     (floor.as_secs_f64() * 10_000.0).round() / 10.0
-}
-
-/// What a TCP gateway's port adds to every device's timeout (the port task adds it too).
-fn tcp_lag(port: &ResolvedPort) -> std::time::Duration {
-    if port.config.port_type == crate::config::config_file::PortType::Serial {
-        std::time::Duration::ZERO
-    } else {
-        crate::port::plan::TCP_RESPONSE_LAG
-    }
 }
 
 fn port_text(port: &ResolvedPort) -> String {
@@ -380,10 +372,11 @@ fn describe_table(port: &ResolvedPort, device: &ResolvedDevice, site_fast_modbus
              semi-sporadic ones too (EVENTS shows the template's mode)\n",
         );
     }
-    let gateway = if tcp_lag(port).is_zero() {
+    let lag = response_lag(&port.config);
+    let gateway = if lag.is_zero() {
         String::new()
     } else {
-        format!("the TCP gateway's {} ms, ", tcp_lag(port).as_millis())
+        format!("the TCP gateway's {} ms, ", lag.as_millis())
     };
     out.push_str(&format!(
         "  response timeout: {} ms configured, {} ms in force ({gateway}the adapter allowance \

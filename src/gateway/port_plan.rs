@@ -115,6 +115,16 @@ pub fn fast_modbus_on(port: &PortConfig, site: bool) -> bool {
         && (port.port_type != PortType::ModbusTcp || port.connected_to_mge)
 }
 
+/// What a port adds to every device's configured response timeout: a TCP gateway's
+/// [`TCP_RESPONSE_LAG`], nothing on a serial line.
+pub fn response_lag(port: &PortConfig) -> Duration {
+    if port.port_type == PortType::Serial {
+        Duration::ZERO
+    } else {
+        TCP_RESPONSE_LAG
+    }
+}
+
 /// `fast_modbus` is the site-wide switch (see [`fast_modbus_on`]).
 pub fn port_plan(port: &ResolvedPort, fast_modbus: bool) -> PortPlan {
     let line = line_settings(&port.config);
@@ -124,9 +134,7 @@ pub fn port_plan(port: &ResolvedPort, fast_modbus: bool) -> PortPlan {
         settings.event_interval = Duration::from_millis(interval.clamp(5, 10_000));
     }
     settings.low_priority_reads_per_second = port.low_priority_read_limit;
-    if port.config.port_type != PortType::Serial {
-        settings.response_lag = TCP_RESPONSE_LAG;
-    }
+    settings.response_lag = response_lag(&port.config);
     settings.guard_intervals = GuardIntervals(
         port.devices
             .iter()
