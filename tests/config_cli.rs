@@ -948,16 +948,23 @@ fn prepare_ports_names_another_process_that_has_the_port_open() {
         serde_json::json!({"ports": [port(&held), port(&free)]}).to_string(),
     )
     .unwrap();
-    let out = bin()
-        .arg("prepare-ports")
-        .arg("-c")
-        .arg(&config)
-        .arg("--sysfs-tty")
-        .arg(dir.path().join("sys"))
-        .output()
-        .unwrap();
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    assert!(out.status.success(), "{stdout}");
+    let prepare = |except: &[u32]| {
+        let mut command = bin();
+        command
+            .arg("prepare-ports")
+            .arg("-c")
+            .arg(&config)
+            .arg("--sysfs-tty")
+            .arg(dir.path().join("sys"));
+        for pid in except {
+            command.arg("--except-pid").arg(pid.to_string());
+        }
+        let out = command.output().unwrap();
+        let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
+        assert!(out.status.success(), "{stdout}");
+        stdout
+    };
+    let stdout = prepare(&[]);
     let warning = format!("{}: warning: also open in ", held.display());
     let line = stdout
         .lines()
@@ -970,6 +977,13 @@ fn prepare_ports_names_another_process_that_has_the_port_open() {
     );
     assert!(
         !stdout.contains(&format!("{}: warning", free.display())),
+        "{stdout}"
+    );
+    // At a reload the unit names its own daemon, which has every port open, as no other master.
+    let stdout = prepare(&[std::process::id()]);
+    assert!(!stdout.contains("warning"), "{stdout}");
+    assert!(
+        stdout.contains(&format!("{}: ", held.display())),
         "{stdout}"
     );
 }
@@ -1467,4 +1481,43 @@ fn the_template_count_is_of_the_library() {
             && text.contains(" templates in the library)"),
         "{text}"
     );
+}
+
+/// The service takes its secrets from /etc/rtu2mqtt/environment; `check-config --env-file`
+/// takes them too (the package's postinst checks the config so), quotes and comments as systemd
+/// reads them, and variables that are not rtu2mqtt's left alone.
+#[test]
+fn check_config_takes_the_secrets_of_an_environment_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = dir.path().join("config.json");
+    std::fs::write(
+        &config,
+        r#"{"http": {"listen": "0.0.0.0:8080", "user": "site"}, "ports": []}"#,
+    )
+    .unwrap();
+    let hash = format!("$2b$12${}", "a".repeat(53));
+    let environment = dir.path().join("environment");
+    std::fs::write(
+        &environment,
+        format!("# secrets\nRUST_LOG=debug\n\nRTU2MQTT_HTTP__PASSWORD_HASH=\"{hash}\"\n"),
+    )
+    .unwrap();
+    let check = |env_file: Option<&Path>| {
+        let mut command = bin();
+        command.arg("check-config").arg("-c").arg(&config);
+        if let Some(file) = env_file {
+            command.arg("--env-file").arg(file);
+        }
+        let out = command.output().unwrap();
+        (
+            out.status.success(),
+            String::from_utf8_lossy(&out.stdout).into_owned(),
+        )
+    };
+    let (ok, stdout) = check(None);
+    assert!(!ok && stdout.contains("password_hash"), "{stdout}");
+    let (ok, stdout) = check(Some(&environment));
+    assert!(ok, "{stdout}");
+    let (ok, stdout) = check(Some(&dir.path().join("missing")));
+    assert!(!ok, "{stdout}");
 }

@@ -42,10 +42,16 @@ fn lines(source: impl Read + Send + 'static) -> mpsc::Receiver<String> {
 
 impl Demo {
     fn start(args: &[&str]) -> Self {
+        Self::start_with_tmpdir(args, &std::env::temp_dir())
+    }
+
+    /// Its scratch files in `tmpdir` (TMPDIR).
+    fn start_with_tmpdir(args: &[&str], tmpdir: &std::path::Path) -> Self {
         let mut child = Command::new(env!("CARGO_BIN_EXE_rtu2mqtt"))
             .stop_with_parent()
             .arg("demo")
             .args(args)
+            .env("TMPDIR", tmpdir)
             // No mosquitto to be found: the demo must not need one.
             .env("PATH", "/nonexistent")
             .env("RUST_LOG", "warn")
@@ -425,7 +431,8 @@ fn a_demo_pointed_at_a_port_that_is_not_a_broker_says_so() {
     // Accepts the TCP connection (the listen backlog does) and never answers MQTT's CONNECT.
     let listener = TcpListener::bind("127.0.0.1:0").unwrap();
     let port = listener.local_addr().unwrap().port();
-    let mut demo = Demo::start(&["--mqtt-port", &port.to_string()]);
+    let scratch = tempfile::tempdir().unwrap();
+    let mut demo = Demo::start_with_tmpdir(&["--mqtt-port", &port.to_string()], scratch.path());
     let mut said = Vec::new();
     let status = demo.child.wait().unwrap();
     while let Ok(line) = demo.stderr.recv_timeout(Duration::from_secs(5)) {
@@ -439,8 +446,10 @@ fn a_demo_pointed_at_a_port_that_is_not_a_broker_says_so() {
         )) && said.contains("--mqtt-port"),
         "{said}"
     );
-    // Refused before it started anything: no banner, so nothing of it to look for.
+    // Refused before it started anything (no banner), and nothing left behind.
     assert!(!said.contains("files:"), "{said}");
+    let left: Vec<_> = std::fs::read_dir(scratch.path()).unwrap().collect();
+    assert!(left.is_empty(), "{left:?}");
     drop(listener);
 }
 

@@ -17,7 +17,7 @@ use std::path::Path;
 use std::process::{Child, Command, Stdio};
 
 use daemon_support::repo;
-use mqtt_support::{publish, retained, wait_for, Mosquitto};
+use mqtt_support::{publish, retained, rpc, wait_for, Mosquitto};
 use serde_json::{json, Value};
 use sim_support::SimProcess;
 
@@ -174,6 +174,32 @@ async fn sighup_applies_the_new_config_port_by_port() {
             json!([{"device_type": "rtu2mqtt-counter8", "slave_id": 22}]),
         )
     };
+
+    // The same ports in the other order: nothing restarts, and `ports/Load` lists them as the
+    // config now does (it kept the order of the config they were started from).
+    let applied = |log: &str| log.matches("reload applied").count();
+    let before = applied(&daemon.log());
+    let mut reordered = current_config();
+    reordered["ports"].as_array_mut().unwrap().reverse();
+    std::fs::write(&config_path, reordered.to_string()).unwrap();
+    daemon.signal(nix::sys::signal::Signal::SIGHUP);
+    wait_for("the reordered config applied", || async {
+        (applied(&daemon.log()) > before).then_some(())
+    })
+    .await;
+    let listed = rpc(port, "ports", "Load", json!({})).await;
+    let paths: Vec<&str> = listed["result"]
+        .as_array()
+        .unwrap_or_else(|| panic!("{listed}"))
+        .iter()
+        .filter_map(|port| port["path"].as_str())
+        .collect();
+    assert_eq!(
+        paths,
+        [sim_b.pty.to_str().unwrap(), sim_a.pty.to_str().unwrap()],
+        "{listed}"
+    );
+    assert_eq!(opens_of_a(&daemon.log()), 1, "{}", daemon.log());
 
     // A new `rate_limit` changes every port's share: both restart with it.
     let mut limited = current_config();

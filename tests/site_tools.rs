@@ -1370,7 +1370,38 @@ fn events_watch_the_devices_that_took_them_when_another_did_not() {
     assert_eq!(run.code, 1, "{}{}", run.stdout, run.stderr);
     assert!(
         run.stderr
-            .contains("events were enabled on no device: nothing to watch"),
+            .contains("events were enabled on no device: nothing to watch")
+            && !run.stderr.contains("watching the others"),
+        "{}",
+        run.stderr
+    );
+    // A classic device refuses the request as an unknown function: it has no events.
+    let run = tool(&[
+        "events",
+        "--port",
+        &port,
+        "--baud",
+        "115200",
+        "--parity",
+        "N",
+        "--stop-bits",
+        "2",
+        "--enable",
+        "40:holding:0",
+        "--enable",
+        "20:coil:0",
+        "--json",
+        "--duration",
+        "0.5",
+        "--latency",
+        LATENCY_MS,
+    ]);
+    assert_eq!(run.code, 0, "{}{}", run.stdout, run.stderr);
+    assert!(
+        run.stderr.contains(
+            "address 40 at 115200 8N2: events not enabled (the device refused, exception 1 \
+             (illegal function): it has no Fast Modbus events"
+        ),
         "{}",
         run.stderr
     );

@@ -48,7 +48,7 @@ fn unit_is_a_notify_service_with_watchdog_and_reload() {
         "ExecStartPre=/usr/bin/rtu2mqtt check-config -c ${CONFIG_FILE}",
         "ExecStartPre=+/usr/bin/rtu2mqtt prepare-ports -c ${CONFIG_FILE}",
         "ExecStart=/usr/bin/rtu2mqtt run -c ${CONFIG_FILE}",
-        "ExecReload=-+/usr/bin/rtu2mqtt prepare-ports -c ${CONFIG_FILE}",
+        "ExecReload=-+/usr/bin/rtu2mqtt prepare-ports -c ${CONFIG_FILE} --except-pid $MAINPID",
         "SupplementaryGroups=dialout",
         "NoNewPrivileges=yes",
         "ProtectSystem=strict",

@@ -1080,11 +1080,16 @@ fn enum_titles_of_another_length_are_not_published() {
         .iter()
         .any(|(lang, text)| lang == "ru" && text == "Выкл"));
     assert!(d.channel("Fan").unwrap().enum_titles.is_empty());
+    let level = &d.channel("Level").unwrap().enum_titles;
+    assert_eq!(
+        level.iter().map(|t| t.value.as_str()).collect::<Vec<_>>(),
+        vec!["0", "1", "2.5"]
+    );
     let texts: Vec<String> = warnings.iter().map(|w| w.to_string()).collect();
     assert_eq!(texts.len(), 1, "{texts:#?}");
     assert!(
         texts[0].contains(fixture)
-            && texts[0].contains(":10:")
+            && texts[0].contains(":11:")
             && texts[0].contains("channels[1].enum_titles")
             && texts[0].contains("`Fan`"),
         "{}",

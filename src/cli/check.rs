@@ -28,6 +28,10 @@ pub struct CheckConfigArgs {
     /// channels, an unusual baud rate) as errors.
     #[arg(long)]
     pub strict: bool,
+    /// Also take the `RTU2MQTT_*` settings of this file (KEY=value lines, `#` comments), as the
+    /// service takes its secrets from /etc/rtu2mqtt/environment.
+    #[arg(long = "env-file", value_name = "FILE")]
+    pub env_file: Option<PathBuf>,
 }
 
 #[derive(Debug, clap::Args)]
@@ -49,6 +53,31 @@ pub fn load_or_print_errors(path: &Path) -> Option<LoadedConfig> {
     }
 }
 
+/// The `RTU2MQTT_*` assignments of a systemd environment file (`KEY=value` lines, `#` and `;`
+/// comments, one pair of quotes around a value taken off); other variables are the service's
+/// own business (`RUST_LOG`) and do not change the config.
+fn service_settings(text: &str) -> Vec<(&str, &str)> {
+    text.lines()
+        .map(str::trim)
+        .filter(|line| !line.is_empty() && !line.starts_with('#') && !line.starts_with(';'))
+        .filter_map(|line| line.split_once('='))
+        .map(|(name, value)| (name.trim(), unquoted(value.trim())))
+        .filter(|(name, _)| name.starts_with(crate::config::load::ENV_PREFIX))
+        .collect()
+}
+
+fn unquoted(value: &str) -> &str {
+    for quote in ['"', '\''] {
+        if let Some(inner) = value
+            .strip_prefix(quote)
+            .and_then(|rest| rest.strip_suffix(quote))
+        {
+            return inner;
+        }
+    }
+    value
+}
+
 /// The enabled serial ports of `config` whose device file is not there.
 fn missing_serial_ports(config: &crate::config::config_file::Config) -> Vec<&str> {
     config
@@ -58,6 +87,14 @@ fn missing_serial_ports(config: &crate::config::config_file::Config) -> Vec<&str
 }
 
 pub fn run_check_config(args: CheckConfigArgs) -> anyhow::Result<ExitCode> {
+    if let Some(path) = &args.env_file {
+        let text = std::fs::read_to_string(path)
+            .map_err(|err| anyhow::anyhow!("cannot read {}: {err}", path.display()))?;
+        // Before anything else runs: this command has no other thread to see the change.
+        for (name, value) in service_settings(&text) {
+            std::env::set_var(name, value);
+        }
+    }
     let Some(loaded) = load_or_print_errors(&args.config) else {
         return Ok(ExitCode::FAILURE);
     };

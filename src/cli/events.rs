@@ -22,8 +22,8 @@ use crate::device::model::EventMode;
 use crate::port::TransactionOutcome;
 use crate::protocol::fast::{split_event_masks, FastReply};
 use crate::protocol::{
-    Event, EventPoll, EventPriority, EventRange, EventSource, LineSettings, RegisterType, Reply,
-    ReplyBody, Request, ResponsePdu,
+    Event, EventPoll, EventPriority, EventRange, EventSource, ExceptionCode, LineSettings,
+    RegisterType, Reply, ReplyBody, Request, ResponsePdu,
 };
 use crate::sim::control::register_type_name;
 use crate::tools::bus::{PortError, ToolBus, ToolPort};
@@ -425,6 +425,7 @@ async fn enable(
     line: LineSettings,
     address: u8,
     specs: &[&EnableSpec],
+    alone: bool,
     json_output: bool,
 ) -> Result<bool, PortError> {
     let ranges: Vec<EventRange> = specs
@@ -433,6 +434,7 @@ async fn enable(
         .collect();
     let request = Request::configure_events(address, ranges.clone());
     let mut outcome = TransactionOutcome::NoReply;
+    let mut garbled = false;
     // Once more after silence or a garbled reply (noise): the request only sets what it names,
     // so a second one does no harm.
     for _ in 0..2 {
@@ -444,11 +446,10 @@ async fn enable(
                 Duration::from_millis(600),
             )
             .await?;
-        if !matches!(
-            outcome,
-            TransactionOutcome::NoReply | TransactionOutcome::Garbled
-        ) {
-            break;
+        match outcome {
+            TransactionOutcome::NoReply => {}
+            TransactionOutcome::Garbled => garbled = true,
+            _ => break,
         }
     }
     let masks = match &outcome {
@@ -464,22 +465,30 @@ async fn enable(
     };
     let Some(masks) = masks else {
         let why = match outcome {
-            TransactionOutcome::NoReply => {
+            TransactionOutcome::NoReply if !garbled => {
                 "no reply, twice: not connected, or another address?".to_owned()
             }
-            TransactionOutcome::Garbled => {
-                "unreadable reply, twice: noise, or two devices at this address?".to_owned()
+            TransactionOutcome::NoReply | TransactionOutcome::Garbled => {
+                "no readable reply in two tries: noise, or two devices at this address?".to_owned()
             }
             TransactionOutcome::Reply(Reply {
                 body: ReplyBody::Classic(ResponsePdu::Exception { code, .. }),
                 ..
-            }) => format!(
+            }) if code == ExceptionCode::ILLEGAL_FUNCTION => format!(
                 "the device refused, {code}: it has no Fast Modbus events (the daemon polls such \
                  a device classically)"
             ),
+            TransactionOutcome::Reply(Reply {
+                body: ReplyBody::Classic(ResponsePdu::Exception { code, .. }),
+                ..
+            }) => format!(
+                "the device refused the request, {code}: are these registers its event \
+                 sources?"
+            ),
             TransactionOutcome::Reply(_) => "a reply that is no answer to it".to_owned(),
         };
-        eprintln!("address {address} at {line}: events not enabled ({why}); watching the others");
+        let others = if alone { "" } else { "; watching the others" };
+        eprintln!("address {address} at {line}: events not enabled ({why}){others}");
         return Ok(false);
     };
     for (spec, mask) in specs.iter().zip(masks) {
@@ -517,8 +526,9 @@ async fn enable_all(
         by_address.entry(spec.address).or_default().push(spec);
     }
     let mut any = false;
+    let alone = by_address.len() == 1;
     for (address, specs) in by_address {
-        any |= enable(port, line, address, &specs, json_output).await?;
+        any |= enable(port, line, address, &specs, alone, json_output).await?;
     }
     Ok(any)
 }

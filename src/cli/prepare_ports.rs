@@ -20,6 +20,10 @@ pub struct Args {
     /// Where the kernel shows tty devices (for tests).
     #[arg(long, hide = true, default_value = "/sys/class/tty")]
     pub sysfs_tty: PathBuf,
+    /// A process not to name as another master on the ports: the service's own daemon, which
+    /// has them open when a reload runs this (`--except-pid $MAINPID` in the unit).
+    #[arg(long = "except-pid", value_name = "PID")]
+    pub except_pid: Vec<u32>,
 }
 
 /// Prints one line per serial port. Fails only when the config cannot be read: a port that
@@ -28,57 +32,93 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let Some(loaded) = load_or_print_errors(&args.config) else {
         return Ok(ExitCode::FAILURE);
     };
-    for path in loaded.config.serial_port_paths() {
+    let paths: Vec<&str> = loaded.config.serial_port_paths().collect();
+    let openers = OpenFiles::of_other_processes(&args.except_pid);
+    for path in &paths {
         println!("{path}: {}", prepare(Path::new(path), &args.sysfs_tty));
-        for (pid, name) in other_openers(Path::new(path)) {
+        for (pid, name) in openers.holding(Path::new(path)) {
             println!(
                 "{path}: warning: also open in {name} (pid {pid}): two masters on one bus garble \
-                 each other's requests and answer each other's reads; stop it first (for \
-                 wb-mqtt-serial: systemctl mask --now wb-mqtt-serial)"
+                 each other's requests and answer each other's reads; stop it on this port first \
+                 (for wb-mqtt-serial: take the port out of /etc/wb-mqtt-serial.conf and restart \
+                 it, or stop it altogether with systemctl mask --now wb-mqtt-serial)"
             );
         }
+    }
+    if openers.unreadable > 0 && !paths.is_empty() {
+        println!(
+            "note: {} processes could not be looked into (not root), so another master on these \
+             ports may have gone unseen",
+            openers.unreadable
+        );
     }
     Ok(ExitCode::SUCCESS)
 }
 
-/// The processes besides this one that have `path` open, from `/proc/<pid>/fd` (as root, which
-/// the unit runs this as, every process is seen). wb-mqtt-serial takes no lock on its ports, so
-/// the daemon's own open cannot tell that it still holds one: this is where that shows.
-fn other_openers(path: &Path) -> Vec<(u32, String)> {
-    let Ok(target) = std::fs::canonicalize(path) else {
-        return Vec::new();
-    };
-    let Ok(processes) = std::fs::read_dir("/proc") else {
-        return Vec::new();
-    };
-    let me = std::process::id();
-    let mut openers = Vec::new();
-    for process in processes.flatten() {
-        let Some(pid) = process
-            .file_name()
-            .to_str()
-            .and_then(|name| name.parse::<u32>().ok())
-        else {
-            continue;
+/// What the other processes have open, from `/proc/<pid>/fd` (as root, which the unit runs
+/// this as, every process is seen). wb-mqtt-serial takes no lock on its ports, so the daemon's
+/// own open cannot tell that it still holds one: this is where that shows.
+struct OpenFiles {
+    /// Each process looked into: its pid, its name and what its descriptors point to.
+    processes: Vec<(u32, String, Vec<PathBuf>)>,
+    /// Processes whose descriptors this user may not read.
+    unreadable: usize,
+}
+
+impl OpenFiles {
+    /// Every process but this one and `except` (the service's own daemon, at a reload).
+    fn of_other_processes(except: &[u32]) -> Self {
+        let mut open = OpenFiles {
+            processes: Vec::new(),
+            unreadable: 0,
         };
-        if pid == me {
-            continue;
-        }
-        // A process that is gone, or one this user may not look into, is skipped.
-        let Ok(descriptors) = std::fs::read_dir(process.path().join("fd")) else {
-            continue;
+        let Ok(entries) = std::fs::read_dir("/proc") else {
+            return open;
         };
-        let holds = descriptors
-            .flatten()
-            .any(|fd| std::fs::read_link(fd.path()).is_ok_and(|open| open == target));
-        if holds {
-            let name = std::fs::read_to_string(process.path().join("comm"))
+        let me = std::process::id();
+        for entry in entries.flatten() {
+            let Some(pid) = entry
+                .file_name()
+                .to_str()
+                .and_then(|name| name.parse::<u32>().ok())
+            else {
+                continue;
+            };
+            if pid == me || except.contains(&pid) {
+                continue;
+            }
+            let descriptors = match std::fs::read_dir(entry.path().join("fd")) {
+                Ok(descriptors) => descriptors,
+                Err(err) if err.kind() == std::io::ErrorKind::PermissionDenied => {
+                    open.unreadable += 1;
+                    continue;
+                }
+                // Gone since /proc was listed.
+                Err(_) => continue,
+            };
+            let targets = descriptors
+                .flatten()
+                .filter_map(|fd| std::fs::read_link(fd.path()).ok())
+                .collect();
+            let name = std::fs::read_to_string(entry.path().join("comm"))
                 .map(|comm| comm.trim().to_owned())
                 .unwrap_or_else(|_| "another process".into());
-            openers.push((pid, name));
+            open.processes.push((pid, name, targets));
         }
+        open
     }
-    openers
+
+    /// The processes that have `path` open.
+    fn holding(&self, path: &Path) -> Vec<(u32, &str)> {
+        let Ok(target) = std::fs::canonicalize(path) else {
+            return Vec::new();
+        };
+        self.processes
+            .iter()
+            .filter(|(_, _, targets)| targets.contains(&target))
+            .map(|(pid, name, _)| (*pid, name.as_str()))
+            .collect()
+    }
 }
 
 fn prepare(path: &Path, sysfs_tty: &Path) -> String {

@@ -351,6 +351,7 @@ impl BusControl {
         let mut new_ports: BTreeMap<String, ResolvedPort> =
             ports.into_iter().map(|p| (port_key(&p), p)).collect();
         let mut changed = Vec::new();
+        let mut moved = Vec::new();
         for (key, old) in &self.ports {
             let unchanged = !switch_changed
                 && new_ports.get(key).is_some_and(|new| {
@@ -360,11 +361,26 @@ impl BusControl {
                         && old.resolved.low_priority_read_limit == new.low_priority_read_limit
                 });
             if unchanged {
-                // Same port, same devices: the running task stays as it is.
-                new_ports.remove(key);
+                // Same port, same devices: the running task stays as it is; only its place in
+                // the config may have moved (`ports/Load` lists the ports in that order).
+                if let Some(new) = new_ports.remove(key) {
+                    moved.push((key.clone(), new.index));
+                }
                 summary.ports_unchanged.push(key.clone());
             } else {
                 changed.push(key.clone());
+            }
+        }
+        for (key, index) in moved {
+            if let Some(running) = self.ports.get_mut(&key) {
+                running.resolved.index = index;
+            }
+            if let Some(access) = lock(&self.directory).get_mut(&key) {
+                if access.resolved.index != index {
+                    let mut resolved = (*access.resolved).clone();
+                    resolved.index = index;
+                    access.resolved = Arc::new(resolved);
+                }
             }
         }
         // The new queues first: a write sent while the old tasks stop waits there.

@@ -790,6 +790,10 @@ impl Walker {
             .map(|(value, title)| EnumTitle {
                 value: match value {
                     Value::String(text) => text.clone(),
+                    // `1.0` is the value published as `1` (values are written with %.15g).
+                    Value::Number(number) if number.is_f64() => {
+                        format_g(number.as_f64().unwrap_or_default(), 15)
+                    }
                     other => other.to_string(),
                 },
                 title: self.titles(title, context),

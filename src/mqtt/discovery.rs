@@ -163,11 +163,9 @@ pub fn control_config(
             config.insert("command_topic".into(), json!(command_topic));
             let options = select_options(channel).unwrap_or_default();
             // HA shows and sends the titles; the control's topics carry the values. A value
-            // with no title (a device state the template does not name) shows as itself.
-            let to_title: Map<String, Value> = options
-                .iter()
-                .map(|(value, title)| (value.clone(), json!(title)))
-                .collect();
+            // with no title (a device state the template does not name) is rendered `None`,
+            // which HA shows as unknown: any other text not among the options would be refused
+            // and leave the previous option on show.
             let to_value: Map<String, Value> = options
                 .iter()
                 .map(|(value, title)| (title.clone(), json!(value)))
@@ -179,8 +177,8 @@ pub fn control_config(
             config.insert(
                 "value_template".into(),
                 json!(format!(
-                    "{{{{ {}.get(value, value) }}}}",
-                    Value::Object(to_title)
+                    "{{{{ {}.get(value, 'None') }}}}",
+                    Value::Object(title_of_value(&options))
                 )),
             );
             config.insert(
@@ -202,6 +200,16 @@ pub fn control_config(
         _ => {
             config.insert("state_topic".into(), json!(state_topic));
             sensor_fields(channel, &mut config);
+            // A read-only enum shows its titles too; a value without one shows as itself.
+            if let Some(options) = enum_titles(channel) {
+                config.insert(
+                    "value_template".into(),
+                    json!(format!(
+                        "{{{{ {}.get(value, value) }}}}",
+                        Value::Object(title_of_value(&options))
+                    )),
+                );
+            }
         }
     }
     Some(DiscoveryConfig {
@@ -237,27 +245,46 @@ fn device_block(topics: &TopicScheme, device: &ResolvedDevice, identity: &Device
     Value::Object(block)
 }
 
-/// The (value, English title) pairs of a control's `enum`, in its order, when they make a
-/// select: every value titled, no title twice (HA's options are the titles).
-fn select_options(channel: &ResolvedChannel) -> Option<Vec<(String, String)>> {
+/// The (value, English title) pairs of a control's `enum`, in its order (a value without an
+/// English title by itself).
+fn enum_titles(channel: &ResolvedChannel) -> Option<Vec<(String, String)>> {
     if channel.enum_titles.is_empty() {
         return None;
     }
-    let options: Vec<(String, String)> = channel
-        .enum_titles
-        .iter()
-        .map(|entry| {
-            let title = entry
-                .title
-                .get("en")
-                .cloned()
-                .unwrap_or_else(|| entry.value.clone());
-            (entry.value.clone(), title)
-        })
-        .collect();
+    Some(
+        channel
+            .enum_titles
+            .iter()
+            .map(|entry| {
+                let title = entry
+                    .title
+                    .get("en")
+                    .cloned()
+                    .unwrap_or_else(|| entry.value.clone());
+                (entry.value.clone(), title)
+            })
+            .collect(),
+    )
+}
+
+/// The titles of a control's `enum` when they make a select: every value titled, no title
+/// twice (HA's options are the titles), none HA reads as "no option" (`None` in any case).
+fn select_options(channel: &ResolvedChannel) -> Option<Vec<(String, String)>> {
+    let options = enum_titles(channel)?;
     let titles: std::collections::BTreeSet<&str> =
         options.iter().map(|(_, title)| title.as_str()).collect();
-    (titles.len() == options.len() && !titles.contains("")).then_some(options)
+    let usable = titles.len() == options.len()
+        && titles
+            .iter()
+            .all(|title| !title.trim().is_empty() && !title.eq_ignore_ascii_case("none"));
+    usable.then_some(options)
+}
+
+fn title_of_value(options: &[(String, String)]) -> Map<String, Value> {
+    options
+        .iter()
+        .map(|(value, title)| (value.clone(), json!(title)))
+        .collect()
 }
 
 /// HA's number defaults (1…100, step 1) do not fit WB controls: always send min, max, step.
@@ -273,23 +300,35 @@ fn number_limits(channel: &ResolvedChannel, config: &mut Map<String, Value>) {
         .max
         .filter(|v| v.is_finite() && *v > min)
         .unwrap_or(default_max.max(min + 1.0));
-    // An integer register holds values a `scale` apart (22.5 on a scale of 0.5): a coarser step
-    // would keep HA from setting them, a finer one offers values the device cannot hold.
-    let integer_step = match channel.registers.as_slice() {
-        [register] if register.codec.format.is_integer() => {
-            let scale = register.codec.scale.abs();
-            (scale.is_finite() && scale > 0.0).then_some(scale)
+    // Integer registers hold values a `scale` apart (22.5 on a scale of 0.5): a coarser step
+    // would keep HA from setting them, a finer one offers values the device cannot hold (a
+    // `precision` finer than the scale included).
+    let scales: Vec<f64> = channel
+        .registers
+        .iter()
+        .filter(|register| register.codec.format.is_integer())
+        .map(|register| register.codec.scale.abs())
+        .collect();
+    let integer_step = match scales.first() {
+        Some(&scale)
+            if scales.len() == channel.registers.len()
+                && scale.is_finite()
+                && scale > 0.0
+                && scales.iter().all(|other| *other == scale) =>
+        {
+            Some(scale)
         }
         _ => None,
     };
-    let step = match channel.precision {
-        Some(p) if p.is_finite() && p > 0.0 => p.max(0.001),
-        _ => match integer_step {
-            Some(scale) => scale.max(0.001),
-            None if is_range => 1.0,
-            None => 0.001,
-        },
-    };
+    let precision = channel.precision.filter(|p| p.is_finite() && *p > 0.0);
+    let step = match (precision, integer_step) {
+        (Some(precision), Some(scale)) => precision.max(scale),
+        (Some(precision), None) => precision,
+        (None, Some(scale)) => scale,
+        (None, None) if is_range => 1.0,
+        (None, None) => 0.001,
+    }
+    .max(0.001);
     config.insert("min".into(), json!(min));
     config.insert("max".into(), json!(max));
     config.insert("step".into(), json!(step));
@@ -454,7 +493,7 @@ mod tests {
         assert_eq!(payload["options"], json!(["Auto", "Low", "High \"max\""]));
         assert_eq!(
             payload["value_template"],
-            r#"{{ {"0":"Auto","1":"Low","3":"High \"max\""}.get(value, value) }}"#
+            r#"{{ {"0":"Auto","1":"Low","3":"High \"max\""}.get(value, 'None') }}"#
         );
         assert_eq!(
             payload["command_template"],
@@ -465,9 +504,25 @@ mod tests {
         let mut shown = fan.clone();
         shown.readonly = true;
         assert_eq!(component_for(&shown), Some("sensor"));
-        let mut clash = fan;
+        let sensor = control_config(
+            &settings,
+            &topics,
+            &device,
+            &DeviceIdentity::default(),
+            &shown,
+        )
+        .unwrap();
+        assert_eq!(
+            sensor.payload["value_template"],
+            r#"{{ {"0":"Auto","1":"Low","3":"High \"max\""}.get(value, value) }}"#
+        );
+        let mut clash = fan.clone();
         clash.enum_titles = titled(&[("0", "Off"), ("1", "Off")]);
         assert_eq!(component_for(&clash), Some("number"));
+        // HA takes a state rendered "None" (any case) for no option at all.
+        let mut none = fan;
+        none.enum_titles = titled(&[("0", "none"), ("1", "On")]);
+        assert_eq!(component_for(&none), Some("number"));
     }
 
     #[test]
@@ -484,7 +539,16 @@ mod tests {
         setpoint.registers[0].codec.scale = 10.0;
         assert_eq!(step(&setpoint), 10.0);
         setpoint.precision = Some(0.1);
-        assert_eq!(step(&setpoint), 0.1, "precision, when given, decides");
+        assert_eq!(
+            step(&setpoint),
+            10.0,
+            "a precision finer than the register holds"
+        );
+        setpoint.registers[0].codec.scale = 0.01;
+        assert_eq!(step(&setpoint), 0.1, "a precision coarser than the scale");
+        let mut wide = channel("Counter", "value");
+        wide.registers.push(wide.registers[0].clone());
+        assert_eq!(step(&wide), 1.0, "two integer registers unscaled");
         let mut float = channel("Level", "value");
         float.registers[0].codec.format = crate::config::format::RegisterFormat::Float;
         assert_eq!(step(&float), 0.001);
