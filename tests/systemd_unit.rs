@@ -64,7 +64,10 @@ fn unit_is_a_notify_service_with_watchdog_and_reload() {
         .filter(|l| l.starts_with("Exec") && l.contains(" -c "))
     {
         assert!(
-            line.ends_with("-c ${CONFIG_FILE}"),
+            line.split(" -c ")
+                .nth(1)
+                .and_then(|rest| rest.split(' ').next())
+                == Some("${CONFIG_FILE}"),
             "`{line}` names its own config"
         );
     }
