@@ -841,6 +841,17 @@ struct Rig {
 
 impl Rig {
     fn start(device_args: &[&str], channels: Value, initial: &[(&str, u64, u64)]) -> Self {
+        Self::serving(device_args, channels, initial, &[20])
+    }
+
+    /// As [`Rig::start`], the daemon serving `addresses` (the Python bus has 20 and what
+    /// `device_args` adds).
+    fn serving(
+        device_args: &[&str],
+        channels: Value,
+        initial: &[(&str, u64, u64)],
+        addresses: &[u8],
+    ) -> Self {
         require_tools();
         let socat = Socat::start();
         let port_path = socat.a.to_str().unwrap().to_owned();
@@ -872,7 +883,7 @@ impl Rig {
         let config = json!({
             "mqtt": {"host": "127.0.0.1", "port": broker.port, "client_id": "interop-fast-wide"},
             "ports": [{"path": socat.b, "baud_rate": 115_200, "parity": "N", "data_bits": 8, "stop_bits": 2,
-                       "devices": [{"device_type": "interop-wide", "slave_id": 20}]}]
+                       "devices": addresses.iter().map(|address| json!({"device_type": "interop-wide", "slave_id": address})).collect::<Vec<_>>()}]
         });
         let templates = dir.path().to_string_lossy().into_owned();
         let daemon = DaemonProcess::start(
@@ -952,6 +963,67 @@ async fn daemon_gets_events_from_a_device_that_refuses_the_reboot_record() {
         is_log(l, "event_packet", 20) && l["events"] == json!([["discrete", 0]])
     });
     wait_value(rig.port, 20, "Input 0", "1").await;
+}
+
+/// A device that reads nothing of a 0x10 request excluding it (the other reading of §3's
+/// `min_address`) never heard its confirmation: rtu2mqtt confirms a packet in the request that
+/// rotates past the sender, so such a device sent the same packet again in every round (87
+/// times in 8 s in an audit). After one packet sent again, it is confirmed in view.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn daemon_confirms_a_device_that_reads_no_request_excluding_it() {
+    let _one = one_at_a_time();
+    let mut rig = Rig::serving(
+        &[
+            "--device",
+            "21:0x0D000015:HOMEMADE",
+            "--deaf-when-excluded",
+            "20",
+        ],
+        json!([{"name": "Input 0", "reg_type": "discrete", "address": 0, "type": "switch",
+                "sporadic": true}]),
+        &[],
+        &[20, 21],
+    );
+    wait_value(rig.port, 20, "Input 0", "0").await;
+    wait_value(rig.port, 21, "Input 0", "0").await;
+    let from = rig.bus.len();
+    rig.bus
+        .cmd(json!({"cmd": "toggle", "device": 20, "type": "discrete", "address": 0}));
+    let (confirmed, _) = rig
+        .bus
+        .wait_line("device 20's packet confirmed", from, |l| {
+            is_log(l, "confirmed", 20)
+        });
+    let sent = rig.bus.lines()[from..confirmed]
+        .iter()
+        .filter(|l| is_log(l, "event_packet", 20))
+        .count();
+    assert!(
+        (1..=2).contains(&sent),
+        "{sent} packets before the confirmation was heard"
+    );
+    wait_value(rig.port, 20, "Input 0", "1").await;
+}
+
+/// Old firmware refuses 0x18 under its own code (`E0 01`, §2: accept both codes in replies):
+/// rtu2mqtt took that for no answer, asked three times more, marked the device offline, then
+/// polled it. The refusal is taken at once.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn daemon_takes_a_refusal_of_events_under_the_legacy_code() {
+    let _one = one_at_a_time();
+    let rig = Rig::start(
+        &["--legacy-code", "20", "--refuses-events", "20"],
+        json!([{"name": "Input 0", "reg_type": "discrete", "address": 0, "type": "switch",
+                "sporadic": true}]),
+        &[],
+    );
+    wait_value(rig.port, 20, "Input 0", "0").await;
+    let refused = rig.bus.lines_from(0, |l| is_log(l, "events_refused", 20));
+    assert_eq!(refused.len(), 1, "{refused:?}");
+    let refusals_sent = rig.bus.lines_from(0, |l| {
+        l["log"] == "tx" && l["hex"].as_str().is_some_and(|h| h.starts_with("14 E0 01"))
+    });
+    assert_eq!(refusals_sent.len(), 1, "{refusals_sent:?}");
 }
 
 // ---------------------------------------------------------------------------------------------

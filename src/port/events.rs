@@ -34,6 +34,14 @@ pub(super) struct EventPoller {
     /// The rotation past the last sender may be skipped: it came in answer to a request to the
     /// whole bus and had sent nothing before since the bus last had nothing pending.
     rotation_optional: bool,
+    /// The latest confirmation sent, with the `min_address` of the request that carried it.
+    confirmation_sent: Option<(u8, u8, u8)>,
+    /// Devices confirmed in a request that includes them (bit per address): they sent a packet
+    /// again under a flag confirmed in a request that left them out. fast-modbus.md does not say
+    /// whether a device left out by `min_address` reads the confirmation; wb-mqtt-serial
+    /// confirms in a request that starts at the sender, so a device may never have met the
+    /// other case, and would otherwise send the same packet in every round.
+    confirm_in_view: [u64; 4],
 }
 
 impl EventPoller {
@@ -51,6 +59,8 @@ impl EventPoller {
             last_started: Duration::ZERO,
             served: [0; 4],
             rotation_optional: false,
+            confirmation_sent: None,
+            confirm_in_view: [0; 4],
         }
     }
 
@@ -73,6 +83,9 @@ impl EventPoller {
     }
 
     pub(super) fn started(&mut self, now: Duration) {
+        if let Some((address, flag)) = self.ack {
+            self.confirmation_sent = Some((address, flag, self.min_address));
+        }
         self.wide_in_flight = std::mem::take(&mut self.wide_next);
         self.round_started.get_or_insert(now);
         self.last_started = now;
@@ -162,6 +175,14 @@ impl EventPoller {
     fn confirm_and_rotate(&mut self, address: u8, flag: u8, highest_listener: u8) {
         self.ack = Some((address, flag));
         let (word, bit) = (usize::from(address / 64), 1u64 << (address % 64));
+        if let Some((confirmed, confirmed_flag, left_out_below)) = self.confirmation_sent {
+            if confirmed == address && confirmed_flag == flag && left_out_below > address {
+                if let Some(in_view) = self.confirm_in_view.get_mut(word) {
+                    *in_view |= bit;
+                }
+            }
+        }
+        let in_view = self.confirm_in_view.get(word).is_some_and(|w| w & bit != 0);
         let sent_before = self.served.get(word).is_some_and(|w| w & bit != 0);
         if let Some(served) = self.served.get_mut(word) {
             *served |= bit;
@@ -169,6 +190,8 @@ impl EventPoller {
         self.rotation_optional = !sent_before && self.min_address == 0;
         self.min_address = if address >= highest_listener.min(MAX_DEVICE_ADDRESS) {
             0
+        } else if in_view {
+            address
         } else {
             address + 1
         };
@@ -285,6 +308,48 @@ mod tests {
             ms(50),
             "then the next round, an interval after this one began"
         );
+    }
+
+    /// A device that sends its packet again under the flag just confirmed in a request that
+    /// left it out (it reads no request that excludes it) is confirmed in requests that include
+    /// it from then on; the others are still rotated past.
+    #[test]
+    fn a_device_that_missed_a_confirmation_it_was_left_out_of_gets_the_next_in_view() {
+        let ms = Duration::from_millis;
+        let mut events = poller(9600);
+        events.started(ms(0));
+        events.packet_received(ms(20), 20, 1, 30);
+        assert_eq!(
+            (events.request().min_address, events.request().ack_address),
+            (21, 20)
+        );
+        events.started(ms(20));
+        events.nothing_pending(ms(20));
+        events.started(ms(30));
+        events.packet_received(ms(50), 20, 1, 30);
+        assert_eq!(
+            events.request(),
+            EventPoll {
+                min_address: 20,
+                max_data_len: 166,
+                ack_address: 20,
+                ack_flag: 1
+            },
+            "confirmed where it listens"
+        );
+        events.started(ms(50));
+        events.packet_received(ms(70), 20, 0, 30);
+        assert_eq!(events.request().min_address, 20, "and so from then on");
+        events.started(ms(70));
+        events.packet_received(ms(90), 25, 1, 30);
+        assert_eq!(events.request().min_address, 26, "the others rotated past");
+        // A packet under a new flag after a confirmation is no such sign.
+        let mut events = poller(9600);
+        events.started(ms(0));
+        events.packet_received(ms(20), 20, 1, 30);
+        events.started(ms(20));
+        events.packet_received(ms(40), 20, 0, 30);
+        assert_eq!(events.request().min_address, 21);
     }
 
     #[test]

@@ -241,8 +241,10 @@ pub fn answers(request: &Request, reply: &Reply) -> bool {
         ) => {
             matches!(reply, fast::FastReply::EventsConfigured { masks } if masks.len() == mask_len(ranges))
         }
+        // Old firmware answers under 0x60 whatever the request went under (fast-modbus.md §2:
+        // accept both in replies), refusals included.
         (RequestBody::Fast(_), ReplyBody::Classic(ResponsePdu::Exception { function, .. })) => {
-            *function == request.fast_function
+            fast::is_fast_function(*function)
         }
         (RequestBody::Fast(_), ReplyBody::Fast { .. }) => true,
         _ => false,
@@ -285,12 +287,14 @@ fn header_matches(request: &Request, bytes: &[u8]) -> bool {
                 && (0..4).all(|i| is(3 + i, &|b| serial.get(i) == Some(&b)))
                 && classic_reply_header_matches(pdu, bytes.get(7..).unwrap_or(&[]))
         }
-        RequestBody::Fast(FastRequest::PollEvents(poll)) => match at(0) {
+        // A packet from below `min_address` is taken too: its sender ignores the field (its
+        // fault), but the packet is real, and refusing it would leave the sender sending it
+        // again in every round, winning every arbitration over the devices it should let speak.
+        RequestBody::Fast(FastRequest::PollEvents(_)) => match at(0) {
             None => true,
             Some(fast::BROADCAST_ADDRESS) => is(1, &fast_fn) && is(2, &|b| b == fast::NO_EVENTS),
             Some(address) => {
                 (1..=MAX_DEVICE_ADDRESS).contains(&address)
-                    && address >= poll.min_address
                     && is(1, &fast_fn)
                     && is(2, &|b| b == fast::EVENTS_REPLY)
             }
@@ -539,6 +543,50 @@ mod tests {
         // It re-encodes (with the data it kept) and decodes to itself.
         let encoded = parsed.reply.encode().unwrap();
         assert_eq!(Reply::decode(&encoded), Ok(parsed.reply.clone()));
+    }
+
+    /// A device that ignores `min_address` still has its packet taken (its events are real),
+    /// so it is confirmed instead of sending the packet again in every round.
+    #[test]
+    fn a_packet_from_below_min_address_is_taken() {
+        let request = Request::poll_events(EventPoll {
+            min_address: 21,
+            max_data_len: 166,
+            ack_address: 20,
+            ack_flag: 0,
+        });
+        let mut parser = ReplyParser::for_request(&request);
+        let ParseStatus::Frame(parsed) = parser.feed(&with_crc("14 46 11 01 01 05 01 01 0001 01"))
+        else {
+            panic!("no frame");
+        };
+        assert_eq!(parsed.reply.address, 20);
+    }
+
+    /// Old firmware refuses a Fast Modbus request under 0x60 (`E0`), whatever it went under:
+    /// a refusal, not noise to wait through.
+    #[test]
+    fn a_refusal_under_the_legacy_function_answers_a_fast_request() {
+        let request = Request::configure_events(
+            20,
+            vec![EventRange::registers(
+                crate::protocol::RegisterType::Coil,
+                0,
+                vec![crate::protocol::EventPriority::High],
+            )],
+        );
+        for refusal in ["14 E0 01", "14 C6 01"] {
+            let mut parser = ReplyParser::for_request(&request);
+            let ParseStatus::Frame(parsed) = parser.feed(&with_crc(refusal)) else {
+                panic!("{refusal}: no frame");
+            };
+            assert!(answers(&request, &parsed.reply), "{refusal}");
+            assert!(matches!(
+                parsed.reply.body,
+                ReplyBody::Classic(ResponsePdu::Exception { code, .. })
+                    if code == ExceptionCode::ILLEGAL_FUNCTION
+            ));
+        }
     }
 
     /// Every event overruns: the packet has none, but its sender and flag still arrive.

@@ -30,6 +30,9 @@ ADDRESS:TYPE:REG:WORDS[:little]: a value over WORDS registers (word order big, o
 event at REG carries the whole value as a little-endian number; without it every register is
 an event source of its own (2-byte payloads). --registers-only ADDRESS: that device refuses a
 0x18 with a range of another type than the four register tables (exception 3).
+--deaf-when-excluded ADDRESS: that device reads nothing of a 0x10 whose min_address excludes it
+(the other reading of §3), its confirmation included. --refuses-events ADDRESS: that device
+answers every 0x18 with exception 1 under its own reply code ("events_refused" in the log).
 "device" is the Modbus address or {"serial": N}. Replies: {"id":…, "ok": true, …}.
 stdout also carries the log, one JSON object a line with a "log" key: "rx" (every frame heard,
 hex), "tx" (every reply, hex with its 0xFF fillers), "confirmed" (a 0x11 packet confirmed),
@@ -53,7 +56,8 @@ Where the document is ambiguous, this device chose (docs/reliability.md, "Indepe
 - event_count is the events carried (all held with --count-pending); max_data_len limits
   data_len; events go high priority first, the reboot event last;
 - every register is an event source of its own unless --wide makes a value of several;
-- every device takes the confirmation of every 0x10, min_address or not;
+- every device takes the confirmation of every 0x10, min_address or not (but with
+  --deaf-when-excluded);
 - the reboot event (type 15, id 0) is accepted in 0x18 ranges (refused: --registers-only).
 """
 
@@ -113,6 +117,12 @@ class Device:
         # is a change made at that moment, which the re-sent packet then carries as well.
         self.lose_ack = False
         self.lost_then = None
+        # The other reading of §3 (min_address "excludes devices below it"): this device reads
+        # nothing of a 0x10 that excludes it, its confirmation included.
+        self.deaf_when_excluded = False
+        # A device without events that answers 0x18 with exception 1 under its own reply code
+        # (0xE0 for old firmware, §2).
+        self.refuses_events = False
         self.power_on()
 
     def power_on(self):
@@ -571,6 +581,9 @@ class Bus:
 
     def events_config(self, device, body):
         """The reply frame to a 0x18 request."""
+        if device.refuses_events:
+            self.log({"log": "events_refused", "address": device.address})
+            return with_crc(bytes([device.address, device.reply_fc(body[1]) | 0x80, 1]))
         list_len = body[3]
         data = body[4:]
         ranges = []
@@ -632,6 +645,8 @@ class Bus:
         elif sub == SUB_EVENTS_REQUEST and len(body) == 7:
             min_address, max_len, ack_address, ack_flag = body[3], body[4], body[5], body[6]
             for d in self.devices:
+                if d.deaf_when_excluded and d.address < min_address:
+                    continue
                 confirmed = d.take_ack(ack_address, ack_flag)
                 if confirmed == "lost":
                     self.log({"log": "ack_lost", "address": d.address, "flag": ack_flag})
@@ -772,6 +787,8 @@ def main():
     parser.add_argument("--legacy-code", action="append", default=[], type=lambda s: int(s, 0), metavar="ADDRESS", help="this device replies under the deprecated code 0x60 (old firmware)")
     parser.add_argument("--no-events", action="append", default=[], metavar="ADDRESS:TYPE:REG", help="this register of this device cannot send events")
     parser.add_argument("--registers-only", action="append", default=[], type=lambda s: int(s, 0), metavar="ADDRESS", help="this device refuses a 0x18 with a range of another type than 1..4 (exception 3)")
+    parser.add_argument("--deaf-when-excluded", action="append", default=[], type=lambda s: int(s, 0), metavar="ADDRESS", help="this device reads nothing of a 0x10 whose min_address excludes it, its confirmation included")
+    parser.add_argument("--refuses-events", action="append", default=[], type=lambda s: int(s, 0), metavar="ADDRESS", help="this device answers every 0x18 with exception 1 under its reply code")
     parser.add_argument("--realtime", action="store_true", help="ask for SCHED_FIFO (root): windows kept more closely; falls back quietly")
     parser.add_argument("--wide", action="append", default=[], metavar="ADDRESS:TYPE:REG:WORDS[:little]", help="a value of WORDS registers from REG (word order big unless little): one event carries it whole")
     parser.add_argument("--count-pending", action="append", default=[], type=lambda s: int(s, 0), metavar="ADDRESS", help="event_count of this device's packets: every event it holds, not only those in the packet")
@@ -793,6 +810,10 @@ def main():
         by_address[int(parts[0], 0)].wide[(parts[1], int(parts[2], 0))] = (int(parts[3]), order)
     for address in args.registers_only:
         by_address[address].registers_only = True
+    for address in args.deaf_when_excluded:
+        by_address[address].deaf_when_excluded = True
+    for address in args.refuses_events:
+        by_address[address].refuses_events = True
     for address in args.count_pending:
         by_address[address].count_pending = True
     for spec in args.no_events:
