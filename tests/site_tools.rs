@@ -1541,6 +1541,45 @@ fn bad_crc_at_one_setting_is_reported_and_the_scan_goes_on() {
     );
 }
 
+/// A scan reply lost to noise: its sender counts itself scanned (fast-modbus.md §3), so the
+/// scan's "continue" never heard it again and the scan ended without it and without a word.
+/// The setting is scanned again instead; a reply that stays unreadable is said, and the other
+/// devices at that setting are still found.
+#[test]
+fn a_scan_reply_lost_to_noise_does_not_lose_its_device() {
+    let sim = sim();
+    let at_115200 = ["--baud", "115200", "--parity", "N", "--stop-bits", "2"];
+    sim.control(json!({"cmd": "faults", "device": 20, "corrupt_crc": 1.0, "times": 1}));
+    let report = scan_json(&sim, &at_115200);
+    assert_eq!(
+        found(&report),
+        vec![(0xFE00_0020, 20, "115200 8N2".into())],
+        "{report:#}"
+    );
+    assert_eq!(report["problems"], json!([]), "{report:#}");
+    // A device whose replies are never read (as two devices whose serials share their lower
+    // 28 bits, always answering at once): said, and the other device at its setting found.
+    sim.control(json!({"cmd": "faults", "device": "relay-b", "corrupt_crc": 1.0}));
+    let report = scan_json(
+        &sim,
+        &["--baud", "9600", "--parity", "N", "--stop-bits", "2"],
+    );
+    assert_eq!(
+        found(&report),
+        vec![(0xFE00_0010, 10, "9600 8N2".into())],
+        "{report:#}"
+    );
+    let problems = report["problems"].as_array().unwrap();
+    assert!(
+        problems.iter().any(|p| p["settings"] == "9600 8N2"
+            && p["problem"]
+                .as_str()
+                .unwrap()
+                .contains("could not be read in 3 scans")),
+        "{report:#}"
+    );
+}
+
 /// Through a USB adapter that hands bytes over late (the simulator holds every byte 40 ms, more
 /// than an FTDI chip's 16 ms latency timer), a scan whose allowance covers the delay finds every
 /// device at its own setting, and nothing at the settings that follow one in use, where the

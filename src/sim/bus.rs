@@ -675,10 +675,16 @@ impl Bus {
     fn finish(&mut self, fillers: Vec<Burst>, replies: Vec<PlannedReply>) -> Transmission {
         let mut sent = Vec::new();
         for mut reply in replies {
-            let action = self
-                .devices
-                .get(reply.device)
-                .map_or(FaultAction::None, |d| d.faults.draw(&mut self.rng));
+            let action = match self.devices.get_mut(reply.device) {
+                Some(device) => {
+                    let action = device.faults.draw(&mut self.rng);
+                    if action != FaultAction::None {
+                        device.faults.spend();
+                    }
+                    action
+                }
+                None => FaultAction::None,
+            };
             match action {
                 FaultAction::None => {}
                 FaultAction::Drop => continue,

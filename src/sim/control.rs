@@ -61,6 +61,9 @@ pub struct ControlCommand {
     pub truncate: Option<f64>,
     #[serde(default)]
     pub glitch: Option<f64>,
+    /// `faults`: they end after hitting this many replies.
+    #[serde(default)]
+    pub times: Option<u32>,
     /// `other_master`: its pace; left out or 0 stops it.
     #[serde(default)]
     pub every_ms: Option<u64>,
@@ -257,6 +260,7 @@ fn run(bus: &mut Bus, now: Duration, command: &ControlCommand) -> Result<Value, 
                 flip_bit: command.flip_bit.unwrap_or(0.0),
                 truncate: command.truncate.unwrap_or(0.0),
                 glitch: command.glitch.unwrap_or(0.0),
+                times: command.times.filter(|&times| times > 0),
             };
             Ok(json!({}))
         }

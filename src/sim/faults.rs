@@ -28,6 +28,8 @@ pub struct Faults {
     /// A stray byte (0x00, 0xFF or any) right before or right after the reply, as a
     /// transceiver switching its driver on or off can put on an unbiased line.
     pub glitch: f64,
+    /// The faults end after hitting this many replies (none: they last).
+    pub times: Option<u32>,
 }
 
 impl Default for Faults {
@@ -42,6 +44,7 @@ impl Default for Faults {
             flip_bit: 0.0,
             truncate: 0.0,
             glitch: 0.0,
+            times: None,
         }
     }
 }
@@ -74,6 +77,15 @@ impl Faults {
             && self.flip_bit <= 0.0
             && self.truncate <= 0.0
             && self.glitch <= 0.0
+    }
+
+    /// A reply was hit: one fewer of `times` left, none left ends the faults.
+    pub fn spend(&mut self) {
+        match self.times {
+            Some(left) if left <= 1 => *self = Faults::default(),
+            Some(left) => self.times = Some(left - 1),
+            None => {}
+        }
     }
 
     /// Draws the fate of one reply (at most one fault at a time, in this order). A fault whose

@@ -75,6 +75,8 @@ pub enum Answer {
 const MAX_SCAN_ROUNDS: usize = 300;
 /// Garbled scan replies in a row after which a setting is given up.
 const MAX_GARBLED_IN_A_ROW: usize = 3;
+/// Times a setting's scan starts over after a reply that could not be read.
+const MAX_SCAN_RESTARTS: usize = 2;
 /// Response timeout of requests to devices a scan has just found.
 pub const KNOWN_DEVICE_TIMEOUT: Duration = Duration::from_millis(500);
 
@@ -237,11 +239,15 @@ pub trait ToolBus {
     ) -> Result<Vec<(u32, u8)>, PortError> {
         let mut seen = Vec::new();
         let mut garbled_in_a_row = 0;
+        let mut restarts = 0;
         let mut retried_silence = false;
         let function = self.fast_function();
-        let mut request = Request::scan_start().with_fast_function(function);
+        let start = Request::scan_start().with_fast_function(function);
+        let next = Request::scan_continue().with_fast_function(function);
+        let mut request = start.clone();
         for round in 0..MAX_SCAN_ROUNDS {
-            let transaction = scan_transaction(&line, request.clone(), round == 0, self.latency());
+            let starting = request == start;
+            let transaction = scan_transaction(&line, request.clone(), starting, self.latency());
             match self.transact(line, transaction).await? {
                 TransactionOutcome::Reply(Reply {
                     body: ReplyBody::Fast { reply, .. },
@@ -258,7 +264,7 @@ pub trait ToolBus {
                             seen.push((serial, modbus_address));
                             report.add_fast(line, serial, modbus_address);
                         }
-                        request = Request::scan_continue().with_fast_function(function);
+                        request = next.clone();
                     }
                     FastReply::ScanEnd => return Ok(seen),
                     other => {
@@ -282,10 +288,7 @@ pub trait ToolBus {
                 TransactionOutcome::NoReply if round == 0 => return Ok(seen),
                 // Devices answered before, so someone must answer (a device or "end of scan"):
                 // a late reply was lost to a busy adapter or machine. Ask once more.
-                TransactionOutcome::NoReply if !retried_silence => {
-                    retried_silence = true;
-                    request = Request::scan_continue().with_fast_function(function);
-                }
+                TransactionOutcome::NoReply if !retried_silence => retried_silence = true,
                 TransactionOutcome::NoReply => {
                     report.problems.push(SettingProblem {
                         line,
@@ -296,6 +299,14 @@ pub trait ToolBus {
                         ),
                     });
                     return Ok(seen);
+                }
+                // The device whose reply was lost counts itself scanned now (fast-modbus.md
+                // §3), so a "continue" would never hear from it again: the scan starts over
+                // (the devices found answer again and are known), a few times.
+                TransactionOutcome::Garbled if restarts < MAX_SCAN_RESTARTS => {
+                    restarts += 1;
+                    debug!(%line, restarts, "unreadable scan reply: scanning this setting again");
+                    request = start.clone();
                 }
                 TransactionOutcome::Garbled => {
                     garbled_in_a_row += 1;
@@ -310,7 +321,20 @@ pub trait ToolBus {
                         });
                         return Ok(seen);
                     }
-                    request = Request::scan_continue().with_fast_function(function);
+                    if restarts == MAX_SCAN_RESTARTS {
+                        restarts += 1;
+                        report.problems.push(SettingProblem {
+                            line,
+                            what: format!(
+                                "a scan reply could not be read in {} scans of this setting, so \
+                                 a device may be missing: noise on the line, or two devices \
+                                 whose serial numbers end alike (the same lower 28 bits) \
+                                 answering at once",
+                                MAX_SCAN_RESTARTS + 1
+                            ),
+                        });
+                    }
+                    request = next.clone();
                 }
             }
         }
