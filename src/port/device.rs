@@ -11,7 +11,7 @@ use super::read_plan::RegisterSpan;
 use crate::protocol::fast::REBOOT_EVENT_ID;
 use crate::protocol::frame::MAX_FRAME_LEN;
 use crate::protocol::timing::ResponseTimer;
-use crate::protocol::{EventPriority, EventRange, EventSource, LineSettings, RegisterType};
+use crate::protocol::{Event, EventPriority, EventRange, EventSource, LineSettings, RegisterType};
 
 /// How often a device whose every channel comes by events is read anyway, so that a dead device
 /// is noticed.
@@ -159,6 +159,9 @@ pub(super) struct DeviceState {
     /// once whatever the device does after.
     events_to_disable: Vec<(RegisterType, u16)>,
     events_disable_sent: usize,
+    /// The latest event packet's flag, its number of events and a digest of them: a packet
+    /// sent again under the same flag (its confirmation was lost) starts with the same events.
+    last_packet: Option<(u8, usize, u64)>,
 }
 
 impl DeviceState {
@@ -224,6 +227,7 @@ impl DeviceState {
             event_setup_taken_up_again: false,
             events_to_disable: Vec::new(),
             events_disable_sent: 0,
+            last_packet: None,
         };
         state.preparation = state.first_preparation_step();
         state
@@ -578,6 +582,30 @@ impl DeviceState {
     /// firmware (an update reboots it), and one that was away may have been replaced.
     /// What refused reads taught goes with them: reads split apart are merged again and holes
     /// are tried again (wb-mqtt-serial turns holes back on when a device disconnects).
+    /// How many leading events of this packet the previous one carried already: a device that
+    /// missed the confirmation sends the old events again under the same flag, new ones
+    /// appended (fast-modbus.md §6). Applied again, a queue of changes (a button's 1 then 0)
+    /// would be published twice over. A packet with the reboot event starts afresh.
+    pub(super) fn events_seen_before(&mut self, flag: u8, events: &[Event]) -> usize {
+        let previous = self.last_packet.take();
+        if events.iter().any(Event::is_reboot) {
+            return 0;
+        }
+        self.last_packet = Some((flag, events.len(), events_digest(events)));
+        match previous {
+            Some((previous_flag, count, digest))
+                if previous_flag == flag
+                    && count <= events.len()
+                    && events
+                        .get(..count)
+                        .is_some_and(|prefix| events_digest(prefix) == digest) =>
+            {
+                count
+            }
+            _ => 0,
+        }
+    }
+
     pub(super) fn restart_preparation(&mut self) {
         self.events_active = false;
         self.events_to_disable.clear();
@@ -1037,6 +1065,13 @@ impl DeviceState {
             (read, retry) => read.or(retry),
         }
     }
+}
+
+fn events_digest(events: &[Event]) -> u64 {
+    use std::hash::{Hash, Hasher};
+    let mut hasher = std::collections::hash_map::DefaultHasher::new();
+    events.hash(&mut hasher);
+    hasher.finish()
 }
 
 #[cfg(test)]

@@ -1593,7 +1593,13 @@ impl PortScheduler {
                     }
                     self.index.mark_stale(device);
                 }
-                for event in packet.events {
+                let seen_before = self.devices.get_mut(device).map_or(0, |state| {
+                    state.events_seen_before(packet.flag, &packet.events)
+                });
+                if seen_before > 0 {
+                    debug!(address, seen_before, "packet sent again (its confirmation was lost): its first events were applied already");
+                }
+                for event in packet.events.into_iter().skip(seen_before) {
                     if event.is_reboot() {
                         if let Some(state) = self.devices.get_mut(device) {
                             info!(device = %state.plan.name, "device reports a restart: setting it up again");

@@ -200,7 +200,7 @@ pub fn event_payload_words(payload: &[u8]) -> Vec<u16> {
 }
 
 /// One event of a 0x11 packet.
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq, Eq, Hash)]
 pub struct Event {
     pub source: EventSource,
     /// The register address, or the system event's number.
