@@ -671,6 +671,14 @@ impl Exchange {
             }
         };
         let Some((reply, frame_len)) = reply else {
+            if let Some(line) = self.config.serial.filter(|_| self.mbap.is_none()) {
+                let fifo_hold = if self.config.receive_fifo > 1 {
+                    self.config.receive_timeout
+                } else {
+                    Duration::ZERO
+                };
+                receiving.cover_announced_packet(&line, fifo_hold);
+            }
             return;
         };
         let mut timing = receiving.window.timing();
@@ -824,6 +832,33 @@ impl Exchange {
 }
 
 impl Receiving {
+    /// Once an event packet's header is in, the window covers the frame it announces: a device
+    /// may take the frame's 256 bytes for its only limit and send more than the request's
+    /// `max_data_len` (fast-modbus.md §6 says it must not); cut off, such a packet came again
+    /// in every round and was never taken.
+    fn cover_announced_packet(&mut self, line: &LineSettings, fifo_hold: Duration) {
+        if !matches!(
+            self.request.body,
+            RequestBody::Fast(FastRequest::PollEvents(_))
+        ) {
+            return;
+        }
+        let buffered = self.parser.buffered();
+        let (FrameLength::Known(total), Some(last)) = (
+            Reply::length_from_header(buffered),
+            self.window.last_byte_at(),
+        ) else {
+            return;
+        };
+        // The missing bytes at the line's pace, a few characters of slack, and the time a
+        // receive FIFO that collects bytes holds the last ones.
+        let missing = total.saturating_sub(buffered.len());
+        self.window.extend_deadline_to(
+            last.saturating_add(line.wire_time(missing + 4))
+                .saturating_add(fifo_hold),
+        );
+    }
+
     /// Feeds RTU bytes to the parser; the reply and its frame's length once it is complete.
     fn take_rtu(&mut self, bytes: &[u8]) -> Option<(Reply, usize)> {
         self.parser.push(bytes);
@@ -1004,6 +1039,11 @@ mod window {
                 .first_byte_deadline
                 .map(|deadline| deadline.saturating_add(by));
             self.deadline = self.deadline.saturating_add(by);
+        }
+
+        /// The reply may end as late as `at` (never earlier than its deadline already allowed).
+        pub fn extend_deadline_to(&mut self, at: Duration) {
+            self.deadline = self.deadline.max(at);
         }
 
         /// Lets a reply whose bytes keep coming (each within the quiet gap of the one before)
@@ -2438,6 +2478,39 @@ mod tests {
             exchange.reply_complete_at(),
             Some(ms(2) + line.wire_time(12) + line.receive_timeout())
         );
+    }
+
+    /// A packet longer than the poll's `max_data_len` (a device that takes the frame's 256
+    /// bytes for its only limit) is read to its end: the window covers what its header says.
+    #[test]
+    fn an_event_packet_longer_than_asked_for_is_read_to_its_end() {
+        use crate::protocol::fast::{Event, EventPacket, EventSource};
+        use crate::protocol::RegisterType;
+        let line = line(9600);
+        let transaction = transaction(&line, event_poll());
+        let events: Vec<Event> = (0..40)
+            .map(|id| Event {
+                source: EventSource::Register(RegisterType::Holding),
+                id,
+                payload: vec![1, 0],
+            })
+            .collect();
+        let packet = Reply::fast(
+            0x14,
+            crate::protocol::FastReply::Events(EventPacket {
+                flag: 0,
+                event_count: 40,
+                events,
+            }),
+        );
+        let frame = packet.encode().unwrap();
+        assert_eq!(frame.len(), 248);
+        // Its last byte comes long after the window a 100-byte packet needs.
+        let arrivals = on_the_wire(&line, transaction.request_time + ms(6), &frame);
+        assert!(arrivals.last().unwrap().0 > transaction.reply_timeout + ms(100));
+        let mut exchange = Exchange::new(serial(line));
+        let finished = run(&mut exchange, &transaction, ms(0), &arrivals);
+        assert_eq!(finished.outcome, TransactionOutcome::Reply(packet));
     }
 
     #[test]
