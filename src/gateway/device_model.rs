@@ -375,7 +375,8 @@ impl DeviceModel {
                 }
                 self.pending_event_words
                     .extend((0..width).map(|offset| (register_type, address.wrapping_add(offset))));
-                // The value's low words: a device may pad the payload beyond the register.
+                // The value's low words (the scheduler takes no packet with a value wider than
+                // the read that holds its register, so this is all of them there).
                 let skip = carried.len().saturating_sub(usize::from(width));
                 let value = carried.get(skip..).unwrap_or(&[]);
                 let registers = self.registers_holding(register_type, address, value);
@@ -486,7 +487,7 @@ impl DeviceModel {
     }
 
     /// How many words an event payload holds for the value at `address`: what its bytes carry,
-    /// but no more than the channel's register there (a device may pad the payload).
+    /// but no more than the channel's register there.
     fn event_width(&self, register_type: RegisterType, address: u16, carried: usize) -> u16 {
         if register_type.is_bit() {
             return 1;

@@ -162,6 +162,8 @@ pub(super) struct DeviceState {
     /// The latest event packet's flag, its number of events and a digest of them: a packet
     /// sent again under the same flag (its confirmation was lost) starts with the same events.
     last_packet: Option<(u8, usize, u64)>,
+    /// A packet of this device was not trusted and that was said at warning level.
+    untrusted_packet_told: bool,
 }
 
 impl DeviceState {
@@ -228,6 +230,7 @@ impl DeviceState {
             events_to_disable: Vec::new(),
             events_disable_sent: 0,
             last_packet: None,
+            untrusted_packet_told: false,
         };
         state.preparation = state.first_preparation_step();
         state
@@ -678,6 +681,49 @@ impl DeviceState {
                 read.initial_pending = true;
             }
         }
+    }
+
+    /// Whether an event of `words` registers at `start` fits a value this device's plan reads
+    /// there: it must not run past the end of the read that holds `start` (a payload wider than
+    /// the channel says the template and device disagree, or that a frame corrupted past what
+    /// its CRC caught names another register). `None` when no read holds `start`.
+    pub(super) fn event_fits_plan(
+        &self,
+        register_type: RegisterType,
+        start: u16,
+        words: usize,
+    ) -> Option<bool> {
+        self.plan
+            .reads
+            .iter()
+            .filter(|plan| plan.span.register_type == register_type)
+            .filter_map(|plan| {
+                let offset = start.checked_sub(plan.span.start)?;
+                (offset < plan.span.count).then(|| usize::from(plan.span.count - offset))
+            })
+            .max()
+            .map(|room| words <= room)
+    }
+
+    /// The reads that hold `start` are made again at the next turn (an event whose value is not
+    /// taken is read instead).
+    pub(super) fn read_again(&mut self, register_type: RegisterType, start: u16) {
+        for (plan, read) in self.plan.reads.iter().zip(self.reads.iter_mut()) {
+            let span = plan.span;
+            if span.register_type == register_type
+                && start >= span.start
+                && start - span.start < span.count
+                && !read.exclusion.never_read()
+            {
+                read.initial_pending = true;
+            }
+        }
+    }
+
+    /// Says (once per connection, then at debug level) that a packet of this device is not
+    /// trusted. True the first time.
+    pub(super) fn first_untrusted_packet(&mut self) -> bool {
+        !std::mem::replace(&mut self.untrusted_packet_told, true)
     }
 
     /// A read of `members` was answered with values: if one of them had been refused (the

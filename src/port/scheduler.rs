@@ -1596,6 +1596,34 @@ impl PortScheduler {
                 let seen_before = self.devices.get_mut(device).map_or(0, |state| {
                     state.events_seen_before(packet.flag, &packet.events)
                 });
+                // A value wider than the read that holds its register: the device and its
+                // template disagree, or the frame was corrupted in a way its CRC missed (one in
+                // 65,536 garbled frames passes CRC-16; a collision moved an event's register
+                // in a sweep). Nothing of such a packet is taken: what it names is read instead.
+                let untrusted = self.devices.get(device).is_some_and(|state| {
+                    packet.events.iter().any(|event| match event.source {
+                        EventSource::Register(register_type) => {
+                            let words = crate::protocol::event_payload_words(&event.payload).len();
+                            state.event_fits_plan(register_type, event.id, words) == Some(false)
+                        }
+                        _ => false,
+                    })
+                });
+                if untrusted {
+                    if let Some(state) = self.devices.get_mut(device) {
+                        if state.first_untrusted_packet() {
+                            warn!(device = %state.plan.name, address, "an event packet names values wider than the template's registers there: not taken, the registers are read instead (a template that does not fit the device, or noise)");
+                        } else {
+                            debug!(device = %state.plan.name, address, "event packet not taken (values wider than the registers): read instead");
+                        }
+                        for event in &packet.events {
+                            if let EventSource::Register(register_type) = event.source {
+                                state.read_again(register_type, event.id);
+                            }
+                        }
+                    }
+                    self.index.mark_stale(device);
+                }
                 if seen_before > 0 {
                     debug!(address, seen_before, "packet sent again (its confirmation was lost): its first events were applied already");
                 }
@@ -1606,6 +1634,9 @@ impl PortScheduler {
                             state.restart_preparation();
                         }
                         out.push(PortEvent::Rebooted { device });
+                        continue;
+                    }
+                    if untrusted {
                         continue;
                     }
                     if let EventSource::Register(register_type) = event.source {

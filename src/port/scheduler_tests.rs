@@ -494,6 +494,85 @@ fn a_packet_sent_again_under_the_same_flag_applies_only_what_is_new() {
     assert_eq!(applied, vec![1, 0, 1, 0, 1]);
 }
 
+/// A packet naming a value wider than the read that holds its register (8 bytes at input 0,
+/// read as one register): the template and the device disagree, or the frame was corrupted in a
+/// way its CRC missed (seen in a sweep: a collision moved a u64's event from input 12 to 0, and
+/// its low word was published as input 0). Nothing of the packet is taken; what it names is
+/// read instead.
+#[test]
+fn a_packet_naming_a_value_wider_than_its_register_is_read_instead() {
+    let mut scheduler = PortScheduler::new(
+        settings(115_200),
+        vec![device(
+            20,
+            vec![
+                read(RegisterType::Input, 0, EventMode::Sporadic),
+                read(RegisterType::Coil, 0, EventMode::Sporadic),
+            ],
+        )],
+    );
+    let mut sent_packet = false;
+    let mut log = Log::default();
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(300),
+        |_, request| match &request.body {
+            RequestBody::Fast(FastRequest::PollEvents(_)) if !sent_packet => {
+                sent_packet = true;
+                TransactionOutcome::Reply(Reply::fast(
+                    20,
+                    FastReply::Events(EventPacket {
+                        flag: 1,
+                        event_count: 2,
+                        events: vec![
+                            Event {
+                                source: crate::protocol::EventSource::Register(RegisterType::Coil),
+                                id: 0,
+                                payload: vec![1],
+                            },
+                            Event {
+                                source: crate::protocol::EventSource::Register(RegisterType::Input),
+                                id: 0,
+                                payload: vec![0, 0x22, 0x29, 0xD7, 0xD6, 0x28, 0x60, 0x8D],
+                            },
+                        ],
+                    }),
+                ))
+            }
+            _ => healthy(request),
+        },
+    );
+    assert!(sent_packet);
+    assert!(
+        !log.events
+            .iter()
+            .any(|(_, event)| matches!(event, PortEvent::EventValue { .. })),
+        "{:?}",
+        log.events
+    );
+    let packet_at = log.event_polls()[0].0;
+    let reads_after: Vec<&Request> = log
+        .sent
+        .iter()
+        .filter(|(at, _)| *at > packet_at)
+        .map(|(_, request)| request)
+        .filter(|request| matches!(request.body, RequestBody::Classic(_)))
+        .collect();
+    for wanted in [
+        RequestPdu::ReadInputRegisters { start: 0, count: 1 },
+        RequestPdu::ReadCoils { start: 0, count: 1 },
+    ] {
+        assert!(
+            reads_after
+                .iter()
+                .any(|request| request.body == RequestBody::Classic(wanted.clone())),
+            "{wanted:?} not read after the packet: {reads_after:?}"
+        );
+    }
+}
+
 /// A healthy bus where device `address` reports a reboot in answer to the `nth` event poll.
 fn reboot_reported_at_poll(
     nth: usize,
