@@ -16,6 +16,9 @@ use crate::protocol::{Event, EventPriority, EventRange, EventSource, LineSetting
 /// How often a device whose every channel comes by events is read anyway, so that a dead device
 /// is noticed.
 pub(super) const KEEPALIVE_PERIOD: Duration = Duration::from_secs(1);
+/// The shortest stretch of reads over which a periodic read's "period missed" flag is decided
+/// (wb-mqtt-serial's: ten periods, at least 10 s).
+const PERIOD_CHECK_MIN_WINDOW: Duration = Duration::from_secs(10);
 
 /// Registers between two event values that are filled with disabled entries rather than
 /// starting a new record: up to 4, as wb-mqtt-serial's `DISABLE_EVENTS_IN_HOLES` (the next
@@ -85,8 +88,10 @@ struct ReadState {
     solo: bool,
     /// Split off and not yet read on its own.
     solo_unknown: bool,
-    /// Smoothed time between successful reads, for the `p` flag of periodic reads.
-    average_interval: Option<Duration>,
+    /// The intervals between this read's reads since its "period missed" flag was last decided:
+    /// their sum and number (decided once they cover ten periods, at least 10 s, as
+    /// wb-mqtt-serial's `TReadPeriodMissChecker` decides).
+    interval_window: (Duration, u32),
     /// The actual period is more than 10 % over `read_period_ms`.
     period_missed: bool,
 }
@@ -187,7 +192,7 @@ impl DeviceState {
                 initial_pending: true,
                 solo: false,
                 solo_unknown: false,
-                average_interval: None,
+                interval_window: (Duration::ZERO, 0),
                 period_missed: false,
             })
             .collect();
@@ -959,7 +964,18 @@ impl DeviceState {
         if let Some(read) = self.reads.get_mut(index) {
             read.next_due = match (keepalive, period) {
                 (true, _) => now + KEEPALIVE_PERIOD,
-                (false, Some(period)) => now + period,
+                // From when it was due, not from when it was made: counted from the read, every
+                // period was lengthened by the wait for the transaction under way. A read more
+                // than half a period late counts from now: a bus that cannot keep the period is
+                // not given to this read alone (the others starved at 1200 baud).
+                (false, Some(period)) => {
+                    let due = read.next_due;
+                    if now.saturating_sub(due) <= period / 2 {
+                        due + period
+                    } else {
+                        now + period
+                    }
+                }
                 // Round-robin: due again at once (or when its rate limit allows), ordered by
                 // when it was last read.
                 (false, None) => now + rate_limit.unwrap_or(Duration::ZERO),
@@ -968,7 +984,8 @@ impl DeviceState {
     }
 
     /// Records a good read. Returns the new state of the read's "period missed" flag when it
-    /// changed: a periodic read whose smoothed interval exceeds its period by more than 10 %.
+    /// changed: decided once the intervals since the last decision cover ten periods (10 s at
+    /// least), set when their average is 10 % over the period, kept until the next decision.
     pub(super) fn read_done(&mut self, now: Duration, index: usize) -> Option<bool> {
         let period = self.plan.reads.get(index).and_then(|p| p.period);
         let read = self.reads.get_mut(index)?;
@@ -977,17 +994,17 @@ impl DeviceState {
         let was_initial = std::mem::replace(&mut read.initial_pending, false);
         let mut changed = None;
         if let (Some(period), Some(previous), false) = (period, previous, was_initial) {
-            let interval = now.saturating_sub(previous);
-            // An exponential average over about ten reads, like wb-mqtt-serial's 10-period window.
-            let average = match read.average_interval {
-                Some(average) => (average * 9 + interval) / 10,
-                None => interval,
-            };
-            read.average_interval = Some(average);
-            let missed = average.as_secs_f64() > period.as_secs_f64() * 1.1;
-            if missed != read.period_missed {
-                read.period_missed = missed;
-                changed = Some(missed);
+            let (total, reads) = &mut read.interval_window;
+            *total += now.saturating_sub(previous);
+            *reads += 1;
+            if *total >= (period * 10).max(PERIOD_CHECK_MIN_WINDOW) {
+                let average = total.as_secs_f64() / f64::from(*reads);
+                let missed = average >= period.as_secs_f64() * 1.1;
+                read.interval_window = (Duration::ZERO, 0);
+                if missed != read.period_missed {
+                    read.period_missed = missed;
+                    changed = Some(missed);
+                }
             }
         }
         self.reschedule(now, index);
