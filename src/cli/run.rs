@@ -235,8 +235,8 @@ async fn reload(
         Ok(loaded) => loaded,
         Err(errors) => {
             error!(
-                "reload failed; the running configuration stays in force:\n{}",
-                errors.join("\n")
+                "reload failed, the running configuration stays in force: {}",
+                errors.join("; ")
             );
             return;
         }

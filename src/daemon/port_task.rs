@@ -611,6 +611,7 @@ impl PortTask {
         let mut delay = FIRST_REOPEN_DELAY;
         // Since when the port has been unusable: its devices go offline after their timeout.
         let mut closed_since = self.now();
+        let mut open_failures = OpenFailures::default();
         loop {
             self.lower_receive_fifo_trigger();
             let opened = tokio::select! {
@@ -619,7 +620,12 @@ impl PortTask {
             };
             match opened {
                 Ok(transport) => {
-                    info!(port = %self.plan_name, "port open");
+                    match open_failures.opened(Instant::now()) {
+                        Some((unusable, tries)) => {
+                            info!(port = %self.plan_name, ?unusable, tries, "port open again")
+                        }
+                        None => info!(port = %self.plan_name, "port open"),
+                    }
                     self.serve_bus().await;
                     self.set_open(true);
                     self.transacted = false;
@@ -634,22 +640,39 @@ impl PortTask {
                     }
                 }
                 Err(err) => {
-                    if held_by_another_program(&err) {
-                        warn!(port = %self.plan_name, %err, retry_in = ?delay,
-                            "cannot open the port: another program holds it locked (another \
-                             rtu2mqtt, a `rtu2mqtt run` in a terminal, or a tool built on the \
-                             same serial library; wb-mqtt-serial takes no lock and is not seen \
-                             here, see `rtu2mqtt prepare-ports`)");
-                    } else {
+                    // The first failure is told, then now and then while it lasts: an adapter
+                    // unplugged for a day is one line an hour, not one every 10 s.
+                    let told = open_failures.failed(Instant::now());
+                    let held = held_by_another_program(&err);
+                    if !held {
                         self.serve_bus().await;
-                        if permission_denied(&err) {
+                    }
+                    match told {
+                        Told::Quietly(tries) => {
+                            debug!(port = %self.plan_name, %err, tries, "cannot open the port (still)");
+                        }
+                        Told::Again { unusable, tries } => {
+                            warn!(port = %self.plan_name, %err, ?unusable, tries, retry_every = ?MAX_REOPEN_DELAY,
+                                "the port still cannot be opened");
+                        }
+                        Told::First if held => {
+                            warn!(port = %self.plan_name, %err, retry_in = ?delay,
+                                "cannot open the port: another program holds it locked (another \
+                                 rtu2mqtt, a `rtu2mqtt run` in a terminal, or a tool built on the \
+                                 same serial library; wb-mqtt-serial takes no lock and is not seen \
+                                 here, see `rtu2mqtt prepare-ports`)");
+                        }
+                        Told::First if permission_denied(&err) => {
                             warn!(port = %self.plan_name, %err, retry_in = ?delay,
                                 "cannot open the port: no permission. The service's unit gives \
                                  it the dialout group; run by hand, add your user to the group \
                                  that owns the port (usually dialout: `sudo usermod -aG dialout \
                                  $USER`, then log in again)");
-                        } else {
-                            warn!(port = %self.plan_name, %err, retry_in = ?delay, "cannot open the port");
+                        }
+                        Told::First => {
+                            warn!(port = %self.plan_name, %err, retry_in = ?delay,
+                                "cannot open the port (a USB adapter not plugged in, or a typo in \
+                                 the config?); tried again until it opens");
                         }
                     }
                     self.set_open(false);
@@ -1066,6 +1089,7 @@ impl PortTask {
     fn lost_port(&self) -> TransportError {
         TransportError::Closed {
             name: self.plan_name.clone(),
+            serial: matches!(self.endpoint, Endpoint::Serial { .. }),
         }
     }
 
@@ -1187,8 +1211,16 @@ impl PortTask {
             }
             Err(reason) => {
                 let decision = self.refused_log.check(std::time::Instant::now());
-                if let LogDecision::Log { suppressed_before } = decision {
-                    warn!(device = %write.device_id, control = %write.control_id, %reason, suppressed_before, "write refused");
+                match decision {
+                    LogDecision::Log {
+                        suppressed_before: 0,
+                    } => {
+                        warn!(device = %write.device_id, control = %write.control_id, %reason, "write refused");
+                    }
+                    LogDecision::Log { suppressed_before } => {
+                        warn!(device = %write.device_id, control = %write.control_id, %reason, suppressed_before, "write refused");
+                    }
+                    LogDecision::Skip => {}
                 }
             }
         }
@@ -1298,6 +1330,60 @@ async fn next_identity(
     }
 }
 
+/// How a port's failures to open are told: the first one, then at growing intervals (1 min,
+/// 10 min, then every hour) while they last.
+#[derive(Debug, Default)]
+struct OpenFailures {
+    since: Option<Instant>,
+    tries: u32,
+    told_at: Option<Instant>,
+}
+
+/// What to say of one failure to open.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Told {
+    /// The first: everything about it.
+    First,
+    /// Still failing, after this long: said again.
+    Again { unusable: Duration, tries: u32 },
+    /// Still failing: at debug level only.
+    Quietly(u32),
+}
+
+impl OpenFailures {
+    fn failed(&mut self, now: Instant) -> Told {
+        self.tries += 1;
+        let since = *self.since.get_or_insert(now);
+        let Some(told_at) = self.told_at else {
+            self.told_at = Some(now);
+            return Told::First;
+        };
+        let unusable = now.saturating_duration_since(since);
+        let gap = match told_at.saturating_duration_since(since) {
+            told if told < Duration::from_secs(60) => Duration::from_secs(60),
+            told if told < Duration::from_secs(600) => Duration::from_secs(540),
+            _ => Duration::from_secs(3600),
+        };
+        if now.saturating_duration_since(told_at) >= gap {
+            self.told_at = Some(now);
+            Told::Again {
+                unusable,
+                tries: self.tries,
+            }
+        } else {
+            Told::Quietly(self.tries)
+        }
+    }
+
+    /// The port opened: how long it was unusable and how many tries failed, if any.
+    fn opened(&mut self, now: Instant) -> Option<(Duration, u32)> {
+        let failures = std::mem::take(self);
+        failures
+            .since
+            .map(|since| (now.saturating_duration_since(since), failures.tries))
+    }
+}
+
 /// Whether opening failed because the port is taken: `EBUSY`, or the exclusive lock (TIOCEXCL)
 /// another program set, which the serial library reports only in words.
 fn held_by_another_program(err: &TransportError) -> bool {
@@ -1320,6 +1406,30 @@ fn permission_denied(err: &TransportError) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// An unplugged adapter is told once, then after a minute, ten minutes, and every hour:
+    /// not every 10 s for as long as it lasts; opening again says how long it took.
+    #[test]
+    fn failures_to_open_are_told_at_growing_intervals() {
+        let start = Instant::now();
+        let at = |secs: u64| start + Duration::from_secs(secs);
+        let mut failures = OpenFailures::default();
+        let mut told = Vec::new();
+        for secs in (0..=7300).step_by(10) {
+            match failures.failed(at(secs)) {
+                Told::Quietly(_) => {}
+                Told::First => told.push(secs),
+                Told::Again { unusable, .. } => told.push(unusable.as_secs()),
+            }
+        }
+        assert_eq!(told, vec![0, 60, 600, 4200]);
+        assert_eq!(
+            failures.opened(at(7310)),
+            Some((Duration::from_secs(7310), 731))
+        );
+        assert_eq!(failures.opened(at(7320)), None, "forgotten once open");
+        assert_eq!(failures.failed(at(7330)), Told::First);
+    }
 
     /// wb-mqtt-serial's `TPortOpenCloseLogic`: closed once no transaction succeeded for the
     /// timeout and over the cycles; a success starts both over.

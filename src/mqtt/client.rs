@@ -409,13 +409,21 @@ fn on_message(planner: &mut PublicationPlanner, bus: WriteTarget<'_>, message: O
                 }
                 Err(mpsc::error::TrySendError::Closed(write)) => {
                     let now = Instant::now();
-                    if let LogDecision::Log { suppressed_before } = bus.dropped_log.check(now) {
-                        warn!(
+                    match bus.dropped_log.check(now) {
+                        LogDecision::Log {
+                            suppressed_before: 0,
+                        } => warn!(
+                            device_id = %write.device_id,
+                            control_id = %write.control_id,
+                            "write dropped: the bus side has stopped"
+                        ),
+                        LogDecision::Log { suppressed_before } => warn!(
                             device_id = %write.device_id,
                             control_id = %write.control_id,
                             suppressed_before,
                             "write dropped: the bus side has stopped"
-                        );
+                        ),
+                        LogDecision::Skip => {}
                     }
                 }
             }

@@ -169,6 +169,12 @@ pub(super) struct DeviceState {
     last_packet: Option<(u8, usize, u64)>,
     /// A packet of this device was not trusted and that was said at warning level.
     untrusted_packet_told: bool,
+    /// Said once at info level (then at debug level at every reconnect): the device refused
+    /// the event setup / did not answer it and is polled.
+    pub(super) no_events_told: bool,
+    pub(super) event_setup_unanswered_told: bool,
+    /// Failed transactions since the last good one: (nothing came, bytes that made no reply).
+    pub(super) failures_since_success: (u32, u32),
 }
 
 impl DeviceState {
@@ -236,6 +242,9 @@ impl DeviceState {
             events_disable_sent: 0,
             last_packet: None,
             untrusted_packet_told: false,
+            no_events_told: false,
+            event_setup_unanswered_told: false,
+            failures_since_success: (0, 0),
         };
         state.preparation = state.first_preparation_step();
         state
@@ -758,6 +767,7 @@ impl DeviceState {
     /// after the gateway gets its events, and one that answers reads but never 0x18 costs
     /// [`MAX_EVENT_SETUP_TRIES`] more requests, not a round of them at every reconnection.
     pub(super) fn record_success(&mut self, now: Duration) -> bool {
+        self.failures_since_success = (0, 0);
         let came_online = self.health.record_success(now) == HealthChange::CameOnline;
         let given_up = self.event_setup_failures >= MAX_EVENT_SETUP_TRIES;
         if came_online && given_up && !self.event_setup_taken_up_again {
@@ -771,7 +781,10 @@ impl DeviceState {
     }
 
     /// True when the device went offline (its preparation then starts over when it returns).
-    pub(super) fn record_failure(&mut self, now: Duration) -> bool {
+    /// `garbled`: bytes came that made no reply (else nothing came).
+    pub(super) fn record_failure(&mut self, now: Duration, garbled: bool) -> bool {
+        let (silent, unreadable) = &mut self.failures_since_success;
+        *if garbled { unreadable } else { silent } += 1;
         let went_offline = self.health.record_failure(now) == HealthChange::WentOffline;
         if went_offline {
             self.restart_preparation();

@@ -268,6 +268,9 @@ struct PendingWrite {
     /// A bit-field write's words (bit `i`: word `i`) whose other bits are those of a word seen
     /// since it was queued, newer than the words the device model composed it over.
     seen: u128,
+    /// It failed once and that was logged: a write carried out a minute later, when the device
+    /// is back, leaves a trace in the journal.
+    failure_told: bool,
 }
 
 impl PendingWrite {
@@ -668,6 +671,7 @@ impl PortScheduler {
             write,
             give_up_at: now.saturating_add(retry_time),
             seen: 0,
+            failure_told: false,
         };
         let same_register = |p: &PendingWrite| write_key(&p.write) == write_key(&pending.write);
         if let Some(replaced) = self.writes.iter().position(same_register) {
@@ -1707,8 +1711,9 @@ impl PortScheduler {
                 }
                 state.setup_write_done(index);
             }
-            TransactionOutcome::NoReply | TransactionOutcome::Garbled => {
-                Self::health_failure(state, device, now, out);
+            failed @ (TransactionOutcome::NoReply | TransactionOutcome::Garbled) => {
+                let garbled = failed == TransactionOutcome::Garbled;
+                Self::health_failure(state, device, now, garbled, out);
                 self.setup_failed_for_writes(now, device, out);
             }
         }
@@ -1814,18 +1819,26 @@ impl PortScheduler {
                 state.reboot_record_refused = true;
             }
             TransactionOutcome::Reply(_) => {
-                info!(device = %state.plan.name, "device does not support Fast Modbus events: polling it");
+                // Asked again at every reconnect (its firmware may have been updated), said once.
+                if std::mem::replace(&mut state.no_events_told, true) {
+                    debug!(device = %state.plan.name, "device does not support Fast Modbus events: polling it");
+                } else {
+                    info!(device = %state.plan.name, "device does not support Fast Modbus events: polling it");
+                }
                 Self::health_success(state, device, now, out);
                 state.events_refused(now);
             }
             // The request may have reached the device: transient, as wb-mqtt-serial's
             // "Failed to enable events" fails the device's prepare and it is tried again.
-            TransactionOutcome::NoReply | TransactionOutcome::Garbled => {
-                Self::health_failure(state, device, now, out);
-                if state.event_setup_failed(now) {
-                    warn!(device = %state.plan.name, tries = MAX_EVENT_SETUP_TRIES, "no answer to the event setup: polling it");
+            failed @ (TransactionOutcome::NoReply | TransactionOutcome::Garbled) => {
+                let garbled = failed == TransactionOutcome::Garbled;
+                Self::health_failure(state, device, now, garbled, out);
+                if !state.event_setup_failed(now) {
+                    debug!(device = %state.plan.name, "no answer to the event setup: trying it again");
+                } else if std::mem::replace(&mut state.event_setup_unanswered_told, true) {
+                    debug!(device = %state.plan.name, tries = MAX_EVENT_SETUP_TRIES, "no answer to the event setup: polling it");
                 } else {
-                    info!(device = %state.plan.name, "no answer to the event setup: trying it again");
+                    warn!(device = %state.plan.name, tries = MAX_EVENT_SETUP_TRIES, "no answer to the event setup: polling it (asked for once more when it next comes online)");
                 }
             }
         }
@@ -1847,8 +1860,9 @@ impl PortScheduler {
         state.events_disabled(taken);
         match outcome {
             TransactionOutcome::Reply(_) => Self::health_success(state, device, now, out),
-            TransactionOutcome::NoReply | TransactionOutcome::Garbled => {
-                Self::health_failure(state, device, now, out)
+            failed @ (TransactionOutcome::NoReply | TransactionOutcome::Garbled) => {
+                let garbled = failed == TransactionOutcome::Garbled;
+                Self::health_failure(state, device, now, garbled, out)
             }
         }
     }
@@ -1900,7 +1914,7 @@ impl PortScheduler {
         };
         if values.len() != usize::from(span.count) {
             Self::reads_failed(state, device, now, members, false, out);
-            Self::health_failure(state, device, now, out);
+            Self::health_failure(state, device, now, true, out);
             return;
         }
         Self::health_success(state, device, now, out);
@@ -1992,11 +2006,24 @@ impl PortScheduler {
                     values: write.values.clone().into(),
                 });
             }
-            TransactionOutcome::NoReply | TransactionOutcome::Garbled => {
-                Self::health_failure(state, device, now, out);
+            failed @ (TransactionOutcome::NoReply | TransactionOutcome::Garbled) => {
+                let garbled = failed == TransactionOutcome::Garbled;
+                Self::health_failure(state, device, now, garbled, out);
                 let give_up = now >= pending.give_up_at;
                 if give_up || replaced(&self.writes) {
                     self.writes.retain(|p| !(p.write == pending.write));
+                }
+                let name = &state.plan.name;
+                if give_up {
+                    warn!(device = %name, ?register_type, address, "write given up: the device did not take it in its retry time (max_write_fail_time_s)");
+                } else if let Some(queued) = self
+                    .writes
+                    .iter_mut()
+                    .find(|p| p.write == pending.write && !p.failure_told)
+                {
+                    queued.failure_told = true;
+                    let retried_for = pending.give_up_at.saturating_sub(now);
+                    info!(device = %name, ?register_type, address, ?retried_for, "write not taken by the device: kept and sent again until it is (meta/error w meanwhile)");
                 }
                 out.push(PortEvent::WriteFailed {
                     device,
@@ -2041,14 +2068,24 @@ impl PortScheduler {
         }
     }
 
+    /// `garbled`: bytes came that made no reply (else nothing came).
     fn health_failure(
         state: &mut DeviceState,
         device: usize,
         now: Duration,
+        garbled: bool,
         out: &mut Vec<PortEvent>,
     ) {
-        if state.record_failure(now) {
-            warn!(device = %state.plan.name, address = state.plan.address, "device does not answer: marked offline, retrying with growing delay");
+        if state.record_failure(now, garbled) {
+            let (silent, unreadable) = state.failures_since_success;
+            if unreadable == 0 {
+                warn!(device = %state.plan.name, address = state.plan.address, "device does not answer: marked offline, retrying with growing delay");
+            } else {
+                warn!(device = %state.plan.name, address = state.plan.address, unreadable, silent,
+                    "no readable reply from the device: marked offline, retrying with growing delay \
+                     (unreadable replies: noise, a missing terminator, two devices at this \
+                     address, or another master on the bus)");
+            }
             out.push(PortEvent::Offline { device });
         }
     }

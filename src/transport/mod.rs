@@ -44,8 +44,12 @@ pub enum TransportError {
     ConnectTimeout { address: String },
     #[error("I/O error on {name}: {source}")]
     Io { name: String, source: io::Error },
-    #[error("{name} closed the connection")]
-    Closed { name: String },
+    #[error("{name} {}", if *serial {
+        "went away (a USB adapter unplugged, or its device file removed)"
+    } else {
+        "closed the connection"
+    })]
+    Closed { name: String, serial: bool },
     #[error("no transaction on {name} succeeded for {after:?}: closing the connection")]
     Unanswered { name: String, after: Duration },
     #[error("cannot send: {0}")]
@@ -317,6 +321,7 @@ impl Transport {
                     Ok(Some(0)) => {
                         return Err(TransportError::Closed {
                             name: self.name.clone(),
+                            serial: true,
                         })
                     }
                     Ok(count) => count.unwrap_or(0),
@@ -364,6 +369,7 @@ impl Transport {
                 Some(0) => {
                     return Err(TransportError::Closed {
                         name: self.name.clone(),
+                        serial: matches!(self.link, Link::Serial(_)),
                     })
                 }
                 Some(count) => {
@@ -414,6 +420,7 @@ impl Transport {
                 Some(0) => {
                     return Err(TransportError::Closed {
                         name: self.name.clone(),
+                        serial: matches!(self.link, Link::Serial(_)),
                     })
                 }
                 Some(count) => {
@@ -487,6 +494,7 @@ impl Transport {
                         Ok(0) => {
                             return Err(TransportError::Closed {
                                 name: self.name.clone(),
+                                serial: false,
                             })
                         }
                         Ok(read) => {
