@@ -175,6 +175,9 @@ pub(super) struct DeviceState {
     pub(super) event_setup_unanswered_told: bool,
     /// Failed transactions since the last good one: (nothing came, bytes that made no reply).
     pub(super) failures_since_success: (u32, u32),
+    /// The flag and digest of the event packet left unconfirmed once (see
+    /// [`Self::hold_back_unexpected`]).
+    held_back_packet: Option<(u8, u64)>,
 }
 
 impl DeviceState {
@@ -245,6 +248,7 @@ impl DeviceState {
             no_events_told: false,
             event_setup_unanswered_told: false,
             failures_since_success: (0, 0),
+            held_back_packet: None,
         };
         state.preparation = state.first_preparation_step();
         state
@@ -717,6 +721,29 @@ impl DeviceState {
             })
             .max()
             .map(|room| words <= room)
+    }
+
+    /// Whether to leave `packet` unconfirmed once: it names a register no read holds, or a
+    /// value wider than the read that holds it (see the scheduler). The same packet again (same
+    /// flag, same events) is taken: a frame corrupted past its CRC does not come twice alike.
+    pub(super) fn hold_back_unexpected(&mut self, packet: &crate::protocol::EventPacket) -> bool {
+        let unexpected = packet.events.iter().any(|event| match event.source {
+            EventSource::Register(register_type) => {
+                let words = crate::protocol::event_payload_words(&event.payload).len();
+                self.event_fits_plan(register_type, event.id, words) != Some(true)
+            }
+            _ => false,
+        });
+        let held = self.held_back_packet.take();
+        if !unexpected {
+            return false;
+        }
+        let this = (packet.flag, events_digest(&packet.events));
+        if held == Some(this) {
+            return false;
+        }
+        self.held_back_packet = Some(this);
+        true
     }
 
     /// The reads that hold `start` are made again at the next turn (an event whose value is not

@@ -1564,6 +1564,23 @@ impl PortScheduler {
                 self.place_stale(now);
                 let highest_listener = self.index.highest_listener().unwrap_or(0);
                 let sender = self.device_by_address(address);
+                // A packet naming registers the plan does not read, or values wider than its
+                // reads there, is the sign of a frame that noise changed past what its CRC
+                // caught (one garbled frame in 65,536 passes CRC-16; in a sweep a collision
+                // moved a u32's event from input 10 to input 8, and the device, confirmed, dropped
+                // the real one: its value stayed old for good). Not confirmed the first time, so
+                // the device sends it again; the same packet twice is what the device means.
+                if let Some((device, state)) =
+                    sender.and_then(|d| self.devices.get_mut(d).map(|state| (d, state)))
+                {
+                    if state.hold_back_unexpected(&packet) {
+                        debug!(device = %state.plan.name, address, "event packet naming registers or widths the plan does not read: not confirmed, so that the device sends it again");
+                        state.heard_from(now);
+                        self.index.mark_stale(device);
+                        self.events.garbled(now);
+                        return;
+                    }
+                }
                 let reboot_before_setup = !packet.events.is_empty()
                     && packet.events.iter().all(|event| event.is_reboot())
                     && sender
