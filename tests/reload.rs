@@ -17,7 +17,7 @@ use std::path::Path;
 use std::process::{Child, Command, Stdio};
 
 use daemon_support::repo;
-use mqtt_support::{publish, retained, rpc, wait_for, Mosquitto};
+use mqtt_support::{publish, retained, rpc, wait_for, Mosquitto, Recorder};
 use serde_json::{json, Value};
 use sim_support::SimProcess;
 
@@ -338,6 +338,17 @@ async fn a_write_its_port_could_not_take_in_time_is_given_up_not_sent_late() {
                                 "max_write_fail_time_s": 1}]}]
     });
     std::fs::write(&config_path, config.to_string()).unwrap();
+    // Home Assistant's view: the relay is never available while its port is missing (it was
+    // `online` at start, then `offline` once the port had been missing for the device timeout).
+    let availability = "/rtu2mqtt/rtu2mqtt-write-away/availability/relay6_20";
+    let recorder = Recorder::start(port, availability).await;
+    let availabilities = || -> Vec<String> {
+        let messages = recorder.messages.lock().unwrap();
+        messages
+            .iter()
+            .map(|(_, payload, _)| payload.clone())
+            .collect()
+    };
     let daemon = Daemon::start(dir.path(), &config_path, "info");
     switch_k3_on_while_the_port_is_missing(port, &daemon).await;
     wait_for("the write given up and flagged", || async {
@@ -353,6 +364,11 @@ async fn a_write_its_port_could_not_take_in_time_is_given_up_not_sent_late() {
         "{}",
         daemon.log()
     );
+    wait_for("the relay marked offline", || async {
+        daemon.log().contains("device marked offline").then_some(())
+    })
+    .await;
+    assert_eq!(availabilities(), ["offline"]);
 
     let sim = sim(dir.path(), "bus.json", BUS_A);
     std::os::unix::fs::symlink(&sim.pty, &tty).unwrap();
@@ -363,4 +379,9 @@ async fn a_write_its_port_could_not_take_in_time_is_given_up_not_sent_late() {
     .await;
     let reply = sim.control(json!({"cmd": "get", "device": 20, "type": "coil", "address": 2}));
     assert_eq!(reply["value"], 0, "the given-up write went out late");
+    wait_for("the relay available once it answered", || async {
+        (availabilities().len() > 1).then_some(())
+    })
+    .await;
+    assert_eq!(availabilities(), ["offline", "online"]);
 }

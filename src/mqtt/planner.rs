@@ -95,7 +95,9 @@ struct PublishedControl {
 struct PublishedDevice {
     device: Arc<ResolvedDevice>,
     identity: DeviceIdentity,
-    online: bool,
+    /// What its port last said: online, offline, or nothing yet (not heard from). Its
+    /// `meta/error` is `r` only while offline; its availability `online` only while online.
+    online: Option<bool>,
     /// Its port has been this gateway's ([`DeviceUpdate::BusServed`]): its Wiren Board topics
     /// are deleted with it; before, only what is this gateway's own (discovery configs).
     bus_served: bool,
@@ -218,7 +220,7 @@ impl PublicationPlanner {
         }
         let (identity, online, bus_served) = previous
             .map(|p| (p.identity, p.online, p.bus_served))
-            .unwrap_or((DeviceIdentity::default(), true, false));
+            .unwrap_or((DeviceIdentity::default(), None, false));
         let mut state = PublishedDevice {
             device: device.clone(),
             identity,
@@ -248,9 +250,13 @@ impl PublicationPlanner {
             ));
         }
         let mut publications = layout::device_meta(topics, &device, &state.identity);
-        publications.push(layout::device_error(topics, &device.id, state.online));
+        publications.push(layout::device_error(
+            topics,
+            &device.id,
+            state.online != Some(false),
+        ));
         if self.settings.discovery.is_some() {
-            publications.push(availability(topics, &device.id, state.online));
+            publications.push(availability(topics, &device.id, state.online == Some(true)));
         }
         for channel in &device.channels {
             publications.extend(layout::control_meta(topics, &device.id, channel));
@@ -439,14 +445,16 @@ impl PublicationPlanner {
             debug!(device_id, "state of an unknown device, ignored");
             return Vec::new();
         };
-        if state.online == online {
-            return Vec::new();
+        let before = state.online.replace(online);
+        let mut out = Vec::new();
+        // `meta/error` is empty until the device is found offline, as wb-mqtt-serial has it.
+        if (before != Some(false)) != online {
+            out.push(MqttAction::Publish(layout::device_error(
+                topics, device_id, online,
+            )));
         }
-        state.online = online;
-        let mut out = vec![MqttAction::Publish(layout::device_error(
-            topics, device_id, online,
-        ))];
-        if with_availability {
+        // The availability is `offline` until the device has answered once.
+        if with_availability && (before == Some(true)) != online {
             out.push(MqttAction::Publish(availability(topics, device_id, online)));
         }
         out

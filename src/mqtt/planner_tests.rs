@@ -271,29 +271,24 @@ fn pushbutton_presses_always_publish_and_are_not_retained() {
     assert!(!snapshot.contains("controls/Reset\t1"), "{snapshot}");
 }
 
+/// The availability says `offline` until the device has answered once: a device whose port is
+/// missing, or that never answers, is never `online` for Home Assistant (it was at start, then
+/// `offline` a few seconds later). Its `meta/error` is empty until it is found offline, as
+/// wb-mqtt-serial starts it.
 #[test]
-fn offline_device_sets_r_and_availability() {
+fn a_device_is_unavailable_until_it_first_answers() {
     let mut planner = PublicationPlanner::new(settings(true));
     let relay = template_device("rtu2mqtt-relay6", 1);
     let id = relay.id.clone();
-    planner.handle(DeviceUpdate::Added(relay), Instant::now());
-    let offline = DeviceUpdate::Online {
-        device_id: id.clone(),
-        online: false,
-    };
-    assert_eq!(
-        publications(&planner.handle(offline.clone(), Instant::now())),
-        [
-            (format!("/devices/{id}/meta/error"), "r".into(), true),
-            (
-                format!("/rtu2mqtt/rtu2mqtt/availability/{id}"),
-                "offline".into(),
-                true
-            ),
-        ]
-    );
-    assert!(planner.handle(offline, Instant::now()).is_empty());
-    let back = planner.handle(
+    let availability = format!("/rtu2mqtt/rtu2mqtt/availability/{id}");
+    let device_error = format!("/devices/{id}/meta/error");
+    let added = publications(&planner.handle(DeviceUpdate::Added(relay.clone()), Instant::now()));
+    assert!(added.contains(&(availability.clone(), "offline".into(), true)));
+    assert!(added.contains(&(device_error.clone(), "".into(), true)));
+    let snapshot = publications(&planner.snapshot());
+    assert!(snapshot.contains(&(availability.clone(), "offline".into(), true)));
+    // Its first reply: available; its `meta/error` was empty already.
+    let answered = planner.handle(
         DeviceUpdate::Online {
             device_id: id.clone(),
             online: true,
@@ -301,8 +296,48 @@ fn offline_device_sets_r_and_availability() {
         Instant::now(),
     );
     assert_eq!(
-        publications(&back)[0],
-        (format!("/devices/{id}/meta/error"), "".into(), true)
+        publications(&answered),
+        [(availability.clone(), "online".into(), true)]
+    );
+    let snapshot = publications(&planner.snapshot());
+    assert!(snapshot.contains(&(availability.clone(), "online".into(), true)));
+    // Announced again by a reload: still available.
+    let again = publications(&planner.handle(DeviceUpdate::Added(relay), Instant::now()));
+    assert!(again.contains(&(availability, "online".into(), true)));
+}
+
+#[test]
+fn offline_device_sets_r_and_availability() {
+    let mut planner = PublicationPlanner::new(settings(true));
+    let relay = template_device("rtu2mqtt-relay6", 1);
+    let id = relay.id.clone();
+    let availability = format!("/rtu2mqtt/rtu2mqtt/availability/{id}");
+    let device_error = format!("/devices/{id}/meta/error");
+    planner.handle(DeviceUpdate::Added(relay), Instant::now());
+    let state = |online: bool| DeviceUpdate::Online {
+        device_id: id.clone(),
+        online,
+    };
+    // Never heard from, it fails: `r`; its availability was `offline` from the start.
+    assert_eq!(
+        publications(&planner.handle(state(false), Instant::now())),
+        [(device_error.clone(), "r".into(), true)]
+    );
+    assert!(planner.handle(state(false), Instant::now()).is_empty());
+    assert_eq!(
+        publications(&planner.handle(state(true), Instant::now())),
+        [
+            (device_error.clone(), "".into(), true),
+            (availability.clone(), "online".into(), true),
+        ]
+    );
+    assert!(planner.handle(state(true), Instant::now()).is_empty());
+    assert_eq!(
+        publications(&planner.handle(state(false), Instant::now())),
+        [
+            (device_error, "r".into(), true),
+            (availability, "offline".into(), true),
+        ]
     );
 }
 
