@@ -89,6 +89,10 @@ struct PublishedControl {
     last_published: Option<Instant>,
     errors: ErrorFlags,
     published_errors: String,
+    /// Its value was read by a port that restarted while the device was offline (a reload):
+    /// not published again (after a reconnect, or as the device is announced again) until a
+    /// read brings a value, which also clears the `r` kept from then.
+    held: bool,
 }
 
 #[derive(Debug)]
@@ -196,6 +200,8 @@ impl PublicationPlanner {
                 }
             }
         }
+        // Announced again when its port restarts (a reload) while its old port knew it offline.
+        let was_offline = previous.as_ref().is_some_and(|p| p.online == Some(false));
         let mut controls = IdMap::default();
         for channel in &device.channels {
             let mut state = previous
@@ -204,11 +210,17 @@ impl PublicationPlanner {
                 .unwrap_or_default();
             // A device is announced again when its port restarts (a reload): its new device
             // model starts with clear flags and reports only what it sets or clears itself, so
-            // a flag kept from the old model would never be cleared. Every control starts over
-            // with an empty `meta/error`, as wb-mqtt-serial starts it, and the new model sets
-            // the flags again as it learns (an offline device gets `r` at its first failure:
-            // a device never heard from goes offline at once).
-            state.errors = ErrorFlags::default();
+            // a flag kept from the old model would never be cleared by it. Every control starts
+            // over with an empty `meta/error`, as wb-mqtt-serial starts it, and the new model
+            // sets the flags again as it learns (a device never heard from goes offline at its
+            // first failure); but a device known offline keeps `r` on its readable controls
+            // until its first value (a good read), and its old values are not sent again as if
+            // fresh.
+            state.errors = ErrorFlags {
+                read: was_offline && channel.registers.iter().any(|r| r.read.is_some()),
+                ..ErrorFlags::default()
+            };
+            state.held |= was_offline;
             controls.insert(channel.id.clone(), state);
         }
         // The first channel of an id is the one values go to.
@@ -268,9 +280,12 @@ impl PublicationPlanner {
                 &channel.id,
                 &control.published_errors,
             ));
-            if let (true, false, Some(value)) =
-                (values, layout::is_pushbutton(channel), &control.value)
-            {
+            if let (true, false, false, Some(value)) = (
+                values,
+                layout::is_pushbutton(channel),
+                control.held,
+                &control.value,
+            ) {
                 publications.push(layout::control_value(topics, &device.id, channel, value));
             }
         }
@@ -394,6 +409,15 @@ impl PublicationPlanner {
             return Vec::new();
         };
         let mut out = Vec::new();
+        if control.held {
+            // The first value since its port restarted with the device offline: a good read,
+            // which clears the `r` kept from then, before the value goes out.
+            control.held = false;
+            if control.errors.read {
+                control.errors.read = false;
+                out.extend(error_if_changed(topics, device_id, control_id, control));
+            }
+        }
         let due = match unchanged_policy {
             UnchangedPolicy::OnChange => false,
             UnchangedPolicy::EveryRead => true,
