@@ -200,7 +200,9 @@ impl PublicationPlanner {
                 }
             }
         }
-        // Announced again when its port restarts (a reload) while its old port knew it offline.
+        // Announced again when its port restarts (a reload) while its old port knew it offline:
+        // the daemon starts its new device model as known offline, with `r` on every readable
+        // control (`DeviceModel::known_offline`).
         let was_offline = previous.as_ref().is_some_and(|p| p.online == Some(false));
         let mut controls = IdMap::default();
         for channel in &device.channels {
@@ -209,15 +211,14 @@ impl PublicationPlanner {
                 .and_then(|p| p.controls.remove(&channel.id))
                 .unwrap_or_default();
             // A device is announced again when its port restarts (a reload): its new device
-            // model starts with clear flags and reports only what it sets or clears itself, so
-            // a flag kept from the old model would never be cleared by it. Every control starts
-            // over with an empty `meta/error`, as wb-mqtt-serial starts it, and the new model
-            // sets the flags again as it learns (a device never heard from goes offline at its
-            // first failure); but a device known offline keeps `r` on its readable controls
-            // until its first value (a good read), and its old values are not sent again as if
-            // fresh.
+            // model reports only what it sets or clears itself, so a flag kept here that the
+            // model does not hold would never be cleared. Every control starts with the flags
+            // its new model starts with: empty, as wb-mqtt-serial starts it, and set again as
+            // the model learns (a device never heard from goes offline at its first failure);
+            // but a device known offline keeps `r` on its readable controls, as its new model
+            // does, until a read succeeds, and its old values are not sent again as if fresh.
             state.errors = ErrorFlags {
-                read: was_offline && channel.registers.iter().any(|r| r.read.is_some()),
+                read: was_offline && channel.is_read(),
                 ..ErrorFlags::default()
             };
             state.held |= was_offline;
@@ -410,8 +411,9 @@ impl PublicationPlanner {
         };
         let mut out = Vec::new();
         if control.held {
-            // The first value since its port restarted with the device offline: a good read,
-            // which clears the `r` kept from then, before the value goes out.
+            // The first value since its port restarted with the device offline. Its new model
+            // cleared the `r` it started with before this value; should it not have (it did not
+            // start as known offline), the value clears it here, before the value goes out.
             control.held = false;
             if control.errors.read {
                 control.errors.read = false;

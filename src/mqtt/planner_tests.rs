@@ -537,7 +537,7 @@ fn readable_error_topics(device: &ResolvedDevice) -> Vec<String> {
     device
         .channels
         .iter()
-        .filter(|c| c.registers.iter().any(|r| r.read.is_some()))
+        .filter(|c| c.is_read())
         .map(|c| format!("/devices/{}/controls/{}/meta/error", device.id, c.id))
         .collect()
 }
@@ -577,6 +577,7 @@ fn an_offline_device_whose_port_restarts_keeps_r_until_a_read_succeeds() {
     published.extend(feed(&mut planner, out));
     assert_eq!(last_of(&published, &k1), Some("1"));
     assert!(readable.iter().all(|t| last_of(&published, t) == Some("r")));
+    assert!(model.is_offline());
 
     // The reload: announced again, and its state republished (the client does it from the
     // backlog when the device is announced while connected).
@@ -600,9 +601,9 @@ fn an_offline_device_whose_port_restarts_keeps_r_until_a_read_succeeds() {
     }
     published.extend(restarted);
 
-    // The new model: its first failure changes nothing, its first good read clears `r`
-    // before the value.
-    let mut model = DeviceModel::new(relay.clone(), 0, Repeats::None);
+    // The new model, as the daemon builds it for a device its old port knew offline: its
+    // first failure changes nothing, its first good read clears `r` before the value.
+    let mut model = DeviceModel::new(relay.clone(), 0, Repeats::None).known_offline();
     let mut out = Vec::new();
     model.apply(PortEvent::Offline { device: 0 }, &mut out);
     assert_eq!(feed(&mut planner, out), []);
