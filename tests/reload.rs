@@ -17,7 +17,7 @@ use std::path::Path;
 use std::process::{Child, Command, Stdio};
 
 use daemon_support::repo;
-use mqtt_support::{publish, retained, rpc, wait_for, Mosquitto};
+use mqtt_support::{publish, retained, rpc, wait_for, Mosquitto, Recorder};
 use serde_json::{json, Value};
 use sim_support::SimProcess;
 
@@ -29,6 +29,12 @@ const BUS_B: &str = r#"{"devices": [
    "values": {"input:4": 2150}},
   {"name": "counter", "template": "rtu2mqtt-counter8", "address": 22, "serial": "0xFE000022", "line": "115200 8N2",
    "values": {"input:60": [0, 1234]}}
+]}"#;
+
+const BUS_RELAY_METER: &str = r#"{"devices": [
+  {"name": "relay", "template": "rtu2mqtt-relay6", "address": 20, "serial": "0xFE000020", "line": "115200 8N2"},
+  {"name": "meter", "template": "rtu2mqtt-energy-meter", "address": 30, "serial": "0x0D000030", "line": "115200 8N2",
+   "fast": false, "values": {"input:0": [32768, 17254]}}
 ]}"#;
 
 fn sim(dir: &Path, name: &str, bus: &str) -> SimProcess {
@@ -338,6 +344,17 @@ async fn a_write_its_port_could_not_take_in_time_is_given_up_not_sent_late() {
                                 "max_write_fail_time_s": 1}]}]
     });
     std::fs::write(&config_path, config.to_string()).unwrap();
+    // Home Assistant's view: the relay is never available while its port is missing (it was
+    // `online` at start, then `offline` once the port had been missing for the device timeout).
+    let availability = "/rtu2mqtt/rtu2mqtt-write-away/availability/relay6_20";
+    let recorder = Recorder::start(port, availability).await;
+    let availabilities = || -> Vec<String> {
+        let messages = recorder.messages.lock().unwrap();
+        messages
+            .iter()
+            .map(|(_, payload, _)| payload.clone())
+            .collect()
+    };
     let daemon = Daemon::start(dir.path(), &config_path, "info");
     switch_k3_on_while_the_port_is_missing(port, &daemon).await;
     wait_for("the write given up and flagged", || async {
@@ -353,6 +370,11 @@ async fn a_write_its_port_could_not_take_in_time_is_given_up_not_sent_late() {
         "{}",
         daemon.log()
     );
+    wait_for("the relay marked offline", || async {
+        daemon.log().contains("device marked offline").then_some(())
+    })
+    .await;
+    assert_eq!(availabilities(), ["offline"]);
 
     let sim = sim(dir.path(), "bus.json", BUS_A);
     std::os::unix::fs::symlink(&sim.pty, &tty).unwrap();
@@ -363,4 +385,138 @@ async fn a_write_its_port_could_not_take_in_time_is_given_up_not_sent_late() {
     .await;
     let reply = sim.control(json!({"cmd": "get", "device": 20, "type": "coil", "address": 2}));
     assert_eq!(reply["value"], 0, "the given-up write went out late");
+    wait_for("the relay available once it answered", || async {
+        (availabilities().len() > 1).then_some(())
+    })
+    .await;
+    assert_eq!(availabilities(), ["offline", "online"]);
+}
+
+/// Operator audit: two devices on one port, the meter unplugged and flagged `r`; a reload that
+/// changes only the relay restarts the port. The broker saw, at once, an empty `meta/error` on
+/// every control of the meter and its minutes-old values sent again, and `r` only a second
+/// later. Now, until the meter is plugged back, none of its controls gets an empty
+/// `meta/error` or a value; once it is back, `r` is cleared and its values come.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_reload_keeps_r_on_an_offline_device_until_it_answers_again() {
+    let broker = Mosquitto::start();
+    let port = broker.port;
+    let dir = tempfile::tempdir().unwrap();
+    let sim = sim(dir.path(), "bus.json", BUS_RELAY_METER);
+    let config_path = dir.path().join("config.json");
+    let write_config = |relay: Value| {
+        let config = json!({
+            "mqtt": {"host": "127.0.0.1", "port": port, "client_id": "rtu2mqtt-reload-offline"},
+            "ports": [{"path": &sim.pty, "baud_rate": 115200, "stop_bits": 2,
+                       "devices": [relay, {"device_type": "rtu2mqtt-energy-meter", "slave_id": 30}]}]
+        });
+        std::fs::write(&config_path, config.to_string()).unwrap();
+    };
+    write_config(json!({"device_type": "rtu2mqtt-relay6", "slave_id": 20}));
+    let daemon = Daemon::start(dir.path(), &config_path, "info");
+    let meter = "/devices/energy_meter_30";
+    let voltage = format!("{meter}/controls/Voltage");
+    let voltage_error = format!("{voltage}/meta/error");
+    let availability = "/rtu2mqtt/rtu2mqtt-reload-offline/availability/energy_meter_30";
+    wait_for("the meter's voltage", || async {
+        (topic_value(port, &voltage).await? == "230.5").then_some(())
+    })
+    .await;
+
+    sim.control(json!({"cmd": "unplug", "device": 30}));
+    wait_for("the meter flagged r", || async {
+        let state = retained(port).await?;
+        (state.get(&voltage_error)? == "r"
+            && state.get(&format!("{meter}/meta/error"))? == "r"
+            && state.get(availability)? == "offline")
+            .then_some(())
+    })
+    .await;
+    let marked_offline = |log: &str| {
+        log.lines()
+            .filter(|l| l.contains("marked offline") && l.contains("energy_meter"))
+            .count()
+    };
+    let offline_before = marked_offline(&daemon.log());
+    assert!(offline_before > 0, "{}", daemon.log());
+
+    // Live messages only: the retained ones a subscription starts with come with the flag.
+    let recorder = Recorder::start(port, &format!("{meter}/#")).await;
+    let live = |recorder: &Recorder| -> Vec<(String, String)> {
+        recorder
+            .messages
+            .lock()
+            .unwrap()
+            .iter()
+            .filter(|(_, _, retained)| !retained)
+            .map(|(topic, payload, _)| (topic.clone(), payload.clone()))
+            .collect()
+    };
+    let is_value = |topic: &str| {
+        topic
+            .strip_prefix(&format!("{meter}/controls/"))
+            .is_some_and(|control| !control.contains('/'))
+    };
+    write_config(json!({"device_type": "rtu2mqtt-relay6", "slave_id": 20,
+                        "max_write_fail_time_s": 30}));
+    daemon.signal(nix::sys::signal::Signal::SIGHUP);
+    wait_for("the port restarted by the reload", || async {
+        daemon
+            .log()
+            .lines()
+            .any(|l| l.contains("reload applied") && l.contains("restarted"))
+            .then_some(())
+    })
+    .await;
+    // The meter announced again (its meta sent again), then found offline by the new task.
+    wait_for("the meter announced again and found offline", || async {
+        let announced = live(&recorder)
+            .iter()
+            .any(|(topic, _)| *topic == format!("{voltage}/meta"));
+        (announced && marked_offline(&daemon.log()) > offline_before).then_some(())
+    })
+    .await;
+    // What the new task's first failure would send (in the audit ~1 s after the reload).
+    tokio::time::sleep(std::time::Duration::from_millis(500)).await;
+    for (topic, payload) in live(&recorder) {
+        assert!(
+            !(topic.ends_with("/meta/error") && payload.is_empty()),
+            "{topic} cleared while the meter is unplugged:\n{:?}",
+            live(&recorder)
+        );
+        assert!(
+            !is_value(&topic),
+            "{topic} = {payload} sent again while the meter is unplugged"
+        );
+    }
+    assert_eq!(
+        topic_value(port, &voltage_error).await.as_deref(),
+        Some("r")
+    );
+
+    let before_replug = live(&recorder).len();
+    sim.control(json!({"cmd": "replug", "device": 30}));
+    wait_for("the meter's voltage after the replug", || async {
+        let after: Vec<(String, String)> = live(&recorder).split_off(before_replug);
+        let cleared = after
+            .iter()
+            .position(|(t, p)| *t == voltage_error && p.is_empty())?;
+        let value = after
+            .iter()
+            .position(|(t, p)| *t == voltage && p == "230.5")?;
+        assert!(
+            cleared < value,
+            "the value before its r was cleared: {after:?}"
+        );
+        Some(())
+    })
+    .await;
+    wait_for("no r left on the meter, and it is available", || async {
+        let state = retained(port).await?;
+        let flagged = state
+            .iter()
+            .any(|(t, p)| t.starts_with(meter) && t.ends_with("/meta/error") && p.contains('r'));
+        (!flagged && state.get(availability)? == "online").then_some(())
+    })
+    .await;
 }

@@ -23,7 +23,7 @@ use crate::service::{PortVitals, ServiceHealth};
 use crate::status::{PortStatus, StatusHub};
 use bus_queue::BusQueue;
 use event_log::EventLog;
-use port_task::PortTask;
+use port_task::{Handover, PortTask};
 
 /// Room for bursts between the port tasks and the sink.
 const UPDATE_QUEUE: usize = 4096;
@@ -78,8 +78,9 @@ struct RunningPort {
     resolved: ResolvedPort,
     config: serde_json::Value,
     stop: watch::Sender<bool>,
-    /// Hands back the writes the task left unsent when it stops.
-    task: oneshot::Receiver<Vec<ControlWrite>>,
+    /// Hands back the writes the task left unsent, and the devices it knew offline, when it
+    /// stops.
+    task: oneshot::Receiver<Handover>,
     /// Its write queue, where its devices' routes lead.
     writes: mpsc::Sender<ControlWrite>,
     vitals: Arc<PortVitals>,
@@ -177,7 +178,7 @@ pub fn start_bus_side_with_status(
         channel_indexes: ChannelIndexes::default(),
     };
     for port in ports {
-        let prepared = control.prepare_port(&port);
+        let prepared = control.prepare_port(&port, &[]);
         for update in prepared.added {
             // Nothing consumes yet and the queue is empty: these never wait.
             let _ = control.updates.try_send(update);
@@ -199,10 +200,11 @@ fn lock<T>(mutex: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
 
 impl BusControl {
     /// Sets up a port's device models and write route; returns the port task, not yet running,
-    /// and the `Added` announcements that must reach the sink before any of its values.
-    fn prepare_port(&mut self, port: &ResolvedPort) -> PreparedPort {
+    /// and the `Added` announcements that must reach the sink before any of its values. The
+    /// models of the devices in `offline` start as known offline.
+    fn prepare_port(&mut self, port: &ResolvedPort, offline: &[String]) -> PreparedPort {
         let queue = self.write_queue_for(port);
-        self.prepare_port_with(port, queue)
+        self.prepare_port_with(port, queue, offline)
     }
 
     /// A write queue for `port`, its devices' routes leading there from now on: writes sent
@@ -220,6 +222,7 @@ impl BusControl {
         &mut self,
         port: &ResolvedPort,
         (port_write_tx, port_write_rx): WriteQueue,
+        offline: &[String],
     ) -> PreparedPort {
         let plan = port_plan(port, self.fast_modbus);
         let vitals = self.health.add_port(&plan.name, port.devices.len());
@@ -231,12 +234,17 @@ impl BusControl {
             let device = Arc::new(device.clone());
             added.push(DeviceUpdate::Added(Arc::clone(&device)));
             devices.push(Arc::clone(&device));
-            models.push(DeviceModel::sharing(
-                device,
-                index,
-                self.repeats,
-                &mut self.channel_indexes,
-            ));
+            let known_offline = offline.contains(&device.id);
+            let model =
+                DeviceModel::sharing(device, index, self.repeats, &mut self.channel_indexes);
+            // A device the stopped task of its port knew offline keeps its `r` on MQTT (the
+            // planner keeps it when the device is announced again): the new model holds it
+            // too, and clears it at the first good read.
+            models.push(if known_offline {
+                model.known_offline()
+            } else {
+                model
+            });
         }
         let (queue, queued) = BusQueue::new();
         let line = match &plan.endpoint {
@@ -316,13 +324,13 @@ impl BusControl {
 
     /// Stops a port task (a transaction in flight is abandoned); its devices stop taking
     /// writes, unless a route to another queue was set up for them already. Returns the port
-    /// and the writes its task left unsent.
-    async fn stop_port(&mut self, key: &str) -> Option<(ResolvedPort, Vec<ControlWrite>)> {
+    /// and what its task handed back: the writes it left unsent, the devices it knew offline.
+    async fn stop_port(&mut self, key: &str) -> Option<(ResolvedPort, Handover)> {
         let running = self.ports.remove(key)?;
         lock(&self.directory).remove(key);
         let _ = running.stop.send(true);
         // A task that panicked hands back nothing.
-        let unsent = running.task.await.unwrap_or_default();
+        let handover = running.task.await.unwrap_or_default();
         self.health.remove_port(&running.vitals);
         if let (Some(hub), Some(status)) = (&self.status, &running.status) {
             hub.remove_port(status);
@@ -336,7 +344,7 @@ impl BusControl {
                 routes.remove(&device.id);
             }
         }
-        Some((running.resolved, unsent))
+        Some((running.resolved, handover))
     }
 
     /// Applies a new configuration: unchanged ports keep running untouched; removed ports stop
@@ -393,11 +401,14 @@ impl BusControl {
             .flat_map(|p| p.devices.iter().map(|d| d.id.clone()))
             .collect();
         let mut unsent = Vec::new();
+        // The devices the stopped tasks knew offline (a device may move to another port).
+        let mut offline = Vec::new();
         for key in changed {
             let Some((old, left)) = self.stop_port(&key).await else {
                 continue;
             };
-            unsent.extend(left);
+            unsent.extend(left.writes);
+            offline.extend(left.offline);
             for device in &old.devices {
                 if !still_configured.contains(&device.id) {
                     let _ = self
@@ -431,7 +442,7 @@ impl BusControl {
                 .filter(|write| port.devices.iter().any(|d| d.id == write.device_id))
                 .cloned()
                 .collect();
-            let prepared = self.prepare_port_with(&port, queue);
+            let prepared = self.prepare_port_with(&port, queue, &offline);
             for update in prepared.added {
                 let _ = self.updates.send(update).await;
             }
@@ -464,8 +475,8 @@ fn run_on_own_thread(
     key: &str,
     task: PortTask,
     stopped: watch::Receiver<bool>,
-) -> oneshot::Receiver<Vec<ControlWrite>> {
-    let (done, unsent) = oneshot::channel();
+) -> oneshot::Receiver<Handover> {
+    let (done, handover) = oneshot::channel();
     let callers = tokio::runtime::Handle::try_current().ok();
     // Taken by the thread, or back by the caller if no thread could be started (the failed
     // spawn drops the closure, and the task would go with it).
@@ -485,8 +496,8 @@ fn run_on_own_thread(
             {
                 Ok(runtime) => {
                     let helpers = helpers.unwrap_or_else(|| runtime.handle().clone());
-                    let unsent = runtime.block_on(task.owning_its_thread(helpers).run(stopped));
-                    let _ = done.send(unsent);
+                    let handover = runtime.block_on(task.owning_its_thread(helpers).run(stopped));
+                    let _ = done.send(handover);
                 }
                 Err(err) => {
                     warn!(%port, %err, "no runtime of its own for the port task; it shares the main one");
@@ -501,7 +512,7 @@ fn run_on_own_thread(
             run_on_shared_runtime(callers.as_ref(), task, stopped, done);
         }
     }
-    unsent
+    handover
 }
 
 /// The fallback of [`run_on_own_thread`]: the task on `runtime`, its waits through the reactor.
@@ -510,7 +521,7 @@ fn run_on_shared_runtime(
     runtime: Option<&tokio::runtime::Handle>,
     task: PortTask,
     stopped: watch::Receiver<bool>,
-    done: oneshot::Sender<Vec<ControlWrite>>,
+    done: oneshot::Sender<Handover>,
 ) {
     match runtime {
         Some(runtime) => drop(runtime.spawn(async move {

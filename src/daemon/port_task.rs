@@ -35,6 +35,16 @@ use crate::transport::{Endpoint, Transport, TransportError};
 const FIRST_REOPEN_DELAY: Duration = Duration::from_millis(500);
 const MAX_REOPEN_DELAY: Duration = Duration::from_secs(10);
 
+/// What a stopped task hands to the one that replaces it (a reload that restarts its port).
+#[derive(Debug, Default)]
+pub struct Handover {
+    /// The writes it took or was given and never put on the wire, oldest first.
+    pub writes: Vec<ControlWrite>,
+    /// The devices its models knew offline ([`DeviceModel::is_offline`]): their new models
+    /// start so ([`DeviceModel::known_offline`]), as the MQTT side keeps their `r`.
+    pub offline: Vec<String>,
+}
+
 pub struct PortTask {
     plan_name: String,
     endpoint: crate::transport::Endpoint,
@@ -580,13 +590,26 @@ impl PortTask {
         }
     }
 
-    /// Serves the bus until `shutdown` turns true.
-    /// Serves the port until `shutdown`; then hands back the writes it took or was given and
-    /// never put on the wire, oldest first, for the task that replaces it (a reload that
-    /// restarts the port must not lose a user's command).
-    pub async fn run(mut self, shutdown: watch::Receiver<bool>) -> Vec<ControlWrite> {
+    /// Serves the port until `shutdown`; then hands back, for the task that replaces it, the
+    /// writes it took or was given and never put on the wire, oldest first (a reload that
+    /// restarts the port must not lose a user's command), and the devices it knew offline.
+    /// Every update it made has been sent by then.
+    pub async fn run(mut self, shutdown: watch::Receiver<bool>) -> Handover {
         self.serve_until_stopped(shutdown).await;
-        self.unsent_writes()
+        self.handover()
+    }
+
+    /// What the stopped task hands on ([`Self::run`]).
+    fn handover(&mut self) -> Handover {
+        Handover {
+            writes: self.unsent_writes(),
+            offline: self
+                .models
+                .iter()
+                .filter(|model| model.is_offline())
+                .map(|model| model.id().to_owned())
+                .collect(),
+        }
     }
 
     fn unsent_writes(&mut self) -> Vec<ControlWrite> {
@@ -1536,6 +1559,22 @@ mod tests {
         );
     }
 
+    /// A stopping task names the devices it knew offline, so that their new models start so
+    /// (and clear the `r` the MQTT side keeps at their first good read); a device that came
+    /// back is not named.
+    #[tokio::test]
+    async fn a_stopping_task_names_the_devices_it_knew_offline() {
+        let (_sender, receiver) = mpsc::channel(8);
+        let mut task = relay_task(receiver);
+        assert!(task.handover().offline.is_empty());
+        task.dispatch(&mut vec![PortEvent::Offline { device: 0 }])
+            .await;
+        assert_eq!(task.handover().offline, ["relay6_20"]);
+        task.dispatch(&mut vec![PortEvent::Online { device: 0 }])
+            .await;
+        assert!(task.handover().offline.is_empty());
+    }
+
     /// The daemon runs each port task on a thread and runtime of its own (no runtime here: a
     /// task put on the caller's would panic). Stopped, it hands back the writes it never sent.
     #[test]
@@ -1570,6 +1609,7 @@ mod tests {
         let handed: Vec<String> = unsent
             .blocking_recv()
             .expect("the task ran and stopped")
+            .writes
             .into_iter()
             .map(|w| w.control_id)
             .collect();
@@ -1652,7 +1692,7 @@ mod tests {
             stop.send(true).expect("the task listens");
             unsent.await.expect("the task ran and stopped")
         });
-        let handed: Vec<String> = handed.into_iter().map(|w| w.control_id).collect();
+        let handed: Vec<String> = handed.writes.into_iter().map(|w| w.control_id).collect();
         assert_eq!(handed, ["K4"]);
     }
 

@@ -185,6 +185,11 @@ pub struct ResolvedChannel {
 pub type ChannelReading = Reading;
 
 impl ResolvedChannel {
+    /// Some register of it is read: the controls a device that does not answer flags `r`.
+    pub fn is_read(&self) -> bool {
+        self.registers.iter().any(|r| r.read.is_some())
+    }
+
     /// Priority of polling and of the 0x18 event enable record.
     pub fn priority(&self) -> Priority {
         if self.read_period.is_some() {

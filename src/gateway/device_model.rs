@@ -64,6 +64,8 @@ pub struct DeviceModel {
     /// The register whose write was reported done by the event just applied: the words the
     /// scheduler reports next ([`PortEvent::Values`]) are those it sent.
     write_done: Option<(RegisterType, u16)>,
+    /// The port reported the device offline and not online since ([`Self::is_offline`]).
+    offline: bool,
 }
 
 /// Which channels read each register, and the channels' ids as updates carry them: built once
@@ -319,7 +321,29 @@ impl DeviceModel {
             unsupported_reads: Vec::new(),
             pending_writes: Vec::new(),
             write_done: None,
+            offline: false,
         }
+    }
+
+    /// Starts as the model of a device known offline: the model this one replaces (a reload
+    /// restarted its port) had it offline, and the MQTT side keeps the `r` it published on
+    /// every readable control. This model holds that `r` too, so that it clears it at the
+    /// control's first good read, as after any failed read (a model that starts with clear
+    /// flags has nothing to clear, and the `r` would stay on the broker).
+    pub fn known_offline(mut self) -> Self {
+        self.offline = true;
+        for (flags, channel) in self.errors.iter_mut().zip(self.device.channels.iter()) {
+            if channel.is_read() {
+                flags.read = true;
+            }
+        }
+        self
+    }
+
+    /// The device was reported offline and not online since: what a model that replaces this
+    /// one starts from ([`Self::known_offline`]).
+    pub fn is_offline(&self) -> bool {
+        self.offline
     }
 
     /// The reads that answered `unsupported_value` since the last call: wb-mqtt-serial stops
@@ -441,22 +465,22 @@ impl DeviceModel {
                     out,
                 );
             }
-            PortEvent::Online { .. } => out.push(DeviceUpdate::Online {
-                device_id: self.device.id.clone(),
-                online: true,
-            }),
+            PortEvent::Online { .. } => {
+                self.offline = false;
+                out.push(DeviceUpdate::Online {
+                    device_id: self.device.id.clone(),
+                    online: true,
+                });
+            }
             PortEvent::Offline { .. } => {
+                self.offline = true;
                 out.push(DeviceUpdate::Online {
                     device_id: self.device.id.clone(),
                     online: false,
                 });
                 // Every control of a dead device at once, as wb-mqtt-serial does, rather than
                 // one by one as each read fails in turn (seconds apart under back-off).
-                self.set_flags(
-                    |c| c.registers.iter().any(|r| r.read.is_some()),
-                    |flags| flags.read = true,
-                    out,
-                );
+                self.set_flags(ResolvedChannel::is_read, |flags| flags.read = true, out);
             }
             PortEvent::Rebooted { .. } => {
                 // The device may hold other values now: an event for one word of a wider value
@@ -1569,18 +1593,71 @@ mod tests {
         let mut model = relay();
         let mut out = Vec::new();
         model.apply(PortEvent::Offline { device: 0 }, &mut out);
-        let readable = model
-            .device
-            .channels
-            .iter()
-            .filter(|c| c.registers.iter().any(|r| r.read.is_some()))
-            .count();
+        let readable = model.device.channels.iter().filter(|c| c.is_read()).count();
         let flagged = out
             .iter()
             .filter(|u| matches!(u, DeviceUpdate::ControlError { errors, .. } if errors.read))
             .count();
         assert!(readable > 5);
         assert_eq!(flagged, readable);
+    }
+
+    /// A model that replaces one that knew its device offline (a reload restarted the port)
+    /// starts with the `r` the MQTT side kept on every readable control, and clears it at the
+    /// control's first good read, before its value; a failure meanwhile reports nothing new.
+    /// (A model that started clear reported no `r` to clear, and the `r` stayed.)
+    #[test]
+    fn a_model_known_offline_clears_the_kept_r_at_the_first_good_read() {
+        let mut old = relay();
+        let mut out = Vec::new();
+        assert!(!old.is_offline());
+        old.apply(PortEvent::Offline { device: 0 }, &mut out);
+        assert!(old.is_offline());
+        old.apply(PortEvent::Online { device: 0 }, &mut out);
+        assert!(!old.is_offline());
+
+        let mut model = relay().known_offline();
+        assert!(model.is_offline());
+        let span = RegisterSpan::new(RegisterType::Coil, 0, 1);
+        let mut out = Vec::new();
+        model.apply(PortEvent::Offline { device: 0 }, &mut out);
+        model.apply(
+            PortEvent::ReadFailed {
+                device: 0,
+                span,
+                unsupported: false,
+            },
+            &mut out,
+        );
+        assert!(
+            !out.iter()
+                .any(|u| matches!(u, DeviceUpdate::ControlError { .. })),
+            "{out:?}"
+        );
+        let mut out = Vec::new();
+        model.apply(PortEvent::Online { device: 0 }, &mut out);
+        model.apply(
+            PortEvent::Values {
+                device: 0,
+                span,
+                values: vec![1].into(),
+            },
+            &mut out,
+        );
+        let kinds: Vec<String> = out
+            .iter()
+            .filter_map(|u| match u {
+                DeviceUpdate::ControlError {
+                    control_id, errors, ..
+                } => Some(format!("{control_id} error '{errors}'")),
+                DeviceUpdate::Value {
+                    control_id, value, ..
+                } => Some(format!("{control_id} = {value}")),
+                _ => None,
+            })
+            .collect();
+        assert_eq!(kinds, ["K1 error ''", "K1 = 1"]);
+        assert!(!model.is_offline());
     }
 
     /// A model of one device with `channel` only, writing holding register 0.

@@ -89,13 +89,19 @@ struct PublishedControl {
     last_published: Option<Instant>,
     errors: ErrorFlags,
     published_errors: String,
+    /// Its value was read by a port that restarted while the device was offline (a reload):
+    /// not published again (after a reconnect, or as the device is announced again) until a
+    /// read brings a value, which also clears the `r` kept from then.
+    held: bool,
 }
 
 #[derive(Debug)]
 struct PublishedDevice {
     device: Arc<ResolvedDevice>,
     identity: DeviceIdentity,
-    online: bool,
+    /// What its port last said: online, offline, or nothing yet (not heard from). Its
+    /// `meta/error` is `r` only while offline; its availability `online` only while online.
+    online: Option<bool>,
     /// Its port has been this gateway's ([`DeviceUpdate::BusServed`]): its Wiren Board topics
     /// are deleted with it; before, only what is this gateway's own (discovery configs).
     bus_served: bool,
@@ -194,6 +200,10 @@ impl PublicationPlanner {
                 }
             }
         }
+        // Announced again when its port restarts (a reload) while its old port knew it offline:
+        // the daemon starts its new device model as known offline, with `r` on every readable
+        // control (`DeviceModel::known_offline`).
+        let was_offline = previous.as_ref().is_some_and(|p| p.online == Some(false));
         let mut controls = IdMap::default();
         for channel in &device.channels {
             let mut state = previous
@@ -201,12 +211,17 @@ impl PublicationPlanner {
                 .and_then(|p| p.controls.remove(&channel.id))
                 .unwrap_or_default();
             // A device is announced again when its port restarts (a reload): its new device
-            // model starts with clear flags and reports only what it sets or clears itself, so
-            // a flag kept from the old model would never be cleared. Every control starts over
-            // with an empty `meta/error`, as wb-mqtt-serial starts it, and the new model sets
-            // the flags again as it learns (an offline device gets `r` at its first failure:
-            // a device never heard from goes offline at once).
-            state.errors = ErrorFlags::default();
+            // model reports only what it sets or clears itself, so a flag kept here that the
+            // model does not hold would never be cleared. Every control starts with the flags
+            // its new model starts with: empty, as wb-mqtt-serial starts it, and set again as
+            // the model learns (a device never heard from goes offline at its first failure);
+            // but a device known offline keeps `r` on its readable controls, as its new model
+            // does, until a read succeeds, and its old values are not sent again as if fresh.
+            state.errors = ErrorFlags {
+                read: was_offline && channel.is_read(),
+                ..ErrorFlags::default()
+            };
+            state.held |= was_offline;
             controls.insert(channel.id.clone(), state);
         }
         // The first channel of an id is the one values go to.
@@ -218,7 +233,7 @@ impl PublicationPlanner {
         }
         let (identity, online, bus_served) = previous
             .map(|p| (p.identity, p.online, p.bus_served))
-            .unwrap_or((DeviceIdentity::default(), true, false));
+            .unwrap_or((DeviceIdentity::default(), None, false));
         let mut state = PublishedDevice {
             device: device.clone(),
             identity,
@@ -248,9 +263,13 @@ impl PublicationPlanner {
             ));
         }
         let mut publications = layout::device_meta(topics, &device, &state.identity);
-        publications.push(layout::device_error(topics, &device.id, state.online));
+        publications.push(layout::device_error(
+            topics,
+            &device.id,
+            state.online != Some(false),
+        ));
         if self.settings.discovery.is_some() {
-            publications.push(availability(topics, &device.id, state.online));
+            publications.push(availability(topics, &device.id, state.online == Some(true)));
         }
         for channel in &device.channels {
             publications.extend(layout::control_meta(topics, &device.id, channel));
@@ -262,9 +281,12 @@ impl PublicationPlanner {
                 &channel.id,
                 &control.published_errors,
             ));
-            if let (true, false, Some(value)) =
-                (values, layout::is_pushbutton(channel), &control.value)
-            {
+            if let (true, false, false, Some(value)) = (
+                values,
+                layout::is_pushbutton(channel),
+                control.held,
+                &control.value,
+            ) {
                 publications.push(layout::control_value(topics, &device.id, channel, value));
             }
         }
@@ -388,6 +410,16 @@ impl PublicationPlanner {
             return Vec::new();
         };
         let mut out = Vec::new();
+        if control.held {
+            // The first value since its port restarted with the device offline. Its new model
+            // cleared the `r` it started with before this value; should it not have (it did not
+            // start as known offline), the value clears it here, before the value goes out.
+            control.held = false;
+            if control.errors.read {
+                control.errors.read = false;
+                out.extend(error_if_changed(topics, device_id, control_id, control));
+            }
+        }
         let due = match unchanged_policy {
             UnchangedPolicy::OnChange => false,
             UnchangedPolicy::EveryRead => true,
@@ -439,14 +471,16 @@ impl PublicationPlanner {
             debug!(device_id, "state of an unknown device, ignored");
             return Vec::new();
         };
-        if state.online == online {
-            return Vec::new();
+        let before = state.online.replace(online);
+        let mut out = Vec::new();
+        // `meta/error` is empty until the device is found offline, as wb-mqtt-serial has it.
+        if (before != Some(false)) != online {
+            out.push(MqttAction::Publish(layout::device_error(
+                topics, device_id, online,
+            )));
         }
-        state.online = online;
-        let mut out = vec![MqttAction::Publish(layout::device_error(
-            topics, device_id, online,
-        ))];
-        if with_availability {
+        // The availability is `offline` until the device has answered once.
+        if with_availability && (before == Some(true)) != online {
             out.push(MqttAction::Publish(availability(topics, device_id, online)));
         }
         out

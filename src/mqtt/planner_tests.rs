@@ -271,29 +271,24 @@ fn pushbutton_presses_always_publish_and_are_not_retained() {
     assert!(!snapshot.contains("controls/Reset\t1"), "{snapshot}");
 }
 
+/// The availability says `offline` until the device has answered once: a device whose port is
+/// missing, or that never answers, is never `online` for Home Assistant (it was at start, then
+/// `offline` a few seconds later). Its `meta/error` is empty until it is found offline, as
+/// wb-mqtt-serial starts it.
 #[test]
-fn offline_device_sets_r_and_availability() {
+fn a_device_is_unavailable_until_it_first_answers() {
     let mut planner = PublicationPlanner::new(settings(true));
     let relay = template_device("rtu2mqtt-relay6", 1);
     let id = relay.id.clone();
-    planner.handle(DeviceUpdate::Added(relay), Instant::now());
-    let offline = DeviceUpdate::Online {
-        device_id: id.clone(),
-        online: false,
-    };
-    assert_eq!(
-        publications(&planner.handle(offline.clone(), Instant::now())),
-        [
-            (format!("/devices/{id}/meta/error"), "r".into(), true),
-            (
-                format!("/rtu2mqtt/rtu2mqtt/availability/{id}"),
-                "offline".into(),
-                true
-            ),
-        ]
-    );
-    assert!(planner.handle(offline, Instant::now()).is_empty());
-    let back = planner.handle(
+    let availability = format!("/rtu2mqtt/rtu2mqtt/availability/{id}");
+    let device_error = format!("/devices/{id}/meta/error");
+    let added = publications(&planner.handle(DeviceUpdate::Added(relay.clone()), Instant::now()));
+    assert!(added.contains(&(availability.clone(), "offline".into(), true)));
+    assert!(added.contains(&(device_error.clone(), "".into(), true)));
+    let snapshot = publications(&planner.snapshot());
+    assert!(snapshot.contains(&(availability.clone(), "offline".into(), true)));
+    // Its first reply: available; its `meta/error` was empty already.
+    let answered = planner.handle(
         DeviceUpdate::Online {
             device_id: id.clone(),
             online: true,
@@ -301,8 +296,48 @@ fn offline_device_sets_r_and_availability() {
         Instant::now(),
     );
     assert_eq!(
-        publications(&back)[0],
-        (format!("/devices/{id}/meta/error"), "".into(), true)
+        publications(&answered),
+        [(availability.clone(), "online".into(), true)]
+    );
+    let snapshot = publications(&planner.snapshot());
+    assert!(snapshot.contains(&(availability.clone(), "online".into(), true)));
+    // Announced again by a reload: still available.
+    let again = publications(&planner.handle(DeviceUpdate::Added(relay), Instant::now()));
+    assert!(again.contains(&(availability, "online".into(), true)));
+}
+
+#[test]
+fn offline_device_sets_r_and_availability() {
+    let mut planner = PublicationPlanner::new(settings(true));
+    let relay = template_device("rtu2mqtt-relay6", 1);
+    let id = relay.id.clone();
+    let availability = format!("/rtu2mqtt/rtu2mqtt/availability/{id}");
+    let device_error = format!("/devices/{id}/meta/error");
+    planner.handle(DeviceUpdate::Added(relay), Instant::now());
+    let state = |online: bool| DeviceUpdate::Online {
+        device_id: id.clone(),
+        online,
+    };
+    // Never heard from, it fails: `r`; its availability was `offline` from the start.
+    assert_eq!(
+        publications(&planner.handle(state(false), Instant::now())),
+        [(device_error.clone(), "r".into(), true)]
+    );
+    assert!(planner.handle(state(false), Instant::now()).is_empty());
+    assert_eq!(
+        publications(&planner.handle(state(true), Instant::now())),
+        [
+            (device_error.clone(), "".into(), true),
+            (availability.clone(), "online".into(), true),
+        ]
+    );
+    assert!(planner.handle(state(true), Instant::now()).is_empty());
+    assert_eq!(
+        publications(&planner.handle(state(false), Instant::now())),
+        [
+            (device_error, "r".into(), true),
+            (availability, "offline".into(), true),
+        ]
     );
 }
 
@@ -497,37 +532,129 @@ fn an_r_flag_set_before_a_port_restart_is_cleared_by_the_next_good_read() {
     assert_eq!(last_of(&published, &error), Some(""));
 }
 
-/// Review F1, what the reset costs: an offline device whose port restarts keeps `r` on its
-/// device `meta/error`; its controls start over empty and get `r` back from the new model's
-/// first failure (a device never heard from goes offline at its first failure), all at once.
+/// The topics of `device`'s readable controls' `meta/error`.
+fn readable_error_topics(device: &ResolvedDevice) -> Vec<String> {
+    device
+        .channels
+        .iter()
+        .filter(|c| c.is_read())
+        .map(|c| format!("/devices/{}/controls/{}/meta/error", device.id, c.id))
+        .collect()
+}
+
+/// Operator audit: a reload that restarted the port of an offline device published, at once,
+/// an empty `meta/error` on every control and the values read before it went away (republished
+/// from the planner's state as the device was announced again), and `r` only at the new
+/// model's first failure a second later: for that second rules saw old readings without an
+/// error flag. A device known offline keeps `r` on its readable controls, and its old values
+/// are not sent again, until a read succeeds; its new model (built as the daemon builds it,
+/// known offline) clears `r` at that read, before the value.
 #[test]
-fn an_offline_device_whose_port_restarts_gets_r_back_at_its_first_failure() {
-    use crate::port::PortEvent;
-    let mut planner = PublicationPlanner::new(settings(false));
+fn an_offline_device_whose_port_restarts_keeps_r_until_a_read_succeeds() {
+    use crate::gateway::device_model::DeviceModel;
+    use crate::port::{PortEvent, RegisterSpan};
+    use crate::protocol::fast::RegisterType;
+    let mut planner = PublicationPlanner::new(settings(true));
     let relay = template_device("rtu2mqtt-relay6", 1);
     let id = relay.id.clone();
     let device_error = format!("/devices/{id}/meta/error");
-    let readable: Vec<String> = relay
-        .channels
-        .iter()
-        .filter(|c| c.registers.iter().any(|r| r.read.is_some()))
-        .map(|c| format!("/devices/{id}/controls/{}/meta/error", c.id))
-        .collect();
+    let k1 = format!("/devices/{id}/controls/K1");
+    let k1_error = format!("{k1}/meta/error");
+    let readable = readable_error_topics(&relay);
     assert!(readable.len() > 6);
+    let coils = RegisterSpan::new(RegisterType::Coil, 0, 6);
+    let read_coils = PortEvent::Values {
+        device: 0,
+        span: coils,
+        values: vec![1, 0, 0, 0, 0, 0].into(),
+    };
     let mut published = feed(&mut planner, vec![DeviceUpdate::Added(relay.clone())]);
-    let mut model = crate::gateway::device_model::DeviceModel::new(relay.clone(), 0, Repeats::None);
+    let mut model = DeviceModel::new(relay.clone(), 0, Repeats::None);
     let mut out = Vec::new();
+    model.apply(PortEvent::Online { device: 0 }, &mut out);
+    model.apply(read_coils.clone(), &mut out);
     model.apply(PortEvent::Offline { device: 0 }, &mut out);
     published.extend(feed(&mut planner, out));
-
-    let mut model = restart_port(&mut planner, &relay, &mut published);
-    assert_eq!(last_of(&published, &device_error), Some("r"));
-    assert!(readable.iter().all(|t| last_of(&published, t) == Some("")));
-    let mut out = Vec::new();
-    model.apply(PortEvent::Offline { device: 0 }, &mut out);
-    published.extend(feed(&mut planner, out));
-    assert_eq!(last_of(&published, &device_error), Some("r"));
+    assert_eq!(last_of(&published, &k1), Some("1"));
     assert!(readable.iter().all(|t| last_of(&published, t) == Some("r")));
+    assert!(model.is_offline());
+
+    // The reload: announced again, and its state republished (the client does it from the
+    // backlog when the device is announced while connected).
+    let restarted = feed(&mut planner, vec![DeviceUpdate::Added(relay.clone())]);
+    let republished: Vec<(String, String)> = publications(&planner.device_snapshot(&id))
+        .into_iter()
+        .map(|(topic, payload, _)| (topic, payload))
+        .collect();
+    for after_restart in [&restarted, &republished] {
+        assert_eq!(last_of(after_restart, &device_error), Some("r"));
+        for topic in &readable {
+            assert_eq!(last_of(after_restart, topic), Some("r"), "{topic}");
+        }
+        assert!(
+            !after_restart
+                .iter()
+                .any(|(t, p)| t.ends_with("/meta/error") && p.is_empty()),
+            "{after_restart:?}"
+        );
+        assert_eq!(last_of(after_restart, &k1), None, "an old value sent again");
+    }
+    published.extend(restarted);
+
+    // The new model, as the daemon builds it for a device its old port knew offline: its
+    // first failure changes nothing, its first good read clears `r` before the value.
+    let mut model = DeviceModel::new(relay.clone(), 0, Repeats::None).known_offline();
+    let mut out = Vec::new();
+    model.apply(PortEvent::Offline { device: 0 }, &mut out);
+    assert_eq!(feed(&mut planner, out), []);
+    let mut out = Vec::new();
+    model.apply(PortEvent::Online { device: 0 }, &mut out);
+    model.apply(read_coils, &mut out);
+    let back = feed(&mut planner, out);
+    let position = |topic: &str, payload: &str| {
+        back.iter()
+            .position(|(t, p)| t == topic && p == payload)
+            .unwrap_or_else(|| panic!("no {topic} {payload:?} in {back:?}"))
+    };
+    assert!(position(&device_error, "") < position(&k1_error, ""));
+    assert!(position(&k1_error, "") < position(&k1, "1"));
+    // Controls not read yet keep `r`.
+    let input_0_error = format!("/devices/{id}/controls/Input 0/meta/error");
+    assert_eq!(last_of(&back, &input_0_error), None);
+    // A reconnect now republishes the value read since.
+    let republished = publications(&planner.device_snapshot(&id));
+    assert!(republished.iter().any(|(t, p, _)| *t == k1 && p == "1"));
+}
+
+/// Should the new model not hold the `r` the planner kept (it was built with clear flags), the
+/// control's first value clears it before going out: a value is a good read.
+#[test]
+fn a_kept_r_is_cleared_by_the_first_value_after_the_restart() {
+    let mut planner = PublicationPlanner::new(settings(false));
+    let relay = template_device("rtu2mqtt-relay6", 1);
+    let id = relay.id.clone();
+    let k1 = format!("/devices/{id}/controls/K1");
+    let k1_error = format!("{k1}/meta/error");
+    feed(&mut planner, vec![DeviceUpdate::Added(relay.clone())]);
+    let offline = DeviceUpdate::Online {
+        device_id: id.clone(),
+        online: false,
+    };
+    let r = |control: &str| DeviceUpdate::ControlError {
+        device_id: id.clone(),
+        control_id: control.into(),
+        errors: ErrorFlags {
+            read: true,
+            ..Default::default()
+        },
+    };
+    feed(&mut planner, vec![offline, r("K1"), r("K2")]);
+    let restarted = feed(&mut planner, vec![DeviceUpdate::Added(relay.clone())]);
+    assert_eq!(last_of(&restarted, &k1_error), Some("r"));
+    assert_eq!(
+        feed(&mut planner, vec![value(&id, "K1", "0")]),
+        [(k1_error, String::new()), (k1, "0".into())]
+    );
 }
 
 #[test]

@@ -16,10 +16,16 @@ async fn feed_two_devices(mqtt: &MqttUnderTest) {
         .await;
     mqtt.send(DeviceUpdate::Added(template_device("rtu2mqtt-climate", 2)))
         .await;
-    // Their port opened: their topics are this gateway's.
+    // Their port opened: their topics are this gateway's; and they answered (their models
+    // report them online at their first reply).
     for device_id in [RELAY, CLIMATE] {
         mqtt.send(DeviceUpdate::BusServed {
             device_id: device_id.into(),
+        })
+        .await;
+        mqtt.send(DeviceUpdate::Online {
+            device_id: device_id.into(),
+            online: true,
         })
         .await;
     }
