@@ -221,7 +221,7 @@ impl PublicationPlanner {
                 read: was_offline && channel.is_read(),
                 ..ErrorFlags::default()
             };
-            state.held |= was_offline;
+            state.held |= was_offline && channel.is_read();
             controls.insert(channel.id.clone(), state);
         }
         // The first channel of an id is the one values go to.

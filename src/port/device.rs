@@ -175,9 +175,9 @@ pub(super) struct DeviceState {
     pub(super) event_setup_unanswered_told: bool,
     /// Failed transactions since the last good one: (nothing came, bytes that made no reply).
     pub(super) failures_since_success: (u32, u32),
-    /// The flag and digest of the event packet left unconfirmed once (see
+    /// The flag of the event packet left unconfirmed once (see
     /// [`Self::hold_back_unexpected`]).
-    held_back_packet: Option<(u8, u64)>,
+    held_back_flag: Option<u8>,
 }
 
 impl DeviceState {
@@ -248,7 +248,7 @@ impl DeviceState {
             no_events_told: false,
             event_setup_unanswered_told: false,
             failures_since_success: (0, 0),
-            held_back_packet: None,
+            held_back_flag: None,
         };
         state.preparation = state.first_preparation_step();
         state
@@ -606,12 +606,10 @@ impl DeviceState {
     /// How many leading events of this packet the previous one carried already: a device that
     /// missed the confirmation sends the old events again under the same flag, new ones
     /// appended (fast-modbus.md §6). Applied again, a queue of changes (a button's 1 then 0)
-    /// would be published twice over. A packet with the reboot event starts afresh.
+    /// would be published twice over. (A reboot event among them is acted on again all the
+    /// same: the scheduler never skips one, a second setup being harmless.)
     pub(super) fn events_seen_before(&mut self, flag: u8, events: &[Event]) -> usize {
         let previous = self.last_packet.take();
-        if events.iter().any(Event::is_reboot) {
-            return 0;
-        }
         self.last_packet = Some((flag, events.len(), events_digest(events)));
         match previous {
             Some((previous_flag, count, digest))
@@ -628,6 +626,7 @@ impl DeviceState {
     }
 
     pub(super) fn restart_preparation(&mut self) {
+        self.untrusted_packet_told = false;
         self.events_active = false;
         self.events_to_disable.clear();
         self.events_disable_sent = 0;
@@ -724,9 +723,12 @@ impl DeviceState {
     }
 
     /// Whether to leave `packet` unconfirmed once: it names a register no read holds, or a
-    /// value wider than the read that holds it (see the scheduler). The same packet again (same
-    /// flag, same events) is taken: a frame corrupted past its CRC does not come twice alike.
+    /// value wider than the read that holds it (see the scheduler). The next packet under the
+    /// same flag (the device sending it again, changed or not) is taken whatever it holds: a
+    /// frame corrupted past its CRC does not come twice, and a device whose packets always
+    /// look so (a template that does not fit it) loses one round per packet, never more.
     pub(super) fn hold_back_unexpected(&mut self, packet: &crate::protocol::EventPacket) -> bool {
+        let held_flag = self.held_back_flag.take();
         let unexpected = packet.events.iter().any(|event| match event.source {
             EventSource::Register(register_type) => {
                 let words = crate::protocol::event_payload_words(&event.payload).len();
@@ -734,15 +736,10 @@ impl DeviceState {
             }
             _ => false,
         });
-        let held = self.held_back_packet.take();
-        if !unexpected {
+        if !unexpected || held_flag == Some(packet.flag) {
             return false;
         }
-        let this = (packet.flag, events_digest(&packet.events));
-        if held == Some(this) {
-            return false;
-        }
-        self.held_back_packet = Some(this);
+        self.held_back_flag = Some(packet.flag);
         true
     }
 

@@ -188,9 +188,12 @@ impl EventPoller {
             *served |= bit;
         }
         self.rotation_optional = !sent_before && self.min_address == 0;
+        // A device confirmed in view is so only for its first packet of a sweep: a second one
+        // rotates past it as any other, so that it cannot keep the bus from the devices below
+        // it (a misread, after a confirmation lost to noise, costs no more than that).
         self.min_address = if address >= highest_listener.min(MAX_DEVICE_ADDRESS) {
             0
-        } else if in_view {
+        } else if in_view && !sent_before {
             address
         } else {
             address + 1
@@ -337,12 +340,19 @@ mod tests {
             },
             "confirmed where it listens"
         );
+        // Its second packet of the sweep is rotated past, as any device's.
         events.started(ms(50));
         events.packet_received(ms(70), 20, 0, 30);
-        assert_eq!(events.request().min_address, 20, "and so from then on");
+        assert_eq!(events.request().min_address, 21);
         events.started(ms(70));
         events.packet_received(ms(90), 25, 1, 30);
         assert_eq!(events.request().min_address, 26, "the others rotated past");
+        // The next sweep: its first packet is confirmed in view again.
+        events.started(ms(90));
+        events.nothing_pending(ms(90));
+        events.started(ms(100));
+        events.packet_received(ms(120), 20, 1, 30);
+        assert_eq!(events.request().min_address, 20, "and so from then on");
         // A packet under a new flag after a confirmation is no such sign.
         let mut events = poller(9600);
         events.started(ms(0));
@@ -350,6 +360,40 @@ mod tests {
         events.started(ms(20));
         events.packet_received(ms(40), 20, 0, 30);
         assert_eq!(events.request().min_address, 21);
+    }
+
+    /// A device confirmed in view that has a packet for every request does not keep the bus
+    /// from the devices below it: after its second packet of a sweep the rotation goes on.
+    #[test]
+    fn a_device_confirmed_in_view_does_not_starve_the_devices_below_it() {
+        let ms = Duration::from_millis;
+        let mut events = poller(115_200);
+        // Device 10 missed a confirmation it was left out of: confirmed in view from then on.
+        events.started(ms(0));
+        events.packet_received(ms(1), 10, 1, 30);
+        events.started(ms(1));
+        events.nothing_pending(ms(1));
+        events.started(ms(2));
+        events.packet_received(ms(3), 10, 1, 30);
+        assert_eq!(events.request().min_address, 10);
+        // From now on device 10 answers every request that includes it with a new packet.
+        let mut asked_below = 0;
+        let mut flag = 0;
+        for n in 0..200u64 {
+            let now = ms(4 + n);
+            let request = events.request();
+            events.started(now);
+            if request.min_address <= 5 {
+                asked_below += 1;
+            }
+            if request.min_address <= 10 {
+                flag ^= 1;
+                events.packet_received(now, 10, flag, 30);
+            } else {
+                events.nothing_pending(now);
+            }
+        }
+        assert!(asked_below >= 50, "device 5 asked {asked_below} times");
     }
 
     #[test]

@@ -1648,7 +1648,10 @@ impl PortScheduler {
                 if seen_before > 0 {
                     debug!(address, seen_before, "packet sent again (its confirmation was lost): its first events were applied already");
                 }
-                for event in packet.events.into_iter().skip(seen_before) {
+                for (index, event) in packet.events.into_iter().enumerate() {
+                    if index < seen_before && !event.is_reboot() {
+                        continue;
+                    }
                     if event.is_reboot() {
                         if let Some(state) = self.devices.get_mut(device) {
                             info!(device = %state.plan.name, "device reports a restart: setting it up again");

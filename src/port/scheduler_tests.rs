@@ -592,6 +592,21 @@ fn an_unexpected_packet_is_left_unconfirmed_once_and_its_clean_copy_taken() {
     );
 }
 
+/// A device whose packets always name a value wider than its template's register, its value
+/// changing between copies: it is held back once per flag, never more (held until two copies
+/// matched, it was never confirmed and kept the bus from the others).
+#[test]
+fn a_packet_held_back_once_is_taken_when_sent_again_changed() {
+    let wide = |value: u8| packet_of(20, 1, vec![input_event(0, vec![value, 0, 0, 0])]);
+    let log = events_answered_with(vec![wide(1), wide(2), wide(3)]);
+    let polls = log.event_polls();
+    assert_eq!(
+        (polls[1].1.ack_address, polls[2].1.ack_address),
+        (0, 20),
+        "{polls:?}"
+    );
+}
+
 /// A packet naming a value wider than the read that holds its register (8 bytes at input 0,
 /// read as one register), sent twice alike: the template and the device disagree (noise does
 /// not send the same packet twice). It is taken, but nothing of it is applied: what it names

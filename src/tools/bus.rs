@@ -289,6 +289,9 @@ pub trait ToolBus {
                 // Devices answered before, so someone must answer (a device or "end of scan"):
                 // a late reply was lost to a busy adapter or machine. Ask once more.
                 TransactionOutcome::NoReply if !retried_silence => retried_silence = true,
+                // A start after an unreadable reply, twice unanswered, with nobody found: the
+                // unreadable reply was noise on an empty setting.
+                TransactionOutcome::NoReply if starting && seen.is_empty() => return Ok(seen),
                 TransactionOutcome::NoReply => {
                     report.problems.push(SettingProblem {
                         line,
@@ -305,6 +308,7 @@ pub trait ToolBus {
                 // (the devices found answer again and are known), a few times.
                 TransactionOutcome::Garbled if restarts < MAX_SCAN_RESTARTS => {
                     restarts += 1;
+                    retried_silence = false;
                     debug!(%line, restarts, "unreadable scan reply: scanning this setting again");
                     request = start.clone();
                 }
