@@ -1305,26 +1305,32 @@ fn events_are_decoded_named_from_the_config_and_acknowledged() {
 fn events_watch_the_devices_that_took_them_when_another_did_not() {
     let sim = sim();
     let port = port(&sim);
-    let run = tool(&[
-        "events",
-        "--port",
-        &port,
-        "--baud",
-        "19200",
-        "--parity",
-        "O",
-        "--stop-bits",
-        "1",
-        "--enable",
-        "30:coil:2",
-        "--enable",
-        "99:coil:0",
-        "--json",
-        "--duration",
-        "0.5",
-        "--latency",
-        LATENCY_MS,
-    ]);
+    // Half a second of `events --json` at `line` ("19200 8O1"), enabling `enables`.
+    let watch_events = |line: &str, enables: &[&str]| {
+        let (baud, settings) = line.split_once(' ').unwrap();
+        let (parity, stop_bits) = (&settings[1..2], &settings[2..]);
+        let mut args = vec![
+            "events",
+            "--port",
+            &port,
+            "--baud",
+            baud,
+            "--parity",
+            parity,
+            "--stop-bits",
+            stop_bits,
+            "--json",
+            "--duration",
+            "0.5",
+            "--latency",
+            LATENCY_MS,
+        ];
+        for enable in enables {
+            args.extend(["--enable", enable]);
+        }
+        tool(&args)
+    };
+    let run = watch_events("19200 8O1", &["30:coil:2", "99:coil:0"]);
     assert_eq!(run.code, 0, "{}{}", run.stdout, run.stderr);
     let enabled: Vec<Value> = run
         .stdout
@@ -1349,24 +1355,7 @@ fn events_watch_the_devices_that_took_them_when_another_did_not() {
         run.stderr
     );
     // Nobody took them: nothing to watch.
-    let run = tool(&[
-        "events",
-        "--port",
-        &port,
-        "--baud",
-        "19200",
-        "--parity",
-        "O",
-        "--stop-bits",
-        "1",
-        "--enable",
-        "99:coil:0",
-        "--json",
-        "--duration",
-        "0.5",
-        "--latency",
-        LATENCY_MS,
-    ]);
+    let run = watch_events("19200 8O1", &["99:coil:0"]);
     assert_eq!(run.code, 1, "{}{}", run.stdout, run.stderr);
     assert!(
         run.stderr
@@ -1376,26 +1365,7 @@ fn events_watch_the_devices_that_took_them_when_another_did_not() {
         run.stderr
     );
     // A classic device refuses the request as an unknown function: it has no events.
-    let run = tool(&[
-        "events",
-        "--port",
-        &port,
-        "--baud",
-        "115200",
-        "--parity",
-        "N",
-        "--stop-bits",
-        "2",
-        "--enable",
-        "40:holding:0",
-        "--enable",
-        "20:coil:0",
-        "--json",
-        "--duration",
-        "0.5",
-        "--latency",
-        LATENCY_MS,
-    ]);
+    let run = watch_events("115200 8N2", &["40:holding:0", "20:coil:0"]);
     assert_eq!(run.code, 0, "{}{}", run.stdout, run.stderr);
     assert!(
         run.stderr.contains(

@@ -434,66 +434,6 @@ fn an_event_packet_is_acknowledged_in_the_next_request() {
         }));
 }
 
-/// A device that queues its changes (a button: 1, then 0) and missed the confirmation sends the
-/// packet again under the same flag with a new change appended (fast-modbus.md §6): only the
-/// new change is applied, not a second press that never happened.
-#[test]
-fn a_packet_sent_again_under_the_same_flag_applies_only_what_is_new() {
-    let mut scheduler = PortScheduler::new(
-        settings(115_200),
-        vec![device(
-            20,
-            vec![read(RegisterType::Coil, 0, EventMode::Sporadic)],
-        )],
-    );
-    let coil = |value: u8| Event {
-        source: crate::protocol::EventSource::Register(RegisterType::Coil),
-        id: 0,
-        payload: vec![value],
-    };
-    let packet = |flag: u8, events: Vec<Event>| {
-        TransactionOutcome::Reply(Reply::fast(
-            20,
-            FastReply::Events(EventPacket {
-                flag,
-                event_count: events.len() as u8,
-                events,
-            }),
-        ))
-    };
-    let mut packets = vec![
-        packet(1, vec![coil(1), coil(0)]),
-        packet(1, vec![coil(1), coil(0), coil(1)]),
-        // Confirmed at last: the next packet goes under the other flag, and is all new.
-        packet(0, vec![coil(0)]),
-        // Under the same flag but with other events: not the packet sent again.
-        packet(0, vec![coil(1)]),
-    ]
-    .into_iter();
-    let mut log = Log::default();
-    run(
-        &mut scheduler,
-        &mut log,
-        Duration::ZERO,
-        ms(300),
-        |_, request| match &request.body {
-            RequestBody::Fast(FastRequest::PollEvents(_)) => {
-                packets.next().unwrap_or_else(|| healthy(request))
-            }
-            _ => healthy(request),
-        },
-    );
-    let applied: Vec<u8> = log
-        .events
-        .iter()
-        .filter_map(|(_, event)| match event {
-            PortEvent::EventValue { payload, .. } => payload.first().copied(),
-            _ => None,
-        })
-        .collect();
-    assert_eq!(applied, vec![1, 0, 1, 0, 1]);
-}
-
 fn coil_event(value: u8) -> Event {
     Event {
         source: crate::protocol::EventSource::Register(RegisterType::Coil),
@@ -590,6 +530,27 @@ fn an_unexpected_packet_is_left_unconfirmed_once_and_its_clean_copy_taken() {
             (RegisterType::Input, 0, vec![5, 0])
         ]
     );
+}
+
+/// A device that queues its changes (a button: 1, then 0) and missed the confirmation sends the
+/// packet again under the same flag with a new change appended (fast-modbus.md §6): only the
+/// new change is applied, not a second press that never happened.
+#[test]
+fn a_packet_sent_again_under_the_same_flag_applies_only_what_is_new() {
+    let coil = coil_event;
+    let log = events_answered_with(vec![
+        packet_of(20, 1, vec![coil(1), coil(0)]),
+        packet_of(20, 1, vec![coil(1), coil(0), coil(1)]),
+        // Confirmed at last: the next packet goes under the other flag, and is all new.
+        packet_of(20, 0, vec![coil(0)]),
+        // Under the same flag but with other events: not the packet sent again.
+        packet_of(20, 0, vec![coil(1)]),
+    ]);
+    let applied: Vec<u8> = event_values(&log)
+        .into_iter()
+        .filter_map(|(_, _, payload)| payload.first().copied())
+        .collect();
+    assert_eq!(applied, vec![1, 0, 1, 0, 1]);
 }
 
 /// A device whose packets always name a value wider than its template's register, its value
