@@ -283,6 +283,10 @@ impl DeviceState {
 
     /// Where the device's preparation stands, in words (status page).
     pub(super) fn setup_state(&self) -> &'static str {
+        if self.health.is_offline() {
+            // Set up again once it answers: "ready" would say it is.
+            return "waiting for the device";
+        }
         match self.preparation {
             Preparation::Setup { .. } => "setup writes",
             Preparation::Events => "event setup",

@@ -53,7 +53,7 @@ pub struct DeviceReport {
     /// How long a request to it waits for the first byte now.
     pub response_timeout: Duration,
     pub events_active: bool,
-    /// "setup writes", "event setup" or "ready".
+    /// "setup writes", "event setup", "ready", or "waiting for the device" while it is offline.
     pub setup: &'static str,
     /// Polling held by [`PortScheduler::hold_polling`].
     pub suspended: bool,
@@ -1654,7 +1654,13 @@ impl PortScheduler {
                     }
                     if event.is_reboot() {
                         if let Some(state) = self.devices.get_mut(device) {
-                            info!(device = %state.plan.name, "device reports a restart: setting it up again");
+                            // Before this service first set it up, the report is the device's
+                            // power-on, pending since then: no news for the journal.
+                            if state.is_prepared() {
+                                info!(device = %state.plan.name, "device reports a restart: setting it up again");
+                            } else {
+                                debug!(device = %state.plan.name, "device's power-on report, before its setup");
+                            }
                             state.restart_preparation();
                         }
                         out.push(PortEvent::Rebooted { device });

@@ -4522,3 +4522,30 @@ fn a_queued_transaction_waits_for_its_devices_hold_off_after_the_schedulers_fail
     scheduler.complete(now, healthy(&again.request));
     assert!(scheduler.queued_may_go_from(&read_10(30)) <= now);
 }
+
+/// The status page's setup state of an offline device says it waits for the device, not
+/// "ready" (a classic device without setup writes had nothing else to show).
+#[test]
+fn an_offline_device_is_not_reported_ready() {
+    let mut scheduler = PortScheduler::new(
+        settings(115_200),
+        vec![device(
+            5,
+            vec![read(RegisterType::Holding, 0, EventMode::Polled)],
+        )],
+    );
+    let mut log = Log::default();
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(1000),
+        |_, r| healthy(r),
+    );
+    assert_eq!(scheduler.device_report(0, ms(1000)).unwrap().setup, "ready");
+    run(&mut scheduler, &mut log, ms(1000), ms(10_000), |_, _| {
+        TransactionOutcome::NoReply
+    });
+    let report = scheduler.device_report(0, ms(10_000)).unwrap();
+    assert_eq!(report.setup, "waiting for the device");
+}
