@@ -654,7 +654,11 @@ impl PortTask {
                     self.transacted = false;
                     match self.serve(transport, &mut shutdown).await {
                         Ok(()) => return,
-                        Err(err) => warn!(port = %self.plan_name, %err, "port failed; reopening"),
+                        Err(err) => {
+                            warn!(port = %self.plan_name, %err, "port failed; reopening");
+                            // That said it: a reopen that fails at once is not said again.
+                            open_failures.told(Instant::now());
+                        }
                     }
                     self.set_open(false);
                     if self.transacted {
@@ -1398,6 +1402,12 @@ impl OpenFailures {
         }
     }
 
+    /// The port was said to have failed at `now`: failures to reopen it count from then.
+    fn told(&mut self, now: Instant) {
+        self.since.get_or_insert(now);
+        self.told_at = Some(now);
+    }
+
     /// The port opened: how long it was unusable and how many tries failed, if any.
     fn opened(&mut self, now: Instant) -> Option<(Duration, u32)> {
         let failures = std::mem::take(self);
@@ -1452,6 +1462,11 @@ mod tests {
         );
         assert_eq!(failures.opened(at(7320)), None, "forgotten once open");
         assert_eq!(failures.failed(at(7330)), Told::First);
+        // A port that failed while open was said to: its reopen failing at once is not.
+        let mut failures = OpenFailures::default();
+        failures.told(at(0));
+        assert_eq!(failures.failed(at(1)), Told::Quietly(1));
+        assert!(matches!(failures.failed(at(61)), Told::Again { .. }));
     }
 
     /// wb-mqtt-serial's `TPortOpenCloseLogic`: closed once no transaction succeeded for the

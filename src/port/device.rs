@@ -178,6 +178,9 @@ pub(super) struct DeviceState {
     /// The flag of the event packet left unconfirmed once (see
     /// [`Self::hold_back_unexpected`]).
     held_back_flag: Option<u8>,
+    /// No reboot event came from it since this service started: the first one is its
+    /// power-on report, pending since then (no news for the journal).
+    pub(super) power_on_report_pending: bool,
 }
 
 impl DeviceState {
@@ -249,6 +252,7 @@ impl DeviceState {
             event_setup_unanswered_told: false,
             failures_since_success: (0, 0),
             held_back_flag: None,
+            power_on_report_pending: true,
         };
         state.preparation = state.first_preparation_step();
         state

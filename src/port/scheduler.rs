@@ -667,11 +667,20 @@ impl PortScheduler {
             .devices
             .get(write.device)
             .map_or(Duration::ZERO, |d| d.plan.write_retry_time);
+        // A write for a device that is offline waits for it, `w` meanwhile: said once.
+        let offline = self
+            .devices
+            .get(write.device)
+            .filter(|d| d.health.is_offline());
+        if let Some(state) = offline {
+            info!(device = %state.plan.name, register_type = ?write.register_type, address = write.address, ?retry_time,
+                "write kept for a device that is offline: sent once it answers (meta/error w meanwhile)");
+        }
         let mut pending = PendingWrite {
             write,
             give_up_at: now.saturating_add(retry_time),
             seen: 0,
-            failure_told: false,
+            failure_told: offline.is_some(),
         };
         let same_register = |p: &PendingWrite| write_key(&p.write) == write_key(&pending.write);
         if let Some(replaced) = self.writes.iter().position(same_register) {
@@ -1654,12 +1663,10 @@ impl PortScheduler {
                     }
                     if event.is_reboot() {
                         if let Some(state) = self.devices.get_mut(device) {
-                            // Before this service first set it up, the report is the device's
-                            // power-on, pending since then: no news for the journal.
-                            if state.is_prepared() {
-                                info!(device = %state.plan.name, "device reports a restart: setting it up again");
+                            if std::mem::replace(&mut state.power_on_report_pending, false) {
+                                debug!(device = %state.plan.name, "device's power-on report (the first since this service started): setting it up again");
                             } else {
-                                debug!(device = %state.plan.name, "device's power-on report, before its setup");
+                                info!(device = %state.plan.name, "device reports a restart: setting it up again");
                             }
                             state.restart_preparation();
                         }
@@ -1905,6 +1912,8 @@ impl PortScheduler {
         let Some(state) = self.devices.get_mut(device) else {
             return;
         };
+        // Nothing came (else bytes that made no reply, or the wrong one).
+        let silent = outcome == TransactionOutcome::NoReply;
         let values = match outcome {
             TransactionOutcome::Reply(Reply {
                 body: ReplyBody::Classic(pdu),
@@ -1940,7 +1949,7 @@ impl PortScheduler {
         };
         if values.len() != usize::from(span.count) {
             Self::reads_failed(state, device, now, members, false, out);
-            Self::health_failure(state, device, now, true, out);
+            Self::health_failure(state, device, now, !silent, out);
             return;
         }
         Self::health_success(state, device, now, out);

@@ -4549,3 +4549,32 @@ fn an_offline_device_is_not_reported_ready() {
     let report = scheduler.device_report(0, ms(10_000)).unwrap();
     assert_eq!(report.setup, "waiting for the device");
 }
+
+/// The offline line tells silence from unreadable replies by their counts: reads that got no
+/// reply count as silence (they counted as unreadable, so an unplugged device was said to
+/// answer garbage).
+#[test]
+fn failed_reads_count_silence_apart_from_unreadable_replies() {
+    let failures = |outcome: TransactionOutcome| {
+        let mut scheduler = PortScheduler::new(
+            settings(115_200),
+            vec![device(
+                5,
+                vec![read(RegisterType::Holding, 0, EventMode::Polled)],
+            )],
+        );
+        let mut log = Log::default();
+        run(
+            &mut scheduler,
+            &mut log,
+            Duration::ZERO,
+            ms(5000),
+            |_, _| outcome.clone(),
+        );
+        scheduler.devices[0].failures_since_success
+    };
+    let (silent, unreadable) = failures(TransactionOutcome::NoReply);
+    assert!(silent > 0 && unreadable == 0, "{silent} {unreadable}");
+    let (silent, unreadable) = failures(TransactionOutcome::Garbled);
+    assert!(silent == 0 && unreadable > 0, "{silent} {unreadable}");
+}
