@@ -708,22 +708,22 @@ impl DeviceState {
         }
     }
 
-    /// Whether an event of `words` registers at `start` fits a value this device's plan reads
-    /// there: it must not run past the end of the read that holds `start` (a payload wider than
-    /// the channel says the template and device disagree, or that a frame corrupted past what
-    /// its CRC caught names another register). `None` when no read holds `start`.
-    pub(super) fn event_fits_plan(
-        &self,
-        register_type: RegisterType,
-        start: u16,
-        words: usize,
-    ) -> Option<bool> {
+    /// Whether a register event fits a value this device's plan reads there: its payload must
+    /// not run past the end of the read that holds its register (a payload wider than the
+    /// channel says the template and device disagree, or that a frame corrupted past what its
+    /// CRC caught names another register). `None` when no read holds the register; `Some(true)`
+    /// for events of other sources (system events).
+    pub(super) fn event_fits_plan(&self, event: &Event) -> Option<bool> {
+        let EventSource::Register(register_type) = event.source else {
+            return Some(true);
+        };
+        let words = crate::protocol::event_payload_words(&event.payload).len();
         self.plan
             .reads
             .iter()
             .filter(|plan| plan.span.register_type == register_type)
             .filter_map(|plan| {
-                let offset = start.checked_sub(plan.span.start)?;
+                let offset = event.id.checked_sub(plan.span.start)?;
                 (offset < plan.span.count).then(|| usize::from(plan.span.count - offset))
             })
             .max()
@@ -737,13 +737,10 @@ impl DeviceState {
     /// look so (a template that does not fit it) loses one round per packet, never more.
     pub(super) fn hold_back_unexpected(&mut self, packet: &crate::protocol::EventPacket) -> bool {
         let held_flag = self.held_back_flag.take();
-        let unexpected = packet.events.iter().any(|event| match event.source {
-            EventSource::Register(register_type) => {
-                let words = crate::protocol::event_payload_words(&event.payload).len();
-                self.event_fits_plan(register_type, event.id, words) != Some(true)
-            }
-            _ => false,
-        });
+        let unexpected = packet
+            .events
+            .iter()
+            .any(|event| self.event_fits_plan(event) != Some(true));
         if !unexpected || held_flag == Some(packet.flag) {
             return false;
         }

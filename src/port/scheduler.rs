@@ -1631,13 +1631,10 @@ impl PortScheduler {
                 // 65,536 garbled frames passes CRC-16; a collision moved an event's register
                 // in a sweep). Nothing of such a packet is taken: what it names is read instead.
                 let untrusted = self.devices.get(device).is_some_and(|state| {
-                    packet.events.iter().any(|event| match event.source {
-                        EventSource::Register(register_type) => {
-                            let words = crate::protocol::event_payload_words(&event.payload).len();
-                            state.event_fits_plan(register_type, event.id, words) == Some(false)
-                        }
-                        _ => false,
-                    })
+                    packet
+                        .events
+                        .iter()
+                        .any(|event| state.event_fits_plan(event) == Some(false))
                 });
                 if untrusted {
                     if let Some(state) = self.devices.get_mut(device) {

@@ -4523,17 +4523,22 @@ fn a_queued_transaction_waits_for_its_devices_hold_off_after_the_schedulers_fail
     assert!(scheduler.queued_may_go_from(&read_10(30)) <= now);
 }
 
-/// The status page's setup state of an offline device says it waits for the device, not
-/// "ready" (a classic device without setup writes had nothing else to show).
-#[test]
-fn an_offline_device_is_not_reported_ready() {
-    let mut scheduler = PortScheduler::new(
+/// Device 5 at 115200 with one polled holding register.
+fn one_polled_device() -> PortScheduler {
+    PortScheduler::new(
         settings(115_200),
         vec![device(
             5,
             vec![read(RegisterType::Holding, 0, EventMode::Polled)],
         )],
-    );
+    )
+}
+
+/// The status page's setup state of an offline device says it waits for the device, not
+/// "ready" (a classic device without setup writes had nothing else to show).
+#[test]
+fn an_offline_device_is_not_reported_ready() {
+    let mut scheduler = one_polled_device();
     let mut log = Log::default();
     run(
         &mut scheduler,
@@ -4556,13 +4561,7 @@ fn an_offline_device_is_not_reported_ready() {
 #[test]
 fn failed_reads_count_silence_apart_from_unreadable_replies() {
     let failures = |outcome: TransactionOutcome| {
-        let mut scheduler = PortScheduler::new(
-            settings(115_200),
-            vec![device(
-                5,
-                vec![read(RegisterType::Holding, 0, EventMode::Polled)],
-            )],
-        );
+        let mut scheduler = one_polled_device();
         let mut log = Log::default();
         run(
             &mut scheduler,
