@@ -5,6 +5,7 @@ use std::time::Duration;
 
 use tracing::warn;
 
+use super::flap_log::FlapLog;
 use super::health::{DeviceHealth, HealthChange};
 use super::plan::{DevicePlan, EventMode};
 use super::read_plan::RegisterSpan;
@@ -175,6 +176,8 @@ pub(super) struct DeviceState {
     pub(super) event_setup_unanswered_told: bool,
     /// Failed transactions since the last good one: (nothing came, bytes that made no reply).
     pub(super) failures_since_success: (u32, u32),
+    /// How loudly its changes between online and offline are told.
+    pub(super) flaps: FlapLog,
     /// The flag of the event packet left unconfirmed once (see
     /// [`Self::hold_back_unexpected`]).
     held_back_flag: Option<u8>,
@@ -251,6 +254,7 @@ impl DeviceState {
             no_events_told: false,
             event_setup_unanswered_told: false,
             failures_since_success: (0, 0),
+            flaps: FlapLog::default(),
             held_back_flag: None,
             power_on_report_pending: true,
         };

@@ -5,6 +5,7 @@
 mod device;
 mod due_index;
 mod events;
+mod flap_log;
 pub mod health;
 pub mod plan;
 mod rate_limit;

@@ -18,6 +18,7 @@ use tracing::{debug, info, warn};
 use super::device::{DeviceState, ReadChoice, LOW_PRIORITY, MAX_EVENT_SETUP_TRIES};
 use super::due_index::{DueIndex, Placement};
 use super::events::{EventPoller, WIDE_DATA_LEN};
+use super::flap_log::{FlapSay, FLAP_LIMIT, FLAP_WINDOW};
 use super::health::DeadRetryBudget;
 use super::plan::{write_encodes, write_pdu, DevicePlan, PortSettings, RegisterWrite};
 use super::rate_limit::ReadRateLimit;
@@ -2095,8 +2096,34 @@ impl PortScheduler {
         out: &mut Vec<PortEvent>,
     ) {
         if state.record_success(now) {
-            info!(device = %state.plan.name, "device is online");
+            if state.flaps.came_online() == FlapSay::Quietly {
+                debug!(device = %state.plan.name, "device is online");
+            } else {
+                info!(device = %state.plan.name, "device is online");
+            }
             out.push(PortEvent::Online { device });
+        }
+        Self::tell_flaps(state, now);
+    }
+
+    /// Closes a quiet spell of a flapping device's log once its window is over.
+    fn tell_flaps(state: &mut DeviceState, now: Duration) {
+        let minutes = FLAP_WINDOW.as_secs() / 60;
+        let now_state = if state.health.is_online() {
+            "online"
+        } else {
+            "offline"
+        };
+        match state.flaps.tick(now) {
+            FlapSay::Summary { drop_outs } => {
+                info!(device = %state.plan.name, drop_outs,
+                    "device dropped out {drop_outs} times in the last {minutes} minutes; now {now_state}");
+            }
+            FlapSay::Settled => {
+                info!(device = %state.plan.name,
+                    "device did not drop out in the last {minutes} minutes (now {now_state}): its offline/online changes are logged again");
+            }
+            _ => {}
         }
     }
 
@@ -2110,7 +2137,11 @@ impl PortScheduler {
     ) {
         if state.record_failure(now, garbled) {
             let (silent, unreadable) = state.failures_since_success;
-            if unreadable == 0 {
+            let say = state.flaps.went_offline(now);
+            if say == FlapSay::Quietly {
+                debug!(device = %state.plan.name, address = state.plan.address, unreadable, silent,
+                    "device marked offline");
+            } else if unreadable == 0 {
                 warn!(device = %state.plan.name, address = state.plan.address, "device does not answer: marked offline, retrying with growing delay");
             } else {
                 warn!(device = %state.plan.name, address = state.plan.address, unreadable, silent,
@@ -2118,8 +2149,14 @@ impl PortScheduler {
                      (unreadable replies: noise, a missing terminator, two devices at this \
                      address, or another master on the bus)");
             }
+            if let FlapSay::ChangeThenQuiet { over } = say {
+                info!(device = %state.plan.name, drop_outs = FLAP_LIMIT,
+                    "device dropped out {FLAP_LIMIT} times in {} s: its further offline/online changes are logged at debug level, with a summary every {} minutes (its controls' meta/error show the state meanwhile)",
+                    over.as_secs(), FLAP_WINDOW.as_secs() / 60);
+            }
             out.push(PortEvent::Offline { device });
         }
+        Self::tell_flaps(state, now);
     }
 }
 

@@ -4577,3 +4577,63 @@ fn failed_reads_count_silence_apart_from_unreadable_replies() {
     let (silent, unreadable) = failures(TransactionOutcome::Garbled);
     assert!(silent == 0 && unreadable > 0, "{silent} {unreadable}");
 }
+
+/// Writes what the scheduler logs into a buffer the test reads.
+#[derive(Clone, Default)]
+struct CapturedLog(std::sync::Arc<std::sync::Mutex<Vec<u8>>>);
+
+impl std::io::Write for CapturedLog {
+    fn write(&mut self, bytes: &[u8]) -> std::io::Result<usize> {
+        self.0.lock().unwrap().extend_from_slice(bytes);
+        Ok(bytes.len())
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        Ok(())
+    }
+}
+
+/// A device with a loose wire (away 5 s of every 30) fills the journal with one pair of lines
+/// per drop-out only three times; then a summary every 10 minutes, and its changes go on being
+/// reported to MQTT every time. (An operator's audit saw 16 offline/online pairs in 2 minutes.)
+#[test]
+fn a_flapping_device_is_summed_up_in_the_log_not_told_at_every_drop_out() {
+    let captured = CapturedLog::default();
+    let writer = captured.clone();
+    let subscriber = tracing_subscriber::fmt()
+        .with_writer(move || writer.clone())
+        .with_ansi(false)
+        .with_max_level(tracing::Level::INFO)
+        .finish();
+    let _default = tracing::subscriber::set_default(subscriber);
+    let mut polled = read(RegisterType::Holding, 0, EventMode::Polled);
+    polled.period = Some(ms(500));
+    let mut scheduler = PortScheduler::new(settings(115_200), vec![device(4, vec![polled])]);
+    let mut log = Log::default();
+    let end = ms(32 * 60_000);
+    run(&mut scheduler, &mut log, Duration::ZERO, end, |at, request| {
+        // Away 5 s of every 30 s for 15 minutes, then steady.
+        let away = at < ms(15 * 60_000) && at.as_millis() % 30_000 >= 25_000;
+        if away {
+            TransactionOutcome::NoReply
+        } else {
+            healthy(request)
+        }
+    });
+    let drop_outs = log
+        .events
+        .iter()
+        .filter(|(_, e)| *e == PortEvent::Offline { device: 0 })
+        .count();
+    assert!(drop_outs >= 29, "every drop-out reported: {drop_outs}");
+    let text = String::from_utf8(captured.0.lock().unwrap().clone()).unwrap();
+    let lines: Vec<&str> = text.lines().collect();
+    let count = |needle: &str| lines.iter().filter(|l| l.contains(needle)).count();
+    assert_eq!(count("marked offline"), 3, "{text}");
+    // At first contact, then after the first two drop-outs.
+    assert_eq!(count("device is online"), 3, "{text}");
+    assert_eq!(count("dropped out 3 times in 60 s"), 1, "{text}");
+    // Windows end at 11 and 21 minutes (drop-outs in both), then at 31 (none).
+    assert_eq!(count("times in the last 10 minutes; now"), 2, "{text}");
+    assert_eq!(count("did not drop out in the last 10 minutes (now online)"), 1, "{text}");
+    assert_eq!(lines.len(), 10, "{text}");
+}
