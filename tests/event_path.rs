@@ -49,6 +49,7 @@ fn device(address: u8, reads: Vec<PlannedRead>) -> DevicePlan {
         health: HealthPolicy::default(),
         reads,
         setup: Vec::new(),
+        continuous_read: false,
         write_retry_time: Duration::from_secs(600),
     }
 }

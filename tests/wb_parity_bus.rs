@@ -871,6 +871,7 @@ fn sporadic_device(address: u8, reads: &[(RegisterType, u16, bool)]) -> DevicePl
             })
             .collect(),
         setup: Vec::new(),
+        continuous_read: false,
         write_retry_time: Duration::from_secs(600),
     }
 }

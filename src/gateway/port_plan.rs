@@ -220,6 +220,7 @@ pub fn device_plan(device: &ResolvedDevice) -> DevicePlan {
         },
         reads,
         setup,
+        continuous_read: device.timing.enable_wb_continuous_read,
     }
 }
 

@@ -38,8 +38,15 @@ pub(super) const MAX_EVENT_SETUP_TRIES: u32 = 3;
 /// make the list, or the bus time spent on it, grow without end.
 const MAX_EVENTS_TO_DISABLE: usize = 64;
 
+/// The holes a read may span while continuous read is on: wb-mqtt-serial's
+/// `MAX_HOLE_CONTINUOUS_16_BIT_REGISTERS` and `…_1_BIT_REGISTERS`.
+const CONTINUOUS_READ_REGISTER_HOLE: u16 = 10;
+const CONTINUOUS_READ_BIT_HOLE: u16 = 80;
+
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Preparation {
+    /// Continuous read (holding 114 = 1) is to be switched on, before the setup writes.
+    ContinuousRead,
     /// Setup write `next` is due.
     Setup {
         next: usize,
@@ -89,6 +96,8 @@ struct ReadState {
     solo: bool,
     /// Split off and not yet read on its own.
     solo_unknown: bool,
+    /// Has answered once: the device has it (see [`DevicePlan::continuous_read`]).
+    present: bool,
     /// The intervals between this read's reads since its "period missed" flag was last decided:
     /// their sum and number (decided once they cover ten periods, at least 10 s, as
     /// wb-mqtt-serial's `TReadPeriodMissChecker` decides).
@@ -142,6 +151,12 @@ pub(super) struct DeviceState {
     /// A merged read over unconfigured registers was refused: no more holes for this device,
     /// as wb-mqtt-serial turns them off (`HolesAutoDisable`).
     holes_off: bool,
+    /// The device took continuous read (holding 114 = 1) since it last (re)connected.
+    continuous_read_on: bool,
+    /// The device refused continuous read since it last (re)connected.
+    continuous_read_refused: bool,
+    /// Said once: the device refuses continuous read.
+    continuous_read_refusal_told: bool,
     /// A read split off a refused merged read was refused on its own: the refusal is
     /// explained, and the others may be merged again once all are known.
     split_found_refused: bool,
@@ -207,6 +222,7 @@ impl DeviceState {
                 initial_pending: true,
                 solo: false,
                 solo_unknown: false,
+                present: false,
                 interval_window: (Duration::ZERO, 0),
                 period_missed: false,
             })
@@ -242,6 +258,9 @@ impl DeviceState {
             suspended: false,
             suspended_until: None,
             holes_off: false,
+            continuous_read_on: false,
+            continuous_read_refused: false,
+            continuous_read_refusal_told: false,
             split_found_refused: false,
             setup_reads,
             event_setup_failures: 0,
@@ -263,6 +282,14 @@ impl DeviceState {
     }
 
     fn first_preparation_step(&self) -> Preparation {
+        if self.plan.continuous_read {
+            Preparation::ContinuousRead
+        } else {
+            self.setup_step()
+        }
+    }
+
+    fn setup_step(&self) -> Preparation {
         if self.plan.setup.is_empty() {
             self.after_setup()
         } else {
@@ -296,7 +323,7 @@ impl DeviceState {
             return "waiting for the device";
         }
         match self.preparation {
-            Preparation::Setup { .. } => "setup writes",
+            Preparation::ContinuousRead | Preparation::Setup { .. } => "setup writes",
             Preparation::Events => "event setup",
             Preparation::Done => "ready",
         }
@@ -309,7 +336,7 @@ impl DeviceState {
     /// Whether a preparation step is due: setup, event setup, or turning off events nothing
     /// reads (see [`Self::unread_register_event`]).
     pub(super) fn needs_preparation(&self) -> bool {
-        !self.is_prepared() || self.has_events_to_disable()
+        !self.is_prepared() || self.has_events_to_disable() || self.continuous_read_due().is_some()
     }
 
     /// An event came for `register_type`/`address`: when no planned read covers it (enabled by
@@ -403,7 +430,57 @@ impl DeviceState {
     /// Whether setup writes are due: the device's writes wait for them (a write that went
     /// first would be undone by a setup write to its register).
     pub(super) fn setup_pending(&self) -> bool {
-        matches!(self.preparation, Preparation::Setup { .. })
+        matches!(
+            self.preparation,
+            Preparation::ContinuousRead | Preparation::Setup { .. }
+        )
+    }
+
+    /// The value holding 114 (continuous read) is to be set to now, if any. At (re)connection,
+    /// before the setup writes: on (1) when every register read is known to exist, else off
+    /// (0): the device may still have it on from before (wb-mqtt-serial, or this daemon before
+    /// a restart), and in continuous read a merged read over a register it lacks answers
+    /// 0xFFFE for it instead of being refused. Once every register read has answered (those it
+    /// refused are no longer read), on, and reads merge over holes.
+    pub(super) fn continuous_read_due(&self) -> Option<u16> {
+        if !self.plan.continuous_read {
+            return None;
+        }
+        if self.preparation == Preparation::ContinuousRead {
+            return Some(u16::from(self.all_reads_present()));
+        }
+        let switch_on = self.is_prepared()
+            && !self.continuous_read_on
+            && !self.continuous_read_refused
+            && self.all_reads_present();
+        switch_on.then_some(1)
+    }
+
+    /// Whether every register read (not excluded for good) has answered once.
+    fn all_reads_present(&self) -> bool {
+        self.reads
+            .iter()
+            .all(|r| r.present || !matches!(r.exclusion, Exclusion::None | Exclusion::EventsOnly))
+    }
+
+    /// The device took `value` for continuous read, or refused it (`None`: firmware without
+    /// it). True when a refusal is to be told (once per device).
+    pub(super) fn continuous_read_answered(&mut self, value: Option<u16>) -> bool {
+        if self.preparation == Preparation::ContinuousRead {
+            self.preparation = self.setup_step();
+        }
+        self.continuous_read_on = value == Some(1);
+        self.continuous_read_refused = value.is_none();
+        value.is_none() && !std::mem::replace(&mut self.continuous_read_refusal_told, true)
+    }
+
+    /// Whether read `index` is to be read on its own: split off after a refused merged read,
+    /// or not yet known to exist while continuous read is on (a safeguard: it is switched on
+    /// once every read has answered).
+    fn reads_alone(&self, index: usize) -> bool {
+        self.reads
+            .get(index)
+            .is_some_and(|r| r.solo || (self.continuous_read_on && !r.present))
     }
 
     /// Keeps what a read of holding registers found, or a write put, where setup writes keep
@@ -643,6 +720,8 @@ impl DeviceState {
         self.events_to_disable.clear();
         self.events_disable_sent = 0;
         self.preparation = self.first_preparation_step();
+        self.continuous_read_on = false;
+        self.continuous_read_refused = false;
         self.holes_off = false;
         self.split_found_refused = false;
         for read in &mut self.reads {
@@ -916,13 +995,13 @@ impl DeviceState {
         let first_span = self.plan.reads.get(first)?.span;
         let mut span = first_span;
         let mut members = vec![first];
-        if !self.reads.get(first).is_some_and(|r| r.solo) {
+        if !self.reads_alone(first) {
             // The due reads after the first, by span: `by_span` is in that order already.
             let followers = self
                 .by_span
                 .iter()
                 .copied()
-                .filter(|&i| i != first && is_due(i) && !self.reads.get(i).is_some_and(|r| r.solo))
+                .filter(|&i| i != first && is_due(i) && !self.reads_alone(i))
                 .filter_map(|i| self.plan.reads.get(i).map(|p| (p.span, i)))
                 .filter(|(s, _)| {
                     s.register_type == first_span.register_type && s.start >= first_span.start
@@ -949,10 +1028,10 @@ impl DeviceState {
         let first_span = self.plan.reads.get(first)?.span;
         let mut span = first_span;
         let mut members = vec![first];
-        if !self.reads.get(first).is_some_and(|r| r.solo) {
+        if !self.reads_alone(first) {
             let mut followers: Vec<(RegisterSpan, usize)> = due
                 .iter()
-                .filter(|&&i| i != first && !self.reads.get(i).is_some_and(|r| r.solo))
+                .filter(|&&i| i != first && !self.reads_alone(i))
                 .filter_map(|&i| self.plan.reads.get(i).map(|p| (p.span, i)))
                 .filter(|(s, _)| s.register_type == span.register_type && s.start >= span.start)
                 .collect();
@@ -1036,6 +1115,7 @@ impl DeviceState {
         let period = self.plan.reads.get(index).and_then(|p| p.period);
         let read = self.reads.get_mut(index)?;
         read.solo_unknown = false;
+        read.present = true;
         let previous = read.last_read.replace(now);
         let was_initial = std::mem::replace(&mut read.initial_pending, false);
         let mut changed = None;
@@ -1122,9 +1202,15 @@ impl DeviceState {
         false
     }
 
-    /// The merge limits in force: the plan's, without holes once a read over them was refused.
+    /// The merge limits in force: the plan's, with wb-mqtt-serial's holes (10 registers, 80
+    /// bits) at least while continuous read is on, and without holes once a read over them was
+    /// refused.
     fn merge_limits(&self) -> super::read_plan::MergeLimits {
         let mut limits = self.plan.merge;
+        if self.continuous_read_on {
+            limits.max_register_hole = limits.max_register_hole.max(CONTINUOUS_READ_REGISTER_HOLE);
+            limits.max_bit_hole = limits.max_bit_hole.max(CONTINUOUS_READ_BIT_HOLE);
+        }
         if self.holes_off {
             limits.max_register_hole = 0;
             limits.max_bit_hole = 0;

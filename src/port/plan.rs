@@ -146,6 +146,13 @@ pub struct DevicePlan {
     pub health: HealthPolicy,
     pub reads: Vec<PlannedRead>,
     pub setup: Vec<SetupWrite>,
+    /// The template sets `enable_wb_continuous_read`: holding 114 is set to 1 before the setup
+    /// writes at every (re)connection, and while it holds reads may span up to 10 registers
+    /// (80 bits) the device lacks, which it answers as 0xFFFE instead of refusing the read. So
+    /// a register is read on its own until it has answered once, as wb-mqtt-serial reads a
+    /// register of unknown availability: merged with others, one the device lacks would pass
+    /// for a value.
+    pub continuous_read: bool,
     /// How long a write that cannot go (no answer, the port unavailable) keeps being tried
     /// before it is given up (`max_write_fail_time_s`, 600 s by default as in wb-mqtt-serial).
     pub write_retry_time: Duration,

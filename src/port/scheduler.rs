@@ -28,13 +28,16 @@ use crate::protocol::timing::ADAPTER_LATENCY_ALLOWANCE;
 pub use crate::protocol::transaction::{ReplyTiming, Transaction, TransactionOutcome};
 use crate::protocol::{
     EventPoll, EventRange, EventSource, ExceptionCode, FastReply, RegisterType, Reply, ReplyBody,
-    Request, RequestBody, ResponsePdu,
+    Request, RequestBody, RequestPdu, ResponsePdu,
 };
 
 /// How long a failed write keeps being retried unless its device says otherwise
 /// (`DevicePlan::write_retry_time`, `max_write_fail_time_s`).
 #[cfg(test)]
 const WRITE_RETRY_TIME: Duration = Duration::from_secs(600);
+
+/// Wiren Board devices' continuous-read switch (holding 114; 1: on, until the device restarts).
+const CONTINUOUS_READ_REGISTER: u16 = 114;
 
 /// What the driver does next.
 #[derive(Debug, Clone, PartialEq)]
@@ -172,6 +175,11 @@ pub enum PortEvent {
 enum InFlight {
     PollEvents {
         started: Duration,
+    },
+    /// Holding 114 = 1 (see [`DevicePlan::continuous_read`]).
+    ContinuousRead {
+        device: usize,
+        value: u16,
     },
     Setup {
         device: usize,
@@ -893,6 +901,7 @@ impl PortScheduler {
         let outcome = device_outcome(outcome);
         let device = match &self.in_flight {
             Some(InFlight::Setup { device, .. })
+            | Some(InFlight::ContinuousRead { device, .. })
             | Some(InFlight::EnableEvents { device, .. })
             | Some(InFlight::DisableEvents { device, .. })
             | Some(InFlight::Read { device, .. }) => Some(*device),
@@ -927,6 +936,9 @@ impl PortScheduler {
             Some(InFlight::PollEvents { started }) => {
                 self.last_event_poll = (now, now.saturating_sub(started));
                 self.complete_event_poll(now, started, outcome, out)
+            }
+            Some(InFlight::ContinuousRead { device, value }) => {
+                self.complete_continuous_read(now, device, value, outcome, out)
             }
             Some(InFlight::Setup { device, index }) => {
                 self.complete_setup(now, device, index, outcome, out)
@@ -1308,6 +1320,21 @@ impl PortScheduler {
     /// or, with Fast Modbus on, its event setup is due.)
     fn preparation_of(&self, now: Duration, index: usize) -> Option<(Transaction, InFlight)> {
         let device = self.devices.get(index)?;
+        if let Some(value) = device.continuous_read_due() {
+            let pdu = RequestPdu::WriteSingleRegister {
+                address: CONTINUOUS_READ_REGISTER,
+                value,
+            };
+            let transaction =
+                self.classic_transaction(now, device, Request::classic(device.plan.address, pdu));
+            return Some((
+                transaction,
+                InFlight::ContinuousRead {
+                    device: index,
+                    value,
+                },
+            ));
+        }
         if let Some(setup_index) = device.next_setup_write() {
             let write = device.plan.setup.get(setup_index)?;
             let words = device.setup_words(setup_index)?;
@@ -1705,6 +1732,44 @@ impl PortScheduler {
             }
 
             TransactionOutcome::Garbled => self.events.garbled(now),
+        }
+    }
+
+    /// As wb-mqtt-serial's `EnableWbContinuousRead`: a refusal means firmware without it (its
+    /// reads then keep the template's holes); silence fails like a setup write.
+    fn complete_continuous_read(
+        &mut self,
+        now: Duration,
+        device: usize,
+        value: u16,
+        outcome: TransactionOutcome,
+        out: &mut Vec<PortEvent>,
+    ) {
+        let Some(state) = self.devices.get_mut(device) else {
+            return;
+        };
+        match outcome {
+            TransactionOutcome::Reply(Reply {
+                body: ReplyBody::Classic(ResponsePdu::Exception { code, .. }),
+                ..
+            }) => {
+                Self::health_success(state, device, now, out);
+                if state.continuous_read_answered(None) {
+                    info!(device = %state.plan.name, %code, "device refuses continuous read (older firmware): its registers are read without holes");
+                } else {
+                    debug!(device = %state.plan.name, %code, "continuous read refused");
+                }
+            }
+            TransactionOutcome::Reply(_) => {
+                Self::health_success(state, device, now, out);
+                state.continuous_read_answered(Some(value));
+                debug!(device = %state.plan.name, value, "continuous read set");
+            }
+            failed @ (TransactionOutcome::NoReply | TransactionOutcome::Garbled) => {
+                let garbled = failed == TransactionOutcome::Garbled;
+                Self::health_failure(state, device, now, garbled, out);
+                self.setup_failed_for_writes(now, device, out);
+            }
         }
     }
 

@@ -44,6 +44,7 @@ fn device(address: u8, reads: Vec<PlannedRead>) -> DevicePlan {
         health: HealthPolicy::default(),
         reads,
         setup: Vec::new(),
+        continuous_read: false,
         write_retry_time: Duration::from_secs(600),
     }
 }
@@ -4610,15 +4611,21 @@ fn a_flapping_device_is_summed_up_in_the_log_not_told_at_every_drop_out() {
     let mut scheduler = PortScheduler::new(settings(115_200), vec![device(4, vec![polled])]);
     let mut log = Log::default();
     let end = ms(32 * 60_000);
-    run(&mut scheduler, &mut log, Duration::ZERO, end, |at, request| {
-        // Away 5 s of every 30 s for 15 minutes, then steady.
-        let away = at < ms(15 * 60_000) && at.as_millis() % 30_000 >= 25_000;
-        if away {
-            TransactionOutcome::NoReply
-        } else {
-            healthy(request)
-        }
-    });
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        end,
+        |at, request| {
+            // Away 5 s of every 30 s for 15 minutes, then steady.
+            let away = at < ms(15 * 60_000) && at.as_millis() % 30_000 >= 25_000;
+            if away {
+                TransactionOutcome::NoReply
+            } else {
+                healthy(request)
+            }
+        },
+    );
     let drop_outs = log
         .events
         .iter()
@@ -4634,6 +4641,149 @@ fn a_flapping_device_is_summed_up_in_the_log_not_told_at_every_drop_out() {
     assert_eq!(count("dropped out 3 times in 60 s"), 1, "{text}");
     // Windows end at 11 and 21 minutes (drop-outs in both), then at 31 (none).
     assert_eq!(count("times in the last 10 minutes; now"), 2, "{text}");
-    assert_eq!(count("did not drop out in the last 10 minutes (now online)"), 1, "{text}");
+    assert_eq!(
+        count("did not drop out in the last 10 minutes (now online)"),
+        1,
+        "{text}"
+    );
     assert_eq!(lines.len(), 10, "{text}");
+}
+
+/// wb-mqtt-serial's `TModbusContinuousRegisterReadTest` (holding 1, 8, 20 and coils 1, 70, 170
+/// of a device whose template sets `enable_wb_continuous_read`), the first 13 requests.
+fn continuous_read_requests(device_takes_it: bool) -> Vec<RequestPdu> {
+    let reads = [
+        (RegisterType::Holding, 1),
+        (RegisterType::Holding, 8),
+        (RegisterType::Holding, 20),
+        (RegisterType::Coil, 1),
+        (RegisterType::Coil, 70),
+        (RegisterType::Coil, 170),
+    ]
+    .into_iter()
+    .map(|(register_type, start)| read(register_type, start, EventMode::Polled))
+    .collect();
+    let plan = DevicePlan {
+        continuous_read: true,
+        ..device(1, reads)
+    };
+    let mut scheduler = PortScheduler::new(settings(115_200), vec![plan]);
+    let mut log = Log::default();
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(60),
+        |_, request| match &request.body {
+            RequestBody::Classic(RequestPdu::WriteSingleRegister { address: 114, .. })
+                if !device_takes_it =>
+            {
+                exception(request, ExceptionCode::ILLEGAL_DATA_ADDRESS)
+            }
+            _ => healthy(request),
+        },
+    );
+    log.classic_to(1)
+        .into_iter()
+        .map(|(_, pdu)| pdu)
+        .take(13)
+        .collect()
+}
+
+/// Continuous read switched off first (the device may have it on from before, and then a merged
+/// read over a register it lacks answers 0xFFFE for it instead of being refused); reads merged
+/// as the template's holes allow (none here) until every register has answered; then
+/// continuous read on, and reads merged over holes of up to 10 registers and 80 bits, as
+/// wb-mqtt-serial merges them.
+#[test]
+fn continuous_read_is_switched_on_once_every_register_answered_and_reads_merge_over_holes() {
+    let holding = |start, count| RequestPdu::ReadHoldingRegisters { start, count };
+    let coils = |start, count| RequestPdu::ReadCoils { start, count };
+    let switch = |value| RequestPdu::WriteSingleRegister {
+        address: 114,
+        value,
+    };
+    let mut expected = vec![switch(0)];
+    expected.extend([holding(1, 1), holding(8, 1), holding(20, 1)]);
+    expected.extend([coils(1, 1), coils(70, 1), coils(170, 1)]);
+    expected.push(switch(1));
+    expected.extend([holding(1, 8), holding(20, 1), coils(1, 70), coils(170, 1)]);
+    expected.push(holding(1, 8));
+    assert_eq!(continuous_read_requests(true), expected);
+}
+
+/// A device that refuses continuous read (older firmware) keeps the template's holes (none):
+/// the reads stay apart.
+#[test]
+fn a_device_refusing_continuous_read_is_read_without_holes() {
+    let sent = continuous_read_requests(false);
+    assert_eq!(
+        sent[0],
+        RequestPdu::WriteSingleRegister {
+            address: 114,
+            value: 0
+        }
+    );
+    assert!(sent[1..].iter().all(|pdu| pdu.range().1 == 1), "{sent:?}");
+}
+
+/// A Wiren Board device left in continuous read by a previous master (wb-mqtt-serial, or this
+/// daemon before a restart) that lacks holding 5 of the template's 4, 5, 6: a merged read of
+/// 4–6 would answer 0xFFFE for 5, published as its value. Continuous read is switched off
+/// before anything is read, so the merged read is refused and 5 is found missing; then it is
+/// switched on again, and 5 is never reported.
+#[test]
+fn a_register_the_device_lacks_is_never_read_as_0xfffe_in_continuous_read() {
+    let reads = (4..=6)
+        .map(|start| read(RegisterType::Holding, start, EventMode::Polled))
+        .collect();
+    let plan = DevicePlan {
+        continuous_read: true,
+        ..device(1, reads)
+    };
+    let mut scheduler = PortScheduler::new(settings(115_200), vec![plan]);
+    let mut log = Log::default();
+    let mut continuous = true;
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(200),
+        |_, request| match &request.body {
+            RequestBody::Classic(RequestPdu::WriteSingleRegister {
+                address: 114,
+                value,
+            }) => {
+                continuous = *value == 1;
+                healthy(request)
+            }
+            RequestBody::Classic(RequestPdu::ReadHoldingRegisters { start, count }) => {
+                let covers_5 = (*start..start + count).contains(&5);
+                if covers_5 && (!continuous || *count == 1) {
+                    return exception(request, ExceptionCode::ILLEGAL_DATA_ADDRESS);
+                }
+                let values = (*start..start + count)
+                    .map(|a| if a == 5 { 0xFFFE } else { a })
+                    .collect();
+                TransactionOutcome::Reply(Reply::classic(
+                    request.address,
+                    ResponsePdu::ReadHoldingRegisters { values },
+                ))
+            }
+            _ => healthy(request),
+        },
+    );
+    assert!(continuous, "switched on again once 5 was found missing");
+    let mut read_4_and_6 = 0;
+    for (_, event) in &log.events {
+        if let PortEvent::Values { span, values, .. } = event {
+            for (offset, value) in values.iter().enumerate() {
+                let register = span.start + offset as u16;
+                assert_ne!(register, 5, "{event:?}");
+                assert_ne!(*value, 0xFFFE, "{event:?}");
+                read_4_and_6 += 1;
+            }
+        }
+    }
+    assert!(read_4_and_6 > 20, "{read_4_and_6}");
 }

@@ -1255,11 +1255,21 @@ async fn device_load_config(
     let registers = parameter_registers(&template, device.slave_id, &known, firmware)
         .map_err(RpcError::server)?;
     let spans: Vec<crate::port::RegisterSpan> = registers.iter().filter_map(|r| r.span()).collect();
-    let limits = crate::port::MergeLimits {
-        max_read_registers: device.timing.max_read_registers,
-        max_register_hole: device.timing.max_reg_hole,
-        max_bit_hole: device.timing.max_bit_hole,
-        min_read_registers: device.timing.min_read_registers,
+    // A device with continuous read (which the port task switches on) answers a register it
+    // lacks as 0xFFFE in a read that covers others: each parameter is read on its own there,
+    // so that one it lacks is refused, not reported as 65534.
+    let limits = if device.timing.enable_wb_continuous_read {
+        crate::port::MergeLimits {
+            min_read_registers: device.timing.min_read_registers,
+            ..crate::port::MergeLimits::default()
+        }
+    } else {
+        crate::port::MergeLimits {
+            max_read_registers: device.timing.max_read_registers,
+            max_register_hole: device.timing.max_reg_hole,
+            max_bit_hole: device.timing.max_bit_hole,
+            min_read_registers: device.timing.min_read_registers,
+        }
     };
     let mut words = ReadWords::new();
     let keep = |words: &mut ReadWords, span: crate::port::RegisterSpan, values: Vec<u16>| {

@@ -1580,3 +1580,33 @@ fn the_masters_request_during_another_masters_exchange_collides() {
     assert!(wire.arrivals().iter().all(|&(arrival, _)| arrival
         < their_reply_start + FAST_LINE.wire_time(7) + FAST_LINE.char_time()));
 }
+
+/// Continuous read (holding 114 = 1, as a Wiren Board device has it): a read over registers
+/// the device lacks answers them as 0xFFFE (bits as 0) as long as it covers one it has; a read
+/// of none it has is still refused; a restart turns it off.
+#[test]
+fn continuous_read_answers_missing_registers_until_a_restart() {
+    let mut bus = seed_bus();
+    let holding =
+        |start, count| Request::classic(20, RequestPdu::ReadHoldingRegisters { start, count });
+    let coils = Request::classic(20, RequestPdu::ReadCoils { start: 6, count: 4 });
+    let refused = |function: &str| with_crc(&format!("14 {function} 02"));
+    assert_eq!(send(&mut bus, &holding(9, 2)), refused("83"));
+    assert_eq!(send(&mut bus, &coils), refused("81"));
+    let on = Request::classic(
+        20,
+        RequestPdu::WriteSingleRegister {
+            address: 114,
+            value: 1,
+        },
+    );
+    assert_eq!(send(&mut bus, &on), on.encode().unwrap());
+    assert_eq!(
+        send(&mut bus, &holding(9, 2)),
+        with_crc("14 03 04 00 00 FF FE")
+    );
+    assert_eq!(send(&mut bus, &coils), with_crc("14 01 01 00"));
+    assert_eq!(send(&mut bus, &holding(10, 2)), refused("83"));
+    bus.device_mut(0).unwrap().reboot();
+    assert_eq!(send(&mut bus, &holding(9, 2)), refused("83"));
+}

@@ -187,8 +187,42 @@ impl VirtualDevice {
     /// Register values and port settings survive (they live in the device's flash or are inputs).
     pub fn reboot(&mut self) {
         self.events = EventState::after_restart();
+        // Continuous read lasts until the device restarts.
+        self.registers
+            .set(RegisterType::Holding, wb::CONTINUOUS_READ, 0);
         self.scanned = false;
         self.starts += 1;
+    }
+
+    /// The values of a read, None when it is refused (exception 2). With continuous read on
+    /// (holding 114 = 1, as a Wiren Board device has it), a read that covers at least one
+    /// register it has answers the others as 0xFFFE (bits as 0) instead of refusing.
+    fn read_range(&self, register_type: RegisterType, start: u16, count: u16) -> Option<Vec<u16>> {
+        if let Some(values) = self.registers.read_range(register_type, start, count) {
+            return Some(values);
+        }
+        if self
+            .registers
+            .get(RegisterType::Holding, wb::CONTINUOUS_READ)
+            != Some(1)
+        {
+            return None;
+        }
+        let missing = match register_type {
+            RegisterType::Coil | RegisterType::DiscreteInput => 0,
+            _ => 0xFFFE,
+        };
+        let values: Vec<Option<u16>> = (0..count)
+            .map(|offset| {
+                start
+                    .checked_add(offset)
+                    .and_then(|address| self.registers.get(register_type, address))
+            })
+            .collect();
+        values
+            .iter()
+            .any(Option::is_some)
+            .then(|| values.iter().map(|v| v.unwrap_or(missing)).collect())
     }
 
     /// Executes a classic request and returns the reply PDU and the registers that changed.
@@ -205,7 +239,7 @@ impl VirtualDevice {
                 } else {
                     RegisterType::DiscreteInput
                 };
-                let Some(values) = self.registers.read_range(register_type, start, count) else {
+                let Some(values) = self.read_range(register_type, start, count) else {
                     return (exception(ExceptionCode::ILLEGAL_DATA_ADDRESS), Vec::new());
                 };
                 let bits: Vec<bool> = values.iter().map(|&v| v != 0).collect();
@@ -218,16 +252,13 @@ impl VirtualDevice {
                 (reply, Vec::new())
             }
             RequestPdu::ReadHoldingRegisters { .. } => {
-                match self
-                    .registers
-                    .read_range(RegisterType::Holding, start, count)
-                {
+                match self.read_range(RegisterType::Holding, start, count) {
                     Some(values) => (ResponsePdu::ReadHoldingRegisters { values }, Vec::new()),
                     None => (exception(ExceptionCode::ILLEGAL_DATA_ADDRESS), Vec::new()),
                 }
             }
             RequestPdu::ReadInputRegisters { .. } => {
-                match self.registers.read_range(RegisterType::Input, start, count) {
+                match self.read_range(RegisterType::Input, start, count) {
                     Some(values) => (ResponsePdu::ReadInputRegisters { values }, Vec::new()),
                     None => (exception(ExceptionCode::ILLEGAL_DATA_ADDRESS), Vec::new()),
                 }
