@@ -1588,6 +1588,25 @@ fn scan_through_a_receive_fifo_waits_for_the_fillers_it_holds() {
     assert_eq!(report["problems"], json!([]), "{report:#}");
 }
 
+/// Serial numbers with long runs of 1 bits leave many arbitration windows silent (a recessive
+/// bit sends nothing); the winner's frame comes after the last window. An independent device
+/// stack found the scan giving such devices up after 20 ms without a byte ("no device
+/// answered ... check wiring"): at 9600 any serial with 14 bits of 1 in a row, at 4800 with 7.
+#[test]
+fn scan_finds_devices_whose_serials_leave_arbitration_windows_silent() {
+    let sim = SimProcess::start("silent-windows-bus.json", &[]);
+    let report = scan_json(&sim, &["--baud", "9600,4800", "--parity", "N"]);
+    assert_eq!(
+        found(&report),
+        vec![
+            (0xFE00_FE00, 61, "4800 8N2".into()),
+            (0xFE7F_FFFF, 60, "9600 8N2".into()),
+        ],
+        "{report:#}"
+    );
+    assert_eq!(report["problems"], json!([]), "{report:#}");
+}
+
 /// Devices that differ only in stop bits answer the same transmission: each is found once, at
 /// the stop bits its registers report, and a shared address is a duplicate whatever the stop
 /// bits. `--stop-bits 1` lists only the device that reports 1.

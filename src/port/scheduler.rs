@@ -1929,12 +1929,21 @@ impl PortScheduler {
             failed @ (TransactionOutcome::NoReply | TransactionOutcome::Garbled) => {
                 let garbled = failed == TransactionOutcome::Garbled;
                 Self::health_failure(state, device, now, garbled, out);
-                if !state.event_setup_failed(now) {
-                    debug!(device = %state.plan.name, "no answer to the event setup: trying it again");
-                } else if std::mem::replace(&mut state.event_setup_unanswered_told, true) {
-                    debug!(device = %state.plan.name, tries = MAX_EVENT_SETUP_TRIES, "no answer to the event setup: polling it");
+                let answer = if garbled {
+                    "no readable answer"
                 } else {
-                    warn!(device = %state.plan.name, tries = MAX_EVENT_SETUP_TRIES, "no answer to the event setup: polling it (asked for once more when it next comes online)");
+                    "no answer"
+                };
+                if !state.event_setup_failed(now) {
+                    debug!(device = %state.plan.name, "{answer} to the event setup: trying it again");
+                } else if state.health.is_offline() {
+                    // The device is away (said when it was marked offline), not deaf to the
+                    // event setup: asked again when it answers, said then if it fails again.
+                    debug!(device = %state.plan.name, tries = MAX_EVENT_SETUP_TRIES, "{answer} to the event setup while offline: asked for again when it answers");
+                } else if std::mem::replace(&mut state.event_setup_unanswered_told, true) {
+                    debug!(device = %state.plan.name, tries = MAX_EVENT_SETUP_TRIES, "{answer} to the event setup: polling it");
+                } else {
+                    warn!(device = %state.plan.name, tries = MAX_EVENT_SETUP_TRIES, "{answer} to the event setup: polling it (asked for once more when it next comes online)");
                 }
             }
         }

@@ -8,6 +8,7 @@ use super::crc::{append_crc, crc_is_valid};
 use super::fast::{self, EventPoll, EventRange, FastReply, FastRequest};
 use super::pdu::{FrameLength, RequestPdu, ResponsePdu, EXCEPTION_FLAG};
 use super::{DecodeError, EncodeError};
+use std::time::Duration;
 
 /// Longest RTU frame the standard allows.
 pub const MAX_FRAME_LEN: usize = 256;
@@ -113,6 +114,23 @@ impl Request {
 
     pub fn is_fast(&self) -> bool {
         matches!(self.body, RequestBody::Fast(_))
+    }
+
+    /// When devices arbitrate for the reply (an event poll, a scan): the longest time from the
+    /// end of the request to the start of the winner's frame on `line` (every window, fast-modbus.md
+    /// §3). Until then the reply may be filler bytes with silent windows between them.
+    pub fn arbitration_time(&self, line: &crate::protocol::LineSettings) -> Option<Duration> {
+        match &self.body {
+            RequestBody::Fast(FastRequest::PollEvents(_)) => Some(line.event_reply_timeout()),
+            RequestBody::Fast(FastRequest::ScanStart | FastRequest::ScanContinue) => Some(
+                if self.fast_function == crate::protocol::fast::LEGACY_FUNCTION {
+                    line.legacy_scan_reply_timeout()
+                } else {
+                    line.scan_reply_timeout()
+                },
+            ),
+            _ => None,
+        }
     }
 
     /// The length of the whole reply frame (address to CRC) when the device answers as asked:

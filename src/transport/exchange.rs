@@ -36,7 +36,7 @@ use tracing::debug;
 
 use super::mbap::MbapCodec;
 use super::other_master::OtherMasters;
-use crate::protocol::parser::answers;
+use crate::protocol::parser::{answers, ARBITRATION_FILLER};
 use crate::protocol::pdu::FrameLength;
 use crate::protocol::{
     EncodeError, FastRequest, LineSettings, ParseStatus, Reply, ReplyParser, Request, RequestBody,
@@ -285,6 +285,8 @@ struct Receiving {
     /// may sleep until then and read it in one go ([`Exchange::batch_read_at`]). `None` once
     /// tried, or when nothing is known of the device yet.
     batch_read_at: Option<Duration>,
+    /// A byte other than an arbitration filler came (see [`ReplyWindow::arbitration_under_way`]).
+    frame_began: bool,
 }
 
 /// Every this many transactions with a batch read, one is read as it comes instead, so that the
@@ -527,6 +529,7 @@ impl Exchange {
                 reply_began: false,
                 dropped: false,
                 batch_read_at,
+                frame_began: false,
             }))
         } else {
             State::Broadcasting {
@@ -667,6 +670,17 @@ impl Exchange {
             Some(mbap) => receiving.take_mbap(mbap.unwrap(bytes)),
             None => {
                 self.window_bytes.extend_from_slice(bytes);
+                let arbitration = self
+                    .config
+                    .serial
+                    .and_then(|line| receiving.request.arbitration_time(&line));
+                if let Some(arbitration) = arbitration {
+                    receiving.frame_began |= bytes.iter().any(|&b| b != ARBITRATION_FILLER);
+                    let arbitration = arbitration.saturating_add(self.config.receive_timeout);
+                    receiving
+                        .window
+                        .arbitration_under_way((!receiving.frame_began).then_some(arbitration));
+                }
                 receiving.take_rtu(bytes)
             }
         };
@@ -999,6 +1013,9 @@ mod window {
         first_byte_exact: bool,
         last_byte_at: Option<Duration>,
         late_byte_at: Option<Duration>,
+        /// Only arbitration fillers have come of a Fast Modbus broadcast's reply, whose winner's
+        /// frame may start as late as this: see [`Self::arbitration_under_way`].
+        arbitration_until: Option<Duration>,
     }
 
     impl ReplyWindow {
@@ -1029,7 +1046,23 @@ mod window {
                 first_byte_exact: true,
                 last_byte_at: None,
                 late_byte_at: None,
+                arbitration_until: None,
             }
+        }
+
+        /// Whether all that came of the reply so far are the arbitration's filler bytes of a
+        /// Fast Modbus broadcast (an event poll, a scan). A contender's recessive bits are
+        /// silent windows, and the winner's frame starts only after the last window: a silence
+        /// of many windows after a filler is the arbitration going on (fast-modbus.md §3), not
+        /// the end of a reply, so the quiet gap is counted from when the last window can have
+        /// closed if that is later than the last filler: `arbitration` (the request's
+        /// [`Request::arbitration_time`]) after the first filler was read, which carries what
+        /// an adapter adds to every byte (a generous bound: the first window opens only after
+        /// the devices' wait). `None`: a frame began. (At 9600 a serial number with 14 bits of 1
+        /// in a row left 20 ms of silence: the scan gave its device up.)
+        pub fn arbitration_under_way(&mut self, arbitration: Option<Duration>) {
+            let first = self.first_byte_at.unwrap_or(self.clock_start);
+            self.arbitration_until = arbitration.map(|time| first.saturating_add(time));
         }
 
         /// Moves the first-byte and reply deadlines `by` later (what the link adds to every
@@ -1105,6 +1138,7 @@ mod window {
             match self.phase {
                 Phase::Waiting => match (self.last_byte_at, self.first_byte_deadline) {
                     (Some(last), _) => last
+                        .max(self.arbitration_until.unwrap_or_default())
                         .saturating_add(self.quiet_gap)
                         .min(self.deadline.saturating_add(self.pause_past_deadline)),
                     (None, Some(first)) => first.min(self.deadline),
@@ -2377,6 +2411,121 @@ mod tests {
         let mut exchange = Exchange::new(serial(line).with_receive_fifo(8));
         let finished = run(&mut exchange, &transaction, ms(0), &fifo);
         assert_eq!(finished.outcome, TransactionOutcome::Reply(no_events));
+    }
+
+    /// The arbitration's fillers of serial `serial` after a scan start (marker 0b0110, then
+    /// the lower 28 bits): one per window holding a 0 bit, in window order.
+    fn scan_fillers(
+        line: &LineSettings,
+        request_time: Duration,
+        serial: u32,
+    ) -> Vec<(Duration, u8)> {
+        let word = (0b0110_u32 << 28) | (serial & 0x0FFF_FFFF);
+        let first_window = request_time + line.device_arbitration_wait();
+        (0..32)
+            .filter(|bit| word & (1 << (31 - bit)) == 0)
+            .map(|window| {
+                (
+                    first_window + line.arbitration_window() * window + line.char_time(),
+                    0xFF,
+                )
+            })
+            .collect()
+    }
+
+    /// A device's recessive bits are silent windows, and its frame comes only after the last
+    /// window: 23 bits of 1 in a row are 24 windows (33 ms at 9600) without a byte, longer
+    /// than the quiet gap that ends a reply. Found by an independent device stack: the scan
+    /// gave such a device up after the 7th filler ("no device answered").
+    #[test]
+    fn silent_arbitration_windows_do_not_end_a_scan_or_an_event_poll() {
+        for (baud, serial) in [
+            (9600, 0xFE7F_FFFF_u32),
+            (9600, 0xFE0F_FFF0),
+            (1200, 0xFE00_FC00),
+        ] {
+            let line = line(baud);
+            let request = Request::scan_start();
+            let request_time = line.wire_time(request.encoded_len());
+            let transaction = Transaction {
+                estimated: request_time,
+                request_time,
+                reply_timeout: line.scan_reply_timeout() + line.wire_time(32 + 10),
+                first_byte_timeout: Some(line.scan_start_first_byte_timeout()),
+                late_window: Duration::ZERO,
+                request,
+            };
+            let found = Reply::fast(
+                0xFD,
+                crate::protocol::FastReply::ScanFound {
+                    serial,
+                    modbus_address: 50,
+                },
+            );
+            let mut wire = scan_fillers(&line, request_time, serial);
+            let gaps: Vec<Duration> = wire.windows(2).map(|w| w[1].0 - w[0].0).collect();
+            let first_window = request_time + line.device_arbitration_wait();
+            let frame_at = first_window + line.arbitration_window() * 32;
+            let last_filler = wire.last().map(|&(at, _)| at).unwrap_or_default();
+            let quiet_gap = LinkConfig::serial(line).quiet_gap;
+            assert!(
+                gaps.iter().any(|&gap| gap > quiet_gap) || frame_at - last_filler > quiet_gap,
+                "{serial:08X} at {baud}: a silence longer than the quiet gap"
+            );
+            wire.extend(on_the_wire(
+                &line,
+                frame_at,
+                &found.encode().unwrap_or_default(),
+            ));
+            let mut exchange = Exchange::new(LinkConfig::serial(line));
+            let finished = run(&mut exchange, &transaction, ms(0), &wire);
+            assert_eq!(
+                finished.outcome,
+                TransactionOutcome::Reply(found),
+                "{serial:08X} at {baud}"
+            );
+        }
+        // An event poll at 1200: address 127 (0b0111_1111) with a packet (marker 0b0110) sends
+        // fillers in windows 1, 4 and 5, then 7 silent windows (76 ms) before its frame.
+        let line = line(1200);
+        let poll = event_poll();
+        let request_time = line.wire_time(poll.encoded_len());
+        let transaction = Transaction {
+            estimated: request_time,
+            request_time,
+            reply_timeout: line.event_reply_timeout() + line.wire_time(poll.max_reply_len() + 32),
+            first_byte_timeout: Some(line.event_first_byte_timeout()),
+            late_window: Duration::ZERO,
+            request: poll,
+        };
+        let packet = Reply::fast(
+            127,
+            crate::protocol::FastReply::Events(crate::protocol::EventPacket {
+                flag: 1,
+                event_count: 1,
+                events: vec![crate::protocol::Event {
+                    source: crate::protocol::EventSource::Register(
+                        crate::protocol::RegisterType::Input,
+                    ),
+                    id: 10,
+                    payload: vec![0x67, 0x00],
+                }],
+            }),
+        );
+        let first_window = request_time + line.device_arbitration_wait();
+        let window = line.arbitration_window();
+        let mut wire: Vec<(Duration, u8)> = [0, 3, 4]
+            .into_iter()
+            .map(|n| (first_window + window * n + line.char_time(), 0xFF))
+            .collect();
+        wire.extend(on_the_wire(
+            &line,
+            first_window + window * ARBITRATION_WINDOWS_EVENTS,
+            &packet.encode().unwrap_or_default(),
+        ));
+        let mut exchange = Exchange::new(LinkConfig::serial(line));
+        let finished = run(&mut exchange, &transaction, ms(0), &wire);
+        assert_eq!(finished.outcome, TransactionOutcome::Reply(packet));
     }
 
     #[test]
