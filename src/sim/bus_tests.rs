@@ -1610,3 +1610,25 @@ fn continuous_read_answers_missing_registers_until_a_restart() {
     bus.device_mut(0).unwrap().reboot();
     assert_eq!(send(&mut bus, &holding(9, 2)), refused("83"));
 }
+
+/// Wiren Board templates read the firmware version from input 250.. ("FW Version"): a device
+/// whose template has those registers holds the version there too, as in holding 250.
+#[test]
+fn the_firmware_version_is_in_the_input_registers_a_template_reads_it_from() {
+    let mut registers = registers();
+    registers.define(RegisterType::Input, 250, 16, false);
+    let device = VirtualDevice::new(DeviceSpec {
+        registers,
+        ..spec("msw", 20, MCM8_SERIAL)
+    });
+    let version: Vec<u16> = "1.2.3".bytes().map(u16::from).chain([0; 11]).collect();
+    let map = device.registers();
+    assert_eq!(
+        map.read_range(RegisterType::Input, 250, 16),
+        Some(version.clone())
+    );
+    assert_eq!(
+        map.read_range(RegisterType::Holding, 250, 16),
+        Some(version)
+    );
+}

@@ -114,8 +114,18 @@ impl VirtualDevice {
         let [hi, lo] = [(spec.serial >> 16) as u16, spec.serial as u16];
         registers.insert(holding, wb::SERIAL, hi, false);
         registers.insert(holding, wb::SERIAL + 1, lo, false);
-        // WB templates read the serial number from input 270..271 (channel "Serial"): when the
-        // template has that register, it holds the serial number too.
+        // WB templates read the firmware version from input 250.. (channel "FW Version") and the
+        // serial number from input 270..271 (channel "Serial"): when the template has those
+        // registers, they hold them too.
+        if registers.cell(RegisterType::Input, wb::FIRMWARE).is_some() {
+            write_string_to(
+                &mut registers,
+                RegisterType::Input,
+                wb::FIRMWARE,
+                wb::FIRMWARE_LEN,
+                &spec.firmware,
+            );
+        }
         if registers.cell(RegisterType::Input, wb::SERIAL).is_some() {
             registers.insert(RegisterType::Input, wb::SERIAL, hi, false);
             registers.insert(RegisterType::Input, wb::SERIAL + 1, lo, false);
@@ -417,9 +427,19 @@ fn parity_register(parity: Parity) -> u16 {
 
 /// One ASCII character per register, zero padded (read-only).
 fn write_string(registers: &mut RegisterMap, start: u16, len: u16, text: &str) {
+    write_string_to(registers, RegisterType::Holding, start, len, text);
+}
+
+fn write_string_to(
+    registers: &mut RegisterMap,
+    register_type: RegisterType,
+    start: u16,
+    len: u16,
+    text: &str,
+) {
     let mut bytes = text.bytes();
     for offset in 0..len {
         let value = bytes.next().map_or(0, u16::from);
-        registers.insert(RegisterType::Holding, start + offset, value, false);
+        registers.insert(register_type, start + offset, value, false);
     }
 }
