@@ -734,6 +734,10 @@ impl DeviceState {
             read.initial_pending = true;
             read.solo = false;
             read.solo_unknown = false;
+            // The device that answers now may be another (replaced, or other firmware) that
+            // lacks a register this one had: with continuous read on it would answer it as
+            // 0xFFFE in a merged read. Found again before continuous read goes on.
+            read.present = false;
         }
     }
 

@@ -56,7 +56,12 @@ impl FlapLog {
         FlapSay::ChangeThenQuiet { over }
     }
 
-    /// The device answered again at `now`.
+    /// Whether its changes are told at debug level now.
+    pub fn is_quiet(&self) -> bool {
+        self.quiet.is_some()
+    }
+
+    /// The device answered again.
     pub fn came_online(&mut self) -> FlapSay {
         if self.quiet.is_some() {
             FlapSay::Quietly

@@ -1647,7 +1647,11 @@ impl PortScheduler {
                 };
                 if let Some(state) = self.devices.get_mut(device) {
                     if state.heard_from(now) {
-                        info!(device = %state.plan.name, "offline device sent events: trying it again at once");
+                        if state.flaps.is_quiet() {
+                            debug!(device = %state.plan.name, "offline device sent events: trying it again at once");
+                        } else {
+                            info!(device = %state.plan.name, "offline device sent events: trying it again at once");
+                        }
                     }
                     self.index.mark_stale(device);
                 }
@@ -1754,7 +1758,17 @@ impl PortScheduler {
                 ..
             }) => {
                 Self::health_success(state, device, now, out);
-                if state.continuous_read_answered(None) {
+                // As wb-mqtt-serial: illegal function, address or value say the firmware has no
+                // continuous read; busy or a failure are asked again.
+                let refused = matches!(
+                    code,
+                    ExceptionCode::ILLEGAL_FUNCTION
+                        | ExceptionCode::ILLEGAL_DATA_ADDRESS
+                        | ExceptionCode::ILLEGAL_DATA_VALUE
+                );
+                if !refused {
+                    debug!(device = %state.plan.name, %code, "continuous read not set: asked again");
+                } else if state.continuous_read_answered(None) {
                     info!(device = %state.plan.name, %code, "device refuses continuous read (older firmware): its registers are read without holes");
                 } else {
                     debug!(device = %state.plan.name, %code, "continuous read refused");

@@ -4725,6 +4725,11 @@ fn a_device_refusing_continuous_read_is_read_without_holes() {
         }
     );
     assert!(sent[1..].iter().all(|pdu| pdu.range().1 == 1), "{sent:?}");
+    let switches = sent
+        .iter()
+        .filter(|pdu| matches!(pdu, RequestPdu::WriteSingleRegister { address: 114, .. }))
+        .count();
+    assert_eq!(switches, 1, "not asked again: {sent:?}");
 }
 
 /// A Wiren Board device left in continuous read by a previous master (wb-mqtt-serial, or this
@@ -4786,4 +4791,85 @@ fn a_register_the_device_lacks_is_never_read_as_0xfffe_in_continuous_read() {
         }
     }
     assert!(read_4_and_6 > 20, "{read_4_and_6}");
+}
+
+/// A continuous-read device away from 300 to 500 ms comes back as one that lacks holding 5 (a
+/// replacement, or other firmware). What the first one answered says nothing of this one:
+/// continuous read goes off again until every register has answered, so 5 is refused (and no
+/// longer read), never read as 0xFFFE in a merged read. (Found by review: 152 publications of
+/// 0xFFFE when what the first device had answered was kept.)
+#[test]
+fn a_device_replaced_while_away_has_its_registers_found_again_before_continuous_read() {
+    let reads = (4..=6)
+        .map(|start| read(RegisterType::Holding, start, EventMode::Polled))
+        .collect();
+    let mut plan = DevicePlan {
+        continuous_read: true,
+        ..device(1, reads)
+    };
+    plan.response_timeout = ms(5);
+    plan.health = HealthPolicy {
+        max_fail_cycles: 1,
+        device_timeout: ms(10),
+        retry_step: ms(20),
+        max_retry_delay: ms(50),
+        late_reply_holdoff: ms(10),
+    };
+    let mut scheduler = PortScheduler::new(settings(115_200), vec![plan]);
+    let mut log = Log::default();
+    let mut continuous = false;
+    let mut replaced = false;
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(1000),
+        |at, request| {
+            if (ms(300)..ms(500)).contains(&at) {
+                // The new device starts with continuous read off.
+                replaced = true;
+                continuous = false;
+                return TransactionOutcome::NoReply;
+            }
+            match &request.body {
+                RequestBody::Classic(RequestPdu::WriteSingleRegister {
+                    address: 114,
+                    value,
+                }) => {
+                    continuous = *value == 1;
+                    healthy(request)
+                }
+                RequestBody::Classic(RequestPdu::ReadHoldingRegisters { start, count }) => {
+                    let covers_5 = (*start..start + count).contains(&5);
+                    if replaced && covers_5 && (!continuous || *count == 1) {
+                        return exception(request, ExceptionCode::ILLEGAL_DATA_ADDRESS);
+                    }
+                    let values = (*start..start + count)
+                        .map(|a| if a == 5 && replaced { 0xFFFE } else { a })
+                        .collect();
+                    TransactionOutcome::Reply(Reply::classic(
+                        request.address,
+                        ResponsePdu::ReadHoldingRegisters { values },
+                    ))
+                }
+                _ => healthy(request),
+            }
+        },
+    );
+    assert!(replaced && continuous, "back, and continuous read on again");
+    let mut after = 0;
+    for (at, event) in &log.events {
+        if let PortEvent::Values { span, values, .. } = event {
+            for value in values.iter() {
+                assert_ne!(*value, 0xFFFE, "at {at:?}: {span:?}");
+                after += usize::from(*at > ms(500));
+            }
+        }
+    }
+    assert!(after > 20, "4 and 6 read after the return: {after}");
+    let refused_5 = log.events.iter().any(|(at, e)| {
+        *at > ms(500)
+            && matches!(e, PortEvent::ReadFailed { span, unsupported: true, .. } if span.start == 5)
+    });
+    assert!(refused_5, "5 found missing");
 }

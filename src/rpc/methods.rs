@@ -1272,6 +1272,9 @@ async fn device_load_config(
         }
     };
     let mut words = ReadWords::new();
+    // Only the words of the parameters' own span: those `min_read_registers` adds past it may
+    // be registers the device lacks (0xFFFE in continuous read), and would stand in for a
+    // parameter whose own read is refused.
     let keep = |words: &mut ReadWords, span: crate::port::RegisterSpan, values: Vec<u16>| {
         for (offset, value) in (0..span.count).zip(values) {
             words.insert((span.register_type, span.start.wrapping_add(offset)), value);
@@ -1280,7 +1283,7 @@ async fn device_load_config(
     for read in group_reads(&spans, limits) {
         let asked = limits.at_least_min(read);
         match read_span(&mut bus, line, device.slave_id, asked).await? {
-            SpanRead::Words(values) => keep(&mut words, asked, values),
+            SpanRead::Words(values) => keep(&mut words, read, values),
             SpanRead::Refused(_) => {
                 // A refused parameter is left out, as wb-mqtt-serial leaves it; one the device
                 // does not have must not hide the others read with it.
@@ -1297,7 +1300,7 @@ async fn device_load_config(
                     if let SpanRead::Words(values) =
                         read_span(&mut bus, line, device.slave_id, asked).await?
                     {
-                        keep(&mut words, asked, values);
+                        keep(&mut words, member, values);
                     }
                 }
             }

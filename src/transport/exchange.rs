@@ -674,9 +674,13 @@ impl Exchange {
                     .config
                     .serial
                     .and_then(|line| receiving.request.arbitration_time(&line));
-                if let Some(arbitration) = arbitration {
+                if let (Some(arbitration), Some(line)) = (arbitration, self.config.serial) {
                     receiving.frame_began |= bytes.iter().any(|&b| b != ARBITRATION_FILLER);
-                    let arbitration = arbitration.saturating_add(self.config.receive_timeout);
+                    // Counted from the first filler, which came one character into a window
+                    // after the devices' wait at the earliest.
+                    let arbitration = arbitration
+                        .saturating_sub(line.device_arbitration_wait() + line.char_time())
+                        .saturating_add(self.config.receive_timeout);
                     receiving
                         .window
                         .arbitration_under_way((!receiving.frame_began).then_some(arbitration));
@@ -1055,10 +1059,10 @@ mod window {
         /// silent windows, and the winner's frame starts only after the last window: a silence
         /// of many windows after a filler is the arbitration going on (fast-modbus.md §3), not
         /// the end of a reply, so the quiet gap is counted from when the last window can have
-        /// closed if that is later than the last filler: `arbitration` (the request's
-        /// [`Request::arbitration_time`]) after the first filler was read, which carries what
-        /// an adapter adds to every byte (a generous bound: the first window opens only after
-        /// the devices' wait). `None`: a frame began. (At 9600 a serial number with 14 bits of 1
+        /// closed if that is later than the last filler: `arbitration` (what is left of the
+        /// request's [`Request::arbitration_time`] after the first window's filler) after the
+        /// first filler was read, which carries what an adapter adds to every byte. `None`: a
+        /// frame began. (At 9600 a serial number with 14 bits of 1
         /// in a row left 20 ms of silence: the scan gave its device up.)
         pub fn arbitration_under_way(&mut self, arbitration: Option<Duration>) {
             let first = self.first_byte_at.unwrap_or(self.clock_start);
