@@ -990,11 +990,24 @@ impl DeviceState {
     }
 
     pub(super) fn choose_read(&self, now: Duration) -> Option<ReadChoice> {
+        self.choose_read_where(now, |_| true)
+    }
+
+    /// [`Self::choose_read`] starting with a read of a channel without a read period.
+    pub(super) fn choose_low_priority_read(&self, now: Duration) -> Option<ReadChoice> {
+        self.choose_read_where(now, |urgency| urgency.0 == LOW_PRIORITY)
+    }
+
+    fn choose_read_where(
+        &self,
+        now: Duration,
+        first_may_be: impl Fn(ReadUrgency) -> bool,
+    ) -> Option<ReadChoice> {
         let keepalive = self.keepalive_index();
         let is_due = |i: usize| self.due_from(i, keepalive).is_some_and(|at| at <= now);
         let urgency = |i: usize| self.urgency(i);
         let first = (0..self.reads.len())
-            .filter(|&i| is_due(i))
+            .filter(|&i| is_due(i) && first_may_be(urgency(i)))
             .min_by_key(|&i| urgency(i))?;
         let first_span = self.plan.reads.get(first)?.span;
         let mut span = first_span;

@@ -36,6 +36,12 @@ use crate::protocol::{
 #[cfg(test)]
 const WRITE_RETRY_TIME: Duration = Duration::from_secs(600);
 
+/// Reads of channels with a read period go first, but once they have had the bus this much
+/// longer than the other reads, one of those goes (wb-mqtt-serial's `maxLowPriorityLag` of its
+/// register scheduler): a bus whose periodic reads ask for more than it has would otherwise
+/// never read the other channels again, and their last values would stay up with no error.
+const MAX_LOW_PRIORITY_LAG: Duration = Duration::from_secs(1);
+
 /// Wiren Board devices' continuous-read switch (holding 114; 1: on, until the device restarts).
 const CONTINUOUS_READ_REGISTER: u16 = 114;
 
@@ -396,6 +402,9 @@ pub struct PortScheduler {
     by_address: Vec<Option<usize>>,
     /// The config's `rate_limit` on reads of channels without a read period.
     read_rate_limit: ReadRateLimit,
+    /// Bus time given to reads with a read period more than to the others (see
+    /// [`MAX_LOW_PRIORITY_LAG`]).
+    low_priority_lag: Duration,
 }
 
 impl PortScheduler {
@@ -450,6 +459,7 @@ impl PortScheduler {
             writes: Vec::new(),
             in_flight: None,
             in_flight_since: Duration::ZERO,
+            low_priority_lag: Duration::ZERO,
             in_flight_reply_by: Duration::ZERO,
             dead_retries: DeadRetryBudget::default(),
             last_event_poll: (Duration::ZERO, Duration::ZERO),
@@ -955,7 +965,10 @@ impl PortScheduler {
                 device,
                 span,
                 members,
-            }) => self.complete_read(now, device, span, &members, outcome, out),
+            }) => {
+                self.balance_priorities(now, device, &members);
+                self.complete_read(now, device, span, &members, outcome, out)
+            }
             Some(InFlight::Write { write }) => self.complete_write(now, write, outcome, out),
         }
         // Only a request that heard nothing in time skipped a window: a reply that began in
@@ -1385,6 +1398,39 @@ impl PortScheduler {
     /// The most urgent read of all devices that may be read now (ties: the lowest index): the
     /// index keeps them in that order, apart from those that seem dead (budget permitting).
     fn choose_read(&self, now: Duration) -> Option<(Transaction, InFlight)> {
+        if self.low_priority_lag >= MAX_LOW_PRIORITY_LAG {
+            if let Some(choice) = self.choose_low_priority_read(now) {
+                return Some(choice);
+            }
+        }
+        self.choose_read_by_priority(now)
+    }
+
+    /// The most urgent read of a channel without a read period, of the devices that may be
+    /// read now and do not seem dead: when reads with a period have had the bus for
+    /// [`MAX_LOW_PRIORITY_LAG`] more than the others. A scan of every device, only while the
+    /// periodic reads ask for more than the bus has.
+    fn choose_low_priority_read(&self, now: Duration) -> Option<(Transaction, InFlight)> {
+        let (device, choice) = self
+            .devices
+            .iter()
+            .enumerate()
+            .filter(|(_, d)| {
+                !d.needs_preparation()
+                    && !d.suspended
+                    && !d.health.seems_dead()
+                    && self.may_transact(d, now)
+            })
+            .filter_map(|(index, d)| d.choose_low_priority_read(now).map(|c| (index, c)))
+            .min_by_key(|(_, choice)| choice.urgency)?;
+        if self.held_by_rate_limit(now, &choice) {
+            return None;
+        }
+        self.read_of(now, device, choice)
+    }
+
+    /// Reads in their due order: those with a read period first.
+    fn choose_read_by_priority(&self, now: Duration) -> Option<(Transaction, InFlight)> {
         let dead = self.first_dead_allowed(now, self.index.dead_reads(), |(_, d)| d);
         let (_, device) = match (self.index.first_read(), dead) {
             (Some(healthy), Some(dead)) => healthy.min(dead),
@@ -1986,6 +2032,23 @@ impl PortScheduler {
         }
     }
 
+    /// The time of a read goes to its class: a read with a period adds to
+    /// [`Self::low_priority_lag`], another takes from it.
+    fn balance_priorities(&mut self, now: Duration, device: usize, members: &[usize]) {
+        let spent = now.saturating_sub(self.in_flight_since);
+        let periodic = members.first().is_some_and(|&first| {
+            self.devices
+                .get(device)
+                .and_then(|d| d.plan.reads.get(first))
+                .is_some_and(|read| read.period.is_some())
+        });
+        self.low_priority_lag = if periodic {
+            (self.low_priority_lag + spent).min(MAX_LOW_PRIORITY_LAG * 2)
+        } else {
+            self.low_priority_lag.saturating_sub(spent)
+        };
+    }
+
     fn complete_read(
         &mut self,
         now: Duration,
@@ -2303,7 +2366,7 @@ impl PortScheduler {
             "preparation at {now:?}"
         );
         assert_eq!(
-            self.choose_read(now),
+            self.choose_read_by_priority(now),
             self.choose_read_by_scan(now),
             "read at {now:?}"
         );

@@ -4873,3 +4873,55 @@ fn a_device_replaced_while_away_has_its_registers_found_again_before_continuous_
     });
     assert!(refused_5, "5 found missing");
 }
+
+/// Reads with a read period that ask for more than the bus has (four 20 ms periods at 9600, a
+/// read taking ~20 ms) still leave the other channels a turn once they have had the bus 1 s
+/// longer, then take turns with them, as wb-mqtt-serial's `maxLowPriorityLag` does: found by a
+/// random-layout sweep, where
+/// the channels without a period were never read again and their last values stayed up with
+/// no error. The periodic reads are flagged `p`.
+#[test]
+fn periodic_reads_that_fill_the_bus_leave_the_other_channels_a_turn() {
+    let mut reads: Vec<PlannedRead> = (0..4)
+        .map(|start| {
+            let mut periodic = read(RegisterType::Holding, start * 10, EventMode::Polled);
+            periodic.period = Some(ms(20));
+            periodic
+        })
+        .collect();
+    reads.push(read(RegisterType::Input, 100, EventMode::Polled));
+    let mut scheduler = PortScheduler::new(settings(9600), vec![device(7, reads)]);
+    let mut log = Log::default();
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(30_000),
+        |_, r| healthy(r),
+    );
+    let other: Vec<Duration> = log
+        .classic_to(7)
+        .into_iter()
+        .filter(|(_, pdu)| matches!(pdu, RequestPdu::ReadInputRegisters { .. }))
+        .map(|(at, _)| at)
+        .collect();
+    assert!(other.len() > 15, "read {} times in 30 s", other.len());
+    assert!(
+        max_gap(&other) < ms(2500),
+        "the longest wait: {:?}",
+        max_gap(&other)
+    );
+    let periodic = log
+        .classic_to(7)
+        .into_iter()
+        .filter(|(_, pdu)| matches!(pdu, RequestPdu::ReadHoldingRegisters { .. }))
+        .count();
+    assert!(
+        periodic > 500,
+        "periodic reads take turns with it: {periodic}"
+    );
+    assert!(log
+        .events
+        .iter()
+        .any(|(_, e)| matches!(e, PortEvent::PeriodMissed { missed: true, .. })));
+}
