@@ -162,6 +162,26 @@ pub fn check_held_values(
     topics: &BTreeMap<String, RegisterKey>,
     payload_of: impl Fn(&RegisterKey, u64) -> String,
 ) -> HistoryReport {
+    check_held_values_by_topic(
+        initial,
+        changes,
+        publications,
+        since_ns,
+        topics,
+        |_, key, value| payload_of(key, value),
+    )
+}
+
+/// [`check_held_values`] where the payload depends on the topic too (`payload_of(topic, key,
+/// value)`): several controls on one register (bit fields) show the same words differently.
+pub fn check_held_values_by_topic(
+    initial: &BTreeMap<RegisterKey, u16>,
+    changes: &[Change],
+    publications: &[Publication],
+    since_ns: u64,
+    topics: &BTreeMap<String, RegisterKey>,
+    payload_of: impl Fn(&str, &RegisterKey, u64) -> String,
+) -> HistoryReport {
     // Value → [(from when, value)], in time order.
     let (start, value_changes) = value_histories(initial, changes, topics.values());
     let mut history: BTreeMap<RegisterKey, Vec<(u64, u64)>> = start
@@ -186,9 +206,9 @@ pub fn check_held_values(
         let held: &[(u64, u64)] = history.get(key).map_or(&[], Vec::as_slice);
         let until = held.partition_point(|(from, _)| *from <= publication.mono_ns);
         let held_until_then = held.get(..until).unwrap_or(&[]);
-        let index = held_until_then
-            .iter()
-            .rposition(|(_, value)| payload_of(key, *value) == publication.payload);
+        let index = held_until_then.iter().rposition(|(_, value)| {
+            payload_of(&publication.topic, key, *value) == publication.payload
+        });
         if publication.mono_ns < since_ns {
             if let Some(index) = index {
                 last_published.insert(publication.topic.as_str(), index);
@@ -337,5 +357,46 @@ mod tests {
         assert_eq!(start.get(&key), Some(&0x0001_0002));
         let values: Vec<u64> = changed.iter().map(|c| c.value).collect();
         assert_eq!(values, [0x0003_0004, 0x0003_0005]);
+    }
+
+    /// Two bit fields of one register: each topic shows its own bits of the same words, and a
+    /// value is right for one topic only if those bits were held.
+    #[test]
+    fn bit_fields_of_one_register_are_checked_by_topic() {
+        let key = RegisterKey::new(3, "input", 1);
+        let initial = BTreeMap::from([(key.clone(), 0x0000)]);
+        let topics = BTreeMap::from([
+            ("/low".to_string(), key.clone()),
+            ("/high".to_string(), key),
+        ]);
+        let changes = [change(100, 0x1203)];
+        let at = |ms: u64, topic: &str, payload: &str| Publication {
+            topic: topic.into(),
+            ..publication(ms, payload)
+        };
+        let publications = [
+            at(150, "/low", "3"),
+            at(150, "/high", "18"),
+            // The low byte under the high byte's topic: never held there.
+            at(160, "/high", "3"),
+        ];
+        let report = check_held_values_by_topic(
+            &initial,
+            &changes,
+            &publications,
+            0,
+            &topics,
+            |topic, _, value| match topic {
+                "/low" => (value & 0xFF).to_string(),
+                _ => (value >> 8).to_string(),
+            },
+        );
+        assert_eq!(report.checked, 3);
+        let bad: Vec<(&str, &str)> = report
+            .bad
+            .iter()
+            .map(|b| (b.publication.topic.as_str(), b.publication.payload.as_str()))
+            .collect();
+        assert_eq!(bad, [("/high", "3")]);
     }
 }

@@ -6,6 +6,8 @@ pub mod device_model;
 pub mod port_plan;
 
 #[cfg(test)]
+mod layout_sweep;
+#[cfg(test)]
 mod noise_scenarios;
 #[cfg(test)]
 mod scenarios;

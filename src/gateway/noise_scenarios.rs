@@ -46,7 +46,7 @@ fn noise() -> Faults {
 }
 
 /// The simulator's change log since the last call, as the harness's `watch` records it.
-fn taken_changes(gateway: &mut VirtualGateway) -> Vec<Change> {
+pub(super) fn taken_changes(gateway: &mut VirtualGateway) -> Vec<Change> {
     gateway
         .bus
         .take_changes()
@@ -66,7 +66,7 @@ fn taken_changes(gateway: &mut VirtualGateway) -> Vec<Change> {
         .collect()
 }
 
-fn nanos(at: Duration) -> u64 {
+pub(super) fn nanos(at: Duration) -> u64 {
     u64::try_from(at.as_nanos()).unwrap_or(u64::MAX)
 }
 
@@ -1000,12 +1000,12 @@ fn recovery_trace() {
 
 /// A fault mix of [`fault_sweep`]: the faults of each device (by address and seed), and whether
 /// late bytes stay on the line for the next transactions.
-struct SweepMix {
-    name: String,
-    faults: Box<dyn Fn(u8, u64) -> Faults>,
-    carry_late_bytes: bool,
+pub(super) struct SweepMix {
+    pub(super) name: String,
+    pub(super) faults: Box<dyn Fn(u8, u64) -> Faults>,
+    pub(super) carry_late_bytes: bool,
     /// A second master on the bus during the faults, reading every this often or so.
-    other_master: Option<Duration>,
+    pub(super) other_master: Option<Duration>,
 }
 
 fn scaled(faults: Faults, by: f64) -> Faults {
@@ -1027,7 +1027,7 @@ fn spread_delay(address: u8, seed: u64) -> Duration {
     Duration::from_millis(DELAYS_MS[pick as usize])
 }
 
-fn sweep_mixes() -> Vec<SweepMix> {
+pub(super) fn sweep_mixes() -> Vec<SweepMix> {
     let mix = |name: &str, carry: bool, faults: Box<dyn Fn(u8, u64) -> Faults>| SweepMix {
         name: name.to_string(),
         faults,
@@ -1118,17 +1118,22 @@ fn sweep_mixes() -> Vec<SweepMix> {
 /// this master's next reply window when the device is slower than the silence before a request
 /// and the request together, as slow meters are at any baud rate.
 fn start_other_master(bus: &mut NoiseBus, mix: &SweepMix, seed: u64) {
+    start_other_master_on(&mut bus.gateway, mix, seed);
+}
+
+/// [`start_other_master`] on any virtual gateway.
+pub(super) fn start_other_master_on(gateway: &mut VirtualGateway, mix: &SweepMix, seed: u64) {
     let Some(every) = mix.other_master else {
         return;
     };
     const TURNAROUNDS_US: [u64; 4] = [500, 3_000, 15_000, 40_000];
-    for index in 0..bus.gateway.bus.devices().len() {
+    for index in 0..gateway.bus.devices().len() {
         let pick = (index as u64 * 5 + seed) % TURNAROUNDS_US.len() as u64;
-        if let Some(device) = bus.gateway.bus.device_mut(index) {
+        if let Some(device) = gateway.bus.device_mut(index) {
             device.turnaround = Duration::from_micros(TURNAROUNDS_US[pick as usize]);
         }
     }
-    bus.gateway.other_master = Some(OtherMaster::new(every, bus.gateway.now, seed));
+    gateway.other_master = Some(OtherMaster::new(every, gateway.now, seed));
 }
 
 /// One sweep run: what the noise run's checks found wrong (every wrong or stale publication,
@@ -1508,27 +1513,7 @@ fn sweep_seeds(
             let mut bad_runs = 0;
             for seed in from..from + seeds {
                 let case = format!("{label} {devices}x{baud} {} seed={seed}", mix.name);
-                let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-                    run(devices, baud, seed, mix)
-                }));
-                match outcome {
-                    Ok((violations, figures)) => {
-                        bad_runs += usize::from(!violations.is_empty());
-                        eprintln!("{case} violations={} {figures}", violations.len());
-                        for violation in violations.iter().take(20) {
-                            eprintln!("  VIOLATION {case}: {violation}");
-                        }
-                    }
-                    Err(panic) => {
-                        bad_runs += 1;
-                        let message = panic
-                            .downcast_ref::<String>()
-                            .cloned()
-                            .or_else(|| panic.downcast_ref::<&str>().map(|s| s.to_string()))
-                            .unwrap_or_default();
-                        eprintln!("  PANIC {case}: {message}");
-                    }
-                }
+                bad_runs += usize::from(!report_run(&case, || run(devices, baud, seed, mix)));
             }
             total += bad_runs;
             eprintln!(
@@ -1540,4 +1525,27 @@ fn sweep_seeds(
         }
     }
     assert_eq!(total, 0, "runs with violations or panics");
+}
+
+/// Runs one sweep case, printing its figures and violations, or its panic, under `case`;
+/// true when it had neither.
+pub(super) fn report_run(case: &str, run: impl FnOnce() -> (Vec<String>, String)) -> bool {
+    match std::panic::catch_unwind(std::panic::AssertUnwindSafe(run)) {
+        Ok((violations, figures)) => {
+            eprintln!("{case} violations={} {figures}", violations.len());
+            for violation in violations.iter().take(20) {
+                eprintln!("  VIOLATION {case}: {violation}");
+            }
+            violations.is_empty()
+        }
+        Err(panic) => {
+            let message = panic
+                .downcast_ref::<String>()
+                .cloned()
+                .or_else(|| panic.downcast_ref::<&str>().map(|s| s.to_string()))
+                .unwrap_or_default();
+            eprintln!("  PANIC {case}: {message}");
+            false
+        }
+    }
 }
