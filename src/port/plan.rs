@@ -85,7 +85,8 @@ pub enum EventMode {
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct PlannedRead {
     pub span: RegisterSpan,
-    /// Read at this period with high priority; None: round-robin in the remaining time.
+    /// Read at this period with high priority; None: round-robin in the remaining time, and at
+    /// least in turns with the periodic reads once they have had the bus 1 s longer.
     pub period: Option<Duration>,
     /// A round-robin read (no `period`) is read again no sooner than this after it was last
     /// read: wb-mqtt-serial's `read_rate_limit_ms` (`poll_interval` in old configs).

@@ -1407,10 +1407,12 @@ impl PortScheduler {
     }
 
     /// The most urgent read of a channel without a read period, of the devices that may be
-    /// read now and do not seem dead: when reads with a period have had the bus for
-    /// [`MAX_LOW_PRIORITY_LAG`] more than the others. A scan of every device, only while the
-    /// periodic reads ask for more than the bus has.
+    /// read now (those that seem dead as their budget allows: an offline device's retries are
+    /// such reads): when reads with a period have had the bus for [`MAX_LOW_PRIORITY_LAG`] more
+    /// than the others. A scan of every device, only while the periodic reads ask for more
+    /// than the bus has.
     fn choose_low_priority_read(&self, now: Duration) -> Option<(Transaction, InFlight)> {
+        let dead_may_go = self.dead_retries.allows(now, Duration::ZERO);
         let (device, choice) = self
             .devices
             .iter()
@@ -1418,7 +1420,7 @@ impl PortScheduler {
             .filter(|(_, d)| {
                 !d.needs_preparation()
                     && !d.suspended
-                    && !d.health.seems_dead()
+                    && (dead_may_go || !d.health.seems_dead())
                     && self.may_transact(d, now)
             })
             .filter_map(|(index, d)| d.choose_low_priority_read(now).map(|c| (index, c)))

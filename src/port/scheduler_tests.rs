@@ -4925,3 +4925,45 @@ fn periodic_reads_that_fill_the_bus_leave_the_other_channels_a_turn() {
         .iter()
         .any(|(_, e)| matches!(e, PortEvent::PeriodMissed { missed: true, .. })));
 }
+
+/// The same bus with a second device that has no periodic channel and is away for 5 s: its
+/// retries are reads of that kind, and they take their turn too (the dead devices' budget
+/// permitting): it is back online soon after it answers again, not offline for good.
+#[test]
+fn an_offline_device_is_retried_while_periodic_reads_fill_the_bus() {
+    let periodic: Vec<PlannedRead> = (0..4)
+        .map(|start| {
+            let mut periodic = read(RegisterType::Holding, start * 10, EventMode::Polled);
+            periodic.period = Some(ms(20));
+            periodic
+        })
+        .collect();
+    let plans = vec![
+        device(7, periodic),
+        device(8, vec![read(RegisterType::Input, 100, EventMode::Polled)]),
+    ];
+    let mut scheduler = PortScheduler::new(settings(9600), plans);
+    let mut log = Log::default();
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(30_000),
+        |at, request| {
+            if request.address == 8 && at < ms(5000) {
+                TransactionOutcome::NoReply
+            } else {
+                healthy(request)
+            }
+        },
+    );
+    let back = log
+        .events
+        .iter()
+        .find(|(at, e)| *at >= ms(5000) && *e == PortEvent::Online { device: 1 })
+        .map(|(at, _)| *at);
+    assert!(
+        back.is_some_and(|at| at < ms(10_000)),
+        "back online at {back:?}"
+    );
+}
