@@ -911,16 +911,7 @@ impl LayoutBus {
     }
 
     fn publications(&self) -> Vec<Publication> {
-        self.gateway
-            .published
-            .iter()
-            .map(|p| Publication {
-                mono_ns: nanos(p.at),
-                topic: p.topic.clone(),
-                payload: p.payload.clone(),
-                retain: true,
-            })
-            .collect()
+        self.gateway.publications()
     }
 
     fn chan_of(&self, topic: &str) -> Option<&Chan> {

@@ -350,16 +350,7 @@ impl NoiseBus {
     }
 
     fn publications(&self) -> Vec<Publication> {
-        self.gateway
-            .published
-            .iter()
-            .map(|p| Publication {
-                mono_ns: nanos(p.at),
-                topic: p.topic.clone(),
-                payload: p.payload.clone(),
-                retain: true,
-            })
-            .collect()
+        self.gateway.publications()
     }
 
     /// Every value publication since `since` checked against what the value held (all its
@@ -1367,16 +1358,7 @@ fn write_run(
         last_written.insert(key, change.value);
     }
     // What was published.
-    let publications: Vec<Publication> = gateway
-        .published
-        .iter()
-        .map(|p| Publication {
-            mono_ns: nanos(p.at),
-            topic: p.topic.clone(),
-            payload: p.payload.clone(),
-            retain: true,
-        })
-        .collect();
+    let publications: Vec<Publication> = gateway.publications();
     let report = check_held_values(
         &initial,
         &changes,

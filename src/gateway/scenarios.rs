@@ -476,15 +476,9 @@ fn toggled_bus(
         )
         .collect();
     let publications: Vec<crate::bench::harness::Publication> = gateway
-        .published
-        .iter()
+        .publications()
+        .into_iter()
         .filter(|p| !p.topic.contains("/meta"))
-        .map(|p| crate::bench::harness::Publication {
-            mono_ns: nanos(p.at),
-            topic: p.topic.clone(),
-            payload: p.payload.clone(),
-            retain: true,
-        })
         .collect();
     let report = crate::bench::matching::match_expected(&expected, &publications, nanos(since));
     latencies.extend(

@@ -365,6 +365,19 @@ impl VirtualGateway {
     }
 
     /// A register of the simulated device at `address`.
+    /// What was published, as the bench's checks take it (everything is retained here).
+    pub fn publications(&self) -> Vec<crate::bench::harness::Publication> {
+        self.published
+            .iter()
+            .map(|p| crate::bench::harness::Publication {
+                mono_ns: u64::try_from(p.at.as_nanos()).unwrap_or(u64::MAX),
+                topic: p.topic.clone(),
+                payload: p.payload.clone(),
+                retain: true,
+            })
+            .collect()
+    }
+
     pub fn register(&self, address: u8, register_type: RegisterType, at: u16) -> Option<u16> {
         let device = self.bus.devices().get(self.device_index(address))?;
         device.registers().get(register_type, at)

@@ -1828,11 +1828,24 @@ impl PortScheduler {
                 debug!(device = %state.plan.name, value, "continuous read set");
             }
             failed @ (TransactionOutcome::NoReply | TransactionOutcome::Garbled) => {
-                let garbled = failed == TransactionOutcome::Garbled;
-                Self::health_failure(state, device, now, garbled, out);
-                self.setup_failed_for_writes(now, device, out);
+                self.preparation_write_failed(now, device, failed, out)
             }
         }
+    }
+
+    /// A write of the device's preparation (continuous read, setup) got no readable reply.
+    fn preparation_write_failed(
+        &mut self,
+        now: Duration,
+        device: usize,
+        failed: TransactionOutcome,
+        out: &mut Vec<PortEvent>,
+    ) {
+        if let Some(state) = self.devices.get_mut(device) {
+            let garbled = failed == TransactionOutcome::Garbled;
+            Self::health_failure(state, device, now, garbled, out);
+        }
+        self.setup_failed_for_writes(now, device, out);
     }
 
     fn complete_setup(
@@ -1870,9 +1883,7 @@ impl PortScheduler {
                 state.setup_write_done(index);
             }
             failed @ (TransactionOutcome::NoReply | TransactionOutcome::Garbled) => {
-                let garbled = failed == TransactionOutcome::Garbled;
-                Self::health_failure(state, device, now, garbled, out);
-                self.setup_failed_for_writes(now, device, out);
+                self.preparation_write_failed(now, device, failed, out)
             }
         }
     }
