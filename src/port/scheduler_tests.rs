@@ -4967,3 +4967,43 @@ fn an_offline_device_is_retried_while_periodic_reads_fill_the_bus() {
         "back online at {back:?}"
     );
 }
+
+/// Busy (exception 6) or a device failure (4) to the continuous-read switch is not a refusal,
+/// as in wb-mqtt-serial (only illegal function, address or value are): it is asked again, and
+/// continuous read goes on once every register has answered.
+#[test]
+fn a_busy_answer_to_the_continuous_read_switch_is_asked_again() {
+    let reads = [1, 8]
+        .into_iter()
+        .map(|start| read(RegisterType::Holding, start, EventMode::Polled))
+        .collect();
+    let plan = DevicePlan {
+        continuous_read: true,
+        ..device(1, reads)
+    };
+    let mut scheduler = PortScheduler::new(settings(115_200), vec![plan]);
+    let mut log = Log::default();
+    let mut busy = 2;
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(100),
+        |_, request| match &request.body {
+            RequestBody::Classic(RequestPdu::WriteSingleRegister { address: 114, .. })
+                if busy > 0 =>
+            {
+                busy -= 1;
+                exception(request, ExceptionCode::BUSY)
+            }
+            _ => healthy(request),
+        },
+    );
+    assert_eq!(log.single_register_writes(114), [0, 0, 0, 1]);
+    assert!(
+        log.classic_to(1)
+            .iter()
+            .any(|(_, pdu)| *pdu == RequestPdu::ReadHoldingRegisters { start: 1, count: 8 }),
+        "merged over the hole once it is on"
+    );
+}
