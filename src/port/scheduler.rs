@@ -2056,6 +2056,8 @@ impl PortScheduler {
                 .is_some_and(|read| read.period.is_some())
         });
         self.low_priority_lag = if periodic {
+            // Bounded: a long spell with nothing else to read (the others all rate-limited or
+            // offline) must not later hand the others the bus for as long.
             (self.low_priority_lag + spent).min(MAX_LOW_PRIORITY_LAG * 2)
         } else {
             self.low_priority_lag.saturating_sub(spent)

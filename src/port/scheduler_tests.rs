@@ -1618,6 +1618,19 @@ fn holding_multi_writes_one_register_with_function_16() {
 }
 
 /// A Wiren Board template's `response_timeout_ms: 1`.
+/// A device that times out after 5 ms and goes offline at its first failure, retried every
+/// 20–50 ms: an outage of a few hundred milliseconds takes it offline and back.
+fn quick_to_disconnect(plan: &mut DevicePlan) {
+    plan.response_timeout = ms(5);
+    plan.health = HealthPolicy {
+        max_fail_cycles: 1,
+        device_timeout: ms(10),
+        retry_step: ms(20),
+        max_retry_delay: ms(50),
+        late_reply_holdoff: ms(10),
+    };
+}
+
 fn wb_device(address: u8, reads: Vec<PlannedRead>) -> DevicePlan {
     DevicePlan {
         response_timeout: ms(1),
@@ -3143,14 +3156,7 @@ fn holes_are_tried_again_after_the_device_reconnects() {
     ];
     let mut plan = device(7, reads);
     plan.merge.max_register_hole = 1;
-    plan.response_timeout = ms(5);
-    plan.health = HealthPolicy {
-        max_fail_cycles: 1,
-        device_timeout: ms(10),
-        retry_step: ms(20),
-        max_retry_delay: ms(50),
-        late_reply_holdoff: ms(10),
-    };
+    quick_to_disconnect(&mut plan);
     let mut scheduler = PortScheduler::new(settings(115_200), vec![plan]);
     let mut log = Log::default();
     // Refuses reads across 1 until 200 ms, is away until 400 ms, then has register 1.
@@ -4807,14 +4813,7 @@ fn a_device_replaced_while_away_has_its_registers_found_again_before_continuous_
         continuous_read: true,
         ..device(1, reads)
     };
-    plan.response_timeout = ms(5);
-    plan.health = HealthPolicy {
-        max_fail_cycles: 1,
-        device_timeout: ms(10),
-        retry_step: ms(20),
-        max_retry_delay: ms(50),
-        late_reply_holdoff: ms(10),
-    };
+    quick_to_disconnect(&mut plan);
     let mut scheduler = PortScheduler::new(settings(115_200), vec![plan]);
     let mut log = Log::default();
     let mut continuous = false;

@@ -1439,6 +1439,34 @@ mod tests {
         })
     }
 
+    /// [`event_poll`] as the scheduler times it, without its adapter margin.
+    fn event_poll_transaction(line: &LineSettings) -> Transaction {
+        let poll = event_poll();
+        let request_time = line.wire_time(poll.encoded_len());
+        Transaction {
+            estimated: request_time,
+            request_time,
+            reply_timeout: line.event_reply_timeout() + line.wire_time(poll.max_reply_len() + 32),
+            first_byte_timeout: Some(line.event_first_byte_timeout()),
+            late_window: Duration::ZERO,
+            request: poll,
+        }
+    }
+
+    /// A scan start as the site tools time it, without their allowance.
+    fn scan_start_transaction(line: &LineSettings) -> Transaction {
+        let request = Request::scan_start();
+        let request_time = line.wire_time(request.encoded_len());
+        Transaction {
+            estimated: request_time,
+            request_time,
+            reply_timeout: line.scan_reply_timeout() + line.wire_time(32 + 10),
+            first_byte_timeout: Some(line.scan_start_first_byte_timeout()),
+            late_window: Duration::ZERO,
+            request,
+        }
+    }
+
     fn reply_frame() -> Vec<u8> {
         let values = ResponsePdu::ReadInputRegisters {
             values: vec![0x1234, 0x5678],
@@ -2378,17 +2406,8 @@ mod tests {
     #[test]
     fn after_an_arbitration_a_fifo_may_hold_the_first_byte_until_the_frame_is_in() {
         let line = line(9600);
-        let poll = event_poll();
-        let request_time = line.wire_time(poll.encoded_len());
-        // As the scheduler times a poll, without its adapter margin.
-        let transaction = Transaction {
-            estimated: request_time,
-            request_time,
-            reply_timeout: line.event_reply_timeout() + line.wire_time(poll.max_reply_len() + 32),
-            first_byte_timeout: Some(line.event_first_byte_timeout()),
-            late_window: Duration::ZERO,
-            request: poll,
-        };
+        let transaction = event_poll_transaction(&line);
+        let request_time = transaction.request_time;
         // Address 219 (0b1101_1011) alone says "no events": fillers in windows 7 and 10 (its
         // 0 bits after the marker 0b1111), three windows apart, less than the receive timeout,
         // then its 5-byte frame: 7 bytes, under the trigger, handed over only once the line has
@@ -2449,16 +2468,8 @@ mod tests {
             (1200, 0xFE00_FC00),
         ] {
             let line = line(baud);
-            let request = Request::scan_start();
-            let request_time = line.wire_time(request.encoded_len());
-            let transaction = Transaction {
-                estimated: request_time,
-                request_time,
-                reply_timeout: line.scan_reply_timeout() + line.wire_time(32 + 10),
-                first_byte_timeout: Some(line.scan_start_first_byte_timeout()),
-                late_window: Duration::ZERO,
-                request,
-            };
+            let transaction = scan_start_transaction(&line);
+            let request_time = transaction.request_time;
             let found = Reply::fast(
                 0xFD,
                 crate::protocol::FastReply::ScanFound {
@@ -2492,16 +2503,8 @@ mod tests {
         // An event poll at 1200: address 127 (0b0111_1111) with a packet (marker 0b0110) sends
         // fillers in windows 1, 4 and 5, then 7 silent windows (76 ms) before its frame.
         let line = line(1200);
-        let poll = event_poll();
-        let request_time = line.wire_time(poll.encoded_len());
-        let transaction = Transaction {
-            estimated: request_time,
-            request_time,
-            reply_timeout: line.event_reply_timeout() + line.wire_time(poll.max_reply_len() + 32),
-            first_byte_timeout: Some(line.event_first_byte_timeout()),
-            late_window: Duration::ZERO,
-            request: poll,
-        };
+        let transaction = event_poll_transaction(&line);
+        let request_time = transaction.request_time;
         let packet = Reply::fast(
             127,
             crate::protocol::FastReply::Events(crate::protocol::EventPacket {
@@ -2535,17 +2538,8 @@ mod tests {
     #[test]
     fn a_scan_reply_held_in_bursts_by_a_fifo_is_read_whole() {
         let line = line(1200);
-        let request = Request::scan_start();
-        let request_time = line.wire_time(request.encoded_len());
-        // As the site tools time a scan start, without their allowance.
-        let transaction = Transaction {
-            estimated: request_time,
-            request_time,
-            reply_timeout: line.scan_reply_timeout() + line.wire_time(32 + 10),
-            first_byte_timeout: Some(line.scan_start_first_byte_timeout()),
-            late_window: Duration::ZERO,
-            request,
-        };
+        let transaction = scan_start_transaction(&line);
+        let request_time = transaction.request_time;
         // Serial 0xFDB6DB6D arbitrates with 0b0110 then 0xDB6DB6D: a 0 bit, so a filler, in
         // every third window; then its scan reply.
         let found = Reply::fast(
