@@ -12,7 +12,10 @@ use super::read_plan::RegisterSpan;
 use crate::protocol::fast::REBOOT_EVENT_ID;
 use crate::protocol::frame::MAX_FRAME_LEN;
 use crate::protocol::timing::ResponseTimer;
-use crate::protocol::{Event, EventPriority, EventRange, EventSource, LineSettings, RegisterType};
+use crate::protocol::{
+    Event, EventPriority, EventRange, EventSource, ExceptionCode, LineSettings, RegisterType,
+    TransactionOutcome,
+};
 
 /// How often a device whose every channel comes by events is read anyway, so that a dead device
 /// is noticed.
@@ -131,6 +134,40 @@ pub(super) struct ReadOutlook {
     pub next_due: Option<Duration>,
 }
 
+/// What a failed transaction of a device brought.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) enum Failure {
+    /// Nothing came.
+    Silent,
+    /// Bytes came that made no reply.
+    Unreadable,
+    /// An exception that says "not now" (busy, a device failure: any but illegal function,
+    /// address or value), which wb-mqtt-serial takes for a transient error: what was asked
+    /// is asked again later.
+    NotNow(ExceptionCode),
+}
+
+impl Failure {
+    /// A transaction that ended without a reply: `Garbled` or `NoReply`.
+    pub(super) fn without_reply(outcome: &TransactionOutcome) -> Self {
+        if *outcome == TransactionOutcome::Garbled {
+            Self::Unreadable
+        } else {
+            Self::Silent
+        }
+    }
+}
+
+/// Failed transactions since a device's last good one, by kind (for the operator's line when
+/// it goes offline).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub(super) struct FailureCounts {
+    pub silent: u32,
+    pub unreadable: u32,
+    pub not_now: u32,
+    pub last_not_now: Option<ExceptionCode>,
+}
+
 #[derive(Debug, Clone)]
 pub(super) struct DeviceState {
     pub plan: DevicePlan,
@@ -189,8 +226,8 @@ pub(super) struct DeviceState {
     /// the event setup / did not answer it and is polled.
     pub(super) no_events_told: bool,
     pub(super) event_setup_unanswered_told: bool,
-    /// Failed transactions since the last good one: (nothing came, bytes that made no reply).
-    pub(super) failures_since_success: (u32, u32),
+    /// Failed transactions since the last good one, by kind.
+    pub(super) failures_since_success: FailureCounts,
     /// How loudly its changes between online and offline are told.
     pub(super) flaps: FlapLog,
     /// The flag of the event packet left unconfirmed once (see
@@ -272,7 +309,7 @@ impl DeviceState {
             untrusted_packet_told: false,
             no_events_told: false,
             event_setup_unanswered_told: false,
-            failures_since_success: (0, 0),
+            failures_since_success: FailureCounts::default(),
             flaps: FlapLog::default(),
             held_back_flag: None,
             power_on_report_pending: true,
@@ -883,7 +920,7 @@ impl DeviceState {
     /// after the gateway gets its events, and one that answers reads but never 0x18 costs
     /// [`MAX_EVENT_SETUP_TRIES`] more requests, not a round of them at every reconnection.
     pub(super) fn record_success(&mut self, now: Duration) -> bool {
-        self.failures_since_success = (0, 0);
+        self.failures_since_success = FailureCounts::default();
         let came_online = self.health.record_success(now) == HealthChange::CameOnline;
         let given_up = self.event_setup_failures >= MAX_EVENT_SETUP_TRIES;
         if came_online && given_up && !self.event_setup_taken_up_again {
@@ -897,10 +934,16 @@ impl DeviceState {
     }
 
     /// True when the device went offline (its preparation then starts over when it returns).
-    /// `garbled`: bytes came that made no reply (else nothing came).
-    pub(super) fn record_failure(&mut self, now: Duration, garbled: bool) -> bool {
-        let (silent, unreadable) = &mut self.failures_since_success;
-        *if garbled { unreadable } else { silent } += 1;
+    pub(super) fn record_failure(&mut self, now: Duration, failure: Failure) -> bool {
+        let counts = &mut self.failures_since_success;
+        match failure {
+            Failure::Silent => counts.silent += 1,
+            Failure::Unreadable => counts.unreadable += 1,
+            Failure::NotNow(code) => {
+                counts.not_now += 1;
+                counts.last_not_now = Some(code);
+            }
+        }
         let went_offline = self.health.record_failure(now) == HealthChange::WentOffline;
         if went_offline {
             self.restart_preparation();

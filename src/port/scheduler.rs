@@ -15,7 +15,7 @@ use std::time::Duration;
 
 use tracing::{debug, info, warn};
 
-use super::device::{DeviceState, ReadChoice, LOW_PRIORITY, MAX_EVENT_SETUP_TRIES};
+use super::device::{DeviceState, Failure, ReadChoice, LOW_PRIORITY, MAX_EVENT_SETUP_TRIES};
 use super::due_index::{DueIndex, Placement};
 use super::events::{EventPoller, WIDE_DATA_LEN};
 use super::flap_log::{FlapSay, FLAP_LIMIT, FLAP_WINDOW};
@@ -1805,18 +1805,15 @@ impl PortScheduler {
                 body: ReplyBody::Classic(ResponsePdu::Exception { code, .. }),
                 ..
             }) => {
-                Self::health_success(state, device, now, out);
                 // As wb-mqtt-serial: illegal function, address or value say the firmware has no
-                // continuous read; busy or a failure are asked again.
-                let refused = matches!(
-                    code,
-                    ExceptionCode::ILLEGAL_FUNCTION
-                        | ExceptionCode::ILLEGAL_DATA_ADDRESS
-                        | ExceptionCode::ILLEGAL_DATA_VALUE
-                );
-                if !refused {
-                    debug!(device = %state.plan.name, %code, "continuous read not set: asked again");
-                } else if state.continuous_read_answered(None) {
+                // continuous read; busy or a failure fail the preparation, tried again later.
+                if !is_permanent_refusal(code) {
+                    debug!(device = %state.plan.name, %code, "continuous read not set: tried again later");
+                    self.preparation_write_failed(now, device, Failure::NotNow(code), out);
+                    return;
+                }
+                Self::health_success(state, device, now, out);
+                if state.continuous_read_answered(None) {
                     info!(device = %state.plan.name, %code, "device refuses continuous read (older firmware): its registers are read without holes");
                 } else {
                     debug!(device = %state.plan.name, %code, "continuous read refused");
@@ -1828,22 +1825,23 @@ impl PortScheduler {
                 debug!(device = %state.plan.name, value, "continuous read set");
             }
             failed @ (TransactionOutcome::NoReply | TransactionOutcome::Garbled) => {
-                self.preparation_write_failed(now, device, failed, out)
+                self.preparation_write_failed(now, device, Failure::without_reply(&failed), out)
             }
         }
     }
 
-    /// A write of the device's preparation (continuous read, setup) got no readable reply.
+    /// A write of the device's preparation (continuous read, setup) got no readable reply, or
+    /// an exception that says "not now": the preparation is tried again later, as
+    /// wb-mqtt-serial's transient errors fail a device's prepare.
     fn preparation_write_failed(
         &mut self,
         now: Duration,
         device: usize,
-        failed: TransactionOutcome,
+        failure: Failure,
         out: &mut Vec<PortEvent>,
     ) {
         if let Some(state) = self.devices.get_mut(device) {
-            let garbled = failed == TransactionOutcome::Garbled;
-            Self::health_failure(state, device, now, garbled, out);
+            Self::health_failure(state, device, now, failure, out);
         }
         self.setup_failed_for_writes(now, device, out);
     }
@@ -1863,10 +1861,17 @@ impl PortScheduler {
             TransactionOutcome::Reply(Reply {
                 body: ReplyBody::Classic(ResponsePdu::Exception { code, .. }),
                 ..
-            }) => {
+            }) if is_permanent_refusal(code) => {
                 warn!(device = %state.plan.name, index, %code, "setup write refused; skipping it");
                 Self::health_success(state, device, now, out);
                 state.setup_write_done(index);
+            }
+            TransactionOutcome::Reply(Reply {
+                body: ReplyBody::Classic(ResponsePdu::Exception { code, .. }),
+                ..
+            }) => {
+                debug!(device = %state.plan.name, index, %code, "setup write not taken now: tried again later");
+                self.preparation_write_failed(now, device, Failure::NotNow(code), out);
             }
             TransactionOutcome::Reply(_) => {
                 Self::health_success(state, device, now, out);
@@ -1883,7 +1888,7 @@ impl PortScheduler {
                 state.setup_write_done(index);
             }
             failed @ (TransactionOutcome::NoReply | TransactionOutcome::Garbled) => {
-                self.preparation_write_failed(now, device, failed, out)
+                self.preparation_write_failed(now, device, Failure::without_reply(&failed), out)
             }
         }
     }
@@ -2001,7 +2006,7 @@ impl PortScheduler {
             // "Failed to enable events" fails the device's prepare and it is tried again.
             failed @ (TransactionOutcome::NoReply | TransactionOutcome::Garbled) => {
                 let garbled = failed == TransactionOutcome::Garbled;
-                Self::health_failure(state, device, now, garbled, out);
+                Self::health_failure(state, device, now, Failure::without_reply(&failed), out);
                 let answer = if garbled {
                     "no readable answer"
                 } else {
@@ -2039,8 +2044,7 @@ impl PortScheduler {
         match outcome {
             TransactionOutcome::Reply(_) => Self::health_success(state, device, now, out),
             failed @ (TransactionOutcome::NoReply | TransactionOutcome::Garbled) => {
-                let garbled = failed == TransactionOutcome::Garbled;
-                Self::health_failure(state, device, now, garbled, out)
+                Self::health_failure(state, device, now, Failure::without_reply(&failed), out)
             }
         }
     }
@@ -2113,7 +2117,12 @@ impl PortScheduler {
         };
         if values.len() != usize::from(span.count) {
             Self::reads_failed(state, device, now, members, false, out);
-            Self::health_failure(state, device, now, !silent, out);
+            let failure = if silent {
+                Failure::Silent
+            } else {
+                Failure::Unreadable
+            };
+            Self::health_failure(state, device, now, failure, out);
             return;
         }
         Self::health_success(state, device, now, out);
@@ -2206,8 +2215,7 @@ impl PortScheduler {
                 });
             }
             failed @ (TransactionOutcome::NoReply | TransactionOutcome::Garbled) => {
-                let garbled = failed == TransactionOutcome::Garbled;
-                Self::health_failure(state, device, now, garbled, out);
+                Self::health_failure(state, device, now, Failure::without_reply(&failed), out);
                 let give_up = now >= pending.give_up_at;
                 if give_up || replaced(&self.writes) {
                     self.writes.retain(|p| !(p.write == pending.write));
@@ -2293,20 +2301,24 @@ impl PortScheduler {
         }
     }
 
-    /// `garbled`: bytes came that made no reply (else nothing came).
     fn health_failure(
         state: &mut DeviceState,
         device: usize,
         now: Duration,
-        garbled: bool,
+        failure: Failure,
         out: &mut Vec<PortEvent>,
     ) {
-        if state.record_failure(now, garbled) {
-            let (silent, unreadable) = state.failures_since_success;
+        if state.record_failure(now, failure) {
+            let counts = state.failures_since_success;
+            let (silent, unreadable) = (counts.silent, counts.unreadable);
             let say = state.flaps.went_offline(now);
             if say == FlapSay::Quietly {
                 debug!(device = %state.plan.name, address = state.plan.address, unreadable, silent,
-                    "device marked offline");
+                    not_now = counts.not_now, "device marked offline");
+            } else if let (0, 0, Some(code)) = (silent, unreadable, counts.last_not_now) {
+                warn!(device = %state.plan.name, address = state.plan.address, %code,
+                    "device answers its preparation with an exception that says not now (busy, \
+                     device failure): marked offline, its preparation retried with growing delay");
             } else if unreadable == 0 {
                 warn!(device = %state.plan.name, address = state.plan.address, "device does not answer: marked offline, retrying with growing delay");
             } else {
@@ -2324,6 +2336,18 @@ impl PortScheduler {
         }
         Self::tell_flaps(state, now);
     }
+}
+
+/// An exception that refuses what was asked for good (illegal function, address or value), as
+/// wb-mqtt-serial's `RethrowSerialDeviceException` tells a permanent error from a transient
+/// one (busy, device failure, and any other code).
+fn is_permanent_refusal(code: ExceptionCode) -> bool {
+    matches!(
+        code,
+        ExceptionCode::ILLEGAL_FUNCTION
+            | ExceptionCode::ILLEGAL_DATA_ADDRESS
+            | ExceptionCode::ILLEGAL_DATA_VALUE
+    )
 }
 
 /// The choices as they were made before the index, by a scan of every device: the index is

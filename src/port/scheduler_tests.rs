@@ -1341,6 +1341,71 @@ fn an_unplugged_device_comes_back_with_its_setup() {
     );
 }
 
+/// A setup write answered busy (exception 6) or "device failure" (4) is not refused: as
+/// wb-mqtt-serial's transient errors, it fails the device's preparation, which is tried again
+/// after the device's back-off (the value is written, the device read only after it); one
+/// answered "illegal data address" (2) is skipped for good, as before. Busy was skipped too: the
+/// device ran without its setup until its next reconnection.
+#[test]
+fn a_busy_answer_to_a_setup_write_is_written_again_later() {
+    for (code, written_again) in [
+        (ExceptionCode::BUSY, true),
+        (ExceptionCode::DEVICE_FAILURE, true),
+        (ExceptionCode::ILLEGAL_DATA_ADDRESS, false),
+    ] {
+        let mut plan = device(4, vec![read(RegisterType::Holding, 0, EventMode::Polled)]);
+        plan.setup = vec![SetupWrite {
+            register_type: RegisterType::Holding,
+            address: 9,
+            values: vec![1],
+            force_multiple: false,
+            kept_bits: Vec::new(),
+        }];
+        let mut scheduler = PortScheduler::new(settings(115_200), vec![plan]);
+        let mut log = Log::default();
+        let mut refusals = 1;
+        run(
+            &mut scheduler,
+            &mut log,
+            Duration::ZERO,
+            ms(10_000),
+            |_, request| match &request.body {
+                RequestBody::Classic(RequestPdu::WriteSingleRegister { address: 9, .. })
+                    if refusals > 0 =>
+                {
+                    refusals -= 1;
+                    exception(request, code)
+                }
+                _ => healthy(request),
+            },
+        );
+        let requests = log.classic_to(4);
+        let setups: Vec<Duration> = requests
+            .iter()
+            .filter(|(_, pdu)| matches!(pdu, RequestPdu::WriteSingleRegister { address: 9, .. }))
+            .map(|(at, _)| *at)
+            .collect();
+        let first_read = requests
+            .iter()
+            .find(|(_, pdu)| matches!(pdu, RequestPdu::ReadHoldingRegisters { .. }))
+            .map(|(at, _)| *at);
+        if written_again {
+            assert_eq!(setups.len(), 2, "{code}: {setups:?}");
+            assert!(
+                setups[1] - setups[0] >= ms(100),
+                "{code}: after a back-off, not at once: {setups:?}"
+            );
+            assert!(
+                first_read.is_some_and(|read| read > setups[1]),
+                "{code}: read only once set up: {first_read:?} {setups:?}"
+            );
+        } else {
+            assert_eq!(setups.len(), 1, "{code}: {setups:?}");
+            assert!(first_read.is_some(), "{code}: read without it");
+        }
+    }
+}
+
 #[test]
 fn with_fast_modbus_off_no_fast_frame_leaves_the_port() {
     let mut port = settings(115_200);
@@ -4579,10 +4644,10 @@ fn failed_reads_count_silence_apart_from_unreadable_replies() {
         );
         scheduler.devices[0].failures_since_success
     };
-    let (silent, unreadable) = failures(TransactionOutcome::NoReply);
-    assert!(silent > 0 && unreadable == 0, "{silent} {unreadable}");
-    let (silent, unreadable) = failures(TransactionOutcome::Garbled);
-    assert!(silent == 0 && unreadable > 0, "{silent} {unreadable}");
+    let counts = failures(TransactionOutcome::NoReply);
+    assert!(counts.silent > 0 && counts.unreadable == 0, "{counts:?}");
+    let counts = failures(TransactionOutcome::Garbled);
+    assert!(counts.silent == 0 && counts.unreadable > 0, "{counts:?}");
 }
 
 /// Writes what the scheduler logs into a buffer the test reads.
@@ -4968,8 +5033,9 @@ fn an_offline_device_is_retried_while_periodic_reads_fill_the_bus() {
 }
 
 /// Busy (exception 6) or a device failure (4) to the continuous-read switch is not a refusal,
-/// as in wb-mqtt-serial (only illegal function, address or value are): it is asked again, and
-/// continuous read goes on once every register has answered.
+/// as in wb-mqtt-serial (only illegal function, address or value are): the preparation fails
+/// and is tried again after the device's back-off, and continuous read goes on once every
+/// register has answered.
 #[test]
 fn a_busy_answer_to_the_continuous_read_switch_is_asked_again() {
     let reads = [1, 8]
@@ -4987,7 +5053,7 @@ fn a_busy_answer_to_the_continuous_read_switch_is_asked_again() {
         &mut scheduler,
         &mut log,
         Duration::ZERO,
-        ms(100),
+        ms(10_000),
         |_, request| match &request.body {
             RequestBody::Classic(RequestPdu::WriteSingleRegister { address: 114, .. })
                 if busy > 0 =>
@@ -5005,4 +5071,217 @@ fn a_busy_answer_to_the_continuous_read_switch_is_asked_again() {
             .any(|(_, pdu)| *pdu == RequestPdu::ReadHoldingRegisters { start: 1, count: 8 }),
         "merged over the hole once it is on"
     );
+}
+
+// ---- Continuous read and the flap log ----
+
+/// A device whose firmware answers "device failure" (exception 4) to every write of holding
+/// 114: not a refusal, so asked again, but not back to back (a preparation step goes before
+/// every read of every device: asked at once, it took the bus, 777 writes in 2 s and no read
+/// of the other device). As in wb-mqtt-serial, a transient error fails the preparation and the
+/// device is retried with its back-off.
+#[test]
+fn a_device_failing_the_continuous_read_switch_does_not_take_the_bus() {
+    let plans = vec![
+        DevicePlan {
+            continuous_read: true,
+            ..device(1, vec![read(RegisterType::Holding, 1, EventMode::Polled)])
+        },
+        device(2, vec![read(RegisterType::Holding, 1, EventMode::Polled)]),
+    ];
+    let mut scheduler = PortScheduler::new(settings(115_200), plans);
+    let mut log = Log::default();
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(2000),
+        |_, request| match &request.body {
+            RequestBody::Classic(RequestPdu::WriteSingleRegister { address: 114, .. }) => {
+                exception(request, ExceptionCode::DEVICE_FAILURE)
+            }
+            _ => healthy(request),
+        },
+    );
+    let switches = log.single_register_writes(114).len();
+    let other_reads = log.classic_to(2).len();
+    assert!(
+        other_reads > 100,
+        "the other device read {other_reads} times in 2 s; {switches} writes of 114"
+    );
+    assert!(switches < 100, "{switches} writes of 114 in 2 s");
+}
+
+/// A device that answers reads but never the write of holding 114: the write is a setup
+/// step, so the device is not read (its values would come from a device in an unknown read
+/// mode), it goes offline (said once), is retried with its back-off (not back to back) and
+/// the other devices keep their reads.
+#[test]
+fn a_device_that_never_answers_the_continuous_read_switch_is_offline_and_retried() {
+    let captured = CapturedLog::default();
+    let writer = captured.clone();
+    let subscriber = tracing_subscriber::fmt()
+        .with_writer(move || writer.clone())
+        .with_ansi(false)
+        .with_max_level(tracing::Level::INFO)
+        .finish();
+    let _default = tracing::subscriber::set_default(subscriber);
+    let plans = vec![
+        DevicePlan {
+            continuous_read: true,
+            ..device(1, vec![read(RegisterType::Holding, 1, EventMode::Polled)])
+        },
+        device(2, vec![read(RegisterType::Holding, 1, EventMode::Polled)]),
+    ];
+    let mut scheduler = PortScheduler::new(settings(115_200), plans);
+    let mut log = Log::default();
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(30_000),
+        |_, request| match &request.body {
+            RequestBody::Classic(RequestPdu::WriteSingleRegister { address: 114, .. }) => {
+                TransactionOutcome::NoReply
+            }
+            _ => healthy(request),
+        },
+    );
+    let to_1 = log.classic_to(1);
+    assert!(
+        to_1.iter().all(|(_, pdu)| matches!(
+            pdu,
+            RequestPdu::WriteSingleRegister {
+                address: 114,
+                value: 0
+            }
+        )),
+        "only the switch (off) is sent to it: {:?}",
+        to_1.iter().take(5).collect::<Vec<_>>()
+    );
+    assert!(
+        log.events
+            .iter()
+            .any(|(_, e)| *e == PortEvent::Offline { device: 0 }),
+        "offline"
+    );
+    assert!(
+        !log.events
+            .iter()
+            .any(|(_, e)| matches!(e, PortEvent::Values { device: 0, .. })),
+        "no value of it"
+    );
+    // Retried with the growing delay (0.5 s steps, at most 10 s by default): a few dozen
+    // times in 30 s, not back to back.
+    assert!(to_1.len() < 40, "{} tries in 30 s", to_1.len());
+    assert!(to_1.len() >= 3, "{} tries in 30 s", to_1.len());
+    assert!(log.classic_to(2).len() > 1000, "the other device is read");
+    let text = String::from_utf8(captured.0.lock().unwrap().clone()).unwrap();
+    let offline_lines = text
+        .lines()
+        .filter(|l| l.contains("device does not answer: marked offline"))
+        .count();
+    assert_eq!(offline_lines, 1, "{text}");
+}
+
+/// The "offline device sent events" line follows the flap log: said (info) while the device's
+/// changes are told, at debug only once it flaps (its offline/online lines are quiet then,
+/// and one line per outage would fill the journal as they did).
+#[test]
+fn offline_device_events_line_is_quiet_while_its_flapping_is() {
+    let captured = CapturedLog::default();
+    let writer = captured.clone();
+    let subscriber = tracing_subscriber::fmt()
+        .with_writer(move || writer.clone())
+        .with_ansi(false)
+        .with_max_level(tracing::Level::INFO)
+        .finish();
+    let _default = tracing::subscriber::set_default(subscriber);
+    let events_device = |address| {
+        device(
+            address,
+            vec![
+                read(RegisterType::Coil, 0, EventMode::Sporadic),
+                read(RegisterType::Holding, 5, EventMode::Polled),
+            ],
+        )
+    };
+    let mut flapping = events_device(21);
+    quick_to_disconnect(&mut flapping);
+    // Long retries: only an event brings it back within an outage.
+    flapping.health.retry_step = ms(30_000);
+    flapping.health.max_retry_delay = ms(30_000);
+    let mut scheduler = PortScheduler::new(settings(115_200), vec![events_device(20), flapping]);
+    let mut log = Log::default();
+    // Four outages of device 21 (its classic requests unanswered); the third drop-out makes
+    // it a flapping one. At the end of each it sends an event while offline, which brings it
+    // back at once.
+    let outages = [
+        ms(1000)..ms(1200),
+        ms(3000)..ms(3200),
+        ms(5000)..ms(5200),
+        ms(7000)..ms(7200),
+    ];
+    let event_times = [ms(1200), ms(3200), ms(5200), ms(7200)];
+    let mut sent = [false; 4];
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(9000),
+        |at, request| match &request.body {
+            RequestBody::Classic(_)
+                if request.address == 21 && outages.iter().any(|o| o.contains(&at)) =>
+            {
+                TransactionOutcome::NoReply
+            }
+            RequestBody::Fast(FastRequest::PollEvents(_)) => {
+                for (index, time) in event_times.iter().enumerate() {
+                    if at >= *time && !sent[index] {
+                        sent[index] = true;
+                        return coil_0_went_on(21, (index % 2) as u8);
+                    }
+                }
+                healthy(request)
+            }
+            _ => healthy(request),
+        },
+    );
+    assert_eq!(sent, [true; 4]);
+    let offline: Vec<Duration> = log
+        .events
+        .iter()
+        .filter(|(_, e)| *e == PortEvent::Offline { device: 1 })
+        .map(|(at, _)| *at)
+        .collect();
+    assert_eq!(offline.len(), 4, "one drop-out per outage: {offline:?}");
+    // Back at each event, not at its 30 s retry.
+    let online_after = |from: Duration| {
+        log.events
+            .iter()
+            .find(|(at, e)| *at > from && *e == PortEvent::Online { device: 1 })
+            .map(|(at, _)| *at)
+    };
+    for time in event_times {
+        let back = online_after(time).expect("back online");
+        assert!(
+            back < time + ms(300),
+            "back at {back:?} after the event at {time:?}"
+        );
+    }
+    let text = String::from_utf8(captured.0.lock().unwrap().clone()).unwrap();
+    let lines: Vec<&str> = text.lines().collect();
+    let count = |needle: &str| lines.iter().filter(|l| l.contains(needle)).count();
+    assert_eq!(count("dropped out 3 times"), 1, "{text}");
+    // Told for the first two outages, at debug from the third (the one that made it flap).
+    assert_eq!(count("offline device sent events"), 2, "{text}");
+    let last_told = lines
+        .iter()
+        .rposition(|l| l.contains("offline device sent events"))
+        .unwrap();
+    let quiet_from = lines
+        .iter()
+        .position(|l| l.contains("dropped out 3 times"))
+        .unwrap();
+    assert!(last_told < quiet_from, "{text}");
 }

@@ -1621,6 +1621,143 @@ mod tests {
         assert_eq!(listed[1]["address"], "10.0.0.5", "{listed}");
     }
 
+    /// A device whose template sets `enable_wb_continuous_read` (the port task has switched it
+    /// on): a read that covers a register the device has answers the others as 0xFFFE. With
+    /// `min_read_registers: 2` the read of parameter `present` (holding 9) asks 9..=10, and 10
+    /// comes back as 0xFFFE; parameter `missing` (holding 10) is refused on its own read. Only
+    /// the parameters' own words are kept: `missing` is left out, not reported as 65534. (The
+    /// template's `max_read_registers: 10` would merge the two: they are read one by one.)
+    #[tokio::test]
+    async fn load_config_of_a_continuous_read_device_keeps_only_its_parameters_words() {
+        use crate::daemon::bus_queue::QueuedJob;
+        let template = json!({
+            "device_type": "s35-continuous",
+            "device": {
+                "name": "Continuous", "id": "continuous",
+                "enable_wb_continuous_read": true,
+                "min_read_registers": 2,
+                "max_read_registers": 10,
+                "parameters": {
+                    "present": {"title": "Present", "address": 9},
+                    "missing": {"title": "Missing", "address": 10}
+                },
+                "channels": [{"name": "Value", "reg_type": "holding", "address": 20,
+                              "type": "value"}]
+            }
+        });
+        let mut library = TemplateLibrary::default();
+        library.insert(
+            TemplateFile::from_source(SourceText::from_text(
+                Path::new("config-s35-continuous.json"),
+                &template.to_string(),
+            ))
+            .unwrap(),
+        );
+        let path = "/dev/rtu2mqtt-s35-no-such-port";
+        let config = json!({"ports": [{"path": path, "baud_rate": 115200, "stop_bits": 2,
+            "devices": [{"device_type": "s35-continuous", "slave_id": 7}]}]});
+        let loaded = crate::config::load::load_config_source(
+            SourceText::from_text(Path::new("c.json"), &config.to_string()),
+            false,
+        )
+        .unwrap();
+        let port = crate::device::resolve_config(&loaded, &library)
+            .unwrap()
+            .remove(0);
+        assert!(port.devices[0].timing.enable_wb_continuous_read);
+        let (queue, mut jobs) = BusQueue::new();
+        let directory: PortDirectory = Arc::default();
+        directory.lock().unwrap().insert(
+            path.into(),
+            PortAccess {
+                name: path.into(),
+                resolved: Arc::new(port),
+                line: Some(LineSettings::new(115_200, crate::protocol::Parity::None, 2)),
+                queue,
+                events: Arc::default(),
+                fast_modbus: false,
+            },
+        );
+        // The device: holding 9 and 20, its model and firmware; continuous read on.
+        let mut holding: BTreeMap<u16, u16> = BTreeMap::from([(9, 1234), (20, 5)]);
+        for (offset, byte) in b"S35CR".iter().enumerate() {
+            holding.insert(200 + offset as u16, u16::from(*byte));
+        }
+        for address in 205..220 {
+            holding.insert(address, 0);
+        }
+        for (offset, byte) in b"1.2.3".iter().enumerate() {
+            holding.insert(250 + offset as u16, u16::from(*byte));
+        }
+        for address in 255..266 {
+            holding.insert(address, 0);
+        }
+        let asked = Arc::new(std::sync::Mutex::new(Vec::new()));
+        let seen = Arc::clone(&asked);
+        tokio::spawn(async move {
+            while let Some(job) = jobs.recv().await {
+                let QueuedJob::Transaction(job) = job else {
+                    continue;
+                };
+                let request = &job.transaction.request;
+                let pdu = match &request.body {
+                    crate::protocol::RequestBody::Classic(pdu) => pdu.clone(),
+                    crate::protocol::RequestBody::Fast(_) => {
+                        let _ = job.reply.send(Ok(TransactionOutcome::NoReply));
+                        continue;
+                    }
+                };
+                seen.lock().unwrap().push(pdu.clone());
+                let answer = match pdu {
+                    RequestPdu::ReadHoldingRegisters { start, count } => {
+                        let values: Vec<Option<u16>> = (start..start + count)
+                            .map(|address| holding.get(&address).copied())
+                            .collect();
+                        if values.iter().any(Option::is_some) {
+                            ResponsePdu::ReadHoldingRegisters {
+                                values: values.iter().map(|v| v.unwrap_or(0xFFFE)).collect(),
+                            }
+                        } else {
+                            ResponsePdu::Exception {
+                                function: 3,
+                                code: ExceptionCode::ILLEGAL_DATA_ADDRESS,
+                            }
+                        }
+                    }
+                    other => ResponsePdu::Exception {
+                        function: other.function(),
+                        code: ExceptionCode::ILLEGAL_FUNCTION,
+                    },
+                };
+                let reply = Reply::classic(request.address, answer);
+                let _ = job.reply.send(Ok(TransactionOutcome::Reply(reply)));
+            }
+        });
+        let method = super::super::params::parse_method(
+            "device",
+            "LoadConfig",
+            &json!({"path": path, "slave_id": 7}),
+        )
+        .unwrap();
+        let result = execute_with_templates(
+            &directory,
+            &DeviceTemplates::new(library, Vec::new(), PathBuf::from("c.json")),
+            method,
+        )
+        .await
+        .unwrap();
+        let asked = asked.lock().unwrap().clone();
+        assert!(
+            asked.contains(&RequestPdu::ReadHoldingRegisters { start: 9, count: 2 }),
+            "{asked:?}"
+        );
+        assert_eq!(
+            result,
+            json!({"parameters": {"present": 1234}, "model": "S35CR", "fw": "1.2.3"}),
+            "{asked:?}"
+        );
+    }
+
     #[test]
     fn values_are_numbers_where_the_text_is_one() {
         assert_eq!(value_json("21.5"), json!(21.5));

@@ -36,10 +36,13 @@ use tracing::debug;
 
 use super::mbap::MbapCodec;
 use super::other_master::OtherMasters;
+use crate::protocol::fast::BROADCAST_ADDRESS;
+use crate::protocol::frame::MAX_DEVICE_ADDRESS;
 use crate::protocol::parser::{answers, ARBITRATION_FILLER};
 use crate::protocol::pdu::FrameLength;
 use crate::protocol::{
     EncodeError, FastRequest, LineSettings, ParseStatus, Reply, ReplyParser, Request, RequestBody,
+    RequestPdu,
 };
 use crate::protocol::{ReplyTiming, Transaction, TransactionOutcome};
 use window::{Received, ReplyWindow};
@@ -326,7 +329,14 @@ struct ReplyDelay {
     delay: Duration,
     /// Batch reads since the delay was last measured.
     batch_reads: u32,
+    /// The delay of the last reply refused as late while another master polls
+    /// ([`is_late_for_its_device`]), until a reply in time comes.
+    refused_late: Option<Duration>,
 }
+
+/// Two late replies of a device this close in delay (or a quarter of it, if more) are the
+/// device's own: it has become slower. Another master's request is answered at any time.
+const LATE_AGREEMENT: Duration = Duration::from_millis(2);
 
 impl ReplyDelay {
     /// A reply read as it came was complete `sample` beyond its wire time. A shorter delay is
@@ -340,6 +350,24 @@ impl ReplyDelay {
             self.delay + (sample - self.delay) / 8
         };
         self.batch_reads = 0;
+        self.refused_late = None;
+    }
+
+    /// A reply `sample` late, much later than the device's (another master polls): true when
+    /// the last refused one came as late, so this is the device's own pace, taken at once;
+    /// else it is refused and remembered.
+    fn late_again(&mut self, sample: Duration) -> bool {
+        let agrees = self
+            .refused_late
+            .is_some_and(|refused| refused.abs_diff(sample) <= LATE_AGREEMENT.max(refused / 4));
+        if agrees {
+            self.delay = sample;
+            self.refused_late = None;
+            self.batch_reads = 0;
+        } else {
+            self.refused_late = Some(sample);
+        }
+        agrees
     }
 }
 
@@ -675,7 +703,9 @@ impl Exchange {
                     .serial
                     .and_then(|line| receiving.request.arbitration_time(&line));
                 if let (Some(arbitration), Some(line)) = (arbitration, self.config.serial) {
-                    receiving.frame_began |= bytes.iter().any(|&b| b != ARBITRATION_FILLER);
+                    receiving.frame_began |= bytes
+                        .iter()
+                        .any(|&b| could_begin_reply(&receiving.request, b));
                     // Counted from the first filler, which came one character into a window
                     // after the devices' wait at the earliest.
                     let arbitration = arbitration
@@ -731,13 +761,39 @@ impl Exchange {
             let sample = now
                 .saturating_sub(receiving.window.clock_start())
                 .saturating_sub(line.wire_time(frame_len));
-            self.reply_delays
-                .entry(ReplyKind::of(&receiving.request))
-                .and_modify(|learned| learned.learn(sample))
-                .or_insert(ReplyDelay {
-                    delay: sample,
-                    batch_reads: 0,
-                });
+            let kind = ReplyKind::of(&receiving.request);
+            let late = |learned: &ReplyDelay| {
+                is_late_for_its_device(&receiving.request, timing.first_byte, learned.delay)
+            };
+            match self.reply_delays.get_mut(&kind) {
+                Some(learned)
+                    if self.mbap.is_none()
+                        && self.other_masters.polls_lately(now)
+                        && late(learned) =>
+                {
+                    if !learned.late_again(sample) {
+                        debug!(
+                            "a reply much later than its device's while another master polls: \
+                             its reply may be this one"
+                        );
+                        timing.foreign_bytes_only = true;
+                        timing.another_master = true;
+                        self.state = State::Done(TransactionOutcome::Garbled, timing);
+                        return;
+                    }
+                }
+                Some(learned) => learned.learn(sample),
+                None => {
+                    self.reply_delays.insert(
+                        kind,
+                        ReplyDelay {
+                            delay: sample,
+                            batch_reads: 0,
+                            refused_late: None,
+                        },
+                    );
+                }
+            }
         }
         self.state = State::Done(TransactionOutcome::Reply(reply), timing);
     }
@@ -849,6 +905,44 @@ impl Exchange {
     }
 }
 
+/// A classic reply begins this much later than twice its device's learned delay before it is
+/// taken for an answer to a request this master did not hear
+/// ([`is_late_for_its_device`]): beyond the jitter of a USB adapter's latency timer.
+const LATE_BEYOND_LEARNED: Duration = Duration::from_millis(5);
+
+/// Whether the reply to a classic read whose first byte came `first_byte` after the request
+/// (timed as it came) began far later than its device's replies do (`learned`). With another
+/// master on the bus that is the mark of its reply: its request to the device, lost here in a
+/// collision, was answered while this master's request went unheard (seed 6160 of the fault
+/// sweep: a reply to the other master's read of input 0..5 came 19 ms into a read of input
+/// 10..15 of the same device, which answers in 3 ms, and passed for it). Such a reply is taken
+/// only when the one before came as late ([`ReplyDelay::late_again`]): the device's own,
+/// slower pace. A write's reply names what was written, and a device may take longer over a
+/// write; an event packet or scan reply starts after an arbitration of varying length: neither
+/// is late by this measure.
+fn is_late_for_its_device(
+    request: &Request,
+    first_byte: Option<Duration>,
+    learned: Duration,
+) -> bool {
+    let reads = matches!(
+        request.body,
+        RequestBody::Classic(
+            RequestPdu::ReadCoils { .. }
+                | RequestPdu::ReadDiscreteInputs { .. }
+                | RequestPdu::ReadHoldingRegisters { .. }
+                | RequestPdu::ReadInputRegisters { .. }
+        )
+    );
+    let (true, Some(first_byte)) = (reads, first_byte) else {
+        return false;
+    };
+    first_byte
+        > learned
+            .saturating_mul(2)
+            .saturating_add(LATE_BEYOND_LEARNED)
+}
+
 impl Receiving {
     /// Once an event packet's header is in, the window covers the frame it announces: a device
     /// may take the frame's 256 bytes for its only limit and send more than the request's
@@ -941,6 +1035,22 @@ impl Receiving {
 
 /// Replies to these requests come after an arbitration among devices: their start and length
 /// vary.
+/// Whether `byte` may be the first of the frame that follows the arbitration of `request`
+/// (a scan's or an event poll's). Two contenders' fillers a fraction of a bit apart, or noise,
+/// read as a byte other than 0xFF (0xFE, 0xFC): the arbitration is still under way, and its
+/// silent windows must not end the reply ([`ReplyWindow::arbitration_under_way`]).
+fn could_begin_reply(request: &Request, byte: u8) -> bool {
+    match request.body {
+        RequestBody::Fast(FastRequest::ScanStart | FastRequest::ScanContinue) => {
+            byte == BROADCAST_ADDRESS
+        }
+        RequestBody::Fast(FastRequest::PollEvents(_)) => {
+            byte == BROADCAST_ADDRESS || (1..=MAX_DEVICE_ADDRESS).contains(&byte)
+        }
+        _ => byte != ARBITRATION_FILLER,
+    }
+}
+
 fn follows_arbitration(request: &Request) -> bool {
     matches!(
         request.body,
@@ -2208,6 +2318,73 @@ mod tests {
         assert_eq!(exchange.take_other_master_request(), Some(theirs));
     }
 
+    /// With another master heard lately (here polling another device), a read's reply that
+    /// begins far later than its device's do may answer that master's request to this device,
+    /// lost in a collision here (seed 6160 of the fault sweep): not taken. One in the device's
+    /// own time is; so is a late one once the other master has been quiet for
+    /// [`POLLING_HORIZON`](super::super::other_master::POLLING_HORIZON), or with no other
+    /// master at all.
+    #[test]
+    fn a_late_reply_while_another_master_polls_is_not_taken() {
+        for baud in [9600, 115_200] {
+            let line = line(baud);
+            let (mut exchange, transaction, _, start) = taught(&line, ms(1));
+            let (mut alone, ..) = taught(&line, ms(1));
+            let theirs = Request::classic(
+                0x07,
+                RequestPdu::ReadInputRegisters {
+                    start: 0x10,
+                    count: 2,
+                },
+            )
+            .encode()
+            .unwrap_or_default();
+            exchange.handle_bytes(start, &theirs);
+            assert!(exchange.take_other_master_request().is_some());
+            let late = |start: Duration| {
+                on_the_wire(
+                    &line,
+                    start + transaction.request_time + ms(15),
+                    &reply_frame(),
+                )
+            };
+            let start = start + ms(10);
+            let finished = run(&mut exchange, &transaction, start, &late(start));
+            assert_eq!(finished.outcome, TransactionOutcome::Garbled, "at {baud}");
+            assert!(finished.timing.another_master, "at {baud}");
+            let finished = run(&mut alone, &transaction, start, &late(start));
+            assert_eq!(finished.outcome, read_reply(), "no other master, at {baud}");
+            let start = finished.at + ms(10);
+            let in_time = on_the_wire(
+                &line,
+                start + transaction.request_time + ms(1),
+                &reply_frame(),
+            );
+            let finished = run(&mut exchange, &transaction, start, &in_time);
+            assert_eq!(finished.outcome, read_reply(), "in time, at {baud}");
+            // A device that has become slower: its second reply as late is its own pace.
+            let start = finished.at + ms(10);
+            let finished = run(&mut exchange, &transaction, start, &late(start));
+            assert_eq!(finished.outcome, TransactionOutcome::Garbled, "at {baud}");
+            let start = finished.at + ms(10);
+            let finished = run(&mut exchange, &transaction, start, &late(start));
+            assert_eq!(finished.outcome, read_reply(), "as late again, at {baud}");
+            let start = finished.at + ms(10);
+            let finished = run(&mut exchange, &transaction, start, &late(start));
+            assert_eq!(finished.outcome, read_reply(), "its pace now, at {baud}");
+            // Once the other master has been quiet for the horizon, nothing is late.
+            let (mut gone, ..) = taught(&line, ms(1));
+            gone.handle_bytes(start, &theirs);
+            let start = start + super::super::other_master::POLLING_HORIZON + ms(1);
+            let finished = run(&mut gone, &transaction, start, &late(start));
+            assert_eq!(
+                finished.outcome,
+                read_reply(),
+                "other master gone, at {baud}"
+            );
+        }
+    }
+
     #[test]
     fn over_modbus_tcp_no_request_is_looked_for() {
         // Each Modbus TCP reply names its request by transaction id.
@@ -2533,6 +2710,101 @@ mod tests {
         let mut exchange = Exchange::new(LinkConfig::serial(line));
         let finished = run(&mut exchange, &transaction, ms(0), &wire);
         assert_eq!(finished.outcome, TransactionOutcome::Reply(packet));
+    }
+
+    /// The other end of the arbitration's bound: a filler in the first window and then
+    /// nothing (the winner's frame lost) ends the event poll or the scan once the last window
+    /// can have closed (fast-modbus.md §3: `max(3.5 chars, 12 bits + 800 µs) + N × window`
+    /// after the request), plus what a UART may hold a byte ([`LinkConfig::receive_timeout`])
+    /// and the quiet gap; not later (before the review it waited the devices' wait and a
+    /// character more), and not before the last window closed.
+    #[test]
+    fn silent_windows_after_the_first_filler_end_when_the_last_window_can_close() {
+        for (baud, scan) in [
+            (9600, false),
+            (115_200, false),
+            (1200, false),
+            (9600, true),
+            (115_200, true),
+        ] {
+            let line = line(baud);
+            let transaction = if scan {
+                scan_start_transaction(&line)
+            } else {
+                event_poll_transaction(&line)
+            };
+            let config = LinkConfig::serial(line);
+            let windows = if scan {
+                crate::protocol::timing::ARBITRATION_WINDOWS_SCAN
+            } else {
+                ARBITRATION_WINDOWS_EVENTS
+            };
+            let request_end = transaction.request_time;
+            let first_window = request_end + line.device_arbitration_wait();
+            let filler = (first_window + line.char_time(), ARBITRATION_FILLER);
+            let mut exchange = Exchange::new(config);
+            let finished = run(&mut exchange, &transaction, ms(0), &[filler]);
+            assert_ne!(
+                finished.outcome,
+                TransactionOutcome::Reply(Reply::fast(0xFD, crate::protocol::FastReply::NoEvents)),
+                "{baud}"
+            );
+            let arbitration = if scan {
+                line.scan_reply_timeout()
+            } else {
+                line.event_reply_timeout()
+            };
+            let latest = request_end + arbitration + config.receive_timeout + config.quiet_gap;
+            // A frame that starts as the last window closes has its first bytes read (the
+            // reply's own deadline may end the wait before the quiet gap does).
+            let earliest = first_window
+                + line.arbitration_window() * windows
+                + config.receive_timeout
+                + line.char_time();
+            assert!(
+                finished.at <= latest,
+                "{baud} scan {scan}: ended at {:?}, {:?} after the bound",
+                finished.at,
+                finished.at - latest
+            );
+            assert!(
+                finished.at >= earliest,
+                "{baud} scan {scan}: ended at {:?}, before the last window closed",
+                finished.at
+            );
+        }
+    }
+
+    /// Two contenders' fillers a fraction of a bit apart (or noise) read as 0xFE, not 0xFF: the
+    /// silent windows after it are still the arbitration, and the serial's 23 bits of 1 leave
+    /// 24 silent windows (33 ms at 9600) before the frame. Taken for a frame begun, the 0xFE let
+    /// the quiet gap end the scan step (Garbled): no byte but 0xFD begins a scan reply.
+    #[test]
+    fn a_corrupted_filler_does_not_end_the_arbitration() {
+        let baud = 9600;
+        let serial = 0xFE7F_FFFF_u32;
+        let line = line(baud);
+        let transaction = scan_start_transaction(&line);
+        let request_time = transaction.request_time;
+        let found = Reply::fast(
+            0xFD,
+            crate::protocol::FastReply::ScanFound {
+                serial,
+                modbus_address: 50,
+            },
+        );
+        let mut wire = scan_fillers(&line, request_time, serial);
+        wire[0].1 = 0xFE;
+        let first_window = request_time + line.device_arbitration_wait();
+        let frame_at = first_window + line.arbitration_window() * 32;
+        wire.extend(on_the_wire(
+            &line,
+            frame_at,
+            &found.encode().unwrap_or_default(),
+        ));
+        let mut exchange = Exchange::new(LinkConfig::serial(line));
+        let finished = run(&mut exchange, &transaction, ms(0), &wire);
+        assert_eq!(finished.outcome, TransactionOutcome::Reply(found));
     }
 
     #[test]

@@ -50,6 +50,11 @@ use crate::protocol::{Request, RequestBody};
 /// master is heard; narrower could let its reply through.
 pub const REPLY_HORIZON: Duration = Duration::from_secs(1);
 
+/// How long after another master's request was last heard it counts as still polling the bus
+/// ([`OtherMasters::polls_lately`]): one that polls at all is heard within seconds, unless its
+/// requests keep colliding with this master's traffic.
+pub const POLLING_HORIZON: Duration = Duration::from_secs(10);
+
 /// How long this master's single writes are remembered: a device's echo of one may come as
 /// late as its timeout and late window allow (seconds), and must not pass for another
 /// master's request then.
@@ -83,6 +88,8 @@ pub struct OtherMasters {
     heard_at: BTreeMap<Option<u8>, Duration>,
     /// The last such request, until the driver has taken it ([`Self::take_heard`]).
     unreported: Option<Vec<u8>>,
+    /// When another master's request (not a possible echo) was last heard, to any device.
+    last_heard: Option<Duration>,
 }
 
 /// The first bytes heard after each request this master writes, as evidence of an echo (see
@@ -359,7 +366,16 @@ impl OtherMasters {
         self.heard_at.insert(target, now);
         if !quiet {
             self.unreported = Some(frame);
+            self.last_heard = Some(now);
         }
+    }
+
+    /// Whether another master was heard less than [`POLLING_HORIZON`] before `now`: its
+    /// requests to a device may go unheard here (garbled by a collision in this master's
+    /// window) while the device still answers them.
+    pub fn polls_lately(&self, now: Duration) -> bool {
+        self.last_heard
+            .is_some_and(|heard| heard.saturating_add(POLLING_HORIZON) >= now)
     }
 
     /// Whether a reply from `address` whose clock started at `clock_start` may answer another
