@@ -1825,7 +1825,7 @@ impl PortScheduler {
                 debug!(device = %state.plan.name, value, "continuous read set");
             }
             failed @ (TransactionOutcome::NoReply | TransactionOutcome::Garbled) => {
-                self.preparation_write_failed(now, device, Failure::without_reply(&failed), out)
+                self.preparation_write_failed(now, device, Failure::of(&failed), out)
             }
         }
     }
@@ -1888,7 +1888,7 @@ impl PortScheduler {
                 state.setup_write_done(index);
             }
             failed @ (TransactionOutcome::NoReply | TransactionOutcome::Garbled) => {
-                self.preparation_write_failed(now, device, Failure::without_reply(&failed), out)
+                self.preparation_write_failed(now, device, Failure::of(&failed), out)
             }
         }
     }
@@ -2006,7 +2006,7 @@ impl PortScheduler {
             // "Failed to enable events" fails the device's prepare and it is tried again.
             failed @ (TransactionOutcome::NoReply | TransactionOutcome::Garbled) => {
                 let garbled = failed == TransactionOutcome::Garbled;
-                Self::health_failure(state, device, now, Failure::without_reply(&failed), out);
+                Self::health_failure(state, device, now, Failure::of(&failed), out);
                 let answer = if garbled {
                     "no readable answer"
                 } else {
@@ -2044,7 +2044,7 @@ impl PortScheduler {
         match outcome {
             TransactionOutcome::Reply(_) => Self::health_success(state, device, now, out),
             failed @ (TransactionOutcome::NoReply | TransactionOutcome::Garbled) => {
-                Self::health_failure(state, device, now, Failure::without_reply(&failed), out)
+                Self::health_failure(state, device, now, Failure::of(&failed), out)
             }
         }
     }
@@ -2097,12 +2097,7 @@ impl PortScheduler {
                 }
                 ResponsePdu::Exception { code, .. } => {
                     Self::health_success(state, device, now, out);
-                    let permanent = matches!(
-                        code,
-                        ExceptionCode::ILLEGAL_FUNCTION
-                            | ExceptionCode::ILLEGAL_DATA_ADDRESS
-                            | ExceptionCode::ILLEGAL_DATA_VALUE
-                    );
+                    let permanent = is_permanent_refusal(code);
                     if permanent && members.len() > 1 {
                         debug!(device = %state.plan.name, ?span, %code, "merged read refused: reading its parts one by one");
                         state.split_reads(now, members);
@@ -2179,7 +2174,7 @@ impl PortScheduler {
             TransactionOutcome::Reply(Reply {
                 body: ReplyBody::Classic(ResponsePdu::Exception { code, .. }),
                 ..
-            }) => {
+            }) if is_permanent_refusal(code) => {
                 warn!(device = %state.plan.name, address, %code, "write refused by the device");
                 Self::health_success(state, device, now, out);
                 self.writes.retain(|p| !(p.write == pending.write));
@@ -2190,7 +2185,7 @@ impl PortScheduler {
                     permanent: true,
                 });
             }
-            TransactionOutcome::Reply(_) => {
+            TransactionOutcome::Reply(reply) if !reply.is_exception() => {
                 Self::health_success(state, device, now, out);
                 self.writes.retain(|p| !(p.write == pending.write));
                 let span = RegisterSpan::new(
@@ -2214,8 +2209,10 @@ impl PortScheduler {
                     values: write.values.clone().into(),
                 });
             }
-            failed @ (TransactionOutcome::NoReply | TransactionOutcome::Garbled) => {
-                Self::health_failure(state, device, now, Failure::without_reply(&failed), out);
+            // No reply, or busy / a device failure: sent again (wb-mqtt-serial retries a write
+            // that failed with a transient error for its max_write_fail_time).
+            failed => {
+                Self::health_failure(state, device, now, Failure::of(&failed), out);
                 let give_up = now >= pending.give_up_at;
                 if give_up || replaced(&self.writes) {
                     self.writes.retain(|p| !(p.write == pending.write));

@@ -1181,6 +1181,77 @@ fn unsent_writes_leave_out_the_one_in_flight_and_those_done() {
     assert_eq!(unsent(&scheduler), [(0, RegisterType::Holding, 11)]);
 }
 
+/// A write answered busy (exception 6) or "device failure" (4) is sent again until the
+/// device takes it, as wb-mqtt-serial retries a write that failed with a transient error for
+/// its `max_write_fail_time_s`; one answered "illegal data value" (3) is refused at once, for
+/// good. Busy was a refusal: the command was lost although the device only asked for a moment.
+#[test]
+fn a_write_answered_busy_is_sent_again() {
+    for (code, taken) in [
+        (ExceptionCode::BUSY, true),
+        (ExceptionCode::DEVICE_FAILURE, true),
+        (ExceptionCode::ILLEGAL_DATA_VALUE, false),
+    ] {
+        let plan = device(3, vec![read(RegisterType::Holding, 0, EventMode::Polled)]);
+        let mut scheduler = PortScheduler::new(settings(115_200), vec![plan]);
+        let mut log = Log::default();
+        run(&mut scheduler, &mut log, ms(0), ms(100), |_, r| healthy(r));
+        let write = RegisterWrite {
+            device: 0,
+            register_type: RegisterType::Holding,
+            address: 10,
+            values: vec![7],
+            force_multiple: false,
+            defined: Vec::new(),
+        };
+        assert_eq!(scheduler.queue_write(ms(100), write), None);
+        let mut refusals = 2;
+        run(
+            &mut scheduler,
+            &mut log,
+            ms(100),
+            ms(5000),
+            |_, request| match &request.body {
+                RequestBody::Classic(RequestPdu::WriteSingleRegister { address: 10, .. })
+                    if refusals > 0 =>
+                {
+                    refusals -= 1;
+                    exception(request, code)
+                }
+                _ => healthy(request),
+            },
+        );
+        let writes = log.single_register_writes(10);
+        let done = log
+            .events
+            .iter()
+            .any(|(_, e)| matches!(e, PortEvent::WriteDone { address: 10, .. }));
+        let given_up = log.events.iter().any(|(_, e)| {
+            matches!(
+                e,
+                PortEvent::WriteFailed {
+                    address: 10,
+                    permanent: true,
+                    ..
+                }
+            )
+        });
+        if taken {
+            assert_eq!(writes, [7, 7, 7], "{code}");
+            assert!(
+                done && !given_up,
+                "{code}: done {done}, given up {given_up}"
+            );
+        } else {
+            assert_eq!(writes, [7], "{code}");
+            assert!(
+                !done && given_up,
+                "{code}: done {done}, given up {given_up}"
+            );
+        }
+    }
+}
+
 /// A write that could not go (the port away) is given up once its device's retry time
 /// (`max_write_fail_time_s`) is over, and never sent after.
 #[test]

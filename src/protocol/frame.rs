@@ -6,7 +6,7 @@
 
 use super::crc::{append_crc, crc_is_valid};
 use super::fast::{self, EventPoll, EventRange, FastReply, FastRequest};
-use super::pdu::{FrameLength, RequestPdu, ResponsePdu, EXCEPTION_FLAG};
+use super::pdu::{ExceptionCode, FrameLength, RequestPdu, ResponsePdu, EXCEPTION_FLAG};
 use super::{DecodeError, EncodeError};
 use std::time::Duration;
 
@@ -251,6 +251,18 @@ impl Reply {
                 reply,
             },
         }
+    }
+
+    /// The exception a classic reply carries instead of its answer, if it does.
+    pub fn exception_code(&self) -> Option<ExceptionCode> {
+        match &self.body {
+            ReplyBody::Classic(ResponsePdu::Exception { code, .. }) => Some(*code),
+            _ => None,
+        }
+    }
+
+    pub fn is_exception(&self) -> bool {
+        self.exception_code().is_some()
     }
 
     pub fn encode(&self) -> Result<Vec<u8>, EncodeError> {
