@@ -39,14 +39,23 @@ struct Daemon {
 
 impl Daemon {
     fn start(port: u16) -> Self {
+        Self::start_with(port, json!({}))
+    }
+
+    /// With `port_keys` added to the port's config.
+    fn start_with(port: u16, port_keys: Value) -> Self {
         let devices = json!([
             {"device_type": "rtu2mqtt-climate", "slave_id": 21},
             {"device_type": "rtu2mqtt-relay6", "slave_id": 20},
             {"device_type": "rtu2mqtt-energy-meter", "slave_id": 30},
         ]);
-        let config = json!({"ports": [{
+        let mut port_config = json!({
             "port_type": "modbus tcp", "address": "127.0.0.1", "port": port, "devices": devices,
-        }]});
+        });
+        if let (Some(config), Some(keys)) = (port_config.as_object_mut(), port_keys.as_object()) {
+            config.extend(keys.clone());
+        }
+        let config = json!({"ports": [port_config]});
         let mut process =
             DaemonProcess::start(&config, &["--stdio"], Stdio::piped(), Stdio::piped());
         let stdin = process.child.stdin.take().unwrap();
@@ -182,4 +191,24 @@ fn values_and_writes_through_a_modbus_tcp_gateway_that_drops_the_connection() {
     daemon.wait_value("climate_21", "Temperature", "22.25");
     // The restarted relay has K2 off again: the daemon reads it from the new connection.
     daemon.has_value_since(mark, "relay6_20", "K2", "0");
+}
+
+/// Behind a WB-MGE (`connected_to_mge`: Fast Modbus through the Modbus TCP gateway) an event
+/// poll goes to unit 0xFD and the packet comes back under the unit of the device that sent it.
+/// The relay's inputs come only by events: a toggle and its undoing must be published. Before,
+/// every packet was thrown away as a reply from the wrong unit and the input stayed at its old
+/// value.
+#[test]
+fn events_through_a_wb_mge_are_published() {
+    let dir = tempfile::tempdir().unwrap();
+    let bus = bus_file(&dir);
+    let (sim, port) = start_sim(&bus, "127.0.0.1:0");
+    let mut daemon = Daemon::start_with(port, json!({"connected_to_mge": true}));
+    daemon.has_value("relay6_20", "Input 2", "0");
+    daemon.has_value("climate_21", "Temperature", "21.5");
+    let mark = daemon.seen.len();
+    sim.control(json!({"cmd": "toggle", "device": 20, "type": "discrete", "address": 1}));
+    daemon.has_value_since(mark, "relay6_20", "Input 2", "1");
+    sim.control(json!({"cmd": "toggle", "device": 20, "type": "discrete", "address": 1}));
+    daemon.has_value_since(mark, "relay6_20", "Input 2", "0");
 }

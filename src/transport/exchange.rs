@@ -41,8 +41,8 @@ use crate::protocol::frame::MAX_DEVICE_ADDRESS;
 use crate::protocol::parser::{answers, ARBITRATION_FILLER};
 use crate::protocol::pdu::FrameLength;
 use crate::protocol::{
-    EncodeError, FastRequest, LineSettings, ParseStatus, Reply, ReplyParser, Request, RequestBody,
-    RequestPdu,
+    EncodeError, FastReply, FastRequest, LineSettings, ParseStatus, Reply, ReplyBody, ReplyParser,
+    Request, RequestBody, RequestPdu,
 };
 use crate::protocol::{ReplyTiming, Transaction, TransactionOutcome};
 use window::{Received, ReplyWindow};
@@ -1012,7 +1012,7 @@ impl Receiving {
             match reply {
                 // The length serves only a serial line's timing.
                 Ok(reply)
-                    if reply.address == self.request.address && answers(&self.request, &reply) =>
+                    if unit_answers(&self.request, &reply) && answers(&self.request, &reply) =>
                 {
                     return Some((reply, 0))
                 }
@@ -1033,8 +1033,24 @@ impl Receiving {
     }
 }
 
-/// Replies to these requests come after an arbitration among devices: their start and length
-/// vary.
+/// Whether a Modbus TCP reply's unit identifier fits `request`: the request's, as
+/// wb-mqtt-serial checks it, except for an event poll's packet, which comes from the device
+/// that won the arbitration. A WB-MGE passes each RTU frame's address on as the unit, and
+/// wb-mqtt-serial reads events without matching it (`ModbusExt::ReadEvents`); held to 0xFD,
+/// every packet was thrown away unconfirmed and its events never published.
+fn unit_answers(request: &Request, reply: &Reply) -> bool {
+    let packet_after_poll = matches!(request.body, RequestBody::Fast(FastRequest::PollEvents(_)))
+        && matches!(
+            reply.body,
+            ReplyBody::Fast {
+                reply: FastReply::Events(_),
+                ..
+            }
+        )
+        && (1..=MAX_DEVICE_ADDRESS).contains(&reply.address);
+    reply.address == request.address || packet_after_poll
+}
+
 /// Whether `byte` may be the first of the frame that follows the arbitration of `request`
 /// (a scan's or an event poll's). Two contenders' fillers a fraction of a bit apart, or noise,
 /// read as a byte other than 0xFF (0xFE, 0xFC): the arbitration is still under way, and its
@@ -1051,6 +1067,8 @@ fn could_begin_reply(request: &Request, byte: u8) -> bool {
     }
 }
 
+/// Replies to these requests come after an arbitration among devices: their start and length
+/// vary.
 fn follows_arbitration(request: &Request) -> bool {
     matches!(
         request.body,
@@ -1499,7 +1517,9 @@ mod tests {
     //! whose reads return at once would.
     use super::*;
     use crate::protocol::timing::{ADAPTER_LATENCY_ALLOWANCE, ARBITRATION_WINDOWS_EVENTS};
-    use crate::protocol::{EventPoll, Parity, RequestPdu, ResponsePdu};
+    use crate::protocol::{
+        Event, EventPacket, EventPoll, EventSource, Parity, RegisterType, RequestPdu, ResponsePdu,
+    };
 
     fn ms(ms: u64) -> Duration {
         Duration::from_millis(ms)
@@ -2903,8 +2923,6 @@ mod tests {
     /// bytes for its only limit) is read to its end: the window covers what its header says.
     #[test]
     fn an_event_packet_longer_than_asked_for_is_read_to_its_end() {
-        use crate::protocol::fast::{Event, EventPacket, EventSource};
-        use crate::protocol::RegisterType;
         let line = line(9600);
         let transaction = transaction(&line, event_poll());
         let events: Vec<Event> = (0..40)
@@ -3017,6 +3035,55 @@ mod tests {
             TransactionOutcome::Reply(Reply::classic(0x1E, values))
         );
         assert_eq!(timing.first_byte, Some(ms(3) - transaction.request_time));
+    }
+
+    /// Behind a WB-MGE (`connected_to_mge`) an event poll goes to unit 0xFD and the packet comes
+    /// back under the unit of the device that sent it: taken (as wb-mqtt-serial reads events
+    /// without matching the unit); "no events" comes under 0xFD. Thrown away before, every
+    /// packet came again unconfirmed and its events were never published.
+    #[test]
+    fn over_modbus_tcp_an_event_packet_comes_under_its_devices_unit() {
+        let line = line(115_200);
+        let packet = EventPacket {
+            flag: 1,
+            event_count: 1,
+            events: vec![Event {
+                source: EventSource::Register(RegisterType::DiscreteInput),
+                id: 1,
+                payload: vec![1],
+            }],
+        };
+        let no_events = Reply::fast(0xFD, FastReply::NoEvents);
+        let events = Reply::fast(0x14, FastReply::Events(packet));
+        let mut exchange = Exchange::new(LinkConfig::tcp(Framing::ModbusTcp));
+        // Transaction ids 1 and 2.
+        for (reply, id) in [(events, 1u8), (no_events, 2)] {
+            let rtu = reply.encode().expect("encodes");
+            let pdu = rtu.get(..rtu.len() - 2).unwrap_or_default();
+            let len = u8::try_from(pdu.len()).expect("short");
+            let mut mbap = vec![0, id, 0, 0, 0, len];
+            mbap.extend_from_slice(pdu);
+            let finished = run(
+                &mut exchange,
+                &event_poll_transaction(&line),
+                ms(0),
+                &mbap.iter().map(|&byte| (ms(2), byte)).collect::<Vec<_>>(),
+            );
+            assert_eq!(finished.outcome, TransactionOutcome::Reply(reply));
+        }
+        // A classic reply under another unit is still no reply.
+        let mut exchange = Exchange::new(LinkConfig::tcp(Framing::ModbusTcp));
+        let other_unit = [0u8, 1, 0, 0, 0, 7, 0x14, 4, 4, 0x12, 0x34, 0x56, 0x78];
+        let finished = run(
+            &mut exchange,
+            &transaction(&line, read_request()),
+            ms(0),
+            &other_unit
+                .iter()
+                .map(|&byte| (ms(2), byte))
+                .collect::<Vec<_>>(),
+        );
+        assert_eq!(finished.outcome, TransactionOutcome::Garbled);
     }
 
     #[test]
