@@ -650,7 +650,8 @@ impl PortScheduler {
     /// a bit field's write defines the bits either defined, see [`RegisterWrite::defined`]).
     /// A write no request can carry (no values, more than one request holds, a table that
     /// cannot be written, an unknown device) is refused at once: its permanent
-    /// [`PortEvent::WriteFailed`] is returned, for the device model.
+    /// [`PortEvent::WriteFailed`] is returned, for the device model. A write for a device that is
+    /// offline is kept, and a passing failure is returned (`w` while it waits).
     #[must_use = "a refused write's failure must reach the device model"]
     pub fn queue_write(&mut self, now: Duration, write: RegisterWrite) -> Option<PortEvent> {
         let known = write.device < self.devices.len();
@@ -695,6 +696,14 @@ impl PortScheduler {
             info!(device = %state.plan.name, register_type = ?write.register_type, address = write.address, ?retry_time,
                 "write kept for a device that is offline: sent once it answers (meta/error w meanwhile)");
         }
+        // `w` at once, as wb-mqtt-serial flags a write to a disconnected device before it
+        // retries it; cleared when the write is done.
+        let waits = offline.map(|_| PortEvent::WriteFailed {
+            device: write.device,
+            register_type: write.register_type,
+            address: write.address,
+            permanent: false,
+        });
         let mut pending = PendingWrite {
             write,
             give_up_at: now.saturating_add(retry_time),
@@ -707,7 +716,7 @@ impl PortScheduler {
             pending.take_over(&replaced);
         }
         self.writes.push(pending);
-        None
+        waits
     }
 
     /// The port task stops while the transaction in flight still waits for the line (its
@@ -1015,9 +1024,15 @@ impl PortScheduler {
             if let Some(state) = device.and_then(|d| self.devices.get_mut(d)) {
                 state.heard_from(now);
             }
-        } else if was_dead {
+        } else if was_dead
+            && !self.devices.iter().enumerate().all(|(index, other)| {
+                Some(index) == device || other.health.seems_dead() || other.suspended
+            })
+        {
             // A retry of a device that seemed dead: its cost comes out of the dead devices' share
-            // of the bus, however many there are.
+            // of the bus, however many there are. Not while every device seemed dead: the share
+            // kept the bus for nobody then (`may_transact`), and charged, it would hold the
+            // others' retries back long after the first came back.
             self.dead_retries
                 .spend(now, now.saturating_sub(self.in_flight_since));
         }
@@ -1151,14 +1166,53 @@ impl PortScheduler {
     }
 
     /// Whether a device may be sent a request now: offline devices only in their retry slot, and
-    /// those that seem dead only while the dead devices' share of the bus holds what a retry
-    /// may cost.
+    /// those that seem dead one at a time, the one waiting longest first, while the dead
+    /// devices' share of the bus holds what its retry may cost. In turn, so that a dear retry
+    /// (a long timeout, a late window watched) is not put off for as long as cheaper ones keep
+    /// taking the share whenever it holds their cost: behind a Modbus TCP gateway that fell
+    /// silent, a device answering again stayed offline for 45–100 s while an absent one was
+    /// asked every 10 s. With every device dead the share protects nobody and is not waited for.
     fn may_transact(&self, device: &DeviceState, now: Duration) -> bool {
-        device.health.may_transact(now)
-            && (!device.health.seems_dead()
+        if !device.health.may_transact(now) {
+            return false;
+        }
+        if !device.health.seems_dead() {
+            return true;
+        }
+        let is_head = self
+            .dead_waiting_longest(now)
+            .and_then(|head| self.devices.get(head))
+            .is_some_and(|head| std::ptr::eq(head, device));
+        is_head
+            && (self.every_device_seems_dead()
                 || self
                     .dead_retries
                     .allows(now, self.dead_retry_cost(device, now)))
+    }
+
+    /// Of the devices that seem dead and have a retry to make now (their preparation or a
+    /// read), the one whose retry has been due the longest (the lowest index on a tie).
+    fn dead_waiting_longest(&self, now: Duration) -> Option<usize> {
+        self.index
+            .dead_preparing()
+            .chain(self.index.dead_reads().map(|(_, device)| device))
+            .filter_map(|index| {
+                let device = self.devices.get(index)?;
+                device
+                    .health
+                    .may_transact(now)
+                    .then(|| (device.health.may_transact_from(), index))
+            })
+            .min()
+            .map(|(_, index)| index)
+    }
+
+    /// No device but those that seem dead (or whose polling is held): nothing to keep the bus
+    /// free for.
+    fn every_device_seems_dead(&self) -> bool {
+        self.devices
+            .iter()
+            .all(|device| device.health.seems_dead() || device.suspended)
     }
 
     /// What a retry of a device that seems dead may cost: its whole response timeout and the
@@ -1308,7 +1362,7 @@ impl PortScheduler {
         device_of: impl Fn(T) -> usize,
     ) -> Option<T> {
         // A retry costs something: if nothing may go, nothing dearer may (no scan).
-        if !self.dead_retries.allows(now, Duration::ZERO) {
+        if !self.dead_retries.allows(now, Duration::ZERO) && !self.every_device_seems_dead() {
             return None;
         }
         candidates.find(|&candidate| {
@@ -1412,7 +1466,8 @@ impl PortScheduler {
     /// than the others. A scan of every device, only while the periodic reads ask for more
     /// than the bus has.
     fn choose_low_priority_read(&self, now: Duration) -> Option<(Transaction, InFlight)> {
-        let dead_may_go = self.dead_retries.allows(now, Duration::ZERO);
+        let dead_may_go =
+            self.dead_retries.allows(now, Duration::ZERO) || self.every_device_seems_dead();
         let (device, choice) = self
             .devices
             .iter()
@@ -1588,12 +1643,21 @@ impl PortScheduler {
     }
 
     fn earliest_deadline(&self, now: Duration) -> Duration {
+        // Dead devices go in turn (`may_transact`): none before the one waiting longest.
+        let budget_applies = !self.every_device_seems_dead();
+        let head_gate = self
+            .dead_waiting_longest(now)
+            .and_then(|head| self.devices.get(head))
+            .map(|head| {
+                self.dead_retries
+                    .available_at(now, self.dead_retry_cost(head, now))
+            });
         let offline_gate = |d: &DeviceState, at: Duration| {
-            if d.health.seems_dead() {
-                at.max(
+            if d.health.seems_dead() && budget_applies {
+                at.max(head_gate.unwrap_or_else(|| {
                     self.dead_retries
-                        .available_at(now, self.dead_retry_cost(d, now)),
-                )
+                        .available_at(now, self.dead_retry_cost(d, now))
+                }))
             } else {
                 at
             }

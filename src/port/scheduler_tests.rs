@@ -1252,6 +1252,72 @@ fn a_write_answered_busy_is_sent_again() {
     }
 }
 
+/// Two devices that seem dead (a gateway that fell silent): one whose retry costs 1–2 s of the
+/// dead devices' budget (a 1 s timeout, and the late window every fourth retry), and an absent
+/// one whose retry costs 0.1 s. Once the gateway answers again the first must be back soon:
+/// dead devices are retried in turn, the one waiting longest first, and with no live device on
+/// the port the budget protects nobody and is not waited for. Before, the cheap retries took
+/// the budget each time it held their cost and the dear one waited (found by a site audit:
+/// behind a Modbus TCP gateway the present device stayed offline 45–100 s, the absent one
+/// asked every 10 s; here it was not asked from 30 s to 73 s).
+#[test]
+fn a_dead_device_with_a_dear_retry_is_not_starved_by_a_cheap_one() {
+    // (a healthy device on the port too, how soon the first must be back)
+    for (with_live_device, within) in [(false, ms(3000)), (true, ms(8000))] {
+        let slow = DevicePlan {
+            response_timeout: ms(1000),
+            ..device(1, vec![read(RegisterType::Holding, 0, EventMode::Polled)])
+        };
+        let absent = DevicePlan {
+            response_timeout: ms(50),
+            ..device(2, vec![read(RegisterType::Holding, 0, EventMode::Polled)])
+        };
+        let mut plans = vec![slow, absent];
+        if with_live_device {
+            plans.push(device(
+                3,
+                vec![read(RegisterType::Holding, 0, EventMode::Polled)],
+            ));
+        }
+        let mut scheduler = PortScheduler::new(settings(115_200), plans);
+        let mut log = Log::default();
+        let gateway_back = ms(60_000);
+        run(
+            &mut scheduler,
+            &mut log,
+            Duration::ZERO,
+            ms(120_000),
+            |at, request| match request.address {
+                3 => healthy(request),
+                1 if at >= gateway_back => healthy(request),
+                _ => TransactionOutcome::NoReply,
+            },
+        );
+        let online = log
+            .events
+            .iter()
+            .find(|(at, e)| *at >= gateway_back && *e == PortEvent::Online { device: 0 })
+            .map(|(at, _)| *at);
+        let retries = |address: u8| {
+            log.sent
+                .iter()
+                .filter(|(at, r)| (ms(30_000)..gateway_back).contains(at) && r.address == address)
+                .count()
+        };
+        assert!(
+            online.is_some_and(|at| at < gateway_back + within),
+            "live device {with_live_device}: back at {online:?}; from 30 s to 60 s the slow \
+             device was retried {} times, the absent one {}",
+            retries(1),
+            retries(2)
+        );
+        assert!(
+            retries(1) > 0,
+            "live device {with_live_device}: never retried while dead"
+        );
+    }
+}
+
 /// A write that could not go (the port away) is given up once its device's retry time
 /// (`max_write_fail_time_s`) is over, and never sent after.
 #[test]
@@ -2762,7 +2828,17 @@ fn the_due_order_chooses_as_a_scan_of_every_device_would() {
                             defined: Vec::new(),
                         },
                     );
-                    assert_eq!(refused, None);
+                    // Only `w` while the device is offline: these writes are never refused.
+                    assert!(
+                        matches!(
+                            refused,
+                            None | Some(PortEvent::WriteFailed {
+                                permanent: false,
+                                ..
+                            })
+                        ),
+                        "{refused:?}"
+                    );
                 }
                 5 => scheduler.set_up_again(device),
                 6 => {
@@ -3514,9 +3590,10 @@ fn a_setup_write_keeps_the_bits_a_channel_wrote_since_the_last_read() {
     );
 }
 
-/// A write queued while its device is offline goes after the device's setup writes when it
-/// comes back, not before them (a setup write to the same register would undo it), as
-/// wb-mqtt-serial sets a device up first. Other devices' writes do not wait.
+/// A write queued while its device is offline is flagged `w` at once and goes after the
+/// device's setup writes when it comes back, not before them (a setup write to the same
+/// register would undo it), as wb-mqtt-serial sets a device up first. Other devices' writes do
+/// not wait.
 #[test]
 fn a_write_queued_while_the_device_is_away_goes_after_its_setup() {
     let mut plan = device(4, vec![read(RegisterType::Holding, 0, EventMode::Polled)]);
@@ -3547,7 +3624,17 @@ fn a_write_queued_while_the_device_is_away_goes_after_its_setup() {
         .events
         .iter()
         .any(|(_, e)| *e == PortEvent::Offline { device: 0 }));
-    assert_eq!(scheduler.queue_write(now, holding_write(0, 5, 9)), None);
+    // `w` at once for the device that is away (wb-mqtt-serial flags a write to a disconnected
+    // device before it retries it), none for the other.
+    assert_eq!(
+        scheduler.queue_write(now, holding_write(0, 5, 9)),
+        Some(PortEvent::WriteFailed {
+            device: 0,
+            register_type: RegisterType::Holding,
+            address: 5,
+            permanent: false
+        })
+    );
     assert_eq!(scheduler.queue_write(now, holding_write(1, 5, 3)), None);
     let before = log.sent.len();
     run(&mut scheduler, &mut log, now, ms(12_000), &mut respond);
@@ -3620,7 +3707,13 @@ fn a_write_waiting_for_setup_is_given_up_in_time() {
         ms(5000),
         &mut respond,
     );
-    assert_eq!(scheduler.queue_write(now, holding_write(0, 5, 9)), None);
+    assert!(matches!(
+        scheduler.queue_write(now, holding_write(0, 5, 9)),
+        Some(PortEvent::WriteFailed {
+            permanent: false,
+            ..
+        })
+    ));
     let queued = now;
     run(&mut scheduler, &mut log, now, back + ms(5000), &mut respond);
     let failures: Vec<(Duration, bool)> = log
