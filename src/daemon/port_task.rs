@@ -696,6 +696,12 @@ impl PortTask {
                                  that owns the port (usually dialout: `sudo usermod -aG dialout \
                                  $USER`, then log in again)");
                         }
+                        Told::First if is_network(&err) => {
+                            warn!(port = %self.plan_name, %err, retry_in = ?delay,
+                                "cannot connect to the gateway (powered and on the network? its \
+                                 address and port right in the config?); tried again until it \
+                                 answers");
+                        }
                         Told::First => {
                             warn!(port = %self.plan_name, %err, retry_in = ?delay,
                                 "cannot open the port (a USB adapter not plugged in, or a typo in \
@@ -1430,6 +1436,14 @@ fn held_by_another_program(err: &TransportError) -> bool {
 }
 
 /// Whether opening failed for want of permission on the device node.
+/// A TCP port (a gateway) that could not be reached, as opposed to a serial one.
+fn is_network(err: &TransportError) -> bool {
+    matches!(
+        err,
+        TransportError::Connect { .. } | TransportError::ConnectTimeout { .. }
+    )
+}
+
 fn permission_denied(err: &TransportError) -> bool {
     matches!(err, TransportError::Open { source, .. }
         if source.kind() == std::io::ErrorKind::PermissionDenied

@@ -647,15 +647,8 @@ impl OtherMaster {
     /// This master sends `request`: the other master may copy it if it is a read (it polls;
     /// a copy of a write would write an old value again, which no other master does).
     fn heard(&mut self, request: &crate::protocol::Request) {
-        if !matches!(
-            request.body,
-            RequestBody::Classic(
-                RequestPdu::ReadCoils { .. }
-                    | RequestPdu::ReadDiscreteInputs { .. }
-                    | RequestPdu::ReadHoldingRegisters { .. }
-                    | RequestPdu::ReadInputRegisters { .. }
-            )
-        ) || !(1..=crate::protocol::frame::MAX_DEVICE_ADDRESS).contains(&request.address)
+        if !matches!(&request.body, RequestBody::Classic(pdu) if !pdu.is_write())
+            || !(1..=crate::protocol::frame::MAX_DEVICE_ADDRESS).contains(&request.address)
         {
             return;
         }

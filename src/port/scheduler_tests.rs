@@ -641,13 +641,7 @@ fn reboot_reported_at_poll(
 #[test]
 fn a_reboot_event_brings_setup_event_setup_and_a_fresh_read() {
     let mut plan = device(20, vec![read(RegisterType::Coil, 0, EventMode::Sporadic)]);
-    plan.setup = vec![SetupWrite {
-        register_type: RegisterType::Holding,
-        address: 5,
-        values: vec![7],
-        force_multiple: false,
-        kept_bits: Vec::new(),
-    }];
+    plan.setup = holding_setup_write(5, 7);
     let mut scheduler = PortScheduler::new(settings(115_200), vec![plan]);
     let mut log = Log::default();
     run(
@@ -1196,30 +1190,16 @@ fn a_write_answered_busy_is_sent_again() {
         let mut scheduler = PortScheduler::new(settings(115_200), vec![plan]);
         let mut log = Log::default();
         run(&mut scheduler, &mut log, ms(0), ms(100), |_, r| healthy(r));
-        let write = RegisterWrite {
-            device: 0,
-            register_type: RegisterType::Holding,
-            address: 10,
-            values: vec![7],
-            force_multiple: false,
-            defined: Vec::new(),
-        };
-        assert_eq!(scheduler.queue_write(ms(100), write), None);
-        let mut refusals = 2;
+        assert_eq!(
+            scheduler.queue_write(ms(100), holding_write(0, 10, 7)),
+            None
+        );
         run(
             &mut scheduler,
             &mut log,
             ms(100),
             ms(5000),
-            |_, request| match &request.body {
-                RequestBody::Classic(RequestPdu::WriteSingleRegister { address: 10, .. })
-                    if refusals > 0 =>
-                {
-                    refusals -= 1;
-                    exception(request, code)
-                }
-                _ => healthy(request),
-            },
+            refusing_writes_of(10, code, 2),
         );
         let writes = log.single_register_writes(10);
         let done = log
@@ -1430,13 +1410,7 @@ fn a_dead_device_backs_off_while_the_others_keep_their_rate() {
 #[test]
 fn an_unplugged_device_comes_back_with_its_setup() {
     let mut plan = device(4, vec![read(RegisterType::Holding, 0, EventMode::Polled)]);
-    plan.setup = vec![SetupWrite {
-        register_type: RegisterType::Holding,
-        address: 9,
-        values: vec![1],
-        force_multiple: false,
-        kept_bits: Vec::new(),
-    }];
+    plan.setup = holding_setup_write(9, 1);
     let mut scheduler = PortScheduler::new(settings(115_200), vec![plan]);
     let mut log = Log::default();
     run(
@@ -1491,30 +1465,15 @@ fn a_busy_answer_to_a_setup_write_is_written_again_later() {
         (ExceptionCode::ILLEGAL_DATA_ADDRESS, false),
     ] {
         let mut plan = device(4, vec![read(RegisterType::Holding, 0, EventMode::Polled)]);
-        plan.setup = vec![SetupWrite {
-            register_type: RegisterType::Holding,
-            address: 9,
-            values: vec![1],
-            force_multiple: false,
-            kept_bits: Vec::new(),
-        }];
+        plan.setup = holding_setup_write(9, 1);
         let mut scheduler = PortScheduler::new(settings(115_200), vec![plan]);
         let mut log = Log::default();
-        let mut refusals = 1;
         run(
             &mut scheduler,
             &mut log,
             Duration::ZERO,
             ms(10_000),
-            |_, request| match &request.body {
-                RequestBody::Classic(RequestPdu::WriteSingleRegister { address: 9, .. })
-                    if refusals > 0 =>
-                {
-                    refusals -= 1;
-                    exception(request, code)
-                }
-                _ => healthy(request),
-            },
+            refusing_writes_of(9, code, 1),
         );
         let requests = log.classic_to(4);
         let setups: Vec<Duration> = requests
@@ -3112,6 +3071,35 @@ fn exception(request: &Request, code: ExceptionCode) -> TransactionOutcome {
     ))
 }
 
+/// One setup write of `value` to holding `address`.
+fn holding_setup_write(address: u16, value: u16) -> Vec<SetupWrite> {
+    vec![SetupWrite {
+        register_type: RegisterType::Holding,
+        address,
+        values: vec![value],
+        force_multiple: false,
+        kept_bits: Vec::new(),
+    }]
+}
+
+/// Answers the first `times` single-register writes of holding `address` with `code`, and
+/// everything else as a healthy device does.
+fn refusing_writes_of(
+    address: u16,
+    code: ExceptionCode,
+    mut times: usize,
+) -> impl FnMut(Duration, &Request) -> TransactionOutcome {
+    move |_, request| match &request.body {
+        RequestBody::Classic(RequestPdu::WriteSingleRegister { address: at, .. })
+            if *at == address && times > 0 =>
+        {
+            times -= 1;
+            exception(request, code)
+        }
+        _ => healthy(request),
+    }
+}
+
 /// (start, count) of every holding read sent to `address`.
 fn holding_reads(log: &Log, address: u8) -> Vec<(u16, u16)> {
     log.classic_to(address)
@@ -3597,13 +3585,7 @@ fn a_setup_write_keeps_the_bits_a_channel_wrote_since_the_last_read() {
 #[test]
 fn a_write_queued_while_the_device_is_away_goes_after_its_setup() {
     let mut plan = device(4, vec![read(RegisterType::Holding, 0, EventMode::Polled)]);
-    plan.setup = vec![SetupWrite {
-        register_type: RegisterType::Holding,
-        address: 5,
-        values: vec![7],
-        force_multiple: false,
-        kept_bits: Vec::new(),
-    }];
+    plan.setup = holding_setup_write(5, 7);
     let other = device(6, vec![read(RegisterType::Holding, 0, EventMode::Polled)]);
     let mut scheduler = PortScheduler::new(settings(115_200), vec![plan, other]);
     let registers = std::rc::Rc::new(std::cell::RefCell::new(std::collections::BTreeMap::new()));
@@ -3686,13 +3668,7 @@ fn a_write_queued_while_the_device_is_away_goes_after_its_setup() {
 #[test]
 fn a_write_waiting_for_setup_is_given_up_in_time() {
     let mut plan = device(4, vec![read(RegisterType::Holding, 0, EventMode::Polled)]);
-    plan.setup = vec![SetupWrite {
-        register_type: RegisterType::Holding,
-        address: 5,
-        values: vec![7],
-        force_multiple: false,
-        kept_bits: Vec::new(),
-    }];
+    plan.setup = holding_setup_write(5, 7);
     let mut scheduler = PortScheduler::new(settings(115_200), vec![plan]);
     let registers = std::rc::Rc::new(std::cell::RefCell::new(std::collections::BTreeMap::new()));
     let back = WRITE_RETRY_TIME + ms(60_000);
@@ -4020,13 +3996,7 @@ fn a_bit_field_write_waiting_for_the_setup_goes_over_what_the_setup_wrote() {
     let mut port = settings(115_200);
     port.fast_modbus = false;
     let mut plan = device(9, vec![read(RegisterType::Holding, 72, EventMode::Polled)]);
-    plan.setup = vec![SetupWrite {
-        register_type: RegisterType::Holding,
-        address: 72,
-        values: vec![0x0100],
-        force_multiple: false,
-        kept_bits: Vec::new(),
-    }];
+    plan.setup = holding_setup_write(72, 0x0100);
     let mut scheduler = PortScheduler::new(port, vec![plan]);
     let mut now = Duration::ZERO;
     assert_eq!(
@@ -4123,13 +4093,7 @@ fn refusing_device_plan() -> DevicePlan {
         read(RegisterType::Holding, 5, EventMode::Polled),
     ];
     let mut plan = device(20, reads);
-    plan.setup = vec![SetupWrite {
-        register_type: RegisterType::Holding,
-        address: 9,
-        values: vec![3],
-        force_multiple: false,
-        kept_bits: Vec::new(),
-    }];
+    plan.setup = holding_setup_write(9, 3);
     plan
 }
 
@@ -4818,6 +4782,20 @@ fn failed_reads_count_silence_apart_from_unreadable_replies() {
 #[derive(Clone, Default)]
 struct CapturedLog(std::sync::Arc<std::sync::Mutex<Vec<u8>>>);
 
+impl CapturedLog {
+    /// Captures what this thread logs at info level and above until the guard is dropped.
+    fn install() -> (Self, tracing::subscriber::DefaultGuard) {
+        let captured = Self::default();
+        let writer = captured.clone();
+        let subscriber = tracing_subscriber::fmt()
+            .with_writer(move || writer.clone())
+            .with_ansi(false)
+            .with_max_level(tracing::Level::INFO)
+            .finish();
+        (captured, tracing::subscriber::set_default(subscriber))
+    }
+}
+
 impl std::io::Write for CapturedLog {
     fn write(&mut self, bytes: &[u8]) -> std::io::Result<usize> {
         self.0.lock().unwrap().extend_from_slice(bytes);
@@ -4833,14 +4811,7 @@ impl std::io::Write for CapturedLog {
 /// reported to MQTT every time. (An operator's audit saw 16 offline/online pairs in 2 minutes.)
 #[test]
 fn a_flapping_device_is_summed_up_in_the_log_not_told_at_every_drop_out() {
-    let captured = CapturedLog::default();
-    let writer = captured.clone();
-    let subscriber = tracing_subscriber::fmt()
-        .with_writer(move || writer.clone())
-        .with_ansi(false)
-        .with_max_level(tracing::Level::INFO)
-        .finish();
-    let _default = tracing::subscriber::set_default(subscriber);
+    let (captured, _default) = CapturedLog::install();
     let mut polled = read(RegisterType::Holding, 0, EventMode::Polled);
     polled.period = Some(ms(500));
     let mut scheduler = PortScheduler::new(settings(115_200), vec![device(4, vec![polled])]);
@@ -5212,21 +5183,12 @@ fn a_busy_answer_to_the_continuous_read_switch_is_asked_again() {
     };
     let mut scheduler = PortScheduler::new(settings(115_200), vec![plan]);
     let mut log = Log::default();
-    let mut busy = 2;
     run(
         &mut scheduler,
         &mut log,
         Duration::ZERO,
         ms(10_000),
-        |_, request| match &request.body {
-            RequestBody::Classic(RequestPdu::WriteSingleRegister { address: 114, .. })
-                if busy > 0 =>
-            {
-                busy -= 1;
-                exception(request, ExceptionCode::BUSY)
-            }
-            _ => healthy(request),
-        },
+        refusing_writes_of(114, ExceptionCode::BUSY, 2),
     );
     assert_eq!(log.single_register_writes(114), [0, 0, 0, 1]);
     assert!(
@@ -5239,6 +5201,17 @@ fn a_busy_answer_to_the_continuous_read_switch_is_asked_again() {
 
 // ---- Continuous read and the flap log ----
 
+/// Device 1 with `enable_wb_continuous_read`, device 2 without, one holding read each.
+fn continuous_read_device_and_another() -> Vec<DevicePlan> {
+    vec![
+        DevicePlan {
+            continuous_read: true,
+            ..device(1, vec![read(RegisterType::Holding, 1, EventMode::Polled)])
+        },
+        device(2, vec![read(RegisterType::Holding, 1, EventMode::Polled)]),
+    ]
+}
+
 /// A device whose firmware answers "device failure" (exception 4) to every write of holding
 /// 114: not a refusal, so asked again, but not back to back (a preparation step goes before
 /// every read of every device: asked at once, it took the bus, 777 writes in 2 s and no read
@@ -5246,26 +5219,14 @@ fn a_busy_answer_to_the_continuous_read_switch_is_asked_again() {
 /// device is retried with its back-off.
 #[test]
 fn a_device_failing_the_continuous_read_switch_does_not_take_the_bus() {
-    let plans = vec![
-        DevicePlan {
-            continuous_read: true,
-            ..device(1, vec![read(RegisterType::Holding, 1, EventMode::Polled)])
-        },
-        device(2, vec![read(RegisterType::Holding, 1, EventMode::Polled)]),
-    ];
-    let mut scheduler = PortScheduler::new(settings(115_200), plans);
+    let mut scheduler = PortScheduler::new(settings(115_200), continuous_read_device_and_another());
     let mut log = Log::default();
     run(
         &mut scheduler,
         &mut log,
         Duration::ZERO,
         ms(2000),
-        |_, request| match &request.body {
-            RequestBody::Classic(RequestPdu::WriteSingleRegister { address: 114, .. }) => {
-                exception(request, ExceptionCode::DEVICE_FAILURE)
-            }
-            _ => healthy(request),
-        },
+        refusing_writes_of(114, ExceptionCode::DEVICE_FAILURE, usize::MAX),
     );
     let switches = log.single_register_writes(114).len();
     let other_reads = log.classic_to(2).len();
@@ -5282,22 +5243,8 @@ fn a_device_failing_the_continuous_read_switch_does_not_take_the_bus() {
 /// the other devices keep their reads.
 #[test]
 fn a_device_that_never_answers_the_continuous_read_switch_is_offline_and_retried() {
-    let captured = CapturedLog::default();
-    let writer = captured.clone();
-    let subscriber = tracing_subscriber::fmt()
-        .with_writer(move || writer.clone())
-        .with_ansi(false)
-        .with_max_level(tracing::Level::INFO)
-        .finish();
-    let _default = tracing::subscriber::set_default(subscriber);
-    let plans = vec![
-        DevicePlan {
-            continuous_read: true,
-            ..device(1, vec![read(RegisterType::Holding, 1, EventMode::Polled)])
-        },
-        device(2, vec![read(RegisterType::Holding, 1, EventMode::Polled)]),
-    ];
-    let mut scheduler = PortScheduler::new(settings(115_200), plans);
+    let (captured, _default) = CapturedLog::install();
+    let mut scheduler = PortScheduler::new(settings(115_200), continuous_read_device_and_another());
     let mut log = Log::default();
     run(
         &mut scheduler,
@@ -5353,14 +5300,7 @@ fn a_device_that_never_answers_the_continuous_read_switch_is_offline_and_retried
 /// and one line per outage would fill the journal as they did).
 #[test]
 fn offline_device_events_line_is_quiet_while_its_flapping_is() {
-    let captured = CapturedLog::default();
-    let writer = captured.clone();
-    let subscriber = tracing_subscriber::fmt()
-        .with_writer(move || writer.clone())
-        .with_ansi(false)
-        .with_max_level(tracing::Level::INFO)
-        .finish();
-    let _default = tracing::subscriber::set_default(subscriber);
+    let (captured, _default) = CapturedLog::install();
     let events_device = |address| {
         device(
             address,
