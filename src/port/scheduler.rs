@@ -1166,45 +1166,18 @@ impl PortScheduler {
     }
 
     /// Whether a device may be sent a request now: offline devices only in their retry slot, and
-    /// those that seem dead one at a time, the one waiting longest first, while the dead
-    /// devices' share of the bus holds what its retry may cost. In turn, so that a dear retry
-    /// (a long timeout, a late window watched) is not put off for as long as cheaper ones keep
-    /// taking the share whenever it holds their cost: behind a Modbus TCP gateway that fell
-    /// silent, a device answering again stayed offline for 45–100 s while an absent one was
-    /// asked every 10 s. With every device dead the share protects nobody and is not waited for.
+    /// those that seem dead only while the dead devices' share of the bus holds what a retry
+    /// may cost. With every device dead the share protects nobody and is not waited for: behind
+    /// a Modbus TCP gateway that fell silent, a device answering again stayed offline for
+    /// 45–100 s while an absent one, whose retry cost less, took the share each time it held
+    /// its cost.
     fn may_transact(&self, device: &DeviceState, now: Duration) -> bool {
-        if !device.health.may_transact(now) {
-            return false;
-        }
-        if !device.health.seems_dead() {
-            return true;
-        }
-        let is_head = self
-            .dead_waiting_longest(now)
-            .and_then(|head| self.devices.get(head))
-            .is_some_and(|head| std::ptr::eq(head, device));
-        is_head
-            && (self.every_device_seems_dead()
+        device.health.may_transact(now)
+            && (!device.health.seems_dead()
+                || self.every_device_seems_dead()
                 || self
                     .dead_retries
                     .allows(now, self.dead_retry_cost(device, now)))
-    }
-
-    /// Of the devices that seem dead and have a retry to make now (their preparation or a
-    /// read), the one whose retry has been due the longest (the lowest index on a tie).
-    fn dead_waiting_longest(&self, now: Duration) -> Option<usize> {
-        self.index
-            .dead_preparing()
-            .chain(self.index.dead_reads().map(|(_, device)| device))
-            .filter_map(|index| {
-                let device = self.devices.get(index)?;
-                device
-                    .health
-                    .may_transact(now)
-                    .then(|| (device.health.may_transact_from(), index))
-            })
-            .min()
-            .map(|(_, index)| index)
     }
 
     /// No device but those that seem dead (or whose polling is held): nothing to keep the bus
@@ -1643,21 +1616,13 @@ impl PortScheduler {
     }
 
     fn earliest_deadline(&self, now: Duration) -> Duration {
-        // Dead devices go in turn (`may_transact`): none before the one waiting longest.
         let budget_applies = !self.every_device_seems_dead();
-        let head_gate = self
-            .dead_waiting_longest(now)
-            .and_then(|head| self.devices.get(head))
-            .map(|head| {
-                self.dead_retries
-                    .available_at(now, self.dead_retry_cost(head, now))
-            });
         let offline_gate = |d: &DeviceState, at: Duration| {
             if d.health.seems_dead() && budget_applies {
-                at.max(head_gate.unwrap_or_else(|| {
+                at.max(
                     self.dead_retries
-                        .available_at(now, self.dead_retry_cost(d, now))
-                }))
+                        .available_at(now, self.dead_retry_cost(d, now)),
+                )
             } else {
                 at
             }
