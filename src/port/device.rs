@@ -148,15 +148,12 @@ pub(super) enum Failure {
 }
 
 impl Failure {
-    /// What a transaction that failed brought: nothing, garbage, or an exception (taken for
-    /// one that says "not now": the caller has dealt with refusals).
-    pub(super) fn of(outcome: &TransactionOutcome) -> Self {
-        match outcome {
-            TransactionOutcome::Garbled => Self::Unreadable,
-            TransactionOutcome::Reply(reply) => reply
-                .exception_code()
-                .map_or(Self::Unreadable, Self::NotNow),
-            TransactionOutcome::NoReply => Self::Silent,
+    /// A transaction that ended without a reply: `Garbled` (bytes that made none) or not.
+    pub(super) fn without_reply(outcome: &TransactionOutcome) -> Self {
+        if *outcome == TransactionOutcome::Garbled {
+            Self::Unreadable
+        } else {
+            Self::Silent
         }
     }
 }

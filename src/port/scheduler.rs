@@ -950,6 +950,10 @@ impl PortScheduler {
         let was_dead = device
             .and_then(|d| self.devices.get(d))
             .is_some_and(|d| d.health.seems_dead());
+        // Sent while every device seemed dead: the dead devices' share kept the bus for nobody
+        // then (`may_transact`), so it is not charged; charged, it would hold the others'
+        // retries back long after the first came back.
+        let share_waived = was_dead && self.every_device_seems_dead();
         match self.in_flight.take() {
             None => warn!("a transaction outcome arrived with nothing in flight"),
             Some(InFlight::PollEvents { started }) => {
@@ -1024,15 +1028,9 @@ impl PortScheduler {
             if let Some(state) = device.and_then(|d| self.devices.get_mut(d)) {
                 state.heard_from(now);
             }
-        } else if was_dead
-            && !self.devices.iter().enumerate().all(|(index, other)| {
-                Some(index) == device || other.health.seems_dead() || other.suspended
-            })
-        {
+        } else if was_dead && !share_waived {
             // A retry of a device that seemed dead: its cost comes out of the dead devices' share
-            // of the bus, however many there are. Not while every device seemed dead: the share
-            // kept the bus for nobody then (`may_transact`), and charged, it would hold the
-            // others' retries back long after the first came back.
+            // of the bus, however many there are.
             self.dead_retries
                 .spend(now, now.saturating_sub(self.in_flight_since));
         }
@@ -1829,18 +1827,9 @@ impl PortScheduler {
         let Some(state) = self.devices.get_mut(device) else {
             return;
         };
-        match outcome {
-            TransactionOutcome::Reply(Reply {
-                body: ReplyBody::Classic(ResponsePdu::Exception { code, .. }),
-                ..
-            }) => {
-                // As wb-mqtt-serial: illegal function, address or value say the firmware has no
-                // continuous read; busy or a failure fail the preparation, tried again later.
-                if !is_permanent_refusal(code) {
-                    debug!(device = %state.plan.name, %code, "continuous read not set: tried again later");
-                    self.preparation_write_failed(now, device, Failure::NotNow(code), out);
-                    return;
-                }
+        match WriteOutcome::of(&outcome) {
+            // Illegal function, address or value: firmware without continuous read.
+            WriteOutcome::Refused(code) => {
                 Self::health_success(state, device, now, out);
                 if state.continuous_read_answered(None) {
                     info!(device = %state.plan.name, %code, "device refuses continuous read (older firmware): its registers are read without holes");
@@ -1848,13 +1837,13 @@ impl PortScheduler {
                     debug!(device = %state.plan.name, %code, "continuous read refused");
                 }
             }
-            TransactionOutcome::Reply(_) => {
+            WriteOutcome::Taken => {
                 Self::health_success(state, device, now, out);
                 state.continuous_read_answered(Some(value));
                 debug!(device = %state.plan.name, value, "continuous read set");
             }
-            failed @ (TransactionOutcome::NoReply | TransactionOutcome::Garbled) => {
-                self.preparation_write_failed(now, device, Failure::of(&failed), out)
+            WriteOutcome::Failed(failure) => {
+                self.preparation_write_failed(now, device, failure, out)
             }
         }
     }
@@ -1886,23 +1875,13 @@ impl PortScheduler {
         let Some(state) = self.devices.get_mut(device) else {
             return;
         };
-        match outcome {
-            TransactionOutcome::Reply(Reply {
-                body: ReplyBody::Classic(ResponsePdu::Exception { code, .. }),
-                ..
-            }) if is_permanent_refusal(code) => {
+        match WriteOutcome::of(&outcome) {
+            WriteOutcome::Refused(code) => {
                 warn!(device = %state.plan.name, index, %code, "setup write refused; skipping it");
                 Self::health_success(state, device, now, out);
                 state.setup_write_done(index);
             }
-            TransactionOutcome::Reply(Reply {
-                body: ReplyBody::Classic(ResponsePdu::Exception { code, .. }),
-                ..
-            }) => {
-                debug!(device = %state.plan.name, index, %code, "setup write not taken now: tried again later");
-                self.preparation_write_failed(now, device, Failure::NotNow(code), out);
-            }
-            TransactionOutcome::Reply(_) => {
+            WriteOutcome::Taken => {
                 Self::health_success(state, device, now, out);
                 // A bit-field write waiting for the setup goes over what it wrote.
                 if self.writes.iter().any(|p| !p.write.defined.is_empty()) {
@@ -1916,8 +1895,8 @@ impl PortScheduler {
                 }
                 state.setup_write_done(index);
             }
-            failed @ (TransactionOutcome::NoReply | TransactionOutcome::Garbled) => {
-                self.preparation_write_failed(now, device, Failure::of(&failed), out)
+            WriteOutcome::Failed(failure) => {
+                self.preparation_write_failed(now, device, failure, out)
             }
         }
     }
@@ -2035,7 +2014,7 @@ impl PortScheduler {
             // "Failed to enable events" fails the device's prepare and it is tried again.
             failed @ (TransactionOutcome::NoReply | TransactionOutcome::Garbled) => {
                 let garbled = failed == TransactionOutcome::Garbled;
-                Self::health_failure(state, device, now, Failure::of(&failed), out);
+                Self::health_failure(state, device, now, Failure::without_reply(&failed), out);
                 let answer = if garbled {
                     "no readable answer"
                 } else {
@@ -2073,7 +2052,7 @@ impl PortScheduler {
         match outcome {
             TransactionOutcome::Reply(_) => Self::health_success(state, device, now, out),
             failed @ (TransactionOutcome::NoReply | TransactionOutcome::Garbled) => {
-                Self::health_failure(state, device, now, Failure::of(&failed), out)
+                Self::health_failure(state, device, now, Failure::without_reply(&failed), out)
             }
         }
     }
@@ -2199,11 +2178,8 @@ impl PortScheduler {
                     && p.write.values != pending.write.values
             })
         };
-        match outcome {
-            TransactionOutcome::Reply(Reply {
-                body: ReplyBody::Classic(ResponsePdu::Exception { code, .. }),
-                ..
-            }) if is_permanent_refusal(code) => {
+        match WriteOutcome::of(&outcome) {
+            WriteOutcome::Refused(code) => {
                 warn!(device = %state.plan.name, address, %code, "write refused by the device");
                 Self::health_success(state, device, now, out);
                 self.writes.retain(|p| !(p.write == pending.write));
@@ -2214,7 +2190,7 @@ impl PortScheduler {
                     permanent: true,
                 });
             }
-            TransactionOutcome::Reply(reply) if !reply.is_exception() => {
+            WriteOutcome::Taken => {
                 Self::health_success(state, device, now, out);
                 self.writes.retain(|p| !(p.write == pending.write));
                 let span = RegisterSpan::new(
@@ -2240,8 +2216,8 @@ impl PortScheduler {
             }
             // No reply, or busy / a device failure: sent again (wb-mqtt-serial retries a write
             // that failed with a transient error for its max_write_fail_time).
-            failed => {
-                Self::health_failure(state, device, now, Failure::of(&failed), out);
+            WriteOutcome::Failed(failure) => {
+                Self::health_failure(state, device, now, failure, out);
                 let give_up = now >= pending.give_up_at;
                 if give_up || replaced(&self.writes) {
                     self.writes.retain(|p| !(p.write == pending.write));
@@ -2361,6 +2337,29 @@ impl PortScheduler {
             out.push(PortEvent::Offline { device });
         }
         Self::tell_flaps(state, now);
+    }
+}
+
+/// A write's outcome as wb-mqtt-serial sorts it (`RethrowSerialDeviceException`): taken,
+/// refused for good, or failed and to be tried again (no reply, garbage, or an exception that
+/// says "not now": busy, device failure). Setup writes, the continuous-read switch and channel
+/// writes all go by it.
+enum WriteOutcome {
+    Taken,
+    Refused(ExceptionCode),
+    Failed(Failure),
+}
+
+impl WriteOutcome {
+    fn of(outcome: &TransactionOutcome) -> Self {
+        match outcome {
+            TransactionOutcome::Reply(reply) => match reply.exception_code() {
+                None => Self::Taken,
+                Some(code) if is_permanent_refusal(code) => Self::Refused(code),
+                Some(code) => Self::Failed(Failure::NotNow(code)),
+            },
+            failed => Self::Failed(Failure::without_reply(failed)),
+        }
     }
 }
 

@@ -57,6 +57,14 @@ struct Log {
 }
 
 impl Log {
+    /// When `device` was reported online at or after `since`, first.
+    fn online_since(&self, since: Duration, device: usize) -> Option<Duration> {
+        self.events
+            .iter()
+            .find(|(at, e)| *at >= since && *e == PortEvent::Online { device })
+            .map(|(at, _)| *at)
+    }
+
     /// The values written to holding register `address` with function 6, in order.
     fn single_register_writes(&self, address: u16) -> Vec<u16> {
         self.sent
@@ -1265,11 +1273,7 @@ fn a_dead_device_with_a_dear_retry_is_not_starved_by_a_cheap_one() {
             _ => TransactionOutcome::NoReply,
         },
     );
-    let online = log
-        .events
-        .iter()
-        .find(|(at, e)| *at >= gateway_back && *e == PortEvent::Online { device: 0 })
-        .map(|(at, _)| *at);
+    let online = log.online_since(gateway_back, 0);
     let retries = |address: u8| {
         log.sent
             .iter()
@@ -1284,6 +1288,44 @@ fn a_dead_device_with_a_dear_retry_is_not_starved_by_a_cheap_one() {
         retries(2)
     );
     assert!(retries(1) > 0, "never retried while dead");
+}
+
+/// Three devices dead for a minute (a gateway gone silent), their retries not charged to the
+/// dead devices' budget meanwhile (it protected nobody). When two answer again, the first back
+/// makes the budget apply again: charged for that minute it would be deep in the red and the
+/// second would wait minutes for its retry (in the fault sweep, 8 × 9600 recoveries took up to
+/// 83 s so).
+#[test]
+fn retries_while_every_device_is_dead_leave_the_budget_whole() {
+    let plans = (1..=3)
+        .map(|address| DevicePlan {
+            response_timeout: ms(1000),
+            ..device(
+                address,
+                vec![read(RegisterType::Holding, 0, EventMode::Polled)],
+            )
+        })
+        .collect();
+    let mut scheduler = PortScheduler::new(settings(115_200), plans);
+    let mut log = Log::default();
+    let back = ms(60_000);
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(120_000),
+        |at, request| match request.address {
+            1 | 2 if at >= back => healthy(request),
+            _ => TransactionOutcome::NoReply,
+        },
+    );
+    for device in [0, 1] {
+        let online = log.online_since(back, device);
+        assert!(
+            online.is_some_and(|at| at < back + ms(10_000)),
+            "device {device} back at {online:?}"
+        );
+    }
 }
 
 /// A write that could not go (the port away) is given up once its device's retry time
@@ -4857,10 +4899,7 @@ fn continuous_read_requests(device_takes_it: bool) -> Vec<RequestPdu> {
     .into_iter()
     .map(|(register_type, start)| read(register_type, start, EventMode::Polled))
     .collect();
-    let plan = DevicePlan {
-        continuous_read: true,
-        ..device(1, reads)
-    };
+    let plan = continuous_read_device(reads);
     let mut scheduler = PortScheduler::new(settings(115_200), vec![plan]);
     let mut log = Log::default();
     run(
@@ -4936,10 +4975,7 @@ fn a_register_the_device_lacks_is_never_read_as_0xfffe_in_continuous_read() {
     let reads = (4..=6)
         .map(|start| read(RegisterType::Holding, start, EventMode::Polled))
         .collect();
-    let plan = DevicePlan {
-        continuous_read: true,
-        ..device(1, reads)
-    };
+    let plan = continuous_read_device(reads);
     let mut scheduler = PortScheduler::new(settings(115_200), vec![plan]);
     let mut log = Log::default();
     let mut continuous = true;
@@ -4997,10 +5033,7 @@ fn a_device_replaced_while_away_has_its_registers_found_again_before_continuous_
     let reads = (4..=6)
         .map(|start| read(RegisterType::Holding, start, EventMode::Polled))
         .collect();
-    let mut plan = DevicePlan {
-        continuous_read: true,
-        ..device(1, reads)
-    };
+    let mut plan = continuous_read_device(reads);
     quick_to_disconnect(&mut plan);
     let mut scheduler = PortScheduler::new(settings(115_200), vec![plan]);
     let mut log = Log::default();
@@ -5165,10 +5198,7 @@ fn a_busy_answer_to_the_continuous_read_switch_is_asked_again() {
         .into_iter()
         .map(|start| read(RegisterType::Holding, start, EventMode::Polled))
         .collect();
-    let plan = DevicePlan {
-        continuous_read: true,
-        ..device(1, reads)
-    };
+    let plan = continuous_read_device(reads);
     let mut scheduler = PortScheduler::new(settings(115_200), vec![plan]);
     let mut log = Log::default();
     run(
@@ -5189,13 +5219,18 @@ fn a_busy_answer_to_the_continuous_read_switch_is_asked_again() {
 
 // ---- Continuous read and the flap log ----
 
+/// Device 1 with `enable_wb_continuous_read`.
+fn continuous_read_device(reads: Vec<PlannedRead>) -> DevicePlan {
+    DevicePlan {
+        continuous_read: true,
+        ..device(1, reads)
+    }
+}
+
 /// Device 1 with `enable_wb_continuous_read`, device 2 without, one holding read each.
 fn continuous_read_device_and_another() -> Vec<DevicePlan> {
     vec![
-        DevicePlan {
-            continuous_read: true,
-            ..device(1, vec![read(RegisterType::Holding, 1, EventMode::Polled)])
-        },
+        continuous_read_device(vec![read(RegisterType::Holding, 1, EventMode::Polled)]),
         device(2, vec![read(RegisterType::Holding, 1, EventMode::Polled)]),
     ]
 }
@@ -5223,6 +5258,13 @@ fn a_device_failing_the_continuous_read_switch_does_not_take_the_bus() {
         "the other device read {other_reads} times in 2 s; {switches} writes of 114"
     );
     assert!(switches < 100, "{switches} writes of 114 in 2 s");
+    // Not a refusal either: the device is not read while the switch fails.
+    let own_reads = log
+        .classic_to(1)
+        .iter()
+        .filter(|(_, pdu)| !pdu.is_write())
+        .count();
+    assert_eq!(own_reads, 0, "read while its preparation fails");
 }
 
 /// A device that answers reads but never the write of holding 114: the write is a setup

@@ -261,10 +261,6 @@ impl Reply {
         }
     }
 
-    pub fn is_exception(&self) -> bool {
-        self.exception_code().is_some()
-    }
-
     pub fn encode(&self) -> Result<Vec<u8>, EncodeError> {
         let mut out = Vec::with_capacity(16);
         out.push(self.address);
