@@ -150,6 +150,9 @@ struct IdentityState {
     serials: Vec<Option<u32>>,
     /// Per device: a read is asked for or running.
     reading: Vec<bool>,
+    /// Per device: a read was wanted while one ran (the device restarted meanwhile: what the
+    /// running read got may be the device before); asked once that one ends.
+    asked_again: Vec<bool>,
     /// Per device: a read was wanted while its polling was held (an operator, a site tool
     /// changing its address); asked once the hold ends.
     held_back: Vec<bool>,
@@ -160,16 +163,18 @@ struct IdentityState {
     results: Option<mpsc::Receiver<(usize, IdentityRead)>>,
 }
 
-/// When to read a device's identity again after a read that got nothing: channels held to a
-/// minimum firmware wait for it, and a device that stays online is otherwise never asked again
-/// (reads start when it comes online or restarts). 10 s, doubling to 10 minutes.
+/// When to read a device's identity again after a read that got nothing for one of its
+/// registers: channels held to a minimum firmware wait for it, a replaced device is noticed by
+/// it, and a device that stays online is otherwise never asked again (reads start when it
+/// comes online or restarts). 2 s (what gets nothing is most often a noise burst or a queue
+/// busy with a site tool), doubling to 10 minutes.
 #[derive(Debug, Default)]
 struct IdentityRetries {
     /// Per device: (when, the delay that led there).
     due: Vec<Option<(Duration, Duration)>>,
 }
 
-const FIRST_IDENTITY_RETRY: Duration = Duration::from_secs(10);
+const FIRST_IDENTITY_RETRY: Duration = Duration::from_secs(2);
 const MAX_IDENTITY_RETRY: Duration = Duration::from_secs(600);
 
 impl IdentityRetries {
@@ -331,6 +336,7 @@ impl PortTask {
         self.identity.plans = plans;
         self.identity.serials = vec![None; count];
         self.identity.reading = vec![false; count];
+        self.identity.asked_again = vec![false; count];
         self.identity.held_back = vec![false; count];
         self.identity.retries = IdentityRetries::with_devices(count);
         self
@@ -385,7 +391,11 @@ impl PortTask {
         ) else {
             return;
         };
-        if !*reading && requests.send(device).is_ok() {
+        if *reading {
+            if let Some(again) = self.identity.asked_again.get_mut(device) {
+                *again = true;
+            }
+        } else if requests.send(device).is_ok() {
             *reading = true;
         }
     }
@@ -412,11 +422,19 @@ impl PortTask {
         if let Some(reading) = self.identity.reading.get_mut(device) {
             *reading = false;
         }
+        if self
+            .identity
+            .asked_again
+            .get_mut(device)
+            .is_some_and(std::mem::take)
+        {
+            self.ask_identity(device);
+        }
         let Some(model) = self.models.get(device) else {
             return;
         };
         let device_id = model.id().to_owned();
-        if read.is_empty() {
+        if !read.complete {
             debug!(port = %self.plan_name, device = %device_id, "identity not readable now: tried again later");
             let now = self.now();
             self.identity.retries.failed(device, now);
@@ -1777,21 +1795,22 @@ mod tests {
     /// Review of the port task (27 Nov 2026), finding 6: an identity read that got nothing (a
     /// full bus queue, a reopen, noise) left the device's channels held to a minimum firmware
     /// unread until it next came online or restarted, which a stable device never does. It is
-    /// tried again, 10 s later, then later each time up to 10 minutes, until one is answered.
+    /// tried again, 2 s later, then later each time up to 10 minutes, until one is answered.
     #[test]
     fn an_identity_read_that_got_nothing_is_tried_again_later_each_time() {
         let mut retries = IdentityRetries::with_devices(2);
         let at = |s: u64| Duration::from_secs(s);
+        assert_eq!(FIRST_IDENTITY_RETRY, at(2));
         assert_eq!(retries.due_at(at(1000)).count(), 0, "nothing failed yet");
         retries.failed(1, at(100));
-        assert_eq!(retries.due_at(at(109)).count(), 0);
-        assert_eq!(retries.due_at(at(110)).collect::<Vec<_>>(), [1]);
-        // Asked again at 110; still due until its result comes (asking twice is harmless:
+        assert_eq!(retries.due_at(at(101)).count(), 0);
+        assert_eq!(retries.due_at(at(102)).collect::<Vec<_>>(), [1]);
+        // Asked again at 102; still due until its result comes (asking twice is harmless:
         // `ask_identity` asks once while a read runs).
-        retries.failed(1, at(111));
-        assert_eq!(retries.due_at(at(130)).count(), 0);
-        assert_eq!(retries.due_at(at(131)).collect::<Vec<_>>(), [1]);
-        let mut now = at(131);
+        retries.failed(1, at(103));
+        assert_eq!(retries.due_at(at(106)).count(), 0);
+        assert_eq!(retries.due_at(at(107)).collect::<Vec<_>>(), [1]);
+        let mut now = at(107);
         for _ in 0..10 {
             retries.failed(1, now);
             now += MAX_IDENTITY_RETRY;
@@ -1853,7 +1872,24 @@ mod tests {
                 firmware: Some("1.26.0".into()),
             },
             serial: None,
+            complete: true,
         };
+        // Half of it, the serial number unanswered: not used, tried again.
+        let half = IdentityRead {
+            complete: false,
+            ..answered.clone()
+        };
+        task.identity.serials[0] = Some(1);
+        task.identity_read(0, half).await;
+        assert_eq!(
+            task.identity
+                .retries
+                .due_at(now + FIRST_IDENTITY_RETRY * 3)
+                .collect::<Vec<_>>(),
+            [0],
+            "half a read: tried again later"
+        );
+        assert_eq!(task.identity.serials[0], Some(1));
         task.identity_read(0, answered).await;
         assert_eq!(
             task.identity
@@ -1874,12 +1910,46 @@ mod tests {
         task.identity_read(0, IdentityRead::default()).await;
         task.ask_due_identity_retries();
         assert!(asked.try_recv().is_err(), "not due yet");
-        // Due now (as 10 s later).
+        // Due now (as 2 s later).
         task.identity.retries.due[0] = Some((Duration::ZERO, FIRST_IDENTITY_RETRY));
         task.ask_due_identity_retries();
         task.ask_due_identity_retries();
         assert_eq!(asked.try_recv().ok(), Some(0));
         assert!(asked.try_recv().is_err(), "asked once while the read runs");
+    }
+
+    /// A device that restarts while its identity is being read (a replacement noticed by its
+    /// restart event just as a read began): the running read may have got the device before,
+    /// so it is read again once that one ends, not left to the old answer.
+    #[tokio::test]
+    async fn a_restart_during_an_identity_read_reads_it_again_after() {
+        let (mut task, mut asked) = relay_task_asking_identity();
+        task.ask_identity(0);
+        assert_eq!(asked.try_recv().ok(), Some(0));
+        task.ask_identity(0);
+        assert!(asked.try_recv().is_err(), "not twice at once");
+        task.identity_read(
+            0,
+            IdentityRead {
+                complete: true,
+                ..IdentityRead::default()
+            },
+        )
+        .await;
+        assert_eq!(
+            asked.try_recv().ok(),
+            Some(0),
+            "asked again after the first"
+        );
+        task.identity_read(
+            0,
+            IdentityRead {
+                complete: true,
+                ..IdentityRead::default()
+            },
+        )
+        .await;
+        assert!(asked.try_recv().is_err(), "and only once");
     }
 
     /// A device whose polling is held (a site tool changing its address, an operator) is not

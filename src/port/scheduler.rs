@@ -2105,7 +2105,7 @@ impl PortScheduler {
                 }
                 ResponsePdu::Exception { code, .. } => {
                     Self::health_success(state, device, now, out);
-                    let permanent = is_permanent_refusal(code);
+                    let permanent = code.is_permanent();
                     if permanent && members.len() > 1 {
                         debug!(device = %state.plan.name, ?span, %code, "merged read refused: reading its parts one by one");
                         state.split_reads(now, members);
@@ -2355,24 +2355,12 @@ impl WriteOutcome {
         match outcome {
             TransactionOutcome::Reply(reply) => match reply.exception_code() {
                 None => Self::Taken,
-                Some(code) if is_permanent_refusal(code) => Self::Refused(code),
+                Some(code) if code.is_permanent() => Self::Refused(code),
                 Some(code) => Self::Failed(Failure::NotNow(code)),
             },
             failed => Self::Failed(Failure::without_reply(failed)),
         }
     }
-}
-
-/// An exception that refuses what was asked for good (illegal function, address or value), as
-/// wb-mqtt-serial's `RethrowSerialDeviceException` tells a permanent error from a transient
-/// one (busy, device failure, and any other code).
-fn is_permanent_refusal(code: ExceptionCode) -> bool {
-    matches!(
-        code,
-        ExceptionCode::ILLEGAL_FUNCTION
-            | ExceptionCode::ILLEGAL_DATA_ADDRESS
-            | ExceptionCode::ILLEGAL_DATA_VALUE
-    )
 }
 
 /// The choices as they were made before the index, by a scan of every device: the index is

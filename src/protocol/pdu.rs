@@ -54,6 +54,16 @@ impl ExceptionCode {
     pub const GATEWAY_PATH_UNAVAILABLE: Self = Self(0x0A);
     pub const GATEWAY_TARGET_FAILED: Self = Self(0x0B);
 
+    /// It refuses what was asked for good (illegal function, address or value), as
+    /// wb-mqtt-serial's `RethrowSerialDeviceException` tells a permanent error from a
+    /// transient one (busy, device failure, and any other code): asking again will not help.
+    pub fn is_permanent(self) -> bool {
+        matches!(
+            self,
+            Self::ILLEGAL_FUNCTION | Self::ILLEGAL_DATA_ADDRESS | Self::ILLEGAL_DATA_VALUE
+        )
+    }
+
     pub fn description(self) -> &'static str {
         match self.0 {
             1 => "illegal function",
