@@ -47,11 +47,12 @@ impl Default for HealthPolicy {
 /// The bus time that retries of devices that seem dead may take, all together (issue 15,
 /// defect 7: dead devices must not slow the healthy ones): a bucket that fills at
 /// [`DEAD_RETRY_SHARE_PERCENT`] of the time and holds at most that share of
-/// [`DEAD_RETRY_WINDOW`]. A retry starts only when the bucket holds what it may cost, and its
-/// real cost is taken out when it ends; between two retries the others get the bus at least as
-/// long as the first took. Over any stretch of time such retries take at most the share of it
-/// plus one bucket: a few devices that a burst of noise got marked offline are retried on their
-/// own schedule, many dead ones share the budget.
+/// [`DEAD_RETRY_WINDOW`]. A retry starts only when the bucket is not in the red, and its real
+/// cost is taken out when it ends; between two retries the others get the bus at least as long
+/// as the first took. Over any stretch of time such retries take at most the share of it plus
+/// one bucket and one retry: a few devices that a burst of noise got marked offline are retried
+/// on their own schedule, many dead ones share the budget, each in its due order whatever its
+/// retry costs.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct DeadRetryBudget {
     /// Credit in nanoseconds at `at` (negative: a retry cost more than it was expected to).
@@ -98,16 +99,18 @@ impl DeadRetryBudget {
         self.credit_ns.saturating_add(earned).min(Self::cap())
     }
 
-    /// Whether a retry that may cost `cost` can start now (one dearer than the whole bucket
-    /// goes when the bucket is full).
-    pub fn allows(&self, now: Duration, cost: Duration) -> bool {
-        now >= self.not_before && self.credit(now) >= (cost.as_nanos() as i128).min(Self::cap())
+    /// Whether a retry can start now: the last one is paid for and the others had their turn.
+    /// What it costs is not asked: a retry that had to wait until the bucket held its own cost
+    /// waited longer than a cheaper one, which took the bucket each time it held that much, and
+    /// a device with a long timeout was never retried beside an absent one with a short one.
+    pub fn allows(&self, now: Duration) -> bool {
+        now >= self.not_before && self.credit(now) >= 0
     }
 
-    /// When a retry that may cost `cost` can start (now, or when the bucket has filled enough).
-    pub fn available_at(&self, now: Duration, cost: Duration) -> Duration {
+    /// When a retry can start (now, or when the last one is paid for).
+    pub fn available_at(&self, now: Duration) -> Duration {
         let now = now.max(self.not_before);
-        let missing = (cost.as_nanos() as i128).min(Self::cap()) - self.credit(now);
+        let missing = -self.credit(now);
         if missing <= 0 {
             return now;
         }

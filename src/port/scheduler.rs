@@ -1164,18 +1164,16 @@ impl PortScheduler {
     }
 
     /// Whether a device may be sent a request now: offline devices only in their retry slot, and
-    /// those that seem dead only while the dead devices' share of the bus holds what a retry
-    /// may cost. With every device dead the share protects nobody and is not waited for: behind
-    /// a Modbus TCP gateway that fell silent, a device answering again stayed offline for
-    /// 45–100 s while an absent one, whose retry cost less, took the share each time it held
-    /// its cost.
+    /// those that seem dead only while the dead devices' share of the bus is not in the red
+    /// (whatever this retry costs: see [`DeadRetryBudget::allows`]). With every device dead the
+    /// share protects nobody and is not waited for: behind a Modbus TCP gateway that fell
+    /// silent, a device answering again stayed offline for 45–100 s while an absent one, whose
+    /// retry cost less, took the share each time it held its cost.
     fn may_transact(&self, device: &DeviceState, now: Duration) -> bool {
         device.health.may_transact(now)
             && (!device.health.seems_dead()
                 || self.every_device_seems_dead()
-                || self
-                    .dead_retries
-                    .allows(now, self.dead_retry_cost(device, now)))
+                || self.dead_retries.allows(now))
     }
 
     /// No device but those that seem dead (or whose polling is held): nothing to keep the bus
@@ -1184,18 +1182,6 @@ impl PortScheduler {
         self.devices
             .iter()
             .all(|device| device.health.seems_dead() || device.suspended)
-    }
-
-    /// What a retry of a device that seems dead may cost: its whole response timeout and the
-    /// late window after it when that is watched (see `classic_transaction`).
-    fn dead_retry_cost(&self, device: &DeviceState, now: Duration) -> Duration {
-        let timeout = device.response.timeout(now);
-        let late_window = if device.health.watches_late_reply() {
-            timeout
-        } else {
-            Duration::ZERO
-        };
-        self.settings.line.wire_time(8) + timeout + late_window
     }
 
     /// The port cannot be opened (or was lost) since `since`: devices not heard from for their
@@ -1333,7 +1319,7 @@ impl PortScheduler {
         device_of: impl Fn(T) -> usize,
     ) -> Option<T> {
         // A retry costs something: if nothing may go, nothing dearer may (no scan).
-        if !self.dead_retries.allows(now, Duration::ZERO) && !self.every_device_seems_dead() {
+        if !self.dead_retries.allows(now) && !self.every_device_seems_dead() {
             return None;
         }
         candidates.find(|&candidate| {
@@ -1437,8 +1423,7 @@ impl PortScheduler {
     /// than the others. A scan of every device, only while the periodic reads ask for more
     /// than the bus has.
     fn choose_low_priority_read(&self, now: Duration) -> Option<(Transaction, InFlight)> {
-        let dead_may_go =
-            self.dead_retries.allows(now, Duration::ZERO) || self.every_device_seems_dead();
+        let dead_may_go = self.dead_retries.allows(now) || self.every_device_seems_dead();
         let (device, choice) = self
             .devices
             .iter()
@@ -1617,10 +1602,7 @@ impl PortScheduler {
         let budget_applies = !self.every_device_seems_dead();
         let offline_gate = |d: &DeviceState, at: Duration| {
             if d.health.seems_dead() && budget_applies {
-                at.max(
-                    self.dead_retries
-                        .available_at(now, self.dead_retry_cost(d, now)),
-                )
+                at.max(self.dead_retries.available_at(now))
             } else {
                 at
             }

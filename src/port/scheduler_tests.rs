@@ -1247,9 +1247,7 @@ fn a_write_answered_busy_is_sent_again() {
 /// Before, the cheap retries took the budget each time it held their cost and the dear one
 /// waited (found by a site audit: behind a Modbus TCP gateway the present device stayed offline
 /// 45–100 s, the absent one asked every 10 s; here it was not asked from 30 s to 73 s). With a
-/// live device on the port too that starvation remains (back after 12.4 s): a first fix that
-/// retried dead devices strictly in turn made the port spin when the device whose turn it was
-/// had nothing it could send (`random_ports_with_dead_devices_do_not_spin`).
+/// live device on the port too, see the next test.
 #[test]
 fn a_dead_device_with_a_dear_retry_is_not_starved_by_a_cheap_one() {
     let slow = DevicePlan {
@@ -1288,6 +1286,56 @@ fn a_dead_device_with_a_dear_retry_is_not_starved_by_a_cheap_one() {
         retries(2)
     );
     assert!(retries(1) > 0, "never retried while dead");
+}
+
+/// As above with a live device on the port, so the dead devices' budget applies (a tenth of
+/// the bus): the dead devices are retried in turn whatever their retries cost. Before, a
+/// retry waited until the budget held its own cost, and the cheap one took the budget each
+/// time it held that much: the slow device was not retried from 30 s to 60 s (the absent one
+/// 26 times) and was back 12.4 s after the gateway. Now both go in their due order, the budget
+/// paid back after each: the slow one's retry costs 1–2 s, so the pair comes round every 11–21
+/// s, and the device is back within that.
+#[test]
+fn a_dead_device_with_a_dear_retry_is_not_starved_by_a_cheap_one_beside_a_live_one() {
+    let slow = DevicePlan {
+        response_timeout: ms(1000),
+        ..device(1, vec![read(RegisterType::Holding, 0, EventMode::Polled)])
+    };
+    let absent = DevicePlan {
+        response_timeout: ms(50),
+        ..device(2, vec![read(RegisterType::Holding, 0, EventMode::Polled)])
+    };
+    let live = device(3, vec![read(RegisterType::Holding, 0, EventMode::Polled)]);
+    let mut scheduler = PortScheduler::new(settings(115_200), vec![slow, absent, live]);
+    let mut log = Log::default();
+    let back = ms(60_000);
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(120_000),
+        |at, request| match request.address {
+            1 if at >= back => healthy(request),
+            3 => healthy(request),
+            _ => TransactionOutcome::NoReply,
+        },
+    );
+    let online = log.online_since(back, 0);
+    let retries = |address: u8| {
+        log.sent
+            .iter()
+            .filter(|(at, r)| (ms(30_000)..back).contains(at) && r.address == address)
+            .count()
+    };
+    let (slow, absent) = (retries(1), retries(2));
+    assert!(
+        slow >= 2 && slow + 1 >= absent,
+        "from 30 s to 60 s the slow device was retried {slow} times, the absent one {absent}"
+    );
+    assert!(
+        online.is_some_and(|at| at < back + ms(22_000)),
+        "back at {online:?}"
+    );
 }
 
 /// Three devices dead for a minute (a gateway gone silent), their retries not charged to the
@@ -1382,7 +1430,9 @@ fn assert_late_window_on_one_retry_in_four(
         |range: &std::ops::Range<Duration>| gaps.iter().filter(|g| range.contains(g)).count();
     let (short, long) = (count(&timeout_only), count(&with_late_window));
     assert!(short + long + stray >= gaps.len(), "{gaps:?}");
-    assert!(long >= 2 && short >= 3 * long - 1, "{gaps:?}");
+    // One long in four: three short between two long ones, the run may start and end with
+    // a long one.
+    assert!(long >= 2 && short + 3 >= 3 * long, "{gaps:?}");
 }
 
 #[test]
@@ -2577,21 +2627,21 @@ fn the_dead_devices_budget_allows_a_burst_then_holds_a_share() {
     let mut spent = Duration::ZERO;
     let mut starts = Vec::new();
     while now < ms(600_000) {
-        if budget.allows(now, retry) {
+        if budget.allows(now) {
             starts.push(now);
             now += retry;
             budget.spend(now, retry);
             spent += retry;
         } else {
-            let at = budget.available_at(now, retry);
+            let at = budget.available_at(now);
             assert!(at > now);
             now = at;
         }
     }
-    // The share of the time plus one bucket, never more.
+    // The share of the time plus one bucket and one retry, never more.
     let bucket = DEAD_RETRY_WINDOW * DEAD_RETRY_SHARE_PERCENT / 100;
     assert!(
-        spent <= now * DEAD_RETRY_SHARE_PERCENT / 100 + bucket,
+        spent <= now * DEAD_RETRY_SHARE_PERCENT / 100 + bucket + retry,
         "{spent:?} in {now:?}"
     );
     // Never two in a row: the others get the bus as long between them, up to the cap.
