@@ -1185,9 +1185,23 @@ impl PortScheduler {
     }
 
     /// The port cannot be opened (or was lost) since `since`: devices not heard from for their
-    /// device timeout are marked offline and their values as not read.
+    /// device timeout are marked offline and their values as not read; writes waiting for the
+    /// port are flagged `w` at once (wb-mqtt-serial's closed-port cycle flags every write it
+    /// could not flush), and still sent when the port is back within their retry time.
     pub fn port_unavailable(&mut self, now: Duration, since: Duration) -> Vec<PortEvent> {
         let mut out = Vec::new();
+        for pending in self.writes.iter_mut().filter(|p| !p.failure_told) {
+            pending.failure_told = true;
+            let write = &pending.write;
+            debug!(device = write.device, register_type = ?write.register_type, address = write.address,
+                "write waits for the port (meta/error w meanwhile)");
+            out.push(PortEvent::WriteFailed {
+                device: write.device,
+                register_type: write.register_type,
+                address: write.address,
+                permanent: false,
+            });
+        }
         for (index, state) in self.devices.iter_mut().enumerate() {
             if !state.health.port_lost(now, since) {
                 continue;

@@ -2050,6 +2050,57 @@ fn a_dead_devices_retry_holds_the_event_polls_for_its_timeout_and_rarely_for_the
     assert!(held.len() <= log.classic_to(9).len(), "{held:?}");
 }
 
+/// A write that waits for a closed port is flagged `w` at once, as wb-mqtt-serial's
+/// closed-port cycle flags every write it could not flush, not only once the device timeout
+/// has marked the devices offline (the write was unflagged until then, or until given up);
+/// once, however long the port stays closed; and sent when the port is back.
+#[test]
+fn a_write_waiting_for_a_closed_port_is_flagged_at_once_and_sent_when_it_is_back() {
+    let plans = vec![device(
+        1,
+        vec![read(RegisterType::Holding, 0, EventMode::Polled)],
+    )];
+    let mut scheduler = PortScheduler::new(settings(9600), plans);
+    let write = RegisterWrite {
+        device: 0,
+        register_type: RegisterType::Holding,
+        address: 10,
+        values: vec![7],
+        force_multiple: false,
+        defined: Vec::new(),
+    };
+    assert_eq!(scheduler.queue_write(ms(100), write), None, "device online");
+    let waiting = PortEvent::WriteFailed {
+        device: 0,
+        register_type: RegisterType::Holding,
+        address: 10,
+        permanent: false,
+    };
+    // Closed since 0, well within the device timeout (3 s): the device is not offline yet.
+    assert_eq!(scheduler.port_unavailable(ms(200), ms(0)), vec![waiting]);
+    assert!(
+        scheduler.port_unavailable(ms(1000), ms(0)).is_empty(),
+        "told once"
+    );
+    let offline = scheduler.port_unavailable(ms(3000), ms(0));
+    assert!(offline.contains(&PortEvent::Offline { device: 0 }));
+    assert!(!offline
+        .iter()
+        .any(|e| matches!(e, PortEvent::WriteFailed { .. })));
+    // The port is back: the write goes and is done.
+    let mut log = Log::default();
+    run(&mut scheduler, &mut log, ms(4000), ms(5000), |_, r| {
+        healthy(r)
+    });
+    assert_eq!(log.single_register_writes(10), [7]);
+    assert!(log.events.iter().any(|(_, e)| *e
+        == PortEvent::WriteDone {
+            device: 0,
+            register_type: RegisterType::Holding,
+            address: 10
+        }));
+}
+
 #[test]
 fn a_port_that_stays_closed_marks_its_devices_offline() {
     let plans = vec![
