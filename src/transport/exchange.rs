@@ -42,7 +42,7 @@ use crate::protocol::parser::{answers, ARBITRATION_FILLER};
 use crate::protocol::pdu::FrameLength;
 use crate::protocol::{
     EncodeError, FastReply, FastRequest, LineSettings, ParseStatus, Reply, ReplyBody, ReplyParser,
-    Request, RequestBody,
+    Request, RequestBody, RequestPdu,
 };
 use crate::protocol::{ReplyTiming, Transaction, TransactionOutcome};
 use window::{Received, ReplyWindow};
@@ -298,25 +298,54 @@ struct Receiving {
 const EXACT_TIMING_EVERY: u32 = 16;
 
 /// Replies whose delay is learned together: one device's answers to one function (a write may
-/// take a device longer than a read; an event poll's arbitration is shorter than a scan's).
+/// take a device longer than a read; an event poll's arbitration is shorter than a scan's), and
+/// for a read, from one first register: a device may answer a block it computes slower than
+/// another, and each keeps its own pace (one learned delay for both had every slow read refused
+/// as late while another master polls, [`is_late_for_its_device`]).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 struct ReplyKind {
     address: u8,
     fast: bool,
     function: u8,
+    /// The first register of a classic read; `None` for anything else, and for the delay
+    /// learned from all of the device's reads of this function (what a read never seen before
+    /// is measured against).
+    read_start: Option<u16>,
 }
 
 impl ReplyKind {
     fn of(request: &Request) -> Self {
-        let (fast, function) = match &request.body {
-            RequestBody::Classic(pdu) => (false, pdu.function()),
-            RequestBody::Fast(fast) => (true, fast.sub_command()),
+        let (fast, function, read_start) = match &request.body {
+            RequestBody::Classic(pdu) => (false, pdu.function(), read_start(pdu)),
+            RequestBody::Fast(fast) => (true, fast.sub_command(), None),
         };
         Self {
             address: request.address,
             fast,
             function,
+            read_start,
         }
+    }
+
+    /// All of the device's replies to this function.
+    fn whole_function(self) -> Self {
+        Self {
+            read_start: None,
+            ..self
+        }
+    }
+}
+
+/// Learned paces a link keeps at most: a bus's planned reads are a few hundred blocks.
+const MAX_LEARNED_PACES: usize = 4096;
+
+fn read_start(pdu: &RequestPdu) -> Option<u16> {
+    match pdu {
+        RequestPdu::ReadCoils { start, .. }
+        | RequestPdu::ReadDiscreteInputs { start, .. }
+        | RequestPdu::ReadHoldingRegisters { start, .. }
+        | RequestPdu::ReadInputRegisters { start, .. } => Some(*start),
+        _ => None,
     }
 }
 
@@ -339,6 +368,14 @@ struct ReplyDelay {
 const LATE_AGREEMENT: Duration = Duration::from_millis(2);
 
 impl ReplyDelay {
+    fn first(sample: Duration) -> Self {
+        Self {
+            delay: sample,
+            batch_reads: 0,
+            refused_late: None,
+        }
+    }
+
     /// A reply read as it came was complete `sample` beyond its wire time. A shorter delay is
     /// taken at once (a batch read that sleeps too long costs bus time on every transaction);
     /// a longer one an eighth at a time (a write that took the device longer, a busy moment of
@@ -762,15 +799,40 @@ impl Exchange {
                 .saturating_sub(receiving.window.clock_start())
                 .saturating_sub(line.wire_time(frame_len));
             let kind = ReplyKind::of(&receiving.request);
+            let whole = kind.whole_function();
             let late = |learned: &ReplyDelay| {
                 is_late_for_its_device(&receiving.request, timing.first_byte, learned.delay)
             };
-            match self.reply_delays.get_mut(&kind) {
-                Some(learned)
-                    if self.mbap.is_none()
-                        && self.other_masters.polls_lately(now)
-                        && late(learned) =>
+            let watch = self.mbap.is_none() && self.other_masters.polls_lately(now);
+            // A read never seen before is measured against the device's other reads of the
+            // function; refused, it keeps that delay and the refused one as its own, so that
+            // its next reply as late is taken as its pace.
+            let unseen = !self.reply_delays.contains_key(&kind);
+            if unseen && self.reply_delays.len() >= MAX_LEARNED_PACES {
+                // Site tools reading register after register through the service must not grow
+                // this for good: the blocks start again from the device's pace.
+                self.reply_delays
+                    .retain(|kind, _| kind.read_start.is_none());
+            }
+            if unseen && watch {
+                if let Some(delay) = self
+                    .reply_delays
+                    .get(&whole)
+                    .filter(|learned| late(learned))
+                    .map(|learned| learned.delay)
                 {
+                    self.reply_delays.insert(
+                        kind,
+                        ReplyDelay {
+                            delay,
+                            batch_reads: 0,
+                            refused_late: None,
+                        },
+                    );
+                }
+            }
+            match self.reply_delays.get_mut(&kind) {
+                Some(learned) if watch && late(learned) => {
                     if !learned.late_again(sample) {
                         debug!(
                             "a reply much later than its device's while another master polls: \
@@ -784,15 +846,14 @@ impl Exchange {
                 }
                 Some(learned) => learned.learn(sample),
                 None => {
-                    self.reply_delays.insert(
-                        kind,
-                        ReplyDelay {
-                            delay: sample,
-                            batch_reads: 0,
-                            refused_late: None,
-                        },
-                    );
+                    self.reply_delays.insert(kind, ReplyDelay::first(sample));
                 }
+            }
+            if whole != kind {
+                self.reply_delays
+                    .entry(whole)
+                    .and_modify(|learned| learned.learn(sample))
+                    .or_insert_with(|| ReplyDelay::first(sample));
             }
         }
         self.state = State::Done(TransactionOutcome::Reply(reply), timing);
@@ -2390,6 +2451,52 @@ mod tests {
                 finished.outcome,
                 read_reply(),
                 "other master gone, at {baud}"
+            );
+        }
+    }
+
+    /// A device that answers one block in 1 ms and another it computes in 15 ms, read in turn
+    /// while another master polls: each block keeps its own pace. With one learned delay for
+    /// the function, the fast reply brought it back down each time and every slow reply was
+    /// refused as late for as long as the other master polled. A block never read before is
+    /// still measured against the device's other reads: its first reply that late is refused
+    /// (it may answer the other master), its next as late is its pace.
+    #[test]
+    fn a_block_a_device_answers_slower_keeps_its_own_pace_while_another_master_polls() {
+        for baud in [9600, 115_200] {
+            let line = line(baud);
+            let (mut exchange, fast, _, start) = taught(&line, ms(1));
+            let slow_request = Request::classic(
+                0x1E,
+                RequestPdu::ReadInputRegisters {
+                    start: 0x40,
+                    count: 2,
+                },
+            );
+            let slow = transaction(&line, slow_request);
+            exchange.handle_bytes(start, &read_of_another_device());
+            assert!(exchange.take_other_master_request().is_some());
+            let reply = |transaction: &Transaction, start: Duration, delay: Duration| {
+                on_the_wire(
+                    &line,
+                    start + transaction.request_time + delay,
+                    &reply_frame(),
+                )
+            };
+            let mut at = start + ms(10);
+            let mut outcomes = Vec::new();
+            for _ in 0..4 {
+                for (transaction, delay) in [(&slow, ms(15)), (&fast, ms(1))] {
+                    let arrivals = reply(transaction, at, delay);
+                    let finished = run(&mut exchange, transaction, at, &arrivals);
+                    outcomes.push(finished.outcome == read_reply());
+                    at = finished.at + ms(10);
+                }
+            }
+            assert_eq!(
+                outcomes,
+                [false, true, true, true, true, true, true, true],
+                "slow, fast, slow, fast… at {baud}: only the first slow reply refused"
             );
         }
     }
