@@ -336,9 +336,6 @@ impl ReplyKind {
     }
 }
 
-/// Learned paces a link keeps at most: a bus's planned reads are a few hundred blocks.
-const MAX_LEARNED_PACES: usize = 4096;
-
 fn read_start(pdu: &RequestPdu) -> Option<u16> {
     match pdu {
         RequestPdu::ReadCoils { start, .. }
@@ -390,21 +387,103 @@ impl ReplyDelay {
         self.refused_late = None;
     }
 
-    /// A reply `sample` late, much later than the device's (another master polls): true when
-    /// the last refused one came as late, so this is the device's own pace, taken at once;
-    /// else it is refused and remembered.
-    fn late_again(&mut self, sample: Duration) -> bool {
-        let agrees = self
-            .refused_late
-            .is_some_and(|refused| refused.abs_diff(sample) <= LATE_AGREEMENT.max(refused / 4));
-        if agrees {
-            self.delay = sample;
-            self.refused_late = None;
-            self.batch_reads = 0;
-        } else {
-            self.refused_late = Some(sample);
+    /// A reply `sample` late, much later than the device's (another master polls), came as
+    /// late as the last one refused: the device's own, slower pace.
+    fn late_again(&self, sample: Duration) -> bool {
+        self.refused_late
+            .is_some_and(|refused| refused.abs_diff(sample) <= LATE_AGREEMENT.max(refused / 4))
+    }
+
+    /// The device's pace is `sample` from now on.
+    fn take_pace(&mut self, sample: Duration) {
+        self.delay = sample;
+        self.refused_late = None;
+        self.batch_reads = 0;
+    }
+}
+
+/// What a link learned of its devices' reply delays: per device and function, and per read
+/// block (a device may compute one block slower than another). A reply much later than its
+/// block's pace (or, for a block never read, the function's) while another master polls is
+/// refused ([`is_late_for_its_device`]); the next one as late is taken as the new pace: of the
+/// block when that block's last reply was refused as late, of the whole function (every block
+/// learned again) when another block's was, since then the device itself has become slower.
+#[derive(Debug, Default)]
+struct ReplyPaces {
+    delays: HashMap<ReplyKind, ReplyDelay>,
+}
+
+/// Learned paces a link keeps at most: a bus's planned reads are a few hundred blocks.
+const MAX_LEARNED_PACES: usize = 4096;
+
+impl ReplyPaces {
+    /// What a batch read of `kind` may sleep for: its block's pace, once learned.
+    fn of_block(&mut self, kind: ReplyKind) -> Option<&mut ReplyDelay> {
+        self.delays.get_mut(&kind)
+    }
+
+    /// A reply of `kind` came `sample` after its request; `late` tells whether that is much
+    /// later than a learned delay while another master polls. True: taken (and learned).
+    fn reply(
+        &mut self,
+        kind: ReplyKind,
+        sample: Duration,
+        late: impl Fn(Duration) -> bool,
+    ) -> bool {
+        let whole = kind.whole_function();
+        let per_block = whole != kind;
+        if per_block && !self.delays.contains_key(&kind) && self.delays.len() >= MAX_LEARNED_PACES {
+            // Site tools reading register after register through the service must not grow
+            // this for good: the blocks start again from the function's pace.
+            self.delays.retain(|kind, _| kind.read_start.is_none());
         }
-        agrees
+        let reference = self
+            .delays
+            .get(&kind)
+            .or_else(|| self.delays.get(&whole))
+            .map(|learned| learned.delay);
+        if reference.is_some_and(&late) {
+            let block_agrees = self.delays.get(&kind).is_some_and(|l| l.late_again(sample));
+            let device_agrees = per_block
+                && self
+                    .delays
+                    .get(&whole)
+                    .is_some_and(|l| l.late_again(sample));
+            if device_agrees && !block_agrees {
+                // Two blocks as late: the device has become slower.
+                self.delays
+                    .retain(|k, _| k.whole_function() != whole || k.read_start.is_none());
+                if let Some(learned) = self.delays.get_mut(&whole) {
+                    learned.take_pace(sample);
+                }
+                return true;
+            }
+            if block_agrees {
+                if let Some(learned) = self.delays.get_mut(&kind) {
+                    learned.take_pace(sample);
+                }
+                return true;
+            }
+            for key in [kind, whole] {
+                let learned = self
+                    .delays
+                    .entry(key)
+                    .or_insert_with(|| ReplyDelay::first(reference.unwrap_or(sample)));
+                learned.refused_late = Some(sample);
+            }
+            return false;
+        }
+        self.delays
+            .entry(kind)
+            .and_modify(|learned| learned.learn(sample))
+            .or_insert_with(|| ReplyDelay::first(sample));
+        if per_block {
+            self.delays
+                .entry(whole)
+                .and_modify(|learned| learned.learn(sample))
+                .or_insert_with(|| ReplyDelay::first(sample));
+        }
+        true
     }
 }
 
@@ -419,7 +498,7 @@ pub struct Exchange {
     /// received. The guard interval counts from here.
     line_busy_until: Option<Duration>,
     /// What the link learned of each kind of reply's delay.
-    reply_delays: HashMap<ReplyKind, ReplyDelay>,
+    reply_delays: ReplyPaces,
     /// Requests heard that this master did not send ([`super::other_master`]); RTU framing only
     /// (over Modbus TCP each reply names its request).
     other_masters: OtherMasters,
@@ -436,7 +515,7 @@ impl Exchange {
             config,
             transaction: None,
             line_busy_until: None,
-            reply_delays: HashMap::new(),
+            reply_delays: ReplyPaces::default(),
             other_masters: OtherMasters::default(),
             window_bytes: Vec::new(),
             state: State::Idle,
@@ -612,7 +691,7 @@ impl Exchange {
         if !request.expects_reply() || self.other_masters.echo_undecided() {
             return None;
         }
-        let learned = self.reply_delays.get_mut(&ReplyKind::of(request))?;
+        let learned = self.reply_delays.of_block(ReplyKind::of(request))?;
         learned.batch_reads += 1;
         if learned.batch_reads >= EXACT_TIMING_EVERY {
             return None;
@@ -799,61 +878,19 @@ impl Exchange {
                 .saturating_sub(receiving.window.clock_start())
                 .saturating_sub(line.wire_time(frame_len));
             let kind = ReplyKind::of(&receiving.request);
-            let whole = kind.whole_function();
-            let late = |learned: &ReplyDelay| {
-                is_late_for_its_device(&receiving.request, timing.first_byte, learned.delay)
-            };
             let watch = self.mbap.is_none() && self.other_masters.polls_lately(now);
-            // A read never seen before is measured against the device's other reads of the
-            // function; refused, it keeps that delay and the refused one as its own, so that
-            // its next reply as late is taken as its pace.
-            let unseen = !self.reply_delays.contains_key(&kind);
-            if unseen && self.reply_delays.len() >= MAX_LEARNED_PACES {
-                // Site tools reading register after register through the service must not grow
-                // this for good: the blocks start again from the device's pace.
-                self.reply_delays
-                    .retain(|kind, _| kind.read_start.is_none());
-            }
-            if unseen && watch {
-                if let Some(delay) = self
-                    .reply_delays
-                    .get(&whole)
-                    .filter(|learned| late(learned))
-                    .map(|learned| learned.delay)
-                {
-                    self.reply_delays.insert(
-                        kind,
-                        ReplyDelay {
-                            delay,
-                            batch_reads: 0,
-                            refused_late: None,
-                        },
-                    );
-                }
-            }
-            match self.reply_delays.get_mut(&kind) {
-                Some(learned) if watch && late(learned) => {
-                    if !learned.late_again(sample) {
-                        debug!(
-                            "a reply much later than its device's while another master polls: \
-                             its reply may be this one"
-                        );
-                        timing.foreign_bytes_only = true;
-                        timing.another_master = true;
-                        self.state = State::Done(TransactionOutcome::Garbled, timing);
-                        return;
-                    }
-                }
-                Some(learned) => learned.learn(sample),
-                None => {
-                    self.reply_delays.insert(kind, ReplyDelay::first(sample));
-                }
-            }
-            if whole != kind {
-                self.reply_delays
-                    .entry(whole)
-                    .and_modify(|learned| learned.learn(sample))
-                    .or_insert_with(|| ReplyDelay::first(sample));
+            let taken = self.reply_delays.reply(kind, sample, |learned| {
+                watch && is_late_for_its_device(&receiving.request, timing.first_byte, learned)
+            });
+            if !taken {
+                debug!(
+                    "a reply much later than its device's while another master polls: its \
+                     reply may be this one"
+                );
+                timing.foreign_bytes_only = true;
+                timing.another_master = true;
+                self.state = State::Done(TransactionOutcome::Garbled, timing);
+                return;
             }
         }
         self.state = State::Done(TransactionOutcome::Reply(reply), timing);
@@ -2498,6 +2535,49 @@ mod tests {
                 [false, true, true, true, true, true, true, true],
                 "slow, fast, slow, fast… at {baud}: only the first slow reply refused"
             );
+        }
+    }
+
+    /// A device that has become slower for every block (10 ms more, while another master
+    /// polls): one reply refused, then the next block's reply as late is taken as the device's
+    /// new pace, and every block is measured against it from then on (one refusal per block
+    /// kept recovery after a fault seconds longer in the sweep).
+    #[test]
+    fn a_device_slower_for_every_block_costs_one_refused_reply() {
+        for baud in [9600, 115_200] {
+            let line = line(baud);
+            let (mut exchange, first, _, start) = taught(&line, ms(1));
+            let block = |start: u16| {
+                transaction(
+                    &line,
+                    Request::classic(0x1E, RequestPdu::ReadInputRegisters { start, count: 2 }),
+                )
+            };
+            let blocks = [block(0x20), block(0x30), block(0x40)];
+            let mut at = start;
+            // The other blocks' pace learned while nobody else polls.
+            for transaction in &blocks {
+                let arrivals =
+                    on_the_wire(&line, at + transaction.request_time + ms(1), &reply_frame());
+                let finished = run(&mut exchange, transaction, at, &arrivals);
+                assert_eq!(finished.outcome, read_reply(), "at {baud}");
+                at = finished.at + ms(10);
+            }
+            exchange.handle_bytes(at, &read_of_another_device());
+            assert!(exchange.take_other_master_request().is_some());
+            at += ms(10);
+            let mut outcomes = Vec::new();
+            for transaction in [&first, &blocks[0], &blocks[1], &blocks[2], &first] {
+                let arrivals = on_the_wire(
+                    &line,
+                    at + transaction.request_time + ms(15),
+                    &reply_frame(),
+                );
+                let finished = run(&mut exchange, transaction, at, &arrivals);
+                outcomes.push(finished.outcome == read_reply());
+                at = finished.at + ms(10);
+            }
+            assert_eq!(outcomes, [false, true, true, true, true], "at {baud}");
         }
     }
 
