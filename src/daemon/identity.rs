@@ -22,6 +22,8 @@ use crate::tools::values::standard_text;
 const MODEL: (u16, u16) = (200, 20);
 const FIRMWARE: (u16, u16) = (250, 16);
 const SERIAL: (u16, u16) = (270, 2);
+/// The model's registers on firmware that has no longer model text.
+const SHORT_MODEL_REGISTERS: u16 = 6;
 
 /// The registers that tell who one device is, and how to ask it.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -62,14 +64,60 @@ pub fn identity_plan(device: &ResolvedDevice, response_lag: Duration) -> Option<
 /// What a device said about itself; `serial` as a number, to notice a replacement.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
 pub struct IdentityRead {
+    /// What was answered; a part refused (the device has no such register) or unanswered is
+    /// `None`.
     pub identity: DeviceIdentity,
     pub serial: Option<u32>,
-    /// Every register the plan names was answered, with values or an exception (a device
-    /// that has no such register). A read that got nothing for one of them (noise, a timeout,
-    /// a full queue, a stopped port) is not complete: what it has may be half of the truth
-    /// (a model without the serial number of a device that replaced another), so it is not
-    /// used, and the read is tried again.
-    pub complete: bool,
+    /// The parts that got no answer (noise, a timeout, busy, a full queue, a stopped port):
+    /// unknown, not absent. Their last known values stand, and the read is tried again.
+    pub unanswered: Unanswered,
+}
+
+/// Which parts of an identity read got no answer.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Unanswered {
+    pub serial: bool,
+    pub model: bool,
+    pub firmware: bool,
+}
+
+impl IdentityRead {
+    /// A read that got no answer at all.
+    pub fn nothing() -> Self {
+        Self {
+            unanswered: Unanswered {
+                serial: true,
+                model: true,
+                firmware: true,
+            },
+            ..Self::default()
+        }
+    }
+
+    /// Every part the plan names was answered, with values or a refusal.
+    pub fn complete(&self) -> bool {
+        self.unanswered == Unanswered::default()
+    }
+
+    /// `known` (what was read before) with what this read answered in its place.
+    pub fn over(&self, known: &DeviceIdentity) -> DeviceIdentity {
+        let pick = |unanswered: bool, new: &Option<String>, old: &Option<String>| {
+            if unanswered { old } else { new }.clone()
+        };
+        DeviceIdentity {
+            model: pick(self.unanswered.model, &self.identity.model, &known.model),
+            serial_number: pick(
+                self.unanswered.serial,
+                &self.identity.serial_number,
+                &known.serial_number,
+            ),
+            firmware: pick(
+                self.unanswered.firmware,
+                &self.identity.firmware,
+                &known.firmware,
+            ),
+        }
+    }
 }
 
 /// How one register read of an identity went.
@@ -91,48 +139,54 @@ pub fn serial_of(words: &[u16]) -> Option<u32> {
     }
 }
 
-/// Reads what `plan` names through `queue`, at the port's own settings. What a device refuses
-/// stays unknown; the first register that gets no answer ends the read, not complete (an
-/// offline device costs one timeout, not three).
+/// Reads what `plan` names through `queue`, at the port's own settings: each part on its own,
+/// so that one that never answers (a register an old firmware ignores) does not keep the
+/// others, the firmware that gates channels above all, from being read. What a device refuses
+/// stays unknown; what gets no answer is marked so.
 pub async fn read_identity(
     queue: &BusQueue,
     line: LineSettings,
     plan: &IdentityPlan,
 ) -> IdentityRead {
-    enum Part {
-        Serial,
-        Model,
-        Firmware,
-    }
-    let mut parts = Vec::with_capacity(3);
-    if let Some(serial) = plan.serial {
-        parts.push((Part::Serial, serial));
-    }
-    if plan.texts {
-        parts.push((Part::Model, (RegisterType::Holding, MODEL.0, MODEL.1)));
-        parts.push((
-            Part::Firmware,
-            (RegisterType::Holding, FIRMWARE.0, FIRMWARE.1),
-        ));
-    }
     let mut read = IdentityRead::default();
-    for (part, (register_type, start, count)) in parts {
-        let words = match read_words(queue, line, plan, register_type, start, count).await {
-            Answer::Values(words) => Some(words),
-            Answer::Refused => None,
-            Answer::Nothing => return read,
-        };
-        let words = words.as_deref();
-        match part {
-            Part::Serial => {
-                read.serial = words.and_then(serial_of);
+    if let Some((register_type, start, count)) = plan.serial {
+        match read_words(queue, line, plan, register_type, start, count).await {
+            Answer::Values(words) => {
+                read.serial = serial_of(&words);
                 read.identity.serial_number = read.serial.map(|s| s.to_string());
             }
-            Part::Model => read.identity.model = words.and_then(standard_text),
-            Part::Firmware => read.identity.firmware = words.and_then(standard_text),
+            Answer::Refused => {}
+            Answer::Nothing => read.unanswered.serial = true,
         }
     }
-    read.complete = true;
+    if plan.texts {
+        // Older firmware has the model in 6 registers only, and refuses a read of 20
+        // (wb-mqtt-serial reads 6 after any error).
+        let mut model =
+            read_words(queue, line, plan, RegisterType::Holding, MODEL.0, MODEL.1).await;
+        if matches!(model, Answer::Refused) {
+            model = read_words(
+                queue,
+                line,
+                plan,
+                RegisterType::Holding,
+                MODEL.0,
+                SHORT_MODEL_REGISTERS,
+            )
+            .await;
+        }
+        match model {
+            Answer::Values(words) => read.identity.model = standard_text(&words),
+            Answer::Refused => {}
+            Answer::Nothing => read.unanswered.model = true,
+        }
+        let (start, count) = FIRMWARE;
+        match read_words(queue, line, plan, RegisterType::Holding, start, count).await {
+            Answer::Values(words) => read.identity.firmware = standard_text(&words),
+            Answer::Refused => {}
+            Answer::Nothing => read.unanswered.firmware = true,
+        }
+    }
     read
 }
 
@@ -225,12 +279,15 @@ mod tests {
         assert_eq!(serial_of(&[1, 2, 3]), None);
     }
 
+    /// A read by (first register, count), and its answer: values or an exception.
+    type ScriptedRead = ((u16, u16), Result<Vec<u16>, ExceptionCode>);
+
     /// A port that answers each read of `plan`'s device from `answers`, by the read's first
-    /// register: values, an exception, or nothing when the register is not listed.
+    /// register and count: values, an exception, or nothing when the read is not listed.
     /// Returns what the identity read got and the registers asked, in order.
     async fn read_from(
         plan: &IdentityPlan,
-        answers: Vec<(u16, Result<Vec<u16>, ExceptionCode>)>,
+        answers: Vec<ScriptedRead>,
     ) -> (IdentityRead, Vec<u16>) {
         use super::super::bus_queue::QueuedJob;
         use crate::protocol::RequestBody;
@@ -241,13 +298,13 @@ mod tests {
                 let QueuedJob::Transaction(job) = job else {
                     continue;
                 };
-                let RequestBody::Classic(RequestPdu::ReadHoldingRegisters { start, .. }) =
+                let RequestBody::Classic(RequestPdu::ReadHoldingRegisters { start, count }) =
                     job.transaction.request.body
                 else {
                     panic!("not a holding register read: {:?}", job.transaction.request);
                 };
                 asked.push(start);
-                let outcome = match answers.iter().find(|(first, _)| *first == start) {
+                let outcome = match answers.iter().find(|(read, _)| *read == (start, count)) {
                     Some((_, Ok(values))) => TransactionOutcome::Reply(Reply {
                         address: job.transaction.request.address,
                         body: ReplyBody::Classic(ResponsePdu::ReadHoldingRegisters {
@@ -293,14 +350,14 @@ mod tests {
         let (read, asked) = read_from(
             &wb_plan(),
             vec![
-                (SERIAL.0, Ok(vec![0xFE00, 0x0099])),
-                (MODEL.0, Ok(text("WBMR6C", MODEL.1))),
-                (FIRMWARE.0, Ok(text("1.26.0", FIRMWARE.1))),
+                (SERIAL, Ok(vec![0xFE00, 0x0099])),
+                (MODEL, Ok(text("WBMR6C", MODEL.1))),
+                (FIRMWARE, Ok(text("1.26.0", FIRMWARE.1))),
             ],
         )
         .await;
         assert_eq!(asked, [SERIAL.0, MODEL.0, FIRMWARE.0]);
-        assert!(read.complete);
+        assert!(read.complete());
         assert_eq!(read.serial, Some(0xFE00_0099));
         assert_eq!(read.identity.serial_number.as_deref(), Some("4261413017"));
         assert_eq!(read.identity.model.as_deref(), Some("WBMR6C"));
@@ -314,53 +371,117 @@ mod tests {
         let (read, asked) = read_from(
             &wb_plan(),
             vec![
-                (SERIAL.0, Ok(vec![0xFE00, 0x0099])),
-                (MODEL.0, Err(ExceptionCode::ILLEGAL_DATA_ADDRESS)),
-                (FIRMWARE.0, Ok(text("1.26.0", FIRMWARE.1))),
+                (SERIAL, Ok(vec![0xFE00, 0x0099])),
+                (MODEL, Err(ExceptionCode::ILLEGAL_DATA_ADDRESS)),
+                (
+                    (MODEL.0, SHORT_MODEL_REGISTERS),
+                    Err(ExceptionCode::ILLEGAL_DATA_ADDRESS),
+                ),
+                (FIRMWARE, Ok(text("1.26.0", FIRMWARE.1))),
             ],
         )
         .await;
-        assert_eq!(asked, [SERIAL.0, MODEL.0, FIRMWARE.0]);
-        assert!(read.complete);
+        assert_eq!(asked, [SERIAL.0, MODEL.0, MODEL.0, FIRMWARE.0]);
+        assert!(read.complete());
         assert_eq!(read.identity.model, None);
         assert_eq!(read.serial, Some(0xFE00_0099));
     }
 
-    /// The serial number got no answer (noise, a loaded bus): the read ends there, not
-    /// complete. A model and firmware read without it would have been published as the whole
-    /// identity, the serial number dropped and a replaced device never noticed.
+    /// The serial number got no answer (noise, a loaded bus): not complete, marked unanswered
+    /// (its last known value stands, and the read is tried again). Before, a model and firmware
+    /// read without it were published as the whole identity, the serial number dropped and a
+    /// replaced device never noticed. The other parts are still read: the firmware gates
+    /// channels, and a register an old firmware never answers must not keep it unread.
     #[tokio::test]
-    async fn a_register_that_got_no_answer_ends_the_read_incomplete() {
+    async fn a_part_that_got_no_answer_is_marked_and_the_others_read() {
         let (read, asked) = read_from(
             &wb_plan(),
             vec![
-                (MODEL.0, Ok(text("WBMR6C", MODEL.1))),
-                (FIRMWARE.0, Ok(text("1.26.0", FIRMWARE.1))),
-            ],
-        )
-        .await;
-        assert_eq!(asked, [SERIAL.0], "an unanswered device costs one timeout");
-        assert!(!read.complete);
-        let (read, asked) = read_from(
-            &wb_plan(),
-            vec![
-                (SERIAL.0, Ok(vec![0xFE00, 0x0099])),
-                (MODEL.0, Ok(text("WBMR6C", MODEL.1))),
+                (MODEL, Ok(text("WBMR6C", MODEL.1))),
+                (FIRMWARE, Ok(text("1.26.0", FIRMWARE.1))),
             ],
         )
         .await;
         assert_eq!(asked, [SERIAL.0, MODEL.0, FIRMWARE.0]);
-        assert!(!read.complete, "the firmware got no answer");
+        assert!(!read.complete());
+        assert_eq!(
+            read.unanswered,
+            Unanswered {
+                serial: true,
+                model: false,
+                firmware: false
+            }
+        );
+        assert_eq!(read.identity.firmware.as_deref(), Some("1.26.0"));
+        let known = DeviceIdentity {
+            model: Some("old".into()),
+            serial_number: Some("4261412896".into()),
+            firmware: Some("1.0".into()),
+        };
+        assert_eq!(
+            read.over(&known),
+            DeviceIdentity {
+                model: Some("WBMR6C".into()),
+                serial_number: Some("4261412896".into()),
+                firmware: Some("1.26.0".into()),
+            },
+            "the serial number as known, the rest as read"
+        );
+        let (read, asked) = read_from(
+            &wb_plan(),
+            vec![
+                (SERIAL, Ok(vec![0xFE00, 0x0099])),
+                (MODEL, Ok(text("WBMR6C", MODEL.1))),
+            ],
+        )
+        .await;
+        assert_eq!(asked, [SERIAL.0, MODEL.0, FIRMWARE.0]);
+        assert!(!read.complete(), "the firmware got no answer");
+        assert!(read.unanswered.firmware);
         // Busy is no answer either: the device has the register, just not now.
         let (read, _) = read_from(
             &wb_plan(),
             vec![
-                (SERIAL.0, Ok(vec![0xFE00, 0x0099])),
-                (MODEL.0, Err(ExceptionCode::BUSY)),
-                (FIRMWARE.0, Ok(text("1.26.0", FIRMWARE.1))),
+                (SERIAL, Ok(vec![0xFE00, 0x0099])),
+                (MODEL, Err(ExceptionCode::BUSY)),
+                (FIRMWARE, Ok(text("1.26.0", FIRMWARE.1))),
             ],
         )
         .await;
-        assert!(!read.complete, "the model was busy");
+        assert!(!read.complete(), "the model was busy");
+        assert!(read.unanswered.model);
+        // A device failure on the serial number every time: the firmware is read all the same.
+        let (read, _) = read_from(
+            &wb_plan(),
+            vec![
+                (SERIAL, Err(ExceptionCode::DEVICE_FAILURE)),
+                (MODEL, Ok(text("WBMR6C", MODEL.1))),
+                (FIRMWARE, Ok(text("1.26.0", FIRMWARE.1))),
+            ],
+        )
+        .await;
+        assert_eq!(read.identity.firmware.as_deref(), Some("1.26.0"));
+    }
+
+    /// Older firmware has 6 registers of model text and refuses a read of 20: the 6 are read
+    /// then, as wb-mqtt-serial reads them.
+    #[tokio::test]
+    async fn a_model_refused_as_20_registers_is_read_as_6() {
+        let (read, asked) = read_from(
+            &wb_plan(),
+            vec![
+                (SERIAL, Ok(vec![0xFE00, 0x0099])),
+                (MODEL, Err(ExceptionCode::ILLEGAL_DATA_ADDRESS)),
+                (
+                    (MODEL.0, SHORT_MODEL_REGISTERS),
+                    Ok(text("MR6C", SHORT_MODEL_REGISTERS)),
+                ),
+                (FIRMWARE, Ok(text("1.26.0", FIRMWARE.1))),
+            ],
+        )
+        .await;
+        assert_eq!(asked, [SERIAL.0, MODEL.0, MODEL.0, FIRMWARE.0]);
+        assert!(read.complete());
+        assert_eq!(read.identity.model.as_deref(), Some("MR6C"));
     }
 }

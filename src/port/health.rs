@@ -55,7 +55,8 @@ impl Default for HealthPolicy {
 /// retry costs.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct DeadRetryBudget {
-    /// Credit in nanoseconds at `at` (negative: a retry cost more than it was expected to).
+    /// Credit in nanoseconds at `at` (negative after a retry, until the share has paid it
+    /// back).
     credit_ns: i128,
     at: Duration,
     /// No retry before this (the others' turn after the last one).
