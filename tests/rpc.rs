@@ -1644,3 +1644,86 @@ async fn a_reply_too_large_for_one_packet_is_an_error_and_the_server_goes_on() {
     assert_eq!(ports["result"][0]["baud_rate"], 115_200, "{ports}");
     assert!(!daemon.log().contains("panicked"), "{}", daemon.log());
 }
+
+/// A server on the broker that answers every `port/Scan` with `reply` after `delay`.
+async fn scan_server(port: u16, name: &str, delay: std::time::Duration, reply: Value) {
+    use rumqttc::{AsyncClient, Event, MqttOptions, Packet, QoS};
+    let mut options = MqttOptions::new(name, "127.0.0.1", port);
+    options.set_keep_alive(std::time::Duration::from_secs(30));
+    let (client, mut events) = AsyncClient::new(options, 16);
+    client
+        .subscribe("/rpc/v1/wb-mqtt-serial/port/Scan/+", QoS::AtLeastOnce)
+        .await
+        .unwrap();
+    let (subscribed, ready) = tokio::sync::oneshot::channel();
+    let mut subscribed = Some(subscribed);
+    tokio::spawn(async move {
+        while let Ok(event) = events.poll().await {
+            match event {
+                Event::Incoming(Packet::SubAck(_)) => {
+                    if let Some(subscribed) = subscribed.take() {
+                        let _ = subscribed.send(());
+                    }
+                }
+                Event::Incoming(Packet::Publish(publish)) if !publish.topic.ends_with("/reply") => {
+                    let request: Value = serde_json::from_slice(&publish.payload).unwrap();
+                    let mut answer = reply.clone();
+                    answer["id"] = request["id"].clone();
+                    let client = client.clone();
+                    let topic = format!("{}/reply", publish.topic);
+                    tokio::spawn(async move {
+                        tokio::time::sleep(delay).await;
+                        let _ = client
+                            .publish(topic, QoS::AtLeastOnce, false, answer.to_string())
+                            .await;
+                    });
+                }
+                _ => {}
+            }
+        }
+    });
+    ready.await.unwrap();
+}
+
+/// Beside another server of these topics, a call about a port the right server listed waits for
+/// that server's answer however long its bus work takes: the other's "not my port" came at
+/// once and was the outcome 2 s later, so a scan of a setting through the service (seconds at
+/// 9600) was reported as "not served" (a site tools audit). Before the port is listed, the 2 s
+/// grace stands: a port nobody serves is said soon.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_slow_answer_beside_another_server_is_waited_for_once_the_port_is_listed() {
+    use rtu2mqtt::rpc::client::{CallError, RpcSession};
+    let broker = Mosquitto::start();
+    let not_mine = json!({"error": {"code": -32000,
+        "message": "port /dev/ttyX is not served by this rtu2mqtt"}});
+    scan_server(broker.port, "other", std::time::Duration::ZERO, not_mine).await;
+    let found = json!({"result": {"devices": [{"sn": "7"}]}});
+    scan_server(
+        broker.port,
+        "right",
+        std::time::Duration::from_secs(3),
+        found,
+    )
+    .await;
+    let config: rtu2mqtt::config::config_file::MqttConfig =
+        serde_json::from_value(json!({"host": "127.0.0.1", "port": broker.port})).unwrap();
+    let timeout = std::time::Duration::from_secs(10);
+
+    let mut session = RpcSession::connect(&config).await.unwrap();
+    let early = session
+        .call("port", "Scan", json!({"path": "/dev/ttyX"}), timeout)
+        .await;
+    assert!(
+        matches!(&early, Err(CallError::Refused(error)) if error.is_not_served_here()),
+        "{early:?}"
+    );
+
+    // The same session (one client id; the right server's late answer to the first call has
+    // another id and is not taken for this one's).
+    session.port_is_served();
+    let result = session
+        .call("port", "Scan", json!({"path": "/dev/ttyX"}), timeout)
+        .await
+        .unwrap();
+    assert_eq!(result["devices"][0]["sn"], "7", "{result}");
+}

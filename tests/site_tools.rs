@@ -2233,3 +2233,36 @@ fn fix_addresses_through_the_service_keeps_the_device_it_polls() {
         run.stderr
     );
 }
+
+/// A baud rate no port runs at (0, 1: a typo) is refused before the port is opened: it timed
+/// every reply in minutes (a read ran 171 s, a scan for good; a site tools audit), and 0 hangs
+/// a real port up.
+#[test]
+fn a_baud_rate_typo_is_refused_at_once() {
+    for (args, baud) in [
+        (&["scan", "--port", "/dev/null", "--baud"][..], "0"),
+        (
+            &[
+                "read",
+                "--port",
+                "/dev/null",
+                "--address",
+                "1",
+                "--reg",
+                "0",
+                "--baud",
+            ][..],
+            "1",
+        ),
+        (
+            &["scan", "--port", "/dev/null", "--baud"][..],
+            "9600,5000000",
+        ),
+    ] {
+        let mut args = args.to_vec();
+        args.push(baud);
+        let run = tool(&args);
+        assert_eq!(run.code, 2, "{args:?}: {}{}", run.stdout, run.stderr);
+        assert!(run.stderr.contains("out of 110..4000000"), "{}", run.stderr);
+    }
+}

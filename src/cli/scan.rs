@@ -18,7 +18,9 @@ use crate::tools::bus::{
     PORT_SETTINGS_READ, TEXT_REGISTERS,
 };
 use crate::tools::exit;
-use crate::tools::plan::{parse_parity, parse_range, same_on_the_wire, scan_plan, PlanFilter};
+use crate::tools::plan::{
+    parse_baud, parse_parity, parse_range, same_on_the_wire, scan_plan, PlanFilter,
+};
 use crate::tools::report::{serial_text, FoundDevice, Identity, ScanReport};
 use crate::tools::values::standard_text;
 use crate::transport::fifo::sysfs_tty;
@@ -30,7 +32,7 @@ pub struct PortArgs {
     #[arg(long)]
     pub port: String,
     /// Baud rate(s) to try (comma-separated); default: all eight standard rates.
-    #[arg(long, value_delimiter = ',')]
+    #[arg(long, value_delimiter = ',', value_parser = parse_baud)]
     pub baud: Vec<u32>,
     /// Parity (N, E, O; comma-separated); default: all three.
     #[arg(long, value_delimiter = ',', value_parser = parse_parity)]
@@ -853,6 +855,16 @@ async fn scan_via_service(args: &Args, report: &mut ScanReport) -> Result<(), Po
     let mut session = RpcSession::connect(&broker)
         .await
         .map_err(|err| PortError::Service(err.to_string()))?;
+    // The port is looked up first: a typo is said at once, and the scans wait as long as
+    // they take beside another server on the broker.
+    super::via_mqtt::served_line(&mut session, &args.port.port)
+        .await
+        .map_err(|_| {
+            PortError::Service(format!(
+                "the service does not serve {} (see above)",
+                args.port.port
+            ))
+        })?;
     report.stop_bits_covered = args.port.filter().stop_bits_covered();
     for line in args.port.plan() {
         report.settings_tried.push(line);

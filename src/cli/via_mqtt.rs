@@ -144,6 +144,9 @@ pub async fn served_line(session: &mut RpcSession, path: &str) -> Result<LineSet
     let entry = ports
         .as_array()
         .and_then(|ports| ports.iter().find(|p| p["path"] == path));
+    if entry.is_some() {
+        session.port_is_served();
+    }
     let Some(entry) = entry else {
         eprintln!(
             "the rtu2mqtt service does not serve {path} (it serves: {}): check the port name",
@@ -174,6 +177,16 @@ pub async fn served_line(session: &mut RpcSession, path: &str) -> Result<LineSet
     Ok(LineSettings::new(baud, parity, stop_bits))
 }
 
+/// How long the service may take over `port/Scan` at `line`: a whole bus of devices, each
+/// with its scan step and the reads of its details by serial number (some 300 characters of
+/// wire time), within rpc.md's 600 s. A fixed 10 s failed a 40-device bus at 9600 (13.3 s), and
+/// its partial results were lost with it (a site tools audit).
+pub fn scan_total_timeout(line: &LineSettings) -> Duration {
+    let per_device = line.wire_time(300);
+    (Duration::from_secs(10) + per_device * u32::from(crate::protocol::frame::MAX_DEVICE_ADDRESS))
+        .min(Duration::from_secs(600))
+}
+
 /// The params that put a request at `line`.
 pub fn line_params(line: &LineSettings) -> Value {
     json!({
@@ -198,7 +211,7 @@ pub async fn scan_setting_via_service(
     let mut params = line_params(&line);
     params["path"] = json!(path);
     let result = session
-        .call("port", "Scan", params, Duration::from_secs(10))
+        .call("port", "Scan", params, scan_total_timeout(&line))
         .await
         .map_err(|err| PortError::Service(err.to_string()))?;
     if let Some(error) = result["error"].as_str() {
@@ -286,6 +299,17 @@ pub fn response_words(response: &str, bits: bool, count: u16) -> Option<Vec<u16>
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A scan through the service may take what a full bus takes at its speed: a 40-device bus
+    /// at 9600 took 13.3 s against the 10 s it was given.
+    #[test]
+    fn a_scan_through_the_service_is_given_what_a_full_bus_takes() {
+        use crate::protocol::Parity;
+        let at = |baud| scan_total_timeout(&LineSettings::new(baud, Parity::None, 2));
+        assert!(at(9600) > Duration::from_secs(80), "{:?}", at(9600));
+        assert!(at(115_200) >= Duration::from_secs(15), "{:?}", at(115_200));
+        assert_eq!(at(1200), Duration::from_secs(600), "rpc.md's limit");
+    }
 
     #[test]
     fn broker_option_and_hex_responses() {

@@ -398,6 +398,19 @@ impl VirtualGateway {
         }
     }
 
+    /// Every simulated device at `address` restarts (several: a shared address).
+    pub fn reboot_all_at(&mut self, address: u8) {
+        for index in 0..self.bus.devices().len() {
+            if let Some(device) = self
+                .bus
+                .device_mut(index)
+                .filter(|d| d.address() == address)
+            {
+                device.reboot();
+            }
+        }
+    }
+
     /// The simulated device restarts: its event settings are gone.
     pub fn reboot(&mut self, address: u8) {
         let index = self.device_index(address);

@@ -42,7 +42,14 @@ pub(super) struct EventPoller {
     /// confirms in a request that starts at the sender, so a device may never have met the
     /// other case, and would otherwise send the same packet in every round.
     confirm_in_view: [u64; 4],
+    /// The address whose event packets came garbled in the latest polls, and how many times
+    /// in a row: two devices with one address win every arbitration together.
+    collisions: Option<(u8, u32)>,
 }
+
+/// Event polls garbled in a row under one address's packet header before it is taken for two
+/// devices sharing that address, and the polls go past it.
+const SHARED_ADDRESS_COLLISIONS: u32 = 3;
 
 impl EventPoller {
     pub(super) fn new(settings: &PortSettings) -> Self {
@@ -61,6 +68,7 @@ impl EventPoller {
             rotation_optional: false,
             confirmation_sent: None,
             confirm_in_view: [0; 4],
+            collisions: None,
         }
     }
 
@@ -174,6 +182,13 @@ impl EventPoller {
     /// The next request confirms the packet and lets the devices above its sender speak first.
     fn confirm_and_rotate(&mut self, address: u8, flag: u8, highest_listener: u8) {
         self.ack = Some((address, flag));
+        if self
+            .collisions
+            .is_some_and(|(collided, _)| collided == address)
+        {
+            // Heard alone: no longer two devices there (or it was noise).
+            self.collisions = None;
+        }
         let (word, bit) = (usize::from(address / 64), 1u64 << (address % 64));
         if let Some((confirmed, confirmed_flag, left_out_below)) = self.confirmation_sent {
             if confirmed == address && confirmed_flag == flag && left_out_below > address {
@@ -237,12 +252,32 @@ impl EventPoller {
     }
 
     /// An unreadable reply (noise, collision): confirm nothing, so the device sends its packet
-    /// again under the same flag, in the next round.
-    pub(super) fn garbled(&mut self, _now: Duration) {
+    /// again under the same flag, in the next round. `packet_from`: the address whose packet
+    /// header began it. The same address [`SHARED_ADDRESS_COLLISIONS`] times in a row is two
+    /// devices with one address: they win every arbitration together and collide, and every
+    /// device above them went unheard for good (a site tools audit: a relay's input stale for
+    /// 75 s, with no word in the log). The next round then starts past that address, so that
+    /// the others are heard in every interval; the one after asks the whole bus again. Returns
+    /// the address when it has just been taken for a shared one.
+    pub(super) fn garbled(&mut self, _now: Duration, packet_from: Option<u8>) -> Option<u8> {
         self.ack = None;
         self.rotation_optional = false;
         self.burst = 0;
         self.end_round();
+        let Some(address) = packet_from else {
+            self.collisions = None;
+            return None;
+        };
+        let count = match self.collisions {
+            Some((last, count)) if last == address => count.saturating_add(1),
+            _ => 1,
+        };
+        self.collisions = Some((address, count));
+        if count < SHARED_ADDRESS_COLLISIONS || address >= MAX_DEVICE_ADDRESS {
+            return None;
+        }
+        self.min_address = address + 1;
+        (count == SHARED_ADDRESS_COLLISIONS).then_some(address)
     }
 }
 
@@ -496,7 +531,7 @@ mod tests {
         assert!(events.rotation_optional());
         // Noise ends the chance: the next slot asks as the rotation says.
         events.started(ms(54));
-        events.garbled(ms(58));
+        events.garbled(ms(58), None);
         assert!(!events.rotation_optional());
     }
 
@@ -518,5 +553,34 @@ mod tests {
         assert_eq!(events.request().min_address, 0);
         events.packet_received(Duration::ZERO, MAX_DEVICE_ADDRESS, 0, 0);
         assert_eq!(events.request().min_address, 0);
+    }
+
+    /// Polls garbled under one address's packet header: the third in a row takes it for two
+    /// devices sharing the address (said once) and the next round starts past it; noise with
+    /// no header, or another address, starts the count again; the address heard alone ends it.
+    #[test]
+    fn polls_garbled_under_one_address_go_past_it() {
+        let ms = Duration::from_millis;
+        let mut events = poller(115_200);
+        assert_eq!(events.garbled(ms(0), Some(10)), None);
+        assert_eq!(events.garbled(ms(50), None), None);
+        assert_eq!(events.garbled(ms(100), Some(10)), None);
+        assert_eq!(events.garbled(ms(150), Some(10)), None);
+        assert_eq!(events.request().min_address, 0, "two in a row only");
+        assert_eq!(events.garbled(ms(200), Some(10)), Some(10));
+        assert_eq!(events.request().min_address, 11);
+        events.nothing_pending(ms(250));
+        assert_eq!(events.request().min_address, 0, "the whole bus again");
+        assert_eq!(events.garbled(ms(300), Some(10)), None, "said once");
+        assert_eq!(events.request().min_address, 11, "and past it again");
+        events.nothing_pending(ms(350));
+        events.packet_received(ms(400), 10, 1, 30);
+        events.nothing_pending(ms(450));
+        assert_eq!(events.garbled(ms(500), Some(10)), None);
+        assert_eq!(
+            events.request().min_address,
+            0,
+            "heard alone: counted afresh"
+        );
     }
 }

@@ -958,7 +958,7 @@ impl PortScheduler {
             None => warn!("a transaction outcome arrived with nothing in flight"),
             Some(InFlight::PollEvents { started }) => {
                 self.last_event_poll = (now, now.saturating_sub(started));
-                self.complete_event_poll(now, started, outcome, out)
+                self.complete_event_poll(now, started, outcome, &timing, out)
             }
             Some(InFlight::ContinuousRead { device, value }) => {
                 self.complete_continuous_read(now, device, value, outcome, out)
@@ -1657,6 +1657,7 @@ impl PortScheduler {
         now: Duration,
         started: Duration,
         outcome: TransactionOutcome,
+        timing: &ReplyTiming,
         out: &mut Vec<PortEvent>,
     ) {
         match outcome {
@@ -1685,7 +1686,7 @@ impl PortScheduler {
                         debug!(device = %state.plan.name, address, "event packet naming registers or widths the plan does not read: not confirmed, so that the device sends it again");
                         state.heard_from(now);
                         self.index.mark_stale(device);
-                        self.events.garbled(now);
+                        self.events.garbled(now, None);
                         return;
                     }
                 }
@@ -1806,7 +1807,19 @@ impl PortScheduler {
                 self.events.nothing_pending(started)
             }
 
-            TransactionOutcome::Garbled => self.events.garbled(now),
+            TransactionOutcome::Garbled => {
+                if let Some(address) = self.events.garbled(now, timing.garbled_packet_from) {
+                    let device = self
+                        .device_by_address(address)
+                        .and_then(|d| self.devices.get(d))
+                        .map_or_else(|| "not in the config".to_owned(), |d| d.plan.name.clone());
+                    warn!(address, %device,
+                        "event polls keep colliding at this address: two devices with one \
+                         address? Their events cannot be told apart, and their reads may be \
+                         garbled too; the devices above it are polled past it meanwhile. Give \
+                         one a free address: `rtu2mqtt fix-addresses` (docs/tools.md)");
+                }
+            }
         }
     }
 

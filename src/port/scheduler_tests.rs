@@ -2377,6 +2377,7 @@ fn bytes_of_another_device_hold_the_device_off_from_its_timeout() {
             late_byte: None,
             foreign_bytes_only: true,
             another_master: false,
+            garbled_packet_from: None,
         },
     );
     answer_until(&mut scheduler, &mut now, 30);
@@ -4744,6 +4745,7 @@ fn a_queued_transaction_ended_early_by_foreign_bytes_holds_its_device_off_from_i
         late_byte: None,
         foreign_bytes_only: true,
         another_master: false,
+        garbled_packet_from: None,
     };
     let (mut scheduler, mut now) = two_answering_devices();
     let sent_at = now;

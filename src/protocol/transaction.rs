@@ -50,6 +50,10 @@ pub struct ReplyTiming {
     /// A reply came, but another master's request was heard shortly before it or in its
     /// window: it may answer that request, so it was not taken (the outcome is `Garbled`).
     pub another_master: bool,
+    /// An event poll's reply began with the header of this address's event packet and was
+    /// unreadable after it (the outcome is `Garbled`): noise, or two devices with one address,
+    /// which win the arbitration together and send at once.
+    pub garbled_packet_from: Option<u8>,
 }
 
 /// What came back for a transaction.

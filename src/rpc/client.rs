@@ -33,8 +33,10 @@ pub enum CallError {
 /// Extra time given to a reply beyond the request's own `total_timeout` (broker round trips).
 const REPLY_MARGIN: Duration = Duration::from_secs(3);
 /// How long a call still waits for another server after one said the port is not its own
-/// ([`RpcError::is_not_served_here`]): the one that serves it answers after its bus work, which
-/// for one request of the site tools is well under this.
+/// ([`RpcError::is_not_served_here`]), before any server has listed the port: a port nobody
+/// serves (a typo) is said soon. Once one has ([`RpcSession::port_is_served`]), the call's
+/// own timeout applies (a site tools audit: a scan through the service, beside another
+/// server, was reported as "not served" after 2 s).
 const OTHER_SERVER_GRACE: Duration = Duration::from_secs(2);
 /// How long connecting to the broker and subscribing may take.
 const CONNECT_TIMEOUT: Duration = Duration::from_secs(5);
@@ -55,6 +57,10 @@ pub struct RpcSession {
     client_id: String,
     broker: String,
     next_id: u64,
+    /// A server on the broker listed the port these calls are for (`ports/Load`): another
+    /// server's "not my port" is then no answer however long the right one takes (a scan of a
+    /// setting takes seconds), only its own reply or the call's timeout is.
+    port_served: bool,
 }
 
 impl RpcSession {
@@ -95,6 +101,7 @@ impl RpcSession {
             client_id,
             broker: address,
             next_id: 1,
+            port_served: false,
         };
         let filter = format!("{TOPIC_ROOT}/+/+/{}/reply", session.client_id);
         let setup = async {
@@ -127,6 +134,11 @@ impl RpcSession {
                 None => return Err(broker_error(&self.broker, "the connection ended")),
             }
         }
+    }
+
+    /// A server listed the port the calls are for: see [`Self::port_served`].
+    pub fn port_is_served(&mut self) {
+        self.port_served = true;
     }
 
     /// Calls `service/method` with `params` and waits for its reply. `total_timeout` is sent
@@ -181,10 +193,14 @@ impl RpcSession {
         let deadline = tokio::time::Instant::now() + waited;
         let broker = self.broker.clone();
         let mut kept: Option<Result<Value, RpcError>> = None;
+        // When the grace after the first reply that does not answer ends (counted from that
+        // reply, not from every message since).
+        let mut grace_ends = deadline;
         loop {
-            let until = match &kept {
-                Some(_) => deadline.min(tokio::time::Instant::now() + OTHER_SERVER_GRACE),
-                None => deadline,
+            let until = if kept.is_some() && !self.port_served {
+                grace_ends
+            } else {
+                deadline
             };
             let Ok(incoming) = tokio::time::timeout_at(until, self.incoming.recv()).await else {
                 return match kept {
@@ -202,7 +218,10 @@ impl RpcSession {
                     if answers(&outcome) {
                         return outcome.map_err(CallError::Refused);
                     }
-                    kept.get_or_insert(outcome);
+                    if kept.is_none() {
+                        grace_ends = deadline.min(tokio::time::Instant::now() + OTHER_SERVER_GRACE);
+                        kept = Some(outcome);
+                    }
                 }
                 Some(Incoming::Failed(reason)) => return Err(broker_error(&broker, reason)),
                 Some(_) => {}

@@ -86,6 +86,24 @@ pub fn parse_parity(text: &str) -> Result<Parity, String> {
     }
 }
 
+/// Parses a baud rate the config would take ([`MIN_BAUD_RATE`]..=[`MAX_BAUD_RATE`]): a typo
+/// such as 0 or 1 would time every reply in minutes (and 0 hangs a real port up).
+pub fn parse_baud(text: &str) -> Result<u32, String> {
+    use crate::config::config_file::{MAX_BAUD_RATE, MIN_BAUD_RATE};
+    let baud: u32 = text
+        .trim()
+        .parse()
+        .map_err(|_| format!("baud rate {text:?}: a number such as 9600 or 115200"))?;
+    if (MIN_BAUD_RATE..=MAX_BAUD_RATE).contains(&baud) {
+        Ok(baud)
+    } else {
+        Err(format!(
+            "baud rate {baud}: out of {MIN_BAUD_RATE}..{MAX_BAUD_RATE} (usual: {})",
+            crate::protocol::timing::usual_baud_rates_text()
+        ))
+    }
+}
+
 /// Parses `1-247` (inclusive) or a single address.
 pub fn parse_range(text: &str) -> Result<(u8, u8), String> {
     let (low, high) = text.split_once('-').unwrap_or((text, text));

@@ -36,7 +36,7 @@ use tracing::debug;
 
 use super::mbap::MbapCodec;
 use super::other_master::OtherMasters;
-use crate::protocol::fast::BROADCAST_ADDRESS;
+use crate::protocol::fast::{BROADCAST_ADDRESS, EVENTS_REPLY};
 use crate::protocol::frame::MAX_DEVICE_ADDRESS;
 use crate::protocol::parser::{answers, ARBITRATION_FILLER};
 use crate::protocol::pdu::FrameLength;
@@ -942,6 +942,10 @@ impl Exchange {
                     // No reply among them: another master's request and its answer may be.
                     self.other_masters.in_window(now, &self.window_bytes);
                 }
+                if outcome == TransactionOutcome::Garbled {
+                    timing.garbled_packet_from =
+                        event_packet_header(&receiving.request, &self.window_bytes);
+                }
                 self.state = State::Done(outcome, timing);
             }
             _ => {}
@@ -1155,6 +1159,22 @@ fn could_begin_reply(request: &Request, byte: u8) -> bool {
         }
         _ => byte != ARBITRATION_FILLER,
     }
+}
+
+/// The address whose event packet header (address, the request's function, 0x11) is in `bytes`
+/// after an event poll: who began the reply that came garbled.
+fn event_packet_header(request: &Request, bytes: &[u8]) -> Option<u8> {
+    if !matches!(request.body, RequestBody::Fast(FastRequest::PollEvents(_))) {
+        return None;
+    }
+    bytes.windows(3).find_map(|header| match *header {
+        [address, function, EVENTS_REPLY]
+            if (1..=MAX_DEVICE_ADDRESS).contains(&address) && function == request.fast_function =>
+        {
+            Some(address)
+        }
+        _ => None,
+    })
 }
 
 /// Replies to these requests come after an arbitration among devices: their start and length
@@ -1454,6 +1474,7 @@ mod window {
                 // The window cannot tell: the exchange's parser does.
                 foreign_bytes_only: false,
                 another_master: false,
+                garbled_packet_from: None,
             }
         }
     }
@@ -2579,6 +2600,20 @@ mod tests {
             }
             assert_eq!(outcomes, [false, true, true, true, true], "at {baud}");
         }
+    }
+
+    /// The address of an event packet header in a garbled reply to an event poll (two devices
+    /// with one address send identical headers, then collide); nothing for other requests, or
+    /// without the header.
+    #[test]
+    fn the_sender_of_a_garbled_event_packet_is_told() {
+        let poll = event_poll();
+        let function = poll.fast_function;
+        let collided = [0xFF, 0xFF, 0xFE, 0x0A, function, 0x11, 0x13, 0x77, 0x01];
+        assert_eq!(event_packet_header(&poll, &collided), Some(0x0A));
+        assert_eq!(event_packet_header(&poll, &[0xFF, 0x0A, 0x03, 0x11]), None);
+        assert_eq!(event_packet_header(&poll, &[0xFF, 0xFF, 0x00]), None);
+        assert_eq!(event_packet_header(&read_request(), &collided), None);
     }
 
     #[test]
