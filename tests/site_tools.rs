@@ -2266,3 +2266,46 @@ fn a_baud_rate_typo_is_refused_at_once() {
         assert!(run.stderr.contains("out of 110..4000000"), "{}", run.stderr);
     }
 }
+
+/// A write by address to two devices that share it, at a setting given (no scan before it):
+/// both take it, their replies collide, and the tool says that each most likely carried it out,
+/// not only "unreadable reply" (a site tools audit), at 9600 8N2.
+#[test]
+fn a_write_to_a_shared_address_says_both_devices_took_it() {
+    let sim = sim();
+    let run = access(
+        &sim,
+        &[
+            "write",
+            "--address",
+            "10",
+            "--type",
+            "coil",
+            "--reg",
+            "3",
+            "--baud",
+            "9600",
+            "--parity",
+            "N",
+            "--stop-bits",
+            "2",
+            "--latency",
+            LATENCY_MS,
+            "1",
+        ],
+    );
+    assert_eq!(run.code, 1, "{}{}", run.stdout, run.stderr);
+    assert!(
+        run.stderr.contains("unreadable reply")
+            && run
+                .stderr
+                .contains("each of them most likely carried out the write"),
+        "{}",
+        run.stderr
+    );
+    for serial in ["0xFE000010", "0xFE000011"] {
+        let coil =
+            sim.control(json!({"cmd": "get", "serial": serial, "type": "coil", "address": 3}));
+        assert_eq!(coil["value"], 1, "{serial}: {coil}");
+    }
+}

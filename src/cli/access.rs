@@ -298,6 +298,27 @@ fn failure(target: &Target, answer: &Answer, timeout: Duration) -> String {
     }
 }
 
+/// [`failure`] of a write, with what it means for the devices: a write whose reply was lost
+/// may have been carried out, and an unreadable reply to a write by address is most often two
+/// devices answering at once, each of which took it (a site tools audit: both devices of a
+/// duplicate address had their coil set, and the tool said only "unreadable reply").
+fn failure_of_write(target: &Target, answer: &Answer, timeout: Duration) -> String {
+    let mut text = failure(target, answer, timeout);
+    match answer {
+        Answer::Garbled if target.serial.is_none() => text.push_str(
+            "\nif two devices share that address, each of them most likely carried out the \
+             write (nothing was verified): `rtu2mqtt scan` lists duplicates, `rtu2mqtt \
+             fix-addresses` separates them",
+        ),
+        Answer::NoReply | Answer::Garbled => text.push_str(
+            "\nthe write may have been carried out and only its reply lost: read the register \
+             before writing again",
+        ),
+        Answer::Pdu(_) => {}
+    }
+    text
+}
+
 /// How many registers (or bits) one request may carry, as Modbus allows: reads of 1..=125
 /// registers or 1..=2000 bits, writes of 1..=123 registers or 1..=1968 coils.
 pub fn span_limit(register_type: RegisterType, write: bool) -> u16 {
@@ -594,7 +615,7 @@ async fn write(args: &WriteArgs) -> Result<ExitCode, PortError> {
         )
     );
     if !written {
-        eprintln!("{}", failure(&target, &answer, timeout));
+        eprintln!("{}", failure_of_write(&target, &answer, timeout));
         return Ok(ExitCode::from(exit::NOT_FOUND));
     }
     if args.no_read_back {
@@ -700,6 +721,9 @@ async fn load_via_service(
     let result = match called {
         Ok(result) => result,
         Err(CallError::Refused(refused)) => match super::via_mqtt::answer_of_refusal(&refused) {
+            Some(answer) if pdu.is_write() => {
+                return Ok(Err(failure_of_write(target, &answer, timeout)))
+            }
             Some(answer) => return Ok(Err(failure(target, &answer, timeout))),
             None => return Err(call_failure(&CallError::Refused(refused))),
         },

@@ -921,12 +921,19 @@ impl Exchange {
                     Some(mbap) => mbap.has_partial_frame(),
                     None => !receiving.parser.buffered().is_empty(),
                 };
-                let outcome = if receiving.garbled || incomplete {
+                let mut timing = receiving.window.timing();
+                // A scan step with bytes in its window (arbitration fillers, then no frame):
+                // a device took part and its reply was lost, not an empty setting (a site tools
+                // audit: under load a scan dropped whole settings so, with no word).
+                let scan_answered = matches!(
+                    receiving.request.body,
+                    RequestBody::Fast(FastRequest::ScanStart | FastRequest::ScanContinue)
+                ) && timing.first_byte.is_some();
+                let outcome = if receiving.garbled || incomplete || scan_answered {
                     TransactionOutcome::Garbled
                 } else {
                     TransactionOutcome::NoReply
                 };
-                let mut timing = receiving.window.timing();
                 // A reply cut short once its header was in began too, when nothing was dropped
                 // before it. Over Modbus TCP a gateway answers each request once: its bytes are
                 // its reply.
@@ -2871,6 +2878,26 @@ mod tests {
     /// filler reads as 0xFE (two contenders' fillers a fraction of a bit apart, or noise): taken
     /// for a frame begun, it let the quiet gap end the scan step (Garbled); no byte but 0xFD
     /// begins a scan reply.
+    /// A scan step whose arbitration came (fillers) but whose frame did not (lost to noise, a
+    /// loaded machine): someone answered, and the setting is scanned again (Garbled), not
+    /// taken for an empty one (NoReply: the whole setting was dropped with no word). A scan
+    /// step with nothing at all stays NoReply.
+    #[test]
+    fn a_scan_step_with_fillers_and_no_frame_is_garbled_not_silent() {
+        for baud in [9600, 115_200] {
+            let line = line(baud);
+            let transaction = scan_start_transaction(&line);
+            let fillers = scan_fillers(&line, transaction.request_time, 0xFE12_3456);
+            assert!(!fillers.is_empty());
+            let mut exchange = Exchange::new(LinkConfig::serial(line));
+            let finished = run(&mut exchange, &transaction, ms(0), &fillers);
+            assert_eq!(finished.outcome, TransactionOutcome::Garbled, "at {baud}");
+            let mut exchange = Exchange::new(LinkConfig::serial(line));
+            let finished = run(&mut exchange, &transaction, ms(0), &[]);
+            assert_eq!(finished.outcome, TransactionOutcome::NoReply, "at {baud}");
+        }
+    }
+
     #[test]
     fn silent_arbitration_windows_do_not_end_a_scan_or_an_event_poll() {
         for (baud, serial, first_filler) in [
