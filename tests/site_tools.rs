@@ -2309,3 +2309,51 @@ fn a_write_to_a_shared_address_says_both_devices_took_it() {
         assert_eq!(coil["value"], 1, "{serial}: {coil}");
     }
 }
+
+/// `scan --classic` at 9600: a device without Fast Modbus at the address of one the Fast Modbus
+/// scan found is said (the two answer a read of the serial number at once), where it was
+/// skipped and the clash invisible to every tool (a site tools audit); the Fast Modbus device
+/// alone there is not taken for a clash.
+#[test]
+fn classic_scan_says_a_classic_device_sharing_a_fast_modbus_address() {
+    let relay = sim_support::data("relay.json");
+    let relay = relay.to_str().unwrap().to_owned();
+    for with_meter in [true, false] {
+        let dir = tempfile::tempdir().unwrap();
+        let bus = dir.path().join("bus.json");
+        let mut devices = vec![json!({"name": "relay", "template": relay, "address": 12,
+            "serial": "0xFE000012", "line": "9600 8N2", "model": "WBMR6C", "firmware": "1.26.0"})];
+        if with_meter {
+            devices.push(
+                json!({"name": "meter", "address": 12, "serial": "0xFE000040",
+                "line": "9600 8N2", "fast": false,
+                "registers": [{"type": "holding", "address": 0, "count": 8}]}),
+            );
+        }
+        std::fs::write(&bus, json!({ "devices": devices }).to_string()).unwrap();
+        let sim = SimProcess::start_with(&bus, &sim_support::data(""), &[]);
+        let report = scan_json(
+            &sim,
+            &[
+                "--baud",
+                "9600",
+                "--parity",
+                "N",
+                "--stop-bits",
+                "2",
+                "--classic",
+                "--range",
+                "11-13",
+                "--timeout",
+                "150",
+            ],
+        );
+        let problems = report["problems"].to_string();
+        assert_eq!(
+            problems.contains("a device without Fast Modbus probably shares this address"),
+            with_meter,
+            "meter at 12: {with_meter}: {report:#}"
+        );
+        assert_eq!(found(&report), vec![(0xFE00_0012, 12, "9600 8N2".into())]);
+    }
+}

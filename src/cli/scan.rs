@@ -403,11 +403,28 @@ async fn classic_scan(
         tokio::time::sleep(timeout).await;
         for address in range.0..=range.1 {
             done += 1;
-            let known = report
+            let known: Vec<Option<u32>> = report
                 .devices
                 .iter()
-                .any(|d| d.address == address && d.answers_at(&line));
-            if known {
+                .filter(|d| d.address == address && d.answers_at(&line))
+                .map(|d| d.serial)
+                .collect();
+            if let [serial] = known[..] {
+                // A device without Fast Modbus may share the address of one the scan found:
+                // asked for the serial number, the two answer differently and collide (a site
+                // tools audit: such a clash was invisible to every tool).
+                report.classic_probes += 1;
+                if let Some(what) =
+                    shared_with_a_classic_device(port, line, address, serial, timeout).await?
+                {
+                    report
+                        .problems
+                        .push(crate::tools::report::SettingProblem { line, what });
+                }
+                continue;
+            }
+            if !known.is_empty() {
+                // Several Fast Modbus devices there: a duplicate the scan reports already.
                 continue;
             }
             let probed = report.classic_probes - probes_before;
@@ -450,6 +467,48 @@ async fn classic_scan(
         eprint!("{}", clear(true));
     }
     Ok(())
+}
+
+/// Whether a device without Fast Modbus answers at `address` besides the one the Fast Modbus
+/// scan found there (`serial`): a read of the serial number (holding 270..271) comes back
+/// unreadable (two replies at once) or with another number. Said as a problem of the setting.
+async fn shared_with_a_classic_device(
+    port: &mut ToolPort,
+    line: LineSettings,
+    address: u8,
+    serial: Option<u32>,
+    timeout: Duration,
+) -> Result<Option<String>, PortError> {
+    let probe = RequestPdu::ReadHoldingRegisters {
+        start: 270,
+        count: 2,
+    };
+    let answer = port.classic(line, address, probe, timeout).await?;
+    let read = match &answer {
+        Answer::Pdu(ResponsePdu::ReadHoldingRegisters { values }) => {
+            crate::daemon::identity::serial_of(values)
+        }
+        _ => None,
+    };
+    let shared = match answer {
+        Answer::Garbled => true,
+        Answer::Pdu(ResponsePdu::ReadHoldingRegisters { .. }) => {
+            read.is_some() && serial.is_some() && read != serial
+        }
+        // Refused or silent: the Fast Modbus device alone, without that register.
+        Answer::Pdu(_) | Answer::NoReply => false,
+    };
+    Ok(shared.then(|| {
+        format!(
+            "address {address}: a classic request got {} where the Fast Modbus scan found serial              {}: a device without Fast Modbus probably shares this address (give one of them              another address)",
+            if read.is_some() {
+                "another serial number"
+            } else {
+                "an unreadable reply"
+            },
+            serial.map_or("?".to_owned(), |s| s.to_string())
+        )
+    }))
 }
 
 fn clear(terminal: bool) -> &'static str {
