@@ -378,6 +378,24 @@ pub trait ToolBus {
         })
     }
 
+    /// [`Self::by_serial`], once more when nothing readable came: a scan's details of a device
+    /// that answered its scan step a moment ago (a reply lost to noise must not pass for a
+    /// register the device lacks: a site tools audit saw "stop bits not reported" and a
+    /// `FIXME` device type in `--config` for a read lost so).
+    async fn by_serial_again_if_lost(
+        &mut self,
+        line: LineSettings,
+        serial: u32,
+        pdu: RequestPdu,
+        timeout: Duration,
+    ) -> Result<Answer, PortError> {
+        let answer = self.by_serial(line, serial, pdu.clone(), timeout).await?;
+        if matches!(answer, Answer::NoReply | Answer::Garbled) {
+            return self.by_serial(line, serial, pdu, timeout).await;
+        }
+        Ok(answer)
+    }
+
     /// A classic request to one address.
     async fn classic(
         &mut self,
@@ -427,7 +445,7 @@ pub trait ToolBus {
     ) -> Result<(Identity, Option<LineSettings>), PortError> {
         let settings = port_settings_in(
             &self
-                .by_serial(line, serial, PORT_SETTINGS_READ, KNOWN_DEVICE_TIMEOUT)
+                .by_serial_again_if_lost(line, serial, PORT_SETTINGS_READ, KNOWN_DEVICE_TIMEOUT)
                 .await?,
         );
         let mut texts = Vec::new();
@@ -457,7 +475,7 @@ pub trait ToolBus {
         for (start, count) in text_reads(start, count) {
             let pdu = RequestPdu::ReadHoldingRegisters { start, count };
             match self
-                .by_serial(line, serial, pdu, KNOWN_DEVICE_TIMEOUT)
+                .by_serial_again_if_lost(line, serial, pdu, KNOWN_DEVICE_TIMEOUT)
                 .await?
             {
                 Answer::Pdu(ResponsePdu::ReadHoldingRegisters { values }) => {
@@ -609,6 +627,77 @@ pub fn scan_transaction(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A bus that answers each request by serial number from a script, in order: `None` for a
+    /// lost reply, else the registers read.
+    struct Scripted {
+        answers: std::collections::VecDeque<Option<Vec<u16>>>,
+        asked: usize,
+    }
+
+    impl ToolBus for Scripted {
+        fn latency(&self) -> Duration {
+            Duration::ZERO
+        }
+
+        async fn transact(
+            &mut self,
+            _line: LineSettings,
+            transaction: Transaction,
+        ) -> Result<TransactionOutcome, PortError> {
+            self.asked += 1;
+            let serial = match transaction.request.body {
+                crate::protocol::RequestBody::Fast(crate::protocol::FastRequest::BySerial {
+                    serial,
+                    ..
+                }) => serial,
+                _ => panic!("not a request by serial number"),
+            };
+            Ok(match self.answers.pop_front().flatten() {
+                Some(values) => TransactionOutcome::Reply(Reply::fast(
+                    fast::BROADCAST_ADDRESS,
+                    FastReply::BySerial {
+                        serial,
+                        pdu: ResponsePdu::ReadHoldingRegisters { values },
+                    },
+                )),
+                None => TransactionOutcome::NoReply,
+            })
+        }
+    }
+
+    /// A scan's details of a device whose reply to the port settings read was lost once: read
+    /// again, so the settings are known (they were reported as "not reported (holding 112)",
+    /// and `--config` wrote stop bits 2 for them).
+    #[tokio::test]
+    async fn details_read_again_when_a_reply_is_lost() {
+        let text = |t: &str| {
+            let mut words: Vec<u16> = t.bytes().map(u16::from).collect();
+            words.resize(12, 0);
+            Some(words)
+        };
+        let mut bus = Scripted {
+            answers: [
+                None,
+                Some(vec![96, 0, 1]),
+                text("WBMR6C"),
+                None,
+                text("1.26.0"),
+                text("sig"),
+            ]
+            .into_iter()
+            .collect(),
+            asked: 0,
+        };
+        let (identity, settings) = bus
+            .details(LineSettings::new(9600, Parity::None, 2), 0xFE00_0020)
+            .await
+            .unwrap();
+        assert_eq!(settings, Some(LineSettings::new(9600, Parity::None, 1)));
+        assert_eq!(identity.model.as_deref(), Some("WBMR6C"));
+        assert_eq!(identity.firmware.as_deref(), Some("1.26.0"));
+        assert_eq!(bus.asked, 6);
+    }
 
     #[test]
     fn open_errors_become_what_to_do() {
