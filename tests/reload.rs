@@ -357,18 +357,24 @@ async fn a_write_its_port_could_not_take_in_time_is_given_up_not_sent_late() {
     };
     let daemon = Daemon::start(dir.path(), &config_path, "info");
     switch_k3_on_while_the_port_is_missing(port, &daemon).await;
-    wait_for("the write given up and flagged", || async {
+    // Flagged `w` at once (the write waits for the port), given up after its retry time.
+    wait_for("the write flagged", || async {
         topic_value(port, "/devices/relay6_20/controls/K3/meta/error")
             .await
             .filter(|flags| flags.contains('w'))
     })
     .await;
-    assert!(
+    wait_for("the write given up", || async {
         daemon
             .log()
-            .contains("write given up: the port has been unavailable"),
-        "{}",
-        daemon.log()
+            .contains("write given up: the port has been unavailable")
+            .then_some(())
+    })
+    .await;
+    let flags = topic_value(port, "/devices/relay6_20/controls/K3/meta/error").await;
+    assert!(
+        flags.as_deref().is_some_and(|f| f.contains('w')),
+        "still flagged once given up: {flags:?}"
     );
     wait_for("the relay marked offline", || async {
         daemon.log().contains("device marked offline").then_some(())

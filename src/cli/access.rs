@@ -679,10 +679,10 @@ fn open_or_service(args: &TargetArgs) -> Result<Option<ToolPort>, PortError> {
 /// The device and settings a request through the service goes to: the settings the options
 /// name, else the ones the service runs the port at.
 async fn service_target(args: &TargetArgs, session: &mut RpcSession) -> Result<Target, ExitCode> {
-    let line = match args.port.single_line() {
-        Some(line) => line,
-        None => served_line(session, &args.port.port).await?,
-    };
+    // Looked up even with the settings given: a typo in the port is said at once, and beside
+    // another RPC server the request waits for the one that serves it (`port_is_served`).
+    let served = served_line(session, &args.port.port).await?;
+    let line = args.port.single_line().unwrap_or(served);
     Ok(Target {
         line,
         address: args.address,

@@ -302,6 +302,9 @@ async fn service_stream(
     session: &mut RpcSession,
 ) -> Result<ExitCode, ExitCode> {
     let path = args.port.port.as_str();
+    // A typo in the port is said at once, and beside another RPC server each call waits for
+    // the one that serves it.
+    super::via_mqtt::served_line(session, path).await?;
     let read = |from: Option<(u64, u64)>, wait: Duration| {
         let mut params = json!({
             "path": path,

@@ -471,6 +471,7 @@ impl PortTask {
             }
         }
         let previous = self.identity.serials.get(device).copied().flatten();
+        let replaced = matches!((previous, read.serial), (Some(old), Some(new)) if old != new);
         match (previous, read.serial) {
             (Some(old), Some(new)) if old != new => {
                 warn!(
@@ -512,7 +513,12 @@ impl PortTask {
         let Some(known) = self.identity.known.get_mut(device) else {
             return;
         };
-        *known = read.over(known);
+        // Another device: what got no answer is unknown, not the device before's.
+        *known = if replaced {
+            read.over(&DeviceIdentity::default())
+        } else {
+            read.over(known)
+        };
         let identity = known.clone();
         self.send(vec![DeviceUpdate::Identity {
             device_id,
@@ -1913,6 +1919,40 @@ mod tests {
     /// The port task's side of finding 6: a read that got nothing schedules the retry, an
     /// answered one clears it. Half a read (the serial number unanswered) is tried again, and
     /// what it did answer is taken, the serial number standing as it was known.
+    /// Review of 28 Nov: a replaced device (serial 1 -> 2) whose model and firmware got no
+    /// answer in the read that noticed it: the old device's model and firmware were published
+    /// under the new serial number until a retry answered them. They are unknown now.
+    #[tokio::test]
+    async fn a_replaced_device_does_not_inherit_the_old_ones_firmware() {
+        let mut task = relay_task_with_identity();
+        task.identity.serials[0] = Some(1);
+        task.identity.known[0] = identity("WBMR6", "1", "1.0");
+        let replaced = IdentityRead {
+            identity: DeviceIdentity {
+                serial_number: Some("2".into()),
+                ..DeviceIdentity::default()
+            },
+            serial: Some(2),
+            unanswered: crate::daemon::identity::Unanswered {
+                serial: false,
+                model: true,
+                firmware: true,
+            },
+        };
+        task.identity_read(0, replaced).await;
+        assert_eq!(
+            task.identity.serials[0],
+            Some(2),
+            "the replacement is noticed"
+        );
+        assert_ne!(
+            task.identity.known[0].firmware.as_deref(),
+            Some("1.0"),
+            "the old device's firmware published for the new one: {:?}",
+            task.identity.known[0]
+        );
+    }
+
     #[tokio::test]
     async fn an_empty_identity_read_schedules_a_retry_and_an_answer_clears_it() {
         let mut task = relay_task_with_identity();

@@ -256,10 +256,16 @@ impl EventPoller {
     /// header began it. The same address [`SHARED_ADDRESS_COLLISIONS`] times in a row is two
     /// devices with one address: they win every arbitration together and collide, and every
     /// device above them went unheard for good (a site tools audit: a relay's input stale for
-    /// 75 s, with no word in the log). The next round then starts past that address, so that
-    /// the others are heard in every interval; the one after asks the whole bus again. Returns
-    /// the address when it has just been taken for a shared one.
-    pub(super) fn garbled(&mut self, _now: Duration, packet_from: Option<u8>) -> Option<u8> {
+    /// 75 s, with no word in the log). The next request then starts past that address (when a
+    /// device with events is above it, `highest_listener`), so that the others are heard in
+    /// every interval; once nothing more is pending there, the whole bus is asked again at once.
+    /// Returns the address when it has just been taken for a shared one.
+    pub(super) fn garbled(
+        &mut self,
+        _now: Duration,
+        packet_from: Option<u8>,
+        highest_listener: u8,
+    ) -> Option<u8> {
         self.ack = None;
         self.rotation_optional = false;
         self.burst = 0;
@@ -273,10 +279,12 @@ impl EventPoller {
             _ => 1,
         };
         self.collisions = Some((address, count));
-        if count < SHARED_ADDRESS_COLLISIONS || address >= MAX_DEVICE_ADDRESS {
+        if count < SHARED_ADDRESS_COLLISIONS {
             return None;
         }
-        self.min_address = address + 1;
+        if address < highest_listener.min(MAX_DEVICE_ADDRESS) {
+            self.min_address = address + 1;
+        }
         (count == SHARED_ADDRESS_COLLISIONS).then_some(address)
     }
 }
@@ -531,7 +539,7 @@ mod tests {
         assert!(events.rotation_optional());
         // Noise ends the chance: the next slot asks as the rotation says.
         events.started(ms(54));
-        events.garbled(ms(58), None);
+        events.garbled(ms(58), None, 247);
         assert!(!events.rotation_optional());
     }
 
@@ -562,25 +570,38 @@ mod tests {
     fn polls_garbled_under_one_address_go_past_it() {
         let ms = Duration::from_millis;
         let mut events = poller(115_200);
-        assert_eq!(events.garbled(ms(0), Some(10)), None);
-        assert_eq!(events.garbled(ms(50), None), None);
-        assert_eq!(events.garbled(ms(100), Some(10)), None);
-        assert_eq!(events.garbled(ms(150), Some(10)), None);
+        assert_eq!(events.garbled(ms(0), Some(10), 30), None);
+        assert_eq!(events.garbled(ms(50), None, 30), None);
+        assert_eq!(events.garbled(ms(100), Some(10), 30), None);
+        assert_eq!(events.garbled(ms(150), Some(10), 30), None);
         assert_eq!(events.request().min_address, 0, "two in a row only");
-        assert_eq!(events.garbled(ms(200), Some(10)), Some(10));
+        assert_eq!(events.garbled(ms(200), Some(10), 30), Some(10));
         assert_eq!(events.request().min_address, 11);
         events.nothing_pending(ms(250));
         assert_eq!(events.request().min_address, 0, "the whole bus again");
-        assert_eq!(events.garbled(ms(300), Some(10)), None, "said once");
+        assert_eq!(events.garbled(ms(300), Some(10), 30), None, "said once");
         assert_eq!(events.request().min_address, 11, "and past it again");
         events.nothing_pending(ms(350));
         events.packet_received(ms(400), 10, 1, 30);
         events.nothing_pending(ms(450));
-        assert_eq!(events.garbled(ms(500), Some(10)), None);
+        assert_eq!(events.garbled(ms(500), Some(10), 30), None);
         assert_eq!(
             events.request().min_address,
             0,
             "heard alone: counted afresh"
         );
+        // The highest device with events, or 247: said, but nobody above to make room for (a
+        // request past it would only cost a timeout).
+        for (address, highest) in [(30, 30), (247, 247)] {
+            let mut events = poller(115_200);
+            for at in 0..2 {
+                assert_eq!(events.garbled(ms(at * 50), Some(address), highest), None);
+            }
+            assert_eq!(
+                events.garbled(ms(100), Some(address), highest),
+                Some(address)
+            );
+            assert_eq!(events.request().min_address, 0, "{address}");
+        }
     }
 }

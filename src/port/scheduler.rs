@@ -390,6 +390,8 @@ pub struct PortScheduler {
     in_flight_reply_by: Duration,
     /// The bus time retries of devices that seem dead may still take.
     dead_retries: DeadRetryBudget,
+    /// The shared address last warned of, and when (see `complete_event_poll`).
+    shared_address_told: Option<(u8, Duration)>,
     /// When the last event poll ended and how long it took.
     last_event_poll: (Duration, Duration),
     /// Whether anything but an event poll went out since the last event poll.
@@ -462,6 +464,7 @@ impl PortScheduler {
             low_priority_lag: Duration::ZERO,
             in_flight_reply_by: Duration::ZERO,
             dead_retries: DeadRetryBudget::default(),
+            shared_address_told: None,
             last_event_poll: (Duration::ZERO, Duration::ZERO),
             sent_since_event_poll: false,
             startup_swept: false,
@@ -1686,7 +1689,7 @@ impl PortScheduler {
                         debug!(device = %state.plan.name, address, "event packet naming registers or widths the plan does not read: not confirmed, so that the device sends it again");
                         state.heard_from(now);
                         self.index.mark_stale(device);
-                        self.events.garbled(now, None);
+                        self.events.garbled(now, None, 0);
                         return;
                     }
                 }
@@ -1808,7 +1811,18 @@ impl PortScheduler {
             }
 
             TransactionOutcome::Garbled => {
-                if let Some(address) = self.events.garbled(now, timing.garbled_packet_from) {
+                let highest_listener = self.index.highest_listener().unwrap_or(0);
+                let shared = self
+                    .events
+                    .garbled(now, timing.garbled_packet_from, highest_listener);
+                // Once per address in ten minutes: noise can look alike now and then.
+                let told_lately = |(told, at): (u8, Duration)| {
+                    shared == Some(told) && now.saturating_sub(at) < SHARED_ADDRESS_WARNING_EVERY
+                };
+                if let Some(address) =
+                    shared.filter(|_| !self.shared_address_told.is_some_and(told_lately))
+                {
+                    self.shared_address_told = Some((address, now));
                     let device = self
                         .device_by_address(address)
                         .and_then(|d| self.devices.get(d))
@@ -2371,6 +2385,9 @@ impl WriteOutcome {
         }
     }
 }
+
+/// How often the warning of two devices with one address may come again for the same address.
+const SHARED_ADDRESS_WARNING_EVERY: Duration = Duration::from_secs(600);
 
 /// The choices as they were made before the index, by a scan of every device: the index is
 /// checked against them at every [`PortScheduler::next`] of the unit tests.
