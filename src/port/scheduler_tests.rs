@@ -1240,6 +1240,20 @@ fn a_write_answered_busy_is_sent_again() {
     }
 }
 
+/// A device at 1 with a 1 s response timeout (a dear retry) and one at 2 with 50 ms (a cheap
+/// one).
+fn slow_and_absent_devices() -> [DevicePlan; 2] {
+    let slow = DevicePlan {
+        response_timeout: ms(1000),
+        ..device(1, vec![read(RegisterType::Holding, 0, EventMode::Polled)])
+    };
+    let absent = DevicePlan {
+        response_timeout: ms(50),
+        ..device(2, vec![read(RegisterType::Holding, 0, EventMode::Polled)])
+    };
+    [slow, absent]
+}
+
 /// Two devices that seem dead (a gateway that fell silent): one whose retry costs 1–2 s of the
 /// dead devices' budget (a 1 s timeout, and the late window every fourth retry), and an absent
 /// one whose retry costs 0.1 s. With no live device on the port the budget protects nobody and
@@ -1250,14 +1264,7 @@ fn a_write_answered_busy_is_sent_again() {
 /// live device on the port too, see the next test.
 #[test]
 fn a_dead_device_with_a_dear_retry_is_not_starved_by_a_cheap_one() {
-    let slow = DevicePlan {
-        response_timeout: ms(1000),
-        ..device(1, vec![read(RegisterType::Holding, 0, EventMode::Polled)])
-    };
-    let absent = DevicePlan {
-        response_timeout: ms(50),
-        ..device(2, vec![read(RegisterType::Holding, 0, EventMode::Polled)])
-    };
+    let [slow, absent] = slow_and_absent_devices();
     let mut scheduler = PortScheduler::new(settings(115_200), vec![slow, absent]);
     let mut log = Log::default();
     let gateway_back = ms(60_000);
@@ -1297,14 +1304,7 @@ fn a_dead_device_with_a_dear_retry_is_not_starved_by_a_cheap_one() {
 /// s, and the device is back within that.
 #[test]
 fn a_dead_device_with_a_dear_retry_is_not_starved_by_a_cheap_one_beside_a_live_one() {
-    let slow = DevicePlan {
-        response_timeout: ms(1000),
-        ..device(1, vec![read(RegisterType::Holding, 0, EventMode::Polled)])
-    };
-    let absent = DevicePlan {
-        response_timeout: ms(50),
-        ..device(2, vec![read(RegisterType::Holding, 0, EventMode::Polled)])
-    };
+    let [slow, absent] = slow_and_absent_devices();
     let live = device(3, vec![read(RegisterType::Holding, 0, EventMode::Polled)]);
     let mut scheduler = PortScheduler::new(settings(115_200), vec![slow, absent, live]);
     let mut log = Log::default();

@@ -1858,6 +1858,27 @@ mod tests {
         drive(exchange, transaction, start, &arrivals, true)
     }
 
+    /// A read of two input registers of device 0x1E from `start` ([`reply_frame`] answers it).
+    fn block_read(line: &LineSettings, start: u16) -> Transaction {
+        transaction(
+            line,
+            Request::classic(0x1E, RequestPdu::ReadInputRegisters { start, count: 2 }),
+        )
+    }
+
+    /// `transaction` begun at `at`, its reply beginning `delay` after the request, read as it
+    /// comes (timed: what a reply's pace is learned from).
+    fn answered_as_it_comes(
+        exchange: &mut Exchange,
+        line: &LineSettings,
+        transaction: &Transaction,
+        at: Duration,
+        delay: Duration,
+    ) -> Finished {
+        let arrivals = on_the_wire(line, at + transaction.request_time + delay, &reply_frame());
+        run(exchange, transaction, at, &arrivals)
+    }
+
     /// Equal to within a microsecond (the wire times of a frame and of its bytes one by one
     /// round differently).
     fn assert_near(actual: Duration, expected: Duration, what: &str) {
@@ -2539,29 +2560,15 @@ mod tests {
         for baud in [9600, 115_200] {
             let line = line(baud);
             let (mut exchange, fast, _, start) = taught(&line, ms(1));
-            let slow_request = Request::classic(
-                0x1E,
-                RequestPdu::ReadInputRegisters {
-                    start: 0x40,
-                    count: 2,
-                },
-            );
-            let slow = transaction(&line, slow_request);
+            let slow = block_read(&line, 0x40);
             exchange.handle_bytes(start, &read_of_another_device());
             assert!(exchange.take_other_master_request().is_some());
-            let reply = |transaction: &Transaction, start: Duration, delay: Duration| {
-                on_the_wire(
-                    &line,
-                    start + transaction.request_time + delay,
-                    &reply_frame(),
-                )
-            };
             let mut at = start + ms(10);
             let mut outcomes = Vec::new();
             for _ in 0..4 {
                 for (transaction, delay) in [(&slow, ms(15)), (&fast, ms(1))] {
-                    let arrivals = reply(transaction, at, delay);
-                    let finished = run(&mut exchange, transaction, at, &arrivals);
+                    let finished =
+                        answered_as_it_comes(&mut exchange, &line, transaction, at, delay);
                     outcomes.push(finished.outcome == read_reply());
                     at = finished.at + ms(10);
                 }
@@ -2574,8 +2581,8 @@ mod tests {
         }
     }
 
-    /// Review of 28 Nov: the 6160 shape twice in a row. Device 0x1E answers every block in 3 ms. Another
-    /// master polls; two of its requests to 0x1E go unheard here, and the device's answers
+    /// Review of 28 Nov: the 6160 shape twice in a row. Device 0x1E answers every block in 3
+    /// ms. Another master polls; two of its requests to 0x1E go unheard here, and its answers
     /// (same length as ours) land 19 and 21 ms into two consecutive reads of different blocks.
     /// The first is refused; the second, "as late alike" from another block, made the device's
     /// new pace and was taken, its values (the other master's registers) as our block's. Now
@@ -2585,18 +2592,11 @@ mod tests {
         for baud in [9600, 115_200] {
             let line = line(baud);
             let (mut exchange, _first, _, start) = taught(&line, ms(3));
-            let block = |start: u16| {
-                transaction(
-                    &line,
-                    Request::classic(0x1E, RequestPdu::ReadInputRegisters { start, count: 2 }),
-                )
-            };
+            let block = |start: u16| block_read(&line, start);
             let blocks = [block(0x20), block(0x30)];
             let mut at = start;
             for transaction in &blocks {
-                let arrivals =
-                    on_the_wire(&line, at + transaction.request_time + ms(3), &reply_frame());
-                let finished = run(&mut exchange, transaction, at, &arrivals);
+                let finished = answered_as_it_comes(&mut exchange, &line, transaction, at, ms(3));
                 assert_eq!(finished.outcome, read_reply(), "at {baud}");
                 at = finished.at + ms(10);
             }
@@ -2605,9 +2605,7 @@ mod tests {
             at += ms(10);
             let mut outcomes = Vec::new();
             for (transaction, delay) in [(&blocks[0], ms(19)), (&blocks[1], ms(21))] {
-                let arrivals =
-                    on_the_wire(&line, at + transaction.request_time + delay, &reply_frame());
-                let finished = run(&mut exchange, transaction, at, &arrivals);
+                let finished = answered_as_it_comes(&mut exchange, &line, transaction, at, delay);
                 outcomes.push(finished.outcome == read_reply());
                 at = finished.at + ms(10);
             }
@@ -2629,19 +2627,13 @@ mod tests {
         for baud in [9600, 115_200] {
             let line = line(baud);
             let (mut exchange, _first, _, start) = taught(&line, ms(1));
-            let block = |start: u16| {
-                transaction(
-                    &line,
-                    Request::classic(0x1E, RequestPdu::ReadInputRegisters { start, count: 2 }),
-                )
-            };
+            let block = |start: u16| block_read(&line, start);
             let (a, c, b) = (block(0x20), block(0x30), block(0x40));
             let cycle = [(&a, ms(15)), (&c, ms(16)), (&b, ms(1))];
             let mut at = start;
             // Learned while nobody else polls: only the fast block (the slow ones read first
             // while the other master polls, e.g. after a restart of the service).
-            let arrivals = on_the_wire(&line, at + b.request_time + ms(1), &reply_frame());
-            let finished = run(&mut exchange, &b, at, &arrivals);
+            let finished = answered_as_it_comes(&mut exchange, &line, &b, at, ms(1));
             assert_eq!(finished.outcome, read_reply(), "at {baud}");
             at = finished.at + ms(10);
             exchange.handle_bytes(at, &read_of_another_device());
@@ -2650,9 +2642,8 @@ mod tests {
             let mut refused_a = 0;
             for _ in 0..6 {
                 for (transaction, delay) in cycle {
-                    let arrivals =
-                        on_the_wire(&line, at + transaction.request_time + delay, &reply_frame());
-                    let finished = run(&mut exchange, transaction, at, &arrivals);
+                    let finished =
+                        answered_as_it_comes(&mut exchange, &line, transaction, at, delay);
                     if finished.outcome != read_reply() {
                         refused_a += usize::from(std::ptr::eq(transaction, &a));
                     }
@@ -2676,19 +2667,12 @@ mod tests {
         for baud in [9600, 115_200] {
             let line = line(baud);
             let (mut exchange, first, _, start) = taught(&line, ms(1));
-            let block = |start: u16| {
-                transaction(
-                    &line,
-                    Request::classic(0x1E, RequestPdu::ReadInputRegisters { start, count: 2 }),
-                )
-            };
+            let block = |start: u16| block_read(&line, start);
             let blocks = [block(0x20), block(0x30), block(0x40)];
             let mut at = start;
             // The other blocks' pace learned while nobody else polls.
             for transaction in &blocks {
-                let arrivals =
-                    on_the_wire(&line, at + transaction.request_time + ms(1), &reply_frame());
-                let finished = run(&mut exchange, transaction, at, &arrivals);
+                let finished = answered_as_it_comes(&mut exchange, &line, transaction, at, ms(1));
                 assert_eq!(finished.outcome, read_reply(), "at {baud}");
                 at = finished.at + ms(10);
             }
@@ -2697,12 +2681,7 @@ mod tests {
             at += ms(10);
             let mut outcomes = Vec::new();
             for transaction in [&first, &blocks[0], &blocks[1], &blocks[2], &first] {
-                let arrivals = on_the_wire(
-                    &line,
-                    at + transaction.request_time + ms(15),
-                    &reply_frame(),
-                );
-                let finished = run(&mut exchange, transaction, at, &arrivals);
+                let finished = answered_as_it_comes(&mut exchange, &line, transaction, at, ms(15));
                 outcomes.push(finished.outcome == read_reply());
                 at = finished.at + ms(10);
             }
