@@ -21,6 +21,7 @@ use crate::tools::exit;
 use crate::tools::plan::{
     parse_baud, parse_parity, parse_range, same_on_the_wire, scan_plan, PlanFilter,
 };
+use crate::tools::report::same_serial;
 use crate::tools::report::{serial_text, FoundDevice, Identity, ScanReport};
 use crate::tools::values::standard_text;
 use crate::transport::fifo::sysfs_tty;
@@ -403,13 +404,13 @@ async fn classic_scan(
         tokio::time::sleep(timeout).await;
         for address in range.0..=range.1 {
             done += 1;
-            let known: Vec<Option<u32>> = report
+            let known: Vec<(Option<u32>, bool)> = report
                 .devices
                 .iter()
                 .filter(|d| d.address == address && d.answers_at(&line))
-                .map(|d| d.serial)
+                .map(|d| (d.serial, d.fast))
                 .collect();
-            if let [serial] = known[..] {
+            if let [(serial, true)] = known[..] {
                 // A device without Fast Modbus may share the address of one the scan found:
                 // asked for the serial number, the two answer differently and collide (a site
                 // tools audit: such a clash was invisible to every tool).
@@ -424,7 +425,8 @@ async fn classic_scan(
                 continue;
             }
             if !known.is_empty() {
-                // Several Fast Modbus devices there: a duplicate the scan reports already.
+                // A device found here already (by a probe at another setting, or several Fast
+                // Modbus devices: a duplicate the scan reports).
                 continue;
             }
             let probed = report.classic_probes - probes_before;
@@ -479,36 +481,39 @@ async fn shared_with_a_classic_device(
     serial: Option<u32>,
     timeout: Duration,
 ) -> Result<Option<String>, PortError> {
-    let probe = RequestPdu::ReadHoldingRegisters {
-        start: 270,
-        count: 2,
-    };
-    let answer = port.classic(line, address, probe, timeout).await?;
-    let read = match &answer {
-        Answer::Pdu(ResponsePdu::ReadHoldingRegisters { values }) => {
-            crate::daemon::identity::serial_of(values)
+    // Asked twice, and said only when both answers say so: one reply lost to noise, or not
+    // trusted while another master polls, must not pass for a second device.
+    let mut unreadable = false;
+    for _ in 0..2 {
+        let probe = RequestPdu::ReadHoldingRegisters {
+            start: 270,
+            count: 2,
+        };
+        match port.classic(line, address, probe, timeout).await? {
+            Answer::Garbled => unreadable = true,
+            Answer::Pdu(ResponsePdu::ReadHoldingRegisters { values }) => {
+                let read = crate::daemon::identity::serial_of(&values);
+                match (read, serial) {
+                    (Some(read), Some(scanned)) if !same_serial(read, scanned) => {}
+                    // The device the scan found, alone.
+                    _ => return Ok(None),
+                }
+            }
+            // Refused or silent: the Fast Modbus device alone, without that register.
+            Answer::Pdu(_) | Answer::NoReply => return Ok(None),
         }
-        _ => None,
+    }
+    let what = if unreadable {
+        "an unreadable reply"
+    } else {
+        "another serial number"
     };
-    let shared = match answer {
-        Answer::Garbled => true,
-        Answer::Pdu(ResponsePdu::ReadHoldingRegisters { .. }) => {
-            read.is_some() && serial.is_some() && read != serial
-        }
-        // Refused or silent: the Fast Modbus device alone, without that register.
-        Answer::Pdu(_) | Answer::NoReply => false,
-    };
-    Ok(shared.then(|| {
-        format!(
-            "address {address}: a classic request got {} where the Fast Modbus scan found serial              {}: a device without Fast Modbus probably shares this address (give one of them              another address)",
-            if read.is_some() {
-                "another serial number"
-            } else {
-                "an unreadable reply"
-            },
-            serial.map_or("?".to_owned(), |s| s.to_string())
-        )
-    }))
+    let scanned = serial.map_or("?".to_owned(), |s| format!("{s} (0x{s:08X})"));
+    Ok(Some(format!(
+        "address {address}: a classic request got {what} where the Fast Modbus scan found serial \
+         {scanned}: a device without Fast Modbus probably shares this address (give one of them \
+         another address)"
+    )))
 }
 
 fn clear(terminal: bool) -> &'static str {

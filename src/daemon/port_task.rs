@@ -1916,9 +1916,6 @@ mod tests {
         }
     }
 
-    /// The port task's side of finding 6: a read that got nothing schedules the retry, an
-    /// answered one clears it. Half a read (the serial number unanswered) is tried again, and
-    /// what it did answer is taken, the serial number standing as it was known.
     /// Review of 28 Nov: a replaced device (serial 1 -> 2) whose model and firmware got no
     /// answer in the read that noticed it: the old device's model and firmware were published
     /// under the new serial number until a retry answered them. They are unknown now.
@@ -1953,6 +1950,9 @@ mod tests {
         );
     }
 
+    /// The port task's side of finding 6: a read that got nothing schedules the retry, an
+    /// answered one clears it. Half a read (the serial number unanswered) is tried again, and
+    /// what it did answer is taken, the serial number standing as it was known.
     #[tokio::test]
     async fn an_empty_identity_read_schedules_a_retry_and_an_answer_clears_it() {
         let mut task = relay_task_with_identity();

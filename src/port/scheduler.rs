@@ -1830,8 +1830,9 @@ impl PortScheduler {
                     warn!(address, %device,
                         "event polls keep colliding at this address: two devices with one \
                          address? Their events cannot be told apart, and their reads may be \
-                         garbled too; the devices above it are polled past it meanwhile. Give \
-                         one a free address: `rtu2mqtt fix-addresses` (docs/tools.md)");
+                         garbled too; devices with events above it, if any, are polled past \
+                         it meanwhile. Give one a free address: `rtu2mqtt fix-addresses` \
+                         (docs/tools.md)");
                 }
             }
         }

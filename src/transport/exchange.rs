@@ -930,13 +930,15 @@ impl Exchange {
                     None => !receiving.parser.buffered().is_empty(),
                 };
                 let mut timing = receiving.window.timing();
-                // A scan step with bytes in its window (arbitration fillers, then no frame):
-                // a device took part and its reply was lost, not an empty setting (a site tools
-                // audit: under load a scan dropped whole settings so, with no word).
+                // A scan step with an arbitration in its window (fillers, then no frame): a
+                // device took part and its reply was lost, not an empty setting (a site tools
+                // audit: under load a scan dropped whole settings so, with no word). An
+                // arbitration sends a filler in several windows; one stray byte (a line without
+                // bias as an adapter lets go of it) is not one.
                 let scan_answered = matches!(
                     receiving.request.body,
                     RequestBody::Fast(FastRequest::ScanStart | FastRequest::ScanContinue)
-                ) && timing.first_byte.is_some();
+                ) && self.window_bytes.len() >= MIN_ARBITRATION_BYTES;
                 let outcome = if receiving.garbled || incomplete || scan_answered {
                     TransactionOutcome::Garbled
                 } else {
@@ -1175,6 +1177,9 @@ fn could_begin_reply(request: &Request, byte: u8) -> bool {
         _ => byte != ARBITRATION_FILLER,
     }
 }
+
+/// Bytes a scan step's window holds at least when devices took part in its arbitration.
+const MIN_ARBITRATION_BYTES: usize = 2;
 
 /// The address whose event packet header (address, the request's function, 0x11) is in `bytes`
 /// after an event poll: who began the reply that came garbled.
@@ -2975,6 +2980,14 @@ mod tests {
             let mut exchange = Exchange::new(LinkConfig::serial(line));
             let finished = run(&mut exchange, &transaction, ms(0), &[]);
             assert_eq!(finished.outcome, TransactionOutcome::NoReply, "at {baud}");
+            // One stray byte is no arbitration.
+            let mut exchange = Exchange::new(LinkConfig::serial(line));
+            let finished = run(&mut exchange, &transaction, ms(0), &fillers[..1]);
+            assert_eq!(
+                finished.outcome,
+                TransactionOutcome::NoReply,
+                "one byte at {baud}"
+            );
         }
     }
 
