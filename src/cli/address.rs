@@ -547,10 +547,17 @@ impl AddressBus for ToolPort {
     }
 
     async fn probe(&mut self, line: LineSettings, address: u8) -> Result<Option<String>, ExitCode> {
-        let answer = self
-            .classic(line, address, ADDRESS_PROBE, ADDRESS_PROBE_TIMEOUT)
-            .await
-            .map_err(|err| port_failure(&err))?;
+        let mut answer = Answer::NoReply;
+        // An unreadable reply is asked once more: noise on a free address is not a device.
+        for _ in 0..2 {
+            answer = self
+                .classic(line, address, ADDRESS_PROBE, ADDRESS_PROBE_TIMEOUT)
+                .await
+                .map_err(|err| port_failure(&err))?;
+            if !matches!(answer, Answer::Garbled) {
+                break;
+            }
+        }
         Ok(probe_answer_text(&answer))
     }
 }
@@ -707,6 +714,11 @@ async fn fix_addresses_on(bus: &mut impl AddressBus, args: &FixAddressesArgs) ->
 /// The address plan, every new address checked with a classic probe at its setting: an address
 /// where something answers (a device without Fast Modbus, which the scan does not list) is taken,
 /// and the plan is made again without it.
+/// Probes of free-looking addresses answered unreadably in a row after which fix-addresses
+/// stops: every free address on a bus with another master reads so (a site tools audit: 241
+/// addresses taken for occupied, then "no free address left in 1-247").
+const MAX_UNREADABLE_PROBES: usize = 3;
+
 async fn plan_free_addresses(
     bus: &mut impl AddressBus,
     report: &ScanReport,
@@ -715,6 +727,7 @@ async fn plan_free_addresses(
 ) -> Result<crate::tools::report::AddressPlan, ExitCode> {
     let mut occupied = BTreeSet::new();
     let mut free: Vec<(LineSettings, u8)> = Vec::new();
+    let mut unreadable_in_a_row = 0;
     // Each round takes at least one more address, so there are at most as many as addresses.
     loop {
         let mut plan = report.plan_addresses_avoiding(range, &occupied);
@@ -732,9 +745,32 @@ async fn plan_free_addresses(
             }
             match bus.probe(change.line, change.to).await? {
                 None => {
+                    unreadable_in_a_row = 0;
                     free.push((change.line, change.to));
                 }
+                Some(what) if Some(&what) == probe_answer_text(&Answer::Garbled).as_ref() => {
+                    unreadable_in_a_row += 1;
+                    if unreadable_in_a_row >= MAX_UNREADABLE_PROBES {
+                        eprintln!(
+                            "cannot fix: unreadable replies at {unreadable_in_a_row} addresses in \
+                             a row at {}: another master on the bus (its traffic is read here), \
+                             or a noisy line; stop the other master (wb-mqtt-serial: systemctl \
+                             mask --now wb-mqtt-serial; a laptop's Modbus tool on the same pair) \
+                             or fix the line, then run this again",
+                            change.settings
+                        );
+                        return Err(ExitCode::from(exit::NOT_FOUND));
+                    }
+                    eprintln!(
+                        "address {} at {} is not free: {what}",
+                        change.to, change.settings
+                    );
+                    occupied.insert(change.to);
+                    changed = true;
+                    break;
+                }
                 Some(what) => {
+                    unreadable_in_a_row = 0;
                     eprintln!(
                         "address {} at {} is not free: {what}",
                         change.to, change.settings
@@ -929,6 +965,9 @@ mod steps_tests {
         missed_scans: usize,
         /// Scans (counted from 1) that see nothing, later.
         blind_scans: Vec<usize>,
+        /// Every classic probe gets an unreadable reply (another master's traffic).
+        unreadable_probes: bool,
+        probes: usize,
         writes: Vec<AddressChange>,
         service: BTreeMap<u8, ServiceDevice>,
     }
@@ -942,6 +981,8 @@ mod steps_tests {
                 scans: 0,
                 missed_scans: 0,
                 blind_scans: Vec::new(),
+                unreadable_probes: false,
+                probes: 0,
                 writes: Vec::new(),
                 service: BTreeMap::new(),
             }
@@ -989,7 +1030,12 @@ mod steps_tests {
         }
 
         async fn probe(&mut self, _: LineSettings, _: u8) -> Result<Option<String>, ExitCode> {
-            Ok(None)
+            self.probes += 1;
+            Ok(if self.unreadable_probes {
+                probe_answer_text(&Answer::Garbled)
+            } else {
+                None
+            })
         }
 
         fn service_devices(&self) -> BTreeMap<u8, ServiceDevice> {
@@ -1096,6 +1142,22 @@ mod steps_tests {
             "--apply",
         ])
         .args
+    }
+
+    /// Every probe of a free-looking address comes back unreadable (another master on the bus):
+    /// fix-addresses stops after three in a row and says why, writing nothing, where it took
+    /// 241 addresses for occupied and said "no free address left in 1-247".
+    #[tokio::test]
+    async fn fix_addresses_stops_when_every_probe_is_unreadable() {
+        let args = fix_addresses_args();
+        let mut bus = MockBus::new(&[(5, 10), (9, 10)], Effect::Moves, Ok(()));
+        bus.unreadable_probes = true;
+        let code = fix_addresses_steps(&mut bus, &args)
+            .await
+            .unwrap_or_else(|code| code);
+        assert_eq!(code, ExitCode::from(exit::NOT_FOUND));
+        assert_eq!(bus.probes, MAX_UNREADABLE_PROBES);
+        assert!(bus.writes.is_empty(), "nothing written");
     }
 
     /// The check after the changes loses its scan round to noise: a second pass confirms them
