@@ -743,43 +743,34 @@ async fn plan_free_addresses(
             if free.contains(&(change.line, change.to)) {
                 continue;
             }
-            match bus.probe(change.line, change.to).await? {
-                None => {
-                    unreadable_in_a_row = 0;
-                    free.push((change.line, change.to));
-                }
-                Some(what) if Some(&what) == probe_answer_text(&Answer::Garbled).as_ref() => {
-                    unreadable_in_a_row += 1;
-                    if unreadable_in_a_row >= MAX_UNREADABLE_PROBES {
-                        eprintln!(
-                            "cannot fix: unreadable replies at {unreadable_in_a_row} addresses in \
-                             a row at {}: another master on the bus (its traffic is read here), \
-                             or a noisy line; stop the other master (wb-mqtt-serial: systemctl \
-                             mask --now wb-mqtt-serial; a laptop's Modbus tool on the same pair) \
-                             or fix the line, then run this again",
-                            change.settings
-                        );
-                        return Err(ExitCode::from(exit::NOT_FOUND));
-                    }
-                    eprintln!(
-                        "address {} at {} is not free: {what}",
-                        change.to, change.settings
-                    );
-                    occupied.insert(change.to);
-                    changed = true;
-                    break;
-                }
-                Some(what) => {
-                    unreadable_in_a_row = 0;
-                    eprintln!(
-                        "address {} at {} is not free: {what}",
-                        change.to, change.settings
-                    );
-                    occupied.insert(change.to);
-                    changed = true;
-                    break;
-                }
+            let Some(what) = bus.probe(change.line, change.to).await? else {
+                unreadable_in_a_row = 0;
+                free.push((change.line, change.to));
+                continue;
+            };
+            if Some(&what) == probe_answer_text(&Answer::Garbled).as_ref() {
+                unreadable_in_a_row += 1;
+            } else {
+                unreadable_in_a_row = 0;
             }
+            if unreadable_in_a_row >= MAX_UNREADABLE_PROBES {
+                eprintln!(
+                    "cannot fix: unreadable replies at {unreadable_in_a_row} addresses in a row \
+                     at {}: another master on the bus (its traffic is read here), or a noisy \
+                     line; stop the other master (wb-mqtt-serial: systemctl mask --now \
+                     wb-mqtt-serial; a laptop's Modbus tool on the same pair) or fix the line, \
+                     then run this again",
+                    change.settings
+                );
+                return Err(ExitCode::from(exit::NOT_FOUND));
+            }
+            eprintln!(
+                "address {} at {} is not free: {what}",
+                change.to, change.settings
+            );
+            occupied.insert(change.to);
+            changed = true;
+            break;
         }
         if !changed {
             return Ok(plan);

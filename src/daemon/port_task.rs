@@ -147,9 +147,8 @@ impl ConnectionWatch {
 struct IdentityState {
     /// Per device: what to read (none when the device cannot say).
     plans: Vec<Option<IdentityPlan>>,
-    /// Per device: the serial number last read.
-    serials: Vec<Option<u32>>,
-    /// Per device: what was published, standing for the parts a later read gets no answer for.
+    /// Per device: what was published (the serial number last read among it), standing for the
+    /// parts a later read gets no answer for.
     known: Vec<DeviceIdentity>,
     /// Per device: a read is asked for (`Some`), and whether the worker has begun it.
     reading: Vec<Option<Arc<AtomicBool>>>,
@@ -338,7 +337,6 @@ impl PortTask {
     pub fn with_identity(mut self, plans: Vec<Option<IdentityPlan>>) -> Self {
         let count = plans.len();
         self.identity.plans = plans;
-        self.identity.serials = vec![None; count];
         self.identity.known = vec![DeviceIdentity::default(); count];
         self.identity.reading = vec![None; count];
         self.identity.asked_again = vec![false; count];
@@ -470,7 +468,12 @@ impl PortTask {
                 return;
             }
         }
-        let previous = self.identity.serials.get(device).copied().flatten();
+        // The serial number published is the number read ([`IdentityRead::serial`] as text).
+        let previous = self
+            .identity
+            .known
+            .get(device)
+            .and_then(|known| known.serial_number.as_deref()?.parse::<u32>().ok());
         let replaced = matches!((previous, read.serial), (Some(old), Some(new)) if old != new);
         match (previous, read.serial) {
             (Some(old), Some(new)) if old != new => {
@@ -493,8 +496,7 @@ impl PortTask {
                 "device identified"
             ),
         }
-        if let (Some(slot), Some(serial)) = (self.identity.serials.get_mut(device), read.serial) {
-            *slot = Some(serial);
+        if let Some(serial) = read.serial {
             // For the RPC's scan: which device at an address is the one polled here.
             if let Some(queue) = &self.queue {
                 queue.note_serial(device, serial);
@@ -1922,7 +1924,6 @@ mod tests {
     #[tokio::test]
     async fn a_replaced_device_does_not_inherit_the_old_ones_firmware() {
         let mut task = relay_task_with_identity();
-        task.identity.serials[0] = Some(1);
         task.identity.known[0] = identity("WBMR6", "1", "1.0");
         let replaced = IdentityRead {
             identity: DeviceIdentity {
@@ -1938,8 +1939,8 @@ mod tests {
         };
         task.identity_read(0, replaced).await;
         assert_eq!(
-            task.identity.serials[0],
-            Some(2),
+            task.identity.known[0].serial_number.as_deref(),
+            Some("2"),
             "the replacement is noticed"
         );
         assert_ne!(
@@ -1966,7 +1967,6 @@ mod tests {
             [0],
             "nothing read: tried again later"
         );
-        task.identity.serials[0] = Some(1);
         task.identity.known[0] = identity("WBMR6", "1", "1.0");
         let answered = IdentityRead {
             identity: identity("WBMR6C", "2", "1.26.0"),
@@ -1993,7 +1993,6 @@ mod tests {
             [0],
             "half a read: tried again later"
         );
-        assert_eq!(task.identity.serials[0], Some(1));
         assert_eq!(task.identity.known[0], identity("WBMR6C", "1", "1.26.0"));
         task.identity_read(0, answered).await;
         assert_eq!(
