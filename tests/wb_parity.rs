@@ -141,9 +141,16 @@ fn errors(updates: &[DeviceUpdate]) -> Vec<(String, String)> {
 }
 
 /// (address, values, force_multiple) of every register write.
+/// The requests of `list` as they go on the wire, in order: first register, words, and
+/// whether 0x0F/0x10 is forced.
 fn writes(list: &[RegisterWrite]) -> Vec<(u16, Vec<u16>, bool)> {
     list.iter()
-        .map(|w| (w.address, w.values.clone(), w.force_multiple))
+        .flat_map(|w| {
+            (0..w.request_count()).map(move |sent| {
+                let (address, values) = w.request(sent);
+                (address, values.to_vec(), w.force_multiple)
+            })
+        })
         .collect()
 }
 

@@ -300,3 +300,100 @@ fn a_read_showing_a_pending_bit_field_by_chance_does_not_settle_it() {
     apply(&mut model, values(RegisterType::Holding, 72, &[0x0000]));
     assert_eq!(take(&mut model, "B2", "1"), vec![(72, vec![0x0006])]);
 }
+
+/// A `holding_single` u32 counter at 10–11 (65535) and a channel on its low word: `/on` 65536
+/// goes out as 11 ← 0 then 10 ← 1 (one 0x06 per register, the last first), and the counter is
+/// never published as 0, the value made of the new 11 and the old 10 that the device was
+/// never given; it is published as 65536 once both registers hold their words.
+#[test]
+fn a_value_written_one_register_at_a_time_is_published_only_whole() {
+    let port = port_with(
+        json!([
+            {"name": "Counter", "reg_type": "holding_single", "address": 10, "format": "u32", "type": "value"},
+            {"name": "Low", "reg_type": "holding", "address": 11, "type": "value", "readonly": true}
+        ]),
+        json!({}),
+    );
+    let plan = port_plan(&port, false);
+    let mut scheduler = PortScheduler::new(plan.settings, plan.devices);
+    let mut models = vec![DeviceModel::new(
+        Arc::new(port.devices[0].clone()),
+        0,
+        Repeats::All,
+    )];
+    let mut registers = BTreeMap::from([(10u16, 0u16), (11, 0xFFFF)]);
+    let mut written = Vec::new();
+    let mut published: Vec<(String, String)> = Vec::new();
+    let mut now = Duration::ZERO;
+    let mut queued = false;
+    for _ in 0..10_000 {
+        if written.len() == 2 && published.iter().any(|(_, v)| v == "65536") {
+            break;
+        }
+        if !queued
+            && published
+                .iter()
+                .any(|(id, v)| id == "Counter" && v == "65535")
+        {
+            let writes = models[0]
+                .take_write("Counter", "65536", &mut Vec::new())
+                .expect("accepted");
+            for write in writes {
+                assert_eq!(scheduler.queue_write(now, write), None);
+            }
+            queued = true;
+        }
+        let transaction = match scheduler.next(now) {
+            NextStep::Transmit(transaction) => transaction,
+            NextStep::Wait { until } => {
+                now = until.max(now + Duration::from_millis(1));
+                continue;
+            }
+        };
+        let pdu = match &transaction.request.body {
+            RequestBody::Classic(RequestPdu::ReadHoldingRegisters { start, count }) => {
+                ResponsePdu::ReadHoldingRegisters {
+                    values: (*start..*start + *count)
+                        .map(|a| registers.get(&a).copied().unwrap_or(0))
+                        .collect(),
+                }
+            }
+            RequestBody::Classic(RequestPdu::WriteSingleRegister { address, value }) => {
+                registers.insert(*address, *value);
+                written.push((*address, *value));
+                ResponsePdu::WriteSingleRegister {
+                    address: *address,
+                    value: *value,
+                }
+            }
+            other => panic!("unexpected request {other:?}"),
+        };
+        now += transaction.estimated;
+        let events = scheduler.complete(
+            now,
+            TransactionOutcome::Reply(Reply::classic(transaction.request.address, pdu)),
+        );
+        let mut out = Vec::new();
+        apply_port_events(&mut models, events, &mut out);
+        published.extend(out.into_iter().filter_map(|update| match update {
+            DeviceUpdate::Value {
+                control_id, value, ..
+            } => Some((control_id.to_string(), value.to_string())),
+            _ => None,
+        }));
+    }
+    assert_eq!(written, [(11, 0), (10, 1)], "last register first");
+    let counter: Vec<&str> = published
+        .iter()
+        .filter(|(id, _)| id == "Counter")
+        .map(|(_, v)| v.as_str())
+        .collect();
+    assert!(
+        !counter.contains(&"0"),
+        "half-written value published: {counter:?}"
+    );
+    assert_eq!(
+        counter.iter().rev().find(|v| **v != "65535"),
+        Some(&"65536")
+    );
+}

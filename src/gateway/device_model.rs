@@ -375,6 +375,17 @@ impl DeviceModel {
                 let mut touched = std::mem::take(&mut self.touched);
                 self.channel_index
                     .readers_of(&span, &mut touched, &mut self.reader_hint);
+                // A value of several registers that this span covers only in part is not
+                // published from it: its other words came from another read (or write), and
+                // the device may have changed it in between (a u32 counter passing 65535 would
+                // come out as 0). Its own read, which covers it whole, publishes it, as
+                // wb-mqtt-serial sets a register's value only from the read of all its words.
+                let channels = &self.device.channels;
+                touched.retain(|&index| {
+                    channels
+                        .get(index)
+                        .is_some_and(|channel| !covers_in_part(channel, &span))
+                });
                 self.publish_channels(&touched, false, out);
                 self.touched = touched;
             }
@@ -917,33 +928,15 @@ impl DeviceModel {
             } else {
                 Vec::new()
             };
-            if register.write_function == WriteFunction::Single && values.len() > 1 {
-                // The last register first, as wb-mqtt-serial writes them
-                // (`TModbusTest.HoldingSingleMulti`): a device that acts on a write to the
-                // first register of a value finds the others already in place.
-                for (i, value) in values.into_iter().enumerate().rev() {
-                    let address = target
-                        .address
-                        .wrapping_add(u16::try_from(i).unwrap_or(u16::MAX));
-                    writes.push(RegisterWrite {
-                        device: self.index,
-                        register_type: target.reg_type,
-                        address,
-                        values: vec![value],
-                        force_multiple: false,
-                        defined: defined.get(i).map(|&mask| vec![mask]).unwrap_or_default(),
-                    });
-                }
-            } else {
-                writes.push(RegisterWrite {
-                    device: self.index,
-                    register_type: target.reg_type,
-                    address: target.address,
-                    values,
-                    force_multiple: register.write_function == WriteFunction::Multiple,
-                    defined,
-                });
-            }
+            writes.push(RegisterWrite {
+                device: self.index,
+                register_type: target.reg_type,
+                address: target.address,
+                force_multiple: register.write_function == WriteFunction::Multiple,
+                one_by_one: register.write_function == WriteFunction::Single && values.len() > 1,
+                values,
+                defined,
+            });
         }
         Ok(writes)
     }
@@ -1152,6 +1145,14 @@ fn spans_overlap(register: &crate::device::model::RegisterRef, span: &RegisterSp
     register.register_type == span.register_type
         && u32::from(register.start) < span.end()
         && u32::from(span.start) < register.end()
+}
+
+/// Whether `span` holds some but not all the words of one of the values `channel` reads.
+fn covers_in_part(channel: &ResolvedChannel, span: &RegisterSpan) -> bool {
+    channel.registers.iter().filter_map(|r| r.read).any(|read| {
+        let register = read.span();
+        spans_overlap(&read, span) && (register.start < span.start || register.end() > span.end())
+    })
 }
 
 fn reads_span(channel: &ResolvedChannel, span: &RegisterSpan) -> bool {
@@ -1397,9 +1398,44 @@ mod tests {
         );
         // The holding register at the same address is another register.
         assert_eq!(poll(&mut model, 5, &[1, 3]), one("B", "65539"));
-        // A read that ends inside B leaves B waiting for nothing: its words are both known.
-        assert_eq!(poll(&mut model, 4, &[0, 2]), one("B", "131075"));
+        // A read that ends inside B does not publish B from one new word and one old: the
+        // device may have changed both since (a u32 passing 65535). B's own read does.
+        assert_eq!(poll(&mut model, 4, &[0, 2]), vec![]);
+        assert_eq!(poll(&mut model, 6, &[4]), vec![]);
+        assert_eq!(poll(&mut model, 5, &[2, 4]), one("B", "131076"));
         assert_eq!(poll(&mut model, 9, &[42]), vec![]);
+    }
+
+    /// A u32 counter and a channel on its low word read on their own (another period): the
+    /// counter passes 65535 between the two reads. The low word's read must not publish the
+    /// counter as 0 (old high word, new low word), a value the device never held; the
+    /// counter's own read publishes 65536.
+    #[test]
+    fn a_read_of_one_word_of_a_wider_value_does_not_publish_it() {
+        let raw = serde_json::json!({
+            "device_type": "torn",
+            "device": {
+                "name": "Torn", "id": "torn",
+                "channels": [
+                    {"name": "Counter", "reg_type": "input", "address": 10, "format": "u32"},
+                    {"name": "Low", "reg_type": "input", "address": 11, "read_period_ms": 100}
+                ]
+            }
+        });
+        let template = TemplateFile::from_source(crate::config::parse::SourceText::from_text(
+            std::path::Path::new("torn.json"),
+            &raw.to_string(),
+        ))
+        .unwrap();
+        let device =
+            resolve_template_device(&template, &serde_json::json!({"slave_id": 1})).unwrap();
+        let mut model = DeviceModel::new(Arc::new(device), 0, Repeats::None);
+        assert_eq!(
+            poll(&mut model, 10, &[0, 0xFFFF]),
+            [one("Counter", "65535"), one("Low", "65535")].concat()
+        );
+        assert_eq!(poll(&mut model, 11, &[0]), one("Low", "0"));
+        assert_eq!(poll(&mut model, 10, &[1, 0]), one("Counter", "65536"));
     }
 
     fn one(control: &str, value: &str) -> Vec<(String, String)> {
@@ -2001,7 +2037,8 @@ mod tests {
         assert_eq!(indexes.0.iter().filter(|i| i.strong_count() > 0).count(), 1);
     }
 
-    /// Random reads of every template publish, for each channel the read touches, what
+    /// Random reads of every template publish, for each channel whose values the read holds
+    /// whole (a value read only in part waits for its own read), what
     /// `ResolvedChannel::decode` makes of the channel's words, and say whether it changed;
     /// a value read again is the same shared text.
     /// The register spans `device`'s channels read.
@@ -2058,7 +2095,11 @@ mod tests {
                     &mut out,
                 );
                 let mut expected = Vec::new();
-                for channel in device.channels.iter().filter(|c| reads_span(c, &span)) {
+                for channel in device
+                    .channels
+                    .iter()
+                    .filter(|c| reads_span(c, &span) && !covers_in_part(c, &span))
+                {
                     let parts: Option<Vec<Vec<u16>>> = channel
                         .registers
                         .iter()
@@ -2116,6 +2157,7 @@ mod tests {
                 address: 2,
                 values: vec![1],
                 force_multiple: false,
+                one_by_one: false,
                 defined: Vec::new(),
             }])
         );

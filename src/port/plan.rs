@@ -171,6 +171,12 @@ pub struct RegisterWrite {
     pub values: Vec<u16>,
     /// Use 0x0F/0x10 even for one value (`holding_multi`; some devices accept nothing else).
     pub force_multiple: bool,
+    /// A value of several registers written with one 0x06 per register (`holding_single`),
+    /// the last register first, as wb-mqtt-serial writes it (`TModbusTest.HoldingSingleMulti`:
+    /// a device that acts on a write to the first register finds the others in place). One
+    /// write all the same: done (and its value published) once every register has taken its
+    /// word; a register that refuses ends it, and the registers before it are not written.
+    pub one_by_one: bool,
     /// The bits of each value word the write defines, one mask per word, for a bit field (a
     /// field of some bits of its registers): when it is sent, the other bits are those of the
     /// newest word of the register the scheduler has seen since it was queued (read, evented
@@ -179,6 +185,28 @@ pub struct RegisterWrite {
 }
 
 impl RegisterWrite {
+    /// How many requests the write takes: one per register when [`Self::one_by_one`].
+    pub fn request_count(&self) -> usize {
+        if self.one_by_one {
+            self.values.len()
+        } else {
+            1
+        }
+    }
+
+    /// The `sent`th request of the write (from 0, see [`Self::request_count`]): its first
+    /// register and its words, for [`write_pdu`]. One by one, the last register goes first.
+    pub fn request(&self, sent: usize) -> (u16, &[u16]) {
+        if !self.one_by_one {
+            return (self.address, &self.values);
+        }
+        let index = self.values.len().saturating_sub(sent + 1);
+        let address = self
+            .address
+            .wrapping_add(u16::try_from(index).unwrap_or(u16::MAX));
+        (address, self.values.get(index..=index).unwrap_or(&[]))
+    }
+
     /// The bits of value word `index` the write defines (none beyond its words).
     pub(crate) fn defined_bits(&self, index: usize) -> u16 {
         match self.defined.get(index) {

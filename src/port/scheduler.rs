@@ -286,6 +286,9 @@ struct PendingWrite {
     /// It failed once and that was logged: a write carried out a minute later, when the device
     /// is back, leaves a trace in the journal.
     failure_told: bool,
+    /// Requests of the write the device has taken ([`RegisterWrite::request`]): a write one
+    /// register at a time goes on from the next; a failed request is sent again.
+    sent: usize,
 }
 
 impl PendingWrite {
@@ -712,6 +715,7 @@ impl PortScheduler {
             give_up_at: now.saturating_add(retry_time),
             seen: 0,
             failure_told: offline.is_some(),
+            sent: 0,
         };
         let same_register = |p: &PendingWrite| write_key(&p.write) == write_key(&pending.write);
         if let Some(replaced) = self.writes.iter().position(same_register) {
@@ -1311,12 +1315,8 @@ impl PortScheduler {
         })?;
         let device = self.devices.get(pending.write.device)?;
         let write = &pending.write;
-        let pdu = write_pdu(
-            write.register_type,
-            write.address,
-            &write.values,
-            write.force_multiple,
-        );
+        let (address, values) = write.request(pending.sent);
+        let pdu = write_pdu(write.register_type, address, values, write.force_multiple);
         let transaction =
             self.classic_transaction(now, device, Request::classic(device.plan.address, pdu));
         Some((
@@ -2213,6 +2213,19 @@ impl PortScheduler {
                     address,
                     permanent: true,
                 });
+            }
+            WriteOutcome::Taken if pending.sent + 1 < write.request_count() => {
+                // One register of a value written one at a time: the device holds its word;
+                // the write goes on with the next (its value is published once all are in).
+                Self::health_success(state, device, now, out);
+                let (address, values) = write.request(pending.sent);
+                let span = RegisterSpan::new(register_type, address, 1);
+                let words = values.to_vec();
+                state.note_words(span, &words);
+                if let Some(queued) = self.writes.iter_mut().find(|p| p.write == pending.write) {
+                    queued.sent = pending.sent + 1;
+                }
+                see_words(&mut self.writes, device, span, &words);
             }
             WriteOutcome::Taken => {
                 Self::health_success(state, device, now, out);

@@ -1082,6 +1082,7 @@ fn a_write_goes_before_the_next_read_and_the_latest_value_wins() {
         address: 10,
         values: vec![value],
         force_multiple: false,
+        one_by_one: false,
         defined: Vec::new(),
     };
     assert_eq!(scheduler.queue_write(now, write(1)), None);
@@ -1135,6 +1136,7 @@ fn unsent_writes_leave_out_the_one_in_flight_and_those_done() {
         address,
         values: vec![7],
         force_multiple: false,
+        one_by_one: false,
         defined: Vec::new(),
     };
     assert_eq!(scheduler.queue_write(now, write(10)), None);
@@ -1238,6 +1240,126 @@ fn a_write_answered_busy_is_sent_again() {
             );
         }
     }
+}
+
+/// A `holding_single` u32 (65536 at 10–11): one 0x06 per register, the last first, and one
+/// write all the same: no value is reported until both registers hold their words (a value
+/// made of the new 11 and the old 10 is one the device was never given), a busy answer sends
+/// the same register again rather than starting over, and a register that refuses ends the
+/// write: the registers before it are not written (wb-mqtt-serial's `WriteRegister` stops at
+/// the first failure).
+#[test]
+fn a_value_written_one_register_at_a_time_is_one_write() {
+    let u32_write = RegisterWrite {
+        device: 0,
+        register_type: RegisterType::Holding,
+        address: 10,
+        values: vec![1, 0],
+        force_multiple: false,
+        one_by_one: true,
+        defined: Vec::new(),
+    };
+    let writes_sent = |log: &Log| -> Vec<(u16, u16)> {
+        log.sent
+            .iter()
+            .filter_map(|(_, r)| match &r.body {
+                RequestBody::Classic(RequestPdu::WriteSingleRegister { address, value }) => {
+                    Some((*address, *value))
+                }
+                _ => None,
+            })
+            .collect()
+    };
+    let write_events = |log: &Log| -> Vec<PortEvent> {
+        log.events
+            .iter()
+            .map(|(_, e)| e.clone())
+            .filter(|e| match e {
+                PortEvent::WriteDone { .. } | PortEvent::WriteFailed { .. } => true,
+                PortEvent::Values { span, .. } => {
+                    span.register_type == RegisterType::Holding
+                        && span.start >= 10
+                        && span.start < 12
+                }
+                _ => false,
+            })
+            .collect()
+    };
+    let start = |log: &mut Log| {
+        let plan = device(3, vec![read(RegisterType::Holding, 0, EventMode::Polled)]);
+        let mut scheduler = PortScheduler::new(settings(115_200), vec![plan]);
+        run(&mut scheduler, log, ms(0), ms(100), |_, r| healthy(r));
+        assert_eq!(scheduler.queue_write(ms(100), u32_write.clone()), None);
+        scheduler
+    };
+
+    // Taken: 11 then 10, then one WriteDone and the whole value.
+    let mut log = Log::default();
+    let mut scheduler = start(&mut log);
+    run(&mut scheduler, &mut log, ms(100), ms(300), |_, r| {
+        healthy(r)
+    });
+    assert_eq!(writes_sent(&log), [(11, 0), (10, 1)]);
+    assert_eq!(
+        write_events(&log),
+        [
+            PortEvent::WriteDone {
+                device: 0,
+                register_type: RegisterType::Holding,
+                address: 10
+            },
+            PortEvent::Values {
+                device: 0,
+                span: RegisterSpan::new(RegisterType::Holding, 10, 2),
+                values: vec![1, 0].into()
+            }
+        ]
+    );
+
+    // Busy at 10 once: 10 is sent again, 11 is not written twice.
+    let mut log = Log::default();
+    let mut scheduler = start(&mut log);
+    run(
+        &mut scheduler,
+        &mut log,
+        ms(100),
+        ms(3000),
+        refusing_writes_of(10, ExceptionCode::BUSY, 1),
+    );
+    assert_eq!(writes_sent(&log), [(11, 0), (10, 1), (10, 1)]);
+    assert!(matches!(
+        write_events(&log).as_slice(),
+        [
+            PortEvent::WriteFailed {
+                address: 10,
+                permanent: false,
+                ..
+            },
+            PortEvent::WriteDone { address: 10, .. },
+            PortEvent::Values { .. }
+        ]
+    ));
+
+    // 11 refused: 10 is never written, the write is given up, nothing is reported as held.
+    let mut log = Log::default();
+    let mut scheduler = start(&mut log);
+    run(
+        &mut scheduler,
+        &mut log,
+        ms(100),
+        ms(3000),
+        refusing_writes_of(11, ExceptionCode::ILLEGAL_DATA_VALUE, 1),
+    );
+    assert_eq!(writes_sent(&log), [(11, 0)]);
+    assert_eq!(
+        write_events(&log),
+        [PortEvent::WriteFailed {
+            device: 0,
+            register_type: RegisterType::Holding,
+            address: 10,
+            permanent: true
+        }]
+    );
 }
 
 /// A device at 1 with a 1 s response timeout (a dear retry) and one at 2 with 50 ms (a cheap
@@ -1391,6 +1513,7 @@ fn a_write_that_never_went_is_given_up_at_its_devices_retry_time() {
         address: 10,
         values: vec![7],
         force_multiple: false,
+        one_by_one: false,
         defined: Vec::new(),
     };
     assert_eq!(scheduler.queue_write(ms(0), write), None);
@@ -1839,6 +1962,7 @@ fn holding_multi_writes_one_register_with_function_16() {
         address: 7,
         values: vec![9],
         force_multiple: true,
+        one_by_one: false,
         defined: Vec::new(),
     };
     assert_eq!(scheduler.queue_write(Duration::ZERO, write), None);
@@ -2067,6 +2191,7 @@ fn a_write_waiting_for_a_closed_port_is_flagged_at_once_and_sent_when_it_is_back
         address: 10,
         values: vec![7],
         force_multiple: false,
+        one_by_one: false,
         defined: Vec::new(),
     };
     assert_eq!(scheduler.queue_write(ms(100), write), None, "device online");
@@ -2517,6 +2642,7 @@ fn a_suspended_device_is_not_polled_and_the_scheduler_does_not_spin() {
             address: 5,
             values: vec![1],
             force_multiple: false,
+            one_by_one: false,
             defined: Vec::new(),
         },
     );
@@ -2916,6 +3042,7 @@ fn the_due_order_chooses_as_a_scan_of_every_device_would() {
                             address: rng.below(4) as u16,
                             values: vec![rng.below(100) as u16],
                             force_multiple: rng.chance(30),
+                            one_by_one: false,
                             defined: Vec::new(),
                         },
                     );
@@ -3602,6 +3729,7 @@ fn holding_write(device: usize, address: u16, value: u16) -> RegisterWrite {
         address,
         values: vec![value],
         force_multiple: false,
+        one_by_one: false,
         defined: Vec::new(),
     }
 }
@@ -3877,6 +4005,7 @@ fn a_write_no_request_can_carry_is_refused_at_once() {
         address: 10,
         values: vec![1; count],
         force_multiple: false,
+        one_by_one: false,
         defined: Vec::new(),
     };
     let refused = |register_type| {
@@ -5577,6 +5706,7 @@ fn write_to(device: usize) -> RegisterWrite {
         address: 10,
         values: vec![7],
         force_multiple: false,
+        one_by_one: false,
         defined: Vec::new(),
     }
 }

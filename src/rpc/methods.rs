@@ -1103,8 +1103,19 @@ async fn device_set(
             writes.extend(checked);
         }
     }
-    for write in writes {
-        let pdu = write_pdu(&write);
+    let requests = writes.iter().flat_map(|write| {
+        (0..write.request_count()).map(move |sent| {
+            let (address, values) = write.request(sent);
+            let pdu = crate::port::plan::write_pdu(
+                write.register_type,
+                address,
+                values,
+                write.force_multiple,
+            );
+            (write.register_type, address, pdu)
+        })
+    });
+    for (register_type, address, pdu) in requests {
         let mut answer = Answer::NoReply;
         for _ in 0..DEVICE_TRIES {
             answer = bus
@@ -1130,8 +1141,8 @@ async fn device_set(
             other => {
                 return Err(RpcError::server(format!(
                     "Failed to write <{:?} {}> of slave {} at {line}: {}",
-                    write.register_type,
-                    write.address,
+                    register_type,
+                    address,
                     device.slave_id,
                     describe(&other)
                 )))
@@ -1189,29 +1200,6 @@ async fn checked_writes(
         );
     }
     model.write(control, payload).map_err(|why| why.to_string())
-}
-
-fn write_pdu(write: &crate::port::RegisterWrite) -> RequestPdu {
-    use crate::protocol::RegisterType;
-    let single = write.values.len() == 1 && !write.force_multiple;
-    match (write.register_type, single) {
-        (RegisterType::Coil, true) => RequestPdu::WriteSingleCoil {
-            address: write.address,
-            value: write.values[0] != 0,
-        },
-        (RegisterType::Coil, false) => RequestPdu::WriteMultipleCoils {
-            start: write.address,
-            values: write.values.iter().map(|v| *v != 0).collect(),
-        },
-        (_, true) => RequestPdu::WriteSingleRegister {
-            address: write.address,
-            value: write.values[0],
-        },
-        (_, false) => RequestPdu::WriteMultipleRegisters {
-            start: write.address,
-            values: write.values.clone(),
-        },
-    }
 }
 
 /// `device/LoadConfig`, as wb-mqtt-serial answers it: the template's parameters, those the
