@@ -416,16 +416,15 @@ impl DeviceModel {
                 let value = carried.get(skip..).unwrap_or(&[]);
                 let registers = self.registers_holding(register_type, address, value);
                 self.store_words(register_type, address, &registers);
-                // Part of a wider value: its other words, as last read, may be older than this
-                // one (a device updates a value at once). Forgotten, so that the value waits for
-                // the read the scheduler makes at once rather than being published half updated.
-                let value_width = self.value_width(register_type, address);
-                for offset in width..value_width {
-                    self.set_word((register_type, address.wrapping_add(offset)), None);
-                }
+                // Part of a wider value (its first words, or words inside it: a channel on the
+                // low word of a u32): its other words, as last read, may be older than these (a
+                // device updates a value at once). Forgotten, so that the value waits for the
+                // read the scheduler makes at once rather than being published half updated;
+                // not those this packet set, which come with these.
+                let span = RegisterSpan::new(register_type, address, width);
+                self.forget_words_beside(&span);
                 // Published once the whole packet is in (see `flush_events`): a packet may carry
                 // several words of one value, and a value made of old and new words is wrong.
-                let span = RegisterSpan::new(register_type, address, width);
                 let mut touched = std::mem::take(&mut self.touched);
                 self.channel_index
                     .readers_of(&span, &mut touched, &mut self.reader_hint);
@@ -573,16 +572,26 @@ impl DeviceModel {
         }
     }
 
-    /// Registers of the value read at `address` (1 when no channel reads one there).
-    fn value_width(&self, register_type: RegisterType, address: u16) -> u16 {
-        self.device
+    /// Forgets the words of the values `span` holds only part of, outside it, but for those
+    /// the events of the packet under way set.
+    fn forget_words_beside(&mut self, span: &RegisterSpan) {
+        let device = Arc::clone(&self.device);
+        let values = device
             .channels
             .iter()
             .flat_map(|c| c.registers.iter().filter_map(|r| r.read))
-            .filter(|r| r.reg_type == register_type && r.address == address)
-            .map(|r| r.count.max(1))
-            .max()
-            .unwrap_or(1)
+            .filter(|read| spans_overlap(read, span));
+        for value in values {
+            for offset in 0..value.count.max(1) {
+                let address = value.address.wrapping_add(offset);
+                let register = (value.reg_type, address);
+                let inside =
+                    u32::from(address) >= u32::from(span.start) && u32::from(address) < span.end();
+                if !inside && !self.pending_event_words.contains(&register) {
+                    self.set_word(register, None);
+                }
+            }
+        }
     }
 
     /// Reports the values of the `touched` channels whose words are all known: each change,
@@ -1459,9 +1468,15 @@ mod tests {
             poll(&mut model, 60, &[1, 5]),
             one("Input 1 counter", "65541")
         );
-        // 61 = 7, reported by an event of its own: joined with 60.
+        // 61 = 7, reported by an event of its own (a device that makes each register an event
+        // source): 60 may have changed with it, so it is not joined with 60 as last read
+        // either; the read the scheduler makes at once publishes the value.
         assert_eq!(
             feed_packet(&mut model, "14 46 11 00 01 06 02 04 003D 0700"),
+            Vec::new()
+        );
+        assert_eq!(
+            poll(&mut model, 60, &[1, 7]),
             one("Input 1 counter", "65543")
         );
         // A device that reports the whole value at its first register (4 bytes) sets both.
@@ -1521,11 +1536,13 @@ mod tests {
             Vec::new()
         );
         assert_eq!(poll(&mut model, 9, &[1, 0]), one("Illuminance", "655.36"));
-        // Register 10 becomes 1: 655.37, not 0.01.
+        // Register 10 becomes 1, reported alone: never 0.01, and not joined with 9 as last
+        // read either (9 may have changed with it); the read publishes 655.37.
         assert_eq!(
             feed_packet(&mut model, "14 46 11 00 01 06 02 04 000A 0100"),
-            one("Illuminance", "655.37")
+            Vec::new()
         );
+        assert_eq!(poll(&mut model, 9, &[1, 1]), one("Illuminance", "655.37"));
     }
 
     /// Both words in one packet (a carry from 0x0000FFFF to 0x00010000): one publication, of
@@ -2259,9 +2276,9 @@ mod tests {
         model.repeats = Repeats::Events;
         assert_eq!(poll(&mut model, 60, &[0, 5]), one("Input 1 counter", "5"));
         assert_eq!(poll(&mut model, 60, &[0, 5]), Vec::new());
-        // An event repeating the low word: the same value, reported as an event value.
+        // An event repeating the value: the same value, reported as an event value.
         assert_eq!(
-            feed_packet(&mut model, "14 46 11 00 01 06 02 04 003D 0500"),
+            feed_packet(&mut model, "14 46 11 00 01 08 04 04 003C 0500 0000"),
             one("Input 1 counter", "5")
         );
     }

@@ -811,20 +811,24 @@ impl DeviceState {
         closed
     }
 
-    /// An event carried `words` registers of the value read at `start`, fewer than it has: its
-    /// other words may have changed with it (a device updates a value at once), so the value is
-    /// read once at the next turn, events-only or not, rather than joined with words read
-    /// before (src/gateway/device_model.rs waits for that read).
+    /// An event carried `words` registers from `start`, part of a value read there or of a
+    /// wider one it falls inside (a channel on the low word of a u32): the value's other words
+    /// may have changed with it (a device updates a value at once), so the value is read once
+    /// at the next turn, events-only or not, rather than joined with words read before
+    /// (src/gateway/device_model.rs waits for that read).
     pub(super) fn read_partial_event_value(
         &mut self,
         register_type: RegisterType,
         start: u16,
         words: usize,
     ) {
+        let event_end = u32::from(start).saturating_add(u32::try_from(words).unwrap_or(u32::MAX));
         for (plan, read) in self.plan.reads.iter().zip(self.reads.iter_mut()) {
-            if plan.span.register_type == register_type
-                && plan.span.start == start
-                && usize::from(plan.span.count) > words
+            let value = plan.span;
+            if value.register_type == register_type
+                && value.start <= start
+                && u32::from(start) < value.end()
+                && (value.start < start || event_end < value.end())
                 && !read.exclusion.never_read()
             {
                 read.initial_pending = true;

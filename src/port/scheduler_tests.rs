@@ -622,6 +622,58 @@ fn a_packet_naming_a_value_wider_than_its_register_is_read_instead() {
     }
 }
 
+/// An event for a register inside a wider value (input 11, a channel on the low word of the
+/// u32 at 10–11): the u32's high word may have changed with it, so the u32 is read once at the
+/// next turn, events-only as it is, rather than joined with its high word as last read (the
+/// device model waits for that read).
+#[test]
+fn an_event_inside_a_wider_value_has_the_value_read() {
+    let wide = PlannedRead {
+        span: RegisterSpan::new(RegisterType::Input, 10, 2),
+        ..read(RegisterType::Input, 10, EventMode::Sporadic)
+    };
+    let mut scheduler = PortScheduler::new(
+        settings(115_200),
+        vec![device(
+            20,
+            vec![wide, read(RegisterType::Input, 11, EventMode::Sporadic)],
+        )],
+    );
+    let mut log = Log::default();
+    let mut sent_packet = None;
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(400),
+        |now, request| match &request.body {
+            RequestBody::Fast(FastRequest::PollEvents(_))
+                if now > ms(100) && sent_packet.is_none() =>
+            {
+                sent_packet = Some(now);
+                packet_of(20, 1, vec![input_event(11, vec![7, 0])])
+            }
+            _ => healthy(request),
+        },
+    );
+    let packet_at = sent_packet.expect("the packet went");
+    let reads_after: Vec<&RequestBody> = log
+        .sent
+        .iter()
+        .filter(|(at, _)| *at > packet_at)
+        .map(|(_, request)| &request.body)
+        .filter(|body| matches!(body, RequestBody::Classic(_)))
+        .collect();
+    assert!(
+        reads_after.iter().any(|body| matches!(
+            body,
+            RequestBody::Classic(RequestPdu::ReadInputRegisters { start, count })
+                if *start <= 10 && start + count >= 12
+        )),
+        "the u32 at 10 not read after the event at 11: {reads_after:?}"
+    );
+}
+
 /// A healthy bus where device `address` reports a reboot in answer to the `nth` event poll.
 fn reboot_reported_at_poll(
     nth: usize,
