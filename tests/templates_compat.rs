@@ -1185,7 +1185,7 @@ fn narrow_signed_field_reads_unsigned() {
     );
     let byte = d.channel("Signed Byte").unwrap();
     assert_eq!(
-        byte.decode(&[&[0xFF0F]]).unwrap(),
+        byte.decode(&[&[0x0FFF]]).unwrap(),
         Reading::Value("-1".into())
     );
 }
@@ -1204,23 +1204,22 @@ fn bit_shift_above_255_leaves_the_channel_out() {
     let ids: Vec<&str> = d.channels.iter().map(|c| c.id.as_str()).collect();
     assert_eq!(ids, vec!["Offset Nibble", "Signed Byte", "Status"]);
     let texts: Vec<String> = warnings.iter().map(|w| w.to_string()).collect();
-    assert_eq!(texts.len(), 1, "{texts:#?}");
-    let text = &texts[0];
-    assert!(text.contains(fixture) && text.contains(":12:"), "{text}");
-    assert!(
-        text.contains("channels[2].address") && text.contains("`Far Flag`"),
-        "{text}"
-    );
+    assert_eq!(texts.len(), 2, "{texts:#?}");
+    let text = texts
+        .iter()
+        .find(|t| t.contains("`Far Flag`"))
+        .unwrap_or_else(|| panic!("{texts:#?}"));
+    assert!(text.contains(fixture) && text.contains(":14:"), "{text}");
+    assert!(text.contains("channels[3].address"), "{text}");
     assert!(
         text.contains("is ignored") && text.contains("300"),
         "{text}"
     );
     let found = check_template(&template(fixture));
-    assert_eq!(found.len(), 1, "{found:#?}");
-    assert!(matches!(
-        found[0].problem,
-        rtu2mqtt::config::Problem::Warning(_)
-    ));
+    assert_eq!(found.len(), 2, "{found:#?}");
+    assert!(found
+        .iter()
+        .all(|f| matches!(f.problem, rtu2mqtt::config::Problem::Warning(_))));
     // In a setup item (or a parameter) the address is still refused, as wb-mqtt-serial throws
     // there outside any `try`.
     let err = resolve_template_device(
@@ -1230,6 +1229,70 @@ fn bit_shift_above_255_leaves_the_channel_out() {
     .unwrap_err()
     .to_string();
     assert!(err.contains("300"), "{err}");
+}
+
+/// A bit shift at or beyond the width of the value's format (`"5:8:8"` on an `s8`, `"400:16:8"`
+/// on a `u16`): wb-mqtt-serial's `TRegisterConfig` throws "bit offset must not exceed 8 bits"
+/// (`src/register.cpp`) inside `LoadSimpleChannel`'s `try`, which warns that the channel "is
+/// ignored" and loads the rest of the device. rtu2mqtt read such a channel from the registers
+/// after it (a u16 at `"400:16:8"` published the low byte of register 401).
+#[test]
+fn bit_shift_beyond_the_format_leaves_the_channel_out() {
+    let fixture = "config-test-bit-fields.json";
+    let (d, warnings) = rtu2mqtt::device::resolve_template_device_with_warnings(
+        &template(fixture),
+        &json!({"slave_id": 1}),
+    )
+    .unwrap_or_else(|e| panic!("{e}"));
+    assert!(d.channel("High Signed Byte").is_none());
+    let texts: Vec<String> = warnings.iter().map(|w| w.to_string()).collect();
+    let text = texts
+        .iter()
+        .find(|t| t.contains("`High Signed Byte`"))
+        .unwrap_or_else(|| panic!("{texts:#?}"));
+    assert!(text.contains("channels[2].address"), "{text}");
+    assert!(
+        text.contains("is ignored")
+            && text.contains("bit shift 8")
+            && text.contains("8 bits of format `s8`"),
+        "{text}"
+    );
+
+    let inline = |channels: serde_json::Value| {
+        let raw = json!({"device_type": "shift", "device": {"name": "S", "id": "s",
+            "channels": channels}});
+        let template = rtu2mqtt::config::TemplateFile::from_source(
+            rtu2mqtt::config::parse::SourceText::from_text(
+                std::path::Path::new("shift.json"),
+                &raw.to_string(),
+            ),
+        )
+        .unwrap_or_else(|e| panic!("{e}"));
+        rtu2mqtt::device::resolve_template_device_with_warnings(&template, &json!({"slave_id": 1}))
+    };
+    let (d, warnings) = inline(json!([
+        {"name": "Shift", "reg_type": "input", "address": "400:16:8"},
+        {"name": "Wide", "reg_type": "input", "address": "400:15:8"},
+        {"name": "Byte", "reg_type": "input", "address": "402:7:1", "format": "u8"}
+    ]))
+    .unwrap_or_else(|e| panic!("{e}"));
+    let ids: Vec<&str> = d.channels.iter().map(|c| c.id.as_str()).collect();
+    assert_eq!(ids, vec!["Wide", "Byte"]);
+    let texts: Vec<String> = warnings.iter().map(|w| w.to_string()).collect();
+    assert_eq!(texts.len(), 1, "{texts:#?}");
+    assert!(
+        texts[0].contains("`Shift`") && texts[0].contains("16 bits of format `u16`"),
+        "{texts:#?}"
+    );
+    // A setup item is refused, as wb-mqtt-serial throws there outside any `try`.
+    let err = resolve_template_device(
+        &template(fixture),
+        &json!({"slave_id": 1, "setup": [{"title": "hi", "address": "5:8:8", "format": "u8",
+            "value": 1}]}),
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(err.contains("bit shift 8"), "{err}");
 }
 
 /// WB-MAO4's light scenes: a `required` parameter with a `default` behind a condition must be

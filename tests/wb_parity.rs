@@ -77,10 +77,13 @@ fn read(channel: &ResolvedChannel, words: &[u16]) -> String {
     }
 }
 
-/// The words a channel writes for `payload` (single register, not a bit field).
+/// The words a channel writes for `payload` (single register), over registers holding zeros
+/// (as wb-mqtt-serial's tests' fake device holds them when a format narrower than its registers,
+/// or a bit field, is merged into them).
 fn write(channel: &ResolvedChannel, payload: &str) -> Vec<u16> {
+    let zeros = vec![0u16; channel.registers[0].codec.word_count as usize];
     let mut encoded = channel
-        .encode(payload, &[None])
+        .encode(payload, &[Some(&zeros)])
         .unwrap_or_else(|err| panic!("`{payload}` is refused: {err}"));
     encoded.remove(0)
 }
@@ -461,12 +464,14 @@ fn string_read_stops_at_zero_or_ff() {
 
 /// TModbusTest.ReadString8: an 8-register `string8` (two characters per register, high byte
 /// first) reads "2.4.2-rc1" with trailing zeros, a zero then trash (AA BB CC DD EE FF), or
-/// trailing 0xFF, and "2.4.2-rc12345678" when full.
+/// trailing 0xFF, and "2.4.2-rc12345678" when full. Eight registers is `string_data_size` 8:
+/// wb-mqtt-serial reads `string_data_size` registers of a `string8` as of a `string`
+/// (`TRegisterConfig::Get16BitWidth`, `src/register.cpp`: the data width, size × 8 bits, / 8).
 #[test]
 fn string8_read_stops_at_zero_or_ff() {
     let ch = channel(with(
         holding(142, "string8"),
-        json!({"string_data_size": 16}),
+        json!({"string_data_size": 8}),
     ));
     let pack = |bytes: &[u8]| -> Vec<u16> {
         bytes
@@ -510,7 +515,7 @@ fn string_write_fills_the_whole_string() {
 fn string8_write_fills_the_whole_string() {
     let device = device_with(
         json!([{"name": "s", "reg_type": "holding_multi", "address": 142,
-        "format": "string8", "string_data_size": 16, "type": "text"}]),
+        "format": "string8", "string_data_size": 8, "type": "text"}]),
     );
     let model = model(device);
     let list = model.write("s", "Lateralus").expect("write accepted");
@@ -521,6 +526,141 @@ fn string8_write_fills_the_whole_string() {
             vec![0x4C61, 0x7465, 0x7261, 0x6C75, 0x7300, 0, 0, 0],
             true
         )]
+    );
+}
+
+/// A `string8` channel of `string_data_size` N reads N registers and shows up to 2N characters,
+/// as wb-mqtt-serial reads it (`LoadRegisterBitsAddress` in `src/serial_config.cpp` makes the
+/// width N × 8 bits; `TRegisterConfig::Get16BitWidth` in `src/register.cpp` reads that / 8
+/// registers for either string format; `GetStringRegisterValue` in `src/modbus_common.cpp`
+/// takes two characters from each). rtu2mqtt read N / 2 registers ("ABCD" of "ABCDEFGH"), and
+/// refused a text of more than N characters.
+#[test]
+fn string8_reads_string_data_size_registers() {
+    let device = device_with(json!([
+        {"name": "s8", "reg_type": "input", "address": 100, "format": "string8",
+         "string_data_size": 4, "type": "text"},
+        {"name": "t", "reg_type": "holding", "address": 200, "format": "string8",
+         "string_data_size": 4, "type": "text"}
+    ]));
+    let s8 = device.channel("s8").expect("channel");
+    let read_at = s8.registers[0].read.expect("read");
+    assert_eq!((read_at.address, read_at.count), (100, 4));
+    let mut model = model(device);
+    let out = values_read(
+        &mut model,
+        RegisterType::Input,
+        100,
+        vec![0x4142, 0x4344, 0x4546, 0x4748],
+    );
+    assert_eq!(
+        published(&out),
+        vec![("s8".to_string(), "ABCDEFGH".to_string())]
+    );
+    let list = model
+        .write("t", "ABCDEFG")
+        .expect("8 characters fit 4 registers");
+    assert_eq!(
+        writes(&list),
+        vec![(200, vec![0x4142, 0x4344, 0x4546, 0x4700], false)]
+    );
+    assert!(model.write("t", "ABCDEFGHI").is_err());
+}
+
+/// `word_order: little_endian` on a string: wb-mqtt-serial reverses the words of any value
+/// (`GetRegisterValue` in `src/modbus_common.cpp`) before `GetStringRegisterValue` reads the
+/// characters, and reverses the words it writes (`ComposeRawMultipleWriteRequestData`), so the
+/// first characters are in the last register. rtu2mqtt read and wrote strings in address order
+/// whatever the word order.
+#[test]
+fn string_word_order_little_endian_reverses_the_registers() {
+    let device = device_with(json!([
+        {"name": "s8", "reg_type": "holding", "address": 200, "format": "string8",
+         "string_data_size": 2, "word_order": "little_endian", "type": "text"},
+        {"name": "s", "reg_type": "holding", "address": 300, "format": "string",
+         "string_data_size": 3, "word_order": "little_endian", "type": "text"}
+    ]));
+    let s = device.channel("s").expect("channel");
+    assert_eq!(read(s, &[0x43, 0x42, 0x41]), "ABC");
+    let s8 = device.channel("s8").expect("channel");
+    assert_eq!(read(s8, &[0x4142, 0x4344]), "CDAB");
+    let model = model(device);
+    let list = model.write("s8", "CDAB").expect("write accepted");
+    assert_eq!(writes(&list), vec![(200, vec![0x4142, 0x4344], false)]);
+    let list = model.write("s", "AB").expect("write accepted");
+    assert_eq!(writes(&list), vec![(300, vec![0, 0x42, 0x41], false)]);
+}
+
+/// A `u8` whose address gives a field wider than 8 bits (`"300:0:16"`): wb-mqtt-serial prints
+/// a `u8` as `Get<uint8_t>` of the field (`ConvertFromRawValue`, `src/register.cpp`: a cast),
+/// its low 8 bits, and writes the value cut to 8 bits (`GetRawValue`: `& 0xff`). rtu2mqtt
+/// published the whole 16-bit field (0x2010 as 8208).
+#[test]
+fn u8_with_a_wider_field_reads_its_low_byte() {
+    let ch = channel(
+        json!({"name": "v", "reg_type": "holding", "address": "300:0:16",
+        "format": "u8", "type": "value"}),
+    );
+    assert_eq!(read(&ch, &[0x2010]), "16");
+    assert_eq!(read(&ch, &[0x00FF]), "255");
+    // The field is 16 bits: a write keeps nothing of the old high byte, and takes what a `u8`
+    // holds (a larger value is refused, as any value outside its format).
+    let words = ch.encode("200", &[Some(&[0xAB12])]).expect("fits a u8");
+    assert_eq!(words, vec![vec![0x00C8]]);
+    assert!(ch.encode("256", &[Some(&[0])]).is_err());
+}
+
+/// 8- and 24-bit formats are merged into their registers on a write: wb-mqtt-serial writes a
+/// `u8` / `s8` / `char8` / `bcd8` over the cached register, replacing its low 8 bits only
+/// (`ComposeRawSingleWriteRequestData` in `src/modbus_common.cpp`: `mask = GetLSBMask(8)`), and a
+/// `u24` / `s24` / `bcd24` over its two cached registers, replacing 24 bits
+/// (`ComposeNumberWriteRequestWords`: `~(GetLSBMask(GetDataWidth()) << offset)`). rtu2mqtt wrote
+/// whole registers, zeroing the high byte (a second channel at `"5:8:8"`, flags, a mode).
+#[test]
+fn narrow_formats_keep_the_rest_of_their_registers_on_write() {
+    let device = device_with(json!([
+        {"name": "Low", "reg_type": "holding", "address": 5, "format": "u8", "type": "value"},
+        {"name": "High", "reg_type": "holding", "address": "5:8:8", "type": "value"},
+        {"name": "Char", "reg_type": "holding", "address": 6, "format": "char8", "type": "text"},
+        {"name": "Signed", "reg_type": "holding", "address": 7, "format": "s8", "type": "value"},
+        {"name": "Bcd", "reg_type": "holding", "address": 8, "format": "bcd8", "type": "value"},
+        {"name": "Wide", "reg_type": "holding", "address": 10, "format": "u24", "type": "value"},
+        {"name": "Low first", "reg_type": "holding", "address": 12, "format": "s24",
+         "word_order": "little_endian", "type": "value"}
+    ]));
+    let mut model = model(device);
+    // Before its register is read nothing is written, as for a bit field (its other bits are
+    // not known yet).
+    assert!(model.write("Low", "10").is_err());
+    values_read(
+        &mut model,
+        RegisterType::Holding,
+        5,
+        vec![
+            0x2010, 0x7700, 0x6600, 0x5500, 0, 0xAB12, 0x3456, 0xCDEF, 0x99AA,
+        ],
+    );
+    let one = |model: &DeviceModel, control: &str, payload: &str| {
+        let list = model.write(control, payload).expect("accepted");
+        assert_eq!(list.len(), 1, "{list:?}");
+        (
+            list[0].address,
+            list[0].values.clone(),
+            list[0].defined.clone(),
+        )
+    };
+    assert_eq!(one(&model, "Low", "10"), (5, vec![0x200A], vec![0x00FF]));
+    assert_eq!(one(&model, "Char", "A"), (6, vec![0x7741], vec![0x00FF]));
+    assert_eq!(one(&model, "Signed", "-2"), (7, vec![0x66FE], vec![0x00FF]));
+    assert_eq!(one(&model, "Bcd", "42"), (8, vec![0x5542], vec![0x00FF]));
+    assert_eq!(
+        one(&model, "Wide", "1"),
+        (10, vec![0xAB00, 0x0001], vec![0x00FF, 0xFFFF])
+    );
+    // Little endian: the low word first, the top byte in the second register.
+    assert_eq!(
+        one(&model, "Low first", "-1"),
+        (12, vec![0xFFFF, 0x99FF], vec![0xFFFF, 0x00FF])
     );
 }
 

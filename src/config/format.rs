@@ -90,12 +90,15 @@ impl RegisterFormat {
         }
     }
 
-    /// 16-bit registers the value occupies (strings: see [`RegisterFormat::string_registers`]).
+    /// 16-bit registers the value occupies (a string channel: `string_data_size`, in either
+    /// string format).
     pub fn registers(self) -> u32 {
         self.value_bits().div_ceil(16)
     }
 
-    /// Registers a string of `characters` takes in this format.
+    /// Registers a text of `characters` needs in this format (one character per register for
+    /// `string`, two for `string8`): what the site tools write. A string *channel* takes
+    /// `string_data_size` registers in either format, as wb-mqtt-serial reads it.
     pub fn string_registers(self, characters: u32) -> u32 {
         match self {
             Self::String8 => characters.div_ceil(2),

@@ -121,12 +121,16 @@ impl ValueCodec {
         }
     }
 
-    /// True when the value shares its registers with other data, so a write must merge it
-    /// into the current contents (read-modify-write).
+    /// True when the value does not fill its registers, so a write must merge it into their
+    /// current contents (read-modify-write): a bit field, and a format narrower than the
+    /// registers it takes (`u8`, `s8`, `char8`, `bcd8` in one register, `u24`, `s24`, `bcd24`
+    /// in two). wb-mqtt-serial writes them so, over its register cache
+    /// (`ComposeRawSingleWriteRequestData`, `ComposeRawMultipleWriteRequestData`: the value's
+    /// `GetDataWidth()` bits are replaced, the other bits kept).
     pub fn is_partial(&self) -> bool {
         !self.is_bit
             && !self.format.is_string()
-            && (self.bit_shift > 0 || self.bit_width < self.format.value_bits())
+            && (self.bit_shift > 0 || self.bit_width < self.word_count.saturating_mul(16))
     }
 
     fn mask(&self) -> u128 {
@@ -256,6 +260,10 @@ impl ValueCodec {
                 let value = ((field << shift) as i64) >> shift;
                 self.integer_text(i128::from(value), text);
             }
+            // wb-mqtt-serial prints a `u8` as `Get<uint8_t>` of the field (a cast), so a field
+            // wider than the format (`"300:0:16"`) shows its low 8 bits; the wider unsigned
+            // formats print the whole field (`Get<uint64_t>`).
+            RegisterFormat::U8 => self.integer_text(i128::from(field & 0xFF), text),
             _ => self.integer_text(i128::from(field), text),
         }
         Ok(())
@@ -287,9 +295,17 @@ impl ValueCodec {
         }
     }
 
+    /// The characters of a `string` (one per register, its low byte) or `string8` (two per
+    /// register, high byte first), up to the first 0x00 or 0xFF. `word_order: little_endian`
+    /// takes the registers last first, as wb-mqtt-serial's `GetRegisterValue` reverses the words
+    /// of any value before `GetStringRegisterValue` reads them.
     fn decode_string(&self, words: &[u16]) -> String {
         let mut bytes = Vec::new();
-        for &word in words {
+        let reverse = self.word_order == WordOrder::LittleEndian;
+        let count = words.len();
+        for i in 0..count {
+            let index = if reverse { count - 1 - i } else { i };
+            let word = words.get(index).copied().unwrap_or(0);
             let word = if self.byte_order == ByteOrder::LittleEndian {
                 word.swap_bytes()
             } else {
@@ -447,7 +463,10 @@ impl ValueCodec {
             }
             format => {
                 let value = self.integer_for(text)?;
-                let bits = self.bit_width.clamp(1, 64);
+                // A field wider than its format (`u8` at `"300:0:16"`) takes what the format
+                // holds: wb-mqtt-serial cuts the value to the format's width (`GetRawValue`) and
+                // reads back only that much of a `u8`.
+                let bits = self.bit_width.min(format.value_bits()).clamp(1, 64);
                 // A negative value on an unsigned format is written as its two's complement
                 // in the field's width, as wb-mqtt-serial writes it (its `stoull` wraps and
                 // the result is masked): Danfoss EKC 204A1 declares r36 as `u16` with scale
@@ -463,7 +482,8 @@ impl ValueCodec {
                 if !(min..=max).contains(&value) {
                     return Err(self.out_of_range(text, min.to_string(), max.to_string()));
                 }
-                Ok((value as u64) & (self.mask() as u64))
+                let width_mask = u64::MAX.checked_shr(64 - bits).unwrap_or(u64::MAX);
+                Ok((value as u64) & width_mask & (self.mask() as u64))
             }
         }
     }
@@ -535,7 +555,14 @@ impl ValueCodec {
                 word
             }
         });
-        Ok(words.collect())
+        let mut words: Vec<u16> = words.collect();
+        // The first characters in the last register, as wb-mqtt-serial writes a string with
+        // `word_order: little_endian` (`ComposeRawMultipleWriteRequestData` reverses the words)
+        // and as it is read back.
+        if self.word_order == WordOrder::LittleEndian {
+            words.reverse();
+        }
+        Ok(words)
     }
 }
 

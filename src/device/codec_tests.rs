@@ -236,6 +236,80 @@ fn bit_fields_read_and_merge_on_write() {
     assert_eq!(value(low_byte.decode(&[0xAB12]).unwrap()), "18");
 }
 
+/// 8- and 24-bit formats do not fill their registers: a write replaces the format's bits and
+/// keeps the others, as wb-mqtt-serial merges them into its register cache
+/// (`ComposeRawSingleWriteRequestData`, `ComposeNumberWriteRequestWords`).
+#[test]
+fn narrow_formats_merge_into_their_registers() {
+    for format in [
+        RegisterFormat::U8,
+        RegisterFormat::S8,
+        RegisterFormat::Char8,
+        RegisterFormat::Bcd8,
+    ] {
+        let narrow = codec(format);
+        assert!(narrow.is_partial(), "{}", format.name());
+        assert_eq!(narrow.field_mask_words(), vec![0x00FF], "{}", format.name());
+        assert_eq!(narrow.encode("1", None), Err(CodecError::NeedsCurrentWords));
+    }
+    assert_eq!(
+        codec(RegisterFormat::U8)
+            .encode("10", Some(&[0x2010]))
+            .unwrap(),
+        vec![0x200A]
+    );
+    assert_eq!(
+        codec(RegisterFormat::S8)
+            .encode("-2", Some(&[0x7F00]))
+            .unwrap(),
+        vec![0x7FFE]
+    );
+    for format in [
+        RegisterFormat::U24,
+        RegisterFormat::S24,
+        RegisterFormat::Bcd24,
+    ] {
+        let wide = codec(format);
+        assert!(wide.is_partial(), "{}", format.name());
+        assert_eq!(
+            wide.field_mask_words(),
+            vec![0x00FF, 0xFFFF],
+            "{}",
+            format.name()
+        );
+    }
+    assert_eq!(
+        codec(RegisterFormat::U24)
+            .encode("1", Some(&[0xAB12, 0x3456]))
+            .unwrap(),
+        vec![0xAB00, 0x0001]
+    );
+    let low_first = ValueCodec {
+        word_order: WordOrder::LittleEndian,
+        ..codec(RegisterFormat::U24)
+    };
+    assert_eq!(
+        low_first.encode("1", Some(&[0x3456, 0xAB12])).unwrap(),
+        vec![0x0001, 0xAB00]
+    );
+    for format in [
+        RegisterFormat::U16,
+        RegisterFormat::S16,
+        RegisterFormat::U32,
+        RegisterFormat::Float,
+        RegisterFormat::U64,
+        RegisterFormat::Double,
+    ] {
+        assert!(!codec(format).is_partial(), "{}", format.name());
+    }
+    // A field wider than a `u8` reads as the `u8` it is (wb-mqtt-serial's `Get<uint8_t>`).
+    let wide_u8 = ValueCodec {
+        bit_width: 16,
+        ..codec(RegisterFormat::U8)
+    };
+    assert_eq!(value(wide_u8.decode(&[0x2010]).unwrap()), "16");
+}
+
 #[test]
 fn narrow_signed_field_takes_its_sign_from_the_format() {
     // wb-mqtt-serial cuts the field out unsigned and converts it as the format's whole width
@@ -455,13 +529,17 @@ fn char8_writes_back_the_byte_it_read() {
     let char8 = codec(RegisterFormat::Char8);
     for byte in [0x41u16, 0x20, 0x7F, 0x80, 0xE9, 0xFF] {
         let text = value(char8.decode(&[byte]).unwrap());
-        assert_eq!(char8.encode(&text, None).unwrap(), vec![byte], "{text:?}");
+        assert_eq!(
+            char8.encode(&text, Some(&[0])).unwrap(),
+            vec![byte],
+            "{text:?}"
+        );
     }
-    assert_eq!(char8.encode("é", None).unwrap(), vec![0xE9]);
-    assert_eq!(char8.encode("AB", None).unwrap(), vec![0x41]);
-    assert_eq!(char8.encode(" ", None).unwrap(), vec![0x20]);
+    assert_eq!(char8.encode("é", Some(&[0])).unwrap(), vec![0xE9]);
+    assert_eq!(char8.encode("AB", Some(&[0])).unwrap(), vec![0x41]);
+    assert_eq!(char8.encode(" ", Some(&[0])).unwrap(), vec![0x20]);
     assert!(matches!(
-        char8.encode("Ж", None),
+        char8.encode("Ж", Some(&[0])),
         Err(CodecError::NotOneByteCharacter(_))
     ));
 }
@@ -487,7 +565,9 @@ fn writes_check_the_format_range() {
         (RegisterFormat::Float, "1e39", false),
     ];
     for (format, text, ok) in cases {
-        let result = codec(*format).encode(text, None);
+        let codec = codec(*format);
+        let zeros = vec![0; codec.word_count as usize];
+        let result = codec.encode(text, Some(&zeros));
         assert_eq!(result.is_ok(), *ok, "{} {text}: {result:?}", format.name());
     }
     let err = codec(RegisterFormat::U16)
@@ -500,8 +580,10 @@ fn writes_check_the_format_range() {
         vec![0xFFFF]
     );
     assert_eq!(
-        codec(RegisterFormat::U8).encode("-1", None).unwrap(),
-        vec![0x00FF]
+        codec(RegisterFormat::U8)
+            .encode("-1", Some(&[0xAB00]))
+            .unwrap(),
+        vec![0xABFF]
     );
     assert_eq!(
         codec(RegisterFormat::U16).encode("abc", None),
@@ -522,8 +604,8 @@ fn scaled_writes_round_to_the_nearest_raw_value() {
         scale: 0.5,
         ..codec(RegisterFormat::U8)
     };
-    assert_eq!(offset.encode("-20", None).unwrap(), vec![40]);
-    assert!(offset.encode("200", None).is_err());
+    assert_eq!(offset.encode("-20", Some(&[0])).unwrap(), vec![40]);
+    assert!(offset.encode("200", Some(&[0])).is_err());
     // Danfoss EKC 204A1's r36: `u16`, scale 0.1, -15 … -3 °C; -15 is raw -150.
     let differential = ValueCodec {
         scale: 0.1,

@@ -473,6 +473,41 @@ impl<'a> RegisterFields<'a> {
         })
     }
 
+    /// An address whose bit shift is at or beyond the width of the value's format
+    /// (`"400:16:8"` on a `u16`, a shift of 8 on a `u8`), with the key that gives it:
+    /// wb-mqtt-serial's `TRegisterConfig` refuses it ("bit offset must not exceed 16 bits").
+    /// Strings take no shift.
+    fn shift_beyond_format(&self) -> Option<(&'static str, Problem)> {
+        let reg_type = self.reg_type.unwrap_or(RegisterKind::Holding);
+        let bit_table = matches!(reg_type, RegisterKind::Coil | RegisterKind::Discrete);
+        let format = self.format.unwrap_or(if bit_table {
+            RegisterFormat::U8
+        } else {
+            RegisterFormat::U16
+        });
+        if format.is_string() {
+            return None;
+        }
+        let width = format.value_bits();
+        [
+            ("address", self.address),
+            ("write_address", self.write_address),
+        ]
+        .into_iter()
+        .find_map(|(key, address)| {
+            let address = address.filter(|a| a.bit_shift >= width)?;
+            Some((
+                key,
+                Problem::Invalid(format!(
+                    "bit shift {} in `{key}` is not below the {width} bits of format `{}` \
+                     (wb-mqtt-serial: \"bit offset must not exceed {width} bits\")",
+                    address.bit_shift,
+                    format.name()
+                )),
+            ))
+        })
+    }
+
     fn of_setup(item: &SetupItemSpec) -> RegisterFields<'static> {
         RegisterFields {
             reg_type: item.reg_type,
@@ -634,8 +669,12 @@ impl Walker {
                     return;
                 }
                 // wb-mqtt-serial's `LoadRegisterBitsAddress` throws for a bit shift above 255
-                // inside the same `try`, so such a channel is left out too.
-                if let Some((key, problem)) = fields.oversized_bit_shift() {
+                // inside the same `try`, and `TRegisterConfig` for one at or beyond the format's
+                // width, so such a channel is left out too.
+                if let Some((key, problem)) = fields
+                    .oversized_bit_shift()
+                    .or_else(|| fields.shift_beyond_format())
+                {
                     self.warnings.push(ResolveWarning {
                         origin: format!("{}.{key}", spec.origin.as_deref().unwrap_or_default()),
                         message: format!(
@@ -889,7 +928,10 @@ impl Walker {
                 "needs `address` (or `write_address` for a write-only channel)".into(),
             ));
         };
-        if let Some((_, problem)) = fields.oversized_bit_shift() {
+        if let Some((_, problem)) = fields
+            .oversized_bit_shift()
+            .or_else(|| fields.shift_beyond_format())
+        {
             return Err(problem);
         }
         let mut codec = ValueCodec::plain(format);
@@ -912,8 +954,12 @@ impl Walker {
                     format.name()
                 )));
             };
-            codec.word_count = format.string_registers(size);
-            codec.bit_width = size * 8;
+            // `string_data_size` registers for both formats: wb-mqtt-serial takes it as a
+            // width of `size × 8` bits and reads `GetDataWidth() / 8` registers of a string
+            // (`TRegisterConfig::Get16BitWidth`), one character in each for `string` and two for
+            // `string8`, so a `string8` of size N shows up to 2N characters.
+            codec.word_count = size;
+            codec.bit_width = size.saturating_mul(8);
         } else {
             codec.bit_shift = layout_address.bit_shift;
             if let Some(width) = layout_address.bit_width {

@@ -85,8 +85,12 @@ pub fn encode_value(
     if format.is_integer() {
         check_integer(format, text.trim())?;
     }
-    codec(format, word_order, count)
-        .encode(text, None)
+    // A format narrower than its registers (`u8`, `u24` …) is written over zeros: the tool
+    // writes whole registers, as typed.
+    let codec = codec(format, word_order, count);
+    let zeros = vec![0u16; codec.word_count as usize];
+    codec
+        .encode(text, Some(&zeros))
         .map_err(|err| err.to_string())
 }
 
