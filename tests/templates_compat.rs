@@ -312,6 +312,24 @@ fn subdevice_parameters_named_like_channel_keys_are_written() {
     }
 }
 
+/// A nested slot (`IN_P`, of the one subdevice `analog`) overridden without `device_type` is
+/// refused, as wb-mqtt-serial refuses it (`CheckDeviceType`: "… device_type must be
+/// 'analog'"), with what to add; it used to take the slot's own subdevice.
+#[test]
+fn a_nested_slot_overridden_without_device_type_is_refused() {
+    let err = refused(
+        "config-test-wb-inputs.json",
+        json!({"slave_id": 7, "channels": [{"name": "Input 2", "device_type": "analog_pair", "channels": [
+            {"name": "IN_P", "data_rate": 20}]}]}),
+    );
+    assert!(err.contains("channels[0].channels[0]"), "{err}");
+    assert!(
+        err.contains(r#"subdevice slot `IN_P` without saying which subdevice it holds"#)
+            && err.contains(r#"add "device_type": "analog" (the only subdevice this slot takes)"#),
+        "{err}"
+    );
+}
+
 #[test]
 fn u64_counters_ranges_and_readonly() {
     let d = device("config-test-wb-inputs.json", json!({"slave_id": 1}));

@@ -885,6 +885,14 @@ fn merge_channels(
             }
         }
         if channel.get("device_type").is_some() {
+            // Overridden without naming its subdevice: refused (`slot_without_device_type`), and
+            // the template's default is not expanded with settings meant for another one.
+            if config
+                .as_ref()
+                .is_some_and(|(object, _)| !object.contains_key("device_type"))
+            {
+                continue;
+            }
             if depth > 8 {
                 errors.push(MergeError {
                     origin,
@@ -991,25 +999,50 @@ fn override_channel(
             }
         }
     }
-    if is_slot
-        && target.get("device_type").is_none()
-        && (config.contains_key("setup") || config.contains_key("channels"))
-    {
-        let choices: Vec<&str> = target
-            .get("oneOf")
-            .and_then(Value::as_array)
-            .into_iter()
-            .flatten()
-            .filter_map(Value::as_str)
-            .collect();
-        errors.push(MergeError {
-            origin: format!("c:{at}"),
-            problem: Problem::Invalid(format!(
-                "subdevice slot `{}` has no subdevice chosen, so its settings have nowhere to go; add \"device_type\": one of {}",
-                target.get("name").and_then(Value::as_str).unwrap_or(""),
-                choices.join(", ")
-            )),
-        });
+    if is_slot && !config.contains_key("device_type") {
+        errors.push(slot_without_device_type(target, at));
+    }
+}
+
+/// A config channel that overrides a subdevice slot without naming its `device_type`: refused,
+/// as wb-mqtt-serial refuses it (`CheckDeviceType` in `src/config_merge_template.cpp`,
+/// called by `MergeChannelProperties` for every override of a slot: "'… channel "Input 2"' must
+/// contain device_type" over a `oneOf` slot, "… device_type must be '4_20ma'" over a slot of
+/// one subdevice). Nothing between there and `main` catches the exception: the whole config is
+/// refused, not the device alone. Even `{"name": …, "enabled": false}` needs it there.
+fn slot_without_device_type(slot: &Map<String, Value>, at: &JsonPath) -> MergeError {
+    let name = slot.get("name").and_then(Value::as_str).unwrap_or("");
+    let default = slot.get("device_type").and_then(Value::as_str);
+    let choices: Vec<&str> = slot
+        .get("oneOf")
+        .and_then(Value::as_array)
+        .into_iter()
+        .flatten()
+        .filter_map(Value::as_str)
+        .collect();
+    let quoted = |names: &[&str]| {
+        names
+            .iter()
+            .map(|n| format!("\"{n}\""))
+            .collect::<Vec<_>>()
+            .join(", ")
+    };
+    let what_to_add = match (choices.as_slice(), default) {
+        ([], Some(only)) => {
+            format!("add \"device_type\": \"{only}\" (the only subdevice this slot takes)")
+        }
+        (_, Some(default)) => format!(
+            "add \"device_type\": one of {} (the template's default is \"{default}\")",
+            quoted(&choices)
+        ),
+        (_, None) => format!("add \"device_type\": one of {}", quoted(&choices)),
+    };
+    MergeError {
+        origin: format!("c:{at}"),
+        problem: Problem::Invalid(format!(
+            "this channel overrides subdevice slot `{name}` without saying which subdevice it \
+             holds (wb-mqtt-serial refuses such a config too): {what_to_add}"
+        )),
     }
 }
 
