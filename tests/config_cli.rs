@@ -395,17 +395,22 @@ fn wb_mqtt_serial_unsuccessful_cases_are_rejected() {
         ),
         // 6–7: setup items without value or without address.
         (
-            r#"{"slave_id": 2, "device_type": "TEST-SUBDEVICE", "channels": [{"name": "Sub1", "setup": [{"title": "bad", "address": 10}]}]}"#,
+            r#"{"slave_id": 2, "device_type": "TEST-SUBDEVICE", "channels": [{"name": "Sub1", "device_type": "subdevice1", "setup": [{"title": "bad", "address": 10}]}]}"#,
             "value",
         ),
         (
-            r#"{"slave_id": 2, "device_type": "TEST-SUBDEVICE", "channels": [{"name": "Sub1", "setup": [{"title": "bad", "value": 10}]}]}"#,
+            r#"{"slave_id": 2, "device_type": "TEST-SUBDEVICE", "channels": [{"name": "Sub1", "device_type": "subdevice1", "setup": [{"title": "bad", "value": 10}]}]}"#,
             "address",
         ),
-        // 8: settings for a slot whose subdevice is not chosen.
+        // 8: a slot overridden without naming its subdevice (wb: "… must contain device_type",
+        // "… device_type must be 'subdevice1'").
         (
             r#"{"slave_id": 2, "device_type": "TEST-SUBDEVICE", "channels": [{"name": "Sub2", "setup": [{"title": "bad", "address": 1, "value": 10}]}]}"#,
-            "Sub2",
+            "overrides subdevice slot `Sub2` without saying which subdevice it holds",
+        ),
+        (
+            r#"{"slave_id": 2, "device_type": "TEST-SUBDEVICE", "channels": [{"name": "Sub1", "enabled": false}]}"#,
+            r#"add "device_type": "subdevice1" (the only subdevice this slot takes)"#,
         ),
         // 9: a subdevice type on a channel that is no slot.
         (

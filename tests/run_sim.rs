@@ -69,9 +69,14 @@ impl Daemon {
     }
 
     fn start_config_with_env(config: Value, env: &[(&str, &str)]) -> Self {
+        Self::start_config_with(config, &[], env)
+    }
+
+    /// `args`: more arguments of `run` (another `--templates` directory).
+    fn start_config_with(config: Value, args: &[&str], env: &[(&str, &str)]) -> Self {
         let mut process = DaemonProcess::start_with_env(
             &config,
-            &["--stdio"],
+            &[&["--stdio"], args].concat(),
             Stdio::piped(),
             Stdio::piped(),
             env,
@@ -620,4 +625,49 @@ fn reads_stay_within_the_rate_limit_at_115200() {
 #[test]
 fn reads_stay_within_the_rate_limit_at_9600() {
     reads_stay_within_the_rate_limit_at(9600);
+}
+
+/// A subdevice's parameters named like channel keys reach the device: the legacy WB-MAI11's
+/// `min` and `max` (the range an input's value is scaled to), here in the fixture
+/// `WB-TEST-INPUTS` whose `analog` subdevice declares them as the MAI11's do (0x0408, 0x040A).
+/// wb-mqtt-serial writes them (`MergeChannelProperties` copies every key of a slot's override
+/// into the slot, `AppendSetupItems` makes a setup item of each named like a parameter);
+/// rtu2mqtt dropped them as channel keys and wrote only the others.
+#[test]
+fn subdevice_parameters_named_like_channel_keys_reach_the_device() {
+    let templates = repo("tests/data/wb-templates");
+    let dir = tempfile::tempdir().unwrap();
+    let bus = dir.path().join("bus.json");
+    // Input 2 is shifted by 0x2000: its subdevices' setup at 0x2400…, values at 0x2500….
+    let bus_json = json!({"devices": [{"name": "inputs", "template": "WB-TEST-INPUTS",
+        "address": 7, "serial": "0xFE000007", "line": "115200 8N2", "fast": false,
+        "registers": [{"type": "holding", "address": 0x2400, "count": 16},
+                      {"type": "input", "address": 0x2500, "count": 8}]}]});
+    std::fs::write(&bus, bus_json.to_string()).unwrap();
+    let sim = SimProcess::start_with(&bus, &templates, &[]);
+    let mut daemon = Daemon::start_config_with(
+        json!({"ports": [{"path": sim.pty, "baud_rate": 115200, "stop_bits": 2, "devices": [
+            {"device_type": "WB-TEST-INPUTS", "slave_id": 7, "channels": [
+                {"name": "Input 2", "device_type": "analog_pair", "channels": [
+                    {"name": "IN_P", "device_type": "analog", "data_rate": 45, "min": 5, "max": 2000},
+                    {"name": "IN_N", "device_type": "analog", "data_rate": 90, "max": 3000}]}]}]}]}),
+        &["--templates", templates.to_str().unwrap()],
+        &[],
+    );
+    // The setup is written before the device's first poll: once a value of it is published,
+    // the setup is there.
+    daemon.wait_for("a value of IN 2 P", daemon.patience, |line| {
+        line["device"] == "wb-test-inputs_7" && line["control"] == "IN 2 P Value"
+    });
+    let holding = sim.control(
+        json!({"cmd": "get", "device": 7, "type": "holding", "address": 0x2400, "count": 12}),
+    );
+    // 0x2400 IN_P type, 0x2401 IN_N type (stride 1: IN_N moved by each register's width),
+    // 0x2402/0x2403 rates, 0x2408 IN_P min, 0x240A IN_P max, 0x240B IN_N max; IN_N's min and
+    // the measurements are not given, so not written.
+    assert_eq!(
+        holding["values"],
+        json!([4866, 4866, 45, 90, 0, 0, 0, 0, 5, 0, 2000, 3000]),
+        "{holding}"
+    );
 }

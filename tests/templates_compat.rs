@@ -266,7 +266,8 @@ fn subdevice_shift_and_stride() {
     let d = device(
         "config-test-wb-inputs.json",
         json!({"slave_id": 7, "channels": [{"name": "Input 2", "device_type": "analog_pair", "channels": [
-            {"name": "IN_P", "data_rate": 20}, {"name": "IN_N", "data_rate": 45}]}]}),
+            {"name": "IN_P", "device_type": "analog", "data_rate": 20},
+            {"name": "IN_N", "device_type": "analog", "data_rate": 45}]}]}),
     );
     // Input 2 is shifted by 0x2000; the N channel of the pair moves by its own width (stride 1).
     assert_channel(&d, "IN 2 P Current", Input, 0x2500, S32, Polled);
@@ -276,6 +277,57 @@ fn subdevice_shift_and_stride() {
         .setup
         .iter()
         .any(|s| s.register.address == 0x2401 && s.words == vec![4866]));
+}
+
+/// Subdevice parameters named like channel keys (the legacy WB-MAI11's `min` and `max`, the
+/// range an input's `Value` is scaled to) are written as wb-mqtt-serial writes them
+/// (`MergeChannelProperties` copies every key of the override into the slot, `AppendSetupItems`
+/// makes a setup item of each named like a parameter); they were dropped as channel keys. The
+/// range is no channel property of the slot's channels (wb builds them from the subdevice).
+#[test]
+fn subdevice_parameters_named_like_channel_keys_are_written() {
+    let d = device(
+        "config-test-wb-inputs.json",
+        json!({"slave_id": 7, "channels": [{"name": "Input 2", "device_type": "analog_pair", "channels": [
+            {"name": "IN_P", "device_type": "analog", "data_rate": 20, "min": 5, "max": 2000},
+            {"name": "IN_N", "device_type": "analog", "data_rate": 45, "max": 3000}]}]}),
+    );
+    let writes = setup_writes(&d);
+    for (address, value) in [
+        (0x2408, 5),    // IN_P min
+        (0x240A, 2000), // IN_P max
+        (0x240B, 3000), // IN_N max (stride 1: moved by its own width)
+        (0x2402, 20),   // IN_P data_rate, as before
+    ] {
+        assert!(
+            writes.contains(&(address, vec![value])),
+            "{address:#x} = {value} missing from {writes:?}"
+        );
+    }
+    // IN_N's `min` is not given: not written (a parameter is written only when given).
+    assert!(!writes.iter().any(|(a, _)| *a == 0x2409), "{writes:?}");
+    for id in ["IN 2 P Value", "IN 2 P Current", "IN 2 N Value"] {
+        let channel = d.channel(id).unwrap();
+        assert_eq!((channel.min, channel.max), (None, None), "{id}");
+    }
+}
+
+/// A nested slot (`IN_P`, of the one subdevice `analog`) overridden without `device_type` is
+/// refused, as wb-mqtt-serial refuses it (`CheckDeviceType`: "… device_type must be
+/// 'analog'"), with what to add; it used to take the slot's own subdevice.
+#[test]
+fn a_nested_slot_overridden_without_device_type_is_refused() {
+    let err = refused(
+        "config-test-wb-inputs.json",
+        json!({"slave_id": 7, "channels": [{"name": "Input 2", "device_type": "analog_pair", "channels": [
+            {"name": "IN_P", "data_rate": 20}]}]}),
+    );
+    assert!(err.contains("channels[0].channels[0]"), "{err}");
+    assert!(
+        err.contains(r#"subdevice slot `IN_P` without saying which subdevice it holds"#)
+            && err.contains(r#"add "device_type": "analog" (the only subdevice this slot takes)"#),
+        "{err}"
+    );
 }
 
 #[test]

@@ -900,48 +900,59 @@ fn refuses_setup_item_without_value_in_subdevice() {
 }
 
 /// unsuccessful-8: slot `Sub2` (a `oneOf` slot) overridden without `device_type`, with a
-/// setup item that has no address. wb-mqtt-serial refuses it for the missing `device_type`
-/// (schema); rtu2mqtt takes the slot's default subdevice (see below) and refuses the setup
-/// item.
+/// setup item that has no address: refused for the missing `device_type`, as wb-mqtt-serial
+/// refuses it (its schema, and `CheckDeviceType`: `'… channel "Sub2"' must contain
+/// device_type`).
 #[test]
-fn refuses_one_of_slot_override_with_setup_item_without_address() {
+fn refuses_one_of_slot_override_without_device_type() {
     let err = refused(&one_port(json!([{
         "device_type": "subdevice", "slave_id": 2,
         "channels": [{"name": "Sub2", "setup": [{"title": "bad", "value": 10}]}]
     }])));
-    assert!(err.contains("devices[0].channels[0].setup[0]"), "{err}");
+    assert!(err.contains("devices[0].channels[0]"), "{err}");
+    assert!(
+        err.contains("overrides subdevice slot `Sub2` without saying which subdevice it holds"),
+        "{err}"
+    );
 }
 
-/// unsuccessful-8 without the setup item: a `oneOf` slot overridden without `device_type`
-/// takes the slot's default subdevice (its `device_type`, here subdevice1). Deliberate
-/// difference (docs/migrating.md; `tests/templates_compat.rs` relies on it): wb-mqtt-serial
-/// refuses it (its schema requires `device_type` on every `oneOf` alternative, and
-/// `CheckDeviceType`: `'… channel "Sub2"' must contain device_type`).
+/// unsuccessful-8 without the setup item: a `oneOf` slot overridden without `device_type` is
+/// refused on its own (it used to take the slot's default subdevice, a leniency wb-mqtt-serial
+/// does not have); the error says what to add, the choices and the template's default.
 #[test]
-fn one_of_slot_override_without_device_type_takes_the_default() {
-    let dev = device(&one_port(json!([{
-        "device_type": "subdevice", "slave_id": 2,
-        "channels": [{"name": "Sub2", "channels": [{"name": "c11", "enabled": false}]}]
-    }])));
-    assert!(dev.channel("Sub2 c11").is_none());
-    assert!(dev.channel("Sub1 c11").is_some());
-    assert!(dev.channel("Sub2 c2 c12").is_some());
+fn refuses_one_of_slot_override_without_device_type_alone() {
+    for channel in [
+        json!({"name": "Sub2", "channels": [{"name": "c11", "enabled": false}]}),
+        json!({"name": "Sub2", "enabled": false}),
+    ] {
+        let err = refused(&one_port(json!([{
+            "device_type": "subdevice", "slave_id": 2, "channels": [channel]
+        }])));
+        assert!(err.contains("devices[0].channels[0]"), "{err}");
+        assert!(
+            err.contains(r#"add "device_type": one of "subdevice1", "subdevice2", "subdevice3" (the template's default is "subdevice1")"#),
+            "{err}"
+        );
+    }
 }
 
-/// A slot of one subdevice type (`Sub1`) overridden without `device_type` takes that type.
-/// Deliberate difference (docs/migrating.md), as for a `oneOf` slot: wb-mqtt-serial refuses it (`CheckDeviceType`:
-/// `'"subdevice 2" channel "Sub1"' device_type must be 'subdevice1'`), though there is no
-/// choice to make.
+/// A slot of one subdevice type (`Sub1`) overridden without `device_type` is refused, as
+/// wb-mqtt-serial refuses it (`CheckDeviceType`: `'"subdevice 2" channel "Sub1"' device_type
+/// must be 'subdevice1'`), though there is no choice to make; with it, the override applies.
 #[test]
-fn single_type_slot_override_without_device_type_takes_that_type() {
-    let dev = device(&one_port(json!([{
+fn single_type_slot_override_needs_its_device_type() {
+    let err = refused(&one_port(json!([{
         "device_type": "subdevice", "slave_id": 2,
         "channels": [{"name": "Sub1", "enabled": false}]
     }])));
-    assert!(dev.channels.iter().all(|c| !c.id.starts_with("Sub1")));
+    assert!(
+        err.contains(r#"add "device_type": "subdevice1" (the only subdevice this slot takes)"#),
+        "{err}"
+    );
     let dev = device(&one_port(json!([{
         "device_type": "subdevice", "slave_id": 2,
-        "channels": [{"name": "Sub1", "setup": [{"title": "own", "address": 1, "value": 3}]}]
+        "channels": [{"name": "Sub1", "device_type": "subdevice1",
+                      "setup": [{"title": "own", "address": 1, "value": 3}]}]
     }])));
     assert!(setup(&dev).contains(&item("Sub1 own", 101, &[3])));
 }

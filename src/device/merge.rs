@@ -48,6 +48,19 @@ const FORBIDDEN_CHANNEL_OVERRIDES: [&str; 16] = [
 /// Device keys that are not copied from the config as plain overrides.
 const SPECIAL_DEVICE_KEYS: [&str; 4] = ["channels", "setup", "name", "protocol"];
 
+/// Device keys that stay what they are even if the template declares a parameter of that name
+/// (which would take the device's address, type, name or channels away in wb-mqtt-serial).
+const DEVICE_IDENTITY_KEYS: [&str; 8] = [
+    "slave_id",
+    "device_type",
+    "id",
+    "name",
+    "enabled",
+    "protocol",
+    "channels",
+    "setup",
+];
+
 fn known_device_keys() -> &'static Vec<String> {
     static KEYS: OnceLock<Vec<String>> = OnceLock::new();
     KEYS.get_or_init(|| schema_keys_at(&config_schema(), &JsonPath::parse("ports[0].devices[0]")))
@@ -140,19 +153,30 @@ pub fn merge_device(input: &DeviceMergeInput) -> Result<(Value, Vec<MergeError>)
     let mut values = BTreeMap::new();
     let mut not_numbers = Vec::new();
     for (key, value) in input.device {
-        if key == "max_publish_interval" {
-            errors.push(warning(
-                format!("c:{}", input.device_path.key(key)),
-                "max_publish_interval is not applied per device: unchanged values are published \
-                 again by the top-level max_unchanged_interval"
-                    .into(),
-            ));
-        }
-        if known_device_keys().contains(key) {
+        // A key named like a parameter of the template is that parameter's value, even where
+        // it is a device setting too (a `stride` or a timing): wb-mqtt-serial's
+        // `MergeDeviceConfigWithTemplate` copies the key into the device, then `AppendSetupItems`
+        // makes a setup item of it and removes it from the device (`removeMember`), so it is
+        // no setting there. The keys that make the device what it is stay settings.
+        let is_parameter = parameter_spec(parameters, key).is_some()
+            && !DEVICE_IDENTITY_KEYS.contains(&key.as_str());
+        if known_device_keys().contains(key) && !is_parameter {
+            if key == "max_publish_interval" {
+                errors.push(warning(
+                    format!("c:{}", input.device_path.key(key)),
+                    "max_publish_interval is not applied per device: unchanged values are \
+                     published again by the top-level max_unchanged_interval"
+                        .into(),
+                ));
+            }
             if !SPECIAL_DEVICE_KEYS.contains(&key.as_str()) {
                 result.insert(key.clone(), value.clone());
             }
             continue;
+        }
+        if is_parameter {
+            // The template's own setting of that name goes too, as `removeMember` takes it.
+            result.remove(key);
         }
         match parameter_spec(parameters, key) {
             Some(_) => match value.as_f64() {
@@ -174,7 +198,7 @@ pub fn merge_device(input: &DeviceMergeInput) -> Result<(Value, Vec<MergeError>)
                 valid.extend(parameter_ids(parameters));
                 errors.push(unknown_key(
                     format!("c:{}", input.device_path.key(key)),
-                    "device",
+                    "a device setting nor a parameter of the template",
                     key,
                     &valid,
                 ));
@@ -243,9 +267,10 @@ pub fn merge_device(input: &DeviceMergeInput) -> Result<(Value, Vec<MergeError>)
     }
 }
 
-/// A config key that is neither a setting nor a parameter of the template: a warning that it
-/// is ignored, as wb-mqtt-serial ignores it, with the closest valid keys for a typo.
-fn unknown_key(origin: String, what: &str, key: &str, valid: &[String]) -> MergeError {
+/// A config key that is neither a setting nor a parameter (`neither`: what it is not, "a device
+/// setting nor a parameter of the template"): a warning that it is ignored, as wb-mqtt-serial
+/// ignores it, with the closest valid keys for a typo.
+fn unknown_key(origin: String, neither: &str, key: &str, valid: &[String]) -> MergeError {
     let suggestions = crate::config::library::suggest_keys(key, valid.iter().map(String::as_str));
     let hint = match suggestions.as_slice() {
         [] => String::new(),
@@ -253,10 +278,7 @@ fn unknown_key(origin: String, what: &str, key: &str, valid: &[String]) -> Merge
     };
     warning(
         origin,
-        format!(
-            "`{key}` is neither a {what} setting nor a parameter of the template{hint}: \
-             ignored, as wb-mqtt-serial ignores it"
-        ),
+        format!("`{key}` is neither {neither}{hint}: ignored, as wb-mqtt-serial ignores it"),
     )
 }
 
@@ -863,6 +885,14 @@ fn merge_channels(
             }
         }
         if channel.get("device_type").is_some() {
+            // Overridden without naming its subdevice: refused (`slot_without_device_type`), and
+            // the template's default is not expanded with settings meant for another one.
+            if config
+                .as_ref()
+                .is_some_and(|(object, _)| !object.contains_key("device_type"))
+            {
+                continue;
+            }
             if depth > 8 {
                 errors.push(MergeError {
                     origin,
@@ -969,25 +999,50 @@ fn override_channel(
             }
         }
     }
-    if is_slot
-        && target.get("device_type").is_none()
-        && (config.contains_key("setup") || config.contains_key("channels"))
-    {
-        let choices: Vec<&str> = target
-            .get("oneOf")
-            .and_then(Value::as_array)
-            .into_iter()
-            .flatten()
-            .filter_map(Value::as_str)
-            .collect();
-        errors.push(MergeError {
-            origin: format!("c:{at}"),
-            problem: Problem::Invalid(format!(
-                "subdevice slot `{}` has no subdevice chosen, so its settings have nowhere to go; add \"device_type\": one of {}",
-                target.get("name").and_then(Value::as_str).unwrap_or(""),
-                choices.join(", ")
-            )),
-        });
+    if is_slot && !config.contains_key("device_type") {
+        errors.push(slot_without_device_type(target, at));
+    }
+}
+
+/// A config channel that overrides a subdevice slot without naming its `device_type`: refused,
+/// as wb-mqtt-serial refuses it (`CheckDeviceType` in `src/config_merge_template.cpp`,
+/// called by `MergeChannelProperties` for every override of a slot: "'… channel "Input 2"' must
+/// contain device_type" over a `oneOf` slot, "… device_type must be '4_20ma'" over a slot of
+/// one subdevice). Nothing between there and `main` catches the exception: the whole config is
+/// refused, not the device alone. Even `{"name": …, "enabled": false}` needs it there.
+fn slot_without_device_type(slot: &Map<String, Value>, at: &JsonPath) -> MergeError {
+    let name = slot.get("name").and_then(Value::as_str).unwrap_or("");
+    let default = slot.get("device_type").and_then(Value::as_str);
+    let choices: Vec<&str> = slot
+        .get("oneOf")
+        .and_then(Value::as_array)
+        .into_iter()
+        .flatten()
+        .filter_map(Value::as_str)
+        .collect();
+    let quoted = |names: &[&str]| {
+        names
+            .iter()
+            .map(|n| format!("\"{n}\""))
+            .collect::<Vec<_>>()
+            .join(", ")
+    };
+    let what_to_add = match (choices.as_slice(), default) {
+        ([], Some(only)) => {
+            format!("add \"device_type\": \"{only}\" (the only subdevice this slot takes)")
+        }
+        (_, Some(default)) => format!(
+            "add \"device_type\": one of {} (the template's default is \"{default}\")",
+            quoted(&choices)
+        ),
+        (_, None) => format!("add \"device_type\": one of {}", quoted(&choices)),
+    };
+    MergeError {
+        origin: format!("c:{at}"),
+        problem: Problem::Invalid(format!(
+            "this channel overrides subdevice slot `{name}` without saying which subdevice it \
+             holds (wb-mqtt-serial refuses such a config too): {what_to_add}"
+        )),
     }
 }
 
@@ -1030,10 +1085,15 @@ fn expand_subdevice(
     };
     let parameters = body.get("parameters");
     let mut values = BTreeMap::new();
+    // A key named like one of the subdevice's parameters is that parameter's value, whatever
+    // else the key means on a channel (the legacy WB-MAI11's `min` and `max`, the measuring
+    // range of an input): wb-mqtt-serial's `MergeChannelProperties` copies every key of the
+    // slot's override but `id` and `oneOf` into the slot, and `MergeChannelConfigWithTemplate`
+    // hands the slot to `AppendSetupItems`, which makes a setup item of every member named like
+    // a parameter. Nothing else of the slot's own keys reaches its channels there (the
+    // subdevice is built from the subdevice's body, with only `name`, `shift`, `stride` and
+    // `id` of the slot), so such a key is no channel property either.
     for (key, value) in &config_object {
-        if known_channel_keys().contains(key) {
-            continue;
-        }
         match (parameter_spec(parameters, key), value.as_f64()) {
             (Some(_), Some(number)) => {
                 values.insert(key.clone(), number);
@@ -1042,13 +1102,14 @@ fn expand_subdevice(
                 origin: format!("c:{}", config_path.key(key)),
                 problem: Problem::Invalid(format!("parameter `{key}` needs a number, not {value}")),
             }),
+            (None, _) if known_channel_keys().contains(key) => {}
             // Ignored by wb-mqtt-serial's `MergeChannelConfigWithTemplate`, as on a device.
             (None, _) => {
                 let mut valid = known_channel_keys().clone();
                 valid.extend(parameter_ids(parameters));
                 errors.push(unknown_key(
                     format!("c:{}", config_path.key(key)),
-                    "subdevice",
+                    &format!("a setting of a subdevice slot nor a parameter of subdevice `{device_type}`"),
                     key,
                     &valid,
                 ));
@@ -1083,4 +1144,97 @@ fn expand_subdevice(
     result.insert("setup".into(), Value::Array(setup));
     result.insert("channels".into(), Value::Array(channels));
     Some(Value::Object(result))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serde_json::json;
+
+    fn merge(template: Value, device: Value) -> Result<(Value, Vec<MergeError>), Vec<MergeError>> {
+        let device = device.as_object().unwrap().clone();
+        merge_device(&DeviceMergeInput {
+            template: Some(&template),
+            device: &device,
+            device_path: JsonPath::parse("ports[0].devices[0]"),
+            slave_id: "1".into(),
+            check_required: true,
+        })
+    }
+
+    /// (title, value) of each setup item of `object`.
+    fn setup_of(object: &Value) -> Vec<(String, Value)> {
+        object["setup"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|item| {
+                (
+                    item["title"].as_str().unwrap().to_string(),
+                    item["value"].clone(),
+                )
+            })
+            .collect()
+    }
+
+    /// A device key that the template also declares as a parameter is that parameter's value,
+    /// as wb-mqtt-serial's `MergeDeviceConfigWithTemplate` → `AppendSetupItems` makes it (a
+    /// setup item, and the key removed from the device, the template's own value too); without
+    /// the parameter it stays a device setting.
+    #[test]
+    fn a_device_parameter_named_like_a_device_setting_is_written() {
+        let template = json!({"device_type": "t", "device": {"name": "T",
+            "max_read_registers": 10,
+            "parameters": {"max_read_registers": {"title": "Block size", "address": 5}},
+            "channels": []}});
+        let (merged, warnings) =
+            merge(template, json!({"slave_id": 1, "max_read_registers": 3})).unwrap();
+        assert!(warnings.is_empty(), "{warnings:?}");
+        assert_eq!(setup_of(&merged), vec![("Block size".into(), json!(3))]);
+        assert!(merged.get("max_read_registers").is_none(), "{merged}");
+
+        let template = json!({"device_type": "t", "device": {"name": "T", "channels": []}});
+        let (merged, _) = merge(template, json!({"slave_id": 1, "max_read_registers": 3})).unwrap();
+        assert_eq!(merged["max_read_registers"], 3);
+        assert!(setup_of(&merged).is_empty());
+    }
+
+    /// A subdevice parameter named like a channel key (`min`, `max`, `units`) is written; it
+    /// was skipped as a channel key. An unknown key names the subdevice it is no parameter of.
+    #[test]
+    fn a_subdevice_parameter_named_like_a_channel_key_is_written() {
+        let template = json!({"device_type": "t", "device": {"name": "T",
+            "channels": [{"name": "In", "oneOf": ["a"], "device_type": "a"}],
+            "subdevices": [{"device_type": "a", "device": {
+                "parameters": {
+                    "min": {"title": "Minimum", "address": 8},
+                    "max": {"title": "Maximum", "address": 10},
+                    "units": {"title": "Unit code", "address": 12}},
+                "channels": [{"name": "Value", "address": 4}]}}]}});
+        let (merged, warnings) = merge(
+            template,
+            json!({"slave_id": 1, "channels": [{"name": "In", "device_type": "a",
+                "min": 5, "max": 2000, "units": 2, "rate": 1}]}),
+        )
+        .unwrap();
+        let slot = &merged["channels"][0];
+        assert_eq!(
+            setup_of(slot),
+            vec![
+                ("Maximum".into(), json!(2000)),
+                ("Minimum".into(), json!(5)),
+                ("Unit code".into(), json!(2)),
+            ]
+        );
+        // The slot's channels do not take them as channel properties.
+        assert!(slot["channels"][0].get("max").is_none(), "{slot}");
+        let texts: Vec<String> = warnings.iter().map(|w| w.problem.to_string()).collect();
+        assert_eq!(texts.len(), 1, "{texts:?}");
+        assert!(
+            texts[0].contains(
+                "`rate` is neither a setting of a subdevice slot nor a parameter of subdevice `a`"
+            ),
+            "{texts:?}"
+        );
+    }
 }
