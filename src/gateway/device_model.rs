@@ -950,6 +950,12 @@ impl DeviceModel {
         Ok(writes)
     }
 
+    /// Whether a channel reads `address` of `register_type` (a bit field written there goes
+    /// over its bits as read; in a register no channel reads, over what the setup leaves there).
+    pub fn reads_register(&self, register_type: RegisterType, address: u16) -> bool {
+        self.channel_index.is_read((register_type, address))
+    }
+
     /// A `/on` payload to carry out: its register writes, or `w` on the control (in `out`) and
     /// the reason it was refused.
     pub fn take_write(

@@ -171,6 +171,10 @@ pub(super) struct FailureCounts {
 #[derive(Debug, Clone)]
 pub(super) struct DeviceState {
     pub plan: DevicePlan,
+    /// How many times the device has been set up again (reconnected, restarted, replaced): a
+    /// write sent one register at a time starts over when this changed since its last
+    /// register was taken, as the device may have lost the registers written before.
+    pub preparations: u32,
     pub health: DeviceHealth,
     /// How long to wait for this device's replies: the configured floor, raised by what it does.
     pub response: ResponseTimer,
@@ -313,6 +317,7 @@ impl DeviceState {
             flaps: FlapLog::default(),
             held_back_flag: None,
             power_on_report_pending: true,
+            preparations: 0,
         };
         state.preparation = state.first_preparation_step();
         state
@@ -752,6 +757,7 @@ impl DeviceState {
     }
 
     pub(super) fn restart_preparation(&mut self) {
+        self.preparations = self.preparations.wrapping_add(1);
         self.untrusted_packet_told = false;
         self.events_active = false;
         self.events_to_disable.clear();
@@ -811,8 +817,9 @@ impl DeviceState {
         closed
     }
 
-    /// An event carried `words` registers from `start`, part of a value read there or of a
-    /// wider one it falls inside (a channel on the low word of a u32): the value's other words
+    /// An event carried `words` registers from `start`, part of a value read there, of a
+    /// wider one it falls inside (a channel on the low word of a u32), or of one it overlaps
+    /// (two u32 values sharing a register): the value's other words
     /// may have changed with it (a device updates a value at once), so the value is read once
     /// at the next turn, events-only or not, rather than joined with words read before
     /// (src/gateway/device_model.rs waits for that read).
@@ -825,10 +832,11 @@ impl DeviceState {
         let event_end = u32::from(start).saturating_add(u32::try_from(words).unwrap_or(u32::MAX));
         for (plan, read) in self.plan.reads.iter().zip(self.reads.iter_mut()) {
             let value = plan.span;
+            let overlaps = u32::from(value.start) < event_end && u32::from(start) < value.end();
+            let holds_whole = value.start >= start && value.end() <= event_end;
             if value.register_type == register_type
-                && value.start <= start
-                && u32::from(start) < value.end()
-                && (value.start < start || event_end < value.end())
+                && overlaps
+                && !holds_whole
                 && !read.exclusion.never_read()
             {
                 read.initial_pending = true;

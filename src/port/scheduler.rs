@@ -286,9 +286,24 @@ struct PendingWrite {
     /// It failed once and that was logged: a write carried out a minute later, when the device
     /// is back, leaves a trace in the journal.
     failure_told: bool,
-    /// Requests of the write the device has taken ([`RegisterWrite::request`]): a write one
-    /// register at a time goes on from the next; a failed request is sent again.
+    /// Requests of the write the device has taken ([`RegisterWrite::request`]), while it was
+    /// set up for the `sent_during`th time ([`DeviceState::preparations`]): a write one register
+    /// at a time goes on from the next. A failed request, or a device set up again since,
+    /// starts the write over from its last register, as wb-mqtt-serial writes the whole value
+    /// again: the device may not hold the registers taken before.
     sent: usize,
+    sent_during: u32,
+}
+
+impl PendingWrite {
+    /// The requests taken that still count for a device set up `preparations` times.
+    fn requests_taken(&self, preparations: u32) -> usize {
+        if self.sent_during == preparations {
+            self.sent
+        } else {
+            0
+        }
+    }
 }
 
 impl PendingWrite {
@@ -716,6 +731,7 @@ impl PortScheduler {
             seen: 0,
             failure_told: offline.is_some(),
             sent: 0,
+            sent_during: 0,
         };
         let same_register = |p: &PendingWrite| write_key(&p.write) == write_key(&pending.write);
         if let Some(replaced) = self.writes.iter().position(same_register) {
@@ -746,8 +762,12 @@ impl PortScheduler {
     /// flight, if any, is not among them: it may have reached the device, and repeating it
     /// (a pushbutton, a counter reset) would act twice.
     pub fn unsent_writes(&self) -> impl Iterator<Item = WriteKey> + '_ {
+        // A write one register at a time whose last request is not the one in flight is
+        // handed on whole: the registers below would never be written otherwise.
         let in_flight = match &self.in_flight {
-            Some(InFlight::Write { write }) => Some(write_key(&write.write)),
+            Some(InFlight::Write { write }) if write.sent + 1 >= write.write.request_count() => {
+                Some(write_key(&write.write))
+            }
             _ => None,
         };
         self.writes
@@ -1314,17 +1334,15 @@ impl PortScheduler {
                 .is_some_and(|d| (d.suspended || !d.setup_pending()) && self.may_transact(d, now))
         })?;
         let device = self.devices.get(pending.write.device)?;
+        let mut pending = pending.clone();
+        pending.sent = pending.requests_taken(device.preparations);
+        pending.sent_during = device.preparations;
         let write = &pending.write;
         let (address, values) = write.request(pending.sent);
         let pdu = write_pdu(write.register_type, address, values, write.force_multiple);
         let transaction =
             self.classic_transaction(now, device, Request::classic(device.plan.address, pdu));
-        Some((
-            transaction,
-            InFlight::Write {
-                write: pending.clone(),
-            },
-        ))
+        Some((transaction, InFlight::Write { write: pending }))
     }
 
     /// The first of the devices that seem dead, in `candidates`' order, that the dead
@@ -2224,6 +2242,7 @@ impl PortScheduler {
                 state.note_words(span, &words);
                 if let Some(queued) = self.writes.iter_mut().find(|p| p.write == pending.write) {
                     queued.sent = pending.sent + 1;
+                    queued.sent_during = pending.sent_during;
                 }
                 see_words(&mut self.writes, device, span, &words);
             }
@@ -2258,6 +2277,11 @@ impl PortScheduler {
                 let give_up = now >= pending.give_up_at;
                 if give_up || replaced(&self.writes) {
                     self.writes.retain(|p| !(p.write == pending.write));
+                } else if let Some(queued) =
+                    self.writes.iter_mut().find(|p| p.write == pending.write)
+                {
+                    // Sent again whole: the registers taken before may not hold their words.
+                    queued.sent = 0;
                 }
                 let name = &state.plan.name;
                 if give_up {

@@ -1296,8 +1296,8 @@ fn a_write_answered_busy_is_sent_again() {
 
 /// A `holding_single` u32 (65536 at 10–11): one 0x06 per register, the last first, and one
 /// write all the same: no value is reported until both registers hold their words (a value
-/// made of the new 11 and the old 10 is one the device was never given), a busy answer sends
-/// the same register again rather than starting over, and a register that refuses ends the
+/// made of the new 11 and the old 10 is one the device was never given), a busy answer has the
+/// whole value sent again, and a register that refuses ends the
 /// write: the registers before it are not written (wb-mqtt-serial's `WriteRegister` stops at
 /// the first failure).
 #[test]
@@ -1368,7 +1368,8 @@ fn a_value_written_one_register_at_a_time_is_one_write() {
         ]
     );
 
-    // Busy at 10 once: 10 is sent again, 11 is not written twice.
+    // Busy at 10 once: the value is written again whole, 11 then 10, as wb-mqtt-serial writes
+    // it again (the device that was busy may not hold 11's word any more).
     let mut log = Log::default();
     let mut scheduler = start(&mut log);
     run(
@@ -1378,7 +1379,7 @@ fn a_value_written_one_register_at_a_time_is_one_write() {
         ms(3000),
         refusing_writes_of(10, ExceptionCode::BUSY, 1),
     );
-    assert_eq!(writes_sent(&log), [(11, 0), (10, 1), (10, 1)]);
+    assert_eq!(writes_sent(&log), [(11, 0), (10, 1), (11, 0), (10, 1)]);
     assert!(matches!(
         write_events(&log).as_slice(),
         [
@@ -5900,5 +5901,257 @@ fn random_ports_with_dead_devices_do_not_spin() {
         "{} seeds spun: {:?}",
         spun.len(),
         &spun[..spun.len().min(12)]
+    );
+}
+
+/// The `holding_single` u32 of [`a_value_written_one_register_at_a_time_is_one_write`]: 11 is
+/// taken, then the device falls silent (it restarts) and comes back holding 0xFFFF in both
+/// registers. The write starts over from 11 rather than going on with 10 alone, which would
+/// leave the device at 0x0001FFFF while 65536 is reported as held.
+#[test]
+fn a_value_written_one_register_at_a_time_starts_over_after_the_device_restarts() {
+    use std::cell::RefCell;
+    use std::collections::HashMap;
+    use std::rc::Rc;
+    let mut plan = device(
+        3,
+        vec![PlannedRead {
+            span: RegisterSpan::new(RegisterType::Holding, 10, 2),
+            ..read(RegisterType::Holding, 10, EventMode::Polled)
+        }],
+    );
+    quick_to_disconnect(&mut plan);
+    let mut scheduler = PortScheduler::new(settings(115_200), vec![plan]);
+    let registers: Rc<RefCell<HashMap<u16, u16>>> =
+        Rc::new(RefCell::new(HashMap::from([(10, 0), (11, 0xFFFF)])));
+    // A device holding `registers`, silent (restarting) from `silent.0` to `silent.1`, its
+    // registers at 0xFFFF after that.
+    let bus = |registers: Rc<RefCell<HashMap<u16, u16>>>, silent: (Duration, Duration)| {
+        move |at: Duration, request: &Request| {
+            if at >= silent.0 && at < silent.1 {
+                registers.borrow_mut().extend([(10, 0xFFFF), (11, 0xFFFF)]);
+                return TransactionOutcome::NoReply;
+            }
+            let pdu = match &request.body {
+                RequestBody::Classic(RequestPdu::WriteSingleRegister { address, value }) => {
+                    registers.borrow_mut().insert(*address, *value);
+                    return healthy(request);
+                }
+                RequestBody::Classic(RequestPdu::ReadHoldingRegisters { start, count }) => {
+                    ResponsePdu::ReadHoldingRegisters {
+                        values: (*start..start + count)
+                            .map(|a| registers.borrow().get(&a).copied().unwrap_or(0))
+                            .collect(),
+                    }
+                }
+                _ => return healthy(request),
+            };
+            TransactionOutcome::Reply(Reply::classic(request.address, pdu))
+        }
+    };
+    let never = (Duration::MAX, Duration::MAX);
+    let mut log = Log::default();
+    let now = run(
+        &mut scheduler,
+        &mut log,
+        ms(0),
+        ms(100),
+        bus(registers.clone(), never),
+    );
+    let write = RegisterWrite {
+        device: 0,
+        register_type: RegisterType::Holding,
+        address: 10,
+        values: vec![1, 0],
+        force_multiple: false,
+        one_by_one: true,
+        defined: Vec::new(),
+    };
+    assert_eq!(scheduler.queue_write(now, write), None);
+    let NextStep::Transmit(first) = scheduler.next(now) else {
+        panic!("the write goes first")
+    };
+    assert_eq!(
+        first.request.body,
+        RequestBody::Classic(RequestPdu::WriteSingleRegister {
+            address: 11,
+            value: 0
+        })
+    );
+    registers.borrow_mut().insert(11, 0);
+    let mut events = Vec::new();
+    scheduler.complete_into(
+        now + ms(2),
+        healthy(&first.request),
+        ReplyTiming::default(),
+        &mut events,
+    );
+    let restart = (now + ms(3), now + ms(3000));
+    run(
+        &mut scheduler,
+        &mut log,
+        restart.0,
+        ms(10_000),
+        bus(registers.clone(), restart),
+    );
+    let written_after: Vec<(u16, u16)> = log
+        .sent
+        .iter()
+        .filter(|(at, _)| *at >= restart.1)
+        .filter_map(|(_, r)| match &r.body {
+            RequestBody::Classic(RequestPdu::WriteSingleRegister { address, value }) => {
+                Some((*address, *value))
+            }
+            _ => None,
+        })
+        .collect();
+    assert_eq!(written_after, [(11, 0), (10, 1)]);
+    assert_eq!(
+        (registers.borrow()[&10], registers.borrow()[&11]),
+        (1, 0),
+        "the device holds 65536"
+    );
+
+    // Set up again with no write failing (another device answers at the address, or a
+    // restart reported by an event): the write starts over all the same.
+    let mut scheduler = PortScheduler::new(
+        settings(115_200),
+        vec![device(
+            3,
+            vec![read(RegisterType::Holding, 0, EventMode::Polled)],
+        )],
+    );
+    let mut log = Log::default();
+    let now = run(&mut scheduler, &mut log, ms(0), ms(100), |_, r| healthy(r));
+    let write = RegisterWrite {
+        device: 0,
+        register_type: RegisterType::Holding,
+        address: 10,
+        values: vec![1, 0],
+        force_multiple: false,
+        one_by_one: true,
+        defined: Vec::new(),
+    };
+    assert_eq!(scheduler.queue_write(now, write), None);
+    let NextStep::Transmit(first) = scheduler.next(now) else {
+        panic!("the write goes first")
+    };
+    let mut events = Vec::new();
+    scheduler.complete_into(
+        now + ms(2),
+        healthy(&first.request),
+        ReplyTiming::default(),
+        &mut events,
+    );
+    scheduler.set_up_again(0);
+    let before = log.sent.len();
+    run(&mut scheduler, &mut log, now + ms(3), ms(1000), |_, r| {
+        healthy(r)
+    });
+    let written_after: Vec<(u16, u16)> = log.sent[before..]
+        .iter()
+        .filter_map(|(_, r)| match &r.body {
+            RequestBody::Classic(RequestPdu::WriteSingleRegister { address, value }) => {
+                Some((*address, *value))
+            }
+            _ => None,
+        })
+        .collect();
+    assert_eq!(written_after, [(11, 0), (10, 1)]);
+}
+
+/// A port task stopping while a write one register at a time is under way hands it on whole
+/// (its other registers would never be written), unless the request in flight is its last:
+/// that one may have reached the device, and the write is then done.
+#[test]
+fn a_value_written_one_register_at_a_time_is_handed_on_until_its_last_request() {
+    let reads = vec![read(RegisterType::Holding, 0, EventMode::Polled)];
+    let mut scheduler = PortScheduler::new(settings(115_200), vec![device(3, reads)]);
+    let mut log = Log::default();
+    let now = run(&mut scheduler, &mut log, Duration::ZERO, ms(50), |_, r| {
+        healthy(r)
+    });
+    let write = RegisterWrite {
+        device: 0,
+        register_type: RegisterType::Holding,
+        address: 10,
+        values: vec![1, 0],
+        force_multiple: false,
+        one_by_one: true,
+        defined: Vec::new(),
+    };
+    assert_eq!(scheduler.queue_write(now, write), None);
+    let key = (0, RegisterType::Holding, 10);
+    let NextStep::Transmit(first) = scheduler.next(now) else {
+        panic!("the write goes first")
+    };
+    assert_eq!(scheduler.unsent_writes().collect::<Vec<_>>(), [key]);
+    let mut events = Vec::new();
+    scheduler.complete_into(
+        now + ms(2),
+        healthy(&first.request),
+        ReplyTiming::default(),
+        &mut events,
+    );
+    assert_eq!(scheduler.unsent_writes().collect::<Vec<_>>(), [key]);
+    let NextStep::Transmit(last) = scheduler.next(now + ms(3)) else {
+        panic!("the write goes on")
+    };
+    assert_eq!(
+        last.request.body,
+        RequestBody::Classic(RequestPdu::WriteSingleRegister {
+            address: 10,
+            value: 1
+        })
+    );
+    assert_eq!(scheduler.unsent_writes().count(), 0);
+}
+
+/// An event carrying the whole u32 at input 10 (10–11) sets the first word of another value,
+/// the u32 at 11–12 (overlapping, events-only): that value's other word may have changed with
+/// it, so it is read at the next turn (the model waits for that read), as a value an event
+/// holds in part anywhere.
+#[test]
+fn an_event_overlapping_the_start_of_another_value_has_it_read() {
+    let value_at = |start| PlannedRead {
+        span: RegisterSpan::new(RegisterType::Input, start, 2),
+        ..read(RegisterType::Input, start, EventMode::Sporadic)
+    };
+    let mut scheduler = PortScheduler::new(
+        settings(115_200),
+        vec![device(20, vec![value_at(10), value_at(11)])],
+    );
+    let mut log = Log::default();
+    let mut sent_packet = None;
+    run(
+        &mut scheduler,
+        &mut log,
+        Duration::ZERO,
+        ms(400),
+        |now, request| match &request.body {
+            RequestBody::Fast(FastRequest::PollEvents(_))
+                if now > ms(100) && sent_packet.is_none() =>
+            {
+                sent_packet = Some(now);
+                packet_of(20, 1, vec![input_event(10, vec![7, 0, 1, 0])])
+            }
+            _ => healthy(request),
+        },
+    );
+    let packet_at = sent_packet.expect("the packet went");
+    let reads_after: Vec<&RequestBody> = log
+        .sent
+        .iter()
+        .filter(|(at, _)| *at > packet_at)
+        .map(|(_, request)| &request.body)
+        .filter(|body| matches!(body, RequestBody::Classic(_)))
+        .collect();
+    assert!(
+        reads_after.iter().any(|body| matches!(
+            body,
+            RequestBody::Classic(RequestPdu::ReadInputRegisters { start, count })
+                if *start <= 11 && start + count >= 13
+        )),
+        "the u32 at 11 not read after the event: {reads_after:?}"
     );
 }

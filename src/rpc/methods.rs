@@ -1182,8 +1182,13 @@ async fn checked_writes(
             let Some(target) = register.write.or(register.read) else {
                 continue;
             };
-            // A register the model would refuse to write is not worth a read.
-            if target.reg_type.is_writable() {
+            // A register the model would refuse to write is not worth a read, nor one no
+            // channel reads: the model writes over what the setup leaves there, or zeros, as
+            // wb-mqtt-serial writes over its cache (the device may refuse to read it).
+            let read_by_a_channel = (0..target.count.max(1)).any(|offset| {
+                model.reads_register(target.reg_type, target.address.wrapping_add(offset))
+            });
+            if target.reg_type.is_writable() && read_by_a_channel {
                 let words = read_words(bus, line, device.slave_id, target)
                     .await
                     .map_err(|err| err.message)?;
@@ -1743,6 +1748,107 @@ mod tests {
             result,
             json!({"parameters": {"present": 1234}, "model": "S35CR", "fw": "1.2.3"}),
             "{asked:?}"
+        );
+    }
+
+    /// `device/Set` of a write-only `u8` (a `write_address` no channel reads) on a device that
+    /// refuses reads of that register: written over zeros, as the daemon and wb-mqtt-serial
+    /// write it (a narrow format keeps its register's other bits only where they are read); no
+    /// read goes first that would fail the whole Set.
+    #[tokio::test]
+    async fn device_set_of_a_write_only_narrow_value_reads_nothing_first() {
+        use crate::daemon::bus_queue::QueuedJob;
+        let template = json!({
+            "device_type": "write-only-u8",
+            "device": {
+                "name": "WO", "id": "wo",
+                "channels": [
+                    {"name": "Value", "reg_type": "holding", "address": 20, "type": "value"},
+                    {"name": "Cmd", "reg_type": "holding", "write_address": 30, "format": "u8", "type": "value"}
+                ]
+            }
+        });
+        let mut library = TemplateLibrary::default();
+        library.insert(
+            TemplateFile::from_source(SourceText::from_text(
+                Path::new("config-write-only-u8.json"),
+                &template.to_string(),
+            ))
+            .unwrap(),
+        );
+        let path = "/dev/rtu2mqtt-write-only-no-such-port";
+        let config = json!({"ports": [{"path": path, "baud_rate": 115200, "stop_bits": 2,
+            "devices": [{"device_type": "write-only-u8", "slave_id": 7}]}]});
+        let loaded = crate::config::load::load_config_source(
+            SourceText::from_text(Path::new("c.json"), &config.to_string()),
+            false,
+        )
+        .unwrap();
+        let port = crate::device::resolve_config(&loaded, &library)
+            .unwrap()
+            .remove(0);
+        let (queue, mut jobs) = BusQueue::new();
+        let directory: PortDirectory = Arc::default();
+        directory.lock().unwrap().insert(
+            path.into(),
+            PortAccess {
+                name: path.into(),
+                resolved: Arc::new(port),
+                line: Some(LineSettings::new(115_200, crate::protocol::Parity::None, 2)),
+                queue,
+                events: Arc::default(),
+                fast_modbus: false,
+            },
+        );
+        let asked = Arc::new(std::sync::Mutex::new(Vec::new()));
+        let seen = Arc::clone(&asked);
+        tokio::spawn(async move {
+            while let Some(job) = jobs.recv().await {
+                let QueuedJob::Transaction(job) = job else {
+                    continue;
+                };
+                let request = &job.transaction.request;
+                let pdu = match &request.body {
+                    crate::protocol::RequestBody::Classic(pdu) => pdu.clone(),
+                    crate::protocol::RequestBody::Fast(_) => {
+                        let _ = job.reply.send(Ok(TransactionOutcome::NoReply));
+                        continue;
+                    }
+                };
+                seen.lock().unwrap().push(pdu.clone());
+                let answer = match pdu {
+                    RequestPdu::WriteSingleRegister { address, value } => {
+                        ResponsePdu::WriteSingleRegister { address, value }
+                    }
+                    other => ResponsePdu::Exception {
+                        function: other.function(),
+                        code: ExceptionCode::ILLEGAL_DATA_ADDRESS,
+                    },
+                };
+                let reply = Reply::classic(request.address, answer);
+                let _ = job.reply.send(Ok(TransactionOutcome::Reply(reply)));
+            }
+        });
+        let method = super::super::params::parse_method(
+            "device",
+            "Set",
+            &json!({"path": path, "slave_id": 7, "channels": {"Cmd": 5}}),
+        )
+        .unwrap();
+        let result = execute_with_templates(
+            &directory,
+            &DeviceTemplates::new(library, Vec::new(), PathBuf::from("c.json")),
+            method,
+        )
+        .await;
+        let asked = asked.lock().unwrap().clone();
+        assert!(result.is_ok(), "{result:?}; requests {asked:?}");
+        assert_eq!(
+            asked,
+            [RequestPdu::WriteSingleRegister {
+                address: 30,
+                value: 5
+            }]
         );
     }
 
