@@ -83,7 +83,7 @@ pub enum CodecError {
     },
     #[error("`{text}` is longer than the {capacity} characters the register holds")]
     StringTooLong { text: String, capacity: u32 },
-    #[error("writing a bit field needs the current register contents to keep the other bits")]
+    #[error("the register has not been read yet: this value fills only some of its bits, and the others are written as the device holds them (send it again once the control shows a value)")]
     NeedsCurrentWords,
     #[error("`{0}` does not fit a char8 register: it holds one character from U+0000 to U+00FF")]
     NotOneByteCharacter(String),
