@@ -1144,7 +1144,12 @@ async fn a_libmodbus_device_beside_fast_modbus_devices(baud: u32) {
         })
         .map(|(topic, payload, _)| (topic.clone(), payload.clone()))
         .collect();
-    assert_eq!(errors, vec![], "at {baud}: errors published on a mixed bus");
+    assert_eq!(
+        errors,
+        vec![],
+        "at {baud}: errors published on a mixed bus; the daemon's log:\n{}",
+        daemon.log_tail(40)
+    );
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

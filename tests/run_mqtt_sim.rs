@@ -11,7 +11,7 @@ mod mqtt_support;
 mod sim_support;
 
 use daemon_support::{repo, DaemonProcess};
-use mqtt_support::{publish, retained, wait_for, Mosquitto};
+use mqtt_support::{publish, retained, wait_for, Mosquitto, Recorder};
 use serde_json::json;
 use sim_support::SimProcess;
 use std::process::Stdio;
@@ -99,6 +99,58 @@ async fn writes_errors_and_clean_exit_through_a_real_broker() {
         (!state.contains_key("/devices/climate_21/meta/error")).then_some(())
     })
     .await;
+
+    // A press counter back at 0 after its device was away is not published (a `whenChanged`
+    // rule on it would fire by itself after every bus or power glitch, as wb-mqtt-serial
+    // holds that 0 back); the next press is.
+    let counter = "/devices/relay6_20/controls/Input 0 single press counter";
+    assert_eq!(
+        retained_value(port, counter).await.as_deref(),
+        Some("0"),
+        "published at 0 at the start, as wb-mqtt-serial publishes it"
+    );
+    let recorder = Recorder::start(port, counter).await;
+    let set_counter = |value: u16| {
+        sim.control(
+            json!({"cmd": "set", "device": 20, "type": "input", "address": 464, "value": value}),
+        );
+    };
+    set_counter(3);
+    wait_for("the press counter at 3", || async {
+        (retained_value(port, counter).await? == "3").then_some(())
+    })
+    .await;
+    sim.control(json!({"cmd": "unplug", "device": 20}));
+    let counter_error = format!("{counter}/meta/error");
+    wait_for("the press counter marked r", || async {
+        (retained_value(port, &counter_error).await? == "r").then_some(())
+    })
+    .await;
+    set_counter(0);
+    sim.control(json!({"cmd": "replug", "device": 20}));
+    // Its `r` is cleared by its first read after the return: the 0 has been read.
+    wait_for("the press counter read again", || async {
+        (!retained(port).await?.contains_key(&counter_error)).then_some(())
+    })
+    .await;
+    set_counter(1);
+    wait_for("the next press published", || async {
+        (retained_value(port, counter).await? == "1").then_some(())
+    })
+    .await;
+    let published: Vec<String> = recorder
+        .messages
+        .lock()
+        .unwrap()
+        .iter()
+        .filter(|(topic, _, retained)| topic == counter && !retained)
+        .map(|(_, payload, _)| payload.clone())
+        .collect();
+    assert_eq!(
+        published,
+        ["3", "1"],
+        "the counter as published since it was 0 at the start"
+    );
 
     // SIGTERM: a clean exit that leaves no retained device topic.
     let status = daemon.terminate();

@@ -66,6 +66,12 @@ pub struct DeviceModel {
     write_done: Option<(RegisterType, u16)>,
     /// The port reported the device offline and not online since ([`Self::is_offline`]).
     offline: bool,
+    /// Channels with a press counter whose next 0 is not published: a Wiren Board device
+    /// counts again from 0 after a restart, and that 0 would fire the `whenChanged` rules on
+    /// the counter (wb-mqtt-serial's `DoNotPublishNextZeroPressCounter`). Set when the device
+    /// goes offline, or reports a restart once its counter was published; a channel leaves it
+    /// at its first other value.
+    held_press_counters: Vec<usize>,
 }
 
 /// Which channels read each register, and the channels' ids as updates carry them: built once
@@ -322,6 +328,7 @@ impl DeviceModel {
             pending_writes: Vec::new(),
             write_done: None,
             offline: false,
+            held_press_counters: Vec::new(),
         }
     }
 
@@ -388,6 +395,9 @@ impl DeviceModel {
                 });
                 self.publish_channels(&touched, false, out);
                 self.touched = touched;
+                if written {
+                    self.publish_write_only(&span, &values, out);
+                }
             }
             PortEvent::EventValue {
                 register_type,
@@ -484,6 +494,7 @@ impl DeviceModel {
             }
             PortEvent::Offline { .. } => {
                 self.offline = true;
+                self.hold_press_counters();
                 out.push(DeviceUpdate::Online {
                     device_id: self.device.id.clone(),
                     online: false,
@@ -493,6 +504,13 @@ impl DeviceModel {
                 self.set_flags(ResolvedChannel::is_read, |flags| flags.read = true, out);
             }
             PortEvent::Rebooted { .. } => {
+                // Also a device that restarted too briefly to be seen offline (a power blip),
+                // but not the power-on report at the service's start: a counter not published
+                // yet is published at 0, as wb-mqtt-serial publishes it.
+                self.hold_press_counters();
+                let reported = &self.reported;
+                self.held_press_counters
+                    .retain(|&index| matches!(reported.get(index), Some(Some(_))));
                 // The device may hold other values now: an event for one word of a wider value
                 // must not be joined with words read before the restart. The reads that follow
                 // the new setup bring every word back.
@@ -572,6 +590,112 @@ impl DeviceModel {
         }
     }
 
+    fn hold_press_counters(&mut self) {
+        self.held_press_counters.clear();
+        self.held_press_counters.extend(
+            self.device
+                .channels
+                .iter()
+                .enumerate()
+                .filter(|(_, channel)| channel.registers.iter().any(|r| r.press_counter))
+                .map(|(index, _)| index),
+        );
+    }
+
+    /// Whether channel `index`, decoded from `word_buffer`, is a press counter at 0 held back
+    /// since its device went offline or restarted; any other value releases it.
+    fn zero_press_count_held(&mut self, index: usize, channel: &ResolvedChannel) -> bool {
+        let Some(at) = self.held_press_counters.iter().position(|&i| i == index) else {
+            return false;
+        };
+        let mut rest = self.word_buffer.as_slice();
+        let mut zero = false;
+        for register in &channel.registers {
+            let count = register
+                .read
+                .map_or(1, |read| usize::from(read.count.max(1)));
+            let (part, after) = rest.split_at(count.min(rest.len()));
+            rest = after;
+            zero |= register.press_counter && part.iter().all(|&word| word == 0);
+        }
+        if !zero {
+            self.held_press_counters.swap_remove(at);
+        }
+        zero
+    }
+
+    /// Publishes the write-only controls (a `pushbutton`, a `wo-switch`, a channel with a
+    /// `write_address` alone) that the write of `values` at `span` set whole: their value is
+    /// what was written, as wb-mqtt-serial publishes a register once a write set it. A channel
+    /// that reads its value publishes it from its read.
+    fn publish_write_only(
+        &mut self,
+        span: &RegisterSpan,
+        values: &[u16],
+        out: &mut Vec<DeviceUpdate>,
+    ) {
+        let device = Arc::clone(&self.device);
+        for (index, channel) in device.channels.iter().enumerate() {
+            if channel.registers.iter().any(|r| r.read.is_some()) {
+                continue;
+            }
+            let mut words = Vec::new();
+            let all_written = channel.registers.iter().all(|register| {
+                let Some(target) = register.write else {
+                    return false;
+                };
+                (0..target.count.max(1)).all(|offset| {
+                    let word = (target.reg_type == span.register_type)
+                        .then(|| target.address.wrapping_add(offset).checked_sub(span.start))
+                        .flatten()
+                        .and_then(|at| values.get(usize::from(at)));
+                    word.map(|&word| words.push(word)).is_some()
+                })
+            });
+            if !all_written {
+                continue;
+            }
+            let mut text = String::new();
+            let mut rest = words.as_slice();
+            let mut decoded = true;
+            for (position, register) in channel.registers.iter().enumerate() {
+                let count = register
+                    .write
+                    .map_or(1, |write| usize::from(write.count.max(1)));
+                let (part, after) = rest.split_at(count.min(rest.len()));
+                rest = after;
+                if position > 0 {
+                    text.push(';');
+                }
+                decoded &= matches!(
+                    register.codec.decode_into(part, &mut text),
+                    Ok(Decoded::Text)
+                );
+            }
+            if !decoded {
+                continue;
+            }
+            let pushbutton = self
+                .channel_index
+                .pushbuttons
+                .get(index)
+                .copied()
+                .unwrap_or(false);
+            let report_repeat = self.repeats.report(false, pushbutton);
+            let Some(last) = self.reported.get_mut(index) else {
+                continue;
+            };
+            let changed = last.as_deref() != Some(text.as_str());
+            let value = match last {
+                Some(last) if !changed => Arc::clone(last),
+                _ => Arc::clone(last.insert(Arc::from(text.as_str()))),
+            };
+            if changed || report_repeat {
+                self.push_value(index, value, false, changed, out);
+            }
+        }
+    }
+
     /// Forgets the words of the values `span` holds only part of, outside it, but for those
     /// the events of the packet under way set.
     fn forget_words_beside(&mut self, span: &RegisterSpan) {
@@ -610,6 +734,14 @@ impl DeviceModel {
             if !self.gather_words(index) {
                 continue;
             }
+            // Checked on every value, repeated or not: any count but 0 releases the hold.
+            let zero_held = !self.held_press_counters.is_empty() && {
+                let device = Arc::clone(&self.device);
+                device
+                    .channels
+                    .get(index)
+                    .is_some_and(|channel| self.zero_press_count_held(index, channel))
+            };
             let flags = self.errors.get(index).copied().unwrap_or_default();
             let report_repeat = self.repeats.report(
                 from_event,
@@ -631,7 +763,7 @@ impl DeviceModel {
                         out,
                     );
                 }
-                if report_repeat {
+                if report_repeat && !zero_held {
                     if let Some(Some(last)) = self.reported.get(index) {
                         let value = Arc::clone(last);
                         self.push_value(index, value, from_event, false, out);
@@ -664,6 +796,12 @@ impl DeviceModel {
                     let Some(last) = self.reported.get_mut(index) else {
                         continue;
                     };
+                    if zero_held {
+                        // Kept as the value reported, so that the next count is a change.
+                        *last = Some(Arc::from(text.as_str()));
+                        self.remember_decoded_words(index);
+                        continue;
+                    }
                     // Most reads repeat the value: a new one is copied, a repeat sent again.
                     let changed = last.as_deref() != Some(text.as_str());
                     let value = match last {
@@ -1451,6 +1589,111 @@ mod tests {
         );
         assert_eq!(poll(&mut model, 11, &[0]), one("Low", "0"));
         assert_eq!(poll(&mut model, 10, &[1, 0]), one("Counter", "65536"));
+    }
+
+    fn model_of_template(raw: serde_json::Value) -> DeviceModel {
+        let template = TemplateFile::from_source(crate::config::parse::SourceText::from_text(
+            std::path::Path::new("inline.json"),
+            &raw.to_string(),
+        ))
+        .unwrap();
+        let device =
+            resolve_template_device(&template, &serde_json::json!({"slave_id": 1})).unwrap();
+        DeviceModel::new(Arc::new(device), 0, Repeats::None)
+    }
+
+    /// A Wiren Board device counts button presses again from 0 after a restart: that first 0
+    /// is not published (a `whenChanged` rule on the counter would fire by itself after every
+    /// bus or power glitch), as wb-mqtt-serial's `DoNotPublishNextZeroPressCounter` holds it
+    /// after the device went offline; the next count is published as a change. Other values
+    /// are published as ever, and so is a 0 that comes with no restart in between.
+    #[test]
+    fn a_press_counter_back_at_zero_after_a_restart_is_not_published() {
+        let mut model = model_of_template(serde_json::json!({
+            "device_type": "presses",
+            "device": {
+                "name": "Presses", "id": "presses",
+                "channels": [
+                    {"name": "Presses", "reg_type": "press_counter", "address": 10, "type": "value"},
+                    {"name": "Level", "reg_type": "input", "address": 11, "type": "value"}
+                ]
+            }
+        }));
+        let offline = PortEvent::Offline { device: 0 };
+        let online = PortEvent::Online { device: 0 };
+        assert_eq!(
+            poll(&mut model, 10, &[3, 7]),
+            [one("Presses", "3"), one("Level", "7")].concat()
+        );
+        for (back, level) in [(offline, 1), (PortEvent::Rebooted { device: 0 }, 2)] {
+            model.apply(back, &mut Vec::new());
+            model.apply(online.clone(), &mut Vec::new());
+            assert_eq!(
+                poll(&mut model, 10, &[0, level]),
+                one("Level", &level.to_string())
+            );
+            assert_eq!(poll(&mut model, 10, &[0, level]), vec![]);
+            assert_eq!(poll(&mut model, 10, &[1, level]), one("Presses", "1"));
+        }
+        // No restart: a 0 is a value like any other.
+        assert_eq!(poll(&mut model, 10, &[0, 2]), one("Presses", "0"));
+    }
+
+    /// A write-only control (`pushbutton`, `wo-switch`, a `write_address` alone) gets the value
+    /// written once its write is done, as wb-mqtt-serial publishes a register a write set:
+    /// homeui shows a wo-switch's state, and a rule on a pushbutton fires.
+    #[test]
+    fn a_write_only_control_is_published_with_what_was_written() {
+        let mut model = model_of_template(serde_json::json!({
+            "device_type": "write-only",
+            "device": {
+                "name": "Write only", "id": "wo",
+                "channels": [
+                    {"name": "Reset", "reg_type": "holding", "address": 10, "type": "pushbutton"},
+                    {"name": "Relay", "reg_type": "coil", "address": 5, "type": "wo-switch"},
+                    {"name": "Level", "reg_type": "holding", "address": 20, "type": "value"},
+                    {"name": "Speed", "reg_type": "holding", "write_address": 30, "type": "value", "format": "u32"}
+                ]
+            }
+        }));
+        let mut written = |control: &str, payload: &str| {
+            let mut out = Vec::new();
+            let writes = model.take_write(control, payload, &mut out).unwrap();
+            for write in writes {
+                model.apply(
+                    PortEvent::WriteDone {
+                        device: 0,
+                        register_type: write.register_type,
+                        address: write.address,
+                    },
+                    &mut out,
+                );
+                let count = u16::try_from(write.values.len()).unwrap();
+                model.apply(
+                    PortEvent::Values {
+                        device: 0,
+                        span: RegisterSpan::new(write.register_type, write.address, count),
+                        values: write.values.clone().into(),
+                    },
+                    &mut out,
+                );
+            }
+            values(&out)
+                .into_iter()
+                .map(|(control, value, _)| (control, value))
+                .collect::<Vec<_>>()
+        };
+        assert_eq!(written("Reset", "1"), one("Reset", "1"));
+        assert_eq!(
+            written("Reset", "1"),
+            one("Reset", "1"),
+            "a pushbutton every time"
+        );
+        assert_eq!(written("Relay", "1"), one("Relay", "1"));
+        assert_eq!(written("Relay", "0"), one("Relay", "0"));
+        assert_eq!(written("Speed", "70000"), one("Speed", "70000"));
+        // A control that reads its register: from the words written, as before.
+        assert_eq!(written("Level", "5"), one("Level", "5"));
     }
 
     fn one(control: &str, value: &str) -> Vec<(String, String)> {
