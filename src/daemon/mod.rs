@@ -204,7 +204,7 @@ impl BusControl {
     /// models of the devices in `offline` start as known offline.
     fn prepare_port(&mut self, port: &ResolvedPort, offline: &[String]) -> PreparedPort {
         let queue = self.write_queue_for(port);
-        self.prepare_port_with(port, queue, offline)
+        self.prepare_port_with(port, queue, offline, &[])
     }
 
     /// A write queue for `port`, its devices' routes leading there from now on: writes sent
@@ -223,6 +223,7 @@ impl BusControl {
         port: &ResolvedPort,
         (port_write_tx, port_write_rx): WriteQueue,
         offline: &[String],
+        held_press_counters: &[(String, Vec<String>)],
     ) -> PreparedPort {
         let plan = port_plan(port, self.fast_modbus);
         let vitals = self.health.add_port(&plan.name, port.devices.len());
@@ -235,16 +236,21 @@ impl BusControl {
             added.push(DeviceUpdate::Added(Arc::clone(&device)));
             devices.push(Arc::clone(&device));
             let known_offline = offline.contains(&device.id);
+            let held = held_press_counters
+                .iter()
+                .find(|(id, _)| *id == device.id)
+                .map_or(&[][..], |(_, controls)| controls.as_slice());
             let model =
                 DeviceModel::sharing(device, index, self.repeats, &mut self.channel_indexes);
             // A device the stopped task of its port knew offline keeps its `r` on MQTT (the
             // planner keeps it when the device is announced again): the new model holds it
             // too, and clears it at the first good read.
-            models.push(if known_offline {
+            let model = if known_offline {
                 model.known_offline()
             } else {
                 model
-            });
+            };
+            models.push(model.holding_press_counters(held));
         }
         let (queue, queued) = BusQueue::new();
         let line = match &plan.endpoint {
@@ -403,12 +409,14 @@ impl BusControl {
         let mut unsent = Vec::new();
         // The devices the stopped tasks knew offline (a device may move to another port).
         let mut offline = Vec::new();
+        let mut held_press_counters = Vec::new();
         for key in changed {
             let Some((old, left)) = self.stop_port(&key).await else {
                 continue;
             };
             unsent.extend(left.writes);
             offline.extend(left.offline);
+            held_press_counters.extend(left.held_press_counters);
             for device in &old.devices {
                 if !still_configured.contains(&device.id) {
                     let _ = self
@@ -442,7 +450,7 @@ impl BusControl {
                 .filter(|write| port.devices.iter().any(|d| d.id == write.device_id))
                 .cloned()
                 .collect();
-            let prepared = self.prepare_port_with(&port, queue, &offline);
+            let prepared = self.prepare_port_with(&port, queue, &offline, &held_press_counters);
             for update in prepared.added {
                 let _ = self.updates.send(update).await;
             }

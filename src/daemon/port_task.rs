@@ -44,6 +44,9 @@ pub struct Handover {
     /// The devices its models knew offline ([`DeviceModel::is_offline`]): their new models
     /// start so ([`DeviceModel::known_offline`]), as the MQTT side keeps their `r`.
     pub offline: Vec<String>,
+    /// Per device, the press counters whose next 0 its model held back
+    /// ([`DeviceModel::held_press_counters`]): their new models hold it too.
+    pub held_press_counters: Vec<(String, Vec<String>)>,
 }
 
 pub struct PortTask {
@@ -669,6 +672,12 @@ impl PortTask {
                 .iter()
                 .filter(|model| model.is_offline())
                 .map(|model| model.id().to_owned())
+                .collect(),
+            held_press_counters: self
+                .models
+                .iter()
+                .map(|model| (model.id().to_owned(), model.held_press_counters()))
+                .filter(|(_, held)| !held.is_empty())
                 .collect(),
         }
     }
@@ -1663,6 +1672,31 @@ mod tests {
         task.dispatch(&mut vec![PortEvent::Online { device: 0 }])
             .await;
         assert!(task.handover().offline.is_empty());
+    }
+
+    /// A stopping task hands on the press counters whose next 0 its models hold back (a
+    /// counter published before its device went offline), so that the models after a reload
+    /// hold it too and do not publish the 0 a restarted device counts from.
+    #[tokio::test]
+    async fn a_stopping_task_hands_on_the_press_counters_it_holds() {
+        let (_sender, receiver) = mpsc::channel(8);
+        let mut task = relay_task(receiver);
+        task.dispatch(&mut vec![PortEvent::Values {
+            device: 0,
+            span: crate::port::RegisterSpan::new(crate::protocol::RegisterType::Input, 464, 1),
+            values: vec![3].into(),
+        }])
+        .await;
+        assert!(task.handover().held_press_counters.is_empty());
+        task.dispatch(&mut vec![PortEvent::Offline { device: 0 }])
+            .await;
+        assert_eq!(
+            task.handover().held_press_counters,
+            [(
+                "relay6_20".to_owned(),
+                vec!["Input 0 single press counter".to_owned()]
+            )]
+        );
     }
 
     /// The daemon runs each port task on a thread and runtime of its own (no runtime here: a

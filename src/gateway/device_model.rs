@@ -72,6 +72,12 @@ pub struct DeviceModel {
     /// goes offline, or reports a restart once its counter was published; a channel leaves it
     /// at its first other value.
     held_press_counters: Vec<usize>,
+    /// Write-only channels (no register read) written and not yet done, with the register
+    /// each write starts at: the channel is published once none of its writes is left, from
+    /// the words written (the other write-only channels of a register are not: nobody wrote
+    /// them). A write replaced before it went (a later one of the same register) takes its
+    /// place.
+    written_only: Vec<(usize, RegisterType, u16)>,
 }
 
 /// Which channels read each register, and the channels' ids as updates carry them: built once
@@ -329,6 +335,7 @@ impl DeviceModel {
             write_done: None,
             offline: false,
             held_press_counters: Vec::new(),
+            written_only: Vec::new(),
         }
     }
 
@@ -342,6 +349,33 @@ impl DeviceModel {
         for (flags, channel) in self.errors.iter_mut().zip(self.device.channels.iter()) {
             if channel.is_read() {
                 flags.read = true;
+            }
+        }
+        // Its counters went offline with it, and MQTT keeps their last values.
+        self.hold_press_counters();
+        self
+    }
+
+    /// The press counters whose next 0 this model holds back (see
+    /// [`Self::holding_press_counters`]), by control id.
+    pub fn held_press_counters(&self) -> Vec<String> {
+        self.held_press_counters
+            .iter()
+            .filter_map(|&index| self.device.channels.get(index))
+            .map(|channel| channel.id.clone())
+            .collect()
+    }
+
+    /// Holds back the next 0 of the press counters `controls`, as the model this one replaces
+    /// (a reload restarted its port) did: MQTT keeps their last values.
+    pub fn holding_press_counters(mut self, controls: &[String]) -> Self {
+        for (index, channel) in self.device.channels.iter().enumerate() {
+            let press_counter = channel.registers.iter().any(|r| r.press_counter);
+            if press_counter
+                && controls.contains(&channel.id)
+                && !self.held_press_counters.contains(&index)
+            {
+                self.held_press_counters.push(index);
             }
         }
         self
@@ -396,7 +430,7 @@ impl DeviceModel {
                 self.publish_channels(&touched, false, out);
                 self.touched = touched;
                 if written {
-                    self.publish_write_only(&span, &values, out);
+                    self.publish_write_only(&span, out);
                 }
             }
             PortEvent::EventValue {
@@ -478,6 +512,8 @@ impl DeviceModel {
                     // Given up: the device keeps what it had.
                     self.pending_writes
                         .retain(|w| (w.register_type, w.address) != (register_type, address));
+                    self.written_only
+                        .retain(|&(_, t, a)| (t, a) != (register_type, address));
                 }
                 self.set_flags(
                     |c| writes_register(c, register_type, address),
@@ -494,7 +530,7 @@ impl DeviceModel {
             }
             PortEvent::Offline { .. } => {
                 self.offline = true;
-                self.hold_press_counters();
+                self.hold_published_press_counters();
                 out.push(DeviceUpdate::Online {
                     device_id: self.device.id.clone(),
                     online: false,
@@ -505,12 +541,8 @@ impl DeviceModel {
             }
             PortEvent::Rebooted { .. } => {
                 // Also a device that restarted too briefly to be seen offline (a power blip),
-                // but not the power-on report at the service's start: a counter not published
-                // yet is published at 0, as wb-mqtt-serial publishes it.
-                self.hold_press_counters();
-                let reported = &self.reported;
-                self.held_press_counters
-                    .retain(|&index| matches!(reported.get(index), Some(Some(_))));
+                // but not the power-on report at the service's start.
+                self.hold_published_press_counters();
                 // The device may hold other values now: an event for one word of a wider value
                 // must not be joined with words read before the restart. The reads that follow
                 // the new setup bring every word back.
@@ -590,6 +622,16 @@ impl DeviceModel {
         }
     }
 
+    /// Holds the press counters published so far: one never published is published at 0
+    /// (at the service's start, or a device that did not answer then), as the control would
+    /// otherwise show nothing until the first press.
+    fn hold_published_press_counters(&mut self) {
+        self.hold_press_counters();
+        let reported = &self.reported;
+        self.held_press_counters
+            .retain(|&index| matches!(reported.get(index), Some(Some(_))));
+    }
+
     fn hold_press_counters(&mut self) {
         self.held_press_counters.clear();
         self.held_press_counters.extend(
@@ -625,50 +667,55 @@ impl DeviceModel {
     }
 
     /// Publishes the write-only controls (a `pushbutton`, a `wo-switch`, a channel with a
-    /// `write_address` alone) that the write of `values` at `span` set whole: their value is
-    /// what was written, as wb-mqtt-serial publishes a register once a write set it. A channel
-    /// that reads its value publishes it from its read.
-    fn publish_write_only(
-        &mut self,
-        span: &RegisterSpan,
-        values: &[u16],
-        out: &mut Vec<DeviceUpdate>,
-    ) {
+    /// `write_address` alone) whose writes the write at `span` completes: their value is what
+    /// was written (the words the model keeps of those registers), as wb-mqtt-serial publishes
+    /// a register once a write set it. Only the controls written: another write-only control
+    /// of the same register (a second pushbutton, another bit) was not.
+    fn publish_write_only(&mut self, span: &RegisterSpan, out: &mut Vec<DeviceUpdate>) {
+        if self.written_only.is_empty() {
+            return;
+        }
+        let in_span = |&(_, register_type, address): &(usize, RegisterType, u16)| {
+            register_type == span.register_type
+                && address >= span.start
+                && u32::from(address) < span.end()
+        };
+        let mut done: Vec<usize> = self
+            .written_only
+            .iter()
+            .filter(|entry| in_span(entry))
+            .map(|&(index, _, _)| index)
+            .collect();
+        self.written_only.retain(|entry| !in_span(entry));
+        done.sort_unstable();
+        done.dedup();
         let device = Arc::clone(&self.device);
-        for (index, channel) in device.channels.iter().enumerate() {
-            if channel.registers.iter().any(|r| r.read.is_some()) {
-                continue;
+        for index in done {
+            if self.written_only.iter().any(|&(i, _, _)| i == index) {
+                continue; // Another register of it is still to be written.
             }
-            let mut words = Vec::new();
-            let all_written = channel.registers.iter().all(|register| {
-                let Some(target) = register.write else {
-                    return false;
-                };
-                (0..target.count.max(1)).all(|offset| {
-                    let word = (target.reg_type == span.register_type)
-                        .then(|| target.address.wrapping_add(offset).checked_sub(span.start))
-                        .flatten()
-                        .and_then(|at| values.get(usize::from(at)));
-                    word.map(|&word| words.push(word)).is_some()
-                })
-            });
-            if !all_written {
+            let Some(channel) = device.channels.get(index) else {
                 continue;
-            }
+            };
             let mut text = String::new();
-            let mut rest = words.as_slice();
             let mut decoded = true;
             for (position, register) in channel.registers.iter().enumerate() {
-                let count = register
-                    .write
-                    .map_or(1, |write| usize::from(write.count.max(1)));
-                let (part, after) = rest.split_at(count.min(rest.len()));
-                rest = after;
+                let Some(target) = register.write else {
+                    decoded = false;
+                    break;
+                };
+                let words: Option<Vec<u16>> = (0..target.count.max(1))
+                    .map(|offset| self.word((target.reg_type, target.address.wrapping_add(offset))))
+                    .collect();
+                let Some(words) = words else {
+                    decoded = false;
+                    break;
+                };
                 if position > 0 {
                     text.push(';');
                 }
                 decoded &= matches!(
-                    register.codec.decode_into(part, &mut text),
+                    register.codec.decode_into(&words, &mut text),
                     Ok(Decoded::Text)
                 );
             }
@@ -735,7 +782,7 @@ impl DeviceModel {
                 continue;
             }
             // Checked on every value, repeated or not: any count but 0 releases the hold.
-            let zero_held = !self.held_press_counters.is_empty() && {
+            let zero_held = self.held_press_counters.contains(&index) && {
                 let device = Arc::clone(&self.device);
                 device
                     .channels
@@ -1105,8 +1152,23 @@ impl DeviceModel {
         let result = self.write(control_id, payload);
         match &result {
             Ok(writes) => {
+                let write_only = self
+                    .device
+                    .channels
+                    .iter()
+                    .position(|c| c.id == control_id)
+                    .filter(|&index| {
+                        self.device.channels[index]
+                            .registers
+                            .iter()
+                            .all(|r| r.read.is_none())
+                    });
                 for write in writes {
                     let start = (write.register_type, write.address);
+                    if let Some(index) = write_only {
+                        self.written_only.retain(|&(_, t, a)| (t, a) != start);
+                        self.written_only.push((index, start.0, start.1));
+                    }
                     let mut pending = write.clone();
                     if let Some(older) = self
                         .pending_writes
@@ -1694,6 +1756,100 @@ mod tests {
         assert_eq!(written("Speed", "70000"), one("Speed", "70000"));
         // A control that reads its register: from the words written, as before.
         assert_eq!(written("Level", "5"), one("Level", "5"));
+    }
+
+    /// Writes `payload` to `control` as the scheduler reports a write done (done, then the
+    /// words written), and returns the values published.
+    fn write_done(model: &mut DeviceModel, control: &str, payload: &str) -> Vec<(String, String)> {
+        let mut out = Vec::new();
+        let writes = model.take_write(control, payload, &mut out).unwrap();
+        for write in writes {
+            model.apply(
+                PortEvent::WriteDone {
+                    device: 0,
+                    register_type: write.register_type,
+                    address: write.address,
+                },
+                &mut out,
+            );
+            let count = u16::try_from(write.values.len()).unwrap();
+            model.apply(
+                PortEvent::Values {
+                    device: 0,
+                    span: RegisterSpan::new(write.register_type, write.address, count),
+                    values: write.values.clone().into(),
+                },
+                &mut out,
+            );
+        }
+        values(&out)
+            .into_iter()
+            .map(|(control, value, _)| (control, value))
+            .collect()
+    }
+
+    /// Write-only controls that share a register (three command pushbuttons with their own
+    /// `on_value`, write-only bit fields of one command register) or take several registers:
+    /// a write publishes the control written, once all its registers are, and no other.
+    #[test]
+    fn a_write_publishes_only_the_write_only_control_written() {
+        let mut model = model_of_template(serde_json::json!({
+            "device_type": "commands",
+            "device": {
+                "name": "Commands", "id": "commands",
+                "channels": [
+                    {"name": "Open", "reg_type": "holding", "address": 10, "type": "pushbutton", "on_value": 1},
+                    {"name": "Close", "reg_type": "holding", "address": 10, "type": "pushbutton", "on_value": 2},
+                    {"name": "Start", "reg_type": "holding", "write_address": "40:0:1", "type": "pushbutton"},
+                    {"name": "Mode", "reg_type": "holding", "write_address": "40:4:4", "type": "value"},
+                    {"name": "Pair", "type": "value", "consists_of": [
+                        {"reg_type": "holding", "write_address": 30},
+                        {"reg_type": "holding", "write_address": 31}
+                    ]}
+                ]
+            }
+        }));
+        assert_eq!(write_done(&mut model, "Close", "1"), one("Close", "1"));
+        assert_eq!(write_done(&mut model, "Open", "1"), one("Open", "1"));
+        assert_eq!(write_done(&mut model, "Start", "1"), one("Start", "1"));
+        assert_eq!(write_done(&mut model, "Mode", "5"), one("Mode", "5"));
+        assert_eq!(write_done(&mut model, "Pair", "1;2"), one("Pair", "1;2"));
+    }
+
+    /// The hold of a press counter's next 0 goes over to the model that replaces this one at a
+    /// reload: by `known_offline` for a device offline then, and by
+    /// `holding_press_counters` for one that came back with a counter still held. A counter
+    /// never published is published at 0 when its device comes back (it has no value to keep).
+    #[test]
+    fn a_press_counter_hold_survives_a_reload() {
+        let presses = || {
+            model_of_template(serde_json::json!({
+                "device_type": "presses",
+                "device": {
+                    "name": "Presses", "id": "presses",
+                    "channels": [
+                        {"name": "Presses", "reg_type": "press_counter", "address": 10, "type": "value"},
+                        {"name": "Level", "reg_type": "input", "address": 11, "type": "value"}
+                    ]
+                }
+            }))
+        };
+        let mut offline = presses().known_offline();
+        offline.apply(PortEvent::Online { device: 0 }, &mut Vec::new());
+        assert_eq!(poll(&mut offline, 10, &[0, 7]), one("Level", "7"));
+        assert_eq!(offline.held_press_counters(), ["Presses"]);
+        let mut rebuilt = presses().holding_press_counters(&offline.held_press_counters());
+        assert_eq!(poll(&mut rebuilt, 10, &[0, 7]), one("Level", "7"));
+        assert_eq!(poll(&mut rebuilt, 10, &[2, 7]), one("Presses", "2"));
+        assert!(rebuilt.held_press_counters().is_empty());
+
+        let mut late = presses();
+        late.apply(PortEvent::Offline { device: 0 }, &mut Vec::new());
+        late.apply(PortEvent::Online { device: 0 }, &mut Vec::new());
+        assert_eq!(
+            poll(&mut late, 10, &[0, 7]),
+            [one("Presses", "0"), one("Level", "7")].concat()
+        );
     }
 
     fn one(control: &str, value: &str) -> Vec<(String, String)> {
