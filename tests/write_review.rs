@@ -217,8 +217,9 @@ fn a_bit_field_write_keeps_a_bit_the_device_set_while_it_waited() {
                     continue;
                 }
             };
-            let pdu = match &transaction.request.body {
-                RequestBody::Classic(RequestPdu::ReadHoldingRegisters { start, count }) => {
+            let body = &transaction.request.body;
+            match body {
+                RequestBody::Classic(RequestPdu::ReadHoldingRegisters { .. }) => {
                     reads += 1;
                     if reads == 2 {
                         // The message arrives while the second read is out; the device has
@@ -233,35 +234,16 @@ fn a_bit_field_write_keeps_a_bit_the_device_set_while_it_waited() {
                         }
                         registers.insert(72, 0x0014);
                     }
-                    ResponsePdu::ReadHoldingRegisters {
-                        values: (*start..*start + *count)
-                            .map(|a| registers.get(&a).copied().unwrap_or(0))
-                            .collect(),
-                    }
                 }
-                RequestBody::Classic(RequestPdu::WriteSingleRegister { address, value }) => {
-                    registers.insert(*address, *value);
+                RequestBody::Classic(RequestPdu::WriteSingleRegister { value, .. }) => {
                     written.push(*value);
-                    ResponsePdu::WriteSingleRegister {
-                        address: *address,
-                        value: *value,
-                    }
                 }
-                other => panic!("unexpected request {other:?}"),
-            };
+                _ => {}
+            }
+            let pdu = holding_answer(registers, body);
             now += transaction.estimated;
-            let events = scheduler.complete(
-                now,
-                TransactionOutcome::Reply(Reply::classic(transaction.request.address, pdu)),
-            );
-            let mut out = Vec::new();
-            apply_port_events(models, events, &mut out);
-            published.extend(out.into_iter().filter_map(|update| match update {
-                DeviceUpdate::Value {
-                    control_id, value, ..
-                } => Some((control_id.to_string(), value.to_string())),
-                _ => None,
-            }));
+            let address = transaction.request.address;
+            published.extend(complete_for(scheduler, models, now, address, pdu));
         }
         panic!("no write went out");
     };
@@ -350,37 +332,14 @@ fn a_value_written_one_register_at_a_time_is_published_only_whole() {
                 continue;
             }
         };
-        let pdu = match &transaction.request.body {
-            RequestBody::Classic(RequestPdu::ReadHoldingRegisters { start, count }) => {
-                ResponsePdu::ReadHoldingRegisters {
-                    values: (*start..*start + *count)
-                        .map(|a| registers.get(&a).copied().unwrap_or(0))
-                        .collect(),
-                }
-            }
-            RequestBody::Classic(RequestPdu::WriteSingleRegister { address, value }) => {
-                registers.insert(*address, *value);
-                written.push((*address, *value));
-                ResponsePdu::WriteSingleRegister {
-                    address: *address,
-                    value: *value,
-                }
-            }
-            other => panic!("unexpected request {other:?}"),
-        };
+        let body = &transaction.request.body;
+        if let RequestBody::Classic(RequestPdu::WriteSingleRegister { address, value }) = body {
+            written.push((*address, *value));
+        }
+        let pdu = holding_answer(&mut registers, body);
         now += transaction.estimated;
-        let events = scheduler.complete(
-            now,
-            TransactionOutcome::Reply(Reply::classic(transaction.request.address, pdu)),
-        );
-        let mut out = Vec::new();
-        apply_port_events(&mut models, events, &mut out);
-        published.extend(out.into_iter().filter_map(|update| match update {
-            DeviceUpdate::Value {
-                control_id, value, ..
-            } => Some((control_id.to_string(), value.to_string())),
-            _ => None,
-        }));
+        let address = transaction.request.address;
+        published.extend(complete_for(&mut scheduler, &mut models, now, address, pdu));
     }
     assert_eq!(written, [(11, 0), (10, 1)], "last register first");
     let counter: Vec<&str> = published
@@ -396,4 +355,48 @@ fn a_value_written_one_register_at_a_time_is_published_only_whole() {
         counter.iter().rev().find(|v| **v != "65535"),
         Some(&"65536")
     );
+}
+
+/// A device's answer to `request`, holding registers `registers`: a read of them, or a single
+/// register written there.
+fn holding_answer(registers: &mut BTreeMap<u16, u16>, request: &RequestBody) -> ResponsePdu {
+    match request {
+        RequestBody::Classic(RequestPdu::ReadHoldingRegisters { start, count }) => {
+            ResponsePdu::ReadHoldingRegisters {
+                values: (*start..*start + *count)
+                    .map(|a| registers.get(&a).copied().unwrap_or(0))
+                    .collect(),
+            }
+        }
+        RequestBody::Classic(RequestPdu::WriteSingleRegister { address, value }) => {
+            registers.insert(*address, *value);
+            ResponsePdu::WriteSingleRegister {
+                address: *address,
+                value: *value,
+            }
+        }
+        other => panic!("unexpected request {other:?}"),
+    }
+}
+
+/// Completes the transaction in flight with `pdu` from `address` at `now` and hands its
+/// events to `models`: the (control, value) published.
+fn complete_for(
+    scheduler: &mut PortScheduler,
+    models: &mut [DeviceModel],
+    now: Duration,
+    address: u8,
+    pdu: ResponsePdu,
+) -> Vec<(String, String)> {
+    let events = scheduler.complete(now, TransactionOutcome::Reply(Reply::classic(address, pdu)));
+    let mut out = Vec::new();
+    apply_port_events(models, events, &mut out);
+    out.into_iter()
+        .filter_map(|update| match update {
+            DeviceUpdate::Value {
+                control_id, value, ..
+            } => Some((control_id.to_string(), value.to_string())),
+            _ => None,
+        })
+        .collect()
 }

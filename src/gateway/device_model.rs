@@ -1718,33 +1718,7 @@ mod tests {
                 ]
             }
         }));
-        let mut written = |control: &str, payload: &str| {
-            let mut out = Vec::new();
-            let writes = model.take_write(control, payload, &mut out).unwrap();
-            for write in writes {
-                model.apply(
-                    PortEvent::WriteDone {
-                        device: 0,
-                        register_type: write.register_type,
-                        address: write.address,
-                    },
-                    &mut out,
-                );
-                let count = u16::try_from(write.values.len()).unwrap();
-                model.apply(
-                    PortEvent::Values {
-                        device: 0,
-                        span: RegisterSpan::new(write.register_type, write.address, count),
-                        values: write.values.clone().into(),
-                    },
-                    &mut out,
-                );
-            }
-            values(&out)
-                .into_iter()
-                .map(|(control, value, _)| (control, value))
-                .collect::<Vec<_>>()
-        };
+        let mut written = |control: &str, payload: &str| write_done(&mut model, control, payload);
         assert_eq!(written("Reset", "1"), one("Reset", "1"));
         assert_eq!(
             written("Reset", "1"),

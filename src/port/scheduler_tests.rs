@@ -632,14 +632,24 @@ fn an_event_inside_a_wider_value_has_the_value_read() {
         span: RegisterSpan::new(RegisterType::Input, 10, 2),
         ..read(RegisterType::Input, 10, EventMode::Sporadic)
     };
-    let mut scheduler = PortScheduler::new(
-        settings(115_200),
-        vec![device(
-            20,
-            vec![wide, read(RegisterType::Input, 11, EventMode::Sporadic)],
-        )],
+    let reads_after = input_reads_after_a_packet(
+        vec![wide, read(RegisterType::Input, 11, EventMode::Sporadic)],
+        input_event(11, vec![7, 0]),
     );
+    assert!(
+        reads_after
+            .iter()
+            .any(|&(start, count)| start <= 10 && start + count >= 12),
+        "the u32 at 10 not read after the event at 11: {reads_after:?}"
+    );
+}
+
+/// Device 20 with `reads` (by events) on a healthy bus that answers one event poll after
+/// 100 ms with a packet of `event`: the (start, count) of the input reads sent after it.
+fn input_reads_after_a_packet(reads: Vec<PlannedRead>, event: Event) -> Vec<(u16, u16)> {
+    let mut scheduler = PortScheduler::new(settings(115_200), vec![device(20, reads)]);
     let mut log = Log::default();
+    let mut pending = Some(event);
     let mut sent_packet = None;
     run(
         &mut scheduler,
@@ -647,31 +657,24 @@ fn an_event_inside_a_wider_value_has_the_value_read() {
         Duration::ZERO,
         ms(400),
         |now, request| match &request.body {
-            RequestBody::Fast(FastRequest::PollEvents(_))
-                if now > ms(100) && sent_packet.is_none() =>
-            {
+            RequestBody::Fast(FastRequest::PollEvents(_)) if now > ms(100) && pending.is_some() => {
                 sent_packet = Some(now);
-                packet_of(20, 1, vec![input_event(11, vec![7, 0])])
+                packet_of(20, 1, pending.take().into_iter().collect())
             }
             _ => healthy(request),
         },
     );
     let packet_at = sent_packet.expect("the packet went");
-    let reads_after: Vec<&RequestBody> = log
-        .sent
+    log.sent
         .iter()
         .filter(|(at, _)| *at > packet_at)
-        .map(|(_, request)| &request.body)
-        .filter(|body| matches!(body, RequestBody::Classic(_)))
-        .collect();
-    assert!(
-        reads_after.iter().any(|body| matches!(
-            body,
-            RequestBody::Classic(RequestPdu::ReadInputRegisters { start, count })
-                if *start <= 10 && start + count >= 12
-        )),
-        "the u32 at 10 not read after the event at 11: {reads_after:?}"
-    );
+        .filter_map(|(_, request)| match &request.body {
+            RequestBody::Classic(RequestPdu::ReadInputRegisters { start, count }) => {
+                Some((*start, *count))
+            }
+            _ => None,
+        })
+        .collect()
 }
 
 /// A healthy bus where device `address` reports a reboot in answer to the `nth` event poll.
@@ -6117,41 +6120,14 @@ fn an_event_overlapping_the_start_of_another_value_has_it_read() {
         span: RegisterSpan::new(RegisterType::Input, start, 2),
         ..read(RegisterType::Input, start, EventMode::Sporadic)
     };
-    let mut scheduler = PortScheduler::new(
-        settings(115_200),
-        vec![device(20, vec![value_at(10), value_at(11)])],
+    let reads_after = input_reads_after_a_packet(
+        vec![value_at(10), value_at(11)],
+        input_event(10, vec![7, 0, 1, 0]),
     );
-    let mut log = Log::default();
-    let mut sent_packet = None;
-    run(
-        &mut scheduler,
-        &mut log,
-        Duration::ZERO,
-        ms(400),
-        |now, request| match &request.body {
-            RequestBody::Fast(FastRequest::PollEvents(_))
-                if now > ms(100) && sent_packet.is_none() =>
-            {
-                sent_packet = Some(now);
-                packet_of(20, 1, vec![input_event(10, vec![7, 0, 1, 0])])
-            }
-            _ => healthy(request),
-        },
-    );
-    let packet_at = sent_packet.expect("the packet went");
-    let reads_after: Vec<&RequestBody> = log
-        .sent
-        .iter()
-        .filter(|(at, _)| *at > packet_at)
-        .map(|(_, request)| &request.body)
-        .filter(|body| matches!(body, RequestBody::Classic(_)))
-        .collect();
     assert!(
-        reads_after.iter().any(|body| matches!(
-            body,
-            RequestBody::Classic(RequestPdu::ReadInputRegisters { start, count })
-                if *start <= 11 && start + count >= 13
-        )),
+        reads_after
+            .iter()
+            .any(|&(start, count)| start <= 11 && start + count >= 13),
         "the u32 at 11 not read after the event: {reads_after:?}"
     );
 }

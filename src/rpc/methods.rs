@@ -1682,6 +1682,29 @@ mod tests {
         assert_eq!(listed[1]["address"], "10.0.0.5", "{listed}");
     }
 
+    /// A directory holding `port` at `path`, at `line`, whose bus queue is served by the
+    /// test: its jobs come out of the receiver returned.
+    fn served_port(
+        path: &str,
+        port: crate::device::model::ResolvedPort,
+        line: LineSettings,
+    ) -> (PortDirectory, crate::daemon::bus_queue::BusQueueReceiver) {
+        let (queue, jobs) = BusQueue::new();
+        let directory: PortDirectory = Arc::default();
+        directory.lock().unwrap().insert(
+            path.into(),
+            PortAccess {
+                name: path.into(),
+                resolved: Arc::new(port),
+                line: Some(line),
+                queue,
+                events: Arc::default(),
+                fast_modbus: false,
+            },
+        );
+        (directory, jobs)
+    }
+
     /// A device whose template sets `enable_wb_continuous_read` (the port task has switched it
     /// on): a read that covers a register the device has answers the others as 0xFFFE. With
     /// `min_read_registers: 2` the read of parameter `present` (holding 9) asks 9..=10, and 10
@@ -1726,18 +1749,10 @@ mod tests {
             .unwrap()
             .remove(0);
         assert!(port.devices[0].timing.enable_wb_continuous_read);
-        let (queue, mut jobs) = BusQueue::new();
-        let directory: PortDirectory = Arc::default();
-        directory.lock().unwrap().insert(
-            path.into(),
-            PortAccess {
-                name: path.into(),
-                resolved: Arc::new(port),
-                line: Some(LineSettings::new(115_200, crate::protocol::Parity::None, 2)),
-                queue,
-                events: Arc::default(),
-                fast_modbus: false,
-            },
+        let (directory, mut jobs) = served_port(
+            path,
+            port,
+            LineSettings::new(115_200, crate::protocol::Parity::None, 2),
         );
         // The device: holding 9 and 20, its model and firmware; continuous read on.
         let mut holding: BTreeMap<u16, u16> = BTreeMap::from([(9, 1234), (20, 5)]);
@@ -1838,19 +1853,7 @@ mod tests {
             .unwrap()
             .remove(0);
         let line = LineSettings::new(9600, crate::protocol::Parity::None, 2);
-        let (queue, mut jobs) = BusQueue::new();
-        let directory: PortDirectory = Arc::default();
-        directory.lock().unwrap().insert(
-            path.into(),
-            PortAccess {
-                name: path.into(),
-                resolved: Arc::new(port),
-                line: Some(line),
-                queue,
-                events: Arc::default(),
-                fast_modbus: false,
-            },
-        );
+        let (directory, mut jobs) = served_port(path, port, line);
         let waits = Arc::new(std::sync::Mutex::new(Vec::new()));
         let seen = Arc::clone(&waits);
         tokio::spawn(async move {
@@ -1926,18 +1929,10 @@ mod tests {
         let port = crate::device::resolve_config(&loaded, &library)
             .unwrap()
             .remove(0);
-        let (queue, mut jobs) = BusQueue::new();
-        let directory: PortDirectory = Arc::default();
-        directory.lock().unwrap().insert(
-            path.into(),
-            PortAccess {
-                name: path.into(),
-                resolved: Arc::new(port),
-                line: Some(LineSettings::new(115_200, crate::protocol::Parity::None, 2)),
-                queue,
-                events: Arc::default(),
-                fast_modbus: false,
-            },
+        let (directory, mut jobs) = served_port(
+            path,
+            port,
+            LineSettings::new(115_200, crate::protocol::Parity::None, 2),
         );
         let asked = Arc::new(std::sync::Mutex::new(Vec::new()));
         let seen = Arc::clone(&asked);
