@@ -183,20 +183,10 @@ fn a_wide_bit_field_keeps_a_pending_write_in_one_of_its_registers() {
 /// shows bit 4 still set, and its next write goes over them.
 #[test]
 fn a_bit_field_write_keeps_a_bit_the_device_set_while_it_waited() {
-    let port = port_with(
-        json!([
-            {"name": "B1", "reg_type": "holding", "address": "72:1:1", "type": "switch", "format": "u16"},
-            {"name": "B4", "reg_type": "holding", "address": "72:4:1", "type": "switch", "format": "u16"}
-        ]),
-        json!({}),
-    );
-    let plan = port_plan(&port, false);
-    let mut scheduler = PortScheduler::new(plan.settings, plan.devices);
-    let mut models = vec![DeviceModel::new(
-        Arc::new(port.devices[0].clone()),
-        0,
-        Repeats::All,
-    )];
+    let (mut scheduler, mut models) = scheduled(json!([
+        {"name": "B1", "reg_type": "holding", "address": "72:1:1", "type": "switch", "format": "u16"},
+        {"name": "B4", "reg_type": "holding", "address": "72:4:1", "type": "switch", "format": "u16"}
+    ]));
     let mut registers = BTreeMap::from([(72u16, 0x0004u16)]);
     let mut written = Vec::new();
     let mut published = Vec::new();
@@ -289,20 +279,10 @@ fn a_read_showing_a_pending_bit_field_by_chance_does_not_settle_it() {
 /// never given; it is published as 65536 once both registers hold their words.
 #[test]
 fn a_value_written_one_register_at_a_time_is_published_only_whole() {
-    let port = port_with(
-        json!([
-            {"name": "Counter", "reg_type": "holding_single", "address": 10, "format": "u32", "type": "value"},
-            {"name": "Low", "reg_type": "holding", "address": 11, "type": "value", "readonly": true}
-        ]),
-        json!({}),
-    );
-    let plan = port_plan(&port, false);
-    let mut scheduler = PortScheduler::new(plan.settings, plan.devices);
-    let mut models = vec![DeviceModel::new(
-        Arc::new(port.devices[0].clone()),
-        0,
-        Repeats::All,
-    )];
+    let (mut scheduler, mut models) = scheduled(json!([
+        {"name": "Counter", "reg_type": "holding_single", "address": 10, "format": "u32", "type": "value"},
+        {"name": "Low", "reg_type": "holding", "address": 11, "type": "value", "readonly": true}
+    ]));
     let mut registers = BTreeMap::from([(10u16, 0u16), (11, 0xFFFF)]);
     let mut written = Vec::new();
     let mut published: Vec<(String, String)> = Vec::new();
@@ -399,4 +379,17 @@ fn complete_for(
             _ => None,
         })
         .collect()
+}
+
+/// The scheduler of [`port_with`]'s port with `channels`, and its device's model.
+fn scheduled(channels: Value) -> (PortScheduler, Vec<DeviceModel>) {
+    let port = port_with(channels, json!({}));
+    let plan = port_plan(&port, false);
+    let scheduler = PortScheduler::new(plan.settings, plan.devices);
+    let models = vec![DeviceModel::new(
+        Arc::new(port.devices[0].clone()),
+        0,
+        Repeats::All,
+    )];
+    (scheduler, models)
 }

@@ -1559,7 +1559,12 @@ mod tests {
             );
         }
         model.flush_events(&mut out);
-        values(&out)
+        control_values(&out)
+    }
+
+    /// The (control, value) of the values in `out`.
+    fn control_values(out: &[DeviceUpdate]) -> Vec<(String, String)> {
+        values(out)
             .into_iter()
             .map(|(control, value, _)| (control, value))
             .collect()
@@ -1576,10 +1581,7 @@ mod tests {
             },
             &mut out,
         );
-        values(&out)
-            .into_iter()
-            .map(|(control, value, _)| (control, value))
-            .collect()
+        control_values(&out)
     }
 
     /// A read's words reach the channels that use them, wherever they sit in the span; the
@@ -1627,7 +1629,7 @@ mod tests {
     /// counter's own read publishes 65536.
     #[test]
     fn a_read_of_one_word_of_a_wider_value_does_not_publish_it() {
-        let raw = serde_json::json!({
+        let mut model = model_of_template(serde_json::json!({
             "device_type": "torn",
             "device": {
                 "name": "Torn", "id": "torn",
@@ -1636,15 +1638,7 @@ mod tests {
                     {"name": "Low", "reg_type": "input", "address": 11, "read_period_ms": 100}
                 ]
             }
-        });
-        let template = TemplateFile::from_source(crate::config::parse::SourceText::from_text(
-            std::path::Path::new("torn.json"),
-            &raw.to_string(),
-        ))
-        .unwrap();
-        let device =
-            resolve_template_device(&template, &serde_json::json!({"slave_id": 1})).unwrap();
-        let mut model = DeviceModel::new(Arc::new(device), 0, Repeats::None);
+        }));
         assert_eq!(
             poll(&mut model, 10, &[0, 0xFFFF]),
             [one("Counter", "65535"), one("Low", "65535")].concat()
@@ -1756,10 +1750,7 @@ mod tests {
                 &mut out,
             );
         }
-        values(&out)
-            .into_iter()
-            .map(|(control, value, _)| (control, value))
-            .collect()
+        control_values(&out)
     }
 
     /// Write-only controls that share a register (three command pushbuttons with their own

@@ -1305,15 +1305,7 @@ fn a_write_answered_busy_is_sent_again() {
 /// the first failure).
 #[test]
 fn a_value_written_one_register_at_a_time_is_one_write() {
-    let u32_write = RegisterWrite {
-        device: 0,
-        register_type: RegisterType::Holding,
-        address: 10,
-        values: vec![1, 0],
-        force_multiple: false,
-        one_by_one: true,
-        defined: Vec::new(),
-    };
+    let u32_write = u32_written_one_register_at_a_time();
     let writes_sent = |log: &Log| -> Vec<(u16, u16)> {
         log.sent
             .iter()
@@ -5961,15 +5953,7 @@ fn a_value_written_one_register_at_a_time_starts_over_after_the_device_restarts(
         ms(100),
         bus(registers.clone(), never),
     );
-    let write = RegisterWrite {
-        device: 0,
-        register_type: RegisterType::Holding,
-        address: 10,
-        values: vec![1, 0],
-        force_multiple: false,
-        one_by_one: true,
-        defined: Vec::new(),
-    };
+    let write = u32_written_one_register_at_a_time();
     assert_eq!(scheduler.queue_write(now, write), None);
     let NextStep::Transmit(first) = scheduler.next(now) else {
         panic!("the write goes first")
@@ -6026,15 +6010,7 @@ fn a_value_written_one_register_at_a_time_starts_over_after_the_device_restarts(
     );
     let mut log = Log::default();
     let now = run(&mut scheduler, &mut log, ms(0), ms(100), |_, r| healthy(r));
-    let write = RegisterWrite {
-        device: 0,
-        register_type: RegisterType::Holding,
-        address: 10,
-        values: vec![1, 0],
-        force_multiple: false,
-        one_by_one: true,
-        defined: Vec::new(),
-    };
+    let write = u32_written_one_register_at_a_time();
     assert_eq!(scheduler.queue_write(now, write), None);
     let NextStep::Transmit(first) = scheduler.next(now) else {
         panic!("the write goes first")
@@ -6074,15 +6050,7 @@ fn a_value_written_one_register_at_a_time_is_handed_on_until_its_last_request() 
     let now = run(&mut scheduler, &mut log, Duration::ZERO, ms(50), |_, r| {
         healthy(r)
     });
-    let write = RegisterWrite {
-        device: 0,
-        register_type: RegisterType::Holding,
-        address: 10,
-        values: vec![1, 0],
-        force_multiple: false,
-        one_by_one: true,
-        defined: Vec::new(),
-    };
+    let write = u32_written_one_register_at_a_time();
     assert_eq!(scheduler.queue_write(now, write), None);
     let key = (0, RegisterType::Holding, 10);
     let NextStep::Transmit(first) = scheduler.next(now) else {
@@ -6130,4 +6098,17 @@ fn an_event_overlapping_the_start_of_another_value_has_it_read() {
             .any(|&(start, count)| start <= 11 && start + count >= 13),
         "the u32 at 11 not read after the event: {reads_after:?}"
     );
+}
+
+/// 65536 written to a `holding_single` u32 at holding 10–11: one 0x06 per register.
+fn u32_written_one_register_at_a_time() -> RegisterWrite {
+    RegisterWrite {
+        device: 0,
+        register_type: RegisterType::Holding,
+        address: 10,
+        values: vec![1, 0],
+        force_multiple: false,
+        one_by_one: true,
+        defined: Vec::new(),
+    }
 }

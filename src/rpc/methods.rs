@@ -1682,6 +1682,31 @@ mod tests {
         assert_eq!(listed[1]["address"], "10.0.0.5", "{listed}");
     }
 
+    /// A library of one template, `template` as the file `name`.
+    fn library_of(name: &str, template: &Value) -> TemplateLibrary {
+        let mut library = TemplateLibrary::default();
+        library.insert(
+            TemplateFile::from_source(SourceText::from_text(
+                Path::new(name),
+                &template.to_string(),
+            ))
+            .unwrap(),
+        );
+        library
+    }
+
+    /// The first port of `config`, resolved with `library` as the daemon resolves it.
+    fn first_port(config: &Value, library: &TemplateLibrary) -> crate::device::model::ResolvedPort {
+        let loaded = crate::config::load::load_config_source(
+            SourceText::from_text(Path::new("c.json"), &config.to_string()),
+            false,
+        )
+        .unwrap();
+        crate::device::resolve_config(&loaded, library)
+            .unwrap()
+            .remove(0)
+    }
+
     /// A directory holding `port` at `path`, at `line`, whose bus queue is served by the
     /// test: its jobs come out of the receiver returned.
     fn served_port(
@@ -1729,25 +1754,11 @@ mod tests {
                               "type": "value"}]
             }
         });
-        let mut library = TemplateLibrary::default();
-        library.insert(
-            TemplateFile::from_source(SourceText::from_text(
-                Path::new("config-s35-continuous.json"),
-                &template.to_string(),
-            ))
-            .unwrap(),
-        );
+        let library = library_of("config-s35-continuous.json", &template);
         let path = "/dev/rtu2mqtt-s35-no-such-port";
         let config = json!({"ports": [{"path": path, "baud_rate": 115200, "stop_bits": 2,
             "devices": [{"device_type": "s35-continuous", "slave_id": 7}]}]});
-        let loaded = crate::config::load::load_config_source(
-            SourceText::from_text(Path::new("c.json"), &config.to_string()),
-            false,
-        )
-        .unwrap();
-        let port = crate::device::resolve_config(&loaded, &library)
-            .unwrap()
-            .remove(0);
+        let port = first_port(&config, &library);
         assert!(port.devices[0].timing.enable_wb_continuous_read);
         let (directory, mut jobs) = served_port(
             path,
@@ -1844,14 +1855,7 @@ mod tests {
         let path = "/dev/rtu2mqtt-probe-no-such-port";
         let config = json!({"ports": [{"path": path, "baud_rate": 9600, "stop_bits": 2,
             "devices": []}]});
-        let loaded = crate::config::load::load_config_source(
-            SourceText::from_text(Path::new("c.json"), &config.to_string()),
-            false,
-        )
-        .unwrap();
-        let port = crate::device::resolve_config(&loaded, &TemplateLibrary::default())
-            .unwrap()
-            .remove(0);
+        let port = first_port(&config, &TemplateLibrary::default());
         let line = LineSettings::new(9600, crate::protocol::Parity::None, 2);
         let (directory, mut jobs) = served_port(path, port, line);
         let waits = Arc::new(std::sync::Mutex::new(Vec::new()));
@@ -1910,25 +1914,11 @@ mod tests {
                 ]
             }
         });
-        let mut library = TemplateLibrary::default();
-        library.insert(
-            TemplateFile::from_source(SourceText::from_text(
-                Path::new("config-write-only-u8.json"),
-                &template.to_string(),
-            ))
-            .unwrap(),
-        );
+        let library = library_of("config-write-only-u8.json", &template);
         let path = "/dev/rtu2mqtt-write-only-no-such-port";
         let config = json!({"ports": [{"path": path, "baud_rate": 115200, "stop_bits": 2,
             "devices": [{"device_type": "write-only-u8", "slave_id": 7}]}]});
-        let loaded = crate::config::load::load_config_source(
-            SourceText::from_text(Path::new("c.json"), &config.to_string()),
-            false,
-        )
-        .unwrap();
-        let port = crate::device::resolve_config(&loaded, &library)
-            .unwrap()
-            .remove(0);
+        let port = first_port(&config, &library);
         let (directory, mut jobs) = served_port(
             path,
             port,
