@@ -1658,14 +1658,9 @@ mod tests {
         DeviceModel::new(Arc::new(device), 0, Repeats::None)
     }
 
-    /// A Wiren Board device counts button presses again from 0 after a restart: that first 0
-    /// is not published (a `whenChanged` rule on the counter would fire by itself after every
-    /// bus or power glitch), as wb-mqtt-serial's `DoNotPublishNextZeroPressCounter` holds it
-    /// after the device went offline; the next count is published as a change. Other values
-    /// are published as ever, and so is a 0 that comes with no restart in between.
-    #[test]
-    fn a_press_counter_back_at_zero_after_a_restart_is_not_published() {
-        let mut model = model_of_template(serde_json::json!({
+    /// A press counter at input 10 and a value at 11.
+    fn presses() -> DeviceModel {
+        model_of_template(serde_json::json!({
             "device_type": "presses",
             "device": {
                 "name": "Presses", "id": "presses",
@@ -1674,7 +1669,17 @@ mod tests {
                     {"name": "Level", "reg_type": "input", "address": 11, "type": "value"}
                 ]
             }
-        }));
+        }))
+    }
+
+    /// A Wiren Board device counts button presses again from 0 after a restart: that first 0
+    /// is not published (a `whenChanged` rule on the counter would fire by itself after every
+    /// bus or power glitch), as wb-mqtt-serial's `DoNotPublishNextZeroPressCounter` holds it
+    /// after the device went offline; the next count is published as a change. Other values
+    /// are published as ever, and so is a 0 that comes with no restart in between.
+    #[test]
+    fn a_press_counter_back_at_zero_after_a_restart_is_not_published() {
+        let mut model = presses();
         let offline = PortEvent::Offline { device: 0 };
         let online = PortEvent::Online { device: 0 };
         assert_eq!(
@@ -1787,18 +1792,6 @@ mod tests {
     /// never published is published at 0 when its device comes back (it has no value to keep).
     #[test]
     fn a_press_counter_hold_survives_a_reload() {
-        let presses = || {
-            model_of_template(serde_json::json!({
-                "device_type": "presses",
-                "device": {
-                    "name": "Presses", "id": "presses",
-                    "channels": [
-                        {"name": "Presses", "reg_type": "press_counter", "address": 10, "type": "value"},
-                        {"name": "Level", "reg_type": "input", "address": 11, "type": "value"}
-                    ]
-                }
-            }))
-        };
         let mut offline = presses().known_offline();
         offline.apply(PortEvent::Online { device: 0 }, &mut Vec::new());
         assert_eq!(poll(&mut offline, 10, &[0, 7]), one("Level", "7"));

@@ -1306,17 +1306,6 @@ fn a_write_answered_busy_is_sent_again() {
 #[test]
 fn a_value_written_one_register_at_a_time_is_one_write() {
     let u32_write = u32_written_one_register_at_a_time();
-    let writes_sent = |log: &Log| -> Vec<(u16, u16)> {
-        log.sent
-            .iter()
-            .filter_map(|(_, r)| match &r.body {
-                RequestBody::Classic(RequestPdu::WriteSingleRegister { address, value }) => {
-                    Some((*address, *value))
-                }
-                _ => None,
-            })
-            .collect()
-    };
     let write_events = |log: &Log| -> Vec<PortEvent> {
         log.events
             .iter()
@@ -1346,7 +1335,7 @@ fn a_value_written_one_register_at_a_time_is_one_write() {
     run(&mut scheduler, &mut log, ms(100), ms(300), |_, r| {
         healthy(r)
     });
-    assert_eq!(writes_sent(&log), [(11, 0), (10, 1)]);
+    assert_eq!(single_register_writes(&log.sent), [(11, 0), (10, 1)]);
     assert_eq!(
         write_events(&log),
         [
@@ -1374,7 +1363,10 @@ fn a_value_written_one_register_at_a_time_is_one_write() {
         ms(3000),
         refusing_writes_of(10, ExceptionCode::BUSY, 1),
     );
-    assert_eq!(writes_sent(&log), [(11, 0), (10, 1), (11, 0), (10, 1)]);
+    assert_eq!(
+        single_register_writes(&log.sent),
+        [(11, 0), (10, 1), (11, 0), (10, 1)]
+    );
     assert!(matches!(
         write_events(&log).as_slice(),
         [
@@ -1398,7 +1390,7 @@ fn a_value_written_one_register_at_a_time_is_one_write() {
         ms(3000),
         refusing_writes_of(11, ExceptionCode::ILLEGAL_DATA_VALUE, 1),
     );
-    assert_eq!(writes_sent(&log), [(11, 0)]);
+    assert_eq!(single_register_writes(&log.sent), [(11, 0)]);
     assert_eq!(
         write_events(&log),
         [PortEvent::WriteFailed {
@@ -5981,17 +5973,7 @@ fn a_value_written_one_register_at_a_time_starts_over_after_the_device_restarts(
         ms(10_000),
         bus(registers.clone(), restart),
     );
-    let written_after: Vec<(u16, u16)> = log
-        .sent
-        .iter()
-        .filter(|(at, _)| *at >= restart.1)
-        .filter_map(|(_, r)| match &r.body {
-            RequestBody::Classic(RequestPdu::WriteSingleRegister { address, value }) => {
-                Some((*address, *value))
-            }
-            _ => None,
-        })
-        .collect();
+    let written_after = single_register_writes(log.sent.iter().filter(|(at, _)| *at >= restart.1));
     assert_eq!(written_after, [(11, 0), (10, 1)]);
     assert_eq!(
         (registers.borrow()[&10], registers.borrow()[&11]),
@@ -6027,15 +6009,7 @@ fn a_value_written_one_register_at_a_time_starts_over_after_the_device_restarts(
     run(&mut scheduler, &mut log, now + ms(3), ms(1000), |_, r| {
         healthy(r)
     });
-    let written_after: Vec<(u16, u16)> = log.sent[before..]
-        .iter()
-        .filter_map(|(_, r)| match &r.body {
-            RequestBody::Classic(RequestPdu::WriteSingleRegister { address, value }) => {
-                Some((*address, *value))
-            }
-            _ => None,
-        })
-        .collect();
+    let written_after = single_register_writes(&log.sent[before..]);
     assert_eq!(written_after, [(11, 0), (10, 1)]);
 }
 
@@ -6111,4 +6085,18 @@ fn u32_written_one_register_at_a_time() -> RegisterWrite {
         one_by_one: true,
         defined: Vec::new(),
     }
+}
+
+/// (address, value) of the 0x06 requests among `sent`, in order.
+fn single_register_writes<'a>(
+    sent: impl IntoIterator<Item = &'a (Duration, Request)>,
+) -> Vec<(u16, u16)> {
+    sent.into_iter()
+        .filter_map(|(_, request)| match &request.body {
+            RequestBody::Classic(RequestPdu::WriteSingleRegister { address, value }) => {
+                Some((*address, *value))
+            }
+            _ => None,
+        })
+        .collect()
 }

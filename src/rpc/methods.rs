@@ -1682,6 +1682,33 @@ mod tests {
         assert_eq!(listed[1]["address"], "10.0.0.5", "{listed}");
     }
 
+    /// Serves `jobs` as a device answering each classic request with `answer` (Fast Modbus
+    /// requests get no reply): the requests it was asked, in order.
+    fn answer_classic(
+        mut jobs: crate::daemon::bus_queue::BusQueueReceiver,
+        answer: impl Fn(RequestPdu) -> ResponsePdu + Send + 'static,
+    ) -> Arc<std::sync::Mutex<Vec<RequestPdu>>> {
+        use crate::daemon::bus_queue::QueuedJob;
+        let asked = Arc::new(std::sync::Mutex::new(Vec::new()));
+        let seen = Arc::clone(&asked);
+        tokio::spawn(async move {
+            while let Some(job) = jobs.recv().await {
+                let QueuedJob::Transaction(job) = job else {
+                    continue;
+                };
+                let request = &job.transaction.request;
+                let crate::protocol::RequestBody::Classic(pdu) = &request.body else {
+                    let _ = job.reply.send(Ok(TransactionOutcome::NoReply));
+                    continue;
+                };
+                seen.lock().unwrap().push(pdu.clone());
+                let reply = Reply::classic(request.address, answer(pdu.clone()));
+                let _ = job.reply.send(Ok(TransactionOutcome::Reply(reply)));
+            }
+        });
+        asked
+    }
+
     /// A library of one template, `template` as the file `name`.
     fn library_of(name: &str, template: &Value) -> TemplateLibrary {
         let mut library = TemplateLibrary::default();
@@ -1738,7 +1765,6 @@ mod tests {
     /// template's `max_read_registers: 10` would merge the two: they are read one by one.)
     #[tokio::test]
     async fn load_config_of_a_continuous_read_device_keeps_only_its_parameters_words() {
-        use crate::daemon::bus_queue::QueuedJob;
         let template = json!({
             "device_type": "s35-continuous",
             "device": {
@@ -1760,7 +1786,7 @@ mod tests {
             "devices": [{"device_type": "s35-continuous", "slave_id": 7}]}]});
         let port = first_port(&config, &library);
         assert!(port.devices[0].timing.enable_wb_continuous_read);
-        let (directory, mut jobs) = served_port(
+        let (directory, jobs) = served_port(
             path,
             port,
             LineSettings::new(115_200, crate::protocol::Parity::None, 2),
@@ -1779,46 +1805,26 @@ mod tests {
         for address in 255..266 {
             holding.insert(address, 0);
         }
-        let asked = Arc::new(std::sync::Mutex::new(Vec::new()));
-        let seen = Arc::clone(&asked);
-        tokio::spawn(async move {
-            while let Some(job) = jobs.recv().await {
-                let QueuedJob::Transaction(job) = job else {
-                    continue;
-                };
-                let request = &job.transaction.request;
-                let pdu = match &request.body {
-                    crate::protocol::RequestBody::Classic(pdu) => pdu.clone(),
-                    crate::protocol::RequestBody::Fast(_) => {
-                        let _ = job.reply.send(Ok(TransactionOutcome::NoReply));
-                        continue;
+        let asked = answer_classic(jobs, move |pdu| match pdu {
+            RequestPdu::ReadHoldingRegisters { start, count } => {
+                let values: Vec<Option<u16>> = (start..start + count)
+                    .map(|address| holding.get(&address).copied())
+                    .collect();
+                if values.iter().any(Option::is_some) {
+                    ResponsePdu::ReadHoldingRegisters {
+                        values: values.iter().map(|v| v.unwrap_or(0xFFFE)).collect(),
                     }
-                };
-                seen.lock().unwrap().push(pdu.clone());
-                let answer = match pdu {
-                    RequestPdu::ReadHoldingRegisters { start, count } => {
-                        let values: Vec<Option<u16>> = (start..start + count)
-                            .map(|address| holding.get(&address).copied())
-                            .collect();
-                        if values.iter().any(Option::is_some) {
-                            ResponsePdu::ReadHoldingRegisters {
-                                values: values.iter().map(|v| v.unwrap_or(0xFFFE)).collect(),
-                            }
-                        } else {
-                            ResponsePdu::Exception {
-                                function: 3,
-                                code: ExceptionCode::ILLEGAL_DATA_ADDRESS,
-                            }
-                        }
+                } else {
+                    ResponsePdu::Exception {
+                        function: 3,
+                        code: ExceptionCode::ILLEGAL_DATA_ADDRESS,
                     }
-                    other => ResponsePdu::Exception {
-                        function: other.function(),
-                        code: ExceptionCode::ILLEGAL_FUNCTION,
-                    },
-                };
-                let reply = Reply::classic(request.address, answer);
-                let _ = job.reply.send(Ok(TransactionOutcome::Reply(reply)));
+                }
             }
+            other => ResponsePdu::Exception {
+                function: other.function(),
+                code: ExceptionCode::ILLEGAL_FUNCTION,
+            },
         });
         let method = super::super::params::parse_method(
             "device",
@@ -1903,7 +1909,6 @@ mod tests {
     /// read goes first that would fail the whole Set.
     #[tokio::test]
     async fn device_set_of_a_write_only_narrow_value_reads_nothing_first() {
-        use crate::daemon::bus_queue::QueuedJob;
         let template = json!({
             "device_type": "write-only-u8",
             "device": {
@@ -1919,39 +1924,19 @@ mod tests {
         let config = json!({"ports": [{"path": path, "baud_rate": 115200, "stop_bits": 2,
             "devices": [{"device_type": "write-only-u8", "slave_id": 7}]}]});
         let port = first_port(&config, &library);
-        let (directory, mut jobs) = served_port(
+        let (directory, jobs) = served_port(
             path,
             port,
             LineSettings::new(115_200, crate::protocol::Parity::None, 2),
         );
-        let asked = Arc::new(std::sync::Mutex::new(Vec::new()));
-        let seen = Arc::clone(&asked);
-        tokio::spawn(async move {
-            while let Some(job) = jobs.recv().await {
-                let QueuedJob::Transaction(job) = job else {
-                    continue;
-                };
-                let request = &job.transaction.request;
-                let pdu = match &request.body {
-                    crate::protocol::RequestBody::Classic(pdu) => pdu.clone(),
-                    crate::protocol::RequestBody::Fast(_) => {
-                        let _ = job.reply.send(Ok(TransactionOutcome::NoReply));
-                        continue;
-                    }
-                };
-                seen.lock().unwrap().push(pdu.clone());
-                let answer = match pdu {
-                    RequestPdu::WriteSingleRegister { address, value } => {
-                        ResponsePdu::WriteSingleRegister { address, value }
-                    }
-                    other => ResponsePdu::Exception {
-                        function: other.function(),
-                        code: ExceptionCode::ILLEGAL_DATA_ADDRESS,
-                    },
-                };
-                let reply = Reply::classic(request.address, answer);
-                let _ = job.reply.send(Ok(TransactionOutcome::Reply(reply)));
+        let asked = answer_classic(jobs, move |pdu| match pdu {
+            RequestPdu::WriteSingleRegister { address, value } => {
+                ResponsePdu::WriteSingleRegister { address, value }
             }
+            other => ResponsePdu::Exception {
+                function: other.function(),
+                code: ExceptionCode::ILLEGAL_DATA_ADDRESS,
+            },
         });
         let method = super::super::params::parse_method(
             "device",
