@@ -17,7 +17,9 @@ use rtu2mqtt::device_updates::{DeviceUpdate, Repeats};
 use rtu2mqtt::gateway::device_model::{apply_port_events, DeviceModel};
 use rtu2mqtt::gateway::port_plan::port_plan;
 use rtu2mqtt::port::{NextStep, PortEvent, PortScheduler, RegisterSpan, RegisterWrite};
-use rtu2mqtt::protocol::{Reply, RequestBody, RequestPdu, ResponsePdu, TransactionOutcome};
+use rtu2mqtt::protocol::{
+    Reply, RequestBody, RequestPdu, ResponsePdu, Transaction, TransactionOutcome,
+};
 use serde_json::{json, Value};
 
 /// One Modbus device (slave 1) with `channels` inline and `settings` (setup …), resolved as
@@ -200,13 +202,7 @@ fn a_bit_field_write_keeps_a_bit_the_device_set_while_it_waited() {
             if written.len() >= until_writes {
                 return;
             }
-            let transaction = match scheduler.next(now) {
-                NextStep::Transmit(transaction) => transaction,
-                NextStep::Wait { until } => {
-                    now = until.max(now + Duration::from_millis(1));
-                    continue;
-                }
-            };
+            let transaction = next_transaction(scheduler, &mut now);
             let body = &transaction.request.body;
             match body {
                 RequestBody::Classic(RequestPdu::ReadHoldingRegisters { .. }) => {
@@ -305,13 +301,7 @@ fn a_value_written_one_register_at_a_time_is_published_only_whole() {
             }
             queued = true;
         }
-        let transaction = match scheduler.next(now) {
-            NextStep::Transmit(transaction) => transaction,
-            NextStep::Wait { until } => {
-                now = until.max(now + Duration::from_millis(1));
-                continue;
-            }
-        };
+        let transaction = next_transaction(&mut scheduler, &mut now);
         let body = &transaction.request.body;
         if let RequestBody::Classic(RequestPdu::WriteSingleRegister { address, value }) = body {
             written.push((*address, *value));
@@ -392,4 +382,15 @@ fn scheduled(channels: Value) -> (PortScheduler, Vec<DeviceModel>) {
         Repeats::All,
     )];
     (scheduler, models)
+}
+
+/// The scheduler's next transaction, `now` moved on through its waits.
+fn next_transaction(scheduler: &mut PortScheduler, now: &mut Duration) -> Transaction {
+    for _ in 0..10_000 {
+        match scheduler.next(*now) {
+            NextStep::Transmit(transaction) => return transaction,
+            NextStep::Wait { until } => *now = until.max(*now + Duration::from_millis(1)),
+        }
+    }
+    panic!("the scheduler sends nothing");
 }
